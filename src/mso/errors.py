@@ -1,0 +1,51 @@
+"""Errors a user can act on: each names where (file, line, field) and what was expected."""
+
+from __future__ import annotations
+
+
+class MsoError(Exception):
+    """Base class for every error mso reports to a user (CLI exit code 2, never a traceback)."""
+
+    exit_code = 2
+
+
+class SpecError(MsoError):
+    """A problem in an app or scenario definition, located as precisely as we can.
+
+    Rendered as ``file:line: field: message`` with the parts that are known.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        file: str | None = None,
+        line: int | None = None,
+        field: str | None = None,
+    ) -> None:
+        self.message = message
+        self.file = file
+        self.line = line
+        self.field = field
+        super().__init__(self.render())
+
+    def render(self) -> str:
+        where = ""
+        if self.file:
+            where = self.file + (f":{self.line}" if self.line else "") + ": "
+        elif self.line:
+            where = f"line {self.line}: "
+        field = f"{self.field}: " if self.field else ""
+        return f"{where}{field}{self.message}"
+
+
+class AppError(SpecError):
+    """The application graph is invalid."""
+
+
+class ScenarioError(SpecError):
+    """The scenario (network description) is invalid."""
+
+
+class PlanningError(MsoError):
+    """No placement satisfies the request (e.g. a pinned node is unreachable)."""

@@ -1,0 +1,369 @@
+"""The application model (paper §3.1): a directed flow graph of vertices joined by typed edges.
+
+A vertex names its code by import path (``package.module:attr``) or is given a callable directly;
+it has a relative ``cost`` (work units per event, 1 unit = 1 ms of CPU on a node of ``cpu: 1.0``),
+an optional ``pinned`` node, and optional state hooks used when it moves. Every edge carries a
+format: a ``msgspec.Struct`` type. Sources and sinks are not declared, they follow from the graph.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+
+from mso.errors import AppError
+from mso.model.imports import ImportPathError, resolve
+from mso.model.yamlfile import Located
+
+Code = str | Callable[..., Any]
+
+
+@dataclass
+class Vertex:
+    """One vertex of the flow graph: a source, an operator or a sink."""
+
+    id: str
+    code: Code | None = None
+    cost: float = 1.0
+    pinned: str | None = None
+    input: type[msgspec.Struct] | str | None = None
+    output: type[msgspec.Struct] | str | None = None
+    rate: float | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+    get_state: Code | None = None
+    set_state: Code | None = None
+
+
+@dataclass
+class Edge:
+    """A directed edge ``src -> dst``; ``format`` is the Struct type of its events."""
+
+    src: str
+    dst: str
+    format: type[msgspec.Struct] | str | None = None
+    size: int | None = None  # bytes per event, an estimate for planning and energy
+
+
+@dataclass
+class App:
+    """A validated-on-demand application graph, built in Python or loaded from YAML.
+
+    >>> app = App("fig2")
+    >>> _ = app.vertex("A", pinned="N1"); _ = app.vertex("B"); _ = app.edge("A", "B")
+    >>> app.validate().sinks()
+    ['B']
+    """
+
+    name: str
+    vertices: dict[str, Vertex] = field(default_factory=dict)
+    edges: list[Edge] = field(default_factory=list)
+    slo_ms: float | None = None
+    located: Located | None = field(default=None, compare=False, repr=False)
+
+    # -- builder -------------------------------------------------------------------------
+    def vertex(
+        self,
+        id: str,
+        code: Code | None = None,
+        *,
+        cost: float = 1.0,
+        pinned: str | None = None,
+        input: type[msgspec.Struct] | str | None = None,
+        output: type[msgspec.Struct] | str | None = None,
+        rate: float | None = None,
+        params: dict[str, Any] | None = None,
+        get_state: Code | None = None,
+        set_state: Code | None = None,
+    ) -> Vertex:
+        """Add a vertex; a duplicate id or a bad value is an AppError at once."""
+        if not isinstance(id, str) or not id:
+            raise AppError(f"expected a non-empty string vertex id, got {id!r}", field="vertices")
+        if id in self.vertices:
+            raise AppError(f"duplicate vertex id {id!r}", field=f"vertices.{id}")
+        v = Vertex(
+            id=id,
+            code=code,
+            cost=cost,
+            pinned=pinned,
+            input=input,
+            output=output,
+            rate=rate,
+            params=dict(params or {}),
+            get_state=get_state,
+            set_state=set_state,
+        )
+        _check_vertex_values(v, self._error)
+        self.vertices[id] = v
+        return v
+
+    def edge(
+        self,
+        src: str,
+        dst: str,
+        *,
+        format: type[msgspec.Struct] | str | None = None,
+        size: int | None = None,
+    ) -> Edge:
+        """Add an edge ``src -> dst``; endpoints are checked by :meth:`validate`."""
+        e = Edge(src=src, dst=dst, format=format, size=size)
+        self.edges.append(e)
+        return e
+
+    # -- graph queries -------------------------------------------------------------------
+    def successors(self) -> dict[str, list[str]]:
+        out: dict[str, list[str]] = {v: [] for v in self.vertices}
+        for e in self.edges:
+            out[e.src].append(e.dst)
+        return out
+
+    def predecessors(self) -> dict[str, list[str]]:
+        inc: dict[str, list[str]] = {v: [] for v in self.vertices}
+        for e in self.edges:
+            inc[e.dst].append(e.src)
+        return inc
+
+    def sources(self) -> list[str]:
+        has_in = {e.dst for e in self.edges}
+        return [v for v in self.vertices if v not in has_in]
+
+    def sinks(self) -> list[str]:
+        has_out = {e.src for e in self.edges}
+        return [v for v in self.vertices if v not in has_out]
+
+    def kind(self, vertex: str) -> str:
+        """``source``, ``sink``, ``operator`` or ``isolated``, from the graph."""
+        has_in = any(e.dst == vertex for e in self.edges)
+        has_out = any(e.src == vertex for e in self.edges)
+        return {
+            (False, True): "source",
+            (True, False): "sink",
+            (True, True): "operator",
+            (False, False): "isolated",
+        }[(has_in, has_out)]
+
+    def topological_order(self) -> list[str]:
+        """Vertices so that every edge goes forward; the app must be acyclic."""
+        order = _kahn(self.vertices, self.edges)
+        if len(order) != len(self.vertices):
+            raise AppError(f"the graph has a cycle: {' -> '.join(self.find_cycle())}")
+        return order
+
+    def find_cycle(self) -> list[str]:
+        """One cycle as ``[a, b, ..., a]``, or ``[]`` if the graph is acyclic."""
+        succ = self.successors()
+        color: dict[str, int] = {}
+        for start in self.vertices:
+            if color.get(start):
+                continue
+            stack: list[tuple[str, Iterator[str]]] = [(start, iter(succ[start]))]
+            path = [start]
+            color[start] = 1
+            while stack:
+                node, it = stack[-1]
+                nxt = next(it, None)
+                if nxt is None:
+                    stack.pop()
+                    path.pop()
+                    color[node] = 2
+                elif color.get(nxt) == 1:
+                    return [*path[path.index(nxt) :], nxt]
+                elif not color.get(nxt):
+                    color[nxt] = 1
+                    path.append(nxt)
+                    stack.append((nxt, iter(succ[nxt])))
+        return []
+
+    def edge_format(self, edge: Edge) -> type[msgspec.Struct] | None:
+        """The edge's format: declared on the edge, else the producer's output format."""
+        fmt = edge.format if edge.format is not None else self.vertices[edge.src].output
+        return fmt if isinstance(fmt, type) else None
+
+    # -- validation ----------------------------------------------------------------------
+    def _error(self, message: str, field: str, path: tuple[str | int, ...] = ()) -> AppError:
+        loc = self.located
+        line = loc.line(path) if loc is not None and path else None
+        return AppError(message, file=loc.file if loc else None, line=line, field=field)
+
+    def validate(self, *, resolve_code: bool = True) -> App:
+        """Check the whole graph; raise the first problem found as an AppError.
+
+        With ``resolve_code`` the import paths of code, state hooks and formats are imported
+        and replaced by what they name; planning-only commands may skip it.
+        """
+        if not isinstance(self.name, str) or not self.name:
+            raise self._error("expected a non-empty string", "name", ("name",))
+        for v in self.vertices.values():
+            _check_vertex_values(v, self._error)
+            if resolve_code:
+                self._resolve_vertex(v)
+        seen: set[tuple[str, str]] = set()
+        for i, e in enumerate(self.edges):
+            where, path = f"edges[{i}]", ("edges", i)
+            for end in (e.src, e.dst):
+                if end not in self.vertices:
+                    raise self._error(
+                        f"unknown vertex {end!r} in edge {e.src} -> {e.dst} "
+                        f"(known: {', '.join(sorted(self.vertices)) or 'none'})",
+                        where,
+                        path,
+                    )
+            if (e.src, e.dst) in seen:
+                raise self._error(f"duplicate edge {e.src} -> {e.dst}", where, path)
+            seen.add((e.src, e.dst))
+            if e.size is not None and (
+                isinstance(e.size, bool) or not isinstance(e.size, int) or e.size < 0
+            ):
+                raise self._error(
+                    f"expected a non-negative integer byte count, got {e.size!r}",
+                    f"{where}.size",
+                    (*path, "size"),
+                )
+            if resolve_code and isinstance(e.format, str):
+                e.format = self._resolve_format(e.format, f"{where}.format", (*path, "format"))
+        cycle = self.find_cycle()
+        if cycle:
+            raise self._error(f"the graph has a cycle: {' -> '.join(cycle)}", "edges", ("edges",))
+        for i, e in enumerate(self.edges):
+            self._check_formats(i, e)
+        return self
+
+    def _resolve_vertex(self, v: Vertex) -> None:
+        base = ("vertices", v.id)
+        for attr in ("code", "get_state", "set_state"):
+            value = getattr(v, attr)
+            if isinstance(value, str):
+                try:
+                    obj = resolve(value)
+                except ImportPathError as exc:
+                    raise self._error(str(exc), f"vertices.{v.id}.{attr}", (*base, attr)) from None
+                if not callable(obj):
+                    raise self._error(
+                        f"expected {value!r} to name a callable, got {type(obj).__name__}",
+                        f"vertices.{v.id}.{attr}",
+                        (*base, attr),
+                    )
+        for attr in ("input", "output"):
+            value = getattr(v, attr)
+            if isinstance(value, str):
+                setattr(
+                    v, attr, self._resolve_format(value, f"vertices.{v.id}.{attr}", (*base, attr))
+                )
+            elif value is not None and not _is_struct(value):
+                raise self._error(
+                    f"expected a msgspec.Struct type, got {value!r}",
+                    f"vertices.{v.id}.{attr}",
+                    (*base, attr),
+                )
+
+    def _resolve_format(
+        self, path: str, field: str, loc: tuple[str | int, ...]
+    ) -> type[msgspec.Struct]:
+        try:
+            obj = resolve(path)
+        except ImportPathError as exc:
+            raise self._error(str(exc), field, loc) from None
+        if not _is_struct(obj):
+            raise self._error(
+                f"expected {path!r} to name a msgspec.Struct type, got {obj!r}", field, loc
+            )
+        return obj  # type: ignore[no-any-return]
+
+    def _check_formats(self, i: int, e: Edge) -> None:
+        produced = e.format if e.format is not None else self.vertices[e.src].output
+        out = self.vertices[e.src].output
+        consumed = self.vertices[e.dst].input
+        where, path = f"edges[{i}]", ("edges", i)
+        if e.format is not None and out is not None and _fmt_name(out) != _fmt_name(e.format):
+            raise self._error(
+                f"format mismatch on {e.src} -> {e.dst}: {e.src} produces {_fmt_name(out)} "
+                f"but the edge carries {_fmt_name(e.format)}",
+                f"{where}.format",
+                (*path, "format"),
+            )
+        if (
+            produced is not None
+            and consumed is not None
+            and _fmt_name(produced) != _fmt_name(consumed)
+        ):
+            raise self._error(
+                f"format mismatch on {e.src} -> {e.dst}: {e.src} produces "
+                f"{_fmt_name(produced)} but {e.dst} consumes {_fmt_name(consumed)}",
+                where,
+                path,
+            )
+
+
+def _is_struct(obj: object) -> bool:
+    return isinstance(obj, type) and issubclass(obj, msgspec.Struct)
+
+
+def _fmt_name(fmt: type | str) -> str:
+    if isinstance(fmt, str):
+        return fmt
+    return f"{fmt.__module__}:{fmt.__qualname__}"
+
+
+def _is_number(x: object) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _check_vertex_values(v: Vertex, error: Callable[..., AppError]) -> None:
+    base = ("vertices", v.id)
+    if not _is_number(v.cost) or v.cost < 0:
+        raise error(
+            f"expected a non-negative number, got {v.cost!r}",
+            f"vertices.{v.id}.cost",
+            (*base, "cost"),
+        )
+    if v.pinned is not None and (not isinstance(v.pinned, str) or not v.pinned):
+        raise error(
+            f"expected a node id (string), got {v.pinned!r}",
+            f"vertices.{v.id}.pinned",
+            (*base, "pinned"),
+        )
+    if v.rate is not None and (not _is_number(v.rate) or v.rate <= 0):
+        raise error(
+            f"expected a positive number of events per second, got {v.rate!r}",
+            f"vertices.{v.id}.rate",
+            (*base, "rate"),
+        )
+    if not isinstance(v.params, dict):
+        raise error(
+            f"expected a mapping of parameters, got {type(v.params).__name__}",
+            f"vertices.{v.id}.params",
+            (*base, "params"),
+        )
+    for attr in ("code", "get_state", "set_state"):
+        value = getattr(v, attr)
+        if value is not None and not (isinstance(value, str) or callable(value)):
+            raise error(
+                f"expected an import path 'package.module:attr' or a callable, got {value!r}",
+                f"vertices.{v.id}.{attr}",
+                (*base, attr),
+            )
+
+
+def _kahn(vertices: Iterable[str], edges: list[Edge]) -> list[str]:
+    names = list(vertices)
+    indeg = dict.fromkeys(names, 0)
+    succ: dict[str, list[str]] = {v: [] for v in names}
+    for e in edges:
+        if e.src in succ and e.dst in indeg:
+            succ[e.src].append(e.dst)
+            indeg[e.dst] += 1
+    ready = [v for v in names if indeg[v] == 0]
+    order: list[str] = []
+    i = 0
+    while i < len(ready):
+        v = ready[i]
+        i += 1
+        order.append(v)
+        for w in succ[v]:
+            indeg[w] -= 1
+            if indeg[w] == 0:
+                ready.append(w)
+    return order

@@ -1,0 +1,115 @@
+"""Load an app from YAML into the same :class:`App` the Python builder makes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from mso.errors import AppError, SpecError
+from mso.model.app import App
+from mso.model.yamlfile import Located, load_yaml, load_yaml_file
+
+APP_KEYS = {"name", "vertices", "edges", "slo_ms"}
+VERTEX_KEYS = {
+    "code",
+    "cost",
+    "pinned",
+    "input",
+    "output",
+    "rate",
+    "params",
+    "get_state",
+    "set_state",
+}
+EDGE_KEYS = {"from", "to", "format", "size"}
+
+
+def _err(doc: Located, message: str, path: tuple[str | int, ...]) -> AppError:
+    field = ""
+    for p in path:
+        field += f"[{p}]" if isinstance(p, int) else (f".{p}" if field else str(p))
+    return AppError(message, file=doc.file, line=doc.line(path), field=field or None)
+
+
+def _unknown(
+    doc: Located, got: dict[Any, Any], allowed: set[str], path: tuple[str | int, ...]
+) -> None:
+    for key in got:
+        if key not in allowed:
+            raise _err(
+                doc,
+                f"unknown attribute {key!r} (expected one of: {', '.join(sorted(allowed))})",
+                (*path, key),
+            )
+
+
+def app_from_document(doc: Located, *, resolve_code: bool = True) -> App:
+    """Build and validate an App from a parsed YAML document."""
+    data = doc.data
+    if not isinstance(data, dict):
+        raise _err(doc, "expected a mapping with 'name', 'vertices' and 'edges'", ())
+    _unknown(doc, data, APP_KEYS, ())
+    name = data.get("name")
+    if not isinstance(name, str) or not name:
+        raise _err(doc, f"expected a non-empty string, got {name!r}", ("name",))
+    vertices = data.get("vertices")
+    if not isinstance(vertices, dict) or not vertices:
+        raise _err(doc, "expected a non-empty mapping of vertex id to attributes", ("vertices",))
+    app = App(name=name, located=doc)
+    if "slo_ms" in data:
+        slo = data["slo_ms"]
+        if isinstance(slo, bool) or not isinstance(slo, int | float) or slo <= 0:
+            raise _err(doc, f"expected a positive number of milliseconds, got {slo!r}", ("slo_ms",))
+        app.slo_ms = float(slo)
+    for vid, attrs in vertices.items():
+        path: tuple[str | int, ...] = ("vertices", vid)
+        if not isinstance(vid, str):
+            raise _err(doc, f"expected a string vertex id, got {vid!r}", path)
+        if attrs is None:
+            attrs = {}
+        if not isinstance(attrs, dict):
+            raise _err(doc, f"expected a mapping of attributes, got {attrs!r}", path)
+        _unknown(doc, attrs, VERTEX_KEYS, path)
+        try:
+            app.vertex(vid, **attrs)
+        except AppError as exc:
+            raise _err(doc, exc.message, _path_of_field(exc.field, path)) from None
+    edges = data.get("edges", [])
+    if edges is None:
+        edges = []
+    if not isinstance(edges, list):
+        raise _err(doc, "expected a list of edges", ("edges",))
+    for i, item in enumerate(edges):
+        path = ("edges", i)
+        if isinstance(item, list):
+            if len(item) != 2 or not all(isinstance(x, str) for x in item):
+                raise _err(doc, f"expected [producer, consumer], got {item!r}", path)
+            app.edge(item[0], item[1])
+        elif isinstance(item, dict):
+            _unknown(doc, item, EDGE_KEYS, path)
+            for key in ("from", "to"):
+                if not isinstance(item.get(key), str):
+                    raise _err(doc, f"expected a vertex id, got {item.get(key)!r}", (*path, key))
+            app.edge(item["from"], item["to"], format=item.get("format"), size=item.get("size"))
+        else:
+            raise _err(doc, f"expected [producer, consumer] or a mapping, got {item!r}", path)
+    return app.validate(resolve_code=resolve_code)
+
+
+def _path_of_field(field: str | None, default: tuple[str | int, ...]) -> tuple[str | int, ...]:
+    if not field:
+        return default
+    return tuple(field.split("."))
+
+
+def load_app(source: str | Path, *, resolve_code: bool = True) -> App:
+    """Load an app from a YAML file path."""
+    return app_from_document(load_yaml_file(source), resolve_code=resolve_code)
+
+
+def loads_app(text: str, *, file: str | None = None, resolve_code: bool = True) -> App:
+    """Load an app from YAML text (tests, embedded examples)."""
+    return app_from_document(load_yaml(text, file), resolve_code=resolve_code)
+
+
+__all__ = ["SpecError", "app_from_document", "load_app", "loads_app"]

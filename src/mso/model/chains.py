@@ -1,0 +1,173 @@
+"""Chain formation (paper §3.2): cut the flow graph into maximal single-entry, single-exit paths.
+
+A vertex is a *junction* unless it has exactly one incoming and one outgoing edge. Every chain
+starts at a junction (its head), runs through non-junction vertices and stops at the next
+junction (its tail), so every edge lies in exactly one chain and a junction such as D or G in
+Fig. 2 ends the chains coming in and heads the chains going out. An isolated vertex is a chain of
+one. A ring made only of non-junction vertices (impossible in a DAG) becomes one chain that starts
+and ends at its lowest-numbered edge's source.
+
+The work is O(|V| + |E| log |E|) in numpy (list ranking by pointer jumping), which keeps a
+1M-vertex graph within a few seconds; see ``bench/chains.py``.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from mso.model.app import App
+
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class Chain:
+    """A chain of vertices, head first. ``index`` is its position in formation order."""
+
+    index: int
+    vertices: tuple[str, ...]
+
+    @property
+    def head(self) -> str:
+        return self.vertices[0]
+
+    @property
+    def tail(self) -> str:
+        return self.vertices[-1]
+
+    @property
+    def name(self) -> str:
+        return "-".join(self.vertices)
+
+    def __len__(self) -> int:
+        return len(self.vertices)
+
+
+def form_chains_indexed(
+    n: int, src: Sequence[int] | IntArray, dst: Sequence[int] | IntArray
+) -> tuple[IntArray, IntArray]:
+    """Chains of a graph with vertices ``0..n-1`` and edges ``src[i] -> dst[i]``.
+
+    Returns ``(offsets, vertices)``: chain ``c`` is ``vertices[offsets[c]:offsets[c+1]]``,
+    head first. Chains are ordered by head vertex, then by the index of their first edge;
+    isolated vertices come before the edge chains that share their index (they have none).
+    """
+    s = np.asarray(src, dtype=np.int64)
+    d = np.asarray(dst, dtype=np.int64)
+    m = len(s)
+    if len(d) != m:
+        raise ValueError("src and dst must have the same length")
+    if m and (s.min() < 0 or d.min() < 0 or s.max() >= n or d.max() >= n):
+        raise ValueError("edge endpoint out of range")
+    indeg = np.bincount(d, minlength=n)
+    outdeg = np.bincount(s, minlength=n)
+    junction = (indeg != 1) | (outdeg != 1)
+    edge_ids = np.arange(m, dtype=np.int64)
+
+    # prv[e]: the edge before e in its chain (e itself when e leaves a junction).
+    in_edge = np.full(n, -1, dtype=np.int64)
+    in_edge[d] = edge_ids
+    prv = np.where(junction[s], edge_ids, in_edge[s])
+    dist = (prv != edge_ids).astype(np.int64)
+    # List ranking by pointer jumping: after k rounds prv points 2^k edges back (or at the head).
+    for _ in range(max(1, int(m).bit_length() + 1)):
+        nxt = prv[prv]
+        if np.array_equal(nxt, prv):
+            break
+        dist = dist + dist[prv]
+        prv = nxt
+    root = prv
+
+    # Rings of non-junction vertices never reach a head: walk them in Python (rare, tiny).
+    ring = ~junction[s[root]] if m else np.zeros(0, dtype=bool)
+    if ring.any():
+        out_edge = np.full(n, -1, dtype=np.int64)
+        out_edge[s] = edge_ids
+        done: set[int] = set()
+        for e0 in sorted(int(e) for e in np.flatnonzero(ring)):
+            if e0 in done:
+                continue
+            e, k = e0, 0
+            while e not in done:
+                done.add(e)
+                root[e], dist[e] = e0, k
+                k += 1
+                e = int(out_edge[d[e]])
+
+    # Order edges chain by chain (chain key = head vertex, first edge), each head first.
+    key = s[root] * (m + 1) + root
+    order = np.lexsort((dist, key))
+    starts = dist[order] == 0
+    n_edge_chains = int(starts.sum())
+    dst_pos = np.arange(m, dtype=np.int64) + np.cumsum(starts)
+    verts = np.empty(m + n_edge_chains, dtype=np.int64)
+    verts[dst_pos] = d[order]
+    head_pos = dst_pos[starts] - 1
+    verts[head_pos] = s[order[starts]]
+    chain_keys = key[order[starts]]
+
+    isolated = np.flatnonzero((indeg == 0) & (outdeg == 0)).astype(np.int64)
+    if len(isolated) == 0:
+        offsets = np.append(head_pos, len(verts)).astype(np.int64)
+        return offsets, verts
+
+    # Merge isolated vertices (chains of one) into head order.
+    all_keys = np.concatenate([chain_keys, isolated * (m + 1) - 1])
+    all_starts = np.concatenate([head_pos, len(verts) + np.arange(len(isolated))])
+    all_lens = np.concatenate([np.diff(np.append(head_pos, len(verts))), np.ones(len(isolated))])
+    pool = np.concatenate([verts, isolated])
+    perm = np.argsort(all_keys, kind="stable")
+    lens = all_lens[perm].astype(np.int64)
+    offsets = np.concatenate([[0], np.cumsum(lens)]).astype(np.int64)
+    gather = np.repeat(all_starts[perm] - offsets[:-1], lens) + np.arange(offsets[-1])
+    return offsets, pool[gather]
+
+
+def form_chains(app: App) -> list[Chain]:
+    """Partition ``app`` into chains, in a deterministic order (by head, then first edge)."""
+    names = list(app.vertices)
+    index = {v: i for i, v in enumerate(names)}
+    src = [index[e.src] for e in app.edges]
+    dst = [index[e.dst] for e in app.edges]
+    offsets, verts = form_chains_indexed(len(names), src, dst)
+    flat = [names[i] for i in verts.tolist()]
+    bounds = offsets.tolist()
+    return [Chain(c, tuple(flat[a:b])) for c, (a, b) in enumerate(itertools.pairwise(bounds))]
+
+
+def chain_dependencies(chains: Sequence[Chain]) -> list[list[int]]:
+    """For each chain, the chains leading to it: those whose tail is its head."""
+    ending_at: dict[str, list[int]] = {}
+    for c in chains:
+        if len(c) > 1:
+            ending_at.setdefault(c.tail, []).append(c.index)
+    return [[i for i in ending_at.get(c.head, []) if i != c.index] for c in chains]
+
+
+def chain_order(chains: Sequence[Chain]) -> list[int]:
+    """Chain indices in dependency order (Algorithm 1): a chain only after all leading to it."""
+    deps = chain_dependencies(chains)
+    count = [len(d) for d in deps]
+    followers: list[list[int]] = [[] for _ in chains]
+    for j, d in enumerate(deps):
+        for i in d:
+            followers[i].append(j)
+    ready = [c.index for c in chains if count[c.index] == 0]
+    order: list[int] = []
+    k = 0
+    while k < len(ready):
+        i = ready[k]
+        k += 1
+        order.append(i)
+        for j in followers[i]:
+            count[j] -= 1
+            if count[j] == 0:
+                ready.append(j)
+    if len(order) != len(chains):
+        raise ValueError("chains depend on each other in a cycle; the app graph must be a DAG")
+    return order

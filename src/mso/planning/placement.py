@@ -1,0 +1,281 @@
+"""Placement along a probed route (paper §3.3, Algorithm 1). Pure: no I/O, no clock.
+
+For each chain, in dependency order:
+
+1. Its head is already placed (pinned, placed as the tail of an earlier chain, or an unpinned
+   source put on the ``origin`` node). Vertices already placed inside the chain (pinned ones, or a
+   merge vertex an earlier chain ended at) are *anchors*; between two anchors the chain follows
+   the route from one anchor's node to the next.
+2. After the last anchor, a probe explores the route toward the furthest pinned vertex
+   downstream (normally a sink), collecting each hop's capacity.
+3. The chain is given the shortest prefix of that route whose share of the route's capacity
+   reaches the chain's share of cost: ``cost(chain) / (cost(chain) + cost(chains after it on the
+   way to that sink))`` — the paper's cost fraction.
+4. Vertices are laid along the allocated nodes in chain order, each node taking a slice of the
+   chain's cost proportional to its capacity; a vertex goes to the node its cost midpoint falls
+   in, so a chain never goes back along its route.
+
+:func:`place_chain` is the step the head's node runs in a distributed deployment with the hops a
+real probe collected; :func:`plan` runs all chains centrally for ``mso plan`` and simulations.
+"""
+
+from __future__ import annotations
+
+import bisect
+import itertools
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from mso.errors import PlanningError
+from mso.model.app import App
+from mso.model.chains import Chain, chain_order, form_chains
+from mso.model.network import Network, NodeSpec
+
+Capacity = Callable[[NodeSpec], float]
+
+
+def cpu_capacity(node: NodeSpec) -> float:
+    """The default capacity a probe reports: relative processing speed."""
+    return node.cpu
+
+
+@dataclass(frozen=True)
+class Hop:
+    """What a probe collects at one node of its route."""
+
+    node: str
+    capacity: float
+
+
+# probe(from_node, to_node) -> the hops of the route, both ends included.
+Probe = Callable[[str, str], Sequence[Hop]]
+
+
+@dataclass
+class Plan:
+    """A placement with the chains, the order they were placed in, and each chain's probe."""
+
+    placement: dict[str, str]
+    chains: list[Chain]
+    order: list[int]
+    routes: dict[int, list[str]] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "placement": dict(self.placement),
+            "chains": [list(c.vertices) for c in self.chains],
+            "order": list(self.order),
+            "routes": [self.routes.get(c.index, []) for c in self.chains],
+        }
+
+
+def allocate_prefix(capacities: Sequence[float], fraction: float) -> int:
+    """How many route nodes (from the start) a chain gets: the fewest whose capacity share
+    reaches ``fraction``; at least one."""
+    if not capacities:
+        raise ValueError("a route has at least one node")
+    total = sum(capacities)
+    if total <= 0:
+        capacities, total = [1.0] * len(capacities), float(len(capacities))
+    acc = 0.0
+    for k, c in enumerate(capacities, start=1):
+        acc += c
+        if acc / total >= fraction - 1e-9:
+            return k
+    return len(capacities)
+
+
+def assign_along(
+    costs: Sequence[float], capacities: Sequence[float], lead: float = 0.0, trail: float = 0.0
+) -> list[int]:
+    """Node index for each vertex: node j takes a slice of the total cost proportional to its
+    capacity; ``lead``/``trail`` are the costs of anchors already on the first/last node.
+    The result never decreases, so vertices never go back along the route."""
+    if not capacities:
+        raise ValueError("a route has at least one node")
+    caps = list(capacities) if sum(capacities) > 0 else [1.0] * len(capacities)
+    total_cap = sum(caps)
+    weights = list(costs)
+    if lead + sum(weights) + trail <= 0:  # all free: spread by count
+        weights, lead, trail = [1.0] * len(weights), 0.0, 0.0
+    total = lead + sum(weights) + trail
+    bounds, acc = [], 0.0
+    for c in caps:
+        acc += c
+        bounds.append(total * acc / total_cap)
+    out, pos = [], lead
+    for w in weights:
+        mid = pos + w / 2
+        out.append(min(bisect.bisect_right(bounds, mid), len(caps) - 1))
+        pos += w
+    return out
+
+
+class _Graph:
+    """Reachability helpers over an app, computed once per plan."""
+
+    def __init__(self, app: App) -> None:
+        self.succ = app.successors()
+        self.pred = app.predecessors()
+        self.order = {v: i for i, v in enumerate(app.vertices)}
+
+    def reach(self, start: str, forward: bool) -> set[str]:
+        nbrs = self.succ if forward else self.pred
+        seen, stack = {start}, [start]
+        while stack:
+            for w in nbrs[stack.pop()]:
+                if w not in seen:
+                    seen.add(w)
+                    stack.append(w)
+        return seen
+
+
+def place_chain(
+    chain: Chain,
+    cost: Mapping[str, float],
+    placed: Mapping[str, str],
+    probe: Probe,
+    *,
+    target: str | None = None,
+    downstream_cost: float = 0.0,
+) -> tuple[dict[str, str], list[str]]:
+    """Place the unplaced vertices of ``chain``; returns (assignments, the last probed route).
+
+    ``placed`` must hold the head. ``target`` is the node the final probe heads for (the node of
+    the furthest pinned vertex downstream), and ``downstream_cost`` the cost of the chains after
+    this one on the way there; with no target the free tail end stays on the last anchor's node.
+    """
+    verts = chain.vertices
+    if verts[0] not in placed:
+        raise PlanningError(f"chain {chain.name}: its head {verts[0]!r} is not placed yet")
+    out: dict[str, str] = {}
+    anchors = [i for i, v in enumerate(verts) if v in placed]
+    route: list[str] = [placed[verts[0]]]
+    for i, j in itertools.pairwise(anchors):
+        a, b = placed[verts[i]], placed[verts[j]]
+        hops = _probe(probe, a, b, chain)
+        route = [h.node for h in hops]
+        interior = verts[i + 1 : j]
+        idx = assign_along(
+            [cost[v] for v in interior],
+            [h.capacity for h in hops],
+            lead=cost[verts[i]],
+            trail=cost[verts[j]],
+        )
+        out.update({v: hops[k].node for v, k in zip(interior, idx, strict=True)})
+    last = anchors[-1]
+    rest = verts[last + 1 :]
+    if rest:
+        start = placed[verts[last]]
+        hops = _probe(probe, start, target, chain) if target is not None else [Hop(start, 1.0)]
+        route = [h.node for h in hops]
+        segment_cost = sum(cost[v] for v in verts[last:])
+        denom = segment_cost + downstream_cost
+        fraction = segment_cost / denom if denom > 0 else 1.0
+        k = allocate_prefix([h.capacity for h in hops], fraction)
+        idx = assign_along(
+            [cost[v] for v in rest], [h.capacity for h in hops[:k]], lead=cost[verts[last]]
+        )
+        out.update({v: hops[n].node for v, n in zip(rest, idx, strict=True)})
+    return out, route
+
+
+def _probe(probe: Probe, a: str, b: str, chain: Chain) -> Sequence[Hop]:
+    hops = probe(a, b)
+    if not hops:
+        raise PlanningError(f"chain {chain.name}: no route from {a} to {b}")
+    return hops
+
+
+def network_probe(network: Network, capacity: Capacity = cpu_capacity) -> Probe:
+    """A probe over a known network: the shortest route and each node's capacity."""
+
+    def probe(a: str, b: str) -> list[Hop]:
+        route = network.route(a, b)
+        if route is None:
+            return []
+        return [Hop(n, capacity(network.nodes[n])) for n in route]
+
+    return probe
+
+
+def plan(
+    app: App,
+    network: Network,
+    *,
+    capacity: Capacity = cpu_capacity,
+    origin: str | None = None,
+    probe: Probe | None = None,
+) -> Plan:
+    """Algorithm 1 run centrally: place every chain in dependency order.
+
+    ``origin`` hosts unpinned sources (default: the network's first node), as the deploying
+    node would in a distributed deployment.
+    """
+    if not network.nodes:
+        raise PlanningError("the network has no nodes")
+    origin = origin or next(iter(network.nodes))
+    if origin not in network.nodes:
+        raise PlanningError(f"origin node {origin!r} is not in the network")
+    for v in app.vertices.values():
+        if v.pinned is not None and v.pinned not in network.nodes:
+            raise PlanningError(
+                f"vertex {v.id!r} is pinned to node {v.pinned!r}, which is not in the network "
+                f"(nodes: {', '.join(network.nodes)})"
+            )
+    probe = probe or network_probe(network, capacity)
+    chains = form_chains(app)
+    order = chain_order(chains)
+    graph = _Graph(app)
+    cost = {v.id: float(v.cost) for v in app.vertices.values()}
+    placed = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
+    routes: dict[int, list[str]] = {}
+    for ci in order:
+        chain = chains[ci]
+        placed.setdefault(chain.head, origin)
+        target, downstream = _target(chain, chains, graph, placed, network, cost)
+        assigned, route = place_chain(
+            chain, cost, placed, probe, target=target, downstream_cost=downstream
+        )
+        placed.update(assigned)
+        routes[ci] = route
+    placement = {v: placed[v] for v in app.vertices}
+    return Plan(placement=placement, chains=chains, order=order, routes=routes)
+
+
+def _target(
+    chain: Chain,
+    chains: Sequence[Chain],
+    graph: _Graph,
+    placed: Mapping[str, str],
+    network: Network,
+    cost: Mapping[str, float],
+) -> tuple[str | None, float]:
+    """The node of the furthest placed vertex downstream of the chain's last anchor, and the
+    cost of the chains after this one on the way to it."""
+    verts = chain.vertices
+    last = max(i for i, v in enumerate(verts) if v in placed)
+    if last == len(verts) - 1:
+        return None, 0.0
+    start = placed[verts[last]]
+    dist = network.distances(start)
+    downstream = graph.reach(chain.tail, forward=True)
+    best: tuple[int, int, str] | None = None
+    for v in downstream:
+        node = placed.get(v)
+        if node is None or node not in dist or v in verts[: last + 1]:
+            continue
+        key = (dist[node], -graph.order[v], v)
+        if best is None or key > best:
+            best = key
+    if best is None:
+        return None, 0.0
+    target_vertex = best[2]
+    to_target = graph.reach(target_vertex, forward=False)
+    down_cost = sum(
+        sum(cost[v] for v in c.vertices)
+        for c in chains
+        if c.index != chain.index and c.head in downstream and c.tail in to_target and len(c) > 1
+    )
+    return placed[target_vertex], down_cost

@@ -1,0 +1,177 @@
+"""Scenario files: the network an app runs on (nodes, capacities, energy model, links).
+
+See docs/scenario-format.md. Links are listed explicitly, or derived from node positions and a
+radio range.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from mso.errors import ScenarioError
+from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
+from mso.model.yamlfile import Located, load_yaml, load_yaml_file
+
+SCENARIO_KEYS = {"name", "nodes", "links", "radio_range", "node_defaults", "link_defaults"}
+NODE_KEYS = {"cpu", "battery_wh", "power", "pos"}
+POWER_KEYS = {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte"}
+LINK_KEYS = {"between", "bandwidth_mbps", "delay_ms", "loss"}
+LINK_ATTRS = LINK_KEYS - {"between"}
+
+
+@dataclass
+class Scenario:
+    """A named network, loaded from a file."""
+
+    name: str
+    network: Network
+    radio_range: float | None = None
+    file: str | None = None
+
+
+class _Reader:
+    def __init__(self, doc: Located) -> None:
+        self.doc = doc
+
+    def err(self, message: str, path: tuple[str | int, ...]) -> ScenarioError:
+        field = ""
+        for p in path:
+            field += f"[{p}]" if isinstance(p, int) else (f".{p}" if field else str(p))
+        return ScenarioError(
+            message, file=self.doc.file, line=self.doc.line(path), field=field or None
+        )
+
+    def mapping(self, value: Any, allowed: set[str], path: tuple[str | int, ...]) -> dict[str, Any]:
+        if value is None:
+            return {}
+        if not isinstance(value, dict):
+            raise self.err(f"expected a mapping, got {value!r}", path)
+        for key in value:
+            if key not in allowed:
+                raise self.err(
+                    f"unknown attribute {key!r} (expected one of: {', '.join(sorted(allowed))})",
+                    (*path, key),
+                )
+        return value
+
+    def number(
+        self, value: Any, path: tuple[str | int, ...], *, low: float = 0.0, strict: bool = False
+    ) -> float:
+        ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+        if not ok or value < low or (strict and value == low):
+            bound = f"> {low:g}" if strict else f">= {low:g}"
+            raise self.err(f"expected a number {bound}, got {value!r}", path)
+        return float(value)
+
+
+def scenario_from_document(doc: Located) -> Scenario:
+    """Build a Scenario from a parsed YAML document, with located errors."""
+    r = _Reader(doc)
+    data = r.mapping(doc.data, SCENARIO_KEYS, ())
+    if not data:
+        raise r.err("expected a mapping with 'name' and 'nodes'", ())
+    name = data.get("name", Path(doc.file).stem if doc.file else "scenario")
+    if not isinstance(name, str) or not name:
+        raise r.err(f"expected a non-empty string, got {name!r}", ("name",))
+    node_defaults = r.mapping(data.get("node_defaults"), NODE_KEYS - {"pos"}, ("node_defaults",))
+    link_defaults = r.mapping(data.get("link_defaults"), LINK_ATTRS, ("link_defaults",))
+    raw_nodes = data.get("nodes")
+    if not isinstance(raw_nodes, dict) or not raw_nodes:
+        raise r.err("expected a non-empty mapping of node id to attributes", ("nodes",))
+    nodes = [
+        _node(
+            r, nid, {**node_defaults, **r.mapping(attrs, NODE_KEYS, ("nodes", nid))}, ("nodes", nid)
+        )
+        for nid, attrs in raw_nodes.items()
+    ]
+    network = Network(nodes)
+    radio_range = None
+    if "radio_range" in data:
+        radio_range = r.number(data["radio_range"], ("radio_range",), strict=True)
+    links = data.get("links")
+    if links is not None and radio_range is not None:
+        raise r.err("give either 'links' or 'radio_range', not both", ("radio_range",))
+    template = _link_attrs(r, "", "", link_defaults, ("link_defaults",))
+    if radio_range is not None:
+        for n in nodes:
+            if n.pos is None:
+                raise r.err(
+                    "a node needs 'pos: [x, y]' when the scenario has a radio_range",
+                    ("nodes", n.id),
+                )
+        network.links_from_positions(radio_range, template)
+    elif links is not None:
+        if not isinstance(links, list):
+            raise r.err("expected a list of links", ("links",))
+        for i, item in enumerate(links):
+            path: tuple[str | int, ...] = ("links", i)
+            ends: Any
+            if isinstance(item, list):
+                ends, attrs = item, {}
+            else:
+                attrs = r.mapping(item, LINK_KEYS, path)
+                ends = attrs.get("between")
+                path = (*path, "between")
+            if not (
+                isinstance(ends, list) and len(ends) == 2 and all(isinstance(e, str) for e in ends)
+            ):
+                raise r.err(f"expected a pair of node ids like [N1, N2], got {ends!r}", path)
+            for end in ends:
+                if end not in network.nodes:
+                    raise r.err(f"unknown node {end!r} (known: {', '.join(network.nodes)})", path)
+            if ends[0] == ends[1]:
+                raise r.err(f"a link joins two different nodes, got {ends!r}", path)
+            if network.link(ends[0], ends[1]) is not None:
+                raise r.err(f"duplicate link {ends[0]}-{ends[1]}", path)
+            merged = {**link_defaults, **{k: v for k, v in attrs.items() if k != "between"}}
+            network.add_link(_link_attrs(r, ends[0], ends[1], merged, ("links", i)))
+    return Scenario(name=name, network=network, radio_range=radio_range, file=doc.file)
+
+
+def _node(r: _Reader, nid: Any, attrs: dict[str, Any], path: tuple[str | int, ...]) -> NodeSpec:
+    if not isinstance(nid, str) or not nid:
+        raise r.err(f"expected a string node id, got {nid!r}", path)
+    cpu = r.number(attrs.get("cpu", 1.0), (*path, "cpu"), strict=True)
+    battery = attrs.get("battery_wh")
+    if battery is not None:
+        battery = r.number(battery, (*path, "battery_wh"), strict=True)
+    p = r.mapping(attrs.get("power"), POWER_KEYS, (*path, "power"))
+    power = PowerModel(**{k: r.number(v, (*path, "power", k)) for k, v in p.items()})
+    pos = attrs.get("pos")
+    if pos is not None:
+        if not (isinstance(pos, list) and len(pos) == 2):
+            raise r.err(f"expected a position [x, y], got {pos!r}", (*path, "pos"))
+        pos = (
+            r.number(pos[0], (*path, "pos"), low=-math.inf),
+            r.number(pos[1], (*path, "pos"), low=-math.inf),
+        )
+    return NodeSpec(id=nid, cpu=cpu, battery_wh=battery, power=power, pos=pos)
+
+
+def _link_attrs(
+    r: _Reader, a: str, b: str, attrs: dict[str, Any], path: tuple[str | int, ...]
+) -> LinkSpec:
+    bw = attrs.get("bandwidth_mbps")
+    loss = r.number(attrs.get("loss", 0.0), (*path, "loss"))
+    if loss >= 1.0:
+        raise r.err(f"expected a loss probability in [0, 1), got {loss!r}", (*path, "loss"))
+    return LinkSpec(
+        a,
+        b,
+        bandwidth_mbps=None if bw is None else r.number(bw, (*path, "bandwidth_mbps"), strict=True),
+        delay_ms=r.number(attrs.get("delay_ms", 0.0), (*path, "delay_ms")),
+        loss=loss,
+    )
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Load a scenario YAML file."""
+    return scenario_from_document(load_yaml_file(path))
+
+
+def loads_scenario(text: str, *, file: str | None = None) -> Scenario:
+    """Load a scenario from YAML text."""
+    return scenario_from_document(load_yaml(text, file))
