@@ -229,12 +229,13 @@ def plan(
     order = chain_order(chains)
     graph = _Graph(app)
     cost = {v.id: float(v.cost) for v in app.vertices.values()}
-    placed = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
+    pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
+    placed = dict(pinned)
     routes: dict[int, list[str]] = {}
     for ci in order:
         chain = chains[ci]
         placed.setdefault(chain.head, origin)
-        target, downstream = _target(chain, chains, graph, placed, network, cost)
+        target, downstream = _target(chain, chains, graph, placed, pinned, network, cost)
         assigned, route = place_chain(
             chain, cost, placed, probe, target=target, downstream_cost=downstream
         )
@@ -249,11 +250,15 @@ def _target(
     chains: Sequence[Chain],
     graph: _Graph,
     placed: Mapping[str, str],
+    pinned: Mapping[str, str],
     network: Network,
     cost: Mapping[str, float],
 ) -> tuple[str | None, float]:
-    """The node of the furthest placed vertex downstream of the chain's last anchor, and the
-    cost of the chains after this one on the way to it."""
+    """The node of the furthest pinned vertex downstream of the chain's last anchor, and the
+    cost of the chains after this one on the way to it.
+
+    Only pinned vertices count: they are known to every node before deployment starts, so a
+    distributed deployment, where chains are placed concurrently, reaches the same answer."""
     verts = chain.vertices
     last = max(i for i, v in enumerate(verts) if v in placed)
     if last == len(verts) - 1:
@@ -263,7 +268,7 @@ def _target(
     downstream = graph.reach(chain.tail, forward=True)
     best: tuple[int, int, str] | None = None
     for v in downstream:
-        node = placed.get(v)
+        node = pinned.get(v)
         if node is None or node not in dist or v in verts[: last + 1]:
             continue
         key = (dist[node], -graph.order[v], v)
@@ -278,4 +283,4 @@ def _target(
         for c in chains
         if c.index != chain.index and c.head in downstream and c.tail in to_target and len(c) > 1
     )
-    return placed[target_vertex], down_cost
+    return pinned[target_vertex], down_cost

@@ -1,0 +1,124 @@
+"""The `mso` command: JSON outputs, the demo, and clear one-line errors with exit code 2."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from mso.cli import main
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples"
+
+
+def run(*args: str) -> tuple[int, str, str]:
+    result = CliRunner().invoke(main, list(args))
+    return result.exit_code, result.stdout, result.stderr
+
+
+def test_chains_json_fig2() -> None:
+    code, out, _ = run("chains", str(EXAMPLES / "fig2.yaml"), "--json")
+    assert code == 0
+    assert json.loads(out) == {
+        "chains": [
+            ["A", "B", "C", "D"],
+            ["D", "E"],
+            ["F", "G"],
+            ["G", "D"],
+            ["G", "H", "I"],
+        ]
+    }
+
+
+def test_plan_json_section33() -> None:
+    code, out, _ = run(
+        "plan",
+        str(EXAMPLES / "section33.yaml"),
+        "--scenario",
+        str(EXAMPLES / "line4.yaml"),
+        "--json",
+    )
+    assert code == 0
+    doc = json.loads(out)
+    placement = doc["placement"]
+    assert placement["A"] == "N1" and placement["F"] == "N4"
+    # A-B-C-D is allocated N1-N2-N3 (paper §3.3): D must not reach N4.
+    assert {placement[v] for v in "BCD"} <= {"N1", "N2", "N3"}
+    assert placement["D"] == "N3"
+    chains = [tuple(c) for c in doc["chains"]]
+    order = [chains[i] for i in doc["order"]]
+    assert order.index(("A", "B", "C", "D")) < order.index(("D", "F"))
+    assert order.index(("E", "D")) < order.index(("D", "F"))
+
+
+def test_minimal_yaml_is_enough_for_planning(tmp_path: Path) -> None:
+    app = tmp_path / "fig2.yaml"
+    app.write_text("name: fig2\nvertices:\n  A: {pinned: N1}\n  B: {}\nedges:\n  - [A, B]\n")
+    code, out, _ = run("plan", str(app), "--scenario", str(EXAMPLES / "line4.yaml"), "--json")
+    assert code == 0
+    assert json.loads(out)["placement"] == {"A": "N1", "B": "N1"}
+
+
+def test_demo_prints_chains_and_placement_on_every_node() -> None:
+    code, out, _ = run("demo")
+    assert code == 0
+    for node in ("N1", "N2", "N3", "N4"):
+        assert f"@{node}" in out
+    assert "laser@N1" in out and "storage@N4" in out
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        (
+            "name: x\nvertices:\n  A: {cost: -1}\n",
+            "bad.yaml:3: vertices.A.cost: expected a non-negative",
+        ),
+        (
+            "name: x\nvertices:\n  A: {}\nedges:\n  - [A, Z]\n",
+            "bad.yaml:5: edges[0]: unknown vertex 'Z'",
+        ),
+        ("name: x\nvertices: [1, 2\n", "bad.yaml:3: malformed YAML"),
+        (
+            "name: x\nvertices:\n  A: {colour: red}\n",
+            "bad.yaml:3: vertices.A.colour: unknown attribute",
+        ),
+    ],
+)
+def test_bad_app_is_one_line_and_exit_2(tmp_path: Path, text: str, expected: str) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    code, out, err = run("chains", str(bad))
+    assert code == 2
+    assert out == ""
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert expected in err
+
+
+def test_bad_scenario_is_reported(tmp_path: Path) -> None:
+    scen = tmp_path / "scen.yaml"
+    scen.write_text("nodes:\n  N1: {}\n  N2: {cpu: 0}\nlinks:\n  - [N1, N2]\n")
+    code, _, err = run("plan", str(EXAMPLES / "fig2.yaml"), "--scenario", str(scen))
+    assert code == 2
+    assert "scen.yaml:3: nodes.N2.cpu: expected a number > 0, got 0" in err
+
+
+def test_unknown_pinned_node_is_a_planning_error() -> None:
+    code, _, err = run(
+        "plan",
+        str(EXAMPLES / "convoy.yaml"),
+        "--scenario",
+        str(EXAMPLES / "line4.yaml"),
+        "--origin",
+        "N9",
+    )
+    assert code == 2
+    assert "N9" in err
+
+
+def test_missing_file() -> None:
+    code, _, err = run("validate", "/nonexistent/app.yaml")
+    assert code == 2
+    assert "cannot read file" in err
