@@ -29,7 +29,7 @@ from typing import Any
 
 from mso.errors import PlanningError
 from mso.model.app import App
-from mso.model.chains import Chain, chain_order, form_chains
+from mso.model.chains import Chain, chain_dependencies, chain_order, form_chains
 from mso.model.network import Network, NodeSpec
 
 Capacity = Callable[[NodeSpec], float]
@@ -200,6 +200,122 @@ def network_probe(network: Network, capacity: Capacity = cpu_capacity) -> Probe:
     return probe
 
 
+class Layout:
+    """What every node derives from the app document alone, identically: the chains, their
+    order and deployment dependencies, costs and pinned vertices.
+
+    A chain is deployed once every chain ending at its head has been placed (Algorithm 1) and,
+    when its tail is a merge vertex, once that vertex's *placer* (the first chain in order ending
+    there) has placed it; so chains placed concurrently on different nodes reach the same
+    placement as the central :func:`plan`.
+    """
+
+    def __init__(self, app: App, origin: str) -> None:
+        self.app = app
+        self.origin = origin
+        self.chains = form_chains(app)
+        self.order = chain_order(self.chains)
+        self.graph = _Graph(app)
+        self.cost = {v.id: float(v.cost) for v in app.vertices.values()}
+        self.pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
+        rank = {ci: k for k, ci in enumerate(self.order)}
+        placer: dict[str, int] = {}
+        for c in sorted(self.chains, key=lambda c: rank[c.index]):
+            if len(c) > 1:
+                placer.setdefault(c.tail, c.index)
+        self.placer = placer
+        self.deps: list[set[int]] = []
+        for c, leading in zip(self.chains, chain_dependencies(self.chains), strict=True):
+            d = set(leading)
+            p = placer.get(c.tail)
+            if p is not None and p != c.index and c.tail not in self.pinned:
+                d.add(p)
+            self.deps.append(d)
+
+    def initial_placement(self) -> dict[str, str]:
+        """Pinned vertices, and unpinned heads no chain leads to (sources) on the origin."""
+        placed = dict(self.pinned)
+        ends = {c.tail for c in self.chains if len(c) > 1}
+        for c in self.chains:
+            if c.head not in ends:
+                placed.setdefault(c.head, self.origin)
+        return placed
+
+    def ready(self, chain: int, placed_chains: set[int]) -> bool:
+        return self.deps[chain] <= placed_chains
+
+    def target(
+        self, chain: int, placed: Mapping[str, str], distances: Mapping[str, int]
+    ) -> tuple[str | None, float]:
+        """The node of the furthest pinned vertex downstream of the chain's last anchor (by
+        ``distances``, hops from that anchor's node), and the cost of the chains after this one
+        on the way to it.
+
+        Only pinned vertices count: every node knows them before deployment starts."""
+        c = self.chains[chain]
+        verts = c.vertices
+        last = max(i for i, v in enumerate(verts) if v in placed)
+        if last == len(verts) - 1:
+            return None, 0.0
+        downstream = self.graph.reach(c.tail, forward=True)
+        best: tuple[int, int, str] | None = None
+        for v in downstream:
+            node = self.pinned.get(v)
+            if node is None or node not in distances or v in verts[: last + 1]:
+                continue
+            key = (distances[node], -self.graph.order[v], v)
+            if best is None or key > best:
+                best = key
+        if best is None:
+            return None, 0.0
+        to_target = self.graph.reach(best[2], forward=False)
+        down_cost = sum(
+            sum(self.cost[v] for v in o.vertices)
+            for o in self.chains
+            if o.index != chain and o.head in downstream and o.tail in to_target and len(o) > 1
+        )
+        return self.pinned[best[2]], down_cost
+
+    def last_anchor_node(self, chain: int, placed: Mapping[str, str]) -> str:
+        verts = self.chains[chain].vertices
+        return placed[max((v for v in verts if v in placed), key=verts.index)]
+
+    def probes_needed(
+        self, chain: int, placed: Mapping[str, str], target: str | None
+    ) -> list[tuple[str, str]]:
+        """The (from, to) routes :meth:`place` will ask its probe for, in order."""
+        verts = self.chains[chain].vertices
+        anchors = [i for i, v in enumerate(verts) if v in placed]
+        pairs = [
+            (placed[verts[i]], placed[verts[j]])
+            for i, j in itertools.pairwise(anchors)
+            if j > i + 1
+        ]
+        if anchors[-1] < len(verts) - 1 and target is not None:
+            pairs.append((placed[verts[anchors[-1]]], target))
+        return pairs
+
+    def place(
+        self,
+        chain: int,
+        placed: Mapping[str, str],
+        probe: Probe,
+        distances: Mapping[str, int],
+    ) -> tuple[dict[str, str], list[str]]:
+        """Place one chain whose dependencies are met: (assignments incl. anchors, route)."""
+        target, downstream = self.target(chain, placed, distances)
+        assigned, route = place_chain(
+            self.chains[chain],
+            self.cost,
+            placed,
+            probe,
+            target=target,
+            downstream_cost=downstream,
+        )
+        full = {v: assigned.get(v) or placed[v] for v in self.chains[chain].vertices}
+        return full, route
+
+
 def plan(
     app: App,
     network: Network,
@@ -211,7 +327,7 @@ def plan(
     """Algorithm 1 run centrally: place every chain in dependency order.
 
     ``origin`` hosts unpinned sources (default: the network's first node), as the deploying
-    node would in a distributed deployment.
+    node does in a distributed deployment.
     """
     if not network.nodes:
         raise PlanningError("the network has no nodes")
@@ -225,62 +341,13 @@ def plan(
                 f"(nodes: {', '.join(network.nodes)})"
             )
     probe = probe or network_probe(network, capacity)
-    chains = form_chains(app)
-    order = chain_order(chains)
-    graph = _Graph(app)
-    cost = {v.id: float(v.cost) for v in app.vertices.values()}
-    pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
-    placed = dict(pinned)
+    layout = Layout(app, origin)
+    placed = layout.initial_placement()
     routes: dict[int, list[str]] = {}
-    for ci in order:
-        chain = chains[ci]
-        placed.setdefault(chain.head, origin)
-        target, downstream = _target(chain, chains, graph, placed, pinned, network, cost)
-        assigned, route = place_chain(
-            chain, cost, placed, probe, target=target, downstream_cost=downstream
-        )
+    for ci in layout.order:
+        start = layout.last_anchor_node(ci, placed)
+        assigned, route = layout.place(ci, placed, probe, network.distances(start))
         placed.update(assigned)
         routes[ci] = route
     placement = {v: placed[v] for v in app.vertices}
-    return Plan(placement=placement, chains=chains, order=order, routes=routes)
-
-
-def _target(
-    chain: Chain,
-    chains: Sequence[Chain],
-    graph: _Graph,
-    placed: Mapping[str, str],
-    pinned: Mapping[str, str],
-    network: Network,
-    cost: Mapping[str, float],
-) -> tuple[str | None, float]:
-    """The node of the furthest pinned vertex downstream of the chain's last anchor, and the
-    cost of the chains after this one on the way to it.
-
-    Only pinned vertices count: they are known to every node before deployment starts, so a
-    distributed deployment, where chains are placed concurrently, reaches the same answer."""
-    verts = chain.vertices
-    last = max(i for i, v in enumerate(verts) if v in placed)
-    if last == len(verts) - 1:
-        return None, 0.0
-    start = placed[verts[last]]
-    dist = network.distances(start)
-    downstream = graph.reach(chain.tail, forward=True)
-    best: tuple[int, int, str] | None = None
-    for v in downstream:
-        node = pinned.get(v)
-        if node is None or node not in dist or v in verts[: last + 1]:
-            continue
-        key = (dist[node], -graph.order[v], v)
-        if best is None or key > best:
-            best = key
-    if best is None:
-        return None, 0.0
-    target_vertex = best[2]
-    to_target = graph.reach(target_vertex, forward=False)
-    down_cost = sum(
-        sum(cost[v] for v in c.vertices)
-        for c in chains
-        if c.index != chain.index and c.head in downstream and c.tail in to_target and len(c) > 1
-    )
-    return pinned[target_vertex], down_cost
+    return Plan(placement=placement, chains=layout.chains, order=layout.order, routes=routes)

@@ -1,0 +1,134 @@
+"""Authenticated, length-prefixed frames on one stream connection. Sans-IO: bytes in, bytes out.
+
+A connection starts with each side sending a 20-byte hello: ``b"MSO1"`` and a fresh random
+16-byte nonce. Each direction then has its own key, ``blake2b(key=psk, data=b"mso1" + sender
+nonce + receiver nonce)``, and every frame is::
+
+    u32 length (big endian, of what follows) | 16-byte tag | payload
+
+with ``tag = blake2b(key=direction key, data=u64 frame counter + payload, digest_size=16)``. The
+counter is implicit (0, 1, 2, ... per direction), so a frame replayed, reordered or copied from
+another connection fails its tag; a receiver's fresh nonce makes every connection's keys new.
+A frame whose tag fails is dropped and counted, never acted on, and the stream goes on; a length
+beyond ``max_frame`` or a bad hello means the byte stream itself is not ours, and the connection
+must be closed (``FramingError``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import os
+import struct
+
+MAGIC = b"MSO1"
+NONCE_BYTES = 16
+HELLO_BYTES = len(MAGIC) + NONCE_BYTES
+TAG_BYTES = 16
+MAX_FRAME = 16 * 1024 * 1024
+_LEN = struct.Struct(">I")
+_CTR = struct.Struct(">Q")
+
+
+class FramingError(Exception):
+    """The stream cannot be framed any more (bad hello, oversized frame): close it."""
+
+
+def derive_key(psk: bytes, sender_nonce: bytes, receiver_nonce: bytes) -> bytes:
+    return hashlib.blake2b(
+        b"mso1" + sender_nonce + receiver_nonce, key=psk[:64], digest_size=32
+    ).digest()
+
+
+def psk_from_text(text: str) -> bytes:
+    """Overlay keys are given as text (flag, file); hash to a fixed-size secret."""
+    return hashlib.blake2b(text.encode(), person=b"mso-overlay-key", digest_size=32).digest()
+
+
+class FrameCodec:
+    """Both directions of one connection: :meth:`hello` first, then :meth:`seal` / :meth:`feed`.
+
+    Counters: ``rejected`` frames whose tag failed; ``accepted`` frames delivered.
+    """
+
+    def __init__(self, psk: bytes, *, max_frame: int = MAX_FRAME, nonce: bytes | None = None):
+        if not psk:
+            raise ValueError("an overlay key is required")
+        self._psk = psk
+        self._max = max_frame
+        self._nonce = nonce if nonce is not None else os.urandom(NONCE_BYTES)
+        self._tx_key: bytes | None = None
+        self._rx_key: bytes | None = None
+        self._tx_ctr = 0
+        self._rx_ctr = 0
+        self._buf = bytearray()
+        self._pending: list[bytes] = []  # sealed before the peer's hello arrived
+        self.rejected = 0
+        self.accepted = 0
+
+    @property
+    def ready(self) -> bool:
+        return self._rx_key is not None
+
+    def hello(self) -> bytes:
+        return MAGIC + self._nonce
+
+    def seal(self, payload: bytes) -> bytes:
+        """One frame for ``payload``; before the peer's hello it is queued (returns b"")."""
+        if self._tx_key is None:
+            self._pending.append(bytes(payload))
+            return b""
+        return self._seal(payload)
+
+    def _seal(self, payload: bytes) -> bytes:
+        assert self._tx_key is not None
+        tag = hashlib.blake2b(
+            _CTR.pack(self._tx_ctr) + payload, key=self._tx_key, digest_size=TAG_BYTES
+        ).digest()
+        self._tx_ctr += 1
+        return _LEN.pack(TAG_BYTES + len(payload)) + tag + payload
+
+    def feed(self, data: bytes) -> tuple[list[bytes], bytes]:
+        """Consume received bytes; return (authenticated payloads, bytes to send now).
+
+        The bytes to send are frames sealed before the handshake completed.
+        """
+        self._buf += data
+        out: list[bytes] = []
+        flush = b""
+        if self._rx_key is None:
+            if len(self._buf) < HELLO_BYTES:
+                return out, flush
+            if bytes(self._buf[: len(MAGIC)]) != MAGIC:
+                raise FramingError("peer did not send an mso hello")
+            peer_nonce = bytes(self._buf[len(MAGIC) : HELLO_BYTES])
+            del self._buf[:HELLO_BYTES]
+            self._rx_key = derive_key(self._psk, peer_nonce, self._nonce)
+            self._tx_key = derive_key(self._psk, self._nonce, peer_nonce)
+            flush = b"".join(self._seal(p) for p in self._pending)
+            self._pending.clear()
+        buf = self._buf
+        pos = 0
+        n = len(buf)
+        while n - pos >= 4:
+            (length,) = _LEN.unpack_from(buf, pos)
+            if length < TAG_BYTES or length > self._max + TAG_BYTES:
+                raise FramingError(f"frame length {length} out of range")
+            if n - pos - 4 < length:
+                break
+            start = pos + 4
+            tag = bytes(buf[start : start + TAG_BYTES])
+            payload = bytes(buf[start + TAG_BYTES : start + length])
+            pos = start + length
+            expect = hashlib.blake2b(
+                _CTR.pack(self._rx_ctr) + payload, key=self._rx_key, digest_size=TAG_BYTES
+            ).digest()
+            if not hmac.compare_digest(tag, expect):
+                self.rejected += 1
+                continue
+            self._rx_ctr += 1
+            self.accepted += 1
+            out.append(payload)
+        if pos:
+            del buf[:pos]
+        return out, flush

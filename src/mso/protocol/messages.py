@@ -1,0 +1,215 @@
+"""Every message nodes exchange: one tagged msgspec union, validated on decode.
+
+A frame's payload is an :class:`Envelope` (source node, destination node, hop limit) around a
+body that stays raw msgpack while it is relayed, so a node forwarding multi-hop traffic never
+decodes it. The destination decodes the body as :data:`Message`; anything that does not decode
+into one of these types is dropped and counted. Nothing received is ever unpickled, and vertex
+code is only ever named here by the import paths in an app document, never shipped.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+
+
+class Envelope(msgspec.Struct, array_like=True):
+    src: str
+    dst: str
+    ttl: int
+    body: msgspec.Raw
+
+
+class _Msg(msgspec.Struct, tag_field="t", array_like=True):
+    pass
+
+
+# -- link level (neighbour to neighbour) -----------------------------------------------------
+class PeerHello(_Msg, tag="hello"):
+    """First message on a node-to-node connection: who is speaking."""
+
+    node: str
+
+
+class ClientHello(_Msg, tag="client"):
+    """First message from a CLI or API client connection."""
+
+    name: str
+
+
+# -- data plane ------------------------------------------------------------------------------
+class Data(_Msg, tag="data"):
+    """Events ``seq, seq+1, ...`` on one edge instance, encoded with the edge's format."""
+
+    app: str
+    edge: int
+    epoch: int
+    seq: int
+    events: list[bytes]
+
+
+class Ack(_Msg, tag="ack"):
+    """Cumulative: every event of the edge instance below ``upto`` has been processed."""
+
+    app: str
+    edge: int
+    epoch: int
+    upto: int
+
+
+# -- deployment (Algorithm 1) ----------------------------------------------------------------
+class AppAnnounce(_Msg, tag="announce"):
+    """The app document and the deploying node, sent to every node before placement."""
+
+    app: str
+    origin: str
+    document: str
+
+
+class Probe(_Msg, tag="probe"):
+    """Travels hop by hop toward ``target``; each hop appends its capacity."""
+
+    app: str
+    chain: int
+    requester: str
+    target: str
+    nodes: list[str]
+    capacities: list[float]
+
+
+class ProbeReply(_Msg, tag="probe_reply"):
+    app: str
+    chain: int
+    nodes: list[str]
+    capacities: list[float]
+
+
+class ChainPlaced(_Msg, tag="placed"):
+    """A chain's placement, broadcast so every node knows the whole mapping."""
+
+    app: str
+    chain: int
+    assignments: dict[str, str]
+
+
+class BuildChain(_Msg, tag="build"):
+    """From a chain head's node to each node hosting part of the chain: create its vertices."""
+
+    app: str
+    chain: int
+    vertices: list[str]
+
+
+class ChainPartReady(_Msg, tag="part_ready"):
+    app: str
+    chain: int
+    node: str
+
+
+class ChainBuilt(_Msg, tag="built"):
+    """From a chain head's node to the origin: the chain's overlay exists."""
+
+    app: str
+    chain: int
+
+
+class StartApp(_Msg, tag="start"):
+    """The overlay is complete: sources may emit."""
+
+    app: str
+
+
+class StopApp(_Msg, tag="stop"):
+    app: str
+
+
+class DeployFailed(_Msg, tag="deploy_failed"):
+    app: str
+    reason: str
+
+
+# -- requests from clients -------------------------------------------------------------------
+class DeployRequest(_Msg, tag="deploy"):
+    document: str
+    file: str = "<app>"
+
+
+class DeployReply(_Msg, tag="deploy_reply"):
+    app: str
+    ok: bool
+    placement: dict[str, str]
+    elapsed_ms: float
+    error: str = ""
+
+
+class StatusRequest(_Msg, tag="status"):
+    pass
+
+
+class StatusReply(_Msg, tag="status_reply"):
+    node: str
+    status: dict[str, Any]
+
+
+# -- emulator control ------------------------------------------------------------------------
+class LinkState(_Msg, tag="links"):
+    """From the emulator controller: current neighbours (address, link shape) and routes."""
+
+    version: int
+    neighbours: dict[str, list[Any]]  # node -> [host, port, bandwidth_mbps|None, delay_ms, loss]
+    routes: dict[str, str]  # destination -> next hop
+
+
+class Shutdown(_Msg, tag="shutdown"):
+    pass
+
+
+Message = (
+    PeerHello
+    | ClientHello
+    | Data
+    | Ack
+    | AppAnnounce
+    | Probe
+    | ProbeReply
+    | ChainPlaced
+    | BuildChain
+    | ChainPartReady
+    | ChainBuilt
+    | StartApp
+    | StopApp
+    | DeployFailed
+    | DeployRequest
+    | DeployReply
+    | StatusRequest
+    | StatusReply
+    | LinkState
+    | Shutdown
+)
+
+_ENVELOPE_DECODER = msgspec.msgpack.Decoder(Envelope)
+_MESSAGE_DECODER: msgspec.msgpack.Decoder[Message] = msgspec.msgpack.Decoder(Message)
+_ENCODER = msgspec.msgpack.Encoder()
+
+
+def encode(msg: Message) -> bytes:
+    return _ENCODER.encode(msg)
+
+
+def decode(data: bytes | msgspec.Raw) -> Message:
+    """Decode and validate a message body; raises msgspec.DecodeError/ValidationError."""
+    return _MESSAGE_DECODER.decode(data)
+
+
+def wrap(src: str, dst: str, msg: Message, ttl: int = 32) -> bytes:
+    return _ENCODER.encode(Envelope(src, dst, ttl, msgspec.Raw(_ENCODER.encode(msg))))
+
+
+def unwrap(data: bytes) -> Envelope:
+    return _ENVELOPE_DECODER.decode(data)
+
+
+def rewrap(env: Envelope) -> bytes:
+    """Re-encode an envelope for the next hop (ttl already decremented); the body stays raw."""
+    return _ENCODER.encode(env)
