@@ -22,6 +22,7 @@ class OutChannel:
     window: int = 4096
     next_seq: int = 0
     acked: int = 0  # every seq below this is acknowledged
+    waiting_since: float = 0.0  # when the oldest unacknowledged event started waiting
 
     def __post_init__(self) -> None:
         self._unacked: deque[bytes] = deque()
@@ -33,14 +34,16 @@ class OutChannel:
     def can_send(self) -> bool:
         return self.in_flight < self.window
 
-    def push(self, payload: bytes) -> int:
+    def push(self, payload: bytes, now: float = 0.0) -> int:
         """Number a new event and keep it until acknowledged; returns its sequence number."""
         seq = self.next_seq
+        if seq == self.acked:
+            self.waiting_since = now
         self._unacked.append(payload)
         self.next_seq += 1
         return seq
 
-    def on_ack(self, upto: int) -> int:
+    def on_ack(self, upto: int, now: float = 0.0) -> int:
         """Release events below ``upto``; returns how many were released (0 for a stale ack)."""
         if upto > self.next_seq:
             raise ValueError(f"ack for {upto} beyond the last event sent ({self.next_seq - 1})")
@@ -48,7 +51,13 @@ class OutChannel:
         for _ in range(released):
             self._unacked.popleft()
         self.acked += released
+        if released:
+            self.waiting_since = now
         return released
+
+    def overdue(self, now: float, timeout: float) -> bool:
+        """Events have waited ``timeout`` with no ack progress: time to send them again."""
+        return self.in_flight > 0 and now - self.waiting_since >= timeout
 
     def unacked(self, start: int | None = None) -> tuple[int, list[bytes]]:
         """``(first seq, events)`` still unacknowledged from ``start`` (default: all)."""

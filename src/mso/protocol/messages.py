@@ -72,6 +72,7 @@ class Probe(_Msg, tag="probe"):
 
     app: str
     chain: int
+    segment: int
     requester: str
     target: str
     nodes: list[str]
@@ -81,6 +82,7 @@ class Probe(_Msg, tag="probe"):
 class ProbeReply(_Msg, tag="probe_reply"):
     app: str
     chain: int
+    segment: int
     nodes: list[str]
     capacities: list[float]
 
@@ -144,12 +146,15 @@ class DeployReply(_Msg, tag="deploy_reply"):
 
 
 class StatusRequest(_Msg, tag="status"):
-    pass
+    """``everywhere``: the receiving node gathers every node's status before replying."""
+
+    req: int = 0
+    everywhere: bool = False
 
 
 class StatusReply(_Msg, tag="status_reply"):
-    node: str
-    status: dict[str, Any]
+    req: int
+    nodes: dict[str, Any]
 
 
 # -- emulator control ------------------------------------------------------------------------
@@ -158,7 +163,7 @@ class LinkState(_Msg, tag="links"):
 
     version: int
     neighbours: dict[str, list[Any]]  # node -> [host, port, bandwidth_mbps|None, delay_ms, loss]
-    routes: dict[str, str]  # destination -> next hop
+    routes: dict[str, list[Any]]  # destination -> [next hop, hops]
 
 
 class Shutdown(_Msg, tag="shutdown"):

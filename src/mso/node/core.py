@@ -1,0 +1,613 @@
+"""The node core: one node's tables and its part in every distributed procedure. Sans-IO.
+
+Fed ``(message, now)``, ``(timer, now)`` or a client request; returns effects (send a message to
+a node, reply to a client, set a timer). It never reads a clock or a socket: the asyncio driver
+(``mso.node.driver``) supplies real time and connections, a simulator can supply virtual ones.
+
+Deployment (Algorithm 1, distributed): the origin announces the app to every node; each node
+derives the same :class:`~mso.planning.placement.Layout`; the node holding a ready chain's head
+probes toward the chain's target hop by hop, places the chain with the shared placement code,
+broadcasts the placement (which activates the chains that depended on it), and builds the
+chain's overlay by asking each node on it to host its vertices. When every chain is built the
+origin starts the sources.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+
+from mso.errors import MsoError
+from mso.model.app import App, Edge
+from mso.model.appfile import loads_app
+from mso.node.stone import Stone
+from mso.planning.placement import Hop, Layout
+from mso.protocol import messages as m
+from mso.protocol.channel import InChannel, OutChannel
+
+
+@dataclass(frozen=True)
+class Send:
+    """Send ``msg`` to node ``dst`` (routed hop by hop by the driver)."""
+
+    dst: str
+    msg: m.Message
+
+
+@dataclass(frozen=True)
+class Reply:
+    """Answer the client connection ``client``."""
+
+    client: int
+    msg: m.Message
+
+
+@dataclass(frozen=True)
+class SetTimer:
+    key: tuple[Any, ...]
+    at: float
+
+
+Effect = Send | Reply | SetTimer
+
+ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
+RETRANSMIT_S = 0.25
+SOURCE_BURST = 256  # events a rate-less source emits per turn
+
+
+@dataclass
+class Deployment:
+    """One app on this node: the shared layout, what is placed, what runs here."""
+
+    app: App
+    layout: Layout
+    origin: str
+    placed: dict[str, str]
+    placed_chains: set[int] = field(default_factory=set)
+    started_chains: set[int] = field(default_factory=set)
+    probes: dict[int, dict[int, list[Hop]]] = field(default_factory=dict)
+    probes_expected: dict[int, int] = field(default_factory=dict)
+    parts_pending: dict[int, set[str]] = field(default_factory=dict)
+    stones: dict[str, Stone] = field(default_factory=dict)
+    out: dict[int, OutChannel] = field(default_factory=dict)
+    inc: dict[int, InChannel] = field(default_factory=dict)
+    decoders: dict[int, msgspec.msgpack.Decoder[Any]] = field(default_factory=dict)
+    running: bool = False
+    started_at: float = 0.0
+    # at the origin only
+    built: set[int] = field(default_factory=set)
+    client: int | None = None
+    requested_at: float = 0.0
+    out_edges: dict[str, list[int]] = field(default_factory=dict)
+    edge_events: dict[int, int] = field(default_factory=dict)
+
+
+class NodeCore:
+    """One node's state machine."""
+
+    def __init__(
+        self,
+        node_id: str,
+        *,
+        capacity: float = 1.0,
+        cpu_clock: Callable[[], float] = time.thread_time,
+        window: int = 4096,
+    ) -> None:
+        self.id = node_id
+        self.capacity = capacity
+        self.cpu_clock = cpu_clock
+        self.window = window
+        self.routes: dict[str, tuple[str, int]] = {}  # destination -> (next hop, hops)
+        self.apps: dict[str, Deployment] = {}
+        self.dropped_messages = 0
+        self._effects: list[Effect] = []
+        self._work: deque[tuple[str, str, m.Message]] = deque()
+        self._events: deque[tuple[Deployment, int, bytes]] = deque()
+        self._outbox: dict[tuple[str, int], tuple[int, list[bytes]]] = {}
+        self._status_req = 0
+        self._now = 0.0
+        self._deploy_clients: dict[str, tuple[int, float]] = {}
+        self._status_wait: dict[int, tuple[int, dict[str, Any], set[str]]] = {}
+
+    # -- entry points -----------------------------------------------------------------------
+    def set_routes(self, routes: dict[str, tuple[str, int]]) -> None:
+        self.routes = {d: r for d, r in routes.items() if d != self.id}
+
+    def known_nodes(self) -> list[str]:
+        return sorted({self.id, *self.routes})
+
+    def receive(self, src: str, msg: m.Message, now: float) -> list[Effect]:
+        self._work.append((src, "", msg))
+        return self._run(now)
+
+    def request(self, client: int, msg: m.Message, now: float) -> list[Effect]:
+        """A request from a client connection (CLI, API, emulator controller)."""
+        if isinstance(msg, m.DeployRequest):
+            self._deploy_request(client, msg, now)
+        elif isinstance(msg, m.StatusRequest):
+            self._status_request(client, msg, now)
+        else:
+            self.dropped_messages += 1
+        return self._run(now)
+
+    def on_timer(self, key: tuple[Any, ...], now: float) -> list[Effect]:
+        kind = key[0]
+        if kind == "source":
+            self._source_tick(key[1], key[2], now)
+        elif kind == "retransmit":
+            self._retransmit(key[1], now)
+        elif kind == "status":
+            self._status_done(key[1])
+        return self._run(now)
+
+    # -- the loop ---------------------------------------------------------------------------
+    def _send(self, dst: str, msg: m.Message) -> None:
+        if dst == self.id:
+            self._work.append((self.id, "", msg))
+        else:
+            self._effects.append(Send(dst, msg))
+
+    def _broadcast(self, msg: m.Message) -> None:
+        for n in self.known_nodes():
+            self._send(n, msg)
+
+    def _run(self, now: float) -> list[Effect]:
+        self._now = now
+        while self._work or self._events:
+            while self._work:
+                src, _, msg = self._work.popleft()
+                try:
+                    self._dispatch(src, msg, now)
+                except MsoError:
+                    self.dropped_messages += 1
+            while self._events and not self._work:
+                dep, edge, payload = self._events.popleft()
+                self._process(dep, edge, payload, now)
+        self._flush()
+        out, self._effects = self._effects, []
+        return out
+
+    def _dispatch(self, src: str, msg: m.Message, now: float) -> None:
+        if isinstance(msg, m.Data):
+            self._on_data(msg)
+        elif isinstance(msg, m.Ack):
+            self._on_ack(msg, now)
+        elif isinstance(msg, m.AppAnnounce):
+            self._on_announce(msg, now)
+        elif isinstance(msg, m.Probe):
+            self._on_probe(msg)
+        elif isinstance(msg, m.ProbeReply):
+            self._on_probe_reply(msg)
+        elif isinstance(msg, m.ChainPlaced):
+            self._on_placed(msg)
+        elif isinstance(msg, m.BuildChain):
+            self._on_build(src, msg)
+        elif isinstance(msg, m.ChainPartReady):
+            self._on_part_ready(msg)
+        elif isinstance(msg, m.ChainBuilt):
+            self._on_built(msg, now)
+        elif isinstance(msg, m.StartApp):
+            self._on_start(msg, now)
+        elif isinstance(msg, m.StopApp):
+            self.apps.pop(msg.app, None)
+        elif isinstance(msg, m.DeployFailed):
+            self._on_deploy_failed(msg, now)
+        elif isinstance(msg, m.StatusRequest):
+            self._send(src, m.StatusReply(req=msg.req, nodes={self.id: self.status(now)}))
+        elif isinstance(msg, m.StatusReply):
+            self._on_status_reply(msg)
+        else:
+            self.dropped_messages += 1
+
+    # -- deployment -------------------------------------------------------------------------
+    def _deploy_request(self, client: int, req: m.DeployRequest, now: float) -> None:
+        try:
+            app = loads_app(req.document, file=req.file)
+        except MsoError as exc:
+            self._effects.append(Reply(client, _failed_reply("", str(exc))))
+            return
+        if app.name in self.apps:
+            reply = _failed_reply(app.name, f"an app named {app.name!r} is already deployed")
+            self._effects.append(Reply(client, reply))
+            return
+        known = set(self.known_nodes())
+        for v in app.vertices.values():
+            if v.pinned is not None and v.pinned not in known:
+                reason = (
+                    f"vertex {v.id!r} is pinned to node {v.pinned!r}, which is not reachable "
+                    f"(reachable: {', '.join(sorted(known))})"
+                )
+                self._effects.append(Reply(client, _failed_reply(app.name, reason)))
+                return
+        self._deploy_clients[app.name] = (client, now)
+        self._broadcast(m.AppAnnounce(app=app.name, origin=self.id, document=req.document))
+
+    def _on_announce(self, msg: m.AppAnnounce, now: float) -> None:
+        if msg.app in self.apps:
+            return
+        try:
+            app = loads_app(msg.document, file=f"<{msg.app}>")
+        except MsoError as exc:
+            self._send(msg.origin, m.DeployFailed(app=msg.app, reason=f"{self.id}: {exc}"))
+            return
+        layout = Layout(app, msg.origin)
+        dep = Deployment(
+            app=app, layout=layout, origin=msg.origin, placed=layout.initial_placement()
+        )
+        for i, e in enumerate(app.edges):
+            dep.out_edges.setdefault(e.src, []).append(i)
+        if msg.origin == self.id and msg.app in self._deploy_clients:
+            dep.client, dep.requested_at = self._deploy_clients.pop(msg.app)
+        self.apps[msg.app] = dep
+        self._start_ready_chains(dep)
+
+    def _distances(self) -> dict[str, int]:
+        d = {n: hops for n, (_, hops) in self.routes.items()}
+        d[self.id] = 0
+        return d
+
+    def _start_ready_chains(self, dep: Deployment) -> None:
+        lay = dep.layout
+        for ci in lay.order:
+            if ci in dep.started_chains or not lay.ready(ci, dep.placed_chains):
+                continue
+            head = lay.chains[ci].head
+            if dep.placed.get(head) != self.id:
+                continue
+            dep.started_chains.add(ci)
+            target, _ = lay.target(ci, dep.placed, self._distances())
+            pairs = lay.probes_needed(ci, dep.placed, target)
+            dep.probes[ci] = {}
+            if not pairs:
+                self._place(dep, ci)
+                continue
+            dep.probes_expected[ci] = len(pairs)
+            for k, (a, b) in enumerate(pairs):
+                self._send(a, m.Probe(dep.app.name, ci, k, self.id, b, [], []))
+
+    def _on_probe(self, msg: m.Probe) -> None:
+        msg.nodes.append(self.id)
+        msg.capacities.append(self.capacity)
+        if msg.target == self.id:
+            reply = m.ProbeReply(msg.app, msg.chain, msg.segment, msg.nodes, msg.capacities)
+            self._send(msg.requester, reply)
+            return
+        nxt = self.routes.get(msg.target)
+        if nxt is None:
+            reply = m.ProbeReply(msg.app, msg.chain, msg.segment, [], [])
+            self._send(msg.requester, reply)
+            return
+        self._effects.append(Send(nxt[0], msg))  # the next hop appends itself in turn
+
+    def _on_probe_reply(self, msg: m.ProbeReply) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or msg.chain not in dep.probes:
+            return
+        got = dep.probes[msg.chain]
+        got[msg.segment] = [Hop(n, c) for n, c in zip(msg.nodes, msg.capacities, strict=False)]
+        if len(got) == dep.probes_expected.get(msg.chain):
+            self._place(dep, msg.chain)
+
+    def _place(self, dep: Deployment, ci: int) -> None:
+        lay = dep.layout
+        hops_by_pair: dict[tuple[str, str], list[Hop]] = {}
+        dep.probes_expected.pop(ci, None)
+        for hops in dep.probes.pop(ci, {}).values():
+            if hops:
+                hops_by_pair[(hops[0].node, hops[-1].node)] = hops
+
+        def probe(a: str, b: str) -> list[Hop]:
+            return hops_by_pair.get((a, b), [])
+
+        try:
+            assigned, _ = lay.place(ci, dep.placed, probe, self._distances())
+        except MsoError as exc:
+            self._send(dep.origin, m.DeployFailed(dep.app.name, f"{self.id}: {exc}"))
+            return
+        self._broadcast(m.ChainPlaced(dep.app.name, ci, assigned))
+
+    def _on_placed(self, msg: m.ChainPlaced) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or msg.chain in dep.placed_chains:
+            return
+        dep.placed.update(msg.assignments)
+        dep.placed_chains.add(msg.chain)
+        chain = dep.layout.chains[msg.chain]
+        if msg.assignments.get(chain.head) == self.id and msg.chain in dep.started_chains:
+            by_node: dict[str, list[str]] = {}
+            for v in chain.vertices:
+                by_node.setdefault(msg.assignments[v], []).append(v)
+            dep.parts_pending[msg.chain] = set(by_node)
+            for node, verts in by_node.items():
+                self._send(node, m.BuildChain(dep.app.name, msg.chain, verts))
+        self._start_ready_chains(dep)
+
+    def _on_build(self, src: str, msg: m.BuildChain) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None:
+            return
+        for vid in msg.vertices:
+            if vid not in dep.stones:
+                try:
+                    dep.stones[vid] = Stone(dep.app.vertices[vid], dep.app.kind(vid))
+                except Exception as exc:  # user code failing at construction
+                    self._send(dep.origin, m.DeployFailed(dep.app.name, f"{self.id}: {vid}: {exc}"))
+                    return
+        self._send(src, m.ChainPartReady(msg.app, msg.chain, self.id))
+
+    def _on_part_ready(self, msg: m.ChainPartReady) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or msg.chain not in dep.parts_pending:
+            return
+        pending = dep.parts_pending[msg.chain]
+        pending.discard(msg.node)
+        if not pending:
+            del dep.parts_pending[msg.chain]
+            self._send(dep.origin, m.ChainBuilt(msg.app, msg.chain))
+
+    def _on_built(self, msg: m.ChainBuilt, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or dep.origin != self.id:
+            return
+        dep.built.add(msg.chain)
+        if len(dep.built) == len(dep.layout.chains):
+            self._broadcast(m.StartApp(msg.app))
+            if dep.client is not None:
+                elapsed = (now - dep.requested_at) * 1e3
+                reply = m.DeployReply(msg.app, True, dict(dep.placed), elapsed)
+                self._effects.append(Reply(dep.client, reply))
+                dep.client = None
+
+    def _on_deploy_failed(self, msg: m.DeployFailed, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or dep.origin != self.id:
+            return
+        if dep.client is not None:
+            self._effects.append(Reply(dep.client, _failed_reply(msg.app, msg.reason)))
+            dep.client = None
+        self._broadcast(m.StopApp(msg.app))
+
+    def _on_start(self, msg: m.StartApp, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or dep.running:
+            return
+        dep.running = True
+        dep.started_at = now
+        for vid, stone in dep.stones.items():
+            if stone.kind == "source":
+                self._effects.append(SetTimer(("source", msg.app, vid), now))
+        self._effects.append(SetTimer(("retransmit", msg.app), now + RETRANSMIT_S))
+
+    # -- data plane -------------------------------------------------------------------------
+    def _out(self, dep: Deployment, edge: int) -> OutChannel:
+        ch = dep.out.get(edge)
+        if ch is None:
+            ch = dep.out[edge] = OutChannel(window=self.window)
+        return ch
+
+    def _source_tick(self, app: str, vid: str, now: float) -> None:
+        dep = self.apps.get(app)
+        if dep is None or not dep.running or vid not in dep.stones:
+            return
+        stone = dep.stones[vid]
+        edges = dep.out_edges.get(vid, [])
+        rate = stone.vertex.rate
+        burst = 1 if rate else SOURCE_BURST
+        for _ in range(burst):
+            if not all(self._out(dep, e).can_send() for e in edges):
+                break  # backpressure: a full window holds the source back
+            t0 = self.cpu_clock()
+            try:
+                event = stone.fn(stone.emitted, now)
+            except Exception as exc:
+                stone.errors += 1
+                stone.last_error = f"{type(exc).__name__}: {exc}"
+                event = None
+            stone.cpu_s += self.cpu_clock() - t0
+            stone.emitted += 1
+            if event is not None:
+                self._emit(dep, edges, event)
+        at = now + (1.0 / rate if rate else 0.0)
+        self._effects.append(SetTimer(("source", app, vid), at))
+
+    def _emit(self, dep: Deployment, edges: Iterable[int], event: Any) -> None:
+        payload = msgspec.msgpack.encode(event)
+        for e in edges:
+            seq = self._out(dep, e).push(payload, self._now)
+            dep.edge_events[e] = dep.edge_events.get(e, 0) + 1
+            dst_node = dep.placed[dep.app.edges[e].dst]
+            if dst_node == self.id:
+                self._deliver(dep, e, seq, [payload])
+            else:
+                key = (dep.app.name, e)
+                batch = self._outbox.get(key)
+                if batch is None:
+                    self._outbox[key] = (seq, [payload])
+                else:
+                    batch[1].append(payload)
+
+    def _deliver(self, dep: Deployment, edge: int, seq: int, events: list[bytes]) -> None:
+        ch = dep.inc.get(edge)
+        if ch is None:
+            ch = dep.inc[edge] = InChannel()
+        for payload in ch.accept(seq, events):
+            self._events.append((dep, edge, payload))
+
+    def _on_data(self, msg: m.Data) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            self.dropped_messages += 1
+            return
+        if dep.app.edges[msg.edge].dst not in dep.stones:
+            self.dropped_messages += 1
+            return
+        self._deliver(dep, msg.edge, msg.seq, msg.events)
+
+    def _decoder(self, dep: Deployment, edge: int) -> msgspec.msgpack.Decoder[Any]:
+        dec = dep.decoders.get(edge)
+        if dec is None:
+            fmt = dep.app.edge_format(dep.app.edges[edge])
+            dec = dep.decoders[edge] = msgspec.msgpack.Decoder(fmt if fmt is not None else Any)
+        return dec
+
+    def _process(self, dep: Deployment, edge: int, payload: bytes, now: float) -> None:
+        e: Edge = dep.app.edges[edge]
+        stone = dep.stones.get(e.dst)
+        ch = dep.inc[edge]
+        if stone is None:
+            return
+        try:
+            event = self._decoder(dep, edge).decode(payload)
+        except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+            stone.errors += 1
+            stone.last_error = f"undecodable event on {e.src} -> {e.dst}: {exc}"
+            ch.mark_processed()
+            return
+        t0 = self.cpu_clock()
+        try:
+            result = stone.fn(event)
+        except Exception as exc:
+            stone.errors += 1
+            stone.last_error = f"{type(exc).__name__}: {exc}"
+            result = None
+        stone.cpu_s += self.cpu_clock() - t0
+        stone.processed += 1
+        ch.mark_processed()
+        if result is not None and stone.kind != "sink":
+            outs = result if isinstance(result, list) else [result]
+            edges = dep.out_edges.get(e.dst, [])
+            for out in outs:
+                stone.emitted += 1
+                self._emit(dep, edges, out)
+        if ch.processed - ch._acked >= ACK_EVERY:
+            self._ack(dep, edge)
+
+    def _ack(self, dep: Deployment, edge: int) -> None:
+        upto = dep.inc[edge].ack_due()
+        if upto is None:
+            return
+        src_node = dep.placed[dep.app.edges[edge].src]
+        ack = m.Ack(dep.app.name, edge, 0, upto)
+        if src_node == self.id:
+            self._out(dep, edge).on_ack(upto, self._now)
+        else:
+            self._effects.append(Send(src_node, ack))
+
+    def _on_ack(self, msg: m.Ack, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or msg.edge not in dep.out:
+            self.dropped_messages += 1
+            return
+        try:
+            dep.out[msg.edge].on_ack(msg.upto, now)
+        except ValueError:
+            self.dropped_messages += 1
+
+    def _flush(self) -> None:
+        for (app, edge), (seq, events) in self._outbox.items():
+            dep = self.apps[app]
+            dst = dep.placed[dep.app.edges[edge].dst]
+            self._effects.append(Send(dst, m.Data(app, edge, 0, seq, events)))
+        self._outbox.clear()
+        for dep in self.apps.values():
+            for edge, ch in dep.inc.items():
+                if ch.processed != ch._acked:
+                    self._ack(dep, edge)
+
+    def _retransmit(self, app: str, now: float) -> None:
+        """Go-back-N: resend what has waited a whole period without any ack progress."""
+        dep = self.apps.get(app)
+        if dep is None or not dep.running:
+            return
+        for edge, ch in dep.out.items():
+            if ch.overdue(now, RETRANSMIT_S):
+                dst = dep.placed[dep.app.edges[edge].dst]
+                first, events = ch.unacked()
+                if dst == self.id:
+                    self._deliver(dep, edge, first, events)
+                else:
+                    self._effects.append(Send(dst, m.Data(app, edge, 0, first, events)))
+                ch.waiting_since = now
+        self._effects.append(SetTimer(("retransmit", app), now + RETRANSMIT_S))
+
+    # -- status -----------------------------------------------------------------------------
+    def status(self, now: float) -> dict[str, Any]:
+        apps: dict[str, Any] = {}
+        for name, dep in self.apps.items():
+            up = max(now - dep.started_at, 1e-9) if dep.running else 0.0
+            edges = {}
+            for i, e in enumerate(dep.app.edges):
+                if i in dep.out or i in dep.inc:
+                    inc = dep.inc.get(i)
+                    out = dep.out.get(i)
+                    sent = out.next_seq if out else 0
+                    edges[f"{e.src}->{e.dst}"] = {
+                        "sent": sent,
+                        "delivered": inc.expected if inc else 0,
+                        "duplicates": inc.duplicates if inc else 0,
+                        "in_flight": out.in_flight if out else 0,
+                        "events_per_s": (sent / up) if up else 0.0,
+                    }
+            apps[name] = {
+                "running": dep.running,
+                "origin": dep.origin,
+                "placement": dict(dep.placed),
+                "chains": [list(c.vertices) for c in dep.layout.chains],
+                "vertices": {
+                    vid: {
+                        "kind": s.kind,
+                        "processed": s.processed,
+                        "emitted": s.emitted,
+                        "errors": s.errors,
+                        "cpu_s": s.cpu_s,
+                        "last_error": s.last_error,
+                    }
+                    for vid, s in dep.stones.items()
+                },
+                "edges": edges,
+            }
+        return {
+            "node": self.id,
+            "routes": {d: list(r) for d, r in sorted(self.routes.items())},
+            "neighbours": sorted(n for n, (hop, _) in self.routes.items() if hop == n),
+            "apps": apps,
+            "dropped_messages": self.dropped_messages,
+        }
+
+    def _status_request(self, client: int, req: m.StatusRequest, now: float) -> None:
+        mine = {self.id: self.status(now)}
+        others = [n for n in self.known_nodes() if n != self.id]
+        if not req.everywhere or not others:
+            self._effects.append(Reply(client, m.StatusReply(req.req, mine)))
+            return
+        self._status_req += 1
+        rid = self._status_req
+        self._status_wait[rid] = (client, mine, set(others))
+        for n in others:
+            self._send(n, m.StatusRequest(req=rid))
+        self._effects.append(SetTimer(("status", rid), now + 1.0))
+
+    def _on_status_reply(self, msg: m.StatusReply) -> None:
+        wait = self._status_wait.get(msg.req)
+        if wait is None:
+            return
+        _client, got, missing = wait
+        got.update(msg.nodes)
+        missing.difference_update(msg.nodes)
+        if not missing:
+            self._status_done(msg.req)
+
+    def _status_done(self, rid: int) -> None:
+        wait = self._status_wait.pop(rid, None)
+        if wait is not None:
+            client, got, _ = wait
+            self._effects.append(Reply(client, m.StatusReply(rid, got)))
+
+
+def _failed_reply(app: str, reason: str) -> m.DeployReply:
+    return m.DeployReply(app=app, ok=False, placement={}, elapsed_ms=0.0, error=reason)
