@@ -6,6 +6,7 @@ exits with code 2; a traceback means a bug in mso.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 from collections.abc import Callable
@@ -174,3 +175,307 @@ def _demo() -> None:
     )
     result = plan(app, scenario.network)
     render_plan(console, app, scenario, result)
+
+
+# -- the running system ----------------------------------------------------------------------
+key_option = click.option(
+    "--key", envvar="MSO_KEY", help="Overlay pre-shared key (default: $MSO_KEY, else a dev key)."
+)
+
+
+def _resolve_via(via: str | None) -> str:
+    """A node id of the running emulator, or HOST:PORT."""
+    from mso.emu.controller import STATE_FILE, emulator_address
+
+    if via is None:
+        try:
+            nodes = json.loads(STATE_FILE.read_text())["nodes"]
+        except (OSError, ValueError, KeyError):
+            raise MsoError(
+                "no --via given and no emulator running; pass --via HOST:PORT or a node id"
+            ) from None
+        return str(next(iter(nodes.values())))
+    if ":" in via:
+        return via
+    addr = emulator_address(via)
+    if addr is None:
+        raise MsoError(f"unknown node {via!r}: no running emulator knows it; use HOST:PORT")
+    return addr
+
+
+@main.command()
+@click.option("--id", "node_id", required=True, help="This node's id, e.g. N1.")
+@click.option("--listen", default="127.0.0.1:7000", show_default=True, help="HOST:PORT to serve.")
+@click.option("--cpu", type=float, default=1.0, show_default=True, help="Relative CPU speed.")
+@click.option(
+    "--peer",
+    "peers",
+    multiple=True,
+    help="A static neighbour NODE=HOST:PORT (repeat); without it the emulator sets neighbours.",
+)
+@key_option
+@click.option("-v", "--verbose", is_flag=True)
+def node(
+    node_id: str, listen: str, cpu: float, peers: tuple[str, ...], key: str | None, verbose: bool
+) -> None:
+    """Run the identical mso daemon of one device."""
+    _node(node_id, listen, cpu, peers, key, verbose)
+
+
+@_user_errors
+def _node(
+    node_id: str, listen: str, cpu: float, peers: tuple[str, ...], key: str | None, verbose: bool
+) -> None:
+    import asyncio
+    import logging
+
+    from mso.client import overlay_key, parse_address
+    from mso.node.core import NodeCore
+    from mso.node.driver import NodeDriver
+    from mso.protocol import messages as m
+
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format=f"%(asctime)s {node_id} %(levelname)s %(message)s",
+    )
+    host, port = parse_address(listen)
+    if cpu <= 0:
+        raise MsoError(f"--cpu: expected a number > 0, got {cpu:g}")
+    static: dict[str, list[Any]] = {}
+    for p in peers:
+        name, _, addr = p.partition("=")
+        if not name or not addr:
+            raise MsoError(f"--peer: expected NODE=HOST:PORT, got {p!r}")
+        phost, pport = parse_address(addr)
+        static[name] = [phost, pport, None, 0.0, 0.0]
+
+    async def serve() -> None:
+        driver = NodeDriver(NodeCore(node_id, capacity=cpu), host, port, overlay_key(key))
+        try:
+            await driver.start()
+        except OSError as exc:
+            raise MsoError(f"cannot listen on {listen}: {exc.strerror}") from None
+        if static:
+            routes: dict[str, list[Any]] = {n: [n, 1] for n in static}
+            driver.apply_links(m.LinkState(version=0, neighbours=static, routes=routes))
+        await driver.stopped.wait()
+
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(serve())
+
+
+@main.command()
+@click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--via", help="Node to deploy from: a node id of the running emulator or HOST:PORT.")
+@key_option
+@click.option("--json", "as_json", is_flag=True)
+def deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> None:
+    """Deploy an app from any node (distributed Algorithm 1)."""
+    _deploy(app_file, via, key, as_json)
+
+
+@_user_errors
+def _deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> None:
+    import asyncio
+
+    from mso.client import request
+    from mso.protocol import messages as m
+
+    load_app(app_file)  # report file errors here, with their lines, before sending anything
+    document = app_file.read_text(encoding="utf-8")
+    address = _resolve_via(via)
+    reply = asyncio.run(
+        request(address, m.DeployRequest(document, str(app_file)), key=key, timeout=30)
+    )
+    if not isinstance(reply, m.DeployReply) or not reply.ok:
+        raise MsoError(f"deployment failed: {getattr(reply, 'error', reply)}")
+    if as_json:
+        click.echo(
+            json.dumps(
+                {"app": reply.app, "placement": reply.placement, "mapping_ms": reply.elapsed_ms}
+            )
+        )
+        return
+    click.echo(f"deployed {reply.app} in {reply.elapsed_ms:.1f} ms")
+    for v, n in reply.placement.items():
+        click.echo(f"  {v:<20} {n}")
+
+
+@main.command()
+@click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@key_option
+@click.option("--json", "as_json", is_flag=True)
+def status(via: str | None, key: str | None, as_json: bool) -> None:
+    """Nodes, neighbours, chains, placement, events per edge, traffic, CPU per vertex."""
+    _status(via, key, as_json)
+
+
+@_user_errors
+def _status(via: str | None, key: str | None, as_json: bool) -> None:
+    import asyncio
+
+    from mso.client import request
+    from mso.protocol import messages as m
+
+    reply = asyncio.run(request(_resolve_via(via), m.StatusRequest(everywhere=True), key=key))
+    if not isinstance(reply, m.StatusReply):
+        raise MsoError(f"unexpected reply {reply!r}")
+    if as_json:
+        click.echo(json.dumps(reply.nodes, sort_keys=True))
+        return
+    render_status(_console(), reply.nodes)
+
+
+def render_status(console: Console, nodes: dict[str, Any]) -> None:
+    """Per node: neighbours, traffic, hosted vertices with their counters; per app: edges."""
+    table = Table(title="nodes")
+    for col in ("node", "neighbours", "bytes in", "bytes out", "forwarded", "rejected", "vertices"):
+        table.add_column(col)
+    apps: dict[str, dict[str, Any]] = {}
+    for nid in sorted(nodes):
+        st = nodes[nid]
+        traffic = st.get("traffic", {})
+        hosted = []
+        for name, app in st.get("apps", {}).items():
+            apps.setdefault(
+                name, {"placement": app["placement"], "chains": app["chains"], "edges": {}}
+            )
+            for e, c in app["edges"].items():
+                apps[name]["edges"].setdefault(e, {}).update(
+                    {k: v for k, v in c.items() if v or k not in apps[name]["edges"].get(e, {})}
+                )
+            hosted += [
+                f"{v} ({s['processed'] or s['emitted']} ev, {s['cpu_s'] * 1e3:.0f} ms cpu)"
+                for v, s in app["vertices"].items()
+            ]
+        table.add_row(
+            nid,
+            ", ".join(st.get("neighbours", [])) or "-",
+            str(traffic.get("bytes_in", 0)),
+            str(traffic.get("bytes_out", 0)),
+            str(traffic.get("bytes_forwarded", 0)),
+            str(traffic.get("frames_rejected", 0)),
+            "\n".join(hosted) or "-",
+        )
+    console.print(table)
+    for name, app in apps.items():
+        et = Table(title=f"app {name}: edges")
+        for col in ("edge", "producer@node", "sent", "delivered", "dup", "events/s"):
+            et.add_column(col)
+        for e, c in app["edges"].items():
+            src = e.split("->")[0]
+            et.add_row(
+                e,
+                f"{src}@{app['placement'].get(src, '?')}",
+                str(c.get("sent", 0)),
+                str(c.get("delivered", 0)),
+                str(c.get("duplicates", 0)),
+                f"{c.get('events_per_s', 0.0):.1f}",
+            )
+        console.print(et)
+
+
+@main.command()
+@click.argument("scenario_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--app", "app_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--duration", type=float, default=None, help="Seconds to run (default: until Ctrl-C)."
+)
+@click.option("--via", help="Node to deploy from (default: the first node).")
+@click.option(
+    "--convergence", type=float, default=0.0, show_default=True,
+    help="Seconds routes take to follow a link change.",
+)  # fmt: skip
+@key_option
+@click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
+def emulate(
+    scenario_file: Path,
+    app_file: Path | None,
+    duration: float | None,
+    via: str | None,
+    convergence: float,
+    key: str | None,
+    as_json: bool,
+) -> None:
+    """Run a scenario as one local process per node (user-space MANET emulator)."""
+    _emulate(scenario_file, app_file, duration, via, convergence, key, as_json)
+
+
+@_user_errors
+def _emulate(
+    scenario_file: Path,
+    app_file: Path | None,
+    duration: float | None,
+    via: str | None,
+    convergence: float,
+    key: str | None,
+    as_json: bool,
+) -> None:
+    import asyncio
+
+    from mso.emu.controller import Emulator
+
+    scenario = load_scenario(scenario_file)
+    app = load_app(app_file) if app_file is not None else None
+    if duration is not None and duration <= 0:
+        raise MsoError(f"--duration: expected a number of seconds > 0, got {duration:g}")
+    console = _console()
+
+    async def run() -> dict[str, Any]:
+        emu = Emulator(scenario, key=key, convergence_s=convergence)
+        await emu.start()
+        loop = asyncio.get_running_loop()
+        try:
+            console.print(
+                f"emulating {scenario.name}: {len(emu.nodes)} node processes "
+                + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)
+            )
+            t0 = loop.time()
+            changes = asyncio.create_task(emu.play_changes(t0))
+            if app is not None and app_file is not None:
+                origin = via or next(iter(emu.nodes))
+                reply = await emu.deploy(
+                    app_file.read_text(encoding="utf-8"), str(app_file), origin
+                )
+                if not reply.ok:
+                    raise MsoError(f"deployment failed: {reply.error}")
+                console.print(f"deployed {reply.app} from {origin} in {reply.elapsed_ms:.1f} ms")
+                mapping = Table(title="vertex → node")
+                mapping.add_column("vertex")
+                mapping.add_column("node")
+                for v, n in reply.placement.items():
+                    mapping.add_row(v, n)
+                console.print(mapping)
+            end = None if duration is None else t0 + duration
+            while end is None or loop.time() < end:
+                await asyncio.sleep(min(2.0, max(0.0, (end or 1e18) - loop.time())))
+                if app is not None:
+                    nodes = await emu.status()
+                    console.print(f"t={loop.time() - t0:5.1f}s  " + _sink_line(nodes, app.name))
+            changes.cancel()
+            return await emu.status()
+        finally:
+            await emu.stop()
+
+    try:
+        final = asyncio.run(run())
+    except KeyboardInterrupt:
+        console.print("interrupted: every node process was stopped")
+        return
+    if as_json:
+        click.echo(json.dumps(final, sort_keys=True))
+        return
+    console.print("\n[bold]summary[/bold]")
+    render_status(console, final)
+
+
+def _sink_line(nodes: dict[str, Any], app: str) -> str:
+    parts = []
+    for st in nodes.values():
+        a = st.get("apps", {}).get(app)
+        if a is None:
+            continue
+        for v, s in a["vertices"].items():
+            if s["kind"] == "sink":
+                parts.append(f"{v}@{st['node']}: {s['processed']} events")
+    return ", ".join(parts) or "no sink yet"

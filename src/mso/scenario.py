@@ -7,7 +7,7 @@ radio range.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -15,21 +15,42 @@ from mso.errors import ScenarioError
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
 from mso.model.yamlfile import Located, load_yaml, load_yaml_file
 
-SCENARIO_KEYS = {"name", "nodes", "links", "radio_range", "node_defaults", "link_defaults"}
+SCENARIO_KEYS = {
+    "name",
+    "nodes",
+    "links",
+    "radio_range",
+    "node_defaults",
+    "link_defaults",
+    "changes",
+}
+CHANGE_KEYS = {"at", "down", "up"}
 NODE_KEYS = {"cpu", "battery_wh", "power", "pos"}
 POWER_KEYS = {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte"}
 LINK_KEYS = {"between", "bandwidth_mbps", "delay_ms", "loss"}
 LINK_ATTRS = LINK_KEYS - {"between"}
 
 
+@dataclass(frozen=True)
+class LinkChange:
+    """A scripted link change: at ``at`` seconds the link between ``a`` and ``b`` goes up/down."""
+
+    at: float
+    a: str
+    b: str
+    up: bool
+    link: LinkSpec | None = None
+
+
 @dataclass
 class Scenario:
-    """A named network, loaded from a file."""
+    """A named network, loaded from a file, with its scripted link changes."""
 
     name: str
     network: Network
     radio_range: float | None = None
     file: str | None = None
+    changes: list[LinkChange] = field(default_factory=list)
 
 
 class _Reader:
@@ -128,7 +149,41 @@ def scenario_from_document(doc: Located) -> Scenario:
                 raise r.err(f"duplicate link {ends[0]}-{ends[1]}", path)
             merged = {**link_defaults, **{k: v for k, v in attrs.items() if k != "between"}}
             network.add_link(_link_attrs(r, ends[0], ends[1], merged, ("links", i)))
-    return Scenario(name=name, network=network, radio_range=radio_range, file=doc.file)
+    changes = _changes(r, data.get("changes"), network, template)
+    return Scenario(
+        name=name, network=network, radio_range=radio_range, file=doc.file, changes=changes
+    )
+
+
+def _changes(r: _Reader, raw: Any, network: Network, template: LinkSpec) -> list[LinkChange]:
+    if raw is None:
+        return []
+    if not isinstance(raw, list):
+        raise r.err("expected a list of {at: SECONDS, down: [A, B]} or {at, up}", ("changes",))
+    out: list[LinkChange] = []
+    for i, item in enumerate(raw):
+        path: tuple[str | int, ...] = ("changes", i)
+        attrs = r.mapping(item, CHANGE_KEYS, path)
+        at = r.number(attrs.get("at"), (*path, "at"))
+        if ("up" in attrs) == ("down" in attrs):
+            raise r.err("expected exactly one of 'up' or 'down'", path)
+        up = "up" in attrs
+        ends = attrs["up" if up else "down"]
+        field_path = (*path, "up" if up else "down")
+        if not (
+            isinstance(ends, list) and len(ends) == 2 and all(isinstance(e, str) for e in ends)
+        ):
+            raise r.err(f"expected a pair of node ids like [N1, N2], got {ends!r}", field_path)
+        for end in ends:
+            if end not in network.nodes:
+                raise r.err(f"unknown node {end!r} (known: {', '.join(network.nodes)})", field_path)
+        if ends[0] == ends[1]:
+            raise r.err(f"a link joins two different nodes, got {ends!r}", field_path)
+        link = network.link(ends[0], ends[1]) or LinkSpec(
+            ends[0], ends[1], template.bandwidth_mbps, template.delay_ms, template.loss
+        )
+        out.append(LinkChange(at=at, a=ends[0], b=ends[1], up=up, link=link))
+    return sorted(out, key=lambda c: c.at)
 
 
 def _node(r: _Reader, nid: Any, attrs: dict[str, Any], path: tuple[str | int, ...]) -> NodeSpec:

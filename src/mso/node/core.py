@@ -111,6 +111,7 @@ class NodeCore:
         self._outbox: dict[tuple[str, int], tuple[int, list[bytes]]] = {}
         self._status_req = 0
         self._now = 0.0
+        self.status_hook: Callable[[], dict[str, Any]] | None = None  # the driver's counters
         self._deploy_clients: dict[str, tuple[int, float]] = {}
         self._status_wait: dict[int, tuple[int, dict[str, Any], set[str]]] = {}
 
@@ -571,7 +572,8 @@ class NodeCore:
                 },
                 "edges": edges,
             }
-        return {
+        extra = self.status_hook() if self.status_hook is not None else {}
+        return extra | {
             "node": self.id,
             "routes": {d: list(r) for d, r in sorted(self.routes.items())},
             "neighbours": sorted(n for n, (hop, _) in self.routes.items() if hop == n),

@@ -15,9 +15,12 @@ import msgspec
 
 
 class Envelope(msgspec.Struct, array_like=True):
+    """Routing header; ``data`` marks data-plane traffic, which control traffic overtakes."""
+
     src: str
     dst: str
     ttl: int
+    data: bool
     body: msgspec.Raw
 
 
@@ -208,7 +211,8 @@ def decode(data: bytes | msgspec.Raw) -> Message:
 
 
 def wrap(src: str, dst: str, msg: Message, ttl: int = 32) -> bytes:
-    return _ENCODER.encode(Envelope(src, dst, ttl, msgspec.Raw(_ENCODER.encode(msg))))
+    is_data = isinstance(msg, Data | Ack)
+    return _ENCODER.encode(Envelope(src, dst, ttl, is_data, msgspec.Raw(_ENCODER.encode(msg))))
 
 
 def unwrap(data: bytes) -> Envelope:

@@ -1,0 +1,5 @@
+"""``python -m mso`` is the ``mso`` command."""
+
+from mso.cli import main
+
+main()

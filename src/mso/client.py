@@ -1,0 +1,127 @@
+"""Talk to a running node as a client (the CLI, the emulator controller, the Python API)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+from typing import Any
+
+import msgspec
+
+from mso.errors import MsoError
+from mso.protocol import messages as m
+from mso.protocol.framing import FrameCodec, FramingError, psk_from_text
+
+DEFAULT_KEY = "mso-insecure-default-key"
+
+
+def overlay_key(text: str | None = None) -> bytes:
+    """The overlay's pre-shared key: given, or $MSO_KEY, or the (insecure) default."""
+    return psk_from_text(text or os.environ.get("MSO_KEY") or DEFAULT_KEY)
+
+
+class NodeUnreachable(MsoError):
+    """The node did not answer."""
+
+
+class Client:
+    """One authenticated connection to a node."""
+
+    def __init__(self, host: str, port: int, psk: bytes, name: str = "cli") -> None:
+        self.host, self.port, self.psk, self.name = host, port, psk, name
+        self._reader: asyncio.StreamReader | None = None
+        self._writer: asyncio.StreamWriter | None = None
+        self._codec = FrameCodec(psk)
+        self._inbox: list[m.Message] = []
+
+    async def connect(self, timeout: float = 5.0) -> Client:
+        try:
+            self._reader, self._writer = await asyncio.wait_for(
+                asyncio.open_connection(self.host, self.port), timeout
+            )
+        except (OSError, TimeoutError) as exc:
+            raise NodeUnreachable(f"cannot reach node at {self.host}:{self.port}: {exc}") from None
+        assert self._writer is not None and self._reader is not None
+        self._writer.write(self._codec.hello())
+        try:  # wait for the node's hello: until then nothing we seal can be sent
+            while not self._codec.ready:
+                data = await asyncio.wait_for(self._reader.read(1 << 16), timeout)
+                if not data:
+                    raise NodeUnreachable(f"node at {self.host}:{self.port} closed the connection")
+                _, flush = self._codec.feed(data)
+                self._writer.write(flush)
+        except (TimeoutError, FramingError) as exc:
+            raise NodeUnreachable(f"no mso hello from {self.host}:{self.port}: {exc}") from None
+        await self.send(m.ClientHello(self.name))
+        return self
+
+    async def send(self, msg: m.Message) -> None:
+        assert self._writer is not None
+        frame = self._codec.seal(m.wrap("client", "node", msg))
+        if frame:
+            self._writer.write(frame)
+        await self._writer.drain()
+
+    async def receive(self, timeout: float) -> m.Message:
+        assert self._reader is not None and self._writer is not None
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while not self._inbox:
+            remaining = deadline - loop.time()
+            if remaining <= 0:
+                raise NodeUnreachable(f"node at {self.host}:{self.port} did not answer in time")
+            try:
+                data = await asyncio.wait_for(self._reader.read(1 << 16), remaining)
+            except TimeoutError:
+                continue
+            if not data:
+                raise NodeUnreachable(f"node at {self.host}:{self.port} closed the connection")
+            try:
+                payloads, flush = self._codec.feed(data)
+            except FramingError as exc:
+                raise NodeUnreachable(f"bad stream from {self.host}:{self.port}: {exc}") from None
+            if flush:
+                self._writer.write(flush)
+            for p in payloads:
+                try:
+                    self._inbox.append(m.decode(m.unwrap(p).body))
+                except (msgspec.DecodeError, msgspec.ValidationError):
+                    continue
+            if self._codec.rejected and not payloads:
+                raise NodeUnreachable(
+                    f"node at {self.host}:{self.port} rejected our frames: wrong overlay key?"
+                )
+        return self._inbox.pop(0)
+
+    async def call(self, msg: m.Message, timeout: float = 10.0) -> m.Message:
+        await self.send(msg)
+        return await self.receive(timeout)
+
+    async def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            with contextlib.suppress(OSError):
+                await self._writer.wait_closed()
+
+
+def parse_address(text: str, default_port: int = 7000) -> tuple[str, int]:
+    host, _, port = text.rpartition(":")
+    if not host:
+        return text, default_port
+    try:
+        return host, int(port)
+    except ValueError:
+        raise MsoError(f"expected HOST:PORT, got {text!r}") from None
+
+
+async def request(
+    address: str, msg: m.Message, *, key: str | None = None, timeout: float = 10.0
+) -> Any:
+    """Connect, send one request, return the reply."""
+    host, port = parse_address(address)
+    client = await Client(host, port, overlay_key(key)).connect()
+    try:
+        return await client.call(msg, timeout)
+    finally:
+        await client.close()

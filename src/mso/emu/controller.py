@@ -1,0 +1,252 @@
+"""The user-space MANET emulator (the default; no root): one OS process per node.
+
+Each node runs the ordinary ``mso node`` daemon on its own loopback address (127.0.1.i). The
+controller turns the scenario into a link graph, tells every node its current neighbours (with
+each link's bandwidth, delay and loss, applied in the sender's link layer) and its routes
+(shortest paths, pushed ``convergence_s`` after a link change, as a routing protocol would
+converge), plays the scenario's scripted link changes, and stops every process it started —
+by PID, on Ctrl-C, at the end of ``duration``, or if it fails.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import random
+import socket
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mso.client import Client, NodeUnreachable, overlay_key
+from mso.errors import MsoError
+from mso.model.network import LinkSpec
+from mso.protocol import messages as m
+from mso.scenario import Scenario
+
+STATE_FILE = Path(tempfile.gettempdir()) / f"mso-emulator-{os.getuid()}.json"
+
+
+def _free_port(hosts: list[str]) -> int:
+    """A port free on every one of ``hosts`` (one port, many loopback addresses)."""
+    rng = random.Random()
+    for _ in range(200):
+        port = rng.randrange(20000, 40000)
+        ok = True
+        for host in hosts:
+            with socket.socket() as s:
+                try:
+                    s.bind((host, port))
+                except OSError:
+                    ok = False
+                    break
+        if ok:
+            return port
+    raise MsoError("no free port on the loopback addresses")
+
+
+@dataclass
+class EmulatedNode:
+    id: str
+    host: str
+    port: int
+    process: subprocess.Popen[bytes] | None = None
+    client: Client | None = None
+    log: Path | None = None
+
+
+@dataclass
+class Emulator:
+    """Start, drive and stop an emulated MANET."""
+
+    scenario: Scenario
+    key: str | None = None
+    convergence_s: float = 0.0
+    port: int = 0
+    log_dir: Path | None = None
+    nodes: dict[str, EmulatedNode] = field(default_factory=dict)
+    version: int = 0
+    routes: dict[str, dict[str, list[Any]]] = field(default_factory=dict)
+    _route_task: asyncio.Task[None] | None = None
+
+    async def start(self, timeout: float = 20.0) -> None:
+        names = list(self.scenario.network.nodes)
+        if len(names) > 250:
+            raise MsoError("the user-space emulator supports at most 250 nodes")
+        hosts = [f"127.0.1.{i + 1}" for i in range(len(names))]
+        port = self.port or _free_port(hosts)
+        self.log_dir = self.log_dir or Path(tempfile.mkdtemp(prefix="mso-emu-"))
+        env = dict(os.environ)
+        env["MSO_KEY"] = self.key or env.get("MSO_KEY", "") or "mso-insecure-default-key"
+        self.key = env["MSO_KEY"]
+        for name, host in zip(names, hosts, strict=True):
+            spec = self.scenario.network.nodes[name]
+            log = self.log_dir / f"{name}.log"
+            cmd = [
+                sys.executable, "-m", "mso", "node", "--id", name,
+                "--listen", f"{host}:{port}", "--cpu", str(spec.cpu),
+            ]  # fmt: skip
+            with log.open("wb") as out:
+                proc = subprocess.Popen(
+                    cmd, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True
+                )
+            self.nodes[name] = EmulatedNode(name, host, port, proc, log=log)
+        try:
+            await asyncio.gather(*(self._connect(n, timeout) for n in self.nodes.values()))
+            await self.push_links(routes=True)
+            await self.wait_links(timeout)
+        except BaseException:
+            await self.stop()
+            raise
+        self.write_state()
+
+    async def _connect(self, node: EmulatedNode, timeout: float) -> None:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        psk = overlay_key(self.key)
+        while True:
+            if node.process is not None and node.process.poll() is not None:
+                raise MsoError(f"node {node.id} exited at start; see {node.log}")
+            try:
+                node.client = await Client(node.host, node.port, psk, "emulator").connect(1.0)
+                return
+            except NodeUnreachable:
+                if loop.time() > deadline:
+                    raise MsoError(f"node {node.id} did not start within {timeout:g} s") from None
+                await asyncio.sleep(0.05)
+
+    def _link_state(self, node: str, routes: bool) -> m.LinkState:
+        net = self.scenario.network
+        neighbours: dict[str, list[Any]] = {}
+        for n in net.neighbours(node):
+            link = net.link(node, n)
+            assert link is not None
+            peer = self.nodes[n]
+            neighbours[n] = [peer.host, peer.port, link.bandwidth_mbps, link.delay_ms, link.loss]
+        if routes:  # converged: shortest paths on the current links
+            table: dict[str, list[Any]] = {}
+            for dst in net.nodes:
+                r = net.route(node, dst)
+                if r is not None and dst != node:
+                    table[dst] = [r[1], len(r) - 1]
+            self.routes[node] = table
+        return m.LinkState(
+            version=self.version, neighbours=neighbours, routes=self.routes.get(node, {})
+        )
+
+    async def push_links(self, routes: bool) -> None:
+        """Send every node its neighbours, and its routes if they have converged."""
+        self.version += 1
+        for name, node in self.nodes.items():
+            if node.client is not None:
+                with contextlib.suppress(NodeUnreachable, ConnectionError):
+                    await node.client.send(self._link_state(name, routes))
+
+    async def wait_links(self, timeout: float = 10.0) -> None:
+        """Wait until every node has a connection to each of its current neighbours."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        net = self.scenario.network
+        for name in self.nodes:
+            while True:
+                reply = await self.call(name, m.StatusRequest(), 5.0)
+                assert isinstance(reply, m.StatusReply)
+                connected = set(reply.nodes[name].get("connected", []))
+                if set(net.neighbours(name)) <= connected:
+                    break
+                if loop.time() > deadline:
+                    raise MsoError(f"node {name} did not connect to its neighbours in time")
+                await asyncio.sleep(0.02)
+
+    async def set_link(self, a: str, b: str, up: bool, link: LinkSpec | None = None) -> None:
+        """A link appears or disappears now; routes follow after the convergence delay."""
+        net = self.scenario.network
+        if up:
+            net.add_link(link or LinkSpec(a, b))
+        else:
+            net.remove_link(a, b)
+        await self.push_links(routes=self.convergence_s <= 0)
+        if self.convergence_s > 0:
+            if self._route_task is not None:
+                self._route_task.cancel()
+            self._route_task = asyncio.create_task(self._converge())
+
+    async def _converge(self) -> None:
+        await asyncio.sleep(self.convergence_s)
+        await self.push_links(routes=True)
+
+    async def play_changes(self, t0: float) -> None:
+        """Apply the scenario's scripted link changes at their times (seconds after t0)."""
+        loop = asyncio.get_running_loop()
+        for change in self.scenario.changes:
+            await asyncio.sleep(max(0.0, t0 + change.at - loop.time()))
+            await self.set_link(change.a, change.b, change.up, change.link)
+
+    def address(self, node: str) -> str:
+        n = self.nodes.get(node)
+        if n is None:
+            raise MsoError(f"unknown node {node!r} (nodes: {', '.join(self.nodes)})")
+        return f"{n.host}:{n.port}"
+
+    async def call(self, node: str, msg: m.Message, timeout: float = 10.0) -> m.Message:
+        n = self.nodes[node]
+        assert n.client is not None
+        return await n.client.call(msg, timeout)
+
+    async def deploy(self, document: str, file: str, via: str) -> m.DeployReply:
+        self.address(via)
+        reply = await self.call(via, m.DeployRequest(document=document, file=file), 30.0)
+        assert isinstance(reply, m.DeployReply)
+        return reply
+
+    async def status(self, via: str | None = None) -> dict[str, Any]:
+        via = via or next(iter(self.nodes))
+        reply = await self.call(via, m.StatusRequest(everywhere=True), 5.0)
+        assert isinstance(reply, m.StatusReply)
+        return reply.nodes
+
+    def write_state(self) -> None:
+        """Let `mso status` / `mso deploy --via N1` in another terminal find the nodes."""
+        state = {"pid": os.getpid(), "nodes": {n: self.address(n) for n in self.nodes}}
+        STATE_FILE.write_text(json.dumps(state))
+
+    async def stop(self, grace: float = 3.0) -> None:
+        """Ask every node to shut down; kill (by PID) whatever is still running after grace."""
+        if self._route_task is not None:
+            self._route_task.cancel()
+        for node in self.nodes.values():
+            if node.client is not None:
+                with contextlib.suppress(Exception):
+                    await node.client.send(m.Shutdown())
+                with contextlib.suppress(Exception):
+                    await node.client.close()
+                node.client = None
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + grace
+        for node in self.nodes.values():
+            proc = node.process
+            if proc is None:
+                continue
+            while proc.poll() is None and loop.time() < deadline:
+                await asyncio.sleep(0.02)
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=5)
+        with contextlib.suppress(FileNotFoundError):
+            if STATE_FILE.exists() and json.loads(STATE_FILE.read_text()).get("pid") == os.getpid():
+                STATE_FILE.unlink()
+
+
+def emulator_address(node: str) -> str | None:
+    """The address of an emulated node, from the running emulator's state file."""
+    try:
+        state = json.loads(STATE_FILE.read_text())
+    except (OSError, ValueError):
+        return None
+    addr = state.get("nodes", {}).get(node)
+    return str(addr) if addr else None
