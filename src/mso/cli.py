@@ -302,6 +302,26 @@ def _deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> 
 
 
 @main.command()
+@click.argument("app_name")
+@click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@key_option
+def undeploy(app_name: str, via: str | None, key: str | None) -> None:
+    """Stop an app on every node."""
+    _undeploy(app_name, via, key)
+
+
+@_user_errors
+def _undeploy(app_name: str, via: str | None, key: str | None) -> None:
+    import asyncio
+
+    from mso.client import request
+    from mso.protocol import messages as m
+
+    asyncio.run(request(_resolve_via(via), m.StopApp(app_name), key=key))
+    click.echo(f"stopped {app_name}")
+
+
+@main.command()
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @key_option
 @click.option("--json", "as_json", is_flag=True)

@@ -204,6 +204,10 @@ class Emulator:
         assert isinstance(reply, m.DeployReply)
         return reply
 
+    async def undeploy(self, app: str, via: str | None = None) -> None:
+        """Stop an app on every node (its stones are freed)."""
+        await self.call(via or next(iter(self.nodes)), m.StopApp(app), 10.0)
+
     async def status(self, via: str | None = None) -> dict[str, Any]:
         via = via or next(iter(self.nodes))
         reply = await self.call(via, m.StatusRequest(everywhere=True), 5.0)

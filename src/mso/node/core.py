@@ -130,6 +130,10 @@ class NodeCore:
         """A request from a client connection (CLI, API, emulator controller)."""
         if isinstance(msg, m.DeployRequest):
             self._deploy_request(client, msg, now)
+        elif isinstance(msg, m.StopApp):
+            if msg.app in self.apps:
+                self._broadcast(msg)
+            self._effects.append(Reply(client, m.StopApp(msg.app)))
         elif isinstance(msg, m.StatusRequest):
             self._status_request(client, msg, now)
         else:
@@ -567,6 +571,7 @@ class NodeCore:
                         "errors": s.errors,
                         "cpu_s": s.cpu_s,
                         "last_error": s.last_error,
+                        "stats": s.stats(),
                     }
                     for vid, s in dep.stones.items()
                 },

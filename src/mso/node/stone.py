@@ -45,6 +45,16 @@ class Stone:
         self.cpu_s = 0.0
         self.last_error = ""
 
+    def stats(self) -> Any:
+        """The vertex's own metrics, if its code defines ``stats()`` (shown by mso status)."""
+        method = getattr(self.fn, "stats", None)
+        if not callable(method):
+            return None
+        try:
+            return method()
+        except Exception as exc:
+            return {"error": f"{type(exc).__name__}: {exc}"}
+
     def get_state(self) -> Any:
         hook = self.vertex.get_state
         if hook is not None:
