@@ -158,16 +158,19 @@ def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) ->
 
 
 @main.command()
-def demo() -> None:
-    """Form the chains of the bundled convoy app and place them on a 4-robot line."""
-    _demo()
+@click.option("--duration", type=float, default=20.0, show_default=True, help="Seconds to run.")
+@click.option("--plan-only", is_flag=True, help="Only form chains and plan; start no nodes.")
+def demo(duration: float, plan_only: bool) -> None:
+    """Run the bundled convoy app (paper Fig. 6) on an emulated 4-robot line."""
+    _demo(duration, plan_only)
 
 
 @_user_errors
-def _demo() -> None:
+def _demo(duration: float, plan_only: bool) -> None:
     console = _console()
-    app = load_app(EXAMPLES / "convoy.yaml")
-    scenario = load_scenario(EXAMPLES / "convoy-line.yaml")
+    app_file, scenario_file = EXAMPLES / "convoy.yaml", EXAMPLES / "convoy-line.yaml"
+    app = load_app(app_file)
+    scenario = load_scenario(scenario_file)
     console.print(
         f"[bold]mso demo[/bold]: the convoy app of the MSO paper (Fig. 6), "
         f"{len(app.vertices)} vertices and {len(app.edges)} edges, on {scenario.name} "
@@ -175,6 +178,9 @@ def _demo() -> None:
     )
     result = plan(app, scenario.network)
     render_plan(console, app, scenario, result)
+    if not plan_only:
+        console.print(f"\n[bold]running it[/bold] on 4 emulated node processes for {duration:g} s")
+        _emulate(scenario_file, app_file, duration, None, 0.0, None, False)
 
 
 # -- the running system ----------------------------------------------------------------------
@@ -347,27 +353,14 @@ def _status(via: str | None, key: str | None, as_json: bool) -> None:
 
 
 def render_status(console: Console, nodes: dict[str, Any]) -> None:
-    """Per node: neighbours, traffic, hosted vertices with their counters; per app: edges."""
+    """Nodes with their traffic; per app, vertices (where, events, CPU) and edges."""
     table = Table(title="nodes")
-    for col in ("node", "neighbours", "bytes in", "bytes out", "forwarded", "rejected", "vertices"):
-        table.add_column(col)
+    for col in ("node", "neighbours", "bytes in", "bytes out", "forwarded", "rejected frames"):
+        table.add_column(col, justify="left" if col in ("node", "neighbours") else "right")
     apps: dict[str, dict[str, Any]] = {}
     for nid in sorted(nodes):
         st = nodes[nid]
         traffic = st.get("traffic", {})
-        hosted = []
-        for name, app in st.get("apps", {}).items():
-            apps.setdefault(
-                name, {"placement": app["placement"], "chains": app["chains"], "edges": {}}
-            )
-            for e, c in app["edges"].items():
-                apps[name]["edges"].setdefault(e, {}).update(
-                    {k: v for k, v in c.items() if v or k not in apps[name]["edges"].get(e, {})}
-                )
-            hosted += [
-                f"{v} ({s['processed'] or s['emitted']} ev, {s['cpu_s'] * 1e3:.0f} ms cpu)"
-                for v, s in app["vertices"].items()
-            ]
         table.add_row(
             nid,
             ", ".join(st.get("neighbours", [])) or "-",
@@ -375,18 +368,33 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
             str(traffic.get("bytes_out", 0)),
             str(traffic.get("bytes_forwarded", 0)),
             str(traffic.get("frames_rejected", 0)),
-            "\n".join(hosted) or "-",
         )
+        for name, app in st.get("apps", {}).items():
+            agg = apps.setdefault(name, {"vertices": {}, "edges": {}})
+            for v, vs in app["vertices"].items():
+                agg["vertices"][v] = (nid, vs)
+            for e, c in app["edges"].items():
+                merged = agg["edges"].setdefault(e, {})
+                for k, val in c.items():
+                    if val or k not in merged:
+                        merged[k] = val
     console.print(table)
     for name, app in apps.items():
+        vt = Table(title=f"app {name}: vertices")
+        for col in ("vertex", "node", "kind", "events", "cpu ms", "errors"):
+            vt.add_column(col, justify="right" if col in ("events", "cpu ms", "errors") else "left")
+        for v, (nid, vs) in app["vertices"].items():
+            events = vs["emitted"] if vs["kind"] == "source" else vs["processed"]
+            vt.add_row(
+                v, nid, vs["kind"], str(events), f"{vs['cpu_s'] * 1e3:.1f}", str(vs["errors"])
+            )
+        console.print(vt)
         et = Table(title=f"app {name}: edges")
-        for col in ("edge", "producer@node", "sent", "delivered", "dup", "events/s"):
-            et.add_column(col)
+        for col in ("edge", "sent", "delivered", "duplicates", "events/s"):
+            et.add_column(col, justify="left" if col == "edge" else "right")
         for e, c in app["edges"].items():
-            src = e.split("->")[0]
             et.add_row(
                 e,
-                f"{src}@{app['placement'].get(src, '?')}",
                 str(c.get("sent", 0)),
                 str(c.get("delivered", 0)),
                 str(c.get("duplicates", 0)),
