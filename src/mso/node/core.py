@@ -78,6 +78,7 @@ class Deployment:
     inc: dict[int, InChannel] = field(default_factory=dict)
     decoders: dict[int, msgspec.msgpack.Decoder[Any]] = field(default_factory=dict)
     running: bool = False
+    blocked_sources: set[str] = field(default_factory=set)
     started_at: float = 0.0
     # at the origin only
     built: set[int] = field(default_factory=set)
@@ -401,11 +402,13 @@ class NodeCore:
             return
         stone = dep.stones[vid]
         edges = dep.out_edges.get(vid, [])
-        rate = stone.vertex.rate
+        rate = stone.rate
         burst = 1 if rate else SOURCE_BURST
         for _ in range(burst):
             if not all(self._out(dep, e).can_send() for e in edges):
-                break  # backpressure: a full window holds the source back
+                # backpressure: a full window holds the source until an ack frees room
+                dep.blocked_sources.add(vid)
+                return
             t0 = self.cpu_clock()
             try:
                 event = stone.fn(stone.emitted, now)
@@ -500,6 +503,7 @@ class NodeCore:
         ack = m.Ack(dep.app.name, edge, 0, upto)
         if src_node == self.id:
             self._out(dep, edge).on_ack(upto, self._now)
+            self._unblock(dep, edge)
         else:
             self._effects.append(Send(src_node, ack))
 
@@ -512,6 +516,15 @@ class NodeCore:
             dep.out[msg.edge].on_ack(msg.upto, now)
         except ValueError:
             self.dropped_messages += 1
+            return
+        self._unblock(dep, msg.edge)
+
+    def _unblock(self, dep: Deployment, edge: int) -> None:
+        """An ack freed room on ``edge``: wake its producer if backpressure stopped it."""
+        producer = dep.app.edges[edge].src
+        if producer in dep.blocked_sources:
+            dep.blocked_sources.discard(producer)
+            self._effects.append(SetTimer(("source", dep.app.name, producer), self._now))
 
     def _flush(self) -> None:
         for (app, edge), (seq, events) in self._outbox.items():

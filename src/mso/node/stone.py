@@ -39,6 +39,8 @@ class Stone:
             self.fn = functools.partial(target, **vertex.params)
         else:
             self.fn = target
+        # a code-less stand-in source ticks once a second unless the app gives a rate
+        self.rate = vertex.rate if vertex.rate or vertex.code is not None else 1.0
         self.processed = 0
         self.emitted = 0
         self.errors = 0

@@ -153,6 +153,8 @@ def place_chain(
     anchors = [i for i, v in enumerate(verts) if v in placed]
     route: list[str] = [placed[verts[0]]]
     for i, j in itertools.pairwise(anchors):
+        if j == i + 1:
+            continue  # nothing between two placed vertices: no route to explore
         a, b = placed[verts[i]], placed[verts[j]]
         hops = _probe(probe, a, b, chain)
         route = [h.node for h in hops]

@@ -1,0 +1,52 @@
+"""Vertex code for runtime tests: a counting source and a sink that checks what it gets.
+
+Importable by node processes when the tests directory is on PYTHONPATH.
+"""
+
+from __future__ import annotations
+
+import msgspec
+
+
+class Num(msgspec.Struct, frozen=True):
+    seq: int
+    pad: bytes = b""
+
+
+class CountingSource:
+    def __init__(self, size: int = 0) -> None:
+        self.pad = b"x" * size
+
+    def __call__(self, seq: int, now: float) -> Num:
+        return Num(seq=seq, pad=self.pad)
+
+
+class Double:
+    def __call__(self, event: Num) -> Num:
+        return Num(seq=event.seq, pad=event.pad)
+
+
+class Recorder:
+    """Checks per-producer order: every event's seq must be the previous one + 1."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.next = 0
+        self.out_of_order = 0
+        self.repeats = 0
+
+    def __call__(self, event: Num) -> None:
+        self.count += 1
+        if event.seq < self.next:
+            self.repeats += 1
+        elif event.seq > self.next:
+            self.out_of_order += 1
+        self.next = max(self.next, event.seq + 1)
+
+    def stats(self) -> dict[str, int]:
+        return {
+            "count": self.count,
+            "next": self.next,
+            "out_of_order": self.out_of_order,
+            "repeats": self.repeats,
+        }

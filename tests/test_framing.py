@@ -1,0 +1,92 @@
+"""Authenticated frames: only holders of the overlay key are heard; replays and forgeries fail."""
+
+from __future__ import annotations
+
+import pytest
+
+from mso.protocol import messages as m
+from mso.protocol.framing import FrameCodec, FramingError, psk_from_text
+
+KEY = psk_from_text("test-key")
+
+
+def pair(key_a: bytes = KEY, key_b: bytes = KEY) -> tuple[FrameCodec, FrameCodec]:
+    a, b = FrameCodec(key_a), FrameCodec(key_b)
+    _, flush_b = b.feed(a.hello())
+    _, flush_a = a.feed(b.hello())
+    assert flush_a == b"" and flush_b == b""
+    return a, b
+
+
+def test_round_trip_and_early_frames_are_queued_until_hello() -> None:
+    a, b = FrameCodec(KEY), FrameCodec(KEY)
+    assert a.seal(b"early") == b""  # not sent before the peer's nonce is known
+    b.feed(a.hello())
+    payloads, flush = a.feed(b.hello())
+    assert payloads == []
+    got, _ = b.feed(flush)
+    assert got == [b"early"]
+    assert b.feed(a.seal(b"x" * 5000))[0] == [b"x" * 5000]
+
+
+def test_frames_split_across_reads() -> None:
+    a, b = pair()
+    frame = a.seal(b"hello world")
+    out = []
+    for i in range(len(frame)):
+        out += b.feed(frame[i : i + 1])[0]
+    assert out == [b"hello world"]
+
+
+def test_replayed_frame_is_rejected_and_stream_goes_on() -> None:
+    a, b = pair()
+    frame = a.seal(b"one")
+    assert b.feed(frame)[0] == [b"one"]
+    assert b.feed(frame)[0] == []  # same bytes again: counter mismatch
+    assert b.rejected == 1
+    assert b.feed(a.seal(b"two"))[0] == [b"two"]
+
+
+def test_frame_from_another_connection_is_rejected() -> None:
+    a1, b1 = pair()
+    _a2, b2 = pair()
+    assert b2.feed(a1.seal(b"not for you"))[0] == []
+    assert b2.rejected == 1
+    assert b1.accepted == 0
+
+
+def test_wrong_key_is_rejected() -> None:
+    a, b = pair(psk_from_text("intruder"), KEY)
+    assert b.feed(a.seal(b"let me in"))[0] == []
+    assert b.rejected == 1
+
+
+def test_tampered_payload_is_rejected() -> None:
+    a, b = pair()
+    frame = bytearray(a.seal(b"pay 10"))
+    frame[-1] ^= 1
+    assert b.feed(bytes(frame))[0] == []
+    assert b.rejected == 1
+
+
+def test_garbage_stream_is_a_framing_error() -> None:
+    b = FrameCodec(KEY)
+    with pytest.raises(FramingError):
+        b.feed(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
+
+
+def test_oversized_frame_is_a_framing_error() -> None:
+    a, b = FrameCodec(KEY, max_frame=100), FrameCodec(KEY, max_frame=100)
+    b.feed(a.hello())
+    a.feed(b.hello())
+    with pytest.raises(FramingError):
+        b.feed(a.seal(b"x" * 1000))
+
+
+def test_messages_are_validated_on_decode() -> None:
+    ok = m.wrap("N1", "N2", m.Ack("app", 1, 0, 5))
+    env = m.unwrap(ok)
+    assert env.data and m.decode(env.body) == m.Ack("app", 1, 0, 5)
+    bad = m.wrap("N1", "N2", m.ClientHello("x")).replace(b"client", b"unknwn")
+    with pytest.raises(Exception, match="Invalid value"):
+        m.decode(m.unwrap(bad).body)

@@ -1,0 +1,143 @@
+"""The node core's distributed procedures in virtual time: deployment and the data plane."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from mso.model.appfile import loads_app
+from mso.model.network import LinkSpec, Network, NodeSpec
+from mso.planning.placement import plan
+from mso.protocol import messages as m
+from mso.scenario import load_scenario
+from mso.sim.runner import Simulation
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples"
+
+PIPE = """
+name: pipe
+vertices:
+  src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 100,
+        output: runtime_vertices:Num}
+  mid: {code: runtime_vertices:Double}
+  sink: {code: runtime_vertices:Recorder, pinned: N4}
+edges:
+  - [src, mid]
+  - [mid, sink]
+"""
+
+
+def line(n: int, delay_ms: float = 1.0) -> Network:
+    nodes = [NodeSpec(f"N{i}") for i in range(1, n + 1)]
+    links = [LinkSpec(f"N{i}", f"N{i + 1}", delay_ms=delay_ms) for i in range(1, n)]
+    return Network(nodes, links)
+
+
+def deploy(sim: Simulation, doc: str, via: str = "N1") -> m.DeployReply:
+    sim.request(via, m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(sim.now + 2.0)
+    replies = [r for _, _, r in sim.replies if isinstance(r, m.DeployReply)]
+    assert replies, "no deploy reply"
+    return replies[-1]
+
+
+def sink_stats(sim: Simulation, app: str, vertex: str) -> dict[str, int]:
+    for core in sim.cores.values():
+        st = core.status(sim.now)["apps"].get(app)
+        if st and vertex in st["vertices"]:
+            stats: dict[str, int] = st["vertices"][vertex]["stats"]
+            return stats
+    raise AssertionError(f"{vertex} not hosted anywhere")
+
+
+@pytest.mark.parametrize(
+    ("app_file", "scenario_file"),
+    [
+        ("convoy.yaml", "convoy-line.yaml"),
+        ("section33.yaml", "line4.yaml"),
+        ("fig2.yaml", "line4.yaml"),
+    ],
+)
+def test_distributed_deployment_matches_central_plan(app_file: str, scenario_file: str) -> None:
+    doc = (EXAMPLES / app_file).read_text()
+    scenario = load_scenario(EXAMPLES / scenario_file)
+    expected = plan(loads_app(doc), scenario.network).placement
+    sim = Simulation(scenario.network)
+    reply = deploy(sim, doc)
+    assert reply.ok, reply.error
+    assert reply.placement == expected
+    # every node learned the whole mapping, and hosts exactly its own vertices
+    for node, core in sim.cores.items():
+        dep = core.apps[loads_app(doc).name]
+        assert dep.placed == expected
+        assert set(dep.stones) == {v for v, n in expected.items() if n == node}
+
+
+def test_every_event_arrives_once_and_in_order() -> None:
+    sim = Simulation(line(4))
+    reply = deploy(sim, PIPE)
+    assert reply.ok, reply.error
+    sim.run_until(sim.now + 5.0)
+    stats = sink_stats(sim, "pipe", "sink")
+    emitted = sim.cores["N1"].apps["pipe"].stones["src"].emitted
+    assert emitted >= 450
+    assert stats["repeats"] == 0 and stats["out_of_order"] == 0
+    # only what is still in flight (a few ms at 100 events/s) may be missing
+    assert emitted - 5 <= stats["count"] <= emitted
+
+
+def test_backpressure_bounds_what_is_in_flight() -> None:
+    doc = PIPE.replace("rate: 100,", "")  # a source that emits as fast as it is allowed
+    sim = Simulation(line(4, delay_ms=20.0), window=16)
+    assert deploy(sim, doc).ok
+    peak = 0
+    for _ in range(50):
+        sim.run_until(sim.now + 0.01)
+        for core in sim.cores.values():
+            for ch in core.apps["pipe"].out.values():
+                peak = max(peak, ch.in_flight)
+    assert 0 < peak <= 16
+    stats = sink_stats(sim, "pipe", "sink")
+    assert stats["count"] > 0 and stats["repeats"] == 0 and stats["out_of_order"] == 0
+
+
+def test_traffic_follows_a_route_change() -> None:
+    # a square: N1-N2-N4 and N1-N3-N4; the sink's traffic moves to N3 when N1-N2 breaks
+    nodes = [NodeSpec(n) for n in ("N1", "N2", "N3", "N4")]
+    links = [
+        LinkSpec(a, b, delay_ms=1.0)
+        for a, b in (("N1", "N2"), ("N2", "N4"), ("N1", "N3"), ("N3", "N4"))
+    ]
+    net = Network(nodes, links)
+    doc = PIPE.replace(
+        "  mid: {code: runtime_vertices:Double}",
+        "  mid: {code: runtime_vertices:Double, pinned: N1}",
+    )
+    sim = Simulation(net)
+    assert deploy(sim, doc).ok
+    sim.run_until(sim.now + 1.0)
+    before = sink_stats(sim, "pipe", "sink")["count"]
+    net.remove_link("N1", "N2")
+    sim.update_routes()
+    sim.run_until(sim.now + 2.0)
+    after = sink_stats(sim, "pipe", "sink")
+    assert after["count"] >= before + 150
+    assert after["repeats"] == 0 and after["out_of_order"] == 0
+    assert sim.cores["N1"].routes["N4"][0] == "N3"
+
+
+def test_bad_app_document_is_refused_with_its_error() -> None:
+    sim = Simulation(line(2))
+    sim.request("N1", m.DeployRequest("name: x\nvertices:\n  A: {cost: -1}\n", "bad.yaml"))
+    ((_, _, reply),) = sim.replies
+    assert isinstance(reply, m.DeployReply) and not reply.ok
+    assert "bad.yaml:3: vertices.A.cost" in reply.error
+
+
+def test_pinned_to_unreachable_node_is_refused() -> None:
+    sim = Simulation(line(2))
+    sim.request("N1", m.DeployRequest(PIPE, "pipe.yaml"))  # pins the sink to N4
+    ((_, _, reply),) = sim.replies
+    assert isinstance(reply, m.DeployReply) and not reply.ok
+    assert "N4" in reply.error and "not reachable" in reply.error
