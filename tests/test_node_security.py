@@ -1,0 +1,91 @@
+"""A running node drops (and counts) unauthenticated, replayed and malformed frames, and lives on."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+from mso.client import Client, overlay_key
+from mso.node.core import NodeCore
+from mso.node.driver import NodeDriver
+from mso.protocol import messages as m
+from mso.protocol.framing import FrameCodec, psk_from_text
+
+HOST, PORT = "127.0.0.1", 0
+
+
+async def start_node() -> tuple[NodeDriver, int]:
+    driver = NodeDriver(NodeCore("N1"), HOST, 0, overlay_key("secret"))
+    await driver.start()
+    assert driver._server is not None
+    port = driver._server.sockets[0].getsockname()[1]
+    return driver, port
+
+
+async def status(port: int) -> dict[str, Any]:
+    client = await Client(HOST, port, overlay_key("secret")).connect()
+    try:
+        reply = await client.call(m.StatusRequest())
+        assert isinstance(reply, m.StatusReply)
+        return reply.nodes["N1"]
+    finally:
+        await client.close()
+
+
+async def raw_session(port: int, key: bytes, payloads: list[bytes]) -> bytes:
+    """Handshake with ``key`` and send ``payloads`` as frames; return every byte written."""
+    reader, writer = await asyncio.open_connection(HOST, port)
+    codec = FrameCodec(key)
+    sent = codec.hello()
+    writer.write(sent)
+    codec.feed(await reader.readexactly(20))
+    for p in payloads:
+        frame = codec.seal(p)
+        sent += frame
+        writer.write(frame)
+    await writer.drain()
+    await asyncio.sleep(0.1)
+    writer.close()
+    return sent
+
+
+def test_bad_frames_are_dropped_counted_and_the_node_lives_on() -> None:
+    async def run() -> dict[str, Any]:
+        driver, port = await start_node()
+        try:
+            hello = m.wrap("client", "N1", m.ClientHello("x"))
+            request = m.wrap("client", "N1", m.DeployRequest("name: evil\nvertices: {A: {}}\n"))
+            # 1. not mso at all: the connection is closed
+            r, w = await asyncio.open_connection(HOST, port)
+            w.write(b"GET / HTTP/1.1\r\n\r\n" + b"\x00" * 64)
+            await w.drain()
+            rest = await asyncio.wait_for(r.read(), 2.0)  # the node's hello, then EOF
+            assert len(rest) == 20
+            w.close()
+            # 2. the wrong overlay key: every frame rejected, nothing deployed
+            await raw_session(port, psk_from_text("wrong"), [hello, request])
+            # 3. a replay of an authentic session on a new connection
+            first = await raw_session(port, overlay_key("secret"), [hello])
+            r, w = await asyncio.open_connection(HOST, port)
+            await r.readexactly(20)
+            w.write(first + first[20:])
+            await w.drain()
+            await asyncio.sleep(0.1)
+            w.close()
+            # 4. authentic but malformed bodies
+            await raw_session(
+                port,
+                overlay_key("secret"),
+                [hello, b"\xc1garbage", m.wrap("c", "N1", m.ClientHello("x"))[:-3]],
+            )
+            await asyncio.sleep(0.1)
+            return await status(port)
+        finally:
+            await driver.stop()
+
+    st = asyncio.run(run())
+    traffic = st["traffic"]
+    assert traffic["frames_rejected"] >= 3  # wrong key (2) + replay (>= 1) + the garbage stream
+    assert traffic["frames_malformed"] >= 2
+    assert st["apps"] == {}  # nothing from an unauthenticated peer was acted on
+    assert st["node"] == "N1"  # and the node still answers
