@@ -1,4 +1,4 @@
-"""A running node drops (and counts) unauthenticated, replayed and malformed frames, and lives on."""
+"""A running node drops and counts unauthenticated, replayed and malformed frames, and lives on."""
 
 from __future__ import annotations
 
