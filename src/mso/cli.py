@@ -460,6 +460,7 @@ def _emulate(
             )
             t0 = loop.time()
             changes = asyncio.create_task(emu.play_changes(t0))
+            moving = asyncio.create_task(emu.play_mobility(t0))
             if app is not None and app_file is not None:
                 origin = via or next(iter(emu.nodes))
                 reply = await emu.deploy(
@@ -481,6 +482,7 @@ def _emulate(
                     nodes = await emu.status()
                     console.print(f"t={loop.time() - t0:5.1f}s  " + _sink_line(nodes, app.name))
             changes.cancel()
+            moving.cancel()
             return await emu.status()
         finally:
             await emu.stop()

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from mso.errors import ScenarioError
+from mso.model.mobility import RandomWaypoint
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
 from mso.model.yamlfile import Located, load_yaml, load_yaml_file
 
@@ -23,7 +24,9 @@ SCENARIO_KEYS = {
     "node_defaults",
     "link_defaults",
     "changes",
+    "mobility",
 }
+MOBILITY_KEYS = {"model", "area", "speed", "pause_s", "seed", "fixed", "step_s"}
 CHANGE_KEYS = {"at", "down", "up"}
 NODE_KEYS = {"cpu", "battery_wh", "power", "pos"}
 POWER_KEYS = {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte"}
@@ -51,6 +54,9 @@ class Scenario:
     radio_range: float | None = None
     file: str | None = None
     changes: list[LinkChange] = field(default_factory=list)
+    mobility: RandomWaypoint | None = None
+    mobility_step_s: float = 0.5
+    link_template: LinkSpec | None = None
 
 
 class _Reader:
@@ -150,9 +156,52 @@ def scenario_from_document(doc: Located) -> Scenario:
             merged = {**link_defaults, **{k: v for k, v in attrs.items() if k != "between"}}
             network.add_link(_link_attrs(r, ends[0], ends[1], merged, ("links", i)))
     changes = _changes(r, data.get("changes"), network, template)
-    return Scenario(
-        name=name, network=network, radio_range=radio_range, file=doc.file, changes=changes
+    scenario = Scenario(
+        name=name,
+        network=network,
+        radio_range=radio_range,
+        file=doc.file,
+        changes=changes,
+        link_template=template,
     )
+    if "mobility" in data:
+        if radio_range is None:
+            raise r.err("mobility needs node positions and a 'radio_range'", ("mobility",))
+        scenario.mobility, scenario.mobility_step_s = _mobility(r, data["mobility"], network)
+    return scenario
+
+
+def _mobility(r: _Reader, raw: Any, network: Network) -> tuple[RandomWaypoint, float]:
+    path: tuple[str | int, ...] = ("mobility",)
+    attrs = r.mapping(raw, MOBILITY_KEYS, path)
+    if attrs.get("model") != "random_waypoint":
+        raise r.err(
+            f"expected model: random_waypoint, got {attrs.get('model')!r}", (*path, "model")
+        )
+
+    def pair(key: str) -> tuple[float, float]:
+        v = attrs.get(key)
+        if not (isinstance(v, list) and len(v) == 2):
+            raise r.err(f"expected two numbers [a, b], got {v!r}", (*path, key))
+        return (r.number(v[0], (*path, key)), r.number(v[1], (*path, key)))
+
+    area, speed = pair("area"), pair("speed")
+    if speed[1] < speed[0] or speed[1] <= 0:
+        raise r.err(f"expected [min, max] speeds with max > 0, got {list(speed)}", (*path, "speed"))
+    fixed = attrs.get("fixed", [])
+    if not (isinstance(fixed, list) and all(f in network.nodes for f in fixed)):
+        raise r.err(f"expected a list of node ids, got {fixed!r}", (*path, "fixed"))
+    seed = attrs.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise r.err(f"expected an integer seed, got {seed!r}", (*path, "seed"))
+    model = RandomWaypoint(
+        area=area,
+        speed=speed,
+        pause_s=r.number(attrs.get("pause_s", 0.0), (*path, "pause_s")),
+        seed=seed,
+        fixed=frozenset(fixed),
+    )
+    return model, r.number(attrs.get("step_s", 0.5), (*path, "step_s"), strict=True)
 
 
 def _changes(r: _Reader, raw: Any, network: Network, template: LinkSpec) -> list[LinkChange]:

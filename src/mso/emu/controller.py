@@ -25,6 +25,7 @@ from typing import Any
 
 from mso.client import Client, NodeUnreachable, overlay_key
 from mso.errors import MsoError
+from mso.model.mobility import WaypointTracks
 from mso.model.network import LinkSpec
 from mso.protocol import messages as m
 from mso.scenario import Scenario
@@ -72,6 +73,7 @@ class Emulator:
     nodes: dict[str, EmulatedNode] = field(default_factory=dict)
     version: int = 0
     routes: dict[str, dict[str, list[Any]]] = field(default_factory=dict)
+    positions: dict[str, tuple[float, float]] = field(default_factory=dict)
     _route_task: asyncio.Task[None] | None = None
 
     async def start(self, timeout: float = 20.0) -> None:
@@ -170,11 +172,7 @@ class Emulator:
             net.add_link(link or LinkSpec(a, b))
         else:
             net.remove_link(a, b)
-        await self.push_links(routes=self.convergence_s <= 0)
-        if self.convergence_s > 0:
-            if self._route_task is not None:
-                self._route_task.cancel()
-            self._route_task = asyncio.create_task(self._converge())
+        await self._links_changed()
 
     async def _converge(self) -> None:
         await asyncio.sleep(self.convergence_s)
@@ -186,6 +184,29 @@ class Emulator:
         for change in self.scenario.changes:
             await asyncio.sleep(max(0.0, t0 + change.at - loop.time()))
             await self.set_link(change.a, change.b, change.up, change.link)
+
+    async def play_mobility(self, t0: float) -> None:
+        """Move the nodes (random waypoint) and relink them by radio range, every step."""
+        sc = self.scenario
+        if sc.mobility is None or sc.radio_range is None:
+            return
+        starts = {n: spec.pos for n, spec in sc.network.nodes.items() if spec.pos is not None}
+        tracks = WaypointTracks(sc.mobility, starts)
+        loop = asyncio.get_running_loop()
+        while True:
+            await asyncio.sleep(sc.mobility_step_s)
+            positions = tracks.positions(loop.time() - t0)
+            self.positions = positions
+            added, removed = sc.network.relink(positions, sc.radio_range, sc.link_template)
+            if added or removed:
+                await self._links_changed()
+
+    async def _links_changed(self) -> None:
+        await self.push_links(routes=self.convergence_s <= 0)
+        if self.convergence_s > 0:
+            if self._route_task is not None:
+                self._route_task.cancel()
+            self._route_task = asyncio.create_task(self._converge())
 
     def address(self, node: str) -> str:
         n = self.nodes.get(node)

@@ -144,6 +144,29 @@ class Network:
                     queue.append(w)
         return dist
 
+    def relink(
+        self,
+        positions: dict[str, tuple[float, float]],
+        radio_range: float,
+        template: LinkSpec | None = None,
+    ) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
+        """Make the links those of nodes within ``radio_range``; returns (added, removed)."""
+        ids = list(self.nodes)
+        want = set()
+        for i, a in enumerate(ids):
+            for b in ids[i + 1 :]:
+                near = a in positions and b in positions
+                if near and math.dist(positions[a], positions[b]) <= radio_range:
+                    want.add(_key(a, b))
+        removed = [k for k in self.links if k not in want]
+        added = [k for k in sorted(want) if k not in self.links]
+        for a, b in removed:
+            self.remove_link(a, b)
+        t = template or LinkSpec("", "")
+        for a, b in added:
+            self.add_link(LinkSpec(a, b, t.bandwidth_mbps, t.delay_ms, t.loss))
+        return added, removed
+
     def links_from_positions(self, radio_range: float, template: LinkSpec | None = None) -> None:
         """Replace the links with one per pair of nodes within ``radio_range`` of each other."""
         for a, b in list(self.links):
