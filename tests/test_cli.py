@@ -122,3 +122,21 @@ def test_missing_file() -> None:
     code, _, err = run("validate", "/nonexistent/app.yaml")
     assert code == 2
     assert "cannot read file" in err
+
+
+def test_node_config_errors(tmp_path: Path) -> None:
+    cfg = tmp_path / "node.yaml"
+    cfg.write_text("id: N1\nlisten: 127.0.0.1:1\ncolour: red\n")
+    code, _, err = run("node", "--config", str(cfg))
+    assert code == 2
+    assert "node.yaml:3: colour: unknown attribute 'colour'" in err
+    code, _, err = run("node")
+    assert code == 2 and "needs an id" in err
+
+
+def test_bad_scenario_for_emulate_starts_nothing(tmp_path: Path) -> None:
+    scen = tmp_path / "scen.yaml"
+    scen.write_text("nodes:\n  N1: {}\nlinks:\n  - [N1, N9]\n")
+    code, _, err = run("emulate", str(scen), "--duration", "1")
+    assert code == 2
+    assert "scen.yaml:4: links[0]: unknown node 'N9'" in err

@@ -120,3 +120,54 @@ def test_link_break_reroutes_traffic() -> None:
     b, a = sink(before), sink(after)
     assert a["count"] >= b["count"] + 300  # kept flowing at 200 events/s
     assert a["repeats"] == 0 and a["out_of_order"] == 0
+
+
+def test_static_peers_from_config_files(tmp_path: Path) -> None:
+    """Without an emulator: two daemons configured by files, as on real devices."""
+    import subprocess
+    import sys
+
+    from mso.client import request
+    from mso.emu.controller import _free_port
+    from mso.protocol import messages as m
+
+    port = _free_port(["127.0.1.1", "127.0.1.2"])
+    procs = []
+    for me, other, ip, oip in (
+        ("N1", "N4", "127.0.1.1", "127.0.1.2"),
+        ("N4", "N1", "127.0.1.2", "127.0.1.1"),
+    ):
+        cfg = tmp_path / f"{me}.yaml"
+        cfg.write_text(
+            f"id: {me}\nlisten: {ip}:{port}\nkey: k1\npeers: {{{other}: '{oip}:{port}'}}\n"
+        )
+        procs.append(subprocess.Popen([sys.executable, "-m", "mso", "node", "--config", str(cfg)]))
+    app = APP.replace("  mid: {code: runtime_vertices:Double}\n", "").replace(
+        "  - [src, mid]\n  - [mid, sink]\n", "  - [src, sink]\n"
+    )
+
+    async def run() -> dict[str, Any]:
+        addr = f"127.0.1.1:{port}"
+        for _ in range(100):  # wait for both daemons to listen and connect
+            try:
+                st = await request(addr, m.StatusRequest(), key="k1", timeout=2)
+                if st.nodes["N1"].get("connected") == ["N4"]:
+                    break
+            except Exception:
+                pass
+            await asyncio.sleep(0.05)
+        reply = await request(addr, m.DeployRequest(app, "pipe.yaml"), key="k1")
+        assert reply.ok, reply.error
+        await asyncio.sleep(1.0)
+        status = await request(addr, m.StatusRequest(everywhere=True), key="k1")
+        assert isinstance(status, m.StatusReply)
+        return status.nodes
+
+    try:
+        nodes = asyncio.run(run())
+    finally:
+        for p in procs:
+            p.terminate()
+            p.wait(timeout=5)
+    got = sink(nodes)
+    assert got["count"] >= 100 and got["repeats"] == 0 and got["out_of_order"] == 0

@@ -209,10 +209,51 @@ def _resolve_via(via: str | None) -> str:
     return addr
 
 
+NODE_CONFIG_KEYS = {"id", "listen", "cpu", "key", "peers"}
+
+
+def _node_config(path: Path) -> dict[str, Any]:
+    """A node configuration file: id, listen, cpu, key, peers (node id -> HOST:PORT)."""
+    from mso.errors import SpecError
+    from mso.model.yamlfile import load_yaml_file
+
+    doc = load_yaml_file(path)
+    data = doc.data
+    if not isinstance(data, dict):
+        raise SpecError("expected a mapping with 'id' and 'listen'", file=doc.file, line=1)
+    for k, v in data.items():
+        line = doc.line((k,))
+        if k not in NODE_CONFIG_KEYS:
+            allowed = ", ".join(sorted(NODE_CONFIG_KEYS))
+            raise SpecError(
+                f"unknown attribute {k!r} (expected one of: {allowed})",
+                file=doc.file,
+                line=line,
+                field=str(k),
+            )
+        if k == "peers" and not (
+            isinstance(v, dict) and all(isinstance(a, str) for a in v.values())
+        ):
+            raise SpecError(
+                "expected a mapping of node id to HOST:PORT", file=doc.file, line=line, field=k
+            )
+        if k == "cpu" and (isinstance(v, bool) or not isinstance(v, int | float)):
+            raise SpecError(f"expected a number > 0, got {v!r}", file=doc.file, line=line, field=k)
+        if k in ("id", "listen", "key") and not isinstance(v, str):
+            raise SpecError(f"expected a string, got {v!r}", file=doc.file, line=line, field=k)
+    return data
+
+
 @main.command()
-@click.option("--id", "node_id", required=True, help="This node's id, e.g. N1.")
-@click.option("--listen", default="127.0.0.1:7000", show_default=True, help="HOST:PORT to serve.")
-@click.option("--cpu", type=float, default=1.0, show_default=True, help="Relative CPU speed.")
+@click.option(
+    "--config",
+    "config_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="YAML with id, listen, cpu, key, peers; flags given override it.",
+)
+@click.option("--id", "node_id", help="This node's id, e.g. N1.")
+@click.option("--listen", help="HOST:PORT to serve (default 127.0.0.1:7000).")
+@click.option("--cpu", type=float, help="Relative CPU speed (default 1.0).")
 @click.option(
     "--peer",
     "peers",
@@ -222,13 +263,43 @@ def _resolve_via(via: str | None) -> str:
 @key_option
 @click.option("-v", "--verbose", is_flag=True)
 def node(
-    node_id: str, listen: str, cpu: float, peers: tuple[str, ...], key: str | None, verbose: bool
+    config_file: Path | None,
+    node_id: str | None,
+    listen: str | None,
+    cpu: float | None,
+    peers: tuple[str, ...],
+    key: str | None,
+    verbose: bool,
 ) -> None:
     """Run the identical mso daemon of one device."""
-    _node(node_id, listen, cpu, peers, key, verbose)
+    _node_from(config_file, node_id, listen, cpu, peers, key, verbose)
 
 
 @_user_errors
+def _node_from(
+    config_file: Path | None,
+    node_id: str | None,
+    listen: str | None,
+    cpu: float | None,
+    peers: tuple[str, ...],
+    key: str | None,
+    verbose: bool,
+) -> None:
+    cfg = _node_config(config_file) if config_file is not None else {}
+    node_id = node_id or cfg.get("id")
+    if not node_id:
+        raise MsoError("a node needs an id: --id N1, or 'id:' in its --config file")
+    all_peers = tuple(f"{n}={a}" for n, a in cfg.get("peers", {}).items()) + peers
+    _node(
+        node_id,
+        listen or cfg.get("listen", "127.0.0.1:7000"),
+        float(cpu if cpu is not None else cfg.get("cpu", 1.0)),
+        all_peers,
+        key or cfg.get("key"),
+        verbose,
+    )
+
+
 def _node(
     node_id: str, listen: str, cpu: float, peers: tuple[str, ...], key: str | None, verbose: bool
 ) -> None:

@@ -182,17 +182,17 @@ def optimal(
         ub[n_x + n_y :] = np.inf
         c[z] = 1.0
 
-    for v in verts:
+    for vert in verts:
         for n, node in enumerate(nodes):
-            i = x(vi[v.id], n)
-            if v.pinned is not None:
-                lb[i] = ub[i] = 1.0 if node == v.pinned else 0.0
+            i = x(vi[vert.id], n)
+            if vert.pinned is not None:
+                lb[i] = ub[i] = 1.0 if node == vert.pinned else 0.0
             if objective in ("energy", "max_load") and math.isinf(
-                cpu_ms(v.cost, network.nodes[node].cpu)
+                cpu_ms(vert.cost, network.nodes[node].cpu)
             ):
                 ub[i] = 0.0
             if objective == "energy" and ub[i] > 0:
-                c[i] = vertex_energy_j(v.cost, network, node) * 1e6  # µJ: keeps HiGHS' gaps tiny
+                c[i] = vertex_energy_j(vert.cost, network, node) * 1e6  # µJ: keeps HiGHS' gaps tiny
     if np.any(lb > ub):
         raise PlanningError("a vertex is pinned to a node with no CPU; no placement exists")
 
@@ -245,7 +245,7 @@ def optimal(
     elif objective == "max_load":
         for n, node in enumerate(nodes):
             cpu = network.nodes[node].cpu
-            terms = [(x(i, n), v.cost / cpu) for i, v in enumerate(verts) if v.cost and cpu > 0]
+            terms = [(x(i, n), t.cost / cpu) for i, t in enumerate(verts) if t.cost and cpu > 0]
             row([*terms, (z, -1.0)], -np.inf, 0.0)
 
     a_mat = coo_array((vals, (rows, cols)), shape=(len(row_lb), n_var)).tocsr()
