@@ -50,3 +50,22 @@ class Recorder:
             "out_of_order": self.out_of_order,
             "repeats": self.repeats,
         }
+
+
+class Counter:
+    """Stateful: numbers the events it has processed. A move that lost or repeated state (or
+    events) shows at the sink as a repeat or a gap in these numbers."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def __call__(self, event: Num) -> Num:
+        out = Num(seq=self.count, pad=event.pad)
+        self.count += 1
+        return out
+
+    def get_state(self) -> int:
+        return self.count
+
+    def set_state(self, state: int) -> None:
+        self.count = state

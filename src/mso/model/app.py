@@ -178,8 +178,11 @@ class App:
         return []
 
     def edge_format(self, edge: Edge) -> type[msgspec.Struct] | None:
-        """The edge's format: declared on the edge, else the producer's output format."""
+        """The edge's format: declared on the edge, else the producer's output format, else the
+        consumer's input format (validation makes sure they agree when several are given)."""
         fmt = edge.format if edge.format is not None else self.vertices[edge.src].output
+        if fmt is None:
+            fmt = self.vertices[edge.dst].input
         return fmt if isinstance(fmt, type) else None
 
     # -- validation ----------------------------------------------------------------------

@@ -15,6 +15,7 @@ origin starts the sources.
 from __future__ import annotations
 
 import time
+import zlib
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -55,6 +56,19 @@ class SetTimer:
 
 Effect = Send | Reply | SetTimer
 
+
+@dataclass
+class Relocation:
+    """A relocation this node coordinates (it received the request)."""
+
+    app: str
+    vertex: str
+    source: str  # node the vertex leaves
+    target: str  # node it goes to
+    client: int | None
+    requested_at: float
+
+
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
 RETRANSMIT_S = 0.25
 SOURCE_BURST = 256  # events a rate-less source emits per turn
@@ -78,6 +92,9 @@ class Deployment:
     inc: dict[int, InChannel] = field(default_factory=dict)
     decoders: dict[int, msgspec.msgpack.Decoder[Any]] = field(default_factory=dict)
     running: bool = False
+    awaiting: dict[str, Stone] = field(default_factory=dict)  # prepared, awaiting handover
+    stash: dict[int, list[tuple[int, list[bytes]]]] = field(default_factory=dict)
+    markers: dict[str, set[int]] = field(default_factory=dict)  # vertex -> edges marked
     blocked_sources: set[str] = field(default_factory=set)
     started_at: float = 0.0
     # at the origin only
@@ -108,7 +125,12 @@ class NodeCore:
         self.dropped_messages = 0
         self._effects: list[Effect] = []
         self._work: deque[tuple[str, str, m.Message]] = deque()
-        self._events: deque[tuple[Deployment, int, bytes]] = deque()
+        # events and markers, in arrival order per edge: a marker is handled after every event
+        # that arrived before it
+        self._events: deque[tuple[Deployment, int, bytes | m.Marker]] = deque()
+        self._relocs: dict[int, Relocation] = {}
+        self._rid = zlib.crc32(node_id.encode()) << 24
+        self._handover_to: dict[int, str] = {}  # rid -> coordinator, at a relocation's target
         self._outbox: dict[tuple[str, int], tuple[int, list[bytes]]] = {}
         self._status_req = 0
         self._now = 0.0
@@ -135,6 +157,8 @@ class NodeCore:
             if msg.app in self.apps:
                 self._broadcast(msg)
             self._effects.append(Reply(client, m.StopApp(msg.app)))
+        elif isinstance(msg, m.RelocateRequest):
+            self._relocate_request(client, msg, now)
         elif isinstance(msg, m.StatusRequest):
             self._status_request(client, msg, now)
         else:
@@ -172,8 +196,11 @@ class NodeCore:
                 except MsoError:
                     self.dropped_messages += 1
             while self._events and not self._work:
-                dep, edge, payload = self._events.popleft()
-                self._process(dep, edge, payload, now)
+                dep, edge, item = self._events.popleft()
+                if isinstance(item, m.Marker):
+                    self._on_marker(dep, item)
+                else:
+                    self._process(dep, edge, item, now)
         self._flush()
         out, self._effects = self._effects, []
         return out
@@ -207,6 +234,26 @@ class NodeCore:
             self._send(src, m.StatusReply(req=msg.req, nodes={self.id: self.status(now)}))
         elif isinstance(msg, m.StatusReply):
             self._on_status_reply(msg)
+        elif isinstance(msg, m.Marker):
+            dep = self.apps.get(msg.app)
+            if dep is not None:
+                self._events.append((dep, msg.edge, msg))
+        elif isinstance(msg, m.RelocateRequest):
+            self._relocate_request(None, msg, now)
+        elif isinstance(msg, m.Prepare):
+            self._on_prepare(src, msg)
+        elif isinstance(msg, m.Prepared):
+            self._on_prepared(msg, now)
+        elif isinstance(msg, m.Switch):
+            self._on_switch(msg)
+        elif isinstance(msg, m.Handover):
+            self._on_handover(msg, now)
+        elif isinstance(msg, m.Moved):
+            dep = self.apps.get(msg.app)
+            if dep is not None and msg.vertex in dep.placed:
+                dep.placed[msg.vertex] = msg.node
+        elif isinstance(msg, m.HandoverDone):
+            self._on_handover_done(msg, now)
         else:
             self.dropped_messages += 1
 
@@ -451,7 +498,11 @@ class NodeCore:
         if dep is None or not 0 <= msg.edge < len(dep.app.edges):
             self.dropped_messages += 1
             return
-        if dep.app.edges[msg.edge].dst not in dep.stones:
+        dst = dep.app.edges[msg.edge].dst
+        if dst in dep.awaiting:  # a relocated instance before its handover: keep for later
+            dep.stash.setdefault(msg.edge, []).append((msg.seq, msg.events))
+            return
+        if dst not in dep.stones:
             self.dropped_messages += 1
             return
         self._deliver(dep, msg.edge, msg.seq, msg.events)
@@ -552,6 +603,186 @@ class NodeCore:
                     self._effects.append(Send(dst, m.Data(app, edge, 0, first, events)))
                 ch.waiting_since = now
         self._effects.append(SetTimer(("retransmit", app), now + RETRANSMIT_S))
+
+    # -- relocation (§3.4.1) with a marker and state handover -------------------------------
+    def _refuse(self, client: int | None, msg: m.RelocateRequest, reason: str) -> None:
+        if client is not None:
+            reply = m.RelocateReply(msg.app, msg.vertex, False, error=reason)
+            self._effects.append(Reply(client, reply))
+
+    def relocation_target(self, dep: Deployment, vertex: str, direction: str = "") -> str:
+        """Where an upstream or downstream relocation takes ``vertex`` (MsoError if it cannot
+        move): upstream is its predecessor's node; downstream is its successor's node or, when
+        they share a node, the next node toward the chain's tail."""
+        app, lay = dep.app, dep.layout
+        if vertex not in app.vertices:
+            raise MsoError(f"unknown vertex {vertex!r} in app {app.name!r}")
+        for c in lay.chains:
+            if vertex in (c.head, c.tail):
+                raise MsoError(
+                    f"{vertex!r} is an end of chain {c.name}; chain ends are never relocated "
+                    f"(it would disturb the chains before or after it)"
+                )
+        if not direction:
+            return ""
+        (pred,) = app.predecessors()[vertex]
+        (succ,) = app.successors()[vertex]
+        here = dep.placed[vertex]
+        if direction == "upstream":
+            target = dep.placed[pred]
+        elif direction == "downstream":
+            target = dep.placed[succ]
+            if target == here:
+                tail = dep.placed[next(c for c in lay.chains if vertex in c.vertices).tail]
+                route = self.routes.get(tail) if here == self.id else None
+                target = route[0] if route else tail
+        else:
+            raise MsoError(f"expected direction 'upstream' or 'downstream', got {direction!r}")
+        if target == here:
+            where = "predecessor's" if direction == "upstream" else "next downstream"
+            raise MsoError(f"{vertex!r} already runs on its {where} node {here}")
+        return target
+
+    def _relocate_request(self, client: int | None, msg: m.RelocateRequest, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or not dep.running:
+            self._refuse(client, msg, f"no running app named {msg.app!r}")
+            return
+        try:
+            target = self.relocation_target(dep, msg.vertex, "" if msg.target else msg.direction)
+        except MsoError as exc:
+            self._refuse(client, msg, str(exc))
+            return
+        target = msg.target or target
+        if target != self.id and target not in self.routes:
+            self._refuse(client, msg, f"target node {target!r} is not reachable")
+            return
+        source = dep.placed[msg.vertex]
+        if target == source:
+            self._refuse(client, msg, f"{msg.vertex!r} already runs on {target}")
+            return
+        if any(r.app == msg.app and r.vertex == msg.vertex for r in self._relocs.values()):
+            self._refuse(client, msg, f"{msg.vertex!r} is already being relocated")
+            return
+        self._rid += 1
+        self._relocs[self._rid] = Relocation(msg.app, msg.vertex, source, target, client, now)
+        self._send(target, m.Prepare(msg.app, msg.vertex, self._rid))
+
+    def _on_prepare(self, src: str, msg: m.Prepare) -> None:
+        dep = self.apps.get(msg.app)
+        error = ""
+        if dep is None:
+            error = f"{self.id} does not run app {msg.app!r}"
+        elif msg.vertex not in dep.stones and msg.vertex not in dep.awaiting:
+            try:
+                stone = Stone(dep.app.vertices[msg.vertex], dep.app.kind(msg.vertex))
+            except Exception as exc:  # user code failing at construction: refuse, change nothing
+                error = f"{self.id}: cannot create {msg.vertex!r}: {type(exc).__name__}: {exc}"
+            else:
+                dep.awaiting[msg.vertex] = stone
+                self._handover_to[msg.rid] = src
+        self._send(src, m.Prepared(msg.app, msg.vertex, msg.rid, self.id, error))
+
+    def _on_prepared(self, msg: m.Prepared, now: float) -> None:
+        reloc = self._relocs.get(msg.rid)
+        dep = self.apps.get(msg.app)
+        if reloc is None or dep is None:
+            return
+        if msg.error:
+            del self._relocs[msg.rid]
+            self._refuse(reloc.client, m.RelocateRequest(msg.app, msg.vertex), msg.error)
+            return
+        for e in dep.app.edges:
+            if e.dst == msg.vertex:
+                edge = dep.app.edges.index(e)
+                self._send(dep.placed[e.src], m.Switch(msg.app, edge, reloc.target, msg.rid))
+
+    def _on_switch(self, msg: m.Switch) -> None:
+        """At the producer's node: new events go to the new instance; a marker goes the old way."""
+        dep = self.apps.get(msg.app)
+        if dep is None:
+            return
+        edge = dep.app.edges[msg.edge]
+        old = dep.placed[edge.dst]
+        key = (msg.app, msg.edge)
+        batch = self._outbox.pop(key, None)
+        if batch is not None:  # what is already queued leaves before the marker
+            self._effects.append(Send(old, m.Data(msg.app, msg.edge, 0, batch[0], batch[1])))
+        seq = self._out(dep, msg.edge).next_seq
+        dep.placed[edge.dst] = msg.to
+        marker = m.Marker(msg.app, msg.edge, seq, msg.rid, msg.to)
+        if old == self.id:
+            self._events.append((dep, msg.edge, marker))
+        else:
+            self._effects.append(Send(old, marker))
+
+    def _on_marker(self, dep: Deployment, msg: m.Marker) -> None:
+        """At the old instance's node: once every input is marked, hand the state over."""
+        vid = dep.app.edges[msg.edge].dst
+        stone = dep.stones.get(vid)
+        if stone is None:
+            return
+        marked = dep.markers.setdefault(vid, set())
+        marked.add(msg.edge)
+        ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vid]
+        if not set(ins) <= marked:
+            return
+        del dep.markers[vid]
+        for i in ins:  # acknowledge what the old instance processed, then forget the inputs
+            self._ack(dep, i)
+        inputs = {i: dep.inc.pop(i).expected if i in dep.inc else 0 for i in ins}
+        outputs: dict[int, list[Any]] = {}
+        for i in dep.out_edges.get(vid, []):
+            ch = dep.out.pop(i, None)
+            if ch is not None:
+                _, events = ch.unacked()
+                outputs[i] = [ch.next_seq, ch.acked, events]
+        key_batches = [k for k in self._outbox if k[0] == dep.app.name and k[1] in outputs]
+        for k in key_batches:  # queued output leaves from here before the handover
+            seq, events = self._outbox.pop(k)
+            dst = dep.placed[dep.app.edges[k[1]].dst]
+            self._effects.append(Send(dst, m.Data(k[0], k[1], 0, seq, events)))
+        state = msgspec.msgpack.encode(stone.get_state())
+        del dep.stones[vid]
+        dep.placed[vid] = msg.to
+        handover = m.Handover(
+            dep.app.name, vid, msg.rid, state, inputs, outputs, stone.processed, stone.emitted
+        )
+        self._send(msg.to, handover)
+        self._broadcast(m.Moved(dep.app.name, vid, msg.to))
+
+    def _on_handover(self, msg: m.Handover, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or msg.vertex not in dep.awaiting:
+            return
+        stone = dep.awaiting.pop(msg.vertex)
+        stone.set_state(msgspec.msgpack.decode(msg.state))
+        stone.processed, stone.emitted = msg.processed, msg.emitted
+        dep.stones[msg.vertex] = stone
+        dep.placed[msg.vertex] = self.id
+        for i, expected in msg.inputs.items():
+            dep.inc[i] = InChannel(expected=expected, processed=expected, _acked=expected)
+        for i, (next_seq, acked, events) in msg.outputs.items():
+            ch = OutChannel(window=self.window, next_seq=acked, acked=acked, waiting_since=now)
+            for payload in events:
+                ch.push(payload, now)
+            ch.next_seq = next_seq
+            dep.out[i] = ch
+        for i in msg.inputs:  # what arrived early, in order, now that positions are known
+            for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
+                self._deliver(dep, i, seq, events)
+        coordinator = self._handover_to.pop(msg.rid, None)
+        if coordinator is not None:
+            self._send(coordinator, m.HandoverDone(msg.app, msg.vertex, msg.rid))
+
+    def _on_handover_done(self, msg: m.HandoverDone, now: float) -> None:
+        reloc = self._relocs.pop(msg.rid, None)
+        if reloc is None or reloc.client is None:
+            return
+        reply = m.RelocateReply(
+            reloc.app, reloc.vertex, True, reloc.target, (now - reloc.requested_at) * 1e3
+        )
+        self._effects.append(Reply(reloc.client, reply))
 
     # -- status -----------------------------------------------------------------------------
     def status(self, now: float) -> dict[str, Any]:

@@ -280,7 +280,7 @@ class NodeDriver:
                     self.counters.frames_unroutable += 1
                     continue
                 payload = m.wrap(self.core.id, eff.dst, eff.msg)
-                is_data = isinstance(eff.msg, m.Data | m.Ack)
+                is_data = isinstance(eff.msg, m.Data | m.Ack | m.Marker)
                 conn = self.peers.get(route[0])
                 if conn is not None and conn.link is not None:
                     conn.link.send(payload, is_data)

@@ -134,7 +134,90 @@ class DeployFailed(_Msg, tag="deploy_failed"):
     reason: str
 
 
+# -- reconfiguration (§3.4): relocation with a marker and state handover -----------------------
+class Marker(_Msg, tag="marker"):
+    """Sent down the old path after the producer switched an edge: every event before ``seq``
+    went the old way. Travels as data so it never overtakes them."""
+
+    app: str
+    edge: int
+    seq: int
+    rid: int
+    to: str  # where the vertex is going: its old instance hands over there
+
+
+class Prepare(_Msg, tag="prepare"):
+    """To the target node: create an instance of ``vertex`` that buffers until handover."""
+
+    app: str
+    vertex: str
+    rid: int
+
+
+class Prepared(_Msg, tag="prepared"):
+    app: str
+    vertex: str
+    rid: int
+    node: str
+    error: str = ""
+
+
+class Switch(_Msg, tag="switch"):
+    """To a producer's node: send ``edge`` to ``to`` from now on, and a marker the old way."""
+
+    app: str
+    edge: int
+    to: str
+    rid: int
+
+
+class Handover(_Msg, tag="handover"):
+    """The old instance's state and channel positions, after every in-edge's marker."""
+
+    app: str
+    vertex: str
+    rid: int
+    state: bytes  # msgpack of get_state()
+    inputs: dict[int, int]  # edge -> next expected seq
+    outputs: dict[int, list[Any]]  # edge -> [next_seq, acked, [unacked events...]]
+    processed: int
+    emitted: int
+
+
+class Moved(_Msg, tag="moved"):
+    """Broadcast: ``vertex`` now runs on ``node``."""
+
+    app: str
+    vertex: str
+    node: str
+
+
+class HandoverDone(_Msg, tag="handover_done"):
+    app: str
+    vertex: str
+    rid: int
+
+
 # -- requests from clients -------------------------------------------------------------------
+class RelocateRequest(_Msg, tag="relocate"):
+    """Move ``vertex`` upstream (onto its predecessor's node), downstream (onto its successor's
+    next node) or to ``target``."""
+
+    app: str
+    vertex: str
+    direction: str = ""
+    target: str = ""
+
+
+class RelocateReply(_Msg, tag="relocate_reply"):
+    app: str
+    vertex: str
+    ok: bool
+    node: str = ""
+    elapsed_ms: float = 0.0
+    error: str = ""
+
+
 class DeployRequest(_Msg, tag="deploy"):
     document: str
     file: str = "<app>"
@@ -194,6 +277,15 @@ Message = (
     | StatusReply
     | LinkState
     | Shutdown
+    | Marker
+    | Prepare
+    | Prepared
+    | Switch
+    | Handover
+    | Moved
+    | HandoverDone
+    | RelocateRequest
+    | RelocateReply
 )
 
 _ENVELOPE_DECODER = msgspec.msgpack.Decoder(Envelope)
@@ -211,7 +303,7 @@ def decode(data: bytes | msgspec.Raw) -> Message:
 
 
 def wrap(src: str, dst: str, msg: Message, ttl: int = 32) -> bytes:
-    is_data = isinstance(msg, Data | Ack)
+    is_data = isinstance(msg, Data | Ack | Marker)
     return _ENCODER.encode(Envelope(src, dst, ttl, is_data, msgspec.Raw(_ENCODER.encode(msg))))
 
 
