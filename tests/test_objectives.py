@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -24,7 +25,7 @@ from mso.planning.objectives import (
 
 def line(*nodes: NodeSpec) -> Network:
     ids = [n.id for n in nodes]
-    return Network(list(nodes), [LinkSpec(a, b) for a, b in zip(ids, ids[1:], strict=False)])
+    return Network(list(nodes), [LinkSpec(a, b) for a, b in itertools.pairwise(ids)])
 
 
 def two_vertex_app(size: int | None = 100) -> App:
@@ -37,9 +38,15 @@ def two_vertex_app(size: int | None = 100) -> App:
 
 def three_node_line() -> Network:
     return line(
-        NodeSpec("N1", cpu=2.0, power=PowerModel(cpu_w=4.0, tx_uj_per_byte=2.0, rx_uj_per_byte=1.0)),
-        NodeSpec("N2", cpu=1.0, power=PowerModel(cpu_w=5.0, tx_uj_per_byte=5.0, rx_uj_per_byte=1.0)),
-        NodeSpec("N3", cpu=1.0, power=PowerModel(cpu_w=6.0, tx_uj_per_byte=7.0, rx_uj_per_byte=3.0)),
+        NodeSpec(
+            "N1", cpu=2.0, power=PowerModel(cpu_w=4.0, tx_uj_per_byte=2.0, rx_uj_per_byte=1.0)
+        ),
+        NodeSpec(
+            "N2", cpu=1.0, power=PowerModel(cpu_w=5.0, tx_uj_per_byte=5.0, rx_uj_per_byte=1.0)
+        ),
+        NodeSpec(
+            "N3", cpu=1.0, power=PowerModel(cpu_w=6.0, tx_uj_per_byte=7.0, rx_uj_per_byte=3.0)
+        ),
     )
 
 
