@@ -140,3 +140,17 @@ def test_bad_scenario_for_emulate_starts_nothing(tmp_path: Path) -> None:
     code, _, err = run("emulate", str(scen), "--duration", "1")
     assert code == 2
     assert "scen.yaml:4: links[0]: unknown node 'N9'" in err
+
+
+def test_plan_with_a_baseline_and_compare() -> None:
+    app, scen = str(EXAMPLES / "convoy.yaml"), str(EXAMPLES / "convoy-line.yaml")
+    code, out, _ = run("plan", app, "--scenario", scen, "--planner", "source", "--json")
+    assert code == 0
+    doc = json.loads(out)
+    assert set(doc["placement"].values()) == {"N1", "N4"}  # all at the source, storage pinned
+    code, out, _ = run("compare", app, "--scenario", scen, "--json")
+    assert code == 0
+    rows = json.loads(out)
+    assert rows["optimal:energy"]["energy"] <= rows["algorithm1"]["energy"] + 1e-12
+    assert rows["optimal:max_load"]["max_load"] <= rows["algorithm1"]["max_load"] + 1e-12
+    assert rows["algorithm1"]["max_load"] < rows["source"]["max_load"]  # offloading helps

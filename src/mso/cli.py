@@ -28,6 +28,7 @@ from mso.scenario import Scenario, load_scenario
 F = TypeVar("F", bound=Callable[..., Any])
 
 EXAMPLES = Path(__file__).parent / "examples"
+PLANNERS = ["algorithm1", "source", "random", "greedy", "optimal"]
 
 
 def _user_errors(fn: F) -> F:
@@ -111,26 +112,113 @@ def _chains(app_file: Path, as_json: bool, no_import: bool) -> None:
     help="The network: nodes, capacities, links.",
 )
 @click.option("--origin", help="Node that hosts unpinned sources (default: the first node).")
+@click.option(
+    "--planner",
+    type=click.Choice(PLANNERS),
+    default="algorithm1",
+    show_default=True,
+    help="Algorithm 1 or a baseline to compare it with.",
+)
+@click.option(
+    "--objective",
+    type=click.Choice(["energy", "max_load", "hops"]),
+    default="energy",
+    show_default=True,
+    help="What the optimal planner minimises.",
+)
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random planner.")
 @click.option("--json", "as_json", is_flag=True, help="Print the plan as JSON.")
 @no_import
 def plan_cmd(
-    app_file: Path, scenario_file: Path, origin: str | None, as_json: bool, no_import: bool
+    app_file: Path,
+    scenario_file: Path,
+    origin: str | None,
+    planner: str,
+    objective: str,
+    seed: int,
+    as_json: bool,
+    no_import: bool,
 ) -> None:
-    """Place an app on a network with Algorithm 1 (paper §3.3)."""
-    _plan(app_file, scenario_file, origin, as_json, no_import)
+    """Place an app on a network with Algorithm 1 (paper §3.3) or a baseline."""
+    _plan(app_file, scenario_file, origin, planner, objective, seed, as_json, no_import)
 
 
 @_user_errors
 def _plan(
-    app_file: Path, scenario_file: Path, origin: str | None, as_json: bool, no_import: bool
+    app_file: Path,
+    scenario_file: Path,
+    origin: str | None,
+    planner: str,
+    objective: str,
+    seed: int,
+    as_json: bool,
+    no_import: bool,
 ) -> None:
+    from mso.planning.baselines import BASELINES
+    from mso.planning.objectives import evaluate
+
     app = load_app(app_file, resolve_code=not no_import)
     scenario = load_scenario(scenario_file)
     result = plan(app, scenario.network, origin=origin)
+    if planner != "algorithm1":
+        placement = BASELINES[planner](app, scenario.network, seed=seed, objective=objective)
+        result = Plan(placement, result.chains, result.order, {})
     if as_json:
-        click.echo(json.dumps(result.to_json()))
+        doc = result.to_json()
+        doc["planner"] = planner
+        doc["objectives"] = evaluate(app, scenario.network, result.placement)
+        click.echo(json.dumps(doc))
         return
     render_plan(_console(), app, scenario, result)
+
+
+@main.command()
+@click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--scenario",
+    "scenario_file",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="The network.",
+)
+@click.option("--json", "as_json", is_flag=True)
+@no_import
+def compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool) -> None:
+    """Algorithm 1 beside the baselines on energy per event, max node load and hops."""
+    _compare(app_file, scenario_file, as_json, no_import)
+
+
+@_user_errors
+def _compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool) -> None:
+    from mso.errors import PlanningError
+    from mso.planning.baselines import BASELINES
+    from mso.planning.objectives import evaluate
+
+    app = load_app(app_file, resolve_code=not no_import)
+    net = load_scenario(scenario_file).network
+    rows: dict[str, Any] = {"algorithm1": evaluate(app, net, plan(app, net).placement)}
+    for name in ("source", "random", "greedy"):
+        rows[name] = evaluate(app, net, BASELINES[name](app, net, seed=0, objective="energy"))
+    for objective in ("energy", "max_load", "hops"):
+        try:
+            placement = BASELINES["optimal"](app, net, seed=0, objective=objective)
+            rows[f"optimal:{objective}"] = evaluate(app, net, placement)
+        except PlanningError as exc:
+            rows[f"optimal:{objective}"] = {"error": str(exc)}
+    if as_json:
+        click.echo(json.dumps(rows))
+        return
+    table = Table(title=f"{app.name}: Algorithm 1 beside the baselines")
+    for col in ("planner", "energy per event (mJ)", "max node load (ms)", "end-to-end hops"):
+        table.add_column(col, justify="left" if col == "planner" else "right")
+    for name, r in rows.items():
+        if "error" in r:
+            table.add_row(name, r["error"], "", "")
+        else:
+            table.add_row(
+                name, f"{r['energy'] * 1e3:.3f}", f"{r['max_load']:.2f}", f"{r['hops']:g}"
+            )
+    _console().print(table)
 
 
 def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) -> None:
