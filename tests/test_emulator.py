@@ -171,3 +171,34 @@ def test_static_peers_from_config_files(tmp_path: Path) -> None:
             p.wait(timeout=5)
     got = sink(nodes)
     assert got["count"] >= 100 and got["repeats"] == 0 and got["out_of_order"] == 0
+
+
+def test_relocation_across_processes_keeps_every_event() -> None:
+    app = APP.replace(
+        "  mid: {code: runtime_vertices:Double}",
+        "  mid: {code: runtime_vertices:Counter, output: runtime_vertices:Num}",
+    )
+
+    async def run() -> tuple[list[Any], dict[str, Any]]:
+        emu = Emulator(loads_scenario(LINE))
+        await emu.start()
+        try:
+            assert (await emu.deploy(app, "pipe.yaml", "N1")).ok
+            replies = []
+            for k in range(6):
+                await asyncio.sleep(0.2)
+                direction = "downstream" if k % 2 == 0 else "upstream"
+                replies.append(await emu.relocate("pipe", "mid", direction=direction, via="N3"))
+            await asyncio.sleep(0.5)
+            return replies, await emu.status()
+        finally:
+            await emu.stop()
+
+    replies, status = asyncio.run(run())
+    assert sum(r.ok for r in replies) >= 3, [r.error for r in replies]
+    hosts = [n for n, st in status.items() if "mid" in st["apps"]["pipe"]["vertices"]]
+    assert len(hosts) == 1
+    got = sink(status)
+    emitted = status["N1"]["apps"]["pipe"]["vertices"]["src"]["emitted"]
+    assert got["repeats"] == 0 and got["out_of_order"] == 0  # the counter's state moved too
+    assert emitted - 20 <= got["count"] <= emitted

@@ -467,6 +467,59 @@ def _deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> 
 
 
 @main.command()
+@click.argument("vertex")
+@click.option("--app", "app_name", required=True, help="The app the vertex belongs to.")
+@click.option("--upstream", "direction", flag_value="upstream", help="Onto its predecessor's node.")
+@click.option(
+    "--downstream", "direction", flag_value="downstream", help="To the next node downstream."
+)
+@click.option("--to", "target", help="Onto this node.")
+@click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@key_option
+@click.option("--json", "as_json", is_flag=True)
+def relocate(
+    vertex: str,
+    app_name: str,
+    direction: str | None,
+    target: str | None,
+    via: str | None,
+    key: str | None,
+    as_json: bool,
+) -> None:
+    """Move one vertex of a running app, with its state, losing no event (§3.4.1)."""
+    _relocate(vertex, app_name, direction, target, via, key, as_json)
+
+
+@_user_errors
+def _relocate(
+    vertex: str,
+    app_name: str,
+    direction: str | None,
+    target: str | None,
+    via: str | None,
+    key: str | None,
+    as_json: bool,
+) -> None:
+    import asyncio
+
+    from mso.client import request
+    from mso.protocol import messages as m
+
+    if bool(direction) == bool(target):
+        raise MsoError("give exactly one of --upstream, --downstream or --to NODE")
+    req = m.RelocateRequest(app_name, vertex, direction or "", target or "")
+    reply = asyncio.run(request(_resolve_via(via), req, key=key))
+    if not isinstance(reply, m.RelocateReply) or not reply.ok:
+        raise MsoError(f"relocation refused: {getattr(reply, 'error', reply)}")
+    if as_json:
+        click.echo(
+            json.dumps({"vertex": vertex, "node": reply.node, "elapsed_ms": reply.elapsed_ms})
+        )
+        return
+    click.echo(f"{vertex} now runs on {reply.node} (relocated in {reply.elapsed_ms:.2f} ms)")
+
+
+@main.command()
 @click.argument("app_name")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @key_option

@@ -225,6 +225,21 @@ class Emulator:
         assert isinstance(reply, m.DeployReply)
         return reply
 
+    async def relocate(
+        self,
+        app: str,
+        vertex: str,
+        *,
+        direction: str = "",
+        target: str = "",
+        via: str | None = None,
+    ) -> m.RelocateReply:
+        reply = await self.call(
+            via or next(iter(self.nodes)), m.RelocateRequest(app, vertex, direction, target), 10.0
+        )
+        assert isinstance(reply, m.RelocateReply)
+        return reply
+
     async def undeploy(self, app: str, via: str | None = None) -> None:
         """Stop an app on every node (its stones are freed)."""
         await self.call(via or next(iter(self.nodes)), m.StopApp(app), 10.0)
