@@ -43,6 +43,20 @@ class OutChannel:
         self.next_seq += 1
         return seq
 
+    @property
+    def room(self) -> int:
+        """How many more events the window admits now."""
+        return self.window - (self.next_seq - self.acked)
+
+    def push_many(self, payloads: list[bytes], now: float = 0.0) -> int:
+        """Number and keep several events; returns the first one's sequence number."""
+        seq = self.next_seq
+        if seq == self.acked:
+            self.waiting_since = now
+        self._unacked.extend(payloads)
+        self.next_seq += len(payloads)
+        return seq
+
     def on_ack(self, upto: int, now: float = 0.0) -> int:
         """Release events below ``upto``; returns how many were released (0 for a stale ack)."""
         if upto > self.next_seq:
