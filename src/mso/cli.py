@@ -520,6 +520,79 @@ def _relocate(
 
 
 @main.command()
+@click.argument("chain", required=False)
+@click.option("--app", "app_name", required=True, help="The running app.")
+@click.option("--chains", help="Several chains, comma-separated (global remap, §3.4.3).")
+@click.option("--all", "everything", is_flag=True, help="Every chain of the app.")
+@click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@key_option
+@click.option("--json", "as_json", is_flag=True)
+def remap(
+    chain: str | None,
+    app_name: str,
+    chains: str | None,
+    everything: bool,
+    via: str | None,
+    key: str | None,
+    as_json: bool,
+) -> None:
+    """Re-place one chain (§3.4.2), several or all (§3.4.3) along freshly probed routes.
+
+    A chain is named by its index (`mso chains`) or as head-...-tail."""
+    _remap(chain, app_name, chains, everything, via, key, as_json)
+
+
+@_user_errors
+def _remap(
+    chain: str | None,
+    app_name: str,
+    chains: str | None,
+    everything: bool,
+    via: str | None,
+    key: str | None,
+    as_json: bool,
+) -> None:
+    import asyncio
+
+    from mso.client import request
+    from mso.protocol import messages as m
+
+    names = [c for c in ([chain] if chain else []) + (chains.split(",") if chains else []) if c]
+    if bool(names) == everything:
+        raise MsoError("name a chain, or give --chains C1,C2, or --all")
+    address = _resolve_via(via)
+
+    async def run() -> m.Message:
+        indices: list[int] = []
+        if names:
+            st = await request(address, m.StatusRequest(), key=key)
+            assert isinstance(st, m.StatusReply)
+            app = next(iter(st.nodes.values()))["apps"].get(app_name)
+            if app is None:
+                raise MsoError(f"no running app named {app_name!r}")
+            known = ["-".join(c) for c in app["chains"]]
+            for n in names:
+                if n.isdigit():
+                    indices.append(int(n))
+                elif n in known:
+                    indices.append(known.index(n))
+                else:
+                    raise MsoError(f"unknown chain {n!r} (chains: {', '.join(known)})")
+        return await request(address, m.RemapRequest(app_name, indices, everything), key=key)
+
+    reply = asyncio.run(run())
+    if not isinstance(reply, m.RemapReply) or not reply.ok:
+        raise MsoError(f"remap refused: {getattr(reply, 'error', reply)}")
+    if as_json:
+        click.echo(json.dumps({"moved": reply.moved, "elapsed_ms": reply.elapsed_ms}))
+        return
+    click.echo(
+        f"remapped in {reply.elapsed_ms:.1f} ms; moved: "
+        + (", ".join(f"{v}->{n}" for v, n in reply.moved.items()) or "nothing")
+    )
+
+
+@main.command()
 @click.argument("app_name")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @key_option

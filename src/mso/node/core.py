@@ -67,6 +67,22 @@ class Relocation:
     target: str  # node it goes to
     client: int | None
     requested_at: float
+    remap: int | None = None  # the remap this relocation is a step of
+
+
+@dataclass
+class Remap:
+    """A chain or global remap this node coordinates: probe, place, then relocate."""
+
+    app: str
+    chains: list[int]  # still to place, in dependency order
+    client: int | None
+    requested_at: float
+    placed: dict[str, str]  # the placement being built
+    moves: list[tuple[str, str]] = field(default_factory=list)  # (vertex, node) still to do
+    moved: dict[str, str] = field(default_factory=dict)
+    probes: dict[int, list[Hop]] = field(default_factory=dict)
+    expected: int = 0
 
 
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
@@ -130,6 +146,7 @@ class NodeCore:
         self._events: deque[tuple[Deployment, int, list[bytes] | m.Marker]] = deque()
         self._relocs: dict[int, Relocation] = {}
         self._rid = zlib.crc32(node_id.encode()) << 24
+        self._remaps: dict[int, Remap] = {}
         self._handover_to: dict[int, str] = {}  # rid -> coordinator, at a relocation's target
         self._outbox: dict[tuple[str, int], tuple[int, list[bytes]]] = {}
         self._status_req = 0
@@ -159,6 +176,8 @@ class NodeCore:
             self._effects.append(Reply(client, m.StopApp(msg.app)))
         elif isinstance(msg, m.RelocateRequest):
             self._relocate_request(client, msg, now)
+        elif isinstance(msg, m.RemapRequest):
+            self._remap_request(client, msg, now)
         elif isinstance(msg, m.StatusRequest):
             self._status_request(client, msg, now)
         else:
@@ -338,6 +357,9 @@ class NodeCore:
         self._effects.append(Send(nxt[0], msg))  # the next hop appends itself in turn
 
     def _on_probe_reply(self, msg: m.ProbeReply) -> None:
+        if msg.chain < 0:
+            self._on_remap_probe(msg)
+            return
         dep = self.apps.get(msg.app)
         if dep is None or msg.chain not in dep.probes:
             return
@@ -703,7 +725,10 @@ class NodeCore:
             return
         if msg.error:
             del self._relocs[msg.rid]
-            self._refuse(reloc.client, m.RelocateRequest(msg.app, msg.vertex), msg.error)
+            if reloc.remap is not None:
+                self._finish_remap(reloc.remap, now, msg.error)
+            else:
+                self._refuse(reloc.client, m.RelocateRequest(msg.app, msg.vertex), msg.error)
             return
         for e in dep.app.edges:
             if e.dst == msg.vertex:
@@ -790,12 +815,131 @@ class NodeCore:
 
     def _on_handover_done(self, msg: m.HandoverDone, now: float) -> None:
         reloc = self._relocs.pop(msg.rid, None)
+        if reloc is not None and reloc.remap is not None:
+            self._remap_step(reloc.remap, now, moved=(reloc.vertex, reloc.target))
+            return
         if reloc is None or reloc.client is None:
             return
         reply = m.RelocateReply(
             reloc.app, reloc.vertex, True, reloc.target, (now - reloc.requested_at) * 1e3
         )
         self._effects.append(Reply(reloc.client, reply))
+
+    # -- chain remap (§3.4.2) and global remap (§3.4.3) --------------------------------------
+    def _remap_request(self, client: int | None, msg: m.RemapRequest, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or not dep.running:
+            self._effects.append(
+                Reply(
+                    client or 0,
+                    m.RemapReply(msg.app, False, {}, error=f"no running app named {msg.app!r}"),
+                )
+            )
+            return
+        lay = dep.layout
+        bad = [c for c in msg.chains if not 0 <= c < len(lay.chains)]
+        if bad or (not msg.chains and not msg.everything):
+            reason = f"unknown chain {bad[0]}" if bad else "name the chains to remap, or all"
+            reason += f" (chains 0..{len(lay.chains) - 1})"
+            self._effects.append(Reply(client or 0, m.RemapReply(msg.app, False, {}, error=reason)))
+            return
+        wanted = set(range(len(lay.chains))) if msg.everything else set(msg.chains)
+        order = [c for c in lay.order if c in wanted]
+        # what stays: pinned vertices, sources, and the ends of chains fed from outside the set;
+        # a lone chain (§3.4.2) keeps its head and tail
+        keep = dict(lay.pinned)
+        for c in order:
+            chain = lay.chains[c]
+            keep[chain.head] = dep.placed[chain.head]
+            if len(order) == 1:
+                keep[chain.tail] = dep.placed[chain.tail]
+        heads_in_set = {lay.chains[c].tail for c in order}
+        for c in order:
+            head = lay.chains[c].head
+            if head in heads_in_set and head not in lay.pinned and dep.app.kind(head) != "source":
+                keep.pop(head, None)
+        for c in order:  # a head fed by a chain outside the set stays where it is
+            head = lay.chains[c].head
+            if head not in heads_in_set:
+                keep[head] = dep.placed[head]
+        placed = {v: n for v, n in dep.placed.items() if v in keep}
+        placed.update({v: n for v, n in keep.items()})
+        for v, n in dep.placed.items():  # vertices of chains outside the set stay too
+            if not any(v in lay.chains[c].vertices for c in order):
+                placed[v] = n
+        self._rid += 1
+        self._remaps[self._rid] = Remap(msg.app, order, client, now, placed)
+        self._remap_next_chain(self._rid, now)
+
+    def _remap_next_chain(self, rid: int, now: float) -> None:
+        remap = self._remaps[rid]
+        dep = self.apps[remap.app]
+        if not remap.chains:
+            remap.moves = [(v, n) for v, n in remap.placed.items() if dep.placed.get(v) != n]
+            self._remap_step(rid, now)
+            return
+        ci = remap.chains[0]
+        lay = dep.layout
+        remap.placed.setdefault(lay.chains[ci].head, dep.placed[lay.chains[ci].head])
+        target, _ = lay.target(ci, remap.placed, self._distances())
+        pairs = lay.probes_needed(ci, remap.placed, target)
+        remap.probes, remap.expected = {}, len(pairs)
+        if not pairs:
+            self._remap_place(rid, now)
+            return
+        for k, (a, b) in enumerate(pairs):  # chain -1 - rid marks a remap's probe
+            self._send(a, m.Probe(remap.app, -1, rid * 1000 + k, self.id, b, [], []))
+
+    def _on_remap_probe(self, msg: m.ProbeReply) -> None:
+        rid, k = divmod(msg.segment, 1000)
+        remap = self._remaps.get(rid)
+        if remap is None:
+            return
+        remap.probes[k] = [Hop(n, c) for n, c in zip(msg.nodes, msg.capacities, strict=False)]
+        if len(remap.probes) == remap.expected:
+            self._remap_place(rid, self._now)
+
+    def _remap_place(self, rid: int, now: float) -> None:
+        remap = self._remaps[rid]
+        dep = self.apps[remap.app]
+        ci = remap.chains.pop(0)
+        by_pair = {(h[0].node, h[-1].node): h for h in remap.probes.values() if h}
+        try:
+            assigned, _ = dep.layout.place(
+                ci, remap.placed, lambda a, b: by_pair.get((a, b), []), self._distances()
+            )
+        except MsoError as exc:
+            self._finish_remap(rid, now, str(exc))
+            return
+        remap.placed.update(assigned)
+        self._remap_next_chain(rid, now)
+
+    def _remap_step(self, rid: int, now: float, moved: tuple[str, str] | None = None) -> None:
+        """Relocate the next vertex whose node changed; done when none is left."""
+        remap = self._remaps.get(rid)
+        if remap is None:
+            return
+        if moved is not None:
+            remap.moved[moved[0]] = moved[1]
+        dep = self.apps[remap.app]
+        while remap.moves:
+            vertex, node = remap.moves.pop(0)
+            if dep.placed.get(vertex) == node or dep.app.kind(vertex) == "source":
+                continue
+            self._rid += 1
+            self._relocs[self._rid] = Relocation(
+                remap.app, vertex, dep.placed[vertex], node, None, now, remap=rid
+            )
+            self._send(node, m.Prepare(remap.app, vertex, self._rid))
+            return
+        self._finish_remap(rid, now, "")
+
+    def _finish_remap(self, rid: int, now: float, error: str) -> None:
+        remap = self._remaps.pop(rid)
+        if remap.client is not None:
+            elapsed = (now - remap.requested_at) * 1e3
+            reply = m.RemapReply(remap.app, not error, remap.moved, elapsed, error)
+            self._effects.append(Reply(remap.client, reply))
 
     # -- status -----------------------------------------------------------------------------
     def status(self, now: float) -> dict[str, Any]:

@@ -209,6 +209,23 @@ class RelocateRequest(_Msg, tag="relocate"):
     target: str = ""
 
 
+class RemapRequest(_Msg, tag="remap"):
+    """Re-place chains along freshly probed routes (§3.4.2; several: §3.4.3, in dependency
+    order). ``chains`` are chain indices; empty with ``everything`` remaps them all."""
+
+    app: str
+    chains: list[int]
+    everything: bool = False
+
+
+class RemapReply(_Msg, tag="remap_reply"):
+    app: str
+    ok: bool
+    moved: dict[str, str]
+    elapsed_ms: float = 0.0
+    error: str = ""
+
+
 class RelocateReply(_Msg, tag="relocate_reply"):
     app: str
     vertex: str
@@ -286,6 +303,8 @@ Message = (
     | HandoverDone
     | RelocateRequest
     | RelocateReply
+    | RemapRequest
+    | RemapReply
 )
 
 _ENVELOPE_DECODER = msgspec.msgpack.Decoder(Envelope)
