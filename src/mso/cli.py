@@ -562,7 +562,7 @@ def _remap(
         raise MsoError("name a chain, or give --chains C1,C2, or --all")
     address = _resolve_via(via)
 
-    async def run() -> m.Message:
+    async def run() -> Any:
         indices: list[int] = []
         if names:
             st = await request(address, m.StatusRequest(), key=key)

@@ -829,19 +829,14 @@ class NodeCore:
     def _remap_request(self, client: int | None, msg: m.RemapRequest, now: float) -> None:
         dep = self.apps.get(msg.app)
         if dep is None or not dep.running:
-            self._effects.append(
-                Reply(
-                    client or 0,
-                    m.RemapReply(msg.app, False, {}, error=f"no running app named {msg.app!r}"),
-                )
-            )
+            self._remap_refuse(client, msg.app, f"no running app named {msg.app!r}")
             return
         lay = dep.layout
         bad = [c for c in msg.chains if not 0 <= c < len(lay.chains)]
         if bad or (not msg.chains and not msg.everything):
             reason = f"unknown chain {bad[0]}" if bad else "name the chains to remap, or all"
             reason += f" (chains 0..{len(lay.chains) - 1})"
-            self._effects.append(Reply(client or 0, m.RemapReply(msg.app, False, {}, error=reason)))
+            self._remap_refuse(client, msg.app, reason)
             return
         wanted = set(range(len(lay.chains))) if msg.everything else set(msg.chains)
         order = [c for c in lay.order if c in wanted]
@@ -870,6 +865,10 @@ class NodeCore:
         self._rid += 1
         self._remaps[self._rid] = Remap(msg.app, order, client, now, placed)
         self._remap_next_chain(self._rid, now)
+
+    def _remap_refuse(self, client: int | None, app: str, reason: str) -> None:
+        if client is not None:
+            self._effects.append(Reply(client, m.RemapReply(app, False, {}, error=reason)))
 
     def _remap_next_chain(self, rid: int, now: float) -> None:
         remap = self._remaps[rid]
