@@ -100,3 +100,22 @@ def test_remap_refuses_unknown_chains() -> None:
     sim = started(line5())
     reply = remap(sim, "N2", [99])
     assert not reply.ok and "unknown chain 99" in reply.error
+
+
+def test_reconfigurations_of_different_chains_at_the_same_time() -> None:
+    net = line5()
+    sim = started(net)
+    n = len(sim.replies)
+    # a relocation in one chain and a remap of another, requested at once from two nodes
+    sim.request("N2", m.RelocateRequest("merge", "a", "upstream"))
+    sim.request("N4", m.RelocateRequest("merge", "counter", "upstream"))
+    sim.request("N3", m.RemapRequest("merge", [chain_index(sim, "s2", "m")]))
+    sim.run_until(sim.now + 1.0)
+    replies = [r for _, _, r in sim.replies[n:]]
+    assert len(replies) == 3
+    assert all(getattr(r, "ok", False) for r in replies), replies
+    sink, emitted = accounting(sim)
+    assert sink["repeats"] == 0 and sink["out_of_order"] == 0
+    assert emitted - 10 <= sink["count"] <= emitted
+    maps = [dict(c.apps["merge"].placed) for c in sim.cores.values()]
+    assert all(mp == maps[0] for mp in maps)

@@ -83,6 +83,7 @@ class Remap:
     moved: dict[str, str] = field(default_factory=dict)
     probes: dict[int, list[Hop]] = field(default_factory=dict)
     expected: int = 0
+    movable: set[str] = field(default_factory=set)  # only these are re-placed
 
 
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
@@ -862,8 +863,9 @@ class NodeCore:
         for v, n in dep.placed.items():  # vertices of chains outside the set stay too
             if not any(v in lay.chains[c].vertices for c in order):
                 placed[v] = n
+        movable = {v for c in order for v in lay.chains[c].vertices} - set(placed)
         self._rid += 1
-        self._remaps[self._rid] = Remap(msg.app, order, client, now, placed)
+        self._remaps[self._rid] = Remap(msg.app, order, client, now, placed, movable=movable)
         self._remap_next_chain(self._rid, now)
 
     def _remap_refuse(self, client: int | None, app: str, reason: str) -> None:
@@ -874,7 +876,11 @@ class NodeCore:
         remap = self._remaps[rid]
         dep = self.apps[remap.app]
         if not remap.chains:
-            remap.moves = [(v, n) for v, n in remap.placed.items() if dep.placed.get(v) != n]
+            remap.moves = [
+                (v, n)
+                for v, n in remap.placed.items()
+                if v in remap.movable and dep.placed.get(v) != n
+            ]
             self._remap_step(rid, now)
             return
         ci = remap.chains[0]
