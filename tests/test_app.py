@@ -431,9 +431,10 @@ def test_bad_edge_format_path() -> None:
 
 def test_builder_non_struct_format() -> None:
     app = App("t")
-    app.vertex("A", output=int)  # type: ignore[arg-type]
-    err = builder_error(app)
-    assert str(err).startswith("vertices.A.output: expected a msgspec.Struct type")
+    with pytest.raises(AppError) as info:  # refused at once, like a bad cost
+        app.vertex("A", output=int)  # type: ignore[arg-type]
+    assert str(info.value).startswith("vertices.A.output: expected an import path")
+    assert "or a msgspec.Struct type, got <class 'int'>" in str(info.value)
 
 
 def test_callable_code_and_state_hooks_in_builder() -> None:
@@ -623,11 +624,6 @@ def test_malformed_yaml_bad_indentation() -> None:
     assert err.file == FILE and err.line == 4 and "malformed YAML" in err.message
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="yamlfile.load_yaml reports the problem mark (line 7, past the end of this 6-line "
-    "file) and drops PyYAML's context mark, the line where the '[' was opened",
-)
 def test_malformed_yaml_unclosed_bracket_at_end_names_its_line() -> None:
     text = "name: t\nvertices:\n  A: {}\n  B: {}\nedges:\n  - [A, B\n"
     with pytest.raises(SpecError) as info:
@@ -636,15 +632,9 @@ def test_malformed_yaml_unclosed_bracket_at_end_names_its_line() -> None:
     assert err.line == 6 or "line 6" in err.message, str(err)
 
 
-# -- bugs found (documented as strict xfails) -----------------------------------------------
+# -- bugs found earlier, fixed: these keep them fixed ----------------------------------------
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=(TypeError, ValueError),
-    reason="App.vertex does dict(params or {}) before checking, so a non-mapping 'params' "
-    "escapes as a raw TypeError/ValueError instead of an AppError",
-)
 @pytest.mark.parametrize("params", ["[1, 2]", "abc"])
 def test_params_not_a_mapping(params: str) -> None:
     err = app_error(
@@ -658,11 +648,6 @@ def test_params_not_a_mapping(params: str) -> None:
     assert_at(err, 4, "vertices.A.params", "expected a mapping of parameters")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="App.vertex converts params with dict(), so a list of pairs is silently accepted "
-    "as a mapping",
-)
 def test_params_list_of_pairs_is_rejected() -> None:
     err = app_error(
         """
@@ -675,11 +660,6 @@ def test_params_list_of_pairs_is_rejected() -> None:
     assert_at(err, 4, "vertices.A.params", "expected a mapping of parameters")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="App.validate only resolves/checks an edge format when it is a str; any other "
-    "value (here the int 5) is accepted silently",
-)
 def test_yaml_edge_format_must_be_a_path() -> None:
     err = app_error(
         """
@@ -694,11 +674,6 @@ def test_yaml_edge_format_must_be_a_path() -> None:
     assert err.field == "edges[0].format" and err.line == 6
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="App.validate never checks that a non-string edge format is a msgspec.Struct "
-    "(vertex input/output are checked)",
-)
 def test_builder_edge_format_must_be_struct() -> None:
     app = App("t")
     app.vertex("A")
@@ -708,12 +683,6 @@ def test_builder_edge_format_must_be_struct() -> None:
     assert err.field == "edges[0].format"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AttributeError,
-    reason="with resolve_code=False a non-string, non-type format (input: 5) is never checked "
-    "and _fmt_name(5) crashes with AttributeError in _check_formats",
-)
 def test_non_string_format_without_import_is_an_app_error() -> None:
     err = app_error(
         """
@@ -729,12 +698,6 @@ def test_non_string_format_without_import_is_an_app_error() -> None:
     assert err.field == "vertices.B.input"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="appfile._path_of_field splits the AppError field on '.', so a vertex id with a "
-    "dot ('a.b') is looked up as ('vertices', 'a', 'b', 'cost') and the line falls back to "
-    "the 'vertices:' line",
-)
 def test_vertex_id_with_dot_points_at_its_line() -> None:
     err = app_error(
         """
@@ -746,11 +709,6 @@ def test_vertex_id_with_dot_points_at_its_line() -> None:
     assert_at(err, 3, "vertices.a.b.cost", "expected a non-negative number")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="App.validate never checks slo_ms: the builder accepts slo_ms=-5 (or a string) "
-    "that the YAML loader rejects with 'expected a positive number of milliseconds'",
-)
 @pytest.mark.parametrize("slo", [-5.0, 0, "fast"])
 def test_builder_checks_slo_ms(slo: object) -> None:
     app = App("t", slo_ms=slo)  # type: ignore[arg-type]

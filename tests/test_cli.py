@@ -80,7 +80,7 @@ def test_demo_prints_chains_and_placement_on_every_node() -> None:
             "name: x\nvertices:\n  A: {}\nedges:\n  - [A, Z]\n",
             "bad.yaml:5: edges[0]: unknown vertex 'Z'",
         ),
-        ("name: x\nvertices: [1, 2\n", "bad.yaml:3: malformed YAML"),
+        ("name: x\nvertices: [1, 2\n", "bad.yaml:2: malformed YAML"),
         (
             "name: x\nvertices:\n  A: {colour: red}\n",
             "bad.yaml:3: vertices.A.colour: unknown attribute",

@@ -301,12 +301,6 @@ def test_duplicate_node_is_a_located_error() -> None:
     assert "duplicate key 'A'" in err.message
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="scenario_from_document merges node_defaults into each node before checking, so a "
-    "bad default is reported at the first node (nodes.N1.cpu, N1's line) instead of at "
-    "node_defaults.cpu",
-)
 def test_bad_node_default_points_at_node_defaults() -> None:
     err = scenario_error(
         """

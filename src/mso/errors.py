@@ -22,11 +22,13 @@ class SpecError(MsoError):
         file: str | None = None,
         line: int | None = None,
         field: str | None = None,
+        path: tuple[str | int, ...] | None = None,
     ) -> None:
         self.message = message
         self.file = file
         self.line = line
         self.field = field
+        self.path = path  # where in the document, when known (for the line)
         super().__init__(self.render())
 
     def render(self) -> str:

@@ -105,6 +105,8 @@ def scenario_from_document(doc: Located) -> Scenario:
         raise r.err(f"expected a non-empty string, got {name!r}", ("name",))
     node_defaults = r.mapping(data.get("node_defaults"), NODE_KEYS - {"pos"}, ("node_defaults",))
     link_defaults = r.mapping(data.get("link_defaults"), LINK_ATTRS, ("link_defaults",))
+    if node_defaults:  # check the defaults where they are written, not at the first node
+        _node(r, "defaults", node_defaults, ("node_defaults",))
     raw_nodes = data.get("nodes")
     if not isinstance(raw_nodes, dict) or not raw_nodes:
         raise r.err("expected a non-empty mapping of node id to attributes", ("nodes",))

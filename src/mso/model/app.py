@@ -84,6 +84,12 @@ class App:
             raise AppError(f"expected a non-empty string vertex id, got {id!r}", field="vertices")
         if id in self.vertices:
             raise AppError(f"duplicate vertex id {id!r}", field=f"vertices.{id}")
+        if params is not None and not isinstance(params, dict):
+            raise self._error(
+                f"expected a mapping of parameters, got {params!r}",
+                f"vertices.{id}.params",
+                ("vertices", id, "params"),
+            )
         v = Vertex(
             id=id,
             code=code,
@@ -189,7 +195,9 @@ class App:
     def _error(self, message: str, field: str, path: tuple[str | int, ...] = ()) -> AppError:
         loc = self.located
         line = loc.line(path) if loc is not None and path else None
-        return AppError(message, file=loc.file if loc else None, line=line, field=field)
+        return AppError(
+            message, file=loc.file if loc else None, line=line, field=field, path=path or None
+        )
 
     def validate(self, *, resolve_code: bool = True) -> App:
         """Check the whole graph; raise the first problem found as an AppError.
@@ -199,6 +207,12 @@ class App:
         """
         if not isinstance(self.name, str) or not self.name:
             raise self._error("expected a non-empty string", "name", ("name",))
+        if self.slo_ms is not None and (not _is_number(self.slo_ms) or self.slo_ms <= 0):
+            raise self._error(
+                f"expected a positive number of milliseconds, got {self.slo_ms!r}",
+                "slo_ms",
+                ("slo_ms",),
+            )
         for v in self.vertices.values():
             _check_vertex_values(v, self._error)
             if resolve_code:
@@ -224,6 +238,13 @@ class App:
                     f"expected a non-negative integer byte count, got {e.size!r}",
                     f"{where}.size",
                     (*path, "size"),
+                )
+            if e.format is not None and not isinstance(e.format, str) and not _is_struct(e.format):
+                raise self._error(
+                    f"expected an import path 'package.module:Struct' or a msgspec.Struct type, "
+                    f"got {e.format!r}",
+                    f"{where}.format",
+                    (*path, "format"),
                 )
             if resolve_code and isinstance(e.format, str):
                 e.format = self._resolve_format(e.format, f"{where}.format", (*path, "format"))
@@ -340,6 +361,15 @@ def _check_vertex_values(v: Vertex, error: Callable[..., AppError]) -> None:
             f"vertices.{v.id}.params",
             (*base, "params"),
         )
+    for attr in ("input", "output"):
+        value = getattr(v, attr)
+        if value is not None and not isinstance(value, str) and not _is_struct(value):
+            raise error(
+                f"expected an import path 'package.module:Struct' or a msgspec.Struct type, "
+                f"got {value!r}",
+                f"vertices.{v.id}.{attr}",
+                (*base, attr),
+            )
     for attr in ("code", "get_state", "set_state"):
         value = getattr(v, attr)
         if value is not None and not (isinstance(value, str) or callable(value)):

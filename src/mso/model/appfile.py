@@ -73,7 +73,7 @@ def app_from_document(doc: Located, *, resolve_code: bool = True) -> App:
         try:
             app.vertex(vid, **attrs)
         except AppError as exc:
-            raise _err(doc, exc.message, _path_of_field(exc.field, path)) from None
+            raise _err(doc, exc.message, exc.path or path) from None
     edges = data.get("edges", [])
     if edges is None:
         edges = []
@@ -94,12 +94,6 @@ def app_from_document(doc: Located, *, resolve_code: bool = True) -> App:
         else:
             raise _err(doc, f"expected [producer, consumer] or a mapping, got {item!r}", path)
     return app.validate(resolve_code=resolve_code)
-
-
-def _path_of_field(field: str | None, default: tuple[str | int, ...]) -> tuple[str | int, ...]:
-    if not field:
-        return default
-    return tuple(field.split("."))
 
 
 def load_app(source: str | Path, *, resolve_code: bool = True) -> App:

@@ -82,6 +82,12 @@ def load_yaml(text: str, file: str | None = None) -> Located:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark else None
         problem = exc.problem or str(exc)
+        ctx = exc.context_mark
+        if ctx is not None and line is not None and ctx.line + 1 < line:
+            # the problem shows where parsing stopped; say where the construct began too
+            problem += f" ({exc.context or 'started'} at line {ctx.line + 1})"
+            if line > text.count("\n") + (0 if text.endswith("\n") else 1):
+                line = ctx.line + 1  # past the end of the file: point at the opening line
         raise SpecError(f"malformed YAML: {problem}", file=file, line=line) from None
     except yaml.YAMLError as exc:
         raise SpecError(f"malformed YAML: {exc}", file=file) from None
