@@ -110,12 +110,17 @@ def scenario_from_document(doc: Located) -> Scenario:
     raw_nodes = data.get("nodes")
     if not isinstance(raw_nodes, dict) or not raw_nodes:
         raise r.err("expected a non-empty mapping of node id to attributes", ("nodes",))
-    nodes = [
-        _node(
-            r, nid, {**node_defaults, **r.mapping(attrs, NODE_KEYS, ("nodes", nid))}, ("nodes", nid)
-        )
-        for nid, attrs in raw_nodes.items()
-    ]
+    nodes = []
+    for nid, attrs in raw_nodes.items():
+        own = r.mapping(attrs, NODE_KEYS, ("nodes", nid))
+        merged = {**node_defaults, **own}
+        if "power" in own and "power" in node_defaults:  # a node's power refines the default
+            base = r.mapping(node_defaults["power"], POWER_KEYS, ("node_defaults", "power"))
+            merged["power"] = {
+                **base,
+                **r.mapping(own["power"], POWER_KEYS, ("nodes", nid, "power")),
+            }
+        nodes.append(_node(r, nid, merged, ("nodes", nid)))
     network = Network(nodes)
     radio_range = None
     if "radio_range" in data:

@@ -53,6 +53,12 @@ def _walk(w: _Walker, node: yaml.Node, path: Path_) -> Any:
         out: dict[Any, Any] = {}
         for key_node, value_node in node.value:
             key = w.construct(key_node)
+            if isinstance(key, bool):  # YAML 1.1 reads on/off/yes/no as booleans
+                raise SpecError(
+                    f"key {key_node.value!r} reads as a boolean; quote it: '{key_node.value}'",
+                    file=file,
+                    line=key_node.start_mark.line + 1,
+                )
             if not isinstance(key, str | int):
                 raise SpecError(
                     f"mapping keys must be strings, got {type(key).__name__}",
