@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -61,12 +62,15 @@ def test_minimal_yaml_is_enough_for_planning(tmp_path: Path) -> None:
     assert json.loads(out)["placement"] == {"A": "N1", "B": "N1"}
 
 
-def test_demo_prints_chains_and_placement_on_every_node() -> None:
-    code, out, _ = run("demo")
+def test_demo_prints_chains_and_placement_and_runs_the_app() -> None:
+    code, out, _ = run("demo", "--duration", "2.5")
     assert code == 0
     for node in ("N1", "N2", "N3", "N4"):
         assert f"@{node}" in out
     assert "laser@N1" in out and "storage@N4" in out
+    assert "deployed convoy from N1" in out
+    counts = re.findall(r"storage@N4: (\d+) events", out)
+    assert counts and int(counts[-1]) > 10  # events reached the trailing robot's storage
 
 
 @pytest.mark.parametrize(
