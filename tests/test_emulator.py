@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import os
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -122,26 +124,67 @@ def test_link_break_reroutes_traffic() -> None:
     assert a["repeats"] == 0 and a["out_of_order"] == 0
 
 
-def test_static_peers_from_config_files(tmp_path: Path) -> None:
-    """Without an emulator: two daemons configured by files, as on real devices."""
-    import subprocess
-    import sys
-
-    from mso.client import request
+def start_pair(tmp_path: Path) -> tuple[list[subprocess.Popen[bytes]], int]:
+    """Two daemons N1 and N4 configured by files, as on real devices (no emulator)."""
     from mso.emu.controller import _free_port
-    from mso.protocol import messages as m
 
     port = _free_port(["127.0.1.1", "127.0.1.2"])
     procs = []
-    for me, other, ip, oip in (
-        ("N1", "N4", "127.0.1.1", "127.0.1.2"),
-        ("N4", "N1", "127.0.1.2", "127.0.1.1"),
-    ):
+    pairs = (("N1", "N4", "127.0.1.1", "127.0.1.2"), ("N4", "N1", "127.0.1.2", "127.0.1.1"))
+    for me, other, ip, oip in pairs:
         cfg = tmp_path / f"{me}.yaml"
         cfg.write_text(
             f"id: {me}\nlisten: {ip}:{port}\nkey: k1\npeers: {{{other}: '{oip}:{port}'}}\n"
         )
         procs.append(subprocess.Popen([sys.executable, "-m", "mso", "node", "--config", str(cfg)]))
+    return procs, port
+
+
+def test_python_api_against_running_daemons(tmp_path: Path) -> None:
+    import time
+
+    from mso.api import Overlay
+    from mso.errors import MsoError
+
+    procs, port = start_pair(tmp_path)
+    app_file = tmp_path / "pipe.yaml"
+    app_file.write_text(
+        APP.replace(
+            "  mid: {code: runtime_vertices:Double}",
+            "  mid: {code: runtime_vertices:Counter, output: runtime_vertices:Num}",
+        )
+    )
+    try:
+        overlay = Overlay(f"127.0.1.2:{port}", key="k1")
+        for _ in range(100):  # until both daemons listen and see each other
+            try:
+                if overlay.status()["N4"].get("connected") == ["N1"]:
+                    break
+            except MsoError:
+                pass
+            time.sleep(0.05)
+        placement = overlay.deploy(app_file).placement
+        moved = overlay.relocate("pipe", "mid", target="N4" if placement["mid"] == "N1" else "N1")
+        assert moved.ok and moved.node != placement["mid"]
+        with pytest.raises(MsoError, match="end of chain"):
+            overlay.relocate("pipe", "src", direction="downstream")
+        time.sleep(0.5)
+        status = overlay.status()
+    finally:
+        for p in procs:
+            p.terminate()
+            p.wait(timeout=5)
+    got = sink(status)
+    assert got["count"] > 0 and got["repeats"] == 0 and got["out_of_order"] == 0
+    assert "mid" in status[moved.node]["apps"]["pipe"]["vertices"]
+
+
+def test_static_peers_from_config_files(tmp_path: Path) -> None:
+    """Without an emulator: two daemons configured by files, as on real devices."""
+    from mso.client import request
+    from mso.protocol import messages as m
+
+    procs, port = start_pair(tmp_path)
     app = APP.replace("  mid: {code: runtime_vertices:Double}\n", "").replace(
         "  - [src, mid]\n  - [mid, sink]\n", "  - [src, sink]\n"
     )
