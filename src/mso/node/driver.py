@@ -28,6 +28,10 @@ log = logging.getLogger("mso.node")
 
 HIGH_WATER = 1 << 20
 MAX_HELD = 10_000  # frames kept per neighbour while its connection is being set up
+# The event loop's timers have millisecond resolution (epoll), so a frame due within this slack
+# leaves now instead of waiting a whole tick: bandwidth holds on average, with bursts of up to a
+# millisecond's worth, and delays under a millisecond are not emulated (loopback adds ~50 µs).
+TIMER_SLACK_S = 1e-3
 
 
 class Counters:
@@ -77,8 +81,8 @@ class Link:
         loop = conn.driver.loop
         now = loop.time()
         while (self._control or self._data) and not conn.paused:
-            if self.bandwidth_mbps is not None and self._next_free > now:
-                self._arm(self._next_free)
+            if self.bandwidth_mbps is not None and self._next_free > now + TIMER_SLACK_S:
+                self._arm(self._next_free - TIMER_SLACK_S)
                 break
             payload = (self._control or self._data).popleft()
             if not self.shaped:
@@ -96,10 +100,10 @@ class Link:
     def _deliver_due(self) -> None:
         loop = self.conn.driver.loop
         now = loop.time()
-        while self._in_air and self._in_air[0][0] <= now:
+        while self._in_air and self._in_air[0][0] <= now + TIMER_SLACK_S:
             self.conn.write_frame(self._in_air.popleft()[1])
         if self._in_air:
-            self._arm(self._in_air[0][0])
+            self._arm(self._in_air[0][0] - TIMER_SLACK_S)
 
     def _arm(self, at: float) -> None:
         if self._timer is not None and self._timer.when() <= at:
