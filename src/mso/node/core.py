@@ -109,6 +109,7 @@ class Deployment:
     inc: dict[int, InChannel] = field(default_factory=dict)
     decoders: dict[int, msgspec.msgpack.Decoder[Any]] = field(default_factory=dict)
     running: bool = False
+    epoch: int = 0
     awaiting: dict[str, Stone] = field(default_factory=dict)  # prepared, awaiting handover
     stash: dict[int, list[tuple[int, list[bytes]]]] = field(default_factory=dict)
     markers: dict[str, set[int]] = field(default_factory=dict)  # vertex -> edges marked
@@ -154,6 +155,9 @@ class NodeCore:
         self._now = 0.0
         self.status_hook: Callable[[], dict[str, Any]] | None = None  # the driver's counters
         self._deploy_clients: dict[str, tuple[int, float]] = {}
+        self._epochs = zlib.crc32(node_id.encode()) & 0xFFFF
+        # messages for an app whose announcement has not arrived yet (another path overtook it)
+        self._early: dict[str, list[tuple[str, m.Message]]] = {}
         self._status_wait: dict[int, tuple[int, dict[str, Any], set[str]]] = {}
 
     # -- entry points -----------------------------------------------------------------------
@@ -225,7 +229,17 @@ class NodeCore:
         out, self._effects = self._effects, []
         return out
 
+    EARLY = (m.ChainPlaced, m.BuildChain, m.ChainPartReady, m.ChainBuilt, m.StartApp)
+    MAX_EARLY = 1000
+
     def _dispatch(self, src: str, msg: m.Message, now: float) -> None:
+        if isinstance(msg, self.EARLY) and msg.app not in self.apps:
+            held = self._early.setdefault(msg.app, [])
+            if len(held) < self.MAX_EARLY and len(self._early) <= 64:
+                held.append((src, msg))  # replayed when the app's announcement arrives
+            else:
+                self.dropped_messages += 1
+            return
         if isinstance(msg, m.Data):
             self._on_data(msg)
         elif isinstance(msg, m.Ack):
@@ -248,6 +262,7 @@ class NodeCore:
             self._on_start(msg, now)
         elif isinstance(msg, m.StopApp):
             self.apps.pop(msg.app, None)
+            self._early.pop(msg.app, None)
         elif isinstance(msg, m.DeployFailed):
             self._on_deploy_failed(msg, now)
         elif isinstance(msg, m.StatusRequest):
@@ -298,7 +313,10 @@ class NodeCore:
                 self._effects.append(Reply(client, _failed_reply(app.name, reason)))
                 return
         self._deploy_clients[app.name] = (client, now)
-        self._broadcast(m.AppAnnounce(app=app.name, origin=self.id, document=req.document))
+        epoch = self._epochs = (self._epochs + 1) & 0x7FFFFFFF
+        self._broadcast(
+            m.AppAnnounce(app=app.name, origin=self.id, document=req.document, epoch=epoch)
+        )
 
     def _on_announce(self, msg: m.AppAnnounce, now: float) -> None:
         if msg.app in self.apps:
@@ -310,7 +328,11 @@ class NodeCore:
             return
         layout = Layout(app, msg.origin)
         dep = Deployment(
-            app=app, layout=layout, origin=msg.origin, placed=layout.initial_placement()
+            app=app,
+            layout=layout,
+            origin=msg.origin,
+            placed=layout.initial_placement(),
+            epoch=msg.epoch,
         )
         for i, e in enumerate(app.edges):
             dep.out_edges.setdefault(e.src, []).append(i)
@@ -318,6 +340,8 @@ class NodeCore:
             dep.client, dep.requested_at = self._deploy_clients.pop(msg.app)
         self.apps[msg.app] = dep
         self._start_ready_chains(dep)
+        for early in self._early.pop(msg.app, []):
+            self._work.append((early[0], "", early[1]))
 
     def _distances(self) -> dict[str, int]:
         d = {n: hops for n, (_, hops) in self.routes.items()}
@@ -494,7 +518,14 @@ class NodeCore:
         stone.emitted += burst
         if events:
             self._emit(dep, edges, events)
-        at = now + (1.0 / rate if rate else 0.0)
+        if rate:  # keep the schedule, so late firings do not slow the rate down
+            period = 1.0 / rate
+            at = stone.next_at + period if stone.next_at else now + period
+            if at < now - period:  # fell more than a period behind: start again from now
+                at = now + period
+            stone.next_at = at
+        else:
+            at = now
         self._effects.append(SetTimer(("source", app, vid), at))
 
     def _emit(self, dep: Deployment, edges: Iterable[int], events: list[Any]) -> None:
@@ -525,7 +556,7 @@ class NodeCore:
 
     def _on_data(self, msg: m.Data) -> None:
         dep = self.apps.get(msg.app)
-        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+        if dep is None or msg.epoch != dep.epoch or not 0 <= msg.edge < len(dep.app.edges):
             self.dropped_messages += 1
             return
         dst = dep.app.edges[msg.edge].dst
@@ -587,7 +618,7 @@ class NodeCore:
         if upto is None:
             return
         src_node = dep.placed[dep.app.edges[edge].src]
-        ack = m.Ack(dep.app.name, edge, 0, upto)
+        ack = m.Ack(dep.app.name, edge, dep.epoch, upto)
         if src_node == self.id:
             self._out(dep, edge).on_ack(upto, self._now)
             self._unblock(dep, edge)
@@ -596,7 +627,7 @@ class NodeCore:
 
     def _on_ack(self, msg: m.Ack, now: float) -> None:
         dep = self.apps.get(msg.app)
-        if dep is None or msg.edge not in dep.out:
+        if dep is None or msg.epoch != dep.epoch or msg.edge not in dep.out:
             self.dropped_messages += 1
             return
         try:
@@ -617,7 +648,7 @@ class NodeCore:
         for (app, edge), (seq, events) in self._outbox.items():
             dep = self.apps[app]
             dst = dep.placed[dep.app.edges[edge].dst]
-            self._effects.append(Send(dst, m.Data(app, edge, 0, seq, events)))
+            self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, seq, events)))
         self._outbox.clear()
         for dep in self.apps.values():
             for edge, ch in dep.inc.items():
@@ -636,7 +667,7 @@ class NodeCore:
                 if dst == self.id:
                     self._deliver(dep, edge, first, events)
                 else:
-                    self._effects.append(Send(dst, m.Data(app, edge, 0, first, events)))
+                    self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, first, events)))
                 ch.waiting_since = now
         self._effects.append(SetTimer(("retransmit", app), now + RETRANSMIT_S))
 
@@ -746,7 +777,8 @@ class NodeCore:
         key = (msg.app, msg.edge)
         batch = self._outbox.pop(key, None)
         if batch is not None:  # what is already queued leaves before the marker
-            self._effects.append(Send(old, m.Data(msg.app, msg.edge, 0, batch[0], batch[1])))
+            data = m.Data(msg.app, msg.edge, dep.epoch, batch[0], batch[1])
+            self._effects.append(Send(old, data))
         seq = self._out(dep, msg.edge).next_seq
         dep.placed[edge.dst] = msg.to
         marker = m.Marker(msg.app, msg.edge, seq, msg.rid, msg.to)
@@ -780,7 +812,7 @@ class NodeCore:
         for k in key_batches:  # queued output leaves from here before the handover
             seq, events = self._outbox.pop(k)
             dst = dep.placed[dep.app.edges[k[1]].dst]
-            self._effects.append(Send(dst, m.Data(k[0], k[1], 0, seq, events)))
+            self._effects.append(Send(dst, m.Data(k[0], k[1], dep.epoch, seq, events)))
         state = msgspec.msgpack.encode(stone.get_state())
         del dep.stones[vid]
         dep.placed[vid] = msg.to

@@ -41,6 +41,7 @@ class Stone:
             self.fn = target
         # a code-less stand-in source ticks once a second unless the app gives a rate
         self.rate = vertex.rate if vertex.rate or vertex.code is not None else 1.0
+        self.next_at = 0.0  # a rated source's next emission time
         self.processed = 0
         self.emitted = 0
         self.errors = 0

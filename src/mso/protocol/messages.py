@@ -68,6 +68,7 @@ class AppAnnounce(_Msg, tag="announce"):
     app: str
     origin: str
     document: str
+    epoch: int = 0  # this deployment's incarnation: data of an earlier one is not accepted
 
 
 class Probe(_Msg, tag="probe"):

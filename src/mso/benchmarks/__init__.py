@@ -1,0 +1,1 @@
+"""Benchmarks that reproduce the paper's measurements (run them with ``python -m``)."""
