@@ -72,6 +72,9 @@ def test_upstream_and_downstream_moves_lose_nothing_and_keep_state() -> None:
         # every node learned the new place
         assert all(c.apps["pipe"].placed["counter"] == reply.node for c in sim.cores.values())
     assert moves >= 4
+    # an upstream move never made the new instance drop events as a gap (no go-back-N stall)
+    gaps = sum(ch.gaps for c in sim.cores.values() for ch in c.apps["pipe"].inc.values())
+    assert gaps == 0
     sim.run_until(sim.now + 1.0)
     stats = sink_stats(sim)
     emitted = sim.cores["N1"].apps["pipe"].stones["src"].emitted

@@ -89,6 +89,7 @@ class Remap:
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
 RETRANSMIT_S = 0.25
 SOURCE_BURST = 256  # events a rate-less source emits per turn
+MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
 
 
 @dataclass
@@ -147,7 +148,8 @@ class NodeCore:
         # that arrived before it
         self._events: deque[tuple[Deployment, int, list[bytes] | m.Marker]] = deque()
         self._relocs: dict[int, Relocation] = {}
-        self._rid = zlib.crc32(node_id.encode()) << 24
+        # ids of procedures this node coordinates: distinct per node, small enough for msgpack
+        self._rid = (zlib.crc32(node_id.encode()) & 0xFFFFFF) << 20
         self._remaps: dict[int, Remap] = {}
         self._handover_to: dict[int, str] = {}  # rid -> coordinator, at a relocation's target
         self._outbox: dict[tuple[str, int], tuple[int, list[bytes]]] = {}
@@ -542,11 +544,18 @@ class NodeCore:
                 key = (dep.app.name, e)
                 batch = self._outbox.get(key)
                 if batch is None:
-                    self._outbox[key] = (seq, list(payloads))
+                    self._outbox[key] = batch = (seq, list(payloads))
                 else:
                     batch[1].extend(payloads)
+                if len(batch[1]) * len(payloads[0]) >= MAX_BATCH_BYTES:  # frames stay small
+                    del self._outbox[key]
+                    data = m.Data(dep.app.name, e, dep.epoch, batch[0], batch[1])
+                    self._effects.append(Send(dst_node, data))
 
     def _deliver(self, dep: Deployment, edge: int, seq: int, events: list[bytes]) -> None:
+        if dep.app.edges[edge].dst in dep.awaiting:  # moving here: keep until the handover
+            dep.stash.setdefault(edge, []).append((seq, list(events)))
+            return
         ch = dep.inc.get(edge)
         if ch is None:
             ch = dep.inc[edge] = InChannel()
@@ -690,6 +699,9 @@ class NodeCore:
                     f"{vertex!r} is an end of chain {c.name}; chain ends are never relocated "
                     f"(it would disturb the chains before or after it)"
                 )
+        pinned = app.vertices[vertex].pinned
+        if pinned is not None:
+            raise MsoError(f"{vertex!r} is pinned to {pinned}; pinned vertices are not relocated")
         if not direction:
             return ""
         (pred,) = app.predecessors()[vertex]

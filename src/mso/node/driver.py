@@ -283,7 +283,12 @@ class NodeDriver:
                 if route is None:
                     self.counters.frames_unroutable += 1
                     continue
-                payload = m.wrap(self.core.id, eff.dst, eff.msg)
+                try:
+                    payload = m.wrap(self.core.id, eff.dst, eff.msg)
+                except (OverflowError, TypeError, ValueError) as exc:  # a bug, not a crash
+                    log.error("cannot encode %s for %s: %s", type(eff.msg).__name__, eff.dst, exc)
+                    self.counters.frames_unroutable += 1
+                    continue
                 is_data = isinstance(eff.msg, m.Data | m.Ack | m.Marker)
                 conn = self.peers.get(route[0])
                 if conn is not None and conn.link is not None:

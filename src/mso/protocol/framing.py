@@ -82,11 +82,10 @@ class FrameCodec:
 
     def _seal(self, payload: bytes) -> bytes:
         assert self._tx_key is not None
-        tag = hashlib.blake2b(
-            _CTR.pack(self._tx_ctr) + payload, key=self._tx_key, digest_size=TAG_BYTES
-        ).digest()
+        mac = hashlib.blake2b(_CTR.pack(self._tx_ctr), key=self._tx_key, digest_size=TAG_BYTES)
+        mac.update(payload)  # no concatenated copy of the payload
         self._tx_ctr += 1
-        return _LEN.pack(TAG_BYTES + len(payload)) + tag + payload
+        return b"".join((_LEN.pack(TAG_BYTES + len(payload)), mac.digest(), payload))
 
     def feed(self, data: bytes) -> tuple[list[bytes], bytes]:
         """Consume received bytes; return (authenticated payloads, bytes to send now).
@@ -110,6 +109,7 @@ class FrameCodec:
         buf = self._buf
         pos = 0
         n = len(buf)
+        view = memoryview(buf)
         while n - pos >= 4:
             (length,) = _LEN.unpack_from(buf, pos)
             if length < TAG_BYTES or length > self._max + TAG_BYTES:
@@ -117,18 +117,20 @@ class FrameCodec:
             if n - pos - 4 < length:
                 break
             start = pos + 4
-            tag = bytes(buf[start : start + TAG_BYTES])
-            payload = bytes(buf[start + TAG_BYTES : start + length])
+            tag = bytes(view[start : start + TAG_BYTES])
+            body = view[start + TAG_BYTES : start + length]
             pos = start + length
-            expect = hashlib.blake2b(
-                _CTR.pack(self._rx_ctr) + payload, key=self._rx_key, digest_size=TAG_BYTES
-            ).digest()
-            if not hmac.compare_digest(tag, expect):
+            mac = hashlib.blake2b(_CTR.pack(self._rx_ctr), key=self._rx_key, digest_size=TAG_BYTES)
+            mac.update(body)  # straight from the receive buffer
+            ok = hmac.compare_digest(tag, mac.digest())
+            if ok:
+                out.append(bytes(body))
+                self._rx_ctr += 1
+                self.accepted += 1
+            else:
                 self.rejected += 1
-                continue
-            self._rx_ctr += 1
-            self.accepted += 1
-            out.append(payload)
+            body.release()
+        view.release()  # a bytearray cannot be resized while a view is exported
         if pos:
             del buf[:pos]
         return out, flush

@@ -30,9 +30,15 @@ class Simulation:
     """Node cores on a :class:`Network`, run in virtual time."""
 
     def __init__(
-        self, network: Network, *, hop_latency_s: float = 50e-6, window: int = 4096
+        self,
+        network: Network,
+        *,
+        hop_latency_s: float = 50e-6,
+        window: int = 4096,
+        wire: bool = True,
     ) -> None:
         self.network = network
+        self.wire = wire  # pass every message through the real encoding, as the wire does
         self.hop_latency_s = hop_latency_s
         self.now = 0.0
         self.cores = {
@@ -69,7 +75,10 @@ class Simulation:
                 for a, b in itertools.pairwise(route):
                     link = self.network.link(a, b)
                     delay += self.hop_latency_s + (link.delay_ms / 1e3 if link else 0.0)
-                self._push(self.now + delay, "msg", eff.dst, (node, eff.msg))
+                msg = eff.msg
+                if self.wire:  # what a real node would receive: encoded, then decoded
+                    msg = m.decode(m.unwrap(m.wrap(node, eff.dst, msg)).body)
+                self._push(self.now + delay, "msg", eff.dst, (node, msg))
             elif isinstance(eff, SetTimer):
                 self._timers[(node, eff.key)] = eff.at
                 self._push(eff.at, "timer", node, eff.key)
