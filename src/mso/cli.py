@@ -794,3 +794,20 @@ def _sink_line(nodes: dict[str, Any], app: str) -> str:
             if s["kind"] == "sink":
                 parts.append(f"{v}@{st['node']}: {s['processed']} events")
     return ", ".join(parts) or "no sink yet"
+
+
+@main.group()
+def bench() -> None:
+    """Benchmarks (see docs/benchmarks.md)."""
+
+
+@bench.command(name="table1")
+@click.option("--json", "json_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--runs", type=int, default=30, show_default=True)
+@click.option("--quick", is_flag=True, help="A few runs, to check it works.")
+def bench_table1(json_file: Path | None, runs: int, quick: bool) -> None:
+    """Table 1 of the paper: mapping, relocations, chain and global remaps, on 4 node processes."""
+    from mso.benchmarks.table1 import main as table1
+
+    args = ["--runs", str(runs)] + (["--json", str(json_file)] if json_file else [])
+    sys.exit(table1(args + (["--quick"] if quick else [])))
