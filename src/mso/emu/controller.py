@@ -15,6 +15,7 @@ import contextlib
 import json
 import os
 import random
+import shutil
 import socket
 import subprocess
 import sys
@@ -75,6 +76,8 @@ class Emulator:
     routes: dict[str, dict[str, list[Any]]] = field(default_factory=dict)
     positions: dict[str, tuple[float, float]] = field(default_factory=dict)
     _route_task: asyncio.Task[None] | None = None
+    _own_logs: bool = False
+    failed: bool = False  # a node died or misbehaved: its logs are kept for a look
 
     async def start(self, timeout: float = 20.0) -> None:
         names = list(self.scenario.network.nodes)
@@ -82,7 +85,9 @@ class Emulator:
             raise MsoError("the user-space emulator supports at most 250 nodes")
         hosts = [f"127.0.1.{i + 1}" for i in range(len(names))]
         port = self.port or _free_port(hosts)
-        self.log_dir = self.log_dir or Path(tempfile.mkdtemp(prefix="mso-emu-"))
+        if self.log_dir is None:  # ours to remove after a clean stop
+            self.log_dir = Path(tempfile.mkdtemp(prefix="mso-emu-"))
+            self._own_logs = True
         env = dict(os.environ)
         env["MSO_KEY"] = self.key or env.get("MSO_KEY", "") or "mso-insecure-default-key"
         self.key = env["MSO_KEY"]
@@ -113,6 +118,7 @@ class Emulator:
         psk = overlay_key(self.key)
         while True:
             if node.process is not None and node.process.poll() is not None:
+                self.failed = True
                 raise MsoError(f"node {node.id} exited at start; see {node.log}")
             try:
                 node.client = await Client(node.host, node.port, psk, "emulator").connect(1.0)
@@ -280,6 +286,11 @@ class Emulator:
         with contextlib.suppress(FileNotFoundError):
             if STATE_FILE.exists() and json.loads(STATE_FILE.read_text()).get("pid") == os.getpid():
                 STATE_FILE.unlink()
+        clean = all(
+            n.process is None or n.process.returncode in (0, -9) for n in self.nodes.values()
+        )
+        if self._own_logs and self.log_dir is not None and clean and not self.failed:
+            shutil.rmtree(self.log_dir, ignore_errors=True)
 
 
 def emulator_address(node: str) -> str | None:
