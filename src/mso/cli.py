@@ -466,9 +466,21 @@ def _deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> 
         click.echo(f"  {v:<20} {n}")
 
 
+async def _only_app(address: str, key: str | None) -> str:
+    """The name of the one app running, for commands given no --app."""
+    from mso.client import request
+    from mso.protocol import messages as m
+
+    st = await request(address, m.StatusRequest(), key=key)
+    apps = sorted(next(iter(st.nodes.values()))["apps"]) if isinstance(st, m.StatusReply) else []
+    if len(apps) != 1:
+        raise MsoError(f"give --app NAME (running: {', '.join(apps) or 'none'})")
+    return str(apps[0])
+
+
 @main.command()
 @click.argument("vertex")
-@click.option("--app", "app_name", required=True, help="The app the vertex belongs to.")
+@click.option("--app", "app_name", help="The app (default: the only one running).")
 @click.option("--upstream", "direction", flag_value="upstream", help="Onto its predecessor's node.")
 @click.option(
     "--downstream", "direction", flag_value="downstream", help="To the next node downstream."
@@ -479,7 +491,7 @@ def _deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> 
 @click.option("--json", "as_json", is_flag=True)
 def relocate(
     vertex: str,
-    app_name: str,
+    app_name: str | None,
     direction: str | None,
     target: str | None,
     via: str | None,
@@ -493,7 +505,7 @@ def relocate(
 @_user_errors
 def _relocate(
     vertex: str,
-    app_name: str,
+    app_name: str | None,
     direction: str | None,
     target: str | None,
     via: str | None,
@@ -507,8 +519,10 @@ def _relocate(
 
     if bool(direction) == bool(target):
         raise MsoError("give exactly one of --upstream, --downstream or --to NODE")
-    req = m.RelocateRequest(app_name, vertex, direction or "", target or "")
-    reply = asyncio.run(request(_resolve_via(via), req, key=key))
+    address = _resolve_via(via)
+    app = app_name or asyncio.run(_only_app(address, key))
+    req = m.RelocateRequest(app, vertex, direction or "", target or "")
+    reply = asyncio.run(request(address, req, key=key))
     if not isinstance(reply, m.RelocateReply) or not reply.ok:
         raise MsoError(f"relocation refused: {getattr(reply, 'error', reply)}")
     if as_json:
@@ -520,16 +534,16 @@ def _relocate(
 
 
 @main.command()
-@click.argument("chain", required=False)
-@click.option("--app", "app_name", required=True, help="The running app.")
+@click.argument("chain", nargs=-1)
+@click.option("--app", "app_name", help="The app (default: the only one running).")
 @click.option("--chains", help="Several chains, comma-separated (global remap, §3.4.3).")
 @click.option("--all", "everything", is_flag=True, help="Every chain of the app.")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 def remap(
-    chain: str | None,
-    app_name: str,
+    chain: tuple[str, ...],
+    app_name: str | None,
     chains: str | None,
     everything: bool,
     via: str | None,
@@ -538,14 +552,15 @@ def remap(
 ) -> None:
     """Re-place one chain (§3.4.2), several or all (§3.4.3) along freshly probed routes.
 
-    A chain is named by its index (`mso chains`) or as head-...-tail."""
+    `mso remap chain CHAIN`, `mso remap --chains C1,C2`, `mso remap --all`; a chain is named by
+    its index (`mso chains`) or as head-...-tail."""
     _remap(chain, app_name, chains, everything, via, key, as_json)
 
 
 @_user_errors
 def _remap(
-    chain: str | None,
-    app_name: str,
+    chain: tuple[str, ...],
+    app_name: str | None,
     chains: str | None,
     everything: bool,
     via: str | None,
@@ -557,19 +572,21 @@ def _remap(
     from mso.client import request
     from mso.protocol import messages as m
 
-    names = [c for c in ([chain] if chain else []) + (chains.split(",") if chains else []) if c]
+    words = list(chain[1:] if chain[:1] == ("chain",) else chain)
+    names = [c for c in words + (chains.split(",") if chains else []) if c]
     if bool(names) == everything:
-        raise MsoError("name a chain, or give --chains C1,C2, or --all")
+        raise MsoError("name a chain (mso remap chain CHAIN), or give --chains C1,C2, or --all")
     address = _resolve_via(via)
 
     async def run() -> Any:
         indices: list[int] = []
+        app_name_ = app_name or await _only_app(address, key)
         if names:
             st = await request(address, m.StatusRequest(), key=key)
             assert isinstance(st, m.StatusReply)
-            app = next(iter(st.nodes.values()))["apps"].get(app_name)
+            app = next(iter(st.nodes.values()))["apps"].get(app_name_)
             if app is None:
-                raise MsoError(f"no running app named {app_name!r}")
+                raise MsoError(f"no running app named {app_name_!r}")
             known = ["-".join(c) for c in app["chains"]]
             for n in names:
                 if n.isdigit():
@@ -578,7 +595,7 @@ def _remap(
                     indices.append(known.index(n))
                 else:
                     raise MsoError(f"unknown chain {n!r} (chains: {', '.join(known)})")
-        return await request(address, m.RemapRequest(app_name, indices, everything), key=key)
+        return await request(address, m.RemapRequest(app_name_, indices, everything), key=key)
 
     reply = asyncio.run(run())
     if not isinstance(reply, m.RemapReply) or not reply.ok:
@@ -655,7 +672,7 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
             str(traffic.get("frames_rejected", 0)),
         )
         for name, app in st.get("apps", {}).items():
-            agg = apps.setdefault(name, {"vertices": {}, "edges": {}})
+            agg = apps.setdefault(name, {"vertices": {}, "edges": {}, "chains": app["chains"]})
             for v, vs in app["vertices"].items():
                 agg["vertices"][v] = (nid, vs)
             for e, c in app["edges"].items():
@@ -665,6 +682,11 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
                         merged[k] = val
     console.print(table)
     for name, app in apps.items():
+        if app.get("chains"):
+            console.print(
+                f"app {name}: chains "
+                + "  ".join(f"[{i}] {'-'.join(c)}" for i, c in enumerate(app["chains"]))
+            )
         vt = Table(title=f"app {name}: vertices")
         for col in ("vertex", "node", "kind", "events", "cpu ms", "errors"):
             vt.add_column(col, justify="right" if col in ("events", "cpu ms", "errors") else "left")
