@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import hashlib
 import io
 import json
 import math
@@ -50,6 +49,7 @@ if str(HERE) not in sys.path:
 import msgspec  # noqa: E402
 
 from dataplane_vertices import LatencySink, Stamped, pad_len  # noqa: E402
+from mso.benchmarks.common import src_digest  # noqa: E402
 
 SIZES = (38, 967, 3000)
 PACED_RATE = 1000.0
@@ -80,15 +80,6 @@ vertices:
 edges:
   - {{from: src, to: sink, size: {size}}}
 """
-
-
-def src_digest() -> str:
-    """sha256 over src/mso/**/*.py: which state of the (moving) sources was measured."""
-    h = hashlib.sha256()
-    src = Path(__file__).resolve().parent.parent / "src" / "mso"
-    for f in sorted(src.rglob("*.py")):
-        h.update(str(f.relative_to(src)).encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:16]
 
 
 # -- process helpers ----------------------------------------------------------------------------

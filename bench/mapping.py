@@ -22,9 +22,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import hashlib
 import json
-import math
 import statistics
 import sys
 import tempfile
@@ -32,6 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from mso.benchmarks.common import percentile, src_digest
 from mso.emu.controller import Emulator
 from mso.model.appfile import loads_app
 from mso.model.network import LinkSpec
@@ -48,26 +47,6 @@ PAPER_SIGMA_MS = 77.7
 PAPER_SCALED_MS = 139.0  # "when run at 2.8GHz, these costs went down by as much as 10x"
 TARGET_P50_MS = 50.0
 DEADLINE_S = 150.0  # the whole benchmark stops starting runs after this
-
-
-def src_digest() -> str:
-    """sha256 over src/mso/**/*.py: which state of the (moving) sources was measured."""
-    h = hashlib.sha256()
-    src = Path(__file__).resolve().parent.parent / "src" / "mso"
-    for f in sorted(src.rglob("*.py")):
-        h.update(str(f.relative_to(src)).encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:16]
-
-
-def percentile(values: list[float], q: float) -> float:
-    """Linear-interpolated percentile (q in 0..100) of a non-empty list."""
-    s = sorted(values)
-    if len(s) == 1:
-        return s[0]
-    pos = (len(s) - 1) * q / 100.0
-    lo = math.floor(pos)
-    hi = min(lo + 1, len(s) - 1)
-    return s[lo] + (s[hi] - s[lo]) * (pos - lo)
 
 
 def summary(values: list[float]) -> dict[str, float]:

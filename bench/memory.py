@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import hashlib
 import json
 import os
 import sys
@@ -31,6 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from mso.benchmarks.common import src_digest
 from mso.emu.controller import Emulator
 from mso.scenario import load_scenario
 
@@ -44,15 +44,6 @@ name: memory-pair
 nodes: {N1: {}, N2: {}}
 links: [[N1, N2]]
 """
-
-
-def src_digest() -> str:
-    """sha256 over src/mso/**/*.py: which state of the (moving) sources was measured."""
-    h = hashlib.sha256()
-    src = Path(__file__).resolve().parent.parent / "src" / "mso"
-    for f in sorted(src.rglob("*.py")):
-        h.update(str(f.relative_to(src)).encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:16]
 
 
 def app_yaml(name: str, pairs: int, sink_node: str) -> str:

@@ -46,10 +46,8 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import hashlib
 import itertools
 import json
-import math
 import os
 import platform
 import statistics
@@ -64,6 +62,7 @@ from typing import Any
 import msgspec
 
 import mso.examples
+from mso.benchmarks.common import percentile, src_digest
 from mso.client import Client, NodeUnreachable, overlay_key
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
@@ -222,26 +221,6 @@ RESUME_S = 3.0  # how long the flow may take to resume after a relocation
 STALL_MS = 50.0  # an interruption longer than this is reported as a stall
 DEADLINE_S = 110.0  # per scenario: no operation starts after this
 QUICK_DEADLINE_S = 45.0
-
-
-def src_digest() -> str:
-    """sha256 over src/mso/**/*.py: which state of the (moving) sources was measured."""
-    h = hashlib.sha256()
-    src = Path(__file__).resolve().parent.parent
-    for f in sorted(src.rglob("*.py")):
-        h.update(str(f.relative_to(src)).encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:16]
-
-
-def percentile(values: list[float], q: float) -> float:
-    """Linear-interpolated percentile (q in 0..100) of a non-empty list."""
-    s = sorted(values)
-    if len(s) == 1:
-        return s[0]
-    pos = (len(s) - 1) * q / 100.0
-    lo = math.floor(pos)
-    hi = min(lo + 1, len(s) - 1)
-    return s[lo] + (s[hi] - s[lo]) * (pos - lo)
 
 
 def summary(values: list[float]) -> dict[str, Any]:

@@ -16,6 +16,7 @@ from typing import Any
 import msgspec
 
 from mso.errors import AppError
+from mso.model.graph import topological_order
 from mso.model.imports import ImportPathError, resolve
 from mso.model.yamlfile import Located
 
@@ -382,21 +383,8 @@ def _check_vertex_values(v: Vertex, error: Callable[..., AppError]) -> None:
 
 def _kahn(vertices: Iterable[str], edges: list[Edge]) -> list[str]:
     names = list(vertices)
-    indeg = dict.fromkeys(names, 0)
     succ: dict[str, list[str]] = {v: [] for v in names}
     for e in edges:
-        if e.src in succ and e.dst in indeg:
+        if e.src in succ and e.dst in succ:
             succ[e.src].append(e.dst)
-            indeg[e.dst] += 1
-    ready = [v for v in names if indeg[v] == 0]
-    order: list[str] = []
-    i = 0
-    while i < len(ready):
-        v = ready[i]
-        i += 1
-        order.append(v)
-        for w in succ[v]:
-            indeg[w] -= 1
-            if indeg[w] == 0:
-                ready.append(w)
-    return order
+    return topological_order(names, succ)

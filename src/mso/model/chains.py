@@ -21,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mso.model.app import App
+from mso.model.graph import topological_order
 
 IntArray = npt.NDArray[np.int64]
 
@@ -151,23 +152,11 @@ def chain_dependencies(chains: Sequence[Chain]) -> list[list[int]]:
 
 def chain_order(chains: Sequence[Chain]) -> list[int]:
     """Chain indices in dependency order (Algorithm 1): a chain only after all leading to it."""
-    deps = chain_dependencies(chains)
-    count = [len(d) for d in deps]
-    followers: list[list[int]] = [[] for _ in chains]
-    for j, d in enumerate(deps):
-        for i in d:
+    followers: dict[int, list[int]] = {c.index: [] for c in chains}
+    for j, leading in enumerate(chain_dependencies(chains)):
+        for i in leading:
             followers[i].append(j)
-    ready = [c.index for c in chains if count[c.index] == 0]
-    order: list[int] = []
-    k = 0
-    while k < len(ready):
-        i = ready[k]
-        k += 1
-        order.append(i)
-        for j in followers[i]:
-            count[j] -= 1
-            if count[j] == 0:
-                ready.append(j)
+    order = topological_order([c.index for c in chains], followers)
     if len(order) != len(chains):
         raise ValueError("chains depend on each other in a cycle; the app graph must be a DAG")
     return order
