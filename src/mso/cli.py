@@ -297,7 +297,7 @@ def _resolve_via(via: str | None) -> str:
     return addr
 
 
-NODE_CONFIG_KEYS = {"id", "listen", "cpu", "key", "peers"}
+NODE_CONFIG_KEYS = {"id", "listen", "cpu", "key", "peers", "battery_wh", "power"}
 
 
 def _node_config(path: Path) -> dict[str, Any]:
@@ -325,7 +325,21 @@ def _node_config(path: Path) -> dict[str, Any]:
             raise SpecError(
                 "expected a mapping of node id to HOST:PORT", file=doc.file, line=line, field=k
             )
-        if k == "cpu" and (isinstance(v, bool) or not isinstance(v, int | float)):
+        if k == "power" and not (
+            isinstance(v, dict)
+            and set(v) <= {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte"}
+            and all(
+                isinstance(x, int | float) and not isinstance(x, bool) and x >= 0
+                for x in v.values()
+            )
+        ):
+            raise SpecError(
+                "expected {idle_w, cpu_w, tx_uj_per_byte, rx_uj_per_byte} as numbers >= 0",
+                file=doc.file,
+                line=line,
+                field=k,
+            )
+        if k in ("cpu", "battery_wh") and (isinstance(v, bool) or not isinstance(v, int | float)):
             raise SpecError(f"expected a number > 0, got {v!r}", file=doc.file, line=line, field=k)
         if k in ("id", "listen", "key") and not isinstance(v, str):
             raise SpecError(f"expected a string, got {v!r}", file=doc.file, line=line, field=k)
@@ -342,6 +356,8 @@ def _node_config(path: Path) -> dict[str, Any]:
 @click.option("--id", "node_id", help="This node's id, e.g. N1.")
 @click.option("--listen", help="HOST:PORT to serve (default 127.0.0.1:7000).")
 @click.option("--cpu", type=float, help="Relative CPU speed (default 1.0).")
+@click.option("--battery-wh", type=float, help="Battery capacity in Wh (default: wall power).")
+@click.option("--power", help="Power model IDLE_W,CPU_W,TX_UJ_PER_BYTE,RX_UJ_PER_BYTE.")
 @click.option(
     "--peer",
     "peers",
@@ -355,12 +371,14 @@ def node(
     node_id: str | None,
     listen: str | None,
     cpu: float | None,
+    battery_wh: float | None,
+    power: str | None,
     peers: tuple[str, ...],
     key: str | None,
     verbose: bool,
 ) -> None:
     """Run the identical mso daemon of one device."""
-    _node_from(config_file, node_id, listen, cpu, peers, key, verbose)
+    _node_from(config_file, node_id, listen, cpu, battery_wh, power, peers, key, verbose)
 
 
 @_user_errors
@@ -369,15 +387,29 @@ def _node_from(
     node_id: str | None,
     listen: str | None,
     cpu: float | None,
+    battery_wh: float | None,
+    power: str | None,
     peers: tuple[str, ...],
     key: str | None,
     verbose: bool,
 ) -> None:
+    from mso.model.network import PowerModel
+
     cfg = _node_config(config_file) if config_file is not None else {}
     node_id = node_id or cfg.get("id")
     if not node_id:
         raise MsoError("a node needs an id: --id N1, or 'id:' in its --config file")
     all_peers = tuple(f"{n}={a}" for n, a in cfg.get("peers", {}).items()) + peers
+    model = PowerModel(**cfg.get("power", {}))
+    if power is not None:
+        try:
+            idle, cpu_w, tx, rx = (float(x) for x in power.split(","))
+        except ValueError:
+            raise MsoError(f"--power: expected IDLE_W,CPU_W,TX_UJ,RX_UJ, got {power!r}") from None
+        model = PowerModel(idle, cpu_w, tx, rx)
+    battery = battery_wh if battery_wh is not None else cfg.get("battery_wh")
+    if battery is not None and battery <= 0:
+        raise MsoError(f"--battery-wh: expected a number > 0, got {battery:g}")
     _node(
         node_id,
         listen or cfg.get("listen", "127.0.0.1:7000"),
@@ -385,11 +417,20 @@ def _node_from(
         all_peers,
         key or cfg.get("key"),
         verbose,
+        model,
+        battery,
     )
 
 
 def _node(
-    node_id: str, listen: str, cpu: float, peers: tuple[str, ...], key: str | None, verbose: bool
+    node_id: str,
+    listen: str,
+    cpu: float,
+    peers: tuple[str, ...],
+    key: str | None,
+    verbose: bool,
+    power: Any = None,
+    battery_wh: float | None = None,
 ) -> None:
     import asyncio
     import logging
@@ -415,7 +456,8 @@ def _node(
         static[name] = [phost, pport, None, 0.0, 0.0]
 
     async def serve() -> None:
-        driver = NodeDriver(NodeCore(node_id, capacity=cpu), host, port, overlay_key(key))
+        core = NodeCore(node_id, capacity=cpu, power=power, battery_wh=battery_wh)
+        driver = NodeDriver(core, host, port, overlay_key(key))
         try:
             await driver.start()
         except OSError as exc:
@@ -654,10 +696,28 @@ def _status(via: str | None, key: str | None, as_json: bool) -> None:
     render_status(_console(), reply.nodes)
 
 
+def _energy_cells(mon: dict[str, Any]) -> tuple[str, str, str]:
+    frac, life = mon.get("battery_fraction"), mon.get("lifetime_s")
+    battery = "wall" if frac is None else f"{frac * 100:.1f}%"
+    lifetime = "-" if life is None else f"{life / 3600:.1f} h"
+    return battery, f"{mon.get('drain_w', 0.0):.2f}", lifetime
+
+
 def render_status(console: Console, nodes: dict[str, Any]) -> None:
     """Nodes with their traffic; per app, vertices (where, events, CPU) and edges."""
     table = Table(title="nodes")
-    for col in ("node", "neighbours", "bytes in", "bytes out", "forwarded", "rejected frames"):
+    cols = (
+        "node",
+        "neighbours",
+        "bytes in",
+        "bytes out",
+        "forwarded",
+        "rejected frames",
+        "battery",
+        "drain W",
+        "lifetime",
+    )
+    for col in cols:
         table.add_column(col, justify="left" if col in ("node", "neighbours") else "right")
     apps: dict[str, dict[str, Any]] = {}
     for nid in sorted(nodes):
@@ -670,6 +730,7 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
             str(traffic.get("bytes_out", 0)),
             str(traffic.get("bytes_forwarded", 0)),
             str(traffic.get("frames_rejected", 0)),
+            *_energy_cells(st.get("monitor", {})),
         )
         for name, app in st.get("apps", {}).items():
             agg = apps.setdefault(name, {"vertices": {}, "edges": {}, "chains": app["chains"]})

@@ -97,7 +97,12 @@ class Emulator:
             cmd = [
                 sys.executable, "-m", "mso", "node", "--id", name,
                 "--listen", f"{host}:{port}", "--cpu", str(spec.cpu),
+                "--power", ",".join(str(x) for x in (spec.power.idle_w, spec.power.cpu_w,
+                                                     spec.power.tx_uj_per_byte,
+                                                     spec.power.rx_uj_per_byte)),
             ]  # fmt: skip
+            if spec.battery_wh is not None:
+                cmd += ["--battery-wh", str(spec.battery_wh)]
             with log.open("wb") as out:
                 proc = subprocess.Popen(
                     cmd, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True

@@ -26,6 +26,8 @@ import msgspec
 from mso.errors import MsoError
 from mso.model.app import App, Edge
 from mso.model.appfile import loads_app
+from mso.model.network import PowerModel
+from mso.node.monitor import Monitor
 from mso.node.stone import Stone
 from mso.planning.placement import Hop, Layout
 from mso.protocol import messages as m
@@ -89,6 +91,7 @@ class Remap:
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
 RETRANSMIT_S = 0.25
 SOURCE_BURST = 256  # events a rate-less source emits per turn
+MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own
 MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
 
 
@@ -134,9 +137,15 @@ class NodeCore:
         capacity: float = 1.0,
         cpu_clock: Callable[[], float] = time.perf_counter,
         window: int = 4096,
+        power: PowerModel | None = None,
+        battery_wh: float | None = None,
     ) -> None:
         self.id = node_id
         self.capacity = capacity
+        self.monitor = Monitor(power or PowerModel(), battery_wh, cpu_speed=capacity)
+        self.work_ms = 0.0  # modelled CPU work of every event processed here (cost units)
+        # cumulative (bytes sent, bytes received) as the driver counts them
+        self.traffic: Callable[[], tuple[int, int]] = lambda: (0, 0)
         self.cpu_clock = cpu_clock
         self.window = window
         self.routes: dict[str, tuple[str, int]] = {}  # destination -> (next hop, hops)
@@ -163,8 +172,19 @@ class NodeCore:
         self._status_wait: dict[int, tuple[int, dict[str, Any], set[str]]] = {}
 
     # -- entry points -----------------------------------------------------------------------
-    def set_routes(self, routes: dict[str, tuple[str, int]]) -> None:
+    def start(self, now: float) -> list[Effect]:
+        """Begin monitoring; drivers call this once when the node starts."""
+        self._sample(now)
+        self._effects.append(SetTimer(("monitor",), now + MONITOR_PERIOD_S))
+        return self._run(now)
+
+    def set_routes(self, routes: dict[str, tuple[str, int]], now: float = 0.0) -> None:
         self.routes = {d: r for d, r in routes.items() if d != self.id}
+        self.monitor.note_routes(now, self.routes)
+
+    def _sample(self, now: float) -> None:
+        out, inc = self.traffic()
+        self.monitor.sample(now, self.work_ms, out, inc)
 
     def known_nodes(self) -> list[str]:
         return sorted({self.id, *self.routes})
@@ -199,6 +219,9 @@ class NodeCore:
             self._retransmit(key[1], now)
         elif kind == "status":
             self._status_done(key[1])
+        elif kind == "monitor":
+            self._sample(now)
+            self._effects.append(SetTimer(("monitor",), now + MONITOR_PERIOD_S))
         return self._run(now)
 
     # -- the loop ---------------------------------------------------------------------------
@@ -518,6 +541,7 @@ class NodeCore:
                 events.append(event)
         stone.cpu_s += self.cpu_clock() - t0
         stone.emitted += burst
+        self.work_ms += stone.vertex.cost * burst
         if events:
             self._emit(dep, edges, events)
         if rate:  # keep the schedule, so late firings do not slow the rate down
@@ -615,6 +639,7 @@ class NodeCore:
                     outs.append(result)
         stone.cpu_s += self.cpu_clock() - t0
         stone.processed += len(payloads)
+        self.work_ms += stone.vertex.cost * len(payloads)
         ch.mark_processed(len(payloads))
         if outs and stone.kind != "sink":
             stone.emitted += len(outs)
@@ -1028,8 +1053,10 @@ class NodeCore:
                 "edges": edges,
             }
         extra = self.status_hook() if self.status_hook is not None else {}
+        self._sample(now)
         return extra | {
             "node": self.id,
+            "monitor": self.monitor.snapshot() | {"work_ms": self.work_ms},
             "routes": {d: list(r) for d, r in sorted(self.routes.items())},
             "neighbours": sorted(n for n, (hop, _) in self.routes.items() if hop == n),
             "apps": apps,

@@ -207,6 +207,7 @@ class NodeDriver:
         self._link_version = -1
         self._held: dict[str, deque[tuple[bytes, bool]]] = {}
         core.status_hook = self._link_status
+        core.traffic = lambda: (self.counters.bytes_out, self.counters.bytes_in)
 
     def _link_status(self) -> dict[str, Any]:
         return {"traffic": self.counters.as_dict(), "connected": sorted(self.peers)}
@@ -215,6 +216,7 @@ class NodeDriver:
         self._server = await self.loop.create_server(
             lambda: Connection(self), self.host, self.port, reuse_address=True
         )
+        self._apply(self.core.start(self.loop.time()))
 
     async def stop(self) -> None:
         for t in self._timers.values():
@@ -318,7 +320,8 @@ class NodeDriver:
             return
         self._link_version = state.version
         self.neighbours = dict(state.neighbours)
-        self.core.set_routes({d: (str(r[0]), int(r[1])) for d, r in state.routes.items()})
+        routes = {d: (str(r[0]), int(r[1])) for d, r in state.routes.items()}
+        self.core.set_routes(routes, self.loop.time())
         for node in list(self.peers):
             if node not in self.neighbours:
                 conn = self.peers.pop(node)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -42,15 +43,31 @@ class Simulation:
         self.hop_latency_s = hop_latency_s
         self.now = 0.0
         self.cores = {
-            n: NodeCore(n, capacity=spec.cpu, cpu_clock=lambda: 0.0, window=window)
+            n: NodeCore(
+                n,
+                capacity=spec.cpu,
+                cpu_clock=lambda: 0.0,
+                window=window,
+                power=spec.power,
+                battery_wh=spec.battery_wh,
+            )
             for n, spec in network.nodes.items()
         }
+        self.bytes = {n: [0, 0] for n in network.nodes}  # sent, received (relays count both)
+        for n, core in self.cores.items():
+            core.traffic = self._traffic_of(n)
         self.replies: list[tuple[float, int, m.Message]] = []
         self.delivered = 0
         self._heap: list[_Item] = []
         self._seq = itertools.count()
         self._timers: dict[tuple[str, tuple[Any, ...]], float] = {}
         self.update_routes()
+        for n, core in self.cores.items():
+            self._apply(n, core.start(self.now))
+
+    def _traffic_of(self, node: str) -> Callable[[], tuple[int, int]]:
+        counters = self.bytes[node]
+        return lambda: (counters[0], counters[1])
 
     def update_routes(self) -> None:
         """Give every core its routing view of the current links."""
@@ -60,7 +77,7 @@ class Simulation:
                 route = self.network.route(n, dst)
                 if route is not None and dst != n:
                     routes[dst] = (route[1], len(route) - 1)
-            core.set_routes(routes)
+            core.set_routes(routes, self.now)
 
     def _push(self, at: float, kind: str, node: str, payload: Any) -> None:
         heapq.heappush(self._heap, _Item(at, next(self._seq), kind, node, payload))
@@ -77,7 +94,11 @@ class Simulation:
                     delay += self.hop_latency_s + (link.delay_ms / 1e3 if link else 0.0)
                 msg = eff.msg
                 if self.wire:  # what a real node would receive: encoded, then decoded
-                    msg = m.decode(m.unwrap(m.wrap(node, eff.dst, msg)).body)
+                    frame = m.wrap(node, eff.dst, msg)
+                    msg = m.decode(m.unwrap(frame).body)
+                    for a, b in itertools.pairwise(route):  # every hop sends and receives it
+                        self.bytes[a][0] += len(frame)
+                        self.bytes[b][1] += len(frame)
                 self._push(self.now + delay, "msg", eff.dst, (node, msg))
             elif isinstance(eff, SetTimer):
                 self._timers[(node, eff.key)] = eff.at

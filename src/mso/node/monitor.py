@@ -1,0 +1,124 @@
+"""The per-node monitor (paper §3.5): energy, load, traffic, neighbours and routes. Sans-IO.
+
+Fed cumulative counters with the time they were read; keeps the energy spent under the node's
+power model (docs/architecture.md, "Energy model"), a smoothed drain, the expected lifetime
+(remaining energy / recent drain), and the history of neighbour and route changes.
+
+CPU energy is charged for the *modelled* work of the vertices that ran here: a vertex of cost c
+processing one event is c ms of CPU on a node of ``cpu: 1.0``, so c / cpu ms here. The measured
+CPU time of vertex code is reported next to it; on an emulated laptop the two differ (stand-in
+code is cheap, and the host is not the robot).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from mso.model.network import PowerModel
+
+SMOOTHING = 0.3  # weight of the newest sample in the drain average
+
+
+@dataclass
+class Monitor:
+    power: PowerModel = field(default_factory=PowerModel)
+    battery_wh: float | None = None  # None: wall-powered
+    cpu_speed: float = 1.0
+    started_at: float = 0.0
+    energy_j: float = 0.0
+    cpu_energy_j: float = 0.0
+    radio_energy_j: float = 0.0
+    drain_w: float = 0.0
+    route_changes: int = 0
+    neighbour_changes: int = 0
+    last_route_change: float | None = None
+    events: list[tuple[float, str]] = field(default_factory=list)  # recent, bounded
+    _last: tuple[float, float, int, int] | None = None  # now, work_ms, bytes_out, bytes_in
+    _neighbours: frozenset[str] = frozenset()
+    _routes: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def capacity_j(self) -> float | None:
+        return None if self.battery_wh is None else self.battery_wh * 3600.0
+
+    @property
+    def remaining_j(self) -> float | None:
+        cap = self.capacity_j
+        return None if cap is None else max(0.0, cap - self.energy_j)
+
+    @property
+    def lifetime_s(self) -> float | None:
+        """Expected lifetime at the recent drain; None when wall-powered or not yet known."""
+        rem = self.remaining_j
+        if rem is None or self.drain_w <= 0:
+            return None
+        return rem / self.drain_w
+
+    def sample(self, now: float, work_ms: float, bytes_out: int, bytes_in: int) -> None:
+        """Charge the energy spent since the last sample (counters are cumulative)."""
+        if self._last is None:
+            self._last = (now, work_ms, bytes_out, bytes_in)
+            self.started_at = now
+            return
+        t0, w0, o0, i0 = self._last
+        dt = now - t0
+        if dt <= 0:
+            return
+        cpu_j = self.power.cpu_w * max(0.0, work_ms - w0) / 1e3 / self.cpu_speed
+        radio_j = (
+            self.power.tx_uj_per_byte * max(0, bytes_out - o0)
+            + self.power.rx_uj_per_byte * max(0, bytes_in - i0)
+        ) * 1e-6
+        spent = self.power.idle_w * dt + cpu_j + radio_j
+        self.energy_j += spent
+        self.cpu_energy_j += cpu_j
+        self.radio_energy_j += radio_j
+        watts = spent / dt
+        self.drain_w = (
+            watts if self.drain_w == 0 else (SMOOTHING * watts + (1 - SMOOTHING) * self.drain_w)
+        )
+        self._last = (now, work_ms, bytes_out, bytes_in)
+
+    def note_routes(self, now: float, routes: dict[str, tuple[str, int]]) -> None:
+        """Record neighbour and route changes seen in the routing view."""
+        nexthops = {d: r[0] for d, r in routes.items()}
+        neighbours = frozenset(h for d, h in nexthops.items() if d == h)
+        if self._routes and nexthops != self._routes:
+            self.route_changes += 1
+            self.last_route_change = now
+            changed = sorted(
+                d
+                for d in set(nexthops) | set(self._routes)
+                if nexthops.get(d) != self._routes.get(d)
+            )
+            self._event(now, "routes changed: " + ", ".join(changed))
+        if neighbours != self._neighbours and (self._neighbours or self._routes):
+            self.neighbour_changes += 1
+            gone, new = self._neighbours - neighbours, neighbours - self._neighbours
+            self._event(now, f"neighbours: +{sorted(new)} -{sorted(gone)}")
+        self._routes, self._neighbours = nexthops, neighbours
+
+    def _event(self, now: float, what: str) -> None:
+        self.events.append((now, what))
+        del self.events[:-20]
+
+    def snapshot(self) -> dict[str, Any]:
+        life = self.lifetime_s
+        return {
+            "energy_j": self.energy_j,
+            "cpu_energy_j": self.cpu_energy_j,
+            "radio_energy_j": self.radio_energy_j,
+            "battery_j": self.capacity_j,
+            "remaining_j": self.remaining_j,
+            "battery_fraction": None
+            if self.capacity_j is None
+            else (self.remaining_j or 0.0) / self.capacity_j,
+            "drain_w": self.drain_w,
+            "lifetime_s": None if life is None or math.isinf(life) else life,
+            "route_changes": self.route_changes,
+            "neighbour_changes": self.neighbour_changes,
+            "last_route_change": self.last_route_change,
+            "recent": [f"{t:.3f} {w}" for t, w in self.events[-5:]],
+        }
