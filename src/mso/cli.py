@@ -709,13 +709,13 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
     cols = (
         "node",
         "neighbours",
-        "bytes in",
-        "bytes out",
-        "forwarded",
-        "rejected frames",
+        "in B",
+        "out B",
+        "fwd B",
+        "rejected",
         "battery",
-        "drain W",
-        "lifetime",
+        "W",
+        "life",
     )
     for col in cols:
         table.add_column(col, justify="left" if col in ("node", "neighbours") else "right")
