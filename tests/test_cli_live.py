@@ -43,8 +43,6 @@ def test_emulate_then_drive_it_from_another_terminal(tmp_path: Path) -> None:
     (tmp_path / "line.yaml").write_text(LINE)
     (tmp_path / "pipe.yaml").write_text(APP)
     env = dict(os.environ, PYTHONPATH=f"{TESTS}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
-    os.environ["PYTHONPATH"] = env["PYTHONPATH"]  # for the app file check in this process
-    sys.path.insert(0, str(TESTS))
     emu = subprocess.Popen(
         [
             sys.executable,
