@@ -245,3 +245,29 @@ def test_relocation_across_processes_keeps_every_event() -> None:
     emitted = status["N1"]["apps"]["pipe"]["vertices"]["src"]["emitted"]
     assert got["repeats"] == 0 and got["out_of_order"] == 0  # the counter's state moved too
     assert emitted - 20 <= got["count"] <= emitted
+
+
+def test_lossy_links_lose_no_event() -> None:
+    """Loss applied in the sender's link layer is recovered by acks and retransmission."""
+    lossy = LINE.replace(
+        "link_defaults: {delay_ms: 0.5, bandwidth_mbps: 54}", "link_defaults: {loss: 0.2}"
+    )
+    app = APP.replace("rate: 200", "rate: 100")
+
+    async def run() -> dict[str, Any]:
+        emu = Emulator(loads_scenario(lossy))
+        await emu.start()
+        try:
+            assert (await emu.deploy(app, "pipe.yaml", "N1")).ok
+            await asyncio.sleep(2.0)
+            return await emu.status()
+        finally:
+            await emu.stop()
+
+    status = asyncio.run(run())
+    dropped = sum(st["traffic"]["frames_dropped_loss"] for st in status.values())
+    assert dropped > 5  # the links did lose frames
+    emitted = status["N1"]["apps"]["pipe"]["vertices"]["src"]["emitted"]
+    got = sink(status)
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
+    assert got["count"] >= emitted - 60  # only what is waiting for its retransmission is missing

@@ -86,7 +86,7 @@ def test_oversized_frame_is_a_framing_error() -> None:
 def test_messages_are_validated_on_decode() -> None:
     ok = m.wrap("N1", "N2", m.Ack("app", 1, 0, 5))
     env = m.unwrap(ok)
-    assert env.data and m.decode(env.body) == m.Ack("app", 1, 0, 5)
+    assert env.kind == m.DATA and m.decode(env.body) == m.Ack("app", 1, 0, 5)
     bad = m.wrap("N1", "N2", m.ClientHello("x")).replace(b"client", b"unknwn")
     with pytest.raises(Exception, match="Invalid value"):
         m.decode(m.unwrap(bad).body)

@@ -69,11 +69,11 @@ class Link:
     def shaped(self) -> bool:
         return self.bandwidth_mbps is not None or self.delay_ms > 0
 
-    def send(self, payload: bytes, data: bool) -> None:
-        if data and self.loss and self._rng.random() < self.loss:
+    def send(self, payload: bytes, kind: int) -> None:
+        if kind == m.DATA and self.loss and self._rng.random() < self.loss:
             self.conn.driver.counters.frames_dropped_loss += 1
             return
-        (self._data if data else self._control).append(payload)
+        (self._control if kind == m.CONTROL else self._data).append(payload)
         self.pump()
 
     def pump(self) -> None:
@@ -205,7 +205,7 @@ class NodeDriver:
         self._server: asyncio.Server | None = None
         self.stopped = asyncio.Event()
         self._link_version = -1
-        self._held: dict[str, deque[tuple[bytes, bool]]] = {}
+        self._held: dict[str, deque[tuple[bytes, int]]] = {}
         core.status_hook = self._link_status
         core.traffic = lambda: (self.counters.bytes_out, self.counters.bytes_in)
 
@@ -275,7 +275,7 @@ class NodeDriver:
             self.counters.frames_unroutable += 1
             return
         self.counters.bytes_forwarded += size
-        link.link.send(m.rewrap(env), env.data)
+        link.link.send(m.rewrap(env), env.kind)
 
     # -- outbound ---------------------------------------------------------------------------
     def _apply(self, effects: list[Effect]) -> None:
@@ -291,12 +291,12 @@ class NodeDriver:
                     log.error("cannot encode %s for %s: %s", type(eff.msg).__name__, eff.dst, exc)
                     self.counters.frames_unroutable += 1
                     continue
-                is_data = isinstance(eff.msg, m.Data | m.Ack | m.Marker)
+                kind = m.kind_of(eff.msg)
                 conn = self.peers.get(route[0])
                 if conn is not None and conn.link is not None:
-                    conn.link.send(payload, is_data)
+                    conn.link.send(payload, kind)
                 elif route[0] in self.neighbours:
-                    self._hold(route[0], payload, is_data)
+                    self._hold(route[0], payload, kind)
                 else:
                     self.counters.frames_unroutable += 1
             elif isinstance(eff, SetTimer):
@@ -352,13 +352,13 @@ class NodeDriver:
             return
         log.warning("could not reach neighbour %s at %s:%s", node, host, port)
 
-    def _hold(self, node: str, payload: bytes, data: bool) -> None:
+    def _hold(self, node: str, payload: bytes, kind: int) -> None:
         """Keep frames for a neighbour whose connection is still being set up (bounded)."""
         held = self._held.setdefault(node, deque())
         if len(held) >= MAX_HELD:
             self.counters.frames_unroutable += 1
             return
-        held.append((payload, data))
+        held.append((payload, kind))
 
     def _attach_link(self, node: str) -> None:
         conn = self.peers.get(node)
@@ -373,8 +373,8 @@ class NodeDriver:
         ):
             seed = zlib.crc32(f"{self.core.id}-{node}".encode())
             conn.link = Link(conn, shape, seed)
-        for payload, data in held or ():
-            conn.link.send(payload, data)
+        for payload, kind in held or ():
+            conn.link.send(payload, kind)
 
     def on_connection_lost(self, conn: Connection) -> None:
         if conn.peer is not None and self.peers.get(conn.peer) is conn:

@@ -13,15 +13,25 @@ from typing import Any
 
 import msgspec
 
+CONTROL, DATA, MARKER = 0, 1, 2  # Envelope.kind
+
 
 class Envelope(msgspec.Struct, array_like=True):
-    """Routing header; ``data`` marks data-plane traffic, which control traffic overtakes."""
+    """Routing header. ``kind``: CONTROL overtakes queued data; DATA (events, acks) is what an
+    emulated lossy link may drop, recovered by retransmission; MARKER travels in order with the
+    data it follows and is never dropped by emulated loss."""
 
     src: str
     dst: str
     ttl: int
-    data: bool
+    kind: int
     body: msgspec.Raw
+
+
+def kind_of(msg: Message) -> int:
+    if isinstance(msg, Data | Ack):
+        return DATA
+    return MARKER if isinstance(msg, Marker) else CONTROL
 
 
 class _Msg(msgspec.Struct, tag_field="t", array_like=True):
@@ -323,8 +333,8 @@ def decode(data: bytes | msgspec.Raw) -> Message:
 
 
 def wrap(src: str, dst: str, msg: Message, ttl: int = 32) -> bytes:
-    is_data = isinstance(msg, Data | Ack | Marker)
-    return _ENCODER.encode(Envelope(src, dst, ttl, is_data, msgspec.Raw(_ENCODER.encode(msg))))
+    body = msgspec.Raw(_ENCODER.encode(msg))
+    return _ENCODER.encode(Envelope(src, dst, ttl, kind_of(msg), body))
 
 
 def unwrap(data: bytes) -> Envelope:
