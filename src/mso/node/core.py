@@ -124,7 +124,6 @@ class Deployment:
     client: int | None = None
     requested_at: float = 0.0
     out_edges: dict[str, list[int]] = field(default_factory=dict)
-    edge_events: dict[int, int] = field(default_factory=dict)
 
 
 class NodeCore:
@@ -560,7 +559,6 @@ class NodeCore:
         payloads = [encode(ev) for ev in events]
         for e in edges:
             seq = self._out(dep, e).push_many(payloads, self._now)
-            dep.edge_events[e] = dep.edge_events.get(e, 0) + len(payloads)
             dst_node = dep.placed[dep.app.edges[e].dst]
             if dst_node == self.id:
                 self._deliver(dep, e, seq, payloads)
