@@ -142,6 +142,8 @@ class NodeCore:
         self.id = node_id
         self.capacity = capacity
         self.monitor = Monitor(power or PowerModel(), battery_wh, cpu_speed=capacity)
+        # read only to report how long a request took; None in simulation (``now`` is exact)
+        self.clock: Callable[[], float] | None = None
         self.work_ms = 0.0  # modelled CPU work of every event processed here (cost units)
         # cumulative (bytes sent, bytes received) as the driver counts them
         self.traffic: Callable[[], tuple[int, int]] = lambda: (0, 0)
@@ -171,6 +173,12 @@ class NodeCore:
         self._status_wait: dict[int, tuple[int, dict[str, Any], set[str]]] = {}
 
     # -- entry points -----------------------------------------------------------------------
+    def _elapsed_ms(self, since: float) -> float:
+        """Time since a request, for the replies that report it: the driver's clock when it
+        gave one (a whole deployment can finish inside one synchronous run), else ``now``."""
+        end = self.clock() if self.clock is not None else self._now
+        return max(0.0, end - since) * 1e3
+
     def start(self, now: float) -> list[Effect]:
         """Begin monitoring; drivers call this once when the node starts."""
         self._sample(now)
@@ -482,7 +490,7 @@ class NodeCore:
         if len(dep.built) == len(dep.layout.chains):
             self._broadcast(m.StartApp(msg.app))
             if dep.client is not None:
-                elapsed = (now - dep.requested_at) * 1e3
+                elapsed = self._elapsed_ms(dep.requested_at)
                 reply = m.DeployReply(msg.app, True, dict(dep.placed), elapsed)
                 self._effects.append(Reply(dep.client, reply))
                 dep.client = None
@@ -889,7 +897,7 @@ class NodeCore:
         if reloc is None or reloc.client is None:
             return
         reply = m.RelocateReply(
-            reloc.app, reloc.vertex, True, reloc.target, (now - reloc.requested_at) * 1e3
+            reloc.app, reloc.vertex, True, reloc.target, self._elapsed_ms(reloc.requested_at)
         )
         self._effects.append(Reply(reloc.client, reply))
 
@@ -1009,7 +1017,7 @@ class NodeCore:
     def _finish_remap(self, rid: int, now: float, error: str) -> None:
         remap = self._remaps.pop(rid)
         if remap.client is not None:
-            elapsed = (now - remap.requested_at) * 1e3
+            elapsed = self._elapsed_ms(remap.requested_at)
             reply = m.RemapReply(remap.app, not error, remap.moved, elapsed, error)
             self._effects.append(Reply(remap.client, reply))
 

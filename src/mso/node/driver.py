@@ -208,6 +208,7 @@ class NodeDriver:
         self._held: dict[str, deque[tuple[bytes, int]]] = {}
         core.status_hook = self._link_status
         core.traffic = lambda: (self.counters.bytes_out, self.counters.bytes_in)
+        core.clock = self.loop.time
 
     def _link_status(self) -> dict[str, Any]:
         return {"traffic": self.counters.as_dict(), "connected": sorted(self.peers)}
