@@ -69,3 +69,19 @@ class Counter:
 
     def set_state(self, state: int) -> None:
         self.count = state
+
+
+class Broken:
+    """A vertex whose constructor fails, as buggy user code does."""
+
+    def __init__(self) -> None:
+        raise RuntimeError("sensor not found")
+
+
+class Flaky:
+    """Fails on every third event; the node must count it and go on."""
+
+    def __call__(self, event: Num) -> Num:
+        if event.seq % 3 == 2:
+            raise ValueError(f"bad reading {event.seq}")
+        return event

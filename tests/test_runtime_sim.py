@@ -141,3 +141,22 @@ def test_pinned_to_unreachable_node_is_refused() -> None:
     ((_, _, reply),) = sim.replies
     assert isinstance(reply, m.DeployReply) and not reply.ok
     assert "N4" in reply.error and "not reachable" in reply.error
+
+
+def test_user_code_that_fails_never_takes_a_node_down() -> None:
+    broken = PIPE.replace("code: runtime_vertices:Double}", "code: runtime_vertices:Broken}")
+    sim = Simulation(line(4))
+    sim.request("N1", m.DeployRequest(broken, "broken.yaml"))
+    sim.run_until(2.0)
+    ((_, _, reply),) = sim.replies
+    assert isinstance(reply, m.DeployReply) and not reply.ok
+    assert "sensor not found" in reply.error
+    sim.run_until(3.0)
+    assert all(not c.apps for c in sim.cores.values())  # stopped everywhere, nothing half-built
+    flaky = PIPE.replace("code: runtime_vertices:Double}", "code: runtime_vertices:Flaky}")
+    assert deploy(sim, flaky).ok  # the same nodes still deploy and run the next app
+    sim.run_until(sim.now + 2.0)
+    mid = next(c for c in sim.cores.values() if "mid" in c.apps["pipe"].stones)
+    stone = mid.apps["pipe"].stones["mid"]
+    assert stone.errors > 50 and "bad reading" in stone.last_error
+    assert sink_stats(sim, "pipe", "sink")["count"] >= 2 * stone.errors - 5
