@@ -65,13 +65,9 @@ no_import = click.option(
 @main.command()
 @click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
 @no_import
+@_user_errors
 def validate(app_file: Path, no_import: bool) -> None:
     """Check an app file and report the first problem."""
-    _validate(app_file, no_import)
-
-
-@_user_errors
-def _validate(app_file: Path, no_import: bool) -> None:
     app = load_app(app_file, resolve_code=not no_import)
     click.echo(f"{app_file}: ok ({len(app.vertices)} vertices, {len(app.edges)} edges)")
 
@@ -80,13 +76,9 @@ def _validate(app_file: Path, no_import: bool) -> None:
 @click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help='Print {"chains": [[head, ..., tail], ...]}.')
 @no_import
+@_user_errors
 def chains(app_file: Path, as_json: bool, no_import: bool) -> None:
     """Partition an app into chains (paper §3.2)."""
-    _chains(app_file, as_json, no_import)
-
-
-@_user_errors
-def _chains(app_file: Path, as_json: bool, no_import: bool) -> None:
     app = load_app(app_file, resolve_code=not no_import)
     found = form_chains(app)
     if as_json:
@@ -129,6 +121,7 @@ def _chains(app_file: Path, as_json: bool, no_import: bool) -> None:
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random planner.")
 @click.option("--json", "as_json", is_flag=True, help="Print the plan as JSON.")
 @no_import
+@_user_errors
 def plan_cmd(
     app_file: Path,
     scenario_file: Path,
@@ -140,20 +133,6 @@ def plan_cmd(
     no_import: bool,
 ) -> None:
     """Place an app on a network with Algorithm 1 (paper §3.3) or a baseline."""
-    _plan(app_file, scenario_file, origin, planner, objective, seed, as_json, no_import)
-
-
-@_user_errors
-def _plan(
-    app_file: Path,
-    scenario_file: Path,
-    origin: str | None,
-    planner: str,
-    objective: str,
-    seed: int,
-    as_json: bool,
-    no_import: bool,
-) -> None:
     from mso.planning.baselines import BASELINES
     from mso.planning.objectives import evaluate
 
@@ -183,13 +162,9 @@ def _plan(
 )
 @click.option("--json", "as_json", is_flag=True)
 @no_import
+@_user_errors
 def compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool) -> None:
     """Algorithm 1 beside the baselines on energy per event, max node load and hops."""
-    _compare(app_file, scenario_file, as_json, no_import)
-
-
-@_user_errors
-def _compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool) -> None:
     from mso.errors import PlanningError
     from mso.planning.baselines import BASELINES
     from mso.planning.objectives import evaluate
@@ -476,13 +451,9 @@ def _node(
 @click.option("--via", help="Node to deploy from: a node id of the running emulator or HOST:PORT.")
 @key_option
 @click.option("--json", "as_json", is_flag=True)
+@_user_errors
 def deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> None:
     """Deploy an app from any node (distributed Algorithm 1)."""
-    _deploy(app_file, via, key, as_json)
-
-
-@_user_errors
-def _deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> None:
     import asyncio
 
     from mso.client import request
@@ -531,6 +502,7 @@ async def _only_app(address: str, key: str | None) -> str:
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @key_option
 @click.option("--json", "as_json", is_flag=True)
+@_user_errors
 def relocate(
     vertex: str,
     app_name: str | None,
@@ -541,19 +513,6 @@ def relocate(
     as_json: bool,
 ) -> None:
     """Move one vertex of a running app, with its state, losing no event (§3.4.1)."""
-    _relocate(vertex, app_name, direction, target, via, key, as_json)
-
-
-@_user_errors
-def _relocate(
-    vertex: str,
-    app_name: str | None,
-    direction: str | None,
-    target: str | None,
-    via: str | None,
-    key: str | None,
-    as_json: bool,
-) -> None:
     import asyncio
 
     from mso.client import request
@@ -583,6 +542,7 @@ def _relocate(
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @key_option
 @click.option("--json", "as_json", is_flag=True)
+@_user_errors
 def remap(
     chain: tuple[str, ...],
     app_name: str | None,
@@ -596,19 +556,6 @@ def remap(
 
     `mso remap chain CHAIN`, `mso remap --chains C1,C2`, `mso remap --all`; a chain is named by
     its index (`mso chains`) or as head-...-tail."""
-    _remap(chain, app_name, chains, everything, via, key, as_json)
-
-
-@_user_errors
-def _remap(
-    chain: tuple[str, ...],
-    app_name: str | None,
-    chains: str | None,
-    everything: bool,
-    via: str | None,
-    key: str | None,
-    as_json: bool,
-) -> None:
     import asyncio
 
     from mso.client import request
@@ -655,13 +602,9 @@ def _remap(
 @click.argument("app_name")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @key_option
+@_user_errors
 def undeploy(app_name: str, via: str | None, key: str | None) -> None:
     """Stop an app on every node."""
-    _undeploy(app_name, via, key)
-
-
-@_user_errors
-def _undeploy(app_name: str, via: str | None, key: str | None) -> None:
     import asyncio
 
     from mso.client import request
@@ -675,13 +618,9 @@ def _undeploy(app_name: str, via: str | None, key: str | None) -> None:
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @key_option
 @click.option("--json", "as_json", is_flag=True)
+@_user_errors
 def status(via: str | None, key: str | None, as_json: bool) -> None:
     """Nodes, neighbours, chains, placement, events per edge, traffic, CPU per vertex."""
-    _status(via, key, as_json)
-
-
-@_user_errors
-def _status(via: str | None, key: str | None, as_json: bool) -> None:
     import asyncio
 
     from mso.client import request
