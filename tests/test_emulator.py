@@ -271,3 +271,47 @@ def test_lossy_links_lose_no_event() -> None:
     got = sink(status)
     assert got["repeats"] == 0 and got["out_of_order"] == 0
     assert got["count"] >= emitted - 60  # only what is waiting for its retransmission is missing
+
+
+def test_mobility_changes_links_while_the_app_runs() -> None:
+    moving = """
+name: moving
+radio_range: 150
+nodes:
+  R1: {pos: [0, 0]}
+  R2: {pos: [100, 50]}
+  R3: {pos: [150, 150]}
+  R4: {pos: [250, 230]}
+mobility: {model: random_waypoint, area: [300, 300], speed: [60, 120], pause_s: 0,
+           seed: 3, fixed: [R1, R4], step_s: 0.2}
+"""
+    app = """
+name: pipe
+vertices:
+  src: {code: runtime_vertices:CountingSource, pinned: R1, rate: 50, output: runtime_vertices:Num}
+  sink: {code: runtime_vertices:Recorder, pinned: R1}
+edges: [[src, sink]]
+"""
+
+    async def run() -> dict[str, Any]:
+        emu = Emulator(loads_scenario(moving))
+        await emu.start()
+        try:
+            assert (await emu.deploy(app, "pipe.yaml", "R1")).ok
+            loop = asyncio.get_running_loop()
+            mobility = asyncio.create_task(emu.play_mobility(loop.time()))
+            await asyncio.sleep(3.0)
+            mobility.cancel()
+            assert emu.positions and emu.positions["R1"] == (0.0, 0.0)  # fixed nodes stay
+            return await emu.status("R1")
+        finally:
+            await emu.stop()
+
+    status = asyncio.run(run())
+    changes = sum(
+        st["monitor"]["route_changes"] + st["monitor"]["neighbour_changes"]
+        for st in status.values()
+    )
+    assert changes > 0  # the robots moved and the routing views followed
+    got = status["R1"]["apps"]["pipe"]["vertices"]["sink"]["stats"]
+    assert got["count"] > 100 and got["repeats"] == 0 and got["out_of_order"] == 0
