@@ -8,6 +8,21 @@ from __future__ import annotations
 import msgspec
 
 
+def pipe_app(rate: int) -> str:
+    """src (N1) -> mid -> sink (N4), the app most runtime tests deploy."""
+    return f"""
+name: pipe
+vertices:
+  src: {{code: runtime_vertices:CountingSource, pinned: N1, rate: {rate},
+        output: runtime_vertices:Num}}
+  mid: {{code: runtime_vertices:Double}}
+  sink: {{code: runtime_vertices:Recorder, pinned: N4}}
+edges:
+  - [src, mid]
+  - [mid, sink]
+"""
+
+
 class Num(msgspec.Struct, frozen=True):
     seq: int
     pad: bytes = b""

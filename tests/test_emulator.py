@@ -14,20 +14,11 @@ import pytest
 
 from mso.emu.controller import Emulator
 from mso.scenario import loads_scenario
+from runtime_vertices import pipe_app
 
 TESTS = Path(__file__).resolve().parent
 
-APP = """
-name: pipe
-vertices:
-  src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 200,
-        output: runtime_vertices:Num}
-  mid: {code: runtime_vertices:Double}
-  sink: {code: runtime_vertices:Recorder, pinned: N4}
-edges:
-  - [src, mid]
-  - [mid, sink]
-"""
+APP = pipe_app(200)
 
 SQUARE = """
 name: square

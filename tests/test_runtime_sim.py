@@ -12,20 +12,11 @@ from mso.planning.placement import plan
 from mso.protocol import messages as m
 from mso.scenario import load_scenario
 from mso.sim.runner import Simulation
+from runtime_vertices import pipe_app
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples"
 
-PIPE = """
-name: pipe
-vertices:
-  src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 100,
-        output: runtime_vertices:Num}
-  mid: {code: runtime_vertices:Double}
-  sink: {code: runtime_vertices:Recorder, pinned: N4}
-edges:
-  - [src, mid]
-  - [mid, sink]
-"""
+PIPE = pipe_app(100)
 
 
 def line(n: int, delay_ms: float = 1.0) -> Network:

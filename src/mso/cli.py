@@ -341,6 +341,7 @@ def _node_config(path: Path) -> dict[str, Any]:
 )
 @key_option
 @click.option("-v", "--verbose", is_flag=True)
+@_user_errors
 def node(
     config_file: Path | None,
     node_id: str | None,
@@ -353,21 +354,6 @@ def node(
     verbose: bool,
 ) -> None:
     """Run the identical mso daemon of one device."""
-    _node_from(config_file, node_id, listen, cpu, battery_wh, power, peers, key, verbose)
-
-
-@_user_errors
-def _node_from(
-    config_file: Path | None,
-    node_id: str | None,
-    listen: str | None,
-    cpu: float | None,
-    battery_wh: float | None,
-    power: str | None,
-    peers: tuple[str, ...],
-    key: str | None,
-    verbose: bool,
-) -> None:
     from mso.model.network import PowerModel
 
     cfg = _node_config(config_file) if config_file is not None else {}

@@ -141,16 +141,14 @@ class App:
         has_out = {e.src for e in self.edges}
         return [v for v in self.vertices if v not in has_out]
 
+    def kinds(self) -> dict[str, str]:
+        """``source``, ``sink``, ``operator`` or ``isolated`` for every vertex, from the edges."""
+        has_in, has_out = {e.dst for e in self.edges}, {e.src for e in self.edges}
+        names = {(False, True): "source", (True, False): "sink", (True, True): "operator"}
+        return {v: names.get((v in has_in, v in has_out), "isolated") for v in self.vertices}
+
     def kind(self, vertex: str) -> str:
-        """``source``, ``sink``, ``operator`` or ``isolated``, from the graph."""
-        has_in = any(e.dst == vertex for e in self.edges)
-        has_out = any(e.src == vertex for e in self.edges)
-        return {
-            (False, True): "source",
-            (True, False): "sink",
-            (True, True): "operator",
-            (False, False): "isolated",
-        }[(has_in, has_out)]
+        return self.kinds()[vertex]
 
     def topological_order(self) -> list[str]:
         """Vertices so that every edge goes forward; the app must be acyclic."""

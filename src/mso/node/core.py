@@ -466,7 +466,7 @@ class NodeCore:
         for vid in msg.vertices:
             if vid not in dep.stones:
                 try:
-                    dep.stones[vid] = Stone(dep.app.vertices[vid], dep.app.kind(vid))
+                    dep.stones[vid] = Stone(dep.app.vertices[vid], dep.layout.kinds[vid])
                 except Exception as exc:  # user code failing at construction
                     self._send(dep.origin, m.DeployFailed(dep.app.name, f"{self.id}: {vid}: {exc}"))
                     return
@@ -785,7 +785,7 @@ class NodeCore:
             error = f"{self.id} does not run app {msg.app!r}"
         elif msg.vertex not in dep.stones and msg.vertex not in dep.awaiting:
             try:
-                stone = Stone(dep.app.vertices[msg.vertex], dep.app.kind(msg.vertex))
+                stone = Stone(dep.app.vertices[msg.vertex], dep.layout.kinds[msg.vertex])
             except Exception as exc:  # user code failing at construction: refuse, change nothing
                 error = f"{self.id}: cannot create {msg.vertex!r}: {type(exc).__name__}: {exc}"
             else:
@@ -916,29 +916,16 @@ class NodeCore:
             return
         wanted = set(range(len(lay.chains))) if msg.everything else set(msg.chains)
         order = [c for c in lay.order if c in wanted]
-        # what stays: pinned vertices, sources, and the ends of chains fed from outside the set;
-        # a lone chain (§3.4.2) keeps its head and tail
-        keep = dict(lay.pinned)
-        for c in order:
-            chain = lay.chains[c]
-            keep[chain.head] = dep.placed[chain.head]
-            if len(order) == 1:
-                keep[chain.tail] = dep.placed[chain.tail]
-        heads_in_set = {lay.chains[c].tail for c in order}
-        for c in order:
-            head = lay.chains[c].head
-            if head in heads_in_set and head not in lay.pinned and dep.app.kind(head) != "source":
-                keep.pop(head, None)
-        for c in order:  # a head fed by a chain outside the set stays where it is
-            head = lay.chains[c].head
-            if head not in heads_in_set:
-                keep[head] = dep.placed[head]
-        placed = {v: n for v, n in dep.placed.items() if v in keep}
-        placed.update({v: n for v, n in keep.items()})
-        for v, n in dep.placed.items():  # vertices of chains outside the set stay too
-            if not any(v in lay.chains[c].vertices for c in order):
-                placed[v] = n
-        movable = {v for c in order for v in lay.chains[c].vertices} - set(placed)
+        # what stays: everything outside the set, pinned vertices, the heads of chains fed from
+        # outside the set (sources included), and a lone chain's head and tail (§3.4.2)
+        chains = [lay.chains[c] for c in order]
+        in_set = {v for c in chains for v in c.vertices}
+        tails = {c.tail for c in chains}
+        ends = {chains[0].head, chains[0].tail} if len(chains) == 1 else set()
+        stays = {v for v in dep.placed if v not in in_set or v in lay.pinned or v in ends}
+        stays |= {c.head for c in chains if c.head not in tails}
+        placed = {v: dep.placed[v] for v in stays}
+        movable = in_set - stays
         self._rid += 1
         self._remaps[self._rid] = Remap(msg.app, order, client, now, placed, movable=movable)
         self._remap_next_chain(self._rid, now)
@@ -1004,7 +991,7 @@ class NodeCore:
         dep = self.apps[remap.app]
         while remap.moves:
             vertex, node = remap.moves.pop(0)
-            if dep.placed.get(vertex) == node or dep.app.kind(vertex) == "source":
+            if dep.placed.get(vertex) == node or dep.layout.kinds[vertex] == "source":
                 continue
             self._rid += 1
             self._relocs[self._rid] = Relocation(

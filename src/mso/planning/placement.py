@@ -220,6 +220,7 @@ class Layout:
         self.graph = _Graph(app)
         self.cost = {v.id: float(v.cost) for v in app.vertices.values()}
         self.pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
+        self.kinds = app.kinds()  # once: the node looks them up per hosted vertex
         rank = {ci: k for k, ci in enumerate(self.order)}
         placer: dict[str, int] = {}
         for c in sorted(self.chains, key=lambda c: rank[c.index]):
