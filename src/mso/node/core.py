@@ -31,7 +31,7 @@ from mso.node.monitor import Monitor
 from mso.node.stone import Stone
 from mso.planning.placement import Hop, Layout
 from mso.protocol import messages as m
-from mso.protocol.channel import InChannel, OutChannel
+from mso.protocol.channel import AckGate, InChannel, OutChannel
 
 
 @dataclass(frozen=True)
@@ -111,6 +111,7 @@ class Deployment:
     stones: dict[str, Stone] = field(default_factory=dict)
     out: dict[int, OutChannel] = field(default_factory=dict)
     inc: dict[int, InChannel] = field(default_factory=dict)
+    gates: dict[str, AckGate] = field(default_factory=dict)  # vertex -> chained acks
     decoders: dict[int, msgspec.msgpack.Decoder[Any]] = field(default_factory=dict)
     running: bool = False
     epoch: int = 0
@@ -171,6 +172,7 @@ class NodeCore:
         # messages for an app whose announcement has not arrived yet (another path overtook it)
         self._early: dict[str, list[tuple[str, m.Message]]] = {}
         self._status_wait: dict[int, tuple[int, dict[str, Any], set[str]]] = {}
+        self.dead: set[str] = set()  # nodes known to have failed (fail-stop)
 
     # -- entry points -----------------------------------------------------------------------
     def _elapsed_ms(self, since: float) -> float:
@@ -647,35 +649,71 @@ class NodeCore:
         stone.processed += len(payloads)
         self.work_ms += stone.vertex.cost * len(payloads)
         ch.mark_processed(len(payloads))
-        if outs and stone.kind != "sink":
+        out_edges = dep.out_edges.get(e.dst, [])
+        if outs and out_edges:
             stone.emitted += len(outs)
-            self._emit(dep, dep.out_edges.get(e.dst, []), outs)
-        if ch.processed - ch._acked >= ACK_EVERY:
+            self._emit(dep, out_edges, outs)
+        if out_edges:  # chained acks: the inputs are acked once the outputs are
+            if ch.released is None:
+                ch.released = ch._acked
+            gate = dep.gates.get(e.dst)
+            if gate is None:
+                gate = dep.gates[e.dst] = AckGate()
+            gate.record({edge: ch.processed}, {o: self._out(dep, o).next_seq for o in out_edges})
+            self._release(dep, e.dst)
+        elif ch.processed - ch._acked >= ACK_EVERY:
             self._ack(dep, edge)
+
+    def _release(self, dep: Deployment, vid: str) -> None:
+        """Acknowledge the inputs of ``vid`` as far as its outputs have been acknowledged."""
+        gate = dep.gates.get(vid)
+        if gate is None:
+            return
+        acked = {o: out.acked for o in dep.out_edges.get(vid, []) if (out := dep.out.get(o))}
+        released = gate.release(acked)
+        if released is None:
+            return
+        inputs, outputs = released
+        for i, pos in inputs.items():
+            ch = dep.inc.get(i)
+            if ch is not None:
+                ch.released = max(ch.released or 0, pos)
+                ch.positions = outputs
+                self._ack(dep, i)
 
     def _ack(self, dep: Deployment, edge: int) -> None:
         upto = dep.inc[edge].ack_due()
         if upto is None:
             return
-        src_node = dep.placed[dep.app.edges[edge].src]
-        ack = m.Ack(dep.app.name, edge, dep.epoch, upto)
+        ch = dep.inc[edge]
+        producer = dep.app.edges[edge].src
+        src_node = dep.placed[producer]
         if src_node == self.id:
-            self._out(dep, edge).on_ack(upto, self._now)
+            out = self._out(dep, edge)
+            out.on_ack(upto, self._now)
+            out.positions = ch.positions
             self._unblock(dep, edge)
-        else:
-            self._effects.append(Send(src_node, ack))
+            self._release(dep, producer)
+        elif src_node not in self.dead:
+            self._effects.append(
+                Send(src_node, m.Ack(dep.app.name, edge, dep.epoch, upto, dict(ch.positions)))
+            )
 
     def _on_ack(self, msg: m.Ack, now: float) -> None:
         dep = self.apps.get(msg.app)
         if dep is None or msg.epoch != dep.epoch or msg.edge not in dep.out:
             self.dropped_messages += 1
             return
+        out = dep.out[msg.edge]
         try:
-            dep.out[msg.edge].on_ack(msg.upto, now)
+            out.on_ack(msg.upto, now)
         except ValueError:
             self.dropped_messages += 1
             return
+        if msg.upto >= out.acked:
+            out.positions = msg.positions
         self._unblock(dep, msg.edge)
+        self._release(dep, dep.app.edges[msg.edge].src)
 
     def _unblock(self, dep: Deployment, edge: int) -> None:
         """An ack freed room on ``edge``: wake its producer if backpressure stopped it."""
@@ -691,8 +729,8 @@ class NodeCore:
             self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, seq, events)))
         self._outbox.clear()
         for dep in self.apps.values():
-            for edge, ch in dep.inc.items():
-                if ch.processed != ch._acked:
+            for edge, ch in list(dep.inc.items()):
+                if ch.reack or ch.processed != ch._acked:
                     self._ack(dep, edge)
 
     def _retransmit(self, app: str, now: float) -> None:
@@ -844,13 +882,16 @@ class NodeCore:
         del dep.markers[vid]
         for i in ins:  # acknowledge what the old instance processed, then forget the inputs
             self._ack(dep, i)
-        inputs = {i: dep.inc.pop(i).expected if i in dep.inc else 0 for i in ins}
+        inputs = {
+            i: [ch.expected, ch._acked] if (ch := dep.inc.pop(i, None)) else [0, 0] for i in ins
+        }
         outputs: dict[int, list[Any]] = {}
         for i in dep.out_edges.get(vid, []):
-            ch = dep.out.pop(i, None)
-            if ch is not None:
-                _, events = ch.unacked()
-                outputs[i] = [ch.next_seq, ch.acked, events]
+            out = dep.out.pop(i, None)
+            if out is not None:
+                _, events = out.unacked()
+                outputs[i] = [out.next_seq, out.acked, events, out.positions]
+        gate = dep.gates.pop(vid, None)
         key_batches = [k for k in self._outbox if k[0] == dep.app.name and k[1] in outputs]
         for k in key_batches:  # queued output leaves from here before the handover
             seq, events = self._outbox.pop(k)
@@ -860,7 +901,15 @@ class NodeCore:
         del dep.stones[vid]
         dep.placed[vid] = msg.to
         handover = m.Handover(
-            dep.app.name, vid, msg.rid, state, inputs, outputs, stone.processed, stone.emitted
+            dep.app.name,
+            vid,
+            msg.rid,
+            state,
+            inputs,
+            outputs,
+            stone.processed,
+            stone.emitted,
+            gate.to_wire() if gate is not None else [],
         )
         self._send(msg.to, handover)
         self._broadcast(m.Moved(dep.app.name, vid, msg.to))
@@ -874,14 +923,22 @@ class NodeCore:
         stone.processed, stone.emitted = msg.processed, msg.emitted
         dep.stones[msg.vertex] = stone
         dep.placed[msg.vertex] = self.id
-        for i, expected in msg.inputs.items():
-            dep.inc[i] = InChannel(expected=expected, processed=expected, _acked=expected)
-        for i, (next_seq, acked, events) in msg.outputs.items():
+        gated = bool(dep.out_edges.get(msg.vertex))
+        for i, (expected, acked) in msg.inputs.items():
+            dep.inc[i] = InChannel(
+                expected=expected,
+                processed=expected,
+                _acked=acked,
+                released=acked if gated else None,
+            )
+        for i, (next_seq, acked, events, positions) in msg.outputs.items():
             ch = OutChannel(window=self.window, next_seq=acked, acked=acked, waiting_since=now)
-            for payload in events:
-                ch.push(payload, now)
+            ch.push_many(events, now)
             ch.next_seq = next_seq
+            ch.positions = {int(k): int(v) for k, v in positions.items()}
             dep.out[i] = ch
+        if msg.gate:
+            dep.gates[msg.vertex] = AckGate.from_wire(msg.gate)
         for i in msg.inputs:  # what arrived early, in order, now that positions are known
             for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
                 self._deliver(dep, i, seq, events)

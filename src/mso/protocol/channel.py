@@ -12,7 +12,9 @@ each event is delivered once and in order.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
 
 @dataclass
@@ -23,6 +25,8 @@ class OutChannel:
     next_seq: int = 0
     acked: int = 0  # every seq below this is acknowledged
     waiting_since: float = 0.0  # when the oldest unacknowledged event started waiting
+    # the consumer's output positions reported with the last ack (see AckGate)
+    positions: dict[int, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self._unacked: deque[bytes] = deque()
@@ -85,16 +89,21 @@ class InChannel:
     """Consumer side of one edge instance."""
 
     expected: int = 0  # next sequence number to deliver
-    processed: int = 0  # events below this are processed (what an ack reports)
+    processed: int = 0  # events below this are processed
     duplicates: int = 0
     gaps: int = 0
     _acked: int = 0
+    # how far an ack may go: None = as far as processed (a sink); else set by the AckGate
+    released: int | None = None
+    positions: dict[int, int] = field(default_factory=dict)  # sent with the acks
+    reack: bool = False  # a duplicate arrived: the producer missed an ack, send it again
 
     def accept(self, seq: int, events: list[bytes]) -> list[bytes]:
         """The events of a batch starting at ``seq`` that are new and in order."""
         end = seq + len(events)
         if end <= self.expected:
             self.duplicates += len(events)
+            self.reack = True
             return []
         if seq > self.expected:
             self.gaps += 1  # something before was lost: wait for the producer to resend
@@ -111,7 +120,61 @@ class InChannel:
 
     def ack_due(self) -> int | None:
         """The cumulative ack to send now, or None if nothing changed since the last one."""
-        if self.processed == self._acked:
+        upto = self.processed if self.released is None else min(self.processed, self.released)
+        if upto <= self._acked and not self.reack:
             return None
-        self._acked = self.processed
-        return self.processed
+        self.reack = False
+        self._acked = max(self._acked, upto)
+        return self._acked
+
+
+@dataclass
+class AckGate:
+    """Chained acknowledgement for one vertex with outputs.
+
+    A vertex acknowledges its inputs only once what it derived from them has been acknowledged
+    downstream, so an event stays in its producer's replay buffer until it has left every node
+    whose failure could lose it (upstream backup). Each processed batch leaves a checkpoint: the
+    input positions it reached and the output positions it had produced by then; a checkpoint
+    is released once every output has been acknowledged up to its positions.
+    """
+
+    checkpoints: deque[tuple[dict[int, int], dict[int, int]]] = field(default_factory=deque)
+
+    def record(self, inputs: dict[int, int], outputs: dict[int, int]) -> None:
+        """After a batch: ``inputs`` edge -> processed, ``outputs`` edge -> next seq."""
+        if self.checkpoints and self.checkpoints[-1][1] == outputs:
+            self.checkpoints[-1][0].update(inputs)  # nothing new went out: widen the last one
+        else:
+            self.checkpoints.append((dict(inputs), dict(outputs)))
+
+    def release(self, acked: Mapping[int, int]) -> tuple[dict[int, int], dict[int, int]] | None:
+        """Pop every checkpoint whose outputs are acknowledged (``acked``: edge -> acked up
+        to); returns the input positions now safe to acknowledge and the output positions they
+        correspond to, or None if none is."""
+        inputs: dict[int, int] = {}
+        outputs: dict[int, int] | None = None
+        while self.checkpoints:
+            ins, outs = self.checkpoints[0]
+            if any(acked.get(e, 0) < pos for e, pos in outs.items()):
+                break
+            self.checkpoints.popleft()
+            for e, pos in ins.items():
+                inputs[e] = max(inputs.get(e, 0), pos)
+            outputs = outs
+        return None if outputs is None else (inputs, outputs)
+
+    def to_wire(self) -> list[Any]:
+        return [[ins, outs] for ins, outs in self.checkpoints]
+
+    @classmethod
+    def from_wire(cls, data: list[Any]) -> AckGate:
+        gate = cls()
+        for ins, outs in data:
+            gate.checkpoints.append(
+                (
+                    {int(k): int(v) for k, v in ins.items()},
+                    {int(k): int(v) for k, v in outs.items()},
+                )
+            )
+        return gate

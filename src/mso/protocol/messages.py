@@ -60,15 +60,23 @@ class Data(_Msg, tag="data"):
     epoch: int
     seq: int
     events: list[bytes]
+    # when the oldest of these events entered its chain (the nodes' shared clock): the chain's
+    # tail measures end-to-end delay from it
+    ts: float = 0.0
 
 
 class Ack(_Msg, tag="ack"):
-    """Cumulative: every event of the edge instance below ``upto`` has been processed."""
+    """Cumulative: every event of the edge instance below ``upto`` has been processed, and so
+    has everything derived from them downstream (acks are chained, so a producer keeps each
+    event until no single node failure can lose it). ``positions`` are the consumer's output
+    sequence numbers at that point: a replacement instance numbers its output from them, so
+    what it regenerates by replay is recognised downstream as duplicates."""
 
     app: str
     edge: int
     epoch: int
     upto: int
+    positions: dict[int, int] = msgspec.field(default_factory=dict)
 
 
 # -- deployment (Algorithm 1) ----------------------------------------------------------------
@@ -157,12 +165,67 @@ class Marker(_Msg, tag="marker"):
     to: str  # where the vertex is going: its old instance hands over there
 
 
+class Heartbeat(_Msg, tag="heartbeat"):
+    """Sent to every neighbour each heartbeat period: liveness, plus the sender's monitored
+    figures so the rules can weigh a move toward a neighbour."""
+
+    node: str
+    cpu: float
+    load: float
+    drain_w: float
+    remaining_j: float | None
+    lifetime_s: float | None
+    power: list[float]  # idle_w, cpu_w, tx_uj_per_byte, rx_uj_per_byte
+
+
+class NodeDown(_Msg, tag="node_down"):
+    """``node`` has failed (fail-stop): its neighbour ``detector`` stopped hearing it."""
+
+    node: str
+    detector: str
+
+
+class Rewire(_Msg, tag="rewire"):
+    """After a failure: the edge's other end now runs on ``to``. The receiver is the edge's
+    producer (it replays its unacknowledged events there) or its consumer."""
+
+    app: str
+    edge: int
+    to: str
+    rid: int
+    producer: bool
+
+
+class Resume(_Msg, tag="resume"):
+    """To a replacement instance: where the edge stands. From the producer: the first event it
+    will replay (``start``) and the output positions of the last ack it got; from the consumer:
+    the next sequence number it expects."""
+
+    app: str
+    edge: int
+    rid: int
+    producer: bool
+    start: int
+    positions: dict[int, int] = msgspec.field(default_factory=dict)
+
+
+class ChainDelay(_Msg, tag="chain_delay"):
+    """From a chain's tail node to its head node: the measured end-to-end delay."""
+
+    app: str
+    chain: int
+    delay_ms: float
+
+
 class Prepare(_Msg, tag="prepare"):
     """To the target node: create an instance of ``vertex`` that buffers until handover."""
 
     app: str
     vertex: str
     rid: int
+    # a replacement after a failure, with the edges it must hear a Resume on before it runs
+    restore: bool = False
+    resumes: list[list[Any]] = msgspec.field(default_factory=list)  # [edge, producer?]
 
 
 class Prepared(_Msg, tag="prepared"):
@@ -189,10 +252,11 @@ class Handover(_Msg, tag="handover"):
     vertex: str
     rid: int
     state: bytes  # msgpack of get_state()
-    inputs: dict[int, int]  # edge -> next expected seq
-    outputs: dict[int, list[Any]]  # edge -> [next_seq, acked, [unacked events...]]
+    inputs: dict[int, list[int]]  # edge -> [next expected seq, acknowledged up to]
+    outputs: dict[int, list[Any]]  # edge -> [next_seq, acked, [unacked events...], positions]
     processed: int
     emitted: int
+    gate: list[Any] = msgspec.field(default_factory=list)  # pending chained-ack checkpoints
 
 
 class Moved(_Msg, tag="moved"):
@@ -316,6 +380,11 @@ Message = (
     | RelocateReply
     | RemapRequest
     | RemapReply
+    | Heartbeat
+    | NodeDown
+    | Rewire
+    | Resume
+    | ChainDelay
 )
 
 _ENVELOPE_DECODER = msgspec.msgpack.Decoder(Envelope)
