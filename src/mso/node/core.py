@@ -27,6 +27,7 @@ from mso.errors import MsoError
 from mso.model.app import App, Edge
 from mso.model.appfile import loads_app
 from mso.model.network import PowerModel
+from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, Liveness
 from mso.node.monitor import Monitor
 from mso.node.stone import Stone
 from mso.planning.placement import Hop, Layout
@@ -70,6 +71,11 @@ class Relocation:
     client: int | None
     requested_at: float
     remap: int | None = None  # the remap this relocation is a step of
+    # a replacement for an instance lost with a failed node: no marker, no handover; the
+    # surviving ends of its edges resume it (``resumes``: [edge, the other end is the producer])
+    restore: bool = False
+    resumes: list[list[Any]] = field(default_factory=list)
+    attempts: int = 0
 
 
 @dataclass
@@ -86,13 +92,28 @@ class Remap:
     probes: dict[int, list[Hop]] = field(default_factory=dict)
     expected: int = 0
     movable: set[str] = field(default_factory=set)  # only these are re-placed
+    recovery: dict[str, Any] | None = None  # set when this remap recovers from a failure
+    probe_attempts: int = 0
 
 
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
 RETRANSMIT_S = 0.25
+STEP_TIMEOUT_S = 1.0  # a recovery step (probe, restore) not answered by then is sent again
+STEP_ATTEMPTS = 5
 SOURCE_BURST = 256  # events a rate-less source emits per turn
 MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own
 MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
+
+
+@dataclass
+class Restoring:
+    """A replacement instance waiting to hear where each of its surviving edges stands."""
+
+    rid: int
+    coordinator: str
+    pending: set[tuple[int, bool]]
+    positions: dict[int, int] = field(default_factory=dict)  # output -> from producers' acks
+    consumer_start: dict[int, int] = field(default_factory=dict)  # output -> consumer expects
 
 
 @dataclass
@@ -120,6 +141,10 @@ class Deployment:
     markers: dict[str, set[int]] = field(default_factory=dict)  # vertex -> edges marked
     blocked_sources: set[str] = field(default_factory=set)
     started_at: float = 0.0
+    parked: dict[int, str] = field(default_factory=dict)  # chain -> why it cannot run
+    recovering: int | None = None  # the remap recovering from a failure, at its coordinator
+    restoring: dict[str, Restoring] = field(default_factory=dict)  # replacements awaiting
+    recoveries: list[dict[str, Any]] = field(default_factory=list)  # what was done, bounded
     # at the origin only
     built: set[int] = field(default_factory=set)
     client: int | None = None
@@ -139,9 +164,14 @@ class NodeCore:
         window: int = 4096,
         power: PowerModel | None = None,
         battery_wh: float | None = None,
+        heartbeat_s: float = HEARTBEAT_S,
+        dead_after_s: float = DEAD_AFTER_S,
     ) -> None:
         self.id = node_id
         self.capacity = capacity
+        self.power = power or PowerModel()
+        self.liveness = Liveness(heartbeat_s, dead_after_s)
+        self.failures: list[dict[str, Any]] = []  # failed nodes: who, when, detected by whom
         self.monitor = Monitor(power or PowerModel(), battery_wh, cpu_speed=capacity)
         # read only to report how long a request took; None in simulation (``now`` is exact)
         self.clock: Callable[[], float] | None = None
@@ -185,11 +215,19 @@ class NodeCore:
         """Begin monitoring; drivers call this once when the node starts."""
         self._sample(now)
         self._effects.append(SetTimer(("monitor",), now + MONITOR_PERIOD_S))
+        self._effects.append(SetTimer(("heartbeat",), now + self.liveness.period_s))
         return self._run(now)
 
-    def set_routes(self, routes: dict[str, tuple[str, int]], now: float = 0.0) -> None:
+    def set_routes(self, routes: dict[str, tuple[str, int]], now: float = 0.0) -> list[Effect]:
+        """Take the routing view's current routes; returns effects (a recovery waiting for
+        routes around a failed node may start)."""
         self.routes = {d: r for d, r in routes.items() if d != self.id}
         self.monitor.note_routes(now, self.routes)
+        neighbours = {d for d, (hop, _) in self.routes.items() if hop == d}
+        self.liveness.set_routes(now, set(self.routes) - self.dead, neighbours)
+        for dep in list(self.apps.values()):
+            self._maybe_recover(dep, now)
+        return self._run(now)
 
     def _sample(self, now: float) -> None:
         out, inc = self.traffic()
@@ -199,6 +237,10 @@ class NodeCore:
         return sorted({self.id, *self.routes})
 
     def receive(self, src: str, msg: m.Message, now: float) -> list[Effect]:
+        if src in self.dead:  # fail-stop: a node declared failed is gone for good
+            self.dropped_messages += 1
+            return []
+        self.liveness.heard_from(src, now)
         self._work.append((src, "", msg))
         return self._run(now)
 
@@ -231,6 +273,12 @@ class NodeCore:
         elif kind == "monitor":
             self._sample(now)
             self._effects.append(SetTimer(("monitor",), now + MONITOR_PERIOD_S))
+        elif kind == "heartbeat":
+            self._heartbeat(now)
+        elif kind == "step":
+            self._step_timeout(key[1], now)
+        elif kind == "remap-probe":
+            self._remap_probe_timeout(key[1], key[2], now)
         return self._run(now)
 
     # -- the loop ---------------------------------------------------------------------------
@@ -242,7 +290,8 @@ class NodeCore:
 
     def _broadcast(self, msg: m.Message) -> None:
         for n in self.known_nodes():
-            self._send(n, msg)
+            if n not in self.dead:
+                self._send(n, msg)
 
     def _run(self, now: float) -> list[Effect]:
         self._now = now
@@ -323,6 +372,14 @@ class NodeCore:
                 dep.placed[msg.vertex] = msg.node
         elif isinstance(msg, m.HandoverDone):
             self._on_handover_done(msg, now)
+        elif isinstance(msg, m.Heartbeat):
+            self.liveness.heard_from(src, now, msg)
+        elif isinstance(msg, m.NodeDown):
+            self._on_node_down(msg.node, msg.detector, now)
+        elif isinstance(msg, m.Rewire):
+            self._on_rewire(msg, now)
+        elif isinstance(msg, m.Resume):
+            self._on_resume(msg, now)
         else:
             self.dropped_messages += 1
 
@@ -741,6 +798,8 @@ class NodeCore:
         for edge, ch in dep.out.items():
             if ch.overdue(now, RETRANSMIT_S):
                 dst = dep.placed[dep.app.edges[edge].dst]
+                if dst in self.dead:  # held until the consumer is restored elsewhere
+                    continue
                 first, events = ch.unacked()
                 if dst == self.id:
                     self._deliver(dep, edge, first, events)
@@ -829,7 +888,14 @@ class NodeCore:
             else:
                 dep.awaiting[msg.vertex] = stone
                 self._handover_to[msg.rid] = src
+                if msg.restore:
+                    pending = {(int(e), bool(p)) for e, p in msg.resumes}
+                    dep.restoring[msg.vertex] = Restoring(msg.rid, src, pending)
         self._send(src, m.Prepared(msg.app, msg.vertex, msg.rid, self.id, error))
+        if dep is not None and not error and msg.restore:
+            restoring = dep.restoring.get(msg.vertex)
+            if restoring is not None and not restoring.pending:
+                self._activate(dep, msg.vertex)  # nothing to wait for (a lone vertex)
 
     def _on_prepared(self, msg: m.Prepared, now: float) -> None:
         reloc = self._relocs.get(msg.rid)
@@ -842,6 +908,12 @@ class NodeCore:
                 self._finish_remap(reloc.remap, now, msg.error)
             else:
                 self._refuse(reloc.client, m.RelocateRequest(msg.app, msg.vertex), msg.error)
+            return
+        if reloc.restore:  # the surviving ends of its edges resume the replacement
+            edges = dep.app.edges
+            for edge, producer in reloc.resumes:
+                other = dep.placed[edges[edge].src if producer else edges[edge].dst]
+                self._send(other, m.Rewire(msg.app, edge, reloc.target, msg.rid, producer))
             return
         for e in dep.app.edges:
             if e.dst == msg.vertex:
@@ -948,6 +1020,10 @@ class NodeCore:
 
     def _on_handover_done(self, msg: m.HandoverDone, now: float) -> None:
         reloc = self._relocs.pop(msg.rid, None)
+        if reloc is not None and reloc.restore:
+            dep = self.apps.get(reloc.app)
+            if dep is not None:
+                dep.placed[reloc.vertex] = reloc.target
         if reloc is not None and reloc.remap is not None:
             self._remap_step(reloc.remap, now, moved=(reloc.vertex, reloc.target))
             return
@@ -995,29 +1071,61 @@ class NodeCore:
         remap = self._remaps[rid]
         dep = self.apps[remap.app]
         if not remap.chains:
-            remap.moves = [
+            order = {v: i for i, v in enumerate(dep.app.topological_order())}
+            moves = [
                 (v, n)
                 for v, n in remap.placed.items()
                 if v in remap.movable and dep.placed.get(v) != n
             ]
+            # replacements for lost instances first (upstream first, so each one's producer
+            # is running when it resumes), then the relocations of live ones
+            moves.sort(key=lambda vn: (dep.placed.get(vn[0]) not in self.dead, order[vn[0]]))
+            remap.moves = moves
             self._remap_step(rid, now)
             return
         ci = remap.chains[0]
         lay = dep.layout
-        remap.placed.setdefault(lay.chains[ci].head, dep.placed[lay.chains[ci].head])
+        head = lay.chains[ci].head
+        if head not in remap.placed:
+            remap.placed[head] = self._live_home(dep, head, remap.placed)
         target, _ = lay.target(ci, remap.placed, self._distances())
         pairs = lay.probes_needed(ci, remap.placed, target)
         remap.probes, remap.expected = {}, len(pairs)
         if not pairs:
             self._remap_place(rid, now)
             return
+        remap.probe_attempts += 1
         for k, (a, b) in enumerate(pairs):  # chain -1 - rid marks a remap's probe
             self._send(a, m.Probe(remap.app, -1, rid * 1000 + k, self.id, b, [], []))
+        key = ("remap-probe", rid, remap.probe_attempts)
+        self._effects.append(SetTimer(key, now + STEP_TIMEOUT_S))
+
+    def _live_home(self, dep: Deployment, vertex: str, placed: dict[str, str]) -> str:
+        """Where a vertex stays during a remap: its node, or if that failed, its first
+        predecessor's (an upstream move), or for a lost unpinned source, this node."""
+        node = dep.placed[vertex]
+        if node not in self.dead:
+            return node
+        for pred in dep.app.predecessors()[vertex]:
+            home = placed.get(pred, dep.placed[pred])
+            if home not in self.dead:
+                return home
+        return self.id
+
+    def _remap_probe_timeout(self, rid: int, attempt: int, now: float) -> None:
+        """A probe was lost (a route through a failed node): probe again, a few times."""
+        remap = self._remaps.get(rid)
+        if remap is None or attempt != remap.probe_attempts or len(remap.probes) >= remap.expected:
+            return
+        if remap.probe_attempts >= STEP_ATTEMPTS:
+            self._finish_remap(rid, now, "probes along the chain's route were not answered")
+            return
+        self._remap_next_chain(rid, now)
 
     def _on_remap_probe(self, msg: m.ProbeReply) -> None:
         rid, k = divmod(msg.segment, 1000)
         remap = self._remaps.get(rid)
-        if remap is None:
+        if remap is None or k in remap.probes:
             return
         remap.probes[k] = [Hop(n, c) for n, c in zip(msg.nodes, msg.capacities, strict=False)]
         if len(remap.probes) == remap.expected:
@@ -1027,6 +1135,7 @@ class NodeCore:
         remap = self._remaps[rid]
         dep = self.apps[remap.app]
         ci = remap.chains.pop(0)
+        remap.probe_attempts = 0
         by_pair = {(h[0].node, h[-1].node): h for h in remap.probes.values() if h}
         try:
             assigned, _ = dep.layout.place(
@@ -1039,7 +1148,8 @@ class NodeCore:
         self._remap_next_chain(rid, now)
 
     def _remap_step(self, rid: int, now: float, moved: tuple[str, str] | None = None) -> None:
-        """Relocate the next vertex whose node changed; done when none is left."""
+        """Relocate (or, if its node failed, restore) the next vertex whose node changed;
+        done when none is left."""
         remap = self._remaps.get(rid)
         if remap is None:
             return
@@ -1048,13 +1158,18 @@ class NodeCore:
         dep = self.apps[remap.app]
         while remap.moves:
             vertex, node = remap.moves.pop(0)
-            if dep.placed.get(vertex) == node or dep.layout.kinds[vertex] == "source":
+            if dep.placed.get(vertex) == node:
+                continue
+            lost = dep.placed[vertex] in self.dead
+            if dep.layout.kinds[vertex] == "source" and not lost:
                 continue
             self._rid += 1
-            self._relocs[self._rid] = Relocation(
-                remap.app, vertex, dep.placed[vertex], node, None, now, remap=rid
-            )
-            self._send(node, m.Prepare(remap.app, vertex, self._rid))
+            reloc = Relocation(remap.app, vertex, dep.placed[vertex], node, None, now, remap=rid)
+            self._relocs[self._rid] = reloc
+            if lost:
+                self._restore(dep, reloc, self._rid, now)
+            else:
+                self._send(node, m.Prepare(remap.app, vertex, self._rid))
             return
         self._finish_remap(rid, now, "")
 
@@ -1064,6 +1179,228 @@ class NodeCore:
             elapsed = self._elapsed_ms(remap.requested_at)
             reply = m.RemapReply(remap.app, not error, remap.moved, elapsed, error)
             self._effects.append(Reply(remap.client, reply))
+        dep = self.apps.get(remap.app)
+        if remap.recovery is not None and dep is not None:
+            remap.recovery.update(
+                moved=dict(remap.moved),
+                ok=not error,
+                error=error,
+                took_ms=round(self._elapsed_ms(remap.requested_at), 3),
+            )
+            dep.recovering = None
+            self._maybe_recover(dep, now)  # another failure may have happened meanwhile
+
+    # -- fail-stop failures (§3.4, assumption 3) --------------------------------------------
+    def _heartbeat(self, now: float) -> None:
+        """Tell the neighbours we live (with our figures); declare the silent ones failed."""
+        mon, pw = self.monitor, self.power
+        beat = m.Heartbeat(
+            self.id,
+            self.capacity,
+            mon.load,
+            mon.drain_w,
+            mon.remaining_j,
+            mon.lifetime_s,
+            [pw.idle_w, pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte],
+        )
+        for n in sorted(self.liveness.neighbours):
+            if n not in self.dead:
+                self._effects.append(Send(n, beat))
+        for n in self.liveness.suspects(now, self.dead):
+            self._on_node_down(n, self.id, now)
+        self._effects.append(SetTimer(("heartbeat",), now + self.liveness.period_s))
+
+    def _on_node_down(self, node: str, detector: str, now: float) -> None:
+        if node in self.dead or node == self.id:
+            return
+        self.dead.add(node)
+        self.liveness.forget(node)
+        self.failures.append({"node": node, "detector": detector, "at": now})
+        del self.failures[:-50]
+        self.monitor.note_event(now, f"node {node} failed (detected by {detector})")
+        if detector == self.id:  # tell everyone; the others learn it from us or another detector
+            for n in self.known_nodes():
+                if n != self.id and n not in self.dead:
+                    self._send(n, m.NodeDown(node, self.id))
+        for rid, reloc in list(self._relocs.items()):  # moves that needed the failed node
+            if not reloc.restore and node in (reloc.source, reloc.target):
+                del self._relocs[rid]
+                reason = f"node {node} failed during the relocation of {reloc.vertex!r}"
+                if reloc.remap is not None and reloc.remap in self._remaps:
+                    self._finish_remap(reloc.remap, now, reason)
+                else:
+                    self._refuse(reloc.client, m.RelocateRequest(reloc.app, reloc.vertex), reason)
+        for dep in list(self.apps.values()):
+            self._park(dep)
+            self._maybe_recover(dep, now)
+
+    def _park(self, dep: Deployment) -> None:
+        """Chains with a vertex pinned to a failed node cannot run anywhere: park them."""
+        for ci, chain in enumerate(dep.layout.chains):
+            for v in chain.vertices:
+                pin = dep.app.vertices[v].pinned
+                if pin in self.dead and ci not in dep.parked:
+                    dep.parked[ci] = f"{v!r} is pinned to failed node {pin}"
+
+    def _maybe_recover(self, dep: Deployment, now: float) -> None:
+        """Remap the chains that lost vertices with a failed node. Exactly one node acts for
+        an app: the lowest-named surviving node that hosts part of it. Every node derives the
+        same choice from the same placement and failure set, so two detectors never both
+        remap (a coordinator that is itself dead is skipped by the same rule)."""
+        if not dep.running or dep.recovering is not None:
+            return
+        lost = {v for v, n in dep.placed.items() if n in self.dead}
+        if not lost:
+            return
+        live = {n for n in dep.placed.values() if n not in self.dead}
+        if min(live, default=None) != self.id:
+            return
+        if any(d in self.routes for d in self.dead) or any(
+            hop in self.dead for hop, _ in self.routes.values()
+        ):
+            return  # wait for the routing view to route around the failure (set_routes)
+        lay = dep.layout
+        touched = [
+            ci
+            for ci, c in enumerate(lay.chains)
+            if ci not in dep.parked and any(v in lost for v in c.vertices)
+        ]
+        if not touched:
+            return
+        chains = [lay.chains[c] for c in touched]
+        in_set = {v for c in chains for v in c.vertices}
+        ends = {v for c in chains for v in (c.head, c.tail)}
+        stays = {v for v in dep.placed if v not in in_set or v in lay.pinned}
+        stays |= {v for v in ends if v not in lost}
+        placed = {v: dep.placed[v] for v in stays}
+        order = [c for c in lay.order if c in touched]
+        kind = "global" if any(v in lost for v in ends) else "chain"
+        record: dict[str, Any] = {
+            "at": now,
+            "failed": sorted(self.dead),
+            "remap": kind,
+            "chains": [lay.chains[c].name for c in order],
+            "lost": sorted(lost),
+            "parked": {lay.chains[c].name: why for c, why in sorted(dep.parked.items())},
+        }
+        dep.recoveries.append(record)
+        del dep.recoveries[:-20]
+        self._rid += 1
+        self._remaps[self._rid] = Remap(
+            dep.app.name, order, None, now, placed, movable=in_set - stays, recovery=record
+        )
+        dep.recovering = self._rid
+        self._remap_next_chain(self._rid, now)
+
+    def _restore(self, dep: Deployment, reloc: Relocation, rid: int, now: float) -> None:
+        """Start a replacement for ``reloc.vertex`` on ``reloc.target``: its surviving
+        producers replay what it had not passed on, its consumers say where they stand."""
+        reloc.restore = True
+        edges = dep.app.edges
+        reloc.resumes = [
+            [i, True]
+            for i, e in enumerate(edges)
+            if e.dst == reloc.vertex and dep.placed[e.src] not in self.dead
+        ] + [
+            [i, False]
+            for i, e in enumerate(edges)
+            if e.src == reloc.vertex and dep.placed[e.dst] not in self.dead
+        ]
+        reloc.attempts += 1
+        prepare = m.Prepare(dep.app.name, reloc.vertex, rid, True, reloc.resumes)
+        self._send(reloc.target, prepare)
+        self._effects.append(SetTimer(("step", rid), now + STEP_TIMEOUT_S))
+
+    def _step_timeout(self, rid: int, now: float) -> None:
+        reloc = self._relocs.get(rid)
+        if reloc is None or not reloc.restore:
+            return
+        dep = self.apps.get(reloc.app)
+        if dep is None:
+            return
+        if reloc.attempts >= STEP_ATTEMPTS or reloc.target in self.dead:
+            del self._relocs[rid]
+            if reloc.remap is not None and reloc.remap in self._remaps:
+                why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
+                self._finish_remap(reloc.remap, now, why)
+            return
+        self._restore(dep, reloc, rid, now)  # idempotent at every end: just ask again
+
+    def _on_rewire(self, msg: m.Rewire, now: float) -> None:
+        """At a surviving end of an edge whose other end is being replaced on ``msg.to``."""
+        dep = self.apps.get(msg.app)
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            return
+        edge = dep.app.edges[msg.edge]
+        if msg.producer:  # we produce: say where we stand, then replay what is unacked
+            dep.placed[edge.dst] = msg.to
+            self._outbox.pop((msg.app, msg.edge), None)  # those events are in the replay
+            out = self._out(dep, msg.edge)
+            self._send(
+                msg.to,
+                m.Resume(msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions)),
+            )
+            first, events = out.unacked()
+            if events:
+                data = m.Data(msg.app, msg.edge, dep.epoch, first, events, now)
+                if msg.to == self.id:
+                    self._work.append((self.id, "", data))
+                else:
+                    self._effects.append(Send(msg.to, data))
+            out.waiting_since = now
+        else:  # we consume: say which event we expect next
+            dep.placed[edge.src] = msg.to
+            inc = dep.inc.get(msg.edge)
+            start = inc.expected if inc is not None else 0
+            self._send(msg.to, m.Resume(msg.app, msg.edge, msg.rid, False, start))
+
+    def _on_resume(self, msg: m.Resume, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            return
+        edge = dep.app.edges[msg.edge]
+        vertex = edge.dst if msg.producer else edge.src
+        restoring = dep.restoring.get(vertex)
+        if restoring is None or restoring.rid != msg.rid:
+            return
+        if msg.producer:
+            gated = bool(dep.out_edges.get(vertex))
+            dep.inc[msg.edge] = InChannel(
+                expected=msg.start,
+                processed=msg.start,
+                _acked=msg.start,
+                released=msg.start if gated else None,
+            )
+            for o, pos in msg.positions.items():
+                restoring.positions[o] = max(restoring.positions.get(o, 0), pos)
+        else:
+            restoring.consumer_start[msg.edge] = msg.start
+        restoring.pending.discard((msg.edge, msg.producer))
+        if not restoring.pending:
+            self._activate(dep, vertex)
+
+    def _activate(self, dep: Deployment, vertex: str) -> None:
+        """Every surviving end has resumed: the replacement runs. Its output is numbered from
+        the positions of the last ack its producers got, so what it regenerates by replay
+        carries the numbers it had and consumers drop it as duplicates."""
+        restoring = dep.restoring.pop(vertex)
+        stone = dep.awaiting.pop(vertex)
+        dep.stones[vertex] = stone
+        dep.placed[vertex] = self.id
+        for o in dep.out_edges.get(vertex, []):
+            base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
+            dep.out[o] = OutChannel(
+                window=self.window, next_seq=base, acked=base, waiting_since=self._now
+            )
+        for i, e in enumerate(dep.app.edges):  # what arrived early, in order
+            if e.dst == vertex:
+                for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
+                    self._deliver(dep, i, seq, events)
+        self._broadcast(m.Moved(dep.app.name, vertex, self.id))
+        self._handover_to.pop(restoring.rid, None)
+        self._send(restoring.coordinator, m.HandoverDone(dep.app.name, vertex, restoring.rid))
+        if stone.kind == "source" and dep.running:
+            self._effects.append(SetTimer(("source", dep.app.name, vertex), self._now))
 
     # -- status -----------------------------------------------------------------------------
     def status(self, now: float) -> dict[str, Any]:
@@ -1085,6 +1422,8 @@ class NodeCore:
                     }
             apps[name] = {
                 "running": dep.running,
+                "parked": {dep.layout.chains[c].name: why for c, why in dep.parked.items()},
+                "recoveries": list(dep.recoveries),
                 "origin": dep.origin,
                 "placement": dict(dep.placed),
                 "chains": [list(c.vertices) for c in dep.layout.chains],
@@ -1111,6 +1450,12 @@ class NodeCore:
             "neighbours": sorted(n for n, (hop, _) in self.routes.items() if hop == n),
             "apps": apps,
             "dropped_messages": self.dropped_messages,
+            "failed_nodes": sorted(self.dead),
+            "failures": list(self.failures),
+            "heard": {
+                n: {"at": t, "load": b.load, "drain_w": b.drain_w, "lifetime_s": b.lifetime_s}
+                for n, (t, b) in sorted(self.liveness.heard.items())
+            },
         }
 
     def _status_request(self, client: int, req: m.StatusRequest, now: float) -> None:

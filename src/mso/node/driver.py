@@ -322,7 +322,7 @@ class NodeDriver:
         self._link_version = state.version
         self.neighbours = dict(state.neighbours)
         routes = {d: (str(r[0]), int(r[1])) for d, r in state.routes.items()}
-        self.core.set_routes(routes, self.loop.time())
+        effects = self.core.set_routes(routes, self.loop.time())
         for node in list(self.peers):
             if node not in self.neighbours:
                 conn = self.peers.pop(node)
@@ -335,6 +335,7 @@ class NodeDriver:
                 self._attach_link(node)
             elif self.core.id < node:
                 self.loop.create_task(self._connect(node, str(spec[0]), int(spec[1])))
+        self._apply(effects)
 
     async def _connect(self, node: str, host: str, port: int) -> None:
         for attempt in range(20):

@@ -31,6 +31,7 @@ class Monitor:
     cpu_energy_j: float = 0.0
     radio_energy_j: float = 0.0
     drain_w: float = 0.0
+    load: float = 0.0  # modelled CPU utilisation, smoothed (1.0 = a fully busy CPU)
     route_changes: int = 0
     neighbour_changes: int = 0
     last_route_change: float | None = None
@@ -79,6 +80,8 @@ class Monitor:
         self.drain_w = (
             watts if self.drain_w == 0 else (SMOOTHING * watts + (1 - SMOOTHING) * self.drain_w)
         )
+        busy = max(0.0, work_ms - w0) / 1e3 / dt / self.cpu_speed
+        self.load = SMOOTHING * busy + (1 - SMOOTHING) * self.load
         self._last = (now, work_ms, bytes_out, bytes_in)
 
     def note_routes(self, now: float, routes: dict[str, tuple[str, int]]) -> None:
@@ -93,14 +96,15 @@ class Monitor:
                 for d in set(nexthops) | set(self._routes)
                 if nexthops.get(d) != self._routes.get(d)
             )
-            self._event(now, "routes changed: " + ", ".join(changed))
+            self.note_event(now, "routes changed: " + ", ".join(changed))
         if neighbours != self._neighbours and (self._neighbours or self._routes):
             self.neighbour_changes += 1
             gone, new = self._neighbours - neighbours, neighbours - self._neighbours
-            self._event(now, f"neighbours: +{sorted(new)} -{sorted(gone)}")
+            self.note_event(now, f"neighbours: +{sorted(new)} -{sorted(gone)}")
         self._routes, self._neighbours = nexthops, neighbours
 
-    def _event(self, now: float, what: str) -> None:
+    def note_event(self, now: float, what: str) -> None:
+        """Keep a line for the recent-events list in status."""
         self.events.append((now, what))
         del self.events[:-20]
 
@@ -116,6 +120,7 @@ class Monitor:
             if self.capacity_j is None
             else (self.remaining_j or 0.0) / self.capacity_j,
             "drain_w": self.drain_w,
+            "load": self.load,
             "lifetime_s": None if life is None or math.isinf(life) else life,
             "route_changes": self.route_changes,
             "neighbour_changes": self.neighbour_changes,

@@ -61,6 +61,7 @@ class Simulation:
         self._heap: list[_Item] = []
         self._seq = itertools.count()
         self._timers: dict[tuple[str, tuple[Any, ...]], float] = {}
+        self.dead: set[str] = set()  # killed nodes: they receive and do nothing
         self.update_routes()
         for n, core in self.cores.items():
             self._apply(n, core.start(self.now))
@@ -72,12 +73,14 @@ class Simulation:
     def update_routes(self) -> None:
         """Give every core its routing view of the current links."""
         for n, core in self.cores.items():
+            if n in self.dead:
+                continue
             routes: dict[str, tuple[str, int]] = {}
             for dst in self.network.nodes:
                 route = self.network.route(n, dst)
                 if route is not None and dst != n:
                     routes[dst] = (route[1], len(route) - 1)
-            core.set_routes(routes, self.now)
+            self._apply(n, core.set_routes(routes, self.now))
 
     def _push(self, at: float, kind: str, node: str, payload: Any) -> None:
         heapq.heappush(self._heap, _Item(at, next(self._seq), kind, node, payload))
@@ -109,10 +112,23 @@ class Simulation:
     def request(self, node: str, msg: m.Message, client: int = 1) -> None:
         self._apply(node, self.cores[node].request(client, msg, self.now))
 
+    def kill(self, node: str, convergence_s: float = 0.0) -> None:
+        """Fail-stop ``node`` now: it falls silent and its links go; the survivors' routing
+        views learn the new routes ``convergence_s`` later, as a routing protocol's would."""
+        self.dead.add(node)
+        for n in list(self.network.neighbours(node)):
+            self.network.remove_link(node, n)
+        self._push(self.now + convergence_s, "routes", node, None)
+
     def run_until(self, t: float) -> None:
         while self._heap and self._heap[0].at <= t:
             item = heapq.heappop(self._heap)
             self.now = item.at
+            if item.kind == "routes":
+                self.update_routes()
+                continue
+            if item.node in self.dead:
+                continue
             core = self.cores[item.node]
             if item.kind == "msg":
                 src, msg = item.payload

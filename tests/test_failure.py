@@ -1,0 +1,166 @@
+"""Fail-stop node failures in virtual time: detection by neighbours, one coordinator, remap of
+the touched chains, replay from surviving upstreams, parking of chains with a dead pinned end."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from mso.model.network import LinkSpec, Network, NodeSpec
+from mso.protocol import messages as m
+from mso.sim.runner import Simulation
+from runtime_vertices import pipe_app
+
+MESH_LINKS = [
+    ("N1", "N2"),
+    ("N2", "N3"),
+    ("N3", "N6"),
+    ("N1", "N4"),
+    ("N4", "N5"),
+    ("N5", "N6"),
+    ("N2", "N5"),
+    ("N3", "N5"),
+]
+
+
+def mesh() -> Network:
+    nodes = [NodeSpec(f"N{i}") for i in range(1, 7)]
+    return Network(nodes, [LinkSpec(a, b, delay_ms=1.0) for a, b in MESH_LINKS])
+
+
+def started(doc: str, net: Network | None = None) -> Simulation:
+    sim = Simulation(net or mesh())
+    sim.request("N1", m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(1.0)
+    (reply,) = [r for _, _, r in sim.replies if isinstance(r, m.DeployReply)]
+    assert reply.ok, reply.error
+    sim.run_until(2.0)
+    return sim
+
+
+def where(sim: Simulation, app: str, vertex: str) -> str:
+    (node,) = [
+        n for n, c in sim.cores.items() if n not in sim.dead and vertex in c.apps[app].stones
+    ]
+    return node
+
+
+def stats(sim: Simulation, app: str, vertex: str) -> dict[str, int]:
+    core = sim.cores[where(sim, app, vertex)]
+    out: dict[str, int] = core.status(sim.now)["apps"][app]["vertices"][vertex]["stats"]
+    return out
+
+
+def emitted(sim: Simulation, app: str, vertex: str) -> int:
+    return sim.cores[where(sim, app, vertex)].apps[app].stones[vertex].emitted
+
+
+def recoveries(sim: Simulation, app: str) -> list[dict[str, Any]]:
+    return [r for n, c in sim.cores.items() if n not in sim.dead for r in c.apps[app].recoveries]
+
+
+PIPE = pipe_app(100).replace("pinned: N4", "pinned: N6")
+
+
+def test_interior_node_failure_is_detected_and_recovered_without_loss() -> None:
+    sim = started(PIPE)
+    victim = where(sim, "pipe", "mid")
+    assert victim not in ("N1", "N6")
+    before = stats(sim, "pipe", "sink")["count"]
+    sim.kill(victim, convergence_s=0.3)
+    sim.run_until(sim.now + 5.0)
+    survivors = [n for n in sim.cores if n != victim]
+    for n in survivors:  # every survivor knows, whether it detected it or was told
+        assert sim.cores[n].dead == {victim}
+    detectors = {f["detector"] for n in survivors for f in sim.cores[n].failures}
+    assert detectors <= set(sim.network.nodes) - {victim}
+    assert where(sim, "pipe", "mid") != victim
+    (rec,) = recoveries(sim, "pipe")  # one node coordinated, once
+    assert rec["remap"] == "chain" and rec["lost"] == ["mid"] and rec["ok"], rec
+    got = stats(sim, "pipe", "sink")
+    sent = emitted(sim, "pipe", "src")
+    assert got["count"] > before + 300  # it flows again
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
+    assert sent - 5 <= got["count"] <= sent  # nothing from the surviving source was lost
+
+
+BRANCH = """
+name: branch
+vertices:
+  src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 50, cost: 0.1,
+        output: runtime_vertices:Num}
+  a: {code: runtime_vertices:Double, output: runtime_vertices:Num, cost: 5}
+  j: {code: runtime_vertices:Double, output: runtime_vertices:Num, cost: 20}
+  b: {code: runtime_vertices:Double, output: runtime_vertices:Num, cost: 5}
+  c: {code: runtime_vertices:Double, output: runtime_vertices:Num, cost: 5}
+  s1: {code: runtime_vertices:Recorder, pinned: N6, cost: 0.1}
+  s2: {code: runtime_vertices:Recorder, pinned: N5, cost: 0.1}
+edges: [[src, a], [a, j], [j, b], [b, s1], [j, c], [c, s2]]
+"""
+
+
+def test_failure_of_a_chain_head_remaps_globally_without_loss() -> None:
+    sim = started(BRANCH)
+    victim = where(sim, "branch", "j")  # j ends src-a-j and heads j-b-s1 and j-c-s2
+    assert victim not in ("N1", "N5", "N6"), victim
+    sim.kill(victim, convergence_s=0.3)
+    sim.run_until(sim.now + 6.0)
+    (rec,) = recoveries(sim, "branch")
+    assert rec["remap"] == "global" and rec["ok"], rec
+    assert "j" in rec["lost"]
+    sent = emitted(sim, "branch", "src")
+    for sink in ("s1", "s2"):
+        got = stats(sim, "branch", sink)
+        assert got["repeats"] == 0 and got["out_of_order"] == 0, (sink, got)
+        assert sent - 5 <= got["count"] <= sent, (sink, got, sent)
+
+
+def test_two_nodes_failing_at_once() -> None:
+    sim = started(BRANCH)
+    victims = sorted({where(sim, "branch", "j"), where(sim, "branch", "a")} - {"N1", "N5", "N6"})
+    others = sorted(set(sim.network.nodes) - {"N1", "N5", "N6", *victims})
+    victims = [*victims, *others][:2]  # two interior nodes, at least one hosting a vertex
+    for v in victims:
+        sim.kill(v, convergence_s=0.3)
+    sim.run_until(sim.now + 8.0)
+    for n, core in sim.cores.items():
+        if n not in victims:
+            assert core.dead == set(victims)
+    assert all(r["ok"] for r in recoveries(sim, "branch"))
+    sent = emitted(sim, "branch", "src")
+    for sink in ("s1", "s2"):
+        got = stats(sim, "branch", sink)
+        assert got["repeats"] == 0 and got["out_of_order"] == 0, (sink, got)
+        assert sent - 5 <= got["count"] <= sent, (sink, got, sent)
+
+
+def test_a_dead_pinned_sink_parks_its_chain_and_the_rest_runs_on() -> None:
+    sim = started(BRANCH)
+    before = stats(sim, "branch", "s1")["count"]
+    sim.kill("N5", convergence_s=0.3)  # s2 is pinned there
+    sim.run_until(sim.now + 4.0)
+    for n, core in sim.cores.items():
+        if n != "N5":
+            parked = core.status(sim.now)["apps"]["branch"]["parked"]
+            assert list(parked) == ["j-c-s2"], parked
+            assert "pinned to failed node N5" in parked["j-c-s2"]
+    assert stats(sim, "branch", "s1")["count"] > before + 150  # the other branch flows on
+
+
+def test_a_broken_link_is_not_a_failure() -> None:
+    sim = started(PIPE)
+    sim.network.remove_link("N1", "N2")
+    sim.update_routes()
+    sim.run_until(sim.now + 3.0)
+    assert all(not core.dead for core in sim.cores.values())
+    assert recoveries(sim, "pipe") == []
+
+
+def test_a_silent_neighbour_is_declared_failed_within_the_deadline() -> None:
+    sim = started(PIPE)
+    sim.kill("N4", convergence_s=5.0)  # routing is slow: only the heartbeats can tell
+    t0 = sim.now
+    sim.run_until(t0 + 1.0)
+    seen = [f for n, c in sim.cores.items() if n != "N4" for f in c.failures]
+    assert seen and all(f["node"] == "N4" for f in seen)
+    first = min(f["at"] for f in seen)
+    assert 0.5 <= first - t0 <= 0.65  # dead_after_s, plus at most one heartbeat period
