@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from mso.errors import ScenarioError, SpecError
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
-from mso.scenario import load_scenario, loads_scenario
+from mso.scenario import LinkChange, NodeFailure, load_scenario, loads_scenario
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples"
 FILE = "net.yaml"
@@ -283,6 +283,13 @@ def test_links_and_radio_range_together() -> None:
         ("nodes:\n  A: {battery_wh: 0}\n", 2, "nodes.A.battery_wh", "number > 0"),
         ("nodes:\n  A: {power: {cpu_w: -1}}\n", 2, "nodes.A.power.cpu_w", "number >= 0"),
         ("nodes:\n  A: 5\n", 2, "nodes.A", "expected a mapping, got 5"),
+        ("nodes: {A: {}}\nchanges:\n  - {at: 1, fail: B}\n", 3, "changes[0].fail", "unknown node"),
+        (
+            "nodes: {A: {}, B: {}}\nchanges:\n  - {at: 1, fail: A, down: [A, B]}\n",
+            3,
+            "changes[0]",
+            "exactly one of 'up', 'down' or 'fail'",
+        ),
     ],
 )
 def test_other_scenario_errors(text: str, line: int, field: str, phrase: str) -> None:
@@ -390,3 +397,19 @@ def test_routes_are_shortest_and_hop_by_hop_consistent(net: Network, data: st.Da
     if src != dst:
         assert net.next_hop(src, dst) == route[1]
         assert net.route(route[1], dst) == route[1:]
+
+
+def test_scripted_failures_and_link_changes_in_time_order() -> None:
+    sc = loads_scenario(
+        yml("""
+        nodes: {A: {}, B: {}, C: {}}
+        links: [[A, B], [B, C]]
+        changes:
+          - {at: 5, fail: B}
+          - {at: 2, down: [A, B]}
+        """)
+    )
+    assert sc.changes == [
+        LinkChange(at=2, a="A", b="B", up=False, link=sc.network.link("A", "B")),
+        NodeFailure(at=5, node="B"),
+    ]

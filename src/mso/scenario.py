@@ -27,7 +27,7 @@ SCENARIO_KEYS = {
     "mobility",
 }
 MOBILITY_KEYS = {"model", "area", "speed", "pause_s", "seed", "fixed", "step_s"}
-CHANGE_KEYS = {"at", "down", "up"}
+CHANGE_KEYS = {"at", "down", "up", "fail"}
 NODE_KEYS = {"cpu", "battery_wh", "power", "pos"}
 POWER_KEYS = {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte"}
 LINK_KEYS = {"between", "bandwidth_mbps", "delay_ms", "loss"}
@@ -45,6 +45,17 @@ class LinkChange:
     link: LinkSpec | None = None
 
 
+@dataclass(frozen=True)
+class NodeFailure:
+    """A scripted fail-stop failure: at ``at`` seconds node ``node`` dies (SIGKILL)."""
+
+    at: float
+    node: str
+
+
+Change = LinkChange | NodeFailure
+
+
 @dataclass
 class Scenario:
     """A named network, loaded from a file, with its scripted link changes."""
@@ -53,7 +64,7 @@ class Scenario:
     network: Network
     radio_range: float | None = None
     file: str | None = None
-    changes: list[LinkChange] = field(default_factory=list)
+    changes: list[Change] = field(default_factory=list)
     mobility: RandomWaypoint | None = None
     mobility_step_s: float = 0.5
     link_template: LinkSpec | None = None
@@ -211,18 +222,29 @@ def _mobility(r: _Reader, raw: Any, network: Network) -> tuple[RandomWaypoint, f
     return model, r.number(attrs.get("step_s", 0.5), (*path, "step_s"), strict=True)
 
 
-def _changes(r: _Reader, raw: Any, network: Network, template: LinkSpec) -> list[LinkChange]:
+def _changes(r: _Reader, raw: Any, network: Network, template: LinkSpec) -> list[Change]:
     if raw is None:
         return []
     if not isinstance(raw, list):
-        raise r.err("expected a list of {at: SECONDS, down: [A, B]} or {at, up}", ("changes",))
-    out: list[LinkChange] = []
+        raise r.err(
+            "expected a list of {at: SECONDS, down: [A, B]}, {at, up: [A, B]} or {at, fail: N}",
+            ("changes",),
+        )
+    out: list[Change] = []
     for i, item in enumerate(raw):
         path: tuple[str | int, ...] = ("changes", i)
         attrs = r.mapping(item, CHANGE_KEYS, path)
         at = r.number(attrs.get("at"), (*path, "at"))
-        if ("up" in attrs) == ("down" in attrs):
-            raise r.err("expected exactly one of 'up' or 'down'", path)
+        if sum(k in attrs for k in ("up", "down", "fail")) != 1:
+            raise r.err("expected exactly one of 'up', 'down' or 'fail'", path)
+        if "fail" in attrs:
+            node = attrs["fail"]
+            if not isinstance(node, str) or node not in network.nodes:
+                raise r.err(
+                    f"unknown node {node!r} (known: {', '.join(network.nodes)})", (*path, "fail")
+                )
+            out.append(NodeFailure(at=at, node=node))
+            continue
         up = "up" in attrs
         ends = attrs["up" if up else "down"]
         field_path = (*path, "up" if up else "down")

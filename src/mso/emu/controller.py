@@ -29,7 +29,7 @@ from mso.errors import MsoError
 from mso.model.mobility import WaypointTracks
 from mso.model.network import LinkSpec
 from mso.protocol import messages as m
-from mso.scenario import Scenario
+from mso.scenario import NodeFailure, Scenario
 
 STATE_FILE = Path(tempfile.gettempdir()) / f"mso-emulator-{os.getuid()}.json"
 
@@ -78,6 +78,9 @@ class Emulator:
     _route_task: asyncio.Task[None] | None = None
     _own_logs: bool = False
     failed: bool = False  # a node died or misbehaved: its logs are kept for a look
+    dead: dict[str, float] = field(default_factory=dict)  # node -> when its process died
+    killed: set[str] = field(default_factory=set)  # killed on purpose (scenario, benchmark)
+    _watch_task: asyncio.Task[None] | None = None
 
     async def start(self, timeout: float = 20.0) -> None:
         names = list(self.scenario.network.nodes)
@@ -115,7 +118,41 @@ class Emulator:
         except BaseException:
             await self.stop()
             raise
+        self._watch_task = asyncio.create_task(self._watch())
         self.write_state()
+
+    async def _watch(self, period: float = 0.05) -> None:
+        """Notice node processes that die: their links vanish, as a routing protocol would
+        notice (routes follow after the convergence delay)."""
+        loop = asyncio.get_running_loop()
+        while True:
+            await asyncio.sleep(period)
+            for name, node in self.nodes.items():
+                if name in self.dead or node.process is None or node.process.poll() is None:
+                    continue
+                self.dead[name] = loop.time()
+                if name not in self.killed:
+                    self.failed = True  # a crash, not a scripted failure: keep the logs
+                if node.client is not None:
+                    with contextlib.suppress(Exception):
+                        await node.client.close()
+                    node.client = None
+                net = self.scenario.network
+                for n in list(net.neighbours(name)):
+                    net.remove_link(name, n)
+                await self._links_changed()
+
+    def kill(self, node: str) -> float:
+        """Fail-stop ``node`` now (SIGKILL to its process, by PID); returns the loop time."""
+        n = self.nodes.get(node)
+        if n is None or n.process is None:
+            raise MsoError(f"unknown node {node!r} (nodes: {', '.join(self.nodes)})")
+        self.killed.add(node)
+        n.process.kill()
+        return asyncio.get_running_loop().time()
+
+    def live(self) -> list[str]:
+        return [n for n in self.nodes if n not in self.dead and n not in self.killed]
 
     async def _connect(self, node: EmulatedNode, timeout: float) -> None:
         loop = asyncio.get_running_loop()
@@ -156,7 +193,7 @@ class Emulator:
         """Send every node its neighbours, and its routes if they have converged."""
         self.version += 1
         for name, node in self.nodes.items():
-            if node.client is not None:
+            if node.client is not None and name not in self.killed:
                 with contextlib.suppress(NodeUnreachable, ConnectionError):
                     await node.client.send(self._link_state(name, routes))
 
@@ -194,7 +231,10 @@ class Emulator:
         loop = asyncio.get_running_loop()
         for change in self.scenario.changes:
             await asyncio.sleep(max(0.0, t0 + change.at - loop.time()))
-            await self.set_link(change.a, change.b, change.up, change.link)
+            if isinstance(change, NodeFailure):
+                self.kill(change.node)
+            else:
+                await self.set_link(change.a, change.b, change.up, change.link)
 
     async def play_mobility(self, t0: float) -> None:
         """Move the nodes (random waypoint) and relink them by radio range, every step."""
@@ -246,17 +286,17 @@ class Emulator:
         via: str | None = None,
     ) -> m.RelocateReply:
         reply = await self.call(
-            via or next(iter(self.nodes)), m.RelocateRequest(app, vertex, direction, target), 10.0
+            via or self.live()[0], m.RelocateRequest(app, vertex, direction, target), 10.0
         )
         assert isinstance(reply, m.RelocateReply)
         return reply
 
     async def undeploy(self, app: str, via: str | None = None) -> None:
         """Stop an app on every node (its stones are freed)."""
-        await self.call(via or next(iter(self.nodes)), m.StopApp(app), 10.0)
+        await self.call(via or self.live()[0], m.StopApp(app), 10.0)
 
     async def status(self, via: str | None = None) -> dict[str, Any]:
-        via = via or next(iter(self.nodes))
+        via = via or self.live()[0]
         reply = await self.call(via, m.StatusRequest(everywhere=True), 5.0)
         assert isinstance(reply, m.StatusReply)
         return reply.nodes
@@ -268,8 +308,9 @@ class Emulator:
 
     async def stop(self, grace: float = 3.0) -> None:
         """Ask every node to shut down; kill (by PID) whatever is still running after grace."""
-        if self._route_task is not None:
-            self._route_task.cancel()
+        for task in (self._route_task, self._watch_task):
+            if task is not None:
+                task.cancel()
         for node in self.nodes.values():
             if node.client is not None:
                 with contextlib.suppress(Exception):
