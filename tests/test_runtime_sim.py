@@ -151,3 +151,13 @@ def test_user_code_that_fails_never_takes_a_node_down() -> None:
     stone = mid.apps["pipe"].stones["mid"]
     assert stone.errors > 50 and "bad reading" in stone.last_error
     assert sink_stats(sim, "pipe", "sink")["count"] >= 2 * stone.errors - 5
+
+
+def test_end_to_end_delay_is_measured_per_chain_and_reported_to_its_head() -> None:
+    sim = Simulation(line(4, delay_ms=2.0), hop_latency_s=0.0)
+    assert deploy(sim, PIPE).ok
+    sim.run_until(sim.now + 3.0)
+    tail = sim.cores["N4"].status(sim.now)["apps"]["pipe"]["chain_delay_ms"]
+    assert tail == {"src-mid-sink": pytest.approx(6.0)}  # three 2 ms hops, src on N1, sink on N4
+    ms, _ = sim.cores["N1"].apps["pipe"].chain_delay[0]  # the head's node knows it too
+    assert ms == pytest.approx(6.0)

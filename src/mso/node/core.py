@@ -103,6 +103,7 @@ STEP_ATTEMPTS = 5
 SOURCE_BURST = 256  # events a rate-less source emits per turn
 MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own
 MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
+DELAY_SMOOTHING = 0.2  # weight of the newest batch in a chain's delay average
 
 
 @dataclass
@@ -145,6 +146,8 @@ class Deployment:
     recovering: int | None = None  # the remap recovering from a failure, at its coordinator
     restoring: dict[str, Restoring] = field(default_factory=dict)  # replacements awaiting
     recoveries: list[dict[str, Any]] = field(default_factory=list)  # what was done, bounded
+    delays: dict[int, float] = field(default_factory=dict)  # at a tail's node: chain -> ms
+    chain_delay: dict[int, tuple[float, float]] = field(default_factory=dict)  # at a head's
     # at the origin only
     built: set[int] = field(default_factory=set)
     client: int | None = None
@@ -187,13 +190,14 @@ class NodeCore:
         self._work: deque[tuple[str, str, m.Message]] = deque()
         # events and markers, in arrival order per edge: a marker is handled after every event
         # that arrived before it
-        self._events: deque[tuple[Deployment, int, list[bytes] | m.Marker]] = deque()
+        self._events: deque[tuple[Deployment, int, list[bytes] | m.Marker, float]] = deque()
         self._relocs: dict[int, Relocation] = {}
         # ids of procedures this node coordinates: distinct per node, small enough for msgpack
         self._rid = (zlib.crc32(node_id.encode()) & 0xFFFFFF) << 20
         self._remaps: dict[int, Remap] = {}
         self._handover_to: dict[int, str] = {}  # rid -> coordinator, at a relocation's target
-        self._outbox: dict[tuple[str, int], tuple[int, list[bytes]]] = {}
+        # per edge: (first seq, events, when the oldest entered its chain)
+        self._outbox: dict[tuple[str, int], tuple[int, list[bytes], float]] = {}
         self._status_req = 0
         self._now = 0.0
         self.status_hook: Callable[[], dict[str, Any]] | None = None  # the driver's counters
@@ -221,6 +225,7 @@ class NodeCore:
     def set_routes(self, routes: dict[str, tuple[str, int]], now: float = 0.0) -> list[Effect]:
         """Take the routing view's current routes; returns effects (a recovery waiting for
         routes around a failed node may start)."""
+        self._now = now
         self.routes = {d: r for d, r in routes.items() if d != self.id}
         self.monitor.note_routes(now, self.routes)
         neighbours = {d for d, (hop, _) in self.routes.items() if hop == d}
@@ -246,6 +251,7 @@ class NodeCore:
 
     def request(self, client: int, msg: m.Message, now: float) -> list[Effect]:
         """A request from a client connection (CLI, API, emulator controller)."""
+        self._now = now
         if isinstance(msg, m.DeployRequest):
             self._deploy_request(client, msg, now)
         elif isinstance(msg, m.StopApp):
@@ -263,6 +269,7 @@ class NodeCore:
         return self._run(now)
 
     def on_timer(self, key: tuple[Any, ...], now: float) -> list[Effect]:
+        self._now = now
         kind = key[0]
         if kind == "source":
             self._source_tick(key[1], key[2], now)
@@ -272,6 +279,7 @@ class NodeCore:
             self._status_done(key[1])
         elif kind == "monitor":
             self._sample(now)
+            self._report_delays(now)
             self._effects.append(SetTimer(("monitor",), now + MONITOR_PERIOD_S))
         elif kind == "heartbeat":
             self._heartbeat(now)
@@ -303,11 +311,11 @@ class NodeCore:
                 except MsoError:
                     self.dropped_messages += 1
             while self._events and not self._work:
-                dep, edge, item = self._events.popleft()
+                dep, edge, item, ts = self._events.popleft()
                 if isinstance(item, m.Marker):
                     self._on_marker(dep, item)
                 else:
-                    self._process(dep, edge, item, now)
+                    self._process(dep, edge, item, now, ts)
         self._flush()
         out, self._effects = self._effects, []
         return out
@@ -355,7 +363,7 @@ class NodeCore:
         elif isinstance(msg, m.Marker):
             dep = self.apps.get(msg.app)
             if dep is not None:
-                self._events.append((dep, msg.edge, msg))
+                self._events.append((dep, msg.edge, msg, 0.0))
         elif isinstance(msg, m.RelocateRequest):
             self._relocate_request(None, msg, now)
         elif isinstance(msg, m.Prepare):
@@ -372,6 +380,10 @@ class NodeCore:
                 dep.placed[msg.vertex] = msg.node
         elif isinstance(msg, m.HandoverDone):
             self._on_handover_done(msg, now)
+        elif isinstance(msg, m.ChainDelay):
+            dep = self.apps.get(msg.app)
+            if dep is not None and 0 <= msg.chain < len(dep.layout.chains):
+                dep.chain_delay[msg.chain] = (msg.delay_ms, now)
         elif isinstance(msg, m.Heartbeat):
             self.liveness.heard_from(src, now, msg)
         elif isinstance(msg, m.NodeDown):
@@ -609,7 +621,7 @@ class NodeCore:
         stone.emitted += burst
         self.work_ms += stone.vertex.cost * burst
         if events:
-            self._emit(dep, edges, events)
+            self._emit(dep, edges, events, now, -1)
         if rate:  # keep the schedule, so late firings do not slow the rate down
             period = 1.0 / rate
             at = stone.next_at + period if stone.next_at else now + period
@@ -620,28 +632,35 @@ class NodeCore:
             at = now
         self._effects.append(SetTimer(("source", app, vid), at))
 
-    def _emit(self, dep: Deployment, edges: Iterable[int], events: list[Any]) -> None:
-        """Encode ``events`` once and send them on every edge in ``edges``."""
+    def _emit(
+        self, dep: Deployment, edges: Iterable[int], events: list[Any], ts: float, chain: int
+    ) -> None:
+        """Encode ``events`` once and send them on every edge in ``edges``. ``ts`` is when they
+        entered chain ``chain``: an edge of that chain carries it on, an edge that starts
+        another chain starts it from now."""
         encode = msgspec.msgpack.encode
         payloads = [encode(ev) for ev in events]
         for e in edges:
             seq = self._out(dep, e).push_many(payloads, self._now)
             dst_node = dep.placed[dep.app.edges[e].dst]
+            t = ts if dep.layout.edge_chain[e] == chain else self._now
             if dst_node == self.id:
-                self._deliver(dep, e, seq, payloads)
+                self._deliver(dep, e, seq, payloads, t)
             else:
                 key = (dep.app.name, e)
                 batch = self._outbox.get(key)
                 if batch is None:
-                    self._outbox[key] = batch = (seq, list(payloads))
+                    self._outbox[key] = batch = (seq, list(payloads), t)
                 else:
                     batch[1].extend(payloads)
                 if len(batch[1]) * len(payloads[0]) >= MAX_BATCH_BYTES:  # frames stay small
                     del self._outbox[key]
-                    data = m.Data(dep.app.name, e, dep.epoch, batch[0], batch[1])
+                    data = m.Data(dep.app.name, e, dep.epoch, batch[0], batch[1], batch[2])
                     self._effects.append(Send(dst_node, data))
 
-    def _deliver(self, dep: Deployment, edge: int, seq: int, events: list[bytes]) -> None:
+    def _deliver(
+        self, dep: Deployment, edge: int, seq: int, events: list[bytes], ts: float = 0.0
+    ) -> None:
         if dep.app.edges[edge].dst in dep.awaiting:  # moving here: keep until the handover
             dep.stash.setdefault(edge, []).append((seq, list(events)))
             return
@@ -650,7 +669,7 @@ class NodeCore:
             ch = dep.inc[edge] = InChannel()
         fresh = ch.accept(seq, events)
         if fresh:
-            self._events.append((dep, edge, fresh))
+            self._events.append((dep, edge, fresh, ts))
 
     def _on_data(self, msg: m.Data) -> None:
         dep = self.apps.get(msg.app)
@@ -664,7 +683,7 @@ class NodeCore:
         if dst not in dep.stones:
             self.dropped_messages += 1
             return
-        self._deliver(dep, msg.edge, msg.seq, msg.events)
+        self._deliver(dep, msg.edge, msg.seq, msg.events, msg.ts)
 
     def _decoder(self, dep: Deployment, edge: int) -> msgspec.msgpack.Decoder[Any]:
         dec = dep.decoders.get(edge)
@@ -673,7 +692,9 @@ class NodeCore:
             dec = dep.decoders[edge] = msgspec.msgpack.Decoder(fmt if fmt is not None else Any)
         return dec
 
-    def _process(self, dep: Deployment, edge: int, payloads: list[bytes], now: float) -> None:
+    def _process(
+        self, dep: Deployment, edge: int, payloads: list[bytes], now: float, ts: float = 0.0
+    ) -> None:
         """Run a batch of events through the edge's consumer, in order."""
         e: Edge = dep.app.edges[edge]
         stone = dep.stones.get(e.dst)
@@ -706,10 +727,17 @@ class NodeCore:
         stone.processed += len(payloads)
         self.work_ms += stone.vertex.cost * len(payloads)
         ch.mark_processed(len(payloads))
+        chain = dep.layout.edge_chain[edge]
+        if ts > 0 and dep.layout.chains[chain].tail == e.dst:  # end-to-end through the chain
+            ms = (now - ts) * 1e3
+            old = dep.delays.get(chain)
+            dep.delays[chain] = (
+                ms if old is None else DELAY_SMOOTHING * ms + (1 - DELAY_SMOOTHING) * old
+            )
         out_edges = dep.out_edges.get(e.dst, [])
         if outs and out_edges:
             stone.emitted += len(outs)
-            self._emit(dep, out_edges, outs)
+            self._emit(dep, out_edges, outs, ts, dep.layout.edge_chain[edge])
         if out_edges:  # chained acks: the inputs are acked once the outputs are
             if ch.released is None:
                 ch.released = ch._acked
@@ -780,10 +808,10 @@ class NodeCore:
             self._effects.append(SetTimer(("source", dep.app.name, producer), self._now))
 
     def _flush(self) -> None:
-        for (app, edge), (seq, events) in self._outbox.items():
+        for (app, edge), batch in self._outbox.items():
             dep = self.apps[app]
             dst = dep.placed[dep.app.edges[edge].dst]
-            self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, seq, events)))
+            self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, *batch)))
         self._outbox.clear()
         for dep in self.apps.values():
             for edge, ch in list(dep.inc.items()):
@@ -930,13 +958,13 @@ class NodeCore:
         key = (msg.app, msg.edge)
         batch = self._outbox.pop(key, None)
         if batch is not None:  # what is already queued leaves before the marker
-            data = m.Data(msg.app, msg.edge, dep.epoch, batch[0], batch[1])
+            data = m.Data(msg.app, msg.edge, dep.epoch, *batch)
             self._effects.append(Send(old, data))
         seq = self._out(dep, msg.edge).next_seq
         dep.placed[edge.dst] = msg.to
         marker = m.Marker(msg.app, msg.edge, seq, msg.rid, msg.to)
         if old == self.id:
-            self._events.append((dep, msg.edge, marker))
+            self._events.append((dep, msg.edge, marker, 0.0))
         else:
             self._effects.append(Send(old, marker))
 
@@ -966,9 +994,9 @@ class NodeCore:
         gate = dep.gates.pop(vid, None)
         key_batches = [k for k in self._outbox if k[0] == dep.app.name and k[1] in outputs]
         for k in key_batches:  # queued output leaves from here before the handover
-            seq, events = self._outbox.pop(k)
+            batch = self._outbox.pop(k)
             dst = dep.placed[dep.app.edges[k[1]].dst]
-            self._effects.append(Send(dst, m.Data(k[0], k[1], dep.epoch, seq, events)))
+            self._effects.append(Send(dst, m.Data(k[0], k[1], dep.epoch, *batch)))
         state = msgspec.msgpack.encode(stone.get_state())
         del dep.stones[vid]
         dep.placed[vid] = msg.to
@@ -1189,6 +1217,16 @@ class NodeCore:
             )
             dep.recovering = None
             self._maybe_recover(dep, now)  # another failure may have happened meanwhile
+
+    def _report_delays(self, now: float) -> None:
+        """Tell each chain's head node the delay measured at its tail (here)."""
+        for dep in self.apps.values():
+            for chain, ms in dep.delays.items():
+                head = dep.placed[dep.layout.chains[chain].head]
+                if head == self.id:
+                    dep.chain_delay[chain] = (ms, now)
+                elif head not in self.dead:
+                    self._send(head, m.ChainDelay(dep.app.name, chain, ms))
 
     # -- fail-stop failures (§3.4, assumption 3) --------------------------------------------
     def _heartbeat(self, now: float) -> None:
@@ -1424,6 +1462,10 @@ class NodeCore:
                 "running": dep.running,
                 "parked": {dep.layout.chains[c].name: why for c, why in dep.parked.items()},
                 "recoveries": list(dep.recoveries),
+                "chain_delay_ms": {
+                    dep.layout.chains[c].name: round(ms, 3) for c, ms in sorted(dep.delays.items())
+                },
+                "slo_ms": dep.app.slo_ms,
                 "origin": dep.origin,
                 "placement": dict(dep.placed),
                 "chains": [list(c.vertices) for c in dep.layout.chains],

@@ -221,6 +221,12 @@ class Layout:
         self.cost = {v.id: float(v.cost) for v in app.vertices.values()}
         self.pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
         self.kinds = app.kinds()  # once: the node looks them up per hosted vertex
+        # the chain each edge lies in (every edge lies in exactly one, §3.2)
+        index = {(e.src, e.dst): i for i, e in enumerate(app.edges)}
+        self.edge_chain = [-1] * len(app.edges)
+        for c in self.chains:
+            for a, b in itertools.pairwise(c.vertices):
+                self.edge_chain[index[(a, b)]] = c.index
         rank = {ci: k for k, ci in enumerate(self.order)}
         placer: dict[str, int] = {}
         for c in sorted(self.chains, key=lambda c: rank[c.index]):
