@@ -521,7 +521,7 @@ def test_unknown_attribute_app_level() -> None:
         """
     )
     assert_at(err, 4, "sinks", "unknown attribute 'sinks'")
-    assert "(expected one of: edges, name, slo_ms, vertices)" in err.message
+    assert "(expected one of: edges, name, policy, slo_ms, vertices)" in err.message
 
 
 def test_unknown_attribute_vertex_level() -> None:
@@ -583,6 +583,16 @@ def test_file_not_a_mapping(text: str) -> None:
         ("name: t\nvertices:\n  A:\nedges:\n  - A\n", 5, "edges[0]", "[producer, consumer]"),
         ("name: t\nvertices:\n  A:\nedges:\n  - {to: A}\n", 5, "edges[0].from", "vertex id"),
         ("name: t\nslo_ms: 0\nvertices:\n  A:\n", 2, "slo_ms", "positive number"),
+        ("name: t\npolicy: 5\nvertices:\n  A:\n", 2, "policy", "expected a policy name"),
+        ("name: t\npolicy: {}\nvertices:\n  A:\n", 2, "policy", "one of 'name' or 'code'"),
+        ("name: t\npolicy: {name: x, fast: 1}\nvertices:\n  A:\n", 2, "policy.fast", "unknown"),
+        ("name: t\npolicy: {code: 3}\nvertices:\n  A:\n", 2, "policy.code", "non-empty"),
+        (
+            "name: t\npolicy: {name: x, params: [1]}\nvertices:\n  A:\n",
+            2,
+            "policy.params",
+            "a mapping of parameters",
+        ),
         ("name: t\nvertices:\n  3: {}\n", 3, "vertices[3]", "expected a string vertex id"),
     ],
 )
@@ -715,3 +725,17 @@ def test_builder_checks_slo_ms(slo: object) -> None:
     app.vertex("A")
     err = builder_error(app)
     assert err.field == "slo_ms" and "positive number of milliseconds" in err.message
+
+
+@pytest.mark.parametrize(
+    ("text", "policy"),
+    [
+        ("policy: lifetime", "lifetime"),
+        ("policy: mypkg.policies:Mine", "mypkg.policies:Mine"),
+        ("policy: {name: delay}", {"name": "delay", "params": {}}),
+        ("policy: {code: a.b:C, params: {k: 2}}", {"code": "a.b:C", "params": {"k": 2}}),
+    ],
+)
+def test_policy_is_named_in_the_app(text: str, policy: object) -> None:
+    app = loads_app(f"name: t\n{text}\nvertices:\n  A:\n", file=FILE)
+    assert app.policy == policy

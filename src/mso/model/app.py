@@ -63,6 +63,8 @@ class App:
     vertices: dict[str, Vertex] = field(default_factory=dict)
     edges: list[Edge] = field(default_factory=list)
     slo_ms: float | None = None
+    # the management policy: a shipped name, an import path, or {name|code, params}
+    policy: str | dict[str, Any] | None = None
     located: Located | None = field(default=None, compare=False, repr=False)
 
     # -- builder -------------------------------------------------------------------------

@@ -9,7 +9,8 @@ from mso.errors import AppError, SpecError
 from mso.model.app import App
 from mso.model.yamlfile import Located, load_yaml, load_yaml_file
 
-APP_KEYS = {"name", "vertices", "edges", "slo_ms"}
+APP_KEYS = {"name", "vertices", "edges", "slo_ms", "policy"}
+POLICY_KEYS = {"name", "code", "params"}
 VERTEX_KEYS = {
     "code",
     "cost",
@@ -61,6 +62,8 @@ def app_from_document(doc: Located, *, resolve_code: bool = True) -> App:
         if isinstance(slo, bool) or not isinstance(slo, int | float) or slo <= 0:
             raise _err(doc, f"expected a positive number of milliseconds, got {slo!r}", ("slo_ms",))
         app.slo_ms = float(slo)
+    if "policy" in data:
+        app.policy = _policy(doc, data["policy"])
     for vid, attrs in vertices.items():
         path: tuple[str | int, ...] = ("vertices", vid)
         if not isinstance(vid, str):
@@ -107,3 +110,28 @@ def loads_app(text: str, *, file: str | None = None, resolve_code: bool = True) 
 
 
 __all__ = ["SpecError", "app_from_document", "load_app", "loads_app"]
+
+
+def _policy(doc: Located, spec: Any) -> str | dict[str, Any]:
+    """The app's management policy: a shipped name, an import path, or a mapping with
+    ``name`` or ``code`` and optional ``params`` (resolved on the nodes, see docs/policies.md)."""
+    if isinstance(spec, str) and spec:
+        return spec
+    if isinstance(spec, dict):
+        _unknown(doc, spec, POLICY_KEYS, ("policy",))
+        if ("name" in spec) == ("code" in spec):
+            raise _err(doc, "expected exactly one of 'name' or 'code'", ("policy",))
+        which = "name" if "name" in spec else "code"
+        if not isinstance(spec[which], str) or not spec[which]:
+            raise _err(doc, f"expected a non-empty string, got {spec[which]!r}", ("policy", which))
+        params = spec.get("params", {})
+        if not isinstance(params, dict) or not all(isinstance(k, str) for k in params):
+            raise _err(
+                doc, f"expected a mapping of parameters, got {params!r}", ("policy", "params")
+            )
+        return {which: spec[which], "params": dict(params)}
+    raise _err(
+        doc,
+        f"expected a policy name, an import path or {{name|code, params}}, got {spec!r}",
+        ("policy",),
+    )
