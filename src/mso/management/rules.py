@@ -1,0 +1,469 @@
+"""Management rules (paper §3.5): when to relocate a vertex or remap a chain. Pure, deterministic.
+
+Each evaluation the node hands :meth:`RuleEngine.evaluate` a :class:`Snapshot`; the rules propose
+actions and the :class:`Guard` lets through only those that have been proposed long enough and
+respect the rate limits, so a noisy monitor or a flapping link does not make vertices oscillate.
+The guard records an action when it allows it (there is no separate "done" call): an action the
+node then fails to carry out still counts against the rate limits, which is the safe side.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from mso.errors import MsoError
+from mso.management.policy import (
+    LifetimePolicy,
+    Policy,
+    move_cost_split_j,
+    neighbour_nodes,
+    with_extra_drain,
+)
+from mso.management.views import (
+    Action,
+    ActionKey,
+    ChainView,
+    Relocate,
+    RemapChain,
+    Snapshot,
+    VertexView,
+)
+
+
+@dataclass(frozen=True, slots=True)
+class RuleSettings:
+    """Hysteresis and rate limits of the rules; docs/policies.md explains each default."""
+
+    period_s: float = 1.0  # how often the node runs the rules
+    confirm: int = 3  # evaluations in a row a relocation must be the best choice
+    margin: float = 0.1  # relative improvement over "no change" a move must beat
+    horizon_s: float = 60.0  # a move's one-time energy is spread over this long
+    vertex_interval_s: float = 30.0  # a vertex moves at most once per interval
+    node_interval_s: float = 5.0  # this node starts at most one relocation per interval
+    route_settle_s: float = 3.0  # routes must be stable this long before a chain remap
+    chain_interval_s: float = 15.0  # a chain is remapped at most once per interval
+    slo_confirm: int = 3  # evaluations in a row a policy must ask for a remap
+
+    def __post_init__(self) -> None:
+        for name in ("confirm", "slo_confirm"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise MsoError(f"rule settings: {name}: expected an integer >= 1, got {value!r}")
+        for name in ("period_s", "horizon_s"):
+            value = getattr(self, name)
+            if not _number(value) or value <= 0:
+                raise MsoError(f"rule settings: {name}: expected a positive number, got {value!r}")
+        for name in (
+            "margin",
+            "vertex_interval_s",
+            "node_interval_s",
+            "route_settle_s",
+            "chain_interval_s",
+        ):
+            value = getattr(self, name)
+            if not _number(value) or value < 0:
+                raise MsoError(f"rule settings: {name}: expected a number >= 0, got {value!r}")
+
+    @property
+    def ping_pong_s(self) -> float:
+        """A vertex does not go back to the node it left for this long."""
+        return 4 * self.vertex_interval_s
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+@dataclass(frozen=True, slots=True)
+class Proposal:
+    """An action a rule wants, how many evaluations in a row it must be wanted, and its value.
+
+    ``priority`` orders proposals of one kind (larger first): for relocations, the relative
+    improvement, so the most useful one gets the evaluation's single relocation.
+    """
+
+    action: Action
+    confirm: int = 1
+    priority: float = 0.0
+    rule: str = ""
+
+
+def improvement(base: float, new: float) -> float:
+    """How much better ``new`` is than ``base``, relative to ``|base|`` (0 if not better)."""
+    if math.isnan(base) or math.isnan(new) or new >= base:
+        return 0.0
+    if math.isinf(base) or math.isinf(new) or base == 0:
+        return math.inf
+    return (base - new) / abs(base)
+
+
+# -- the oscillation guard -----------------------------------------------------------------
+
+
+class Guard:
+    """Lets a proposal through only when it is confirmed and within every rate limit.
+
+    - confirmation: an action must be proposed in ``confirm`` consecutive reviews (a review
+      without it starts the count again);
+    - a vertex moves at most once per ``vertex_interval_s`` (its own record and the snapshot's
+      ``moved_at``, so moves made by other nodes count);
+    - no ping-pong: a vertex is not sent back to the node it left within ``ping_pong_s``;
+    - this node starts at most one relocation per ``node_interval_s`` and per review;
+    - a chain is remapped at most once per ``chain_interval_s``, and its vertices are not
+      relocated in the review that remaps it.
+
+    Call :meth:`review` once per evaluation; ``allowed`` keeps the recent allowed actions.
+    """
+
+    def __init__(self, settings: RuleSettings, *, history: int = 100) -> None:
+        self.settings = settings
+        self.allowed: deque[tuple[float, Action]] = deque(maxlen=history)
+        self._streak: dict[ActionKey, int] = {}
+        self._moves: dict[str, tuple[float, str]] = {}  # vertex key -> (when, node it left)
+        self._last_relocation: float | None = None
+        self._remaps: dict[tuple[str, int], float] = {}
+
+    def streak(self, action: Action) -> int:
+        """Consecutive reviews that have proposed ``action`` (0 right after it was allowed)."""
+        return self._streak.get(action.key, 0)
+
+    def review(
+        self, proposals: Sequence[Proposal], snap: Snapshot
+    ) -> list[tuple[Proposal, str | None]]:
+        """Each distinct proposal with None (allowed) or why it is held; remaps first."""
+        now = snap.now
+        unique: dict[ActionKey, Proposal] = {}
+        for p in proposals:
+            unique.setdefault(p.action.key, p)
+        self._streak = {k: self._streak.get(k, 0) + 1 for k in unique}
+        self._forget(now)
+        ordered = sorted(
+            unique.values(),
+            key=lambda p: (isinstance(p.action, Relocate), -p.priority, repr(p.action.key)),
+        )
+        remapped: set[tuple[str, int]] = set()
+        relocated = False
+        out: list[tuple[Proposal, str | None]] = []
+        for p in ordered:
+            a = p.action
+            n = self._streak[a.key]
+            why: str | None
+            if n < p.confirm:
+                why = f"confirming {n}/{p.confirm}"
+            elif isinstance(a, RemapChain):
+                why = self._remap_hold(a, now)
+            else:
+                why = self._relocation_hold(a, snap, remapped, relocated)
+            if why is None:
+                self._streak[a.key] = 0
+                self.allowed.append((now, a))
+                if isinstance(a, RemapChain):
+                    remapped.add((a.app, a.chain))
+                    self._remaps[a.app, a.chain] = now
+                else:
+                    relocated = True
+                    v = snap.vertex(a.vertex_key)
+                    self._moves[a.vertex_key] = (now, snap.here if v is None else v.node)
+                    self._last_relocation = now
+            out.append((p, why))
+        return out
+
+    def _remap_hold(self, a: RemapChain, now: float) -> str | None:
+        last = self._remaps.get((a.app, a.chain))
+        if last is not None and now - last < self.settings.chain_interval_s:
+            limit = self.settings.chain_interval_s
+            return f"chain remapped at {last:.1f} (at most once per {limit:g}s)"
+        return None
+
+    def _relocation_hold(
+        self, a: Relocate, snap: Snapshot, remapped: set[tuple[str, int]], relocated: bool
+    ) -> str | None:
+        now, s = snap.now, self.settings
+        v = snap.vertex(a.vertex_key)
+        history = [self._moves[a.vertex_key]] if a.vertex_key in self._moves else []
+        if v is not None and v.moved_at is not None:
+            history.append((v.moved_at, v.moved_from or ""))
+        if v is not None and (v.app, v.chain) in remapped:
+            return "its chain is being remapped"
+        last = max((t for t, _ in history), default=None)
+        if last is not None and now - last < s.vertex_interval_s:
+            return f"vertex moved at {last:.1f} (at most once per {s.vertex_interval_s:g}s)"
+        for t, left in sorted(history):
+            if left == a.target and now - t < s.ping_pong_s:
+                return (
+                    f"would go back to {left}, which it left at {t:.1f} "
+                    f"(not within {s.ping_pong_s:g}s)"
+                )
+        if relocated:
+            return "one relocation per evaluation"
+        if self._last_relocation is not None and now - self._last_relocation < s.node_interval_s:
+            return (
+                f"this node started a relocation at {self._last_relocation:.1f} "
+                f"(at most one per {s.node_interval_s:g}s)"
+            )
+        return None
+
+    def _forget(self, now: float) -> None:
+        """Drop records no limit can use any more, so the guard stays small."""
+        keep = self.settings.ping_pong_s
+        self._moves = {k: m for k, m in self._moves.items() if now - m[0] < keep}
+        keep = self.settings.chain_interval_s
+        self._remaps = {k: t for k, t in self._remaps.items() if now - t < keep}
+
+
+# -- rules ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Option:
+    """One alternative for a vertex: stay (target None) or move, with its penalised score."""
+
+    target: str | None
+    direction: str  # "stay", "upstream" or "downstream"
+    score: float
+    move_cost_j: float
+
+
+class RelocationRule:
+    """Intra-chain remapping (§3.4.1): move a vertex upstream or downstream when it pays.
+
+    For each movable vertex, "no change" is scored against moving it onto its ``upstream`` and
+    ``downstream`` nodes (those with a view). The policy sees only the nodes the decision
+    involves: the vertex's node, the candidates and its predecessor's and successor's nodes. A
+    move's one-time state transfer (``move_cost_j``) is charged as extra drain spread over
+    ``horizon_s`` — its tx share on the source, its rx share on the target — before the move is
+    scored, so a move must pay for itself within the horizon under any policy that looks at
+    drain or lifetime. The best move is proposed only if it beats "no change" by ``margin``.
+    Vertices of a chain whose routes changed less than ``route_settle_s`` ago wait.
+    """
+
+    name = "relocation"
+
+    def __init__(self, policy: Policy, settings: RuleSettings) -> None:
+        self.policy = policy
+        self.settings = settings
+
+    def options(self, snap: Snapshot, v: VertexView) -> list[Option]:
+        """ "stay" first, then each candidate move; empty when the vertex has nowhere to go."""
+        if v.node not in snap.nodes:
+            return []
+        targets: list[tuple[str, str]] = []
+        for direction, node in (("upstream", v.upstream), ("downstream", v.downstream)):
+            usable = node is not None and node != v.node and node in snap.nodes
+            if node is not None and usable and all(node != t for _, t in targets):
+                targets.append((direction, node))
+        if not targets:
+            return []
+        pred, succ = neighbour_nodes(snap, v)
+        involved = {v.node, *(t for _, t in targets), *(n for n in (pred, succ) if n is not None)}
+        local = snap.with_nodes(involved)
+        opts = [Option(None, "stay", float(self.policy.score(local, {})), 0.0)]
+        horizon = self.settings.horizon_s
+        for direction, target in targets:
+            tx_j, rx_j = move_cost_split_j(local, v, target)
+            charged = with_extra_drain(local, {v.node: tx_j / horizon, target: rx_j / horizon})
+            score = float(self.policy.score(charged, {v.key: target}))
+            opts.append(Option(target, direction, score, tx_j + rx_j))
+        return opts
+
+    def propose(self, snap: Snapshot) -> list[Proposal]:
+        out: list[Proposal] = []
+        for v in sorted(snap.vertices, key=lambda v: v.key):
+            if not v.movable or self._settling(snap, v):
+                continue
+            opts = self.options(snap, v)
+            if len(opts) < 2:
+                continue
+            stay = opts[0]
+            best = min(opts[1:], key=lambda o: (math.isnan(o.score), o.score, o.direction))
+            gain = improvement(stay.score, best.score)
+            if best.target is None or gain <= self.settings.margin:
+                continue
+            shown = "inf" if math.isinf(gain) else f"{gain:.0%}"
+            reason = (
+                f"{self.policy.name}, {best.direction}: score {stay.score:.4g} -> "
+                f"{best.score:.4g} ({shown} better, move {best.move_cost_j:.3g} J)"
+            )
+            action = Relocate(v.app, v.id, best.target, reason)
+            out.append(Proposal(action, self.settings.confirm, gain, self.name))
+        return out
+
+    def _settling(self, snap: Snapshot, v: VertexView) -> bool:
+        chain = snap.chain(v.app, v.chain)
+        changed = None if chain is None else chain.route_changed_at
+        return changed is not None and snap.now - changed < self.settings.route_settle_s
+
+
+class ChainRouteRule:
+    """Chain remapping (§3.4.2) after a route between a chain's nodes changed.
+
+    Only the chain's coordinator proposes it, only once routes have been stable for
+    ``route_settle_s`` (a link flapping faster never triggers it), only for a change newer than
+    the chain's mapping (``placed_at``), and once per change: :meth:`done` marks it handled.
+    """
+
+    name = "route"
+
+    def __init__(self, settings: RuleSettings) -> None:
+        self.settings = settings
+        self._handled: dict[tuple[str, int], float] = {}
+
+    def propose(self, snap: Snapshot) -> list[Proposal]:
+        out: list[Proposal] = []
+        for c in sorted(snap.chains, key=lambda c: c.key):
+            changed = c.route_changed_at
+            if not c.coordinator or changed is None:
+                continue
+            if c.placed_at is not None and changed <= c.placed_at:
+                continue
+            if self._handled.get(c.key, -math.inf) >= changed:
+                continue
+            stable = snap.now - changed
+            if stable < self.settings.route_settle_s:
+                continue
+            reason = f"route changed at {changed:.1f}, stable for {stable:.1f}s"
+            out.append(Proposal(RemapChain(c.app, c.index, reason), 1, 0.0, self.name))
+        return out
+
+    def done(self, chain: ChainView) -> None:
+        """The chain is being remapped: its routes as of now need nothing more."""
+        if chain.route_changed_at is not None:
+            seen = self._handled.get(chain.key, -math.inf)
+            self._handled[chain.key] = max(seen, chain.route_changed_at)
+
+    def forget(self, app: str) -> None:
+        self._handled = {k: t for k, t in self._handled.items() if k[0] != app}
+
+
+# -- the engine ----------------------------------------------------------------------------
+
+LogEntry = tuple[float, str, str]
+
+
+class RuleEngine:
+    """Runs the rules on a snapshot and returns the actions the guard allows.
+
+    Every app is managed by its own policy if one was set (:meth:`set_app_policy`, from the
+    app's ``policy:``), else by the node's. Per app, each evaluation collects the policy's own
+    ``actions()`` (relocations need ``confirm``, remaps ``slo_confirm`` evaluations in a row)
+    and the relocation rule's proposal; the route rule adds chain remaps. At most one
+    relocation is returned per evaluation. A policy that raises is reported in the log and its
+    app skipped for that evaluation. ``log`` keeps recent decisions as ``(now, action,
+    "allowed" | "held: why" | "ignored: why" | "error: what")``, each written when it changes.
+    """
+
+    def __init__(
+        self,
+        policy: Policy | None = None,
+        settings: RuleSettings | None = None,
+        *,
+        log_size: int = 200,
+    ) -> None:
+        self.policy = policy if policy is not None else LifetimePolicy()
+        self.settings = settings if settings is not None else RuleSettings()
+        self.app_policies: dict[str, Policy] = {}
+        self.guard = Guard(self.settings)
+        self.route_rule = ChainRouteRule(self.settings)
+        self.log: deque[LogEntry] = deque(maxlen=log_size)
+        self.evaluations = 0
+        self._last: dict[tuple[Any, ...], str] = {}
+
+    def set_app_policy(self, app: str, policy: Policy | None) -> None:
+        """Manage ``app`` by ``policy`` (None: by the node's policy again)."""
+        if policy is None:
+            self.app_policies.pop(app, None)
+        else:
+            self.app_policies[app] = policy
+
+    def policy_for(self, app: str) -> Policy:
+        return self.app_policies.get(app, self.policy)
+
+    def forget(self, app: str) -> None:
+        """Drop what the engine keeps about an app that stopped."""
+        self.app_policies.pop(app, None)
+        self.route_rule.forget(app)
+
+    def evaluate(self, snap: Snapshot) -> list[Action]:
+        self.evaluations += 1
+        seen: dict[tuple[Any, ...], str] = {}
+        proposals = self.route_rule.propose(snap)
+        for app in snap.apps():
+            policy = self.policy_for(app)
+            view = snap.for_app(app)
+            try:
+                asked = list(policy.actions(view))
+                relocations = RelocationRule(policy, self.settings).propose(view)
+            except Exception as exc:  # user code: report it, keep the node running
+                what = f"policy {policy.name} for {app}"
+                self._note(
+                    seen, ("error", app), snap.now, what, f"error: {type(exc).__name__}: {exc}"
+                )
+                continue
+            for act in asked:
+                proposal, problem = self._check(act, view, policy)
+                if proposal is None:
+                    decision = f"ignored: {problem}"
+                    self._note(seen, ("ignored", repr(act)), snap.now, str(act), decision)
+                else:
+                    proposals.append(proposal)
+            proposals.extend(relocations)
+        allowed: list[Action] = []
+        for p, why in self.guard.review(proposals, snap):
+            a = p.action
+            if why is None:
+                allowed.append(a)
+                if isinstance(a, RemapChain):
+                    chain = snap.chain(a.app, a.chain)
+                    if chain is not None:
+                        self.route_rule.done(chain)
+            self._note(seen, a.key, snap.now, str(a), "allowed" if why is None else f"held: {why}")
+        self._last = seen
+        return allowed
+
+    def _check(self, act: object, snap: Snapshot, policy: Policy) -> tuple[Proposal | None, str]:
+        """A policy's own action as a proposal, or why it cannot be one."""
+        rule = f"policy {policy.name}"
+        if isinstance(act, Relocate):
+            v = snap.vertex(act.vertex_key)
+            if v is None:
+                return None, f"{act.vertex_key} is not hosted on {snap.here}"
+            if not v.movable:
+                return None, f"{v.key} is a chain end or pinned: never relocated"
+            if act.target == v.node:
+                return None, f"{v.key} already runs on {v.node}"
+            if act.target not in snap.nodes:
+                return None, f"no view of node {act.target}"
+            return Proposal(act, self.settings.confirm, 0.0, rule), ""
+        if isinstance(act, RemapChain):
+            chain = snap.chain(act.app, act.chain)
+            if chain is None or not chain.coordinator:
+                return None, f"{snap.here} does not coordinate {act.app} chain {act.chain}"
+            return Proposal(act, self.settings.slo_confirm, 0.0, rule), ""
+        return None, f"not an action: {act!r}"
+
+    def _note(
+        self,
+        seen: dict[tuple[Any, ...], str],
+        key: tuple[Any, ...],
+        now: float,
+        what: str,
+        decision: str,
+    ) -> None:
+        seen[key] = decision
+        if self._last.get(key) != decision:
+            self.log.append((now, what, decision))
+
+    def status(self) -> dict[str, Any]:
+        """Policies, settings and recent decisions, for ``mso status``."""
+        s = self.settings
+        return {
+            "policy": self.policy.name,
+            "app_policies": {a: p.name for a, p in sorted(self.app_policies.items())},
+            "settings": {name: getattr(s, name) for name in s.__dataclass_fields__},
+            "evaluations": self.evaluations,
+            "decisions": [f"{t:.1f} {what}: {d}" for t, what, d in self.log],
+        }
