@@ -272,7 +272,17 @@ def _resolve_via(via: str | None) -> str:
     return addr
 
 
-NODE_CONFIG_KEYS = {"id", "listen", "cpu", "key", "peers", "battery_wh", "power"}
+NODE_CONFIG_KEYS = {
+    "id",
+    "listen",
+    "cpu",
+    "key",
+    "peers",
+    "battery_wh",
+    "power",
+    "policy",
+    "manage",
+}
 
 
 def _node_config(path: Path) -> dict[str, Any]:
@@ -316,6 +326,8 @@ def _node_config(path: Path) -> dict[str, Any]:
             )
         if k in ("cpu", "battery_wh") and (isinstance(v, bool) or not isinstance(v, int | float)):
             raise SpecError(f"expected a number > 0, got {v!r}", file=doc.file, line=line, field=k)
+        if k == "manage" and not isinstance(v, bool):
+            raise SpecError(f"expected true or false, got {v!r}", file=doc.file, line=line, field=k)
         if k in ("id", "listen", "key") and not isinstance(v, str):
             raise SpecError(f"expected a string, got {v!r}", file=doc.file, line=line, field=k)
     return data
@@ -339,6 +351,16 @@ def _node_config(path: Path) -> dict[str, Any]:
     multiple=True,
     help="A static neighbour NODE=HOST:PORT (repeat); without it the emulator sets neighbours.",
 )
+@click.option(
+    "--policy",
+    help="Management policy for apps that name none: lifetime (default), energy, balance, "
+    "delay, or pkg.module:Attr.",
+)
+@click.option(
+    "--manage/--no-manage",
+    default=None,
+    help="Run the management rules (default on); off keeps every placement as deployed.",
+)
 @key_option
 @click.option("-v", "--verbose", is_flag=True)
 @_user_errors
@@ -350,6 +372,8 @@ def node(
     battery_wh: float | None,
     power: str | None,
     peers: tuple[str, ...],
+    policy: str | None,
+    manage: bool | None,
     key: str | None,
     verbose: bool,
 ) -> None:
@@ -380,6 +404,8 @@ def node(
         verbose,
         model,
         battery,
+        policy if policy is not None else cfg.get("policy"),
+        manage if manage is not None else cfg.get("manage", True),
     )
 
 
@@ -392,6 +418,8 @@ def _node(
     verbose: bool,
     power: Any = None,
     battery_wh: float | None = None,
+    policy: Any = None,
+    manage: bool = True,
 ) -> None:
     import asyncio
     import logging
@@ -416,8 +444,11 @@ def _node(
         phost, pport = parse_address(addr)
         static[name] = [phost, pport, None, 0.0, 0.0]
 
+    core = NodeCore(  # checks the policy before anything listens
+        node_id, capacity=cpu, power=power, battery_wh=battery_wh, policy=policy, manage=manage
+    )
+
     async def serve() -> None:
-        core = NodeCore(node_id, capacity=cpu, power=power, battery_wh=battery_wh)
         driver = NodeDriver(core, host, port, overlay_key(key))
         try:
             await driver.start()

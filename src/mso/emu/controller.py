@@ -81,6 +81,8 @@ class Emulator:
     dead: dict[str, float] = field(default_factory=dict)  # node -> when its process died
     killed: set[str] = field(default_factory=set)  # killed on purpose (scenario, benchmark)
     _watch_task: asyncio.Task[None] | None = None
+    policy: str | None = None  # every node's policy (apps may name their own)
+    manage: bool = True  # run the management rules on the nodes
 
     async def start(self, timeout: float = 20.0) -> None:
         names = list(self.scenario.network.nodes)
@@ -106,6 +108,10 @@ class Emulator:
             ]  # fmt: skip
             if spec.battery_wh is not None:
                 cmd += ["--battery-wh", str(spec.battery_wh)]
+            if self.policy is not None:
+                cmd += ["--policy", self.policy]
+            if not self.manage:
+                cmd.append("--no-manage")
             with log.open("wb") as out:
                 proc = subprocess.Popen(
                     cmd, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True

@@ -24,10 +24,12 @@ from typing import Any
 import msgspec
 
 from mso.errors import MsoError
+from mso.management import RuleSettings, load_policy
 from mso.model.app import App, Edge
 from mso.model.appfile import loads_app
 from mso.model.network import PowerModel
 from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, Liveness
+from mso.node.manager import Manager
 from mso.node.monitor import Monitor
 from mso.node.stone import Stone
 from mso.planning.placement import Hop, Layout
@@ -147,6 +149,9 @@ class Deployment:
     restoring: dict[str, Restoring] = field(default_factory=dict)  # replacements awaiting
     recoveries: list[dict[str, Any]] = field(default_factory=list)  # what was done, bounded
     delays: dict[int, float] = field(default_factory=dict)  # at a tail's node: chain -> ms
+    moved: dict[str, tuple[float, str]] = field(default_factory=dict)  # vertex -> (when, from)
+    placed_at: dict[int, float] = field(default_factory=dict)  # chain -> when last (re)mapped
+    route_changed: dict[int, float] = field(default_factory=dict)  # chain -> last route change
     chain_delay: dict[int, tuple[float, float]] = field(default_factory=dict)  # at a head's
     # at the origin only
     built: set[int] = field(default_factory=set)
@@ -169,6 +174,9 @@ class NodeCore:
         battery_wh: float | None = None,
         heartbeat_s: float = HEARTBEAT_S,
         dead_after_s: float = DEAD_AFTER_S,
+        policy: Any = None,
+        manage: bool = True,
+        rules: RuleSettings | None = None,
     ) -> None:
         self.id = node_id
         self.capacity = capacity
@@ -207,6 +215,8 @@ class NodeCore:
         self._early: dict[str, list[tuple[str, m.Message]]] = {}
         self._status_wait: dict[int, tuple[int, dict[str, Any], set[str]]] = {}
         self.dead: set[str] = set()  # nodes known to have failed (fail-stop)
+        # management rules and policies (§3.5); the node policy is checked here, at start
+        self.manager = Manager(self, policy, rules, enabled=manage)
 
     # -- entry points -----------------------------------------------------------------------
     def _elapsed_ms(self, since: float) -> float:
@@ -226,8 +236,13 @@ class NodeCore:
         """Take the routing view's current routes; returns effects (a recovery waiting for
         routes around a failed node may start)."""
         self._now = now
-        self.routes = {d: r for d, r in routes.items() if d != self.id}
+        old, self.routes = self.routes, {d: r for d, r in routes.items() if d != self.id}
         self.monitor.note_routes(now, self.routes)
+        changed = {d for d in set(old) | set(self.routes) if old.get(d) != self.routes.get(d)}
+        for dep in self.apps.values():  # a route inside a chain changed (the route rule's event)
+            for c in dep.layout.chains:
+                if changed & {dep.placed.get(v) for v in c.vertices}:
+                    dep.route_changed[c.index] = now
         neighbours = {d for d, (hop, _) in self.routes.items() if hop == d}
         self.liveness.set_routes(now, set(self.routes) - self.dead, neighbours)
         for dep in list(self.apps.values()):
@@ -280,6 +295,7 @@ class NodeCore:
         elif kind == "monitor":
             self._sample(now)
             self._report_delays(now)
+            self.manager.tick(now)
             self._effects.append(SetTimer(("monitor",), now + MONITOR_PERIOD_S))
         elif kind == "heartbeat":
             self._heartbeat(now)
@@ -354,6 +370,7 @@ class NodeCore:
         elif isinstance(msg, m.StopApp):
             self.apps.pop(msg.app, None)
             self._early.pop(msg.app, None)
+            self.manager.forget(msg.app)
         elif isinstance(msg, m.DeployFailed):
             self._on_deploy_failed(msg, now)
         elif isinstance(msg, m.StatusRequest):
@@ -373,11 +390,14 @@ class NodeCore:
         elif isinstance(msg, m.Switch):
             self._on_switch(msg)
         elif isinstance(msg, m.Handover):
-            self._on_handover(msg, now)
+            self._on_handover(src, msg, now)
         elif isinstance(msg, m.Moved):
             dep = self.apps.get(msg.app)
             if dep is not None and msg.vertex in dep.placed:
                 dep.placed[msg.vertex] = msg.node
+                for c in dep.layout.chains:
+                    if msg.vertex in c.vertices:
+                        dep.placed_at[c.index] = now
         elif isinstance(msg, m.HandoverDone):
             self._on_handover_done(msg, now)
         elif isinstance(msg, m.ChainDelay):
@@ -399,6 +419,7 @@ class NodeCore:
     def _deploy_request(self, client: int, req: m.DeployRequest, now: float) -> None:
         try:
             app = loads_app(req.document, file=req.file)
+            load_policy(app.policy, where=f"{req.file}: policy")
         except MsoError as exc:
             self._effects.append(Reply(client, _failed_reply("", str(exc))))
             return
@@ -426,6 +447,7 @@ class NodeCore:
             return
         try:
             app = loads_app(msg.document, file=f"<{msg.app}>")
+            self.manager.app_policy(app.name, app.policy, where=f"{self.id}: {app.name}: policy")
         except MsoError as exc:
             self._send(msg.origin, m.DeployFailed(app=msg.app, reason=f"{self.id}: {exc}"))
             return
@@ -581,6 +603,7 @@ class NodeCore:
             return
         dep.running = True
         dep.started_at = now
+        dep.placed_at = dict.fromkeys(range(len(dep.layout.chains)), now)
         for vid, stone in dep.stones.items():
             if stone.kind == "source":
                 self._effects.append(SetTimer(("source", msg.app, vid), now))
@@ -621,7 +644,7 @@ class NodeCore:
         stone.emitted += burst
         self.work_ms += stone.vertex.cost * burst
         if events:
-            self._emit(dep, edges, events, now, -1)
+            stone.bytes_out += self._emit(dep, edges, events, now, -1) * len(edges)
         if rate:  # keep the schedule, so late firings do not slow the rate down
             period = 1.0 / rate
             at = stone.next_at + period if stone.next_at else now + period
@@ -634,10 +657,10 @@ class NodeCore:
 
     def _emit(
         self, dep: Deployment, edges: Iterable[int], events: list[Any], ts: float, chain: int
-    ) -> None:
-        """Encode ``events`` once and send them on every edge in ``edges``. ``ts`` is when they
-        entered chain ``chain``: an edge of that chain carries it on, an edge that starts
-        another chain starts it from now."""
+    ) -> int:
+        """Encode ``events`` once and send them on every edge in ``edges``; returns their size
+        in bytes. ``ts`` is when they entered chain ``chain``: an edge of that chain carries it
+        on, an edge that starts another chain starts it from now."""
         encode = msgspec.msgpack.encode
         payloads = [encode(ev) for ev in events]
         for e in edges:
@@ -657,6 +680,7 @@ class NodeCore:
                     del self._outbox[key]
                     data = m.Data(dep.app.name, e, dep.epoch, batch[0], batch[1], batch[2])
                     self._effects.append(Send(dst_node, data))
+        return sum(map(len, payloads))
 
     def _deliver(
         self, dep: Deployment, edge: int, seq: int, events: list[bytes], ts: float = 0.0
@@ -725,6 +749,7 @@ class NodeCore:
                     outs.append(result)
         stone.cpu_s += self.cpu_clock() - t0
         stone.processed += len(payloads)
+        stone.bytes_in += sum(map(len, payloads))
         self.work_ms += stone.vertex.cost * len(payloads)
         ch.mark_processed(len(payloads))
         chain = dep.layout.edge_chain[edge]
@@ -737,7 +762,8 @@ class NodeCore:
         out_edges = dep.out_edges.get(e.dst, [])
         if outs and out_edges:
             stone.emitted += len(outs)
-            self._emit(dep, out_edges, outs, ts, dep.layout.edge_chain[edge])
+            sent = self._emit(dep, out_edges, outs, ts, dep.layout.edge_chain[edge])
+            stone.bytes_out += sent * len(out_edges)
         if out_edges:  # chained acks: the inputs are acked once the outputs are
             if ch.released is None:
                 ch.released = ch._acked
@@ -878,6 +904,14 @@ class NodeCore:
             raise MsoError(f"{vertex!r} already runs on its {where} node {here}")
         return target
 
+    def relocate(self, req: m.RelocateRequest, now: float) -> None:
+        """Start a relocation this node coordinates (the management rules' entry point)."""
+        self._relocate_request(None, req, now)
+
+    def remap(self, req: m.RemapRequest, now: float) -> None:
+        """Start a chain or global remap this node coordinates."""
+        self._remap_request(None, req, now)
+
     def _relocate_request(self, client: int | None, msg: m.RelocateRequest, now: float) -> None:
         dep = self.apps.get(msg.app)
         if dep is None or not dep.running:
@@ -1014,10 +1048,11 @@ class NodeCore:
         self._send(msg.to, handover)
         self._broadcast(m.Moved(dep.app.name, vid, msg.to))
 
-    def _on_handover(self, msg: m.Handover, now: float) -> None:
+    def _on_handover(self, src: str, msg: m.Handover, now: float) -> None:
         dep = self.apps.get(msg.app)
         if dep is None or msg.vertex not in dep.awaiting:
             return
+        dep.moved[msg.vertex] = (now, src)
         stone = dep.awaiting.pop(msg.vertex)
         stone.set_state(msgspec.msgpack.decode(msg.state))
         stone.processed, stone.emitted = msg.processed, msg.emitted
@@ -1423,6 +1458,7 @@ class NodeCore:
         carries the numbers it had and consumers drop it as duplicates."""
         restoring = dep.restoring.pop(vertex)
         stone = dep.awaiting.pop(vertex)
+        dep.moved[vertex] = (self._now, dep.placed[vertex])
         dep.stones[vertex] = stone
         dep.placed[vertex] = self.id
         for o in dep.out_edges.get(vertex, []):
@@ -1493,6 +1529,7 @@ class NodeCore:
             "apps": apps,
             "dropped_messages": self.dropped_messages,
             "failed_nodes": sorted(self.dead),
+            "management": self.manager.status(),
             "failures": list(self.failures),
             "heard": {
                 n: {"at": t, "load": b.load, "drain_w": b.drain_w, "lifetime_s": b.lifetime_s}

@@ -46,6 +46,8 @@ class Stone:
         self.emitted = 0
         self.errors = 0
         self.cpu_s = 0.0
+        self.bytes_in = 0  # encoded size of the events it consumed and produced
+        self.bytes_out = 0
         self.last_error = ""
 
     def stats(self) -> Any:

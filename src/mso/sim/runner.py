@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from mso.management import RuleSettings
 from mso.model.network import Network
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
 from mso.protocol import messages as m
@@ -37,6 +38,9 @@ class Simulation:
         hop_latency_s: float = 50e-6,
         window: int = 4096,
         wire: bool = True,
+        policy: Any = None,
+        manage: bool = True,
+        rules: RuleSettings | None = None,
     ) -> None:
         self.network = network
         self.wire = wire  # pass every message through the real encoding, as the wire does
@@ -50,6 +54,9 @@ class Simulation:
                 window=window,
                 power=spec.power,
                 battery_wh=spec.battery_wh,
+                policy=policy,
+                manage=manage,
+                rules=rules,
             )
             for n, spec in network.nodes.items()
         }

@@ -1,0 +1,242 @@
+"""The node's management loop (paper §3.5): what the rules see, and what they ask for.
+
+Each monitor period the node describes itself — its own monitor, what its neighbours said in
+their heartbeats, the vertices it hosts with their measured rates and traffic, the chains that
+touch it with their measured delay and route changes — as a :class:`~mso.management.Snapshot`,
+and hands it to the :class:`~mso.management.RuleEngine`. The actions allowed by the engine's
+guard are carried out by the same relocation and remap procedures a user triggers. Decisions
+stay local: a node only moves the vertices it hosts and only remaps the chains whose head it
+holds, so no two nodes act on the same thing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import msgspec
+
+from mso.errors import MsoError
+from mso.management import (
+    ChainView,
+    NodeView,
+    Relocate,
+    RemapChain,
+    RuleEngine,
+    RuleSettings,
+    Snapshot,
+    VertexView,
+    load_policy,
+)
+from mso.model.network import PowerModel
+
+if TYPE_CHECKING:
+    from mso.management import Action
+    from mso.node.core import Deployment, NodeCore
+
+SMOOTHING = 0.3  # weight of the newest period in the rates
+
+
+@dataclass
+class _Rates:
+    """Smoothed per-vertex rates from the stone's cumulative counters."""
+
+    at: float
+    count: int
+    bytes_in: int
+    bytes_out: int
+    rate: float = 0.0
+    in_bps: float = 0.0
+    out_bps: float = 0.0
+
+    def update(self, now: float, count: int, bytes_in: int, bytes_out: int) -> None:
+        dt = now - self.at
+        if dt <= 0:
+            return
+        a = SMOOTHING
+        self.rate = a * (count - self.count) / dt + (1 - a) * self.rate
+        self.in_bps = a * (bytes_in - self.bytes_in) / dt + (1 - a) * self.in_bps
+        self.out_bps = a * (bytes_out - self.bytes_out) / dt + (1 - a) * self.out_bps
+        self.at, self.count, self.bytes_in, self.bytes_out = now, count, bytes_in, bytes_out
+
+
+class Manager:
+    """Builds snapshots for the rule engine and carries out what it allows."""
+
+    def __init__(
+        self,
+        core: NodeCore,
+        policy: Any = None,
+        settings: RuleSettings | None = None,
+        enabled: bool = True,
+    ) -> None:
+        self.core = core
+        self.enabled = enabled
+        self.engine = RuleEngine(load_policy(policy, where="node policy"), settings)
+        self._rates: dict[tuple[str, str], _Rates] = {}
+        self.done: list[str] = []  # actions carried out, most recent last (bounded)
+
+    def app_policy(self, app: str, spec: Any, where: str) -> None:
+        """Manage ``app`` by the policy its file names (MsoError if it cannot be loaded)."""
+        self.engine.set_app_policy(app, None if spec is None else load_policy(spec, where=where))
+
+    def forget(self, app: str) -> None:
+        self.engine.forget(app)
+        for key in [k for k in self._rates if k[0] == app]:
+            del self._rates[key]
+
+    # -- one evaluation ---------------------------------------------------------------------
+    def tick(self, now: float) -> None:
+        self._measure(now)
+        if not self.enabled:
+            return
+        snap = self.snapshot(now)
+        if not snap.vertices and not snap.chains:
+            return
+        for action in self.engine.evaluate(snap):
+            self._carry_out(action, now)
+
+    def _measure(self, now: float) -> None:
+        for dep in self.core.apps.values():
+            for vid, stone in dep.stones.items():
+                count = stone.emitted if stone.kind == "source" else stone.processed
+                key = (dep.app.name, vid)
+                r = self._rates.get(key)
+                if r is None:
+                    self._rates[key] = _Rates(now, count, stone.bytes_in, stone.bytes_out)
+                else:
+                    r.update(now, count, stone.bytes_in, stone.bytes_out)
+
+    def snapshot(self, now: float) -> Snapshot:
+        core = self.core
+        mon = core.monitor
+        nodes = {
+            core.id: NodeView(
+                core.id,
+                core.capacity,
+                core.power,
+                mon.load,
+                mon.drain_w,
+                mon.remaining_j,
+                mon.lifetime_s,
+                now,
+            )
+        }
+        for n, (at, beat) in core.liveness.heard.items():
+            if n not in core.dead:
+                nodes[n] = NodeView(
+                    n,
+                    beat.cpu,
+                    PowerModel(*beat.power),
+                    beat.load,
+                    beat.drain_w,
+                    beat.remaining_j,
+                    beat.lifetime_s,
+                    at,
+                )
+        vertices: list[VertexView] = []
+        chains: list[ChainView] = []
+        for dep in core.apps.values():
+            if not dep.running or dep.recovering is not None:
+                continue
+            vertices += self._vertices(dep, now)
+            chains += self._chains(dep)
+        return Snapshot(now, core.id, nodes, tuple(vertices), tuple(chains))
+
+    def _vertices(self, dep: Deployment, now: float) -> list[VertexView]:
+        core, lay = self.core, dep.layout
+        out = []
+        for vid, stone in sorted(dep.stones.items()):
+            chain = next(c.index for c in lay.chains if vid in c.vertices)
+            try:
+                core.relocation_target(dep, vid)
+                movable = True
+            except MsoError:
+                movable = False
+            up = down = None
+            state = 0
+            if movable:
+                up = _target(core, dep, vid, "upstream")
+                down = _target(core, dep, vid, "downstream")
+                try:
+                    state = len(msgspec.msgpack.encode(stone.get_state()))
+                except Exception:  # user code: a state that cannot be taken pins the vertex
+                    movable = False
+            r = self._rates.get((dep.app.name, vid))
+            moved = dep.moved.get(vid)
+            out.append(
+                VertexView(
+                    dep.app.name,
+                    vid,
+                    core.id,
+                    chain,
+                    float(dep.app.vertices[vid].cost),
+                    r.rate if r else 0.0,
+                    r.in_bps if r else 0.0,
+                    r.out_bps if r else 0.0,
+                    state,
+                    up,
+                    down,
+                    movable,
+                    moved[0] if moved else None,
+                    moved[1] if moved else None,
+                )
+            )
+        return out
+
+    def _chains(self, dep: Deployment) -> list[ChainView]:
+        core = self.core
+        out = []
+        for c in dep.layout.chains:
+            nodes = tuple(dep.placed[v] for v in c.vertices)
+            if core.id not in nodes:
+                continue
+            coordinator = nodes[0] == core.id
+            if coordinator and c.index in dep.chain_delay:
+                delay: float | None = dep.chain_delay[c.index][0]
+            else:
+                delay = dep.delays.get(c.index)
+            out.append(
+                ChainView(
+                    dep.app.name,
+                    c.index,
+                    c.vertices,
+                    nodes,
+                    delay,
+                    dep.app.slo_ms,
+                    dep.route_changed.get(c.index),
+                    coordinator,
+                    dep.placed_at.get(c.index),
+                )
+            )
+        return out
+
+    def _carry_out(self, action: Action, now: float) -> None:
+        from mso.protocol import messages as m
+
+        core = self.core
+        dep = core.apps.get(action.app)
+        if dep is None or not dep.running or dep.recovering is not None:
+            return
+        if isinstance(action, Relocate):
+            core.relocate(m.RelocateRequest(action.app, action.vertex, target=action.target), now)
+        elif isinstance(action, RemapChain):
+            core.remap(m.RemapRequest(action.app, [action.chain]), now)
+        self.done.append(f"{now:.1f} {action}")
+        del self.done[:-50]
+
+    def status(self) -> dict[str, Any]:
+        return self.engine.status() | {"enabled": self.enabled, "done": list(self.done)}
+
+
+def _target(core: NodeCore, dep: Deployment, vid: str, direction: str) -> str | None:
+    """One hop of a relocation (§3.4.1): the neighbour on the way to where an upstream or
+    downstream relocation would take ``vid``. Moving a hop at a time keeps every move cheap to
+    weigh (a neighbour's figures are known from its heartbeats) and easy to undo."""
+    try:
+        target = core.relocation_target(dep, vid, direction)
+    except MsoError:
+        return None
+    route = core.routes.get(target)
+    hop = route[0] if route is not None else None
+    return hop if hop is not None and hop not in core.dead else None

@@ -1,0 +1,149 @@
+"""Management rules running inside the nodes, in virtual time: each fires on its event and not
+otherwise, a policy named in the app is loaded and obeyed, a flapping link causes no remap."""
+
+from __future__ import annotations
+
+from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
+from mso.protocol import messages as m
+from mso.sim.runner import Simulation
+from runtime_vertices import pipe_app
+
+POWER = PowerModel(idle_w=1.0, cpu_w=6.0)
+
+WORK = """
+name: work
+vertices:
+  src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 50, cost: 0.1,
+        output: runtime_vertices:Num}
+  work: {code: runtime_vertices:Double, cost: 20, output: runtime_vertices:Num}
+  sink: {code: runtime_vertices:Recorder, pinned: N3, cost: 0.1}
+edges: [[src, work], [work, sink]]
+"""
+
+
+def robots(leader_wh: float) -> Network:
+    """A fast leader (so Algorithm 1 puts the costly vertex on it) with a given battery."""
+    nodes = [
+        NodeSpec("N1", cpu=4.0, battery_wh=leader_wh, power=POWER),
+        NodeSpec("N2", battery_wh=5.0, power=POWER),
+        NodeSpec("N3", battery_wh=5.0, power=POWER),
+    ]
+    return Network(nodes, [LinkSpec("N1", "N2", delay_ms=1), LinkSpec("N2", "N3", delay_ms=1)])
+
+
+def deployed(net: Network, doc: str, **kw: object) -> Simulation:
+    sim = Simulation(net, **kw)  # type: ignore[arg-type]
+    sim.request("N1", m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(1.0)
+    (reply,) = [r for _, _, r in sim.replies if isinstance(r, m.DeployReply)]
+    assert reply.ok, reply.error
+    return sim
+
+
+def sink(sim: Simulation, app: str, node: str) -> dict[str, int]:
+    out: dict[str, int] = sim.cores[node].apps[app].stones["sink"].stats()
+    return out
+
+
+def test_energy_rule_moves_work_off_a_poor_battery_and_loses_nothing() -> None:
+    sim = deployed(robots(leader_wh=0.5), WORK)
+    assert sim.cores["N1"].apps["work"].placed["work"] == "N1"
+    sim.run_until(15.0)
+    placed = sim.cores["N3"].apps["work"].placed
+    assert placed["work"] == "N2"  # one hop downstream, off the leader
+    (done,) = sim.cores["N1"].manager.done
+    assert "relocate work/work -> N2" in done and "lifetime" in done
+    decisions = sim.cores["N1"].manager.status()["decisions"]
+    ends = ("held: confirming 1/3", "held: confirming 2/3", "allowed")
+    assert [d.endswith(e) for d, e in zip(decisions, ends, strict=False)] == [True] * 3
+    got = sink(sim, "work", "N3")
+    sent = sim.cores["N1"].apps["work"].stones["src"].emitted
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
+    assert sent - 3 <= got["count"] <= sent
+
+
+def test_energy_rule_stays_put_when_nothing_is_gained() -> None:
+    sim = deployed(robots(leader_wh=5.0), WORK)  # equal batteries: the fast leader is best
+    sim.run_until(15.0)
+    assert sim.cores["N1"].apps["work"].placed["work"] == "N1"
+    assert all(not c.manager.done for c in sim.cores.values())
+
+
+def test_no_rule_runs_when_management_is_off() -> None:
+    sim = deployed(robots(leader_wh=0.5), WORK, manage=False)
+    sim.run_until(15.0)
+    assert sim.cores["N1"].apps["work"].placed["work"] == "N1"
+
+
+def test_a_policy_named_in_the_app_is_loaded_and_obeyed() -> None:
+    doc = WORK.replace("name: work", "name: work\npolicy: {code: custom_policy:PreferNode, "
+                       "params: {node: N2}}")  # fmt: skip
+    sim = deployed(robots(leader_wh=5.0), doc)  # lifetime would keep it on N1 (test above)
+    sim.run_until(15.0)
+    assert sim.cores["N1"].apps["work"].placed["work"] == "N2"
+    assert "prefer-node" in sim.cores["N1"].manager.status()["app_policies"].values()
+
+
+def test_a_policy_that_cannot_be_loaded_fails_the_deployment_clearly() -> None:
+    sim = Simulation(robots(leader_wh=5.0))
+    sim.request(
+        "N1", m.DeployRequest(WORK.replace("name: work", "name: work\npolicy: fast"), "w.yaml")
+    )
+    sim.run_until(1.0)
+    (reply,) = [r for _, _, r in sim.replies if isinstance(r, m.DeployReply)]
+    assert not reply.ok
+    assert reply.error.startswith("w.yaml: policy: unknown policy 'fast'")
+    assert all(not c.apps for c in sim.cores.values())
+
+
+SQUARE = [("N1", "N2"), ("N2", "N4"), ("N1", "N3"), ("N3", "N4")]
+
+
+def square() -> Network:
+    nodes = [NodeSpec(f"N{i}") for i in range(1, 5)]
+    return Network(nodes, [LinkSpec(a, b, delay_ms=1) for a, b in SQUARE])
+
+
+def remaps(sim: Simulation) -> list[str]:
+    return [d for c in sim.cores.values() for d in c.manager.done if "remap" in d]
+
+
+def test_a_route_change_inside_a_chain_remaps_it_once_routes_settle() -> None:
+    sim = deployed(square(), pipe_app(100))
+    mid = sim.cores["N1"].apps["pipe"].placed["mid"]
+    assert mid in ("N2", "N3")
+    other = "N3" if mid == "N2" else "N2"
+    sim.run_until(5.0)
+    assert remaps(sim) == []  # no route changed: nothing to do
+    sim.network.remove_link(mid, "N4")  # the chain's route now runs the other way
+    sim.update_routes()
+    sim.run_until(7.0)
+    assert remaps(sim) == []  # settling (route_settle_s = 3 s)
+    sim.run_until(12.0)
+    (done,) = remaps(sim)
+    assert done.startswith("8.0 remap pipe chain 0")  # by the head's node, once
+    assert sim.cores["N4"].apps["pipe"].placed["mid"] == other
+    got = sink(sim, "pipe", "N4")
+    sent = sim.cores["N1"].apps["pipe"].stones["src"].emitted
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
+    assert sent - 5 <= got["count"] <= sent
+
+
+def test_a_link_flapping_every_second_never_triggers_a_remap_while_it_flaps() -> None:
+    sim = deployed(square(), pipe_app(50))
+    mid = sim.cores["N1"].apps["pipe"].placed["mid"]
+    t = 2.0
+    for k in range(30):  # down, up, down, ... once a second for 30 s
+        sim.run_until(t)
+        if k % 2 == 0:
+            sim.network.remove_link(mid, "N4")
+        else:
+            sim.network.add_link(LinkSpec(mid, "N4", delay_ms=1))
+        sim.update_routes()
+        t += 1.0
+    assert remaps(sim) == []
+    assert all(not c.dead for c in sim.cores.values())  # nobody was taken for dead either
+    sim.run_until(t + 10.0)
+    assert len(remaps(sim)) <= 1  # once it is stable, at most one remap
+    got = sink(sim, "pipe", "N4")
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
