@@ -249,7 +249,8 @@ def test_each_policy_prefers_its_own_objective(policy: Policy, choice: str | Non
     # lifetime: B on U leaves U 3333 s, on D leaves H 3600 s, staying 1200 s -> D.
     # energy: 6 W now, 4.5 W with B on U, 8 W on slow D -> U.
     # balance: max load 0.6 now, 0.85 on U, 1.1 on D -> stay.
-    rule = RelocationRule(policy, RuleSettings(margin=0.0))
+    # (D would be loaded past its CPU: allowed here to compare the objectives alone)
+    rule = RelocationRule(policy, RuleSettings(margin=0.0, max_load=2.0))
     targets = [p.action.target for p in rule.propose(three_way())]  # type: ignore[union-attr]
     assert targets == ([] if choice is None else [choice])
 
@@ -624,3 +625,12 @@ def test_status_shows_policy_settings_and_decisions() -> None:
     assert status["settings"]["confirm"] == 3
     assert status["decisions"][-1].startswith("2.0 relocate app/B -> U (")
     assert status["decisions"][-1].endswith(": allowed")
+
+
+def test_a_move_that_would_saturate_the_target_is_never_proposed() -> None:
+    """On D, B would load it to 1.1 (more than its CPU): lifetime's choice goes, U remains."""
+    view = three_way()
+    rule = RelocationRule(LifetimePolicy(), RuleSettings(margin=0.0))
+    assert [o.target for o in rule.options(view, view.vertices[0])] == [None, "U"]
+    loose = RelocationRule(LifetimePolicy(), RuleSettings(margin=0.0, max_load=2.0))
+    assert [o.target for o in loose.options(view, view.vertices[0])] == [None, "U", "D"]

@@ -19,6 +19,7 @@ from mso.errors import MsoError
 from mso.management.policy import (
     LifetimePolicy,
     Policy,
+    estimate,
     move_cost_split_j,
     neighbour_nodes,
     with_extra_drain,
@@ -47,13 +48,14 @@ class RuleSettings:
     route_settle_s: float = 3.0  # routes must be stable this long before a chain remap
     chain_interval_s: float = 15.0  # a chain is remapped at most once per interval
     slo_confirm: int = 3  # evaluations in a row a policy must ask for a remap
+    max_load: float = 1.0  # a move never loads its target's CPU beyond this (1.0 = saturated)
 
     def __post_init__(self) -> None:
         for name in ("confirm", "slo_confirm"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise MsoError(f"rule settings: {name}: expected an integer >= 1, got {value!r}")
-        for name in ("period_s", "horizon_s"):
+        for name in ("period_s", "horizon_s", "max_load"):
             value = getattr(self, name)
             if not _number(value) or value <= 0:
                 raise MsoError(f"rule settings: {name}: expected a positive number, got {value!r}")
@@ -255,6 +257,8 @@ class RelocationRule:
         for direction, node in (("upstream", v.upstream), ("downstream", v.downstream)):
             usable = node is not None and node != v.node and node in snap.nodes
             if node is not None and usable and all(node != t for _, t in targets):
+                if estimate(snap, {v.key: node})[node].load > self.settings.max_load:
+                    continue  # it would saturate the target's CPU: never worth it
                 targets.append((direction, node))
         if not targets:
             return []
