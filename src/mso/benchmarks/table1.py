@@ -651,7 +651,7 @@ async def measure(scenario: Scenario, runs: int, budget_s: float) -> dict[str, A
     """Every measurement on one emulated line."""
     logs = tempfile.TemporaryDirectory(prefix="mso-bench-table1-")
     pause = Path(logs.name) / "beats.pause"
-    emu = Emulator(scenario, log_dir=Path(logs.name))
+    emu = Emulator(scenario, log_dir=Path(logs.name), manage=False)  # operations alone
     b = Bench(emu, runs, time.monotonic() + budget_s, pause, APP_FILE.read_text(encoding="utf-8"))
     out: dict[str, Any] = {"scenario": scenario.name}
     t_start = time.monotonic()

@@ -27,7 +27,6 @@ from mso.model.imports import ImportPathError, resolve
 LIFETIME_CAP_S = 1e9
 """Lifetimes are compared up to this (≈ 32 years): a battery node that draws nothing yet."""
 
-TIE_S_PER_W = 1e-6
 """Weight of total drain in the lifetime score: breaks ties between equal minimum lifetimes only."""
 
 
@@ -188,13 +187,22 @@ def with_extra_drain(snap: Snapshot, watts: Mapping[str, float]) -> Snapshot:
 # -- scores over an estimate ---------------------------------------------------------------
 
 
-def lifetime_score(est: Mapping[str, NodeEstimate]) -> float:
-    """-(smallest battery lifetime), ties by total drain; total drain if no node has a battery."""
+Score = float | tuple[float, ...]
+"""Lower is better. A tuple is compared level by level: the first level that differs decides."""
+
+
+def lifetime_score(est: Mapping[str, NodeEstimate]) -> Score:
+    """Leximin over battery lifetimes: the smallest first (negated), then the next smallest,
+    and so on, then total drain; total drain alone if no node has a battery. A move that leaves
+    the shortest-lived node as it is can still lengthen the next one — how a node that is not
+    the bottleneck makes room for the bottleneck's work."""
     total = sum(e.drain_w for e in est.values())
-    lives = [e.lifetime_s for e in est.values() if e.lifetime_s is not None]
+    lives = sorted(
+        min(e.lifetime_s, LIFETIME_CAP_S) for e in est.values() if e.lifetime_s is not None
+    )
     if not lives:
         return total
-    return -min(min(lives), LIFETIME_CAP_S) + TIE_S_PER_W * total
+    return (*(-life for life in lives), total)
 
 
 def energy_score(est: Mapping[str, NodeEstimate]) -> float:
@@ -233,7 +241,7 @@ class Policy:
 
     name: str = "policy"
 
-    def score(self, snap: Snapshot, moves: Mapping[str, str]) -> float:
+    def score(self, snap: Snapshot, moves: Mapping[str, str]) -> Score:
         return lifetime_score(estimate(snap, moves))
 
     def actions(self, snap: Snapshot) -> list[Action]:
@@ -279,7 +287,7 @@ class DelayPolicy(Policy):
             raise ValueError(f"fallback must be one of {names}, got {fallback!r}")
         self.fallback: Policy = cls()
 
-    def score(self, snap: Snapshot, moves: Mapping[str, str]) -> float:
+    def score(self, snap: Snapshot, moves: Mapping[str, str]) -> Score:
         return self.fallback.score(snap, moves)
 
     def actions(self, snap: Snapshot) -> list[Action]:
@@ -302,8 +310,9 @@ class _Adapted(Policy):
         self.inner = inner
         self.name = name
 
-    def score(self, snap: Snapshot, moves: Mapping[str, str]) -> float:
-        return float(self.inner.score(snap, moves))
+    def score(self, snap: Snapshot, moves: Mapping[str, str]) -> Score:
+        got = self.inner.score(snap, moves)
+        return tuple(float(x) for x in got) if isinstance(got, tuple) else float(got)
 
     def actions(self, snap: Snapshot) -> list[Action]:
         act: Callable[[Snapshot], Any] | None = getattr(self.inner, "actions", None)

@@ -19,6 +19,7 @@ from mso.errors import MsoError
 from mso.management.policy import (
     LifetimePolicy,
     Policy,
+    Score,
     estimate,
     move_cost_split_j,
     neighbour_nodes,
@@ -94,8 +95,17 @@ class Proposal:
     rule: str = ""
 
 
-def improvement(base: float, new: float) -> float:
-    """How much better ``new`` is than ``base``, relative to ``|base|`` (0 if not better)."""
+def improvement(base: Score, new: Score) -> float:
+    """How much better ``new`` is than ``base``, relative to ``|base|`` (0 if not better). For
+    tuple scores, at the first level where they differ (a worse level there means 0)."""
+    if isinstance(base, tuple) or isinstance(new, tuple):
+        a = base if isinstance(base, tuple) else (base,)
+        b = new if isinstance(new, tuple) else (new,)
+        for x, y in zip(a, b, strict=False):
+            if math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-12):
+                continue
+            return improvement(x, y)
+        return 0.0
     if math.isnan(base) or math.isnan(new) or new >= base:
         return 0.0
     if math.isinf(base) or math.isinf(new) or base == 0:
@@ -226,7 +236,7 @@ class Option:
 
     target: str | None
     direction: str  # "stay", "upstream" or "downstream"
-    score: float
+    score: Score
     move_cost_j: float
 
 
@@ -265,12 +275,12 @@ class RelocationRule:
         pred, succ = neighbour_nodes(snap, v)
         involved = {v.node, *(t for _, t in targets), *(n for n in (pred, succ) if n is not None)}
         local = snap.with_nodes(involved)
-        opts = [Option(None, "stay", float(self.policy.score(local, {})), 0.0)]
+        opts = [Option(None, "stay", self.policy.score(local, {}), 0.0)]
         horizon = self.settings.horizon_s
         for direction, target in targets:
             tx_j, rx_j = move_cost_split_j(local, v, target)
             charged = with_extra_drain(local, {v.node: tx_j / horizon, target: rx_j / horizon})
-            score = float(self.policy.score(charged, {v.key: target}))
+            score = self.policy.score(charged, {v.key: target})
             opts.append(Option(target, direction, score, tx_j + rx_j))
         return opts
 
@@ -283,14 +293,14 @@ class RelocationRule:
             if len(opts) < 2:
                 continue
             stay = opts[0]
-            best = min(opts[1:], key=lambda o: (math.isnan(o.score), o.score, o.direction))
+            best = min(opts[1:], key=lambda o: (_nan(o.score), o.score, o.direction))
             gain = improvement(stay.score, best.score)
             if best.target is None or gain <= self.settings.margin:
                 continue
             shown = "inf" if math.isinf(gain) else f"{gain:.0%}"
             reason = (
-                f"{self.policy.name}, {best.direction}: score {stay.score:.4g} -> "
-                f"{best.score:.4g} ({shown} better, move {best.move_cost_j:.3g} J)"
+                f"{self.policy.name}, {best.direction}: score {_show(stay.score)} -> "
+                f"{_show(best.score)} ({shown} better, move {best.move_cost_j:.3g} J)"
             )
             action = Relocate(v.app, v.id, best.target, reason)
             out.append(Proposal(action, self.settings.confirm, gain, self.name))
@@ -471,3 +481,14 @@ class RuleEngine:
             "evaluations": self.evaluations,
             "decisions": [f"{t:.1f} {what}: {d}" for t, what, d in self.log],
         }
+
+
+def _nan(score: Score) -> bool:
+    return any(math.isnan(x) for x in (score if isinstance(score, tuple) else (score,)))
+
+
+def _show(score: Score) -> str:
+    """A score for the log: a tuple's first two levels are enough to see why."""
+    if isinstance(score, tuple):
+        return "(" + ", ".join(f"{x:.4g}" for x in score[:2]) + (", …)" if len(score) > 2 else ")")
+    return f"{score:.4g}"

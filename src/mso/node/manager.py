@@ -11,7 +11,7 @@ holds, so no two nodes act on the same thing.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections import deque
 from typing import TYPE_CHECKING, Any
 
 import msgspec
@@ -29,35 +29,33 @@ from mso.management import (
     load_policy,
 )
 from mso.model.network import PowerModel
+from mso.node.monitor import WINDOW
 
 if TYPE_CHECKING:
     from mso.management import Action
     from mso.node.core import Deployment, NodeCore
 
-SMOOTHING = 0.3  # weight of the newest period in the rates
 
-
-@dataclass
 class _Rates:
-    """Smoothed per-vertex rates from the stone's cumulative counters."""
+    """Per-vertex rates over the last ``WINDOW`` samples of the stone's cumulative counters:
+    a mean over a window, like the monitor's load, so a camera at 0.5 frames/s reads 0.5."""
 
-    at: float
-    count: int
-    bytes_in: int
-    bytes_out: int
-    rate: float = 0.0
-    in_bps: float = 0.0
-    out_bps: float = 0.0
+    def __init__(self, now: float, count: int, bytes_in: int, bytes_out: int) -> None:
+        self.samples: deque[tuple[float, int, int, int]] = deque(maxlen=WINDOW + 1)
+        self.samples.append((now, count, bytes_in, bytes_out))
+        self.rate = self.in_bps = self.out_bps = 0.0
 
     def update(self, now: float, count: int, bytes_in: int, bytes_out: int) -> None:
-        dt = now - self.at
-        if dt <= 0:
+        if now <= self.samples[-1][0]:
             return
-        a = SMOOTHING
-        self.rate = a * (count - self.count) / dt + (1 - a) * self.rate
-        self.in_bps = a * (bytes_in - self.bytes_in) / dt + (1 - a) * self.in_bps
-        self.out_bps = a * (bytes_out - self.bytes_out) / dt + (1 - a) * self.out_bps
-        self.at, self.count, self.bytes_in, self.bytes_out = now, count, bytes_in, bytes_out
+        self.samples.append((now, count, bytes_in, bytes_out))
+        t0, c0, i0, o0 = self.samples[0]
+        dt = now - t0
+        self.rate, self.in_bps, self.out_bps = (
+            (count - c0) / dt,
+            (bytes_in - i0) / dt,
+            (bytes_out - o0) / dt,
+        )
 
 
 class Manager:
@@ -74,6 +72,8 @@ class Manager:
         self.enabled = enabled
         self.engine = RuleEngine(load_policy(policy, where="node policy"), settings)
         self._rates: dict[tuple[str, str], _Rates] = {}
+        # work this node moved to a neighbour recently: its load figure has not caught up yet
+        self._sent: list[tuple[float, str, float]] = []  # (until, node, load added)
         self.done: list[str] = []  # actions carried out, most recent last (bounded)
 
     def app_policy(self, app: str, spec: Any, where: str) -> None:
@@ -122,13 +122,14 @@ class Manager:
                 now,
             )
         }
+        self._sent = [s for s in self._sent if s[0] > now]
         for n, (at, beat) in core.liveness.heard.items():
             if n not in core.dead:
                 nodes[n] = NodeView(
                     n,
                     beat.cpu,
                     PowerModel(*beat.power),
-                    beat.load,
+                    beat.load + sum(load for _, to, load in self._sent if to == n),
                     beat.drain_w,
                     beat.remaining_j,
                     beat.lifetime_s,
@@ -220,6 +221,11 @@ class Manager:
             return
         if isinstance(action, Relocate):
             core.relocate(m.RelocateRequest(action.app, action.vertex, target=action.target), now)
+            r = self._rates.get((action.app, action.vertex))
+            beat = core.liveness.heard.get(action.target)
+            if r is not None and beat is not None:
+                added = dep.app.vertices[action.vertex].cost * r.rate / 1e3 / beat[1].cpu
+                self._sent.append((now + WINDOW + 1, action.target, added))
         elif isinstance(action, RemapChain):
             core.remap(m.RemapRequest(action.app, [action.chain]), now)
         self.done.append(f"{now:.1f} {action}")

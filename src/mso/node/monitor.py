@@ -13,12 +13,16 @@ code is cheap, and the host is not the robot).
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
 from mso.model.network import PowerModel
 
-SMOOTHING = 0.3  # weight of the newest sample in the drain average
+# drain and load are means over the last few samples: steady enough for a camera at 0.5
+# frames/s (three frames in the window), quick enough that work moved here is fully seen 6 s
+# later (the management rules weigh moves with them)
+WINDOW = 6
 
 
 @dataclass
@@ -31,7 +35,7 @@ class Monitor:
     cpu_energy_j: float = 0.0
     radio_energy_j: float = 0.0
     drain_w: float = 0.0
-    load: float = 0.0  # modelled CPU utilisation, smoothed (1.0 = a fully busy CPU)
+    load: float = 0.0  # modelled CPU utilisation, recent mean (1.0 = a fully busy CPU)
     route_changes: int = 0
     neighbour_changes: int = 0
     last_route_change: float | None = None
@@ -39,6 +43,8 @@ class Monitor:
     _last: tuple[float, float, int, int] | None = None  # now, work_ms, bytes_out, bytes_in
     _neighbours: frozenset[str] = frozenset()
     _routes: dict[str, str] = field(default_factory=dict)
+    _busy: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
+    _watts: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
 
     @property
     def capacity_j(self) -> float | None:
@@ -77,11 +83,11 @@ class Monitor:
         self.cpu_energy_j += cpu_j
         self.radio_energy_j += radio_j
         watts = spent / dt
-        self.drain_w = (
-            watts if self.drain_w == 0 else (SMOOTHING * watts + (1 - SMOOTHING) * self.drain_w)
-        )
+        self._watts.append(watts)
+        self.drain_w = sum(self._watts) / len(self._watts)
         busy = max(0.0, work_ms - w0) / 1e3 / dt / self.cpu_speed
-        self.load = SMOOTHING * busy + (1 - SMOOTHING) * self.load
+        self._busy.append(busy)
+        self.load = sum(self._busy) / len(self._busy)
         self._last = (now, work_ms, bytes_out, bytes_in)
 
     def note_routes(self, now: float, routes: dict[str, tuple[str, int]]) -> None:
