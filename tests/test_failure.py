@@ -164,3 +164,33 @@ def test_a_silent_neighbour_is_declared_failed_within_the_deadline() -> None:
     assert seen and all(f["node"] == "N4" for f in seen)
     first = min(f["at"] for f in seen)
     assert 0.5 <= first - t0 <= 0.65  # dead_after_s, plus at most one heartbeat period
+
+
+def test_status_shows_the_failure_the_recovery_and_parked_chains() -> None:
+    from rich.console import Console
+
+    from mso.cli import render_status
+
+    net = mesh()  # two more links, so that losing two nodes does not partition it
+    net.add_link(LinkSpec("N1", "N3", delay_ms=1.0))
+    net.add_link(LinkSpec("N4", "N6", delay_ms=1.0))
+    sim = started(BRANCH, net)
+    victim = where(sim, "branch", "j")
+    assert victim != "N5"
+    sim.kill(victim, convergence_s=0.3)
+    sim.kill("N5", convergence_s=0.3)
+    sim.run_until(sim.now + 6.0)
+    nodes = {n: c.status(sim.now) for n, c in sim.cores.items() if n not in sim.dead}
+    console = Console(record=True, width=200)
+    render_status(console, nodes)
+    text = console.export_text()
+    assert f"failed nodes: {', '.join(sorted([victim, 'N5']))}" in text
+    assert "app branch: chain j-c-s2 parked: 's2' is pinned to failed node N5" in text
+    assert "recovered from" in text and "remap of" in text
+    assert "end-to-end delay" in text
+    # the parked branch drops its events (counted) instead of holding the other one back
+    got, sent = stats(sim, "branch", "s1"), emitted(sim, "branch", "src")
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
+    assert sent - 5 <= got["count"] <= sent, (got, sent)
+    dropped = [n for st in nodes.values() for n in st["apps"]["branch"]["dropped_parked"].values()]
+    assert sum(dropped) > 100

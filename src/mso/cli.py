@@ -676,8 +676,12 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
     for col in cols:
         table.add_column(col, justify="left" if col in ("node", "neighbours") else "right")
     apps: dict[str, dict[str, Any]] = {}
+    failed: set[str] = set()
+    decisions: list[str] = []
     for nid in sorted(nodes):
         st = nodes[nid]
+        failed.update(st.get("failed_nodes", []))
+        decisions += [f"{nid}: {d}" for d in st.get("management", {}).get("done", [])[-3:]]
         traffic = st.get("traffic", {})
         table.add_row(
             nid,
@@ -689,7 +693,24 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
             *_energy_cells(st.get("monitor", {})),
         )
         for name, app in st.get("apps", {}).items():
-            agg = apps.setdefault(name, {"vertices": {}, "edges": {}, "chains": app["chains"]})
+            agg = apps.setdefault(
+                name,
+                {"vertices": {}, "edges": {}, "chains": app["chains"], "delay": {}, "notes": []},
+            )
+            agg["delay"].update(app.get("chain_delay_ms", {}))
+            agg["parked"] = app.get("parked", {}) or agg.get("parked", {})
+            for rec in app.get("recoveries", []):
+                agg["notes"].append(
+                    f"{nid} recovered from {', '.join(rec['failed'])}: {rec['remap']} remap of "
+                    f"{', '.join(rec['chains'])} "
+                    + (
+                        f"in {rec['took_ms']:.1f} ms"
+                        if rec.get("ok")
+                        else f"failed: {rec['error']}"
+                        if rec.get("error")
+                        else "(in progress)"
+                    )
+                )
             for v, vs in app["vertices"].items():
                 agg["vertices"][v] = (nid, vs)
             for e, c in app["edges"].items():
@@ -698,12 +719,25 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
                     if val or k not in merged:
                         merged[k] = val
     console.print(table)
+    if failed:
+        console.print(f"failed nodes: {', '.join(sorted(failed))}")
+    for line in decisions:
+        console.print(f"rule: {line}")
     for name, app in apps.items():
         if app.get("chains"):
             console.print(
                 f"app {name}: chains "
                 + "  ".join(f"[{i}] {'-'.join(c)}" for i, c in enumerate(app["chains"]))
             )
+        if app.get("delay"):
+            console.print(
+                f"app {name}: end-to-end delay "
+                + "  ".join(f"{c} {ms:.2f} ms" for c, ms in sorted(app["delay"].items()))
+            )
+        for chain, why in sorted(app.get("parked", {}).items()):
+            console.print(f"app {name}: chain {chain} parked: {why}")
+        for note in app.get("notes", []):
+            console.print(f"app {name}: {note}")
         vt = Table(title=f"app {name}: vertices")
         for col in ("vertex", "node", "kind", "events", "cpu ms", "errors"):
             vt.add_column(col, justify="right" if col in ("events", "cpu ms", "errors") else "left")

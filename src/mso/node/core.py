@@ -145,6 +145,8 @@ class Deployment:
     blocked_sources: set[str] = field(default_factory=set)
     started_at: float = 0.0
     parked: dict[int, str] = field(default_factory=dict)  # chain -> why it cannot run
+    parked_edges: set[int] = field(default_factory=set)  # edges of parked chains
+    dropped: dict[int, int] = field(default_factory=dict)  # edge -> events a parked chain lost
     recovering: int | None = None  # the remap recovering from a failure, at its coordinator
     restoring: dict[str, Restoring] = field(default_factory=dict)  # replacements awaiting
     recoveries: list[dict[str, Any]] = field(default_factory=list)  # what was done, bounded
@@ -664,6 +666,9 @@ class NodeCore:
         encode = msgspec.msgpack.encode
         payloads = [encode(ev) for ev in events]
         for e in edges:
+            if e in dep.parked_edges:
+                dep.dropped[e] = dep.dropped.get(e, 0) + len(payloads)
+                continue
             seq = self._out(dep, e).push_many(payloads, self._now)
             dst_node = dep.placed[dep.app.edges[e].dst]
             t = ts if dep.layout.edge_chain[e] == chain else self._now
@@ -1308,12 +1313,25 @@ class NodeCore:
             self._maybe_recover(dep, now)
 
     def _park(self, dep: Deployment) -> None:
-        """Chains with a vertex pinned to a failed node cannot run anywhere: park them."""
+        """Chains with a vertex pinned to a failed node cannot run anywhere: park them. Their
+        edges stop carrying events (counted as dropped), so a dead sink on one branch does not
+        hold back, through acks and backpressure, the branches that still run."""
         for ci, chain in enumerate(dep.layout.chains):
             for v in chain.vertices:
                 pin = dep.app.vertices[v].pinned
                 if pin in self.dead and ci not in dep.parked:
                     dep.parked[ci] = f"{v!r} is pinned to failed node {pin}"
+        edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}
+        for e in sorted(edges - dep.parked_edges):
+            out = dep.out.get(e)
+            if out is not None and out.in_flight:
+                dep.dropped[e] = dep.dropped.get(e, 0) + out.in_flight
+                out.on_ack(out.next_seq, self._now)
+                producer = dep.app.edges[e].src
+                if producer in dep.stones:
+                    self._release(dep, producer)
+                self._unblock(dep, e)
+        dep.parked_edges |= edges
 
     def _maybe_recover(self, dep: Deployment, now: float) -> None:
         """Remap the chains that lost vertices with a failed node. Exactly one node acts for
@@ -1498,6 +1516,10 @@ class NodeCore:
                 "running": dep.running,
                 "parked": {dep.layout.chains[c].name: why for c, why in dep.parked.items()},
                 "recoveries": list(dep.recoveries),
+                "dropped_parked": {
+                    f"{dep.app.edges[e].src}->{dep.app.edges[e].dst}": n
+                    for e, n in sorted(dep.dropped.items())
+                },
                 "chain_delay_ms": {
                     dep.layout.chains[c].name: round(ms, 3) for c, ms in sorted(dep.delays.items())
                 },
