@@ -366,3 +366,55 @@ def test_a_killed_relay_is_detected_and_its_chain_recovered() -> None:
 def sink_at(status: dict[str, Any], node: str) -> dict[str, int]:
     stats: dict[str, int] = status[node]["apps"]["pipe"]["vertices"]["sink"]["stats"]
     return stats
+
+
+ROBOTS = """
+name: robots
+node_defaults: {power: {idle_w: 1.0, cpu_w: 6.0}, battery_wh: 5.0}
+link_defaults: {delay_ms: 0.5}
+nodes:
+  N1: {cpu: 4.0, battery_wh: 0.5}
+  N2: {}
+  N3: {}
+links: [[N1, N2], [N2, N3]]
+"""
+
+WORK = """
+name: work
+vertices:
+  src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 50, cost: 0.1,
+        output: runtime_vertices:Num}
+  work: {code: runtime_vertices:Double, cost: 20, output: runtime_vertices:Num}
+  sink: {code: runtime_vertices:Recorder, pinned: N3, cost: 0.1}
+edges: [[src, work], [work, sink]]
+"""
+
+
+def test_the_energy_rule_moves_work_between_node_processes() -> None:
+    """The same rules as in the simulator, on real processes: the poor leader's costly vertex
+    moves one hop downstream after the guard's confirmations, and the sink misses nothing."""
+
+    async def run() -> dict[str, Any]:
+        emu = Emulator(loads_scenario(ROBOTS))
+        await emu.start()
+        try:
+            reply = await emu.deploy(WORK, "work.yaml", "N1")
+            assert reply.ok and reply.placement["work"] == "N1", reply
+            for _ in range(40):  # bounded: about 10 s
+                await asyncio.sleep(0.25)
+                status = await emu.status("N1")
+                if "work" in status["N2"]["apps"]["work"]["vertices"]:
+                    break
+            await asyncio.sleep(0.5)
+            return await emu.status("N1")
+        finally:
+            await emu.stop()
+
+    status = asyncio.run(run())
+    assert "work" in status["N2"]["apps"]["work"]["vertices"]
+    done = status["N1"]["management"]["done"]
+    assert len(done) == 1 and "relocate work/work -> N2" in done[0]
+    got = status["N3"]["apps"]["work"]["vertices"]["sink"]["stats"]
+    sent = status["N1"]["apps"]["work"]["vertices"]["src"]["emitted"]
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
+    assert sent - 20 <= got["count"] <= sent

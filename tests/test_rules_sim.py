@@ -147,3 +147,24 @@ def test_a_link_flapping_every_second_never_triggers_a_remap_while_it_flaps() ->
     assert len(remaps(sim)) <= 1  # once it is stable, at most one remap
     got = sink(sim, "pipe", "N4")
     assert got["repeats"] == 0 and got["out_of_order"] == 0
+
+
+def slo_app(slo_ms: float) -> str:
+    return pipe_app(100).replace("name: pipe", f"name: pipe\nslo_ms: {slo_ms}\npolicy: delay")
+
+
+def test_a_violated_delay_slo_makes_the_head_remap_its_chain() -> None:
+    sim = deployed(square(), slo_app(1.0))  # three 1 ms hops: about 3 ms, over the SLO
+    sim.run_until(12.0)
+    done = remaps(sim)
+    assert done and all("remap pipe chain 0" in d and "SLO 1 ms" in d for d in done)
+    assert all(d in sim.cores["N1"].manager.done for d in done)  # the head's node acts
+    assert len(done) <= 1  # then the chain's rate limit (15 s) holds
+
+
+def test_a_met_delay_slo_changes_nothing() -> None:
+    sim = deployed(square(), slo_app(50.0))
+    sim.run_until(12.0)
+    assert remaps(sim) == []
+    delay = sim.cores["N4"].status(sim.now)["apps"]["pipe"]["chain_delay_ms"]["src-mid-sink"]
+    assert 2.0 < delay < 50.0
