@@ -958,6 +958,12 @@ class NodeCore:
                 if msg.restore:
                     pending = {(int(e), bool(p)) for e, p in msg.resumes}
                     dep.restoring[msg.vertex] = Restoring(msg.rid, src, pending)
+        elif msg.restore and msg.vertex in dep.awaiting:  # asked again, maybe by a new
+            old = dep.restoring.get(msg.vertex)  # coordinator after the first one failed
+            if old is None or old.rid != msg.rid:
+                pending = {(int(e), bool(p)) for e, p in msg.resumes}
+                dep.restoring[msg.vertex] = Restoring(msg.rid, src, pending)
+                self._handover_to[msg.rid] = src
         self._send(src, m.Prepared(msg.app, msg.vertex, msg.rid, self.id, error))
         if dep is not None and not error and msg.restore:
             restoring = dep.restoring.get(msg.vertex)
