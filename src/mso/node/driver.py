@@ -28,6 +28,12 @@ log = logging.getLogger("mso.node")
 
 HIGH_WATER = 1 << 20
 MAX_HELD = 10_000  # frames kept per neighbour while its connection is being set up
+# A control or marker frame whose next hop is gone waits this long for the routes to change
+# instead of being dropped: after a failure the nodes on a path learn the new routes a moment
+# apart, and a probe sent by the first to learn would otherwise die at the next, still stale,
+# hop and wait for a 1 s step retry. Data frames are not kept: acks and replay cover them.
+ROUTE_WAIT_S = 1.0
+MAX_AWAITING = 1_000
 # The event loop's timers have millisecond resolution (epoll), so a frame due within this slack
 # leaves now instead of waiting a whole tick: bandwidth holds on average, with bursts of up to a
 # millisecond's worth, and delays under a millisecond are not emulated (loopback adds ~50 µs).
@@ -206,6 +212,8 @@ class NodeDriver:
         self.stopped = asyncio.Event()
         self._link_version = -1
         self._held: dict[str, deque[tuple[bytes, int]]] = {}
+        # frames waiting for a route: (deadline, destination, payload, kind, forwarded size)
+        self._awaiting: deque[tuple[float, str, bytes, int, int]] = deque()
         core.status_hook = self._link_status
         core.traffic = lambda: (self.counters.bytes_out, self.counters.bytes_in)
         core.clock = self.loop.time
@@ -270,22 +278,55 @@ class NodeDriver:
 
     def _forward(self, env: m.Envelope, size: int) -> None:
         env.ttl -= 1
-        route = self.core.routes.get(env.dst)
-        link = self.peers.get(route[0]) if route else None
-        if env.ttl <= 0 or link is None or link.link is None:
+        if env.ttl <= 0:
             self.counters.frames_unroutable += 1
             return
-        self.counters.bytes_forwarded += size
-        link.link.send(m.rewrap(env), env.kind)
+        payload = m.rewrap(env)
+        if self._send_toward(env.dst, payload, env.kind):
+            self.counters.bytes_forwarded += size
+        else:
+            self._await_route(env.dst, payload, env.kind, size)
+
+    def _send_toward(self, dst: str, payload: bytes, kind: int) -> bool:
+        """Hand a frame to the next hop toward dst; False when there is no usable next hop."""
+        route = self.core.routes.get(dst)
+        if route is None:
+            return False
+        conn = self.peers.get(route[0])
+        if conn is not None and conn.link is not None:
+            conn.link.send(payload, kind)
+        elif route[0] in self.neighbours:
+            self._hold(route[0], payload, kind)
+        else:
+            return False
+        return True
+
+    def _await_route(self, dst: str, payload: bytes, kind: int, forwarded: int = 0) -> None:
+        """Keep a control frame with no next hop until the routes change (bounded in time)."""
+        now = self.loop.time()
+        while self._awaiting and self._awaiting[0][0] < now:
+            self._awaiting.popleft()
+            self.counters.frames_unroutable += 1
+        if kind == m.DATA or len(self._awaiting) >= MAX_AWAITING:
+            self.counters.frames_unroutable += 1
+            return
+        self._awaiting.append((now + ROUTE_WAIT_S, dst, payload, kind, forwarded))
+
+    def _retry_awaiting(self) -> None:
+        now = self.loop.time()
+        waiting, self._awaiting = self._awaiting, deque()
+        for deadline, dst, payload, kind, forwarded in waiting:
+            if deadline < now:
+                self.counters.frames_unroutable += 1
+            elif self._send_toward(dst, payload, kind):
+                self.counters.bytes_forwarded += forwarded
+            else:
+                self._awaiting.append((deadline, dst, payload, kind, forwarded))
 
     # -- outbound ---------------------------------------------------------------------------
     def _apply(self, effects: list[Effect]) -> None:
         for eff in effects:
             if isinstance(eff, Send):
-                route = self.core.routes.get(eff.dst)
-                if route is None:
-                    self.counters.frames_unroutable += 1
-                    continue
                 try:
                     payload = m.wrap(self.core.id, eff.dst, eff.msg)
                 except (OverflowError, TypeError, ValueError) as exc:  # a bug, not a crash
@@ -293,13 +334,8 @@ class NodeDriver:
                     self.counters.frames_unroutable += 1
                     continue
                 kind = m.kind_of(eff.msg)
-                conn = self.peers.get(route[0])
-                if conn is not None and conn.link is not None:
-                    conn.link.send(payload, kind)
-                elif route[0] in self.neighbours:
-                    self._hold(route[0], payload, kind)
-                else:
-                    self.counters.frames_unroutable += 1
+                if not self._send_toward(eff.dst, payload, kind):
+                    self._await_route(eff.dst, payload, kind)
             elif isinstance(eff, SetTimer):
                 old = self._timers.pop(eff.key, None)
                 if old is not None:
@@ -335,6 +371,7 @@ class NodeDriver:
                 self._attach_link(node)
             elif self.core.id < node:
                 self.loop.create_task(self._connect(node, str(spec[0]), int(spec[1])))
+        self._retry_awaiting()
         self._apply(effects)
 
     async def _connect(self, node: str, host: str, port: int) -> None:
