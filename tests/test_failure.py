@@ -194,3 +194,19 @@ def test_status_shows_the_failure_the_recovery_and_parked_chains() -> None:
     assert sent - 5 <= got["count"] <= sent, (got, sent)
     dropped = [n for st in nodes.values() for n in st["apps"]["branch"]["dropped_parked"].values()]
     assert sum(dropped) > 100
+
+
+def test_a_probe_waits_at_a_hop_whose_routes_still_go_through_the_failed_node() -> None:
+    """Routes change a moment apart on different nodes: the recovery's probe must not be sent
+    into the dead node by a hop that has not yet learnt the routes around it."""
+    from mso.node.core import NodeCore, Send
+
+    core = NodeCore("N2")
+    core.set_routes({"N1": ("N1", 1), "N3": ("N3", 1), "N6": ("N3", 2), "N5": ("N5", 1)}, 1.0)
+    core.receive("N1", m.NodeDown("N3", "N1"), 1.1)
+    probe = m.Probe("app", -1, 7, "N1", "N6", ["N1"], [1.0])
+    sent = [e for e in core.receive("N1", probe, 1.2) if isinstance(e, Send)]
+    assert all(e.dst != "N3" for e in sent) and not any(isinstance(e.msg, m.Probe) for e in sent)
+    effects = core.set_routes({"N1": ("N1", 1), "N6": ("N5", 2), "N5": ("N5", 1)}, 1.3)
+    (forwarded,) = [e for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Probe)]
+    assert forwarded.dst == "N5" and forwarded.msg.nodes == ["N1", "N2"]

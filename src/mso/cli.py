@@ -710,6 +710,7 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
                         if rec.get("error")
                         else "(in progress)"
                     )
+                    + (f"; re-sent: {', '.join(rec['retried'])}" if rec.get("retried") else "")
                 )
             for v, vs in app["vertices"].items():
                 agg["vertices"][v] = (nid, vs)

@@ -100,6 +100,7 @@ class Remap:
 
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
 RETRANSMIT_S = 0.25
+MAX_WAITING_PROBES = 256  # probes held at a hop whose route still goes through a failed node
 STEP_TIMEOUT_S = 1.0  # a recovery step (probe, restore) not answered by then is sent again
 STEP_ATTEMPTS = 5
 SOURCE_BURST = 256  # events a rate-less source emits per turn
@@ -205,6 +206,7 @@ class NodeCore:
         # ids of procedures this node coordinates: distinct per node, small enough for msgpack
         self._rid = (zlib.crc32(node_id.encode()) & 0xFFFFFF) << 20
         self._remaps: dict[int, Remap] = {}
+        self._probes_waiting: list[tuple[float, m.Probe]] = []  # (give up at, probe)
         self._handover_to: dict[int, str] = {}  # rid -> coordinator, at a relocation's target
         # per edge: (first seq, events, when the oldest entered its chain)
         self._outbox: dict[tuple[str, int], tuple[int, list[bytes], float]] = {}
@@ -247,6 +249,10 @@ class NodeCore:
                     dep.route_changed[c.index] = now
         neighbours = {d for d, (hop, _) in self.routes.items() if hop == d}
         self.liveness.set_routes(now, set(self.routes) - self.dead, neighbours)
+        waiting, self._probes_waiting = self._probes_waiting, []
+        for deadline, probe in waiting:
+            if deadline >= now:
+                self._forward_probe(probe, now)
         for dep in list(self.apps.values()):
             self._maybe_recover(dep, now)
         return self._run(now)
@@ -501,7 +507,16 @@ class NodeCore:
             reply = m.ProbeReply(msg.app, msg.chain, msg.segment, msg.nodes, msg.capacities)
             self._send(msg.requester, reply)
             return
+        self._forward_probe(msg, self._now)
+
+    def _forward_probe(self, msg: m.Probe, now: float) -> None:
         nxt = self.routes.get(msg.target)
+        if nxt is not None and nxt[0] in self.dead:
+            # our routes do not go around a failure yet (the coordinator's already do): wait
+            # for them rather than lose the probe and the coordinator's STEP_TIMEOUT_S
+            if len(self._probes_waiting) < MAX_WAITING_PROBES:
+                self._probes_waiting.append((now + STEP_TIMEOUT_S, msg))
+            return
         if nxt is None:
             reply = m.ProbeReply(msg.app, msg.chain, msg.segment, [], [])
             self._send(msg.requester, reply)
@@ -1194,6 +1209,8 @@ class NodeCore:
         if remap.probe_attempts >= STEP_ATTEMPTS:
             self._finish_remap(rid, now, "probes along the chain's route were not answered")
             return
+        if remap.recovery is not None:
+            remap.recovery["retried"].append(f"probe {remap.chains[0]}")
         self._remap_next_chain(rid, now)
 
     def _on_remap_probe(self, msg: m.ProbeReply) -> None:
@@ -1379,6 +1396,7 @@ class NodeCore:
             "chains": [lay.chains[c].name for c in order],
             "lost": sorted(lost),
             "parked": {lay.chains[c].name: why for c, why in sorted(dep.parked.items())},
+            "retried": [],  # steps sent again after STEP_TIMEOUT_S (a lost message)
         }
         dep.recoveries.append(record)
         del dep.recoveries[:-20]
@@ -1421,6 +1439,9 @@ class NodeCore:
                 why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
                 self._finish_remap(reloc.remap, now, why)
             return
+        remap = self._remaps.get(reloc.remap) if reloc.remap is not None else None
+        if remap is not None and remap.recovery is not None:
+            remap.recovery["retried"].append(f"restore {reloc.vertex} on {reloc.target}")
         self._restore(dep, reloc, rid, now)  # idempotent at every end: just ask again
 
     def _on_rewire(self, msg: m.Rewire, now: float) -> None:
