@@ -7,8 +7,9 @@ Fig. 2 ends the chains coming in and heads the chains going out. An isolated ver
 one. A ring made only of non-junction vertices (impossible in a DAG) becomes one chain that starts
 and ends at its lowest-numbered edge's source.
 
-The work is O(|V| + |E| log |E|) in numpy (list ranking by pointer jumping), which keeps a
-1M-vertex graph within a few seconds; see ``bench/chains.py``.
+The work is in numpy: list ranking by pointer jumping (O(|E| log L) for the longest chain L),
+then a linear layout (a 16-bit radix sort of the chains, one scatter of the edges), which forms
+a 1M-vertex graph's chains in about a tenth of a second; see ``bench/chains.py``.
 """
 
 from __future__ import annotations
@@ -49,6 +50,18 @@ class Chain:
         return len(self.vertices)
 
 
+def _stable_order(keys: npt.NDArray[np.integer]) -> IntArray:
+    """A stable argsort of non-negative integer keys in linear time: numpy's stable sort is a
+    radix sort for 16-bit keys, so sort by the low 16 bits, then stably by the high 16."""
+    top = int(keys.max()) if len(keys) else 0
+    if top < 1 << 16:
+        return np.argsort(keys.astype(np.uint16), kind="stable").astype(np.int64)
+    if top >= 1 << 32:
+        return np.argsort(keys, kind="stable").astype(np.int64)
+    low = np.argsort((keys & 0xFFFF).astype(np.uint16), kind="stable")
+    return low[np.argsort((keys[low] >> 16).astype(np.uint16), kind="stable")].astype(np.int64)
+
+
 def form_chains_indexed(
     n: int, src: Sequence[int] | IntArray, dst: Sequence[int] | IntArray
 ) -> tuple[IntArray, IntArray]:
@@ -58,23 +71,25 @@ def form_chains_indexed(
     head first. Chains are ordered by head vertex, then by the index of their first edge;
     isolated vertices come before the edge chains that share their index (they have none).
     """
-    s = np.asarray(src, dtype=np.int64)
-    d = np.asarray(dst, dtype=np.int64)
-    m = len(s)
-    if len(d) != m:
+    m = len(src)
+    if len(dst) != m:
         raise ValueError("src and dst must have the same length")
+    # int64 throughout: numpy converts narrower index arrays to intp on every gather
+    it = np.int64
+    s = np.asarray(src, dtype=it)
+    d = np.asarray(dst, dtype=it)
     if m and (s.min() < 0 or d.min() < 0 or s.max() >= n or d.max() >= n):
         raise ValueError("edge endpoint out of range")
     indeg = np.bincount(d, minlength=n)
     outdeg = np.bincount(s, minlength=n)
     junction = (indeg != 1) | (outdeg != 1)
-    edge_ids = np.arange(m, dtype=np.int64)
+    edge_ids = np.arange(m, dtype=it)
 
     # prv[e]: the edge before e in its chain (e itself when e leaves a junction).
-    in_edge = np.full(n, -1, dtype=np.int64)
+    in_edge = np.full(n, -1, dtype=it)
     in_edge[d] = edge_ids
     prv = np.where(junction[s], edge_ids, in_edge[s])
-    dist = (prv != edge_ids).astype(np.int64)
+    dist = (prv != edge_ids).astype(it)
     # List ranking by pointer jumping: after k rounds prv points 2^k edges back (or at the head).
     for _ in range(max(1, int(m).bit_length() + 1)):
         nxt = prv[prv]
@@ -100,33 +115,26 @@ def form_chains_indexed(
                 k += 1
                 e = int(out_edge[d[e]])
 
-    # Order edges chain by chain (chain key = head vertex, first edge), each head first.
-    key = s[root] * (m + 1) + root
-    order = np.lexsort((dist, key))
-    starts = dist[order] == 0
-    n_edge_chains = int(starts.sum())
-    dst_pos = np.arange(m, dtype=np.int64) + np.cumsum(starts)
-    verts = np.empty(m + n_edge_chains, dtype=np.int64)
-    verts[dst_pos] = d[order]
-    head_pos = dst_pos[starts] - 1
-    verts[head_pos] = s[order[starts]]
-    chain_keys = key[order[starts]]
-
-    isolated = np.flatnonzero((indeg == 0) & (outdeg == 0)).astype(np.int64)
-    if len(isolated) == 0:
-        offsets = np.append(head_pos, len(verts)).astype(np.int64)
-        return offsets, verts
-
-    # Merge isolated vertices (chains of one) into head order.
-    all_keys = np.concatenate([chain_keys, isolated * (m + 1) - 1])
-    all_starts = np.concatenate([head_pos, len(verts) + np.arange(len(isolated))])
-    all_lens = np.concatenate([np.diff(np.append(head_pos, len(verts))), np.ones(len(isolated))])
-    pool = np.concatenate([verts, isolated])
-    perm = np.argsort(all_keys, kind="stable")
-    lens = all_lens[perm].astype(np.int64)
-    offsets = np.concatenate([[0], np.cumsum(lens)]).astype(np.int64)
-    gather = np.repeat(all_starts[perm] - offsets[:-1], lens) + np.arange(offsets[-1])
-    return offsets, pool[gather]
+    # Lay the chains out by head vertex, then first edge (isolated vertices have no edges,
+    # so they never tie), with a linear sort of the chains and one scatter of the edges.
+    firsts = np.flatnonzero(root == edge_ids)  # each chain's first edge, in edge order
+    isolated = np.flatnonzero((indeg == 0) & (outdeg == 0))
+    k_iso = len(isolated)
+    order = _stable_order(np.concatenate([isolated, s[firsts]]))
+    lengths = np.concatenate(
+        [np.ones(k_iso, dtype=np.int64), np.bincount(root, minlength=m)[firsts] + 1]
+    )
+    offsets = np.zeros(len(order) + 1, dtype=np.int64)
+    np.cumsum(lengths[order], out=offsets[1:])
+    start = np.empty(len(order), dtype=np.int64)
+    start[order] = offsets[:-1]
+    verts = np.empty(int(offsets[-1]), dtype=it)
+    verts[start[:k_iso]] = isolated
+    verts[start[k_iso:]] = s[firsts]
+    chain_start = np.empty(m, dtype=np.int64)  # at each chain's first edge: where it begins
+    chain_start[firsts] = start[k_iso:]
+    verts[chain_start[root] + dist + 1] = d
+    return offsets, verts
 
 
 def form_chains(app: App) -> list[Chain]:
