@@ -47,7 +47,6 @@ import argparse
 import asyncio
 import json
 import os
-import platform
 import shutil
 import statistics
 import sys
@@ -56,7 +55,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mso.benchmarks.common import percentile, src_digest
+from mso.benchmarks.common import percentile, provenance
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.protocol import messages as m
@@ -449,14 +448,7 @@ def main(argv: list[str] | None = None) -> int:
         "manage": args.manage,
         "steady_s": STEADY_S,
     } | result
-    result["machine"] = {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "cpus": os.cpu_count(),
-        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-    }
-    result["src_digest"] = src_digest()
-    result["measured_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    result |= provenance()
     table = render(result)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")

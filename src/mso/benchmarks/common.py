@@ -1,10 +1,28 @@
-"""Helpers every benchmark shares: which sources were measured, and percentiles."""
+"""Helpers every benchmark shares: which machine and sources were measured, and percentiles."""
 
 from __future__ import annotations
 
 import hashlib
 import math
+import os
+import platform
+import time
 from pathlib import Path
+from typing import Any
+
+
+def provenance() -> dict[str, Any]:
+    """Where and on what a result was measured: machine, load, source digest, time."""
+    return {
+        "machine": {
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "cpus": os.cpu_count(),
+            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        },
+        "src_digest": src_digest(),
+        "measured_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
 
 
 def src_digest() -> str:

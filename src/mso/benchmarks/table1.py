@@ -49,7 +49,6 @@ import asyncio
 import itertools
 import json
 import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -62,7 +61,7 @@ from typing import Any
 import msgspec
 
 import mso.examples
-from mso.benchmarks.common import percentile, src_digest
+from mso.benchmarks.common import percentile, provenance
 from mso.client import Client, NodeUnreachable, overlay_key
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
@@ -939,14 +938,7 @@ async def run(runs: int = 30, quick: bool = False, variants: bool = True) -> dic
     }
     result["runs"] = runs
     result["quick"] = quick
-    result["machine"] = {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "cpus": os.cpu_count(),
-        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-    }
-    result["src_digest"] = src_digest()
-    result["measured_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    result |= provenance()
     result["app"] = "mso/examples/convoy.yaml"
     result["scenario_file"] = "mso/examples/convoy-line.yaml"
     result["seconds"] = time.monotonic() - t0
