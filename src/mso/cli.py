@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import sys
+import time
 from collections.abc import Callable
 from functools import wraps
 from pathlib import Path
@@ -445,7 +446,14 @@ def _node(
         static[name] = [phost, pport, None, 0.0, 0.0]
 
     core = NodeCore(  # checks the policy before anything listens
-        node_id, capacity=cpu, power=power, battery_wh=battery_wh, policy=policy, manage=manage
+        node_id,
+        capacity=cpu,
+        power=power,
+        battery_wh=battery_wh,
+        policy=policy,
+        manage=manage,
+        # a restarted daemon is a new incarnation: the others restore what it hosted before
+        incarnation=time.time_ns() // 1_000_000,
     )
 
     async def serve() -> None:

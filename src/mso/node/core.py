@@ -101,6 +101,7 @@ class Remap:
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
 RETRANSMIT_S = 0.25
 MAX_WAITING_PROBES = 256  # probes held at a hop whose route still goes through a failed node
+REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
 STEP_TIMEOUT_S = 1.0  # a recovery step (probe, restore) not answered by then is sent again
 STEP_ATTEMPTS = 5
 SOURCE_BURST = 256  # events a rate-less source emits per turn
@@ -151,6 +152,9 @@ class Deployment:
     recovering: int | None = None  # the remap recovering from a failure, at its coordinator
     restoring: dict[str, Restoring] = field(default_factory=dict)  # replacements awaiting
     recoveries: list[dict[str, Any]] = field(default_factory=list)  # what was done, bounded
+    # vertices whose instances went with a node that has since rejoined: restored like lost ones
+    vanished: set[str] = field(default_factory=set)
+    document: str = ""  # the app file as deployed, for a node that rejoins
     delays: dict[int, float] = field(default_factory=dict)  # at a tail's node: chain -> ms
     moved: dict[str, tuple[float, str]] = field(default_factory=dict)  # vertex -> (when, from)
     placed_at: dict[int, float] = field(default_factory=dict)  # chain -> when last (re)mapped
@@ -180,8 +184,12 @@ class NodeCore:
         policy: Any = None,
         manage: bool = True,
         rules: RuleSettings | None = None,
+        incarnation: int = 0,
     ) -> None:
         self.id = node_id
+        # grows when this node restarts (the daemon passes its start time) or rejoins after a
+        # partition: others then know its old instances are gone
+        self.incarnation = incarnation
         self.capacity = capacity
         self.power = power or PowerModel()
         self.liveness = Liveness(heartbeat_s, dead_after_s)
@@ -219,6 +227,9 @@ class NodeCore:
         self._early: dict[str, list[tuple[str, m.Message]]] = {}
         self._status_wait: dict[int, tuple[int, dict[str, Any], set[str]]] = {}
         self.dead: set[str] = set()  # nodes known to have failed (fail-stop)
+        self._incarnations: dict[str, int] = {}  # last incarnation heard of, per node
+        self._dead_incarnation: dict[str, int] = {}  # the incarnation declared failed
+        self._beats = 0
         # management rules and policies (§3.5); the node policy is checked here, at start
         self.manager = Manager(self, policy, rules, enabled=manage)
 
@@ -265,7 +276,11 @@ class NodeCore:
         return sorted({self.id, *self.routes})
 
     def receive(self, src: str, msg: m.Message, now: float) -> list[Effect]:
-        if src in self.dead:  # fail-stop: a node declared failed is gone for good
+        if src in self.dead:  # a node declared failed is heard only to rejoin
+            if isinstance(msg, m.Heartbeat):
+                self._now = now
+                self._on_dead_heartbeat(src, msg, now)
+                return self._run(now)
             self.dropped_messages += 1
             return []
         self.liveness.heard_from(src, now)
@@ -403,6 +418,7 @@ class NodeCore:
             dep = self.apps.get(msg.app)
             if dep is not None and msg.vertex in dep.placed:
                 dep.placed[msg.vertex] = msg.node
+                dep.vanished.discard(msg.vertex)
                 for c in dep.layout.chains:
                     if msg.vertex in c.vertices:
                         dep.placed_at[c.index] = now
@@ -413,9 +429,13 @@ class NodeCore:
             if dep is not None and 0 <= msg.chain < len(dep.layout.chains):
                 dep.chain_delay[msg.chain] = (msg.delay_ms, now)
         elif isinstance(msg, m.Heartbeat):
-            self.liveness.heard_from(src, now, msg)
+            self._on_heartbeat(src, msg, now)
         elif isinstance(msg, m.NodeDown):
-            self._on_node_down(msg.node, msg.detector, now)
+            self._on_node_down(msg.node, msg.detector, now, msg.incarnation)
+        elif isinstance(msg, m.NodeUp):
+            self._on_node_up(msg, now)
+        elif isinstance(msg, m.AppSync):
+            self._on_app_sync(msg, now)
         elif isinstance(msg, m.Rewire):
             self._on_rewire(msg, now)
         elif isinstance(msg, m.Resume):
@@ -466,6 +486,7 @@ class NodeCore:
             origin=msg.origin,
             placed=layout.initial_placement(),
             epoch=msg.epoch,
+            document=msg.document,
         )
         for i, e in enumerate(app.edges):
             dep.out_edges.setdefault(e.src, []).append(i)
@@ -1164,11 +1185,12 @@ class NodeCore:
             moves = [
                 (v, n)
                 for v, n in remap.placed.items()
-                if v in remap.movable and dep.placed.get(v) != n
+                if (v in remap.movable and dep.placed.get(v) != n) or v in dep.vanished
             ]
             # replacements for lost instances first (upstream first, so each one's producer
             # is running when it resumes), then the relocations of live ones
-            moves.sort(key=lambda vn: (dep.placed.get(vn[0]) not in self.dead, order[vn[0]]))
+            lost = self._lost(dep)
+            moves.sort(key=lambda vn: (vn[0] not in lost, order[vn[0]]))
             remap.moves = moves
             self._remap_step(rid, now)
             return
@@ -1249,9 +1271,9 @@ class NodeCore:
         dep = self.apps[remap.app]
         while remap.moves:
             vertex, node = remap.moves.pop(0)
-            if dep.placed.get(vertex) == node:
+            lost = dep.placed[vertex] in self.dead or vertex in dep.vanished
+            if dep.placed.get(vertex) == node and not lost:
                 continue
-            lost = dep.placed[vertex] in self.dead
             if dep.layout.kinds[vertex] == "source" and not lost:
                 continue
             self._rid += 1
@@ -1303,18 +1325,32 @@ class NodeCore:
             mon.remaining_j,
             mon.lifetime_s,
             [pw.idle_w, pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte],
+            self.incarnation,
+            dict(self._dead_incarnation),
+            self._leader(),
         )
         for n in sorted(self.liveness.neighbours):
             if n not in self.dead:
                 self._effects.append(Send(n, beat))
+        self._beats += 1
+        if self._beats % REJOIN_EVERY == 0:  # a failed node we can reach again: a healed
+            for n in sorted(self.dead):  # partition; tell it, so one side rejoins the other
+                if n in self.routes:
+                    self._effects.append(Send(n, beat))
         for n in self.liveness.suspects(now, self.dead):
             self._on_node_down(n, self.id, now)
         self._effects.append(SetTimer(("heartbeat",), now + self.liveness.period_s))
 
-    def _on_node_down(self, node: str, detector: str, now: float) -> None:
+    def _on_node_down(
+        self, node: str, detector: str, now: float, incarnation: int | None = None
+    ) -> None:
         if node in self.dead or node == self.id:
             return
+        known = self._incarnations.get(node, 0)
+        if incarnation is not None and incarnation < known:
+            return  # that incarnation failed, and a newer one is already back
         self.dead.add(node)
+        self._dead_incarnation[node] = known if incarnation is None else incarnation
         self.liveness.forget(node)
         self.failures.append({"node": node, "detector": detector, "at": now})
         del self.failures[:-50]
@@ -1322,7 +1358,7 @@ class NodeCore:
         if detector == self.id:  # tell everyone; the others learn it from us or another detector
             for n in self.known_nodes():
                 if n != self.id and n not in self.dead:
-                    self._send(n, m.NodeDown(node, self.id))
+                    self._send(n, m.NodeDown(node, self.id, self._dead_incarnation[node]))
         for rid, reloc in list(self._relocs.items()):  # moves that needed the failed node
             if not reloc.restore and node in (reloc.source, reloc.target):
                 del self._relocs[rid]
@@ -1356,6 +1392,135 @@ class NodeCore:
                 self._unblock(dep, e)
         dep.parked_edges |= edges
 
+    def _lost(self, dep: Deployment) -> set[str]:
+        """Vertices with no running instance: on a failed node, or gone with a node's old
+        incarnation."""
+        return {v for v, n in dep.placed.items() if n in self.dead} | dep.vanished
+
+    # -- membership: restarts and healed partitions -----------------------------------------
+    def _leader(self) -> str:
+        return min({self.id, *(n for n in self.routes if n not in self.dead)})
+
+    def _on_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
+        known = self._incarnations.get(src)
+        if known is not None and msg.incarnation > known:  # it restarted: its instances went
+            self._on_node_down(src, self.id, now)
+            self._rejoin(src, msg.incarnation, now, announce=True)
+            return
+        self._incarnations[src] = msg.incarnation
+        self.liveness.heard_from(src, now, msg)
+        if msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
+            self._reset(now, src)
+
+    def _on_dead_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
+        """A node we declared failed is heard again: it restarted (a higher incarnation), or
+        a partition healed. Then the side that loses the tie-break resets and rejoins."""
+        if msg.incarnation > self._dead_incarnation.get(src, 0):
+            self._rejoin(src, msg.incarnation, now, announce=True)
+        elif msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
+            self._reset(now, src)
+
+    def _outranked_by(self, msg: m.Heartbeat) -> bool:
+        """After a partition both sides may hold the other failed: the side that counts fewer
+        failed nodes (the larger one), then the one with the lower leader, stays; the other
+        resets. One-sided (we hold the sender alive), we reset."""
+        if msg.node not in self.dead:
+            return True
+        return (len(msg.dead), msg.leader or msg.node) < (len(self.dead), self._leader())
+
+    def _reset(self, now: float, by: str) -> None:
+        """Rejoin as a new incarnation: the others have recovered without this node's
+        instances, so it drops them (and every app) and is told the apps again."""
+        dropped = sorted(self.apps)
+        self.apps.clear()
+        self._relocs.clear()
+        self._remaps.clear()
+        self._outbox.clear()
+        self._early.clear()
+        self._handover_to.clear()
+        self._probes_waiting.clear()
+        self._events.clear()
+        for node in self.dead:
+            self.liveness.rejoin(node, now, node in self.routes, self.routes.get(node))
+        self.dead.clear()
+        self._dead_incarnation.clear()
+        self.incarnation += 1
+        self.monitor.note_event(
+            now,
+            f"declared failed by {by}: rejoined as incarnation {self.incarnation}"
+            + (f", dropping {', '.join(dropped)}" if dropped else ""),
+        )
+        self._heartbeat(now)
+
+    def _rejoin(self, node: str, incarnation: int, now: float, announce: bool) -> None:
+        """``node`` is back with no instances: restore what it hosted, unpark what was pinned
+        to it, and tell it the apps."""
+        self.dead.discard(node)
+        self._dead_incarnation.pop(node, None)
+        self._incarnations[node] = incarnation
+        self.liveness.rejoin(node, now, node in self.routes, self.routes.get(node))
+        self.monitor.note_event(now, f"node {node} rejoined (incarnation {incarnation})")
+        if announce:
+            for n in self.known_nodes():
+                if n not in (self.id, node) and n not in self.dead:
+                    self._send(n, m.NodeUp(node, incarnation))
+        for dep in list(self.apps.values()):
+            dep.vanished |= {v for v, n in dep.placed.items() if n == node}
+            self._unpark(dep)
+            if not dep.running:
+                continue
+            sync = m.AppSync(
+                dep.app.name,
+                dep.origin,
+                dep.document,
+                dep.epoch,
+                dict(dep.placed),
+                sorted(dep.vanished),
+            )
+            self._send(node, sync)
+            self._maybe_recover(dep, now)
+
+    def _on_node_up(self, msg: m.NodeUp, now: float) -> None:
+        if msg.node == self.id:
+            return
+        if msg.node in self.dead:
+            if msg.incarnation > self._dead_incarnation.get(msg.node, 0):
+                self._rejoin(msg.node, msg.incarnation, now, announce=False)
+        elif msg.incarnation > self._incarnations.get(msg.node, msg.incarnation):
+            self._on_node_down(msg.node, msg.node, now)  # restarted unnoticed by us
+            self._rejoin(msg.node, msg.incarnation, now, announce=False)
+
+    def _on_app_sync(self, msg: m.AppSync, now: float) -> None:
+        if msg.app in self.apps:
+            return
+        try:
+            app = loads_app(msg.document, file=f"<{msg.app}>")
+            self.manager.app_policy(app.name, app.policy, where=f"{self.id}: {app.name}: policy")
+        except MsoError as exc:
+            self.monitor.note_event(now, f"cannot rejoin app {msg.app}: {exc}")
+            return
+        layout = Layout(app, msg.origin)
+        placed = dict(layout.initial_placement()) | {
+            v: n for v, n in msg.placed.items() if v in app.vertices
+        }
+        dep = Deployment(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
+        dep.vanished = {v for v in msg.vanished if v in app.vertices}
+        dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
+        dep.running, dep.started_at = True, now
+        for i, e in enumerate(app.edges):
+            dep.out_edges.setdefault(e.src, []).append(i)
+        self.apps[msg.app] = dep
+        self._park(dep)
+        self._maybe_recover(dep, now)
+
+    def _unpark(self, dep: Deployment) -> None:
+        """Chains parked for a pinned node that is back run again (after their restore)."""
+        for ci in list(dep.parked):
+            pins = {dep.app.vertices[v].pinned for v in dep.layout.chains[ci].vertices}
+            if not pins & self.dead:
+                del dep.parked[ci]
+        dep.parked_edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}
+
     def _maybe_recover(self, dep: Deployment, now: float) -> None:
         """Remap the chains that lost vertices with a failed node. Exactly one node acts for
         an app: the lowest-named surviving node that hosts part of it. Every node derives the
@@ -1363,10 +1528,10 @@ class NodeCore:
         remap (a coordinator that is itself dead is skipped by the same rule)."""
         if not dep.running or dep.recovering is not None:
             return
-        lost = {v for v, n in dep.placed.items() if n in self.dead}
+        lost = self._lost(dep)
         if not lost:
             return
-        live = {n for n in dep.placed.values() if n not in self.dead}
+        live = {n for v, n in dep.placed.items() if v not in lost}
         if min(live, default=None) != self.id:
             return
         if any(d in self.routes for d in self.dead) or any(
@@ -1412,15 +1577,10 @@ class NodeCore:
         producers replay what it had not passed on, its consumers say where they stand."""
         reloc.restore = True
         edges = dep.app.edges
+        lost = self._lost(dep)
         reloc.resumes = [
-            [i, True]
-            for i, e in enumerate(edges)
-            if e.dst == reloc.vertex and dep.placed[e.src] not in self.dead
-        ] + [
-            [i, False]
-            for i, e in enumerate(edges)
-            if e.src == reloc.vertex and dep.placed[e.dst] not in self.dead
-        ]
+            [i, True] for i, e in enumerate(edges) if e.dst == reloc.vertex and e.src not in lost
+        ] + [[i, False] for i, e in enumerate(edges) if e.src == reloc.vertex and e.dst not in lost]
         reloc.attempts += 1
         prepare = m.Prepare(dep.app.name, reloc.vertex, rid, True, reloc.resumes)
         self._send(reloc.target, prepare)
@@ -1578,6 +1738,7 @@ class NodeCore:
             "apps": apps,
             "dropped_messages": self.dropped_messages,
             "failed_nodes": sorted(self.dead),
+            "incarnation": self.incarnation,
             "management": self.manager.status(),
             "failures": list(self.failures),
             "heard": {

@@ -66,6 +66,15 @@ class Liveness:
         out += [n for n, t in self.gone.items() if n not in dead and now - t > self.dead_after_s]
         return sorted(set(out))
 
+    def rejoin(self, node: str, now: float, reachable: bool, route: tuple[str, int] | None) -> None:
+        """A node declared failed is back: watch it again from now."""
+        self.last_heard[node] = now
+        self.gone.pop(node, None)
+        if reachable:
+            self.reachable.add(node)
+        if route is not None and route[0] == node:
+            self.neighbours[node] = now
+
     def forget(self, node: str) -> None:
         self.neighbours.pop(node, None)
         self.last_heard.pop(node, None)

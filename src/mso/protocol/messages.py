@@ -176,6 +176,12 @@ class Heartbeat(_Msg, tag="heartbeat"):
     remaining_j: float | None
     lifetime_s: float | None
     power: list[float]  # idle_w, cpu_w, tx_uj_per_byte, rx_uj_per_byte
+    # membership: a restarted or reset node comes back with a higher incarnation; ``dead``
+    # (node -> the incarnation declared failed) and ``leader`` (the lowest node the sender
+    # counts alive) let two sides of a healed partition agree which one rejoins the other
+    incarnation: int = 0
+    dead: dict[str, int] = msgspec.field(default_factory=dict)
+    leader: str = ""
 
 
 class NodeDown(_Msg, tag="node_down"):
@@ -183,6 +189,26 @@ class NodeDown(_Msg, tag="node_down"):
 
     node: str
     detector: str
+    incarnation: int = 0  # the incarnation that failed: news of an older one is stale
+
+
+class NodeUp(_Msg, tag="node_up"):
+    """``node``, declared failed, is back as a new ``incarnation`` that hosts nothing."""
+
+    node: str
+    incarnation: int
+
+
+class AppSync(_Msg, tag="app_sync"):
+    """To a node that rejoined: an app it must know again and where its vertices run now
+    (``vanished``: vertices whose instances went with the node's old incarnation)."""
+
+    app: str
+    origin: str
+    document: str
+    epoch: int
+    placed: dict[str, str]
+    vanished: list[str] = msgspec.field(default_factory=list)
 
 
 class Rewire(_Msg, tag="rewire"):
@@ -385,6 +411,8 @@ Message = (
     | Rewire
     | Resume
     | ChainDelay
+    | NodeUp
+    | AppSync
 )
 
 _ENVELOPE_DECODER = msgspec.msgpack.Decoder(Envelope)

@@ -43,6 +43,7 @@ class Simulation:
         rules: RuleSettings | None = None,
     ) -> None:
         self.network = network
+        self._policy, self._rules = policy, rules
         self.wire = wire  # pass every message through the real encoding, as the wire does
         self.hop_latency_s = hop_latency_s
         self.now = 0.0
@@ -126,6 +127,29 @@ class Simulation:
         for n in list(self.network.neighbours(node)):
             self.network.remove_link(node, n)
         self._push(self.now + convergence_s, "routes", node, None)
+
+    def revive(self, node: str) -> None:
+        """Restart a killed ``node`` as a new process: a fresh core with a higher incarnation
+        and no apps (add its links back first). The others restore what it hosted."""
+        old = self.cores[node]
+        spec = self.network.nodes[node]
+        self.cores[node] = core = NodeCore(
+            node,
+            capacity=spec.cpu,
+            cpu_clock=lambda: 0.0,
+            window=old.window,
+            power=spec.power,
+            battery_wh=spec.battery_wh,
+            policy=self._policy,
+            manage=old.manager.enabled,
+            rules=self._rules,
+            incarnation=old.incarnation + 1,
+        )
+        core.traffic = self._traffic_of(node)
+        self.dead.discard(node)
+        self._timers = {k: v for k, v in self._timers.items() if k[0] != node}
+        self._apply(node, core.start(self.now))
+        self.update_routes()
 
     def run_until(self, t: float) -> None:
         while self._heap and self._heap[0].at <= t:

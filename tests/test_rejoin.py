@@ -1,0 +1,105 @@
+"""Healed partitions and restarted nodes: a node declared failed comes back as a new
+incarnation, the overlay restores what it hosted and unparks what was pinned to it, and no
+vertex ends up running twice."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+from mso.model.network import LinkSpec
+from mso.sim.runner import Simulation
+from test_failure import BRANCH, MESH_LINKS, PIPE, started, stats
+
+
+def cut(sim: Simulation, links: list[tuple[str, str]]) -> None:
+    for a, b in links:
+        sim.network.remove_link(a, b)
+    sim.update_routes()
+
+
+def heal(sim: Simulation, links: list[tuple[str, str]]) -> None:
+    for a, b in links:
+        sim.network.add_link(LinkSpec(a, b, delay_ms=1.0))
+    sim.update_routes()
+
+
+def instances(sim: Simulation, app: str) -> Counter[str]:
+    """How many running instances each vertex has over every live node."""
+    return Counter(
+        v
+        for n, c in sim.cores.items()
+        if n not in sim.dead and app in c.apps
+        for v in c.apps[app].stones
+    )
+
+
+def test_a_cut_off_sink_node_rejoins_and_its_parked_chain_runs_again() -> None:
+    sim = started(BRANCH)
+    n5 = [(a, b) for a, b in MESH_LINKS if "N5" in (a, b)]
+    cut(sim, n5)
+    sim.run_until(sim.now + 3.0)
+    for n, core in sim.cores.items():
+        assert core.dead == ({"N5"} if n != "N5" else set(sim.network.nodes) - {"N5"}), n
+    assert "j-c-s2" in sim.cores["N1"].status(sim.now)["apps"]["branch"]["parked"]
+    s1_before = stats(sim, "branch", "s1")["count"]
+
+    heal(sim, n5)
+    sim.run_until(sim.now + 5.0)
+    assert all(not core.dead for core in sim.cores.values())
+    # N5 lost the tie-break (it counted everyone else failed) and rejoined as incarnation 1
+    assert {n: c.incarnation for n, c in sim.cores.items()} == {
+        n: int(n == "N5") for n in sim.network.nodes
+    }
+    for n, core in sim.cores.items():
+        app = core.status(sim.now)["apps"]["branch"]
+        assert app["parked"] == {} and app["placement"]["s2"] == "N5", (n, app)
+    assert set(instances(sim, "branch").values()) == {1}  # every vertex runs exactly once
+    # a fresh instance on N5: its first event skips what the parked chain dropped, then
+    # every event follows the one before
+    s2 = stats(sim, "branch", "s2")
+    assert s2["count"] > 150 and s2["repeats"] == 0 and s2["out_of_order"] == 1, s2
+    s1 = stats(sim, "branch", "s1")
+    assert s1["count"] > s1_before + 200 and s1["repeats"] == 0, s1
+
+
+def test_a_healed_even_split_rejoins_the_side_with_the_higher_leader() -> None:
+    sim = started(PIPE)  # src pinned to N1, sink to N6
+    across = [("N3", "N6"), ("N1", "N4"), ("N2", "N5"), ("N3", "N5")]
+    cut(sim, across)  # {N1, N2, N3} | {N4, N5, N6}
+    sim.run_until(sim.now + 3.0)
+    assert sim.cores["N1"].dead == {"N4", "N5", "N6"}
+    assert sim.cores["N6"].dead == {"N1", "N2", "N3"}
+
+    heal(sim, across)
+    sim.run_until(sim.now + 6.0)
+    assert all(not core.dead for core in sim.cores.values())
+    # three failed nodes each side: the side led by N1 stays, N4..N6 reset and rejoin
+    assert {n: c.incarnation for n, c in sim.cores.items()} == {
+        "N1": 0,
+        "N2": 0,
+        "N3": 0,
+        "N4": 1,
+        "N5": 1,
+        "N6": 1,
+    }
+    assert instances(sim, "pipe") == Counter({"src": 1, "mid": 1, "sink": 1})
+    before = stats(sim, "pipe", "sink")["count"]
+    sim.run_until(sim.now + 2.0)
+    got = stats(sim, "pipe", "sink")
+    assert got["count"] >= before + 150 and got["repeats"] == 0, got
+
+
+def test_a_restarted_node_is_a_new_incarnation_and_gets_its_pinned_vertex_back() -> None:
+    sim = started(BRANCH)
+    links = [(a, b) for a, b in MESH_LINKS if "N5" in (a, b)]
+    sim.kill("N5", convergence_s=0.3)
+    sim.run_until(sim.now + 3.0)
+    assert all(core.dead == {"N5"} for n, core in sim.cores.items() if n != "N5")
+    heal(sim, links)
+    sim.revive("N5")  # a new process: incarnation 1, no apps
+    sim.run_until(sim.now + 5.0)
+    assert all(not core.dead for core in sim.cores.values())
+    assert sim.cores["N5"].incarnation == 1
+    assert set(instances(sim, "branch").values()) == {1}
+    s2 = stats(sim, "branch", "s2")
+    assert s2["count"] > 150 and s2["repeats"] == 0 and s2["out_of_order"] == 1, s2
