@@ -16,6 +16,12 @@ def probe() -> m.Probe:
     return m.Probe("app", 0, 0, "N5", "N1", ["N5"], [1.0])
 
 
+def waiting(driver: d.NodeDriver) -> list[m.Message]:
+    """What waits for a route (the node's hello heartbeats wait too)."""
+    got = [m.decode(m.unwrap(frame[2]).body) for frame in driver._awaiting]
+    return [msg for msg in got if not isinstance(msg, m.Heartbeat)]
+
+
 def links(version: int, routes: dict[str, list[object]]) -> m.LinkState:
     # N4 < N5, so N5 waits for N4 to connect and frames for N4 are held, not sent
     return m.LinkState(version, {"N4": ["127.0.0.1", 9, None, 0.0, 0.0]}, routes)
@@ -28,12 +34,12 @@ def test_control_frames_wait_for_a_route_and_data_frames_do_not() -> None:
         driver.apply_links(links(1, {"N1": ["N3", 2]}))
         driver._apply([Send("N1", probe()), Send("N1", m.Ack("app", 0, 0, 7))])
         assert driver.counters.frames_unroutable == 1  # the ack: replay covers data
-        assert len(driver._awaiting) == 1 and not driver._held
+        assert waiting(driver) == [probe()] and not driver._held
         # the routes change: the probe leaves toward N1 through N4
         driver.apply_links(links(2, {"N1": ["N4", 2]}))
         assert not driver._awaiting
-        held = driver._held["N4"]
-        assert len(held) == 1 and m.decode(m.unwrap(held[0][0]).body) == probe()
+        held = [m.decode(m.unwrap(frame).body) for frame, _ in driver._held["N4"]]
+        assert [x for x in held if not isinstance(x, m.Heartbeat)] == [probe()]
         assert driver.counters.frames_unroutable == 1
 
     asyncio.run(run())
@@ -43,10 +49,12 @@ def test_a_frame_waits_for_a_route_only_so_long(monkeypatch: pytest.MonkeyPatch)
     async def run() -> None:
         driver = d.NodeDriver(NodeCore("N5"), "127.0.0.1", 0, overlay_key("k"))
         driver._apply([Send("N1", probe())])  # no route at all
-        assert len(driver._awaiting) == 1
+        assert waiting(driver) == [probe()]
         await asyncio.sleep(0.06)
         driver.apply_links(links(1, {"N1": ["N4", 2]}))  # too late
-        assert not driver._awaiting and "N4" not in driver._held
+        assert not driver._awaiting
+        held = [m.decode(m.unwrap(frame).body) for frame, _ in driver._held.get("N4", [])]
+        assert not [x for x in held if isinstance(x, m.Probe)]
         assert driver.counters.frames_unroutable == 1
 
     monkeypatch.setattr(d, "ROUTE_WAIT_S", 0.05)

@@ -210,3 +210,26 @@ def test_a_probe_waits_at_a_hop_whose_routes_still_go_through_the_failed_node() 
     effects = core.set_routes({"N1": ("N1", 1), "N6": ("N5", 2), "N5": ("N5", 1)}, 1.3)
     (forwarded,) = [e for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Probe)]
     assert forwarded.dst == "N5" and forwarded.msg.nodes == ["N1", "N2"]
+
+
+def test_a_recovery_that_cannot_complete_is_retried_later_not_at_once() -> None:
+    """The node hosting mid dies and, before the sink's node is declared failed, the sink
+    becomes unreachable: the recovery fails (no route to the sink) and must back off, not
+    start again at once in a loop that would starve the node."""
+    sim = started(PIPE)
+    victim = where(sim, "pipe", "mid")
+    sim.kill(victim, convergence_s=0.0)
+    sim.run_until(sim.now + 0.3)
+    for n in list(sim.network.neighbours("N6")):
+        sim.network.remove_link("N6", n)  # cut off the sink's node, not dead (yet)
+    sim.update_routes()
+    sim.run_until(sim.now + 3.0)
+    core = sim.cores["N1"]
+    assert core.dead == {victim, "N6"}
+    recs = [r for c in sim.cores.values() for r in c.apps["pipe"].recoveries]
+    failed = [r for r in recs if not r["ok"]]
+    assert failed and "no route" in failed[0]["error"], recs
+    assert len(recs) <= 5, len(recs)  # backed off: a few attempts, not thousands
+    assert (
+        "pinned to failed node N6" in core.status(sim.now)["apps"]["pipe"]["parked"]["src-mid-sink"]
+    )

@@ -42,14 +42,16 @@ def test_a_cut_off_sink_node_rejoins_and_its_parked_chain_runs_again() -> None:
         assert core.dead == ({"N5"} if n != "N5" else set(sim.network.nodes) - {"N5"}), n
     assert "j-c-s2" in sim.cores["N1"].status(sim.now)["apps"]["branch"]["parked"]
     s1_before = stats(sim, "branch", "s1")["count"]
+    hosting = {n for n, c in sim.cores.items() if n != "N5" and c.apps["branch"].stones}
 
     heal(sim, n5)
     sim.run_until(sim.now + 5.0)
     assert all(not core.dead for core in sim.cores.values())
-    # N5 lost the tie-break (it counted everyone else failed) and rejoined as incarnation 1
-    assert {n: c.incarnation for n, c in sim.cores.items()} == {
-        n: int(n == "N5") for n in sim.network.nodes
-    }
+    # N5 lost the tie-break (it counted everyone else failed) and rejoined as incarnation 1;
+    # the nodes of the larger side that ran vertices kept theirs (those that ran none may
+    # have yielded: they lose nothing by it)
+    assert sim.cores["N5"].incarnation == 1
+    assert {n: sim.cores[n].incarnation for n in hosting} == dict.fromkeys(hosting, 0)
     for n, core in sim.cores.items():
         app = core.status(sim.now)["apps"]["branch"]
         assert app["parked"] == {} and app["placement"]["s2"] == "N5", (n, app)
@@ -73,15 +75,9 @@ def test_a_healed_even_split_rejoins_the_side_with_the_higher_leader() -> None:
     heal(sim, across)
     sim.run_until(sim.now + 6.0)
     assert all(not core.dead for core in sim.cores.values())
-    # three failed nodes each side: the side led by N1 stays, N4..N6 reset and rejoin
-    assert {n: c.incarnation for n, c in sim.cores.items()} == {
-        "N1": 0,
-        "N2": 0,
-        "N3": 0,
-        "N4": 1,
-        "N5": 1,
-        "N6": 1,
-    }
+    # three failed nodes each side: the side led by N1 stays (N1 runs src), the other
+    # resets and rejoins (N6 ran the sink); nodes that ran nothing may yield either way
+    assert sim.cores["N1"].incarnation == 0 and sim.cores["N6"].incarnation == 1
     assert instances(sim, "pipe") == Counter({"src": 1, "mid": 1, "sink": 1})
     before = stats(sim, "pipe", "sink")["count"]
     sim.run_until(sim.now + 2.0)

@@ -260,6 +260,10 @@ class NodeCore:
                     dep.route_changed[c.index] = now
         neighbours = {d for d, (hop, _) in self.routes.items() if hop == d}
         self.liveness.set_routes(now, set(self.routes) - self.dead, neighbours)
+        if set(self.routes) - set(old):  # a hello: newly reachable nodes learn our incarnation
+            beat = self._beat()  # (and whom we hold failed, if a partition just healed)
+            for d in sorted(set(self.routes) - set(old)):
+                self._send(d, beat)
         waiting, self._probes_waiting = self._probes_waiting, []
         for deadline, probe in waiting:
             if deadline >= now:
@@ -326,6 +330,10 @@ class NodeCore:
             self._step_timeout(key[1], now)
         elif kind == "remap-probe":
             self._remap_probe_timeout(key[1], key[2], now)
+        elif kind == "recover":
+            dep = self.apps.get(key[1])
+            if dep is not None:
+                self._maybe_recover(dep, now)
         return self._run(now)
 
     # -- the loop ---------------------------------------------------------------------------
@@ -994,6 +1002,11 @@ class NodeCore:
                 if msg.restore:
                     pending = {(int(e), bool(p)) for e, p in msg.resumes}
                     dep.restoring[msg.vertex] = Restoring(msg.rid, src, pending)
+        elif msg.restore and msg.vertex in dep.stones:  # it never went: nothing to restore
+            self._send(src, m.Prepared(msg.app, msg.vertex, msg.rid, self.id, error))
+            self._send(src, m.HandoverDone(dep.app.name, msg.vertex, msg.rid))
+            self._broadcast(m.Moved(dep.app.name, msg.vertex, self.id))
+            return
         elif msg.restore and msg.vertex in dep.awaiting:  # asked again, maybe by a new
             old = dep.restoring.get(msg.vertex)  # coordinator after the first one failed
             if old is None or old.rid != msg.rid:
@@ -1301,7 +1314,12 @@ class NodeCore:
                 took_ms=round(self._elapsed_ms(remap.requested_at), 3),
             )
             dep.recovering = None
-            self._maybe_recover(dep, now)  # another failure may have happened meanwhile
+            if error:  # e.g. no route yet to a node that is about to be declared failed too:
+                # try again later (sooner if routes or failures change), never in a loop
+                key = ("recover", dep.app.name)
+                self._effects.append(SetTimer(key, now + STEP_TIMEOUT_S))
+            else:
+                self._maybe_recover(dep, now)  # another failure may have happened meanwhile
 
     def _report_delays(self, now: float) -> None:
         """Tell each chain's head node the delay measured at its tail (here)."""
@@ -1314,10 +1332,9 @@ class NodeCore:
                     self._send(head, m.ChainDelay(dep.app.name, chain, ms))
 
     # -- fail-stop failures (§3.4, assumption 3) --------------------------------------------
-    def _heartbeat(self, now: float) -> None:
-        """Tell the neighbours we live (with our figures); declare the silent ones failed."""
+    def _beat(self) -> m.Heartbeat:
         mon, pw = self.monitor, self.power
-        beat = m.Heartbeat(
+        return m.Heartbeat(
             self.id,
             self.capacity,
             mon.load,
@@ -1328,7 +1345,12 @@ class NodeCore:
             self.incarnation,
             dict(self._dead_incarnation),
             self._leader(),
+            self._hosting(),
         )
+
+    def _heartbeat(self, now: float) -> None:
+        """Tell the neighbours we live (with our figures); declare the silent ones failed."""
+        beat = self._beat()
         for n in sorted(self.liveness.neighbours):
             if n not in self.dead:
                 self._effects.append(Send(n, beat))
@@ -1408,9 +1430,18 @@ class NodeCore:
             self._rejoin(src, msg.incarnation, now, announce=True)
             return
         self._incarnations[src] = msg.incarnation
-        self.liveness.heard_from(src, now, msg)
+        if self.routes.get(src, ("", 0))[0] == src:  # a neighbour's beat, not a hello
+            self.liveness.heard_from(src, now, msg)
         if msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
             self._reset(now, src)
+        else:
+            self._answer_stale_claim(src, msg)
+
+    def _answer_stale_claim(self, src: str, msg: m.Heartbeat) -> None:
+        """``src`` holds an older incarnation of ours failed: our beat tells it we are back."""
+        claim = msg.dead.get(self.id)
+        if claim is not None and claim < self.incarnation:
+            self._send(src, self._beat())
 
     def _on_dead_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
         """A node we declared failed is heard again: it restarted (a higher incarnation), or
@@ -1419,14 +1450,25 @@ class NodeCore:
             self._rejoin(src, msg.incarnation, now, announce=True)
         elif msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
             self._reset(now, src)
+        else:
+            self._answer_stale_claim(src, msg)
+
+    def _hosting(self) -> int:
+        return sum(len(dep.stones) for dep in self.apps.values())
 
     def _outranked_by(self, msg: m.Heartbeat) -> bool:
-        """After a partition both sides may hold the other failed: the side that counts fewer
-        failed nodes (the larger one), then the one with the lower leader, stays; the other
-        resets. One-sided (we hold the sender alive), we reset."""
+        """After a partition both sides may hold the other failed. A node that runs nothing
+        yields to one that runs something (it loses nothing by resetting); otherwise the side
+        that counts fewer failed nodes (the larger one), then the one with the lower leader,
+        stays and the other resets. One-sided (we hold the sender alive), we reset."""
         if msg.node not in self.dead:
             return True
-        return (len(msg.dead), msg.leader or msg.node) < (len(self.dead), self._leader())
+
+        def rank(hosting: int, dead: int, leader: str) -> tuple[bool, int, str]:
+            return (hosting == 0, dead, leader)
+
+        theirs = rank(msg.hosting, len(msg.dead), msg.leader or msg.node)
+        return theirs < rank(self._hosting(), len(self.dead), self._leader())
 
     def _reset(self, now: float, by: str) -> None:
         """Rejoin as a new incarnation: the others have recovered without this node's
@@ -1451,6 +1493,10 @@ class NodeCore:
             + (f", dropping {', '.join(dropped)}" if dropped else ""),
         )
         self._heartbeat(now)
+        beat = self._beat()
+        for n in sorted(self.routes):  # everyone learns the new incarnation, not just neighbours
+            if n not in self.liveness.neighbours:
+                self._send(n, beat)
 
     def _rejoin(self, node: str, incarnation: int, now: float, announce: bool) -> None:
         """``node`` is back with no instances: restore what it hosted, unpark what was pinned
@@ -1482,6 +1528,9 @@ class NodeCore:
 
     def _on_node_up(self, msg: m.NodeUp, now: float) -> None:
         if msg.node == self.id:
+            return
+        if msg.node not in self.dead and msg.node not in self._incarnations:
+            self._incarnations[msg.node] = msg.incarnation
             return
         if msg.node in self.dead:
             if msg.incarnation > self._dead_incarnation.get(msg.node, 0):

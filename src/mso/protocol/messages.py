@@ -182,6 +182,7 @@ class Heartbeat(_Msg, tag="heartbeat"):
     incarnation: int = 0
     dead: dict[str, int] = msgspec.field(default_factory=dict)
     leader: str = ""
+    hosting: int = 0  # vertex instances the sender runs: a node with none yields first
 
 
 class NodeDown(_Msg, tag="node_down"):
