@@ -418,3 +418,38 @@ def test_the_energy_rule_moves_work_between_node_processes() -> None:
     sent = status["N1"]["apps"]["work"]["vertices"]["src"]["emitted"]
     assert got["repeats"] == 0 and got["out_of_order"] == 0
     assert sent - 20 <= got["count"] <= sent
+
+
+def test_a_cut_off_sink_node_rejoins_when_its_link_comes_back() -> None:
+    """The sink's node is out of reach long enough to be declared failed, then its link
+    comes back: it rejoins as a new incarnation (real start-time incarnations, across
+    processes), its chain is unparked and the flow resumes with no repeat."""
+    cut = LINE + "changes:\n  - {at: 1.0, down: [N3, N4]}\n  - {at: 2.5, up: [N3, N4]}\n"
+    app = APP.replace("rate: 200", "rate: 100")
+
+    async def run() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+        emu = Emulator(loads_scenario(cut))
+        await emu.start()
+        try:
+            assert (await emu.deploy(app, "pipe.yaml", "N1")).ok
+            loop = asyncio.get_running_loop()
+            changes = asyncio.create_task(emu.play_changes(loop.time()))
+            before = await emu.status("N1")
+            await asyncio.sleep(2.3)
+            during = await emu.status("N1")  # N4 is unreachable: only N1..N3 answer
+            await asyncio.sleep(3.0)
+            after = await emu.status("N1")
+            changes.cancel()
+            return before, during, after
+        finally:
+            await emu.stop()
+
+    before, during, after = asyncio.run(run())
+    assert during["N1"]["failed_nodes"] == ["N4"]
+    assert "pinned to failed node N4" in during["N1"]["apps"]["pipe"]["parked"]["src-mid-sink"]
+    for node, st in after.items():
+        assert st["failed_nodes"] == [] and st["apps"]["pipe"]["parked"] == {}, node
+    assert after["N4"]["incarnation"] == before["N4"]["incarnation"] + 1
+    assert after["N1"]["incarnation"] == before["N1"]["incarnation"]
+    got = sink(after)  # a fresh sink since the rejoin: about 2 s of events, in order
+    assert got["count"] > 100 and got["repeats"] == 0 and got["out_of_order"] <= 1, got
