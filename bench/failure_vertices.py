@@ -63,6 +63,7 @@ class GapSink:
         self.missing: set[int] = set()
         self.missing_overflow = 0
         self.first = 0.0
+        self.first_seq = 0  # a replacement sink (after a rejoin) starts mid-stream
         self.last = 0.0
         self.gaps: list[tuple[float, float, float]] = []  # (gap, before, after), largest first
 
@@ -75,7 +76,7 @@ class GapSink:
                 self.gaps.sort(reverse=True)
                 del self.gaps[TOP_GAPS:]
         else:
-            self.first = now
+            self.first, self.first_seq = now, event.seq
         self.last = now
         self.count += 1
         seq = event.seq
@@ -105,6 +106,7 @@ class GapSink:
             "late": self.late,
             "missing": len(self.missing) + self.missing_overflow,
             "first": self.first,
+            "first_seq": self.first_seq,
             "last": self.last,
             "max_gap_ms": top[0] * 1e3,
             "gap_before": top[1],

@@ -194,6 +194,7 @@ class NodeCore:
         self.power = power or PowerModel()
         self.liveness = Liveness(heartbeat_s, dead_after_s)
         self.failures: list[dict[str, Any]] = []  # failed nodes: who, when, detected by whom
+        self.rejoins: list[dict[str, Any]] = []  # nodes back as a new incarnation: who, when
         self.monitor = Monitor(power or PowerModel(), battery_wh, cpu_speed=capacity)
         # read only to report how long a request took; None in simulation (``now`` is exact)
         self.clock: Callable[[], float] | None = None
@@ -1505,6 +1506,8 @@ class NodeCore:
         self._dead_incarnation.pop(node, None)
         self._incarnations[node] = incarnation
         self.liveness.rejoin(node, now, node in self.routes, self.routes.get(node))
+        self.rejoins.append({"node": node, "incarnation": incarnation, "at": now})
+        del self.rejoins[:-50]
         self.monitor.note_event(now, f"node {node} rejoined (incarnation {incarnation})")
         if announce:
             for n in self.known_nodes():
@@ -1790,6 +1793,7 @@ class NodeCore:
             "incarnation": self.incarnation,
             "management": self.manager.status(),
             "failures": list(self.failures),
+            "rejoins": list(self.rejoins),
             "heard": {
                 n: {"at": t, "load": b.load, "drain_w": b.drain_w, "lifetime_s": b.lifetime_s}
                 for n, (t, b) in sorted(self.liveness.heard.items())
