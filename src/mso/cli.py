@@ -685,10 +685,13 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
         table.add_column(col, justify="left" if col in ("node", "neighbours") else "right")
     apps: dict[str, dict[str, Any]] = {}
     failed: set[str] = set()
+    rejoined: dict[str, int] = {}  # node -> latest incarnation it came back as
     decisions: list[str] = []
     for nid in sorted(nodes):
         st = nodes[nid]
         failed.update(st.get("failed_nodes", []))
+        for r in st.get("rejoins", []):
+            rejoined[r["node"]] = max(rejoined.get(r["node"], 0), int(r["incarnation"]))
         decisions += [f"{nid}: {d}" for d in st.get("management", {}).get("done", [])[-3:]]
         traffic = st.get("traffic", {})
         table.add_row(
@@ -730,6 +733,11 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
     console.print(table)
     if failed:
         console.print(f"failed nodes: {', '.join(sorted(failed))}")
+    if rejoined:
+        console.print(
+            "rejoined (restarted or back from a partition, as a new incarnation): "
+            + ", ".join(f"{n} ({inc})" for n, inc in sorted(rejoined.items()))
+        )
     for line in decisions:
         console.print(f"rule: {line}")
     for name, app in apps.items():
