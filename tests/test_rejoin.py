@@ -108,3 +108,19 @@ def test_a_restarted_node_is_a_new_incarnation_and_gets_its_pinned_vertex_back()
     assert set(instances(sim, "branch").values()) == {1}
     s2 = stats(sim, "branch", "s2")
     assert s2["count"] > 150 and s2["repeats"] == 0 and s2["out_of_order"] == 1, s2
+
+
+def test_a_node_told_an_app_again_rearms_its_retransmission() -> None:
+    """After a reset a node's old go-back-N timer for the app may have fired while it had no
+    app; AppSync must arm it again, or lost frames from this node are never resent."""
+    from mso.node.core import NodeCore, SetTimer
+    from mso.protocol import messages as m
+
+    core = NodeCore("N6")
+    placed = {"src": "N1", "mid": "N3", "sink": "N6"}
+    effects = core.receive("N1", m.AppSync("pipe", "N1", PIPE, 0, placed, ["sink"]), 5.0)
+    dep = core.apps["pipe"]
+    assert dep.running and dep.placed == placed and dep.vanished == {"sink"}
+    assert not dep.stones  # the sink is restored by the survivors' coordinator, not here
+    timers = [e.key for e in effects if isinstance(e, SetTimer)]
+    assert ("retransmit", "pipe") in timers

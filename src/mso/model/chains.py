@@ -91,12 +91,28 @@ def form_chains_indexed(
     prv = np.where(junction[s], edge_ids, in_edge[s])
     dist = (prv != edge_ids).astype(it)
     # List ranking by pointer jumping: after k rounds prv points 2^k edges back (or at the head).
+    # Rounds run over every edge while many still move, then only over those still moving
+    # (most edges of a graph with short chains are done after a round or two).
+    active: IntArray | None = None
     for _ in range(max(1, int(m).bit_length() + 1)):
-        nxt = prv[prv]
-        if np.array_equal(nxt, prv):
+        if active is None:
+            nxt = prv[prv]
+            moving = nxt != prv
+            n_moving = int(np.count_nonzero(moving))
+            if n_moving == 0:
+                break
+            if n_moving * 4 >= m:
+                dist = dist + dist[prv]
+                prv = nxt
+                continue
+            active = np.flatnonzero(moving)
+        if len(active) == 0:
             break
-        dist = dist + dist[prv]
-        prv = nxt
+        p = prv[active]
+        dist[active] += dist[p]
+        prv[active] = prv[p]
+        p = prv[active]
+        active = active[prv[p] != p]
     root = prv
 
     # Rings of non-junction vertices never reach a head: walk them in Python (rare, tiny).

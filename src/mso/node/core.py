@@ -1559,9 +1559,12 @@ class NodeCore:
         dep.vanished = {v for v in msg.vanished if v in app.vertices}
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
         dep.running, dep.started_at = True, now
+        dep.placed_at = dict.fromkeys(range(len(layout.chains)), now)
         for i, e in enumerate(app.edges):
             dep.out_edges.setdefault(e.src, []).append(i)
         self.apps[msg.app] = dep
+        # (re)arm go-back-N for the app: a timer left from before a reset may have lapsed
+        self._effects.append(SetTimer(("retransmit", msg.app), now + RETRANSMIT_S))
         self._park(dep)
         self._maybe_recover(dep, now)
 
