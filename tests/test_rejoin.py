@@ -124,3 +124,16 @@ def test_a_node_told_an_app_again_rearms_its_retransmission() -> None:
     assert not dep.stones  # the sink is restored by the survivors' coordinator, not here
     timers = [e.key for e in effects if isinstance(e, SetTimer)]
     assert ("retransmit", "pipe") in timers
+
+
+def test_after_a_reset_a_node_still_out_of_reach_is_failed_again_unless_a_route_appears() -> None:
+    from mso.node.liveness import Liveness
+
+    live = Liveness(period_s=0.1, dead_after_s=0.5)
+    live.set_routes(0.0, {"N2"}, {"N2"})
+    live.heard_from("N2", 1.35)  # a neighbour that keeps talking
+    live.rejoin("N3", 1.0, reachable=False, route=None)  # held failed, cleared by a reset
+    live.rejoin("N4", 1.0, reachable=False, route=None)
+    assert live.suspects(1.4, set()) == []
+    live.set_routes(1.3, {"N2", "N4"}, {"N2"})  # N4 comes into reach in time
+    assert live.suspects(1.6, set()) == ["N3"]

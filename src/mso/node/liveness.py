@@ -69,9 +69,11 @@ class Liveness:
     def rejoin(self, node: str, now: float, reachable: bool, route: tuple[str, int] | None) -> None:
         """A node declared failed is back: watch it again from now."""
         self.last_heard[node] = now
-        self.gone.pop(node, None)
         if reachable:
             self.reachable.add(node)
+            self.gone.pop(node, None)
+        else:  # out of reach right now: failed again unless a route appears in time
+            self.gone.setdefault(node, now)
         if route is not None and route[0] == node:
             self.neighbours[node] = now
 
