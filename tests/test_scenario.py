@@ -12,7 +12,16 @@ from hypothesis import strategies as st
 
 from mso.errors import ScenarioError, SpecError
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
-from mso.scenario import LinkChange, NodeFailure, load_scenario, loads_scenario
+from mso.scenario import (
+    Heal,
+    LinkChange,
+    LossChange,
+    NodeFailure,
+    NodeRestart,
+    Partition,
+    load_scenario,
+    loads_scenario,
+)
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples"
 FILE = "net.yaml"
@@ -288,8 +297,42 @@ def test_links_and_radio_range_together() -> None:
             "nodes: {A: {}, B: {}}\nchanges:\n  - {at: 1, fail: A, down: [A, B]}\n",
             3,
             "changes[0]",
-            "exactly one of 'up', 'down' or 'fail'",
+            "exactly one of 'up', 'down', 'fail', 'restart', 'partition', 'heal', 'loss'",
         ),
+        ("nodes: {A: {}}\nchanges:\n  - {at: 1, restart: Z}\n", 3, "changes[0].restart", "unknown"),
+        (
+            "nodes: {A: {}, B: {}}\nchanges:\n  - {at: 1, partition: [[A], [A, B]]}\n",
+            3,
+            "changes[0].partition[1]",
+            "node 'A' is in two groups",
+        ),
+        (
+            "nodes: {A: {}, B: {}}\nchanges:\n  - {at: 1, partition: [[A, B]]}\n",
+            3,
+            "changes[0].partition",
+            "at least two groups",
+        ),
+        (
+            "nodes: {A: {}, B: {}}\nchanges:\n  - {at: 1, partition: [A, B]}\n",
+            3,
+            "changes[0].partition",
+            "list of node groups",
+        ),
+        ("nodes: {A: {}}\nchanges:\n  - {at: 1, heal: no}\n", 3, "changes[0].heal", "heal: true"),
+        ("nodes: {A: {}}\nchanges:\n  - {at: 1, loss: 1.0}\n", 3, "changes[0].loss", "[0, 1)"),
+        (
+            "nodes: {A: {}, B: {}}\nchanges:\n  - {at: 1, loss: 0.1, between: [A, C]}\n",
+            3,
+            "changes[0].between",
+            "unknown node 'C'",
+        ),
+        (
+            "nodes: {A: {}, B: {}}\nchanges:\n  - {at: 1, down: [A, B], between: [A, B]}\n",
+            3,
+            "changes[0].between",
+            "goes with 'loss' only",
+        ),
+        ("nodes: {A: {}}\nchanges:\n  - {at: -1, heal: true}\n", 3, "changes[0].at", ">= 0"),
     ],
 )
 def test_other_scenario_errors(text: str, line: int, field: str, phrase: str) -> None:
@@ -412,4 +455,26 @@ def test_scripted_failures_and_link_changes_in_time_order() -> None:
     assert sc.changes == [
         LinkChange(at=2, a="A", b="B", up=False, link=sc.network.link("A", "B")),
         NodeFailure(at=5, node="B"),
+    ]
+
+
+def test_restarts_partitions_heals_and_loss_changes_parse() -> None:
+    sc = loads_scenario(
+        yml("""
+        nodes: {A: {}, B: {}, C: {}}
+        links: [[A, B], [B, C]]
+        changes:
+          - {at: 9, heal: true}
+          - {at: 3, partition: [[A], [B]]}
+          - {at: 2, restart: B}
+          - {at: 4, loss: 0.25, between: [B, C]}
+          - {at: 4, loss: 0.1}
+        """)
+    )
+    assert sc.changes == [
+        NodeRestart(at=2, node="B"),
+        Partition(at=3, groups=(frozenset({"A"}), frozenset({"B"}))),
+        LossChange(at=4, loss=0.25, ends=("B", "C")),
+        LossChange(at=4, loss=0.1, ends=None),
+        Heal(at=9),
     ]

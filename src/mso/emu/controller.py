@@ -4,7 +4,8 @@ Each node runs the ordinary ``mso node`` daemon on its own loopback address (127
 controller turns the scenario into a link graph, tells every node its current neighbours (with
 each link's bandwidth, delay and loss, applied in the sender's link layer) and its routes
 (shortest paths, pushed ``convergence_s`` after a link change, as a routing protocol would
-converge), plays the scenario's scripted link changes, and stops every process it started —
+converge), plays the scenario's timeline (``mso.scenario.timeline``, shared with the
+simulator), and stops every process it started —
 by PID, on Ctrl-C, at the end of ``duration``, or if it fails.
 """
 
@@ -26,10 +27,10 @@ from typing import Any
 
 from mso.client import Client, NodeUnreachable, overlay_key
 from mso.errors import MsoError
-from mso.model.mobility import WaypointTracks
 from mso.model.network import LinkSpec
 from mso.protocol import messages as m
-from mso.scenario import NodeFailure, Scenario
+from mso.scenario import Scenario
+from mso.scenario.timeline import Crash, Restart, Timeline
 
 STATE_FILE = Path(tempfile.gettempdir()) / f"mso-emulator-{os.getuid()}.json"
 
@@ -83,6 +84,7 @@ class Emulator:
     _watch_task: asyncio.Task[None] | None = None
     policy: str | None = None  # every node's policy (apps may name their own)
     manage: bool = True  # run the management rules on the nodes
+    _playing: bool = False  # a timeline is being played (play_changes / play_mobility)
 
     async def start(self, timeout: float = 20.0) -> None:
         names = list(self.scenario.network.nodes)
@@ -93,30 +95,10 @@ class Emulator:
         if self.log_dir is None:  # ours to remove after a clean stop
             self.log_dir = Path(tempfile.mkdtemp(prefix="mso-emu-"))
             self._own_logs = True
-        env = dict(os.environ)
-        env["MSO_KEY"] = self.key or env.get("MSO_KEY", "") or "mso-insecure-default-key"
-        self.key = env["MSO_KEY"]
+        env = self._env()
         for name, host in zip(names, hosts, strict=True):
-            spec = self.scenario.network.nodes[name]
-            log = self.log_dir / f"{name}.log"
-            cmd = [
-                sys.executable, "-m", "mso", "node", "--id", name,
-                "--listen", f"{host}:{port}", "--cpu", str(spec.cpu),
-                "--power", ",".join(str(x) for x in (spec.power.idle_w, spec.power.cpu_w,
-                                                     spec.power.tx_uj_per_byte,
-                                                     spec.power.rx_uj_per_byte)),
-            ]  # fmt: skip
-            if spec.battery_wh is not None:
-                cmd += ["--battery-wh", str(spec.battery_wh)]
-            if self.policy is not None:
-                cmd += ["--policy", self.policy]
-            if not self.manage:
-                cmd.append("--no-manage")
-            with log.open("wb") as out:
-                proc = subprocess.Popen(
-                    cmd, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True
-                )
-            self.nodes[name] = EmulatedNode(name, host, port, proc, log=log)
+            self.nodes[name] = EmulatedNode(name, host, port)
+            self._spawn(name, env)
         try:
             await asyncio.gather(*(self._connect(n, timeout) for n in self.nodes.values()))
             await self.push_links(routes=True)
@@ -126,6 +108,52 @@ class Emulator:
             raise
         self._watch_task = asyncio.create_task(self._watch())
         self.write_state()
+
+    def _env(self) -> dict[str, str]:
+        env = dict(os.environ)
+        env["MSO_KEY"] = self.key or env.get("MSO_KEY", "") or "mso-insecure-default-key"
+        self.key = env["MSO_KEY"]
+        return env
+
+    def _spawn(self, name: str, env: dict[str, str]) -> None:
+        """Start node ``name``'s daemon process (again, for a restart)."""
+        assert self.log_dir is not None
+        node = self.nodes[name]
+        spec = self.scenario.network.nodes[name]
+        cmd = [
+            sys.executable, "-m", "mso", "node", "--id", name,
+            "--listen", f"{node.host}:{node.port}", "--cpu", str(spec.cpu),
+            "--power", ",".join(str(x) for x in (spec.power.idle_w, spec.power.cpu_w,
+                                                 spec.power.tx_uj_per_byte,
+                                                 spec.power.rx_uj_per_byte)),
+        ]  # fmt: skip
+        if spec.battery_wh is not None:
+            cmd += ["--battery-wh", str(spec.battery_wh)]
+        if self.policy is not None:
+            cmd += ["--policy", self.policy]
+        if not self.manage:
+            cmd.append("--no-manage")
+        node.log = self.log_dir / f"{name}.log"
+        with node.log.open("ab") as out:
+            node.process = subprocess.Popen(
+                cmd, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True
+            )
+
+    async def restart(self, node: str, timeout: float = 20.0) -> None:
+        """Start a killed (or crashed) ``node`` again: a new process, so a new incarnation;
+        add its links back first. The others restore what it hosted."""
+        n = self.nodes.get(node)
+        if n is None:
+            raise MsoError(f"unknown node {node!r} (nodes: {', '.join(self.nodes)})")
+        if n.process is not None and n.process.poll() is None:
+            raise MsoError(f"node {node} is still running")
+        if n.process is not None:
+            n.process.wait(timeout=5)
+        self._spawn(node, self._env())
+        await self._connect(n, timeout)
+        self.dead.pop(node, None)
+        self.killed.discard(node)
+        await self._links_changed()
 
     async def _watch(self, period: float = 0.05) -> None:
         """Notice node processes that die: their links vanish, as a routing protocol would
@@ -232,31 +260,34 @@ class Emulator:
         await asyncio.sleep(self.convergence_s)
         await self.push_links(routes=True)
 
-    async def play_changes(self, t0: float) -> None:
-        """Apply the scenario's scripted link changes at their times (seconds after t0)."""
+    async def play(self, t0: float, timeline: Timeline | None = None) -> None:
+        """Play the scenario's timeline (scripted changes and mobility, the same player the
+        simulator uses) at its times, seconds after ``t0``, until it ends or is cancelled."""
+        tl = timeline or Timeline(self.scenario)
         loop = asyncio.get_running_loop()
-        for change in self.scenario.changes:
-            await asyncio.sleep(max(0.0, t0 + change.at - loop.time()))
-            if isinstance(change, NodeFailure):
-                self.kill(change.node)
-            else:
-                await self.set_link(change.a, change.b, change.up, change.link)
+        self._playing = True
+        try:
+            while (at := tl.next_at()) is not None:
+                await asyncio.sleep(max(0.0, t0 + at - loop.time()))
+                for action in tl.advance(at):
+                    if isinstance(action, Crash):
+                        self.kill(action.node)
+                    elif isinstance(action, Restart):
+                        await self.restart(action.node)
+                    else:
+                        await self._links_changed()
+                self.positions = tl.positions
+        finally:
+            self._playing = False
+
+    async def play_changes(self, t0: float) -> None:
+        """Play the whole timeline (changes and mobility) unless it is already playing."""
+        if not self._playing:
+            await self.play(t0)
 
     async def play_mobility(self, t0: float) -> None:
-        """Move the nodes (random waypoint) and relink them by radio range, every step."""
-        sc = self.scenario
-        if sc.mobility is None or sc.radio_range is None:
-            return
-        starts = {n: spec.pos for n, spec in sc.network.nodes.items() if spec.pos is not None}
-        tracks = WaypointTracks(sc.mobility, starts)
-        loop = asyncio.get_running_loop()
-        while True:
-            await asyncio.sleep(sc.mobility_step_s)
-            positions = tracks.positions(loop.time() - t0)
-            self.positions = positions
-            added, removed = sc.network.relink(positions, sc.radio_range, sc.link_template)
-            if added or removed:
-                await self._links_changed()
+        """Kept for callers that start both: the timeline plays mobility with the changes."""
+        await self.play_changes(t0)
 
     async def _links_changed(self) -> None:
         await self.push_links(routes=self.convergence_s <= 0)

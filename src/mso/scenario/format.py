@@ -1,7 +1,8 @@
-"""Scenario files: the network an app runs on (nodes, capacities, energy model, links).
+"""Scenario files: the network an app runs on (nodes, capacities, energy model, links) and
+what happens to it over time (scripted changes, mobility).
 
 See docs/scenario-format.md. Links are listed explicitly, or derived from node positions and a
-radio range.
+radio range. This module only parses; :mod:`mso.scenario.timeline` plays the changes.
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ SCENARIO_KEYS = {
     "mobility",
 }
 MOBILITY_KEYS = {"model", "area", "speed", "pause_s", "seed", "fixed", "step_s"}
-CHANGE_KEYS = {"at", "down", "up", "fail"}
+CHANGE_KEYS = {"at", "down", "up", "fail", "restart", "partition", "heal", "loss", "between"}
+CHANGE_KINDS = ("up", "down", "fail", "restart", "partition", "heal", "loss")
 NODE_KEYS = {"cpu", "battery_wh", "power", "pos"}
 POWER_KEYS = {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte"}
 LINK_KEYS = {"between", "bandwidth_mbps", "delay_ms", "loss"}
@@ -53,7 +55,42 @@ class NodeFailure:
     node: str
 
 
-Change = LinkChange | NodeFailure
+@dataclass(frozen=True)
+class NodeRestart:
+    """A scripted restart: at ``at`` seconds a failed ``node`` starts again, as a new process
+    (a new incarnation with no apps); its links come back."""
+
+    at: float
+    node: str
+
+
+@dataclass(frozen=True)
+class Partition:
+    """At ``at`` seconds the network splits: links between different ``groups`` go down
+    (nodes in no group form one more group together). Replaces an earlier partition."""
+
+    at: float
+    groups: tuple[frozenset[str], ...]
+
+
+@dataclass(frozen=True)
+class Heal:
+    """At ``at`` seconds a partition ends: the links it cut come back."""
+
+    at: float
+
+
+@dataclass(frozen=True)
+class LossChange:
+    """At ``at`` seconds the loss probability of one link (``ends``), or of every link if
+    ``ends`` is None, becomes ``loss``."""
+
+    at: float
+    loss: float
+    ends: tuple[str, str] | None = None
+
+
+Change = LinkChange | NodeFailure | NodeRestart | Partition | Heal | LossChange
 
 
 @dataclass
@@ -227,41 +264,86 @@ def _changes(r: _Reader, raw: Any, network: Network, template: LinkSpec) -> list
         return []
     if not isinstance(raw, list):
         raise r.err(
-            "expected a list of {at: SECONDS, down: [A, B]}, {at, up: [A, B]} or {at, fail: N}",
+            "expected a list of {at: SECONDS, down: [A, B]}, {at, up: [A, B]}, {at, fail: N}, "
+            "{at, restart: N}, {at, partition: [[A, ...], [B, ...]]}, {at, heal: true} or "
+            "{at, loss: P, between: [A, B]}",
             ("changes",),
         )
+    known = ", ".join(network.nodes)
     out: list[Change] = []
     for i, item in enumerate(raw):
         path: tuple[str | int, ...] = ("changes", i)
         attrs = r.mapping(item, CHANGE_KEYS, path)
+        if not attrs:
+            raise r.err("expected a change like {at: 5.0, down: [N1, N2]}", path)
         at = r.number(attrs.get("at"), (*path, "at"))
-        if sum(k in attrs for k in ("up", "down", "fail")) != 1:
-            raise r.err("expected exactly one of 'up', 'down' or 'fail'", path)
-        if "fail" in attrs:
-            node = attrs["fail"]
-            if not isinstance(node, str) or node not in network.nodes:
-                raise r.err(
-                    f"unknown node {node!r} (known: {', '.join(network.nodes)})", (*path, "fail")
-                )
-            out.append(NodeFailure(at=at, node=node))
-            continue
-        up = "up" in attrs
-        ends = attrs["up" if up else "down"]
-        field_path = (*path, "up" if up else "down")
-        if not (
-            isinstance(ends, list) and len(ends) == 2 and all(isinstance(e, str) for e in ends)
-        ):
-            raise r.err(f"expected a pair of node ids like [N1, N2], got {ends!r}", field_path)
-        for end in ends:
-            if end not in network.nodes:
-                raise r.err(f"unknown node {end!r} (known: {', '.join(network.nodes)})", field_path)
-        if ends[0] == ends[1]:
-            raise r.err(f"a link joins two different nodes, got {ends!r}", field_path)
-        link = network.link(ends[0], ends[1]) or LinkSpec(
-            ends[0], ends[1], template.bandwidth_mbps, template.delay_ms, template.loss
-        )
-        out.append(LinkChange(at=at, a=ends[0], b=ends[1], up=up, link=link))
-    return sorted(out, key=lambda c: c.at)
+        kinds = [k for k in CHANGE_KINDS if k in attrs]
+        if len(kinds) != 1:
+            raise r.err(f"expected exactly one of {', '.join(map(repr, CHANGE_KINDS))}", path)
+        kind = kinds[0]
+        field_path = (*path, kind)
+        if "between" in attrs and kind != "loss":
+            raise r.err("'between' goes with 'loss' only", (*path, "between"))
+        value = attrs[kind]
+        if kind in ("fail", "restart"):
+            if not isinstance(value, str) or value not in network.nodes:
+                raise r.err(f"unknown node {value!r} (known: {known})", field_path)
+            out.append(NodeFailure(at, value) if kind == "fail" else NodeRestart(at, value))
+        elif kind == "heal":
+            if value is not True:
+                raise r.err(f"expected 'heal: true', got {value!r}", field_path)
+            out.append(Heal(at))
+        elif kind == "partition":
+            out.append(Partition(at, _groups(r, value, network, field_path)))
+        elif kind == "loss":
+            loss = r.number(value, field_path)
+            if loss >= 1.0:
+                raise r.err(f"expected a loss probability in [0, 1), got {loss!r}", field_path)
+            ends = None
+            if "between" in attrs:
+                a, b = _pair(r, attrs["between"], network, (*path, "between"))
+                ends = (a, b)
+            out.append(LossChange(at, loss, ends))
+        else:
+            up = kind == "up"
+            a, b = _pair(r, value, network, field_path)
+            link = network.link(a, b) or LinkSpec(
+                a, b, template.bandwidth_mbps, template.delay_ms, template.loss
+            )
+            out.append(LinkChange(at=at, a=a, b=b, up=up, link=link))
+    return sorted(out, key=lambda c: c.at)  # stable: changes at one time keep file order
+
+
+def _pair(r: _Reader, ends: Any, network: Network, path: tuple[str | int, ...]) -> tuple[str, str]:
+    if not (isinstance(ends, list) and len(ends) == 2 and all(isinstance(e, str) for e in ends)):
+        raise r.err(f"expected a pair of node ids like [N1, N2], got {ends!r}", path)
+    for end in ends:
+        if end not in network.nodes:
+            raise r.err(f"unknown node {end!r} (known: {', '.join(network.nodes)})", path)
+    if ends[0] == ends[1]:
+        raise r.err(f"a link joins two different nodes, got {ends!r}", path)
+    return ends[0], ends[1]
+
+
+def _groups(
+    r: _Reader, raw: Any, network: Network, path: tuple[str | int, ...]
+) -> tuple[frozenset[str], ...]:
+    shape = "expected a list of node groups like [[N1, N2], [N3]]"
+    if not (isinstance(raw, list) and raw and all(isinstance(g, list) and g for g in raw)):
+        raise r.err(f"{shape}, got {raw!r}", path)
+    seen: set[str] = set()
+    groups = []
+    for j, group in enumerate(raw):
+        for n in group:
+            if not isinstance(n, str) or n not in network.nodes:
+                raise r.err(f"unknown node {n!r} (known: {', '.join(network.nodes)})", (*path, j))
+            if n in seen:
+                raise r.err(f"node {n!r} is in two groups", (*path, j))
+            seen.add(n)
+        groups.append(frozenset(group))
+    if len(groups) < 2 and seen == set(network.nodes):
+        raise r.err("a partition needs at least two groups", path)
+    return tuple(groups)
 
 
 def _node(r: _Reader, nid: Any, attrs: dict[str, Any], path: tuple[str | int, ...]) -> NodeSpec:

@@ -1,0 +1,136 @@
+"""The scenario timeline: one sans-IO player for scripted changes and mobility."""
+
+from __future__ import annotations
+
+import textwrap
+
+from mso.model.mobility import WaypointTracks
+from mso.scenario import loads_scenario
+from mso.scenario.timeline import Crash, LinksChanged, Restart, Timeline
+
+SQUARE = """
+nodes: {A: {}, B: {}, C: {}, D: {}}
+link_defaults: {delay_ms: 2}
+links: [[A, B], [B, C], [C, D], [D, A]]
+changes:
+"""
+
+
+def timeline(changes: str) -> Timeline:
+    return Timeline(loads_scenario(SQUARE + textwrap.indent(textwrap.dedent(changes), "  ")))
+
+
+def links(tl: Timeline) -> set[tuple[str, str]]:
+    return set(tl.network.links)
+
+
+def test_a_failure_takes_the_nodes_links_and_a_restart_brings_them_back_first() -> None:
+    tl = timeline("""
+    - {at: 1, fail: B}
+    - {at: 2, down: [C, D]}
+    - {at: 3, restart: B}
+    """)
+    assert tl.next_at() == 1
+    assert tl.advance(0.5) == []
+    crash = tl.advance(1.0)
+    assert crash[0] == Crash(1.0, "B")
+    assert isinstance(crash[1], LinksChanged) and set(crash[1].removed) == {("A", "B"), ("B", "C")}
+    assert links(tl) == {("C", "D"), ("A", "D")}
+    tl.advance(2.0)
+    assert links(tl) == {("A", "D")}
+    back = tl.advance(10.0)
+    # the driver must see the links before it starts the node (Simulation.revive wants them)
+    assert isinstance(back[0], LinksChanged) and back[1] == Restart(3.0, "B")
+    assert links(tl) == {("A", "B"), ("B", "C"), ("A", "D")}  # C-D stays down
+    assert tl.network.link("A", "B") is not None and tl.network.link("A", "B").delay_ms == 2.0
+    assert tl.next_at() is None
+
+
+def test_a_partition_cuts_links_across_groups_and_a_heal_restores_what_the_radio_gives() -> None:
+    tl = timeline("""
+    - {at: 1, partition: [[A, B], [C]]}
+    - {at: 2, down: [A, B]}
+    - {at: 3, heal: true}
+    """)
+    tl.advance(1.0)
+    # D is in no group: it sides with the other unlisted nodes (none), so it is cut off too
+    assert links(tl) == {("A", "B")}
+    tl.advance(2.0)
+    assert links(tl) == set()
+    (healed,) = tl.advance(3.0)
+    assert isinstance(healed, LinksChanged) and healed.removed == ()
+    assert links(tl) == {("B", "C"), ("C", "D"), ("A", "D")}
+    assert [what for _, what in tl.played] == ["partition A,B | C", "down A-B", "heal"]
+
+
+def test_a_restart_during_a_partition_links_the_node_on_its_side_only() -> None:
+    tl = timeline("""
+    - {at: 1, fail: A}
+    - {at: 2, partition: [[A, B], [C, D]]}
+    - {at: 3, restart: A}
+    """)
+    tl.advance(3.0)
+    assert links(tl) == {("A", "B"), ("C", "D")}
+
+
+def test_loss_changes_one_link_or_every_link() -> None:
+    tl = timeline("""
+    - {at: 1, loss: 0.2, between: [B, A]}
+    - {at: 2, loss: 0.05}
+    - {at: 3, loss: 0.3, between: [C, D]}
+    """)
+    (changed,) = tl.advance(1.0)
+    assert isinstance(changed, LinksChanged) and [(s.a, s.b, s.loss) for s in changed.added] == [
+        ("A", "B", 0.2)
+    ]
+    tl.advance(3.0)
+    loss = {k: s.loss for k, s in tl.network.links.items()}
+    assert loss == {("A", "B"): 0.05, ("B", "C"): 0.05, ("C", "D"): 0.3, ("A", "D"): 0.05}
+    tl.advance(3.0)  # nothing left: nothing changes
+    assert {k: s.loss for k, s in tl.network.links.items()} == loss
+
+
+MOVING = """
+radio_range: 120
+nodes:
+  R1: {pos: [0, 0]}
+  R2: {pos: [100, 0]}
+  R3: {pos: [200, 0]}
+mobility: {model: random_waypoint, area: [300, 300], speed: [20, 60], seed: 4, fixed: [R1],
+           step_s: 0.5}
+changes:
+  - {at: 1.0, fail: R3}
+"""
+
+
+def test_mobility_steps_relink_by_range_and_a_failed_node_stays_unlinked() -> None:
+    sc = loads_scenario(MOVING)
+    tl = Timeline(sc)
+    tracks = WaypointTracks(sc.mobility, {"R1": (0, 0), "R2": (100, 0), "R3": (200, 0)})  # type: ignore[arg-type]
+    seen = set()
+    for _ in range(20):  # ten virtual seconds of 0.5 s steps
+        at = tl.next_at()
+        assert at is not None
+        acts = tl.advance(at)
+        pos = tracks.positions(at)
+        near = {
+            (a, b)
+            for a, b in (("R1", "R2"), ("R1", "R3"), ("R2", "R3"))
+            if ((pos[a][0] - pos[b][0]) ** 2 + (pos[a][1] - pos[b][1]) ** 2) ** 0.5 <= 120
+            and (at < 1.0 or "R3" not in (a, b))
+        }
+        assert links(tl) == near, at
+        seen |= {type(a).__name__ for a in acts}
+    assert tl.positions["R1"] == (0, 0)  # fixed
+    assert {"Crash", "LinksChanged"} <= seen
+
+
+def test_the_timeline_can_play_only_the_changes_or_only_mobility() -> None:
+    sc = loads_scenario(MOVING)
+    only_changes = Timeline(sc, mobility=False)
+    assert only_changes.next_at() == 1.0
+    only_changes.advance(1.0)
+    assert only_changes.next_at() is None
+    only_mobility = Timeline(loads_scenario(MOVING), changes=False)
+    assert only_mobility.next_at() == 0.5
+    assert all(not isinstance(a, Crash) for a in only_mobility.advance(5.0))
