@@ -7,6 +7,7 @@ import asyncio
 import pytest
 
 from mso.client import overlay_key
+from mso.net import forwarding
 from mso.node import driver as d
 from mso.node.core import NodeCore, Send
 from mso.protocol import messages as m
@@ -18,7 +19,7 @@ def probe() -> m.Probe:
 
 def waiting(driver: d.NodeDriver) -> list[m.Message]:
     """What waits for a route (the node's hello heartbeats wait too)."""
-    got = [m.decode(m.unwrap(frame[2]).body) for frame in driver._awaiting]
+    got = [m.decode(m.unwrap(w.item[0]).body) for w in driver.transport.waiting]
     return [msg for msg in got if not isinstance(msg, m.Heartbeat)]
 
 
@@ -34,11 +35,11 @@ def test_control_frames_wait_for_a_route_and_data_frames_do_not() -> None:
         driver.apply_links(links(1, {"N1": ["N3", 2]}))
         driver._apply([Send("N1", probe()), Send("N1", m.Ack("app", 0, 0, 7))])
         assert driver.counters.frames_unroutable == 1  # the ack: replay covers data
-        assert waiting(driver) == [probe()] and not driver._held
+        assert waiting(driver) == [probe()] and not driver.transport.held
         # the routes change: the probe leaves toward N1 through N4
         driver.apply_links(links(2, {"N1": ["N4", 2]}))
-        assert not driver._awaiting
-        held = [m.decode(m.unwrap(frame).body) for frame, _ in driver._held["N4"]]
+        assert not driver.transport.waiting
+        held = [m.decode(m.unwrap(f).body) for f, _ in driver.transport.held["N4"]]
         assert [x for x in held if not isinstance(x, m.Heartbeat)] == [probe()]
         assert driver.counters.frames_unroutable == 1
 
@@ -52,10 +53,10 @@ def test_a_frame_waits_for_a_route_only_so_long(monkeypatch: pytest.MonkeyPatch)
         assert waiting(driver) == [probe()]
         await asyncio.sleep(0.06)
         driver.apply_links(links(1, {"N1": ["N4", 2]}))  # too late
-        assert not driver._awaiting
-        held = [m.decode(m.unwrap(frame).body) for frame, _ in driver._held.get("N4", [])]
+        assert not driver.transport.waiting
+        held = [m.decode(m.unwrap(f).body) for f, _ in driver.transport.held.get("N4", [])]
         assert not [x for x in held if isinstance(x, m.Probe)]
         assert driver.counters.frames_unroutable == 1
 
-    monkeypatch.setattr(d, "ROUTE_WAIT_S", 0.05)
+    monkeypatch.setattr(forwarding, "ROUTE_WAIT_S", 0.05)
     asyncio.run(run())

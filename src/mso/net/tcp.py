@@ -1,0 +1,320 @@
+"""The TCP transport: one authenticated connection per neighbour pair, hop-by-hop forwarding.
+
+Frames arrive on TCP connections (neighbours, clients, the emulator controller), are
+authenticated by :class:`~mso.protocol.framing.FrameCodec` and decoded; a frame for another
+node is forwarded toward it without decoding its body, one for this node goes to the receiver
+(from a neighbour) or to the client handler (from a client). Nodes talk only to their current
+neighbours, as the :class:`~mso.net.base.RoutingView` says; each neighbour link shapes its
+frames in the sender (:mod:`mso.net.shaping`).
+
+Two kinds of waiting, both bounded:
+
+- a frame whose next hop is a neighbour still connecting is *held* for that neighbour and
+  sent once the connection is up (after a link appears the connection takes a moment);
+- a control or marker frame with no next hop at all waits for the routes to change
+  (:class:`~mso.net.forwarding.RouteWait`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import zlib
+from collections import deque
+from collections.abc import Callable
+
+import msgspec
+
+from mso.net.base import Counters, Kind, Receiver, RoutesChanged, RoutingView
+from mso.net.forwarding import RouteWait
+from mso.net.shaping import Link
+from mso.protocol import messages as m
+from mso.protocol.framing import FrameCodec, FramingError
+
+log = logging.getLogger("mso.node")
+
+HIGH_WATER = 1 << 20  # a connection's write buffer limit: beyond it the link stops pumping
+MAX_HELD = 10_000  # frames kept per neighbour while its connection is being set up
+CONNECT_ATTEMPTS = 20
+
+ClientHandler = Callable[[int, m.Message], None]
+"""Called with ``(client connection id, message)`` for every request from a client."""
+
+
+class Connection(asyncio.Protocol):
+    """One TCP connection: framing, authentication, and who is on the other end."""
+
+    def __init__(self, net: TcpTransport, peer: str | None = None) -> None:
+        self.net = net
+        self.codec = FrameCodec(net.psk)
+        self.transport: asyncio.Transport | None = None
+        self.peer = peer  # neighbour node id once known
+        self.client: int | None = None
+        self.paused = False
+        self.link: Link | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        transport.set_write_buffer_limits(high=HIGH_WATER)
+        transport.write(self.codec.hello())
+        if self.peer is not None:
+            self.send_message(self.peer, m.PeerHello(self.net.node_id))
+
+    def send_message(self, dst: str, msg: m.Message) -> None:
+        """Write ``msg`` on this connection now, unshaped (hellos and client replies)."""
+        self.write_frame(m.wrap(self.net.node_id, dst, msg))
+
+    def write_frame(self, payload: bytes) -> None:
+        if self.transport is None or self.transport.is_closing():
+            return
+        frame = self.codec.seal(payload)
+        self.net.counters.bytes_out += len(frame)
+        if frame:
+            self.transport.write(frame)
+
+    def pause_writing(self) -> None:
+        self.paused = True
+
+    def resume_writing(self) -> None:
+        self.paused = False
+        if self.link is not None:
+            self.link.pump()
+
+    def data_received(self, data: bytes) -> None:
+        counters = self.net.counters
+        counters.bytes_in += len(data)
+        rejected = self.codec.rejected
+        try:
+            payloads, flush = self.codec.feed(data)
+        except FramingError as exc:
+            counters.frames_rejected += 1
+            log.warning("closing connection: %s", exc)
+            assert self.transport is not None
+            self.transport.close()
+            return
+        counters.frames_rejected += self.codec.rejected - rejected
+        if flush and self.transport is not None:
+            self.transport.write(flush)
+        for payload in payloads:
+            try:
+                env = m.unwrap(payload)
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                counters.frames_malformed += 1
+                continue
+            self.net.on_envelope(self, env, len(payload))
+
+    def close(self) -> None:
+        if self.link is not None:
+            self.link.close()
+        if self.transport is not None:
+            self.transport.close()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.net.on_connection_lost(self)
+
+
+class TcpTransport:
+    """A :class:`~mso.net.base.Transport` over TCP along a routing view.
+
+    It serves clients on the same port (CLI, API, the emulator controller): their requests go to
+    the client handler and :meth:`reply` answers them. It subscribes to ``view`` when made, so
+    on a route change it has already reconnected, reshaped and released waiting frames before
+    any later subscriber (the driver, which then tells the core) runs.
+    """
+
+    def __init__(self, node_id: str, host: str, port: int, psk: bytes, view: RoutingView) -> None:
+        self._node_id = node_id
+        self.host = host
+        self.port = port
+        self.psk = psk
+        self.view = view
+        self.counters: Counters = view.counters
+        self.loop = asyncio.get_running_loop()
+        self.peers: dict[str, Connection] = {}
+        self.clients: dict[int, Connection] = {}
+        self.held: dict[str, deque[tuple[bytes, Kind]]] = {}
+        # frames waiting for a route: (payload, size to count as forwarded once sent)
+        self.waiting: RouteWait[tuple[bytes, int]] = RouteWait(on_drop=self._unroutable)
+        self.server: asyncio.Server | None = None
+        self._client_ids = 0
+        self._receiver: Receiver = lambda src, msg: None
+        self._on_client: ClientHandler = lambda client, msg: None
+        self._closed = False
+        view.subscribe(self._routes_changed)
+
+    @property
+    def node_id(self) -> str:
+        return self._node_id
+
+    def set_receiver(self, receiver: Receiver) -> None:
+        self._receiver = receiver
+
+    def set_client_handler(self, handler: ClientHandler) -> None:
+        self._on_client = handler
+
+    def connected(self) -> list[str]:
+        """Neighbours with an open connection."""
+        return sorted(self.peers)
+
+    async def start(self) -> None:
+        """Listen; ``port`` becomes the bound one (0 asks for any free port)."""
+        self.server = await self.loop.create_server(
+            lambda: Connection(self), self.host, self.port, reuse_address=True
+        )
+        self.port = self.server.sockets[0].getsockname()[1]
+        self.routes_changed()
+
+    async def close(self) -> None:
+        self._closed = True
+        for conn in [*self.peers.values(), *self.clients.values()]:
+            conn.close()
+        if self.server is not None:
+            self.server.close()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self.server.wait_closed(), 1.0)
+
+    # -- outbound ---------------------------------------------------------------------------
+    def send(self, dst: str, payload: bytes, kind: Kind) -> None:
+        if not self._send_toward(dst, payload, kind):
+            self.waiting.hold(dst, (payload, 0), kind, self.loop.time())
+
+    def reply(self, client: int, msg: m.Message) -> None:
+        """Answer a client connection (gone clients are ignored)."""
+        conn = self.clients.get(client)
+        if conn is not None:
+            conn.send_message("client", msg)
+
+    def _unroutable(self, _: object = None) -> None:
+        self.counters.frames_unroutable += 1
+
+    def _send_toward(self, dst: str, payload: bytes, kind: Kind) -> bool:
+        """Hand a frame to the next hop toward dst; False when there is no usable next hop."""
+        hop = self.view.next_hop(dst)
+        if hop is None:
+            return False
+        conn = self.peers.get(hop)
+        if conn is not None and conn.link is not None:
+            conn.link.send(payload, kind)
+        elif hop in self.view.neighbours():
+            self._hold(hop, payload, kind)
+        else:
+            return False
+        return True
+
+    def _forward(self, env: m.Envelope, size: int) -> None:
+        env.ttl -= 1
+        if env.ttl <= 0:
+            self._unroutable()
+            return
+        payload = m.rewrap(env)
+        if self._send_toward(env.dst, payload, env.kind):
+            self.counters.bytes_forwarded += size
+        else:
+            self.waiting.hold(env.dst, (payload, size), env.kind, self.loop.time())
+
+    def _release(self, dst: str, item: tuple[bytes, int], kind: Kind) -> bool:
+        payload, forwarded = item
+        if not self._send_toward(dst, payload, kind):
+            return False
+        self.counters.bytes_forwarded += forwarded
+        return True
+
+    def _hold(self, node: str, payload: bytes, kind: Kind) -> None:
+        """Keep frames for a neighbour whose connection is still being set up (bounded)."""
+        held = self.held.setdefault(node, deque())
+        if len(held) >= MAX_HELD:
+            self._unroutable()
+            return
+        held.append((payload, kind))
+
+    # -- inbound ----------------------------------------------------------------------------
+    def on_envelope(self, conn: Connection, env: m.Envelope, size: int) -> None:
+        if env.dst != self._node_id and conn.client is None and conn.peer is not None:
+            self._forward(env, size)
+            return
+        try:
+            msg = m.decode(env.body)
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            self.counters.frames_malformed += 1
+            return
+        if isinstance(msg, m.PeerHello):
+            conn.peer = msg.node
+            self.peers[msg.node] = conn
+            self._attach_link(msg.node)
+            return
+        if isinstance(msg, m.ClientHello):
+            self._client_ids += 1
+            conn.client = self._client_ids
+            self.clients[conn.client] = conn
+            return
+        if conn.client is not None:
+            self._on_client(conn.client, msg)
+            return
+        if conn.peer is None:
+            self.counters.frames_malformed += 1  # a peer must say hello first
+            return
+        self._receiver(env.src, msg)
+
+    def on_connection_lost(self, conn: Connection) -> None:
+        if conn.peer is not None and self.peers.get(conn.peer) is conn:
+            del self.peers[conn.peer]
+            if conn.link is not None:
+                conn.link.close()
+            spec = self.view.neighbours().get(conn.peer)
+            if spec is not None and self._node_id < conn.peer and not self._closed:
+                self.loop.create_task(self._connect(conn.peer, spec.host, spec.port))
+        if conn.client is not None:
+            self.clients.pop(conn.client, None)
+
+    # -- neighbours -------------------------------------------------------------------------
+    def _routes_changed(self, _: RoutesChanged) -> None:
+        self.routes_changed()
+
+    def routes_changed(self) -> None:
+        """Follow the view: drop links to former neighbours, reshape or connect current ones
+        (the lower node id connects), then offer waiting frames the new routes."""
+        neighbours = self.view.neighbours()
+        for node in list(self.peers):
+            if node not in neighbours:
+                self.peers.pop(node).close()
+        for node, spec in neighbours.items():
+            if node in self.peers:
+                self._attach_link(node)
+            elif self._node_id < node:
+                self.loop.create_task(self._connect(node, spec.host, spec.port))
+        self.waiting.release(self.loop.time(), self._release)
+
+    async def _connect(self, node: str, host: str, port: int) -> None:
+        for attempt in range(CONNECT_ATTEMPTS):
+            if node not in self.view.neighbours() or node in self.peers or self._closed:
+                return
+            try:
+                _, conn = await self.loop.create_connection(
+                    lambda: Connection(self, peer=node), host, port
+                )
+            except OSError as exc:
+                log.info("connecting to %s at %s:%s: %s", node, host, port, exc)
+                await asyncio.sleep(0.05 * (attempt + 1))  # back off (not a synchronisation)
+                continue
+            self.peers[node] = conn
+            self._attach_link(node)
+            return
+        log.warning("could not reach neighbour %s at %s:%s", node, host, port)
+
+    def _attach_link(self, node: str) -> None:
+        """Give a connected neighbour a link of the current shape and send what it held."""
+        conn = self.peers.get(node)
+        spec = self.view.neighbours().get(node)
+        if conn is None or spec is None:
+            return
+        held = self.held.pop(node, None)
+        if conn.link is None or conn.link.shape != spec.shape:
+            seed = zlib.crc32(f"{self._node_id}-{node}".encode())
+            conn.link = Link(conn, spec.shape, seed, self.loop, self._lost)
+        for payload, kind in held or ():
+            conn.link.send(payload, kind)
+
+    def _lost(self) -> None:
+        self.counters.frames_dropped_loss += 1
