@@ -426,10 +426,9 @@ def _node(
     import logging
 
     from mso.client import overlay_key, parse_address
-    from mso.net.base import Neighbour
-    from mso.net.routes_static import StaticRoutes
     from mso.node.core import NodeCore
     from mso.node.driver import NodeDriver
+    from mso.protocol import messages as m
 
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
@@ -438,13 +437,13 @@ def _node(
     host, port = parse_address(listen)
     if cpu <= 0:
         raise MsoError(f"--cpu: expected a number > 0, got {cpu:g}")
-    static: dict[str, Neighbour] = {}
+    static: dict[str, list[Any]] = {}
     for p in peers:
         name, _, addr = p.partition("=")
         if not name or not addr:
             raise MsoError(f"--peer: expected NODE=HOST:PORT, got {p!r}")
         phost, pport = parse_address(addr)
-        static[name] = Neighbour(phost, pport)
+        static[name] = [phost, pport, None, 0.0, 0.0]
 
     core = NodeCore(  # checks the policy before anything listens
         node_id,
@@ -458,12 +457,14 @@ def _node(
     )
 
     async def serve() -> None:
-        view = StaticRoutes(node_id, static) if static else None  # else the emulator's
-        driver = NodeDriver(core, host, port, overlay_key(key), view)
+        driver = NodeDriver(core, host, port, overlay_key(key))
         try:
             await driver.start()
         except OSError as exc:
             raise MsoError(f"cannot listen on {listen}: {exc.strerror}") from None
+        if static:
+            routes: dict[str, list[Any]] = {n: [n, 1] for n in static}
+            driver.apply_links(m.LinkState(version=0, neighbours=static, routes=routes))
         await driver.stopped.wait()
 
     with contextlib.suppress(KeyboardInterrupt):
@@ -883,6 +884,129 @@ def _sink_line(nodes: dict[str, Any], app: str) -> str:
             if s["kind"] == "sink":
                 parts.append(f"{v}@{st['node']}: {s['processed']} events")
     return ", ".join(parts) or "no sink yet"
+
+
+@main.command()
+@click.argument("scenario_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--app", "app_file", required=True, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of emulated loss.")
+@click.option(
+    "--duration", type=float, default=30.0, show_default=True, help="Virtual seconds to run."
+)
+@click.option("--via", help="Node to deploy from (default: the first node).")
+@click.option(
+    "--convergence", type=float, default=0.0, show_default=True,
+    help="Seconds routes take to follow a link change.",
+)  # fmt: skip
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+@_user_errors
+def simulate(
+    scenario_file: Path,
+    app_file: Path,
+    seed: int,
+    duration: float,
+    via: str | None,
+    convergence: float,
+    as_json: bool,
+) -> None:
+    """Run a scenario in virtual time (the daemon's node code, the scenario's timeline)."""
+    from mso.sim.play import simulate as run
+
+    scenario = load_scenario(scenario_file)
+    load_app(app_file)  # a bad app file is reported with its file and line, before anything runs
+    if convergence < 0:
+        raise MsoError(f"--convergence: expected seconds >= 0, got {convergence:g}")
+    try:
+        doc = app_file.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise MsoError(f"{app_file}: {exc.strerror or exc}") from None
+    report = run(
+        scenario, doc, str(app_file), seed=seed, duration=duration, convergence_s=convergence,
+        via=via,
+    )  # fmt: skip
+    if as_json:
+        click.echo(json.dumps(report, sort_keys=True))
+    else:
+        render_simulation(_console(), report)
+    if not report["deploy"]["ok"]:
+        raise MsoError(f"deployment failed: {report['deploy']['error']}")
+
+
+def render_simulation(console: Console, r: dict[str, Any]) -> None:
+    """The report of ``mso simulate``: events, reconfigurations, failures, energy."""
+    dep = r["deploy"]
+    console.print(
+        f"simulated {r['app']} on {r['scenario']} for {r['duration_s']:g} s (seed {r['seed']}): "
+        + (
+            f"deployed in {dep['elapsed_ms']:.1f} ms"
+            if dep["ok"]
+            else f"deploy failed: {dep['error']}"
+        )
+    )
+    for t, what in r["timeline"]:
+        console.print(f"  t={t:7.3f}s  {what}")
+    ev = r["events"]
+    et = Table(title="events")
+    for col in ("vertex", "kind", "events"):
+        et.add_column(col, justify="right" if col == "events" else "left")
+    for v, n in ev["emitted"].items():
+        et.add_row(v, "emitted", str(n))
+    for v, n in ev["delivered"].items():
+        et.add_row(v, "delivered", str(n))
+    console.print(et)
+    console.print(
+        f"dropped on parked chains: {ev['dropped_parked']}, "
+        f"frames lost on lossy links (resent): {ev['frames_lost_on_links']}"
+    )
+    rc = r["reconfigurations"]
+    console.print(
+        f"reconfigurations: {len(rc['moves'])} vertex moves, {len(rc['recoveries'])} recoveries, "
+        f"{len(rc['rejoins'])} rejoins, {len(rc['management'])} rule actions"
+    )
+    for mv in rc["moves"]:
+        console.print(f"  t={mv['at']:7.3f}s  {mv['vertex']}: {mv['from']} -> {mv['to']}")
+    for rec in rc["recoveries"]:
+        state = "ok" if rec.get("ok") else (rec.get("error") or "in progress")
+        console.print(
+            f"  recovery from {', '.join(rec['failed']) or '-'}: {rec['remap']} remap of "
+            f"{', '.join(rec['chains'])}: {state}"
+        )
+    for rj in rc["rejoins"]:
+        console.print(
+            f"  t={rj['at']:7.3f}s  {rj['node']} rejoined as incarnation {rj['incarnation']}"
+        )
+    for d in rc["management"]:
+        console.print(f"  rule: {d}")
+    ft = Table(title="failures detected")
+    for col in ("node", "detector", "at s"):
+        ft.add_column(col, justify="right" if col == "at s" else "left")
+    for f in r["failures"]:
+        ft.add_row(f["node"], f["detector"], f"{f['at']:.3f}")
+    if r["failures"]:
+        console.print(ft)
+    nt = Table(title="energy per node")
+    for col in (
+        "node",
+        "alive",
+        "incarnation",
+        "energy J",
+        "W",
+        "battery",
+        "bytes out",
+        "bytes in",
+    ):
+        nt.add_column(col, justify="left" if col in ("node", "alive") else "right")
+    for n, e in r["energy"].items():
+        frac = e["battery_fraction"]
+        nt.add_row(
+            n, "yes" if e["alive"] else "no", str(e["incarnation"]), f"{e['energy_j']:.2f}",
+            f"{e['drain_w']:.2f}", "wall" if frac is None else f"{frac * 100:.1f}%",
+            str(e["bytes_sent"]), str(e["bytes_received"]),
+        )  # fmt: skip
+    console.print(nt)
+    console.print(
+        "final placement: " + ", ".join(f"{v}@{n}" for v, n in r["placement"].items()) or "-"
+    )
 
 
 @main.group()

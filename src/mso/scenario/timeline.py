@@ -206,7 +206,6 @@ class Timeline:
 
     def _sync(self, at: float, what: str) -> list[Action]:
         """Make the network show the wanted links; report the difference if any."""
-        self.played.append((at, what))
         want = self.wanted()
         have = {_key(a, b): spec for (a, b), spec in self.network.links.items()}
         removed = tuple(sorted(k for k in have if k not in want))
@@ -215,6 +214,8 @@ class Timeline:
             self.network.remove_link(a, b)
         for spec in added:
             self.network.add_link(spec)
+        if what != "mobility" or removed or added:  # a step that changes nothing is no news
+            self.played.append((at, what))
         if not removed and not added:
             return []
         return [LinksChanged(at, added, removed)]

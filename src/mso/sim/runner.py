@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from mso.management import RuleSettings
 from mso.model.network import Network
+from mso.net.forwarding import RouteWait
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
 from mso.protocol import messages as m
 
@@ -41,8 +43,17 @@ class Simulation:
         policy: Any = None,
         manage: bool = True,
         rules: RuleSettings | None = None,
+        seed: int = 0,
     ) -> None:
         self.network = network
+        self.rng = random.Random(seed)  # emulated loss of data frames (a link's ``loss``)
+        self.lost = 0  # data frames lost that way
+        # (time, node, from, message type): every delivery, when a test or a fault run asks
+        self.trace: list[tuple[float, str, str, str]] | None = None
+        # control frames with no route wait for the routes to change, as a node's driver does
+        self.waiting: dict[str, RouteWait[tuple[str, m.Message]]] = {
+            n: RouteWait() for n in network.nodes
+        }
         self._policy, self._rules = policy, rules
         self.wire = wire  # pass every message through the real encoding, as the wire does
         self.hop_latency_s = hop_latency_s
@@ -89,6 +100,48 @@ class Simulation:
                 if route is not None and dst != n:
                     routes[dst] = (route[1], len(route) - 1)
             self._apply(n, core.set_routes(routes, self.now))
+        for n, wait in self.waiting.items():
+            if wait and n not in self.dead:
+                wait.release(self.now, self._resender(n))
+
+    def _resender(self, node: str) -> Callable[[str, tuple[str, m.Message], int], bool]:
+        def resend(dst: str, item: tuple[str, m.Message], kind: int) -> bool:
+            return self._send(node, dst, item[1])
+
+        return resend
+
+    def links_changed(self, convergence_s: float = 0.0) -> None:
+        """The links changed (the network already shows it): routing views follow after
+        ``convergence_s``, as a routing protocol's would."""
+        if convergence_s <= 0:
+            self.update_routes()
+        else:
+            self._push(self.now + convergence_s, "routes", "", None)
+
+    def _send(self, node: str, dst: str, msg: m.Message) -> bool:
+        """Put ``msg`` on the in-memory network; False when there is no route to ``dst``."""
+        route = self.network.route(node, dst)
+        if route is None:
+            return False
+        delay = 0.0
+        lossy = m.kind_of(msg) == m.DATA
+        for a, b in itertools.pairwise(route):
+            link = self.network.link(a, b)
+            delay += self.hop_latency_s + (link.delay_ms / 1e3 if link else 0.0)
+            if lossy and link is not None and link.loss > 0 and self.rng.random() < link.loss:
+                self.lost += 1  # dropped at this hop: retransmission recovers it
+                route = route[: route.index(b) + 1]
+                delay = -1.0
+                break
+        if self.wire:  # what a real node would receive: encoded, then decoded
+            frame = m.wrap(node, dst, msg)
+            msg = m.decode(m.unwrap(frame).body)
+            for a, b in itertools.pairwise(route):  # every hop sends and receives it
+                self.bytes[a][0] += len(frame)
+                self.bytes[b][1] += len(frame)
+        if delay >= 0:
+            self._push(self.now + delay, "msg", dst, (node, msg))
+        return True
 
     def _push(self, at: float, kind: str, node: str, payload: Any) -> None:
         heapq.heappush(self._heap, _Item(at, next(self._seq), kind, node, payload))
@@ -96,21 +149,10 @@ class Simulation:
     def _apply(self, node: str, effects: list[Effect]) -> None:
         for eff in effects:
             if isinstance(eff, Send):
-                route = self.network.route(node, eff.dst)
-                if route is None:
-                    continue  # unreachable: the message is lost, like a real radio's
-                delay = 0.0
-                for a, b in itertools.pairwise(route):
-                    link = self.network.link(a, b)
-                    delay += self.hop_latency_s + (link.delay_ms / 1e3 if link else 0.0)
-                msg = eff.msg
-                if self.wire:  # what a real node would receive: encoded, then decoded
-                    frame = m.wrap(node, eff.dst, msg)
-                    msg = m.decode(m.unwrap(frame).body)
-                    for a, b in itertools.pairwise(route):  # every hop sends and receives it
-                        self.bytes[a][0] += len(frame)
-                        self.bytes[b][1] += len(frame)
-                self._push(self.now + delay, "msg", eff.dst, (node, msg))
+                if not self._send(node, eff.dst, eff.msg):  # no route: control frames wait
+                    self.waiting[node].hold(
+                        eff.dst, (eff.dst, eff.msg), m.kind_of(eff.msg), self.now
+                    )
             elif isinstance(eff, SetTimer):
                 self._timers[(node, eff.key)] = eff.at
                 self._push(eff.at, "timer", node, eff.key)
@@ -124,6 +166,7 @@ class Simulation:
         """Fail-stop ``node`` now: it falls silent and its links go; the survivors' routing
         views learn the new routes ``convergence_s`` later, as a routing protocol's would."""
         self.dead.add(node)
+        self.waiting[node] = RouteWait()  # what it held died with it
         for n in list(self.network.neighbours(node)):
             self.network.remove_link(node, n)
         self._push(self.now + convergence_s, "routes", node, None)
@@ -164,6 +207,8 @@ class Simulation:
             if item.kind == "msg":
                 src, msg = item.payload
                 self.delivered += 1
+                if self.trace is not None:
+                    self.trace.append((self.now, item.node, src, type(msg).__name__))
                 self._apply(item.node, core.receive(src, msg, self.now))
             elif self._timers.get((item.node, item.payload)) == item.at:
                 del self._timers[(item.node, item.payload)]

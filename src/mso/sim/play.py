@@ -1,0 +1,216 @@
+"""Play a scenario in virtual time: the simulator's side of the shared timeline, and the report
+``mso simulate`` prints.
+
+:func:`drive` advances a :class:`~mso.sim.runner.Simulation` and a
+:class:`~mso.scenario.timeline.Timeline` together (the emulator plays the same timeline on its
+asyncio clock), so links, failures, restarts, partitions, loss and mobility mean the same thing
+in both. :func:`simulate` deploys an app, drives the scenario and sums up what happened from the
+nodes' own status (the figures ``mso status`` shows).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from mso.errors import MsoError
+from mso.model.appfile import loads_app
+from mso.protocol import messages as m
+from mso.scenario.format import Scenario
+from mso.scenario.timeline import Action, Crash, Restart, Timeline
+from mso.sim.runner import Simulation
+
+Call = tuple[float, Callable[[Simulation], None]]
+MAX_STEPS = 10_000_000  # bound on driver turns (each turn moves virtual time or plays a change)
+
+
+def apply(sim: Simulation, actions: list[Action], convergence_s: float = 0.0) -> None:
+    """Carry out a timeline's actions on the simulation."""
+    for action in actions:
+        if isinstance(action, Crash):
+            if action.node not in sim.dead:
+                sim.kill(action.node, convergence_s)
+        elif isinstance(action, Restart):
+            if action.node in sim.dead:
+                sim.revive(action.node)
+        else:
+            sim.links_changed(convergence_s)
+
+
+def drive(
+    sim: Simulation,
+    timeline: Timeline,
+    until: float,
+    *,
+    convergence_s: float = 0.0,
+    calls: list[Call] | None = None,
+) -> None:
+    """Run ``sim`` to virtual time ``until``, playing the timeline's changes at their times and
+    each of ``calls`` (``(time, fn(sim))``, e.g. a client request or a sample) at its own."""
+    pending = sorted(calls or [], key=lambda c: c[0])
+    i = 0
+    for _ in range(MAX_STEPS):
+        due = timeline.next_at()
+        t = until if due is None else min(due, until)
+        if i < len(pending):
+            t = min(t, pending[i][0])
+        t = max(t, sim.now)
+        sim.run_until(t)
+        if due is not None and due <= t:
+            apply(sim, timeline.advance(t), convergence_s)
+        while i < len(pending) and pending[i][0] <= t:
+            pending[i][1](sim)
+            i += 1
+        if t >= until and (due is None or due > until) and i >= len(pending):
+            return
+    raise MsoError(f"the simulation did not reach t={until:g} s in {MAX_STEPS} steps")
+
+
+def simulate(
+    scenario: Scenario,
+    app_doc: str,
+    app_file: str | Path,
+    *,
+    seed: int = 0,
+    duration: float = 30.0,
+    convergence_s: float = 0.0,
+    via: str | None = None,
+    manage: bool = True,
+) -> dict[str, Any]:
+    """Deploy the app at t=0 on ``scenario`` in virtual time, play the scenario's timeline for
+    ``duration`` seconds and report events, reconfigurations, energy and failures."""
+    if duration <= 0:
+        raise MsoError(f"--duration: expected a number of seconds > 0, got {duration:g}")
+    app = loads_app(app_doc, file=str(app_file))  # errors name the file and line, exit 2
+    origin = via or next(iter(scenario.network.nodes))
+    if origin not in scenario.network.nodes:
+        known = ", ".join(scenario.network.nodes)
+        raise MsoError(f"--via: unknown node {origin!r} (nodes: {known})")
+    sim = Simulation(scenario.network, seed=seed, manage=manage)
+    timeline = Timeline(scenario, network=sim.network)
+    sim.request(origin, m.DeployRequest(app_doc, str(app_file)))
+    moves: list[tuple[float, str, str, str]] = []  # (time, vertex, from, to)
+    last: dict[str, str] = {}
+
+    def sample(s: Simulation) -> None:
+        """Note every vertex whose node changed since the last sample (moves of any kind)."""
+        placed = _placement(s, app.name)
+        for v, n in placed.items():
+            if v in last and last[v] != n:
+                moves.append((s.now, v, last[v], n))
+        last.update(placed)
+
+    step = 0.05
+    samples: list[Call] = [(k * step, sample) for k in range(1, int(duration / step) + 1)]
+    drive(sim, timeline, duration, convergence_s=convergence_s, calls=samples)
+    return _report(sim, timeline, scenario, app.name, seed, duration, convergence_s, moves)
+
+
+def _placement(sim: Simulation, app: str) -> dict[str, str]:
+    for n in sorted(sim.cores):
+        dep = sim.cores[n].apps.get(app)
+        if n not in sim.dead and dep is not None and dep.running:
+            return dict(dep.placed)
+    return {}
+
+
+def _report(
+    sim: Simulation,
+    timeline: Timeline,
+    scenario: Scenario,
+    app: str,
+    seed: int,
+    duration: float,
+    convergence_s: float,
+    moves: list[tuple[float, str, str, str]],
+) -> dict[str, Any]:
+    live = [n for n in sim.cores if n not in sim.dead]
+    status = {n: sim.cores[n].status(sim.now) for n in live}
+    deploy = [r for _, _, r in sim.replies if isinstance(r, m.DeployReply)]
+    reply = deploy[0] if deploy else None
+    sent: dict[str, int] = {}  # edge -> highest sequence number sent (over every node)
+    delivered: dict[str, int] = {}
+    dropped: dict[str, int] = {}  # edge -> events dropped while its chain was parked
+    recoveries: dict[tuple[Any, ...], dict[str, Any]] = {}
+    vertices: dict[str, dict[str, Any]] = {}
+    for n, st in status.items():
+        a = st["apps"].get(app)
+        if a is None:
+            continue
+        for e, c in a["edges"].items():
+            sent[e] = max(sent.get(e, 0), c["sent"])
+            delivered[e] = max(delivered.get(e, 0), c["delivered"])
+        for e, k in a["dropped_parked"].items():
+            dropped[e] = max(dropped.get(e, 0), k)
+        for rec in a["recoveries"]:
+            recoveries[(rec.get("at"), tuple(rec.get("failed", ())))] = rec
+        for v, vs in a["vertices"].items():
+            vertices[v] = {"node": n, "kind": vs["kind"], "processed": vs["processed"]}
+            vertices[v]["emitted"] = vs["emitted"]
+    sources = sorted(v for v, d in vertices.items() if d["kind"] == "source")
+    sinks = sorted(v for v, d in vertices.items() if d["kind"] == "sink")
+    edges = [e.split("->") for e in sent.keys() | delivered.keys()]
+    events = {
+        "emitted": {  # what entered the network: sent, or dropped on a parked chain
+            s: max((sent[e] + dropped.get(e, 0) for e in sent if e.split("->")[0] == s), default=0)
+            for s in sources
+        },
+        "delivered": {k: sum(delivered.get(f"{a}->{b}", 0) for a, b in edges if b == k)
+        for k in sinks},
+        "dropped_parked": sum(dropped.values()),
+        "frames_lost_on_links": sim.lost,
+    }  # fmt: skip
+    failures: dict[tuple[str, float], dict[str, Any]] = {}
+    rejoins: dict[tuple[str, int], dict[str, Any]] = {}
+    decisions: list[str] = []
+    for n in sorted(sim.cores):
+        core = sim.cores[n]
+        for f in core.failures:  # one record per failed node and time, whoever detected it
+            failures.setdefault((f["node"], round(f["at"], 6)), dict(f))
+        for r in core.rejoins:
+            rejoins.setdefault((r["node"], r["incarnation"]), dict(r))
+        if n in status:
+            decisions += [f"{n}: {d}" for d in status[n]["management"]["done"]]
+    energy = {}
+    for n in sim.cores:
+        mon = status[n]["monitor"] if n in status else sim.cores[n].monitor.snapshot()
+        energy[n] = {
+            "alive": n in status,
+            "incarnation": sim.cores[n].incarnation,
+            "energy_j": mon["energy_j"],
+            "drain_w": mon["drain_w"],
+            "battery_fraction": mon["battery_fraction"],
+            "bytes_sent": sim.bytes[n][0],
+            "bytes_received": sim.bytes[n][1],
+        }
+    requests = [r for _, _, r in sim.replies if isinstance(r, m.RelocateReply | m.RemapReply)]
+    return {
+        "scenario": scenario.name,
+        "app": app,
+        "seed": seed,
+        "duration_s": duration,
+        "convergence_s": convergence_s,
+        "deploy": {
+            "ok": bool(reply and reply.ok),
+            "elapsed_ms": reply.elapsed_ms if reply else None,
+            "error": (reply.error if reply else "no reply from the deploying node"),
+            "placement": dict(reply.placement) if reply else {},
+        },
+        "events": events,
+        "reconfigurations": {
+            "moves": [{"at": round(t, 3), "vertex": v, "from": a, "to": b} for t, v, a, b in moves],
+            "management": decisions,
+            "requests": len(requests),
+            "recoveries": sorted(recoveries.values(), key=lambda r: r.get("at") or 0.0),
+            "rejoins": sorted(rejoins.values(), key=lambda r: r["at"]),
+        },
+        "failures": sorted(failures.values(), key=lambda f: f["at"]),
+        "energy": energy,
+        "placement": _placement(sim, app),
+        "timeline": [[round(t, 3), what] for t, what in timeline.played],
+        "alive": live,
+    }
+
+
+__all__ = ["Call", "apply", "drive", "simulate"]
