@@ -81,7 +81,7 @@ def test_upstream_and_downstream_moves_lose_nothing_and_keep_state() -> None:
     assert stats["repeats"] == 0 and stats["out_of_order"] == 0
     assert emitted - 10 <= stats["count"] <= emitted
     counter_node = next(iter(where(sim, "counter")))
-    state = sim.cores[counter_node].apps["pipe"].stones["counter"].fn.count
+    state = sim.instance(counter_node, "pipe", "counter").count
     assert state == stats["next"] or state - stats["next"] <= 10  # state moved, never reset
 
 

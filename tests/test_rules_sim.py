@@ -41,7 +41,7 @@ def deployed(net: Network, doc: str, **kw: object) -> Simulation:
 
 
 def sink(sim: Simulation, app: str, node: str) -> dict[str, int]:
-    out: dict[str, int] = sim.cores[node].apps[app].stones["sink"].stats()
+    out: dict[str, int] = sim.instance(node, app, "sink").stats()
     return out
 
 

@@ -14,7 +14,6 @@ origin starts the sources.
 
 from __future__ import annotations
 
-import time
 import zlib
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -25,41 +24,19 @@ import msgspec
 
 from mso.errors import MsoError
 from mso.management import RuleSettings, load_policy
-from mso.model.app import App, Edge
+from mso.model.app import App, Vertex
 from mso.model.appfile import loads_app
 from mso.model.network import PowerModel
 from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, Liveness
 from mso.node.manager import Manager
 from mso.node.monitor import Monitor
-from mso.node.stone import Stone
 from mso.planning.placement import Hop, Layout
+from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.channel import AckGate, InChannel, OutChannel
+from mso.protocol.effects import Effect, Reply, Send, SetTimer
 
-
-@dataclass(frozen=True)
-class Send:
-    """Send ``msg`` to node ``dst`` (routed hop by hop by the driver)."""
-
-    dst: str
-    msg: m.Message
-
-
-@dataclass(frozen=True)
-class Reply:
-    """Answer the client connection ``client``."""
-
-    client: int
-    msg: m.Message
-
-
-@dataclass(frozen=True)
-class SetTimer:
-    key: tuple[Any, ...]
-    at: float
-
-
-Effect = Send | Reply | SetTimer
+__all__ = ["Effect", "NodeCore", "Reply", "Send", "SetTimer"]
 
 
 @dataclass
@@ -121,6 +98,60 @@ class Restoring:
     consumer_start: dict[int, int] = field(default_factory=dict)  # output -> consumer expects
 
 
+QUEUE_EVENTS = 1024  # events fed to an instance's worker and not processed yet, at most
+FEED_BATCH = 256  # events per feed at most, so markers and stops are not held behind a batch
+SOURCE_RUN = 4096  # calls of a rated source per run at most
+BUSY_AFTER_S = 1.0  # an instance working on one effect this long is reported busy ...
+HUNG_AFTER_S = 10.0  # ... and this long, hung (status only: it never takes the node down)
+
+
+@dataclass
+class Hosted:
+    """The core's record of one vertex instance whose code runs in the executor: what it was
+    given, what it reported back, and where a source stands in its schedule."""
+
+    instance: int
+    vertex: Vertex
+    kind: str
+    started: bool = False
+    mode: str = ""  # a source's: timer (rated) or loop (paced by credit)
+    processed: int = 0
+    emitted: int = 0  # events produced (not calls)
+    calls: int = 0  # times a source was called
+    errors: int = 0
+    cpu_s: float = 0.0
+    bytes_in: int = 0  # encoded size of the events it consumed and produced
+    bytes_out: int = 0
+    last_error: str = ""
+    stats: Any = None
+    state_size: int = 0
+    # effects submitted whose results have not come back, events among them, since when
+    jobs: int = 0
+    queued: int = 0
+    busy_since: float | None = None
+    # delivered, not yet fed: (edge, events, when they entered their chain) or a marker
+    pending: deque[tuple[int, list[bytes], float] | m.Marker] = field(default_factory=deque)
+    # a rated source: schedule origin and calls asked for; a loop source: credit granted
+    t0: float = 0.0
+    asked: int = 0
+    credit: int = 0
+    ended: bool = False
+    handing_over: m.Marker | None = None  # snapshot asked for this relocation
+
+    @property
+    def rate(self) -> float:
+        v = self.vertex
+        if v.rate:
+            return v.rate
+        return 1.0 if v.code is None else 0.0  # a stand-in ticks once a second
+
+    def state(self, now: float) -> str:
+        if not self.started:
+            return "starting"
+        busy = now - self.busy_since if self.busy_since is not None else 0.0
+        return "hung" if busy >= HUNG_AFTER_S else "busy" if busy >= BUSY_AFTER_S else "running"
+
+
 @dataclass
 class Deployment:
     """One app on this node: the shared layout, what is placed, what runs here."""
@@ -134,14 +165,18 @@ class Deployment:
     probes: dict[int, dict[int, list[Hop]]] = field(default_factory=dict)
     probes_expected: dict[int, int] = field(default_factory=dict)
     parts_pending: dict[int, set[str]] = field(default_factory=dict)
-    stones: dict[str, Stone] = field(default_factory=dict)
+    stones: dict[str, Hosted] = field(default_factory=dict)
     out: dict[int, OutChannel] = field(default_factory=dict)
     inc: dict[int, InChannel] = field(default_factory=dict)
     gates: dict[str, AckGate] = field(default_factory=dict)  # vertex -> chained acks
     decoders: dict[int, msgspec.msgpack.Decoder[Any]] = field(default_factory=dict)
     running: bool = False
     epoch: int = 0
-    awaiting: dict[str, Stone] = field(default_factory=dict)  # prepared, awaiting handover
+    awaiting: dict[str, Hosted] = field(default_factory=dict)  # prepared, awaiting handover
+    building: dict[int, tuple[str, set[str]]] = field(default_factory=dict)  # chain -> (asker,
+    # vertices still starting)
+    preparing: dict[str, tuple[int, str, bool]] = field(default_factory=dict)  # vertex -> (rid,
+    # coordinator, restore) until its instance has started
     stash: dict[int, list[tuple[int, list[bytes]]]] = field(default_factory=dict)
     markers: dict[str, set[int]] = field(default_factory=dict)  # vertex -> edges marked
     blocked_sources: set[str] = field(default_factory=set)
@@ -175,7 +210,6 @@ class NodeCore:
         node_id: str,
         *,
         capacity: float = 1.0,
-        cpu_clock: Callable[[], float] = time.perf_counter,
         window: int = 4096,
         power: PowerModel | None = None,
         battery_wh: float | None = None,
@@ -201,16 +235,15 @@ class NodeCore:
         self.work_ms = 0.0  # modelled CPU work of every event processed here (cost units)
         # cumulative (bytes sent, bytes received) as the driver counts them
         self.traffic: Callable[[], tuple[int, int]] = lambda: (0, 0)
-        self.cpu_clock = cpu_clock
         self.window = window
         self.routes: dict[str, tuple[str, int]] = {}  # destination -> (next hop, hops)
         self.apps: dict[str, Deployment] = {}
         self.dropped_messages = 0
         self._effects: list[Effect] = []
         self._work: deque[tuple[str, str, m.Message]] = deque()
-        # events and markers, in arrival order per edge: a marker is handled after every event
-        # that arrived before it
-        self._events: deque[tuple[Deployment, int, list[bytes] | m.Marker, float]] = deque()
+        # vertex instances this node asked the executor for: id -> (app, vertex)
+        self._instances: dict[int, tuple[str, str]] = {}
+        self._next_instance = 0
         self._relocs: dict[int, Relocation] = {}
         # ids of procedures this node coordinates: distinct per node, small enough for msgpack
         self._rid = (zlib.crc32(node_id.encode()) & 0xFFFFFF) << 20
@@ -351,19 +384,12 @@ class NodeCore:
 
     def _run(self, now: float) -> list[Effect]:
         self._now = now
-        while self._work or self._events:
-            while self._work:
-                src, _, msg = self._work.popleft()
-                try:
-                    self._dispatch(src, msg, now)
-                except MsoError:
-                    self.dropped_messages += 1
-            while self._events and not self._work:
-                dep, edge, item, ts = self._events.popleft()
-                if isinstance(item, m.Marker):
-                    self._on_marker(dep, item)
-                else:
-                    self._process(dep, edge, item, now, ts)
+        while self._work:
+            src, _, msg = self._work.popleft()
+            try:
+                self._dispatch(src, msg, now)
+            except MsoError:
+                self.dropped_messages += 1
         self._flush()
         out, self._effects = self._effects, []
         return out
@@ -400,7 +426,9 @@ class NodeCore:
         elif isinstance(msg, m.StartApp):
             self._on_start(msg, now)
         elif isinstance(msg, m.StopApp):
-            self.apps.pop(msg.app, None)
+            gone = self.apps.pop(msg.app, None)
+            if gone is not None:
+                self._stop_app(gone, "undeploy")
             self._early.pop(msg.app, None)
             self.manager.forget(msg.app)
         elif isinstance(msg, m.DeployFailed):
@@ -411,8 +439,8 @@ class NodeCore:
             self._on_status_reply(msg)
         elif isinstance(msg, m.Marker):
             dep = self.apps.get(msg.app)
-            if dep is not None:
-                self._events.append((dep, msg.edge, msg, 0.0))
+            if dep is not None and 0 <= msg.edge < len(dep.app.edges):
+                self._enqueue(dep, dep.app.edges[msg.edge].dst, msg)
         elif isinstance(msg, m.RelocateRequest):
             self._relocate_request(None, msg, now)
         elif isinstance(msg, m.Prepare):
@@ -600,17 +628,21 @@ class NodeCore:
         self._start_ready_chains(dep)
 
     def _on_build(self, src: str, msg: m.BuildChain) -> None:
+        """Host this node's part of a chain; it is ready once every instance has started."""
         dep = self.apps.get(msg.app)
         if dep is None:
             return
+        starting = set()
         for vid in msg.vertices:
-            if vid not in dep.stones:
-                try:
-                    dep.stones[vid] = Stone(dep.app.vertices[vid], dep.layout.kinds[vid])
-                except Exception as exc:  # user code failing at construction
-                    self._send(dep.origin, m.DeployFailed(dep.app.name, f"{self.id}: {vid}: {exc}"))
-                    return
-        self._send(src, m.ChainPartReady(msg.app, msg.chain, self.id))
+            h = dep.stones.get(vid)
+            if h is None:
+                h = dep.stones[vid] = self._host(dep, vid)
+            if not h.started:
+                starting.add(vid)
+        if starting:
+            dep.building[msg.chain] = (src, starting)
+        else:
+            self._send(src, m.ChainPartReady(msg.app, msg.chain, self.id))
 
     def _on_part_ready(self, msg: m.ChainPartReady) -> None:
         dep = self.apps.get(msg.app)
@@ -651,10 +683,101 @@ class NodeCore:
         dep.running = True
         dep.started_at = now
         dep.placed_at = dict.fromkeys(range(len(dep.layout.chains)), now)
-        for vid, stone in dep.stones.items():
-            if stone.kind == "source":
-                self._effects.append(SetTimer(("source", msg.app, vid), now))
+        for vid, h in dep.stones.items():
+            if h.kind == "source":
+                self._start_source(dep, vid, now)
         self._effects.append(SetTimer(("retransmit", msg.app), now + RETRANSMIT_S))
+
+    # -- vertex instances: the executor runs their code; results come back here ------------
+    def _host(self, dep: Deployment, vid: str) -> Hosted:
+        """Ask the executor for a new instance of ``vid``."""
+        self._next_instance += 1
+        iid = self._next_instance
+        self._instances[iid] = (dep.app.name, vid)
+        edges = dep.app.edges
+        inputs = {i: dep.app.edge_format(e) for i, e in enumerate(edges) if e.dst == vid}
+        h = Hosted(iid, dep.app.vertices[vid], dep.layout.kinds[vid])
+        self._submit(h, fx.StartVertex(iid, dep.app.name, h.vertex, h.kind, inputs))
+        return h
+
+    def _submit(self, h: Hosted, eff: fx.VertexEffect, events: int = 0) -> None:
+        self._effects.append(eff)
+        h.jobs += 1
+        h.queued += events
+        if h.busy_since is None:
+            h.busy_since = self._now
+
+    def _stop(self, h: Hosted, reason: str) -> None:
+        self._instances.pop(h.instance, None)
+        self._effects.append(fx.StopVertex(h.instance, reason))
+
+    def _stop_app(self, dep: Deployment, reason: str) -> None:
+        for h in [*dep.stones.values(), *dep.awaiting.values()]:
+            self._stop(h, reason)
+
+    def _stop_all(self, reason: str) -> None:
+        for dep in self.apps.values():
+            self._stop_app(dep, reason)
+
+    def on_vertex(self, res: fx.VertexResult, now: float) -> list[Effect]:
+        """A result from the executor (drivers call this, like ``receive``)."""
+        self._now = now
+        owner = self._instances.get(res.instance)
+        dep = self.apps.get(owner[0]) if owner is not None else None
+        if owner is None or dep is None:
+            return []  # stopped meanwhile
+        vid = owner[1]
+        h = dep.stones.get(vid) or dep.awaiting.get(vid)
+        if h is None or h.instance != res.instance:
+            return []
+        h.jobs -= 1
+        h.busy_since = now if h.jobs else None
+        h.cpu_s += res.cpu_s
+        h.errors += res.errors
+        h.last_error = res.last_error or h.last_error
+        h.stats, h.state_size = res.stats, res.state_size
+        if isinstance(res, fx.VertexStarted):
+            self._started(dep, vid, h, res, now)
+        elif isinstance(res, fx.VertexProcessed):
+            self._processed(dep, vid, h, res, now)
+        elif isinstance(res, fx.VertexEmitted):
+            self._emitted(dep, vid, h, res, now)
+        else:
+            self._snapshotted(dep, vid, h, res)
+        return self._run(now)
+
+    def _started(
+        self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexStarted, now: float
+    ) -> None:
+        prep = dep.preparing.pop(vid, None)
+        if res.error:  # user code failing at construction: refuse, change nothing
+            self._stop(h, "failed")
+            dep.stones.pop(vid, None)
+            dep.awaiting.pop(vid, None)
+            for ci, (_, starting) in list(dep.building.items()):
+                if vid in starting:
+                    del dep.building[ci]
+                    self._send(dep.origin, m.DeployFailed(dep.app.name, f"{self.id}: {res.error}"))
+            if prep is not None:
+                dep.restoring.pop(vid, None)
+                self._handover_to.pop(prep[0], None)
+                error = f"{self.id}: {res.error}"
+                self._send(prep[1], m.Prepared(dep.app.name, vid, prep[0], self.id, error))
+            return
+        h.started, h.mode = True, res.mode
+        for ci, (asker, starting) in list(dep.building.items()):
+            starting.discard(vid)
+            if not starting:
+                del dep.building[ci]
+                self._send(asker, m.ChainPartReady(dep.app.name, ci, self.id))
+        if prep is not None:
+            rid, coordinator, restore = prep
+            self._send(coordinator, m.Prepared(dep.app.name, vid, rid, self.id, ""))
+            restoring = dep.restoring.get(vid)
+            if restore and restoring is not None and not restoring.pending:
+                self._activate(dep, vid)  # nothing to wait for (a lone vertex)
+        if h.kind == "source" and vid in dep.stones:
+            self._start_source(dep, vid, now)
 
     # -- data plane -------------------------------------------------------------------------
     def _out(self, dep: Deployment, edge: int) -> OutChannel:
@@ -663,53 +786,72 @@ class NodeCore:
             ch = dep.out[edge] = OutChannel(window=self.window)
         return ch
 
+    def _start_source(self, dep: Deployment, vid: str, now: float) -> None:
+        h = dep.stones[vid]
+        if not h.started or not dep.running:
+            return
+        if h.mode == "loop":
+            self._grant(dep, vid)
+            return
+        h.t0, h.asked = now, 0
+        self._effects.append(SetTimer(("source", dep.app.name, vid), now))
+
+    def _room(self, dep: Deployment, vid: str) -> int:
+        return min((self._out(dep, e).room for e in dep.out_edges.get(vid, [])), default=SOURCE_RUN)
+
     def _source_tick(self, app: str, vid: str, now: float) -> None:
+        """A rated source keeps its schedule: event k is due at t0 + k / rate; a late tick
+        asks for every event due since (up to the window), so the rate holds on average."""
         dep = self.apps.get(app)
-        if dep is None or not dep.running or vid not in dep.stones:
+        h = dep.stones.get(vid) if dep is not None else None
+        if dep is None or h is None or not dep.running or not h.started or h.jobs:
+            return  # a run in flight schedules the next tick when it is done
+        rate = h.rate
+        due = int((now - h.t0) * rate + 1e-9) + 1 - h.asked
+        room = self._room(dep, vid)
+        n = min(due, room, SOURCE_RUN)
+        if n <= 0:
+            if room <= 0:  # backpressure: a full window holds the source until an ack
+                dep.blocked_sources.add(vid)
+            else:
+                self._effects.append(SetTimer(("source", app, vid), h.t0 + h.asked / rate))
             return
-        stone = dep.stones[vid]
+        self._submit(h, fx.RunSource(h.instance, h.asked, n, now))
+        h.asked += n
+
+    def _grant(self, dep: Deployment, vid: str) -> None:
+        """A free-running source may make as many calls as its window has room for."""
+        h = dep.stones[vid]
+        if not h.started or h.ended or not dep.running:
+            return
+        room = self._room(dep, vid) - h.credit
+        if room > 0 and (h.credit == 0 or room >= min(FEED_BATCH, self.window // 4)):
+            h.credit += room
+            self._effects.append(fx.Credit(h.instance, room))
+
+    def _emitted(
+        self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexEmitted, now: float
+    ) -> None:
+        h.calls += res.calls
+        self.work_ms += h.vertex.cost * res.calls
         edges = dep.out_edges.get(vid, [])
-        rate = stone.rate
-        room = min((self._out(dep, e).room for e in edges), default=SOURCE_BURST)
-        burst = min(1 if rate else SOURCE_BURST, room)
-        if burst <= 0:
-            # backpressure: a full window holds the source until an ack frees room
-            dep.blocked_sources.add(vid)
-            return
-        fn, seq, events = stone.fn, stone.emitted, []
-        t0 = self.cpu_clock()
-        for k in range(burst):
-            try:
-                event = fn(seq + k, now)
-            except Exception as exc:
-                stone.errors += 1
-                stone.last_error = f"{type(exc).__name__}: {exc}"
-                continue
-            if event is not None:
-                events.append(event)
-        stone.cpu_s += self.cpu_clock() - t0
-        stone.emitted += burst
-        self.work_ms += stone.vertex.cost * burst
-        if events:
-            stone.bytes_out += self._emit(dep, edges, events, now, -1) * len(edges)
-        if rate:  # keep the schedule, so late firings do not slow the rate down
-            period = 1.0 / rate
-            at = stone.next_at + period if stone.next_at else now + period
-            if at < now - period:  # fell more than a period behind: start again from now
-                at = now + period
-            stone.next_at = at
-        else:
-            at = now
-        self._effects.append(SetTimer(("source", app, vid), at))
+        if res.outputs:
+            h.emitted += len(res.outputs)
+            h.bytes_out += self._emit(dep, edges, res.outputs, now, -1) * len(edges)
+        if h.mode == "loop":
+            h.credit -= res.calls
+            h.ended = res.ended
+            self._grant(dep, vid)
+        elif dep.running:
+            at = h.t0 + h.asked / h.rate
+            self._effects.append(SetTimer(("source", dep.app.name, vid), max(at, now)))
 
     def _emit(
-        self, dep: Deployment, edges: Iterable[int], events: list[Any], ts: float, chain: int
+        self, dep: Deployment, edges: Iterable[int], payloads: list[bytes], ts: float, chain: int
     ) -> int:
-        """Encode ``events`` once and send them on every edge in ``edges``; returns their size
-        in bytes. ``ts`` is when they entered chain ``chain``: an edge of that chain carries it
-        on, an edge that starts another chain starts it from now."""
-        encode = msgspec.msgpack.encode
-        payloads = [encode(ev) for ev in events]
+        """Send encoded events on every edge in ``edges``; returns their size in bytes.
+        ``ts`` is when they entered chain ``chain``: an edge of that chain carries it on, an
+        edge that starts another chain starts it from now."""
         for e in edges:
             if e in dep.parked_edges:
                 dep.dropped[e] = dep.dropped.get(e, 0) + len(payloads)
@@ -735,7 +877,8 @@ class NodeCore:
     def _deliver(
         self, dep: Deployment, edge: int, seq: int, events: list[bytes], ts: float = 0.0
     ) -> None:
-        if dep.app.edges[edge].dst in dep.awaiting:  # moving here: keep until the handover
+        dst = dep.app.edges[edge].dst
+        if dst in dep.awaiting:  # moving here: keep until the handover
             dep.stash.setdefault(edge, []).append((seq, list(events)))
             return
         ch = dep.inc.get(edge)
@@ -743,7 +886,41 @@ class NodeCore:
             ch = dep.inc[edge] = InChannel()
         fresh = ch.accept(seq, events)
         if fresh:
-            self._events.append((dep, edge, fresh, ts))
+            self._enqueue(dep, dst, (edge, fresh, ts))
+
+    def _enqueue(
+        self, dep: Deployment, vid: str, item: tuple[int, list[bytes], float] | m.Marker
+    ) -> None:
+        """Events and markers for an instance, in arrival order: a marker is handled once
+        everything before it has been processed."""
+        h = dep.stones.get(vid)
+        if h is not None:
+            h.pending.append(item)
+            self._pump(dep, vid)
+
+    def _pump(self, dep: Deployment, vid: str) -> None:
+        """Feed the instance's worker while its bounded queue has room (backpressure: what
+        is not fed is not acknowledged, so the producers' windows fill and they stop)."""
+        h = dep.stones.get(vid)
+        while h is not None and h.pending and h.handing_over is None:
+            item = h.pending[0]
+            if isinstance(item, m.Marker):
+                if h.jobs:
+                    return
+                h.pending.popleft()
+                self._on_marker(dep, item)
+                continue
+            if h.queued >= QUEUE_EVENTS:
+                return
+            edge, events, ts = item
+            if len(events) > FEED_BATCH:
+                feed = events[:FEED_BATCH]
+                h.pending[0] = (edge, events[FEED_BATCH:], ts)
+            else:
+                h.pending.popleft()
+                feed = events
+            h.bytes_in += sum(map(len, feed))
+            self._submit(h, fx.FeedVertex(h.instance, edge, feed, ts), len(feed))
 
     def _on_data(self, msg: m.Data) -> None:
         dep = self.apps.get(msg.app)
@@ -759,71 +936,42 @@ class NodeCore:
             return
         self._deliver(dep, msg.edge, msg.seq, msg.events, msg.ts)
 
-    def _decoder(self, dep: Deployment, edge: int) -> msgspec.msgpack.Decoder[Any]:
-        dec = dep.decoders.get(edge)
-        if dec is None:
-            fmt = dep.app.edge_format(dep.app.edges[edge])
-            dec = dep.decoders[edge] = msgspec.msgpack.Decoder(fmt if fmt is not None else Any)
-        return dec
-
-    def _process(
-        self, dep: Deployment, edge: int, payloads: list[bytes], now: float, ts: float = 0.0
+    def _processed(
+        self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexProcessed, now: float
     ) -> None:
-        """Run a batch of events through the edge's consumer, in order."""
-        e: Edge = dep.app.edges[edge]
-        stone = dep.stones.get(e.dst)
-        if stone is None:
+        """A batch went through the edge's consumer: pass its outputs on, acknowledge."""
+        edge = res.edge
+        h.queued -= res.count
+        h.processed += res.count
+        self.work_ms += h.vertex.cost * res.count
+        ch = dep.inc.get(edge)
+        if ch is None:
             return
-        ch = dep.inc[edge]
-        decode = self._decoder(dep, edge).decode
-        fn = stone.fn
-        outs: list[Any] = []
-        t0 = self.cpu_clock()
-        for payload in payloads:
-            try:
-                event = decode(payload)
-            except (msgspec.DecodeError, msgspec.ValidationError) as exc:
-                stone.errors += 1
-                stone.last_error = f"undecodable event on {e.src} -> {e.dst}: {exc}"
-                continue
-            try:
-                result = fn(event)
-            except Exception as exc:
-                stone.errors += 1
-                stone.last_error = f"{type(exc).__name__}: {exc}"
-                continue
-            if result is not None:
-                if isinstance(result, list):
-                    outs.extend(result)
-                else:
-                    outs.append(result)
-        stone.cpu_s += self.cpu_clock() - t0
-        stone.processed += len(payloads)
-        stone.bytes_in += sum(map(len, payloads))
-        self.work_ms += stone.vertex.cost * len(payloads)
-        ch.mark_processed(len(payloads))
+        ch.mark_processed(res.count)
         chain = dep.layout.edge_chain[edge]
-        if ts > 0 and dep.layout.chains[chain].tail == e.dst:  # end-to-end through the chain
+        ts = res.ts
+        if ts > 0 and dep.layout.chains[chain].tail == vid:  # end-to-end through the chain
             ms = (now - ts) * 1e3
             old = dep.delays.get(chain)
             dep.delays[chain] = (
                 ms if old is None else DELAY_SMOOTHING * ms + (1 - DELAY_SMOOTHING) * old
             )
-        out_edges = dep.out_edges.get(e.dst, [])
-        if outs and out_edges:
-            stone.emitted += len(outs)
-            sent = self._emit(dep, out_edges, outs, ts, dep.layout.edge_chain[edge])
-            stone.bytes_out += sent * len(out_edges)
+        out_edges = dep.out_edges.get(vid, [])
+        if res.outputs and out_edges:
+            h.emitted += len(res.outputs)
+            sent = self._emit(dep, out_edges, res.outputs, ts, chain)
+            h.bytes_out += sent * len(out_edges)
         if out_edges:  # chained acks: the inputs are acked once the outputs are
             if ch.released is None:
                 ch.released = ch._acked
-            gate = dep.gates.get(e.dst)
+            gate = dep.gates.get(vid)
             if gate is None:
-                gate = dep.gates[e.dst] = AckGate()
+                gate = dep.gates[vid] = AckGate()
             gate.record({edge: ch.processed}, {o: self._out(dep, o).next_seq for o in out_edges})
-            self._release(dep, e.dst)
+            self._release(dep, vid)
         elif ch.processed - ch._acked >= ACK_EVERY:
             self._ack(dep, edge)
+        self._pump(dep, vid)
 
     def _release(self, dep: Deployment, vid: str) -> None:
         """Acknowledge the inputs of ``vid`` as far as its outputs have been acknowledged."""
@@ -877,10 +1025,17 @@ class NodeCore:
         self._release(dep, dep.app.edges[msg.edge].src)
 
     def _unblock(self, dep: Deployment, edge: int) -> None:
-        """An ack freed room on ``edge``: wake its producer if backpressure stopped it."""
+        """An ack freed room on ``edge``: wake its producer if backpressure stopped it. A
+        rated source skips the time it was held (a sensor does not deliver missed samples)."""
         producer = dep.app.edges[edge].src
-        if producer in dep.blocked_sources:
+        h = dep.stones.get(producer)
+        if h is None or h.kind != "source":
+            return
+        if h.mode == "loop":
+            self._grant(dep, producer)
+        elif producer in dep.blocked_sources:
             dep.blocked_sources.discard(producer)
+            h.t0 = self._now - h.asked / h.rate
             self._effects.append(SetTimer(("source", dep.app.name, producer), self._now))
 
     def _flush(self) -> None:
@@ -988,37 +1143,42 @@ class NodeCore:
         self._send(target, m.Prepare(msg.app, msg.vertex, self._rid))
 
     def _on_prepare(self, src: str, msg: m.Prepare) -> None:
+        """At a relocation's (or restore's) target: create the new instance; it is
+        Prepared once the executor has started it (or refused if its code fails)."""
         dep = self.apps.get(msg.app)
         error = ""
+        vid = msg.vertex
         if dep is None:
             error = f"{self.id} does not run app {msg.app!r}"
-        elif msg.vertex not in dep.stones and msg.vertex not in dep.awaiting:
-            try:
-                stone = Stone(dep.app.vertices[msg.vertex], dep.layout.kinds[msg.vertex])
-            except Exception as exc:  # user code failing at construction: refuse, change nothing
-                error = f"{self.id}: cannot create {msg.vertex!r}: {type(exc).__name__}: {exc}"
-            else:
-                dep.awaiting[msg.vertex] = stone
-                self._handover_to[msg.rid] = src
-                if msg.restore:
-                    pending = {(int(e), bool(p)) for e, p in msg.resumes}
-                    dep.restoring[msg.vertex] = Restoring(msg.rid, src, pending)
-        elif msg.restore and msg.vertex in dep.stones:  # it never went: nothing to restore
-            self._send(src, m.Prepared(msg.app, msg.vertex, msg.rid, self.id, error))
-            self._send(src, m.HandoverDone(dep.app.name, msg.vertex, msg.rid))
-            self._broadcast(m.Moved(dep.app.name, msg.vertex, self.id))
+        elif vid not in dep.app.vertices:
+            error = f"{self.id}: unknown vertex {vid!r}"
+        elif vid not in dep.stones and vid not in dep.awaiting:
+            dep.awaiting[vid] = self._host(dep, vid)
+            dep.preparing[vid] = (msg.rid, src, msg.restore)
+            self._handover_to[msg.rid] = src
+            if msg.restore:
+                pending = {(int(e), bool(p)) for e, p in msg.resumes}
+                dep.restoring[vid] = Restoring(msg.rid, src, pending)
             return
-        elif msg.restore and msg.vertex in dep.awaiting:  # asked again, maybe by a new
-            old = dep.restoring.get(msg.vertex)  # coordinator after the first one failed
+        elif msg.restore and vid in dep.stones:  # it never went: nothing to restore
+            self._send(src, m.Prepared(msg.app, vid, msg.rid, self.id, error))
+            self._send(src, m.HandoverDone(dep.app.name, vid, msg.rid))
+            self._broadcast(m.Moved(dep.app.name, vid, self.id))
+            return
+        elif msg.restore and vid in dep.awaiting:  # asked again, maybe by a new
+            old = dep.restoring.get(vid)  # coordinator after the first one failed
             if old is None or old.rid != msg.rid:
                 pending = {(int(e), bool(p)) for e, p in msg.resumes}
-                dep.restoring[msg.vertex] = Restoring(msg.rid, src, pending)
+                dep.restoring[vid] = Restoring(msg.rid, src, pending)
                 self._handover_to[msg.rid] = src
-        self._send(src, m.Prepared(msg.app, msg.vertex, msg.rid, self.id, error))
+            if vid in dep.preparing:  # still starting: Prepared goes to the newest asker
+                dep.preparing[vid] = (msg.rid, src, True)
+                return
+        self._send(src, m.Prepared(msg.app, vid, msg.rid, self.id, error))
         if dep is not None and not error and msg.restore:
-            restoring = dep.restoring.get(msg.vertex)
+            restoring = dep.restoring.get(vid)
             if restoring is not None and not restoring.pending:
-                self._activate(dep, msg.vertex)  # nothing to wait for (a lone vertex)
+                self._activate(dep, vid)  # nothing to wait for (a lone vertex)
 
     def _on_prepared(self, msg: m.Prepared, now: float) -> None:
         reloc = self._relocs.get(msg.rid)
@@ -1059,15 +1219,15 @@ class NodeCore:
         dep.placed[edge.dst] = msg.to
         marker = m.Marker(msg.app, msg.edge, seq, msg.rid, msg.to)
         if old == self.id:
-            self._events.append((dep, msg.edge, marker, 0.0))
+            self._enqueue(dep, edge.dst, marker)
         else:
             self._effects.append(Send(old, marker))
 
     def _on_marker(self, dep: Deployment, msg: m.Marker) -> None:
         """At the old instance's node: once every input is marked, hand the state over."""
         vid = dep.app.edges[msg.edge].dst
-        stone = dep.stones.get(vid)
-        if stone is None:
+        h = dep.stones.get(vid)
+        if h is None:
             return
         marked = dep.markers.setdefault(vid, set())
         marked.add(msg.edge)
@@ -1075,6 +1235,15 @@ class NodeCore:
         if not set(ins) <= marked:
             return
         del dep.markers[vid]
+        h.handing_over = msg  # the state is taken once everything before is processed
+        self._submit(h, fx.SnapshotVertex(h.instance, msg.rid))
+
+    def _snapshotted(self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexSnapshot) -> None:
+        """The old instance's state is taken: hand it and the channels over, then free it."""
+        msg = h.handing_over
+        if msg is None:
+            return
+        ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vid]
         for i in ins:  # acknowledge what the old instance processed, then forget the inputs
             self._ack(dep, i)
         inputs = {
@@ -1092,18 +1261,18 @@ class NodeCore:
             batch = self._outbox.pop(k)
             dst = dep.placed[dep.app.edges[k[1]].dst]
             self._effects.append(Send(dst, m.Data(k[0], k[1], dep.epoch, *batch)))
-        state = msgspec.msgpack.encode(stone.get_state())
+        self._stop(h, "moved")
         del dep.stones[vid]
         dep.placed[vid] = msg.to
         handover = m.Handover(
             dep.app.name,
             vid,
             msg.rid,
-            state,
+            res.state,
             inputs,
             outputs,
-            stone.processed,
-            stone.emitted,
+            h.processed,
+            h.emitted,
             gate.to_wire() if gate is not None else [],
         )
         self._send(msg.to, handover)
@@ -1114,10 +1283,10 @@ class NodeCore:
         if dep is None or msg.vertex not in dep.awaiting:
             return
         dep.moved[msg.vertex] = (now, src)
-        stone = dep.awaiting.pop(msg.vertex)
-        stone.set_state(msgspec.msgpack.decode(msg.state))
-        stone.processed, stone.emitted = msg.processed, msg.emitted
-        dep.stones[msg.vertex] = stone
+        h = dep.awaiting.pop(msg.vertex)
+        self._effects.append(fx.RestoreVertex(h.instance, msg.state))  # before any feed
+        h.processed, h.emitted = msg.processed, msg.emitted
+        dep.stones[msg.vertex] = h
         dep.placed[msg.vertex] = self.id
         gated = bool(dep.out_edges.get(msg.vertex))
         for i, (expected, acked) in msg.inputs.items():
@@ -1475,6 +1644,7 @@ class NodeCore:
         """Rejoin as a new incarnation: the others have recovered without this node's
         instances, so it drops them (and every app) and is told the apps again."""
         dropped = sorted(self.apps)
+        self._stop_all("reset")
         self.apps.clear()
         self._relocs.clear()
         self._remaps.clear()
@@ -1482,7 +1652,7 @@ class NodeCore:
         self._early.clear()
         self._handover_to.clear()
         self._probes_waiting.clear()
-        self._events.clear()
+        self._stop_all("reset")
         for node in self.dead:
             self.liveness.rejoin(node, now, node in self.routes, self.routes.get(node))
         self.dead.clear()
@@ -1717,9 +1887,9 @@ class NodeCore:
         the positions of the last ack its producers got, so what it regenerates by replay
         carries the numbers it had and consumers drop it as duplicates."""
         restoring = dep.restoring.pop(vertex)
-        stone = dep.awaiting.pop(vertex)
+        h = dep.awaiting.pop(vertex)
         dep.moved[vertex] = (self._now, dep.placed[vertex])
-        dep.stones[vertex] = stone
+        dep.stones[vertex] = h
         dep.placed[vertex] = self.id
         for o in dep.out_edges.get(vertex, []):
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
@@ -1733,8 +1903,8 @@ class NodeCore:
         self._broadcast(m.Moved(dep.app.name, vertex, self.id))
         self._handover_to.pop(restoring.rid, None)
         self._send(restoring.coordinator, m.HandoverDone(dep.app.name, vertex, restoring.rid))
-        if stone.kind == "source" and dep.running:
-            self._effects.append(SetTimer(("source", dep.app.name, vertex), self._now))
+        if h.kind == "source":
+            self._start_source(dep, vertex, self._now)
 
     # -- status -----------------------------------------------------------------------------
     def status(self, now: float) -> dict[str, Any]:
@@ -1771,15 +1941,21 @@ class NodeCore:
                 "chains": [list(c.vertices) for c in dep.layout.chains],
                 "vertices": {
                     vid: {
-                        "kind": s.kind,
-                        "processed": s.processed,
-                        "emitted": s.emitted,
-                        "errors": s.errors,
-                        "cpu_s": s.cpu_s,
-                        "last_error": s.last_error,
-                        "stats": s.stats(),
+                        "kind": h.kind,
+                        "state": h.state(now),
+                        "busy_s": round(now - h.busy_since, 3) if h.busy_since else 0.0,
+                        "queued": h.queued + sum(
+                            len(p[1]) for p in h.pending if not isinstance(p, m.Marker)
+                        ),
+                        "processed": h.processed,
+                        "emitted": h.emitted,
+                        "calls": h.calls,
+                        "errors": h.errors,
+                        "cpu_s": h.cpu_s,
+                        "last_error": h.last_error,
+                        "stats": h.stats,
                     }
-                    for vid, s in dep.stones.items()
+                    for vid, h in dep.stones.items()
                 },
                 "edges": edges,
             }

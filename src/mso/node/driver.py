@@ -10,14 +10,18 @@ shaping, forwarding and holding frames while routes converge live in :mod:`mso.n
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import threading
 from typing import Any
 
 from mso.net.base import RoutesChanged, RoutingView, encode
 from mso.net.routes_emulator import EmulatorRoutes
 from mso.net.tcp import TcpTransport
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
+from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.runtime.executor import ThreadExecutor
 
 log = logging.getLogger("mso.node")
 
@@ -45,6 +49,11 @@ class NodeDriver:
         self.transport.set_client_handler(self._request)
         self.view.subscribe(self._routes_changed)
         self._timers: dict[tuple[Any, ...], asyncio.TimerHandle] = {}
+        # vertex code runs in the executor's threads; their results queue here and wake the
+        # loop once per burst, not once per result
+        self.executor = ThreadExecutor(self._vertex_result)
+        self._results: list[fx.VertexResult] = []
+        self._results_lock = threading.Lock()
         self.stopped = asyncio.Event()
         core.status_hook = self._link_status
         core.traffic = lambda: (self.counters.bytes_out, self.counters.bytes_in)
@@ -67,6 +76,7 @@ class NodeDriver:
     async def stop(self) -> None:
         for t in self._timers.values():
             t.cancel()
+        self.executor.shutdown()
         await self.transport.close()
         self.stopped.set()
 
@@ -103,6 +113,28 @@ class NodeDriver:
                 self._timers[eff.key] = self.loop.call_at(eff.at, self._fire, eff.key)
             elif isinstance(eff, Reply):
                 self.transport.reply(eff.client, eff.msg)
+            elif isinstance(eff, fx.CancelTimer):
+                timer = self._timers.pop(eff.key, None)
+                if timer is not None:
+                    timer.cancel()
+            else:
+                self.executor.submit(eff)
+
+    def _vertex_result(self, result: fx.VertexResult) -> None:
+        """Called from a worker thread."""
+        with self._results_lock:
+            wake = not self._results
+            self._results.append(result)
+        if wake:
+            # RuntimeError: the loop closed while the node stopped, nothing to tell
+            with contextlib.suppress(RuntimeError):
+                self.loop.call_soon_threadsafe(self._drain_results)
+
+    def _drain_results(self) -> None:
+        with self._results_lock:
+            results, self._results = self._results, []
+        for result in results:
+            self._apply(self.core.on_vertex(result, self.loop.time()))
 
     def _fire(self, key: tuple[Any, ...]) -> None:
         self._timers.pop(key, None)

@@ -14,8 +14,6 @@ from __future__ import annotations
 from collections import deque
 from typing import TYPE_CHECKING, Any
 
-import msgspec
-
 from mso.errors import MsoError
 from mso.management import (
     ChainView,
@@ -159,10 +157,8 @@ class Manager:
             if movable:
                 up = _target(core, dep, vid, "upstream")
                 down = _target(core, dep, vid, "downstream")
-                try:
-                    state = len(msgspec.msgpack.encode(stone.get_state()))
-                except Exception:  # user code: a state that cannot be taken pins the vertex
-                    movable = False
+                state = stone.state_size  # measured by the executor, off the control plane
+                movable = state >= 0
             r = self._rates.get((dep.app.name, vid))
             moved = dep.moved.get(vid)
             out.append(

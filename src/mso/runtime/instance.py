@@ -1,17 +1,23 @@
-"""A hosted vertex instance (the paper's "stone"): the user's code and its counters.
+"""A hosted vertex instance (the paper's "stone"): the user's code, called only by a worker.
 
 Calling conventions (docs/app-format.md): a class is instantiated with ``params`` as keyword
 arguments, a function is used as is (with ``params`` bound as keyword arguments). Then a source
 is called ``(seq, now)`` and returns an event or None; an operator is called ``(event)`` and
-returns an event, None, or a list of events; a sink is called ``(event)``. State hooks are the
-instance's ``get_state()``/``set_state(state)`` methods or the app's ``get_state``/``set_state``
-import paths, called with the instance.
+returns an event, None, or a list of events; a sink is called ``(event)``. A rate-less source
+is a read loop: called again as soon as backpressure allows (it may block); a generator function
+(or an instance with ``__iter__``/``__next__``) is iterated instead, and its end is the end of
+its stream. Optional hooks on the instance: ``open()`` once it runs, ``close()`` when it stops
+here (undeploy, or it moved away), ``get_state()``/``set_state(state)`` for moves, ``stats()``
+for status. The app may name state hooks by import path instead.
+
+Nothing here runs on the control plane: the executor calls it from the vertex's worker.
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+import inspect
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import msgspec
@@ -24,36 +30,46 @@ def _callable(code: Any) -> Any:
     return resolve(code) if isinstance(code, str) else code
 
 
-class Stone:
-    """One vertex instance on this node."""
+class Instance:
+    """One vertex instance: its code, its hooks, and how a source produces events."""
 
     def __init__(self, vertex: Vertex, kind: str) -> None:
         self.vertex = vertex
         self.kind = kind
         target = _callable(vertex.code) if vertex.code is not None else None
+        self.iterator: Iterator[Any] | None = None
         if target is None:
             self.fn: Callable[..., Any] = _default_code(kind)
         elif isinstance(target, type):
             self.fn = target(**vertex.params)
+        elif inspect.isgeneratorfunction(target):
+            self.fn = target
+            self.iterator = iter(target(**vertex.params))
         elif vertex.params:
             self.fn = functools.partial(target, **vertex.params)
         else:
             self.fn = target
+        if kind == "source" and self.iterator is None and hasattr(self.fn, "__next__"):
+            obj: Any = self.fn
+            self.iterator = obj  # an iterator object is a generator source
         # a code-less stand-in source ticks once a second unless the app gives a rate
         self.rate = vertex.rate if vertex.rate or vertex.code is not None else 1.0
-        self.next_at = 0.0  # a rated source's next emission time
-        self.processed = 0
-        self.emitted = 0
-        self.errors = 0
-        self.cpu_s = 0.0
-        self.bytes_in = 0  # encoded size of the events it consumed and produced
-        self.bytes_out = 0
-        self.last_error = ""
+
+    @property
+    def mode(self) -> str:
+        """How a source runs: ``timer`` (rated), ``loop`` (read loop or generator)."""
+        if self.kind != "source":
+            return ""
+        return "timer" if self.rate and self.iterator is None else "loop"
+
+    def hook(self, name: str) -> Callable[[], Any] | None:
+        method = getattr(self.fn, name, None)
+        return method if callable(method) else None
 
     def stats(self) -> Any:
         """The vertex's own metrics, if its code defines ``stats()`` (shown by mso status)."""
-        method = getattr(self.fn, "stats", None)
-        if not callable(method):
+        method = self.hook("stats")
+        if method is None:
             return None
         try:
             return method()
@@ -64,8 +80,8 @@ class Stone:
         hook = self.vertex.get_state
         if hook is not None:
             return _callable(hook)(self.fn)
-        method = getattr(self.fn, "get_state", None)
-        return method() if callable(method) else None
+        method = self.hook("get_state")
+        return method() if method is not None else None
 
     def set_state(self, state: Any) -> None:
         hook = self.vertex.set_state

@@ -1,0 +1,173 @@
+"""What the node core asks its driver to do, and what the executor reports back. Sans-IO.
+
+The core never touches a socket, a clock or user code. It returns effects: messages to send,
+replies to clients, timers, and *vertex effects* that start, feed, snapshot and stop vertex
+instances. A driver carries the vertex effects out off the control plane (the asyncio driver in
+worker threads, the simulator in virtual time) and feeds each :data:`VertexResult` back to the
+core with ``NodeCore.on_vertex(result, now)``. Per instance, effects are carried out in the
+order they were emitted, so a feed queued behind a start or a restore sees the started or
+restored instance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from mso.model.app import Vertex
+from mso.protocol import messages as m
+
+
+@dataclass(frozen=True)
+class Send:
+    """Send ``msg`` to node ``dst`` (routed hop by hop by the network layer)."""
+
+    dst: str
+    msg: m.Message
+
+
+@dataclass(frozen=True)
+class Reply:
+    """Answer the client connection ``client``."""
+
+    client: int
+    msg: m.Message
+
+
+@dataclass(frozen=True)
+class SetTimer:
+    """Fire ``on_timer(key)`` at ``at``; setting a key again moves its timer."""
+
+    key: tuple[Any, ...]
+    at: float
+
+
+@dataclass(frozen=True)
+class CancelTimer:
+    key: tuple[Any, ...]
+
+
+# -- vertex effects: carried out by the executor, in order per instance ----------------------
+@dataclass(frozen=True)
+class StartVertex:
+    """Create an instance of ``vertex`` (user code: constructor, then its ``open()`` hook).
+    ``inputs`` maps each input edge to the format its events decode into (None: any)."""
+
+    instance: int
+    app: str
+    vertex: Vertex
+    kind: str
+    inputs: dict[int, Any] = field(default_factory=dict)
+    # restored instances get their state before they open
+    state: bytes | None = None
+
+
+@dataclass(frozen=True)
+class FeedVertex:
+    """Decode and process ``events`` (encoded) that arrived on ``edge``, in order."""
+
+    instance: int
+    edge: int
+    events: list[bytes]
+    ts: float
+
+
+@dataclass(frozen=True)
+class RunSource:
+    """Call a rated source ``count`` times for sequence numbers ``first``..."""
+
+    instance: int
+    first: int
+    count: int
+    now: float
+
+
+@dataclass(frozen=True)
+class Credit:
+    """A free-running source (a read loop or a generator) may emit ``count`` more events."""
+
+    instance: int
+    count: int
+
+
+@dataclass(frozen=True)
+class RestoreVertex:
+    """Give a relocated instance the state its old instance handed over (before any feed)."""
+
+    instance: int
+    state: bytes
+
+
+@dataclass(frozen=True)
+class SnapshotVertex:
+    """Once everything queued before it is processed, encode the instance's state."""
+
+    instance: int
+    token: int
+
+
+@dataclass(frozen=True)
+class StopVertex:
+    """Call the instance's ``close()`` hook and drop it. ``reason``: undeploy, moved, reset."""
+
+    instance: int
+    reason: str
+
+
+VertexEffect = (
+    StartVertex | FeedVertex | RunSource | Credit | RestoreVertex | SnapshotVertex | StopVertex
+)
+Effect = Send | Reply | SetTimer | CancelTimer | VertexEffect
+
+
+# -- what the executor reports back ----------------------------------------------------------
+@dataclass(frozen=True)
+class Outcome:
+    """Common to every result: CPU time spent in user code, errors raised (counted, never
+    fatal), the vertex's own ``stats()`` and the size of its encoded state when they were last
+    sampled (``state_size`` -1: its state cannot be taken, so it cannot move)."""
+
+    instance: int
+    cpu_s: float = 0.0
+    errors: int = 0
+    last_error: str = ""
+    stats: Any = None
+    state_size: int = 0
+
+
+@dataclass(frozen=True)
+class VertexStarted(Outcome):
+    """The instance exists (``error`` empty) or could not be created. ``mode`` says how a
+    source runs: ``timer`` (rated), ``loop`` (called in its worker, paced by credit)."""
+
+    error: str = ""
+    mode: str = ""
+
+
+@dataclass(frozen=True)
+class VertexProcessed(Outcome):
+    """``count`` events of ``edge`` were processed; ``outputs`` are the encoded results."""
+
+    edge: int = 0
+    count: int = 0
+    outputs: list[bytes] = field(default_factory=list)
+    ts: float = 0.0
+
+
+@dataclass(frozen=True)
+class VertexEmitted(Outcome):
+    """A source was called ``calls`` times and produced ``outputs`` (encoded). ``ended``: a
+    generator source is exhausted."""
+
+    calls: int = 0
+    outputs: list[bytes] = field(default_factory=list)
+    ended: bool = False
+
+
+@dataclass(frozen=True)
+class VertexSnapshot(Outcome):
+    token: int = 0
+    state: bytes = b""
+
+
+VertexResult = VertexStarted | VertexProcessed | VertexEmitted | VertexSnapshot

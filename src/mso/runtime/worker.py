@@ -1,0 +1,206 @@
+"""Carrying out one vertex effect against one instance: the part every executor shares.
+
+A :class:`VertexWorker` owns one :class:`~mso.runtime.instance.Instance` and turns each vertex
+effect into a result: decode the inputs, call the user's code, encode what it returns, count
+errors (a vertex that raises is counted, never fatal) and the CPU time it used. The thread
+executor calls it from the vertex's own thread, the simulator inline in virtual time; both get
+the same behaviour.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import msgspec
+
+from mso.protocol import effects as fx
+from mso.runtime.instance import Instance
+
+STATE_SIZE_EVERY_S = 1.0  # how often the size of a busy vertex's state is measured
+
+
+class VertexWorker:
+    def __init__(
+        self,
+        start: fx.StartVertex,
+        cpu_clock: Callable[[], float] = time.thread_time,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.start = start
+        self.instance: Instance | None = None
+        self.cpu_clock = cpu_clock
+        self.clock = clock
+        self.decoders: dict[int, msgspec.msgpack.Decoder[Any]] = {}
+        self.seq = 0  # a loop source's next sequence number
+        self._errors = 0
+        self._last_error = ""
+        self._sized_at = -STATE_SIZE_EVERY_S
+        self._state_size = 0
+        self.ended = False
+
+    # -- bookkeeping shared by every result -------------------------------------------------
+    def _error(self, text: str) -> None:
+        self._errors += 1
+        self._last_error = text
+
+    def _outcome(self, t0: float) -> dict[str, Any]:
+        errors, last = self._errors, self._last_error
+        self._errors, self._last_error = 0, ""
+        now = self.clock()
+        stats = self.instance.stats() if self.instance is not None else None  # meant to be cheap
+        if self.instance is not None and now - self._sized_at >= STATE_SIZE_EVERY_S:
+            self._sized_at = now
+            try:
+                self._state_size = len(msgspec.msgpack.encode(self.instance.get_state()))
+            except Exception:  # user code: a state that cannot be taken pins the vertex
+                self._state_size = -1
+        return {
+            "instance": self.start.instance,
+            "cpu_s": self.cpu_clock() - t0,
+            "errors": errors,
+            "last_error": last,
+            "stats": stats,
+            "state_size": self._state_size,
+        }
+
+    # -- effects ----------------------------------------------------------------------------
+    def open(self) -> fx.VertexStarted:
+        t0 = self.cpu_clock()
+        st = self.start
+        try:
+            inst = Instance(st.vertex, st.kind)
+            if st.state is not None:
+                inst.set_state(msgspec.msgpack.decode(st.state))
+            for edge, fmt in st.inputs.items():
+                self.decoders[edge] = msgspec.msgpack.Decoder(fmt if fmt is not None else Any)
+            opener = inst.hook("open")
+            if opener is not None:
+                opener()
+        except Exception as exc:  # user code failing at construction: refuse, change nothing
+            return fx.VertexStarted(
+                **self._outcome(t0), error=f"cannot create {st.vertex.id!r}: {_why(exc)}"
+            )
+        self.instance = inst
+        return fx.VertexStarted(**self._outcome(t0), mode=inst.mode)
+
+    def feed(self, eff: fx.FeedVertex) -> fx.VertexProcessed:
+        t0 = self.cpu_clock()
+        inst = self.instance
+        outs: list[Any] = []
+        decode = self.decoders[eff.edge].decode if eff.edge in self.decoders else None
+        if inst is not None and decode is not None:
+            fn = inst.fn
+            for payload in eff.events:
+                try:
+                    event = decode(payload)
+                except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+                    self._error(f"undecodable event on edge {eff.edge}: {exc}")
+                    continue
+                try:
+                    result = fn(event)
+                except Exception as exc:
+                    self._error(_why(exc))
+                    continue
+                if result is not None:
+                    if isinstance(result, list):
+                        outs.extend(result)
+                    else:
+                        outs.append(result)
+        return fx.VertexProcessed(
+            **self._outcome(t0),
+            edge=eff.edge,
+            count=len(eff.events),
+            outputs=self._encode(outs),
+            ts=eff.ts,
+        )
+
+    def run_source(self, first: int, count: int, now: float) -> fx.VertexEmitted:
+        """Call a rated source ``count`` times."""
+        t0 = self.cpu_clock()
+        outs: list[Any] = []
+        inst = self.instance
+        if inst is not None:
+            fn = inst.fn
+            for k in range(count):
+                try:
+                    event = fn(first + k, now)
+                except Exception as exc:
+                    self._error(_why(exc))
+                    continue
+                if event is not None:
+                    outs.append(event)
+        return fx.VertexEmitted(**self._outcome(t0), calls=count, outputs=self._encode(outs))
+
+    def pull(self, count: int, budget_s: float) -> fx.VertexEmitted:
+        """A free-running source: up to ``count`` calls (or ``next()``s), for at most
+        ``budget_s`` of wall time, so what it made goes out in timely batches."""
+        t0 = self.cpu_clock()
+        outs: list[Any] = []
+        inst = self.instance
+        calls = 0
+        if inst is not None and not self.ended:
+            deadline = self.clock() + budget_s
+            it, fn = inst.iterator, inst.fn
+            while calls < count:
+                calls += 1
+                try:
+                    event = next(it) if it is not None else fn(self.seq, self.clock())
+                except StopIteration:
+                    self.ended = True
+                    break
+                except Exception as exc:
+                    self._error(_why(exc))
+                    event = None
+                self.seq += 1
+                if event is not None:
+                    outs.append(event)
+                if self.clock() >= deadline:
+                    break
+        return fx.VertexEmitted(
+            **self._outcome(t0), calls=calls, outputs=self._encode(outs), ended=self.ended
+        )
+
+    def restore(self, state: bytes) -> None:
+        """Install a handed-over state; an error is reported with the next result."""
+        if self.instance is None:
+            return
+        try:
+            self.instance.set_state(msgspec.msgpack.decode(state))
+        except Exception as exc:
+            self._error(f"set_state: {_why(exc)}")
+
+    def snapshot(self, token: int) -> fx.VertexSnapshot:
+        t0 = self.cpu_clock()
+        state = b""
+        if self.instance is not None:
+            try:
+                state = msgspec.msgpack.encode(self.instance.get_state())
+            except Exception as exc:
+                self._error(f"get_state: {_why(exc)}")
+                state = msgspec.msgpack.encode(None)
+        return fx.VertexSnapshot(**self._outcome(t0), token=token, state=state)
+
+    def close(self) -> None:
+        inst, self.instance = self.instance, None
+        closer = inst.hook("close") if inst is not None else None
+        if closer is not None:
+            try:
+                closer()
+            except Exception as exc:
+                self._error(f"close: {_why(exc)}")
+
+    def _encode(self, outs: list[Any]) -> list[bytes]:
+        encode = msgspec.msgpack.encode
+        payloads = []
+        for ev in outs:
+            try:
+                payloads.append(encode(ev))
+            except (TypeError, ValueError, OverflowError) as exc:
+                self._error(f"cannot encode {type(ev).__name__}: {exc}")
+        return payloads
+
+
+def _why(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}"
