@@ -8,3 +8,8 @@ from pathlib import Path
 _TESTS = str(Path(__file__).resolve().parent)
 if _TESTS not in sys.path:
     sys.path.insert(0, _TESTS)
+
+from mso.node.core import NodeCore  # noqa: E402
+
+# in tests, a message at a moment a procedure's transition table does not allow raises
+NodeCore.strict = True

@@ -35,52 +35,19 @@ from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.effects import Effect, Reply, Send, SetTimer
+from mso.protocol.procedures.base import Deadline, IllegalTransition, Procedure, Retry
+from mso.protocol.procedures.relocate import STEP_ATTEMPTS, STEP_TIMEOUT_S, Relocation
+from mso.protocol.procedures.remap import PROBE_ATTEMPTS, Remap
+from mso.protocol.procedures.remap import S as RemapState
+from mso.protocol.procedures.status import StatusFanout
 
 __all__ = ["Effect", "NodeCore", "Reply", "Send", "SetTimer"]
-
-
-@dataclass
-class Relocation:
-    """A relocation this node coordinates (it received the request)."""
-
-    app: str
-    vertex: str
-    source: str  # node the vertex leaves
-    target: str  # node it goes to
-    client: int | None
-    requested_at: float
-    remap: int | None = None  # the remap this relocation is a step of
-    # a replacement for an instance lost with a failed node: no marker, no handover; the
-    # surviving ends of its edges resume it (``resumes``: [edge, the other end is the producer])
-    restore: bool = False
-    resumes: list[list[Any]] = field(default_factory=list)
-    attempts: int = 0
-
-
-@dataclass
-class Remap:
-    """A chain or global remap this node coordinates: probe, place, then relocate."""
-
-    app: str
-    chains: list[int]  # still to place, in dependency order
-    client: int | None
-    requested_at: float
-    placed: dict[str, str]  # the placement being built
-    moves: list[tuple[str, str]] = field(default_factory=list)  # (vertex, node) still to do
-    moved: dict[str, str] = field(default_factory=dict)
-    probes: dict[int, list[Hop]] = field(default_factory=dict)
-    expected: int = 0
-    movable: set[str] = field(default_factory=set)  # only these are re-placed
-    recovery: dict[str, Any] | None = None  # set when this remap recovers from a failure
-    probe_attempts: int = 0
 
 
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
 RETRANSMIT_S = 0.25
 MAX_WAITING_PROBES = 256  # probes held at a hop whose route still goes through a failed node
 REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
-STEP_TIMEOUT_S = 1.0  # a recovery step (probe, restore) not answered by then is sent again
-STEP_ATTEMPTS = 5
 SOURCE_BURST = 256  # events a rate-less source emits per turn
 MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own
 MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
@@ -205,6 +172,9 @@ class Deployment:
 class NodeCore:
     """One node's state machine."""
 
+    # an illegal transition raises (tests set this) instead of only being counted
+    strict = False
+
     def __init__(
         self,
         node_id: str,
@@ -244,22 +214,21 @@ class NodeCore:
         # vertex instances this node asked the executor for: id -> (app, vertex)
         self._instances: dict[int, tuple[str, str]] = {}
         self._next_instance = 0
-        self._relocs: dict[int, Relocation] = {}
         # ids of procedures this node coordinates: distinct per node, small enough for msgpack
         self._rid = (zlib.crc32(node_id.encode()) & 0xFFFFFF) << 20
-        self._remaps: dict[int, Remap] = {}
         self._probes_waiting: list[tuple[float, m.Probe]] = []  # (give up at, probe)
         self._handover_to: dict[int, str] = {}  # rid -> coordinator, at a relocation's target
         # per edge: (first seq, events, when the oldest entered its chain)
         self._outbox: dict[tuple[str, int], tuple[int, list[bytes], float]] = {}
-        self._status_req = 0
+        # procedures this node coordinates, by id: each has a deadline timer
+        self.procedures: dict[int, Procedure] = {}
+        self.illegal_transitions = 0
         self._now = 0.0
         self.status_hook: Callable[[], dict[str, Any]] | None = None  # the driver's counters
         self._deploy_clients: dict[str, tuple[int, float]] = {}
         self._epochs = zlib.crc32(node_id.encode()) & 0xFFFF
         # messages for an app whose announcement has not arrived yet (another path overtook it)
         self._early: dict[str, list[tuple[str, m.Message]]] = {}
-        self._status_wait: dict[int, tuple[int, dict[str, Any], set[str]]] = {}
         self.dead: set[str] = set()  # nodes known to have failed (fail-stop)
         self._incarnations: dict[str, int] = {}  # last incarnation heard of, per node
         self._dead_incarnation: dict[str, int] = {}  # the incarnation declared failed
@@ -344,15 +313,34 @@ class NodeCore:
             self.dropped_messages += 1
         return self._run(now)
 
-    def on_timer(self, key: tuple[Any, ...], now: float) -> list[Effect]:
+    def on_timer(self, key: Any, now: float) -> list[Effect]:
         self._now = now
+        try:
+            self._on_timer(key, now)
+        except IllegalTransition:
+            self.illegal_transitions += 1
+            if self.strict:
+                raise
+        return self._run(now)
+
+    def _on_timer(self, key: Any, now: float) -> None:
+        if isinstance(key, Deadline):
+            proc = self.procedures.get(key.pid)
+            if proc is not None and not proc.done:
+                self._expire(proc, now)
+            return
+        if isinstance(key, Retry):
+            proc = self.procedures.get(key.pid)
+            if isinstance(proc, Relocation):
+                self._step_timeout(key.pid, now)
+            elif isinstance(proc, Remap):
+                self._remap_probe_timeout(key.pid, key.attempt, now)
+            return
         kind = key[0]
         if kind == "source":
             self._source_tick(key[1], key[2], now)
         elif kind == "retransmit":
             self._retransmit(key[1], now)
-        elif kind == "status":
-            self._status_done(key[1])
         elif kind == "monitor":
             self._sample(now)
             self._report_delays(now)
@@ -360,15 +348,67 @@ class NodeCore:
             self._effects.append(SetTimer(("monitor",), now + MONITOR_PERIOD_S))
         elif kind == "heartbeat":
             self._heartbeat(now)
-        elif kind == "step":
-            self._step_timeout(key[1], now)
-        elif kind == "remap-probe":
-            self._remap_probe_timeout(key[1], key[2], now)
         elif kind == "recover":
             dep = self.apps.get(key[1])
             if dep is not None:
                 self._maybe_recover(dep, now)
-        return self._run(now)
+
+    # -- procedures: the context they act through, their lifetimes ------------------------
+    @property
+    def now(self) -> float:
+        return self._now
+
+    def send(self, dst: str, msg: m.Message) -> None:
+        self._send(dst, msg)
+
+    def broadcast(self, msg: m.Message) -> None:
+        self._broadcast(msg)
+
+    def reply(self, client: int, msg: m.Message) -> None:
+        self._effects.append(Reply(client, msg))
+
+    def set_timer(self, key: Any, at: float) -> None:
+        self._effects.append(SetTimer(key, at))
+
+    def elapsed_ms(self, since: float) -> float:
+        return self._elapsed_ms(since)
+
+    def _reloc(self, pid: int) -> Relocation | None:
+        proc = self.procedures.get(pid)
+        return proc if isinstance(proc, Relocation) else None
+
+    def _remap(self, pid: int | None) -> Remap | None:
+        proc = self.procedures.get(pid) if pid is not None else None
+        return proc if isinstance(proc, Remap) else None
+
+    def _relocations(self) -> list[Relocation]:
+        return [p for p in self.procedures.values() if isinstance(p, Relocation)]
+
+    def _begin(self, proc: Procedure) -> None:
+        self.procedures[proc.pid] = proc
+        self._effects.append(SetTimer(Deadline(proc.pid), proc.deadline))
+
+    def _end(self, pid: int) -> None:
+        if self.procedures.pop(pid, None) is not None:
+            self._effects.append(fx.CancelTimer(Deadline(pid)))
+
+    def _expire(self, proc: Procedure, now: float) -> None:
+        """A procedure's deadline passed: its defined failure, reported to whoever waits."""
+        why = f"{proc.name} did not finish within {proc.deadline - proc.started_at:g} s"
+        if isinstance(proc, Relocation):
+            self._reloc_failed(proc, why, now)
+        elif isinstance(proc, Remap):
+            self._finish_remap(proc.pid, now, why)
+        else:
+            proc.expire(self)
+            self._end(proc.pid)
+
+    def open_procedures(self, now: float) -> list[dict[str, Any]]:
+        """Procedures still running here, with their deadlines (overdue ones flagged)."""
+        return [
+            p.describe() | {"id": pid, "overdue": now > p.deadline}
+            for pid, p in sorted(self.procedures.items())
+        ]
 
     # -- the loop ---------------------------------------------------------------------------
     def _send(self, dst: str, msg: m.Message) -> None:
@@ -390,6 +430,10 @@ class NodeCore:
                 self._dispatch(src, msg, now)
             except MsoError:
                 self.dropped_messages += 1
+            except IllegalTransition:
+                self.illegal_transitions += 1  # a message at the wrong moment: counted
+                if self.strict:
+                    raise
         self._flush()
         out, self._effects = self._effects, []
         return out
@@ -1135,11 +1179,11 @@ class NodeCore:
         if target == source:
             self._refuse(client, msg, f"{msg.vertex!r} already runs on {target}")
             return
-        if any(r.app == msg.app and r.vertex == msg.vertex for r in self._relocs.values()):
+        if any(r.app == msg.app and r.vertex == msg.vertex for r in self._relocations()):
             self._refuse(client, msg, f"{msg.vertex!r} is already being relocated")
             return
         self._rid += 1
-        self._relocs[self._rid] = Relocation(msg.app, msg.vertex, source, target, client, now)
+        self._begin(Relocation(self._rid, now, msg.app, msg.vertex, source, target, client))
         self._send(target, m.Prepare(msg.app, msg.vertex, self._rid))
 
     def _on_prepare(self, src: str, msg: m.Prepare) -> None:
@@ -1180,18 +1224,25 @@ class NodeCore:
             if restoring is not None and not restoring.pending:
                 self._activate(dep, vid)  # nothing to wait for (a lone vertex)
 
+    def _reloc_failed(self, reloc: Relocation, why: str, now: float) -> None:
+        """A relocation or restore failed: whoever waits (a client, a remap) is told."""
+        reloc.fail(self, why)
+        self._end(reloc.pid)
+        if self._remap(reloc.remap) is not None:
+            assert reloc.remap is not None
+            self._finish_remap(reloc.remap, now, why)
+        else:
+            self._refuse(reloc.client, m.RelocateRequest(reloc.app, reloc.vertex), why)
+
     def _on_prepared(self, msg: m.Prepared, now: float) -> None:
-        reloc = self._relocs.get(msg.rid)
+        reloc = self._reloc(msg.rid)
         dep = self.apps.get(msg.app)
         if reloc is None or dep is None:
             return
         if msg.error:
-            del self._relocs[msg.rid]
-            if reloc.remap is not None:
-                self._finish_remap(reloc.remap, now, msg.error)
-            else:
-                self._refuse(reloc.client, m.RelocateRequest(msg.app, msg.vertex), msg.error)
+            self._reloc_failed(reloc, msg.error, now)
             return
+        reloc.on("prepared_restore" if reloc.restore else "prepared")
         if reloc.restore:  # the surviving ends of its edges resume the replacement
             edges = dep.app.edges
             for edge, producer in reloc.resumes:
@@ -1312,7 +1363,10 @@ class NodeCore:
             self._send(coordinator, m.HandoverDone(msg.app, msg.vertex, msg.rid))
 
     def _on_handover_done(self, msg: m.HandoverDone, now: float) -> None:
-        reloc = self._relocs.pop(msg.rid, None)
+        reloc = self._reloc(msg.rid)
+        if reloc is not None:
+            reloc.on("handed_over")
+            self._end(reloc.pid)
         if reloc is not None and reloc.restore:
             dep = self.apps.get(reloc.app)
             if dep is not None:
@@ -1323,7 +1377,7 @@ class NodeCore:
         if reloc is None or reloc.client is None:
             return
         reply = m.RelocateReply(
-            reloc.app, reloc.vertex, True, reloc.target, self._elapsed_ms(reloc.requested_at)
+            reloc.app, reloc.vertex, True, reloc.target, self._elapsed_ms(reloc.started_at)
         )
         self._effects.append(Reply(reloc.client, reply))
 
@@ -1353,7 +1407,7 @@ class NodeCore:
         placed = {v: dep.placed[v] for v in stays}
         movable = in_set - stays
         self._rid += 1
-        self._remaps[self._rid] = Remap(msg.app, order, client, now, placed, movable=movable)
+        self._begin(Remap(self._rid, now, msg.app, order, client, placed, movable))
         self._remap_next_chain(self._rid, now)
 
     def _remap_refuse(self, client: int | None, app: str, reason: str) -> None:
@@ -1361,9 +1415,12 @@ class NodeCore:
             self._effects.append(Reply(client, m.RemapReply(app, False, {}, error=reason)))
 
     def _remap_next_chain(self, rid: int, now: float) -> None:
-        remap = self._remaps[rid]
-        dep = self.apps[remap.app]
+        remap = self._remap(rid)
+        dep = self.apps.get(remap.app) if remap is not None else None
+        if remap is None or dep is None:
+            return
         if not remap.chains:
+            remap.on("placed_all")
             order = {v: i for i, v in enumerate(dep.app.topological_order())}
             moves = [
                 (v, n)
@@ -1388,11 +1445,11 @@ class NodeCore:
         if not pairs:
             self._remap_place(rid, now)
             return
+        remap.on("probe")
         remap.probe_attempts += 1
         for k, (a, b) in enumerate(pairs):  # chain -1 - rid marks a remap's probe
             self._send(a, m.Probe(remap.app, -1, rid * 1000 + k, self.id, b, [], []))
-        key = ("remap-probe", rid, remap.probe_attempts)
-        self._effects.append(SetTimer(key, now + STEP_TIMEOUT_S))
+        self._effects.append(SetTimer(Retry(rid, remap.probe_attempts), now + STEP_TIMEOUT_S))
 
     def _live_home(self, dep: Deployment, vertex: str, placed: dict[str, str]) -> str:
         """Where a vertex stays during a remap: its node, or if that failed, its first
@@ -1408,10 +1465,10 @@ class NodeCore:
 
     def _remap_probe_timeout(self, rid: int, attempt: int, now: float) -> None:
         """A probe was lost (a route through a failed node): probe again, a few times."""
-        remap = self._remaps.get(rid)
+        remap = self._remap(rid)
         if remap is None or attempt != remap.probe_attempts or len(remap.probes) >= remap.expected:
             return
-        if remap.probe_attempts >= STEP_ATTEMPTS:
+        if remap.probe_attempts >= PROBE_ATTEMPTS:
             self._finish_remap(rid, now, "probes along the chain's route were not answered")
             return
         if remap.recovery is not None:
@@ -1420,16 +1477,19 @@ class NodeCore:
 
     def _on_remap_probe(self, msg: m.ProbeReply) -> None:
         rid, k = divmod(msg.segment, 1000)
-        remap = self._remaps.get(rid)
-        if remap is None or k in remap.probes:
+        remap = self._remap(rid)
+        if remap is None or k in remap.probes or remap.state is not RemapState.PROBING:
             return
         remap.probes[k] = [Hop(n, c) for n, c in zip(msg.nodes, msg.capacities, strict=False)]
         if len(remap.probes) == remap.expected:
             self._remap_place(rid, self._now)
 
     def _remap_place(self, rid: int, now: float) -> None:
-        remap = self._remaps[rid]
-        dep = self.apps[remap.app]
+        remap = self._remap(rid)
+        dep = self.apps.get(remap.app) if remap is not None else None
+        if remap is None or dep is None:
+            return
+        remap.on("placed")
         ci = remap.chains.pop(0)
         remap.probe_attempts = 0
         by_pair = {(h[0].node, h[-1].node): h for h in remap.probes.values() if h}
@@ -1446,12 +1506,13 @@ class NodeCore:
     def _remap_step(self, rid: int, now: float, moved: tuple[str, str] | None = None) -> None:
         """Relocate (or, if its node failed, restore) the next vertex whose node changed;
         done when none is left."""
-        remap = self._remaps.get(rid)
-        if remap is None:
+        remap = self._remap(rid)
+        dep = self.apps.get(remap.app) if remap is not None else None
+        if remap is None or dep is None:
             return
         if moved is not None:
+            remap.on("moved")
             remap.moved[moved[0]] = moved[1]
-        dep = self.apps[remap.app]
         while remap.moves:
             vertex, node = remap.moves.pop(0)
             lost = dep.placed[vertex] in self.dead or vertex in dep.vanished
@@ -1460,19 +1521,26 @@ class NodeCore:
             if dep.layout.kinds[vertex] == "source" and not lost:
                 continue
             self._rid += 1
-            reloc = Relocation(remap.app, vertex, dep.placed[vertex], node, None, now, remap=rid)
-            self._relocs[self._rid] = reloc
+            source = dep.placed[vertex]
+            reloc = Relocation(self._rid, now, remap.app, vertex, source, node, None, remap=rid)
+            self._begin(reloc)
             if lost:
                 self._restore(dep, reloc, self._rid, now)
             else:
                 self._send(node, m.Prepare(remap.app, vertex, self._rid))
             return
+        remap.on("all_moved")
         self._finish_remap(rid, now, "")
 
     def _finish_remap(self, rid: int, now: float, error: str) -> None:
-        remap = self._remaps.pop(rid)
+        remap = self._remap(rid)
+        if remap is None:
+            return
+        if error:
+            remap.fail(self, error)
+        self._end(rid)
         if remap.client is not None:
-            elapsed = self._elapsed_ms(remap.requested_at)
+            elapsed = self._elapsed_ms(remap.started_at)
             reply = m.RemapReply(remap.app, not error, remap.moved, elapsed, error)
             self._effects.append(Reply(remap.client, reply))
         dep = self.apps.get(remap.app)
@@ -1481,7 +1549,7 @@ class NodeCore:
                 moved=dict(remap.moved),
                 ok=not error,
                 error=error,
-                took_ms=round(self._elapsed_ms(remap.requested_at), 3),
+                took_ms=round(self._elapsed_ms(remap.started_at), 3),
             )
             dep.recovering = None
             if error:  # e.g. no route yet to a node that is about to be declared failed too:
@@ -1551,14 +1619,10 @@ class NodeCore:
             for n in self.known_nodes():
                 if n != self.id and n not in self.dead:
                     self._send(n, m.NodeDown(node, self.id, self._dead_incarnation[node]))
-        for rid, reloc in list(self._relocs.items()):  # moves that needed the failed node
+        for reloc in self._relocations():  # moves that needed the failed node
             if not reloc.restore and node in (reloc.source, reloc.target):
-                del self._relocs[rid]
                 reason = f"node {node} failed during the relocation of {reloc.vertex!r}"
-                if reloc.remap is not None and reloc.remap in self._remaps:
-                    self._finish_remap(reloc.remap, now, reason)
-                else:
-                    self._refuse(reloc.client, m.RelocateRequest(reloc.app, reloc.vertex), reason)
+                self._reloc_failed(reloc, reason, now)
         for dep in list(self.apps.values()):
             self._park(dep)
             self._maybe_recover(dep, now)
@@ -1646,8 +1710,8 @@ class NodeCore:
         dropped = sorted(self.apps)
         self._stop_all("reset")
         self.apps.clear()
-        self._relocs.clear()
-        self._remaps.clear()
+        for pid in list(self.procedures):  # nobody waits for them any more
+            self._end(pid)
         self._outbox.clear()
         self._early.clear()
         self._handover_to.clear()
@@ -1791,8 +1855,8 @@ class NodeCore:
         dep.recoveries.append(record)
         del dep.recoveries[:-20]
         self._rid += 1
-        self._remaps[self._rid] = Remap(
-            dep.app.name, order, None, now, placed, movable=in_set - stays, recovery=record
+        self._begin(
+            Remap(self._rid, now, dep.app.name, order, None, placed, in_set - stays, record)
         )
         dep.recovering = self._rid
         self._remap_next_chain(self._rid, now)
@@ -1800,7 +1864,9 @@ class NodeCore:
     def _restore(self, dep: Deployment, reloc: Relocation, rid: int, now: float) -> None:
         """Start a replacement for ``reloc.vertex`` on ``reloc.target``: its surviving
         producers replay what it had not passed on, its consumers say where they stand."""
-        reloc.restore = True
+        if not reloc.restore:
+            reloc.as_restore()
+            self._effects.append(SetTimer(Deadline(rid), reloc.deadline))
         edges = dep.app.edges
         lost = self._lost(dep)
         reloc.resumes = [
@@ -1809,22 +1875,21 @@ class NodeCore:
         reloc.attempts += 1
         prepare = m.Prepare(dep.app.name, reloc.vertex, rid, True, reloc.resumes)
         self._send(reloc.target, prepare)
-        self._effects.append(SetTimer(("step", rid), now + STEP_TIMEOUT_S))
+        self._effects.append(SetTimer(Retry(rid, reloc.attempts), now + STEP_TIMEOUT_S))
 
     def _step_timeout(self, rid: int, now: float) -> None:
-        reloc = self._relocs.get(rid)
+        reloc = self._reloc(rid)
         if reloc is None or not reloc.restore:
             return
         dep = self.apps.get(reloc.app)
         if dep is None:
             return
         if reloc.attempts >= STEP_ATTEMPTS or reloc.target in self.dead:
-            del self._relocs[rid]
-            if reloc.remap is not None and reloc.remap in self._remaps:
-                why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
-                self._finish_remap(reloc.remap, now, why)
+            why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
+            self._reloc_failed(reloc, why, now)
             return
-        remap = self._remaps.get(reloc.remap) if reloc.remap is not None else None
+        reloc.on("retry")
+        remap = self._remap(reloc.remap)
         if remap is not None and remap.recovery is not None:
             remap.recovery["retried"].append(f"restore {reloc.vertex} on {reloc.target}")
         self._restore(dep, reloc, rid, now)  # idempotent at every end: just ask again
@@ -1944,9 +2009,8 @@ class NodeCore:
                         "kind": h.kind,
                         "state": h.state(now),
                         "busy_s": round(now - h.busy_since, 3) if h.busy_since else 0.0,
-                        "queued": h.queued + sum(
-                            len(p[1]) for p in h.pending if not isinstance(p, m.Marker)
-                        ),
+                        "queued": h.queued
+                        + sum(len(p[1]) for p in h.pending if not isinstance(p, m.Marker)),
                         "processed": h.processed,
                         "emitted": h.emitted,
                         "calls": h.calls,
@@ -1973,6 +2037,7 @@ class NodeCore:
             "management": self.manager.status(),
             "failures": list(self.failures),
             "rejoins": list(self.rejoins),
+            "liveness": self.liveness.stats(),
             "heard": {
                 n: {"at": t, "load": b.load, "drain_w": b.drain_w, "lifetime_s": b.lifetime_s}
                 for n, (t, b) in sorted(self.liveness.heard.items())
@@ -1985,28 +2050,17 @@ class NodeCore:
         if not req.everywhere or not others:
             self._effects.append(Reply(client, m.StatusReply(req.req, mine)))
             return
-        self._status_req += 1
-        rid = self._status_req
-        self._status_wait[rid] = (client, mine, set(others))
-        for n in others:
-            self._send(n, m.StatusRequest(req=rid))
-        self._effects.append(SetTimer(("status", rid), now + 1.0))
+        self._rid += 1
+        fanout = StatusFanout(self._rid, now, client, mine, others)
+        self._begin(fanout)
+        fanout.start(self)
 
     def _on_status_reply(self, msg: m.StatusReply) -> None:
-        wait = self._status_wait.get(msg.req)
-        if wait is None:
-            return
-        _client, got, missing = wait
-        got.update(msg.nodes)
-        missing.difference_update(msg.nodes)
-        if not missing:
-            self._status_done(msg.req)
-
-    def _status_done(self, rid: int) -> None:
-        wait = self._status_wait.pop(rid, None)
-        if wait is not None:
-            client, got, _ = wait
-            self._effects.append(Reply(client, m.StatusReply(rid, got)))
+        fanout = self.procedures.get(msg.req)
+        if isinstance(fanout, StatusFanout):
+            fanout.receive(self, msg)
+            if fanout.done:
+                self._end(fanout.pid)
 
 
 def _failed_reply(app: str, reason: str) -> m.DeployReply:

@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import logging
 import threading
+from collections.abc import Hashable
 from typing import Any
 
 from mso.net.base import RoutesChanged, RoutingView, encode
@@ -48,7 +49,7 @@ class NodeDriver:
         self.transport.set_receiver(self._receive)
         self.transport.set_client_handler(self._request)
         self.view.subscribe(self._routes_changed)
-        self._timers: dict[tuple[Any, ...], asyncio.TimerHandle] = {}
+        self._timers: dict[Hashable, asyncio.TimerHandle] = {}
         # vertex code runs in the executor's threads; their results queue here and wake the
         # loop once per burst, not once per result
         self.executor = ThreadExecutor(self._vertex_result)
@@ -136,7 +137,7 @@ class NodeDriver:
         for result in results:
             self._apply(self.core.on_vertex(result, self.loop.time()))
 
-    def _fire(self, key: tuple[Any, ...]) -> None:
+    def _fire(self, key: Hashable) -> None:
         self._timers.pop(key, None)
         self._apply(self.core.on_timer(key, self.loop.time()))
 

@@ -11,6 +11,7 @@ restored instance.
 
 from __future__ import annotations
 
+from collections.abc import Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,13 +39,13 @@ class Reply:
 class SetTimer:
     """Fire ``on_timer(key)`` at ``at``; setting a key again moves its timer."""
 
-    key: tuple[Any, ...]
+    key: Hashable  # a tuple, or a procedure's typed key (Deadline, Retry)
     at: float
 
 
 @dataclass(frozen=True)
 class CancelTimer:
-    key: tuple[Any, ...]
+    key: Hashable
 
 
 # -- vertex effects: carried out by the executor, in order per instance ----------------------

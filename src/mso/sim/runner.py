@@ -10,7 +10,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import random
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -18,7 +18,9 @@ from mso.management import RuleSettings
 from mso.model.network import Network
 from mso.net.forwarding import RouteWait
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
+from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.sim.executor import SimExecutor
 
 
 @dataclass(order=True)
@@ -43,6 +45,7 @@ class Simulation:
         policy: Any = None,
         manage: bool = True,
         rules: RuleSettings | None = None,
+        model_time: bool = False,
         seed: int = 0,
     ) -> None:
         self.network = network
@@ -54,6 +57,9 @@ class Simulation:
         self.waiting: dict[str, RouteWait[tuple[str, m.Message]]] = {
             n: RouteWait() for n in network.nodes
         }
+        # vertex effects take their modelled CPU time (cost per event / node cpu), so a slow
+        # vertex holds back its producers as on a device; off, their results are due at once
+        self.model_time = model_time
         self._policy, self._rules = policy, rules
         self.wire = wire  # pass every message through the real encoding, as the wire does
         self.hop_latency_s = hop_latency_s
@@ -62,7 +68,6 @@ class Simulation:
             n: NodeCore(
                 n,
                 capacity=spec.cpu,
-                cpu_clock=lambda: 0.0,
                 window=window,
                 power=spec.power,
                 battery_wh=spec.battery_wh,
@@ -79,11 +84,28 @@ class Simulation:
         self.delivered = 0
         self._heap: list[_Item] = []
         self._seq = itertools.count()
-        self._timers: dict[tuple[str, tuple[Any, ...]], float] = {}
+        self._timers: dict[tuple[str, Hashable], float] = {}
         self.dead: set[str] = set()  # killed nodes: they receive and do nothing
+        self.executors = {n: self._executor(n) for n in network.nodes}
         self.update_routes()
         for n, core in self.cores.items():
             self._apply(n, core.start(self.now))
+
+    def _executor(self, node: str) -> SimExecutor:
+        ex: SimExecutor
+
+        def push(at: float, result: fx.VertexResult) -> None:
+            self._push(at, "vertex", node, (ex, result))
+
+        ex = SimExecutor(
+            self.network.nodes[node].cpu, push, lambda: self.now, model_time=self.model_time
+        )
+        return ex
+
+    def instance(self, node: str, app: str, vertex: str) -> Any:
+        """The user's object behind ``vertex`` on ``node`` (tests read its own state)."""
+        h = self.cores[node].apps[app].stones[vertex]
+        return self.executors[node].instance_of(h.instance)
 
     def _traffic_of(self, node: str) -> Callable[[], tuple[int, int]]:
         counters = self.bytes[node]
@@ -158,6 +180,10 @@ class Simulation:
                 self._push(eff.at, "timer", node, eff.key)
             elif isinstance(eff, Reply):
                 self.replies.append((self.now, eff.client, eff.msg))
+            elif isinstance(eff, fx.CancelTimer):
+                self._timers.pop((node, eff.key), None)
+            else:
+                self.executors[node].submit(eff, self.now)
 
     def request(self, node: str, msg: m.Message, client: int = 1) -> None:
         self._apply(node, self.cores[node].request(client, msg, self.now))
@@ -179,7 +205,6 @@ class Simulation:
         self.cores[node] = core = NodeCore(
             node,
             capacity=spec.cpu,
-            cpu_clock=lambda: 0.0,
             window=old.window,
             power=spec.power,
             battery_wh=spec.battery_wh,
@@ -189,6 +214,7 @@ class Simulation:
             incarnation=old.incarnation + 1,
         )
         core.traffic = self._traffic_of(node)
+        self.executors[node] = self._executor(node)  # the old instances went with the process
         self.dead.discard(node)
         self._timers = {k: v for k, v in self._timers.items() if k[0] != node}
         self._apply(node, core.start(self.now))
@@ -210,6 +236,10 @@ class Simulation:
                 if self.trace is not None:
                     self.trace.append((self.now, item.node, src, type(msg).__name__))
                 self._apply(item.node, core.receive(src, msg, self.now))
+            elif item.kind == "vertex":
+                executor, result = item.payload
+                if executor is self.executors[item.node]:
+                    self._apply(item.node, core.on_vertex(result, self.now))
             elif self._timers.get((item.node, item.payload)) == item.at:
                 del self._timers[(item.node, item.payload)]
                 self._apply(item.node, core.on_timer(item.payload, self.now))

@@ -1,0 +1,1 @@
+"""Each distributed procedure as its own state machine (see :mod:`.base`)."""

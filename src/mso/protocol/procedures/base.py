@@ -1,0 +1,124 @@
+"""What every distributed procedure shares: explicit states, one transition table, a deadline.
+
+Modelled on h11's ``_state.py``: a procedure's ``TRANSITIONS`` maps ``state -> {event: next
+state}``; :meth:`Procedure.on` moves along it and raises :class:`IllegalTransition` for any
+event the table does not allow in the current state, so a message arriving at the wrong moment
+is caught, not half-handled. The node core counts illegal transitions in status (tests run the
+core strict, where they raise). Every procedure has a deadline: the core arms one timer per
+procedure, and a procedure still running when it fires fails with a defined outcome
+(:meth:`Procedure.expire`) — no wait can hang forever.
+
+Procedures are sans-IO: they act on the node through a :class:`NodeContext` (send, reply, set
+a timer, the node's tables), which the core implements.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol
+
+from mso.protocol import messages as m
+
+Table = dict[enum.Enum, dict[str, enum.Enum]]  # state -> {event: next state}
+
+
+class IllegalTransition(Exception):
+    """An event the procedure's transition table does not allow in its current state."""
+
+
+class Phase(enum.Enum):
+    """States every procedure ends in."""
+
+    FINISHED = "finished"
+    FAILED = "failed"
+
+
+@dataclass(frozen=True)
+class Deadline:
+    """Timer key: procedure ``pid``'s deadline."""
+
+    pid: int
+
+
+@dataclass(frozen=True)
+class Retry:
+    """Timer key: procedure ``pid``'s step ``attempt`` was not answered in time."""
+
+    pid: int
+    attempt: int
+
+
+class NodeContext(Protocol):
+    """What a procedure may do to its node (the core implements it)."""
+
+    id: str
+
+    @property
+    def now(self) -> float: ...
+
+    def send(self, dst: str, msg: m.Message) -> None: ...
+
+    def broadcast(self, msg: m.Message) -> None: ...
+
+    def reply(self, client: int, msg: m.Message) -> None: ...
+
+    def set_timer(self, key: Any, at: float) -> None: ...
+
+    def elapsed_ms(self, since: float) -> float: ...
+
+
+class Procedure:
+    """One run of a distributed procedure at the node that coordinates it."""
+
+    NAME: ClassVar[str] = "procedure"
+    INITIAL: ClassVar[enum.Enum]
+    # state -> {event: next state}; FINISHED and FAILED are terminal
+    TRANSITIONS: ClassVar[Table]
+    DEADLINE_S: ClassVar[float] = 10.0
+
+    def __init__(self, pid: int, now: float, deadline_s: float | None = None) -> None:
+        self.pid = pid
+        self.started_at = now
+        self.deadline = now + (self.DEADLINE_S if deadline_s is None else deadline_s)
+        self.state: enum.Enum = self.INITIAL
+        self.error = ""
+
+    @property
+    def name(self) -> str:
+        return self.NAME
+
+    @property
+    def done(self) -> bool:
+        return self.state in (Phase.FINISHED, Phase.FAILED)
+
+    def on(self, event: str) -> None:
+        """Take the transition ``event`` from the current state, or raise."""
+        nxt = self.TRANSITIONS.get(self.state, {}).get(event)
+        if nxt is None:
+            raise IllegalTransition(
+                f"{self.name} {self.pid}: event {event!r} is not allowed in state {self.state.name}"
+            )
+        self.state = nxt
+
+    def fail(self, ctx: NodeContext, error: str) -> None:
+        """End unsuccessfully (every state may fail); subclasses report to whoever waits."""
+        if not self.done:
+            self.error = error
+            self.state = Phase.FAILED
+
+    def expire(self, ctx: NodeContext) -> None:
+        """The deadline passed with the procedure still running: its defined failure."""
+        self.fail(ctx, f"{self.name} did not finish within {self.DEADLINE_S:g} s")
+
+    def describe(self) -> dict[str, Any]:
+        return {"procedure": self.name, "state": self.state.name, "deadline": self.deadline}
+
+
+def table_rows(cls: type[Procedure]) -> list[tuple[str, str, str]]:
+    """(state, event, next state) rows of a procedure's table: the docs are drawn from them."""
+    return [
+        (state.name, event, nxt.name)
+        for state, events in cls.TRANSITIONS.items()
+        for event, nxt in events.items()
+    ]
