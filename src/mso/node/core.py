@@ -233,6 +233,42 @@ class NodeCore:
         self._incarnations: dict[str, int] = {}  # last incarnation heard of, per node
         self._dead_incarnation: dict[str, int] = {}  # the incarnation declared failed
         self._beats = 0
+        # the router: message type -> the handler of the procedure it belongs to
+        self._handlers: dict[type, Callable[[str, Any, float], None]] = {
+            m.Data: lambda src, msg, now: self._on_data(msg),
+            m.Ack: lambda src, msg, now: self._on_ack(msg, now),
+            m.AppAnnounce: lambda src, msg, now: self._on_announce(msg, now),
+            m.Probe: lambda src, msg, now: self._on_probe(msg),
+            m.ProbeReply: lambda src, msg, now: self._on_probe_reply(msg),
+            m.ChainPlaced: lambda src, msg, now: self._on_placed(msg),
+            m.BuildChain: lambda src, msg, now: self._on_build(src, msg),
+            m.ChainPartReady: lambda src, msg, now: self._on_part_ready(msg),
+            m.ChainBuilt: lambda src, msg, now: self._on_built(msg, now),
+            m.StartApp: lambda src, msg, now: self._on_start(msg, now),
+            m.StopApp: lambda src, msg, now: self._on_stop_app(msg, now),
+            m.DeployFailed: lambda src, msg, now: self._on_deploy_failed(msg, now),
+            m.StatusRequest: lambda src, msg, now: self._send(
+                src, m.StatusReply(req=msg.req, nodes={self.id: self.status(now)})
+            ),
+            m.StatusReply: lambda src, msg, now: self._on_status_reply(msg),
+            m.Marker: lambda src, msg, now: self._on_marker_msg(msg, now),
+            m.RelocateRequest: lambda src, msg, now: self._relocate_request(None, msg, now),
+            m.Prepare: lambda src, msg, now: self._on_prepare(src, msg),
+            m.Prepared: lambda src, msg, now: self._on_prepared(msg, now),
+            m.Switch: lambda src, msg, now: self._on_switch(msg),
+            m.Handover: lambda src, msg, now: self._on_handover(src, msg, now),
+            m.Moved: lambda src, msg, now: self._on_moved(msg, now),
+            m.HandoverDone: lambda src, msg, now: self._on_handover_done(msg, now),
+            m.ChainDelay: lambda src, msg, now: self._on_chain_delay(msg, now),
+            m.Heartbeat: lambda src, msg, now: self._on_heartbeat(src, msg, now),
+            m.NodeDown: lambda src, msg, now: self._on_node_down(
+                msg.node, msg.detector, now, msg.incarnation
+            ),
+            m.NodeUp: lambda src, msg, now: self._on_node_up(msg, now),
+            m.AppSync: lambda src, msg, now: self._on_app_sync(msg, now),
+            m.Rewire: lambda src, msg, now: self._on_rewire(msg, now),
+            m.Resume: lambda src, msg, now: self._on_resume(msg, now),
+        }
         # management rules and policies (§3.5); the node policy is checked here, at start
         self.manager = Manager(self, policy, rules, enabled=manage)
 
@@ -449,80 +485,37 @@ class NodeCore:
             else:
                 self.dropped_messages += 1
             return
-        if isinstance(msg, m.Data):
-            self._on_data(msg)
-        elif isinstance(msg, m.Ack):
-            self._on_ack(msg, now)
-        elif isinstance(msg, m.AppAnnounce):
-            self._on_announce(msg, now)
-        elif isinstance(msg, m.Probe):
-            self._on_probe(msg)
-        elif isinstance(msg, m.ProbeReply):
-            self._on_probe_reply(msg)
-        elif isinstance(msg, m.ChainPlaced):
-            self._on_placed(msg)
-        elif isinstance(msg, m.BuildChain):
-            self._on_build(src, msg)
-        elif isinstance(msg, m.ChainPartReady):
-            self._on_part_ready(msg)
-        elif isinstance(msg, m.ChainBuilt):
-            self._on_built(msg, now)
-        elif isinstance(msg, m.StartApp):
-            self._on_start(msg, now)
-        elif isinstance(msg, m.StopApp):
-            gone = self.apps.pop(msg.app, None)
-            if gone is not None:
-                self._stop_app(gone, "undeploy")
-            self._early.pop(msg.app, None)
-            self.manager.forget(msg.app)
-        elif isinstance(msg, m.DeployFailed):
-            self._on_deploy_failed(msg, now)
-        elif isinstance(msg, m.StatusRequest):
-            self._send(src, m.StatusReply(req=msg.req, nodes={self.id: self.status(now)}))
-        elif isinstance(msg, m.StatusReply):
-            self._on_status_reply(msg)
-        elif isinstance(msg, m.Marker):
-            dep = self.apps.get(msg.app)
-            if dep is not None and 0 <= msg.edge < len(dep.app.edges):
-                self._enqueue(dep, dep.app.edges[msg.edge].dst, msg)
-        elif isinstance(msg, m.RelocateRequest):
-            self._relocate_request(None, msg, now)
-        elif isinstance(msg, m.Prepare):
-            self._on_prepare(src, msg)
-        elif isinstance(msg, m.Prepared):
-            self._on_prepared(msg, now)
-        elif isinstance(msg, m.Switch):
-            self._on_switch(msg)
-        elif isinstance(msg, m.Handover):
-            self._on_handover(src, msg, now)
-        elif isinstance(msg, m.Moved):
-            dep = self.apps.get(msg.app)
-            if dep is not None and msg.vertex in dep.placed:
-                dep.placed[msg.vertex] = msg.node
-                dep.vanished.discard(msg.vertex)
-                for c in dep.layout.chains:
-                    if msg.vertex in c.vertices:
-                        dep.placed_at[c.index] = now
-        elif isinstance(msg, m.HandoverDone):
-            self._on_handover_done(msg, now)
-        elif isinstance(msg, m.ChainDelay):
-            dep = self.apps.get(msg.app)
-            if dep is not None and 0 <= msg.chain < len(dep.layout.chains):
-                dep.chain_delay[msg.chain] = (msg.delay_ms, now)
-        elif isinstance(msg, m.Heartbeat):
-            self._on_heartbeat(src, msg, now)
-        elif isinstance(msg, m.NodeDown):
-            self._on_node_down(msg.node, msg.detector, now, msg.incarnation)
-        elif isinstance(msg, m.NodeUp):
-            self._on_node_up(msg, now)
-        elif isinstance(msg, m.AppSync):
-            self._on_app_sync(msg, now)
-        elif isinstance(msg, m.Rewire):
-            self._on_rewire(msg, now)
-        elif isinstance(msg, m.Resume):
-            self._on_resume(msg, now)
-        else:
-            self.dropped_messages += 1
+        handler = self._handlers.get(type(msg))
+        if handler is None:
+            self.dropped_messages += 1  # a client's request, or a link message, from a node
+            return
+        handler(src, msg, now)
+
+    def _on_stop_app(self, msg: m.StopApp, now: float) -> None:
+        gone = self.apps.pop(msg.app, None)
+        if gone is not None:
+            self._stop_app(gone, "undeploy")
+        self._early.pop(msg.app, None)
+        self.manager.forget(msg.app)
+
+    def _on_marker_msg(self, msg: m.Marker, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is not None and 0 <= msg.edge < len(dep.app.edges):
+            self._enqueue(dep, dep.app.edges[msg.edge].dst, msg)
+
+    def _on_moved(self, msg: m.Moved, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is not None and msg.vertex in dep.placed:
+            dep.placed[msg.vertex] = msg.node
+            dep.vanished.discard(msg.vertex)
+            for c in dep.layout.chains:
+                if msg.vertex in c.vertices:
+                    dep.placed_at[c.index] = now
+
+    def _on_chain_delay(self, msg: m.ChainDelay, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is not None and 0 <= msg.chain < len(dep.layout.chains):
+            dep.chain_delay[msg.chain] = (msg.delay_ms, now)
 
     # -- deployment -------------------------------------------------------------------------
     def _deploy_request(self, client: int, req: m.DeployRequest, now: float) -> None:
@@ -2032,6 +2025,8 @@ class NodeCore:
             "neighbours": sorted(n for n, (hop, _) in self.routes.items() if hop == n),
             "apps": apps,
             "dropped_messages": self.dropped_messages,
+            "illegal_transitions": self.illegal_transitions,
+            "procedures": self.open_procedures(now),
             "failed_nodes": sorted(self.dead),
             "incarnation": self.incarnation,
             "management": self.manager.status(),
