@@ -36,6 +36,7 @@ from mso.protocol import messages as m
 from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.effects import Effect, Reply, Send, SetTimer
 from mso.protocol.procedures.base import Deadline, IllegalTransition, Procedure, Retry
+from mso.protocol.procedures.deploy import Deploy
 from mso.protocol.procedures.relocate import STEP_ATTEMPTS, STEP_TIMEOUT_S, Relocation
 from mso.protocol.procedures.remap import PROBE_ATTEMPTS, Remap
 from mso.protocol.procedures.remap import S as RemapState
@@ -417,6 +418,12 @@ class NodeCore:
         proc = self.procedures.get(pid) if pid is not None else None
         return proc if isinstance(proc, Remap) else None
 
+    def _deploying(self, app: str) -> Deploy | None:
+        for proc in self.procedures.values():
+            if isinstance(proc, Deploy) and proc.app == app:
+                return proc
+        return None
+
     def _relocations(self) -> list[Relocation]:
         return [p for p in self.procedures.values() if isinstance(p, Relocation)]
 
@@ -435,6 +442,9 @@ class NodeCore:
             self._reloc_failed(proc, why, now)
         elif isinstance(proc, Remap):
             self._finish_remap(proc.pid, now, why)
+        elif isinstance(proc, Deploy):  # a probe or a chain build was lost: stop it everywhere
+            self._on_deploy_failed(m.DeployFailed(proc.app, f"{self.id}: {why}"), now)
+            self._end(proc.pid)
         else:
             proc.expire(self)
             self._end(proc.pid)
@@ -539,6 +549,8 @@ class NodeCore:
                 self._effects.append(Reply(client, _failed_reply(app.name, reason)))
                 return
         self._deploy_clients[app.name] = (client, now)
+        self._rid += 1
+        self._begin(Deploy(self._rid, now, app.name))
         epoch = self._epochs = (self._epochs + 1) & 0x7FFFFFFF
         self._broadcast(
             m.AppAnnounce(app=app.name, origin=self.id, document=req.document, epoch=epoch)
@@ -696,7 +708,13 @@ class NodeCore:
         if dep is None or dep.origin != self.id:
             return
         dep.built.add(msg.chain)
+        proc = self._deploying(msg.app)
+        if proc is not None:
+            proc.on("built")
         if len(dep.built) == len(dep.layout.chains):
+            if proc is not None:
+                proc.on("all_built")
+                self._end(proc.pid)
             self._broadcast(m.StartApp(msg.app))
             if dep.client is not None:
                 elapsed = self._elapsed_ms(dep.requested_at)
@@ -708,6 +726,10 @@ class NodeCore:
         dep = self.apps.get(msg.app)
         if dep is None or dep.origin != self.id:
             return
+        proc = self._deploying(msg.app)
+        if proc is not None:
+            proc.fail(self, msg.reason)
+            self._end(proc.pid)
         if dep.client is not None:
             self._effects.append(Reply(dep.client, _failed_reply(msg.app, msg.reason)))
             dep.client = None

@@ -1,0 +1,65 @@
+"""Every distributed procedure has explicit states, a transition table and a deadline."""
+
+from __future__ import annotations
+
+import pytest
+
+from mso.protocol import messages as m
+from mso.protocol.procedures.base import IllegalTransition, Phase, table_rows
+from mso.protocol.procedures.deploy import Deploy
+from mso.protocol.procedures.relocate import Relocation
+from mso.protocol.procedures.remap import Remap
+from mso.protocol.procedures.status import StatusFanout
+from mso.sim.runner import Simulation
+from test_runtime_sim import PIPE, deploy, line
+
+
+def test_an_event_the_table_does_not_allow_raises() -> None:
+    reloc = Relocation(1, 0.0, "app", "v", "N1", "N2", None)
+    with pytest.raises(IllegalTransition, match="'switched' is not allowed in state PREPARING"):
+        reloc.on("switched")
+    reloc = Relocation(2, 0.0, "app", "v", "N1", "N2", None)
+    reloc.on("prepared")
+    with pytest.raises(IllegalTransition):
+        reloc.on("prepared")  # a second Prepared for a relocation is a protocol error
+    reloc.on("handed_over")
+    assert reloc.state is Phase.FINISHED and reloc.done
+
+
+def test_every_procedure_table_reaches_an_end() -> None:
+    for cls in (Relocation, Remap, StatusFanout, Deploy):
+        ends = {nxt for _, _, nxt in table_rows(cls)}
+        assert "FINISHED" in ends, cls.NAME
+
+
+def test_a_status_fan_out_answers_by_its_deadline_without_a_dead_node() -> None:
+    sim = Simulation(line(3))
+    sim.kill("N3", convergence_s=60.0)  # routes still point at it: its reply never comes
+    sim.request("N1", m.StatusRequest(req=7, everywhere=True), client=9)
+    sim.run_until(sim.now + 0.9)
+    assert not [r for _, c, r in sim.replies if c == 9]  # still waiting for N3
+    sim.run_until(sim.now + 0.2)
+    ((_, _, reply),) = [(t, c, r) for t, c, r in sim.replies if c == 9]
+    assert isinstance(reply, m.StatusReply) and set(reply.nodes) == {"N1", "N2"}
+    assert sim.cores["N1"].open_procedures(sim.now) == []
+
+
+def test_a_relocation_whose_target_never_answers_fails_at_its_deadline() -> None:
+    sim = Simulation(line(4))
+    assert deploy(sim, PIPE).ok
+    mid = next(n for n, c in sim.cores.items() if "mid" in c.apps["pipe"].stones)
+    target = "N3" if mid != "N3" else "N2"
+    sim.cores[target].strict = False
+    sim.kill(target, convergence_s=60.0)  # its Prepared never comes, no failure is known yet
+    for core in sim.cores.values():
+        core.liveness.dead_after_s = 1e9  # nor is it detected: only the deadline can end it
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target=target), client=5)
+    sim.run_until(sim.now + 1.0)
+    open_ = sim.cores["N1"].open_procedures(sim.now)
+    assert [p["procedure"] for p in open_] == ["relocation"] and not open_[0]["overdue"]
+    sim.run_until(sim.now + 5.0)
+    ((_, _, reply),) = [(t, c, r) for t, c, r in sim.replies if c == 5]
+    assert isinstance(reply, m.RelocateReply) and not reply.ok
+    assert "did not finish within 5 s" in reply.error
+    assert sim.cores["N1"].open_procedures(sim.now) == []
+    assert sim.cores["N1"].status(sim.now)["illegal_transitions"] == 0
