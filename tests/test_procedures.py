@@ -63,3 +63,12 @@ def test_a_relocation_whose_target_never_answers_fails_at_its_deadline() -> None
     assert "did not finish within 5 s" in reply.error
     assert sim.cores["N1"].open_procedures(sim.now) == []
     assert sim.cores["N1"].status(sim.now)["illegal_transitions"] == 0
+
+
+def test_the_architecture_page_shows_the_tables_the_code_has() -> None:
+    from pathlib import Path
+
+    from mso.protocol.procedures.__main__ import markdown
+
+    page = Path(__file__).resolve().parent.parent / "docs" / "architecture.md"
+    assert markdown() in page.read_text()
