@@ -1,0 +1,175 @@
+"""What must hold once a fault schedule is over and the network has been quiet for a while.
+
+Each check reads what the nodes themselves report (``NodeCore.status``, the same figures as
+``mso status``) plus what the recording sinks of :mod:`mso.sim.vertices` received. A violation
+names its invariant, so a benchmark can count them by kind and a failing seed says what broke:
+
+- ``deploy``: the app was deployed (before any fault);
+- ``status``: every live node answers status, locally and through one everywhere-request;
+- ``membership``: no live node still holds another failed once all are back and linked;
+- ``hosted-once``: every vertex runs exactly once over the live nodes;
+- ``placement``: every live node knows the app, all agree on its placement, and each vertex is
+  placed on a live node that hosts it;
+- ``dangling-edge``: both ends of every edge have its channel where the placement says;
+- ``parked``: no chain is still parked;
+- ``duplicate`` / ``reorder``: a sink instance got an event of a stream twice, or after a later
+  one (never allowed);
+- ``lost``: a sink instance missed events in the middle of a stream, with no fault to blame (no
+  node was declared failed, nothing was parked: only flaps, loss, relocations and remaps);
+- ``stalled``: once quiet, a sink does not follow its sources' current streams;
+- ``deadline`` / ``illegal-transition``: a procedure outlived its deadline, or the core counted
+  an illegal state transition (when the core reports these);
+- ``exception``: a node core raised (the run stops there; recorded by ``mso.sim.faults``).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from mso.protocol import messages as m
+from mso.sim.runner import Simulation
+from mso.sim.vertices import SinkRecord
+
+if TYPE_CHECKING:
+    from mso.sim.faults import Schedule
+
+APP = "faults"
+STATUS_CLIENT = 3  # the client id the fault run asks status with
+DEADLINE_SLACK_S = 1e-3  # a procedure's own expiry timer fires at its deadline
+
+
+@dataclass(frozen=True)
+class Violation:
+    invariant: str
+    detail: str
+
+    def __str__(self) -> str:
+        return f"{self.invariant}: {self.detail}"
+
+
+def check_procedures(sim: Simulation) -> list[Violation]:
+    """Every open procedure is still within its deadline; no illegal transition was counted.
+    A no-op until the core reports ``open_procedures(now)``."""
+    out: list[Violation] = []
+    for n, core in sorted(sim.cores.items()):
+        if n in sim.dead:
+            continue
+        opened = getattr(core, "open_procedures", None)
+        if callable(opened):
+            for p in opened(sim.now):
+                deadline = (
+                    p.get("deadline") if isinstance(p, dict) else getattr(p, "deadline", None)
+                )
+                if deadline is not None and deadline + DEADLINE_SLACK_S < sim.now:
+                    out.append(Violation("deadline", f"{n} at {sim.now:.3f}: {p!r}"))
+        illegal = getattr(core, "illegal_transitions", 0)
+        if illegal:
+            out.append(Violation("illegal-transition", f"{n} counted {illegal}"))
+    return out
+
+
+def check(sim: Simulation, sched: Schedule, records: list[SinkRecord]) -> list[Violation]:
+    """Check the invariants at the end of a quiet period."""
+    out: list[Violation] = []
+    now = sim.now
+    live = sorted(n for n in sim.cores if n not in sim.dead)
+    deploys = [r for _, c, r in sim.replies if isinstance(r, m.DeployReply)]
+    if not deploys or not deploys[0].ok:
+        err = deploys[0].error if deploys else "no reply"
+        return [Violation("deploy", f"the app was not deployed: {err}")]
+    status: dict[str, dict[str, Any]] = {}
+    for n in live:
+        try:
+            status[n] = sim.cores[n].status(now)
+        except Exception as exc:  # a node that cannot say how it is: that is the finding
+            out.append(Violation("status", f"{n}: {type(exc).__name__}: {exc}"))
+    replies = [r for _, c, r in sim.replies if c == STATUS_CLIENT and isinstance(r, m.StatusReply)]
+    if not replies:
+        out.append(Violation("status", "no reply to a status request for every node"))
+    elif missing := set(live) - set(replies[-1].nodes):
+        out.append(Violation("status", f"no status from {sorted(missing)} via {live[0]}"))
+    for n, st in status.items():
+        if st.get("failed_nodes"):
+            out.append(Violation("membership", f"{n} still holds {st['failed_nodes']} failed"))
+    out += check_procedures(sim)
+    apps = {n: st["apps"].get(APP) for n, st in status.items()}
+    missing_app = sorted(n for n, a in apps.items() if a is None)
+    if missing_app:
+        out.append(Violation("placement", f"{missing_app} do not know the app"))
+    known = {n: a for n, a in apps.items() if a is not None}
+    if not known:
+        return out
+    placements = {tuple(sorted(a["placement"].items())) for a in known.values()}
+    if len(placements) > 1:
+        out.append(Violation("placement", f"nodes disagree: {sorted(placements)}"))
+    ref_node = min(known)
+    placed: dict[str, str] = known[ref_node]["placement"]
+    hosts: dict[str, list[str]] = {}
+    for n, a in known.items():
+        for v in a["vertices"]:
+            hosts.setdefault(v, []).append(n)
+    vertices = list(known[ref_node]["chains"] and {v for c in known[ref_node]["chains"] for v in c})
+    for v in sorted(vertices):
+        where = hosts.get(v, [])
+        if len(where) != 1:
+            out.append(Violation("hosted-once", f"{v} runs on {where or 'no node'}"))
+        if placed.get(v) not in known:
+            out.append(Violation("placement", f"{v} placed on {placed.get(v)}, not a live node"))
+        elif v not in known[placed[v]]["vertices"]:
+            out.append(Violation("placement", f"{v} placed on {placed[v]}, which does not host it"))
+    for n, a in known.items():
+        if a["parked"]:
+            out.append(Violation("parked", f"{n}: {a['parked']}"))
+    for chain in known[ref_node]["chains"]:
+        for src, dst in itertools.pairwise(chain):
+            name = f"{src}->{dst}"
+            for end in (src, dst):
+                node = placed.get(end)
+                if node in known and name not in known[node]["edges"]:
+                    out.append(Violation("dangling-edge", f"{name}: no channel on {node} ({end})"))
+    out += _events(sim, sched, records, known, status)
+    return out
+
+
+def _events(
+    sim: Simulation,
+    sched: Schedule,
+    records: list[SinkRecord],
+    known: dict[str, dict[str, Any]],
+    status: dict[str, dict[str, Any]],
+) -> list[Violation]:
+    out: list[Violation] = []
+    failures = any(core.failures or core.rejoins for core in sim.cores.values())
+    parked = any(sum(a["dropped_parked"].values()) for a in known.values())
+    blamed = failures or parked or sched.faults["crash"] or sched.faults["partition"]
+    for rec in records:
+        for (src, born), s in sorted(rec.streams.items()):
+            what = f"{rec.vertex} from {src}@{born:g}"
+            if s.duplicates:
+                out.append(Violation("duplicate", f"{what}: {s.duplicates} events twice"))
+            if s.reordered:
+                out.append(Violation("reorder", f"{what}: {s.reordered} events out of order"))
+            if s.missing and not blamed:
+                out.append(Violation("lost", f"{what}: {s.missing} missing in {s.first}..{s.last}"))
+    # liveness: the newest instance of each sink follows every source's current stream
+    sources: dict[str, tuple[float, int]] = {}
+    for a in known.values():
+        for v, vs in a["vertices"].items():
+            stats = vs.get("stats")
+            if vs["kind"] == "source" and isinstance(stats, dict) and stats.get("born") is not None:
+                sources[v] = (float(stats["born"]), int(stats["emitted"]))
+    newest: dict[str, SinkRecord] = {}
+    for rec in records:
+        newest[rec.vertex] = rec
+    slack = int(sched.settings.rate) + 5  # a second of events may still be on the way
+    for sink, rec in sorted(newest.items()):
+        for src, (born, emitted) in sorted(sources.items()):
+            stream = rec.streams.get((src, born))
+            got = -1 if stream is None else stream.last
+            if got < emitted - 1 - slack:
+                out.append(
+                    Violation("stalled", f"{sink} has {src}@{born:g} up to {got} of {emitted}")
+                )
+    return out
