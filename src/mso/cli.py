@@ -362,6 +362,14 @@ def _node_config(path: Path) -> dict[str, Any]:
     default=None,
     help="Run the management rules (default on); off keeps every placement as deployed.",
 )
+@click.option(
+    "--heartbeat", "heartbeat_s", type=float, default=None,
+    help="Seconds between heartbeats to each neighbour (default 0.1).",
+)  # fmt: skip
+@click.option(
+    "--dead-after", "dead_after_s", type=float, default=None,
+    help="Seconds of silence after which a neighbour is declared failed (default 0.5).",
+)  # fmt: skip
 @key_option
 @click.option("-v", "--verbose", is_flag=True)
 @_user_errors
@@ -375,11 +383,19 @@ def node(
     peers: tuple[str, ...],
     policy: str | None,
     manage: bool | None,
+    heartbeat_s: float | None,
+    dead_after_s: float | None,
     key: str | None,
     verbose: bool,
 ) -> None:
     """Run the identical mso daemon of one device."""
     from mso.model.network import PowerModel
+    from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
+
+    heartbeat_s = HEARTBEAT_S if heartbeat_s is None else heartbeat_s
+    dead_after_s = DEAD_AFTER_S if dead_after_s is None else dead_after_s
+    if why := check_timing(heartbeat_s, dead_after_s):
+        raise MsoError(why)
 
     cfg = _node_config(config_file) if config_file is not None else {}
     node_id = node_id or cfg.get("id")
@@ -407,6 +423,8 @@ def node(
         battery,
         policy if policy is not None else cfg.get("policy"),
         manage if manage is not None else cfg.get("manage", True),
+        heartbeat_s,
+        dead_after_s,
     )
 
 
@@ -421,6 +439,8 @@ def _node(
     battery_wh: float | None = None,
     policy: Any = None,
     manage: bool = True,
+    heartbeat_s: float | None = None,
+    dead_after_s: float | None = None,
 ) -> None:
     import asyncio
     import logging
@@ -428,6 +448,7 @@ def _node(
     from mso.client import overlay_key, parse_address
     from mso.node.core import NodeCore
     from mso.node.driver import NodeDriver
+    from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S
     from mso.protocol import messages as m
 
     logging.basicConfig(
@@ -452,6 +473,8 @@ def _node(
         battery_wh=battery_wh,
         policy=policy,
         manage=manage,
+        heartbeat_s=HEARTBEAT_S if heartbeat_s is None else heartbeat_s,
+        dead_after_s=DEAD_AFTER_S if dead_after_s is None else dead_after_s,
         # a restarted daemon is a new incarnation: the others restore what it hosted before
         incarnation=time.time_ns() // 1_000_000,
     )
@@ -789,6 +812,14 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
     "--convergence", type=float, default=0.0, show_default=True,
     help="Seconds routes take to follow a link change.",
 )  # fmt: skip
+@click.option(
+    "--heartbeat", "heartbeat_s", type=float, default=None,
+    help="Every node's heartbeat period in seconds (default 0.1).",
+)  # fmt: skip
+@click.option(
+    "--dead-after", "dead_after_s", type=float, default=None,
+    help="Every node's failure timeout in seconds of silence (default 0.5).",
+)  # fmt: skip
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
 def emulate(
@@ -797,11 +828,15 @@ def emulate(
     duration: float | None,
     via: str | None,
     convergence: float,
+    heartbeat_s: float | None,
+    dead_after_s: float | None,
     key: str | None,
     as_json: bool,
 ) -> None:
     """Run a scenario as one local process per node (user-space MANET emulator)."""
-    _emulate(scenario_file, app_file, duration, via, convergence, key, as_json)
+    _emulate(
+        scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s, dead_after_s
+    )
 
 
 @_user_errors
@@ -813,11 +848,21 @@ def _emulate(
     convergence: float,
     key: str | None,
     as_json: bool,
+    heartbeat_s: float | None = None,
+    dead_after_s: float | None = None,
 ) -> None:
     import asyncio
 
     from mso.emu.controller import Emulator
+    from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 
+    if heartbeat_s is not None or dead_after_s is not None:
+        why = check_timing(
+            HEARTBEAT_S if heartbeat_s is None else heartbeat_s,
+            DEAD_AFTER_S if dead_after_s is None else dead_after_s,
+        )
+        if why:
+            raise MsoError(why)
     scenario = load_scenario(scenario_file)
     app = load_app(app_file) if app_file is not None else None
     if duration is not None and duration <= 0:
@@ -825,7 +870,13 @@ def _emulate(
     console = _console()
 
     async def run() -> dict[str, Any]:
-        emu = Emulator(scenario, key=key, convergence_s=convergence)
+        emu = Emulator(
+            scenario,
+            key=key,
+            convergence_s=convergence,
+            heartbeat_s=heartbeat_s,
+            dead_after_s=dead_after_s,
+        )
         await emu.start()
         loop = asyncio.get_running_loop()
         try:

@@ -28,6 +28,7 @@ from typing import Any
 from mso.client import Client, NodeUnreachable, overlay_key
 from mso.errors import MsoError
 from mso.model.network import LinkSpec
+from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 from mso.protocol import messages as m
 from mso.scenario import Scenario
 from mso.scenario.timeline import Crash, Restart, Timeline
@@ -85,11 +86,20 @@ class Emulator:
     policy: str | None = None  # every node's policy (apps may name their own)
     manage: bool = True  # run the management rules on the nodes
     _playing: bool = False  # a timeline is being played (play_changes / play_mobility)
+    heartbeat_s: float | None = None  # every node's heartbeat period (None: the node default)
+    dead_after_s: float | None = None  # every node's failure timeout (None: the node default)
 
     async def start(self, timeout: float = 20.0) -> None:
         names = list(self.scenario.network.nodes)
         if len(names) > 250:
             raise MsoError("the user-space emulator supports at most 250 nodes")
+        hb, da = self.heartbeat_s, self.dead_after_s
+        if hb is not None or da is not None:  # checked before any node process would refuse
+            why = check_timing(
+                HEARTBEAT_S if hb is None else hb, DEAD_AFTER_S if da is None else da
+            )
+            if why:
+                raise MsoError(why)
         hosts = [f"127.0.1.{i + 1}" for i in range(len(names))]
         port = self.port or _free_port(hosts)
         if self.log_dir is None:  # ours to remove after a clean stop
@@ -133,6 +143,10 @@ class Emulator:
             cmd += ["--policy", self.policy]
         if not self.manage:
             cmd.append("--no-manage")
+        if self.heartbeat_s is not None:
+            cmd += ["--heartbeat", repr(self.heartbeat_s)]
+        if self.dead_after_s is not None:
+            cmd += ["--dead-after", repr(self.dead_after_s)]
         node.log = self.log_dir / f"{name}.log"
         with node.log.open("ab") as out:
             node.process = subprocess.Popen(

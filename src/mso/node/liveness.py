@@ -11,16 +11,72 @@ silent) is failed too once it has stayed unreachable for ``dead_after_s``.
 
 Heartbeats also carry the sender's monitored figures; the table of what neighbours last said
 (``heard``) is what the management rules weigh a move toward a neighbour with.
+
+It also keeps, per neighbour, the last ``GAP_SAMPLES`` heartbeat inter-arrival times (bounded),
+shown in status under ``liveness``: how close a neighbour came to being declared failed is what
+tells whether ``dead_after_s`` can be lowered, and whether vertex code delays the control plane.
 """
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 from mso.protocol import messages as m
 
 HEARTBEAT_S = 0.1
 DEAD_AFTER_S = 0.5
+GAP_SAMPLES = 2048  # heartbeat inter-arrivals kept per neighbour (about 200 s at 0.1 s)
+
+
+def check_timing(heartbeat_s: float, dead_after_s: float) -> str | None:
+    """Why a heartbeat period and failure timeout cannot work together (None if they can)."""
+    for name, v in (("heartbeat", heartbeat_s), ("dead-after", dead_after_s)):
+        if not math.isfinite(v) or v <= 0:
+            return f"--{name}: expected a finite number of seconds > 0, got {v:g}"
+    if dead_after_s <= heartbeat_s:
+        return (
+            f"--dead-after ({dead_after_s:g} s) must be longer than --heartbeat "
+            f"({heartbeat_s:g} s): a live neighbour would be declared failed between beats"
+        )
+    return None
+
+
+@dataclass
+class Gaps:
+    """One neighbour's recent heartbeat inter-arrival times (s), bounded; and the largest."""
+
+    last: float | None = None
+    recent: deque[float] = field(default_factory=lambda: deque(maxlen=GAP_SAMPLES))
+    count: int = 0
+    max_s: float = 0.0
+
+    def beat(self, now: float) -> None:
+        if self.last is not None:
+            gap = now - self.last
+            self.recent.append(gap)
+            self.count += 1
+            self.max_s = max(self.max_s, gap)
+        self.last = now
+
+    def summary(self) -> dict[str, Any]:
+        s = sorted(self.recent)
+        return {
+            "n": self.count,
+            "p50_ms": round(_pct(s, 50) * 1e3, 3),
+            "p99_ms": round(_pct(s, 99) * 1e3, 3),
+            "max_ms": round(self.max_s * 1e3, 3),  # since it became a neighbour
+            "recent_max_ms": round((s[-1] if s else 0.0) * 1e3, 3),
+        }
+
+
+def _pct(s: list[float], q: float) -> float:
+    """Nearest-rank percentile of a sorted list (0 when empty)."""
+    if not s:
+        return 0.0
+    return s[min(len(s) - 1, max(0, math.ceil(q / 100 * len(s)) - 1))]
 
 
 @dataclass
@@ -32,6 +88,7 @@ class Liveness:
     heard: dict[str, tuple[float, m.Heartbeat]] = field(default_factory=dict)
     reachable: set[str] = field(default_factory=set)
     gone: dict[str, float] = field(default_factory=dict)  # unreachable node -> since
+    gaps: dict[str, Gaps] = field(default_factory=dict)  # neighbour -> heartbeat inter-arrivals
 
     def set_routes(self, now: float, reachable: set[str], neighbours: set[str]) -> None:
         """The routing view changed: who is a neighbour, who is reachable at all."""
@@ -46,6 +103,7 @@ class Liveness:
         for n in list(self.neighbours):
             if n not in neighbours:
                 del self.neighbours[n]
+                self.gaps.pop(n, None)  # a gap across a lost link is not a late beat
         for n in neighbours:
             self.neighbours.setdefault(n, now)
 
@@ -53,6 +111,7 @@ class Liveness:
         self.last_heard[node] = now
         if beat is not None:
             self.heard[node] = (now, beat)
+            self.gaps.setdefault(node, Gaps()).beat(now)
 
     def suspects(self, now: float, dead: set[str]) -> list[str]:
         """Neighbours silent for longer than ``dead_after_s`` (sorted, deterministic)."""
@@ -69,6 +128,7 @@ class Liveness:
     def rejoin(self, node: str, now: float, reachable: bool, route: tuple[str, int] | None) -> None:
         """A node declared failed is back: watch it again from now."""
         self.last_heard[node] = now
+        self.gaps.pop(node, None)
         if reachable:
             self.reachable.add(node)
             self.gone.pop(node, None)
@@ -83,3 +143,12 @@ class Liveness:
         self.heard.pop(node, None)
         self.gone.pop(node, None)
         self.reachable.discard(node)
+        self.gaps.pop(node, None)
+
+    def stats(self) -> dict[str, Any]:
+        """For status: the settings and each neighbour's heartbeat inter-arrival figures."""
+        return {
+            "heartbeat_s": self.period_s,
+            "dead_after_s": self.dead_after_s,
+            "inter_arrival": {n: g.summary() for n, g in sorted(self.gaps.items())},
+        }

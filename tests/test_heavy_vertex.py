@@ -1,0 +1,204 @@
+"""A vertex that computes for most of a second per event must not take its node down.
+
+Vertex code runs on worker threads, off the control plane (mso.runtime.executor): while a
+pure-Python vertex burns CPU, its node keeps sending heartbeats, so no neighbour declares it
+failed, and backpressure (not loss) absorbs the backlog. On a 3-node emulated line N1-N2-N3:
+``src`` (N1, one event a second, a fixed number of them) -> ``split`` (N1: each event becomes two)
+-> ``burn`` (N2: ~0.7 s of busy loop per event) -> ``sink`` (N3, checks order).
+
+Why ``split``: a vertex is reported ``busy`` once one effect has run for ``BUSY_AFTER_S`` (1 s);
+the two events of a split travel in one batch, so ``burn`` gets one 1.4 s feed.
+
+Node processes import the vertex classes below from this module (tests/ is on PYTHONPATH), so
+it imports little at module level: the emulator and pytest are imported by the test alone.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import msgspec
+
+if TYPE_CHECKING:
+    import pytest
+
+TESTS = Path(__file__).resolve().parent
+EVENTS = 3  # source events; the sink gets twice as many
+BURN_S = 0.7
+DEADLINE_S = 60.0  # bound on the whole flow (about 6 s of burning; generous for a loaded CI)
+
+LINE3 = """
+name: line3
+link_defaults: {delay_ms: 0.5, bandwidth_mbps: 54}
+nodes: {N1: {}, N2: {}, N3: {}}
+links: [[N1, N2], [N2, N3]]
+"""
+
+APP = f"""
+name: heavy
+vertices:
+  src:   {{code: test_heavy_vertex:Limited, pinned: N1, rate: 1, params: {{limit: {EVENTS}}},
+          output: test_heavy_vertex:Item}}
+  split: {{code: test_heavy_vertex:Split, pinned: N1, input: test_heavy_vertex:Item,
+          output: test_heavy_vertex:Item}}
+  burn:  {{code: test_heavy_vertex:Burn, pinned: N2, params: {{seconds: {BURN_S}}},
+          input: test_heavy_vertex:Item, output: test_heavy_vertex:Item}}
+  sink:  {{code: test_heavy_vertex:InOrder, pinned: N3, input: test_heavy_vertex:Item}}
+edges:
+  - [src, split]
+  - [split, burn]
+  - [burn, sink]
+"""
+
+
+class Item(msgspec.Struct, array_like=True, frozen=True):
+    seq: int
+
+
+class Limited:
+    """A rated source that emits ``limit`` events, then nothing (calls go on)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.sent = 0
+
+    def __call__(self, seq: int, now: float) -> Item | None:
+        if self.sent >= self.limit:
+            return None
+        self.sent += 1
+        return Item(self.sent - 1)
+
+
+class Split:
+    """Event k becomes events 2k and 2k+1, returned together (one batch downstream)."""
+
+    def __call__(self, event: Item) -> list[Item]:
+        return [Item(2 * event.seq), Item(2 * event.seq + 1)]
+
+
+class Burn:
+    """A pure-Python busy loop for ``seconds`` of wall time per event (no sleep; wall time so a
+    loaded CI machine does not stretch the test)."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+
+    def __call__(self, event: Item) -> Item:
+        end = time.perf_counter() + self.seconds
+        x = 0
+        while time.perf_counter() < end:
+            for i in range(1000):
+                x ^= i * i
+        return event
+
+
+class InOrder:
+    """Counts arrivals; an arrival that is not the next expected number is counted as such."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.next = 0
+        self.repeats = 0
+        self.out_of_order = 0
+
+    def __call__(self, event: Item) -> None:
+        self.count += 1
+        if event.seq < self.next:
+            self.repeats += 1
+        elif event.seq > self.next:
+            self.out_of_order += 1
+        self.next = max(self.next, event.seq + 1)
+
+    def stats(self) -> dict[str, int]:
+        return vars(self).copy()
+
+
+def test_heavy_vertex_keeps_its_node_alive_and_loses_nothing(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from mso.emu.controller import Emulator
+    from mso.scenario import loads_scenario
+
+    path = os.environ.get("PYTHONPATH", "")  # node processes import the vertices from here
+    monkeypatch.setenv("PYTHONPATH", f"{TESTS}{os.pathsep}{path}" if path else str(TESTS))
+
+    async def run() -> tuple[list[dict[str, Any]], set[str]]:
+        emu = Emulator(loads_scenario(LINE3), manage=False)
+        await emu.start()
+        polls: list[dict[str, Any]] = []
+        burn_states: set[str] = set()
+        try:
+            reply = await emu.deploy(APP, "heavy.yaml", "N1")
+            assert reply.ok, reply.error
+            loop = asyncio.get_running_loop()
+            deadline = loop.time() + DEADLINE_S
+            while loop.time() < deadline:  # bounded poll until the sink has everything
+                st = await emu.status()
+                polls.append(st)
+                burn = st["N2"]["apps"]["heavy"]["vertices"]["burn"]
+                burn_states.add(burn["state"])
+                sink = st["N3"]["apps"]["heavy"]["vertices"]["sink"].get("stats") or {}
+                if sink.get("count", 0) >= 2 * EVENTS and "busy" in burn_states:
+                    break
+                await asyncio.sleep(0.1)  # poll period, not synchronisation
+            return polls, burn_states
+        finally:
+            await emu.stop()
+
+    polls, burn_states = asyncio.run(run())
+    final = polls[-1]
+    for st in polls:  # nobody was ever declared failed
+        for node, s in st.items():
+            assert s["failed_nodes"] == [], (node, s["failed_nodes"])
+            assert s["failures"] == [], (node, s["failures"])
+    src = final["N1"]["apps"]["heavy"]["vertices"]["src"]
+    sink = final["N3"]["apps"]["heavy"]["vertices"]["sink"]["stats"]
+    assert src["emitted"] == EVENTS
+    assert sink == {"count": 2 * EVENTS, "next": 2 * EVENTS, "repeats": 0, "out_of_order": 0}
+    assert "busy" in burn_states, burn_states
+    burn = final["N2"]["apps"]["heavy"]["vertices"]["burn"]
+    assert burn["processed"] == 2 * EVENTS and burn["errors"] == 0
+
+
+def test_detection_settings_are_checked() -> None:
+    """``--heartbeat``/``--dead-after`` (which the heavy-vertex figures depend on) refuse
+    values that would declare live neighbours failed, before anything starts."""
+    from click.testing import CliRunner
+
+    from mso.cli import main
+
+    for args in (
+        ["--heartbeat", "0"],
+        ["--heartbeat", "nan"],
+        ["--dead-after", "inf"],
+        ["--heartbeat", "0.2", "--dead-after", "0.1"],
+    ):
+        res = CliRunner().invoke(main, ["node", "--id", "N1", "--listen", "127.0.0.1:0", *args])
+        assert res.exit_code == 2, (args, res.output)
+        assert "--heartbeat" in res.output or "--dead-after" in res.output
+    res = CliRunner().invoke(
+        main, ["emulate", "x.yaml", "--heartbeat", "0.1", "--dead-after", "0.1"]
+    )
+    assert res.exit_code == 2 and "--dead-after" in res.output
+
+
+def test_liveness_keeps_heartbeat_inter_arrivals() -> None:
+    """Status shows how late each neighbour's heartbeats came (bounded, per neighbour)."""
+    from mso.node.liveness import GAP_SAMPLES, Liveness
+    from mso.protocol import messages as m
+
+    lv = Liveness(0.05, 0.15)
+    lv.set_neighbours(0.0, {"N2"})
+    beat = m.Heartbeat("N2", 1.0, 0.0, 0.0, None, None, [0.0, 0.0, 0.0, 0.0])
+    for k in range(GAP_SAMPLES + 10):
+        lv.heard_from("N2", k * 0.05 + (0.02 if k == GAP_SAMPLES + 5 else 0.0), beat)
+    gaps = lv.stats()["inter_arrival"]["N2"]
+    assert gaps["n"] == GAP_SAMPLES + 9
+    assert len(lv.gaps["N2"].recent) == GAP_SAMPLES
+    assert gaps["p50_ms"] == 50.0 and gaps["max_ms"] == 70.0
+    lv.set_neighbours(1e3, set())  # a lost link forgets the figures
+    assert lv.stats()["inter_arrival"] == {} and lv.stats()["dead_after_s"] == 0.15
