@@ -360,7 +360,9 @@ def test_a_killed_relay_is_detected_and_its_chain_recovered() -> None:
     assert len(hosts) == 1 and hosts[0] != victim
     got = sink_at(status, "N6")
     assert got["repeats"] == 0 and got["out_of_order"] == 0
-    assert got["count"] == emitted
+    # in order, no gap and no repeat: every event emitted by the first reading has arrived (the
+    # source runs on while the sink is read, so the sink may be a little ahead of that reading)
+    assert got["count"] >= emitted
 
 
 def sink_at(status: dict[str, Any], node: str) -> dict[str, int]:
