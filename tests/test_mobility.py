@@ -66,7 +66,7 @@ def test_relink_follows_positions() -> None:
         ),
         (
             "nodes: {A: {}, B: {}}\nchanges:\n  - {at: 1}\n",
-            "expected exactly one of 'up', 'down' or 'fail'",
+            "expected exactly one of 'up', 'down', 'fail', 'restart', 'partition'",
         ),
     ],
 )
