@@ -32,6 +32,10 @@ has everything up to it. Figures per run:
   sink still has plus what lies beyond its highest seq (target 0); duplicated: events the sink
   got twice (target 0).
 
+``--heartbeat S`` and ``--dead-after S`` set every node's failure detection (default 0.1 s and
+0.5 s; ``failure-hb0.05-dead0.15.json`` etc. for other settings); a survivor that declares a
+live node failed (a false detection) fails its run.
+
 ``--convergence S`` is the emulator's routing convergence delay (routes follow a link change
 after S seconds; 0 = at once, 2.0 = babeld-like). Each setting is its own invocation with its
 own files: ``bench/results/failure.json``/``.md`` for 0, ``failure-conv2.json``/``.md`` for 2.0
@@ -39,6 +43,7 @@ own files: ``bench/results/failure.json``/``.md`` for 0, ``failure-conv2.json``/
 
 Usage: .venv/bin/python bench/failure.py [--runs 10] [--quick] [--convergence 0.0]
                                          [--topology line,mesh] [--manage] [--json FILE]
+                                         [--heartbeat 0.1] [--dead-after 0.5]
 """
 
 from __future__ import annotations
@@ -168,7 +173,13 @@ def log_lines(emu: Emulator, limit: int = 12) -> dict[str, list[str]]:
 
 
 async def one_run(
-    topology: str, k: int, convergence: float, rate: float, manage: bool, logs: Path
+    topology: str,
+    k: int,
+    convergence: float,
+    rate: float,
+    manage: bool,
+    logs: Path,
+    detection: tuple[float | None, float | None] = (None, None),
 ) -> dict[str, Any]:
     """One fresh emulator: deploy, flow, kill the relay hosting ``mid``, measure."""
     scenario_text, first, last = TOPOLOGIES[topology]
@@ -176,7 +187,12 @@ async def one_run(
     log_dir = logs / f"{topology}-{k}"
     log_dir.mkdir()
     emu = Emulator(
-        loads_scenario(scenario_text), convergence_s=convergence, log_dir=log_dir, manage=manage
+        loads_scenario(scenario_text),
+        convergence_s=convergence,
+        log_dir=log_dir,
+        manage=manage,
+        heartbeat_s=detection[0],
+        dead_after_s=detection[1],
     )
     loop = asyncio.get_running_loop()
     try:
@@ -265,6 +281,9 @@ async def one_run(
         hosts = [n for n, st in everywhere.items() if vertex(st, "mid")]
         row["mid_after"] = hosts[0] if len(hosts) == 1 else hosts
         row["failed_nodes"] = {n: st.get("failed_nodes") for n, st in everywhere.items()}
+        false = sorted({f["node"] for st in everywhere.values() for f in st.get("failures", [])})
+        if false != [victim]:  # a live node declared failed: detection too eager
+            row["error"] = row["error"] or f"nodes declared failed: {false} (victim {victim})"
         row["unroutable"] = {  # frames a node had no route (or no live next hop) for
             n: st["traffic"]["frames_unroutable"]
             for n, st in everywhere.items()
@@ -316,7 +335,12 @@ def topology_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 async def run(
-    runs: int, convergence: float, rate: float, topologies: list[str], manage: bool
+    runs: int,
+    convergence: float,
+    rate: float,
+    topologies: list[str],
+    manage: bool,
+    detection: tuple[float | None, float | None] = (None, None),
 ) -> dict[str, Any]:
     """``runs`` fresh-emulator runs per topology, within the time budget."""
     t0 = time.monotonic()
@@ -334,7 +358,7 @@ async def run(
                         break
                     try:
                         row = await asyncio.wait_for(
-                            one_run(topology, k, convergence, rate, manage, Path(tmp)),
+                            one_run(topology, k, convergence, rate, manage, Path(tmp), detection),
                             RUN_TIMEOUT_S,
                         )
                     except TimeoutError:
@@ -368,7 +392,9 @@ def render(result: dict[str, Any]) -> str:
     conv = result["convergence_s"]
     lines = [
         f"### Fail-stop failure of the relay hosting `mid` (convergence {conv:g} s, "
-        f"{result['rate']:g} events/s, {result['runs']} runs per topology)",
+        f"{result['rate']:g} events/s, {result['runs']} runs per topology, heartbeat "
+        f"{result.get('heartbeat_s', 0.1):g} s, failed after {result.get('dead_after_s', 0.5):g} "
+        "s of silence)",
         "",
         "| topology | runs ok | detection ms mean / p50 / p99 / max "
         "| recovery ms mean / p50 / p99 / max | remap starts after kill ms p50 "
@@ -422,6 +448,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=RATE, help="source events/s (default 200)")
     ap.add_argument("--topology", default="line,mesh", help="comma-separated: line,mesh")
     ap.add_argument("--manage", action="store_true", help="run the management rules too")
+    ap.add_argument("--heartbeat", type=float, help="every node's heartbeat period, s (0.1)")
+    ap.add_argument("--dead-after", type=float, help="every node's failure timeout, s (0.5)")
     ap.add_argument("--json", type=Path, help="where to write the JSON (a .md goes beside it)")
     args = ap.parse_args(argv)
     runs = 3 if args.quick else args.runs
@@ -435,10 +463,15 @@ def main(argv: list[str] | None = None) -> int:
     if unknown := [t for t in topologies if t not in TOPOLOGIES]:
         ap.error(f"unknown topology {unknown}; known: {', '.join(TOPOLOGIES)}")
     name = "failure" + (f"-conv{args.convergence:g}" if args.convergence else "")
+    if args.heartbeat is not None:
+        name += f"-hb{args.heartbeat:g}"
+    if args.dead_after is not None:
+        name += f"-dead{args.dead_after:g}"
     name += "-quick" if args.quick else ""
     out: Path = args.json or RESULTS / f"{name}.json"
 
-    result = asyncio.run(run(runs, args.convergence, args.rate, topologies, args.manage))
+    detection = (args.heartbeat, args.dead_after)
+    result = asyncio.run(run(runs, args.convergence, args.rate, topologies, args.manage, detection))
     result = {
         "benchmark": "failure",
         "convergence_s": args.convergence,
@@ -447,6 +480,8 @@ def main(argv: list[str] | None = None) -> int:
         "quick": args.quick,
         "manage": args.manage,
         "steady_s": STEADY_S,
+        "heartbeat_s": args.heartbeat if args.heartbeat is not None else 0.1,
+        "dead_after_s": args.dead_after if args.dead_after is not None else 0.5,
     } | result
     result |= provenance()
     table = render(result)
