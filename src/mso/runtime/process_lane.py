@@ -1,0 +1,263 @@
+"""A process lane (prototype, not used by the daemon): one vertex instance in a child process.
+
+Why: CPython's GIL lets one thread run Python at a time, so two CPU-bound pure-Python vertices
+in one node's threads share one core, and the node's event loop gets the GIL only every switch
+interval (5 ms) while they compute. In a child process a vertex has a core (and a GIL) of its
+own. The cost: every event crosses a pipe, and a start costs a process.
+
+What crosses: only bytes. Jobs and results are msgspec-encoded; the vertex travels as import
+paths (its code, formats and state hooks) and its params, and the child imports the code by path
+itself, as a node does; events and state stay the encoded bytes they already are. Nothing is
+pickled (the child is started with the ``forkserver`` or ``spawn`` context and only reads
+``Connection.recv_bytes``). So code given as a Python callable, not a path, cannot run here.
+
+The interface is the thread executor's (``submit(effect)``; results to ``deliver`` from a reader
+thread), so the driver could take either; docs/benchmarks.md compares the two.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import multiprocessing
+import threading
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+from typing import Any
+
+import msgspec
+
+from mso.model.app import Vertex
+from mso.protocol import effects as fx
+
+PULL_BATCH = 256
+PULL_BUDGET_S = 0.005
+
+
+# -- the wire between parent and child --------------------------------------------------------
+class VertexSpec(msgspec.Struct, frozen=True):
+    id: str
+    kind: str
+    code: str | None
+    params: dict[str, Any]
+    rate: float | None
+    input: str | None
+    output: str | None
+    get_state: str | None
+    set_state: str | None
+    inputs: dict[int, str | None]  # edge -> format import path
+
+
+class Start(msgspec.Struct, tag=True):
+    instance: int
+    app: str
+    spec: VertexSpec
+    state: bytes | None = None
+
+
+class Feed(msgspec.Struct, tag=True):
+    edge: int
+    events: list[bytes]
+    ts: float
+
+
+class Run(msgspec.Struct, tag=True):
+    first: int
+    count: int
+    now: float
+
+
+class Grant(msgspec.Struct, tag=True):
+    count: int
+
+
+class Restore(msgspec.Struct, tag=True):
+    state: bytes
+
+
+class Snapshot(msgspec.Struct, tag=True):
+    token: int
+
+
+class Stop(msgspec.Struct, tag=True):
+    pass
+
+
+Job = Start | Feed | Run | Grant | Restore | Snapshot | Stop
+
+
+class Result(msgspec.Struct):
+    kind: str  # the fx result class: one of RESULTS
+    body: msgspec.Raw
+
+
+RESULTS: dict[str, type[Any]] = {
+    c.__name__: c
+    for c in (fx.VertexStarted, fx.VertexProcessed, fx.VertexEmitted, fx.VertexSnapshot)
+}
+
+
+def _path(x: Any) -> str | None:
+    """An import path for code or a format (a string already is one)."""
+    if x is None or isinstance(x, str):
+        return x
+    if isinstance(x, type):
+        return f"{x.__module__}:{x.__qualname__}"
+    raise ValueError(f"a process lane needs import paths, not {type(x).__name__} objects")
+
+
+def spec_of(start: fx.StartVertex) -> VertexSpec:
+    v = start.vertex
+    return VertexSpec(
+        id=v.id,
+        kind=start.kind,
+        code=_path(v.code),
+        params=dict(v.params),
+        rate=v.rate,
+        input=_path(v.input),
+        output=_path(v.output),
+        get_state=_path(v.get_state),
+        set_state=_path(v.set_state),
+        inputs={e: _path(f) for e, f in start.inputs.items()},
+    )
+
+
+# -- the child ---------------------------------------------------------------------------------
+def _child(conn: Connection) -> None:
+    """The child's loop: decode a job, run it on the worker, send the result back."""
+    from mso.model.imports import resolve
+    from mso.runtime.worker import VertexWorker
+
+    jobs = msgspec.msgpack.Decoder(Job)
+    enc = msgspec.msgpack.Encoder()
+    worker: VertexWorker | None = None
+    credit, loop_source = 0, False
+
+    def send(res: Any) -> None:
+        body = msgspec.Raw(enc.encode(dataclasses.asdict(res)))
+        conn.send_bytes(enc.encode(Result(type(res).__name__, body)))
+
+    while True:
+        free = worker is not None and loop_source and credit > 0 and not worker.ended
+        if free and worker is not None and not conn.poll(0):  # a read loop, no job waiting
+            res = worker.pull(min(credit, PULL_BATCH), PULL_BUDGET_S)
+            credit -= res.calls
+            send(res)
+            continue
+        try:
+            job = jobs.decode(conn.recv_bytes())
+        except EOFError:
+            return
+        if isinstance(job, Start):
+            s = job.spec
+            fmts = {e: (resolve(f) if f else None) for e, f in s.inputs.items()}
+            vertex = Vertex(
+                s.id, s.code, 1.0, None, s.input, s.output, s.rate, s.params, s.get_state,
+                s.set_state,
+            )  # fmt: skip
+            worker = VertexWorker(fx.StartVertex(job.instance, job.app, vertex, s.kind, fmts))
+            started = worker.open()
+            loop_source = started.mode == "loop"
+            send(started)
+        elif worker is None:
+            continue
+        elif isinstance(job, Feed):
+            send(worker.feed(fx.FeedVertex(worker.start.instance, job.edge, job.events, job.ts)))
+        elif isinstance(job, Run):
+            send(worker.run_source(job.first, job.count, job.now))
+        elif isinstance(job, Grant):
+            credit += job.count
+        elif isinstance(job, Restore):
+            worker.restore(job.state)
+        elif isinstance(job, Snapshot):
+            send(worker.snapshot(job.token))
+        elif isinstance(job, Stop):
+            worker.close()
+            conn.close()
+            return
+
+
+# -- the parent --------------------------------------------------------------------------------
+class _ProcLane:
+    def __init__(
+        self, start: fx.StartVertex, deliver: Callable[[fx.VertexResult], None], ctx: Any
+    ) -> None:
+        self.deliver = deliver
+        self.enc = msgspec.msgpack.Encoder()
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_child, args=(child,), daemon=True)
+        self.proc.start()
+        child.close()
+        self.lock = threading.Lock()  # submit is called from the loop; sends stay whole
+        self.reader = threading.Thread(
+            target=self._read, daemon=True, name=f"mso-p-{start.vertex.id}"
+        )
+        self.reader.start()
+        self.send(Start(start.instance, start.app, spec_of(start), start.state))
+
+    def send(self, job: Job) -> None:
+        with self.lock:
+            self.conn.send_bytes(self.enc.encode(job))
+
+    def _read(self) -> None:
+        dec = msgspec.msgpack.Decoder(Result)
+        decoders = {k: msgspec.msgpack.Decoder(c) for k, c in RESULTS.items()}
+        while True:
+            try:
+                raw = self.conn.recv_bytes()
+            except (EOFError, OSError):
+                return
+            res = dec.decode(raw)
+            d = decoders.get(res.kind)
+            if d is not None:
+                self.deliver(d.decode(res.body))
+
+
+class ProcessExecutor:
+    """Runs vertex effects in one child process per instance (``context``: forkserver or
+    spawn); the same interface as :class:`mso.runtime.executor.ThreadExecutor`."""
+
+    def __init__(
+        self, deliver: Callable[[fx.VertexResult], None], context: str = "forkserver"
+    ) -> None:
+        self.deliver = deliver
+        self.ctx = multiprocessing.get_context(context)
+        self._lanes: dict[int, _ProcLane] = {}
+
+    def submit(self, eff: fx.VertexEffect) -> None:
+        if isinstance(eff, fx.StartVertex):
+            self._lanes[eff.instance] = _ProcLane(eff, self.deliver, self.ctx)
+            return
+        lane = self._lanes.get(eff.instance)
+        if lane is None:
+            return
+        if isinstance(eff, fx.FeedVertex):
+            lane.send(Feed(eff.edge, eff.events, eff.ts))
+        elif isinstance(eff, fx.RunSource):
+            lane.send(Run(eff.first, eff.count, eff.now))
+        elif isinstance(eff, fx.Credit):
+            lane.send(Grant(eff.count))
+        elif isinstance(eff, fx.RestoreVertex):
+            lane.send(Restore(eff.state))
+        elif isinstance(eff, fx.SnapshotVertex):
+            lane.send(Snapshot(eff.token))
+        elif isinstance(eff, fx.StopVertex):
+            lane.send(Stop())
+            del self._lanes[eff.instance]
+
+    @property
+    def instances(self) -> int:
+        return len(self._lanes)
+
+    def shutdown(self, timeout: float = 1.0) -> None:
+        """Stop every child (their ``close()`` hooks run); kill what does not end in time."""
+        lanes = list(self._lanes.values())
+        self._lanes.clear()
+        for lane in lanes:
+            with contextlib.suppress(OSError):  # the child is gone already
+                lane.send(Stop())
+        for lane in lanes:
+            lane.proc.join(timeout / max(1, len(lanes)))
+            if lane.proc.is_alive():
+                lane.proc.kill()
+                lane.proc.join(0.5)

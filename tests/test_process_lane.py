@@ -1,0 +1,63 @@
+"""The process-lane prototype: a vertex in a child process, only bytes crossing, same results
+as the thread executor gives for the same effects."""
+
+from __future__ import annotations
+
+import queue
+
+import msgspec
+import pytest
+
+from mso.model.app import Vertex
+from mso.protocol import effects as fx
+from mso.runtime.process_lane import ProcessExecutor, spec_of
+from runtime_vertices import Num
+
+
+def _collect(results: queue.SimpleQueue[fx.VertexResult], n: int) -> list[fx.VertexResult]:
+    """Wait for ``n`` results (bounded: a missing result fails the test, it does not hang)."""
+    return [results.get(timeout=30.0) for _ in range(n)]
+
+
+def test_operator_feed_snapshot_restore_in_a_child() -> None:
+    results: queue.SimpleQueue[fx.VertexResult] = queue.SimpleQueue()
+    ex = ProcessExecutor(results.put, "spawn")
+    vertex = Vertex("c", "runtime_vertices:Counter", input=Num, output=Num)
+    ev = msgspec.msgpack.encode(Num(seq=9))
+    try:
+        ex.submit(fx.StartVertex(1, "app", vertex, "operator", {0: Num}))
+        ex.submit(fx.FeedVertex(1, 0, [ev, ev, ev], 1.5))
+        ex.submit(fx.SnapshotVertex(1, 7))
+        ex.submit(fx.RestoreVertex(1, msgspec.msgpack.encode(None)))
+        started, processed, snap = _collect(results, 3)
+    finally:
+        ex.shutdown(5.0)
+    assert isinstance(started, fx.VertexStarted) and started.error == ""
+    assert isinstance(processed, fx.VertexProcessed)
+    assert (processed.edge, processed.count, processed.ts) == (0, 3, 1.5)
+    decoded = [msgspec.msgpack.decode(p, type=Num).seq for p in processed.outputs]
+    assert decoded == [0, 1, 2]  # the child's instance kept its state between events
+    assert isinstance(snap, fx.VertexSnapshot) and snap.token == 7
+    assert ex.instances == 0
+
+
+def test_a_rated_source_runs_in_a_child() -> None:
+    results: queue.SimpleQueue[fx.VertexResult] = queue.SimpleQueue()
+    ex = ProcessExecutor(results.put, "spawn")
+    vertex = Vertex("s", "runtime_vertices:CountingSource", rate=10.0, output=Num)
+    try:
+        ex.submit(fx.StartVertex(2, "app", vertex, "source"))
+        ex.submit(fx.RunSource(2, 5, 3, 0.0))
+        started, emitted = _collect(results, 2)
+    finally:
+        ex.shutdown(5.0)
+    assert isinstance(started, fx.VertexStarted) and started.mode == "timer"
+    assert isinstance(emitted, fx.VertexEmitted) and emitted.calls == 3
+    assert [msgspec.msgpack.decode(p, type=Num).seq for p in emitted.outputs] == [5, 6, 7]
+
+
+def test_code_given_as_an_object_is_refused() -> None:
+    """Only import paths cross to the child: nothing is pickled."""
+    start = fx.StartVertex(3, "app", Vertex("f", lambda e: e), "operator")
+    with pytest.raises(ValueError, match="import paths"):
+        spec_of(start)
