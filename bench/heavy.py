@@ -4,7 +4,8 @@ On an emulated line N1-N2-N3 (0.5 ms, 54 Mbit/s links, management rules off) the
 ``src`` (N1, ``--rate`` events/s, a fixed number of events) -> ``heavy`` (unpinned, lands on N2;
 ``executor_vertices:Burn``, a busy loop until its thread has used ``--cpu`` s of CPU per event)
 -> ``sink`` (N3, checks order) runs for ``--duration`` s. A third of the way in ``heavy`` is
-relocated downstream (to N3) and two thirds in back upstream (to N2), while it computes.
+relocated downstream (onto the sink's node N3) and two thirds in upstream (onto the source's
+node N1), while it computes.
 Before it, the same app with a 0 s vertex runs ``--baseline`` s for reference figures.
 
 Figures (each node's status is polled every 0.5 s):
