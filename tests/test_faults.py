@@ -20,7 +20,6 @@ KNOWN: dict[int, str] = {
     31: "dangling-edge, hosted-once, placement",
     37: "placement",
     42: "placement",
-    47: "exception",
     53: "dangling-edge, hosted-once, placement",
     54: "dangling-edge, placement, stalled",
     56: "exception",

@@ -446,10 +446,11 @@ def _node(
     import logging
 
     from mso.client import overlay_key, parse_address
+    from mso.net.base import Neighbour
+    from mso.net.routes_static import StaticRoutes
     from mso.node.core import NodeCore
     from mso.node.driver import NodeDriver
     from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S
-    from mso.protocol import messages as m
 
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
@@ -458,13 +459,13 @@ def _node(
     host, port = parse_address(listen)
     if cpu <= 0:
         raise MsoError(f"--cpu: expected a number > 0, got {cpu:g}")
-    static: dict[str, list[Any]] = {}
+    static: dict[str, Neighbour] = {}
     for p in peers:
         name, _, addr = p.partition("=")
         if not name or not addr:
             raise MsoError(f"--peer: expected NODE=HOST:PORT, got {p!r}")
         phost, pport = parse_address(addr)
-        static[name] = [phost, pport, None, 0.0, 0.0]
+        static[name] = Neighbour(phost, pport)
 
     core = NodeCore(  # checks the policy before anything listens
         node_id,
@@ -480,14 +481,12 @@ def _node(
     )
 
     async def serve() -> None:
-        driver = NodeDriver(core, host, port, overlay_key(key))
+        view = StaticRoutes(node_id, static) if static else None  # else the emulator's
+        driver = NodeDriver(core, host, port, overlay_key(key), view)
         try:
             await driver.start()
         except OSError as exc:
             raise MsoError(f"cannot listen on {listen}: {exc.strerror}") from None
-        if static:
-            routes: dict[str, list[Any]] = {n: [n, 1] for n in static}
-            driver.apply_links(m.LinkState(version=0, neighbours=static, routes=routes))
         await driver.stopped.wait()
 
     with contextlib.suppress(KeyboardInterrupt):

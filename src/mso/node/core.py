@@ -224,6 +224,8 @@ class NodeCore:
         # procedures this node coordinates, by id: each has a deadline timer
         self.procedures: dict[int, Procedure] = {}
         self.illegal_transitions = 0
+        self.handler_errors = 0  # messages whose handling raised (a bug), and the last one
+        self.last_handler_error = ""
         self._now = 0.0
         self.status_hook: Callable[[], dict[str, Any]] | None = None  # the driver's counters
         self._deploy_clients: dict[str, tuple[int, float]] = {}
@@ -478,6 +480,11 @@ class NodeCore:
                 self.dropped_messages += 1
             except IllegalTransition:
                 self.illegal_transitions += 1  # a message at the wrong moment: counted
+                if self.strict:
+                    raise
+            except Exception as exc:  # a bug must cost one message, never the link or node
+                self.handler_errors += 1
+                self.last_handler_error = f"{type(msg).__name__}: {type(exc).__name__}: {exc}"
                 if self.strict:
                     raise
         self._flush()
@@ -1058,6 +1065,9 @@ class NodeCore:
         src_node = dep.placed[producer]
         if src_node == self.id:
             out = self._out(dep, edge)
+            if upto > out.next_seq:  # this channel never sent that far (a fresh one after a
+                self.dropped_messages += 1  # move): nothing to release, never a crash
+                return
             out.on_ack(upto, self._now)
             out.positions = ch.positions
             self._unblock(dep, edge)
@@ -2048,6 +2058,8 @@ class NodeCore:
             "apps": apps,
             "dropped_messages": self.dropped_messages,
             "illegal_transitions": self.illegal_transitions,
+            "handler_errors": self.handler_errors,
+            "last_handler_error": self.last_handler_error,
             "procedures": self.open_procedures(now),
             "failed_nodes": sorted(self.dead),
             "incarnation": self.incarnation,
