@@ -16,7 +16,6 @@ Writes bench/results/faults.json and faults.md.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -25,7 +24,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from mso.benchmarks.common import provenance
+from mso.benchmarks.common import provenance, write_results
 from mso.sim import faults
 
 HERE = Path(__file__).resolve().parent
@@ -138,11 +137,7 @@ def main() -> int:
         "seconds": time.monotonic() - started,
     } | provenance()
     table = render(result)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    out.with_suffix(".md").write_text(table)
-    print(table)
-    print(f"written: {out} and {out.with_suffix('.md')} ({result['seconds']:.0f} s)")
+    write_results(out, result, table)
     return 0
 
 

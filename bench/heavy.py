@@ -43,7 +43,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mso.benchmarks.common import provenance
+from mso.benchmarks.common import provenance, write_results
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.scenario import loads_scenario
@@ -401,11 +401,7 @@ def main(argv: list[str] | None = None) -> int:
     result["seconds"] = time.monotonic() - t0
     result |= provenance()
     table = render(result)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    out.with_suffix(".md").write_text(table)
-    print(table)
-    print(f"written: {out} and {out.with_suffix('.md')} ({result['seconds']:.0f} s)")
+    write_results(out, result, table)
     return 0
 
 

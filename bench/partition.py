@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import sys
 import tempfile
@@ -32,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from failure import app_yaml, log_lines, node_status, summary, vertex
-from mso.benchmarks.common import provenance
+from mso.benchmarks.common import provenance, write_results
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.model.network import LinkSpec
@@ -221,11 +220,7 @@ def main() -> int:
         "seconds": time.monotonic() - started,
     } | provenance()
     table = render(result)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    out.with_suffix(".md").write_text(table)
-    print(table)
-    print(f"written: {out} and {out.with_suffix('.md')} ({result['seconds']:.0f} s)")
+    write_results(out, result, table)
     return 0
 
 
