@@ -43,38 +43,9 @@ from mso.sim import vertices
 from mso.sim.invariants import STATUS_CLIENT, Violation, check, check_procedures
 from mso.sim.play import Call, drive
 from mso.sim.runner import Simulation
+from mso.sim.schedule import Schedule, Settings
 
 KINDS = ("crash", "partition", "flap", "loss", "relocate", "remap")
-
-
-@dataclass(frozen=True)
-class Settings:
-    """How long each phase lasts (virtual seconds) and how busy the app is."""
-
-    start_s: float = 1.5  # deployment settles before the first fault
-    faults_s: float = 6.0  # faults are drawn in [start_s, start_s + faults_s)
-    quiet_s: float = 6.0  # after everything heals: recovery, rejoins, catch-up
-    rate: float = 20.0  # events per second per source
-    max_faults: int = 6
-
-
-@dataclass
-class Schedule:
-    """One seed's world: topology, app document, timeline changes, client requests."""
-
-    seed: int
-    topology: str
-    network: Network
-    app: str
-    changes: list[Change]
-    requests: list[tuple[float, str, m.Message]]
-    faults: Counter[str]
-    settings: Settings
-    pinned: dict[str, str]
-
-    @property
-    def end(self) -> float:
-        return self.settings.start_s + self.settings.faults_s + self.settings.quiet_s
 
 
 @dataclass

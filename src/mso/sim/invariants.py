@@ -26,14 +26,12 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from mso.protocol import messages as m
 from mso.sim.runner import Simulation
+from mso.sim.schedule import Schedule
 from mso.sim.vertices import SinkRecord
-
-if TYPE_CHECKING:
-    from mso.sim.faults import Schedule
 
 APP = "faults"
 STATUS_CLIENT = 3  # the client id the fault run asks status with
