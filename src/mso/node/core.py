@@ -94,6 +94,7 @@ class NodeCore(Membership):
             m.RelocateRequest: lambda src, msg, now: self._relocate_request(None, msg, now),
             m.Prepare: lambda src, msg, now: self._on_prepare(src, msg),
             m.Prepared: lambda src, msg, now: self._on_prepared(msg, now),
+            m.Unprepare: lambda src, msg, now: self._on_unprepare(msg, now),
             m.Switch: lambda src, msg, now: self._on_switch(msg),
             m.Handover: lambda src, msg, now: self._on_handover(src, msg, now),
             m.Moved: lambda src, msg, now: self._on_moved(msg, now),
@@ -146,7 +147,7 @@ class NodeCore(Membership):
     def on_vertex(self, res: fx.VertexResult, now: float) -> list[Effect]:
         """A result from the executor (drivers call this, like ``receive``)."""
         self._now = now
-        self._on_vertex(res, now)
+        self._guarded(type(res).__name__, self._on_vertex, res, now)
         return self._run(now)
 
     def receive(self, src: str, msg: m.Message, now: float) -> list[Effect]:
@@ -182,12 +183,7 @@ class NodeCore(Membership):
 
     def on_timer(self, key: Any, now: float) -> list[Effect]:
         self._now = now
-        try:
-            self._on_timer(key, now)
-        except IllegalTransition:
-            self.illegal_transitions += 1
-            if self.strict:
-                raise
+        self._guarded("timer", self._on_timer, key, now)
         return self._run(now)
 
     def _on_timer(self, key: Any, now: float) -> None:
@@ -238,22 +234,28 @@ class NodeCore(Membership):
         self._now = now
         while self._work:
             src, _, msg = self._work.popleft()
-            try:
-                self._dispatch(src, msg, now)
-            except MsoError:
-                self.dropped_messages += 1
-            except IllegalTransition:
-                self.illegal_transitions += 1  # a message at the wrong moment: counted
-                if self.strict:
-                    raise
-            except Exception as exc:  # a bug must cost one message, never the link or node
-                self.handler_errors += 1
-                self.last_handler_error = f"{type(msg).__name__}: {type(exc).__name__}: {exc}"
-                if self.strict:
-                    raise
+            self._guarded(type(msg).__name__, self._dispatch, src, msg, now)
         self._flush()
         out, self._effects = self._effects, []
         return out
+
+    def _guarded(self, what: str, handle: Callable[..., None], *args: Any) -> None:
+        """Handle one message, timer or executor result. An event at the wrong moment is an
+        illegal transition, counted; a bug costs that one event, never the link or the node.
+        Tests run strict, where both raise."""
+        try:
+            handle(*args)
+        except MsoError:
+            self.dropped_messages += 1
+        except IllegalTransition:
+            self.illegal_transitions += 1
+            if self.strict:
+                raise
+        except Exception as exc:
+            self.handler_errors += 1
+            self.last_handler_error = f"{what}: {type(exc).__name__}: {exc}"
+            if self.strict:
+                raise
 
     def _dispatch(self, src: str, msg: m.Message, now: float) -> None:
         if isinstance(msg, self.EARLY) and msg.app not in self.apps:

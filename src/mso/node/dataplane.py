@@ -53,6 +53,8 @@ class DataPlane(NodeTables):
             h.busy_since = self._now
 
     def _stop(self, h: Hosted, reason: str) -> None:
+        if not h.life.done:
+            h.life.on("stop")
         self._instances.pop(h.instance, None)
         self._effects.append(fx.StopVertex(h.instance, reason))
 
@@ -99,6 +101,7 @@ class DataPlane(NodeTables):
             self._instance_failed(dep, vid, f"{self.id}: {res.error}")
             return
         h.started, h.mode = True, res.mode
+        h.life.on("started_for_move" if vid in dep.awaiting else "started")
         self._instance_ready(dep, vid)
         if h.kind == "source" and vid in dep.stones:
             self._start_source(dep, vid, now)

@@ -17,12 +17,20 @@ from mso.node.tables import Deployment
 from mso.planning.placement import Layout
 from mso.protocol import messages as m
 from mso.protocol.effects import Send, SetTimer
+from mso.protocol.procedures.membership import PeerLife
 
 REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
 
 
 class Membership(Remapping):
     """A node's part in membership (see the module docstring)."""
+
+    def _peer(self, node: str) -> PeerLife:
+        """How this node holds ``node`` (alive until declared failed), by the table."""
+        peer = self.peers.get(node)
+        if peer is None:
+            peer = self.peers[node] = PeerLife(node)
+        return peer
 
     def _beat(self) -> m.Heartbeat:
         mon, pw = self.monitor, self.power
@@ -63,6 +71,7 @@ class Membership(Remapping):
         known = self._incarnations.get(node, 0)
         if incarnation is not None and incarnation < known:
             return  # that incarnation failed, and a newer one is already back
+        self._peer(node).on("silent" if detector == self.id else "reported_down")
         self.dead.add(node)
         self._dead_incarnation[node] = known if incarnation is None else incarnation
         self.liveness.forget(node)
@@ -175,6 +184,8 @@ class Membership(Remapping):
         self._stop_all("reset")
         for node in self.dead:
             self.liveness.rejoin(node, now, node in self.routes, self.routes.get(node))
+        for node in self.dead:
+            self._peer(node).on("reset")
         self.dead.clear()
         self._dead_incarnation.clear()
         self.incarnation += 1
@@ -192,6 +203,8 @@ class Membership(Remapping):
     def _rejoin(self, node: str, incarnation: int, now: float, announce: bool) -> None:
         """``node`` is back with no instances: restore what it hosted, unpark what was pinned
         to it, and tell it the apps."""
+        if node in self.dead:
+            self._peer(node).on("rejoined")
         self.dead.discard(node)
         self._dead_incarnation.pop(node, None)
         self._incarnations[node] = incarnation

@@ -24,7 +24,7 @@ from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.effects import Reply, Send
-from mso.protocol.procedures.relocate import Relocation
+from mso.protocol.procedures.relocate import Relocation, S
 
 
 class Relocating(Deploying):
@@ -139,7 +139,10 @@ class Relocating(Deploying):
                 self._activate(dep, vid)  # nothing to wait for (a lone vertex)
 
     def _reloc_failed(self, reloc: Relocation, why: str, now: float) -> None:
-        """A relocation or restore failed: whoever waits (a client, a remap) is told."""
+        """A relocation or restore failed: whoever waits (a client, a remap) is told. If no
+        producer had switched yet, the target drops the instance it prepared."""
+        if reloc.state is S.PREPARING and reloc.target not in self.dead:
+            self._send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
         reloc.fail(self, why)
         self._end(reloc.pid)
         self._relocation_ended(reloc, now, why)
@@ -206,8 +209,10 @@ class Relocating(Deploying):
         marked.add(msg.edge)
         ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vid]
         if not set(ins) <= marked:
+            h.life.on("marker")
             return
         del dep.markers[vid]
+        h.life.on("all_marked")
         h.handing_over = msg  # the state is taken once everything before is processed
         self._submit(h, fx.SnapshotVertex(h.instance, msg.rid))
 
@@ -234,6 +239,7 @@ class Relocating(Deploying):
             batch = self._outbox.pop(k)
             dst = dep.placed[dep.app.edges[k[1]].dst]
             self._effects.append(Send(dst, m.Data(k[0], k[1], dep.epoch, *batch)))
+        h.life.on("handed_over")
         self._stop(h, "moved")
         del dep.stones[vid]
         dep.placed[vid] = msg.to
@@ -257,6 +263,7 @@ class Relocating(Deploying):
             return
         dep.moved[msg.vertex] = (now, src)
         h = dep.awaiting.pop(msg.vertex)
+        h.life.on("handover")
         self._effects.append(fx.RestoreVertex(h.instance, msg.state))  # before any feed
         h.processed, h.emitted = msg.processed, msg.emitted
         dep.stones[msg.vertex] = h
@@ -364,6 +371,7 @@ class Relocating(Deploying):
         carries the numbers it had and consumers drop it as duplicates."""
         restoring = dep.restoring.pop(vertex)
         h = dep.awaiting.pop(vertex)
+        h.life.on("resumed")
         dep.moved[vertex] = (self._now, dep.placed[vertex])
         dep.stones[vertex] = h
         dep.placed[vertex] = self.id
@@ -399,3 +407,25 @@ class Relocating(Deploying):
             self._handover_to.pop(prep[0], None)
             self._send(prep[1], m.Prepared(dep.app.name, vid, prep[0], self.id, error))
         super()._instance_failed(dep, vid, error)
+
+    def _on_unprepare(self, msg: m.Unprepare, now: float) -> None:
+        """At a failed move's target: drop the instance prepared for it (nothing was switched
+        to it, so nothing is lost)."""
+        dep = self.apps.get(msg.app)
+        if dep is None:
+            return
+        h = dep.awaiting.get(msg.vertex)
+        prep = dep.preparing.get(msg.vertex)
+        restoring = dep.restoring.get(msg.vertex)
+        ours = msg.rid in self._handover_to or (prep is not None and prep[0] == msg.rid)
+        if h is None or not ours or (restoring is not None and restoring.rid != msg.rid):
+            return  # another move has taken the instance over since
+        self._stop(h, "abandoned")
+        del dep.awaiting[msg.vertex]
+        dep.preparing.pop(msg.vertex, None)
+        dep.restoring.pop(msg.vertex, None)
+        self._handover_to.pop(msg.rid, None)
+        for i, e in enumerate(dep.app.edges):
+            if e.dst == msg.vertex:
+                dep.stash.pop(i, None)
+        self.monitor.note_event(now, f"dropped {msg.vertex}, prepared for a move that failed")

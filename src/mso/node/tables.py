@@ -39,6 +39,8 @@ from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.effects import Effect, Reply, Send, SetTimer
 from mso.protocol.procedures.base import Deadline, Procedure
 from mso.protocol.procedures.deploy import Deploy
+from mso.protocol.procedures.hosting import InstanceLife
+from mso.protocol.procedures.membership import PeerLife
 from mso.protocol.procedures.relocate import Relocation
 from mso.protocol.procedures.remap import Remap
 
@@ -95,6 +97,10 @@ class Hosted:
     credit: int = 0
     ended: bool = False
     handing_over: m.Marker | None = None  # snapshot asked for this relocation
+    life: InstanceLife = field(init=False)  # its state at this host, by the table
+
+    def __post_init__(self) -> None:
+        self.life = InstanceLife(self.vertex.id)
 
     @property
     def rate(self) -> float:
@@ -230,6 +236,7 @@ class NodeTables:
         # messages for an app whose announcement has not arrived yet (another path overtook it)
         self._early: dict[str, list[tuple[str, m.Message]]] = {}
         self.dead: set[str] = set()  # nodes known to have failed (fail-stop)
+        self.peers: dict[str, PeerLife] = {}  # each other node's state, by its table
         self._incarnations: dict[str, int] = {}  # last incarnation heard of, per node
         self._dead_incarnation: dict[str, int] = {}  # the incarnation declared failed
         self._beats = 0
