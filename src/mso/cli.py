@@ -250,6 +250,33 @@ def _demo(duration: float, plan_only: bool) -> None:
 
 
 # -- the running system ----------------------------------------------------------------------
+allow_code_option = click.option(
+    "--allow-code",
+    "allow_code",
+    multiple=True,
+    metavar="MODULE",
+    help="A module (and its submodules) whose vertex, format and policy code this node may "
+    "import (repeat; default: $MSO_ALLOW_CODE, comma-separated; mso's bundled examples always).",
+)
+
+
+def set_code_allowlist(modules: tuple[str, ...]) -> tuple[str, ...]:
+    """Restrict this process's imports to ``modules`` (else $MSO_ALLOW_CODE) plus the bundled
+    examples, before anything of an app is loaded."""
+    import os
+
+    from mso.model.imports import DEFAULT_ALLOWED, ImportPathError, allow_code
+
+    if not modules:
+        modules = tuple(m for m in os.environ.get("MSO_ALLOW_CODE", "").split(",") if m)
+    allowed = (*DEFAULT_ALLOWED, *modules)
+    try:
+        allow_code(allowed)
+    except ImportPathError as exc:
+        raise MsoError(f"--allow-code: {exc}") from None
+    return allowed
+
+
 key_option = click.option(
     "--key", envvar="MSO_KEY", help="Overlay pre-shared key (default: $MSO_KEY, else a dev key)."
 )
@@ -285,6 +312,7 @@ NODE_CONFIG_KEYS = {
     "power",
     "policy",
     "manage",
+    "allow_code",
 }
 
 
@@ -333,6 +361,10 @@ def _node_config(path: Path) -> dict[str, Any]:
             raise SpecError(f"expected a number > 0, got {v!r}", file=doc.file, line=line, field=k)
         if k == "manage" and not isinstance(v, bool):
             raise SpecError(f"expected true or false, got {v!r}", file=doc.file, line=line, field=k)
+        if k == "allow_code" and not (
+            isinstance(v, list) and all(isinstance(x, str) and x for x in v)
+        ):
+            raise SpecError("expected a list of module names", file=doc.file, line=line, field=k)
         if k in ("id", "listen", "key") and not isinstance(v, str):
             raise SpecError(f"expected a string, got {v!r}", file=doc.file, line=line, field=k)
     return data
@@ -374,6 +406,7 @@ def _node_config(path: Path) -> dict[str, Any]:
     "--dead-after", "dead_after_s", type=POSITIVE, default=None,
     help="Seconds of silence after which a neighbour is declared failed (default 0.5).",
 )  # fmt: skip
+@allow_code_option
 @key_option
 @click.option("-v", "--verbose", is_flag=True)
 @_user_errors
@@ -389,6 +422,7 @@ def node(
     manage: bool | None,
     heartbeat_s: float | None,
     dead_after_s: float | None,
+    allow_code: tuple[str, ...],
     key: str | None,
     verbose: bool,
 ) -> None:
@@ -409,6 +443,7 @@ def node(
     model = PowerModel(**cfg.get("power", {}))
     if power is not None:
         model = PowerModel(*power_model(power))
+    set_code_allowlist(allow_code or tuple(cfg.get("allow_code", ())))
     battery = battery_wh if battery_wh is not None else cfg.get("battery_wh")
     if battery is not None and battery <= 0:
         raise MsoError(f"--battery-wh: expected a number > 0, got {battery:g}")
@@ -832,6 +867,7 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
     "--dead-after", "dead_after_s", type=POSITIVE, default=None,
     help="Every node's failure timeout in seconds of silence (default 0.5).",
 )  # fmt: skip
+@allow_code_option
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
 def emulate(
@@ -842,13 +878,15 @@ def emulate(
     convergence: float,
     heartbeat_s: float | None,
     dead_after_s: float | None,
+    allow_code: tuple[str, ...],
     key: str | None,
     as_json: bool,
 ) -> None:
     """Run a scenario as one local process per node (user-space MANET emulator)."""
     _emulate(
-        scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s, dead_after_s
-    )
+        scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s,
+        dead_after_s, allow_code,
+    )  # fmt: skip
 
 
 @_user_errors
@@ -862,6 +900,7 @@ def _emulate(
     as_json: bool,
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
+    allow_code: tuple[str, ...] = (),
 ) -> None:
     import asyncio
 
@@ -888,6 +927,7 @@ def _emulate(
             convergence_s=convergence,
             heartbeat_s=heartbeat_s,
             dead_after_s=dead_after_s,
+            allow_code=allow_code or None,
         )
         await emu.start()
         loop = asyncio.get_running_loop()
