@@ -260,6 +260,36 @@ allow_code_option = click.option(
 )
 
 
+DEV_KEY_WARNING = (
+    "warning: using the built-in development key: anyone who has mso can join this overlay; "
+    "give --key or set $MSO_KEY"
+)
+
+
+def check_key(key: str | None, listen: str, insecure: bool) -> bool:
+    """Protected mode: an empty key is an error; the built-in development key is announced,
+    and refused on an address beyond loopback unless ``--insecure``."""
+    import ipaddress
+
+    from mso.client import DEFAULT_KEY, parse_address
+
+    if key == "":
+        raise MsoError("--key: an empty overlay key is refused (give one, or leave --key out)")
+    if key is not None and key != DEFAULT_KEY:
+        return False
+    host, _ = parse_address(listen)
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback and not insecure:
+        raise MsoError(
+            f"--listen {listen}: refusing to listen beyond loopback with the built-in "
+            "development key; give --key or $MSO_KEY (or --insecure for a lab network)"
+        )
+    return True
+
+
 def set_code_allowlist(modules: tuple[str, ...]) -> tuple[str, ...]:
     """Restrict this process's imports to ``modules`` (else $MSO_ALLOW_CODE) plus the bundled
     examples, before anything of an app is loaded."""
@@ -407,6 +437,11 @@ def _node_config(path: Path) -> dict[str, Any]:
     help="Seconds of silence after which a neighbour is declared failed (default 0.5).",
 )  # fmt: skip
 @allow_code_option
+@click.option(
+    "--insecure",
+    is_flag=True,
+    help="Allow listening beyond loopback with the built-in development key (never on robots).",
+)
 @key_option
 @click.option("-v", "--verbose", is_flag=True)
 @_user_errors
@@ -423,6 +458,7 @@ def node(
     heartbeat_s: float | None,
     dead_after_s: float | None,
     allow_code: tuple[str, ...],
+    insecure: bool,
     key: str | None,
     verbose: bool,
 ) -> None:
@@ -444,6 +480,8 @@ def node(
     if power is not None:
         model = PowerModel(*power_model(power))
     set_code_allowlist(allow_code or tuple(cfg.get("allow_code", ())))
+    key = key if key is not None else cfg.get("key")
+    dev_key = check_key(key, listen or cfg.get("listen", "127.0.0.1:7000"), insecure)
     battery = battery_wh if battery_wh is not None else cfg.get("battery_wh")
     if battery is not None and battery <= 0:
         raise MsoError(f"--battery-wh: expected a number > 0, got {battery:g}")
@@ -452,7 +490,7 @@ def node(
         listen or cfg.get("listen", "127.0.0.1:7000"),
         float(cpu if cpu is not None else cfg.get("cpu", 1.0)),
         all_peers,
-        key or cfg.get("key"),
+        key,
         verbose,
         model,
         battery,
@@ -460,6 +498,7 @@ def node(
         manage if manage is not None else cfg.get("manage", True),
         heartbeat_s,
         dead_after_s,
+        dev_key,
     )
 
 
@@ -476,6 +515,7 @@ def _node(
     manage: bool = True,
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
+    dev_key: bool = False,
 ) -> None:
     import asyncio
     import logging
@@ -524,6 +564,8 @@ def _node(
             raise MsoError(f"cannot listen on {listen}: {exc.strerror}") from None
         await driver.stopped.wait()
 
+    if dev_key:
+        click.echo(DEV_KEY_WARNING, err=True)
     with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(serve())
 
