@@ -253,21 +253,23 @@ key_option = click.option(
 )
 
 
-def _resolve_via(via: str | None) -> str:
-    """A node id of the running emulator, or HOST:PORT."""
-    from mso.emu.controller import STATE_FILE, emulator_address
+overlay_option = click.option(
+    "--overlay",
+    envvar="MSO_OVERLAY",
+    help="Which running emulator (`mso overlays`) when several run (default: $MSO_OVERLAY).",
+)
+
+
+def _resolve_via(via: str | None, overlay: str | None = None) -> str:
+    """A node id of a running emulator, or HOST:PORT."""
+    from mso.emu.controller import emulator_address, find_overlay
 
     if via is None:
-        try:
-            nodes = json.loads(STATE_FILE.read_text())["nodes"]
-        except (OSError, ValueError, KeyError):
-            raise MsoError(
-                "no --via given and no emulator running; pass --via HOST:PORT or a node id"
-            ) from None
-        return str(next(iter(nodes.values())))
+        _, state = find_overlay(overlay)
+        return str(next(iter(state["nodes"].values())))
     if ":" in via:
         return via
-    addr = emulator_address(via)
+    addr = emulator_address(via, overlay)
     if addr is None:
         raise MsoError(f"unknown node {via!r}: no running emulator knows it; use HOST:PORT")
     return addr
@@ -496,10 +498,13 @@ def _node(
 @main.command()
 @click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--via", help="Node to deploy from: a node id of the running emulator or HOST:PORT.")
+@overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
-def deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> None:
+def deploy(
+    app_file: Path, via: str | None, overlay: str | None, key: str | None, as_json: bool
+) -> None:
     """Deploy an app from any node (distributed Algorithm 1)."""
     import asyncio
 
@@ -508,7 +513,7 @@ def deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> N
 
     load_app(app_file)  # report file errors here, with their lines, before sending anything
     document = app_file.read_text(encoding="utf-8")
-    address = _resolve_via(via)
+    address = _resolve_via(via, overlay)
     reply = asyncio.run(
         request(address, m.DeployRequest(document, str(app_file)), key=key, timeout=30)
     )
@@ -547,6 +552,7 @@ async def _only_app(address: str, key: str | None) -> str:
 )
 @click.option("--to", "target", help="Onto this node.")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
@@ -556,6 +562,7 @@ def relocate(
     direction: str | None,
     target: str | None,
     via: str | None,
+    overlay: str | None,
     key: str | None,
     as_json: bool,
 ) -> None:
@@ -567,7 +574,7 @@ def relocate(
 
     if bool(direction) == bool(target):
         raise MsoError("give exactly one of --upstream, --downstream or --to NODE")
-    address = _resolve_via(via)
+    address = _resolve_via(via, overlay)
     app = app_name or asyncio.run(_only_app(address, key))
     req = m.RelocateRequest(app, vertex, direction or "", target or "")
     reply = asyncio.run(request(address, req, key=key))
@@ -587,6 +594,7 @@ def relocate(
 @click.option("--chains", help="Several chains, comma-separated (global remap, §3.4.3).")
 @click.option("--all", "everything", is_flag=True, help="Every chain of the app.")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
@@ -596,6 +604,7 @@ def remap(
     chains: str | None,
     everything: bool,
     via: str | None,
+    overlay: str | None,
     key: str | None,
     as_json: bool,
 ) -> None:
@@ -612,7 +621,7 @@ def remap(
     names = [c for c in words + (chains.split(",") if chains else []) if c]
     if bool(names) == everything:
         raise MsoError("name a chain (mso remap chain CHAIN), or give --chains C1,C2, or --all")
-    address = _resolve_via(via)
+    address = _resolve_via(via, overlay)
 
     async def run() -> Any:
         indices: list[int] = []
@@ -648,32 +657,36 @@ def remap(
 @main.command()
 @click.argument("app_name")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@overlay_option
 @key_option
 @_user_errors
-def undeploy(app_name: str, via: str | None, key: str | None) -> None:
+def undeploy(app_name: str, via: str | None, overlay: str | None, key: str | None) -> None:
     """Stop an app on every node."""
     import asyncio
 
     from mso.client import request
     from mso.protocol import messages as m
 
-    asyncio.run(request(_resolve_via(via), m.StopApp(app_name), key=key))
+    asyncio.run(request(_resolve_via(via, overlay), m.StopApp(app_name), key=key))
     click.echo(f"stopped {app_name}")
 
 
 @main.command()
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
-def status(via: str | None, key: str | None, as_json: bool) -> None:
+def status(via: str | None, overlay: str | None, key: str | None, as_json: bool) -> None:
     """Nodes, neighbours, chains, placement, events per edge, traffic, CPU per vertex."""
     import asyncio
 
     from mso.client import request
     from mso.protocol import messages as m
 
-    reply = asyncio.run(request(_resolve_via(via), m.StatusRequest(everywhere=True), key=key))
+    reply = asyncio.run(
+        request(_resolve_via(via, overlay), m.StatusRequest(everywhere=True), key=key)
+    )
     if not isinstance(reply, m.StatusReply):
         raise MsoError(f"unexpected reply {reply!r}")
     if as_json:
@@ -819,6 +832,16 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
     "--dead-after", "dead_after_s", type=float, default=None,
     help="Every node's failure timeout in seconds of silence (default 0.5).",
 )  # fmt: skip
+@click.option(
+    "--name",
+    help="The overlay's name, for --overlay in other commands "
+    "(default: the scenario's, with -2, -3... if taken).",
+)
+@click.option(
+    "--manage/--no-manage",
+    default=True,
+    help="Run the management rules on the nodes (default on); off keeps placements as deployed.",
+)
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
 def emulate(
@@ -829,13 +852,16 @@ def emulate(
     convergence: float,
     heartbeat_s: float | None,
     dead_after_s: float | None,
+    name: str | None,
+    manage: bool,
     key: str | None,
     as_json: bool,
 ) -> None:
     """Run a scenario as one local process per node (user-space MANET emulator)."""
     _emulate(
-        scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s, dead_after_s
-    )
+        scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s,
+        dead_after_s, name=name, manage=manage,
+    )  # fmt: skip
 
 
 @_user_errors
@@ -849,6 +875,9 @@ def _emulate(
     as_json: bool,
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
+    *,
+    name: str | None = None,
+    manage: bool = True,
 ) -> None:
     import asyncio
 
@@ -875,12 +904,14 @@ def _emulate(
             convergence_s=convergence,
             heartbeat_s=heartbeat_s,
             dead_after_s=dead_after_s,
+            name=name,
+            manage=manage,
         )
         await emu.start()
         loop = asyncio.get_running_loop()
         try:
             console.print(
-                f"emulating {scenario.name}: {len(emu.nodes)} node processes "
+                f"emulating {scenario.name} as overlay {emu.name}: {len(emu.nodes)} node processes "
                 + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)
             )
             t0 = loop.time()
@@ -922,6 +953,26 @@ def _emulate(
         return
     console.print("\n[bold]summary[/bold]")
     render_status(console, final)
+
+
+@main.command()
+@click.option("--json", "as_json", is_flag=True, help='Print {name: {"pid", "nodes", ...}}.')
+def overlays(as_json: bool) -> None:
+    """The emulators running on this machine for this user, by name (for --overlay)."""
+    from mso.emu.controller import running_overlays
+
+    found = running_overlays()
+    if as_json:
+        click.echo(json.dumps(found, sort_keys=True))
+        return
+    if not found:
+        click.echo("no emulator running")
+    for name, st in found.items():
+        where = f", dashboard {st['dashboard']}" if st.get("dashboard") else ""
+        click.echo(
+            f"{name}: {st.get('scenario', '?')}, pid {st['pid']}, "
+            f"{len(st['nodes'])} nodes ({', '.join(st['nodes'])}){where}"
+        )
 
 
 def _sink_line(nodes: dict[str, Any], app: str) -> str:
