@@ -29,6 +29,7 @@ from mso.scenario import Scenario, load_scenario
 F = TypeVar("F", bound=Callable[..., Any])
 
 EXAMPLES = Path(__file__).parent / "examples"
+DASHBOARD_LISTEN = "127.0.0.1:8765"
 PLANNERS = ["algorithm1", "source", "random", "greedy", "optimal"]
 
 
@@ -842,6 +843,12 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
     default=True,
     help="Run the management rules on the nodes (default on); off keeps placements as deployed.",
 )
+@click.option("--dashboard", "with_dashboard", is_flag=True, help="Serve the live web dashboard.")
+@click.option(
+    "--dashboard-listen",
+    default=None,
+    help=f"HOST:PORT of the dashboard (default {DASHBOARD_LISTEN}, or a free port if taken).",
+)
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
 def emulate(
@@ -854,6 +861,8 @@ def emulate(
     dead_after_s: float | None,
     name: str | None,
     manage: bool,
+    with_dashboard: bool,
+    dashboard_listen: str | None,
     key: str | None,
     as_json: bool,
 ) -> None:
@@ -861,6 +870,7 @@ def emulate(
     _emulate(
         scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s,
         dead_after_s, name=name, manage=manage,
+        dashboard=(dashboard_listen or "") if with_dashboard or dashboard_listen else None,
     )  # fmt: skip
 
 
@@ -878,6 +888,7 @@ def _emulate(
     *,
     name: str | None = None,
     manage: bool = True,
+    dashboard: str | None = None,
 ) -> None:
     import asyncio
 
@@ -909,11 +920,20 @@ def _emulate(
         )
         await emu.start()
         loop = asyncio.get_running_loop()
+        board = None
         try:
             console.print(
                 f"emulating {scenario.name} as overlay {emu.name}: {len(emu.nodes)} node processes "
                 + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)
             )
+            if dashboard is not None:
+                board = await _start_dashboard(
+                    [emu.address(n) for n in emu.nodes], emu.key, str(emu.name), dashboard,
+                    1.0, emu.node_positions, list(emu.nodes),
+                )  # fmt: skip
+                emu.dashboard = board.url
+                emu.write_state()
+                console.print(f"dashboard: {board.url}")
             t0 = loop.time()
             changes = asyncio.create_task(emu.play_changes(t0))
             moving = asyncio.create_task(emu.play_mobility(t0))
@@ -941,6 +961,8 @@ def _emulate(
             moving.cancel()
             return await emu.status()
         finally:
+            if board is not None:
+                await board.stop()
             await emu.stop()
 
     try:
@@ -953,6 +975,93 @@ def _emulate(
         return
     console.print("\n[bold]summary[/bold]")
     render_status(console, final)
+
+
+async def _start_dashboard(
+    addresses: list[str],
+    key: str | None,
+    name: str,
+    listen: str,
+    interval: float,
+    positions: Any = None,
+    expected: list[str] | None = None,
+) -> Any:
+    """Start a dashboard on ``listen``, or on the default port (a free one if that is taken)."""
+    from mso.dashboard.server import Dashboard
+
+    def make(where: str) -> Dashboard:
+        return Dashboard(
+            addresses, key, name=name, interval=interval, listen=where,
+            positions=positions, expected=expected,
+        )  # fmt: skip
+
+    board = make(listen or DASHBOARD_LISTEN)
+    try:
+        await board.start()
+    except MsoError:
+        if listen:
+            raise
+        board = make(DASHBOARD_LISTEN.rsplit(":", 1)[0] + ":0")
+        await board.start()
+    return board
+
+
+@main.command()
+@click.option("--via", help="Node to ask: a node id of a running emulator or HOST:PORT.")
+@overlay_option
+@click.option(
+    "--listen",
+    default=None,
+    help=f"HOST:PORT to serve the page on (default {DASHBOARD_LISTEN}, or a free port if "
+    "taken); another host than 127.0.0.1 makes the overlay's controls reachable from there.",
+)
+@click.option(
+    "--interval", type=float, default=1.0, show_default=True, help="Seconds between updates."
+)
+@key_option
+@_user_errors
+def dashboard(
+    via: str | None, overlay: str | None, listen: str | None, interval: float, key: str | None
+) -> None:
+    """Serve a live web dashboard of a running overlay: topology, batteries, chains, events/s,
+    a timeline of reconfigurations, and controls to relocate and remap. Ctrl-C stops it."""
+    import asyncio
+
+    from mso.emu.controller import find_overlay, state_file
+
+    address = _resolve_via(via, overlay)
+    addresses, name, positions = [address], "", None
+    if via is None or ":" not in via:  # an emulator's node: every node is a way in
+        name, state = find_overlay(overlay) if via is None else _overlay_of(address)
+        addresses += [a for a in state.get("nodes", {}).values() if a != address]
+        path = state_file(name) if name else None
+
+        def positions() -> dict[str, tuple[float, float]]:
+            try:
+                raw = json.loads(path.read_text()).get("positions", {}) if path else {}
+                return {n: (float(p[0]), float(p[1])) for n, p in raw.items()}
+            except (OSError, ValueError, TypeError, IndexError):
+                return {}
+
+    async def serve() -> None:
+        board = await _start_dashboard(addresses, key, name, listen or "", interval, positions)
+        click.echo(f"dashboard of {name or address}: {board.url}  (Ctrl-C stops it)")
+        try:
+            await asyncio.Event().wait()
+        finally:
+            await board.stop()
+
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(serve())
+
+
+def _overlay_of(address: str) -> tuple[str, dict[str, Any]]:
+    from mso.emu.controller import running_overlays
+
+    for name, state in running_overlays().items():
+        if address in state["nodes"].values():
+            return name, state
+    return "", {}
 
 
 @main.command()

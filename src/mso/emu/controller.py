@@ -381,7 +381,10 @@ class Emulator:
                         await self.restart(action.node)
                     else:
                         await self._links_changed()
-                self.positions = tl.positions
+                if tl.positions and tl.positions != self.positions:
+                    self.positions = dict(tl.positions)
+                    if self.name is not None and self.nodes:
+                        self.write_state()  # a dashboard elsewhere draws them
         finally:
             self._playing = False
 
@@ -443,6 +446,11 @@ class Emulator:
         assert isinstance(reply, m.StatusReply)
         return reply.nodes
 
+    def node_positions(self) -> dict[str, tuple[float, float]]:
+        """Where the nodes are now: moved by the timeline, else as the scenario placed them."""
+        static = {n: s.pos for n, s in self.scenario.network.nodes.items() if s.pos is not None}
+        return static | self.positions
+
     def write_state(self) -> None:
         """Let `mso status` / `mso deploy --via N1` in another terminal find the nodes (never
         the key: whoever drives the overlay brings it)."""
@@ -453,6 +461,7 @@ class Emulator:
             "scenario": self.scenario.name,
             "nodes": {n: self.address(n) for n in self.nodes},
             "dashboard": self.dashboard,
+            "positions": {n: list(p) for n, p in self.node_positions().items()},
         }
         tmp = state_file(self.name).with_suffix(".tmp")
         tmp.write_text(json.dumps(state))
