@@ -373,6 +373,10 @@ def _node_config(path: Path) -> dict[str, Any]:
     "--dead-after", "dead_after_s", type=float, default=None,
     help="Seconds of silence after which a neighbour is declared failed (default 0.5).",
 )  # fmt: skip
+@click.option(
+    "--metrics",
+    help="HOST:PORT to serve Prometheus metrics on at /metrics (default: off).",
+)
 @key_option
 @click.option("-v", "--verbose", is_flag=True)
 @_user_errors
@@ -388,6 +392,7 @@ def node(
     manage: bool | None,
     heartbeat_s: float | None,
     dead_after_s: float | None,
+    metrics: str | None,
     key: str | None,
     verbose: bool,
 ) -> None:
@@ -428,6 +433,7 @@ def node(
         manage if manage is not None else cfg.get("manage", True),
         heartbeat_s,
         dead_after_s,
+        metrics,
     )
 
 
@@ -444,6 +450,7 @@ def _node(
     manage: bool = True,
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
+    metrics: str | None = None,
 ) -> None:
     import asyncio
     import logging
@@ -460,6 +467,11 @@ def _node(
         format=f"%(asctime)s {node_id} %(levelname)s %(message)s",
     )
     host, port = parse_address(listen)
+    metrics_at = None
+    if metrics is not None:
+        metrics_at = parse_address(metrics, default_port=-1)
+        if not 0 <= metrics_at[1] < 65536:
+            raise MsoError(f"--metrics: expected HOST:PORT, got {metrics!r}")
     if cpu <= 0:
         raise MsoError(f"--cpu: expected a number > 0, got {cpu:g}")
     static: dict[str, Neighbour] = {}
@@ -490,7 +502,16 @@ def _node(
             await driver.start()
         except OSError as exc:
             raise MsoError(f"cannot listen on {listen}: {exc.strerror}") from None
+        exporter = None
+        if metrics_at is not None:
+            from mso.node.metrics import MetricsServer
+
+            loop = asyncio.get_running_loop()
+            exporter = MetricsServer(lambda: core.status(loop.time()), *metrics_at)
+            await exporter.start()
         await driver.stopped.wait()
+        if exporter is not None:
+            await exporter.stop()
 
     with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(serve())
@@ -845,6 +866,12 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
 )
 @click.option("--dashboard", "with_dashboard", is_flag=True, help="Serve the live web dashboard.")
 @click.option(
+    "--metrics-port",
+    type=click.IntRange(0, 65535),
+    default=None,
+    help="Every node serves Prometheus metrics on its own address at this port (0: a free one).",
+)
+@click.option(
     "--dashboard-listen",
     default=None,
     help=f"HOST:PORT of the dashboard (default {DASHBOARD_LISTEN}, or a free port if taken).",
@@ -863,6 +890,7 @@ def emulate(
     manage: bool,
     with_dashboard: bool,
     dashboard_listen: str | None,
+    metrics_port: int | None,
     key: str | None,
     as_json: bool,
 ) -> None:
@@ -871,6 +899,7 @@ def emulate(
         scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s,
         dead_after_s, name=name, manage=manage,
         dashboard=(dashboard_listen or "") if with_dashboard or dashboard_listen else None,
+        metrics_port=metrics_port,
     )  # fmt: skip
 
 
@@ -889,6 +918,7 @@ def _emulate(
     name: str | None = None,
     manage: bool = True,
     dashboard: str | None = None,
+    metrics_port: int | None = None,
 ) -> None:
     import asyncio
 
@@ -917,6 +947,7 @@ def _emulate(
             dead_after_s=dead_after_s,
             name=name,
             manage=manage,
+            metrics_port=metrics_port,
         )
         await emu.start()
         loop = asyncio.get_running_loop()
@@ -934,6 +965,13 @@ def _emulate(
                 emu.dashboard = board.url
                 emu.write_state()
                 console.print(f"dashboard: {board.url}")
+            if emu.metrics_port is not None:
+                console.print(
+                    "metrics: "
+                    + ", ".join(
+                        f"http://{n.host}:{emu.metrics_port}/metrics" for n in emu.nodes.values()
+                    )
+                )
             t0 = loop.time()
             changes = asyncio.create_task(emu.play_changes(t0))
             moving = asyncio.create_task(emu.play_mobility(t0))

@@ -24,6 +24,7 @@ from urllib.parse import urlsplit
 from mso.client import Client, NodeUnreachable, overlay_key, parse_address, request
 from mso.dashboard.view import Tracker
 from mso.errors import MsoError
+from mso.net.http import BadRequest, read_request, response
 from mso.protocol import messages as m
 
 log = logging.getLogger("mso.dashboard")
@@ -33,17 +34,11 @@ STATIC = {
     "/static/app.js": ("app.js", "text/javascript; charset=utf-8"),
     "/static/style.css": ("style.css", "text/css; charset=utf-8"),
 }
-MAX_HEADER = 8192
 MAX_BODY = 4096
 MAX_STREAMS = 32
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+CSP = "Content-Security-Policy: default-src 'self'; style-src 'self'; img-src 'self' data:\r\n"
 Positions = Callable[[], dict[str, tuple[float, float]]]
-
-
-class BadRequest(Exception):
-    def __init__(self, status: int, message: str) -> None:
-        super().__init__(message)
-        self.status = status
 
 
 class Dashboard:
@@ -182,7 +177,9 @@ class Dashboard:
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
             try:
-                method, path, headers, body = await asyncio.wait_for(_read_request(reader), 10.0)
+                method, path, headers, body = await asyncio.wait_for(
+                    read_request(reader, MAX_BODY), 10.0
+                )
                 self._check_host(headers)
                 if method == "GET" and path == "/events":
                     await self._stream(writer)
@@ -193,7 +190,7 @@ class Dashboard:
                 payload = json.dumps({"error": str(exc)}).encode()
             except (TimeoutError, asyncio.IncompleteReadError, ConnectionError):
                 return
-            writer.write(_response(status, ctype, payload))
+            writer.write(response(status, ctype, payload, CSP))
             await writer.drain()
         except ConnectionError:
             pass
@@ -245,7 +242,7 @@ class Dashboard:
 
     async def _stream(self, writer: asyncio.StreamWriter) -> None:
         if len(self._streams) >= MAX_STREAMS:
-            writer.write(_response(503, "text/plain", b"too many open dashboards"))
+            writer.write(response(503, "text/plain", b"too many open dashboards"))
             return
         q: asyncio.Queue[bytes] = asyncio.Queue(maxsize=2)
         self._streams.add(q)
@@ -342,50 +339,3 @@ def _text(req: dict[str, Any], name: str, default: str | None = None) -> str:
     if not isinstance(value, str) or (default is None and not value) or len(value) > 200:
         raise BadRequest(400, f"{name}: expected a non-empty string")
     return value
-
-
-async def _read_request(
-    reader: asyncio.StreamReader,
-) -> tuple[str, str, dict[str, str], bytes]:
-    try:
-        head = await reader.readuntil(b"\r\n\r\n")
-    except asyncio.LimitOverrunError:
-        raise BadRequest(431, "request header too large") from None
-    if len(head) > MAX_HEADER:
-        raise BadRequest(431, "request header too large")
-    lines = head.decode("latin-1").split("\r\n")
-    parts = lines[0].split(" ")
-    if len(parts) != 3 or not parts[2].startswith("HTTP/1."):
-        raise BadRequest(400, "bad request line")
-    headers: dict[str, str] = {}
-    for line in lines[1:]:
-        if line:
-            k, sep, v = line.partition(":")
-            if not sep:
-                raise BadRequest(400, "bad header line")
-            headers[k.strip().lower()] = v.strip()
-    try:
-        length = int(headers.get("content-length", "0"))
-    except ValueError:
-        raise BadRequest(400, "bad Content-Length") from None
-    if length < 0 or length > MAX_BODY:
-        raise BadRequest(413, f"body larger than {MAX_BODY} bytes")
-    body = await reader.readexactly(length) if length else b""
-    return parts[0], parts[1], headers, body
-
-
-REASONS = {200: "OK", 400: "Bad Request", 403: "Forbidden", 404: "Not Found", 405:
-           "Method Not Allowed", 409: "Conflict", 413: "Payload Too Large", 415:
-           "Unsupported Media Type", 431: "Request Header Fields Too Large", 502: "Bad Gateway",
-           503: "Service Unavailable"}  # fmt: skip
-
-
-def _response(status: int, ctype: str, body: bytes) -> bytes:
-    head = (
-        f"HTTP/1.1 {status} {REASONS.get(status, 'Error')}\r\nContent-Type: {ctype}\r\n"
-        f"Content-Length: {len(body)}\r\nCache-Control: no-store\r\n"
-        "X-Content-Type-Options: nosniff\r\n"
-        "Content-Security-Policy: default-src 'self'; style-src 'self'; img-src 'self' data:\r\n"
-        "Connection: close\r\n\r\n"
-    )
-    return head.encode() + body

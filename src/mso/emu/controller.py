@@ -176,6 +176,7 @@ class Emulator:
     _playing: bool = False  # a timeline is being played (play_changes / play_mobility)
     name: str | None = None  # the overlay's name (default: the scenario's, made unique)
     dashboard: str | None = None  # the dashboard's URL, told to `mso overlays`
+    metrics_port: int | None = None  # each node serves Prometheus metrics here (0: a free port)
     heartbeat_s: float | None = None  # every node's heartbeat period (None: the node default)
     dead_after_s: float | None = None  # every node's failure timeout (None: the node default)
 
@@ -192,6 +193,10 @@ class Emulator:
                 raise MsoError(why)
         hosts = [f"127.0.1.{i + 1}" for i in range(len(names))]
         port = self.port or _free_port(hosts)
+        if self.metrics_port == 0:
+            while (mp := _free_port(hosts)) == port:
+                pass
+            self.metrics_port = mp
         self.name = _claim(self.name, self.scenario.name)
         if self.log_dir is None:  # ours to remove after a clean stop
             self.log_dir = Path(tempfile.mkdtemp(prefix="mso-emu-"))
@@ -238,6 +243,8 @@ class Emulator:
             cmd += ["--heartbeat", repr(self.heartbeat_s)]
         if self.dead_after_s is not None:
             cmd += ["--dead-after", repr(self.dead_after_s)]
+        if self.metrics_port is not None:
+            cmd += ["--metrics", f"{node.host}:{self.metrics_port}"]
         node.log = self.log_dir / f"{name}.log"
         with node.log.open("ab") as out:
             node.process = subprocess.Popen(
