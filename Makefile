@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml constraints.txt
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/mso demo
+	$(BIN)/mso demo --dashboard
 
 lint: $(STAMP)
 	$(BIN)/ruff check $(LINTED)

@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from mso.dashboard.server import Dashboard
-from mso.emu.controller import Emulator, state_file
+from mso.emu.controller import Emulator
+from mso.emu.overlays import state_file
 from mso.examples import convoy
 from mso.scenario import load_scenario
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from click.testing import CliRunner
 
 from mso.cli import main
-from mso.emu.controller import running_overlays, state_file
+from mso.emu.overlays import running_overlays, state_file
 
 TESTS = Path(__file__).resolve().parent
 

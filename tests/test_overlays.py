@@ -15,8 +15,8 @@ import pytest
 from click.testing import CliRunner
 
 from mso.cli import main
-from mso.emu.controller import (
-    Emulator,
+from mso.emu.controller import Emulator
+from mso.emu.overlays import (
     _claim,
     find_overlay,
     overlays_dir,
@@ -93,6 +93,11 @@ def test_two_emulators_side_by_side() -> None:
                     nodes = json.loads(out)
                     assert sorted(nodes) == ["N1", "N2"]
                     assert {st["management"]["enabled"] for st in nodes.values()} == {manage}
+                code, out, err = await asyncio.to_thread(
+                    cli, "status", "--json", "--watch", "0.2", "--count", "2", "--overlay", "pair"
+                )
+                assert code == 0, err
+                assert [sorted(json.loads(line)) for line in out.splitlines()] == [["N1", "N2"]] * 2
                 code, out, _ = await asyncio.to_thread(cli, "overlays", "--json")
                 listed = json.loads(out)
                 assert listed["pair-2"]["nodes"] == {n: frozen.address(n) for n in frozen.nodes}

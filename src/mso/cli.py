@@ -13,18 +13,18 @@ import time
 from collections.abc import Callable
 from functools import wraps
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
-from rich.console import Console
-from rich.table import Table
 
 from mso.errors import MsoError
-from mso.model.app import App
-from mso.model.appfile import load_app
-from mso.model.chains import form_chains
-from mso.planning.placement import Plan, plan
-from mso.scenario import Scenario, load_scenario
+
+if TYPE_CHECKING:  # imported where used: `mso status` needs neither numpy nor the planner
+    from rich.console import Console
+
+    from mso.model.app import App
+    from mso.planning.placement import Plan
+    from mso.scenario import Scenario
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -48,13 +48,39 @@ def _user_errors(fn: F) -> F:
 
 
 def _console() -> Console:
+    from rich.console import Console
+
     return Console(highlight=False)
+
+
+def _progress(what: str) -> contextlib.AbstractContextManager[Any]:
+    """A spinner on stderr while long work runs (a terminal only: pipes and --json stay clean)."""
+    if not sys.stderr.isatty():
+        return contextlib.nullcontext()
+    from rich.console import Console
+
+    return Console(stderr=True).status(what)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="mso")
 def main() -> None:
-    """mso: run a dataflow app across a mobile ad hoc network and keep re-placing it."""
+    """mso: run a dataflow app across a mobile ad hoc network and keep re-placing it.
+
+    \b
+    An app is a graph of vertices (sources, operators, sinks) joined by edges; mso cuts it into
+    chains (mso chains) and places each chain along the route to its sink (mso plan). Every
+    device runs the same daemon (mso node); together they form an overlay, reached through any
+    of its nodes (--via). A running app is moved without losing an event: one vertex
+    (mso relocate), a chain or the whole app (mso remap), by hand or by the nodes' management
+    rules as batteries drain, links change and nodes fail.
+
+    \b
+    Try it on one machine:  mso demo --dashboard
+      mso emulate SCENARIO --app APP --dashboard   # one process per node, live web view
+      mso status --watch                           # from another terminal
+    Shell completion:  eval "$(mso completion bash)"   (or zsh, fish)
+    """
 
 
 no_import = click.option(
@@ -67,10 +93,17 @@ no_import = click.option(
 @main.command()
 @click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
 @no_import
+@click.option("--json", "as_json", is_flag=True, help='Print {"app", "vertices", "edges"}.')
 @_user_errors
-def validate(app_file: Path, no_import: bool) -> None:
+def validate(app_file: Path, no_import: bool, as_json: bool) -> None:
     """Check an app file and report the first problem."""
+    from mso.model.appfile import load_app
+
     app = load_app(app_file, resolve_code=not no_import)
+    if as_json:
+        doc = {"app": app.name, "vertices": len(app.vertices), "edges": len(app.edges)}
+        click.echo(json.dumps(doc))
+        return
     click.echo(f"{app_file}: ok ({len(app.vertices)} vertices, {len(app.edges)} edges)")
 
 
@@ -81,6 +114,11 @@ def validate(app_file: Path, no_import: bool) -> None:
 @_user_errors
 def chains(app_file: Path, as_json: bool, no_import: bool) -> None:
     """Partition an app into chains (paper §3.2)."""
+    from rich.table import Table
+
+    from mso.model.appfile import load_app
+    from mso.model.chains import form_chains
+
     app = load_app(app_file, resolve_code=not no_import)
     found = form_chains(app)
     if as_json:
@@ -135,8 +173,11 @@ def plan_cmd(
     no_import: bool,
 ) -> None:
     """Place an app on a network with Algorithm 1 (paper §3.3) or a baseline."""
+    from mso.model.appfile import load_app
     from mso.planning.baselines import BASELINES
     from mso.planning.objectives import evaluate
+    from mso.planning.placement import Plan, plan
+    from mso.scenario import load_scenario
 
     app = load_app(app_file, resolve_code=not no_import)
     scenario = load_scenario(scenario_file)
@@ -167,9 +208,14 @@ def plan_cmd(
 @_user_errors
 def compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool) -> None:
     """Algorithm 1 beside the baselines on energy per event, max node load and hops."""
+    from rich.table import Table
+
     from mso.errors import PlanningError
+    from mso.model.appfile import load_app
     from mso.planning.baselines import BASELINES
     from mso.planning.objectives import evaluate
+    from mso.planning.placement import plan
+    from mso.scenario import load_scenario
 
     app = load_app(app_file, resolve_code=not no_import)
     net = load_scenario(scenario_file).network
@@ -200,6 +246,8 @@ def compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool)
 
 def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) -> None:
     """Chains with their placement, then the load each node carries."""
+    from rich.table import Table
+
     net = scenario.network
     table = Table(title=f"{app.name} on {scenario.name}: chains in placement order")
     table.add_column("step", justify="right")
@@ -222,18 +270,34 @@ def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) ->
     console.print(nodes)
 
 
-@main.command()
-@click.option("--duration", type=float, default=20.0, show_default=True, help="Seconds to run.")
+@main.command(short_help="Run the bundled convoy app on an emulated 4-robot line.")
+@click.option(
+    "--duration",
+    type=float,
+    default=None,
+    help="Seconds to run (default 20; 600 with --dashboard, Ctrl-C stops it sooner).",
+)
 @click.option("--plan-only", is_flag=True, help="Only form chains and plan; start no nodes.")
-def demo(duration: float, plan_only: bool) -> None:
+@click.option(
+    "--dashboard",
+    is_flag=True,
+    help="Serve the live web dashboard, on the line with a battery-bound leader (2 Wh) so the "
+    "rules move work off it while you watch.",
+)
+def demo(duration: float | None, plan_only: bool, dashboard: bool) -> None:
     """Run the bundled convoy app (paper Fig. 6) on an emulated 4-robot line."""
-    _demo(duration, plan_only)
+    _demo(duration if duration is not None else 600.0 if dashboard else 20.0, plan_only, dashboard)
 
 
 @_user_errors
-def _demo(duration: float, plan_only: bool) -> None:
+def _demo(duration: float, plan_only: bool, dashboard: bool = False) -> None:
+    from mso.model.appfile import load_app
+    from mso.planning.placement import plan
+    from mso.scenario import load_scenario
+
     console = _console()
-    app_file, scenario_file = EXAMPLES / "convoy.yaml", EXAMPLES / "convoy-line.yaml"
+    app_file = EXAMPLES / "convoy.yaml"
+    scenario_file = EXAMPLES / ("convoy-energy.yaml" if dashboard else "convoy-line.yaml")
     app = load_app(app_file)
     scenario = load_scenario(scenario_file)
     console.print(
@@ -245,7 +309,10 @@ def _demo(duration: float, plan_only: bool) -> None:
     render_plan(console, app, scenario, result)
     if not plan_only:
         console.print(f"\n[bold]running it[/bold] on 4 emulated node processes for {duration:g} s")
-        _emulate(scenario_file, app_file, duration, None, 0.0, None, False)
+        _emulate(
+            scenario_file, app_file, duration, None, 0.0, None, False,
+            dashboard="" if dashboard else None,
+        )  # fmt: skip
 
 
 # -- the running system ----------------------------------------------------------------------
@@ -263,7 +330,7 @@ overlay_option = click.option(
 
 def _resolve_via(via: str | None, overlay: str | None = None) -> str:
     """A node id of a running emulator, or HOST:PORT."""
-    from mso.emu.controller import emulator_address, find_overlay
+    from mso.emu.overlays import emulator_address, find_overlay
 
     if via is None:
         _, state = find_overlay(overlay)
@@ -531,6 +598,7 @@ def deploy(
     import asyncio
 
     from mso.client import request
+    from mso.model.appfile import load_app
     from mso.protocol import messages as m
 
     load_app(app_file)  # report file errors here, with their lines, before sending anything
@@ -681,8 +749,11 @@ def remap(
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @overlay_option
 @key_option
+@click.option("--json", "as_json", is_flag=True, help='Print {"stopped": NAME}.')
 @_user_errors
-def undeploy(app_name: str, via: str | None, overlay: str | None, key: str | None) -> None:
+def undeploy(
+    app_name: str, via: str | None, overlay: str | None, key: str | None, as_json: bool
+) -> None:
     """Stop an app on every node."""
     import asyncio
 
@@ -690,31 +761,71 @@ def undeploy(app_name: str, via: str | None, overlay: str | None, key: str | Non
     from mso.protocol import messages as m
 
     asyncio.run(request(_resolve_via(via, overlay), m.StopApp(app_name), key=key))
-    click.echo(f"stopped {app_name}")
+    click.echo(json.dumps({"stopped": app_name}) if as_json else f"stopped {app_name}")
 
 
 @main.command()
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @overlay_option
 @key_option
-@click.option("--json", "as_json", is_flag=True)
+@click.option("--json", "as_json", is_flag=True, help="Print every node's status as JSON.")
+@click.option(
+    "--watch",
+    type=float,
+    default=None,
+    is_flag=False,
+    flag_value=2.0,
+    help="Refresh every S seconds (--watch alone: 2) until Ctrl-C; with --json, a line each.",
+)
+@click.option("--count", type=click.IntRange(1), default=None, help="With --watch: stop after N.")
 @_user_errors
-def status(via: str | None, overlay: str | None, key: str | None, as_json: bool) -> None:
+def status(
+    via: str | None,
+    overlay: str | None,
+    key: str | None,
+    as_json: bool,
+    watch: float | None,
+    count: int | None,
+) -> None:
     """Nodes, neighbours, chains, placement, events per edge, traffic, CPU per vertex."""
     import asyncio
 
     from mso.client import request
     from mso.protocol import messages as m
 
-    reply = asyncio.run(
-        request(_resolve_via(via, overlay), m.StatusRequest(everywhere=True), key=key)
-    )
-    if not isinstance(reply, m.StatusReply):
-        raise MsoError(f"unexpected reply {reply!r}")
-    if as_json:
-        click.echo(json.dumps(reply.nodes, sort_keys=True))
+    if watch is not None and not watch > 0:
+        raise MsoError(f"--watch: expected seconds > 0, got {watch:g}")
+    address = _resolve_via(via, overlay)
+
+    async def once() -> dict[str, Any]:
+        reply = await request(address, m.StatusRequest(everywhere=True), key=key)
+        if not isinstance(reply, m.StatusReply):
+            raise MsoError(f"unexpected reply {reply!r}")
+        return reply.nodes
+
+    if watch is None:
+        nodes = asyncio.run(once())
+        if as_json:
+            click.echo(json.dumps(nodes, sort_keys=True))
+        else:
+            render_status(_console(), nodes)
         return
-    render_status(_console(), reply.nodes)
+    console = _console()
+    shown = 0
+    with contextlib.suppress(KeyboardInterrupt):
+        while count is None or shown < count:
+            started = time.monotonic()
+            nodes = asyncio.run(once())
+            if as_json:  # one document a line
+                click.echo(json.dumps(nodes, sort_keys=True))
+            else:
+                console.clear()
+                console.print(f"[dim]{time.strftime('%H:%M:%S')} via {address}, every {watch:g} s "
+                              "(Ctrl-C stops)[/dim]")  # fmt: skip
+                render_status(console, nodes)
+            shown += 1
+            if count is None or shown < count:
+                time.sleep(max(0.0, watch - (time.monotonic() - started)))
 
 
 def _energy_cells(mon: dict[str, Any]) -> tuple[str, str, str]:
@@ -726,6 +837,8 @@ def _energy_cells(mon: dict[str, Any]) -> tuple[str, str, str]:
 
 def render_status(console: Console, nodes: dict[str, Any]) -> None:
     """Nodes with their traffic; per app, vertices (where, events, CPU) and edges."""
+    from rich.table import Table
+
     table = Table(title="nodes")
     cols = (
         "node",
@@ -922,8 +1035,12 @@ def _emulate(
 ) -> None:
     import asyncio
 
+    from rich.table import Table
+
     from mso.emu.controller import Emulator
+    from mso.model.appfile import load_app
     from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
+    from mso.scenario import load_scenario
 
     if heartbeat_s is not None or dead_after_s is not None:
         why = check_timing(
@@ -949,7 +1066,8 @@ def _emulate(
             manage=manage,
             metrics_port=metrics_port,
         )
-        await emu.start()
+        with _progress(f"starting {len(scenario.network.nodes)} node processes…"):
+            await emu.start()
         loop = asyncio.get_running_loop()
         board = None
         try:
@@ -1065,7 +1183,7 @@ def dashboard(
     a timeline of reconfigurations, and controls to relocate and remap. Ctrl-C stops it."""
     import asyncio
 
-    from mso.emu.controller import find_overlay, state_file
+    from mso.emu.overlays import find_overlay, state_file
 
     address = _resolve_via(via, overlay)
     addresses, name, positions = [address], "", None
@@ -1094,7 +1212,7 @@ def dashboard(
 
 
 def _overlay_of(address: str) -> tuple[str, dict[str, Any]]:
-    from mso.emu.controller import running_overlays
+    from mso.emu.overlays import running_overlays
 
     for name, state in running_overlays().items():
         if address in state["nodes"].values():
@@ -1106,7 +1224,7 @@ def _overlay_of(address: str) -> tuple[str, dict[str, Any]]:
 @click.option("--json", "as_json", is_flag=True, help='Print {name: {"pid", "nodes", ...}}.')
 def overlays(as_json: bool) -> None:
     """The emulators running on this machine for this user, by name (for --overlay)."""
-    from mso.emu.controller import running_overlays
+    from mso.emu.overlays import running_overlays
 
     found = running_overlays()
     if as_json:
@@ -1158,6 +1276,8 @@ def simulate(
     as_json: bool,
 ) -> None:
     """Run a scenario in virtual time (the daemon's node code, the scenario's timeline)."""
+    from mso.model.appfile import load_app
+    from mso.scenario import load_scenario
     from mso.sim.play import simulate as run
 
     scenario = load_scenario(scenario_file)
@@ -1168,10 +1288,11 @@ def simulate(
         doc = app_file.read_text(encoding="utf-8")
     except OSError as exc:
         raise MsoError(f"{app_file}: {exc.strerror or exc}") from None
-    report = run(
-        scenario, doc, str(app_file), seed=seed, duration=duration, convergence_s=convergence,
-        via=via,
-    )  # fmt: skip
+    with _progress(f"simulating {duration:g} s of {scenario.name}…"):
+        report = run(
+            scenario, doc, str(app_file), seed=seed, duration=duration,
+            convergence_s=convergence, via=via,
+        )  # fmt: skip
     if as_json:
         click.echo(json.dumps(report, sort_keys=True))
     else:
@@ -1182,6 +1303,8 @@ def simulate(
 
 def render_simulation(console: Console, r: dict[str, Any]) -> None:
     """The report of ``mso simulate``: events, reconfigurations, failures, energy."""
+    from rich.table import Table
+
     dep = r["deploy"]
     console.print(
         f"simulated {r['app']} on {r['scenario']} for {r['duration_s']:g} s (seed {r['seed']}): "
@@ -1255,6 +1378,18 @@ def render_simulation(console: Console, r: dict[str, Any]) -> None:
     console.print(
         "final placement: " + ", ".join(f"{v}@{n}" for v, n in r["placement"].items()) or "-"
     )
+
+
+@main.command()
+@click.argument("shell", type=click.Choice(["bash", "zsh", "fish"]))
+def completion(shell: str) -> None:
+    """Print the shell completion script: eval "$(mso completion bash)" in ~/.bashrc
+    (zsh: ~/.zshrc; fish: mso completion fish > ~/.config/fish/completions/mso.fish)."""
+    from click.shell_completion import get_completion_class
+
+    cls = get_completion_class(shell)
+    assert cls is not None
+    click.echo(cls(main, {}, "mso", "_MSO_COMPLETE").source())
 
 
 @main.group()
