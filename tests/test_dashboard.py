@@ -62,14 +62,15 @@ def test_tracker_rates_moves_and_reasons() -> None:
     assert first["links"] == [["N1", "N2"]] and first["timeline"] == []
     second = tr.update(
         status({"src": "N1", "mid": "N2", "sink": "N2"}, 300, dropped=3,
-               done=["104.0 relocate pipe/mid -> N2 (N1 drains 2.0 W)"]),
+               done=["103.0 remap pipe chain 0 (route changed)"]),
         103.0,
     )  # fmt: skip
     assert second["apps"][0]["chains"][0]["events_per_s"] == pytest.approx(100.0)
     assert second["nodes"][0]["traffic"]["bytes_in"] == pytest.approx(1000.0)
     kinds = {e["kind"]: e for e in second["timeline"]}
     assert kinds["move"]["what"] == "mid: N1 → N2" and kinds["move"]["lost"] == 3
-    assert kinds["rule"]["why"] == "N1 drains 2.0 W"
+    assert kinds["rule"]["what"] == "N1: remap pipe chain 0"
+    assert kinds["rule"]["why"] == "route changed"
     # asked for: the reply comes after status showed the move, and names it
     tr.attribute(103.5, "pipe", "mid", "N2", "relocation", "asked from the dashboard", 4.2)
     latest = tr.update(status({"src": "N1", "mid": "N2", "sink": "N2"}, 400), 104.0)
@@ -84,6 +85,21 @@ def test_tracker_rates_moves_and_reasons() -> None:
     tr.attribute(104.5, "pipe", "mid", "N1", "relocation", "asked from the dashboard", 7.0)
     after = tr.update(status({"src": "N1", "mid": "N1", "sink": "N2"}, 500), 105.0)
     assert after["timeline"][0]["what"] == "mid: N2 → N1" and after["timeline"][0]["took_ms"] == 7.0
+
+
+def test_tracker_names_the_rule_that_moved_a_vertex() -> None:
+    tr = Tracker(t0=0.0)
+    tr.update(status({"src": "N1", "mid": "N1", "sink": "N2"}, 0), 1.0)
+    decision = "1.5 relocate pipe/mid -> N2 (lifetime, downstream: 26% better)"
+    view = tr.update(status({"src": "N1", "mid": "N1", "sink": "N2"}, 0, done=[decision]), 2.0)
+    assert view["timeline"] == []  # decided, not yet moved
+    view = tr.update(status({"src": "N1", "mid": "N2", "sink": "N2"}, 0, done=[decision]), 3.0)
+    (entry,) = view["timeline"]
+    assert entry["kind"] == "relocation" and entry["what"] == "mid: N1 → N2"
+    assert entry["why"] == "rule on N1: lifetime, downstream: 26% better" and entry["lost"] == 0
+    # a later move nobody announced is not blamed on that rule
+    view = tr.update(status({"src": "N1", "mid": "N1", "sink": "N2"}, 0, done=[decision]), 4.0)
+    assert view["timeline"][0]["kind"] == "move"
 
 
 def test_tracker_failed_and_silent_nodes() -> None:

@@ -1265,6 +1265,11 @@ def _sink_line(nodes: dict[str, Any], app: str) -> str:
     help="Seconds routes take to follow a link change.",
 )  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+@click.option(
+    "--plot",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Also draw the report as a PNG: vertex moves, failures, rejoins, energy per node.",
+)
 @_user_errors
 def simulate(
     scenario_file: Path,
@@ -1274,6 +1279,7 @@ def simulate(
     via: str | None,
     convergence: float,
     as_json: bool,
+    plot: Path | None,
 ) -> None:
     """Run a scenario in virtual time (the daemon's node code, the scenario's timeline)."""
     from mso.model.appfile import load_app
@@ -1297,6 +1303,11 @@ def simulate(
         click.echo(json.dumps(report, sort_keys=True))
     else:
         render_simulation(_console(), report)
+    if plot is not None and report["deploy"]["ok"]:
+        from mso.plots import simulation
+
+        simulation(report, plot)
+        click.echo(f"plot: {plot}", err=as_json)
     if not report["deploy"]["ok"]:
         raise MsoError(f"deployment failed: {report['deploy']['error']}")
 

@@ -16,6 +16,7 @@ import asyncio
 import contextlib
 import json
 import logging
+from collections import deque
 from collections.abc import Callable
 from importlib import resources
 from typing import Any
@@ -69,6 +70,7 @@ class Dashboard:
         self.expected = expected
         self.view: dict[str, Any] = {}
         self.updates = 0  # views made (the benchmark counts them)
+        self.poll_s: deque[float] = deque(maxlen=1000)  # how long each status round took
         self.error = ""  # why the last poll failed, shown on the page
         self._streams: set[asyncio.Queue[bytes]] = set()
         self._server: asyncio.Server | None = None
@@ -141,7 +143,9 @@ class Dashboard:
         next_at = loop.time()
         while True:
             try:
+                asked = loop.time()
                 nodes = await self._status()
+                self.poll_s.append(loop.time() - asked)
                 self.error = ""
             except NodeUnreachable:
                 nodes = None

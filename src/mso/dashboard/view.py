@@ -33,6 +33,8 @@ PALETTE = (
 TIMELINE_LEN = 100
 RATE_WINDOW_S = 5.0  # rates are means over this long: a 1 Hz camera does not flicker to 0
 _DECISION = re.compile(r"^(?P<at>-?\d+(?:\.\d+)?) (?P<what>.*?)(?: \((?P<why>.*)\))?$")
+_RELOCATE = re.compile(r"^relocate (?P<app>[^/ ]+)/(?P<vertex>\S+) -> (?P<node>\S+)$")
+PENDING_S = 30.0  # a move asked for and not seen by then is not waited for any more
 
 
 def chain_colour(index: int) -> str:
@@ -73,8 +75,10 @@ class Tracker:
     _seen: set[tuple[Any, ...]] = field(default_factory=set)
     _placement: dict[tuple[str, str], str] = field(default_factory=dict)
     _dropped: dict[str, int] = field(default_factory=dict)  # app -> dropped on parked chains
-    # (app, vertex) -> (kind, why, took_ms) of a move asked for whose reply came first
-    _requested: dict[tuple[str, str], tuple[str, str, float | None]] = field(default_factory=dict)
+    # (app, vertex) -> (node, kind, why, took_ms, when) of a move asked for, not yet seen
+    _requested: dict[tuple[str, str], tuple[str, str, str, float | None, float]] = field(
+        default_factory=dict
+    )
     # latest move seen of each vertex: its entry and the node it went to
     _moves: dict[tuple[str, str], tuple[Entry, str]] = field(default_factory=dict)
 
@@ -113,7 +117,7 @@ class Tracker:
             entry = seen[0]
             entry.kind, entry.why, entry.took_ms = kind, why, took_ms
         else:
-            self._requested[(app, vertex)] = (kind, why, took_ms)
+            self._requested[(app, vertex)] = (node, kind, why, took_ms, now)
 
     def _add(self, entry: Entry) -> None:
         self.timeline.append(entry)
@@ -148,9 +152,17 @@ class Tracker:
                               f"{r['node']} rejoined", f"incarnation {inc}"):  # fmt: skip
                     self._seen.discard(("failure", r["node"]))  # it may fail again
             for d in st.get("management", {}).get("done", []):
+                if ("rule", nid, d) in self._seen:
+                    continue
                 match = _DECISION.match(d)
                 what, why = (match["what"], match["why"] or "") if match else (d, "")
-                self._once(("rule", nid, d), now, "rule", f"{nid}: {what}", why)
+                moved = _RELOCATE.match(what)
+                if moved:  # told on the move's own entry, when status shows it
+                    self._seen.add(("rule", nid, d))
+                    self.attribute(now, moved["app"], moved["vertex"], moved["node"],
+                                   "relocation", f"rule on {nid}: {why}", None)  # fmt: skip
+                else:
+                    self._once(("rule", nid, d), now, "rule", f"{nid}: {what}", why)
         nodes_out = self._nodes(nodes, prev, dt, failed, rejoined, positions, expected)
         apps = self._apps(nodes, prev, dt, now)
         links = sorted(
@@ -265,9 +277,10 @@ class Tracker:
                 old = self._placement.get((name, v))
                 self._placement[(name, v)] = n
                 if old is not None and old != n:
-                    kind, why, took = self._requested.pop(
-                        (name, v), ("move", "a rule or a recovery", None)
-                    )
+                    kind, why, took = "move", "a recovery, or a rule on another node", None
+                    asked = self._requested.pop((name, v), None)
+                    if asked is not None and asked[0] == n and now - asked[4] < PENDING_S:
+                        _, kind, why, took, _ = asked
                     entry = Entry(now - self.t0, kind, f"{v}: {old} → {n}", why, took, lost)
                     self._moves[(name, v)] = (entry, n)
                     self._add(entry)

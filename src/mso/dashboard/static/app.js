@@ -148,7 +148,7 @@ function drawChains(v) {
 
 function drawTimeline(v) {
   const rows = v.timeline.map((e) => el("tr", { cls: e.ok ? e.kind : `${e.kind} failed`, "data-kind": e.kind },
-    el("td", { cls: "num", text: fmt(e.t, 1) }), el("td", { text: `${e.kind}: ${e.what}` }), el("td", { text: e.why }),
+    el("td", { cls: "num", text: fmt(e.t, 1) }), el("td", { text: `${e.kind}: ${e.what}` }), el("td", { cls: "wrap", text: e.why }),
     el("td", { cls: "num", text: fmt(e.took_ms, 2) }),
     el("td", { cls: "num", text: e.lost === null || e.lost === undefined ? "-" : e.lost === 0 ? "none" : String(e.lost) })));
   document.querySelector("#timeline tbody").replaceChildren(...rows);
