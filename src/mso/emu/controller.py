@@ -90,6 +90,8 @@ class Emulator:
     metrics_port: int | None = None  # each node serves Prometheus metrics here (0: a free port)
     heartbeat_s: float | None = None  # every node's heartbeat period (None: the node default)
     dead_after_s: float | None = None  # every node's failure timeout (None: the node default)
+    # modules every node may import app code from (None: $MSO_ALLOW_CODE, else the examples)
+    allow_code: tuple[str, ...] | None = None
 
     async def start(self, timeout: float = 20.0) -> None:
         names = list(self.scenario.network.nodes)
@@ -156,6 +158,8 @@ class Emulator:
             cmd += ["--dead-after", repr(self.dead_after_s)]
         if self.metrics_port is not None:
             cmd += ["--metrics", f"{node.host}:{self.metrics_port}"]
+        for module in self.allow_code or ():
+            cmd += ["--allow-code", module]
         node.log = self.log_dir / f"{name}.log"
         with node.log.open("ab") as out:
             node.process = subprocess.Popen(
