@@ -99,7 +99,7 @@ def test_no_import_points_upward() -> None:
             elif (
                 mod in NODE_ORDER
                 and dep in NODE_ORDER
-                and NODE_ORDER.index(dep) > NODE_ORDER.index(mod)
+                and (NODE_ORDER.index(dep) > NODE_ORDER.index(mod))
             ):
                 upward.append(f"{mod} imports {dep}, a layer of the core above it")
     assert not upward, "\n".join(upward)
