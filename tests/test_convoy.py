@@ -230,3 +230,27 @@ def test_storage_rows_carry_what_completeness_and_delay_need(tmp_path: Path) -> 
     }  # fmt: skip
     assert s["delay_ms_p50"] == pytest.approx(100.0)
     assert s["localization_error_m_max"] < 1e-9
+
+
+def test_profile_measures_costs_and_sizes_and_writes_them_back(tmp_path: Path) -> None:
+    from mso.model.appfile import load_app
+    from mso.runtime.profile import profile, write_back
+
+    src = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples" / "convoy.yaml"
+    app_file = tmp_path / "convoy.yaml"
+    app_file.write_text(
+        src.read_text().replace("cost: 0.", "cost: 9.").replace("size: ", "size: 1")
+    )
+    prof = profile(load_app(app_file), seconds=4.0, speed=2.0)
+    costs, sizes = prof.costs(), prof.sizes()
+    assert prof.vertices["laser"].calls == 20 and prof.vertices["visible_camera"].calls == 2
+    assert prof.vertices["storage"].calls == 22  # 20 trajectory rows, 2 target rows
+    assert all(p.errors == 0 for p in prof.vertices.values())
+    assert set(costs) == set(prof.vertices) and all(c > 0 for c in costs.values())
+    assert 900 <= sizes[("laser", "scan_filter")] <= 1000
+    assert 2900 <= sizes[("visible_camera", "visible_blobs")] <= 3200
+    assert write_back(app_file, costs, sizes) == []
+    again = load_app(app_file)
+    assert again.vertices["localization"].cost == pytest.approx(costs["localization"], rel=0.01)
+    assert {(e.src, e.dst): e.size for e in again.edges} == sizes
+    assert "# The cooperative-robotics convoy" in app_file.read_text()  # comments kept

@@ -75,6 +75,57 @@ def validate(app_file: Path, no_import: bool) -> None:
 
 @main.command()
 @click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--seconds", default=30.0, show_default=True, help="Simulated seconds to run.")
+@click.option(
+    "--speed",
+    default=1.0,
+    show_default=True,
+    help="This host's speed relative to a node of cpu: 1.0 (costs are scaled by it).",
+)
+@click.option("--write", is_flag=True, help="Write the costs and edge sizes into APP_FILE.")
+@click.option("--json", "as_json", is_flag=True)
+@_user_errors
+def profile(app_file: Path, seconds: float, speed: float, write: bool, as_json: bool) -> None:
+    """Measure each vertex's cost (CPU ms per event) and each edge's size on generated inputs."""
+    from mso.runtime.profile import profile as run_profile
+    from mso.runtime.profile import write_back
+
+    app = load_app(app_file)
+    prof = run_profile(app, seconds, speed)
+    costs, sizes = prof.costs(), prof.sizes()
+    if as_json:
+        click.echo(
+            json.dumps(
+                {
+                    "costs": costs,
+                    "sizes": {f"{a}->{b}": n for (a, b), n in sizes.items()},
+                    "errors": {v: p.errors for v, p in prof.vertices.items() if p.errors},
+                }
+            )
+        )
+    else:
+        table = Table(title=f"{app.name}: {seconds:g} simulated s, speed {speed:g}")
+        for col in ("vertex", "calls", "cost (ms/event)", "declared", "errors"):
+            table.add_column(col, justify="left" if col == "vertex" else "right")
+        for v, p in prof.vertices.items():
+            c = costs.get(v)
+            table.add_row(
+                v,
+                str(p.calls),
+                "-" if c is None else f"{c:.3g}",
+                f"{app.vertices[v].cost:g}",
+                str(p.errors) + (f" ({p.last_error})" if p.errors else ""),
+            )
+        _console().print(table)
+    if write:
+        for why in write_back(app_file, costs, sizes):
+            click.echo(f"not written: {why}", err=True)
+        if not as_json:
+            click.echo(f"wrote costs and edge sizes into {app_file}")
+
+
+@main.command()
+@click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help='Print {"chains": [[head, ..., tail], ...]}.')
 @no_import
 @_user_errors
@@ -345,7 +396,11 @@ def _node_config(path: Path) -> dict[str, Any]:
 @click.option("--listen", help="HOST:PORT to serve (default 127.0.0.1:7000).")
 @click.option("--cpu", type=float, help="Relative CPU speed (default 1.0).")
 @click.option("--battery-wh", type=float, help="Battery capacity in Wh (default: wall power).")
-@click.option("--power", help="Power model IDLE_W,CPU_W,TX_UJ_PER_BYTE,RX_UJ_PER_BYTE.")
+@click.option(
+    "--power",
+    help="Power model IDLE_W,CPU_W,TX_UJ_PER_BYTE,RX_UJ_PER_BYTE[,modelled|measured] (the last:"
+    " charge CPU energy for the vertices' declared costs or their measured CPU time).",
+)
 @click.option(
     "--peer",
     "peers",
@@ -404,11 +459,17 @@ def node(
     all_peers = tuple(f"{n}={a}" for n, a in cfg.get("peers", {}).items()) + peers
     model = PowerModel(**cfg.get("power", {}))
     if power is not None:
+        fields = power.split(",")
+        how = fields.pop() if len(fields) == 5 else "modelled"
         try:
-            idle, cpu_w, tx, rx = (float(x) for x in power.split(","))
+            idle, cpu_w, tx, rx = (float(x) for x in fields)
+            if how not in ("modelled", "measured"):
+                raise ValueError(how)
         except ValueError:
-            raise MsoError(f"--power: expected IDLE_W,CPU_W,TX_UJ,RX_UJ, got {power!r}") from None
-        model = PowerModel(idle, cpu_w, tx, rx)
+            raise MsoError(
+                f"--power: expected IDLE_W,CPU_W,TX_UJ,RX_UJ[,modelled|measured], got {power!r}"
+            ) from None
+        model = PowerModel(idle, cpu_w, tx, rx, how)
     battery = battery_wh if battery_wh is not None else cfg.get("battery_wh")
     if battery is not None and battery <= 0:
         raise MsoError(f"--battery-wh: expected a number > 0, got {battery:g}")

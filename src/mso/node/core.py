@@ -204,6 +204,7 @@ class NodeCore:
         # read only to report how long a request took; None in simulation (``now`` is exact)
         self.clock: Callable[[], float] | None = None
         self.work_ms = 0.0  # modelled CPU work of every event processed here (cost units)
+        self.cpu_ms = 0.0  # measured CPU time of the vertex code that ran here
         # cumulative (bytes sent, bytes received) as the driver counts them
         self.traffic: Callable[[], tuple[int, int]] = lambda: (0, 0)
         self.window = window
@@ -316,7 +317,7 @@ class NodeCore:
 
     def _sample(self, now: float) -> None:
         out, inc = self.traffic()
-        self.monitor.sample(now, self.work_ms, out, inc)
+        self.monitor.sample(now, self.work_ms, out, inc, self.cpu_ms)
 
     def known_nodes(self) -> list[str]:
         return sorted({self.id, *self.routes})
@@ -799,6 +800,7 @@ class NodeCore:
         h.jobs -= 1
         h.busy_since = now if h.jobs else None
         h.cpu_s += res.cpu_s
+        self.cpu_ms += res.cpu_s * 1e3
         h.errors += res.errors
         h.last_error = res.last_error or h.last_error
         h.stats, h.state_size = res.stats, res.state_size
@@ -2052,7 +2054,7 @@ class NodeCore:
         self._sample(now)
         return extra | {
             "node": self.id,
-            "monitor": self.monitor.snapshot() | {"work_ms": self.work_ms},
+            "monitor": self.monitor.snapshot() | {"work_ms": self.work_ms, "cpu_ms": self.cpu_ms},
             "routes": {d: list(r) for d, r in sorted(self.routes.items())},
             "neighbours": sorted(n for n, (hop, _) in self.routes.items() if hop == n),
             "apps": apps,

@@ -7,6 +7,10 @@ its target pipeline detects coloured and warm blobs, fuses both cameras, keeps a
 per-cell target map (``vision``); the trailing robot logs every result in SQLite (``storage``).
 
 The app files name these by ``mso.examples.convoy:Name``; everything is re-exported here.
+Importing this package stays cheap (no scipy at import time): a node resolves an app's import
+paths on its control plane when it validates the app, and a second spent importing there would
+hold its heartbeats back long enough for its neighbours to declare it failed. The heavy work
+(building the world, importing scipy) happens when a vertex is created, in its worker.
 """
 
 from mso.examples.convoy.localization import (

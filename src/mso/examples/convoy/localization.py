@@ -11,7 +11,6 @@ from typing import Any
 
 import msgspec
 import numpy as np
-from scipy import ndimage
 
 from mso.examples.convoy.sensors import (
     RANGE_MAX_M,
@@ -62,6 +61,8 @@ class ScanFilter:
     """Removes isolated spikes (dust) with a median over 5 beams and marks dropouts invalid."""
 
     def __call__(self, scan: LaserScan) -> FilteredScan:
+        from scipy import ndimage  # not at import: see mso.examples.convoy
+
         r = scan_ranges(scan)
         smooth = ndimage.median_filter(r, size=5, mode="nearest")
         bad = (smooth >= RANGE_MAX_M * 0.99) | (smooth < 0.15) | (np.abs(r - smooth) > 0.3)

@@ -10,7 +10,6 @@ from typing import Any
 import msgspec
 import numpy as np
 import numpy.typing as npt
-from scipy import ndimage
 
 from mso.examples.convoy.localization import Pose
 from mso.examples.convoy.world import RESOLUTION_M, SPEED_M_S, World, world, wrap
@@ -95,6 +94,8 @@ def astar(free: Grid, start: Cell, goal: Cell) -> list[Cell] | None:
 def planning_grid(w: World) -> Grid:
     """The map at PLAN_CELL_M, a cell blocked if any fine cell in it is, inflated by the
     robot's radius."""
+    from scipy import ndimage  # not at import: see mso.examples.convoy
+
     k = round(PLAN_CELL_M / RESOLUTION_M)
     rows, cols = w.shape
     occ = w.occupied[: rows - rows % k, : cols - cols % k]

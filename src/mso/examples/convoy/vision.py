@@ -11,7 +11,6 @@ from typing import Any
 import msgspec
 import numpy as np
 import numpy.typing as npt
-from scipy import ndimage
 
 from mso.examples.convoy.sensors import CAMERA_RANGE_M, FOV_RAD, Image
 from mso.examples.convoy.world import world, wrap
@@ -85,6 +84,8 @@ class BlobDetector:
     area and extent, turned into bearings with the camera's field of view."""
 
     def __call__(self, img: Image) -> Blobs:
+        from scipy import ndimage  # not at import: see mso.examples.convoy
+
         mask = classify(img)
         labels, n = ndimage.label(mask)
         blobs: list[tuple[float, float, int]] = []

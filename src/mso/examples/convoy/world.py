@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import ndimage
 
 RESOLUTION_M = 0.1  # one occupancy cell
 WIDTH_M, HEIGHT_M = 30.0, 16.0
@@ -120,6 +119,8 @@ def world(seed: int = 7) -> World:
         r0, r1 = round((sy - 0.4) / RESOLUTION_M), round((sy + 0.4) / RESOLUTION_M)
         c0, c1 = round((sx - 0.4) / RESOLUTION_M), round((sx + 0.4) / RESOLUTION_M)
         occ[r0:r1, c0:c1] = False
+    from scipy import ndimage  # not at import: see __init__
+
     distance = ndimage.distance_transform_edt(~occ) * RESOLUTION_M
     return World(seed, occ, distance, ROUTE, SURVIVORS)
 
