@@ -273,7 +273,7 @@ def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) ->
 
 
 @main.command()
-@click.option("--duration", type=float, default=20.0, show_default=True, help="Seconds to run.")
+@click.option("--duration", type=float, default=40.0, show_default=True, help="Seconds to run.")
 @click.option("--plan-only", is_flag=True, help="Only form chains and plan; start no nodes.")
 def demo(duration: float, plan_only: bool) -> None:
     """Run the bundled convoy app (paper Fig. 6) on an emulated 4-robot line."""
@@ -283,7 +283,7 @@ def demo(duration: float, plan_only: bool) -> None:
 @_user_errors
 def _demo(duration: float, plan_only: bool) -> None:
     console = _console()
-    app_file, scenario_file = EXAMPLES / "convoy.yaml", EXAMPLES / "convoy-line.yaml"
+    app_file, scenario_file = EXAMPLES / "convoy.yaml", EXAMPLES / "convoy-demo.yaml"
     app = load_app(app_file)
     scenario = load_scenario(scenario_file)
     console.print(
@@ -294,8 +294,10 @@ def _demo(duration: float, plan_only: bool) -> None:
     result = plan(app, scenario.network)
     render_plan(console, app, scenario, result)
     if not plan_only:
-        console.print(f"\n[bold]running it[/bold] on 4 emulated node processes for {duration:g} s")
-        _emulate(scenario_file, app_file, duration, None, 0.0, None, False)
+        from mso.examples.convoy.demo import run_demo
+
+        console.print(f"\n[bold]running it[/bold] on 4 emulated robots for {duration:g} s")
+        run_demo(console, duration)
 
 
 # -- the running system ----------------------------------------------------------------------
