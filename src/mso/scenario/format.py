@@ -30,6 +30,7 @@ SCENARIO_KEYS = {
 MOBILITY_KEYS = {"model", "area", "speed", "pause_s", "seed", "fixed", "step_s"}
 CHANGE_KEYS = {"at", "down", "up", "fail", "restart", "partition", "heal", "loss", "between"}
 CHANGE_KINDS = ("up", "down", "fail", "restart", "partition", "heal", "loss")
+MAX_NUMBER = 1e12  # capacities, powers, delays: larger ones only overflow the objectives
 NODE_KEYS = {"cpu", "battery_wh", "power", "pos"}
 POWER_KEYS = {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte", "cpu_energy"}
 CPU_ENERGY = ("modelled", "measured")
@@ -137,8 +138,10 @@ class _Reader:
         self, value: Any, path: tuple[str | int, ...], *, low: float = 0.0, strict: bool = False
     ) -> float:
         ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-        if not ok or value < low or (strict and value == low):
+        if not ok or value < low or (strict and value == low) or value > MAX_NUMBER:
             bound = f"> {low:g}" if strict else f">= {low:g}"
+            if ok and value > MAX_NUMBER:
+                bound = f"<= {MAX_NUMBER:g}"
             raise self.err(f"expected a number {bound}, got {value!r}", path)
         return float(value)
 
