@@ -1213,6 +1213,15 @@ def bench() -> None:
     """Benchmarks (see docs/benchmarks.md)."""
 
 
+@bench.command(name="lifetime", context_settings={"ignore_unknown_options": True})
+@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+def bench_lifetime(args: tuple[str, ...]) -> None:
+    """The energy study: the convoy under four placements, battery-limited robots."""
+    from mso.benchmarks.lifetime import main as lifetime
+
+    sys.exit(lifetime(list(args)))
+
+
 @bench.command(name="table1")
 @click.option("--json", "json_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--runs", type=click.IntRange(1, 100_000), default=30, show_default=True)

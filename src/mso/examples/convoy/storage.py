@@ -33,6 +33,16 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT);
 """
 
 
+_clock: Callable[[], float] = time.monotonic
+
+
+def set_clock(clock: Callable[[], float]) -> None:
+    """The clock new Storage instances stamp rows with: the simulator passes its virtual one,
+    so delays come out in the time the sources stamped events with."""
+    global _clock
+    _clock = clock
+
+
 def default_db() -> str:
     return os.environ.get(DB_ENV) or str(Path(tempfile.gettempdir()) / "mso-convoy.sqlite")
 
@@ -45,7 +55,7 @@ class Storage:
     def __init__(self, db: str = "", seed: int = 7) -> None:
         self.path = db or default_db()
         self.seed = seed
-        self.clock: Callable[[], float] = time.monotonic
+        self.clock: Callable[[], float] = _clock
         self.conn: sqlite3.Connection | None = None
         self.rows = 0
 
