@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections import deque
 from typing import Any
 
 import msgspec
@@ -136,14 +137,34 @@ class Localizer:
             )
         )
         self.w: Array = np.full(particles, 1.0 / particles)
-        self.odom_seq = -1
+        self.odom_seq = 0  # reading 0 is the start: no motion before it
+        self.scan_seq = -1  # the last scan weighed
+        # the two inputs come by different paths (over different robots), so either may run
+        # ahead: they are merged back into time order (odometry j moves the particles from
+        # scan j-1 to scan j) before the filter sees them
+        self.odoms: deque[OdomDelta] = deque()
+        self.scans: deque[ScanPoints] = deque()
 
-    def __call__(self, event: OdomDelta | ScanPoints) -> Pose | None:
+    MAX_WAITING = 50  # scans held for their odometry at most (10 s at 5 Hz)
+
+    def __call__(self, event: OdomDelta | ScanPoints) -> list[Pose]:
         if isinstance(event, OdomDelta):
-            self.predict(event)
-            return None
-        self.update(event)
-        return self.estimate(event)
+            self.odoms.append(event)
+        else:
+            self.scans.append(event)
+        poses = []
+        while True:
+            if self.odoms and self.odoms[0].seq <= self.scan_seq + 1:
+                self.predict(self.odoms.popleft())
+            elif self.scans and (
+                self.scans[0].seq <= self.odom_seq or len(self.scans) > self.MAX_WAITING
+            ):
+                scan = self.scans.popleft()
+                self.update(scan)
+                self.scan_seq = scan.seq
+                poses.append(self.estimate(scan))
+            else:
+                return poses
 
     def predict(self, d: OdomDelta) -> None:
         n, p = self.n, self.p
@@ -195,6 +216,9 @@ class Localizer:
             "p": self.p.astype("<f8").tobytes(),
             "w": self.w.astype("<f8").tobytes(),
             "odom_seq": self.odom_seq,
+            "scan_seq": self.scan_seq,
+            "odoms": [msgspec.msgpack.encode(e) for e in self.odoms],
+            "scans": [msgspec.msgpack.encode(e) for e in self.scans],
             "rng": json.dumps(self.rng.bit_generator.state),  # 128-bit ints: not msgpack
         }
 
@@ -203,4 +227,7 @@ class Localizer:
         self.w = np.frombuffer(state["w"], dtype="<f8").copy()
         self.n = len(self.w)
         self.odom_seq = int(state["odom_seq"])
+        self.scan_seq = int(state["scan_seq"])
+        self.odoms = deque(msgspec.msgpack.decode(r, type=OdomDelta) for r in state["odoms"])
+        self.scans = deque(msgspec.msgpack.decode(r, type=ScanPoints) for r in state["scans"])
         self.rng.bit_generator.state = json.loads(state["rng"])
