@@ -144,7 +144,8 @@ class Emulator:
             "--listen", f"{node.host}:{node.port}", "--cpu", str(spec.cpu),
             "--power", ",".join(str(x) for x in (spec.power.idle_w, spec.power.cpu_w,
                                                  spec.power.tx_uj_per_byte,
-                                                 spec.power.rx_uj_per_byte)),
+                                                 spec.power.rx_uj_per_byte,
+                                                 spec.power.cpu_energy)),
         ]  # fmt: skip
         if spec.battery_wh is not None:
             cmd += ["--battery-wh", str(spec.battery_wh)]
