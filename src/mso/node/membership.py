@@ -61,6 +61,7 @@ class Membership(Remapping):
                     self._effects.append(Send(n, beat))
         for n in self.liveness.suspects(now, self.dead):
             self._on_node_down(n, self.id, now)
+        self._flush_syncs()
         self._effects.append(SetTimer(("heartbeat",), now + self.liveness.period_s))
 
     def _on_node_down(
@@ -181,6 +182,7 @@ class Membership(Remapping):
         self._early.clear()
         self._handover_to.clear()
         self._probes_waiting.clear()
+        self._sync_pending.clear()  # it holds no app any more: nothing to sync
         self._stop_all("reset")
         for node in self.dead:
             self.liveness.rejoin(node, now, node in self.routes, self.routes.get(node))
@@ -216,21 +218,41 @@ class Membership(Remapping):
             for n in self.known_nodes():
                 if n not in (self.id, node) and n not in self.dead:
                     self._send(n, m.NodeUp(node, incarnation))
+        disputed = self._disputed()
+        if disputed:
+            self._sync_pending.add(node)
         for dep in list(self.apps.values()):
             dep.vanished |= {v for v, n in dep.placed.items() if n == node}
             self._unpark(dep)
             if not dep.running:
                 continue
-            sync = m.AppSync(
-                dep.app.name,
-                dep.origin,
-                dep.document,
-                dep.epoch,
-                dict(dep.placed),
-                sorted(dep.vanished),
-            )
-            self._send(node, sync)
+            if not disputed:
+                self._send(node, self._app_sync(dep))
             self._maybe_recover(dep, now)
+
+    def _disputed(self) -> bool:
+        """This node holds a node it can reach failed: a partition healed and one side is
+        about to reset. Until then its view of the apps may be the losing side's, so it syncs
+        no node that rejoins (its sync would spread that view; nothing would correct it)."""
+        return any(n in self.routes for n in self.dead)
+
+    def _app_sync(self, dep: Deployment) -> m.AppSync:
+        placed = dict(dep.placed)
+        return m.AppSync(
+            dep.app.name, dep.origin, dep.document, dep.epoch, placed, sorted(dep.vanished)
+        )
+
+    def _flush_syncs(self) -> None:
+        """Sync the nodes that rejoined while this node's view was in dispute, once it is not."""
+        if not self._sync_pending or self._disputed():
+            return
+        pending, self._sync_pending = sorted(self._sync_pending), set()
+        for node in pending:
+            if node in self.dead:
+                continue
+            for dep in self.apps.values():
+                if dep.running:
+                    self._send(node, self._app_sync(dep))
 
     def _on_node_up(self, msg: m.NodeUp, now: float) -> None:
         if msg.node == self.id:
@@ -246,7 +268,31 @@ class Membership(Remapping):
             self._rejoin(msg.node, msg.incarnation, now, announce=False)
 
     def _on_app_sync(self, msg: m.AppSync, now: float) -> None:
-        if msg.app in self.apps:
+        held = self.apps.get(msg.app)
+        if held is not None:
+            # the view we hold may come from a side of a partition that has since reset (a
+            # restarted node synced by a node that lost the tie-break), or miss moves made
+            # while we were away, and no Moved will ever correct it: the sender's current view
+            # replaces it, except where we run an instance ourselves (we know best)
+            # (a vertex the sender places here, it holds vanished with our old incarnation:
+            # where we heard it went since is newer, or it is restored here; and a vertex the
+            # sender holds vanished says nothing against a place we know it runs in)
+            ours = set(held.stones) | set(held.awaiting) | set(held.restoring)
+            gone = set(msg.vanished)
+            taken = {
+                v
+                for v, n in msg.placed.items()
+                if v in held.placed
+                and v not in ours
+                and n != self.id
+                and (v not in gone or v in held.vanished)
+            }
+            for v in taken:
+                held.placed[v] = msg.placed[v]
+            held.vanished = (held.vanished - taken) | (taken & gone)
+            self._unpark(held)
+            self._park(held)
+            self._maybe_recover(held, now)
             return
         try:
             app = self._load_app(msg.app, msg.document)

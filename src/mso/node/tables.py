@@ -241,6 +241,9 @@ class NodeTables:
         self._incarnations: dict[str, int] = {}  # last incarnation heard of, per node
         self._dead_incarnation: dict[str, int] = {}  # the incarnation declared failed
         self._beats = 0
+        # nodes that rejoined while this node's own view was in dispute (it holds a reachable
+        # node failed: a healed partition whose losing side has not reset yet): synced after
+        self._sync_pending: set[str] = set()
 
     def _elapsed_ms(self, since: float) -> float:
         """Time since a request, for the replies that report it: the driver's clock when it
