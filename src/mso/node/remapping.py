@@ -209,7 +209,8 @@ class Remapping(Relocating):
 
     def _maybe_recover(self, dep: Deployment, now: float) -> None:
         """Remap the chains that lost vertices with a failed node. Exactly one node acts for
-        an app: the lowest-named surviving node that hosts part of it. Every node derives the
+        an app: the lowest-named surviving node that hosts part of it (if none does, the
+        lowest-named node alive). Every node derives the
         same choice from the same placement and failure set, so two detectors never both
         remap (a coordinator that is itself dead is skipped by the same rule)."""
         if not dep.running or dep.recovering is not None:
@@ -218,7 +219,9 @@ class Remapping(Relocating):
         if not lost:
             return
         live = {n for v, n in dep.placed.items() if v not in lost}
-        if min(live, default=None) != self.id:
+        if not live:  # every instance went (a node that ran them all restarted at once):
+            live = {self.id, *(n for n in self.routes if n not in self.dead)}  # lowest alive
+        if min(live) != self.id:
             return
         if any(d in self.routes for d in self.dead) or any(
             hop in self.dead for hop, _ in self.routes.values()
