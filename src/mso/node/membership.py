@@ -18,6 +18,7 @@ from mso.planning.placement import Layout
 from mso.protocol import messages as m
 from mso.protocol.effects import Send, SetTimer
 from mso.protocol.procedures.membership import PeerLife
+from mso.protocol.procedures.relocate import S as RelocState
 
 REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
 
@@ -84,9 +85,17 @@ class Membership(Remapping):
                 if n != self.id and n not in self.dead:
                     self._send(n, m.NodeDown(node, self.id, self._dead_incarnation[node]))
         for reloc in self._relocations():  # moves that needed the failed node
-            if not reloc.restore and node in (reloc.source, reloc.target):
-                reason = f"node {node} failed during the relocation of {reloc.vertex!r}"
-                self._reloc_failed(reloc, reason, now)
+            if reloc.restore or node not in (reloc.source, reloc.target):
+                continue
+            dep = self.apps.get(reloc.app)
+            if node == reloc.source and reloc.state is RelocState.SWITCHING and dep is not None:
+                # committed: producers send to the new instance, which waits for a handover
+                # the old host will never send; restore the vertex there instead
+                reloc.on("source_failed")
+                self._restore(dep, reloc, reloc.pid, now)
+                continue
+            reason = f"node {node} failed during the relocation of {reloc.vertex!r}"
+            self._reloc_failed(reloc, reason, now)
         for dep in list(self.apps.values()):
             self._park(dep)
             self._maybe_recover(dep, now)

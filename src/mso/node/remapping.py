@@ -265,7 +265,7 @@ class Remapping(Relocating):
         """Start a replacement for ``reloc.vertex`` on ``reloc.target``: its surviving
         producers replay what it had not passed on, its consumers say where they stand."""
         if not reloc.restore:
-            reloc.as_restore()
+            reloc.as_restore(now)
             self._effects.append(SetTimer(Deadline(rid), reloc.deadline))
         edges = dep.app.edges
         lost = self._lost(dep)

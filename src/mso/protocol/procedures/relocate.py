@@ -47,7 +47,9 @@ class Relocation(Procedure):
             "retry": S.PREPARING,
             "handed_over": Phase.FINISHED,  # a restore of a vertex that never went
         },
-        S.SWITCHING: {"handed_over": Phase.FINISHED},
+        # the old host failed after producers switched: its instance and what it held are
+        # gone, the new one waits for a handover that never comes; it is restored instead
+        S.SWITCHING: {"handed_over": Phase.FINISHED, "source_failed": S.RESUMING},
         # a restore's prepare is re-sent until answered: answers may come more than once
         S.RESUMING: {
             "prepared_restore": S.RESUMING,
@@ -80,9 +82,12 @@ class Relocation(Procedure):
         self.resumes: list[list[Any]] = []
         self.attempts = 0
 
-    def as_restore(self) -> None:
+    def as_restore(self, now: float | None = None) -> None:
+        """Become a restore, with a restore's deadline from ``now`` (a committed relocation
+        whose old host failed) or from the start."""
         self.restore = True
-        self.deadline = self.started_at + STEP_TIMEOUT_S * (STEP_ATTEMPTS + 1)
+        since = self.started_at if now is None else max(self.started_at, now)
+        self.deadline = since + STEP_TIMEOUT_S * (STEP_ATTEMPTS + 1)
 
     @property
     def name(self) -> str:
