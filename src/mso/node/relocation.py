@@ -94,6 +94,10 @@ class Relocating(Deploying):
         if target == source:
             self._refuse(client, msg, f"{msg.vertex!r} already runs on {target}")
             return
+        if msg.vertex in self._lost(dep):  # no instance to hand over: a recovery restores it
+            why = f"node {source} failed" if source in self.dead else "its node restarted"
+            self._refuse(client, msg, f"{msg.vertex!r} does not run anywhere ({why})")
+            return
         if any(r.app == msg.app and r.vertex == msg.vertex for r in self._relocations()):
             self._refuse(client, msg, f"{msg.vertex!r} is already being relocated")
             return
