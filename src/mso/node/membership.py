@@ -169,15 +169,17 @@ class Membership(Remapping):
         """After a partition both sides may hold the other failed. A node that runs nothing
         yields to one that runs something (it loses nothing by resetting); otherwise the side
         that counts fewer failed nodes (the larger one), then the one with the lower leader,
-        stays and the other resets. One-sided (we hold the sender alive), we reset."""
+        then the lower-named node, stays and the other resets (two nodes of one side that
+        hold each other failed — not neighbours, each cut off by other failures — would
+        otherwise tie for ever). One-sided (we hold the sender alive), we reset."""
         if msg.node not in self.dead:
             return True
 
-        def rank(hosting: int, dead: int, leader: str) -> tuple[bool, int, str]:
-            return (hosting == 0, dead, leader)
+        def rank(hosting: int, dead: int, leader: str, node: str) -> tuple[bool, int, str, str]:
+            return (hosting == 0, dead, leader, node)  # the node's own name breaks a tie
 
-        theirs = rank(msg.hosting, len(msg.dead), msg.leader or msg.node)
-        return theirs < rank(self._hosting(), len(self.dead), self._leader())
+        theirs = rank(msg.hosting, len(msg.dead), msg.leader or msg.node, msg.node)
+        return theirs < rank(self._hosting(), len(self.dead), self._leader(), self.id)
 
     def _reset(self, now: float, by: str) -> None:
         """Rejoin as a new incarnation: the others have recovered without this node's
