@@ -309,7 +309,11 @@ class NodeTables:
             self._effects.append(Send(dst, msg))
 
     def _broadcast(self, msg: m.Message) -> None:
-        for n in self.known_nodes():
+        """To every node not held failed, including those heard of but out of reach right
+        now: a partition shorter than failure detection declares nobody failed, so no rejoin
+        would ever tell them what they missed; the driver holds the frame until routes come
+        back (``mso.net.forwarding``), and a longer cut ends in a rejoin, which syncs."""
+        for n in sorted({*self.known_nodes(), *self._incarnations}):
             if n not in self.dead:
                 self._send(n, msg)
 
