@@ -239,7 +239,17 @@ class Membership(Remapping):
                 continue
             if not disputed:
                 self._send(node, self._app_sync(dep))
+            self._claim(dep)
             self._maybe_recover(dep, now)
+
+    def _claim(self, dep: Deployment) -> None:
+        """Tell everyone where the instances this node runs are (a node that rejoins may
+        have spread, or been told, a view in which they run elsewhere: a node of a partition's
+        losing side claims the vertices it ran until it resets, and its reset tells nobody).
+        An instance being handed over is left out: its Moved follows."""
+        for vid, h in sorted(dep.stones.items()):
+            if h.handing_over is None and vid not in dep.markers:
+                self._broadcast(m.Moved(dep.app.name, vid, self.id, self.incarnation))
 
     def _disputed(self) -> bool:
         """This node holds a node it can reach failed: a partition healed and one side is

@@ -126,7 +126,7 @@ class Relocating(Deploying):
         elif msg.restore and vid in dep.stones:  # it never went: nothing to restore
             self._send(src, m.Prepared(msg.app, vid, msg.rid, self.id, error))
             self._send(src, m.HandoverDone(dep.app.name, vid, msg.rid))
-            self._broadcast(m.Moved(dep.app.name, vid, self.id))
+            self._broadcast(m.Moved(dep.app.name, vid, self.id, self.incarnation))
             return
         elif msg.restore and vid in dep.awaiting:  # asked again, maybe by a new
             old = dep.restoring.get(vid)  # coordinator after the first one failed
@@ -313,6 +313,8 @@ class Relocating(Deploying):
 
     def _on_moved(self, msg: m.Moved, now: float) -> None:
         dep = self.apps.get(msg.app)
+        if 0 <= msg.incarnation < self._incarnations.get(msg.node, msg.incarnation):
+            return  # its instance went with that incarnation (a claim overtaken by a reset)
         if dep is not None and msg.vertex in dep.placed:
             dep.placed[msg.vertex] = msg.node
             dep.vanished.discard(msg.vertex)
@@ -392,7 +394,7 @@ class Relocating(Deploying):
             if e.dst == vertex:
                 for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
                     self._deliver(dep, i, seq, events)
-        self._broadcast(m.Moved(dep.app.name, vertex, self.id))
+        self._broadcast(m.Moved(dep.app.name, vertex, self.id, self.incarnation))
         self._handover_to.pop(restoring.rid, None)
         self._send(restoring.coordinator, m.HandoverDone(dep.app.name, vertex, restoring.rid))
         if h.kind == "source":

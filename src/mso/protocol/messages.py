@@ -296,11 +296,13 @@ class Handover(_Msg, tag="handover"):
 
 
 class Moved(_Msg, tag="moved"):
-    """Broadcast: ``vertex`` now runs on ``node``."""
+    """Broadcast: ``vertex`` now runs on ``node``. Sent by ``node`` itself, it carries its
+    incarnation, so news from an incarnation that has since restarted or reset is ignored."""
 
     app: str
     vertex: str
     node: str
+    incarnation: int = -1  # -1: sent by another node (an old host after its handover)
 
 
 class HandoverDone(_Msg, tag="handover_done"):
