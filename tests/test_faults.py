@@ -290,3 +290,21 @@ def test_a_claim_from_an_incarnation_that_has_since_restarted_is_ignored() -> No
     assert dep.placed["mid"] == "N2" and dep.vanished == {"mid"}
     core.receive("N3", m.Moved("pipe", "mid", "N3", 1), 1.2)  # restored there since
     assert dep.placed["mid"] == "N3" and not dep.vanished
+
+
+def test_a_node_that_becomes_the_recovery_coordinator_later_starts_the_recovery() -> None:
+    """N1 rejoined: src runs on N2, mid and the sink went with N1's old incarnation, so N2
+    coordinates. Once the sink is restored on N1, N1 is the lowest node running part of the
+    app and the coordinator of what is still lost: it must start, nobody else will."""
+    from mso.protocol.procedures.remap import Remap
+
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N2").replace("pinned: N4", "pinned: N1")
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1)}, 0.0)
+    placed = {"src": "N2", "mid": "N1", "sink": "N1"}
+    core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["mid", "sink"]), 1.0)
+    assert not [p for p in core.procedures.values() if isinstance(p, Remap)]  # N2's job
+    core.receive("N2", m.Moved("pipe", "sink", "N1"), 1.1)  # the sink runs here again
+    core.on_timer(("heartbeat",), 1.2)
+    (remap,) = [p for p in core.procedures.values() if isinstance(p, Remap)]
+    assert remap.recovery is not None and remap.recovery["lost"] == ["mid"]

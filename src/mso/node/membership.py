@@ -63,6 +63,8 @@ class Membership(Remapping):
         for n in self.liveness.suspects(now, self.dead):
             self._on_node_down(n, self.id, now)
         self._flush_syncs()
+        for dep in list(self.apps.values()):  # this node may have become an app's recovery
+            self._maybe_recover(dep, now)  # coordinator (it runs part of it now): no-op else
         self._effects.append(SetTimer(("heartbeat",), now + self.liveness.period_s))
 
     def _on_node_down(
