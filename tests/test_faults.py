@@ -308,3 +308,20 @@ def test_a_node_that_becomes_the_recovery_coordinator_later_starts_the_recovery(
     core.on_timer(("heartbeat",), 1.2)
     (remap,) = [p for p in core.procedures.values() if isinstance(p, Remap)]
     assert remap.recovery is not None and remap.recovery["lost"] == ["mid"]
+
+
+def test_a_restarted_node_learns_from_beats_which_incarnations_failed() -> None:
+    """N1 restarted and never knew N3; N2 holds N3's incarnation 0 failed. When N3 comes
+    back as incarnation 1, N1 must see a restart (mid went with it), not a new node."""
+    import msgspec
+
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N2").replace("pinned: N4", "pinned: N1")
+    core = NodeCore("N1", incarnation=1)
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2)}, 0.0)
+    placed = {"src": "N2", "mid": "N3", "sink": "N1"}
+    core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["sink"]), 1.0)
+    beat = msgspec.structs.replace(NodeCore("N2")._beat(), dead={"N3": 0})
+    core.receive("N2", beat, 1.1)
+    core.receive("N3", NodeCore("N3", incarnation=1)._beat(), 1.2)
+    assert [r["node"] for r in core.rejoins] == ["N3"]
+    assert "mid" in core.apps["pipe"].vanished

@@ -141,6 +141,9 @@ class Membership(Remapping):
             self._rejoin(src, msg.incarnation, now, announce=True)
             return
         self._incarnations[src] = msg.incarnation
+        for node, inc in msg.dead.items():  # a node we never heard of (we restarted since)
+            if node != self.id:  # failed in that incarnation: a newer one will be a restart,
+                self._incarnations.setdefault(node, inc)  # whose instances are gone
         if self.routes.get(src, ("", 0))[0] == src:  # a neighbour's beat, not a hello
             self.liveness.heard_from(src, now, msg)
         if msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
