@@ -325,3 +325,19 @@ def test_a_restarted_node_learns_from_beats_which_incarnations_failed() -> None:
     core.receive("N3", NodeCore("N3", incarnation=1)._beat(), 1.2)
     assert [r["node"] for r in core.rejoins] == ["N3"]
     assert "mid" in core.apps["pipe"].vanished
+
+
+def test_a_sync_older_than_a_moved_does_not_undo_it() -> None:
+    """A sync is a snapshot: hearsay in it (where another node runs a vertex) must not undo
+    a Moved heard since; the sender's first-hand word (what it runs itself) is taken."""
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N2").replace("pinned: N4", "pinned: N1")
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 2)}, 0.0)
+    placed = {"src": "N2", "mid": "N2", "sink": "N1"}
+    core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["sink"]), 1.0)
+    core.receive("N2", m.Moved("pipe", "mid", "N3"), 1.1)  # handed over to N3
+    core.receive("N3", m.AppSync("pipe", "N2", doc, 0, placed, []), 1.2)  # sent before
+    assert core.apps["pipe"].placed["mid"] == "N3"
+    moved = placed | {"mid": "N4"}
+    core.receive("N4", m.AppSync("pipe", "N2", doc, 0, moved, []), 1.3)  # N4 runs it
+    assert core.apps["pipe"].placed["mid"] == "N4"

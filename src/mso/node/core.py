@@ -105,7 +105,7 @@ class NodeCore(Membership):
                 msg.node, msg.detector, now, msg.incarnation
             ),
             m.NodeUp: lambda src, msg, now: self._on_node_up(msg, now),
-            m.AppSync: lambda src, msg, now: self._on_app_sync(msg, now),
+            m.AppSync: lambda src, msg, now: self._on_app_sync(src, msg, now),
             m.Rewire: lambda src, msg, now: self._on_rewire(msg, now),
             m.Resume: lambda src, msg, now: self._on_resume(msg, now),
         }

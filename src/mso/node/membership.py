@@ -262,6 +262,33 @@ class Membership(Remapping):
         no node that rejoins (its sync would spread that view; nothing would correct it)."""
         return any(n in self.routes for n in self.dead)
 
+    def _merge_sync(self, src: str, held: Deployment, msg: m.AppSync) -> None:
+        """Take from a sync what is better than our view of an app we already hold. Ours may
+        come from a side of a partition that has since reset (a restarted node synced by a
+        node that lost the tie-break) or miss moves made while we were away, and no Moved will
+        ever correct it. But a sync is a snapshot and may be older than a Moved we have had
+        since. So we take the sender's word where it is first-hand (a vertex it runs itself
+        and does not hold vanished), and its hearsay only where our own entry is known bad
+        (on a node we hold failed, vanished, or placed here where it does not run) — never
+        where we run an instance ourselves, and never a vertex it places here (it holds
+        that one vanished with our old incarnation)."""
+        ours = set(held.stones) | set(held.awaiting) | set(held.restoring)
+        gone = set(msg.vanished)
+
+        def better(v: str, n: str) -> bool:
+            if v not in held.placed or v in ours or n == self.id:
+                return False
+            if n == src and v not in gone:
+                return True
+            mine = held.placed[v]
+            bad = mine in self.dead or v in held.vanished or mine == self.id
+            return bad and (v not in gone or v in held.vanished)
+
+        taken = {v for v, n in msg.placed.items() if better(v, n)}
+        for v in taken:
+            held.placed[v] = msg.placed[v]
+        held.vanished = (held.vanished - taken) | (taken & gone)
+
     def _app_sync(self, dep: Deployment) -> m.AppSync:
         placed = dict(dep.placed)
         return m.AppSync(
@@ -293,29 +320,10 @@ class Membership(Remapping):
             self._on_node_down(msg.node, msg.node, now)  # restarted unnoticed by us
             self._rejoin(msg.node, msg.incarnation, now, announce=False)
 
-    def _on_app_sync(self, msg: m.AppSync, now: float) -> None:
+    def _on_app_sync(self, src: str, msg: m.AppSync, now: float) -> None:
         held = self.apps.get(msg.app)
         if held is not None:
-            # the view we hold may come from a side of a partition that has since reset (a
-            # restarted node synced by a node that lost the tie-break), or miss moves made
-            # while we were away, and no Moved will ever correct it: the sender's current view
-            # replaces it, except where we run an instance ourselves (we know best)
-            # (a vertex the sender places here, it holds vanished with our old incarnation:
-            # where we heard it went since is newer, or it is restored here; and a vertex the
-            # sender holds vanished says nothing against a place we know it runs in)
-            ours = set(held.stones) | set(held.awaiting) | set(held.restoring)
-            gone = set(msg.vanished)
-            taken = {
-                v
-                for v, n in msg.placed.items()
-                if v in held.placed
-                and v not in ours
-                and n != self.id
-                and (v not in gone or v in held.vanished)
-            }
-            for v in taken:
-                held.placed[v] = msg.placed[v]
-            held.vanished = (held.vanished - taken) | (taken & gone)
+            self._merge_sync(src, held, msg)
             self._unpark(held)
             self._park(held)
             self._maybe_recover(held, now)
