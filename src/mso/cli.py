@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -655,7 +656,7 @@ def _node(
     from mso.net.base import Neighbour
     from mso.net.routes_static import StaticRoutes
     from mso.node.core import NodeCore
-    from mso.node.driver import NodeDriver
+    from mso.node.driver import PARENT_ENV, NodeDriver, stop_with_parent
     from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S
 
     logging.basicConfig(
@@ -705,7 +706,12 @@ def _node(
             loop = asyncio.get_running_loop()
             exporter = MetricsServer(lambda: core.status(loop.time()), *metrics_at)
             await exporter.start()
+        watch = None
+        if parent := os.environ.get(PARENT_ENV):  # started by an emulator: end with it
+            watch = asyncio.create_task(stop_with_parent(driver, int(parent)))
         await driver.stopped.wait()
+        if watch is not None:
+            watch.cancel()
         if exporter is not None:
             await exporter.stop()
 
