@@ -26,7 +26,7 @@ from mso.net.tcp import TcpTransport
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
-from mso.runtime.executor import ThreadExecutor
+from mso.runtime.executor import Executor
 
 log = logging.getLogger("mso.node")
 
@@ -57,7 +57,7 @@ class NodeDriver:
         self._timers: dict[Hashable, asyncio.TimerHandle] = {}
         # vertex code runs in the executor's threads; their results queue here and wake the
         # loop once per burst, not once per result
-        self.executor = ThreadExecutor(self._vertex_result)
+        self.executor = Executor(self._vertex_result)
         self._results: list[fx.VertexResult] = []
         self._results_lock = threading.Lock()
         self.stopped = asyncio.Event()
