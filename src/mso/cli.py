@@ -283,6 +283,7 @@ NODE_CONFIG_KEYS = {
     "power",
     "policy",
     "manage",
+    "routes",
 }
 
 
@@ -353,6 +354,15 @@ def _node_config(path: Path) -> dict[str, Any]:
     help="A static neighbour NODE=HOST:PORT (repeat); without it the emulator sets neighbours.",
 )
 @click.option(
+    "--routes",
+    "routes_from",
+    type=click.Choice(["auto", "kernel", "emulator"]),
+    default=None,
+    help="Where routes come from: kernel (read the routing daemon's kernel routes over "
+    "netlink, learn node ids from announcements; listen on a routable address), emulator, or "
+    "auto (default: the --peer list if given, else the emulator).",
+)
+@click.option(
     "--policy",
     help="Management policy for apps that name none: lifetime (default), energy, balance, "
     "delay, or pkg.module:Attr.",
@@ -381,6 +391,7 @@ def node(
     battery_wh: float | None,
     power: str | None,
     peers: tuple[str, ...],
+    routes_from: str | None,
     policy: str | None,
     manage: bool | None,
     heartbeat_s: float | None,
@@ -425,6 +436,7 @@ def node(
         manage if manage is not None else cfg.get("manage", True),
         heartbeat_s,
         dead_after_s,
+        routes_from or cfg.get("routes", "auto"),
     )
 
 
@@ -441,6 +453,7 @@ def _node(
     manage: bool = True,
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
+    routes_from: str = "auto",
 ) -> None:
     import asyncio
     import logging
@@ -480,14 +493,41 @@ def _node(
         incarnation=time.time_ns() // 1_000_000,
     )
 
+    if routes_from not in ("auto", "kernel", "emulator"):
+        raise MsoError(f"routes: expected auto, kernel or emulator, got {routes_from!r}")
+    if routes_from == "kernel" and static:
+        raise MsoError("give either --peer (a fixed set-up) or --routes kernel, not both")
+    if routes_from == "kernel" and (port == 0 or host.startswith("127.") or host == "localhost"):
+        raise MsoError(
+            f"--routes kernel: listen on a routable address and a fixed port "
+            f"(e.g. --listen 0.0.0.0:7000), got {listen}"
+        )
+
     async def serve() -> None:
-        view = StaticRoutes(node_id, static) if static else None  # else the emulator's
-        driver = NodeDriver(core, host, port, overlay_key(key), view)
+        from mso.net.base import RoutingView
+        from mso.net.routes_kernel import KernelRoutes
+
+        psk = overlay_key(key)
+        view: RoutingView | None = None
+        kernel: KernelRoutes | None = None
+        if routes_from == "kernel":
+            view = kernel = KernelRoutes(node_id, port, psk, host=host)
+            try:
+                await kernel.start()
+            except OSError as exc:
+                raise MsoError(f"--routes kernel: cannot read routes or bind: {exc}") from None
+        elif routes_from == "auto" and static:
+            view = StaticRoutes(node_id, static)
+        driver = NodeDriver(core, host, port, psk, view)  # no view: the emulator's
         try:
             await driver.start()
         except OSError as exc:
             raise MsoError(f"cannot listen on {listen}: {exc.strerror}") from None
-        await driver.stopped.wait()
+        try:
+            await driver.stopped.wait()
+        finally:
+            if kernel is not None:
+                await kernel.close()
 
     with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(serve())
