@@ -841,10 +841,23 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
 
 
 @main.command()
-@click.argument("scenario_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("scenario_file", required=False, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--app", "app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
     "--duration", type=float, default=None, help="Seconds to run (default: until Ctrl-C)."
+)
+@click.option(
+    "--backend",
+    type=click.Choice(["user", "netns"]),
+    default="user",
+    show_default=True,
+    help="user: one process per node on loopback, routes computed by the emulator; netns: one "
+    "network namespace per node on a filtered bridge, babeld routing, the kernel forwarding.",
+)
+@click.option(
+    "--cleanup",
+    is_flag=True,
+    help="Remove what a crashed netns emulation left (namespaces, processes inside) and exit.",
 )
 @click.option("--via", help="Node to deploy from (default: the first node).")
 @click.option(
@@ -862,9 +875,11 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
 def emulate(
-    scenario_file: Path,
+    scenario_file: Path | None,
     app_file: Path | None,
     duration: float | None,
+    backend: str,
+    cleanup: bool,
     via: str | None,
     convergence: float,
     heartbeat_s: float | None,
@@ -872,9 +887,64 @@ def emulate(
     key: str | None,
     as_json: bool,
 ) -> None:
-    """Run a scenario as one local process per node (user-space MANET emulator)."""
+    """Run a scenario as one local process per node (user-space MANET emulator), or on a
+    network-namespace testbed with babeld (--backend netns)."""
+    if cleanup:
+        _netns_cleanup()
+        return
+    if scenario_file is None:
+        _console().print("[red]error:[/red] give a SCENARIO_FILE (or --cleanup)")
+        sys.exit(2)
+    if backend == "netns" and _rootless_reexec():
+        return
     _emulate(
-        scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s, dead_after_s
+        scenario_file,
+        app_file,
+        duration,
+        via,
+        convergence,
+        key,
+        as_json,
+        heartbeat_s,
+        dead_after_s,
+        backend,
+    )
+
+
+ROOTLESS_ENV = "MSO_NETNS_USERNS"
+
+
+def _rootless_reexec() -> bool:
+    """Not root: run this very command again inside a new user, network and mount namespace
+    (``unshare -Urnm``, root there, a private /run for the namespace files) when the kernel
+    allows it; True if it ran there. Otherwise the netns backend explains and falls back."""
+    import os
+    import shutil
+    import subprocess
+
+    if os.geteuid() == 0 or os.environ.get(ROOTLESS_ENV) or shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(["unshare", "-Urnm", "true"], capture_output=True)
+    if probe.returncode != 0:
+        return False  # the backend's own check says why and falls back
+    env = {**os.environ, ROOTLESS_ENV: "1"}
+    script = 'mount -t tmpfs tmpfs /run && exec "$@"'
+    cmd = ["unshare", "-Urnm", "sh", "-c", script, "sh", sys.executable, "-m", "mso", *sys.argv[1:]]
+    sys.exit(subprocess.run(cmd, env=env).returncode)
+
+
+def _netns_cleanup() -> None:
+    from mso.emu.netns.testbed import cleanup, unavailable
+
+    console = _console()
+    why = unavailable()
+    if why is not None:
+        console.print(f"nothing to clean: {why}")
+        return
+    removed = cleanup()
+    console.print(
+        f"removed {len(removed)} namespace(s) left by stopped emulations"
+        + (f": {', '.join(removed)}" if removed else "")
     )
 
 
@@ -889,10 +959,13 @@ def _emulate(
     as_json: bool,
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
+    backend: str = "user",
 ) -> None:
     import asyncio
+    import signal
 
     from mso.emu.controller import Emulator
+    from mso.emu.netns.emulator import NamespacesUnavailable, NetnsEmulator, check_available
     from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 
     if heartbeat_s is not None or dead_after_s is not None:
@@ -908,19 +981,31 @@ def _emulate(
         raise MsoError(f"--duration: expected a number of seconds > 0, got {duration:g}")
     console = _console()
 
+    kind: type[Emulator] = Emulator
+    if backend == "netns":
+        try:
+            check_available()
+            kind = NetnsEmulator
+        except NamespacesUnavailable as exc:
+            console.print(f"[yellow]{exc}[/yellow]; using the user-space backend instead")
+
     async def run() -> dict[str, Any]:
-        emu = Emulator(
+        emu = kind(
             scenario,
             key=key,
             convergence_s=convergence,
             heartbeat_s=heartbeat_s,
             dead_after_s=dead_after_s,
         )
-        await emu.start()
         loop = asyncio.get_running_loop()
+        task = asyncio.current_task()
+        if task is not None:  # SIGTERM stops like Ctrl-C: the finally below tears down
+            loop.add_signal_handler(signal.SIGTERM, task.cancel)
+        await emu.start()
         try:
+            where = "namespaces (babeld)" if isinstance(emu, NetnsEmulator) else "processes"
             console.print(
-                f"emulating {scenario.name}: {len(emu.nodes)} node processes "
+                f"emulating {scenario.name}: {len(emu.nodes)} node {where} "
                 + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)
             )
             t0 = loop.time()
@@ -954,7 +1039,7 @@ def _emulate(
 
     try:
         final = asyncio.run(run())
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, asyncio.CancelledError):
         console.print("interrupted: every node process was stopped")
         return
     if as_json:

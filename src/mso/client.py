@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import socket
 from typing import Any
 
 import msgspec
@@ -28,8 +29,11 @@ class NodeUnreachable(MsoError):
 class Client:
     """One authenticated connection to a node."""
 
-    def __init__(self, host: str, port: int, psk: bytes, name: str = "cli") -> None:
+    def __init__(
+        self, host: str, port: int, psk: bytes, name: str = "cli", netns: str | None = None
+    ) -> None:
         self.host, self.port, self.psk, self.name = host, port, psk, name
+        self.netns = netns  # connect from inside this network namespace (the netns testbed)
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
         self._codec = FrameCodec(psk)
@@ -37,9 +41,7 @@ class Client:
 
     async def connect(self, timeout: float = 5.0) -> Client:
         try:
-            self._reader, self._writer = await asyncio.wait_for(
-                asyncio.open_connection(self.host, self.port), timeout
-            )
+            self._reader, self._writer = await asyncio.wait_for(self._open(), timeout)
         except (OSError, TimeoutError) as exc:
             raise NodeUnreachable(f"cannot reach node at {self.host}:{self.port}: {exc}") from None
         assert self._writer is not None and self._reader is not None
@@ -55,6 +57,20 @@ class Client:
             raise NodeUnreachable(f"no mso hello from {self.host}:{self.port}: {exc}") from None
         await self.send(m.ClientHello(self.name))
         return self
+
+    async def _open(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        if self.netns is None:
+            return await asyncio.open_connection(self.host, self.port)
+        from mso.net.netns import socket_in_netns
+
+        sock = socket_in_netns(self.netns, socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            sock.setblocking(False)
+            await asyncio.get_running_loop().sock_connect(sock, (self.host, self.port))
+        except BaseException:
+            sock.close()
+            raise
+        return await asyncio.open_connection(sock=sock)
 
     async def send(self, msg: m.Message) -> None:
         assert self._writer is not None

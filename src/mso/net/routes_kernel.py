@@ -28,14 +28,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ctypes
 import hashlib
 import hmac
 import ipaddress
 import logging
-import os
 import socket
-import threading
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -43,6 +40,7 @@ from typing import Any
 import msgspec
 
 from mso.net.base import Neighbour, Route
+from mso.net.netns import socket_in_netns
 from mso.net.routes import TableRoutes
 
 log = logging.getLogger("mso.node")
@@ -146,39 +144,6 @@ def resolve(
     return routes, reach
 
 
-def _netns_fd(name: str) -> int:
-    return os.open(f"/run/netns/{name}", os.O_RDONLY)
-
-
-def socket_in_netns(netns: str | None, family: int, kind: int) -> socket.socket:
-    """A socket of the network namespace ``netns`` (None: this one). Made on a short-lived
-    thread that enters the namespace (setns is per thread), so the process never moves."""
-    if netns is None:
-        return socket.socket(family, kind)
-    out: list[socket.socket | BaseException] = []
-
-    def make() -> None:
-        try:
-            libc = ctypes.CDLL(None, use_errno=True)
-            fd = _netns_fd(netns)
-            try:
-                if libc.setns(fd, 0x40000000) != 0:  # CLONE_NEWNET
-                    raise OSError(ctypes.get_errno(), f"setns into {netns}")
-            finally:
-                os.close(fd)
-            out.append(socket.socket(family, kind))
-        except BaseException as exc:  # handed to the caller below
-            out.append(exc)
-
-    t = threading.Thread(target=make, name=f"netns-{netns}")
-    t.start()
-    t.join()
-    result = out[0]
-    if isinstance(result, BaseException):
-        raise result
-    return result
-
-
 class _Datagrams(asyncio.DatagramProtocol):
     def __init__(self, view: KernelRoutes) -> None:
         self.view = view
@@ -221,6 +186,7 @@ class KernelRoutes(TableRoutes):
         self._events: Any = None
         self._reread: asyncio.TimerHandle | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._announce_soon = False
 
     def next_hop(self, dst: str) -> str | None:
         """The kernel forwards: a reachable node is reached directly."""
@@ -347,7 +313,18 @@ class KernelRoutes(TableRoutes):
     def _recompute(self) -> None:
         routes, reach = resolve(self.node_id, self.table, self.book, self.announced_hops)
         if routes != self._routes or reach != self._neighbours:
+            hops_changed = {d: h for d, (_, h) in routes.items()} != {
+                d: h for d, (_, h) in self._routes.items()
+            }
             self.update(reach, routes)
+            if hops_changed and self._loop is not None and not self._announce_soon:
+                # the others count hops through ours: tell them now, once per burst
+                self._announce_soon = True
+                self._loop.call_soon(self._announce_now)
+
+    def _announce_now(self) -> None:
+        self._announce_soon = False
+        self.announce()
 
     def wait_for(self, predicate: Callable[[KernelRoutes], bool]) -> asyncio.Future[None]:
         """A future done once ``predicate(self)`` holds after a change (or already does)."""
