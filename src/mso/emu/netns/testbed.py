@@ -37,8 +37,7 @@ MAX_NODES = 4000
 BABELD_CONF = """\
 # written by mso's netns testbed: the settings that converge on a shared, filtered medium
 interface eth0 type wired split-horizon false hello-interval 0.5
-redistribute local ip 10.77.0.0/16 ge 32 allow
-redistribute local deny
+smoothing-half-life 0
 """
 
 
