@@ -284,6 +284,7 @@ NODE_CONFIG_KEYS = {
     "policy",
     "manage",
     "routes",
+    "energy",
 }
 
 
@@ -354,6 +355,14 @@ def _node_config(path: Path) -> dict[str, Any]:
     help="A static neighbour NODE=HOST:PORT (repeat); without it the emulator sets neighbours.",
 )
 @click.option(
+    "--energy",
+    type=click.Choice(["auto", "model", "interfaces"]),
+    default=None,
+    help="auto (default): battery, CPU time and interface bytes from the OS where it reports "
+    "them, the power model for the rest; model: the power model and CPU time only (the "
+    "user-space emulator passes this); interfaces: also the interface bytes (netns testbed).",
+)
+@click.option(
     "--routes",
     "routes_from",
     type=click.Choice(["auto", "kernel", "emulator"]),
@@ -391,6 +400,7 @@ def node(
     battery_wh: float | None,
     power: str | None,
     peers: tuple[str, ...],
+    energy: str | None,
     routes_from: str | None,
     policy: str | None,
     manage: bool | None,
@@ -437,6 +447,7 @@ def node(
         heartbeat_s,
         dead_after_s,
         routes_from or cfg.get("routes", "auto"),
+        energy or cfg.get("energy", "auto"),
     )
 
 
@@ -454,6 +465,7 @@ def _node(
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
     routes_from: str = "auto",
+    energy: str = "auto",
 ) -> None:
     import asyncio
     import logging
@@ -493,6 +505,8 @@ def _node(
         incarnation=time.time_ns() // 1_000_000,
     )
 
+    if energy not in ("auto", "model", "interfaces"):
+        raise MsoError(f"energy: expected auto, model or interfaces, got {energy!r}")
     if routes_from not in ("auto", "kernel", "emulator"):
         raise MsoError(f"routes: expected auto, kernel or emulator, got {routes_from!r}")
     if routes_from == "kernel" and static:
@@ -518,7 +532,10 @@ def _node(
                 raise MsoError(f"--routes kernel: cannot read routes or bind: {exc}") from None
         elif routes_from == "auto" and static:
             view = StaticRoutes(node_id, static)
-        driver = NodeDriver(core, host, port, psk, view)  # no view: the emulator's
+        from mso.node.device import DeviceProbe
+
+        device = DeviceProbe(battery=energy == "auto", interfaces=energy != "model")
+        driver = NodeDriver(core, host, port, psk, view, device)  # no view: the emulator's
         try:
             await driver.start()
         except OSError as exc:
@@ -722,11 +739,29 @@ def status(via: str | None, key: str | None, as_json: bool) -> None:
     render_status(_console(), reply.nodes)
 
 
-def _energy_cells(mon: dict[str, Any]) -> tuple[str, str, str]:
+def _energy_cells(mon: dict[str, Any]) -> tuple[str, str, str, str]:
     frac, life = mon.get("battery_fraction"), mon.get("lifetime_s")
     battery = "wall" if frac is None else f"{frac * 100:.1f}%"
     lifetime = "-" if life is None else f"{life / 3600:.1f} h"
-    return battery, f"{mon.get('drain_w', 0.0):.2f}", lifetime
+    measured = mon.get("measured", {})
+    drain = measured.get("battery_power_w")
+    watts = f"{mon.get('drain_w', 0.0):.2f}" if drain is None else f"{drain:.2f}"
+    return battery, watts, lifetime, _measured_cell(mon)
+
+
+def _measured_cell(mon: dict[str, Any]) -> str:
+    """Which of the node's figures the OS measured (the rest come from the power model)."""
+    sources, measured = mon.get("sources", {}), mon.get("measured", {})
+    out = []
+    if str(sources.get("battery", "")).startswith("measured"):
+        out.append("battery" + (" (charging)" if measured.get("charging") else ""))
+    if sources.get("drain") == "measured":
+        out.append("W")
+    if "cpu_load" in measured:
+        out.append(f"cpu {measured['cpu_load'] * 100:.0f}%")
+    if "iface_tx_bytes" in measured:
+        out.append(f"radio {measured['iface_tx_bytes']}/{measured['iface_rx_bytes']} B")
+    return ", ".join(out) or "-"
 
 
 def render_status(console: Console, nodes: dict[str, Any]) -> None:
@@ -742,6 +777,11 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
         "battery",
         "W",
         "life",
+        "measured",
+    )
+    table.caption = (
+        "battery, W and life come from the power model unless 'measured' names them; "
+        "radio: the interfaces' tx/rx bytes"
     )
     for col in cols:
         table.add_column(col, justify="left" if col in ("node", "neighbours") else "right")

@@ -147,6 +147,7 @@ class Emulator:
                                                  spec.power.tx_uj_per_byte,
                                                  spec.power.rx_uj_per_byte)),
         ]  # fmt: skip
+        cmd += ["--energy", "model"]  # the scenario's device, not the host's battery
         if spec.battery_wh is not None:
             cmd += ["--battery-wh", str(spec.battery_wh)]
         if self.policy is not None:

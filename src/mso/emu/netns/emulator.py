@@ -36,6 +36,12 @@ from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 from mso.protocol import messages as m
 
 NODE_PORT = 7000
+HEARTBEAT_NETNS_S = 0.2
+DEAD_AFTER_NETNS_S = 3.0
+"""babeld takes 1.6-2.8 s to re-route after a link break (its feasibility condition makes it ask
+the destination for a new sequence number), and the route is *missing* meanwhile: a failure
+timeout shorter than that declares live nodes failed (and they drop their apps when they hear
+it). So on this backend a node is declared failed after 3 s of silence unless told otherwise."""
 
 
 class NamespacesUnavailable(MsoError):
@@ -64,6 +70,8 @@ class NetnsEmulator(Emulator):
     async def start(self, timeout: float = 30.0) -> None:
         check_available()
         names = list(self.scenario.network.nodes)
+        if self.heartbeat_s is None and self.dead_after_s is None:
+            self.heartbeat_s, self.dead_after_s = HEARTBEAT_NETNS_S, DEAD_AFTER_NETNS_S
         hb, da = self.heartbeat_s, self.dead_after_s
         if hb is not None or da is not None:
             why = check_timing(
@@ -97,6 +105,7 @@ class NetnsEmulator(Emulator):
         cmd = super()._node_command(name)
         i = cmd.index("--listen")
         cmd[i + 1] = f"0.0.0.0:{NODE_PORT}"
+        cmd[cmd.index("--energy") + 1] = "interfaces"  # each node's eth0 is its own radio
         return [*cmd, "--routes", "kernel"]
 
     def _spawn(self, name: str, env: dict[str, str]) -> None:
