@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from mso.protocol import messages as m
-from mso.protocol.framing import FrameCodec, FramingError, psk_from_text
+from mso.protocol.framing import FrameCodec, FramingError, WrongKey, psk_from_text
 
 KEY = psk_from_text("test-key")
 
@@ -14,7 +14,9 @@ def pair(key_a: bytes = KEY, key_b: bytes = KEY) -> tuple[FrameCodec, FrameCodec
     a, b = FrameCodec(key_a), FrameCodec(key_b)
     _, flush_b = b.feed(a.hello())
     _, flush_a = a.feed(b.hello())
-    assert flush_a == b"" and flush_b == b""
+    assert len(flush_a) == len(flush_b) == 4 + 16  # the empty key confirmation frames
+    assert a.feed(flush_b)[0] == [] and b.feed(flush_a)[0] == []
+    assert a.confirmed and b.confirmed
     return a, b
 
 
@@ -55,10 +57,24 @@ def test_frame_from_another_connection_is_rejected() -> None:
     assert b1.accepted == 0
 
 
-def test_wrong_key_is_rejected() -> None:
-    a, b = pair(psk_from_text("intruder"), KEY)
-    assert b.feed(a.seal(b"let me in"))[0] == []
-    assert b.rejected == 1
+def test_wrong_key_fails_the_key_confirmation() -> None:
+    a, b = FrameCodec(psk_from_text("intruder")), FrameCodec(KEY)
+    _, flush_b = b.feed(a.hello())
+    _, flush_a = a.feed(b.hello() + a.seal(b"let me in"))
+    with pytest.raises(WrongKey):
+        b.feed(flush_a)
+    with pytest.raises(WrongKey):
+        a.feed(flush_b)
+    assert not b.confirmed and b.accepted == 0
+
+
+def test_nothing_but_a_key_confirmation_before_it() -> None:
+    a, b = FrameCodec(KEY), FrameCodec(KEY)
+    b.feed(a.hello())
+    a.feed(b.hello())
+    # a stranger announcing a big frame before confirming is cut off at its 4-byte length
+    with pytest.raises(FramingError, match="key confirmation"):
+        b.feed(b"\x00\xff\xff\xff")
 
 
 def test_tampered_payload_is_rejected() -> None:
@@ -78,7 +94,7 @@ def test_garbage_stream_is_a_framing_error() -> None:
 def test_oversized_frame_is_a_framing_error() -> None:
     a, b = FrameCodec(KEY, max_frame=100), FrameCodec(KEY, max_frame=100)
     b.feed(a.hello())
-    a.feed(b.hello())
+    b.feed(a.feed(b.hello())[1])
     with pytest.raises(FramingError):
         b.feed(a.seal(b"x" * 1000))
 

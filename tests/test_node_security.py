@@ -38,7 +38,9 @@ async def raw_session(port: int, key: bytes, payloads: list[bytes]) -> bytes:
     codec = FrameCodec(key)
     sent = codec.hello()
     writer.write(sent)
-    codec.feed(await reader.readexactly(20))
+    _, confirm = codec.feed(await reader.readexactly(20))
+    sent += confirm
+    writer.write(confirm)
     for p in payloads:
         frame = codec.seal(p)
         sent += frame

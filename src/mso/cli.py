@@ -19,10 +19,12 @@ import click
 from rich.console import Console
 from rich.table import Table
 
+from mso.cliargs import NON_NEGATIVE, POSITIVE, OneLineGroup, power_model
 from mso.errors import MsoError
 from mso.model.app import App
 from mso.model.appfile import load_app
 from mso.model.chains import form_chains
+from mso.model.yamlfile import read_text_file
 from mso.planning.placement import Plan, plan
 from mso.scenario import Scenario, load_scenario
 
@@ -50,7 +52,7 @@ def _console() -> Console:
     return Console(highlight=False)
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=OneLineGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="mso")
 def main() -> None:
     """mso: run a dataflow app across a mobile ad hoc network and keep re-placing it."""
@@ -222,7 +224,7 @@ def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) ->
 
 
 @main.command()
-@click.option("--duration", type=float, default=20.0, show_default=True, help="Seconds to run.")
+@click.option("--duration", type=POSITIVE, default=20.0, show_default=True, help="Seconds to run.")
 @click.option("--plan-only", is_flag=True, help="Only form chains and plan; start no nodes.")
 def demo(duration: float, plan_only: bool) -> None:
     """Run the bundled convoy app (paper Fig. 6) on an emulated 4-robot line."""
@@ -248,6 +250,63 @@ def _demo(duration: float, plan_only: bool) -> None:
 
 
 # -- the running system ----------------------------------------------------------------------
+allow_code_option = click.option(
+    "--allow-code",
+    "allow_code",
+    multiple=True,
+    metavar="MODULE",
+    help="A module (and its submodules) whose vertex, format and policy code this node may "
+    "import (repeat; default: $MSO_ALLOW_CODE, comma-separated; mso's bundled examples always).",
+)
+
+
+DEV_KEY_WARNING = (
+    "warning: using the built-in development key: anyone who has mso can join this overlay; "
+    "give --key or set $MSO_KEY"
+)
+
+
+def check_key(key: str | None, listen: str, insecure: bool) -> bool:
+    """Protected mode: an empty key is an error; the built-in development key is announced,
+    and refused on an address beyond loopback unless ``--insecure``."""
+    import ipaddress
+
+    from mso.client import DEFAULT_KEY, parse_address
+
+    if key == "":
+        raise MsoError("--key: an empty overlay key is refused (give one, or leave --key out)")
+    if key is not None and key != DEFAULT_KEY:
+        return False
+    host, _ = parse_address(listen)
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback and not insecure:
+        raise MsoError(
+            f"--listen {listen}: refusing to listen beyond loopback with the built-in "
+            "development key; give --key or $MSO_KEY (or --insecure for a lab network)"
+        )
+    return True
+
+
+def set_code_allowlist(modules: tuple[str, ...]) -> tuple[str, ...]:
+    """Restrict this process's imports to ``modules`` (else $MSO_ALLOW_CODE) plus the bundled
+    examples, before anything of an app is loaded."""
+    import os
+
+    from mso.model.imports import DEFAULT_ALLOWED, ImportPathError, allow_code
+
+    if not modules:
+        modules = tuple(m for m in os.environ.get("MSO_ALLOW_CODE", "").split(",") if m)
+    allowed = (*DEFAULT_ALLOWED, *modules)
+    try:
+        allow_code(allowed)
+    except ImportPathError as exc:
+        raise MsoError(f"--allow-code: {exc}") from None
+    return allowed
+
+
 key_option = click.option(
     "--key", envvar="MSO_KEY", help="Overlay pre-shared key (default: $MSO_KEY, else a dev key)."
 )
@@ -283,6 +342,7 @@ NODE_CONFIG_KEYS = {
     "power",
     "policy",
     "manage",
+    "allow_code",
     "routes",
     "energy",
 }
@@ -317,7 +377,7 @@ def _node_config(path: Path) -> dict[str, Any]:
             isinstance(v, dict)
             and set(v) <= {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte"}
             and all(
-                isinstance(x, int | float) and not isinstance(x, bool) and x >= 0
+                isinstance(x, int | float) and not isinstance(x, bool) and 0 <= x < 1e12
                 for x in v.values()
             )
         ):
@@ -327,10 +387,16 @@ def _node_config(path: Path) -> dict[str, Any]:
                 line=line,
                 field=k,
             )
-        if k in ("cpu", "battery_wh") and (isinstance(v, bool) or not isinstance(v, int | float)):
+        if k in ("cpu", "battery_wh") and not (
+            isinstance(v, int | float) and not isinstance(v, bool) and 0 < v < 1e12
+        ):
             raise SpecError(f"expected a number > 0, got {v!r}", file=doc.file, line=line, field=k)
         if k == "manage" and not isinstance(v, bool):
             raise SpecError(f"expected true or false, got {v!r}", file=doc.file, line=line, field=k)
+        if k == "allow_code" and not (
+            isinstance(v, list) and all(isinstance(x, str) and x for x in v)
+        ):
+            raise SpecError("expected a list of module names", file=doc.file, line=line, field=k)
         if k in ("id", "listen", "key") and not isinstance(v, str):
             raise SpecError(f"expected a string, got {v!r}", file=doc.file, line=line, field=k)
     return data
@@ -345,8 +411,8 @@ def _node_config(path: Path) -> dict[str, Any]:
 )
 @click.option("--id", "node_id", help="This node's id, e.g. N1.")
 @click.option("--listen", help="HOST:PORT to serve (default 127.0.0.1:7000).")
-@click.option("--cpu", type=float, help="Relative CPU speed (default 1.0).")
-@click.option("--battery-wh", type=float, help="Battery capacity in Wh (default: wall power).")
+@click.option("--cpu", type=POSITIVE, help="Relative CPU speed (default 1.0).")
+@click.option("--battery-wh", type=POSITIVE, help="Battery capacity in Wh (default: wall power).")
 @click.option("--power", help="Power model IDLE_W,CPU_W,TX_UJ_PER_BYTE,RX_UJ_PER_BYTE.")
 @click.option(
     "--peer",
@@ -382,13 +448,19 @@ def _node_config(path: Path) -> dict[str, Any]:
     help="Run the management rules (default on); off keeps every placement as deployed.",
 )
 @click.option(
-    "--heartbeat", "heartbeat_s", type=float, default=None,
+    "--heartbeat", "heartbeat_s", type=POSITIVE, default=None,
     help="Seconds between heartbeats to each neighbour (default 0.1).",
 )  # fmt: skip
 @click.option(
-    "--dead-after", "dead_after_s", type=float, default=None,
+    "--dead-after", "dead_after_s", type=POSITIVE, default=None,
     help="Seconds of silence after which a neighbour is declared failed (default 0.5).",
 )  # fmt: skip
+@allow_code_option
+@click.option(
+    "--insecure",
+    is_flag=True,
+    help="Allow listening beyond loopback with the built-in development key (never on robots).",
+)
 @key_option
 @click.option("-v", "--verbose", is_flag=True)
 @_user_errors
@@ -406,6 +478,8 @@ def node(
     manage: bool | None,
     heartbeat_s: float | None,
     dead_after_s: float | None,
+    allow_code: tuple[str, ...],
+    insecure: bool,
     key: str | None,
     verbose: bool,
 ) -> None:
@@ -425,11 +499,10 @@ def node(
     all_peers = tuple(f"{n}={a}" for n, a in cfg.get("peers", {}).items()) + peers
     model = PowerModel(**cfg.get("power", {}))
     if power is not None:
-        try:
-            idle, cpu_w, tx, rx = (float(x) for x in power.split(","))
-        except ValueError:
-            raise MsoError(f"--power: expected IDLE_W,CPU_W,TX_UJ,RX_UJ, got {power!r}") from None
-        model = PowerModel(idle, cpu_w, tx, rx)
+        model = PowerModel(*power_model(power))
+    set_code_allowlist(allow_code or tuple(cfg.get("allow_code", ())))
+    key = key if key is not None else cfg.get("key")
+    dev_key = check_key(key, listen or cfg.get("listen", "127.0.0.1:7000"), insecure)
     battery = battery_wh if battery_wh is not None else cfg.get("battery_wh")
     if battery is not None and battery <= 0:
         raise MsoError(f"--battery-wh: expected a number > 0, got {battery:g}")
@@ -438,7 +511,7 @@ def node(
         listen or cfg.get("listen", "127.0.0.1:7000"),
         float(cpu if cpu is not None else cfg.get("cpu", 1.0)),
         all_peers,
-        key or cfg.get("key"),
+        key,
         verbose,
         model,
         battery,
@@ -446,6 +519,7 @@ def node(
         manage if manage is not None else cfg.get("manage", True),
         heartbeat_s,
         dead_after_s,
+        dev_key,
         routes_from or cfg.get("routes", "auto"),
         energy or cfg.get("energy", "auto"),
     )
@@ -464,6 +538,7 @@ def _node(
     manage: bool = True,
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
+    dev_key: bool = False,
     routes_from: str = "auto",
     energy: str = "auto",
 ) -> None:
@@ -535,7 +610,7 @@ def _node(
         from mso.node.device import DeviceProbe
 
         device = DeviceProbe(battery=energy == "auto", interfaces=energy != "model")
-        driver = NodeDriver(core, host, port, psk, view, device)  # no view: the emulator's
+        driver = NodeDriver(core, host, port, psk, view, device=device)  # no view: the emulator's
         try:
             await driver.start()
         except OSError as exc:
@@ -546,6 +621,8 @@ def _node(
             if kernel is not None:
                 await kernel.close()
 
+    if dev_key:
+        click.echo(DEV_KEY_WARNING, err=True)
     with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(serve())
 
@@ -564,7 +641,7 @@ def deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> N
     from mso.protocol import messages as m
 
     load_app(app_file)  # report file errors here, with their lines, before sending anything
-    document = app_file.read_text(encoding="utf-8")
+    document = read_text_file(app_file)
     address = _resolve_via(via)
     reply = asyncio.run(
         request(address, m.DeployRequest(document, str(app_file)), key=key, timeout=30)
@@ -714,7 +791,20 @@ def undeploy(app_name: str, via: str | None, key: str | None) -> None:
     from mso.client import request
     from mso.protocol import messages as m
 
-    asyncio.run(request(_resolve_via(via), m.StopApp(app_name), key=key))
+    address = _resolve_via(via)
+
+    async def run() -> None:
+        st = await request(address, m.StatusRequest(), key=key)
+        apps = (
+            sorted(next(iter(st.nodes.values()))["apps"]) if isinstance(st, m.StatusReply) else []
+        )
+        if app_name not in apps:
+            raise MsoError(
+                f"no running app named {app_name!r} (running: {', '.join(apps) or 'none'})"
+            )
+        await request(address, m.StopApp(app_name), key=key)
+
+    asyncio.run(run())
     click.echo(f"stopped {app_name}")
 
 
@@ -884,7 +974,7 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
 @click.argument("scenario_file", required=False, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--app", "app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
-    "--duration", type=float, default=None, help="Seconds to run (default: until Ctrl-C)."
+    "--duration", type=POSITIVE, default=None, help="Seconds to run (default: until Ctrl-C)."
 )
 @click.option(
     "--backend",
@@ -901,17 +991,18 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
 )
 @click.option("--via", help="Node to deploy from (default: the first node).")
 @click.option(
-    "--convergence", type=float, default=0.0, show_default=True,
+    "--convergence", type=NON_NEGATIVE, default=0.0, show_default=True,
     help="Seconds routes take to follow a link change.",
 )  # fmt: skip
 @click.option(
-    "--heartbeat", "heartbeat_s", type=float, default=None,
+    "--heartbeat", "heartbeat_s", type=POSITIVE, default=None,
     help="Every node's heartbeat period in seconds (default 0.1).",
 )  # fmt: skip
 @click.option(
-    "--dead-after", "dead_after_s", type=float, default=None,
+    "--dead-after", "dead_after_s", type=POSITIVE, default=None,
     help="Every node's failure timeout in seconds of silence (default 0.5).",
 )  # fmt: skip
+@allow_code_option
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
 def emulate(
@@ -924,6 +1015,7 @@ def emulate(
     convergence: float,
     heartbeat_s: float | None,
     dead_after_s: float | None,
+    allow_code: tuple[str, ...],
     key: str | None,
     as_json: bool,
 ) -> None:
@@ -947,6 +1039,7 @@ def emulate(
         as_json,
         heartbeat_s,
         dead_after_s,
+        allow_code,
         backend,
     )
 
@@ -999,6 +1092,7 @@ def _emulate(
     as_json: bool,
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
+    allow_code: tuple[str, ...] = (),
     backend: str = "user",
 ) -> None:
     import asyncio
@@ -1036,6 +1130,7 @@ def _emulate(
             convergence_s=convergence,
             heartbeat_s=heartbeat_s,
             dead_after_s=dead_after_s,
+            allow_code=allow_code or None,
         )
         loop = asyncio.get_running_loop()
         task = asyncio.current_task()
@@ -1053,9 +1148,7 @@ def _emulate(
             moving = asyncio.create_task(emu.play_mobility(t0))
             if app is not None and app_file is not None:
                 origin = via or next(iter(emu.nodes))
-                reply = await emu.deploy(
-                    app_file.read_text(encoding="utf-8"), str(app_file), origin
-                )
+                reply = await emu.deploy(read_text_file(app_file), str(app_file), origin)
                 if not reply.ok:
                     raise MsoError(f"deployment failed: {reply.error}")
                 console.print(f"deployed {reply.app} from {origin} in {reply.elapsed_ms:.1f} ms")
@@ -1106,11 +1199,11 @@ def _sink_line(nodes: dict[str, Any], app: str) -> str:
 @click.option("--app", "app_file", required=True, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of emulated loss.")
 @click.option(
-    "--duration", type=float, default=30.0, show_default=True, help="Virtual seconds to run."
+    "--duration", type=POSITIVE, default=30.0, show_default=True, help="Virtual seconds to run."
 )
 @click.option("--via", help="Node to deploy from (default: the first node).")
 @click.option(
-    "--convergence", type=float, default=0.0, show_default=True,
+    "--convergence", type=NON_NEGATIVE, default=0.0, show_default=True,
     help="Seconds routes take to follow a link change.",
 )  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
@@ -1131,10 +1224,7 @@ def simulate(
     load_app(app_file)  # a bad app file is reported with its file and line, before anything runs
     if convergence < 0:
         raise MsoError(f"--convergence: expected seconds >= 0, got {convergence:g}")
-    try:
-        doc = app_file.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise MsoError(f"{app_file}: {exc.strerror or exc}") from None
+    doc = read_text_file(app_file)
     report = run(
         scenario, doc, str(app_file), seed=seed, duration=duration, convergence_s=convergence,
         via=via,
@@ -1231,7 +1321,7 @@ def bench() -> None:
 
 @bench.command(name="table1")
 @click.option("--json", "json_file", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--runs", type=int, default=30, show_default=True)
+@click.option("--runs", type=click.IntRange(1, 100_000), default=30, show_default=True)
 @click.option("--quick", is_flag=True, help="A few runs, to check it works.")
 def bench_table1(json_file: Path | None, runs: int, quick: bool) -> None:
     """Table 1 of the paper: mapping, relocations, chain and global remaps, on 4 node processes."""

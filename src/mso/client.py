@@ -12,7 +12,7 @@ import msgspec
 
 from mso.errors import MsoError
 from mso.protocol import messages as m
-from mso.protocol.framing import FrameCodec, FramingError, psk_from_text
+from mso.protocol.framing import FrameCodec, FramingError, WrongKey, psk_from_text
 
 DEFAULT_KEY = "mso-insecure-default-key"
 
@@ -46,13 +46,19 @@ class Client:
             raise NodeUnreachable(f"cannot reach node at {self.host}:{self.port}: {exc}") from None
         assert self._writer is not None and self._reader is not None
         self._writer.write(self._codec.hello())
-        try:  # wait for the node's hello: until then nothing we seal can be sent
-            while not self._codec.ready:
+        try:  # wait for the node's hello and key confirmation
+            while not self._codec.confirmed:
                 data = await asyncio.wait_for(self._reader.read(1 << 16), timeout)
                 if not data:
                     raise NodeUnreachable(f"node at {self.host}:{self.port} closed the connection")
                 _, flush = self._codec.feed(data)
                 self._writer.write(flush)
+        except WrongKey:
+            self._writer.close()
+            raise MsoError(
+                f"wrong overlay key: the node at {self.host}:{self.port} holds another key "
+                "(give --key or set $MSO_KEY)"
+            ) from None
         except (TimeoutError, FramingError) as exc:
             raise NodeUnreachable(f"no mso hello from {self.host}:{self.port}: {exc}") from None
         await self.send(m.ClientHello(self.name))
@@ -122,13 +128,17 @@ class Client:
 
 
 def parse_address(text: str, default_port: int = 7000) -> tuple[str, int]:
+    """``HOST:PORT`` (or ``HOST``) with a port in 0..65535."""
     host, _, port = text.rpartition(":")
     if not host:
-        return text, default_port
+        host, port = text, str(default_port)
     try:
-        return host, int(port)
+        number = int(port)
     except ValueError:
-        raise MsoError(f"expected HOST:PORT, got {text!r}") from None
+        number = -1
+    if not host or not 0 <= number <= 65535:
+        raise MsoError(f"expected HOST:PORT with a port in 0..65535, got {text!r}")
+    return host, number
 
 
 async def request(

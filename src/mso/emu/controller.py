@@ -88,6 +88,8 @@ class Emulator:
     _playing: bool = False  # a timeline is being played (play_changes / play_mobility)
     heartbeat_s: float | None = None  # every node's heartbeat period (None: the node default)
     dead_after_s: float | None = None  # every node's failure timeout (None: the node default)
+    # modules every node may import app code from (None: $MSO_ALLOW_CODE, else the examples)
+    allow_code: tuple[str, ...] | None = None
 
     async def start(self, timeout: float = 20.0) -> None:
         names = list(self.scenario.network.nodes)
@@ -158,6 +160,8 @@ class Emulator:
             cmd += ["--heartbeat", repr(self.heartbeat_s)]
         if self.dead_after_s is not None:
             cmd += ["--dead-after", repr(self.dead_after_s)]
+        for module in self.allow_code or ():
+            cmd += ["--allow-code", module]
         return cmd
 
     async def restart(self, node: str, timeout: float = 20.0) -> None:

@@ -336,11 +336,16 @@ def _is_number(x: object) -> bool:
     return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
 
 
+MAX_COST = 1e9  # work units per event: beyond it sums and objectives would overflow
+MAX_RATE = 1e7  # events per second of a source
+
+
 def _check_vertex_values(v: Vertex, error: Callable[..., AppError]) -> None:
     base = ("vertices", v.id)
-    if not _is_number(v.cost) or v.cost < 0:
+    if not _is_number(v.cost) or v.cost < 0 or v.cost > MAX_COST:
+        bound = f"up to {MAX_COST:g}" if _is_number(v.cost) and v.cost > MAX_COST else ""
         raise error(
-            f"expected a non-negative number, got {v.cost!r}",
+            f"expected a non-negative number{' ' + bound if bound else ''}, got {v.cost!r}",
             f"vertices.{v.id}.cost",
             (*base, "cost"),
         )
@@ -350,9 +355,9 @@ def _check_vertex_values(v: Vertex, error: Callable[..., AppError]) -> None:
             f"vertices.{v.id}.pinned",
             (*base, "pinned"),
         )
-    if v.rate is not None and (not _is_number(v.rate) or v.rate <= 0):
+    if v.rate is not None and (not _is_number(v.rate) or v.rate <= 0 or v.rate > MAX_RATE):
         raise error(
-            f"expected a positive number of events per second, got {v.rate!r}",
+            f"expected a positive number of events per second up to {MAX_RATE:g}, got {v.rate!r}",
             f"vertices.{v.id}.rate",
             (*base, "rate"),
         )

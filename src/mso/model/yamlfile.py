@@ -1,7 +1,15 @@
-"""Load YAML keeping the line of every key and item, so errors can point at it."""
+"""Load YAML keeping the line of every key and item, so errors can point at it.
+
+Every document (app, scenario, node config, a deploy request's document) is untrusted: it is
+loaded within limits on size, nesting depth and alias expansion, checked on libyaml's event
+stream *before* the node tree is composed (libyaml's composer recurses in C and crashes on
+deep nesting; a billion-laughs document expands exponentially only when walked).
+"""
 
 from __future__ import annotations
 
+import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -12,6 +20,11 @@ from mso.errors import SpecError
 
 # libyaml's composer when PyYAML was built with it (10x faster); the same node tree either way.
 _COMPOSER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+MAX_BYTES = 4 * 1024 * 1024  # a document larger than this is refused before parsing
+MAX_DEPTH = 64  # nested mappings and sequences
+MAX_ALIASES = 256  # alias references (``*name``)
+MAX_EXPANDED = 100_000  # nodes an alias may add to the document when it is expanded
 
 # A path into the document: ("vertices", "B", "cost") or ("edges", 3).
 Path_ = tuple[str | int, ...]
@@ -37,10 +50,11 @@ class Located:
 class _Walker:
     """Turns a composed node tree into plain Python, recording each node's line."""
 
-    def __init__(self, file: str | None) -> None:
+    def __init__(self, file: str | None, budget: int) -> None:
         self.file = file
         self.lines: dict[Path_, int] = {}
         self._loader = yaml.SafeLoader("")
+        self.budget = budget  # nodes left to walk: aliases cannot expand beyond it
 
     def construct(self, node: yaml.Node) -> Any:
         return self._loader.construct_object(node, deep=True)
@@ -49,6 +63,11 @@ class _Walker:
 def _walk(w: _Walker, node: yaml.Node, path: Path_) -> Any:
     lines, file = w.lines, w.file
     lines[path] = node.start_mark.line + 1
+    w.budget -= 1
+    if w.budget < 0:
+        raise SpecError(
+            f"aliases expand to more than {MAX_EXPANDED} extra nodes", file=file, line=lines[path]
+        )
     if isinstance(node, yaml.MappingNode):
         out: dict[Any, Any] = {}
         for key_node, value_node in node.value:
@@ -80,9 +99,35 @@ def _walk(w: _Walker, node: yaml.Node, path: Path_) -> Any:
     return w.construct(node)
 
 
+def _check_limits(text: str, file: str | None) -> int:
+    """Depth and alias counts from the event stream; returns the number of nodes."""
+    if len(text) > MAX_BYTES:
+        raise SpecError(f"document is larger than {MAX_BYTES // 1024 // 1024} MiB", file=file)
+    depth = nodes = aliases = 0
+    for ev in yaml.parse(text, Loader=_COMPOSER):
+        if isinstance(ev, yaml.CollectionStartEvent):
+            depth += 1
+            nodes += 1
+            if depth > MAX_DEPTH:
+                line = ev.start_mark.line + 1 if ev.start_mark else None
+                raise SpecError(f"nested deeper than {MAX_DEPTH} levels", file=file, line=line)
+        elif isinstance(ev, yaml.CollectionEndEvent):
+            depth -= 1
+        elif isinstance(ev, yaml.ScalarEvent):
+            nodes += 1
+        elif isinstance(ev, yaml.AliasEvent):
+            aliases += 1
+            if aliases > MAX_ALIASES:
+                line = ev.start_mark.line + 1 if ev.start_mark else None
+                raise SpecError(f"more than {MAX_ALIASES} aliases", file=file, line=line)
+    return nodes
+
+
 def load_yaml(text: str, file: str | None = None) -> Located:
-    """Parse one YAML document; malformed YAML becomes a SpecError with its line."""
+    """Parse one YAML document within the limits; malformed YAML becomes a SpecError with its
+    line."""
     try:
+        nodes = _check_limits(text, file)
         root = yaml.compose(text, Loader=_COMPOSER)
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
@@ -99,7 +144,7 @@ def load_yaml(text: str, file: str | None = None) -> Located:
         raise SpecError(f"malformed YAML: {exc}", file=file) from None
     if root is None:
         return Located(None, file, {})
-    walker = _Walker(file)
+    walker = _Walker(file, nodes + MAX_EXPANDED)
     try:
         data = _walk(walker, root, ())
     except yaml.constructor.ConstructorError as exc:
@@ -112,11 +157,24 @@ def load_yaml(text: str, file: str | None = None) -> Located:
 
 def load_yaml_file(path: str | Path) -> Located:
     """Read and parse a YAML file; a missing or unreadable file is a SpecError."""
+    return load_yaml(read_text_file(path), str(path))
+
+
+def read_text_file(path: str | Path, limit: int = MAX_BYTES) -> str:
+    """A regular file's UTF-8 text, at most ``limit`` bytes (never a device, FIFO or
+    directory: ``/dev/zero`` would never end)."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        st = os.stat(p)
+        if not stat.S_ISREG(st.st_mode):
+            raise SpecError("not a regular file", file=str(p))
+        with p.open("rb") as f:
+            raw = f.read(limit + 1)
     except OSError as exc:
         raise SpecError(f"cannot read file: {exc.strerror}", file=str(p)) from None
+    if len(raw) > limit:
+        raise SpecError(f"file is larger than {limit // 1024 // 1024} MiB", file=str(p))
+    try:
+        return raw.decode("utf-8")
     except UnicodeDecodeError:
         raise SpecError("file is not UTF-8 text", file=str(p)) from None
-    return load_yaml(text, str(p))

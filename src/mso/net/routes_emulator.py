@@ -3,6 +3,8 @@
 routes) over a client connection whenever links change and after routes converge.
 
 LinkStates carry a version so that one delayed behind a newer one cannot roll the table back.
+A version may only grow by ``MAX_VERSION_STEP`` at a time: one pushed to the end of its range
+(2^62) would otherwise make every later, genuine LinkState look old and cut the node off.
 """
 
 from __future__ import annotations
@@ -21,16 +23,23 @@ def neighbour_of(spec: list[Any]) -> Neighbour:
     return Neighbour(str(host), int(port), shape)
 
 
+MAX_VERSION_STEP = 1 << 20
+
+
 class EmulatorRoutes(TableRoutes):
     """A table replaced by every newer LinkState."""
 
     def __init__(self, node_id: str) -> None:
         super().__init__(node_id)
         self.version = -1
+        self.versions_refused = 0  # LinkStates that tried to jump the version ahead
 
     def apply(self, state: m.LinkState) -> bool:
         """Take ``state`` if it is newer than the last one taken; True if taken."""
         if state.version <= self.version:
+            return False
+        if state.version - max(self.version, 0) > MAX_VERSION_STEP:
+            self.versions_refused += 1
             return False
         self.version = state.version
         routes: dict[str, Route] = {d: (str(r[0]), int(r[1])) for d, r in state.routes.items()}

@@ -28,6 +28,7 @@ import msgspec
 
 from mso.net.base import Counters, Kind, Receiver, RoutesChanged, RoutingView
 from mso.net.forwarding import RouteWait
+from mso.net.limits import DEFAULT_LIMITS, ConnectionCounters, Limits
 from mso.net.shaping import Link
 from mso.protocol import messages as m
 from mso.protocol.framing import FrameCodec, FramingError
@@ -47,16 +48,30 @@ class Connection(asyncio.Protocol):
 
     def __init__(self, net: TcpTransport, peer: str | None = None) -> None:
         self.net = net
-        self.codec = FrameCodec(net.psk)
+        self.codec = FrameCodec(net.psk, max_frame=net.limits.max_frame)
         self.transport: asyncio.Transport | None = None
         self.peer = peer  # neighbour node id once known
         self.client: int | None = None
         self.paused = False
         self.link: Link | None = None
+        self.address = ""  # the remote host of an accepted connection
+        self.opened = self.last_rx = net.loop.time()
+        self.outbound = peer is not None
+
+    @property
+    def introduced(self) -> bool:
+        """Authenticated and said who it is (a neighbour's or a client's hello)."""
+        return self.codec.confirmed and (self.peer in self.net.peers or self.client is not None)
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
+        if not self.outbound:
+            peername = transport.get_extra_info("peername")
+            self.address = str(peername[0]) if peername else ""
+            if not self.net.admit(self):
+                transport.abort()
+                return
         transport.set_write_buffer_limits(high=HIGH_WATER)
         transport.write(self.codec.hello())
         if self.peer is not None:
@@ -85,6 +100,7 @@ class Connection(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         counters = self.net.counters
         counters.bytes_in += len(data)
+        self.last_rx = self.net.loop.time()
         rejected = self.codec.rejected
         try:
             payloads, flush = self.codec.feed(data)
@@ -124,8 +140,19 @@ class TcpTransport:
     any later subscriber (the driver, which then tells the core) runs.
     """
 
-    def __init__(self, node_id: str, host: str, port: int, psk: bytes, view: RoutingView) -> None:
+    def __init__(
+        self,
+        node_id: str,
+        host: str,
+        port: int,
+        psk: bytes,
+        view: RoutingView,
+        limits: Limits = DEFAULT_LIMITS,
+    ) -> None:
         self._node_id = node_id
+        self.limits = limits
+        self.connection_counters = ConnectionCounters()
+        self.accepted: set[Connection] = set()  # connections others opened to this node
         self.host = host
         self.port = port
         self.psk = psk
@@ -142,6 +169,7 @@ class TcpTransport:
         self._receiver: Receiver = lambda src, msg: None
         self._on_client: ClientHandler = lambda client, msg: None
         self._closed = False
+        self._sweeper: asyncio.TimerHandle | None = None
         view.subscribe(self._routes_changed)
 
     @property
@@ -164,10 +192,44 @@ class TcpTransport:
             lambda: Connection(self), self.host, self.port, reuse_address=True
         )
         self.port = self.server.sockets[0].getsockname()[1]
+        self._sweeper = self.loop.call_later(self.limits.sweep_s, self._sweep)
         self.routes_changed()
+
+    # -- limits -----------------------------------------------------------------------------
+    def admit(self, conn: Connection) -> bool:
+        """Take an accepted connection unless the node or its address has too many."""
+        lim = self.limits
+        same = sum(1 for c in self.accepted if c.address == conn.address)
+        if len(self.accepted) >= lim.max_connections or same >= lim.max_per_address:
+            self.connection_counters.connections_refused += 1
+            log.warning("refusing a connection from %s: too many connections", conn.address)
+            return False
+        self.accepted.add(conn)
+        return True
+
+    def _sweep(self) -> None:
+        """Close connections that did not authenticate in time, or fell silent."""
+        now = self.loop.time()
+        lim, counters = self.limits, self.connection_counters
+        for conn in [*self.accepted, *self.peers.values()]:
+            if conn.transport is None or conn.transport.is_closing():
+                continue
+            if not conn.introduced:
+                if now - conn.opened > lim.handshake_s:
+                    counters.handshake_timeouts += 1
+                    conn.transport.abort()
+                continue
+            idle = lim.client_idle_s if conn.client is not None else lim.peer_idle_s
+            if now - conn.last_rx > idle:
+                counters.idle_timeouts += 1
+                conn.close()
+        if not self._closed:
+            self._sweeper = self.loop.call_later(lim.sweep_s, self._sweep)
 
     async def close(self) -> None:
         self._closed = True
+        if self._sweeper is not None:
+            self._sweeper.cancel()
         for conn in [*self.peers.values(), *self.clients.values()]:
             conn.close()
         if self.server is not None:
@@ -258,6 +320,7 @@ class TcpTransport:
         self._receiver(env.src, msg)
 
     def on_connection_lost(self, conn: Connection) -> None:
+        self.accepted.discard(conn)
         if conn.peer is not None and self.peers.get(conn.peer) is conn:
             del self.peers[conn.peer]
             if conn.link is not None:

@@ -17,6 +17,7 @@ from collections.abc import Hashable
 from typing import Any
 
 from mso.net.base import RoutesChanged, RoutingView, encode
+from mso.net.limits import DEFAULT_LIMITS, Limits
 from mso.net.routes_emulator import EmulatorRoutes
 from mso.net.tcp import TcpTransport
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
@@ -39,6 +40,7 @@ class NodeDriver:
         port: int,
         psk: bytes,
         view: RoutingView | None = None,
+        limits: Limits = DEFAULT_LIMITS,
         device: DeviceProbe | None = None,
     ) -> None:
         self.core = core
@@ -52,7 +54,7 @@ class NodeDriver:
         self.counters = self.view.counters
         # subscribed before the driver: on a change the transport reconnects and releases
         # waiting frames first, then the core hears of the new routes
-        self.transport = TcpTransport(core.id, host, port, psk, self.view)
+        self.transport = TcpTransport(core.id, host, port, psk, self.view, limits)
         self.transport.set_receiver(self._receive)
         self.transport.set_client_handler(self._request)
         self.view.subscribe(self._routes_changed)
@@ -74,7 +76,11 @@ class NodeDriver:
 
     def _link_status(self) -> dict[str, Any]:
         self._observe_device()
-        return {"traffic": self.counters.as_dict(), "connected": self.transport.connected()}
+        return {
+            "traffic": self.counters.as_dict(),
+            "connections": self.transport.connection_counters.as_dict(),
+            "connected": self.transport.connected(),
+        }
 
     def _observe_device(self) -> None:
         if self.device is not None:

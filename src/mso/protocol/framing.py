@@ -12,6 +12,11 @@ another connection fails its tag; a receiver's fresh nonce makes every connectio
 A frame whose tag fails is dropped and counted, never acted on, and the stream goes on; a length
 beyond ``max_frame`` or a bad hello means the byte stream itself is not ours, and the connection
 must be closed (``FramingError``).
+
+Key confirmation: the first frame each side sends is an empty one (its tag proves the key).
+Until the peer's has been verified nothing longer is accepted, so a stranger without the key
+can make a node buffer at most one 20-byte frame, and a peer with the wrong key is told at once
+(``WrongKey``) instead of every later frame being dropped in silence.
 """
 
 from __future__ import annotations
@@ -32,6 +37,10 @@ _CTR = struct.Struct(">Q")
 
 class FramingError(Exception):
     """The stream cannot be framed any more (bad hello, oversized frame): close it."""
+
+
+class WrongKey(FramingError):
+    """The peer's key confirmation failed: it holds another overlay key."""
 
 
 def derive_key(psk: bytes, sender_nonce: bytes, receiver_nonce: bytes) -> bytes:
@@ -59,16 +68,32 @@ class FrameCodec:
         self._nonce = nonce if nonce is not None else os.urandom(NONCE_BYTES)
         self._tx_key: bytes | None = None
         self._rx_key: bytes | None = None
+        self._peer_nonce: bytes | None = None
         self._tx_ctr = 0
         self._rx_ctr = 0
         self._buf = bytearray()
         self._pending: list[bytes] = []  # sealed before the peer's hello arrived
+        self._confirmed = False  # the peer's key confirmation verified
         self.rejected = 0
         self.accepted = 0
 
     @property
     def ready(self) -> bool:
         return self._rx_key is not None
+
+    @property
+    def confirmed(self) -> bool:
+        """The peer proved it holds the overlay key."""
+        return self._confirmed
+
+    @property
+    def nonce(self) -> bytes:
+        """This side's hello nonce (a signer binds a command to the connection with it)."""
+        return self._nonce
+
+    @property
+    def peer_nonce(self) -> bytes | None:
+        return self._peer_nonce
 
     def hello(self) -> bytes:
         return MAGIC + self._nonce
@@ -100,11 +125,11 @@ class FrameCodec:
                 return out, flush
             if bytes(self._buf[: len(MAGIC)]) != MAGIC:
                 raise FramingError("peer did not send an mso hello")
-            peer_nonce = bytes(self._buf[len(MAGIC) : HELLO_BYTES])
+            peer_nonce = self._peer_nonce = bytes(self._buf[len(MAGIC) : HELLO_BYTES])
             del self._buf[:HELLO_BYTES]
             self._rx_key = derive_key(self._psk, peer_nonce, self._nonce)
             self._tx_key = derive_key(self._psk, self._nonce, peer_nonce)
-            flush = b"".join(self._seal(p) for p in self._pending)
+            flush = b"".join([self._seal(b""), *(self._seal(p) for p in self._pending)])
             self._pending.clear()
         buf = self._buf
         pos = 0
@@ -114,6 +139,8 @@ class FrameCodec:
             (length,) = _LEN.unpack_from(buf, pos)
             if length < TAG_BYTES or length > self._max + TAG_BYTES:
                 raise FramingError(f"frame length {length} out of range")
+            if not self._confirmed and length != TAG_BYTES:
+                raise FramingError("the first frame is not a key confirmation")
             if n - pos - 4 < length:
                 break
             start = pos + 4
@@ -123,6 +150,14 @@ class FrameCodec:
             mac = hashlib.blake2b(_CTR.pack(self._rx_ctr), key=self._rx_key, digest_size=TAG_BYTES)
             mac.update(body)  # straight from the receive buffer
             ok = hmac.compare_digest(tag, mac.digest())
+            if not self._confirmed:
+                body.release()
+                if not ok:
+                    view.release()
+                    raise WrongKey("the peer holds another overlay key")
+                self._confirmed = True
+                self._rx_ctr += 1
+                continue
             if ok:
                 out.append(bytes(body))
                 self._rx_ctr += 1

@@ -33,6 +33,7 @@ TRACE_KEYS = {"model", "file", "nodes", "dim", "step_s"}
 MOBILITY_MODELS = ("random_waypoint", *FORMATS)
 CHANGE_KEYS = {"at", "down", "up", "fail", "restart", "partition", "heal", "loss", "between"}
 CHANGE_KINDS = ("up", "down", "fail", "restart", "partition", "heal", "loss")
+MAX_NUMBER = 1e12  # capacities, powers, delays: larger ones only overflow the objectives
 NODE_KEYS = {"cpu", "battery_wh", "power", "pos"}
 POWER_KEYS = {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte"}
 LINK_KEYS = {"between", "bandwidth_mbps", "delay_ms", "loss"}
@@ -139,8 +140,10 @@ class _Reader:
         self, value: Any, path: tuple[str | int, ...], *, low: float = 0.0, strict: bool = False
     ) -> float:
         ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-        if not ok or value < low or (strict and value == low):
+        if not ok or value < low or (strict and value == low) or value > MAX_NUMBER:
             bound = f"> {low:g}" if strict else f">= {low:g}"
+            if ok and value > MAX_NUMBER:
+                bound = f"<= {MAX_NUMBER:g}"
             raise self.err(f"expected a number {bound}, got {value!r}", path)
         return float(value)
 

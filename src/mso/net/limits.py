@@ -1,0 +1,42 @@
+"""Bounds on what a connection may cost a node: counts, time to authenticate, idle time, bytes.
+
+A MANET is open air: anyone in range can open connections. A connection that has not proved
+the overlay key (hello + key confirmation, :mod:`mso.protocol.framing`) and said who it is
+within ``handshake_s`` is closed; so is one silent for ``idle_s`` (peers send heartbeats every
+0.1 s; a client such as the emulator controller may sit idle much longer). A node serves at most
+``max_connections`` at once and ``max_per_address`` from one address. Before authentication a
+connection can make the node buffer at most one 20-byte frame; after it at most one frame of
+``max_frame`` bytes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from mso.protocol.framing import MAX_FRAME
+
+
+@dataclass(frozen=True)
+class Limits:
+    handshake_s: float = 5.0
+    peer_idle_s: float = 60.0
+    client_idle_s: float = 900.0
+    max_connections: int = 256
+    max_per_address: int = 64
+    max_frame: int = MAX_FRAME
+    sweep_s: float = 1.0  # how often idle and unfinished connections are looked for
+
+
+DEFAULT_LIMITS = Limits()
+
+
+class ConnectionCounters:
+    """Connections refused or closed by the limits (reported in status with the traffic)."""
+
+    def __init__(self) -> None:
+        self.connections_refused = 0  # over the node's or one address's limit
+        self.handshake_timeouts = 0  # no key confirmation and hello in time
+        self.idle_timeouts = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(vars(self))

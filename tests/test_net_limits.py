@@ -1,0 +1,72 @@
+"""Bounded resources: strangers cannot hold a node's connections or memory, and a LinkState
+cannot push its version to the end of the range."""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+from typing import Any
+
+from mso.client import Client, overlay_key
+from mso.net.limits import Limits
+from mso.net.routes_emulator import MAX_VERSION_STEP, EmulatorRoutes
+from mso.node.core import NodeCore
+from mso.node.driver import NodeDriver
+from mso.protocol import messages as m
+from mso.protocol.framing import MAGIC
+
+HOST = "127.0.0.1"
+LIMITS = Limits(handshake_s=0.3, sweep_s=0.05, max_connections=8, max_per_address=4)
+
+
+async def read_all(reader: asyncio.StreamReader) -> bytes:
+    try:
+        return await asyncio.wait_for(reader.read(), 5.0)
+    except ConnectionError:
+        return b""
+
+
+def test_connections_are_limited_timed_out_and_cut_off_before_authentication() -> None:
+    async def run() -> dict[str, Any]:
+        driver = NodeDriver(NodeCore("N1"), HOST, 0, overlay_key("k"), limits=LIMITS)
+        await driver.start()
+        port = driver.transport.port
+        try:
+            # 1. a hello, then a frame announcing 16 MiB: cut off at its length, nothing buffered
+            r, w = await asyncio.open_connection(HOST, port)
+            w.write(MAGIC + b"\x00" * 16 + struct.pack(">I", 16 << 20) + b"x" * 1000)
+            assert len(await read_all(r)) == 20  # the node's hello, then it closed
+            w.close()
+            # 2. four silent connections from one address fill its share; more are refused
+            idle = [await asyncio.open_connection(HOST, port) for _ in range(6)]
+            ends = await asyncio.gather(*(read_all(r) for r, _ in idle))
+            assert sorted(len(e) for e in ends) == [0, 0, 20, 20, 20, 20]
+            for _, w in idle:
+                w.close()
+            # 3. a slow-loris sender trickling its hello is closed by the handshake timeout
+            r, w = await asyncio.open_connection(HOST, port)
+            w.write(MAGIC[:2])
+            assert len(await read_all(r)) == 20
+            w.close()
+            # the node still serves a client with the key
+            client = await Client(HOST, port, overlay_key("k")).connect()
+            reply = await client.call(m.StatusRequest())
+            await client.close()
+            assert isinstance(reply, m.StatusReply)
+            return reply.nodes["N1"]
+        finally:
+            await driver.stop()
+
+    st = asyncio.run(run())
+    assert st["connections"]["connections_refused"] == 2
+    assert st["connections"]["handshake_timeouts"] >= 5
+    assert st["traffic"]["frames_rejected"] >= 1  # the 16 MiB announcement
+
+
+def test_linkstate_version_cannot_jump_to_the_end_of_its_range() -> None:
+    view = EmulatorRoutes("N1")
+    assert view.apply(m.LinkState(version=1, neighbours={}, routes={"N2": ["N2", 1]}))
+    assert not view.apply(m.LinkState(version=2**62, neighbours={}, routes={}))
+    assert view.versions_refused == 1 and view.version == 1
+    assert view.apply(m.LinkState(version=2, neighbours={}, routes={}))  # genuine ones go on
+    assert view.apply(m.LinkState(version=2 + MAX_VERSION_STEP, neighbours={}, routes={}))
