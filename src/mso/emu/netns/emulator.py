@@ -21,6 +21,8 @@ from __future__ import annotations
 import asyncio
 import atexit
 import contextlib
+import os
+import secrets
 import shutil
 import subprocess
 import tempfile
@@ -72,6 +74,10 @@ class NetnsEmulator(Emulator):
         names = list(self.scenario.network.nodes)
         if self.heartbeat_s is None and self.dead_after_s is None:
             self.heartbeat_s, self.dead_after_s = HEARTBEAT_NETNS_S, DEAD_AFTER_NETNS_S
+        if not (self.key or os.environ.get("MSO_KEY")):
+            # nodes listen on their namespace's address, where the development key is refused:
+            # a fresh key for this run (the controller passes it to every node)
+            self.key = secrets.token_hex(16)
         hb, da = self.heartbeat_s, self.dead_after_s
         if hb is not None or da is not None:
             why = check_timing(
