@@ -222,15 +222,16 @@ class Emulator:
                 self.failed = True
                 raise MsoError(f"node {node.id} exited at start; see {node.log}")
             try:
-                node.client = await self._client(node, psk).connect(1.0)
+                node.client = await self.client_for(node, psk).connect(1.0)
                 return
             except NodeUnreachable:
                 if loop.time() > deadline:
                     raise MsoError(f"node {node.id} did not start within {timeout:g} s") from None
                 await asyncio.sleep(0.05)
 
-    def _client(self, node: EmulatedNode, psk: bytes) -> Client:
-        return Client(node.host, node.port, psk, "emulator")
+    def client_for(self, node: EmulatedNode, psk: bytes, name: str = "emulator") -> Client:
+        """A (not yet connected) client of ``node``."""
+        return Client(node.host, node.port, psk, name)
 
     def _link_state(self, node: str, routes: bool) -> m.LinkState:
         net = self.scenario.network

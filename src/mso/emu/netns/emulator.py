@@ -127,9 +127,10 @@ class NetnsEmulator(Emulator):
             return
         self.babeld[name] = self.testbed.babeld(name, self.log_dir)
 
-    def _client(self, node: EmulatedNode, psk: bytes) -> Client:
+    def client_for(self, node: EmulatedNode, psk: bytes, name: str = "emulator") -> Client:
+        """A client connecting from inside the node's namespace, to 127.0.0.1 there."""
         assert self.testbed is not None
-        return Client("127.0.0.1", node.port, psk, "emulator", netns=self.testbed.netns(node.id))
+        return Client("127.0.0.1", node.port, psk, name, netns=self.testbed.netns(node.id))
 
     def kill(self, node: str) -> float:
         """Fail-stop the device: its node process and its routing daemon (by PID)."""
