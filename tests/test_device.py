@@ -72,7 +72,7 @@ def test_monitor_prefers_measured_figures(tmp_path: Path) -> None:
     assert snap["lifetime_s"] == 0.8 * 50 * 3600 / 10.0  # at the measured 10 W
     assert snap["measured"]["iface_tx_bytes"] == 256 and "cpu_load" in snap["measured"]
     cell = _measured_cell(snap)
-    assert cell.startswith("battery, W, cpu ") and cell.endswith("radio 256/1024 B")
+    assert cell.startswith("battery, W, cpu ") and cell.endswith("radio 256 B/1.0 kB")
     _laptop(tmp_path, status="Charging")
     mon.observe(2.0, probe.read())
     assert mon.lifetime_s is None  # on the charger: no end in sight

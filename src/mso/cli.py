@@ -850,8 +850,17 @@ def _measured_cell(mon: dict[str, Any]) -> str:
     if "cpu_load" in measured:
         out.append(f"cpu {measured['cpu_load'] * 100:.0f}%")
     if "iface_tx_bytes" in measured:
-        out.append(f"radio {measured['iface_tx_bytes']}/{measured['iface_rx_bytes']} B")
+        tx, rx = _size(measured["iface_tx_bytes"]), _size(measured["iface_rx_bytes"])
+        out.append(f"radio {tx}/{rx}")
     return ", ".join(out) or "-"
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if abs(n) < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} GB"
 
 
 def render_status(console: Console, nodes: dict[str, Any]) -> None:
