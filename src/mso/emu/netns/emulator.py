@@ -74,6 +74,8 @@ class NetnsEmulator(Emulator):
         names = list(self.scenario.network.nodes)
         if self.heartbeat_s is None and self.dead_after_s is None:
             self.heartbeat_s, self.dead_after_s = HEARTBEAT_NETNS_S, DEAD_AFTER_NETNS_S
+        # no state file (nothing outside the namespaces can reach the nodes): a name to show
+        self.name = self.name or f"{self.scenario.name}-netns"
         if not (self.key or os.environ.get("MSO_KEY")):
             # nodes listen on their namespace's address, where the development key is refused:
             # a fresh key for this run (the controller passes it to every node)
