@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+import mso.emu.netns.emulator as netns_emulator
 import mso.emu.netns.testbed as testbed
 from mso.cli import main
 
@@ -16,7 +17,7 @@ EXAMPLES = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples"
 
 
 def test_netns_backend_falls_back_with_the_reason(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(testbed, "unavailable", lambda: "no namespaces for you (test)")
+    monkeypatch.setattr(netns_emulator, "unavailable", lambda: "no namespaces for you (test)")
     monkeypatch.setenv("MSO_NETNS_USERNS", "1")  # as if already re-run in a user namespace
     result = CliRunner().invoke(
         main,
