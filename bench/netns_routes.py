@@ -14,7 +14,10 @@ lets the link's frames through:
 * mso_reroute_ms: when N1's mso node reports its route to N4 through that neighbour (its own
   status, polled every 10 ms on a connection inside its namespace);
 * lag_ms: mso_reroute_ms - kernel_reroute_ms, what the kernel view adds (netlink event, a
-  20 ms debounce, a table dump, then the core).
+  20 ms debounce, a table dump, then the core);
+* flow_gap_ms: a 200 events/s flow from N1 to N4 runs throughout (``netns_vertices``): the
+  sink's inter-arrival gap that spans the break, i.e. how long the app saw nothing; events
+  lost, repeated or out of order are counted over all breaks.
 
 Then the link comes back and the run waits until both agree on a route again. Also the
 testbed's start: namespaces + babeld + nodes until every node is connected to every other.
@@ -27,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import socket
 import sys
 import time
@@ -38,7 +42,15 @@ from mso.emu.netns.emulator import NetnsEmulator, check_available
 from mso.protocol import messages as m
 from mso.scenario import loads_scenario
 
-RESULTS = Path(__file__).resolve().parent / "results"
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+FLOW = """
+name: flow
+vertices:
+  src: {code: netns_vertices:BeatSource, pinned: N1, rate: 200, output: netns_vertices:Beat}
+  sink: {code: netns_vertices:GapTimer, pinned: N4, input: netns_vertices:Beat}
+edges: [[src, sink]]
+"""
 SQUARE = """
 name: square
 link_defaults: {bandwidth_mbps: 100}
@@ -130,6 +142,10 @@ async def one_break(emu: NetnsEmulator, watch: KernelWatch, k: int) -> dict[str,
         row["lag_ms"] = (mso_at - reroute) * 1e3
     if mso_at is None or reroute is None:
         row["error"] = "no re-route seen in time"
+    await asyncio.sleep(1.0)  # the flow resumes (a pause, then read the gap that spans t0)
+    sink = await sink_stats(emu)
+    spans = [(a, b) for a, b in sink["gaps"] if a <= t0 + 0.05 and b >= t0]
+    row["flow_gap_ms"] = max(((b - a) * 1e3 for a, b in spans), default=None)
     # the link comes back; wait until both sides agree on some route again
     await emu.set_link("N1", old, True)
     await asyncio.sleep(3.0)  # let babeld settle before the next break (a pause, not a sync)
@@ -140,6 +156,13 @@ async def one_break(emu: NetnsEmulator, watch: KernelWatch, k: int) -> dict[str,
             break
         await asyncio.sleep(POLL_S * 5)
     return row
+
+
+async def sink_stats(emu: NetnsEmulator) -> dict[str, Any]:
+    reply = await emu.call("N4", m.StatusRequest(), 5.0)
+    assert isinstance(reply, m.StatusReply)
+    stats: dict[str, Any] = reply.nodes["N4"]["apps"]["flow"]["vertices"]["sink"]["stats"]
+    return stats
 
 
 def summary(values: list[float]) -> dict[str, Any]:
@@ -157,7 +180,12 @@ def summary(values: list[float]) -> dict[str, Any]:
 async def run(runs: int) -> dict[str, Any]:
     check_available()
     t_start = time.monotonic()
-    emu = NetnsEmulator(loads_scenario(SQUARE))
+    saved = {k: os.environ.get(k) for k in ("PYTHONPATH", "MSO_ALLOW_CODE")}
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *filter(None, [saved["PYTHONPATH"]])])
+    os.environ["MSO_ALLOW_CODE"] = ",".join(
+        filter(None, [saved["MSO_ALLOW_CODE"], "netns_vertices"])
+    )
+    emu = NetnsEmulator(loads_scenario(SQUARE), manage=False)
     loop = asyncio.get_running_loop()
     t0 = loop.time()
     await emu.start()
@@ -165,15 +193,26 @@ async def run(runs: int) -> dict[str, Any]:
     assert emu.testbed is not None
     watch = KernelWatch(emu.testbed.netns("N1"), emu.testbed.address("N4"))
     rows = []
+    sink: dict[str, Any] = {}
     try:
         await watch.start()
+        reply = await emu.deploy(FLOW, "flow.yaml", "N1")
+        if not reply.ok:
+            raise RuntimeError(f"deploy failed: {reply.error}")
+        await asyncio.sleep(1.0)
         for k in range(runs):
             row = await one_break(emu, watch, k)
             print(row, file=sys.stderr)
             rows.append(row)
+        sink = await sink_stats(emu)
     finally:
         watch.close()
         await emu.stop()
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
     ok = [r for r in rows if not r["error"]]
     return {
         "benchmark": "netns_routes",
@@ -185,6 +224,8 @@ async def run(runs: int) -> dict[str, Any]:
         "kernel_reroute_ms": summary([r["kernel_reroute_ms"] for r in ok]),
         "mso_reroute_ms": summary([r["mso_reroute_ms"] for r in ok]),
         "lag_ms": summary([r["lag_ms"] for r in ok]),
+        "flow_gap_ms": summary([r["flow_gap_ms"] for r in ok if r.get("flow_gap_ms")]),
+        "flow": {k: sink.get(k) for k in ("count", "repeats", "out_of_order")},
         "failures": [r for r in rows if r["error"]],
         "rows": rows,
         "seconds": time.monotonic() - t_start,
@@ -208,6 +249,7 @@ def render(result: dict[str, Any]) -> str:
         ("kernel_reroute_ms", "babeld installs the new route (kernel)"),
         ("mso_reroute_ms", "mso's node reports the new route"),
         ("lag_ms", "mso after the kernel"),
+        ("flow_gap_ms", "a 200 events/s flow N1 -> N4 sees nothing for"),
     ):
         s = result[key]
         lines.append(
@@ -217,6 +259,11 @@ def render(result: dict[str, Any]) -> str:
     lines.append(
         f"- start (namespaces, babeld, 4 nodes connected to each other): "
         f"{result['start_ms']:.0f} ms; failures: {len(result['failures'])}"
+    )
+    f = result["flow"]
+    lines.append(
+        f"- the flow over all breaks: {f['count']} events delivered, {f['repeats']} repeated, "
+        f"{f['out_of_order']} out of order (a gap in the sequence: lost)"
     )
     load = result.get("machine", {}).get("load_average")
     lines.append(f"- load average at the end: {load} (a shared 2-vCPU VM, other agents running)")

@@ -33,3 +33,53 @@ class CountingSink:
 
     def stats(self) -> dict[str, int]:
         return {"count": self.count, "bytes": self.bytes}
+
+
+class Beat(msgspec.Struct, array_like=True, frozen=True):
+    seq: int
+
+
+class BeatSource:
+    def __init__(self) -> None:
+        self.sent = 0
+
+    def __call__(self, seq: int, now: float) -> Beat:
+        self.sent += 1
+        return Beat(self.sent - 1)
+
+
+class GapTimer:
+    """Times every inter-arrival gap over ``min_gap_s`` (CLOCK_MONOTONIC, the clock of the
+    controller's loop): ``(start, end)`` of each, the last 100; and counts order violations."""
+
+    def __init__(self, min_gap_s: float = 0.05) -> None:
+        self.min_gap_s = min_gap_s
+        self.last: float | None = None
+        self.next = 0
+        self.count = 0
+        self.repeats = 0
+        self.out_of_order = 0
+        self.gaps: list[tuple[float, float]] = []
+
+    def __call__(self, event: Beat) -> None:
+        import time
+
+        now = time.monotonic()
+        if self.last is not None and now - self.last > self.min_gap_s:
+            self.gaps.append((self.last, now))
+            del self.gaps[:-100]
+        self.last = now
+        self.count += 1
+        if event.seq < self.next:
+            self.repeats += 1
+        elif event.seq > self.next:
+            self.out_of_order += 1
+        self.next = max(self.next, event.seq + 1)
+
+    def stats(self) -> dict[str, object]:
+        return {
+            "count": self.count,
+            "repeats": self.repeats,
+            "out_of_order": self.out_of_order,
+            "gaps": [list(g) for g in self.gaps],
+        }
