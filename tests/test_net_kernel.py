@@ -149,3 +149,11 @@ def test_kernel_view_over_netlink_follows_route_changes(line3: list[str]) -> Non
                 await v.close()
 
     asyncio.run(main())
+
+
+def test_netns_addresses_split() -> None:
+    from mso.client import split_netns
+
+    assert split_netns("mso-1-n2@127.0.0.1:7000") == ("mso-1-n2", "127.0.0.1:7000")
+    assert split_netns("10.0.0.1:7000") == (None, "10.0.0.1:7000")
+    assert split_netns("@127.0.0.1:7000") == (None, "@127.0.0.1:7000")

@@ -134,6 +134,13 @@ def test_line_routes_and_overlay_follow_links_that_move() -> None:
         emu = NetnsEmulator(loads_scenario(LINE))
         await emu.start()
         try:
+            # what `mso status` in another terminal does: the overlay's address of a node
+            # names its namespace (NETNS@127.0.0.1:PORT)
+            from mso.client import request
+            from mso.protocol import messages as m
+
+            reply = await request(emu.address("N3"), m.StatusRequest(), key=emu.key)
+            assert isinstance(reply, m.StatusReply) and list(reply.nodes) == ["N3"]
             status = await emu.status("N1")
             # babeld's routes, named by the nodes' announcements: N4 is three hops via N2
             assert status["N1"]["routes"]["N2"] == ["N2", 1]

@@ -1303,6 +1303,8 @@ def _emulate(
     console = _console()
 
     kind: type[Emulator] = Emulator
+    if backend == "netns" and metrics_port is not None:
+        raise MsoError("--metrics is not available with --backend netns yet")
     if backend == "netns":
         try:
             check_available()

@@ -127,6 +127,12 @@ class Client:
                 await self._writer.wait_closed()
 
 
+def split_netns(address: str) -> tuple[str | None, str]:
+    """``NETNS@HOST:PORT`` -> ``(NETNS, HOST:PORT)``; a plain address has no namespace."""
+    netns, at, rest = address.partition("@")
+    return (netns, rest) if at and netns else (None, address)
+
+
 def parse_address(text: str, default_port: int = 7000) -> tuple[str, int]:
     """``HOST:PORT`` (or ``HOST``) with a port in 0..65535."""
     host, _, port = text.rpartition(":")
@@ -144,9 +150,11 @@ def parse_address(text: str, default_port: int = 7000) -> tuple[str, int]:
 async def request(
     address: str, msg: m.Message, *, key: str | None = None, timeout: float = 10.0
 ) -> Any:
-    """Connect, send one request, return the reply."""
+    """Connect, send one request, return the reply. ``NETNS@HOST:PORT`` connects from inside
+    network namespace NETNS (a node of the netns testbed)."""
+    netns, address = split_netns(address)
     host, port = parse_address(address)
-    client = await Client(host, port, overlay_key(key)).connect()
+    client = await Client(host, port, overlay_key(key), netns=netns).connect()
     try:
         return await client.call(msg, timeout)
     finally:

@@ -33,6 +33,7 @@ from pathlib import Path
 from mso.client import Client
 from mso.emu.controller import EmulatedNode, Emulator
 from mso.emu.netns.testbed import Testbed, unavailable
+from mso.emu.overlays import _claim
 from mso.errors import MsoError
 from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 from mso.protocol import messages as m
@@ -74,8 +75,7 @@ class NetnsEmulator(Emulator):
         names = list(self.scenario.network.nodes)
         if self.heartbeat_s is None and self.dead_after_s is None:
             self.heartbeat_s, self.dead_after_s = HEARTBEAT_NETNS_S, DEAD_AFTER_NETNS_S
-        # no state file (nothing outside the namespaces can reach the nodes): a name to show
-        self.name = self.name or f"{self.scenario.name}-netns"
+        self.name = _claim(self.name, self.scenario.name)
         if not (self.key or os.environ.get("MSO_KEY")):
             # nodes listen on their namespace's address, where the development key is refused:
             # a fresh key for this run (the controller passes it to every node)
@@ -107,6 +107,7 @@ class NetnsEmulator(Emulator):
             await self.stop()
             raise
         self._watch_task = asyncio.create_task(self._watch())
+        self.write_state()
 
     # -- processes ------------------------------------------------------------------------
     def _node_command(self, name: str) -> list[str]:
@@ -204,8 +205,14 @@ class NetnsEmulator(Emulator):
                     )
                 await asyncio.sleep(0.05)
 
-    def write_state(self) -> None:
-        """Nodes inside namespaces cannot be reached from outside: no state file."""
+    def address(self, node: str) -> str:
+        """``NETNS@127.0.0.1:PORT``: the node as seen from inside its namespace, which is how
+        `mso status` / `mso deploy` in another terminal reach it (give them the overlay key:
+        --key or $MSO_KEY, since a run without one makes up its own)."""
+        n = self.nodes.get(node)
+        if n is None or self.testbed is None:
+            raise MsoError(f"unknown node {node!r} (nodes: {', '.join(self.nodes)})")
+        return f"{self.testbed.netns(node)}@127.0.0.1:{n.port}"
 
     def counters(self, node: str) -> dict[str, int]:
         """The kernel's byte and packet counters of ``node``'s radio (eth0)."""
