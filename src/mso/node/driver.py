@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import threading
 from collections.abc import Hashable
 from typing import Any
@@ -186,3 +187,16 @@ async def run_node(core: NodeCore, host: str, port: int, psk: bytes) -> None:
     finally:
         if not driver.stopped.is_set():
             await driver.stop()
+
+
+PARENT_ENV = "MSO_PARENT_PID"  # set by an emulator for the node processes it starts
+PARENT_CHECK_S = 0.5
+
+
+async def stop_with_parent(driver: NodeDriver, parent: int) -> None:
+    """Stop the node once the process that started it is gone (an emulator killed or crashed:
+    the node is re-parented), so no node process outlives its emulator."""
+    while not driver.stopped.is_set() and os.getppid() == parent:
+        await asyncio.sleep(PARENT_CHECK_S)
+    if not driver.stopped.is_set():
+        await driver.stop()

@@ -9,10 +9,12 @@ On a device (``mso node`` outside an emulator) the driver also hands it what the
 remaining energy and drain, the process's CPU time gives the measured node load, and the
 interface counters the radio's bytes. ``snapshot()["sources"]`` says which figure is which.
 
-CPU energy is charged for the *modelled* work of the vertices that ran here: a vertex of cost c
-processing one event is c ms of CPU on a node of ``cpu: 1.0``, so c / cpu ms here. The measured
-CPU time of vertex code is reported next to it; on an emulated laptop the two differ (stand-in
-code is cheap, and the host is not the robot).
+CPU energy is charged, by default, for the *modelled* work of the vertices that ran here: a
+vertex of cost c processing one event is c ms of CPU on a node of ``cpu: 1.0``, so c / cpu ms
+here (stand-in code is cheap, yet the experiment must drain the robot that would do the work).
+With ``cpu_energy: measured`` it is charged for the CPU time the vertex code really took,
+divided by the node's cpu (the host is the reference node): real code drains whichever robot
+runs it, by what it costs.
 """
 
 from __future__ import annotations
@@ -111,7 +113,9 @@ class Monitor:
         return {
             "battery": battery,
             "drain": "measured" if self.measured_drain_w is not None else "modelled",
-            "energy": "modelled (power model: idle, vertex cost, bytes)",
+            "energy": "modelled (power model: idle, "
+            + ("measured vertex CPU time" if self.power.cpu_energy == "measured" else "vertex cost")
+            + ", bytes)",
             "load": "modelled (vertex cost / cpu); node CPU time measured"
             if "cpu_load" in self.device
             else "modelled (vertex cost / cpu)",
@@ -120,8 +124,13 @@ class Monitor:
             + ("; interfaces measured" if "iface_tx_bytes" in self.device else ""),
         }
 
-    def sample(self, now: float, work_ms: float, bytes_out: int, bytes_in: int) -> None:
-        """Charge the energy spent since the last sample (counters are cumulative)."""
+    def sample(
+        self, now: float, work_ms: float, bytes_out: int, bytes_in: int, cpu_ms: float = 0.0
+    ) -> None:
+        """Charge the energy spent since the last sample (counters are cumulative; ``cpu_ms``
+        is the measured CPU time of the vertex code, used with ``cpu_energy: measured``)."""
+        if self.power.cpu_energy == "measured":
+            work_ms = cpu_ms
         if self._last is None:
             self._last = (now, work_ms, bytes_out, bytes_in)
             self.started_at = now

@@ -95,6 +95,11 @@ class FrameCodec:
     def peer_nonce(self) -> bytes | None:
         return self._peer_nonce
 
+    @property
+    def greeted(self) -> bool:
+        """The peer's hello has arrived (the key check is under way or done)."""
+        return self._rx_key is not None
+
     def hello(self) -> bytes:
         return MAGIC + self._nonce
 
