@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import socket
 from typing import Any
 
 import msgspec
@@ -28,8 +29,11 @@ class NodeUnreachable(MsoError):
 class Client:
     """One authenticated connection to a node."""
 
-    def __init__(self, host: str, port: int, psk: bytes, name: str = "cli") -> None:
+    def __init__(
+        self, host: str, port: int, psk: bytes, name: str = "cli", netns: str | None = None
+    ) -> None:
         self.host, self.port, self.psk, self.name = host, port, psk, name
+        self.netns = netns  # connect from inside this network namespace (the netns testbed)
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
         self._codec = FrameCodec(psk)
@@ -37,9 +41,7 @@ class Client:
 
     async def connect(self, timeout: float = 5.0) -> Client:
         try:
-            self._reader, self._writer = await asyncio.wait_for(
-                asyncio.open_connection(self.host, self.port), timeout
-            )
+            self._reader, self._writer = await asyncio.wait_for(self._open(), timeout)
         except (OSError, TimeoutError) as exc:
             raise NodeUnreachable(f"cannot reach node at {self.host}:{self.port}: {exc}") from None
         assert self._writer is not None and self._reader is not None
@@ -67,6 +69,20 @@ class Client:
             raise NodeUnreachable(f"no mso hello from {self.host}:{self.port}: {exc}") from None
         await self.send(m.ClientHello(self.name))
         return self
+
+    async def _open(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        if self.netns is None:
+            return await asyncio.open_connection(self.host, self.port)
+        from mso.net.netns import socket_in_netns
+
+        sock = socket_in_netns(self.netns, socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            sock.setblocking(False)
+            await asyncio.get_running_loop().sock_connect(sock, (self.host, self.port))
+        except BaseException:
+            sock.close()
+            raise
+        return await asyncio.open_connection(sock=sock)
 
     async def send(self, msg: m.Message) -> None:
         assert self._writer is not None
@@ -117,6 +133,12 @@ class Client:
                 await self._writer.wait_closed()
 
 
+def split_netns(address: str) -> tuple[str | None, str]:
+    """``NETNS@HOST:PORT`` -> ``(NETNS, HOST:PORT)``; a plain address has no namespace."""
+    netns, at, rest = address.partition("@")
+    return (netns, rest) if at and netns else (None, address)
+
+
 def parse_address(text: str, default_port: int = 7000) -> tuple[str, int]:
     """``HOST:PORT`` (or ``HOST``) with a port in 0..65535."""
     host, _, port = text.rpartition(":")
@@ -134,9 +156,11 @@ def parse_address(text: str, default_port: int = 7000) -> tuple[str, int]:
 async def request(
     address: str, msg: m.Message, *, key: str | None = None, timeout: float = 10.0
 ) -> Any:
-    """Connect, send one request, return the reply."""
+    """Connect, send one request, return the reply. ``NETNS@HOST:PORT`` connects from inside
+    network namespace NETNS (a node of the netns testbed)."""
+    netns, address = split_netns(address)
     host, port = parse_address(address)
-    client = await Client(host, port, overlay_key(key)).connect()
+    client = await Client(host, port, overlay_key(key), netns=netns).connect()
     try:
         return await client.call(msg, timeout)
     finally:
