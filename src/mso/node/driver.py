@@ -68,6 +68,7 @@ class NodeDriver:
         self._results: list[fx.VertexResult] = []
         self._results_lock = threading.Lock()
         self.stopped = asyncio.Event()
+        self._warmed: set[int] = set()  # app documents whose imports are done
         core.status_hook = self._link_status
         core.traffic = lambda: (self.counters.bytes_out, self.counters.bytes_in)
         core.clock = self.loop.time
@@ -127,7 +128,15 @@ class NodeDriver:
         heartbeats and get this node declared failed. Messages for the app that overtake it
         are held by the core until the announcement arrives."""
 
+        key = hash(document)
+        if key in self._warmed:  # imported once already (a redeploy, a rejoin): go on
+            then()
+            return
+
         def done(_: asyncio.Future[None]) -> None:
+            if len(self._warmed) >= MAX_WARMED:
+                self._warmed.clear()
+            self._warmed.add(key)
             if not self.stopped.is_set():
                 then()
 
@@ -217,6 +226,7 @@ async def run_node(core: NodeCore, host: str, port: int, psk: bytes) -> None:
             await driver.stop()
 
 
+MAX_WARMED = 256
 PARENT_ENV = "MSO_PARENT_PID"  # set by an emulator for the node processes it starts
 PARENT_CHECK_S = 0.5
 
