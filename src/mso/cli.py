@@ -250,6 +250,45 @@ def _demo(duration: float, plan_only: bool) -> None:
 
 
 # -- the running system ----------------------------------------------------------------------
+sign_option = click.option(
+    "--sign",
+    envvar="MSO_SIGN",
+    metavar="KEYFILE",
+    help="Sign the command with this operator key (made by `mso keygen`; default: $MSO_SIGN); "
+    "needed by nodes started with --operator-key.",
+)
+operator_key_option = click.option(
+    "--operator-key",
+    "operator_keys",
+    multiple=True,
+    metavar="PUB",
+    help="An operator's public key (text or .pub file, repeat): commands that change an overlay "
+    "must be signed with one. Without any, the overlay key is all there is.",
+)
+
+
+@main.command()
+@click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+@_user_errors
+def keygen(out: Path) -> None:
+    """Make an operator key: OUT (private, mode 0600) and OUT.pub (give it to every node)."""
+    import os
+
+    from mso.protocol.authority import Signer
+
+    signer = Signer()
+    pub = out.with_name(out.name + ".pub")
+    try:
+        fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(signer.private_text() + "\n")
+        pub.write_text(signer.public_text() + "\n")
+    except OSError as exc:
+        raise MsoError(f"{exc.filename}: {exc.strerror}") from None
+    click.echo(f"wrote {out} (keep it secret) and {pub}: mso node --operator-key {pub}")
+    click.echo(signer.public_text())
+
+
 allow_code_option = click.option(
     "--allow-code",
     "allow_code",
@@ -343,6 +382,7 @@ NODE_CONFIG_KEYS = {
     "policy",
     "manage",
     "allow_code",
+    "operator_keys",
 }
 
 
@@ -391,10 +431,10 @@ def _node_config(path: Path) -> dict[str, Any]:
             raise SpecError(f"expected a number > 0, got {v!r}", file=doc.file, line=line, field=k)
         if k == "manage" and not isinstance(v, bool):
             raise SpecError(f"expected true or false, got {v!r}", file=doc.file, line=line, field=k)
-        if k == "allow_code" and not (
+        if k in ("allow_code", "operator_keys") and not (
             isinstance(v, list) and all(isinstance(x, str) and x for x in v)
         ):
-            raise SpecError("expected a list of module names", file=doc.file, line=line, field=k)
+            raise SpecError("expected a list of strings", file=doc.file, line=line, field=k)
         if k in ("id", "listen", "key") and not isinstance(v, str):
             raise SpecError(f"expected a string, got {v!r}", file=doc.file, line=line, field=k)
     return data
@@ -437,6 +477,7 @@ def _node_config(path: Path) -> dict[str, Any]:
     help="Seconds of silence after which a neighbour is declared failed (default 0.5).",
 )  # fmt: skip
 @allow_code_option
+@operator_key_option
 @click.option(
     "--insecure",
     is_flag=True,
@@ -458,6 +499,7 @@ def node(
     heartbeat_s: float | None,
     dead_after_s: float | None,
     allow_code: tuple[str, ...],
+    operator_keys: tuple[str, ...],
     insecure: bool,
     key: str | None,
     verbose: bool,
@@ -481,6 +523,7 @@ def node(
         model = PowerModel(*power_model(power))
     set_code_allowlist(allow_code or tuple(cfg.get("allow_code", ())))
     key = key if key is not None else cfg.get("key")
+    authority = node_authority(operator_keys or tuple(cfg.get("operator_keys", ())))
     dev_key = check_key(key, listen or cfg.get("listen", "127.0.0.1:7000"), insecure)
     battery = battery_wh if battery_wh is not None else cfg.get("battery_wh")
     if battery is not None and battery <= 0:
@@ -499,7 +542,18 @@ def node(
         heartbeat_s,
         dead_after_s,
         dev_key,
+        authority,
     )
+
+
+def node_authority(keys: tuple[str, ...]) -> Any:
+    """The operator keys (and the emulator's, from $MSO_EMULATOR_KEY) this node obeys."""
+    from mso.protocol.authority import Authority, KeyError_
+
+    try:
+        return Authority.from_env(list(keys))
+    except KeyError_ as exc:
+        raise MsoError(f"--operator-key: {exc}") from None
 
 
 def _node(
@@ -516,6 +570,7 @@ def _node(
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
     dev_key: bool = False,
+    authority: Any = None,
 ) -> None:
     import asyncio
     import logging
@@ -557,7 +612,7 @@ def _node(
 
     async def serve() -> None:
         view = StaticRoutes(node_id, static) if static else None  # else the emulator's
-        driver = NodeDriver(core, host, port, overlay_key(key), view)
+        driver = NodeDriver(core, host, port, overlay_key(key), view, authority=authority)
         try:
             await driver.start()
         except OSError as exc:
@@ -573,21 +628,32 @@ def _node(
 @main.command()
 @click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--via", help="Node to deploy from: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
-def deploy(app_file: Path, via: str | None, key: str | None, as_json: bool) -> None:
+def deploy(
+    app_file: Path, via: str | None, sign: str | None, key: str | None, as_json: bool
+) -> None:
     """Deploy an app from any node (distributed Algorithm 1)."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     load_app(app_file)  # report file errors here, with their lines, before sending anything
     document = read_text_file(app_file)
     address = _resolve_via(via)
     reply = asyncio.run(
-        request(address, m.DeployRequest(document, str(app_file)), key=key, timeout=30)
+        request(
+            address,
+            m.DeployRequest(document, str(app_file)),
+            key=key,
+            timeout=30,
+            signer=signer,
+        )
     )
     if not isinstance(reply, m.DeployReply) or not reply.ok:
         raise MsoError(f"deployment failed: {getattr(reply, 'error', reply)}")
@@ -624,6 +690,7 @@ async def _only_app(address: str, key: str | None) -> str:
 )
 @click.option("--to", "target", help="Onto this node.")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
@@ -633,21 +700,24 @@ def relocate(
     direction: str | None,
     target: str | None,
     via: str | None,
+    sign: str | None,
     key: str | None,
     as_json: bool,
 ) -> None:
     """Move one vertex of a running app, with its state, losing no event (§3.4.1)."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     if bool(direction) == bool(target):
         raise MsoError("give exactly one of --upstream, --downstream or --to NODE")
     address = _resolve_via(via)
     app = app_name or asyncio.run(_only_app(address, key))
     req = m.RelocateRequest(app, vertex, direction or "", target or "")
-    reply = asyncio.run(request(address, req, key=key))
+    reply = asyncio.run(request(address, req, key=key, signer=signer))
     if not isinstance(reply, m.RelocateReply) or not reply.ok:
         raise MsoError(f"relocation refused: {getattr(reply, 'error', reply)}")
     if as_json:
@@ -664,6 +734,7 @@ def relocate(
 @click.option("--chains", help="Several chains, comma-separated (global remap, §3.4.3).")
 @click.option("--all", "everything", is_flag=True, help="Every chain of the app.")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
@@ -673,6 +744,7 @@ def remap(
     chains: str | None,
     everything: bool,
     via: str | None,
+    sign: str | None,
     key: str | None,
     as_json: bool,
 ) -> None:
@@ -682,8 +754,10 @@ def remap(
     its index (`mso chains`) or as head-...-tail."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     words = list(chain[1:] if chain[:1] == ("chain",) else chain)
     names = [c for c in words + (chains.split(",") if chains else []) if c]
@@ -708,7 +782,8 @@ def remap(
                     indices.append(known.index(n))
                 else:
                     raise MsoError(f"unknown chain {n!r} (chains: {', '.join(known)})")
-        return await request(address, m.RemapRequest(app_name_, indices, everything), key=key)
+        req = m.RemapRequest(app_name_, indices, everything)
+        return await request(address, req, key=key, signer=signer)
 
     reply = asyncio.run(run())
     if not isinstance(reply, m.RemapReply) or not reply.ok:
@@ -725,14 +800,17 @@ def remap(
 @main.command()
 @click.argument("app_name")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @key_option
 @_user_errors
-def undeploy(app_name: str, via: str | None, key: str | None) -> None:
+def undeploy(app_name: str, via: str | None, sign: str | None, key: str | None) -> None:
     """Stop an app on every node."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     address = _resolve_via(via)
 
@@ -745,7 +823,7 @@ def undeploy(app_name: str, via: str | None, key: str | None) -> None:
             raise MsoError(
                 f"no running app named {app_name!r} (running: {', '.join(apps) or 'none'})"
             )
-        await request(address, m.StopApp(app_name), key=key)
+        await request(address, m.StopApp(app_name), key=key, signer=signer)
 
     asyncio.run(run())
     click.echo(f"stopped {app_name}")

@@ -11,6 +11,7 @@ import msgspec
 
 from mso.errors import MsoError
 from mso.protocol import messages as m
+from mso.protocol.authority import EMULATOR_COMMANDS, OPERATOR_COMMANDS, Signer
 from mso.protocol.framing import FrameCodec, FramingError, WrongKey, psk_from_text
 
 DEFAULT_KEY = "mso-insecure-default-key"
@@ -25,11 +26,30 @@ class NodeUnreachable(MsoError):
     """The node did not answer."""
 
 
+class Refused(MsoError):
+    """The node refused a command for want of authority."""
+
+
+def load_signer(path: str | None) -> Signer | None:
+    """The operator's private key from ``path`` (``--sign``, ``$MSO_SIGN``), if given."""
+    from mso.protocol.authority import KeyError_
+
+    if not path:
+        return None
+    try:
+        return Signer.load(path)
+    except KeyError_ as exc:
+        raise MsoError(f"--sign: {exc}") from None
+
+
 class Client:
     """One authenticated connection to a node."""
 
-    def __init__(self, host: str, port: int, psk: bytes, name: str = "cli") -> None:
+    def __init__(
+        self, host: str, port: int, psk: bytes, name: str = "cli", signer: Signer | None = None
+    ) -> None:
         self.host, self.port, self.psk, self.name = host, port, psk, name
+        self.signer = signer  # signs the commands that change an overlay
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
         self._codec = FrameCodec(psk)
@@ -64,6 +84,12 @@ class Client:
 
     async def send(self, msg: m.Message) -> None:
         assert self._writer is not None
+        if self.signer is not None and isinstance(msg, OPERATOR_COMMANDS + EMULATOR_COMMANDS):
+            if isinstance(msg, m.DeployRequest):
+                msg = m.DeployRequest(self.signer.grant(msg.document), msg.file)
+            nonce = self._codec.peer_nonce
+            assert nonce is not None
+            msg = self.signer.command(nonce, msg)
         frame = self._codec.seal(m.wrap("client", "node", msg))
         if frame:
             self._writer.write(frame)
@@ -98,7 +124,10 @@ class Client:
                 raise NodeUnreachable(
                     f"node at {self.host}:{self.port} rejected our frames: wrong overlay key?"
                 )
-        return self._inbox.pop(0)
+        msg = self._inbox.pop(0)
+        if isinstance(msg, m.Refused):
+            raise Refused(f"node at {self.host}:{self.port} {msg.reason}")
+        return msg
 
     async def call(self, msg: m.Message, timeout: float = 10.0) -> m.Message:
         await self.send(msg)
@@ -126,11 +155,16 @@ def parse_address(text: str, default_port: int = 7000) -> tuple[str, int]:
 
 
 async def request(
-    address: str, msg: m.Message, *, key: str | None = None, timeout: float = 10.0
+    address: str,
+    msg: m.Message,
+    *,
+    key: str | None = None,
+    timeout: float = 10.0,
+    signer: Signer | None = None,
 ) -> Any:
     """Connect, send one request, return the reply."""
     host, port = parse_address(address)
-    client = await Client(host, port, overlay_key(key)).connect()
+    client = await Client(host, port, overlay_key(key), signer=signer).connect()
     try:
         return await client.call(msg, timeout)
     finally:

@@ -30,6 +30,7 @@ from mso.errors import MsoError
 from mso.model.network import LinkSpec
 from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 from mso.protocol import messages as m
+from mso.protocol.authority import Signer
 from mso.scenario import Scenario
 from mso.scenario.timeline import Crash, Restart, Timeline
 
@@ -90,6 +91,9 @@ class Emulator:
     dead_after_s: float | None = None  # every node's failure timeout (None: the node default)
     # modules every node may import app code from (None: $MSO_ALLOW_CODE, else the examples)
     allow_code: tuple[str, ...] | None = None
+    operator_keys: tuple[str, ...] = ()  # public keys every node obeys (--operator-key)
+    # this emulator's own key: its nodes take LinkStates and Shutdowns signed with it only
+    signer: Signer = field(default_factory=Signer)
 
     async def start(self, timeout: float = 20.0) -> None:
         names = list(self.scenario.network.nodes)
@@ -124,6 +128,7 @@ class Emulator:
     def _env(self) -> dict[str, str]:
         env = dict(os.environ)
         env["MSO_KEY"] = self.key or env.get("MSO_KEY", "") or "mso-insecure-default-key"
+        env["MSO_EMULATOR_KEY"] = self.signer.public_text()
         self.key = env["MSO_KEY"]
         return env
 
@@ -151,6 +156,8 @@ class Emulator:
             cmd += ["--dead-after", repr(self.dead_after_s)]
         for module in self.allow_code or ():
             cmd += ["--allow-code", module]
+        for pub in self.operator_keys:
+            cmd += ["--operator-key", pub]
         node.log = self.log_dir / f"{name}.log"
         with node.log.open("ab") as out:
             node.process = subprocess.Popen(
@@ -215,7 +222,9 @@ class Emulator:
                 self.failed = True
                 raise MsoError(f"node {node.id} exited at start; see {node.log}")
             try:
-                node.client = await Client(node.host, node.port, psk, "emulator").connect(1.0)
+                node.client = await Client(
+                    node.host, node.port, psk, "emulator", signer=self.signer
+                ).connect(1.0)
                 return
             except NodeUnreachable:
                 if loop.time() > deadline:

@@ -31,6 +31,7 @@ from mso.net.forwarding import RouteWait
 from mso.net.limits import DEFAULT_LIMITS, ConnectionCounters, Limits
 from mso.net.shaping import Link
 from mso.protocol import messages as m
+from mso.protocol.authority import DOCUMENT_MESSAGES, Authority
 from mso.protocol.framing import FrameCodec, FramingError
 
 log = logging.getLogger("mso.node")
@@ -148,9 +149,11 @@ class TcpTransport:
         psk: bytes,
         view: RoutingView,
         limits: Limits = DEFAULT_LIMITS,
+        authority: Authority | None = None,
     ) -> None:
         self._node_id = node_id
         self.limits = limits
+        self.authority = authority or Authority()
         self.connection_counters = ConnectionCounters()
         self.accepted: set[Connection] = set()  # connections others opened to this node
         self.host = host
@@ -312,11 +315,23 @@ class TcpTransport:
             self.clients[conn.client] = conn
             return
         if conn.client is not None:
+            if not self.authority.open or isinstance(msg, m.Authorized):
+                verdict = self.authority.command(conn.codec.nonce, msg)
+                if isinstance(verdict, str):  # counted by the authority, told to the client
+                    log.warning("client %s: %s", conn.address or "?", verdict)
+                    conn.send_message("client", m.Refused(verdict))
+                    return
+                msg = verdict
             self._on_client(conn.client, msg)
             return
         if conn.peer is None:
             self.counters.frames_malformed += 1  # a peer must say hello first
             return
+        if isinstance(msg, DOCUMENT_MESSAGES) and self.authority.operators:
+            why = self.authority.document(msg.document)
+            if why:  # an app no operator granted: its code is never loaded here
+                log.warning("from %s: %s %s: %s", env.src, type(msg).__name__, msg.app, why)
+                return
         self._receiver(env.src, msg)
 
     def on_connection_lost(self, conn: Connection) -> None:

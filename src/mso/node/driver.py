@@ -23,6 +23,7 @@ from mso.net.tcp import TcpTransport
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.protocol.authority import Authority
 from mso.runtime.executor import ThreadExecutor
 
 log = logging.getLogger("mso.node")
@@ -39,6 +40,7 @@ class NodeDriver:
         psk: bytes,
         view: RoutingView | None = None,
         limits: Limits = DEFAULT_LIMITS,
+        authority: Authority | None = None,
     ) -> None:
         self.core = core
         self.loop = asyncio.get_running_loop()
@@ -47,7 +49,8 @@ class NodeDriver:
         self.counters = self.view.counters
         # subscribed before the driver: on a change the transport reconnects and releases
         # waiting frames first, then the core hears of the new routes
-        self.transport = TcpTransport(core.id, host, port, psk, self.view, limits)
+        self.authority = authority or Authority()
+        self.transport = TcpTransport(core.id, host, port, psk, self.view, limits, self.authority)
         self.transport.set_receiver(self._receive)
         self.transport.set_client_handler(self._request)
         self.view.subscribe(self._routes_changed)
@@ -72,6 +75,11 @@ class NodeDriver:
             "traffic": self.counters.as_dict(),
             "connections": self.transport.connection_counters.as_dict(),
             "connected": self.transport.connected(),
+            "authority": {
+                "mode": "open" if self.authority.open else "signed",
+                "operators": sorted(self.authority.operators),
+                "refused": self.authority.refused,
+            },
         }
 
     async def start(self) -> None:

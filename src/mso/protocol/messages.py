@@ -375,6 +375,22 @@ class Shutdown(_Msg, tag="shutdown"):
     pass
 
 
+# -- authority (mso.protocol.authority) -------------------------------------------------------
+class Authorized(_Msg, tag="auth"):
+    """A client command (``body``, an encoded message) signed with the Ed25519 key ``key``
+    (its id) over the node's hello nonce of this connection and ``body``."""
+
+    body: bytes
+    key: str
+    sig: bytes
+
+
+class Refused(_Msg, tag="refused"):
+    """The reply to a client command refused for want of authority, and why."""
+
+    reason: str
+
+
 Message = (
     PeerHello
     | ClientHello
@@ -396,6 +412,8 @@ Message = (
     | StatusReply
     | LinkState
     | Shutdown
+    | Authorized
+    | Refused
     | Marker
     | Prepare
     | Prepared
