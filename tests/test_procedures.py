@@ -7,6 +7,7 @@ import pytest
 from mso.protocol import messages as m
 from mso.protocol.procedures.base import IllegalTransition, Phase, table_rows
 from mso.protocol.procedures.deploy import Deploy
+from mso.protocol.procedures.hosting import H
 from mso.protocol.procedures.relocate import Relocation
 from mso.protocol.procedures.remap import Remap
 from mso.protocol.procedures.status import StatusFanout
@@ -72,3 +73,49 @@ def test_the_architecture_page_shows_the_tables_the_code_has() -> None:
 
     page = Path(__file__).resolve().parent.parent / "docs" / "architecture.md"
     assert markdown() in page.read_text()
+
+
+def test_an_instance_moves_through_its_lifecycle_at_both_hosts() -> None:
+    sim = Simulation(line(4))
+    assert deploy(sim, PIPE).ok
+    old = next(n for n, c in sim.cores.items() if "mid" in c.apps["pipe"].stones)
+    leaving = sim.cores[old].apps["pipe"].stones["mid"]
+    assert leaving.life.state is H.RUNNING
+    target = "N3" if old != "N3" else "N2"
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target=target), client=5)
+    sim.run_until(sim.now + 1.0)
+    ((_, _, reply),) = [(t, c, r) for t, c, r in sim.replies if c == 5]
+    assert isinstance(reply, m.RelocateReply) and reply.ok, reply
+    assert leaving.life.state is Phase.FINISHED  # handed over, then stopped
+    arrived = sim.cores[target].apps["pipe"].stones["mid"]
+    assert arrived.life.state is H.RUNNING
+    with pytest.raises(IllegalTransition, match="'handover' is not allowed in state RUNNING"):
+        arrived.life.on("handover")  # a second handover for a running instance
+
+
+def test_a_move_that_fails_before_any_switch_leaves_no_instance_at_its_target() -> None:
+    """The coordinator's deadline passes with the target's Prepared lost: the target drops the
+    instance it prepared (Unprepare) and the vertex runs on where it was, losing nothing."""
+    sim = Simulation(line(4))
+    assert deploy(sim, PIPE).ok
+    old = next(n for n, c in sim.cores.items() if "mid" in c.apps["pipe"].stones)
+    target = "N3" if old != "N3" else "N2"
+    send = sim._send
+
+    def lose_prepared(node: str, dst: str, msg: m.Message) -> bool:
+        return True if isinstance(msg, m.Prepared) else send(node, dst, msg)
+
+    sim._send = lose_prepared  # type: ignore[method-assign]
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target=target), client=5)
+    sim.run_until(sim.now + 1.0)
+    waiting = sim.cores[target].apps["pipe"].awaiting["mid"]
+    assert waiting.life.state is H.AWAITING
+    sim.run_until(sim.now + 5.0)
+    ((_, _, reply),) = [(t, c, r) for t, c, r in sim.replies if c == 5]
+    assert isinstance(reply, m.RelocateReply) and not reply.ok
+    assert "mid" not in sim.cores[target].apps["pipe"].awaiting
+    assert waiting.life.state is Phase.FAILED
+    assert "mid" in sim.cores[old].apps["pipe"].stones
+    before = sim.cores[old].apps["pipe"].stones["mid"].processed
+    sim.run_until(sim.now + 1.0)
+    assert sim.cores[old].apps["pipe"].stones["mid"].processed > before

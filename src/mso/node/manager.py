@@ -31,7 +31,8 @@ from mso.node.monitor import WINDOW
 
 if TYPE_CHECKING:
     from mso.management import Action
-    from mso.node.core import Deployment, NodeCore
+    from mso.node.remapping import Remapping
+    from mso.node.tables import Deployment
 
 
 class _Rates:
@@ -61,7 +62,7 @@ class Manager:
 
     def __init__(
         self,
-        core: NodeCore,
+        core: Remapping,
         policy: Any = None,
         settings: RuleSettings | None = None,
         enabled: bool = True,
@@ -231,7 +232,7 @@ class Manager:
         return self.engine.status() | {"enabled": self.enabled, "done": list(self.done)}
 
 
-def _target(core: NodeCore, dep: Deployment, vid: str, direction: str) -> str | None:
+def _target(core: Remapping, dep: Deployment, vid: str, direction: str) -> str | None:
     """One hop of a relocation (§3.4.1): the neighbour on the way to where an upstream or
     downstream relocation would take ``vid``. Moving a hop at a time keeps every move cheap to
     weigh (a neighbour's figures are known from its heartbeats) and easy to undo."""

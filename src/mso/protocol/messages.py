@@ -255,6 +255,15 @@ class Prepare(_Msg, tag="prepare"):
     resumes: list[list[Any]] = msgspec.field(default_factory=list)  # [edge, producer?]
 
 
+class Unprepare(_Msg, tag="unprepare"):
+    """To a relocation's target, from its coordinator: the move failed before any producer
+    switched to the prepared instance, so drop it."""
+
+    app: str
+    vertex: str
+    rid: int
+
+
 class Prepared(_Msg, tag="prepared"):
     app: str
     vertex: str
@@ -416,6 +425,7 @@ Message = (
     | Refused
     | Marker
     | Prepare
+    | Unprepare
     | Prepared
     | Switch
     | Handover

@@ -3,22 +3,35 @@ this, so the documentation cannot drift from the code): ``python -m mso.protocol
 
 from __future__ import annotations
 
-from mso.protocol.procedures.base import Procedure, table_rows
+from mso.protocol.procedures.base import Procedure, StateMachine, table_rows
 from mso.protocol.procedures.deploy import Deploy
+from mso.protocol.procedures.hosting import AWAIT_NOTE, InstanceLife
+from mso.protocol.procedures.membership import PeerLife
 from mso.protocol.procedures.relocate import Relocation
 from mso.protocol.procedures.remap import Remap
 from mso.protocol.procedures.status import StatusFanout
 
 PROCEDURES: list[type[Procedure]] = [Deploy, Relocation, Remap, StatusFanout]
+# the other ends: a vertex instance at its host, and each other node as one node holds it
+PARTICIPANTS: list[tuple[type[StateMachine], str]] = [
+    (InstanceLife, AWAIT_NOTE),
+    (PeerLife, "silence judged against the liveness window"),
+]
+
+
+def _table(cls: type[StateMachine], heading: str) -> list[str]:
+    out = [f"**{cls.NAME}** ({heading})\n", "| state | event | next state |\n|---|---|---|"]
+    out += [f"| {a} | {e} | {b} |" for a, e, b in table_rows(cls)]
+    out.append("")
+    return out
 
 
 def markdown() -> str:
     out = []
     for cls in PROCEDURES:
-        out.append(f"**{cls.NAME}** (deadline {cls.DEADLINE_S:g} s unless set per run)\n")
-        out.append("| state | event | next state |\n|---|---|---|")
-        out += [f"| {a} | {e} | {b} |" for a, e, b in table_rows(cls)]
-        out.append("")
+        out += _table(cls, f"deadline {cls.DEADLINE_S:g} s unless set per run")
+    for part, note in PARTICIPANTS:
+        out += _table(part, note)
     return "\n".join(out)
 
 

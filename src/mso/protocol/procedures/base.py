@@ -68,21 +68,17 @@ class NodeContext(Protocol):
     def elapsed_ms(self, since: float) -> float: ...
 
 
-class Procedure:
-    """One run of a distributed procedure at the node that coordinates it."""
+class StateMachine:
+    """Explicit states and one transition table: the shape every procedure, and every
+    participant's part in one, shares."""
 
-    NAME: ClassVar[str] = "procedure"
+    NAME: ClassVar[str] = "machine"
     INITIAL: ClassVar[enum.Enum]
     # state -> {event: next state}; FINISHED and FAILED are terminal
     TRANSITIONS: ClassVar[Table]
-    DEADLINE_S: ClassVar[float] = 10.0
 
-    def __init__(self, pid: int, now: float, deadline_s: float | None = None) -> None:
-        self.pid = pid
-        self.started_at = now
-        self.deadline = now + (self.DEADLINE_S if deadline_s is None else deadline_s)
+    def __init__(self) -> None:
         self.state: enum.Enum = self.INITIAL
-        self.error = ""
 
     @property
     def name(self) -> str:
@@ -97,9 +93,29 @@ class Procedure:
         nxt = self.TRANSITIONS.get(self.state, {}).get(event)
         if nxt is None:
             raise IllegalTransition(
-                f"{self.name} {self.pid}: event {event!r} is not allowed in state {self.state.name}"
+                f"{self.name}: event {event!r} is not allowed in state {self.state.name}"
             )
         self.state = nxt
+
+
+class Procedure(StateMachine):
+    """One run of a distributed procedure at the node that coordinates it."""
+
+    NAME: ClassVar[str] = "procedure"
+    DEADLINE_S: ClassVar[float] = 10.0
+
+    def __init__(self, pid: int, now: float, deadline_s: float | None = None) -> None:
+        super().__init__()
+        self.pid = pid
+        self.started_at = now
+        self.deadline = now + (self.DEADLINE_S if deadline_s is None else deadline_s)
+        self.error = ""
+
+    def on(self, event: str) -> None:
+        try:
+            super().on(event)
+        except IllegalTransition as exc:
+            raise IllegalTransition(f"{exc} (procedure {self.pid})") from None
 
     def fail(self, ctx: NodeContext, error: str) -> None:
         """End unsuccessfully (every state may fail); subclasses report to whoever waits."""
@@ -115,7 +131,7 @@ class Procedure:
         return {"procedure": self.name, "state": self.state.name, "deadline": self.deadline}
 
 
-def table_rows(cls: type[Procedure]) -> list[tuple[str, str, str]]:
+def table_rows(cls: type[StateMachine]) -> list[tuple[str, str, str]]:
     """(state, event, next state) rows of a procedure's table: the docs are drawn from them."""
     return [
         (state.name, event, nxt.name)

@@ -1,0 +1,417 @@
+"""The data plane at one node: vertex instances in the executor, edges, acks, backpressure.
+
+The core never runs vertex code: it asks the executor (``mso.runtime``) to start, feed, run,
+snapshot and stop instances, and takes their results in :meth:`DataPlane.on_vertex`. Each
+instance has a bounded queue of events fed and not yet processed; what is not fed is not
+acknowledged, so a slow consumer fills its producers' windows and they wait (backpressure).
+Acks are chained: a vertex's inputs are acknowledged once its outputs are, so what is acked
+upstream is safe downstream and a failure loses nothing the survivors cannot replay.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from mso.node.tables import (
+    FEED_BATCH,
+    QUEUE_EVENTS,
+    SOURCE_RUN,
+    Deployment,
+    Hosted,
+    NodeTables,
+)
+from mso.protocol import effects as fx
+from mso.protocol import messages as m
+from mso.protocol.channel import AckGate, InChannel, OutChannel
+from mso.protocol.effects import Send, SetTimer
+
+ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
+RETRANSMIT_S = 0.25
+MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
+DELAY_SMOOTHING = 0.2  # weight of the newest batch in a chain's delay average
+
+
+class DataPlane(NodeTables):
+    """Vertex instances and the edges between them (see the module docstring)."""
+
+    def _host(self, dep: Deployment, vid: str) -> Hosted:
+        """Ask the executor for a new instance of ``vid``."""
+        self._next_instance += 1
+        iid = self._next_instance
+        self._instances[iid] = (dep.app.name, vid)
+        edges = dep.app.edges
+        inputs = {i: dep.app.edge_format(e) for i, e in enumerate(edges) if e.dst == vid}
+        h = Hosted(iid, dep.app.vertices[vid], dep.layout.kinds[vid])
+        self._submit(h, fx.StartVertex(iid, dep.app.name, h.vertex, h.kind, inputs))
+        return h
+
+    def _submit(self, h: Hosted, eff: fx.VertexEffect, events: int = 0) -> None:
+        self._effects.append(eff)
+        h.jobs += 1
+        h.queued += events
+        if h.busy_since is None:
+            h.busy_since = self._now
+
+    def _stop(self, h: Hosted, reason: str) -> None:
+        if not h.life.done:
+            h.life.on("stop")
+        self._instances.pop(h.instance, None)
+        self._effects.append(fx.StopVertex(h.instance, reason))
+
+    def _stop_app(self, dep: Deployment, reason: str) -> None:
+        for h in [*dep.stones.values(), *dep.awaiting.values()]:
+            self._stop(h, reason)
+
+    def _stop_all(self, reason: str) -> None:
+        for dep in self.apps.values():
+            self._stop_app(dep, reason)
+
+    def _on_vertex(self, res: fx.VertexResult, now: float) -> None:
+        """A result from the executor: account for it, then act on what it says."""
+        owner = self._instances.get(res.instance)
+        dep = self.apps.get(owner[0]) if owner is not None else None
+        if owner is None or dep is None:
+            return  # stopped meanwhile
+        vid = owner[1]
+        h = dep.stones.get(vid) or dep.awaiting.get(vid)
+        if h is None or h.instance != res.instance:
+            return
+        h.jobs -= 1
+        h.busy_since = now if h.jobs else None
+        h.cpu_s += res.cpu_s
+        h.errors += res.errors
+        h.last_error = res.last_error or h.last_error
+        h.stats, h.state_size = res.stats, res.state_size
+        if isinstance(res, fx.VertexStarted):
+            self._started(dep, vid, h, res, now)
+        elif isinstance(res, fx.VertexProcessed):
+            self._processed(dep, vid, h, res, now)
+        elif isinstance(res, fx.VertexEmitted):
+            self._emitted(dep, vid, h, res, now)
+        else:
+            self._snapshotted(dep, vid, h, res)
+
+    def _started(
+        self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexStarted, now: float
+    ) -> None:
+        if res.error:  # user code failing at construction: refuse, change nothing
+            self._stop(h, "failed")
+            dep.stones.pop(vid, None)
+            dep.awaiting.pop(vid, None)
+            self._instance_failed(dep, vid, f"{self.id}: {res.error}")
+            return
+        h.started, h.mode = True, res.mode
+        h.life.on("started_for_move" if vid in dep.awaiting else "started")
+        self._instance_ready(dep, vid)
+        if h.kind == "source" and vid in dep.stones:
+            self._start_source(dep, vid, now)
+
+    def _out(self, dep: Deployment, edge: int) -> OutChannel:
+        ch = dep.out.get(edge)
+        if ch is None:
+            ch = dep.out[edge] = OutChannel(window=self.window)
+        return ch
+
+    def _start_source(self, dep: Deployment, vid: str, now: float) -> None:
+        h = dep.stones[vid]
+        if not h.started or not dep.running:
+            return
+        if h.mode == "loop":
+            self._grant(dep, vid)
+            return
+        h.t0, h.asked = now, 0
+        self._effects.append(SetTimer(("source", dep.app.name, vid), now))
+
+    def _room(self, dep: Deployment, vid: str) -> int:
+        return min((self._out(dep, e).room for e in dep.out_edges.get(vid, [])), default=SOURCE_RUN)
+
+    def _source_tick(self, app: str, vid: str, now: float) -> None:
+        """A rated source keeps its schedule: event k is due at t0 + k / rate; a late tick
+        asks for every event due since (up to the window), so the rate holds on average."""
+        dep = self.apps.get(app)
+        h = dep.stones.get(vid) if dep is not None else None
+        if dep is None or h is None or not dep.running or not h.started or h.jobs:
+            return  # a run in flight schedules the next tick when it is done
+        rate = h.rate
+        due = int((now - h.t0) * rate + 1e-9) + 1 - h.asked
+        room = self._room(dep, vid)
+        n = min(due, room, SOURCE_RUN)
+        if n <= 0:
+            if room <= 0:  # backpressure: a full window holds the source until an ack
+                dep.blocked_sources.add(vid)
+            else:
+                self._effects.append(SetTimer(("source", app, vid), h.t0 + h.asked / rate))
+            return
+        self._submit(h, fx.RunSource(h.instance, h.asked, n, now))
+        h.asked += n
+
+    def _grant(self, dep: Deployment, vid: str) -> None:
+        """A free-running source may make as many calls as its window has room for."""
+        h = dep.stones[vid]
+        if not h.started or h.ended or not dep.running:
+            return
+        room = self._room(dep, vid) - h.credit
+        if room > 0 and (h.credit == 0 or room >= min(FEED_BATCH, self.window // 4)):
+            h.credit += room
+            self._effects.append(fx.Credit(h.instance, room))
+
+    def _emitted(
+        self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexEmitted, now: float
+    ) -> None:
+        h.calls += res.calls
+        self.work_ms += h.vertex.cost * res.calls
+        edges = dep.out_edges.get(vid, [])
+        if res.outputs:
+            h.emitted += len(res.outputs)
+            h.bytes_out += self._emit(dep, edges, res.outputs, now, -1) * len(edges)
+        if h.mode == "loop":
+            h.credit -= res.calls
+            h.ended = res.ended
+            self._grant(dep, vid)
+        elif dep.running:
+            at = h.t0 + h.asked / h.rate
+            self._effects.append(SetTimer(("source", dep.app.name, vid), max(at, now)))
+
+    def _emit(
+        self, dep: Deployment, edges: Iterable[int], payloads: list[bytes], ts: float, chain: int
+    ) -> int:
+        """Send encoded events on every edge in ``edges``; returns their size in bytes.
+        ``ts`` is when they entered chain ``chain``: an edge of that chain carries it on, an
+        edge that starts another chain starts it from now."""
+        for e in edges:
+            if e in dep.parked_edges:
+                dep.dropped[e] = dep.dropped.get(e, 0) + len(payloads)
+                continue
+            seq = self._out(dep, e).push_many(payloads, self._now)
+            dst_node = dep.placed[dep.app.edges[e].dst]
+            t = ts if dep.layout.edge_chain[e] == chain else self._now
+            if dst_node == self.id:
+                self._deliver(dep, e, seq, payloads, t)
+            else:
+                key = (dep.app.name, e)
+                batch = self._outbox.get(key)
+                if batch is None:
+                    self._outbox[key] = batch = (seq, list(payloads), t)
+                else:
+                    batch[1].extend(payloads)
+                if len(batch[1]) * len(payloads[0]) >= MAX_BATCH_BYTES:  # frames stay small
+                    del self._outbox[key]
+                    data = m.Data(dep.app.name, e, dep.epoch, batch[0], batch[1], batch[2])
+                    self._effects.append(Send(dst_node, data))
+        return sum(map(len, payloads))
+
+    def _deliver(
+        self, dep: Deployment, edge: int, seq: int, events: list[bytes], ts: float = 0.0
+    ) -> None:
+        dst = dep.app.edges[edge].dst
+        if dst in dep.awaiting:  # moving here: keep until the handover
+            dep.stash.setdefault(edge, []).append((seq, list(events)))
+            return
+        ch = dep.inc.get(edge)
+        if ch is None:
+            ch = dep.inc[edge] = InChannel()
+        fresh = ch.accept(seq, events)
+        if fresh:
+            self._enqueue(dep, dst, (edge, fresh, ts))
+
+    def _enqueue(
+        self, dep: Deployment, vid: str, item: tuple[int, list[bytes], float] | m.Marker
+    ) -> None:
+        """Events and markers for an instance, in arrival order: a marker is handled once
+        everything before it has been processed."""
+        h = dep.stones.get(vid)
+        if h is not None:
+            h.pending.append(item)
+            self._pump(dep, vid)
+
+    def _pump(self, dep: Deployment, vid: str) -> None:
+        """Feed the instance's worker while its bounded queue has room (backpressure: what
+        is not fed is not acknowledged, so the producers' windows fill and they stop)."""
+        h = dep.stones.get(vid)
+        while h is not None and h.pending and h.handing_over is None:
+            item = h.pending[0]
+            if isinstance(item, m.Marker):
+                if h.jobs:
+                    return
+                h.pending.popleft()
+                self._on_marker(dep, item)
+                continue
+            if h.queued >= QUEUE_EVENTS:
+                return
+            edge, events, ts = item
+            if len(events) > FEED_BATCH:
+                feed = events[:FEED_BATCH]
+                h.pending[0] = (edge, events[FEED_BATCH:], ts)
+            else:
+                h.pending.popleft()
+                feed = events
+            h.bytes_in += sum(map(len, feed))
+            self._submit(h, fx.FeedVertex(h.instance, edge, feed, ts), len(feed))
+
+    def _on_data(self, msg: m.Data) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or msg.epoch != dep.epoch or not 0 <= msg.edge < len(dep.app.edges):
+            self.dropped_messages += 1
+            return
+        dst = dep.app.edges[msg.edge].dst
+        if dst in dep.awaiting:  # a relocated instance before its handover: keep for later
+            dep.stash.setdefault(msg.edge, []).append((msg.seq, msg.events))
+            return
+        if dst not in dep.stones:
+            self.dropped_messages += 1
+            return
+        self._deliver(dep, msg.edge, msg.seq, msg.events, msg.ts)
+
+    def _processed(
+        self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexProcessed, now: float
+    ) -> None:
+        """A batch went through the edge's consumer: pass its outputs on, acknowledge."""
+        edge = res.edge
+        h.queued -= res.count
+        h.processed += res.count
+        self.work_ms += h.vertex.cost * res.count
+        ch = dep.inc.get(edge)
+        if ch is None:
+            return
+        ch.mark_processed(res.count)
+        chain = dep.layout.edge_chain[edge]
+        ts = res.ts
+        if ts > 0 and dep.layout.chains[chain].tail == vid:  # end-to-end through the chain
+            ms = (now - ts) * 1e3
+            old = dep.delays.get(chain)
+            dep.delays[chain] = (
+                ms if old is None else DELAY_SMOOTHING * ms + (1 - DELAY_SMOOTHING) * old
+            )
+        out_edges = dep.out_edges.get(vid, [])
+        if res.outputs and out_edges:
+            h.emitted += len(res.outputs)
+            sent = self._emit(dep, out_edges, res.outputs, ts, chain)
+            h.bytes_out += sent * len(out_edges)
+        if out_edges:  # chained acks: the inputs are acked once the outputs are
+            if ch.released is None:
+                ch.released = ch._acked
+            gate = dep.gates.get(vid)
+            if gate is None:
+                gate = dep.gates[vid] = AckGate()
+            gate.record({edge: ch.processed}, {o: self._out(dep, o).next_seq for o in out_edges})
+            self._release(dep, vid)
+        elif ch.processed - ch._acked >= ACK_EVERY:
+            self._ack(dep, edge)
+        self._pump(dep, vid)
+
+    def _release(self, dep: Deployment, vid: str) -> None:
+        """Acknowledge the inputs of ``vid`` as far as its outputs have been acknowledged."""
+        gate = dep.gates.get(vid)
+        if gate is None:
+            return
+        acked = {o: out.acked for o in dep.out_edges.get(vid, []) if (out := dep.out.get(o))}
+        released = gate.release(acked)
+        if released is None:
+            return
+        inputs, outputs = released
+        for i, pos in inputs.items():
+            ch = dep.inc.get(i)
+            if ch is not None:
+                ch.released = max(ch.released or 0, pos)
+                ch.positions = outputs
+                self._ack(dep, i)
+
+    def _ack(self, dep: Deployment, edge: int) -> None:
+        upto = dep.inc[edge].ack_due()
+        if upto is None:
+            return
+        ch = dep.inc[edge]
+        producer = dep.app.edges[edge].src
+        src_node = dep.placed[producer]
+        if src_node == self.id:
+            out = self._out(dep, edge)
+            if upto > out.next_seq:  # this channel never sent that far (a fresh one after a
+                self.dropped_messages += 1  # move): nothing to release, never a crash
+                return
+            out.on_ack(upto, self._now)
+            out.positions = ch.positions
+            self._unblock(dep, edge)
+            self._release(dep, producer)
+        elif src_node not in self.dead:
+            self._effects.append(
+                Send(src_node, m.Ack(dep.app.name, edge, dep.epoch, upto, dict(ch.positions)))
+            )
+
+    def _on_ack(self, msg: m.Ack, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is None or msg.epoch != dep.epoch or msg.edge not in dep.out:
+            self.dropped_messages += 1
+            return
+        out = dep.out[msg.edge]
+        try:
+            out.on_ack(msg.upto, now)
+        except ValueError:
+            self.dropped_messages += 1
+            return
+        if msg.upto >= out.acked:
+            out.positions = msg.positions
+        self._unblock(dep, msg.edge)
+        self._release(dep, dep.app.edges[msg.edge].src)
+
+    def _unblock(self, dep: Deployment, edge: int) -> None:
+        """An ack freed room on ``edge``: wake its producer if backpressure stopped it. A
+        rated source skips the time it was held (a sensor does not deliver missed samples)."""
+        producer = dep.app.edges[edge].src
+        h = dep.stones.get(producer)
+        if h is None or h.kind != "source":
+            return
+        if h.mode == "loop":
+            self._grant(dep, producer)
+        elif producer in dep.blocked_sources:
+            dep.blocked_sources.discard(producer)
+            h.t0 = self._now - h.asked / h.rate
+            self._effects.append(SetTimer(("source", dep.app.name, producer), self._now))
+
+    def _flush(self) -> None:
+        for (app, edge), batch in self._outbox.items():
+            dep = self.apps[app]
+            dst = dep.placed[dep.app.edges[edge].dst]
+            self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, *batch)))
+        self._outbox.clear()
+        for dep in self.apps.values():
+            for edge, ch in list(dep.inc.items()):
+                if ch.reack or ch.processed != ch._acked:
+                    self._ack(dep, edge)
+
+    def _retransmit(self, app: str, now: float) -> None:
+        """Go-back-N: resend what has waited a whole period without any ack progress."""
+        dep = self.apps.get(app)
+        if dep is None or not dep.running:
+            return
+        for edge, ch in dep.out.items():
+            if ch.overdue(now, RETRANSMIT_S):
+                dst = dep.placed[dep.app.edges[edge].dst]
+                if dst in self.dead:  # held until the consumer is restored elsewhere
+                    continue
+                first, events = ch.unacked()
+                if dst == self.id:
+                    self._deliver(dep, edge, first, events)
+                else:
+                    self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, first, events)))
+                ch.waiting_since = now
+        self._effects.append(SetTimer(("retransmit", app), now + RETRANSMIT_S))
+
+    def _report_delays(self, now: float) -> None:
+        """Tell each chain's head node the delay measured at its tail (here)."""
+        for dep in self.apps.values():
+            for chain, ms in dep.delays.items():
+                head = dep.placed[dep.layout.chains[chain].head]
+                if head == self.id:
+                    dep.chain_delay[chain] = (ms, now)
+                elif head not in self.dead:
+                    self._send(head, m.ChainDelay(dep.app.name, chain, ms))
+
+    def _on_chain_delay(self, msg: m.ChainDelay, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is not None and 0 <= msg.chain < len(dep.layout.chains):
+            dep.chain_delay[msg.chain] = (msg.delay_ms, now)
+
+    def _on_marker_msg(self, msg: m.Marker, now: float) -> None:
+        dep = self.apps.get(msg.app)
+        if dep is not None and 0 <= msg.edge < len(dep.app.edges):
+            self._enqueue(dep, dep.app.edges[msg.edge].dst, msg)

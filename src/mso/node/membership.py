@@ -1,0 +1,271 @@
+"""Membership at one node: heartbeats, fail-stop failure detection, incarnations, reset, rejoin.
+
+Each node beats to its neighbours (with its monitor's figures); a neighbour silent for the
+liveness window is declared failed, and the detector tells everyone. The chains a failed node
+touched are recovered (:mod:`mso.node.remapping`); chains pinned to it are parked. A node that
+restarts comes back as a higher incarnation; after a partition heals, the side that loses a
+deterministic tie-break resets (drops its apps) and rejoins, and is sent the apps again
+(``AppSync``) with its pinned vertices restored.
+"""
+
+from __future__ import annotations
+
+from mso.errors import MsoError
+from mso.node.dataplane import RETRANSMIT_S
+from mso.node.remapping import Remapping
+from mso.node.tables import Deployment
+from mso.planning.placement import Layout
+from mso.protocol import messages as m
+from mso.protocol.effects import Send, SetTimer
+from mso.protocol.procedures.membership import PeerLife
+
+REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
+
+
+class Membership(Remapping):
+    """A node's part in membership (see the module docstring)."""
+
+    def _peer(self, node: str) -> PeerLife:
+        """How this node holds ``node`` (alive until declared failed), by the table."""
+        peer = self.peers.get(node)
+        if peer is None:
+            peer = self.peers[node] = PeerLife(node)
+        return peer
+
+    def _beat(self) -> m.Heartbeat:
+        mon, pw = self.monitor, self.power
+        return m.Heartbeat(
+            self.id,
+            self.capacity,
+            mon.load,
+            mon.drain_w,
+            mon.remaining_j,
+            mon.lifetime_s,
+            [pw.idle_w, pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte],
+            self.incarnation,
+            dict(self._dead_incarnation),
+            self._leader(),
+            self._hosting(),
+        )
+
+    def _heartbeat(self, now: float) -> None:
+        """Tell the neighbours we live (with our figures); declare the silent ones failed."""
+        beat = self._beat()
+        for n in sorted(self.liveness.neighbours):
+            if n not in self.dead:
+                self._effects.append(Send(n, beat))
+        self._beats += 1
+        if self._beats % REJOIN_EVERY == 0:  # a failed node we can reach again: a healed
+            for n in sorted(self.dead):  # partition; tell it, so one side rejoins the other
+                if n in self.routes:
+                    self._effects.append(Send(n, beat))
+        for n in self.liveness.suspects(now, self.dead):
+            self._on_node_down(n, self.id, now)
+        self._effects.append(SetTimer(("heartbeat",), now + self.liveness.period_s))
+
+    def _on_node_down(
+        self, node: str, detector: str, now: float, incarnation: int | None = None
+    ) -> None:
+        if node in self.dead or node == self.id:
+            return
+        known = self._incarnations.get(node, 0)
+        if incarnation is not None and incarnation < known:
+            return  # that incarnation failed, and a newer one is already back
+        self._peer(node).on("silent" if detector == self.id else "reported_down")
+        self.dead.add(node)
+        self._dead_incarnation[node] = known if incarnation is None else incarnation
+        self.liveness.forget(node)
+        self.failures.append({"node": node, "detector": detector, "at": now})
+        del self.failures[:-50]
+        self.monitor.note_event(now, f"node {node} failed (detected by {detector})")
+        if detector == self.id:  # tell everyone; the others learn it from us or another detector
+            for n in self.known_nodes():
+                if n != self.id and n not in self.dead:
+                    self._send(n, m.NodeDown(node, self.id, self._dead_incarnation[node]))
+        for reloc in self._relocations():  # moves that needed the failed node
+            if not reloc.restore and node in (reloc.source, reloc.target):
+                reason = f"node {node} failed during the relocation of {reloc.vertex!r}"
+                self._reloc_failed(reloc, reason, now)
+        for dep in list(self.apps.values()):
+            self._park(dep)
+            self._maybe_recover(dep, now)
+
+    def _park(self, dep: Deployment) -> None:
+        """Chains with a vertex pinned to a failed node cannot run anywhere: park them. Their
+        edges stop carrying events (counted as dropped), so a dead sink on one branch does not
+        hold back, through acks and backpressure, the branches that still run."""
+        for ci, chain in enumerate(dep.layout.chains):
+            for v in chain.vertices:
+                pin = dep.app.vertices[v].pinned
+                if pin in self.dead and ci not in dep.parked:
+                    dep.parked[ci] = f"{v!r} is pinned to failed node {pin}"
+        edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}
+        for e in sorted(edges - dep.parked_edges):
+            out = dep.out.get(e)
+            if out is not None and out.in_flight:
+                dep.dropped[e] = dep.dropped.get(e, 0) + out.in_flight
+                out.on_ack(out.next_seq, self._now)
+                producer = dep.app.edges[e].src
+                if producer in dep.stones:
+                    self._release(dep, producer)
+                self._unblock(dep, e)
+        dep.parked_edges |= edges
+
+    def _unpark(self, dep: Deployment) -> None:
+        """Chains parked for a pinned node that is back run again (after their restore)."""
+        for ci in list(dep.parked):
+            pins = {dep.app.vertices[v].pinned for v in dep.layout.chains[ci].vertices}
+            if not pins & self.dead:
+                del dep.parked[ci]
+        dep.parked_edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}
+
+    def _leader(self) -> str:
+        return min({self.id, *(n for n in self.routes if n not in self.dead)})
+
+    def _on_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
+        known = self._incarnations.get(src)
+        if known is not None and msg.incarnation > known:  # it restarted: its instances went
+            self._on_node_down(src, self.id, now)
+            self._rejoin(src, msg.incarnation, now, announce=True)
+            return
+        self._incarnations[src] = msg.incarnation
+        if self.routes.get(src, ("", 0))[0] == src:  # a neighbour's beat, not a hello
+            self.liveness.heard_from(src, now, msg)
+        if msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
+            self._reset(now, src)
+        else:
+            self._answer_stale_claim(src, msg)
+
+    def _answer_stale_claim(self, src: str, msg: m.Heartbeat) -> None:
+        """``src`` holds an older incarnation of ours failed: our beat tells it we are back."""
+        claim = msg.dead.get(self.id)
+        if claim is not None and claim < self.incarnation:
+            self._send(src, self._beat())
+
+    def _on_dead_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
+        """A node we declared failed is heard again: it restarted (a higher incarnation), or
+        a partition healed. Then the side that loses the tie-break resets and rejoins."""
+        if msg.incarnation > self._dead_incarnation.get(src, 0):
+            self._rejoin(src, msg.incarnation, now, announce=True)
+        elif msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
+            self._reset(now, src)
+        else:
+            self._answer_stale_claim(src, msg)
+
+    def _hosting(self) -> int:
+        return sum(len(dep.stones) for dep in self.apps.values())
+
+    def _outranked_by(self, msg: m.Heartbeat) -> bool:
+        """After a partition both sides may hold the other failed. A node that runs nothing
+        yields to one that runs something (it loses nothing by resetting); otherwise the side
+        that counts fewer failed nodes (the larger one), then the one with the lower leader,
+        stays and the other resets. One-sided (we hold the sender alive), we reset."""
+        if msg.node not in self.dead:
+            return True
+
+        def rank(hosting: int, dead: int, leader: str) -> tuple[bool, int, str]:
+            return (hosting == 0, dead, leader)
+
+        theirs = rank(msg.hosting, len(msg.dead), msg.leader or msg.node)
+        return theirs < rank(self._hosting(), len(self.dead), self._leader())
+
+    def _reset(self, now: float, by: str) -> None:
+        """Rejoin as a new incarnation: the others have recovered without this node's
+        instances, so it drops them (and every app) and is told the apps again."""
+        dropped = sorted(self.apps)
+        self._stop_all("reset")
+        self.apps.clear()
+        for pid in list(self.procedures):  # nobody waits for them any more
+            self._end(pid)
+        self._outbox.clear()
+        self._early.clear()
+        self._handover_to.clear()
+        self._probes_waiting.clear()
+        self._stop_all("reset")
+        for node in self.dead:
+            self.liveness.rejoin(node, now, node in self.routes, self.routes.get(node))
+        for node in self.dead:
+            self._peer(node).on("reset")
+        self.dead.clear()
+        self._dead_incarnation.clear()
+        self.incarnation += 1
+        self.monitor.note_event(
+            now,
+            f"declared failed by {by}: rejoined as incarnation {self.incarnation}"
+            + (f", dropping {', '.join(dropped)}" if dropped else ""),
+        )
+        self._heartbeat(now)
+        beat = self._beat()
+        for n in sorted(self.routes):  # everyone learns the new incarnation, not just neighbours
+            if n not in self.liveness.neighbours:
+                self._send(n, beat)
+
+    def _rejoin(self, node: str, incarnation: int, now: float, announce: bool) -> None:
+        """``node`` is back with no instances: restore what it hosted, unpark what was pinned
+        to it, and tell it the apps."""
+        if node in self.dead:
+            self._peer(node).on("rejoined")
+        self.dead.discard(node)
+        self._dead_incarnation.pop(node, None)
+        self._incarnations[node] = incarnation
+        self.liveness.rejoin(node, now, node in self.routes, self.routes.get(node))
+        self.rejoins.append({"node": node, "incarnation": incarnation, "at": now})
+        del self.rejoins[:-50]
+        self.monitor.note_event(now, f"node {node} rejoined (incarnation {incarnation})")
+        if announce:
+            for n in self.known_nodes():
+                if n not in (self.id, node) and n not in self.dead:
+                    self._send(n, m.NodeUp(node, incarnation))
+        for dep in list(self.apps.values()):
+            dep.vanished |= {v for v, n in dep.placed.items() if n == node}
+            self._unpark(dep)
+            if not dep.running:
+                continue
+            sync = m.AppSync(
+                dep.app.name,
+                dep.origin,
+                dep.document,
+                dep.epoch,
+                dict(dep.placed),
+                sorted(dep.vanished),
+            )
+            self._send(node, sync)
+            self._maybe_recover(dep, now)
+
+    def _on_node_up(self, msg: m.NodeUp, now: float) -> None:
+        if msg.node == self.id:
+            return
+        if msg.node not in self.dead and msg.node not in self._incarnations:
+            self._incarnations[msg.node] = msg.incarnation
+            return
+        if msg.node in self.dead:
+            if msg.incarnation > self._dead_incarnation.get(msg.node, 0):
+                self._rejoin(msg.node, msg.incarnation, now, announce=False)
+        elif msg.incarnation > self._incarnations.get(msg.node, msg.incarnation):
+            self._on_node_down(msg.node, msg.node, now)  # restarted unnoticed by us
+            self._rejoin(msg.node, msg.incarnation, now, announce=False)
+
+    def _on_app_sync(self, msg: m.AppSync, now: float) -> None:
+        if msg.app in self.apps:
+            return
+        try:
+            app = self._load_app(msg.app, msg.document)
+        except MsoError as exc:
+            self.monitor.note_event(now, f"cannot rejoin app {msg.app}: {exc}")
+            return
+        layout = Layout(app, msg.origin)
+        placed = dict(layout.initial_placement()) | {
+            v: n for v, n in msg.placed.items() if v in app.vertices
+        }
+        dep = Deployment(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
+        dep.vanished = {v for v in msg.vanished if v in app.vertices}
+        dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
+        dep.running, dep.started_at = True, now
+        dep.placed_at = dict.fromkeys(range(len(layout.chains)), now)
+        for i, e in enumerate(app.edges):
+            dep.out_edges.setdefault(e.src, []).append(i)
+        self.apps[msg.app] = dep
+        # (re)arm go-back-N for the app: a timer left from before a reset may have lapsed
+        self._effects.append(SetTimer(("retransmit", msg.app), now + RETRANSMIT_S))
+        self._park(dep)
+        self._maybe_recover(dep, now)

@@ -1,0 +1,78 @@
+"""A vertex instance's life at the node that hosts it: the host's part in deployment,
+relocation (as old host and as new host) and restore.
+
+The coordinator's side of a relocation is :class:`~mso.protocol.procedures.relocate.Relocation`;
+this is the other end. An instance is STARTING until the executor has constructed it. One
+asked for by a build then RUNS; one asked for by a relocation or restore (the *new host*) is
+AWAITING until the old host's handover arrives or every surviving end of its edges has resumed
+it. At the *old host* a RUNNING instance is DRAINING once a marker reached it behind the events
+sent before the switch, SNAPSHOTTING once every input is marked and everything before the
+markers is processed, and FINISHED when its state and channels are handed over. Any instance
+may be stopped (undeploy, reset, failed construction): FAILED.
+
+An AWAITING instance's wait ends by its coordinator: a move that fails before any producer
+switched (its deadline passed with the target's answer lost, or a node it needed failed) sends
+``Unprepare`` and the target stops the instance (``stop``). Once a producer has switched, the
+move is committed — events for the new instance are held at the target — and the instance
+waits for the handover however long the old instance's queue takes to drain; if the old host
+fails meanwhile, recovery restores the vertex and reuses this instance.
+
+A producer's part (switch an edge, send a marker the old way) and a probe hop's (append itself,
+forward) are single steps with no wait, so they have no states of their own; a probe held at a
+hop whose route goes through a failed node is dropped after ``STEP_TIMEOUT_S``.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import ClassVar
+
+from mso.protocol.procedures.base import Phase, StateMachine, Table
+
+AWAIT_NOTE = "an AWAITING instance's wait is ended by its coordinator's Unprepare"
+
+
+class H(enum.Enum):
+    STARTING = "starting"
+    RUNNING = "running"
+    AWAITING = "awaiting"
+    DRAINING = "draining"
+    SNAPSHOTTING = "snapshotting"
+
+
+class InstanceLife(StateMachine):
+    """One vertex instance's state at its host (see the module docstring)."""
+
+    NAME = "instance"
+    INITIAL = H.STARTING
+    TRANSITIONS: ClassVar[Table] = {
+        H.STARTING: {
+            "started": H.RUNNING,
+            "started_for_move": H.AWAITING,
+            "stop": Phase.FAILED,
+        },
+        H.AWAITING: {
+            "handover": H.RUNNING,  # a relocation: the old instance's state arrived
+            "resumed": H.RUNNING,  # a restore: every surviving end has resumed it
+            "stop": Phase.FAILED,  # unprepared, undeployed or reset
+        },
+        H.RUNNING: {
+            "marker": H.DRAINING,
+            "all_marked": H.SNAPSHOTTING,
+            "stop": Phase.FAILED,
+        },
+        H.DRAINING: {
+            "marker": H.DRAINING,
+            "all_marked": H.SNAPSHOTTING,
+            "stop": Phase.FAILED,
+        },
+        H.SNAPSHOTTING: {"handed_over": Phase.FINISHED, "stop": Phase.FAILED},
+    }
+
+    def __init__(self, vertex: str) -> None:
+        super().__init__()
+        self.vertex = vertex
+
+    @property
+    def name(self) -> str:
+        return f"instance of {self.vertex!r}"
