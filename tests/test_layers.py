@@ -20,7 +20,10 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("net", ("mso.net", "mso.client")),
     ("drivers", ("mso.node.driver", "mso.sim")),
     ("emulator", ("mso.emu",)),
-    ("front ends", ("mso.cli", "mso.api", "mso.benchmarks", "mso.examples", "mso.dashboard")),
+    (
+        "front ends",
+        ("mso.cli", "mso.cliargs", "mso.api", "mso.benchmarks", "mso.examples", "mso.dashboard"),
+    ),
 ]
 # inside the node runtime: the core's layers, lowest first (each may import those before it)
 NODE_ORDER = [
