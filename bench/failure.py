@@ -59,7 +59,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mso.benchmarks.common import percentile, provenance, write_results
+from mso.benchmarks.common import BENCH_CODE, percentile, provenance, write_results
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.protocol import messages as m
@@ -346,6 +346,7 @@ async def run(
     budget = RUN_BUDGET_S * runs * len(topologies)
     saved = os.environ.get("PYTHONPATH")
     os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *([saved] if saved else [])])
+    os.environ.setdefault("MSO_ALLOW_CODE", BENCH_CODE)  # the nodes may import it
     result: dict[str, Any] = {"topologies": {}, "rows": [], "notes": []}
     try:
         with tempfile.TemporaryDirectory(prefix="mso-bench-failure-") as tmp:

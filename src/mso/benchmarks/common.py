@@ -12,6 +12,10 @@ from pathlib import Path
 from typing import Any
 
 
+# the benchmarks' own vertex modules (bench/ on the nodes' PYTHONPATH): on the code allowlist
+BENCH_CODE = "dataplane_vertices,executor_vertices,failure_vertices"
+
+
 def provenance() -> dict[str, Any]:
     """Where and on what a result was measured: machine, load, source digest, time."""
     return {
