@@ -11,7 +11,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-
 # the benchmarks' own vertex modules (bench/ on the nodes' PYTHONPATH): on the code allowlist
 BENCH_CODE = "dataplane_vertices,executor_vertices,failure_vertices"
 

@@ -120,7 +120,13 @@ class Connection(asyncio.Protocol):
             except (msgspec.DecodeError, msgspec.ValidationError):
                 counters.frames_malformed += 1
                 continue
-            self.net.on_envelope(self, env, len(payload))
+            try:
+                self.net.on_envelope(self, env, len(payload))
+            except Exception as exc:  # a bug costs that frame, never the connection
+                counters.frames_failed += 1
+                log.error(
+                    "handling a frame from %s raised %s: %s", env.src, type(exc).__name__, exc
+                )
 
     def close(self) -> None:
         if self.link is not None:
@@ -318,7 +324,8 @@ class TcpTransport:
             if not self.authority.open or isinstance(msg, m.Authorized):
                 verdict = self.authority.command(conn.codec.nonce, msg)
                 if isinstance(verdict, str):  # counted by the authority, told to the client
-                    log.warning("client %s: %s", conn.address or "?", verdict)
+                    # counted in status; at INFO, so a flood of them cannot fill a disk
+                    log.info("client %s: %s", conn.address or "?", verdict)
                     conn.send_message("client", m.Refused(verdict))
                     return
                 msg = verdict
@@ -330,7 +337,7 @@ class TcpTransport:
         if isinstance(msg, DOCUMENT_MESSAGES) and self.authority.operators:
             why = self.authority.document(msg.document)
             if why:  # an app no operator granted: its code is never loaded here
-                log.warning("from %s: %s %s: %s", env.src, type(msg).__name__, msg.app, why)
+                log.info("from %s: %s %s: %s", env.src, type(msg).__name__, msg.app, why)
                 return
         self._receiver(env.src, msg)
 

@@ -31,6 +31,9 @@ NONCE_BYTES = 16
 HELLO_BYTES = len(MAGIC) + NONCE_BYTES
 TAG_BYTES = 16
 MAX_FRAME = 16 * 1024 * 1024
+# a frame sealed by the peer but altered on the way leaves the counters apart for good: after
+# this many failures in a row the stream is given up (closed, and a neighbour reconnects)
+MAX_REJECTED_IN_A_ROW = 32
 _LEN = struct.Struct(">I")
 _CTR = struct.Struct(">Q")
 
@@ -76,6 +79,7 @@ class FrameCodec:
         self._confirmed = False  # the peer's key confirmation verified
         self.rejected = 0
         self.accepted = 0
+        self._rejected_in_a_row = 0
 
     @property
     def ready(self) -> bool:
@@ -162,8 +166,14 @@ class FrameCodec:
                 out.append(bytes(body))
                 self._rx_ctr += 1
                 self.accepted += 1
+                self._rejected_in_a_row = 0
             else:
                 self.rejected += 1
+                self._rejected_in_a_row += 1
+                if self._rejected_in_a_row >= MAX_REJECTED_IN_A_ROW:
+                    body.release()
+                    view.release()
+                    raise FramingError(f"{MAX_REJECTED_IN_A_ROW} frames in a row failed their tag")
             body.release()
         view.release()  # a bytearray cannot be resized while a view is exported
         if pos:

@@ -455,7 +455,10 @@ def encode(msg: Message) -> bytes:
 
 def decode(data: bytes | msgspec.Raw) -> Message:
     """Decode and validate a message body; raises msgspec.DecodeError/ValidationError."""
-    return _MESSAGE_DECODER.decode(data)
+    try:
+        return _MESSAGE_DECODER.decode(data)
+    except UnicodeDecodeError as exc:  # msgspec lets an invalid UTF-8 tag through as this
+        raise msgspec.DecodeError(f"invalid UTF-8: {exc.reason}") from None
 
 
 def wrap(src: str, dst: str, msg: Message, ttl: int = 32) -> bytes:
@@ -464,7 +467,10 @@ def wrap(src: str, dst: str, msg: Message, ttl: int = 32) -> bytes:
 
 
 def unwrap(data: bytes) -> Envelope:
-    return _ENVELOPE_DECODER.decode(data)
+    try:
+        return _ENVELOPE_DECODER.decode(data)
+    except UnicodeDecodeError as exc:
+        raise msgspec.DecodeError(f"invalid UTF-8: {exc.reason}") from None
 
 
 def rewrap(env: Envelope) -> bytes:
