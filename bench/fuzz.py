@@ -28,6 +28,7 @@ import random
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -246,7 +247,8 @@ def main(argv: list[str] | None = None) -> int:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     env = {**os.environ, "MSO_KEY": KEY}
-X
+    log_path = Path(tempfile.gettempdir()) / f"mso-fuzz-node-{os.getpid()}.log"
+    log = log_path.open("wb")  # the node's warnings and errors, kept for a look
     node = subprocess.Popen(
         [
             sys.executable,
@@ -273,6 +275,8 @@ X
         node.wait(10)
         log.close()
     result |= {"benchmark": "fuzz", "seed": args.seed, "seconds": time.monotonic() - t0}
+    result["node_log_errors"] = sum(" ERROR " in line for line in log_path.open(errors="replace"))
+    print(f"node log: {log_path}", file=sys.stderr)
     result |= provenance()
     write_results(out, result, render(result))
     return 0
