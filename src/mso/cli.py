@@ -383,6 +383,8 @@ NODE_CONFIG_KEYS = {
     "manage",
     "allow_code",
     "operator_keys",
+    "key_file",
+    "encrypt",
 }
 
 
@@ -435,7 +437,9 @@ def _node_config(path: Path) -> dict[str, Any]:
             isinstance(v, list) and all(isinstance(x, str) and x for x in v)
         ):
             raise SpecError("expected a list of strings", file=doc.file, line=line, field=k)
-        if k in ("id", "listen", "key") and not isinstance(v, str):
+        if k == "encrypt" and not isinstance(v, bool):
+            raise SpecError(f"expected true or false, got {v!r}", file=doc.file, line=line, field=k)
+        if k in ("id", "listen", "key", "key_file") and not isinstance(v, str):
             raise SpecError(f"expected a string, got {v!r}", file=doc.file, line=line, field=k)
     return data
 
@@ -479,6 +483,19 @@ def _node_config(path: Path) -> dict[str, Any]:
 @allow_code_option
 @operator_key_option
 @click.option(
+    "--key-file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Overlay keys, one a line: the first seals, the others are still accepted. Re-read on "
+    "SIGHUP, to rotate the key without stopping anything.",
+)
+@click.option(
+    "--encrypt/--no-encrypt",
+    envvar="MSO_ENCRYPT",
+    default=None,
+    help="Encrypt frames with ChaCha20-Poly1305 (default: $MSO_ENCRYPT; every member and client "
+    "must agree).",
+)
+@click.option(
     "--insecure",
     is_flag=True,
     help="Allow listening beyond loopback with the built-in development key (never on robots).",
@@ -500,6 +517,8 @@ def node(
     dead_after_s: float | None,
     allow_code: tuple[str, ...],
     operator_keys: tuple[str, ...],
+    key_file: Path | None,
+    encrypt: bool | None,
     insecure: bool,
     key: str | None,
     verbose: bool,
@@ -523,6 +542,10 @@ def node(
         model = PowerModel(*power_model(power))
     set_code_allowlist(allow_code or tuple(cfg.get("allow_code", ())))
     key = key if key is not None else cfg.get("key")
+    key_file = key_file or (Path(cfg["key_file"]) if "key_file" in cfg else None)
+    if key_file is not None:
+        key = read_keys(key_file)[0]  # checked now; re-read on SIGHUP
+    encrypt = bool(cfg.get("encrypt", False)) if encrypt is None else encrypt
     authority = node_authority(operator_keys or tuple(cfg.get("operator_keys", ())))
     dev_key = check_key(key, listen or cfg.get("listen", "127.0.0.1:7000"), insecure)
     battery = battery_wh if battery_wh is not None else cfg.get("battery_wh")
@@ -543,7 +566,23 @@ def node(
         dead_after_s,
         dev_key,
         authority,
+        key_file,
+        encrypt,
     )
+
+
+def read_keys(path: Path) -> list[str]:
+    """A key file: overlay keys one a line (the first seals), '#' comments."""
+    from mso.errors import SpecError
+
+    keys = [
+        line.strip()
+        for line in read_text_file(path).splitlines()
+        if line.strip() and not line.strip().startswith("#")
+    ]
+    if not keys:
+        raise SpecError("no overlay key in the key file", file=str(path))
+    return keys
 
 
 def node_authority(keys: tuple[str, ...]) -> Any:
@@ -571,6 +610,8 @@ def _node(
     dead_after_s: float | None = None,
     dev_key: bool = False,
     authority: Any = None,
+    key_file: Path | None = None,
+    encrypt: bool = False,
 ) -> None:
     import asyncio
     import logging
@@ -612,7 +653,21 @@ def _node(
 
     async def serve() -> None:
         view = StaticRoutes(node_id, static) if static else None  # else the emulator's
-        driver = NodeDriver(core, host, port, overlay_key(key), view, authority=authority)
+        keys = [overlay_key(k) for k in read_keys(key_file)] if key_file else overlay_key(key)
+        driver = NodeDriver(core, host, port, keys, view, authority=authority, encrypt=encrypt)
+
+        def rotate() -> None:  # SIGHUP: take the key file again; open connections keep theirs
+            assert key_file is not None
+            try:
+                driver.transport.set_keys([overlay_key(k) for k in read_keys(key_file)])
+                logging.getLogger("mso.node").warning("overlay keys re-read from %s", key_file)
+            except MsoError as exc:
+                logging.getLogger("mso.node").error("keeping the old keys: %s", exc)
+
+        if key_file is not None:
+            import signal
+
+            asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, rotate)
         try:
             await driver.start()
         except OSError as exc:

@@ -17,6 +17,11 @@ from mso.protocol.framing import FrameCodec, FramingError, WrongKey, psk_from_te
 DEFAULT_KEY = "mso-insecure-default-key"
 
 
+def encrypt_default() -> bool:
+    """Whether frames are encrypted, as ``$MSO_ENCRYPT`` says (every member must agree)."""
+    return os.environ.get("MSO_ENCRYPT", "").lower() in ("1", "true", "yes", "on")
+
+
 def overlay_key(text: str | None = None) -> bytes:
     """The overlay's pre-shared key: given, or $MSO_KEY, or the (insecure) default."""
     return psk_from_text(text or os.environ.get("MSO_KEY") or DEFAULT_KEY)
@@ -46,13 +51,19 @@ class Client:
     """One authenticated connection to a node."""
 
     def __init__(
-        self, host: str, port: int, psk: bytes, name: str = "cli", signer: Signer | None = None
+        self,
+        host: str,
+        port: int,
+        psk: bytes,
+        name: str = "cli",
+        signer: Signer | None = None,
+        encrypt: bool | None = None,
     ) -> None:
         self.host, self.port, self.psk, self.name = host, port, psk, name
         self.signer = signer  # signs the commands that change an overlay
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
-        self._codec = FrameCodec(psk)
+        self._codec = FrameCodec(psk, encrypt=encrypt_default() if encrypt is None else encrypt)
         self._inbox: list[m.Message] = []
 
     async def connect(self, timeout: float = 5.0) -> Client:

@@ -92,6 +92,7 @@ class Emulator:
     # modules every node may import app code from (None: $MSO_ALLOW_CODE, else the examples)
     allow_code: tuple[str, ...] | None = None
     operator_keys: tuple[str, ...] = ()  # public keys every node obeys (--operator-key)
+    encrypt: bool = False  # ChaCha20-Poly1305 frames between every node and with the emulator
     # this emulator's own key: its nodes take LinkStates and Shutdowns signed with it only
     signer: Signer = field(default_factory=Signer)
 
@@ -129,6 +130,10 @@ class Emulator:
         env = dict(os.environ)
         env["MSO_KEY"] = self.key or env.get("MSO_KEY", "") or "mso-insecure-default-key"
         env["MSO_EMULATOR_KEY"] = self.signer.public_text()
+        if self.encrypt:
+            env["MSO_ENCRYPT"] = "1"
+        else:
+            env.pop("MSO_ENCRYPT", None)
         self.key = env["MSO_KEY"]
         return env
 
@@ -223,7 +228,7 @@ class Emulator:
                 raise MsoError(f"node {node.id} exited at start; see {node.log}")
             try:
                 node.client = await Client(
-                    node.host, node.port, psk, "emulator", signer=self.signer
+                    node.host, node.port, psk, "emulator", signer=self.signer, encrypt=self.encrypt
                 ).connect(1.0)
                 return
             except NodeUnreachable:

@@ -32,7 +32,7 @@ from mso.net.limits import DEFAULT_LIMITS, ConnectionCounters, Limits
 from mso.net.shaping import Link
 from mso.protocol import messages as m
 from mso.protocol.authority import DOCUMENT_MESSAGES, Authority
-from mso.protocol.framing import FrameCodec, FramingError
+from mso.protocol.framing import FrameCodec, FramingError, WrongKey
 
 log = logging.getLogger("mso.node")
 
@@ -49,7 +49,9 @@ class Connection(asyncio.Protocol):
 
     def __init__(self, net: TcpTransport, peer: str | None = None) -> None:
         self.net = net
-        self.codec = FrameCodec(net.psk, max_frame=net.limits.max_frame)
+        self.codec = FrameCodec(
+            net.psks, max_frame=net.limits.max_frame, encrypt=net.encrypt, responder=peer is None
+        )
         self.transport: asyncio.Transport | None = None
         self.peer = peer  # neighbour node id once known
         self.client: int | None = None
@@ -109,6 +111,8 @@ class Connection(asyncio.Protocol):
             counters.frames_rejected += 1
             log.warning("closing connection: %s", exc)
             assert self.transport is not None
+            if isinstance(exc, WrongKey):
+                self.transport.write(self.codec.refusal())  # the peer learns why
             self.transport.close()
             return
         counters.frames_rejected += self.codec.rejected - rejected
@@ -152,19 +156,22 @@ class TcpTransport:
         node_id: str,
         host: str,
         port: int,
-        psk: bytes,
+        psk: bytes | list[bytes],
         view: RoutingView,
         limits: Limits = DEFAULT_LIMITS,
         authority: Authority | None = None,
+        encrypt: bool = False,
     ) -> None:
         self._node_id = node_id
+        self.encrypt = encrypt  # ChaCha20-Poly1305 frames (every member must agree)
         self.limits = limits
         self.authority = authority or Authority()
         self.connection_counters = ConnectionCounters()
         self.accepted: set[Connection] = set()  # connections others opened to this node
         self.host = host
         self.port = port
-        self.psk = psk
+        # the overlay keys: the first seals new connections, all are accepted (key rotation)
+        self.psks: list[bytes] = [psk] if isinstance(psk, bytes) else list(psk)
         self.view = view
         self.counters: Counters = view.counters
         self.loop = asyncio.get_running_loop()
@@ -190,6 +197,13 @@ class TcpTransport:
 
     def set_client_handler(self, handler: ClientHandler) -> None:
         self._on_client = handler
+
+    def set_keys(self, keys: list[bytes]) -> None:
+        """Rotate the overlay key: new connections seal with ``keys[0]`` and accept any of
+        them; connections already open keep theirs, so nothing running is disturbed."""
+        if not keys or not all(keys):
+            raise ValueError("an overlay key is required")
+        self.psks = list(keys)
 
     def connected(self) -> list[str]:
         """Neighbours with an open connection."""

@@ -37,10 +37,11 @@ class NodeDriver:
         core: NodeCore,
         host: str,
         port: int,
-        psk: bytes,
+        psk: bytes | list[bytes],
         view: RoutingView | None = None,
         limits: Limits = DEFAULT_LIMITS,
         authority: Authority | None = None,
+        encrypt: bool = False,
     ) -> None:
         self.core = core
         self.loop = asyncio.get_running_loop()
@@ -50,7 +51,9 @@ class NodeDriver:
         # subscribed before the driver: on a change the transport reconnects and releases
         # waiting frames first, then the core hears of the new routes
         self.authority = authority or Authority()
-        self.transport = TcpTransport(core.id, host, port, psk, self.view, limits, self.authority)
+        self.transport = TcpTransport(
+            core.id, host, port, psk, self.view, limits, self.authority, encrypt
+        )
         self.transport.set_receiver(self._receive)
         self.transport.set_client_handler(self._request)
         self.view.subscribe(self._routes_changed)
