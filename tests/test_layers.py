@@ -88,9 +88,12 @@ def test_no_import_points_upward() -> None:
                 continue  # `from mso.protocol import messages` names the module, counted too
             if _layer(dep) > _layer(mod):
                 upward.append(f"{mod} ({LAYERS[_layer(mod)][0]}) imports {dep}")
-            elif mod in NODE_ORDER and dep in NODE_ORDER:
-                if NODE_ORDER.index(dep) > NODE_ORDER.index(mod):
-                    upward.append(f"{mod} imports {dep}, a layer of the core above it")
+            elif (
+                mod in NODE_ORDER
+                and dep in NODE_ORDER
+                and (NODE_ORDER.index(dep) > NODE_ORDER.index(mod))
+            ):
+                upward.append(f"{mod} imports {dep}, a layer of the core above it")
     assert not upward, "\n".join(upward)
 
 
