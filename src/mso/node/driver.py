@@ -78,6 +78,8 @@ class NodeDriver:
             "traffic": self.counters.as_dict(),
             "connections": self.transport.connection_counters.as_dict(),
             "connected": self.transport.connected(),
+            "tasks": len(asyncio.all_tasks(self.loop)),  # a soak watches these for leaks
+            "timers": len(self._timers),
             "authority": {
                 "mode": "open" if self.authority.open else "signed",
                 "operators": sorted(self.authority.operators),
