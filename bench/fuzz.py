@@ -174,7 +174,11 @@ async def fuzz(pid: int, port: int, frames: int, seed: int, bad_every: int) -> d
         await conn.send(rng, bad_every > 0 and i % bad_every == bad_every - 1)
         if i % (frames // 10 or 1) == 0 and i:
             rss["samples_kb"].append(rss_kb(pid))
-            print(f"{i:,} frames, node RSS {rss['samples_kb'][-1] / 1024:.1f} MB", file=sys.stderr)
+            st = await status(port)  # what the node holds at this point
+            held = {"procedures": len(st["procedures"]), "timers": st.get("timers", 0)}
+            rss.setdefault("held", []).append(held)
+            print(f"{i:,} frames, node RSS {rss['samples_kb'][-1] / 1024:.1f} MB, {held}",
+                  file=sys.stderr)  # fmt: skip
     for conn in conns:
         await conn.flush()
     sent = sum(c.sent for c in conns)

@@ -184,3 +184,26 @@ def test_keygen_and_signed_cli(tmp_path: Path) -> None:
     assert signer.id in auth.operators
     again = CliRunner().invoke(main, ["keygen", str(out)])  # never overwrites a key
     assert again.exit_code == 2 and "File exists" in again.stderr
+
+
+def test_python_api_signs_with_an_operator_key_file(tmp_path: Path) -> None:
+    from mso.api import AsyncOverlay
+    from mso.errors import MsoError
+
+    key_file = tmp_path / "op.key"
+    key_file.write_text(OPERATOR.private_text() + "\n")
+    app = tmp_path / "one.yaml"
+    app.write_text(APP)
+
+    async def run() -> None:
+        driver, port = await start(Authority.configure([OPERATOR.public_text()]))
+        try:
+            addr = f"{HOST}:{port}"
+            with pytest.raises(MsoError, match="needs an operator's signature"):
+                await AsyncOverlay(addr, key="members").deploy(app)
+            reply = await AsyncOverlay(addr, key="members", sign=str(key_file)).deploy(app)
+            assert reply.ok and "one" in (await status(port))["apps"]
+        finally:
+            await driver.stop()
+
+    asyncio.run(run())
