@@ -67,6 +67,11 @@ CASES = [
     Case("a-directory", ["chains", "/tmp"], "is a directory"),
     Case("missing-file", ["validate", "/nonexistent/app.yaml"], "cannot read file"),
     app("over-4-MiB", "name: x\n" + "#" * (5 << 20) + "\n", "f.yaml: file is larger than 4 MiB"),
+    app(
+        "too-many-vertices",
+        "name: x\nvertices:\n" + "".join(f"  v{i}: {{}}\n" for i in range(5001)),
+        "f.yaml:2: vertices: more than 5,000 vertices",
+    ),
     app("not-utf8", b"name: \xff\xfe\n", "f.yaml: file is not UTF-8 text"),
     app("unclosed-bracket", "name: x\nvertices: [1, 2\n", "f.yaml:2: malformed YAML"),
     app("tab-indent", "name: x\nvertices:\n\tA: {}\n", "f.yaml:3: malformed YAML"),
