@@ -91,6 +91,11 @@ class Connection(asyncio.Protocol):
         self.net.counters.bytes_out += len(frame)
         if frame:
             self.transport.write(frame)
+            limit = self.net.limits.max_client_backlog
+            if self.client is not None and self.transport.get_write_buffer_size() > limit:
+                self.net.connection_counters.over_buffer += 1
+                log.warning("closing a client that does not read its replies")
+                self.transport.abort()
 
     def pause_writing(self) -> None:
         self.paused = True
@@ -118,6 +123,10 @@ class Connection(asyncio.Protocol):
         counters.frames_rejected += self.codec.rejected - rejected
         if flush and self.transport is not None:
             self.transport.write(flush)
+        if not self.net.hold(self, self.codec.buffered):
+            assert self.transport is not None
+            self.transport.abort()
+            return
         for payload in payloads:
             try:
                 env = m.unwrap(payload)
@@ -186,6 +195,8 @@ class TcpTransport:
         self._on_client: ClientHandler = lambda client, msg: None
         self._closed = False
         self._sweeper: asyncio.TimerHandle | None = None
+        self._held: dict[Connection, int] = {}  # partial frames held, by connection
+        self._held_total = 0
         view.subscribe(self._routes_changed)
 
     @property
@@ -228,6 +239,21 @@ class TcpTransport:
             log.warning("refusing a connection from %s: too many connections", conn.address)
             return False
         self.accepted.add(conn)
+        return True
+
+    def hold(self, conn: Connection, held: int) -> bool:
+        """Note the partial frame ``conn`` holds; False when it must be closed because every
+        connection together holds too much and this one a large share of it."""
+        before = self._held.pop(conn, 0)
+        self._held_total += held - before
+        if held:
+            self._held[conn] = held
+        lim = self.limits
+        if self._held_total > lim.max_buffered and held > lim.max_partial_share:
+            self._held_total -= self._held.pop(conn)
+            self.connection_counters.over_buffer += 1
+            log.warning("closing a connection holding %d bytes of a partial frame", held)
+            return False
         return True
 
     def _sweep(self) -> None:
@@ -357,6 +383,7 @@ class TcpTransport:
 
     def on_connection_lost(self, conn: Connection) -> None:
         self.accepted.discard(conn)
+        self._held_total -= self._held.pop(conn, 0)
         if conn.peer is not None and self.peers.get(conn.peer) is conn:
             del self.peers[conn.peer]
             if conn.link is not None:

@@ -123,6 +123,11 @@ class FrameCodec:
         return self._confirmed
 
     @property
+    def buffered(self) -> int:
+        """Bytes received and held: at most one partial frame."""
+        return len(self._buf)
+
+    @property
     def nonce(self) -> bytes:
         """This side's hello nonce (a signer binds a command to the connection with it)."""
         return self._nonce
