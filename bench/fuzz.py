@@ -209,6 +209,7 @@ async def fuzz(pid: int, port: int, frames: int, seed: int, bad_every: int) -> d
             "2 s later": sink_events(later),
         },
         "node_alive": True,
+        "last_handler_error": after.get("last_handler_error", ""),
     }
 
 
