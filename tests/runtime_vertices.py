@@ -100,3 +100,42 @@ class Flaky:
         if event.seq % 3 == 2:
             raise ValueError(f"bad reading {event.seq}")
         return event
+
+
+def numbers(count: int = 100):  # type: ignore[no-untyped-def]
+    """A finite generator source: its end is the end of its stream."""
+    yield from (Num(seq=i) for i in range(count))
+
+
+class Summing:
+    """An operator that passes events on and, at the end of its inputs, one total."""
+
+    def __init__(self) -> None:
+        self.total = 0
+
+    def __call__(self, event: Num) -> Num:
+        self.total += event.seq
+        return event
+
+    def end(self) -> Num:
+        return Num(seq=-1, pad=str(self.total).encode())
+
+
+class Flushing:
+    """A sink that buffers and flushes at the end of its stream."""
+
+    def __init__(self) -> None:
+        self.buffer: list[int] = []
+        self.flushed: list[int] = []
+        self.ends = 0
+        self.total = b""
+
+    def __call__(self, event: Num) -> None:
+        if event.seq < 0:
+            self.total = event.pad
+        else:
+            self.buffer.append(event.seq)
+
+    def end(self) -> None:
+        self.ends += 1
+        self.flushed, self.buffer = self.flushed + self.buffer, []

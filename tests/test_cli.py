@@ -158,3 +158,47 @@ def test_plan_with_a_baseline_and_compare() -> None:
     assert rows["optimal:energy"]["energy"] <= rows["algorithm1"]["energy"] + 1e-12
     assert rows["optimal:max_load"]["max_load"] <= rows["algorithm1"]["max_load"] + 1e-12
     assert rows["algorithm1"]["max_load"] < rows["source"]["max_load"]  # offloading helps
+
+
+def test_help_explains_the_concepts_and_completion_is_there() -> None:
+    code, out, _ = run("--help")
+    assert code == 0
+    for word in ("chains", "overlay", "relocate", "remap", "--dashboard", "completion"):
+        assert word in out
+    code, out, _ = run("completion", "bash")
+    assert code == 0 and "_MSO_COMPLETE=bash_complete" in out
+    code, _, err = run("completion", "tcsh")
+    assert code == 2 and "tcsh" in err
+
+
+def test_every_reporting_command_has_json() -> None:
+    import click
+
+    shows = {"node", "dashboard", "completion", "demo", "bench"}  # serve, or print for a person
+    for name, cmd in main.commands.items():  # type: ignore[attr-defined]
+        if name in shows:
+            continue
+        flags = {o for p in cmd.params if isinstance(p, click.Option) for o in p.opts}
+        assert "--json" in flags, name
+    code, out, _ = run("validate", str(EXAMPLES / "fig2.yaml"), "--json")
+    assert code == 0 and json.loads(out) == {"app": "fig2", "vertices": 9, "edges": 8}
+
+
+def test_the_status_path_imports_no_planner() -> None:
+    """`mso status` starts fast because it does not import numpy, scipy or the planner; the
+    time itself is measured by bench/cli_startup.py."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import sys, mso, mso.cli, mso.client, mso.emu.overlays, mso.protocol.messages\n"
+        "heavy = {'numpy', 'scipy', 'yaml', 'mso.planning.placement', 'mso.model.app', 'rich'}\n"
+        "print(sorted(heavy & set(sys.modules)))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_status_watch_needs_a_positive_period() -> None:
+    code, _, err = run("status", "--watch", "0", "--via", "127.0.0.1:9")
+    assert code == 2 and "--watch: expected seconds > 0" in err

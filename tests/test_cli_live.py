@@ -13,7 +13,7 @@ from pathlib import Path
 from click.testing import CliRunner
 
 from mso.cli import main
-from mso.emu.controller import STATE_FILE
+from mso.emu.overlays import running_overlays, state_file
 
 TESTS = Path(__file__).resolve().parent
 
@@ -68,7 +68,7 @@ def test_emulate_then_drive_it_from_another_terminal(tmp_path: Path) -> None:
         while "deployed pipe" not in seen and time.monotonic() < deadline:
             seen += emu.stdout.readline()
         assert "deployed pipe" in seen, seen
-        assert STATE_FILE.exists()
+        assert "line" in running_overlays()  # named after its scenario
         code, out, err = cli("status", "--json")
         assert code == 0, err
         nodes = json.loads(out)
@@ -95,4 +95,4 @@ def test_emulate_then_drive_it_from_another_terminal(tmp_path: Path) -> None:
         if emu.poll() is None:
             emu.kill()
             emu.wait()
-    assert not STATE_FILE.exists()
+    assert not state_file("line").exists()

@@ -18,11 +18,19 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("protocol", ("mso.protocol",)),
     ("node runtime", ("mso.runtime", "mso.node")),
     ("net", ("mso.net", "mso.client")),
-    ("drivers", ("mso.node.driver", "mso.sim")),
+    ("drivers", ("mso.node.driver", "mso.node.metrics", "mso.sim")),
     ("emulator", ("mso.emu",)),
     (
         "front ends",
-        ("mso.cli", "mso.cliargs", "mso.api", "mso.benchmarks", "mso.examples", "mso.dashboard"),
+        (
+            "mso.cli",
+            "mso.cliargs",
+            "mso.api",
+            "mso.benchmarks",
+            "mso.examples",
+            "mso.dashboard",
+            "mso.plots",
+        ),
     ),
 ]
 # inside the node runtime: the core's layers, lowest first (each may import those before it)

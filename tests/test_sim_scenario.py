@@ -107,7 +107,7 @@ def test_simulate_plays_a_partition_and_its_heal(tmp_path: Path) -> None:
 def test_bad_arguments_exit_2_with_a_clear_message(tmp_path: Path) -> None:
     sc, app = files(tmp_path, "")
     code, out = run_cli(sc, "--app", app, "--duration", "0")
-    assert code == 2 and "--duration': expected a finite number > 0" in out, out
+    assert code == 2 and "'--duration': expected a finite number > 0, got '0'" in out, out
     code, out = run_cli(sc, "--app", app, "--via", "N9")
     assert code == 2 and "--via: unknown node 'N9'" in out, out
     code, out = run_cli(sc, "--app", str(tmp_path / "none.yaml"))

@@ -13,24 +13,24 @@ import time
 from collections.abc import Callable
 from functools import wraps
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
-from rich.console import Console
-from rich.table import Table
 
 from mso.cliargs import NON_NEGATIVE, POSITIVE, OneLineGroup, power_model
 from mso.errors import MsoError
-from mso.model.app import App
-from mso.model.appfile import load_app
-from mso.model.chains import form_chains
-from mso.model.yamlfile import read_text_file
-from mso.planning.placement import Plan, plan
-from mso.scenario import Scenario, load_scenario
+
+if TYPE_CHECKING:  # imported where used: `mso status` needs neither numpy nor the planner
+    from rich.console import Console
+
+    from mso.model.app import App
+    from mso.planning.placement import Plan
+    from mso.scenario import Scenario
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 EXAMPLES = Path(__file__).parent / "examples"
+DASHBOARD_LISTEN = "127.0.0.1:8765"
 PLANNERS = ["algorithm1", "source", "random", "greedy", "optimal"]
 
 
@@ -49,13 +49,39 @@ def _user_errors(fn: F) -> F:
 
 
 def _console() -> Console:
+    from rich.console import Console
+
     return Console(highlight=False)
+
+
+def _progress(what: str) -> contextlib.AbstractContextManager[Any]:
+    """A spinner on stderr while long work runs (a terminal only: pipes and --json stay clean)."""
+    if not sys.stderr.isatty():
+        return contextlib.nullcontext()
+    from rich.console import Console
+
+    return Console(stderr=True).status(what)
 
 
 @click.group(cls=OneLineGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="mso")
 def main() -> None:
-    """mso: run a dataflow app across a mobile ad hoc network and keep re-placing it."""
+    """mso: run a dataflow app across a mobile ad hoc network and keep re-placing it.
+
+    \b
+    An app is a graph of vertices (sources, operators, sinks) joined by edges; mso cuts it into
+    chains (mso chains) and places each chain along the route to its sink (mso plan). Every
+    device runs the same daemon (mso node); together they form an overlay, reached through any
+    of its nodes (--via). A running app is moved without losing an event: one vertex
+    (mso relocate), a chain or the whole app (mso remap), by hand or by the nodes' management
+    rules as batteries drain, links change and nodes fail.
+
+    \b
+    Try it on one machine:  mso demo --dashboard
+      mso emulate SCENARIO --app APP --dashboard   # one process per node, live web view
+      mso status --watch                           # from another terminal
+    Shell completion:  eval "$(mso completion bash)"   (or zsh, fish)
+    """
 
 
 no_import = click.option(
@@ -68,10 +94,17 @@ no_import = click.option(
 @main.command()
 @click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
 @no_import
+@click.option("--json", "as_json", is_flag=True, help='Print {"app", "vertices", "edges"}.')
 @_user_errors
-def validate(app_file: Path, no_import: bool) -> None:
+def validate(app_file: Path, no_import: bool, as_json: bool) -> None:
     """Check an app file and report the first problem."""
+    from mso.model.appfile import load_app
+
     app = load_app(app_file, resolve_code=not no_import)
+    if as_json:
+        doc = {"app": app.name, "vertices": len(app.vertices), "edges": len(app.edges)}
+        click.echo(json.dumps(doc))
+        return
     click.echo(f"{app_file}: ok ({len(app.vertices)} vertices, {len(app.edges)} edges)")
 
 
@@ -82,6 +115,11 @@ def validate(app_file: Path, no_import: bool) -> None:
 @_user_errors
 def chains(app_file: Path, as_json: bool, no_import: bool) -> None:
     """Partition an app into chains (paper §3.2)."""
+    from rich.table import Table
+
+    from mso.model.appfile import load_app
+    from mso.model.chains import form_chains
+
     app = load_app(app_file, resolve_code=not no_import)
     found = form_chains(app)
     if as_json:
@@ -136,8 +174,11 @@ def plan_cmd(
     no_import: bool,
 ) -> None:
     """Place an app on a network with Algorithm 1 (paper §3.3) or a baseline."""
+    from mso.model.appfile import load_app
     from mso.planning.baselines import BASELINES
     from mso.planning.objectives import evaluate
+    from mso.planning.placement import Plan, plan
+    from mso.scenario import load_scenario
 
     app = load_app(app_file, resolve_code=not no_import)
     scenario = load_scenario(scenario_file)
@@ -168,9 +209,14 @@ def plan_cmd(
 @_user_errors
 def compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool) -> None:
     """Algorithm 1 beside the baselines on energy per event, max node load and hops."""
+    from rich.table import Table
+
     from mso.errors import PlanningError
+    from mso.model.appfile import load_app
     from mso.planning.baselines import BASELINES
     from mso.planning.objectives import evaluate
+    from mso.planning.placement import plan
+    from mso.scenario import load_scenario
 
     app = load_app(app_file, resolve_code=not no_import)
     net = load_scenario(scenario_file).network
@@ -201,6 +247,8 @@ def compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool)
 
 def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) -> None:
     """Chains with their placement, then the load each node carries."""
+    from rich.table import Table
+
     net = scenario.network
     table = Table(title=f"{app.name} on {scenario.name}: chains in placement order")
     table.add_column("step", justify="right")
@@ -223,18 +271,34 @@ def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) ->
     console.print(nodes)
 
 
-@main.command()
-@click.option("--duration", type=POSITIVE, default=20.0, show_default=True, help="Seconds to run.")
+@main.command(short_help="Run the bundled convoy app on an emulated 4-robot line.")
+@click.option(
+    "--duration",
+    type=POSITIVE,
+    default=None,
+    help="Seconds to run (default 20; 600 with --dashboard, Ctrl-C stops it sooner).",
+)
 @click.option("--plan-only", is_flag=True, help="Only form chains and plan; start no nodes.")
-def demo(duration: float, plan_only: bool) -> None:
+@click.option(
+    "--dashboard",
+    is_flag=True,
+    help="Serve the live web dashboard, on the line with a battery-bound leader (2 Wh) so the "
+    "rules move work off it while you watch.",
+)
+def demo(duration: float | None, plan_only: bool, dashboard: bool) -> None:
     """Run the bundled convoy app (paper Fig. 6) on an emulated 4-robot line."""
-    _demo(duration, plan_only)
+    _demo(duration if duration is not None else 600.0 if dashboard else 20.0, plan_only, dashboard)
 
 
 @_user_errors
-def _demo(duration: float, plan_only: bool) -> None:
+def _demo(duration: float, plan_only: bool, dashboard: bool = False) -> None:
+    from mso.model.appfile import load_app
+    from mso.planning.placement import plan
+    from mso.scenario import load_scenario
+
     console = _console()
-    app_file, scenario_file = EXAMPLES / "convoy.yaml", EXAMPLES / "convoy-line.yaml"
+    app_file = EXAMPLES / "convoy.yaml"
+    scenario_file = EXAMPLES / ("convoy-energy.yaml" if dashboard else "convoy-line.yaml")
     app = load_app(app_file)
     scenario = load_scenario(scenario_file)
     console.print(
@@ -246,7 +310,10 @@ def _demo(duration: float, plan_only: bool) -> None:
     render_plan(console, app, scenario, result)
     if not plan_only:
         console.print(f"\n[bold]running it[/bold] on 4 emulated node processes for {duration:g} s")
-        _emulate(scenario_file, app_file, duration, None, 0.0, None, False)
+        _emulate(
+            scenario_file, app_file, duration, None, 0.0, None, False,
+            dashboard="" if dashboard else None,
+        )  # fmt: skip
 
 
 # -- the running system ----------------------------------------------------------------------
@@ -269,8 +336,9 @@ operator_key_option = click.option(
 
 @main.command()
 @click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help='Print {"private", "public", "key"}.')
 @_user_errors
-def keygen(out: Path) -> None:
+def keygen(out: Path, as_json: bool) -> None:
     """Make an operator key: OUT (private, mode 0600) and OUT.pub (give it to every node)."""
     import os
 
@@ -285,6 +353,10 @@ def keygen(out: Path) -> None:
         pub.write_text(signer.public_text() + "\n")
     except OSError as exc:
         raise MsoError(f"{exc.filename}: {exc.strerror}") from None
+    if as_json:
+        doc = {"private": str(out), "public": str(pub), "key": signer.public_text()}
+        click.echo(json.dumps(doc))
+        return
     click.echo(f"wrote {out} (keep it secret) and {pub}: mso node --operator-key {pub}")
     click.echo(signer.public_text())
 
@@ -351,21 +423,23 @@ key_option = click.option(
 )
 
 
-def _resolve_via(via: str | None) -> str:
-    """A node id of the running emulator, or HOST:PORT."""
-    from mso.emu.controller import STATE_FILE, emulator_address
+overlay_option = click.option(
+    "--overlay",
+    envvar="MSO_OVERLAY",
+    help="Which running emulator (`mso overlays`) when several run (default: $MSO_OVERLAY).",
+)
+
+
+def _resolve_via(via: str | None, overlay: str | None = None) -> str:
+    """A node id of a running emulator, or HOST:PORT."""
+    from mso.emu.overlays import emulator_address, find_overlay
 
     if via is None:
-        try:
-            nodes = json.loads(STATE_FILE.read_text())["nodes"]
-        except (OSError, ValueError, KeyError):
-            raise MsoError(
-                "no --via given and no emulator running; pass --via HOST:PORT or a node id"
-            ) from None
-        return str(next(iter(nodes.values())))
+        _, state = find_overlay(overlay)
+        return str(next(iter(state["nodes"].values())))
     if ":" in via:
         return via
-    addr = emulator_address(via)
+    addr = emulator_address(via, overlay)
     if addr is None:
         raise MsoError(f"unknown node {via!r}: no running emulator knows it; use HOST:PORT")
     return addr
@@ -480,6 +554,10 @@ def _node_config(path: Path) -> dict[str, Any]:
     "--dead-after", "dead_after_s", type=POSITIVE, default=None,
     help="Seconds of silence after which a neighbour is declared failed (default 0.5).",
 )  # fmt: skip
+@click.option(
+    "--metrics",
+    help="HOST:PORT to serve Prometheus metrics on at /metrics (default: off).",
+)
 @allow_code_option
 @operator_key_option
 @click.option(
@@ -515,6 +593,7 @@ def node(
     manage: bool | None,
     heartbeat_s: float | None,
     dead_after_s: float | None,
+    metrics: str | None,
     allow_code: tuple[str, ...],
     operator_keys: tuple[str, ...],
     key_file: Path | None,
@@ -568,12 +647,14 @@ def node(
         authority,
         key_file,
         encrypt,
+        metrics,
     )
 
 
 def read_keys(path: Path) -> list[str]:
     """A key file: overlay keys one a line (the first seals), '#' comments."""
     from mso.errors import SpecError
+    from mso.model.yamlfile import read_text_file
 
     keys = [
         line.strip()
@@ -612,6 +693,7 @@ def _node(
     authority: Any = None,
     key_file: Path | None = None,
     encrypt: bool = False,
+    metrics: str | None = None,
 ) -> None:
     import asyncio
     import logging
@@ -628,6 +710,11 @@ def _node(
         format=f"%(asctime)s {node_id} %(levelname)s %(message)s",
     )
     host, port = parse_address(listen)
+    metrics_at = None
+    if metrics is not None:
+        metrics_at = parse_address(metrics, default_port=-1)
+        if not 0 <= metrics_at[1] < 65536:
+            raise MsoError(f"--metrics: expected HOST:PORT, got {metrics!r}")
     if cpu <= 0:
         raise MsoError(f"--cpu: expected a number > 0, got {cpu:g}")
     static: dict[str, Neighbour] = {}
@@ -672,7 +759,16 @@ def _node(
             await driver.start()
         except OSError as exc:
             raise MsoError(f"cannot listen on {listen}: {exc.strerror}") from None
+        exporter = None
+        if metrics_at is not None:
+            from mso.node.metrics import MetricsServer
+
+            loop = asyncio.get_running_loop()
+            exporter = MetricsServer(lambda: core.status(loop.time()), *metrics_at)
+            await exporter.start()
         await driver.stopped.wait()
+        if exporter is not None:
+            await exporter.stop()
 
     if dev_key:
         click.echo(DEV_KEY_WARNING, err=True)
@@ -684,23 +780,31 @@ def _node(
 @click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--via", help="Node to deploy from: a node id of the running emulator or HOST:PORT.")
 @sign_option
+@overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
 def deploy(
-    app_file: Path, via: str | None, sign: str | None, key: str | None, as_json: bool
+    app_file: Path,
+    via: str | None,
+    overlay: str | None,
+    sign: str | None,
+    key: str | None,
+    as_json: bool,
 ) -> None:
     """Deploy an app from any node (distributed Algorithm 1)."""
     import asyncio
 
     from mso.client import load_signer, request
+    from mso.model.appfile import load_app
+    from mso.model.yamlfile import read_text_file
     from mso.protocol import messages as m
 
     signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     load_app(app_file)  # report file errors here, with their lines, before sending anything
     document = read_text_file(app_file)
-    address = _resolve_via(via)
+    address = _resolve_via(via, overlay)
     reply = asyncio.run(
         request(
             address,
@@ -746,6 +850,7 @@ async def _only_app(address: str, key: str | None) -> str:
 @click.option("--to", "target", help="Onto this node.")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @sign_option
+@overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
@@ -756,6 +861,7 @@ def relocate(
     target: str | None,
     via: str | None,
     sign: str | None,
+    overlay: str | None,
     key: str | None,
     as_json: bool,
 ) -> None:
@@ -769,7 +875,7 @@ def relocate(
 
     if bool(direction) == bool(target):
         raise MsoError("give exactly one of --upstream, --downstream or --to NODE")
-    address = _resolve_via(via)
+    address = _resolve_via(via, overlay)
     app = app_name or asyncio.run(_only_app(address, key))
     req = m.RelocateRequest(app, vertex, direction or "", target or "")
     reply = asyncio.run(request(address, req, key=key, signer=signer))
@@ -790,6 +896,7 @@ def relocate(
 @click.option("--all", "everything", is_flag=True, help="Every chain of the app.")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @sign_option
+@overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
@@ -800,6 +907,7 @@ def remap(
     everything: bool,
     via: str | None,
     sign: str | None,
+    overlay: str | None,
     key: str | None,
     as_json: bool,
 ) -> None:
@@ -818,7 +926,7 @@ def remap(
     names = [c for c in words + (chains.split(",") if chains else []) if c]
     if bool(names) == everything:
         raise MsoError("name a chain (mso remap chain CHAIN), or give --chains C1,C2, or --all")
-    address = _resolve_via(via)
+    address = _resolve_via(via, overlay)
 
     async def run() -> Any:
         indices: list[int] = []
@@ -856,9 +964,18 @@ def remap(
 @click.argument("app_name")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
 @sign_option
+@overlay_option
 @key_option
+@click.option("--json", "as_json", is_flag=True, help='Print {"stopped": NAME}.')
 @_user_errors
-def undeploy(app_name: str, via: str | None, sign: str | None, key: str | None) -> None:
+def undeploy(
+    app_name: str,
+    via: str | None,
+    overlay: str | None,
+    sign: str | None,
+    key: str | None,
+    as_json: bool,
+) -> None:
     """Stop an app on every node."""
     import asyncio
 
@@ -867,7 +984,7 @@ def undeploy(app_name: str, via: str | None, sign: str | None, key: str | None) 
 
     signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
-    address = _resolve_via(via)
+    address = _resolve_via(via, overlay)
 
     async def run() -> None:
         st = await request(address, m.StatusRequest(), key=key)
@@ -881,28 +998,71 @@ def undeploy(app_name: str, via: str | None, sign: str | None, key: str | None) 
         await request(address, m.StopApp(app_name), key=key, signer=signer)
 
     asyncio.run(run())
-    click.echo(f"stopped {app_name}")
+    click.echo(json.dumps({"stopped": app_name}) if as_json else f"stopped {app_name}")
 
 
 @main.command()
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@overlay_option
 @key_option
-@click.option("--json", "as_json", is_flag=True)
+@click.option("--json", "as_json", is_flag=True, help="Print every node's status as JSON.")
+@click.option(
+    "--watch",
+    type=float,
+    default=None,
+    is_flag=False,
+    flag_value=2.0,
+    help="Refresh every S seconds (--watch alone: 2) until Ctrl-C; with --json, a line each.",
+)
+@click.option("--count", type=click.IntRange(1), default=None, help="With --watch: stop after N.")
 @_user_errors
-def status(via: str | None, key: str | None, as_json: bool) -> None:
+def status(
+    via: str | None,
+    overlay: str | None,
+    key: str | None,
+    as_json: bool,
+    watch: float | None,
+    count: int | None,
+) -> None:
     """Nodes, neighbours, chains, placement, events per edge, traffic, CPU per vertex."""
     import asyncio
 
     from mso.client import request
     from mso.protocol import messages as m
 
-    reply = asyncio.run(request(_resolve_via(via), m.StatusRequest(everywhere=True), key=key))
-    if not isinstance(reply, m.StatusReply):
-        raise MsoError(f"unexpected reply {reply!r}")
-    if as_json:
-        click.echo(json.dumps(reply.nodes, sort_keys=True))
+    if watch is not None and not watch > 0:
+        raise MsoError(f"--watch: expected seconds > 0, got {watch:g}")
+    address = _resolve_via(via, overlay)
+
+    async def once() -> dict[str, Any]:
+        reply = await request(address, m.StatusRequest(everywhere=True), key=key)
+        if not isinstance(reply, m.StatusReply):
+            raise MsoError(f"unexpected reply {reply!r}")
+        return reply.nodes
+
+    if watch is None:
+        nodes = asyncio.run(once())
+        if as_json:
+            click.echo(json.dumps(nodes, sort_keys=True))
+        else:
+            render_status(_console(), nodes)
         return
-    render_status(_console(), reply.nodes)
+    console = _console()
+    shown = 0
+    with contextlib.suppress(KeyboardInterrupt):
+        while count is None or shown < count:
+            started = time.monotonic()
+            nodes = asyncio.run(once())
+            if as_json:  # one document a line
+                click.echo(json.dumps(nodes, sort_keys=True))
+            else:
+                console.clear()
+                console.print(f"[dim]{time.strftime('%H:%M:%S')} via {address}, every {watch:g} s "
+                              "(Ctrl-C stops)[/dim]")  # fmt: skip
+                render_status(console, nodes)
+            shown += 1
+            if count is None or shown < count:
+                time.sleep(max(0.0, watch - (time.monotonic() - started)))
 
 
 def _energy_cells(mon: dict[str, Any]) -> tuple[str, str, str]:
@@ -914,6 +1074,8 @@ def _energy_cells(mon: dict[str, Any]) -> tuple[str, str, str]:
 
 def render_status(console: Console, nodes: dict[str, Any]) -> None:
     """Nodes with their traffic; per app, vertices (where, events, CPU) and edges."""
+    from rich.table import Table
+
     table = Table(title="nodes")
     cols = (
         "node",
@@ -1042,6 +1204,28 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
     "--dead-after", "dead_after_s", type=POSITIVE, default=None,
     help="Every node's failure timeout in seconds of silence (default 0.5).",
 )  # fmt: skip
+@click.option(
+    "--name",
+    help="The overlay's name, for --overlay in other commands "
+    "(default: the scenario's, with -2, -3... if taken).",
+)
+@click.option(
+    "--manage/--no-manage",
+    default=True,
+    help="Run the management rules on the nodes (default on); off keeps placements as deployed.",
+)
+@click.option("--dashboard", "with_dashboard", is_flag=True, help="Serve the live web dashboard.")
+@click.option(
+    "--metrics-port",
+    type=click.IntRange(0, 65535),
+    default=None,
+    help="Every node serves Prometheus metrics on its own address at this port (0: a free one).",
+)
+@click.option(
+    "--dashboard-listen",
+    default=None,
+    help=f"HOST:PORT of the dashboard (default {DASHBOARD_LISTEN}, or a free port if taken).",
+)
 @allow_code_option
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
@@ -1053,6 +1237,11 @@ def emulate(
     convergence: float,
     heartbeat_s: float | None,
     dead_after_s: float | None,
+    name: str | None,
+    manage: bool,
+    with_dashboard: bool,
+    dashboard_listen: str | None,
+    metrics_port: int | None,
     allow_code: tuple[str, ...],
     key: str | None,
     as_json: bool,
@@ -1060,7 +1249,9 @@ def emulate(
     """Run a scenario as one local process per node (user-space MANET emulator)."""
     _emulate(
         scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s,
-        dead_after_s, allow_code,
+        dead_after_s, allow_code, name=name, manage=manage,
+        dashboard=(dashboard_listen or "") if with_dashboard or dashboard_listen else None,
+        metrics_port=metrics_port,
     )  # fmt: skip
 
 
@@ -1076,11 +1267,21 @@ def _emulate(
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
     allow_code: tuple[str, ...] = (),
+    *,
+    name: str | None = None,
+    manage: bool = True,
+    dashboard: str | None = None,
+    metrics_port: int | None = None,
 ) -> None:
     import asyncio
 
+    from rich.table import Table
+
     from mso.emu.controller import Emulator
+    from mso.model.appfile import load_app
+    from mso.model.yamlfile import read_text_file
     from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
+    from mso.scenario import load_scenario
 
     if heartbeat_s is not None or dead_after_s is not None:
         why = check_timing(
@@ -1102,15 +1303,35 @@ def _emulate(
             convergence_s=convergence,
             heartbeat_s=heartbeat_s,
             dead_after_s=dead_after_s,
+            name=name,
+            manage=manage,
+            metrics_port=metrics_port,
             allow_code=allow_code or None,
         )
-        await emu.start()
+        with _progress(f"starting {len(scenario.network.nodes)} node processes…"):
+            await emu.start()
         loop = asyncio.get_running_loop()
+        board = None
         try:
             console.print(
-                f"emulating {scenario.name}: {len(emu.nodes)} node processes "
+                f"emulating {scenario.name} as overlay {emu.name}: {len(emu.nodes)} node processes "
                 + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)
             )
+            if dashboard is not None:
+                board = await _start_dashboard(
+                    [emu.address(n) for n in emu.nodes], emu.key, str(emu.name), dashboard,
+                    1.0, emu.node_positions, list(emu.nodes),
+                )  # fmt: skip
+                emu.dashboard = board.url
+                emu.write_state()
+                console.print(f"dashboard: {board.url}")
+            if emu.metrics_port is not None:
+                console.print(
+                    "metrics: "
+                    + ", ".join(
+                        f"http://{n.host}:{emu.metrics_port}/metrics" for n in emu.nodes.values()
+                    )
+                )
             t0 = loop.time()
             changes = asyncio.create_task(emu.play_changes(t0))
             moving = asyncio.create_task(emu.play_mobility(t0))
@@ -1136,6 +1357,8 @@ def _emulate(
             moving.cancel()
             return await emu.status()
         finally:
+            if board is not None:
+                await board.stop()
             await emu.stop()
 
     try:
@@ -1148,6 +1371,113 @@ def _emulate(
         return
     console.print("\n[bold]summary[/bold]")
     render_status(console, final)
+
+
+async def _start_dashboard(
+    addresses: list[str],
+    key: str | None,
+    name: str,
+    listen: str,
+    interval: float,
+    positions: Any = None,
+    expected: list[str] | None = None,
+) -> Any:
+    """Start a dashboard on ``listen``, or on the default port (a free one if that is taken)."""
+    from mso.dashboard.server import Dashboard
+
+    def make(where: str) -> Dashboard:
+        return Dashboard(
+            addresses, key, name=name, interval=interval, listen=where,
+            positions=positions, expected=expected,
+        )  # fmt: skip
+
+    board = make(listen or DASHBOARD_LISTEN)
+    try:
+        await board.start()
+    except MsoError:
+        if listen:
+            raise
+        board = make(DASHBOARD_LISTEN.rsplit(":", 1)[0] + ":0")
+        await board.start()
+    return board
+
+
+@main.command()
+@click.option("--via", help="Node to ask: a node id of a running emulator or HOST:PORT.")
+@overlay_option
+@click.option(
+    "--listen",
+    default=None,
+    help=f"HOST:PORT to serve the page on (default {DASHBOARD_LISTEN}, or a free port if "
+    "taken); another host than 127.0.0.1 makes the overlay's controls reachable from there.",
+)
+@click.option(
+    "--interval", type=float, default=1.0, show_default=True, help="Seconds between updates."
+)
+@key_option
+@_user_errors
+def dashboard(
+    via: str | None, overlay: str | None, listen: str | None, interval: float, key: str | None
+) -> None:
+    """Serve a live web dashboard of a running overlay: topology, batteries, chains, events/s,
+    a timeline of reconfigurations, and controls to relocate and remap. Ctrl-C stops it."""
+    import asyncio
+
+    from mso.emu.overlays import find_overlay, state_file
+
+    address = _resolve_via(via, overlay)
+    addresses, name, positions = [address], "", None
+    if via is None or ":" not in via:  # an emulator's node: every node is a way in
+        name, state = find_overlay(overlay) if via is None else _overlay_of(address)
+        addresses += [a for a in state.get("nodes", {}).values() if a != address]
+        path = state_file(name) if name else None
+
+        def positions() -> dict[str, tuple[float, float]]:
+            try:
+                raw = json.loads(path.read_text()).get("positions", {}) if path else {}
+                return {n: (float(p[0]), float(p[1])) for n, p in raw.items()}
+            except (OSError, ValueError, TypeError, IndexError):
+                return {}
+
+    async def serve() -> None:
+        board = await _start_dashboard(addresses, key, name, listen or "", interval, positions)
+        click.echo(f"dashboard of {name or address}: {board.url}  (Ctrl-C stops it)")
+        try:
+            await asyncio.Event().wait()
+        finally:
+            await board.stop()
+
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(serve())
+
+
+def _overlay_of(address: str) -> tuple[str, dict[str, Any]]:
+    from mso.emu.overlays import running_overlays
+
+    for name, state in running_overlays().items():
+        if address in state["nodes"].values():
+            return name, state
+    return "", {}
+
+
+@main.command()
+@click.option("--json", "as_json", is_flag=True, help='Print {name: {"pid", "nodes", ...}}.')
+def overlays(as_json: bool) -> None:
+    """The emulators running on this machine for this user, by name (for --overlay)."""
+    from mso.emu.overlays import running_overlays
+
+    found = running_overlays()
+    if as_json:
+        click.echo(json.dumps(found, sort_keys=True))
+        return
+    if not found:
+        click.echo("no emulator running")
+    for name, st in found.items():
+        where = f", dashboard {st['dashboard']}" if st.get("dashboard") else ""
+        click.echo(
+            f"{name}: {st.get('scenario', '?')}, pid {st['pid']}, "
+            f"{len(st['nodes'])} nodes ({', '.join(st['nodes'])}){where}"
+        )
 
 
 def _sink_line(nodes: dict[str, Any], app: str) -> str:
@@ -1175,6 +1505,11 @@ def _sink_line(nodes: dict[str, Any], app: str) -> str:
     help="Seconds routes take to follow a link change.",
 )  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+@click.option(
+    "--plot",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Also draw the report as a PNG: vertex moves, failures, rejoins, energy per node.",
+)
 @_user_errors
 def simulate(
     scenario_file: Path,
@@ -1184,8 +1519,12 @@ def simulate(
     via: str | None,
     convergence: float,
     as_json: bool,
+    plot: Path | None,
 ) -> None:
     """Run a scenario in virtual time (the daemon's node code, the scenario's timeline)."""
+    from mso.model.appfile import load_app
+    from mso.model.yamlfile import read_text_file
+    from mso.scenario import load_scenario
     from mso.sim.play import simulate as run
 
     scenario = load_scenario(scenario_file)
@@ -1193,20 +1532,28 @@ def simulate(
     if convergence < 0:
         raise MsoError(f"--convergence: expected seconds >= 0, got {convergence:g}")
     doc = read_text_file(app_file)
-    report = run(
-        scenario, doc, str(app_file), seed=seed, duration=duration, convergence_s=convergence,
-        via=via,
-    )  # fmt: skip
+    with _progress(f"simulating {duration:g} s of {scenario.name}…"):
+        report = run(
+            scenario, doc, str(app_file), seed=seed, duration=duration,
+            convergence_s=convergence, via=via,
+        )  # fmt: skip
     if as_json:
         click.echo(json.dumps(report, sort_keys=True))
     else:
         render_simulation(_console(), report)
+    if plot is not None and report["deploy"]["ok"]:
+        from mso.plots import simulation
+
+        simulation(report, plot)
+        click.echo(f"plot: {plot}", err=as_json)
     if not report["deploy"]["ok"]:
         raise MsoError(f"deployment failed: {report['deploy']['error']}")
 
 
 def render_simulation(console: Console, r: dict[str, Any]) -> None:
     """The report of ``mso simulate``: events, reconfigurations, failures, energy."""
+    from rich.table import Table
+
     dep = r["deploy"]
     console.print(
         f"simulated {r['app']} on {r['scenario']} for {r['duration_s']:g} s (seed {r['seed']}): "
@@ -1280,6 +1627,18 @@ def render_simulation(console: Console, r: dict[str, Any]) -> None:
     console.print(
         "final placement: " + ", ".join(f"{v}@{n}" for v, n in r["placement"].items()) or "-"
     )
+
+
+@main.command()
+@click.argument("shell", type=click.Choice(["bash", "zsh", "fish"]))
+def completion(shell: str) -> None:
+    """Print the shell completion script: eval "$(mso completion bash)" in ~/.bashrc
+    (zsh: ~/.zshrc; fish: mso completion fish > ~/.config/fish/completions/mso.fish)."""
+    from click.shell_completion import get_completion_class
+
+    cls = get_completion_class(shell)
+    assert cls is not None
+    click.echo(cls(main, {}, "mso", "_MSO_COMPLETE").source())
 
 
 @main.group()

@@ -5,14 +5,16 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 
 from mso.errors import MsoError
 from mso.protocol import messages as m
-from mso.protocol.authority import EMULATOR_COMMANDS, OPERATOR_COMMANDS, Signer
 from mso.protocol.framing import FrameCodec, FramingError, WrongKey, psk_from_text
+
+if TYPE_CHECKING:  # cryptography is imported only by a client that signs
+    from mso.protocol.authority import Signer
 
 DEFAULT_KEY = "mso-insecure-default-key"
 
@@ -37,10 +39,10 @@ class Refused(MsoError):
 
 def load_signer(path: str | None) -> Signer | None:
     """The operator's private key from ``path`` (``--sign``, ``$MSO_SIGN``), if given."""
-    from mso.protocol.authority import KeyError_
-
     if not path:
         return None
+    from mso.protocol.authority import KeyError_, Signer
+
     try:
         return Signer.load(path)
     except KeyError_ as exc:
@@ -95,7 +97,7 @@ class Client:
 
     async def send(self, msg: m.Message) -> None:
         assert self._writer is not None
-        if self.signer is not None and isinstance(msg, OPERATOR_COMMANDS + EMULATOR_COMMANDS):
+        if self.signer is not None and isinstance(msg, self.signer.signs):
             if isinstance(msg, m.DeployRequest):
                 msg = m.DeployRequest(self.signer.grant(msg.document), msg.file)
             nonce = self._codec.peer_nonce

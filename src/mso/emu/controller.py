@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from mso.client import Client, NodeUnreachable, overlay_key
+from mso.emu.overlays import _claim, state_file
 from mso.errors import MsoError
 from mso.model.network import LinkSpec
 from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
@@ -33,8 +34,6 @@ from mso.protocol import messages as m
 from mso.protocol.authority import Signer
 from mso.scenario import Scenario
 from mso.scenario.timeline import Crash, Restart, Timeline
-
-STATE_FILE = Path(tempfile.gettempdir()) / f"mso-emulator-{os.getuid()}.json"
 
 
 def _free_port(hosts: list[str]) -> int:
@@ -87,6 +86,9 @@ class Emulator:
     policy: str | None = None  # every node's policy (apps may name their own)
     manage: bool = True  # run the management rules on the nodes
     _playing: bool = False  # a timeline is being played (play_changes / play_mobility)
+    name: str | None = None  # the overlay's name (default: the scenario's, made unique)
+    dashboard: str | None = None  # the dashboard's URL, told to `mso overlays`
+    metrics_port: int | None = None  # each node serves Prometheus metrics here (0: a free port)
     heartbeat_s: float | None = None  # every node's heartbeat period (None: the node default)
     dead_after_s: float | None = None  # every node's failure timeout (None: the node default)
     # modules every node may import app code from (None: $MSO_ALLOW_CODE, else the examples)
@@ -109,6 +111,11 @@ class Emulator:
                 raise MsoError(why)
         hosts = [f"127.0.1.{i + 1}" for i in range(len(names))]
         port = self.port or _free_port(hosts)
+        if self.metrics_port == 0:
+            while (mp := _free_port(hosts)) == port:
+                pass
+            self.metrics_port = mp
+        self.name = _claim(self.name, self.scenario.name)
         if self.log_dir is None:  # ours to remove after a clean stop
             self.log_dir = Path(tempfile.mkdtemp(prefix="mso-emu-"))
             self._own_logs = True
@@ -159,6 +166,8 @@ class Emulator:
             cmd += ["--heartbeat", repr(self.heartbeat_s)]
         if self.dead_after_s is not None:
             cmd += ["--dead-after", repr(self.dead_after_s)]
+        if self.metrics_port is not None:
+            cmd += ["--metrics", f"{node.host}:{self.metrics_port}"]
         for module in self.allow_code or ():
             cmd += ["--allow-code", module]
         for pub in self.operator_keys:
@@ -308,7 +317,10 @@ class Emulator:
                         await self.restart(action.node)
                     else:
                         await self._links_changed()
-                self.positions = tl.positions
+                if tl.positions and tl.positions != self.positions:
+                    self.positions = dict(tl.positions)
+                    if self.name is not None and self.nodes:
+                        self.write_state()  # a dashboard elsewhere draws them
         finally:
             self._playing = False
 
@@ -370,10 +382,26 @@ class Emulator:
         assert isinstance(reply, m.StatusReply)
         return reply.nodes
 
+    def node_positions(self) -> dict[str, tuple[float, float]]:
+        """Where the nodes are now: moved by the timeline, else as the scenario placed them."""
+        static = {n: s.pos for n, s in self.scenario.network.nodes.items() if s.pos is not None}
+        return static | self.positions
+
     def write_state(self) -> None:
-        """Let `mso status` / `mso deploy --via N1` in another terminal find the nodes."""
-        state = {"pid": os.getpid(), "nodes": {n: self.address(n) for n in self.nodes}}
-        STATE_FILE.write_text(json.dumps(state))
+        """Let `mso status` / `mso deploy --via N1` in another terminal find the nodes (never
+        the key: whoever drives the overlay brings it)."""
+        assert self.name is not None
+        state = {
+            "name": self.name,
+            "pid": os.getpid(),
+            "scenario": self.scenario.name,
+            "nodes": {n: self.address(n) for n in self.nodes},
+            "dashboard": self.dashboard,
+            "positions": {n: list(p) for n, p in self.node_positions().items()},
+        }
+        tmp = state_file(self.name).with_suffix(".tmp")
+        tmp.write_text(json.dumps(state))
+        tmp.replace(state_file(self.name))
 
     async def stop(self, grace: float = 3.0) -> None:
         """Ask every node to shut down; kill (by PID) whatever is still running after grace."""
@@ -398,21 +426,13 @@ class Emulator:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait(timeout=5)
-        with contextlib.suppress(FileNotFoundError):
-            if STATE_FILE.exists() and json.loads(STATE_FILE.read_text()).get("pid") == os.getpid():
-                STATE_FILE.unlink()
+        if self.name is not None:
+            path = state_file(self.name)
+            with contextlib.suppress(OSError, ValueError):
+                if json.loads(path.read_text()).get("pid") == os.getpid():
+                    path.unlink()
         clean = all(
             n.process is None or n.process.returncode in (0, -9) for n in self.nodes.values()
         )
         if self._own_logs and self.log_dir is not None and clean and not self.failed:
             shutil.rmtree(self.log_dir, ignore_errors=True)
-
-
-def emulator_address(node: str) -> str | None:
-    """The address of an emulated node, from the running emulator's state file."""
-    try:
-        state = json.loads(STATE_FILE.read_text())
-    except (OSError, ValueError):
-        return None
-    addr = state.get("nodes", {}).get(node)
-    return str(addr) if addr else None

@@ -313,6 +313,7 @@ class NodeCore(Membership):
                         "processed": h.processed,
                         "emitted": h.emitted,
                         "calls": h.calls,
+                        "ended": h.ended,  # its stream is over (a source's, or every input's)
                         "errors": h.errors,
                         "cpu_s": h.cpu_s,
                         "last_error": h.last_error,

@@ -130,7 +130,7 @@ class DataPlane(NodeTables):
         asks for every event due since (up to the window), so the rate holds on average."""
         dep = self.apps.get(app)
         h = dep.stones.get(vid) if dep is not None else None
-        if dep is None or h is None or not dep.running or not h.started or h.jobs:
+        if dep is None or h is None or not dep.running or not h.started or h.jobs or h.ended:
             return  # a run in flight schedules the next tick when it is done
         rate = h.rate
         due = int((now - h.t0) * rate + 1e-9) + 1 - h.asked
@@ -161,14 +161,17 @@ class DataPlane(NodeTables):
         h.calls += res.calls
         self.work_ms += h.vertex.cost * res.calls
         edges = dep.out_edges.get(vid, [])
-        if res.outputs:
-            h.emitted += len(res.outputs)
-            h.bytes_out += self._emit(dep, edges, res.outputs, now, -1) * len(edges)
+        outputs = res.outputs
+        if res.ended and not h.ended:  # the stream is over: say so on every edge, in order
+            h.ended = True
+            outputs = [*outputs, fx.END_OF_STREAM]
+        if outputs:
+            h.emitted += fx.events_in(outputs)
+            h.bytes_out += self._emit(dep, edges, outputs, now, -1) * len(edges)
         if h.mode == "loop":
             h.credit -= res.calls
-            h.ended = res.ended
             self._grant(dep, vid)
-        elif dep.running:
+        elif dep.running and not h.ended:
             at = h.t0 + h.asked / h.rate
             self._effects.append(SetTimer(("source", dep.app.name, vid), max(at, now)))
 
@@ -268,7 +271,8 @@ class DataPlane(NodeTables):
         """A batch went through the edge's consumer: pass its outputs on, acknowledge."""
         edge = res.edge
         h.queued -= res.count
-        h.processed += res.count
+        h.processed += res.count - res.ends
+        h.ended = h.ended or res.ended
         self.work_ms += h.vertex.cost * res.count
         ch = dep.inc.get(edge)
         if ch is None:
@@ -284,7 +288,7 @@ class DataPlane(NodeTables):
             )
         out_edges = dep.out_edges.get(vid, [])
         if res.outputs and out_edges:
-            h.emitted += len(res.outputs)
+            h.emitted += fx.events_in(res.outputs)
             sent = self._emit(dep, out_edges, res.outputs, ts, chain)
             h.bytes_out += sent * len(out_edges)
         if out_edges:  # chained acks: the inputs are acked once the outputs are

@@ -107,6 +107,7 @@ class Signer:
         self.private = private or Ed25519PrivateKey.generate()
         self.public = self.private.public_key()
         self.id = key_id(self.public)
+        self.signs = OPERATOR_COMMANDS + EMULATOR_COMMANDS  # what a client signs with it
 
     @classmethod
     def load(cls, text: str) -> Signer:

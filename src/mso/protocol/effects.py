@@ -145,20 +145,34 @@ class VertexStarted(Outcome):
     mode: str = ""
 
 
+# End of stream: an empty payload, the last event an edge ever carries. It takes a sequence
+# number like any event, so it is acknowledged, retransmitted and handed over with its channel.
+END_OF_STREAM = b""
+
+
+def events_in(payloads: list[bytes]) -> int:
+    """Events among encoded payloads, not counting a closing end-of-stream marker."""
+    return len(payloads) - (1 if payloads and payloads[-1] == END_OF_STREAM else 0)
+
+
 @dataclass(frozen=True)
 class VertexProcessed(Outcome):
-    """``count`` events of ``edge`` were processed; ``outputs`` are the encoded results."""
+    """``count`` events of ``edge`` were processed; ``outputs`` are the encoded results.
+    ``ends`` of the events were end-of-stream markers; ``ended``: every input has ended (the
+    instance's ``end()`` ran and ``outputs`` closes with a marker of its own)."""
 
     edge: int = 0
     count: int = 0
     outputs: list[bytes] = field(default_factory=list)
     ts: float = 0.0
+    ends: int = 0
+    ended: bool = False
 
 
 @dataclass(frozen=True)
 class VertexEmitted(Outcome):
-    """A source was called ``calls`` times and produced ``outputs`` (encoded). ``ended``: a
-    generator source is exhausted."""
+    """A source was called ``calls`` times and produced ``outputs`` (encoded). ``ended``: the
+    source is exhausted (a generator returned, or a call raised StopIteration)."""
 
     calls: int = 0
     outputs: list[bytes] = field(default_factory=list)

@@ -36,9 +36,10 @@ import hmac
 import os
 import struct
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
-from cryptography.exceptions import InvalidTag
-from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
+if TYPE_CHECKING:  # imported when a codec encrypts: the CLI's start stays quick
+    from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 
 MAGIC = b"MSO1"
 MAGIC_ENCRYPTED = b"MSE1"
@@ -160,7 +161,9 @@ class FrameCodec:
     def _open(self, key: bytes, ctr: int, frame: memoryview) -> bytes | None:
         """The payload of a received frame (tag first, or AEAD), None if it fails."""
         if self._encrypt:
-            aead = self._rx_aead if key is self._rx_key else ChaCha20Poly1305(key)
+            from cryptography.exceptions import InvalidTag
+
+            aead = self._rx_aead if key is self._rx_key else _aead(key)
             assert aead is not None
             try:
                 return aead.decrypt(_aead_nonce(ctr), bytes(frame), None)
@@ -197,7 +200,7 @@ class FrameCodec:
         assert self._peer_nonce is not None
         self._tx_key = derive_key(self._psks[key_index], self._nonce, self._peer_nonce)
         if self._encrypt:
-            self._tx_aead = ChaCha20Poly1305(self._tx_key)
+            self._tx_aead = _aead(self._tx_key)
         flush = b"".join([self._seal(b""), *(self._seal(p) for p in self._pending)])
         self._pending.clear()
         return flush
@@ -259,13 +262,19 @@ class FrameCodec:
             if self._open(key, 0, frame) is not None:
                 self._rx_key = key
                 if self._encrypt:
-                    self._rx_aead = ChaCha20Poly1305(key)
+                    self._rx_aead = _aead(key)
                 self.peer_key_index = i
                 self._confirmed = True
                 self._rx_ctr = 1
                 self._rx_candidates = []
                 return self._start_sending(i) if self._responder else b""
         raise WrongKey("the peer holds another overlay key")
+
+
+def _aead(key: bytes) -> Any:
+    from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
+
+    return ChaCha20Poly1305(key)
 
 
 def _aead_nonce(ctr: int) -> bytes:

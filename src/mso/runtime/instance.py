@@ -7,8 +7,10 @@ returns an event, None, or a list of events; a sink is called ``(event)``. A rat
 is a read loop: called again as soon as backpressure allows (it may block); a generator function
 (or an instance with ``__iter__``/``__next__``) is iterated instead, and its end is the end of
 its stream. Optional hooks on the instance: ``open()`` once it runs, ``close()`` when it stops
-here (undeploy, or it moved away), ``get_state()``/``set_state(state)`` for moves, ``stats()``
-for status. The app may name state hooks by import path instead.
+here (undeploy, or it moved away), ``end()`` once every input's stream has ended (a sink flushes;
+an operator may return final events), ``get_state()``/``set_state(state)`` for moves,
+``stats()`` for status. A source ends its stream by returning (a generator) or raising
+StopIteration. The app may name state hooks by import path instead.
 
 Nothing here runs on the control plane: the executor calls it from the vertex's worker.
 """

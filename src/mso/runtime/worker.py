@@ -39,6 +39,7 @@ class VertexWorker:
         self._sized_at = -STATE_SIZE_EVERY_S
         self._state_size = 0
         self.ended = False
+        self.ended_inputs: set[int] = set()  # input edges whose stream has ended
 
     # -- bookkeeping shared by every result -------------------------------------------------
     def _error(self, text: str) -> None:
@@ -89,10 +90,18 @@ class VertexWorker:
         t0 = self.cpu_clock()
         inst = self.instance
         outs: list[Any] = []
+        ends, ended = 0, False
         decode = self.decoders[eff.edge].decode if eff.edge in self.decoders else None
         if inst is not None and decode is not None:
             fn = inst.fn
             for payload in eff.events:
+                if payload == fx.END_OF_STREAM:  # this input's stream is over
+                    ends += 1
+                    self.ended_inputs.add(eff.edge)
+                    if not ended and self.ended_inputs >= set(self.start.inputs):
+                        ended = True  # every input: the vertex ends, and says so downstream
+                        outs.extend(self._end(inst))
+                    continue
                 try:
                     event = decode(payload)
                 except (msgspec.DecodeError, msgspec.ValidationError) as exc:
@@ -108,30 +117,56 @@ class VertexWorker:
                         outs.extend(result)
                     else:
                         outs.append(result)
+        payloads = self._encode(outs)
+        if ended:
+            payloads.append(fx.END_OF_STREAM)
         return fx.VertexProcessed(
             **self._outcome(t0),
             edge=eff.edge,
             count=len(eff.events),
-            outputs=self._encode(outs),
+            outputs=payloads,
             ts=eff.ts,
+            ends=ends,
+            ended=ended,
         )
+
+    def _end(self, inst: Instance) -> list[Any]:
+        """Call the vertex's ``end()`` (a sink flushes there); what it returns goes out
+        before the end-of-stream marker."""
+        hook = inst.hook("end")
+        if hook is None:
+            return []
+        try:
+            result = hook()
+        except Exception as exc:
+            self._error(f"end: {_why(exc)}")
+            return []
+        if result is None:
+            return []
+        return list(result) if isinstance(result, list) else [result]
 
     def run_source(self, first: int, count: int, now: float) -> fx.VertexEmitted:
         """Call a rated source ``count`` times."""
         t0 = self.cpu_clock()
         outs: list[Any] = []
         inst = self.instance
-        if inst is not None:
+        if inst is not None and not self.ended:
             fn = inst.fn
             for k in range(count):
                 try:
                     event = fn(first + k, now)
+                except StopIteration:  # a rated source whose stream is over
+                    self.ended = True
+                    count = k
+                    break
                 except Exception as exc:
                     self._error(_why(exc))
                     continue
                 if event is not None:
                     outs.append(event)
-        return fx.VertexEmitted(**self._outcome(t0), calls=count, outputs=self._encode(outs))
+        return fx.VertexEmitted(
+            **self._outcome(t0), calls=count, outputs=self._encode(outs), ended=self.ended
+        )
 
     def pull(self, count: int, budget_s: float) -> fx.VertexEmitted:
         """A free-running source: up to ``count`` calls (or ``next()``s), for at most

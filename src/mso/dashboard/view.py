@@ -1,0 +1,357 @@
+"""What the dashboard shows, derived from successive ``status`` replies. Pure: no I/O, time is
+passed in, so the timeline's bookkeeping is tested without a browser or a node.
+
+A status reply says what is (placement, counters, batteries) and keeps short histories (rule
+decisions, recoveries, failures, rejoins). The tracker turns two successive replies into rates
+(events/s per chain, bytes/s and measured vertex CPU per node) and turns what is new in the
+histories, and every vertex whose node changed, into timeline entries: what happened, why, how
+long it took and how many events it cost.
+"""
+
+from __future__ import annotations
+
+import re
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+# distinct colours for chains (Okabe-Ito, then Tableau): told apart by most colour-blind eyes
+PALETTE = (
+    "#0072B2",
+    "#E69F00",
+    "#009E73",
+    "#CC79A7",
+    "#D55E00",
+    "#56B4E9",
+    "#F0E442",
+    "#000000",
+    "#8C564B",
+    "#7F7F7F",
+    "#BCBD22",
+    "#17BECF",
+)
+TIMELINE_LEN = 100
+RATE_WINDOW_S = 5.0  # rates are means over this long: a 1 Hz camera does not flicker to 0
+_DECISION = re.compile(r"^(?P<at>-?\d+(?:\.\d+)?) (?P<what>.*?)(?: \((?P<why>.*)\))?$")
+_RELOCATE = re.compile(r"^relocate (?P<app>[^/ ]+)/(?P<vertex>\S+) -> (?P<node>\S+)$")
+PENDING_S = 30.0  # a move asked for and not seen by then is not waited for any more
+
+
+def chain_colour(index: int) -> str:
+    return PALETTE[index % len(PALETTE)]
+
+
+@dataclass
+class Entry:
+    """One reconfiguration or membership change on the timeline."""
+
+    t: float  # seconds since the dashboard started
+    kind: str  # relocation, remap, recovery, rule, failure, rejoin, move
+    what: str
+    why: str = ""
+    took_ms: float | None = None
+    lost: int | None = None  # events lost (dropped on parked chains) while it ran
+    ok: bool = True
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "t": round(self.t, 2),
+            "kind": self.kind,
+            "what": self.what,
+            "why": self.why,
+            "took_ms": None if self.took_ms is None else round(self.took_ms, 2),
+            "lost": self.lost,
+            "ok": self.ok,
+        }
+
+
+@dataclass
+class Tracker:
+    """Keeps what the previous replies said; ``update`` gives the next view."""
+
+    t0: float
+    timeline: list[Entry] = field(default_factory=list)
+    _history: deque[tuple[float, dict[str, Any]]] = field(default_factory=deque)
+    _seen: set[tuple[Any, ...]] = field(default_factory=set)
+    _placement: dict[tuple[str, str], str] = field(default_factory=dict)
+    _dropped: dict[str, int] = field(default_factory=dict)  # app -> dropped on parked chains
+    # (app, vertex) -> (node, kind, why, took_ms, when) of a move asked for, not yet seen
+    _requested: dict[tuple[str, str], tuple[str, str, str, float | None, float]] = field(
+        default_factory=dict
+    )
+    # latest move seen of each vertex: its entry and the node it went to
+    _moves: dict[tuple[str, str], tuple[Entry, str]] = field(default_factory=dict)
+
+    def note(
+        self,
+        now: float,
+        kind: str,
+        what: str,
+        why: str = "",
+        took_ms: float | None = None,
+        ok: bool = True,
+    ) -> None:
+        """Add an entry the dashboard itself knows of (a remap it asked for, a refusal)."""
+        self._add(Entry(now - self.t0, kind, what, why, took_ms, ok=ok))
+
+    def attribute(
+        self,
+        now: float,
+        app: str,
+        vertex: str,
+        node: str,
+        kind: str,
+        why: str,
+        took_ms: float | None,
+    ) -> None:
+        """A move of ``vertex`` to ``node`` was asked for (and took ``took_ms``): say so on its
+        entry, the one already seen in status (a move shows in status when it ends, as its
+        reply comes) if it is recent, unexplained and went there, or else the next one seen."""
+        seen = self._moves.get((app, vertex))
+        if (
+            seen is not None
+            and seen[0].kind == "move"
+            and seen[1] == node
+            and (now - self.t0 - seen[0].t < 5.0)
+        ):
+            entry = seen[0]
+            entry.kind, entry.why, entry.took_ms = kind, why, took_ms
+        else:
+            self._requested[(app, vertex)] = (node, kind, why, took_ms, now)
+
+    def _add(self, entry: Entry) -> None:
+        self.timeline.append(entry)
+        del self.timeline[:-TIMELINE_LEN]
+
+    def update(
+        self,
+        nodes: dict[str, Any],
+        now: float,
+        positions: dict[str, tuple[float, float]] | None = None,
+        expected: list[str] | None = None,
+    ) -> dict[str, Any]:
+        """The view of one status reply (node id -> that node's status), at loop time ``now``.
+
+        ``expected`` lists every node of the overlay (from the emulator), so a node that did not
+        answer is shown, as silent, instead of vanishing."""
+        while len(self._history) > 1 and now - self._history[1][0] >= RATE_WINDOW_S:
+            self._history.popleft()  # keep the newest reply at least the window old
+        prev_at, prev = self._history[0] if self._history else (now, {})
+        dt = now - prev_at
+        failed: set[str] = set()
+        rejoined: dict[str, int] = {}
+        for nid, st in sorted(nodes.items()):
+            failed.update(st.get("failed_nodes", []))
+            for f in st.get("failures", []):
+                self._once(("failure", f["node"]), now, "failure", f"{f['node']} failed",
+                           f"detected by {f['detector']}")  # fmt: skip
+            for r in st.get("rejoins", []):
+                inc = int(r["incarnation"])
+                rejoined[r["node"]] = max(rejoined.get(r["node"], 0), inc)
+                if self._once(("rejoin", r["node"], inc), now, "rejoin",
+                              f"{r['node']} rejoined", f"incarnation {inc}"):  # fmt: skip
+                    self._seen.discard(("failure", r["node"]))  # it may fail again
+            for d in st.get("management", {}).get("done", []):
+                if ("rule", nid, d) in self._seen:
+                    continue
+                match = _DECISION.match(d)
+                what, why = (match["what"], match["why"] or "") if match else (d, "")
+                moved = _RELOCATE.match(what)
+                if moved:  # told on the move's own entry, when status shows it
+                    self._seen.add(("rule", nid, d))
+                    self.attribute(now, moved["app"], moved["vertex"], moved["node"],
+                                   "relocation", f"rule on {nid}: {why}", None)  # fmt: skip
+                else:
+                    self._once(("rule", nid, d), now, "rule", f"{nid}: {what}", why)
+        nodes_out = self._nodes(nodes, prev, dt, failed, rejoined, positions, expected)
+        apps = self._apps(nodes, prev, dt, now)
+        links = sorted(
+            {tuple(sorted((nid, n))) for nid, st in nodes.items() for n in st.get("neighbours", [])}
+        )
+        self._history.append((now, nodes))
+        return {
+            "t": round(now - self.t0, 2),
+            "nodes": nodes_out,
+            "links": [list(link) for link in links],
+            "routes": {nid: st.get("routes", {}) for nid, st in sorted(nodes.items())},
+            "apps": apps,
+            "failed": sorted(failed),
+            "rejoined": rejoined,
+            "timeline": [e.as_dict() for e in reversed(self.timeline)],
+        }
+
+    def _once(self, key: tuple[Any, ...], now: float, kind: str, what: str, why: str) -> bool:
+        if key in self._seen:
+            return False
+        self._seen.add(key)
+        self._add(Entry(now - self.t0, kind, what, why))
+        return True
+
+    def _nodes(
+        self,
+        nodes: dict[str, Any],
+        prev: dict[str, Any],
+        dt: float,
+        failed: set[str],
+        rejoined: dict[str, int],
+        positions: dict[str, tuple[float, float]] | None,
+        expected: list[str] | None,
+    ) -> list[dict[str, Any]]:
+        out = []
+        parked_on: set[str] = set()
+        for st in nodes.values():
+            for app in st.get("apps", {}).values():
+                if app.get("parked"):
+                    parked_on.add(st["node"])
+        for nid in sorted(set(nodes) | set(expected or [])):
+            st = nodes.get(nid)
+            pos = (positions or {}).get(nid)
+            if st is None:
+                out.append({"id": nid, "answered": False, "failed": nid in failed,
+                            "pos": list(pos) if pos else None})  # fmt: skip
+                continue
+            mon = st.get("monitor", {})
+            traffic = st.get("traffic", {})
+            before = prev.get(nid, {})
+            rate = {
+                k: _rate(traffic.get(k, 0), before.get("traffic", {}).get(k, 0), dt)
+                for k in ("bytes_in", "bytes_out", "bytes_forwarded")
+            }
+            cpu_s = _vertex_cpu(st)
+            out.append(
+                {
+                    "id": nid,
+                    "answered": True,
+                    "failed": nid in failed,
+                    "rejoined": rejoined.get(nid),
+                    "parked": nid in parked_on,
+                    "pos": list(pos) if pos else None,
+                    "battery": mon.get("battery_fraction"),
+                    "drain_w": mon.get("drain_w", 0.0),
+                    "lifetime_s": mon.get("lifetime_s"),
+                    "load": mon.get("load", 0.0),
+                    "cpu": _rate(cpu_s, _vertex_cpu(before), dt) if before else 0.0,
+                    "traffic": rate,
+                    "neighbours": st.get("neighbours", []),
+                    "vertices": sorted(
+                        v for a in st.get("apps", {}).values() for v in a["vertices"]
+                    ),
+                }
+            )
+        return out
+
+    def _apps(
+        self, nodes: dict[str, Any], prev: dict[str, Any], dt: float, now: float
+    ) -> list[dict[str, Any]]:
+        merged: dict[str, dict[str, Any]] = {}
+        for nid, st in sorted(nodes.items()):
+            for name, app in st.get("apps", {}).items():
+                agg = merged.setdefault(
+                    name,
+                    {"chains": app["chains"], "placement": {}, "vertices": {}, "delay": {},
+                     "parked": {}, "dropped": 0, "delivered": {}},
+                )  # fmt: skip
+                agg["delay"].update(app.get("chain_delay_ms", {}))
+                agg["parked"].update(app.get("parked", {}))
+                agg["dropped"] += sum(app.get("dropped_parked", {}).values())
+                for v, vs in app["vertices"].items():
+                    agg["placement"][v] = nid
+                    agg["vertices"][v] = {
+                        "node": nid,
+                        "kind": vs["kind"],
+                        "events": vs["emitted"] if vs["kind"] == "source" else vs["processed"],
+                        "state": vs.get("state", ""),
+                    }
+                for e, c in app["edges"].items():
+                    got = agg["delivered"].get(e, 0)
+                    agg["delivered"][e] = max(got, c.get("delivered", 0))
+                for rec in app.get("recoveries", []):
+                    self._recovery(name, rec, now)
+        before = {name: _delivered(prev, name) for name in merged}
+        out = []
+        for name, agg in sorted(merged.items()):
+            dropped = agg["dropped"]
+            lost = dropped - self._dropped.get(name, dropped)
+            self._dropped[name] = dropped
+            for v, n in sorted(agg["placement"].items()):
+                old = self._placement.get((name, v))
+                self._placement[(name, v)] = n
+                if old is not None and old != n:
+                    kind, why, took = "move", "a recovery, or a rule on another node", None
+                    asked = self._requested.pop((name, v), None)
+                    if asked is not None and asked[0] == n and now - asked[4] < PENDING_S:
+                        _, kind, why, took, _ = asked
+                    entry = Entry(now - self.t0, kind, f"{v}: {old} → {n}", why, took, lost)
+                    self._moves[(name, v)] = (entry, n)
+                    self._add(entry)
+            chains = []
+            for i, c in enumerate(agg["chains"]):
+                cname = "-".join(c)
+                last = f"{c[-2]}->{c[-1]}" if len(c) > 1 else ""
+                delivered = agg["delivered"].get(last, 0)
+                prior = before[name].get(last)
+                chains.append(
+                    {
+                        "index": i,
+                        "name": cname,
+                        "vertices": c,
+                        "colour": chain_colour(i),
+                        "nodes": [agg["placement"].get(v) for v in c],
+                        "events_per_s": _rate(delivered, prior, dt) if prior is not None else None,
+                        "delay_ms": agg["delay"].get(cname),
+                        "parked": agg["parked"].get(cname),
+                    }
+                )
+            out.append(
+                {
+                    "name": name,
+                    "chains": chains,
+                    "placement": agg["placement"],
+                    "vertices": agg["vertices"],
+                    "dropped_parked": dropped,
+                }
+            )
+        return out
+
+    def _recovery(self, app: str, rec: dict[str, Any], now: float) -> None:
+        key = ("recovery", app, rec.get("at"), tuple(rec.get("failed", [])))
+        done = rec.get("ok") is not None or rec.get("error")
+        if key in self._seen or not done:
+            return
+        self._seen.add(key)
+        chains = ", ".join(rec.get("chains", [])) or "-"
+        self._add(
+            Entry(
+                now - self.t0,
+                "recovery",
+                f"{app}: {rec.get('remap', '?')} remap of {chains}",
+                f"{', '.join(rec.get('failed', []))} failed",
+                took_ms=rec.get("took_ms"),
+                ok=bool(rec.get("ok")),
+            )
+        )
+
+
+def _rate(value: float, before: float | None, dt: float) -> float:
+    if before is None or dt <= 0:
+        return 0.0
+    return max(0.0, (value - before) / dt)
+
+
+def _vertex_cpu(st: dict[str, Any]) -> float:
+    return float(
+        sum(
+            vs.get("cpu_s", 0.0)
+            for a in st.get("apps", {}).values()
+            for vs in a["vertices"].values()
+        )
+    )
+
+
+def _delivered(nodes: dict[str, Any], app: str) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for st in nodes.values():
+        a = st.get("apps", {}).get(app)
+        for e, c in (a or {}).get("edges", {}).items():
+            out[e] = max(out.get(e, 0), c.get("delivered", 0))
+    return out

@@ -1,0 +1,99 @@
+"""A running emulation of the convoy with its dashboard, on an event loop in a thread of its own,
+so a test can drive it with blocking clients (urllib, a browser)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+import urllib.request
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mso.dashboard.server import Dashboard
+from mso.emu.controller import Emulator
+from mso.emu.overlays import state_file
+from mso.examples import convoy
+from mso.scenario import load_scenario
+
+EXAMPLES = Path(convoy.__file__).parent
+KEY = "dashboard-test-overlay-key-4f1c"
+
+
+@dataclass
+class LiveDashboard:
+    loop: asyncio.AbstractEventLoop
+    thread: threading.Thread
+    emu: Emulator
+    board: Dashboard
+    url: str = ""
+    state_file: Path = field(default_factory=Path)
+
+    def run(self, coro: Any, timeout: float = 60.0) -> Any:
+        fut: Future[Any] = asyncio.run_coroutine_threadsafe(coro, self.loop)
+        return fut.result(timeout)
+
+    def view(self) -> dict[str, Any]:
+        with urllib.request.urlopen(self.url + "api/view", timeout=10) as r:
+            doc: dict[str, Any] = json.loads(r.read())
+            return doc
+
+    def wait_for(
+        self, check: Callable[[dict[str, Any]], bool], timeout: float = 15.0
+    ) -> dict[str, Any]:
+        """The first view (polled each update) for which ``check`` holds."""
+        deadline = time.monotonic() + timeout
+        while True:
+            view = self.view()
+            if view.get("apps") and check(view):
+                return view
+            if time.monotonic() > deadline:
+                raise AssertionError(f"no such view within {timeout} s; last: {view}")
+            self.run(self.board.wait_update(5.0))
+
+    def stop(self) -> None:
+        async def down() -> None:
+            await self.board.stop()
+            await self.emu.stop()
+
+        try:
+            self.run(down())
+        finally:
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            self.thread.join(10)
+
+
+def start_live(interval: float = 0.5, manage: bool = False) -> LiveDashboard:
+    """The convoy on the 4-robot line, deployed from N1, rules off (only the test moves
+    vertices), the dashboard on a free loopback port."""
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, daemon=True)
+    thread.start()
+    emu = Emulator(load_scenario(EXAMPLES / "convoy-line.yaml"), key=KEY, manage=manage)
+
+    async def up() -> Dashboard:
+        await emu.start()
+        doc = (EXAMPLES / "convoy.yaml").read_text()
+        reply = await emu.deploy(doc, "convoy.yaml", "N1")
+        assert reply.ok, reply.error
+        board = Dashboard(
+            [emu.address(n) for n in emu.nodes], KEY, name=str(emu.name), interval=interval,
+            positions=emu.node_positions, expected=list(emu.nodes),
+        )  # fmt: skip
+        emu.dashboard = await board.start()
+        emu.write_state()
+        await board.wait_update(10.0)
+        return board
+
+    try:
+        board = asyncio.run_coroutine_threadsafe(up(), loop).result(60)
+    except BaseException:
+        asyncio.run_coroutine_threadsafe(emu.stop(), loop).result(30)
+        loop.call_soon_threadsafe(loop.stop)
+        raise
+    live = LiveDashboard(loop, thread, emu, board, board.url, state_file(str(emu.name)))
+    return live
