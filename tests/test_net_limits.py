@@ -120,3 +120,43 @@ def test_members_cannot_fill_a_nodes_memory_with_partial_frames_or_unread_replie
 
     st = asyncio.run(run())
     assert st["connections"]["over_buffer"] == 4  # three of the four, and the one not reading
+
+
+def test_an_incarnation_at_the_end_of_its_range_is_not_believed() -> None:
+    """A member declaring N3 failed at incarnation 2^62 would keep N3 out for good: dropped and
+    counted; a plausible one is taken."""
+
+    async def run() -> dict[str, Any]:
+        driver = NodeDriver(NodeCore("N1"), HOST, 0, overlay_key("k"))
+        await driver.start()
+        port = driver.transport.port
+        try:
+            reader, writer = await asyncio.open_connection(HOST, port)
+            codec = FrameCodec(overlay_key("k"))
+            writer.write(codec.hello())
+            while not codec.confirmed:
+                writer.write(codec.feed(await reader.read(1 << 16))[1])
+            for msg in [
+                m.PeerHello("N2"),
+                m.NodeDown("N3", "N2", 2**62),
+                m.NodeUp("N4", 2**62),
+                m.NodeDown("N5", "N2", 7),
+            ]:
+                writer.write(codec.seal(m.wrap("N2", "N1", msg)))
+            await writer.drain()
+            for _ in range(200):  # until the plausible one was taken
+                if "N5" in driver.core.dead:
+                    break
+                await asyncio.sleep(0.01)
+            writer.close()
+            client = await Client(HOST, port, overlay_key("k")).connect()
+            reply = await client.call(m.StatusRequest())
+            await client.close()
+            assert isinstance(reply, m.StatusReply)
+            return reply.nodes["N1"]
+        finally:
+            await driver.stop()
+
+    st = asyncio.run(run())
+    assert st["failed_nodes"] == ["N5"]
+    assert st["traffic"]["frames_implausible"] == 2

@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 import zlib
 from collections import deque
 from collections.abc import Callable
@@ -33,6 +34,7 @@ from mso.net.shaping import Link
 from mso.protocol import messages as m
 from mso.protocol.authority import DOCUMENT_MESSAGES, Authority
 from mso.protocol.framing import FrameCodec, FramingError, WrongKey
+from mso.protocol.plausible import implausible
 
 log = logging.getLogger("mso.node")
 
@@ -373,6 +375,10 @@ class TcpTransport:
             return
         if conn.peer is None:
             self.counters.frames_malformed += 1  # a peer must say hello first
+            return
+        if why := implausible(msg, time.time_ns() // 1_000_000):
+            self.counters.frames_implausible += 1
+            log.info("from %s: %s: %s", env.src, type(msg).__name__, why)
             return
         if isinstance(msg, DOCUMENT_MESSAGES) and self.authority.operators:
             why = self.authority.document(msg.document)
