@@ -1226,6 +1226,11 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
     default=None,
     help=f"HOST:PORT of the dashboard (default {DASHBOARD_LISTEN}, or a free port if taken).",
 )
+@click.option(
+    "--encrypt",
+    is_flag=True,
+    help="Every node and the emulator encrypt their frames (ChaCha20-Poly1305).",
+)
 @allow_code_option
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
@@ -1242,6 +1247,7 @@ def emulate(
     with_dashboard: bool,
     dashboard_listen: str | None,
     metrics_port: int | None,
+    encrypt: bool,
     allow_code: tuple[str, ...],
     key: str | None,
     as_json: bool,
@@ -1251,7 +1257,7 @@ def emulate(
         scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s,
         dead_after_s, allow_code, name=name, manage=manage,
         dashboard=(dashboard_listen or "") if with_dashboard or dashboard_listen else None,
-        metrics_port=metrics_port,
+        metrics_port=metrics_port, encrypt=encrypt,
     )  # fmt: skip
 
 
@@ -1272,6 +1278,7 @@ def _emulate(
     manage: bool = True,
     dashboard: str | None = None,
     metrics_port: int | None = None,
+    encrypt: bool = False,
 ) -> None:
     import asyncio
 
@@ -1307,6 +1314,7 @@ def _emulate(
             manage=manage,
             metrics_port=metrics_port,
             allow_code=allow_code or None,
+            encrypt=encrypt,
         )
         with _progress(f"starting {len(scenario.network.nodes)} node processes…"):
             await emu.start()
