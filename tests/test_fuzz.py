@@ -97,6 +97,16 @@ APP = pipe_app(50).replace("pinned: N4", "pinned: N3")
 
 @pytest.fixture(scope="module")
 def running() -> Simulation:
+    return deployed()
+
+
+@pytest.fixture(scope="module")
+def untouched() -> Simulation:
+    """A deployment no fuzzing has disturbed (the refusals below change nothing)."""
+    return deployed()
+
+
+def deployed() -> Simulation:
     net = Network(
         [NodeSpec("N1"), NodeSpec("N2"), NodeSpec("N3"), NodeSpec("N9")],  # N9: no links
         [LinkSpec("N1", "N2", delay_ms=1.0), LinkSpec("N2", "N3", delay_ms=1.0)],
@@ -124,13 +134,11 @@ def test_every_handler_survives_messages_of_wrong_meaning(
         node = rng.choice(sorted(sim.cores))
         core = sim.cores[node]
         msg = wirefuzz.message(rng)
-        before = counted(core)
         if rng.random() < 0.2:
             effects = core.request(rng.randrange(5), msg, sim.now)
         else:
             effects = core.receive(rng.choice(["N1", "N2", "N3", "N9"]), msg, sim.now)
         sim._apply(node, effects)
-        assert effects or counted(core) >= before
     sim.run_until(sim.now + 0.5)
     for core in sim.cores.values():
         assert sum(len(v) for v in core._early.values()) <= core.MAX_EARLY * 65
@@ -207,3 +215,41 @@ def test_a_node_process_path_counts_and_lives_on() -> None:
         NodeCore.strict = True
     assert st["traffic"]["frames_failed"] == 0
     assert st["node"] == "N1"
+
+
+# Messages of a wrong meaning into a running deployment at N2 (it hosts ``mid``), and whether the
+# core counts its refusal (dropped_messages, handler_errors or illegal_transitions). Those it
+# ignores without counting are marked: the core does not count them yet (noted in issue 13).
+NOT_COUNTED = pytest.mark.xfail(strict=True, reason="ignored without being counted")
+WRONG_MEANING = [
+    pytest.param("N1", m.Data("pipe", 0, 999, 0, [b"x"]), id="data of an old epoch"),
+    pytest.param("N3", m.Ack("pipe", 42, 0, 5), id="ack for an edge not there"),
+    pytest.param("N1", m.Switch("pipe", 99, "N3", 1), id="switch of an edge not there"),
+    pytest.param(
+        "N1", m.RelocateRequest("pipe", "ghost", "upstream"), id="relocate a vertex not there",
+        marks=NOT_COUNTED,
+    ),
+    pytest.param("N1", m.Marker("pipe", 99, 5, 1, "N3"), id="marker of an edge not there",
+                 marks=NOT_COUNTED),
+    pytest.param("N3", m.Prepared("pipe", "mid", 777, "N3"), id="prepared for no relocation",
+                 marks=NOT_COUNTED),
+    pytest.param("N1", m.Handover("pipe", "mid", 777, b"", {}, {}, 0, 0),
+                 id="handover nobody asked for", marks=NOT_COUNTED),
+    pytest.param("N3", m.ProbeReply("pipe", 0, 9, [], []), id="probe reply for no probe",
+                 marks=NOT_COUNTED),
+    pytest.param("N3", m.ChainBuilt("pipe", 99), id="chain built of a chain not there",
+                 marks=NOT_COUNTED),
+    pytest.param("N1", m.Resume("pipe", 0, 5, True, 0), id="resume for no replacement",
+                 marks=NOT_COUNTED),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("src", "msg"), WRONG_MEANING)
+def test_a_refused_message_is_counted(
+    src: str, msg: m.Message, untouched: Simulation, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(NodeCore, "strict", False)
+    core = untouched.cores["N2"]
+    before = counted(core)
+    assert core.receive(src, msg, untouched.now) == []  # nothing done
+    assert counted(core) == before + 1
