@@ -21,7 +21,7 @@ from mso.protocol.framing import MAX_FRAME
 class Limits:
     handshake_s: float = 5.0
     peer_idle_s: float = 60.0
-    client_idle_s: float = 900.0
+    client_idle_s: float = 3600.0  # the emulator controller may sit idle between link changes
     max_connections: int = 256
     max_per_address: int = 64
     max_frame: int = MAX_FRAME
