@@ -49,6 +49,10 @@ def test_commands_signed_for_this_connection_only() -> None:
         verdict = auth.command(nonce, bad)
         assert isinstance(verdict, str) and why in verdict
     assert auth.refused == 4
+    # a node that needs no signature takes a signed command as it is (an operator signing
+    # everything can still talk to an open node)
+    open_node = Authority()
+    assert open_node.command(nonce, ROGUE.command(other, stop)) == stop
 
 
 def test_documents_carry_a_grant_that_survives_relay_but_not_edits() -> None:
