@@ -32,14 +32,14 @@ import urllib.request
 from pathlib import Path
 from typing import Any
 
+import mso.examples
 from mso.benchmarks.common import percentile, provenance, write_results
 from mso.dashboard.server import Dashboard
 from mso.emu.controller import Emulator
-from mso.examples import convoy
 from mso.scenario import load_scenario, loads_scenario
 
 HERE = Path(__file__).resolve().parent
-EXAMPLES = Path(convoy.__file__).parent
+EXAMPLES = Path(mso.examples.__file__).parent
 TICKS = os.sysconf("SC_CLK_TCK")
 
 

@@ -15,13 +15,13 @@ from pathlib import Path
 
 from playwright.async_api import async_playwright, expect
 
+import mso.examples
 from mso.dashboard.server import Dashboard
 from mso.emu.controller import Emulator
-from mso.examples import convoy
 from mso.scenario import load_scenario
 
 HERE = Path(__file__).resolve().parent
-EXAMPLES = Path(convoy.__file__).parent
+EXAMPLES = Path(mso.examples.__file__).parent
 
 
 async def shoot(wait: float, out: Path) -> None:

@@ -14,13 +14,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import mso.examples
 from mso.dashboard.server import Dashboard
 from mso.emu.controller import Emulator
 from mso.emu.overlays import state_file
-from mso.examples import convoy
 from mso.scenario import load_scenario
 
-EXAMPLES = Path(convoy.__file__).parent
+EXAMPLES = Path(mso.examples.__file__).parent  # the bundled app and scenario files
 KEY = "dashboard-test-overlay-key-4f1c"
 
 

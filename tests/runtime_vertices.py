@@ -139,3 +139,10 @@ class Flushing:
     def end(self) -> None:
         self.ends += 1
         self.flushed, self.buffer = self.flushed + self.buffer, []
+
+
+class Silent:
+    """A source with nothing to say (yet): its consumers have seen no event."""
+
+    def __call__(self, seq: int, now: float) -> None:
+        return None

@@ -63,14 +63,14 @@ def test_minimal_yaml_is_enough_for_planning(tmp_path: Path) -> None:
 
 
 def test_demo_prints_chains_and_placement_and_runs_the_app() -> None:
-    code, out, _ = run("demo", "--duration", "2.5")
+    code, out, _ = run("demo", "--duration", "6")
     assert code == 0
-    for node in ("N1", "N2", "N3", "N4"):
-        assert f"@{node}" in out
     assert "laser@N1" in out and "storage@N4" in out
-    assert "deployed convoy from N1" in out
-    counts = re.findall(r"storage@N4: (\d+) events", out)
-    assert counts and int(counts[-1]) > 10  # events reached the trailing robot's storage
+    assert re.search(r"deployed in \d+ ms", out)
+    assert re.search(r"t=\s*\d+\.\ds\s+N1\s+\d+\.\d%", out)  # the leader's battery, shown
+    # the summary read back from SQLite: every scan emitted is a stored row
+    got = re.search(r"trajectory rows stored / laser events emitted\D+(\d+) / (\d+)", out)
+    assert got and int(got[1]) >= int(got[2]) > 5
 
 
 @pytest.mark.parametrize(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
@@ -60,3 +62,16 @@ def test_hosting_work_and_relaying_drain_the_battery() -> None:
     assert mon["N2"]["drain_w"] > mon["N4"]["drain_w"] >= POWER.idle_w * 0.99
     assert mon["N2"]["lifetime_s"] < mon["N4"]["lifetime_s"]
     assert 0 < mon["N2"]["battery_fraction"] < mon["N4"]["battery_fraction"] <= 1
+
+
+def test_measured_cpu_energy_follows_the_cpu_time_the_code_took() -> None:
+    """With cpu_energy: measured the declared costs do not matter: the CPU time measured here,
+    scaled by the node's speed, is what drains the battery."""
+    power = PowerModel(idle_w=0.0, cpu_w=5.0, tx_uj_per_byte=0.0, rx_uj_per_byte=0.0)
+    measured = Monitor(replace(power, cpu_energy="measured"), battery_wh=1.0, cpu_speed=0.5)
+    modelled = Monitor(power, battery_wh=1.0, cpu_speed=0.5)
+    for mon in (measured, modelled):
+        mon.sample(0.0, 0.0, 0, 0, 0.0)
+        mon.sample(1.0, 1000.0, 0, 0, 200.0)  # declared 1000 ms of work, measured 200 ms
+    assert measured.cpu_energy_j == pytest.approx(5.0 * 0.2 / 0.5)
+    assert modelled.cpu_energy_j == pytest.approx(5.0 * 1.0 / 0.5)

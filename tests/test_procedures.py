@@ -119,3 +119,18 @@ def test_a_move_that_fails_before_any_switch_leaves_no_instance_at_its_target() 
     before = sim.cores[old].apps["pipe"].stones["mid"].processed
     sim.run_until(sim.now + 1.0)
     assert sim.cores[old].apps["pipe"].stones["mid"].processed > before
+
+
+def test_a_vertex_that_has_seen_no_event_yet_moves() -> None:
+    """Right after a deployment a slow source may not have emitted: the old host has no input
+    channel to acknowledge, and the move must not trip over that (it left the vertex stuck)."""
+    app = PIPE.replace("runtime_vertices:CountingSource", "runtime_vertices:Silent")
+    sim = Simulation(line(4))
+    assert deploy(sim, app).ok
+    old = next(n for n, c in sim.cores.items() if "mid" in c.apps["pipe"].stones)
+    target = "N3" if old != "N3" else "N2"
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target=target), client=5)
+    sim.run_until(sim.now + 1.0)
+    ((_, _, reply),) = [(t, c, r) for t, c, r in sim.replies if c == 5]
+    assert isinstance(reply, m.RelocateReply) and reply.ok, reply
+    assert "mid" in sim.cores[target].apps["pipe"].stones

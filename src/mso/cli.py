@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -30,7 +31,7 @@ if TYPE_CHECKING:  # imported where used: `mso status` needs neither numpy nor t
 F = TypeVar("F", bound=Callable[..., Any])
 
 EXAMPLES = Path(__file__).parent / "examples"
-DASHBOARD_LISTEN = "127.0.0.1:8765"
+DASHBOARD_LISTEN = "127.0.0.1:8765"  # mso.dashboard.server.DEFAULT_LISTEN, not imported early
 PLANNERS = ["algorithm1", "source", "random", "greedy", "optimal"]
 
 
@@ -106,6 +107,63 @@ def validate(app_file: Path, no_import: bool, as_json: bool) -> None:
         click.echo(json.dumps(doc))
         return
     click.echo(f"{app_file}: ok ({len(app.vertices)} vertices, {len(app.edges)} edges)")
+
+
+@main.command()
+@click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--seconds", type=POSITIVE, default=30.0, show_default=True, help="Simulated seconds to run."
+)
+@click.option(
+    "--speed",
+    type=POSITIVE,
+    default=1.0,
+    show_default=True,
+    help="This host's speed relative to a node of cpu: 1.0 (costs are scaled by it).",
+)
+@click.option("--write", is_flag=True, help="Write the costs and edge sizes into APP_FILE.")
+@click.option("--json", "as_json", is_flag=True)
+@_user_errors
+def profile(app_file: Path, seconds: float, speed: float, write: bool, as_json: bool) -> None:
+    """Measure each vertex's cost (CPU ms per event) and each edge's size on generated inputs."""
+    from rich.table import Table
+
+    from mso.model.appfile import load_app
+    from mso.runtime.profile import profile as run_profile
+    from mso.runtime.profile import write_back
+
+    app = load_app(app_file)
+    prof = run_profile(app, seconds, speed)
+    costs, sizes = prof.costs(), prof.sizes()
+    if as_json:
+        click.echo(
+            json.dumps(
+                {
+                    "costs": costs,
+                    "sizes": {f"{a}->{b}": n for (a, b), n in sizes.items()},
+                    "errors": {v: p.errors for v, p in prof.vertices.items() if p.errors},
+                }
+            )
+        )
+    else:
+        table = Table(title=f"{app.name}: {seconds:g} simulated s, speed {speed:g}")
+        for col in ("vertex", "calls", "cost (ms/event)", "declared", "errors"):
+            table.add_column(col, justify="left" if col == "vertex" else "right")
+        for v, p in prof.vertices.items():
+            c = costs.get(v)
+            table.add_row(
+                v,
+                str(p.calls),
+                "-" if c is None else f"{c:.3g}",
+                f"{app.vertices[v].cost:g}",
+                str(p.errors) + (f" ({p.last_error})" if p.errors else ""),
+            )
+        _console().print(table)
+    if write:
+        for why in write_back(app_file, costs, sizes):
+            click.echo(f"not written: {why}", err=True)
+        if not as_json:
+            click.echo(f"wrote costs and edge sizes into {app_file}")
 
 
 @main.command()
@@ -272,22 +330,16 @@ def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) ->
 
 
 @main.command(short_help="Run the bundled convoy app on an emulated 4-robot line.")
-@click.option(
-    "--duration",
-    type=POSITIVE,
-    default=None,
-    help="Seconds to run (default 20; 600 with --dashboard, Ctrl-C stops it sooner).",
-)
+@click.option("--duration", type=POSITIVE, default=40.0, show_default=True, help="Seconds to run.")
 @click.option("--plan-only", is_flag=True, help="Only form chains and plan; start no nodes.")
 @click.option(
     "--dashboard",
     is_flag=True,
-    help="Serve the live web dashboard, on the line with a battery-bound leader (2 Wh) so the "
-    "rules move work off it while you watch.",
+    help="Serve the live web dashboard while it runs (its address is printed).",
 )
-def demo(duration: float | None, plan_only: bool, dashboard: bool) -> None:
+def demo(duration: float, plan_only: bool, dashboard: bool) -> None:
     """Run the bundled convoy app (paper Fig. 6) on an emulated 4-robot line."""
-    _demo(duration if duration is not None else 600.0 if dashboard else 20.0, plan_only, dashboard)
+    _demo(duration, plan_only, dashboard)
 
 
 @_user_errors
@@ -297,8 +349,7 @@ def _demo(duration: float, plan_only: bool, dashboard: bool = False) -> None:
     from mso.scenario import load_scenario
 
     console = _console()
-    app_file = EXAMPLES / "convoy.yaml"
-    scenario_file = EXAMPLES / ("convoy-energy.yaml" if dashboard else "convoy-line.yaml")
+    app_file, scenario_file = EXAMPLES / "convoy.yaml", EXAMPLES / "convoy-demo.yaml"
     app = load_app(app_file)
     scenario = load_scenario(scenario_file)
     console.print(
@@ -309,11 +360,10 @@ def _demo(duration: float, plan_only: bool, dashboard: bool = False) -> None:
     result = plan(app, scenario.network)
     render_plan(console, app, scenario, result)
     if not plan_only:
-        console.print(f"\n[bold]running it[/bold] on 4 emulated node processes for {duration:g} s")
-        _emulate(
-            scenario_file, app_file, duration, None, 0.0, None, False,
-            dashboard="" if dashboard else None,
-        )  # fmt: skip
+        from mso.examples.convoy.demo import run_demo
+
+        console.print(f"\n[bold]running it[/bold] on 4 emulated robots for {duration:g} s")
+        run_demo(console, duration, dashboard)
 
 
 # -- the running system ----------------------------------------------------------------------
@@ -529,7 +579,11 @@ def _node_config(path: Path) -> dict[str, Any]:
 @click.option("--listen", help="HOST:PORT to serve (default 127.0.0.1:7000).")
 @click.option("--cpu", type=POSITIVE, help="Relative CPU speed (default 1.0).")
 @click.option("--battery-wh", type=POSITIVE, help="Battery capacity in Wh (default: wall power).")
-@click.option("--power", help="Power model IDLE_W,CPU_W,TX_UJ_PER_BYTE,RX_UJ_PER_BYTE.")
+@click.option(
+    "--power",
+    help="Power model IDLE_W,CPU_W,TX_UJ_PER_BYTE,RX_UJ_PER_BYTE[,modelled|measured] (the last:"
+    " charge CPU energy for the vertices' declared costs or their measured CPU time).",
+)
 @click.option(
     "--peer",
     "peers",
@@ -618,7 +672,9 @@ def node(
     all_peers = tuple(f"{n}={a}" for n, a in cfg.get("peers", {}).items()) + peers
     model = PowerModel(**cfg.get("power", {}))
     if power is not None:
-        model = PowerModel(*power_model(power))
+        head, _, last = power.rpartition(",")
+        how = last if last in ("modelled", "measured") else "modelled"
+        model = PowerModel(*power_model(head if last == how else power), how)
     set_code_allowlist(allow_code or tuple(cfg.get("allow_code", ())))
     key = key if key is not None else cfg.get("key")
     key_file = key_file or (Path(cfg["key_file"]) if "key_file" in cfg else None)
@@ -702,7 +758,7 @@ def _node(
     from mso.net.base import Neighbour
     from mso.net.routes_static import StaticRoutes
     from mso.node.core import NodeCore
-    from mso.node.driver import NodeDriver
+    from mso.node.driver import PARENT_ENV, NodeDriver, stop_with_parent
     from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S
 
     logging.basicConfig(
@@ -766,7 +822,12 @@ def _node(
             loop = asyncio.get_running_loop()
             exporter = MetricsServer(lambda: core.status(loop.time()), *metrics_at)
             await exporter.start()
+        watch = None
+        if parent := os.environ.get(PARENT_ENV):  # started by an emulator: end with it
+            watch = asyncio.create_task(stop_with_parent(driver, int(parent)))
         await driver.stopped.wait()
+        if watch is not None:
+            watch.cancel()
         if exporter is not None:
             await exporter.stop()
 
@@ -1326,7 +1387,9 @@ def _emulate(
                 + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)
             )
             if dashboard is not None:
-                board = await _start_dashboard(
+                from mso.dashboard.server import start_dashboard
+
+                board = await start_dashboard(
                     [emu.address(n) for n in emu.nodes], emu.key, str(emu.name), dashboard,
                     1.0, emu.node_positions, list(emu.nodes),
                 )  # fmt: skip
@@ -1381,35 +1444,6 @@ def _emulate(
     render_status(console, final)
 
 
-async def _start_dashboard(
-    addresses: list[str],
-    key: str | None,
-    name: str,
-    listen: str,
-    interval: float,
-    positions: Any = None,
-    expected: list[str] | None = None,
-) -> Any:
-    """Start a dashboard on ``listen``, or on the default port (a free one if that is taken)."""
-    from mso.dashboard.server import Dashboard
-
-    def make(where: str) -> Dashboard:
-        return Dashboard(
-            addresses, key, name=name, interval=interval, listen=where,
-            positions=positions, expected=expected,
-        )  # fmt: skip
-
-    board = make(listen or DASHBOARD_LISTEN)
-    try:
-        await board.start()
-    except MsoError:
-        if listen:
-            raise
-        board = make(DASHBOARD_LISTEN.rsplit(":", 1)[0] + ":0")
-        await board.start()
-    return board
-
-
 @main.command()
 @click.option("--via", help="Node to ask: a node id of a running emulator or HOST:PORT.")
 @overlay_option
@@ -1448,7 +1482,9 @@ def dashboard(
                 return {}
 
     async def serve() -> None:
-        board = await _start_dashboard(addresses, key, name, listen or "", interval, positions)
+        from mso.dashboard.server import start_dashboard
+
+        board = await start_dashboard(addresses, key, name, listen or "", interval, positions)
         click.echo(f"dashboard of {name or address}: {board.url}  (Ctrl-C stops it)")
         try:
             await asyncio.Event().wait()
@@ -1652,6 +1688,15 @@ def completion(shell: str) -> None:
 @main.group()
 def bench() -> None:
     """Benchmarks (see docs/benchmarks.md)."""
+
+
+@bench.command(name="lifetime", context_settings={"ignore_unknown_options": True})
+@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+def bench_lifetime(args: tuple[str, ...]) -> None:
+    """The energy study: the convoy under four placements, battery-limited robots."""
+    from mso.benchmarks.lifetime import main as lifetime
+
+    sys.exit(lifetime(list(args)))
 
 
 @bench.command(name="table1")

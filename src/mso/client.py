@@ -80,6 +80,12 @@ class Client:
         try:  # wait for the node's hello and key confirmation
             while not self._codec.confirmed:
                 data = await asyncio.wait_for(self._reader.read(1 << 16), timeout)
+                if not data and self._codec.greeted:  # it hung up on our key confirmation
+                    raise MsoError(
+                        f"node at {self.host}:{self.port} closed the connection during the key "
+                        "check: wrong overlay key? (give --key or set $MSO_KEY; or the node is "
+                        "at its connection limit)"
+                    )
                 if not data:
                     raise NodeUnreachable(f"node at {self.host}:{self.port} closed the connection")
                 _, flush = self._codec.feed(data)

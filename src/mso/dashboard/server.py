@@ -358,3 +358,34 @@ def _text(req: dict[str, Any], name: str, default: str | None = None) -> str:
     if not isinstance(value, str) or (default is None and not value) or len(value) > 200:
         raise BadRequest(400, f"{name}: expected a non-empty string")
     return value
+
+
+DEFAULT_LISTEN = "127.0.0.1:8765"
+
+
+async def start_dashboard(
+    addresses: list[str],
+    key: str | None,
+    name: str,
+    listen: str,
+    interval: float,
+    positions: Any = None,
+    expected: list[str] | None = None,
+) -> Dashboard:
+    """Start a dashboard on ``listen``, or on the default port (a free one if that is taken)."""
+
+    def make(where: str) -> Dashboard:
+        return Dashboard(
+            addresses, key, name=name, interval=interval, listen=where,
+            positions=positions, expected=expected,
+        )  # fmt: skip
+
+    board = make(listen or DEFAULT_LISTEN)
+    try:
+        await board.start()
+    except MsoError:
+        if listen:
+            raise
+        board = make(DEFAULT_LISTEN.rsplit(":", 1)[0] + ":0")
+        await board.start()
+    return board

@@ -29,6 +29,7 @@ from mso.client import Client, NodeUnreachable, overlay_key
 from mso.emu.overlays import _claim, state_file
 from mso.errors import MsoError
 from mso.model.network import LinkSpec
+from mso.node.driver import PARENT_ENV
 from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 from mso.protocol import messages as m
 from mso.protocol.authority import Signer
@@ -142,6 +143,7 @@ class Emulator:
         else:
             env.pop("MSO_ENCRYPT", None)
         self.key = env["MSO_KEY"]
+        env[PARENT_ENV] = str(os.getpid())  # a node outlives no emulator, even one killed
         return env
 
     def _spawn(self, name: str, env: dict[str, str]) -> None:
@@ -154,7 +156,8 @@ class Emulator:
             "--listen", f"{node.host}:{node.port}", "--cpu", str(spec.cpu),
             "--power", ",".join(str(x) for x in (spec.power.idle_w, spec.power.cpu_w,
                                                  spec.power.tx_uj_per_byte,
-                                                 spec.power.rx_uj_per_byte)),
+                                                 spec.power.rx_uj_per_byte,
+                                                 spec.power.cpu_energy)),
         ]  # fmt: skip
         if spec.battery_wh is not None:
             cmd += ["--battery-wh", str(spec.battery_wh)]

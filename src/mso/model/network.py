@@ -16,13 +16,17 @@ class PowerModel:
     """Energy model of a node (docs/architecture.md, "Energy model").
 
     Power drawn = ``idle_w`` always + ``cpu_w`` while a vertex computes; each byte sent costs
-    ``tx_uj_per_byte`` µJ and each byte received ``rx_uj_per_byte`` µJ.
+    ``tx_uj_per_byte`` µJ and each byte received ``rx_uj_per_byte`` µJ. ``cpu_energy`` says
+    what "while a vertex computes" means: ``modelled`` — the vertices' declared costs (c ms per
+    event at cpu 1.0), so stand-in code drains the robot that would do the work — or
+    ``measured`` — the CPU time the vertex code really took here, divided by the node's cpu.
     """
 
     idle_w: float = 1.0
     cpu_w: float = 4.0
     tx_uj_per_byte: float = 2.0
     rx_uj_per_byte: float = 1.0
+    cpu_energy: str = "modelled"
 
 
 @dataclass(frozen=True)

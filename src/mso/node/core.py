@@ -189,8 +189,8 @@ class NodeCore(Membership):
     def _on_timer(self, key: Any, now: float) -> None:
         if isinstance(key, Deadline):
             proc = self.procedures.get(key.pid)
-            if proc is not None and not proc.done:
-                self._expire(proc, now)
+            if proc is not None and not proc.done and now >= proc.deadline - 1e-9:
+                self._expire(proc, now)  # (a procedure may have pushed its deadline on)
             return
         if isinstance(key, Retry):
             proc = self.procedures.get(key.pid)
@@ -327,7 +327,7 @@ class NodeCore(Membership):
         self._sample(now)
         return extra | {
             "node": self.id,
-            "monitor": self.monitor.snapshot() | {"work_ms": self.work_ms},
+            "monitor": self.monitor.snapshot() | {"work_ms": self.work_ms, "cpu_ms": self.cpu_ms},
             "routes": {d: list(r) for d, r in sorted(self.routes.items())},
             "neighbours": sorted(n for n, (hop, _) in self.routes.items() if hop == n),
             "apps": apps,

@@ -79,6 +79,7 @@ class DataPlane(NodeTables):
         h.jobs -= 1
         h.busy_since = now if h.jobs else None
         h.cpu_s += res.cpu_s
+        self.cpu_ms += res.cpu_s * 1e3
         h.errors += res.errors
         h.last_error = res.last_error or h.last_error
         h.stats, h.state_size = res.stats, res.state_size
@@ -321,10 +322,10 @@ class DataPlane(NodeTables):
                 self._ack(dep, i)
 
     def _ack(self, dep: Deployment, edge: int) -> None:
-        upto = dep.inc[edge].ack_due()
-        if upto is None:
+        ch = dep.inc.get(edge)
+        upto = ch.ack_due() if ch is not None else None  # nothing arrived yet: nothing to ack
+        if ch is None or upto is None:
             return
-        ch = dep.inc[edge]
         producer = dep.app.edges[edge].src
         src_node = dep.placed[producer]
         if src_node == self.id:

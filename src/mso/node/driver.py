@@ -12,10 +12,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import threading
-from collections.abc import Hashable
+from collections.abc import Callable, Hashable
 from typing import Any
 
+from mso.management import load_policy
+from mso.model.appfile import loads_app
 from mso.net.base import RoutesChanged, RoutingView, encode
 from mso.net.limits import DEFAULT_LIMITS, Limits
 from mso.net.routes_emulator import EmulatorRoutes
@@ -102,15 +105,41 @@ class NodeDriver:
 
     # -- inbound ----------------------------------------------------------------------------
     def _receive(self, src: str, msg: m.Message) -> None:
+        if isinstance(msg, m.AppAnnounce | m.AppSync) and msg.app not in self.core.apps:
+            self._warm(msg.document, lambda: self._receive_now(src, msg))
+            return
+        self._receive_now(src, msg)
+
+    def _receive_now(self, src: str, msg: m.Message) -> None:
         self._apply(self.core.receive(src, msg, self.loop.time()))
 
+    def _warm(self, document: str, then: Callable[[], None]) -> None:
+        """Import an app's code, formats and policy in a thread, then hand the message on.
+        The core loads the app on the control plane; with its modules already imported that
+        is quick, while a first import (numpy, scipy: seconds on a small CPU) would stop the
+        heartbeats and get this node declared failed. Messages for the app that overtake it
+        are held by the core until the announcement arrives."""
+
+        def done(_: asyncio.Future[None]) -> None:
+            if not self.stopped.is_set():
+                then()
+
+        self.loop.run_in_executor(None, warm_imports, document).add_done_callback(done)
+
     def _request(self, client: int, msg: m.Message) -> None:
-        if isinstance(msg, m.LinkState):
+        if isinstance(msg, m.DeployRequest):
+            self._warm(
+                msg.document, lambda: self._apply(self.core.request(client, msg, self.loop.time()))
+            )
+        elif isinstance(msg, m.LinkState):
             self.apply_links(msg)
         elif isinstance(msg, m.Shutdown):
             self.loop.create_task(self.stop())
         else:
-            self._apply(self.core.request(client, msg, self.loop.time()))
+            self._request_now(client, msg)
+
+    def _request_now(self, client: int, msg: m.Message) -> None:
+        self._apply(self.core.request(client, msg, self.loop.time()))
 
     def _routes_changed(self, _: RoutesChanged | None) -> None:
         self._apply(self.core.set_routes(dict(self.view.routes()), self.loop.time()))
@@ -179,3 +208,27 @@ async def run_node(core: NodeCore, host: str, port: int, psk: bytes) -> None:
     finally:
         if not driver.stopped.is_set():
             await driver.stop()
+
+
+PARENT_ENV = "MSO_PARENT_PID"  # set by an emulator for the node processes it starts
+PARENT_CHECK_S = 0.5
+
+
+async def stop_with_parent(driver: NodeDriver, parent: int) -> None:
+    """Stop the node once the process that started it is gone (an emulator killed or crashed:
+    the node is re-parented), so no node process outlives its emulator."""
+    while not driver.stopped.is_set() and os.getppid() == parent:
+        await asyncio.sleep(PARENT_CHECK_S)
+    if not driver.stopped.is_set():
+        await driver.stop()
+
+
+def warm_imports(document: str) -> None:
+    """Import what an app document names (code, formats, its policy), as far as it loads;
+    errors are the core's to report when it loads the app for real."""
+    try:
+        app = loads_app(document, file="<warm>")
+        if app.policy is not None:
+            load_policy(app.policy, where="<warm>")
+    except Exception:  # the core reports it, with the app's name
+        log.debug("warming an app's imports failed", exc_info=True)

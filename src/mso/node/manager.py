@@ -127,7 +127,7 @@ class Manager:
                 nodes[n] = NodeView(
                     n,
                     beat.cpu,
-                    PowerModel(*beat.power),
+                    PowerModel(beat.power[0], beat.power[1], beat.power[2], beat.power[3]),
                     beat.load + sum(load for _, to, load in self._sent if to == n),
                     beat.drain_w,
                     beat.remaining_j,

@@ -4,10 +4,12 @@ Fed cumulative counters with the time they were read; keeps the energy spent und
 power model (docs/architecture.md, "Energy model"), a smoothed drain, the expected lifetime
 (remaining energy / recent drain), and the history of neighbour and route changes.
 
-CPU energy is charged for the *modelled* work of the vertices that ran here: a vertex of cost c
-processing one event is c ms of CPU on a node of ``cpu: 1.0``, so c / cpu ms here. The measured
-CPU time of vertex code is reported next to it; on an emulated laptop the two differ (stand-in
-code is cheap, and the host is not the robot).
+CPU energy is charged, by default, for the *modelled* work of the vertices that ran here: a
+vertex of cost c processing one event is c ms of CPU on a node of ``cpu: 1.0``, so c / cpu ms
+here (stand-in code is cheap, yet the experiment must drain the robot that would do the work).
+With ``cpu_energy: measured`` it is charged for the CPU time the vertex code really took,
+divided by the node's cpu (the host is the reference node): real code drains whichever robot
+runs it, by what it costs.
 """
 
 from __future__ import annotations
@@ -63,8 +65,13 @@ class Monitor:
             return None
         return rem / self.drain_w
 
-    def sample(self, now: float, work_ms: float, bytes_out: int, bytes_in: int) -> None:
-        """Charge the energy spent since the last sample (counters are cumulative)."""
+    def sample(
+        self, now: float, work_ms: float, bytes_out: int, bytes_in: int, cpu_ms: float = 0.0
+    ) -> None:
+        """Charge the energy spent since the last sample (counters are cumulative; ``cpu_ms``
+        is the measured CPU time of the vertex code, used with ``cpu_energy: measured``)."""
+        if self.power.cpu_energy == "measured":
+            work_ms = cpu_ms
         if self._last is None:
             self._last = (now, work_ms, bytes_out, bytes_in)
             self.started_at = now

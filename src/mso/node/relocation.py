@@ -24,7 +24,8 @@ from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.effects import Reply, Send
-from mso.protocol.procedures.relocate import Relocation, S
+from mso.protocol.procedures.base import Deadline
+from mso.protocol.procedures.relocate import SWITCH_DEADLINE_S, Relocation, S
 
 
 class Relocating(Deploying):
@@ -168,6 +169,9 @@ class Relocating(Deploying):
             self._reloc_failed(reloc, msg.error, now)
             return
         reloc.on("prepared_restore" if reloc.restore else "prepared")
+        if not reloc.restore:  # committed: the old instance drains what it holds, then hands
+            reloc.deadline = max(reloc.deadline, now + SWITCH_DEADLINE_S)  # over; a busy
+            self.set_timer(Deadline(reloc.pid), reloc.deadline)  # vertex may take a while
         if reloc.restore:  # the surviving ends of its edges resume the replacement
             edges = dep.app.edges
             for edge, producer in reloc.resumes:

@@ -207,6 +207,7 @@ class NodeTables:
         # read only to report how long a request took; None in simulation (``now`` is exact)
         self.clock: Callable[[], float] | None = None
         self.work_ms = 0.0  # modelled CPU work of every event processed here (cost units)
+        self.cpu_ms = 0.0  # measured CPU time of the vertex code that ran here
         # cumulative (bytes sent, bytes received) as the driver counts them
         self.traffic: Callable[[], tuple[int, int]] = lambda: (0, 0)
         self.window = window
@@ -319,7 +320,7 @@ class NodeTables:
 
     def _sample(self, now: float) -> None:
         out, inc = self.traffic()
-        self.monitor.sample(now, self.work_ms, out, inc)
+        self.monitor.sample(now, self.work_ms, out, inc, self.cpu_ms)
 
     def _lost(self, dep: Deployment) -> set[str]:
         """Vertices with no running instance: on a failed node, or gone with a node's old

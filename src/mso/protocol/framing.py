@@ -137,6 +137,11 @@ class FrameCodec:
     def peer_nonce(self) -> bytes | None:
         return self._peer_nonce
 
+    @property
+    def greeted(self) -> bool:
+        """The peer's hello has arrived (the key check is under way or done)."""
+        return self._peer_nonce is not None
+
     def hello(self) -> bytes:
         return self._magic + self._nonce
 

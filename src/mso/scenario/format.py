@@ -32,7 +32,8 @@ CHANGE_KEYS = {"at", "down", "up", "fail", "restart", "partition", "heal", "loss
 CHANGE_KINDS = ("up", "down", "fail", "restart", "partition", "heal", "loss")
 MAX_NUMBER = 1e12  # capacities, powers, delays: larger ones only overflow the objectives
 NODE_KEYS = {"cpu", "battery_wh", "power", "pos"}
-POWER_KEYS = {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte"}
+POWER_KEYS = {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte", "cpu_energy"}
+CPU_ENERGY = ("modelled", "measured")
 LINK_KEYS = {"between", "bandwidth_mbps", "delay_ms", "loss"}
 LINK_ATTRS = LINK_KEYS - {"between"}
 
@@ -357,7 +358,15 @@ def _node(r: _Reader, nid: Any, attrs: dict[str, Any], path: tuple[str | int, ..
     if battery is not None:
         battery = r.number(battery, (*path, "battery_wh"), strict=True)
     p = r.mapping(attrs.get("power"), POWER_KEYS, (*path, "power"))
-    power = PowerModel(**{k: r.number(v, (*path, "power", k)) for k, v in p.items()})
+    if p.get("cpu_energy", "modelled") not in CPU_ENERGY:
+        raise r.err(
+            f"expected one of {', '.join(CPU_ENERGY)}, got {p['cpu_energy']!r}",
+            (*path, "power", "cpu_energy"),
+        )
+    kw: dict[str, Any] = {
+        k: v if k == "cpu_energy" else r.number(v, (*path, "power", k)) for k, v in p.items()
+    }
+    power = PowerModel(**kw)
     pos = attrs.get("pos")
     if pos is not None:
         if not (isinstance(pos, list) and len(pos) == 2):

@@ -5,9 +5,10 @@ target creates the instance) → SWITCHING (producers switch and send a marker t
 old host hands the state over) → FINISHED when the target reports the handover. A *restore*
 replaces an instance lost with a failed node: PREPARING → RESUMING (the surviving ends of its
 edges say where they stand and replay) → FINISHED when the replacement runs. Both fail on a
-refusal, on the failure of a node they need, or at their deadline; a restore's prepare is
-retried (``Retry`` timer) a few times first, since messages to a node behind a failure can be
-lost while routes converge.
+refusal, on the failure of a node they need, or at their deadline (5 s to be prepared; once
+producers have switched, ``SWITCH_DEADLINE_S`` for the old instance to drain and hand over); a
+restore's prepare is retried (``Retry`` timer) a few times first, since messages to a node
+behind a failure can be lost while routes converge.
 
 The steps themselves are carried out by the node core's handlers (``mso.node.core``), which
 move the procedure along this table; a step arriving in the wrong state raises.
@@ -21,6 +22,9 @@ from typing import Any, ClassVar
 from mso.protocol.procedures.base import Phase, Procedure, Table
 
 STEP_TIMEOUT_S = 1.0  # a restore step not answered by then is sent again
+# once producers have switched, the move is committed: the old instance hands over after it has
+# processed everything before the markers, which a slow vertex may take a while to do
+SWITCH_DEADLINE_S = 60.0
 STEP_ATTEMPTS = 5
 
 

@@ -1,0 +1,285 @@
+"""The convoy's vertices on known inputs (mso.examples.convoy): each does what its name says."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+from scipy.sparse import csgraph, lil_matrix
+
+from mso.examples.convoy import (
+    BayesFilter,
+    BlobDetector,
+    BlobFusion,
+    CameraSource,
+    Image,
+    LaserSource,
+    Localizer,
+    OdometrySource,
+    OdomFilter,
+    PathPlanner,
+    ScanFilter,
+    ScanMatcher,
+    Storage,
+    TargetMap,
+    TrajectoryFollower,
+)
+from mso.examples.convoy.localization import Pose
+from mso.examples.convoy.planning import astar
+from mso.examples.convoy.sensors import BEAMS, in_view, scan_ranges
+from mso.examples.convoy.storage import summary
+from mso.examples.convoy.world import HOT_SPOTS, SURVIVORS, on_straight, true_pose, world
+
+# the stated bound on the straight leg: the planner inflates obstacles by the robot's radius
+# (0.3 m), so a pose error below it can never make a plan cut through a wall
+LOCALIZATION_BOUND_M = 0.3
+
+
+def test_the_laser_sees_the_walls_of_the_map() -> None:
+    scan = LaserSource()(0, 0.0)
+    assert 900 <= len(msgspec.msgpack.encode(scan)) <= 1000  # the paper's 967 B
+    r = scan_ranges(scan)
+    assert len(r) == BEAMS
+    # at the start (2, 3) heading east the right-hand beam (-90°) meets the south wall at
+    # y = 0.3 (or rubble on it); the left-hand one (+90°) passes west of the rubble field and
+    # the north wall is 12.7 m away, beyond the 10 m range
+    assert 1.5 < np.median(r[:3]) <= 2.75
+    assert np.median(r[-3:]) > 9.5
+
+
+def test_scan_filter_removes_dust_and_dropouts() -> None:
+    scan = LaserSource()(3, 0.0)
+    raw = scan_ranges(scan)
+    out = np.frombuffer(ScanFilter()(scan).ranges, dtype="<f4")
+    x, y, th = true_pose(3 / 5)
+    truth = world(7).cast(x, y, th + -math.pi / 2 + math.pi / BEAMS * np.arange(BEAMS), 10.0)
+    ok = np.isfinite(out)
+    assert ok.sum() > 0.8 * (truth < 9.9).sum()  # beyond range stays invalid
+    # every beam kept is near the truth; the raw scan had outliers (dust or dropouts)
+    assert np.abs(out[ok] - truth[ok]).max() < 0.3
+    assert (np.abs(raw - truth) > 0.3).any()
+
+
+def test_odometry_drifts_and_odom_filter_gives_increments() -> None:
+    odo, f = OdometrySource(), OdomFilter()
+    assert f(odo(0, 0.0)) is None
+    d = f(odo(1, 0.2))
+    assert d is not None and 0.09 < d.dx < 0.11 and abs(d.dy) < 0.01
+    x, y, _ = true_pose(50.0)  # 25 m along the first leg and round the corner
+    late = odo(250, 50.0)
+    assert 0.1 < math.hypot(late.x_mm / 1e3 - x, late.y_mm / 1e3 - y) < 2.0
+    state = f.get_state()
+    g = OdomFilter()
+    g.set_state(msgspec.msgpack.decode(msgspec.msgpack.encode(state)))
+    assert g.last == f.last
+
+
+def run_localization(loc: Localizer, scans: range) -> list[float]:
+    laser, odo, f, filt, match = (
+        LaserSource(),
+        OdometrySource(),
+        OdomFilter(),
+        ScanFilter(),
+        ScanMatcher(),
+    )
+    if scans.start > 0:  # the odometry filter's previous reading (its state, in a move)
+        f(odo(scans.start - 1, 0.0))
+    errors = []
+    for k in scans:
+        d = f(odo(k, k / 5))
+        if d is not None:
+            loc(d)
+        poses = loc(match(filt(laser(k, k / 5))))
+        assert len(poses) == 1 and poses[0].seq == k
+        pose = poses[0]
+        x, y, _ = true_pose(k / 5)
+        errors.append(math.hypot(pose.x - x, pose.y - y))
+    return errors
+
+
+def test_localization_converges_on_a_straight_run() -> None:
+    """Started 0.4 m off, the particle filter pulls the estimate to the truth within a few
+    metres of the straight leg, and keeps it under the bound while odometry drifts away."""
+    loc = Localizer(particles=600)
+    loc.p[:, 0] += 0.3
+    loc.p[:, 1] -= 0.25
+    errors = run_localization(loc, range(0, 200))
+    assert all(on_straight(k / 5) for k in range(10, 200))
+    assert errors[0] > 0.3
+    assert max(errors[40:]) < LOCALIZATION_BOUND_M
+    assert np.mean(errors[-50:]) < 0.2
+
+
+def test_localization_state_moves_with_the_vertex() -> None:
+    loc = Localizer(particles=300)
+    run_localization(loc, range(0, 20))
+    moved = Localizer(particles=10)
+    moved.set_state(msgspec.msgpack.decode(msgspec.msgpack.encode(loc.get_state())))
+    assert moved.n == 300 and np.array_equal(moved.p, loc.p)
+    # both continue identically: the random generator moved too
+    assert run_localization(moved, range(20, 25)) == run_localization(loc, range(20, 25))
+
+
+def test_astar_finds_the_shortest_path_on_a_small_grid() -> None:
+    free = np.ones((7, 9), dtype=bool)
+    free[1:6, 4] = False  # a wall with gaps at the top and bottom rows
+    path = astar(free, (3, 0), (3, 8))
+    assert path is not None and path[0] == (3, 0) and path[-1] == (3, 8)
+    assert all(free[c] for c in path)
+    steps = [math.hypot(a[0] - b[0], a[1] - b[1]) for a, b in itertools.pairwise(path)]
+    assert all(s in (1.0, math.sqrt(2)) for s in steps)
+    # the same grid as a graph (8-connected, no corner cutting): Dijkstra agrees
+    rows, cols = free.shape
+    g = lil_matrix((rows * cols, rows * cols))
+    for r in range(rows):
+        for c in range(cols):
+            for dr in (-1, 0, 1):
+                for dc in (-1, 0, 1):
+                    nr, nc = r + dr, c + dc
+                    inside = (dr or dc) and 0 <= nr < rows and 0 <= nc < cols
+                    if inside and free[r, c] and free[nr, nc] and free[r, nc] and free[nr, c]:
+                        g[r * cols + c, nr * cols + nc] = math.hypot(dr, dc)
+    best = csgraph.dijkstra(g.tocsr(), indices=3 * cols)[3 * cols + 8]
+    assert sum(steps) == pytest.approx(best)
+    assert astar(free, (3, 0), (3, 4)) is None  # into the wall
+
+
+def test_planner_heads_for_the_next_waypoint_and_keeps_its_state() -> None:
+    planner = PathPlanner()
+    plan = planner(Pose(0, 0.0, 0, 2.0, 3.0, 0.0, 0.05))
+    assert plan.goal == 1 and plan.path
+    assert math.hypot(plan.path[-1][0] - 26.0, plan.path[-1][1] - 3.0) < 0.3
+    near = planner(Pose(1, 0.2, 0, 25.5, 3.0, 0.0, 0.05))  # waypoint reached: the next one
+    assert near.goal == 2
+    again = PathPlanner()
+    again.set_state(msgspec.msgpack.decode(msgspec.msgpack.encode(planner.get_state())))
+    assert again.goal == 2
+    cmd = TrajectoryFollower()(plan)
+    assert cmd.v > 0 and abs(cmd.w) < 0.5 and 23 < cmd.path_len < 25
+
+
+CAMERAS = {c: CameraSource(c) for c in ("visible", "infrared")}
+
+
+def frame(camera: str, seq: int) -> Image:
+    """A camera's frame; its odometer only integrates forward, so ask for frames in order (or
+    from a fresh camera)."""
+    cam = CAMERAS[camera] if CAMERAS[camera].odometer.k <= seq * 10 else CameraSource(camera)
+    return cam(seq, seq * 2.0)
+
+
+def test_blob_detector_finds_a_planted_survivor_and_nothing_on_a_blank_frame() -> None:
+    detect = BlobDetector()
+    # frame 3: the leader at (5, 3) heading east sees the survivor at (11, 1.2), 17° right
+    for camera in ("visible", "infrared"):
+        blobs = detect(frame(camera, 3)).blobs
+        assert len(blobs) == 1
+        assert math.degrees(blobs[0][0]) == pytest.approx(-17, abs=3)
+    # frame 8: nothing in view
+    assert detect(frame("visible", 8)).blobs == [] and detect(frame("infrared", 8)).blobs == []
+    blank = Image(0, 0.0, "visible", 25, 40, bytes(3000), (0.0, 0.0, 0.0))
+    assert detect(blank).blobs == []
+
+
+def test_fusion_needs_both_cameras() -> None:
+    """The warm pipe at (20, 1.2) shows in infrared only: fusion makes no detection of it."""
+    detect, fuse = BlobDetector(), BlobFusion()
+    assert fuse(detect(frame("infrared", 12))) is None  # waits for its twin
+    det = fuse(detect(frame("visible", 12)))
+    assert det is not None and det.infrared == 1 and det.visible == 0 and det.hits == []
+    assert fuse.pending == {}
+    assert HOT_SPOTS
+
+
+def test_target_map_finds_every_planted_survivor_and_no_phantom() -> None:
+    detect, fuse, bayes, tmap = BlobDetector(), BlobFusion(), BayesFilter(), TargetMap()
+    report = None
+    for seq in range(0, 67):  # one lap of the route
+        fuse(detect(frame("visible", seq)))
+        det = fuse(detect(frame("infrared", seq)))
+        assert det is not None
+        # a detection exactly when a survivor is in view: no phantom on survivor-free frames
+        assert bool(det.hits) == bool(in_view(world(7), true_pose(seq * 2.0), SURVIVORS))
+        report = tmap(bayes(det))
+        if seq == 1:  # before any survivor came into view
+            assert report.targets == []
+        if seq == 20:  # bayes' map moves with the vertex
+            moved = BayesFilter()
+            moved.set_state(msgspec.msgpack.decode(msgspec.msgpack.encode(bayes.get_state())))
+            assert np.allclose(moved.logodds, bayes.logodds, atol=1e-5)
+    assert report is not None
+    found = [(x, y) for x, y, _ in report.targets]
+    assert len(found) == len(SURVIVORS)
+    for sx, sy in SURVIVORS:
+        assert min(math.hypot(sx - x, sy - y) for x, y in found) < 1.5
+
+
+def test_storage_rows_carry_what_completeness_and_delay_need(tmp_path: Path) -> None:
+    db = tmp_path / "log.sqlite"
+    store = Storage(db=str(db))
+    store.clock = lambda: 100.0
+    traj = TrajectoryFollower()
+    planner = PathPlanner()
+    for k in (0, 1, 2, 4, 4):  # a gap (3) and a repeat (4)
+        store(traj(planner(Pose(k, 99.9, k, *true_pose(k / 5), 0.05))))
+    store.close()
+    s = summary(db)
+    assert s["trajectory"] == {
+        "rows": 5, "distinct": 4, "repeats": 1, "gaps": 1, "first": 0, "last": 4
+    }  # fmt: skip
+    assert s["delay_ms_p50"] == pytest.approx(100.0)
+    assert s["localization_error_m_max"] < 1e-9
+
+
+def test_profile_measures_costs_and_sizes_and_writes_them_back(tmp_path: Path) -> None:
+    from mso.model.appfile import load_app
+    from mso.runtime.profile import profile, write_back
+
+    src = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples" / "convoy.yaml"
+    app_file = tmp_path / "convoy.yaml"
+    app_file.write_text(
+        src.read_text().replace("cost: 0.", "cost: 9.").replace("size: ", "size: 1")
+    )
+    prof = profile(load_app(app_file), seconds=4.0, speed=2.0)
+    costs, sizes = prof.costs(), prof.sizes()
+    assert prof.vertices["laser"].calls == 20 and prof.vertices["visible_camera"].calls == 2
+    assert prof.vertices["storage"].calls == 22  # 20 trajectory rows, 2 target rows
+    assert all(p.errors == 0 for p in prof.vertices.values())
+    assert set(costs) == set(prof.vertices) and all(c > 0 for c in costs.values())
+    assert 900 <= sizes[("laser", "scan_filter")] <= 1000
+    assert 2900 <= sizes[("visible_camera", "visible_blobs")] <= 3200
+    assert write_back(app_file, costs, sizes) == []
+    again = load_app(app_file)
+    assert again.vertices["localization"].cost == pytest.approx(costs["localization"], rel=0.01)
+    assert {(e.src, e.dst): e.size for e in again.edges} == sizes
+    assert "# The cooperative-robotics convoy" in app_file.read_text()  # comments kept
+
+
+def test_localization_merges_its_two_inputs_back_into_time_order() -> None:
+    """Odometry and scans come by different paths, so either may run ahead: the filter holds
+    what is early and gives the same poses as when both arrive in time order."""
+    laser, odo, f = LaserSource(), OdometrySource(), OdomFilter()
+    filt, match = ScanFilter(), ScanMatcher()
+    deltas = [d for k in range(30) if (d := f(odo(k, k / 5))) is not None]
+    scans = [match(filt(laser(k, k / 5))) for k in range(30)]
+    in_order, late_odometry = Localizer(particles=200), Localizer(particles=200)
+    expected = in_order(scans[0])
+    for d, s in zip(deltas, scans[1:], strict=True):
+        assert in_order(d) == []
+        expected += in_order(s)
+    got = []
+    for s in scans[:12]:  # the scans run 11 readings ahead of the odometry
+        got += late_odometry(s)
+    assert [p.seq for p in got] == [0]
+    moved = Localizer(particles=10)  # what is held moves with the vertex
+    moved.set_state(msgspec.msgpack.decode(msgspec.msgpack.encode(late_odometry.get_state())))
+    for d in deltas:
+        got += moved(d)
+    for s in scans[12:]:
+        got += moved(s)
+    assert [p.seq for p in got] == list(range(30))
+    assert [(p.x, p.y) for p in got] == [(p.x, p.y) for p in expected]
