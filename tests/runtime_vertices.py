@@ -146,3 +146,12 @@ class Silent:
 
     def __call__(self, seq: int, now: float) -> None:
         return None
+
+
+class PidCounter(Counter):
+    """A Counter that says which process runs it."""
+
+    def stats(self) -> dict[str, int]:
+        import os
+
+        return {"pid": os.getpid(), "count": self.count}

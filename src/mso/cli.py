@@ -509,6 +509,8 @@ NODE_CONFIG_KEYS = {
     "operator_keys",
     "key_file",
     "encrypt",
+    "routes",
+    "energy",
 }
 
 
@@ -591,6 +593,23 @@ def _node_config(path: Path) -> dict[str, Any]:
     help="A static neighbour NODE=HOST:PORT (repeat); without it the emulator sets neighbours.",
 )
 @click.option(
+    "--energy",
+    type=click.Choice(["auto", "model", "interfaces"]),
+    default=None,
+    help="auto (default): battery, CPU time and interface bytes from the OS where it reports "
+    "them, the power model for the rest; model: the power model and CPU time only (the "
+    "user-space emulator passes this); interfaces: also the interface bytes (netns testbed).",
+)
+@click.option(
+    "--routes",
+    "routes_from",
+    type=click.Choice(["auto", "kernel", "emulator"]),
+    default=None,
+    help="Where routes come from: kernel (read the routing daemon's kernel routes over "
+    "netlink, learn node ids from announcements; listen on a routable address), emulator, or "
+    "auto (default: the --peer list if given, else the emulator).",
+)
+@click.option(
     "--policy",
     help="Management policy for apps that name none: lifetime (default), energy, balance, "
     "delay, or pkg.module:Attr.",
@@ -643,6 +662,8 @@ def node(
     battery_wh: float | None,
     power: str | None,
     peers: tuple[str, ...],
+    energy: str | None,
+    routes_from: str | None,
     policy: str | None,
     manage: bool | None,
     heartbeat_s: float | None,
@@ -704,6 +725,8 @@ def node(
         key_file,
         encrypt,
         metrics,
+        routes_from or cfg.get("routes", "auto"),
+        energy or cfg.get("energy", "auto"),
     )
 
 
@@ -750,6 +773,8 @@ def _node(
     key_file: Path | None = None,
     encrypt: bool = False,
     metrics: str | None = None,
+    routes_from: str = "auto",
+    energy: str = "auto",
 ) -> None:
     import asyncio
     import logging
@@ -794,10 +819,40 @@ def _node(
         incarnation=time.time_ns() // 1_000_000,
     )
 
+    if energy not in ("auto", "model", "interfaces"):
+        raise MsoError(f"energy: expected auto, model or interfaces, got {energy!r}")
+    if routes_from not in ("auto", "kernel", "emulator"):
+        raise MsoError(f"routes: expected auto, kernel or emulator, got {routes_from!r}")
+    if routes_from == "kernel" and static:
+        raise MsoError("give either --peer (a fixed set-up) or --routes kernel, not both")
+    if routes_from == "kernel" and (port == 0 or host.startswith("127.") or host == "localhost"):
+        raise MsoError(
+            f"--routes kernel: listen on a routable address and a fixed port "
+            f"(e.g. --listen 0.0.0.0:7000), got {listen}"
+        )
+
     async def serve() -> None:
-        view = StaticRoutes(node_id, static) if static else None  # else the emulator's
-        keys = [overlay_key(k) for k in read_keys(key_file)] if key_file else overlay_key(key)
-        driver = NodeDriver(core, host, port, keys, view, authority=authority, encrypt=encrypt)
+        from mso.net.base import RoutingView
+        from mso.net.routes_kernel import KernelRoutes
+
+        keys = [overlay_key(k) for k in read_keys(key_file)] if key_file else [overlay_key(key)]
+        psk = keys[0]  # what kernel route announcements are authenticated with
+        view: RoutingView | None = None
+        kernel: KernelRoutes | None = None
+        if routes_from == "kernel":
+            view = kernel = KernelRoutes(node_id, port, psk, host=host)
+            try:
+                await kernel.start()
+            except OSError as exc:
+                raise MsoError(f"--routes kernel: cannot read routes or bind: {exc}") from None
+        elif routes_from == "auto" and static:
+            view = StaticRoutes(node_id, static)
+        from mso.node.device import DeviceProbe
+
+        device = DeviceProbe(battery=energy == "auto", interfaces=energy != "model")
+        driver = NodeDriver(  # no view: the emulator's
+            core, host, port, keys, view, device=device, authority=authority, encrypt=encrypt
+        )
 
         def rotate() -> None:  # SIGHUP: take the key file again; open connections keep theirs
             assert key_file is not None
@@ -825,11 +880,15 @@ def _node(
         watch = None
         if parent := os.environ.get(PARENT_ENV):  # started by an emulator: end with it
             watch = asyncio.create_task(stop_with_parent(driver, int(parent)))
-        await driver.stopped.wait()
-        if watch is not None:
-            watch.cancel()
-        if exporter is not None:
-            await exporter.stop()
+        try:
+            await driver.stopped.wait()
+        finally:
+            if watch is not None:
+                watch.cancel()
+            if exporter is not None:
+                await exporter.stop()
+            if kernel is not None:
+                await kernel.close()
 
     if dev_key:
         click.echo(DEV_KEY_WARNING, err=True)
@@ -1126,11 +1185,38 @@ def status(
                 time.sleep(max(0.0, watch - (time.monotonic() - started)))
 
 
-def _energy_cells(mon: dict[str, Any]) -> tuple[str, str, str]:
+def _energy_cells(mon: dict[str, Any]) -> tuple[str, str, str, str]:
     frac, life = mon.get("battery_fraction"), mon.get("lifetime_s")
     battery = "wall" if frac is None else f"{frac * 100:.1f}%"
     lifetime = "-" if life is None else f"{life / 3600:.1f} h"
-    return battery, f"{mon.get('drain_w', 0.0):.2f}", lifetime
+    measured = mon.get("measured", {})
+    drain = measured.get("battery_power_w")
+    watts = f"{mon.get('drain_w', 0.0):.2f}" if drain is None else f"{drain:.2f}"
+    return battery, watts, lifetime, _measured_cell(mon)
+
+
+def _measured_cell(mon: dict[str, Any]) -> str:
+    """Which of the node's figures the OS measured (the rest come from the power model)."""
+    sources, measured = mon.get("sources", {}), mon.get("measured", {})
+    out = []
+    if str(sources.get("battery", "")).startswith("measured"):
+        out.append("battery" + (" (charging)" if measured.get("charging") else ""))
+    if sources.get("drain") == "measured":
+        out.append("W")
+    if "cpu_load" in measured:
+        out.append(f"cpu {measured['cpu_load'] * 100:.0f}%")
+    if "iface_tx_bytes" in measured:
+        tx, rx = _size(measured["iface_tx_bytes"]), _size(measured["iface_rx_bytes"])
+        out.append(f"radio {tx}/{rx}")
+    return ", ".join(out) or "-"
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if abs(n) < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} GB"
 
 
 def render_status(console: Console, nodes: dict[str, Any]) -> None:
@@ -1148,6 +1234,11 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
         "battery",
         "W",
         "life",
+        "measured",
+    )
+    table.caption = (
+        "battery, W and life come from the power model unless 'measured' names them; "
+        "radio: the interfaces' tx/rx bytes"
     )
     for col in cols:
         table.add_column(col, justify="left" if col in ("node", "neighbours") else "right")
@@ -1247,10 +1338,23 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
 
 
 @main.command()
-@click.argument("scenario_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("scenario_file", required=False, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--app", "app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
     "--duration", type=POSITIVE, default=None, help="Seconds to run (default: until Ctrl-C)."
+)
+@click.option(
+    "--backend",
+    type=click.Choice(["user", "netns"]),
+    default="user",
+    show_default=True,
+    help="user: one process per node on loopback, routes computed by the emulator; netns: one "
+    "network namespace per node on a filtered bridge, babeld routing, the kernel forwarding.",
+)
+@click.option(
+    "--cleanup",
+    is_flag=True,
+    help="Remove what a crashed netns emulation left (namespaces, processes inside) and exit.",
 )
 @click.option("--via", help="Node to deploy from (default: the first node).")
 @click.option(
@@ -1296,9 +1400,11 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
 def emulate(
-    scenario_file: Path,
+    scenario_file: Path | None,
     app_file: Path | None,
     duration: float | None,
+    backend: str,
+    cleanup: bool,
     via: str | None,
     convergence: float,
     heartbeat_s: float | None,
@@ -1313,13 +1419,59 @@ def emulate(
     key: str | None,
     as_json: bool,
 ) -> None:
-    """Run a scenario as one local process per node (user-space MANET emulator)."""
+    """Run a scenario as one local process per node (user-space MANET emulator), or on a
+    network-namespace testbed with babeld (--backend netns)."""
+    if cleanup:
+        _netns_cleanup()
+        return
+    if scenario_file is None:
+        _console().print("[red]error:[/red] give a SCENARIO_FILE (or --cleanup)")
+        sys.exit(2)
+    if backend == "netns" and _rootless_reexec():
+        return
     _emulate(
         scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s,
         dead_after_s, allow_code, name=name, manage=manage,
         dashboard=(dashboard_listen or "") if with_dashboard or dashboard_listen else None,
-        metrics_port=metrics_port, encrypt=encrypt,
+        metrics_port=metrics_port, encrypt=encrypt, backend=backend,
     )  # fmt: skip
+
+
+ROOTLESS_ENV = "MSO_NETNS_USERNS"
+
+
+def _rootless_reexec() -> bool:
+    """Not root: run this very command again inside a new user, network and mount namespace
+    (``unshare -Urnm``, root there, a private /run for the namespace files) when the kernel
+    allows it; True if it ran there. Otherwise the netns backend explains and falls back."""
+    import os
+    import shutil
+    import subprocess
+
+    if os.geteuid() == 0 or os.environ.get(ROOTLESS_ENV) or shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(["unshare", "-Urnm", "true"], capture_output=True)
+    if probe.returncode != 0:
+        return False  # the backend's own check says why and falls back
+    env = {**os.environ, ROOTLESS_ENV: "1"}
+    script = 'mount -t tmpfs tmpfs /run && exec "$@"'
+    cmd = ["unshare", "-Urnm", "sh", "-c", script, "sh", sys.executable, "-m", "mso", *sys.argv[1:]]
+    sys.exit(subprocess.run(cmd, env=env).returncode)
+
+
+def _netns_cleanup() -> None:
+    from mso.emu.netns.testbed import cleanup, unavailable
+
+    console = _console()
+    why = unavailable()
+    if why is not None:
+        console.print(f"nothing to clean: {why}")
+        return
+    removed = cleanup()
+    console.print(
+        f"removed {len(removed)} namespace(s) left by stopped emulations"
+        + (f": {', '.join(removed)}" if removed else "")
+    )
 
 
 @_user_errors
@@ -1340,12 +1492,15 @@ def _emulate(
     dashboard: str | None = None,
     metrics_port: int | None = None,
     encrypt: bool = False,
+    backend: str = "user",
 ) -> None:
     import asyncio
+    import signal
 
     from rich.table import Table
 
     from mso.emu.controller import Emulator
+    from mso.emu.netns.emulator import NamespacesUnavailable, NetnsEmulator, check_available
     from mso.model.appfile import load_app
     from mso.model.yamlfile import read_text_file
     from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
@@ -1364,8 +1519,18 @@ def _emulate(
         raise MsoError(f"--duration: expected a number of seconds > 0, got {duration:g}")
     console = _console()
 
+    kind: type[Emulator] = Emulator
+    if backend == "netns" and metrics_port is not None:
+        raise MsoError("--metrics is not available with --backend netns yet")
+    if backend == "netns":
+        try:
+            check_available()
+            kind = NetnsEmulator
+        except NamespacesUnavailable as exc:
+            console.print(f"[yellow]{exc}[/yellow]; using the user-space backend instead")
+
     async def run() -> dict[str, Any]:
-        emu = Emulator(
+        emu = kind(
             scenario,
             key=key,
             convergence_s=convergence,
@@ -1377,13 +1542,17 @@ def _emulate(
             allow_code=allow_code or None,
             encrypt=encrypt,
         )
+        loop = asyncio.get_running_loop()
+        task = asyncio.current_task()
+        if task is not None:  # SIGTERM stops like Ctrl-C: the finally below tears down
+            loop.add_signal_handler(signal.SIGTERM, task.cancel)
         with _progress(f"starting {len(scenario.network.nodes)} node processes…"):
             await emu.start()
-        loop = asyncio.get_running_loop()
         board = None
         try:
+            where = "namespaces (babeld)" if isinstance(emu, NetnsEmulator) else "processes"
             console.print(
-                f"emulating {scenario.name} as overlay {emu.name}: {len(emu.nodes)} node processes "
+                f"emulating {scenario.name} as overlay {emu.name}: {len(emu.nodes)} node {where} "
                 + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)
             )
             if dashboard is not None:
@@ -1434,7 +1603,7 @@ def _emulate(
 
     try:
         final = asyncio.run(run())
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, asyncio.CancelledError):
         console.print("interrupted: every node process was stopped")
         return
     if as_json:

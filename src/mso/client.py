@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import socket
 from typing import TYPE_CHECKING, Any
 
 import msgspec
@@ -60,9 +61,11 @@ class Client:
         name: str = "cli",
         signer: Signer | None = None,
         encrypt: bool | None = None,
+        netns: str | None = None,
     ) -> None:
         self.host, self.port, self.psk, self.name = host, port, psk, name
         self.signer = signer  # signs the commands that change an overlay
+        self.netns = netns  # connect from inside this network namespace (the netns testbed)
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
         self._codec = FrameCodec(psk, encrypt=encrypt_default() if encrypt is None else encrypt)
@@ -70,9 +73,7 @@ class Client:
 
     async def connect(self, timeout: float = 5.0) -> Client:
         try:
-            self._reader, self._writer = await asyncio.wait_for(
-                asyncio.open_connection(self.host, self.port), timeout
-            )
+            self._reader, self._writer = await asyncio.wait_for(self._open(), timeout)
         except (OSError, TimeoutError) as exc:
             raise NodeUnreachable(f"cannot reach node at {self.host}:{self.port}: {exc}") from None
         assert self._writer is not None and self._reader is not None
@@ -100,6 +101,20 @@ class Client:
             raise NodeUnreachable(f"no mso hello from {self.host}:{self.port}: {exc}") from None
         await self.send(m.ClientHello(self.name))
         return self
+
+    async def _open(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+        if self.netns is None:
+            return await asyncio.open_connection(self.host, self.port)
+        from mso.net.netns import socket_in_netns
+
+        sock = socket_in_netns(self.netns, socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            sock.setblocking(False)
+            await asyncio.get_running_loop().sock_connect(sock, (self.host, self.port))
+        except BaseException:
+            sock.close()
+            raise
+        return await asyncio.open_connection(sock=sock)
 
     async def send(self, msg: m.Message) -> None:
         assert self._writer is not None
@@ -159,6 +174,12 @@ class Client:
                 await self._writer.wait_closed()
 
 
+def split_netns(address: str) -> tuple[str | None, str]:
+    """``NETNS@HOST:PORT`` -> ``(NETNS, HOST:PORT)``; a plain address has no namespace."""
+    netns, at, rest = address.partition("@")
+    return (netns, rest) if at and netns else (None, address)
+
+
 def parse_address(text: str, default_port: int = 7000) -> tuple[str, int]:
     """``HOST:PORT`` (or ``HOST``) with a port in 0..65535."""
     host, _, port = text.rpartition(":")
@@ -181,9 +202,11 @@ async def request(
     timeout: float = 10.0,
     signer: Signer | None = None,
 ) -> Any:
-    """Connect, send one request, return the reply."""
+    """Connect, send one request, return the reply. ``NETNS@HOST:PORT`` connects from inside
+    network namespace NETNS (a node of the netns testbed)."""
+    netns, address = split_netns(address)
     host, port = parse_address(address)
-    client = await Client(host, port, overlay_key(key), signer=signer).connect()
+    client = await Client(host, port, overlay_key(key), signer=signer, netns=netns).connect()
     try:
         return await client.call(msg, timeout)
     finally:

@@ -31,6 +31,7 @@ from mso.client import (
     overlay_key,
     parse_address,
     request,
+    split_netns,
 )
 from mso.dashboard.view import Tracker
 from mso.errors import MsoError
@@ -135,8 +136,11 @@ class Dashboard:
         for _ in range(len(self.addresses)):
             try:
                 if self._client is None:
-                    host, port = parse_address(self.addresses[self._via])
-                    self._client = await Client(host, port, self._psk, "dashboard").connect(2.0)
+                    netns, addr = split_netns(self.addresses[self._via])  # netns testbed
+                    host, port = parse_address(addr)
+                    self._client = await Client(
+                        host, port, self._psk, "dashboard", netns=netns
+                    ).connect(2.0)
                 reply = await self._client.call(m.StatusRequest(everywhere=True), 5.0)
                 if isinstance(reply, m.StatusReply):
                     return reply.nodes

@@ -150,6 +150,16 @@ class Emulator:
         """Start node ``name``'s daemon process (again, for a restart)."""
         assert self.log_dir is not None
         node = self.nodes[name]
+        node.log = self.log_dir / f"{name}.log"
+        with node.log.open("ab") as out:
+            node.process = subprocess.Popen(
+                self._node_command(name), stdout=out, stderr=subprocess.STDOUT, env=env,
+                start_new_session=True,
+            )  # fmt: skip
+
+    def _node_command(self, name: str) -> list[str]:
+        """The ``mso node`` command line of node ``name`` (its scenario capacities)."""
+        node = self.nodes[name]
         spec = self.scenario.network.nodes[name]
         cmd = [
             sys.executable, "-m", "mso", "node", "--id", name,
@@ -159,6 +169,7 @@ class Emulator:
                                                  spec.power.rx_uj_per_byte,
                                                  spec.power.cpu_energy)),
         ]  # fmt: skip
+        cmd += ["--energy", "model"]  # the scenario's device, not the host's battery
         if spec.battery_wh is not None:
             cmd += ["--battery-wh", str(spec.battery_wh)]
         if self.policy is not None:
@@ -175,11 +186,7 @@ class Emulator:
             cmd += ["--allow-code", module]
         for pub in self.operator_keys:
             cmd += ["--operator-key", pub]
-        node.log = self.log_dir / f"{name}.log"
-        with node.log.open("ab") as out:
-            node.process = subprocess.Popen(
-                cmd, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True
-            )
+        return cmd
 
     async def restart(self, node: str, timeout: float = 20.0) -> None:
         """Start a killed (or crashed) ``node`` again: a new process, so a new incarnation;
@@ -239,14 +246,17 @@ class Emulator:
                 self.failed = True
                 raise MsoError(f"node {node.id} exited at start; see {node.log}")
             try:
-                node.client = await Client(
-                    node.host, node.port, psk, "emulator", signer=self.signer, encrypt=self.encrypt
-                ).connect(1.0)
+                node.client = await self.client_for(node, psk).connect(1.0)
                 return
             except NodeUnreachable:
                 if loop.time() > deadline:
                     raise MsoError(f"node {node.id} did not start within {timeout:g} s") from None
                 await asyncio.sleep(0.05)
+
+    def client_for(self, node: EmulatedNode, psk: bytes, name: str = "emulator") -> Client:
+        """A (not yet connected) client of ``node``; it signs LinkStates and Shutdowns with
+        this emulator's key, and encrypts when the overlay does."""
+        return Client(node.host, node.port, psk, name, signer=self.signer, encrypt=self.encrypt)
 
     def _link_state(self, node: str, routes: bool) -> m.LinkState:
         net = self.scenario.network

@@ -21,6 +21,7 @@ VERTEX_KEYS = {
     "params",
     "get_state",
     "set_state",
+    "isolation",
 }
 EDGE_KEYS = {"from", "to", "format", "size"}
 # an app document travels to every node, which loads and places it on its control plane: a

@@ -24,12 +24,14 @@ from mso.net.limits import DEFAULT_LIMITS, Limits
 from mso.net.routes_emulator import EmulatorRoutes
 from mso.net.tcp import TcpTransport
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
+from mso.node.device import DeviceProbe
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority
-from mso.runtime.executor import ThreadExecutor
+from mso.runtime.executor import Executor
 
 log = logging.getLogger("mso.node")
+DEVICE_PERIOD_S = 1.0
 
 
 class NodeDriver:
@@ -45,8 +47,13 @@ class NodeDriver:
         limits: Limits = DEFAULT_LIMITS,
         authority: Authority | None = None,
         encrypt: bool = False,
+        device: DeviceProbe | None = None,
     ) -> None:
         self.core = core
+        # what the OS measures (battery, CPU time, interface bytes), read every second and on
+        # every status request; None keeps the energy model alone (emulation)
+        self.device = device
+        self._device_timer: asyncio.TimerHandle | None = None
         self.loop = asyncio.get_running_loop()
         # without a view of its own the node waits for the emulator's LinkStates
         self.view: RoutingView = view if view is not None else EmulatorRoutes(core.id)
@@ -63,7 +70,7 @@ class NodeDriver:
         self._timers: dict[Hashable, asyncio.TimerHandle] = {}
         # vertex code runs in the executor's threads; their results queue here and wake the
         # loop once per burst, not once per result
-        self.executor = ThreadExecutor(self._vertex_result)
+        self.executor = Executor(self._vertex_result)
         self._results: list[fx.VertexResult] = []
         self._results_lock = threading.Lock()
         self.stopped = asyncio.Event()
@@ -77,6 +84,7 @@ class NodeDriver:
         return self.transport.server
 
     def _link_status(self) -> dict[str, Any]:
+        self._observe_device()
         return {
             "traffic": self.counters.as_dict(),
             "connections": self.transport.connection_counters.as_dict(),
@@ -90,15 +98,27 @@ class NodeDriver:
             },
         }
 
+    def _observe_device(self) -> None:
+        if self.device is not None:
+            self.core.monitor.observe(self.loop.time(), self.device.read())
+
+    def _device_tick(self) -> None:
+        self._observe_device()
+        self._device_timer = self.loop.call_later(DEVICE_PERIOD_S, self._device_tick)
+
     async def start(self) -> None:
         await self.transport.start()
         self._apply(self.core.start(self.loop.time()))
+        if self.device is not None:
+            self._device_tick()
         if self.view.routes() or self.view.neighbours():  # a static view knows them already
             self._routes_changed(None)
 
     async def stop(self) -> None:
         for t in self._timers.values():
             t.cancel()
+        if self._device_timer is not None:
+            self._device_timer.cancel()
         self.executor.shutdown()
         await self.transport.close()
         self.stopped.set()
