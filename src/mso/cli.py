@@ -367,6 +367,50 @@ def _demo(duration: float, plan_only: bool, dashboard: bool = False) -> None:
 
 
 # -- the running system ----------------------------------------------------------------------
+sign_option = click.option(
+    "--sign",
+    envvar="MSO_SIGN",
+    metavar="KEYFILE",
+    help="Sign the command with this operator key (made by `mso keygen`; default: $MSO_SIGN); "
+    "needed by nodes started with --operator-key.",
+)
+operator_key_option = click.option(
+    "--operator-key",
+    "operator_keys",
+    multiple=True,
+    metavar="PUB",
+    help="An operator's public key (text or .pub file, repeat): commands that change an overlay "
+    "must be signed with one. Without any, the overlay key is all there is.",
+)
+
+
+@main.command()
+@click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help='Print {"private", "public", "key"}.')
+@_user_errors
+def keygen(out: Path, as_json: bool) -> None:
+    """Make an operator key: OUT (private, mode 0600) and OUT.pub (give it to every node)."""
+    import os
+
+    from mso.protocol.authority import Signer
+
+    signer = Signer()
+    pub = out.with_name(out.name + ".pub")
+    try:
+        fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(signer.private_text() + "\n")
+        pub.write_text(signer.public_text() + "\n")
+    except OSError as exc:
+        raise MsoError(f"{exc.filename}: {exc.strerror}") from None
+    if as_json:
+        doc = {"private": str(out), "public": str(pub), "key": signer.public_text()}
+        click.echo(json.dumps(doc))
+        return
+    click.echo(f"wrote {out} (keep it secret) and {pub}: mso node --operator-key {pub}")
+    click.echo(signer.public_text())
+
+
 allow_code_option = click.option(
     "--allow-code",
     "allow_code",
@@ -462,6 +506,9 @@ NODE_CONFIG_KEYS = {
     "policy",
     "manage",
     "allow_code",
+    "operator_keys",
+    "key_file",
+    "encrypt",
     "routes",
     "energy",
 }
@@ -512,11 +559,13 @@ def _node_config(path: Path) -> dict[str, Any]:
             raise SpecError(f"expected a number > 0, got {v!r}", file=doc.file, line=line, field=k)
         if k == "manage" and not isinstance(v, bool):
             raise SpecError(f"expected true or false, got {v!r}", file=doc.file, line=line, field=k)
-        if k == "allow_code" and not (
+        if k in ("allow_code", "operator_keys") and not (
             isinstance(v, list) and all(isinstance(x, str) and x for x in v)
         ):
-            raise SpecError("expected a list of module names", file=doc.file, line=line, field=k)
-        if k in ("id", "listen", "key") and not isinstance(v, str):
+            raise SpecError("expected a list of strings", file=doc.file, line=line, field=k)
+        if k == "encrypt" and not isinstance(v, bool):
+            raise SpecError(f"expected true or false, got {v!r}", file=doc.file, line=line, field=k)
+        if k in ("id", "listen", "key", "key_file") and not isinstance(v, str):
             raise SpecError(f"expected a string, got {v!r}", file=doc.file, line=line, field=k)
     return data
 
@@ -583,6 +632,20 @@ def _node_config(path: Path) -> dict[str, Any]:
     help="HOST:PORT to serve Prometheus metrics on at /metrics (default: off).",
 )
 @allow_code_option
+@operator_key_option
+@click.option(
+    "--key-file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Overlay keys, one a line: the first seals, the others are still accepted. Re-read on "
+    "SIGHUP, to rotate the key without stopping anything.",
+)
+@click.option(
+    "--encrypt/--no-encrypt",
+    envvar="MSO_ENCRYPT",
+    default=None,
+    help="Encrypt frames with ChaCha20-Poly1305 (default: $MSO_ENCRYPT; every member and client "
+    "must agree).",
+)
 @click.option(
     "--insecure",
     is_flag=True,
@@ -607,6 +670,9 @@ def node(
     dead_after_s: float | None,
     metrics: str | None,
     allow_code: tuple[str, ...],
+    operator_keys: tuple[str, ...],
+    key_file: Path | None,
+    encrypt: bool | None,
     insecure: bool,
     key: str | None,
     verbose: bool,
@@ -632,6 +698,11 @@ def node(
         model = PowerModel(*power_model(head if last == how else power), how)
     set_code_allowlist(allow_code or tuple(cfg.get("allow_code", ())))
     key = key if key is not None else cfg.get("key")
+    key_file = key_file or (Path(cfg["key_file"]) if "key_file" in cfg else None)
+    if key_file is not None:
+        key = read_keys(key_file)[0]  # checked now; re-read on SIGHUP
+    encrypt = bool(cfg.get("encrypt", False)) if encrypt is None else encrypt
+    authority = node_authority(operator_keys or tuple(cfg.get("operator_keys", ())))
     dev_key = check_key(key, listen or cfg.get("listen", "127.0.0.1:7000"), insecure)
     battery = battery_wh if battery_wh is not None else cfg.get("battery_wh")
     if battery is not None and battery <= 0:
@@ -650,10 +721,38 @@ def node(
         heartbeat_s,
         dead_after_s,
         dev_key,
+        authority,
+        key_file,
+        encrypt,
         metrics,
         routes_from or cfg.get("routes", "auto"),
         energy or cfg.get("energy", "auto"),
     )
+
+
+def read_keys(path: Path) -> list[str]:
+    """A key file: overlay keys one a line (the first seals), '#' comments."""
+    from mso.errors import SpecError
+    from mso.model.yamlfile import read_text_file
+
+    keys = [
+        line.strip()
+        for line in read_text_file(path).splitlines()
+        if line.strip() and not line.strip().startswith("#")
+    ]
+    if not keys:
+        raise SpecError("no overlay key in the key file", file=str(path))
+    return keys
+
+
+def node_authority(keys: tuple[str, ...]) -> Any:
+    """The operator keys (and the emulator's, from $MSO_EMULATOR_KEY) this node obeys."""
+    from mso.protocol.authority import Authority, KeyError_
+
+    try:
+        return Authority.from_env(list(keys))
+    except KeyError_ as exc:
+        raise MsoError(f"--operator-key: {exc}") from None
 
 
 def _node(
@@ -670,6 +769,9 @@ def _node(
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
     dev_key: bool = False,
+    authority: Any = None,
+    key_file: Path | None = None,
+    encrypt: bool = False,
     metrics: str | None = None,
     routes_from: str = "auto",
     energy: str = "auto",
@@ -733,7 +835,8 @@ def _node(
         from mso.net.base import RoutingView
         from mso.net.routes_kernel import KernelRoutes
 
-        psk = overlay_key(key)
+        keys = [overlay_key(k) for k in read_keys(key_file)] if key_file else [overlay_key(key)]
+        psk = keys[0]  # what kernel route announcements are authenticated with
         view: RoutingView | None = None
         kernel: KernelRoutes | None = None
         if routes_from == "kernel":
@@ -747,7 +850,22 @@ def _node(
         from mso.node.device import DeviceProbe
 
         device = DeviceProbe(battery=energy == "auto", interfaces=energy != "model")
-        driver = NodeDriver(core, host, port, psk, view, device=device)  # no view: the emulator's
+        driver = NodeDriver(  # no view: the emulator's
+            core, host, port, keys, view, device=device, authority=authority, encrypt=encrypt
+        )
+
+        def rotate() -> None:  # SIGHUP: take the key file again; open connections keep theirs
+            assert key_file is not None
+            try:
+                driver.transport.set_keys([overlay_key(k) for k in read_keys(key_file)])
+                logging.getLogger("mso.node").warning("overlay keys re-read from %s", key_file)
+            except MsoError as exc:
+                logging.getLogger("mso.node").error("keeping the old keys: %s", exc)
+
+        if key_file is not None:
+            import signal
+
+            asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, rotate)
         try:
             await driver.start()
         except OSError as exc:
@@ -781,26 +899,40 @@ def _node(
 @main.command()
 @click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--via", help="Node to deploy from: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
 def deploy(
-    app_file: Path, via: str | None, overlay: str | None, key: str | None, as_json: bool
+    app_file: Path,
+    via: str | None,
+    overlay: str | None,
+    sign: str | None,
+    key: str | None,
+    as_json: bool,
 ) -> None:
     """Deploy an app from any node (distributed Algorithm 1)."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.model.appfile import load_app
     from mso.model.yamlfile import read_text_file
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     load_app(app_file)  # report file errors here, with their lines, before sending anything
     document = read_text_file(app_file)
     address = _resolve_via(via, overlay)
     reply = asyncio.run(
-        request(address, m.DeployRequest(document, str(app_file)), key=key, timeout=30)
+        request(
+            address,
+            m.DeployRequest(document, str(app_file)),
+            key=key,
+            timeout=30,
+            signer=signer,
+        )
     )
     if not isinstance(reply, m.DeployReply) or not reply.ok:
         raise MsoError(f"deployment failed: {getattr(reply, 'error', reply)}")
@@ -837,6 +969,7 @@ async def _only_app(address: str, key: str | None) -> str:
 )
 @click.option("--to", "target", help="Onto this node.")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
@@ -847,6 +980,7 @@ def relocate(
     direction: str | None,
     target: str | None,
     via: str | None,
+    sign: str | None,
     overlay: str | None,
     key: str | None,
     as_json: bool,
@@ -854,15 +988,17 @@ def relocate(
     """Move one vertex of a running app, with its state, losing no event (§3.4.1)."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     if bool(direction) == bool(target):
         raise MsoError("give exactly one of --upstream, --downstream or --to NODE")
     address = _resolve_via(via, overlay)
     app = app_name or asyncio.run(_only_app(address, key))
     req = m.RelocateRequest(app, vertex, direction or "", target or "")
-    reply = asyncio.run(request(address, req, key=key))
+    reply = asyncio.run(request(address, req, key=key, signer=signer))
     if not isinstance(reply, m.RelocateReply) or not reply.ok:
         raise MsoError(f"relocation refused: {getattr(reply, 'error', reply)}")
     if as_json:
@@ -879,6 +1015,7 @@ def relocate(
 @click.option("--chains", help="Several chains, comma-separated (global remap, §3.4.3).")
 @click.option("--all", "everything", is_flag=True, help="Every chain of the app.")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
@@ -889,6 +1026,7 @@ def remap(
     chains: str | None,
     everything: bool,
     via: str | None,
+    sign: str | None,
     overlay: str | None,
     key: str | None,
     as_json: bool,
@@ -899,8 +1037,10 @@ def remap(
     its index (`mso chains`) or as head-...-tail."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     words = list(chain[1:] if chain[:1] == ("chain",) else chain)
     names = [c for c in words + (chains.split(",") if chains else []) if c]
@@ -925,7 +1065,8 @@ def remap(
                     indices.append(known.index(n))
                 else:
                     raise MsoError(f"unknown chain {n!r} (chains: {', '.join(known)})")
-        return await request(address, m.RemapRequest(app_name_, indices, everything), key=key)
+        req = m.RemapRequest(app_name_, indices, everything)
+        return await request(address, req, key=key, signer=signer)
 
     reply = asyncio.run(run())
     if not isinstance(reply, m.RemapReply) or not reply.ok:
@@ -942,18 +1083,26 @@ def remap(
 @main.command()
 @click.argument("app_name")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True, help='Print {"stopped": NAME}.')
 @_user_errors
 def undeploy(
-    app_name: str, via: str | None, overlay: str | None, key: str | None, as_json: bool
+    app_name: str,
+    via: str | None,
+    overlay: str | None,
+    sign: str | None,
+    key: str | None,
+    as_json: bool,
 ) -> None:
     """Stop an app on every node."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     address = _resolve_via(via, overlay)
 
@@ -966,7 +1115,7 @@ def undeploy(
             raise MsoError(
                 f"no running app named {app_name!r} (running: {', '.join(apps) or 'none'})"
             )
-        await request(address, m.StopApp(app_name), key=key)
+        await request(address, m.StopApp(app_name), key=key, signer=signer)
 
     asyncio.run(run())
     click.echo(json.dumps({"stopped": app_name}) if as_json else f"stopped {app_name}")
@@ -1242,6 +1391,11 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
     default=None,
     help=f"HOST:PORT of the dashboard (default {DASHBOARD_LISTEN}, or a free port if taken).",
 )
+@click.option(
+    "--encrypt",
+    is_flag=True,
+    help="Every node and the emulator encrypt their frames (ChaCha20-Poly1305).",
+)
 @allow_code_option
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
@@ -1260,6 +1414,7 @@ def emulate(
     with_dashboard: bool,
     dashboard_listen: str | None,
     metrics_port: int | None,
+    encrypt: bool,
     allow_code: tuple[str, ...],
     key: str | None,
     as_json: bool,
@@ -1278,7 +1433,7 @@ def emulate(
         scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s,
         dead_after_s, allow_code, name=name, manage=manage,
         dashboard=(dashboard_listen or "") if with_dashboard or dashboard_listen else None,
-        metrics_port=metrics_port, backend=backend,
+        metrics_port=metrics_port, encrypt=encrypt, backend=backend,
     )  # fmt: skip
 
 
@@ -1336,6 +1491,7 @@ def _emulate(
     manage: bool = True,
     dashboard: str | None = None,
     metrics_port: int | None = None,
+    encrypt: bool = False,
     backend: str = "user",
 ) -> None:
     import asyncio
@@ -1384,6 +1540,7 @@ def _emulate(
             manage=manage,
             metrics_port=metrics_port,
             allow_code=allow_code or None,
+            encrypt=encrypt,
         )
         loop = asyncio.get_running_loop()
         task = asyncio.current_task()

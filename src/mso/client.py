@@ -6,7 +6,7 @@ import asyncio
 import contextlib
 import os
 import socket
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 
@@ -14,7 +14,15 @@ from mso.errors import MsoError
 from mso.protocol import messages as m
 from mso.protocol.framing import FrameCodec, FramingError, WrongKey, psk_from_text
 
+if TYPE_CHECKING:  # cryptography is imported only by a client that signs
+    from mso.protocol.authority import Signer
+
 DEFAULT_KEY = "mso-insecure-default-key"
+
+
+def encrypt_default() -> bool:
+    """Whether frames are encrypted, as ``$MSO_ENCRYPT`` says (every member must agree)."""
+    return os.environ.get("MSO_ENCRYPT", "").lower() in ("1", "true", "yes", "on")
 
 
 def overlay_key(text: str | None = None) -> bytes:
@@ -26,17 +34,41 @@ class NodeUnreachable(MsoError):
     """The node did not answer."""
 
 
+class Refused(MsoError):
+    """The node refused a command for want of authority."""
+
+
+def load_signer(path: str | None) -> Signer | None:
+    """The operator's private key from ``path`` (``--sign``, ``$MSO_SIGN``), if given."""
+    if not path:
+        return None
+    from mso.protocol.authority import KeyError_, Signer
+
+    try:
+        return Signer.load(path)
+    except KeyError_ as exc:
+        raise MsoError(f"--sign: {exc}") from None
+
+
 class Client:
     """One authenticated connection to a node."""
 
     def __init__(
-        self, host: str, port: int, psk: bytes, name: str = "cli", netns: str | None = None
+        self,
+        host: str,
+        port: int,
+        psk: bytes,
+        name: str = "cli",
+        signer: Signer | None = None,
+        encrypt: bool | None = None,
+        netns: str | None = None,
     ) -> None:
         self.host, self.port, self.psk, self.name = host, port, psk, name
+        self.signer = signer  # signs the commands that change an overlay
         self.netns = netns  # connect from inside this network namespace (the netns testbed)
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
-        self._codec = FrameCodec(psk)
+        self._codec = FrameCodec(psk, encrypt=encrypt_default() if encrypt is None else encrypt)
         self._inbox: list[m.Message] = []
 
     async def connect(self, timeout: float = 5.0) -> Client:
@@ -86,6 +118,12 @@ class Client:
 
     async def send(self, msg: m.Message) -> None:
         assert self._writer is not None
+        if self.signer is not None and isinstance(msg, self.signer.signs):
+            if isinstance(msg, m.DeployRequest):
+                msg = m.DeployRequest(self.signer.grant(msg.document), msg.file)
+            nonce = self._codec.peer_nonce
+            assert nonce is not None
+            msg = self.signer.command(nonce, msg)
         frame = self._codec.seal(m.wrap("client", "node", msg))
         if frame:
             self._writer.write(frame)
@@ -120,7 +158,10 @@ class Client:
                 raise NodeUnreachable(
                     f"node at {self.host}:{self.port} rejected our frames: wrong overlay key?"
                 )
-        return self._inbox.pop(0)
+        msg = self._inbox.pop(0)
+        if isinstance(msg, m.Refused):
+            raise Refused(f"node at {self.host}:{self.port} {msg.reason}")
+        return msg
 
     async def call(self, msg: m.Message, timeout: float = 10.0) -> m.Message:
         await self.send(msg)
@@ -154,13 +195,18 @@ def parse_address(text: str, default_port: int = 7000) -> tuple[str, int]:
 
 
 async def request(
-    address: str, msg: m.Message, *, key: str | None = None, timeout: float = 10.0
+    address: str,
+    msg: m.Message,
+    *,
+    key: str | None = None,
+    timeout: float = 10.0,
+    signer: Signer | None = None,
 ) -> Any:
     """Connect, send one request, return the reply. ``NETNS@HOST:PORT`` connects from inside
     network namespace NETNS (a node of the netns testbed)."""
     netns, address = split_netns(address)
     host, port = parse_address(address)
-    client = await Client(host, port, overlay_key(key), netns=netns).connect()
+    client = await Client(host, port, overlay_key(key), signer=signer, netns=netns).connect()
     try:
         return await client.call(msg, timeout)
     finally:

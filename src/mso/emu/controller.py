@@ -32,6 +32,7 @@ from mso.model.network import LinkSpec
 from mso.node.driver import PARENT_ENV
 from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 from mso.protocol import messages as m
+from mso.protocol.authority import Signer
 from mso.scenario import Scenario
 from mso.scenario.timeline import Crash, Restart, Timeline
 
@@ -93,6 +94,10 @@ class Emulator:
     dead_after_s: float | None = None  # every node's failure timeout (None: the node default)
     # modules every node may import app code from (None: $MSO_ALLOW_CODE, else the examples)
     allow_code: tuple[str, ...] | None = None
+    operator_keys: tuple[str, ...] = ()  # public keys every node obeys (--operator-key)
+    encrypt: bool = False  # ChaCha20-Poly1305 frames between every node and with the emulator
+    # this emulator's own key: its nodes take LinkStates and Shutdowns signed with it only
+    signer: Signer = field(default_factory=Signer)
 
     async def start(self, timeout: float = 20.0) -> None:
         names = list(self.scenario.network.nodes)
@@ -132,6 +137,11 @@ class Emulator:
     def _env(self) -> dict[str, str]:
         env = dict(os.environ)
         env["MSO_KEY"] = self.key or env.get("MSO_KEY", "") or "mso-insecure-default-key"
+        env["MSO_EMULATOR_KEY"] = self.signer.public_text()
+        if self.encrypt:
+            env["MSO_ENCRYPT"] = "1"
+        else:
+            env.pop("MSO_ENCRYPT", None)
         self.key = env["MSO_KEY"]
         env[PARENT_ENV] = str(os.getpid())  # a node outlives no emulator, even one killed
         return env
@@ -174,6 +184,8 @@ class Emulator:
             cmd += ["--metrics", f"{node.host}:{self.metrics_port}"]
         for module in self.allow_code or ():
             cmd += ["--allow-code", module]
+        for pub in self.operator_keys:
+            cmd += ["--operator-key", pub]
         return cmd
 
     async def restart(self, node: str, timeout: float = 20.0) -> None:
@@ -242,8 +254,9 @@ class Emulator:
                 await asyncio.sleep(0.05)
 
     def client_for(self, node: EmulatedNode, psk: bytes, name: str = "emulator") -> Client:
-        """A (not yet connected) client of ``node``."""
-        return Client(node.host, node.port, psk, name)
+        """A (not yet connected) client of ``node``; it signs LinkStates and Shutdowns with
+        this emulator's key, and encrypts when the overlay does."""
+        return Client(node.host, node.port, psk, name, signer=self.signer, encrypt=self.encrypt)
 
     def _link_state(self, node: str, routes: bool) -> m.LinkState:
         net = self.scenario.network

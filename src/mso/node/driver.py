@@ -27,6 +27,7 @@ from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
 from mso.node.device import DeviceProbe
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.protocol.authority import Authority
 from mso.runtime.executor import Executor
 
 log = logging.getLogger("mso.node")
@@ -41,9 +42,11 @@ class NodeDriver:
         core: NodeCore,
         host: str,
         port: int,
-        psk: bytes,
+        psk: bytes | list[bytes],
         view: RoutingView | None = None,
         limits: Limits = DEFAULT_LIMITS,
+        authority: Authority | None = None,
+        encrypt: bool = False,
         device: DeviceProbe | None = None,
     ) -> None:
         self.core = core
@@ -57,7 +60,10 @@ class NodeDriver:
         self.counters = self.view.counters
         # subscribed before the driver: on a change the transport reconnects and releases
         # waiting frames first, then the core hears of the new routes
-        self.transport = TcpTransport(core.id, host, port, psk, self.view, limits)
+        self.authority = authority or Authority()
+        self.transport = TcpTransport(
+            core.id, host, port, psk, self.view, limits, self.authority, encrypt
+        )
         self.transport.set_receiver(self._receive)
         self.transport.set_client_handler(self._request)
         self.view.subscribe(self._routes_changed)
@@ -84,6 +90,13 @@ class NodeDriver:
             "traffic": self.counters.as_dict(),
             "connections": self.transport.connection_counters.as_dict(),
             "connected": self.transport.connected(),
+            "tasks": len(asyncio.all_tasks(self.loop)),  # a soak watches these for leaks
+            "timers": len(self._timers),
+            "authority": {
+                "mode": "open" if self.authority.open else "signed",
+                "operators": sorted(self.authority.operators),
+                "refused": self.authority.refused,
+            },
         }
 
     def _observe_device(self) -> None:

@@ -133,7 +133,10 @@ class NetnsEmulator(Emulator):
     def client_for(self, node: EmulatedNode, psk: bytes, name: str = "emulator") -> Client:
         """A client connecting from inside the node's namespace, to 127.0.0.1 there."""
         assert self.testbed is not None
-        return Client("127.0.0.1", node.port, psk, name, netns=self.testbed.netns(node.id))
+        return Client(
+            "127.0.0.1", node.port, psk, name, signer=self.signer, encrypt=self.encrypt,
+            netns=self.testbed.netns(node.id),
+        )  # fmt: skip
 
     def kill(self, node: str) -> float:
         """Fail-stop the device: its node process and its routing daemon (by PID)."""
