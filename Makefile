@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 LINTED := $(wildcard src tests bench)
 
-.PHONY: demo test lint typecheck unit bench clean chromium
+.PHONY: demo test lint typecheck unit bench clean chromium netns-deps
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -39,6 +39,12 @@ test: lint typecheck unit
 
 bench: $(STAMP)
 	$(BIN)/python bench/chains.py
+
+# the netns backend (`mso emulate --backend netns`) needs babeld and nftables (Debian's packages;
+# root). The netns tests install them themselves in CI (CI=true, root).
+netns-deps:
+	command -v babeld >/dev/null && command -v nft >/dev/null || \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq babeld nftables)
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -49,7 +49,7 @@ if str(HERE) not in sys.path:
 import msgspec  # noqa: E402
 
 from dataplane_vertices import LatencySink, Stamped, pad_len  # noqa: E402
-from mso.benchmarks.common import src_digest  # noqa: E402
+from mso.benchmarks.common import allow_code, src_digest  # noqa: E402
 
 SIZES = (38, 967, 3000)
 PACED_RATE = 1000.0
@@ -286,6 +286,7 @@ async def run_mso(
     path = os.environ.get("PYTHONPATH", "")
     extra = [str(tmp)] if env_extra else []
     os.environ["PYTHONPATH"] = os.pathsep.join([*extra, str(HERE), *([path] if path else [])])
+    allow_code("dataplane_vertices")  # the nodes may import the bench's vertices
     os.environ.update(env_extra or {})
     emu = Emulator(load_scenario(scen_file), log_dir=tmp)
     out: list[dict[str, Any]] = []

@@ -59,7 +59,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mso.benchmarks.common import percentile, provenance, write_results
+from mso.benchmarks.common import allow_code, percentile, provenance, write_results
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.protocol import messages as m
@@ -179,13 +179,19 @@ async def one_run(
     manage: bool,
     logs: Path,
     detection: tuple[float | None, float | None] = (None, None),
+    backend: str = "user",
 ) -> dict[str, Any]:
     """One fresh emulator: deploy, flow, kill the relay hosting ``mid``, measure."""
     scenario_text, first, last = TOPOLOGIES[topology]
     row: dict[str, Any] = {"topology": topology, "run": k, "error": None}
     log_dir = logs / f"{topology}-{k}"
     log_dir.mkdir()
-    emu = Emulator(
+    kind: type[Emulator] = Emulator
+    if backend == "netns":  # a namespace per node, babeld, the kernel view
+        from mso.emu.netns.emulator import NetnsEmulator
+
+        kind = NetnsEmulator
+    emu = kind(
         loads_scenario(scenario_text),
         convergence_s=convergence,
         log_dir=log_dir,
@@ -340,12 +346,14 @@ async def run(
     topologies: list[str],
     manage: bool,
     detection: tuple[float | None, float | None] = (None, None),
+    backend: str = "user",
 ) -> dict[str, Any]:
     """``runs`` fresh-emulator runs per topology, within the time budget."""
     t0 = time.monotonic()
     budget = RUN_BUDGET_S * runs * len(topologies)
     saved = os.environ.get("PYTHONPATH")
     os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *([saved] if saved else [])])
+    allow_code("failure_vertices")  # the nodes may import the bench's vertices
     result: dict[str, Any] = {"topologies": {}, "rows": [], "notes": []}
     try:
         with tempfile.TemporaryDirectory(prefix="mso-bench-failure-") as tmp:
@@ -357,7 +365,16 @@ async def run(
                         break
                     try:
                         row = await asyncio.wait_for(
-                            one_run(topology, k, convergence, rate, manage, Path(tmp), detection),
+                            one_run(
+                                topology,
+                                k,
+                                convergence,
+                                rate,
+                                manage,
+                                Path(tmp),
+                                detection,
+                                backend,
+                            ),
                             RUN_TIMEOUT_S,
                         )
                     except TimeoutError:
@@ -450,6 +467,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--heartbeat", type=float, help="every node's heartbeat period, s (0.1)")
     ap.add_argument("--dead-after", type=float, help="every node's failure timeout, s (0.5)")
     ap.add_argument("--json", type=Path, help="where to write the JSON (a .md goes beside it)")
+    ap.add_argument(
+        "--backend",
+        choices=("user", "netns"),
+        default="user",
+        help="netns: a namespace per node, babeld routing (heartbeat 0.2 s, dead-after 3 s "
+        "unless given), the kernel forwarding",
+    )
     args = ap.parse_args(argv)
     runs = 3 if args.quick else args.runs
     topologies = [t for t in args.topology.split(",") if t]
@@ -462,6 +486,8 @@ def main(argv: list[str] | None = None) -> int:
     if unknown := [t for t in topologies if t not in TOPOLOGIES]:
         ap.error(f"unknown topology {unknown}; known: {', '.join(TOPOLOGIES)}")
     name = "failure" + (f"-conv{args.convergence:g}" if args.convergence else "")
+    if args.backend == "netns":
+        name += "-netns"
     if args.heartbeat is not None:
         name += f"-hb{args.heartbeat:g}"
     if args.dead_after is not None:
@@ -470,7 +496,14 @@ def main(argv: list[str] | None = None) -> int:
     out: Path = args.json or RESULTS / f"{name}.json"
 
     detection = (args.heartbeat, args.dead_after)
-    result = asyncio.run(run(runs, args.convergence, args.rate, topologies, args.manage, detection))
+    netns = args.backend == "netns"
+    if netns and args.heartbeat is None and args.dead_after is None:
+        from mso.emu.netns.emulator import DEAD_AFTER_NETNS_S, HEARTBEAT_NETNS_S
+
+        detection = (HEARTBEAT_NETNS_S, DEAD_AFTER_NETNS_S)
+    result = asyncio.run(
+        run(runs, args.convergence, args.rate, topologies, args.manage, detection, args.backend)
+    )
     result = {
         "benchmark": "failure",
         "convergence_s": args.convergence,
@@ -479,8 +512,9 @@ def main(argv: list[str] | None = None) -> int:
         "quick": args.quick,
         "manage": args.manage,
         "steady_s": STEADY_S,
-        "heartbeat_s": args.heartbeat if args.heartbeat is not None else 0.1,
-        "dead_after_s": args.dead_after if args.dead_after is not None else 0.5,
+        "backend": args.backend,
+        "heartbeat_s": detection[0] if detection[0] is not None else 0.1,
+        "dead_after_s": detection[1] if detection[1] is not None else 0.5,
     } | result
     result |= provenance()
     table = render(result)

@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mso.benchmarks.common import src_digest
+from mso.benchmarks.common import allow_code, src_digest
 from mso.emu.controller import Emulator
 from mso.scenario import load_scenario
 
@@ -117,6 +117,7 @@ async def run(quick: bool) -> dict[str, Any]:
     saved = dict(os.environ)
     path = os.environ.get("PYTHONPATH", "")
     os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *([path] if path else [])])
+    allow_code("dataplane_vertices")  # the nodes may import the bench's vertices
     with tempfile.TemporaryDirectory(prefix="mso-bench-memory-") as tmpdir:
         tmp = Path(tmpdir)
         (tmp / "memory-pair.yaml").write_text(SCENARIO)

@@ -9,13 +9,15 @@ import msgspec
 
 
 def pipe_app(rate: int) -> str:
-    """src (N1) -> mid -> sink (N4), the app most runtime tests deploy."""
+    """src (N1) -> mid -> sink (N4), the app most runtime tests deploy. ``mid`` declares its
+    output format, so the sink decodes ``Num`` events and really checks their order (without
+    it the sink got plain dicts and counted every event as an error)."""
     return f"""
 name: pipe
 vertices:
   src: {{code: runtime_vertices:CountingSource, pinned: N1, rate: {rate},
         output: runtime_vertices:Num}}
-  mid: {{code: runtime_vertices:Double}}
+  mid: {{code: runtime_vertices:Double, output: runtime_vertices:Num}}
   sink: {{code: runtime_vertices:Recorder, pinned: N4}}
 edges:
   - [src, mid]
@@ -146,3 +148,12 @@ class Silent:
 
     def __call__(self, seq: int, now: float) -> None:
         return None
+
+
+class PidCounter(Counter):
+    """A Counter that says which process runs it."""
+
+    def stats(self) -> dict[str, int]:
+        import os
+
+        return {"pid": os.getpid(), "count": self.count}

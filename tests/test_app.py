@@ -535,7 +535,8 @@ def test_unknown_attribute_vertex_level() -> None:
         """
     )
     assert_at(err, 5, "vertices.A.costs", "unknown attribute 'costs'")
-    assert "cost, get_state, input, output, params, pinned, rate, set_state" in err.message
+    expected = "cost, get_state, input, isolation, output, params, pinned, rate, set_state"
+    assert expected in err.message
 
 
 def test_unknown_attribute_edge_level() -> None:

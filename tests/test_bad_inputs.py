@@ -67,6 +67,11 @@ CASES = [
     Case("a-directory", ["chains", "/tmp"], "is a directory"),
     Case("missing-file", ["validate", "/nonexistent/app.yaml"], "cannot read file"),
     app("over-4-MiB", "name: x\n" + "#" * (5 << 20) + "\n", "f.yaml: file is larger than 4 MiB"),
+    app(
+        "too-many-vertices",
+        "name: x\nvertices:\n" + "".join(f"  v{i}: {{}}\n" for i in range(5001)),
+        "f.yaml:2: vertices: more than 5,000 vertices",
+    ),
     app("not-utf8", b"name: \xff\xfe\n", "f.yaml: file is not UTF-8 text"),
     app("unclosed-bracket", "name: x\nvertices: [1, 2\n", "f.yaml:2: malformed YAML"),
     app("tab-indent", "name: x\nvertices:\n\tA: {}\n", "f.yaml:3: malformed YAML"),
@@ -155,7 +160,11 @@ CASES = [
     cfg("cfg-id-number", "id: 5\n", "f.yaml:1: id: expected a string"),
     cfg("cfg-port-range", "id: N1\nlisten: 127.0.0.1:99999\n", "port in 0..65535"),
     cfg("cfg-not-mapping", "- id\n", "f.yaml:1: expected a mapping"),
-    cfg("cfg-allow-code", "id: N1\nallow_code: os\n", "f.yaml:2: allow_code: expected a list"),
+    cfg(
+        "cfg-allow-code",
+        "id: N1\nallow_code: os\n",
+        "f.yaml:2: allow_code: expected a list of strings",
+    ),
     cfg("cfg-deep", "id: " + "[" * 1000, "f.yaml:1: nested deeper"),
     # -- command-line arguments -------------------------------------------------------------
     Case("listen-port-high", ["node", "--id", "N1", "--listen", "127.0.0.1:99999"], "0..65535"),
@@ -175,6 +184,10 @@ CASES = [
         "listen-beyond-loopback-dev-key", ["node", "--id", "N1", "--listen", "0.0.0.0:0"], "beyond"
     ),
     Case("empty-key", ["node", "--id", "N1", "--key", ""], "empty overlay key is refused"),
+    Case("operator-key-bad", ["node", "--id", "N1", "--operator-key", "nope"], "--operator-key"),
+    Case(
+        "sign-key-bad", ["undeploy", "x", "--via", "127.0.0.1:1", "--sign", "/dev/null"], "--sign"
+    ),
     Case("allow-code-shape", ["node", "--id", "N1", "--allow-code", "os; rm"], "module name"),
     Case("emulate-duration-nan", ["emulate", SCEN, "--duration", "nan"], "--duration': expected"),
     Case("emulate-convergence", ["emulate", SCEN, "--convergence", "-1"], "--convergence'"),

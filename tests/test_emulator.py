@@ -86,8 +86,8 @@ def test_deploy_and_count_exactly_once() -> None:
 def test_link_break_reroutes_traffic() -> None:
     scenario = loads_scenario(SQUARE)
     app = APP.replace(
-        "  mid: {code: runtime_vertices:Double}",
-        "  mid: {code: runtime_vertices:Double, pinned: N1}",
+        "  mid: {code: runtime_vertices:Double, output: runtime_vertices:Num}",
+        "  mid: {code: runtime_vertices:Double, output: runtime_vertices:Num, pinned: N1}",
     )
 
     async def run() -> tuple[dict[str, Any], dict[str, Any]]:
@@ -141,7 +141,7 @@ def test_python_api_against_running_daemons(tmp_path: Path) -> None:
     app_file = tmp_path / "pipe.yaml"
     app_file.write_text(
         APP.replace(
-            "  mid: {code: runtime_vertices:Double}",
+            "  mid: {code: runtime_vertices:Double, output: runtime_vertices:Num}",
             "  mid: {code: runtime_vertices:Counter, output: runtime_vertices:Num}",
         )
     )
@@ -176,9 +176,9 @@ def test_static_peers_from_config_files(tmp_path: Path) -> None:
     from mso.protocol import messages as m
 
     procs, port = start_pair(tmp_path)
-    app = APP.replace("  mid: {code: runtime_vertices:Double}\n", "").replace(
-        "  - [src, mid]\n  - [mid, sink]\n", "  - [src, sink]\n"
-    )
+    app = APP.replace(
+        "  mid: {code: runtime_vertices:Double, output: runtime_vertices:Num}\n", ""
+    ).replace("  - [src, mid]\n  - [mid, sink]\n", "  - [src, sink]\n")
 
     async def run() -> dict[str, Any]:
         addr = f"127.0.1.1:{port}"
@@ -209,7 +209,7 @@ def test_static_peers_from_config_files(tmp_path: Path) -> None:
 
 def test_relocation_across_processes_keeps_every_event() -> None:
     app = APP.replace(
-        "  mid: {code: runtime_vertices:Double}",
+        "  mid: {code: runtime_vertices:Double, output: runtime_vertices:Num}",
         "  mid: {code: runtime_vertices:Counter, output: runtime_vertices:Num}",
     )
 

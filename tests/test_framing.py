@@ -5,7 +5,13 @@ from __future__ import annotations
 import pytest
 
 from mso.protocol import messages as m
-from mso.protocol.framing import FrameCodec, FramingError, WrongKey, psk_from_text
+from mso.protocol.framing import (
+    MAX_REJECTED_IN_A_ROW,
+    FrameCodec,
+    FramingError,
+    WrongKey,
+    psk_from_text,
+)
 
 KEY = psk_from_text("test-key")
 
@@ -106,3 +112,16 @@ def test_messages_are_validated_on_decode() -> None:
     bad = m.wrap("N1", "N2", m.ClientHello("x")).replace(b"client", b"unknwn")
     with pytest.raises(Exception, match="Invalid value"):
         m.decode(m.unwrap(bad).body)
+
+
+def test_a_stream_whose_frames_keep_failing_is_given_up() -> None:
+    """One frame altered on the way leaves the counters apart: every later frame fails. After
+    MAX_REJECTED_IN_A_ROW of them the stream is closed instead of dropping frames for ever."""
+    a, b = pair()
+    bad = bytearray(a.seal(b"altered"))
+    bad[-1] ^= 1
+    b.feed(bytes(bad))
+    with pytest.raises(FramingError, match="in a row"):
+        for _ in range(MAX_REJECTED_IN_A_ROW):
+            b.feed(a.seal(b"later"))
+    assert b.rejected == MAX_REJECTED_IN_A_ROW and b.accepted == 0

@@ -35,6 +35,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
 ]
 # inside the node runtime: the core's layers, lowest first (each may import those before it)
 NODE_ORDER = [
+    "mso.node.device",
     "mso.node.monitor",
     "mso.node.liveness",
     "mso.node.tables",

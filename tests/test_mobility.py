@@ -53,7 +53,7 @@ def test_relink_follows_positions() -> None:
         ),
         (
             "radio_range: 10\nnodes: {A: {pos: [0, 0]}}\nmobility: {model: brownian}\n",
-            "s.yaml:3: mobility.model: expected model: random_waypoint",
+            "s.yaml:3: mobility.model: expected model: one of random_waypoint, ns2, bonnmotion",
         ),
         (
             "radio_range: 10\nnodes: {A: {pos: [0, 0]}}\n"

@@ -13,7 +13,7 @@ from mso.net.routes_emulator import MAX_VERSION_STEP, EmulatorRoutes
 from mso.node.core import NodeCore
 from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
-from mso.protocol.framing import MAGIC
+from mso.protocol.framing import MAGIC, FrameCodec
 
 HOST = "127.0.0.1"
 LIMITS = Limits(handshake_s=0.3, sweep_s=0.05, max_connections=8, max_per_address=4)
@@ -70,3 +70,93 @@ def test_linkstate_version_cannot_jump_to_the_end_of_its_range() -> None:
     assert view.versions_refused == 1 and view.version == 1
     assert view.apply(m.LinkState(version=2, neighbours={}, routes={}))  # genuine ones go on
     assert view.apply(m.LinkState(version=2 + MAX_VERSION_STEP, neighbours={}, routes={}))
+
+
+async def member(port: int) -> tuple[asyncio.StreamReader, asyncio.StreamWriter, FrameCodec]:
+    """An authenticated client connection (a member: it holds the overlay key)."""
+    reader, writer = await asyncio.open_connection(HOST, port)
+    codec = FrameCodec(overlay_key("k"))
+    writer.write(codec.hello())
+    while not codec.confirmed:
+        writer.write(codec.feed(await reader.read(1 << 16))[1])
+    writer.write(codec.seal(m.wrap("c", "N1", m.ClientHello("c"))))
+    return reader, writer, codec
+
+
+def test_members_cannot_fill_a_nodes_memory_with_partial_frames_or_unread_replies() -> None:
+    limits = Limits(max_buffered=4 << 20, max_partial_share=1 << 20, max_client_backlog=256 << 10)
+
+    async def run() -> dict[str, Any]:
+        driver = NodeDriver(NodeCore("N1"), HOST, 0, overlay_key("k"), limits=limits)
+        await driver.start()
+        port = driver.transport.port
+        try:
+            # four members each announce an 8 MiB frame and send 2 MiB of it
+            conns = [await member(port) for _ in range(4)]
+            for _, w, _ in conns:
+                w.write(struct.pack(">I", 8 << 20) + b"\0" * (2 << 20))
+            counters = driver.transport.connection_counters
+            for _ in range(500):  # until the node has read what they sent
+                if counters.over_buffer >= 3:
+                    break
+                await asyncio.sleep(0.01)
+            assert counters.over_buffer == 3  # the fourth fits in what is left
+            assert driver.transport._held_total <= 4 << 20
+            for _, w, _ in conns:
+                w.close()
+            # a member asking for status 20,000 times and never reading the replies
+            r, w, codec = await member(port)
+            w.write(
+                b"".join(codec.seal(m.wrap("c", "N1", m.StatusRequest())) for _ in range(20000))
+            )
+            await read_all(r)  # until the node gives up on it (reset: it aborts)
+            client = await Client(HOST, port, overlay_key("k")).connect()
+            reply = await client.call(m.StatusRequest())
+            await client.close()
+            assert isinstance(reply, m.StatusReply)
+            return reply.nodes["N1"]
+        finally:
+            await driver.stop()
+
+    st = asyncio.run(run())
+    assert st["connections"]["over_buffer"] == 4  # three of the four, and the one not reading
+
+
+def test_an_incarnation_at_the_end_of_its_range_is_not_believed() -> None:
+    """A member declaring N3 failed at incarnation 2^62 would keep N3 out for good: dropped and
+    counted; a plausible one is taken."""
+
+    async def run() -> dict[str, Any]:
+        driver = NodeDriver(NodeCore("N1"), HOST, 0, overlay_key("k"))
+        await driver.start()
+        port = driver.transport.port
+        try:
+            reader, writer = await asyncio.open_connection(HOST, port)
+            codec = FrameCodec(overlay_key("k"))
+            writer.write(codec.hello())
+            while not codec.confirmed:
+                writer.write(codec.feed(await reader.read(1 << 16))[1])
+            for msg in [
+                m.PeerHello("N2"),
+                m.NodeDown("N3", "N2", 2**62),
+                m.NodeUp("N4", 2**62),
+                m.NodeDown("N5", "N2", 7),
+            ]:
+                writer.write(codec.seal(m.wrap("N2", "N1", msg)))
+            await writer.drain()
+            for _ in range(200):  # until the plausible one was taken
+                if "N5" in driver.core.dead:
+                    break
+                await asyncio.sleep(0.01)
+            writer.close()
+            client = await Client(HOST, port, overlay_key("k")).connect()
+            reply = await client.call(m.StatusRequest())
+            await client.close()
+            assert isinstance(reply, m.StatusReply)
+            return reply.nodes["N1"]
+        finally:
+            await driver.stop()
+
+    st = asyncio.run(run())
+    assert st["failed_nodes"] == ["N5"]
+    assert st["traffic"]["frames_implausible"] == 2

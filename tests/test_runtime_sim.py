@@ -102,8 +102,8 @@ def test_traffic_follows_a_route_change() -> None:
     ]
     net = Network(nodes, links)
     doc = PIPE.replace(
-        "  mid: {code: runtime_vertices:Double}",
-        "  mid: {code: runtime_vertices:Double, pinned: N1}",
+        "  mid: {code: runtime_vertices:Double, output: runtime_vertices:Num}",
+        "  mid: {code: runtime_vertices:Double, output: runtime_vertices:Num, pinned: N1}",
     )
     sim = Simulation(net)
     assert deploy(sim, doc).ok
@@ -135,7 +135,7 @@ def test_pinned_to_unreachable_node_is_refused() -> None:
 
 
 def test_user_code_that_fails_never_takes_a_node_down() -> None:
-    broken = PIPE.replace("code: runtime_vertices:Double}", "code: runtime_vertices:Broken}")
+    broken = PIPE.replace("code: runtime_vertices:Double,", "code: runtime_vertices:Broken,")
     sim = Simulation(line(4))
     sim.request("N1", m.DeployRequest(broken, "broken.yaml"))
     sim.run_until(2.0)
@@ -144,7 +144,7 @@ def test_user_code_that_fails_never_takes_a_node_down() -> None:
     assert "sensor not found" in reply.error
     sim.run_until(3.0)
     assert all(not c.apps for c in sim.cores.values())  # stopped everywhere, nothing half-built
-    flaky = PIPE.replace("code: runtime_vertices:Double}", "code: runtime_vertices:Flaky}")
+    flaky = PIPE.replace("code: runtime_vertices:Double,", "code: runtime_vertices:Flaky,")
     assert deploy(sim, flaky).ok  # the same nodes still deploy and run the next app
     sim.run_until(sim.now + 2.0)
     mid = next(c for c in sim.cores.values() if "mid" in c.apps["pipe"].stones)

@@ -2,7 +2,7 @@
 
     from mso.api import Overlay
 
-    overlay = Overlay("127.0.1.1:7000", key="...")
+    overlay = Overlay("127.0.1.1:7000", key="...", sign="op.key")   # sign: an operator key
     overlay.deploy("examples/convoy.yaml")
     overlay.relocate("convoy", "scan_matcher", direction="upstream")
     overlay.remap("convoy", chains=[0, 4])          # or everything=True
@@ -18,29 +18,41 @@ import asyncio
 from pathlib import Path
 from typing import Any
 
-from mso.client import request
+from mso.client import load_signer, request
 from mso.errors import MsoError
 from mso.model.app import App
 from mso.model.appfile import load_app
+from mso.model.yamlfile import read_text_file
 from mso.protocol import messages as m
 
 
 class AsyncOverlay:
     """Asynchronous access to an overlay through one of its nodes."""
 
-    def __init__(self, address: str, *, key: str | None = None, timeout: float = 30.0) -> None:
+    def __init__(
+        self,
+        address: str,
+        *,
+        key: str | None = None,
+        timeout: float = 30.0,
+        sign: str | None = None,
+    ) -> None:
         self.address = address
         self.key = key
         self.timeout = timeout
+        # an operator key file: commands that change the overlay are signed with it
+        self.signer = load_signer(sign)
 
     async def _call(self, msg: m.Message) -> Any:
-        return await request(self.address, msg, key=self.key, timeout=self.timeout)
+        return await request(
+            self.address, msg, key=self.key, timeout=self.timeout, signer=self.signer
+        )
 
     async def deploy(self, app_file: str | Path) -> m.DeployReply:
         """Deploy an app file (validated here first, so errors point at its lines)."""
         path = Path(app_file)
         load_app(path)
-        reply = await self._call(m.DeployRequest(path.read_text(encoding="utf-8"), str(path)))
+        reply = await self._call(m.DeployRequest(read_text_file(path), str(path)))
         if not isinstance(reply, m.DeployReply) or not reply.ok:
             raise MsoError(f"deployment failed: {getattr(reply, 'error', reply)}")
         return reply
@@ -77,8 +89,15 @@ class AsyncOverlay:
 class Overlay:
     """Blocking access to an overlay through one of its nodes (not for use inside a loop)."""
 
-    def __init__(self, address: str, *, key: str | None = None, timeout: float = 30.0) -> None:
-        self._async = AsyncOverlay(address, key=key, timeout=timeout)
+    def __init__(
+        self,
+        address: str,
+        *,
+        key: str | None = None,
+        timeout: float = 30.0,
+        sign: str | None = None,
+    ) -> None:
+        self._async = AsyncOverlay(address, key=key, timeout=timeout, sign=sign)
 
     def deploy(self, app_file: str | Path) -> m.DeployReply:
         return asyncio.run(self._async.deploy(app_file))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -366,6 +367,50 @@ def _demo(duration: float, plan_only: bool, dashboard: bool = False) -> None:
 
 
 # -- the running system ----------------------------------------------------------------------
+sign_option = click.option(
+    "--sign",
+    envvar="MSO_SIGN",
+    metavar="KEYFILE",
+    help="Sign the command with this operator key (made by `mso keygen`; default: $MSO_SIGN); "
+    "needed by nodes started with --operator-key.",
+)
+operator_key_option = click.option(
+    "--operator-key",
+    "operator_keys",
+    multiple=True,
+    metavar="PUB",
+    help="An operator's public key (text or .pub file, repeat): commands that change an overlay "
+    "must be signed with one. Without any, the overlay key is all there is.",
+)
+
+
+@main.command()
+@click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help='Print {"private", "public", "key"}.')
+@_user_errors
+def keygen(out: Path, as_json: bool) -> None:
+    """Make an operator key: OUT (private, mode 0600) and OUT.pub (give it to every node)."""
+    import os
+
+    from mso.protocol.authority import Signer
+
+    signer = Signer()
+    pub = out.with_name(out.name + ".pub")
+    try:
+        fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(signer.private_text() + "\n")
+        pub.write_text(signer.public_text() + "\n")
+    except OSError as exc:
+        raise MsoError(f"{exc.filename}: {exc.strerror}") from None
+    if as_json:
+        doc = {"private": str(out), "public": str(pub), "key": signer.public_text()}
+        click.echo(json.dumps(doc))
+        return
+    click.echo(f"wrote {out} (keep it secret) and {pub}: mso node --operator-key {pub}")
+    click.echo(signer.public_text())
+
+
 allow_code_option = click.option(
     "--allow-code",
     "allow_code",
@@ -461,6 +506,11 @@ NODE_CONFIG_KEYS = {
     "policy",
     "manage",
     "allow_code",
+    "operator_keys",
+    "key_file",
+    "encrypt",
+    "routes",
+    "energy",
 }
 
 
@@ -509,11 +559,13 @@ def _node_config(path: Path) -> dict[str, Any]:
             raise SpecError(f"expected a number > 0, got {v!r}", file=doc.file, line=line, field=k)
         if k == "manage" and not isinstance(v, bool):
             raise SpecError(f"expected true or false, got {v!r}", file=doc.file, line=line, field=k)
-        if k == "allow_code" and not (
+        if k in ("allow_code", "operator_keys") and not (
             isinstance(v, list) and all(isinstance(x, str) and x for x in v)
         ):
-            raise SpecError("expected a list of module names", file=doc.file, line=line, field=k)
-        if k in ("id", "listen", "key") and not isinstance(v, str):
+            raise SpecError("expected a list of strings", file=doc.file, line=line, field=k)
+        if k == "encrypt" and not isinstance(v, bool):
+            raise SpecError(f"expected true or false, got {v!r}", file=doc.file, line=line, field=k)
+        if k in ("id", "listen", "key", "key_file") and not isinstance(v, str):
             raise SpecError(f"expected a string, got {v!r}", file=doc.file, line=line, field=k)
     return data
 
@@ -541,6 +593,23 @@ def _node_config(path: Path) -> dict[str, Any]:
     help="A static neighbour NODE=HOST:PORT (repeat); without it the emulator sets neighbours.",
 )
 @click.option(
+    "--energy",
+    type=click.Choice(["auto", "model", "interfaces"]),
+    default=None,
+    help="auto (default): battery, CPU time and interface bytes from the OS where it reports "
+    "them, the power model for the rest; model: the power model and CPU time only (the "
+    "user-space emulator passes this); interfaces: also the interface bytes (netns testbed).",
+)
+@click.option(
+    "--routes",
+    "routes_from",
+    type=click.Choice(["auto", "kernel", "emulator"]),
+    default=None,
+    help="Where routes come from: kernel (read the routing daemon's kernel routes over "
+    "netlink, learn node ids from announcements; listen on a routable address), emulator, or "
+    "auto (default: the --peer list if given, else the emulator).",
+)
+@click.option(
     "--policy",
     help="Management policy for apps that name none: lifetime (default), energy, balance, "
     "delay, or pkg.module:Attr.",
@@ -563,6 +632,20 @@ def _node_config(path: Path) -> dict[str, Any]:
     help="HOST:PORT to serve Prometheus metrics on at /metrics (default: off).",
 )
 @allow_code_option
+@operator_key_option
+@click.option(
+    "--key-file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Overlay keys, one a line: the first seals, the others are still accepted. Re-read on "
+    "SIGHUP, to rotate the key without stopping anything.",
+)
+@click.option(
+    "--encrypt/--no-encrypt",
+    envvar="MSO_ENCRYPT",
+    default=None,
+    help="Encrypt frames with ChaCha20-Poly1305 (default: $MSO_ENCRYPT; every member and client "
+    "must agree).",
+)
 @click.option(
     "--insecure",
     is_flag=True,
@@ -579,12 +662,17 @@ def node(
     battery_wh: float | None,
     power: str | None,
     peers: tuple[str, ...],
+    energy: str | None,
+    routes_from: str | None,
     policy: str | None,
     manage: bool | None,
     heartbeat_s: float | None,
     dead_after_s: float | None,
     metrics: str | None,
     allow_code: tuple[str, ...],
+    operator_keys: tuple[str, ...],
+    key_file: Path | None,
+    encrypt: bool | None,
     insecure: bool,
     key: str | None,
     verbose: bool,
@@ -610,6 +698,11 @@ def node(
         model = PowerModel(*power_model(head if last == how else power), how)
     set_code_allowlist(allow_code or tuple(cfg.get("allow_code", ())))
     key = key if key is not None else cfg.get("key")
+    key_file = key_file or (Path(cfg["key_file"]) if "key_file" in cfg else None)
+    if key_file is not None:
+        key = read_keys(key_file)[0]  # checked now; re-read on SIGHUP
+    encrypt = bool(cfg.get("encrypt", False)) if encrypt is None else encrypt
+    authority = node_authority(operator_keys or tuple(cfg.get("operator_keys", ())))
     dev_key = check_key(key, listen or cfg.get("listen", "127.0.0.1:7000"), insecure)
     battery = battery_wh if battery_wh is not None else cfg.get("battery_wh")
     if battery is not None and battery <= 0:
@@ -628,8 +721,38 @@ def node(
         heartbeat_s,
         dead_after_s,
         dev_key,
+        authority,
+        key_file,
+        encrypt,
         metrics,
+        routes_from or cfg.get("routes", "auto"),
+        energy or cfg.get("energy", "auto"),
     )
+
+
+def read_keys(path: Path) -> list[str]:
+    """A key file: overlay keys one a line (the first seals), '#' comments."""
+    from mso.errors import SpecError
+    from mso.model.yamlfile import read_text_file
+
+    keys = [
+        line.strip()
+        for line in read_text_file(path).splitlines()
+        if line.strip() and not line.strip().startswith("#")
+    ]
+    if not keys:
+        raise SpecError("no overlay key in the key file", file=str(path))
+    return keys
+
+
+def node_authority(keys: tuple[str, ...]) -> Any:
+    """The operator keys (and the emulator's, from $MSO_EMULATOR_KEY) this node obeys."""
+    from mso.protocol.authority import Authority, KeyError_
+
+    try:
+        return Authority.from_env(list(keys))
+    except KeyError_ as exc:
+        raise MsoError(f"--operator-key: {exc}") from None
 
 
 def _node(
@@ -646,7 +769,12 @@ def _node(
     heartbeat_s: float | None = None,
     dead_after_s: float | None = None,
     dev_key: bool = False,
+    authority: Any = None,
+    key_file: Path | None = None,
+    encrypt: bool = False,
     metrics: str | None = None,
+    routes_from: str = "auto",
+    energy: str = "auto",
 ) -> None:
     import asyncio
     import logging
@@ -655,7 +783,7 @@ def _node(
     from mso.net.base import Neighbour
     from mso.net.routes_static import StaticRoutes
     from mso.node.core import NodeCore
-    from mso.node.driver import NodeDriver
+    from mso.node.driver import PARENT_ENV, NodeDriver, stop_with_parent
     from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S
 
     logging.basicConfig(
@@ -691,9 +819,53 @@ def _node(
         incarnation=time.time_ns() // 1_000_000,
     )
 
+    if energy not in ("auto", "model", "interfaces"):
+        raise MsoError(f"energy: expected auto, model or interfaces, got {energy!r}")
+    if routes_from not in ("auto", "kernel", "emulator"):
+        raise MsoError(f"routes: expected auto, kernel or emulator, got {routes_from!r}")
+    if routes_from == "kernel" and static:
+        raise MsoError("give either --peer (a fixed set-up) or --routes kernel, not both")
+    if routes_from == "kernel" and (port == 0 or host.startswith("127.") or host == "localhost"):
+        raise MsoError(
+            f"--routes kernel: listen on a routable address and a fixed port "
+            f"(e.g. --listen 0.0.0.0:7000), got {listen}"
+        )
+
     async def serve() -> None:
-        view = StaticRoutes(node_id, static) if static else None  # else the emulator's
-        driver = NodeDriver(core, host, port, overlay_key(key), view)
+        from mso.net.base import RoutingView
+        from mso.net.routes_kernel import KernelRoutes
+
+        keys = [overlay_key(k) for k in read_keys(key_file)] if key_file else [overlay_key(key)]
+        psk = keys[0]  # what kernel route announcements are authenticated with
+        view: RoutingView | None = None
+        kernel: KernelRoutes | None = None
+        if routes_from == "kernel":
+            view = kernel = KernelRoutes(node_id, port, psk, host=host)
+            try:
+                await kernel.start()
+            except OSError as exc:
+                raise MsoError(f"--routes kernel: cannot read routes or bind: {exc}") from None
+        elif routes_from == "auto" and static:
+            view = StaticRoutes(node_id, static)
+        from mso.node.device import DeviceProbe
+
+        device = DeviceProbe(battery=energy == "auto", interfaces=energy != "model")
+        driver = NodeDriver(  # no view: the emulator's
+            core, host, port, keys, view, device=device, authority=authority, encrypt=encrypt
+        )
+
+        def rotate() -> None:  # SIGHUP: take the key file again; open connections keep theirs
+            assert key_file is not None
+            try:
+                driver.transport.set_keys([overlay_key(k) for k in read_keys(key_file)])
+                logging.getLogger("mso.node").warning("overlay keys re-read from %s", key_file)
+            except MsoError as exc:
+                logging.getLogger("mso.node").error("keeping the old keys: %s", exc)
+
+        if key_file is not None:
+            import signal
+
+            asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, rotate)
         try:
             await driver.start()
         except OSError as exc:
@@ -705,9 +877,18 @@ def _node(
             loop = asyncio.get_running_loop()
             exporter = MetricsServer(lambda: core.status(loop.time()), *metrics_at)
             await exporter.start()
-        await driver.stopped.wait()
-        if exporter is not None:
-            await exporter.stop()
+        watch = None
+        if parent := os.environ.get(PARENT_ENV):  # started by an emulator: end with it
+            watch = asyncio.create_task(stop_with_parent(driver, int(parent)))
+        try:
+            await driver.stopped.wait()
+        finally:
+            if watch is not None:
+                watch.cancel()
+            if exporter is not None:
+                await exporter.stop()
+            if kernel is not None:
+                await kernel.close()
 
     if dev_key:
         click.echo(DEV_KEY_WARNING, err=True)
@@ -718,26 +899,40 @@ def _node(
 @main.command()
 @click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--via", help="Node to deploy from: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
 @_user_errors
 def deploy(
-    app_file: Path, via: str | None, overlay: str | None, key: str | None, as_json: bool
+    app_file: Path,
+    via: str | None,
+    overlay: str | None,
+    sign: str | None,
+    key: str | None,
+    as_json: bool,
 ) -> None:
     """Deploy an app from any node (distributed Algorithm 1)."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.model.appfile import load_app
     from mso.model.yamlfile import read_text_file
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     load_app(app_file)  # report file errors here, with their lines, before sending anything
     document = read_text_file(app_file)
     address = _resolve_via(via, overlay)
     reply = asyncio.run(
-        request(address, m.DeployRequest(document, str(app_file)), key=key, timeout=30)
+        request(
+            address,
+            m.DeployRequest(document, str(app_file)),
+            key=key,
+            timeout=30,
+            signer=signer,
+        )
     )
     if not isinstance(reply, m.DeployReply) or not reply.ok:
         raise MsoError(f"deployment failed: {getattr(reply, 'error', reply)}")
@@ -774,6 +969,7 @@ async def _only_app(address: str, key: str | None) -> str:
 )
 @click.option("--to", "target", help="Onto this node.")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
@@ -784,6 +980,7 @@ def relocate(
     direction: str | None,
     target: str | None,
     via: str | None,
+    sign: str | None,
     overlay: str | None,
     key: str | None,
     as_json: bool,
@@ -791,15 +988,17 @@ def relocate(
     """Move one vertex of a running app, with its state, losing no event (§3.4.1)."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     if bool(direction) == bool(target):
         raise MsoError("give exactly one of --upstream, --downstream or --to NODE")
     address = _resolve_via(via, overlay)
     app = app_name or asyncio.run(_only_app(address, key))
     req = m.RelocateRequest(app, vertex, direction or "", target or "")
-    reply = asyncio.run(request(address, req, key=key))
+    reply = asyncio.run(request(address, req, key=key, signer=signer))
     if not isinstance(reply, m.RelocateReply) or not reply.ok:
         raise MsoError(f"relocation refused: {getattr(reply, 'error', reply)}")
     if as_json:
@@ -816,6 +1015,7 @@ def relocate(
 @click.option("--chains", help="Several chains, comma-separated (global remap, §3.4.3).")
 @click.option("--all", "everything", is_flag=True, help="Every chain of the app.")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True)
@@ -826,6 +1026,7 @@ def remap(
     chains: str | None,
     everything: bool,
     via: str | None,
+    sign: str | None,
     overlay: str | None,
     key: str | None,
     as_json: bool,
@@ -836,8 +1037,10 @@ def remap(
     its index (`mso chains`) or as head-...-tail."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     words = list(chain[1:] if chain[:1] == ("chain",) else chain)
     names = [c for c in words + (chains.split(",") if chains else []) if c]
@@ -862,7 +1065,8 @@ def remap(
                     indices.append(known.index(n))
                 else:
                     raise MsoError(f"unknown chain {n!r} (chains: {', '.join(known)})")
-        return await request(address, m.RemapRequest(app_name_, indices, everything), key=key)
+        req = m.RemapRequest(app_name_, indices, everything)
+        return await request(address, req, key=key, signer=signer)
 
     reply = asyncio.run(run())
     if not isinstance(reply, m.RemapReply) or not reply.ok:
@@ -879,18 +1083,26 @@ def remap(
 @main.command()
 @click.argument("app_name")
 @click.option("--via", help="Node to ask: a node id of the running emulator or HOST:PORT.")
+@sign_option
 @overlay_option
 @key_option
 @click.option("--json", "as_json", is_flag=True, help='Print {"stopped": NAME}.')
 @_user_errors
 def undeploy(
-    app_name: str, via: str | None, overlay: str | None, key: str | None, as_json: bool
+    app_name: str,
+    via: str | None,
+    overlay: str | None,
+    sign: str | None,
+    key: str | None,
+    as_json: bool,
 ) -> None:
     """Stop an app on every node."""
     import asyncio
 
-    from mso.client import request
+    from mso.client import load_signer, request
     from mso.protocol import messages as m
+
+    signer = load_signer(sign)  # a bad key file is reported before anything is sent
 
     address = _resolve_via(via, overlay)
 
@@ -903,7 +1115,7 @@ def undeploy(
             raise MsoError(
                 f"no running app named {app_name!r} (running: {', '.join(apps) or 'none'})"
             )
-        await request(address, m.StopApp(app_name), key=key)
+        await request(address, m.StopApp(app_name), key=key, signer=signer)
 
     asyncio.run(run())
     click.echo(json.dumps({"stopped": app_name}) if as_json else f"stopped {app_name}")
@@ -973,11 +1185,38 @@ def status(
                 time.sleep(max(0.0, watch - (time.monotonic() - started)))
 
 
-def _energy_cells(mon: dict[str, Any]) -> tuple[str, str, str]:
+def _energy_cells(mon: dict[str, Any]) -> tuple[str, str, str, str]:
     frac, life = mon.get("battery_fraction"), mon.get("lifetime_s")
     battery = "wall" if frac is None else f"{frac * 100:.1f}%"
     lifetime = "-" if life is None else f"{life / 3600:.1f} h"
-    return battery, f"{mon.get('drain_w', 0.0):.2f}", lifetime
+    measured = mon.get("measured", {})
+    drain = measured.get("battery_power_w")
+    watts = f"{mon.get('drain_w', 0.0):.2f}" if drain is None else f"{drain:.2f}"
+    return battery, watts, lifetime, _measured_cell(mon)
+
+
+def _measured_cell(mon: dict[str, Any]) -> str:
+    """Which of the node's figures the OS measured (the rest come from the power model)."""
+    sources, measured = mon.get("sources", {}), mon.get("measured", {})
+    out = []
+    if str(sources.get("battery", "")).startswith("measured"):
+        out.append("battery" + (" (charging)" if measured.get("charging") else ""))
+    if sources.get("drain") == "measured":
+        out.append("W")
+    if "cpu_load" in measured:
+        out.append(f"cpu {measured['cpu_load'] * 100:.0f}%")
+    if "iface_tx_bytes" in measured:
+        tx, rx = _size(measured["iface_tx_bytes"]), _size(measured["iface_rx_bytes"])
+        out.append(f"radio {tx}/{rx}")
+    return ", ".join(out) or "-"
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if abs(n) < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} GB"
 
 
 def render_status(console: Console, nodes: dict[str, Any]) -> None:
@@ -995,6 +1234,11 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
         "battery",
         "W",
         "life",
+        "measured",
+    )
+    table.caption = (
+        "battery, W and life come from the power model unless 'measured' names them; "
+        "radio: the interfaces' tx/rx bytes"
     )
     for col in cols:
         table.add_column(col, justify="left" if col in ("node", "neighbours") else "right")
@@ -1094,10 +1338,23 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
 
 
 @main.command()
-@click.argument("scenario_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("scenario_file", required=False, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--app", "app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option(
     "--duration", type=POSITIVE, default=None, help="Seconds to run (default: until Ctrl-C)."
+)
+@click.option(
+    "--backend",
+    type=click.Choice(["user", "netns"]),
+    default="user",
+    show_default=True,
+    help="user: one process per node on loopback, routes computed by the emulator; netns: one "
+    "network namespace per node on a filtered bridge, babeld routing, the kernel forwarding.",
+)
+@click.option(
+    "--cleanup",
+    is_flag=True,
+    help="Remove what a crashed netns emulation left (namespaces, processes inside) and exit.",
 )
 @click.option("--via", help="Node to deploy from (default: the first node).")
 @click.option(
@@ -1134,13 +1391,20 @@ def render_status(console: Console, nodes: dict[str, Any]) -> None:
     default=None,
     help=f"HOST:PORT of the dashboard (default {DASHBOARD_LISTEN}, or a free port if taken).",
 )
+@click.option(
+    "--encrypt",
+    is_flag=True,
+    help="Every node and the emulator encrypt their frames (ChaCha20-Poly1305).",
+)
 @allow_code_option
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
 def emulate(
-    scenario_file: Path,
+    scenario_file: Path | None,
     app_file: Path | None,
     duration: float | None,
+    backend: str,
+    cleanup: bool,
     via: str | None,
     convergence: float,
     heartbeat_s: float | None,
@@ -1150,17 +1414,64 @@ def emulate(
     with_dashboard: bool,
     dashboard_listen: str | None,
     metrics_port: int | None,
+    encrypt: bool,
     allow_code: tuple[str, ...],
     key: str | None,
     as_json: bool,
 ) -> None:
-    """Run a scenario as one local process per node (user-space MANET emulator)."""
+    """Run a scenario as one local process per node (user-space MANET emulator), or on a
+    network-namespace testbed with babeld (--backend netns)."""
+    if cleanup:
+        _netns_cleanup()
+        return
+    if scenario_file is None:
+        _console().print("[red]error:[/red] give a SCENARIO_FILE (or --cleanup)")
+        sys.exit(2)
+    if backend == "netns" and _rootless_reexec():
+        return
     _emulate(
         scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s,
         dead_after_s, allow_code, name=name, manage=manage,
         dashboard=(dashboard_listen or "") if with_dashboard or dashboard_listen else None,
-        metrics_port=metrics_port,
+        metrics_port=metrics_port, encrypt=encrypt, backend=backend,
     )  # fmt: skip
+
+
+ROOTLESS_ENV = "MSO_NETNS_USERNS"
+
+
+def _rootless_reexec() -> bool:
+    """Not root: run this very command again inside a new user, network and mount namespace
+    (``unshare -Urnm``, root there, a private /run for the namespace files) when the kernel
+    allows it; True if it ran there. Otherwise the netns backend explains and falls back."""
+    import os
+    import shutil
+    import subprocess
+
+    if os.geteuid() == 0 or os.environ.get(ROOTLESS_ENV) or shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(["unshare", "-Urnm", "true"], capture_output=True)
+    if probe.returncode != 0:
+        return False  # the backend's own check says why and falls back
+    env = {**os.environ, ROOTLESS_ENV: "1"}
+    script = 'mount -t tmpfs tmpfs /run && exec "$@"'
+    cmd = ["unshare", "-Urnm", "sh", "-c", script, "sh", sys.executable, "-m", "mso", *sys.argv[1:]]
+    sys.exit(subprocess.run(cmd, env=env).returncode)
+
+
+def _netns_cleanup() -> None:
+    from mso.emu.netns.testbed import cleanup, unavailable
+
+    console = _console()
+    why = unavailable()
+    if why is not None:
+        console.print(f"nothing to clean: {why}")
+        return
+    removed = cleanup()
+    console.print(
+        f"removed {len(removed)} namespace(s) left by stopped emulations"
+        + (f": {', '.join(removed)}" if removed else "")
+    )
 
 
 @_user_errors
@@ -1180,12 +1491,16 @@ def _emulate(
     manage: bool = True,
     dashboard: str | None = None,
     metrics_port: int | None = None,
+    encrypt: bool = False,
+    backend: str = "user",
 ) -> None:
     import asyncio
+    import signal
 
     from rich.table import Table
 
     from mso.emu.controller import Emulator
+    from mso.emu.netns.emulator import NamespacesUnavailable, NetnsEmulator, check_available
     from mso.model.appfile import load_app
     from mso.model.yamlfile import read_text_file
     from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
@@ -1204,8 +1519,18 @@ def _emulate(
         raise MsoError(f"--duration: expected a number of seconds > 0, got {duration:g}")
     console = _console()
 
+    kind: type[Emulator] = Emulator
+    if backend == "netns" and metrics_port is not None:
+        raise MsoError("--metrics is not available with --backend netns yet")
+    if backend == "netns":
+        try:
+            check_available()
+            kind = NetnsEmulator
+        except NamespacesUnavailable as exc:
+            console.print(f"[yellow]{exc}[/yellow]; using the user-space backend instead")
+
     async def run() -> dict[str, Any]:
-        emu = Emulator(
+        emu = kind(
             scenario,
             key=key,
             convergence_s=convergence,
@@ -1215,14 +1540,19 @@ def _emulate(
             manage=manage,
             metrics_port=metrics_port,
             allow_code=allow_code or None,
+            encrypt=encrypt,
         )
+        loop = asyncio.get_running_loop()
+        task = asyncio.current_task()
+        if task is not None:  # SIGTERM stops like Ctrl-C: the finally below tears down
+            loop.add_signal_handler(signal.SIGTERM, task.cancel)
         with _progress(f"starting {len(scenario.network.nodes)} node processes…"):
             await emu.start()
-        loop = asyncio.get_running_loop()
         board = None
         try:
+            where = "namespaces (babeld)" if isinstance(emu, NetnsEmulator) else "processes"
             console.print(
-                f"emulating {scenario.name} as overlay {emu.name}: {len(emu.nodes)} node processes "
+                f"emulating {scenario.name} as overlay {emu.name}: {len(emu.nodes)} node {where} "
                 + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)
             )
             if dashboard is not None:
@@ -1273,7 +1603,7 @@ def _emulate(
 
     try:
         final = asyncio.run(run())
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, asyncio.CancelledError):
         console.print("interrupted: every node process was stopped")
         return
     if as_json:

@@ -62,7 +62,7 @@ import msgspec
 
 import mso.examples
 from mso.benchmarks.common import percentile, provenance
-from mso.client import Client, NodeUnreachable, overlay_key
+from mso.client import NodeUnreachable, overlay_key
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.model.appfile import loads_app
@@ -363,7 +363,7 @@ async def pick_remap_via(b: Bench, chain: int) -> None:
     emu = b.emu
     for node in ("N1", "N4", "N3", "N2"):
         n = emu.nodes[node]
-        client = Client(n.host, n.port, overlay_key(emu.key), "table1-remap-trial")
+        client = emu.client_for(n, overlay_key(emu.key), "table1-remap-trial")
         try:
             await client.connect(2.0)
             reply = await client.call(m.RemapRequest(CONVOY, [chain]), 10.0)
@@ -646,11 +646,18 @@ def _first_chain(chains: list[list[str]], head: str, tail: str | None = None) ->
     raise MsoError(f"no chain from {head!r} in {chains}")
 
 
-async def measure(scenario: Scenario, runs: int, budget_s: float) -> dict[str, Any]:
-    """Every measurement on one emulated line."""
+async def measure(
+    scenario: Scenario, runs: int, budget_s: float, backend: str = "user"
+) -> dict[str, Any]:
+    """Every measurement on one emulated line (``backend`` netns: namespaces and babeld)."""
     logs = tempfile.TemporaryDirectory(prefix="mso-bench-table1-")
     pause = Path(logs.name) / "beats.pause"
-    emu = Emulator(scenario, log_dir=Path(logs.name), manage=False)  # operations alone
+    kind: type[Emulator] = Emulator
+    if backend == "netns":
+        from mso.emu.netns.emulator import NetnsEmulator
+
+        kind = NetnsEmulator
+    emu = kind(scenario, log_dir=Path(logs.name), manage=False)  # operations alone
     b = Bench(emu, runs, time.monotonic() + budget_s, pause, APP_FILE.read_text(encoding="utf-8"))
     out: dict[str, Any] = {"scenario": scenario.name}
     t_start = time.monotonic()
@@ -820,14 +827,22 @@ def render(result: dict[str, Any]) -> str:
             f"| {ratio} | {verdict} |"
         )
     un = result.get("unshaped")
-    if un:
-        lines += ["", f"Same runs, {un['scenario']} (mso's own cost, no link emulation):", ""]
+    ns = result.get("netns")
+    titles = {
+        "unshaped": "(mso's own cost, no link emulation)",
+        "netns": "on the netns backend (a namespace per node, babeld routes, the kernel "
+        "forwards; tbf 100 Mbit/s, no delay: no netem here)",
+    }
+    for key, other in (("unshaped", un), ("netns", ns)):
+        if not other:
+            continue
+        lines += ["", f"Same runs, {other['scenario']} {titles[key]}:", ""]
         lines += [
             "| Operation | mean ms | σ ms | p50 ms | p99 ms | n | ratio mean/paper |",
             "|---|---:|---:|---:|---:|---:|---:|",
         ]
         for op in OPERATIONS:
-            s = un["operations"][op]
+            s = other["operations"][op]
             ratio = "-" if s["mean_ms"] is None else f"{s['mean_ms'] / PAPER_MS[op][0]:.4f}"
             lines.append(
                 f"| {LABELS[op]} | {_f(s['mean_ms'], 2)} | {_f(s['std_ms'], 2)} "
@@ -841,7 +856,9 @@ def render(result: dict[str, Any]) -> str:
         "| Interruption | mean ms | σ ms | p50 ms | p99 ms | max ms | n |",
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
-    variants = [("", result)] + ([(" (unshaped)", un)] if un else [])
+    variants = (
+        [("", result)] + ([(" (unshaped)", un)] if un else []) + ([(" (netns)", ns)] if ns else [])
+    )
     for suffix, r in variants:
         it = r["interruption_ms"]
         for key, label in (
@@ -910,8 +927,11 @@ def render(result: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-async def run(runs: int = 30, quick: bool = False, variants: bool = True) -> dict[str, Any]:
-    """Every Table 1 operation ``runs`` times (``quick``: 5, the specified line only)."""
+async def run(
+    runs: int = 30, quick: bool = False, variants: bool = True, netns: bool = False
+) -> dict[str, Any]:
+    """Every Table 1 operation ``runs`` times (``quick``: 5, the specified line only);
+    ``netns``: the same runs again on the netns backend, in the same run."""
     if quick:
         runs = min(runs, 5)
     t0 = time.monotonic()
@@ -926,6 +946,11 @@ async def run(runs: int = 30, quick: bool = False, variants: bool = True) -> dic
     result |= main_result
     if variants and not quick:
         result["unshaped"] = await measure(unshaped(load_scenario(SCENARIO_FILE)), runs, budget)
+    if netns:
+        from mso.emu.netns.emulator import check_available
+
+        check_available()
+        result["netns"] = await measure(load_scenario(SCENARIO_FILE), runs, budget, "netns")
     result["paper_ms"] = {k: {"mean_ms": v[0], "std_ms": v[1]} for k, v in PAPER_MS.items()}
     result["ratio_to_paper"] = {
         k: (None if s["mean_ms"] is None else s["mean_ms"] / PAPER_MS[k][0])
@@ -958,18 +983,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="smoke run: 5 runs, no unshaped variant")
     ap.add_argument("--no-variants", action="store_true", help="skip the unshaped-links variant")
     ap.add_argument("--json", type=Path, help="where to write the JSON (a .md goes beside it)")
+    ap.add_argument(
+        "--netns",
+        action="store_true",
+        help="also run on the netns backend (root or a user namespace; babeld), in this run",
+    )
     args = ap.parse_args(argv)
     if not 1 <= args.runs <= 1000:
         ap.error("--runs: 1..1000")
     out: Path = args.json or _default_json(args.quick)
-    result = asyncio.run(run(args.runs, args.quick, variants=not args.no_variants))
+    result = asyncio.run(
+        run(args.runs, args.quick, variants=not args.no_variants, netns=args.netns)
+    )
     table = render(result)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     out.with_suffix(".md").write_text(table)
     print(table)
     print(f"written: {out} and {out.with_suffix('.md')} ({result['seconds']:.0f} s)")
-    failures = result["failures"] + (result.get("unshaped") or {}).get("failures", [])
+    failures = (
+        result["failures"]
+        + (result.get("unshaped") or {}).get("failures", [])
+        + (result.get("netns") or {}).get("failures", [])
+    )
     return 1 if failures else 0
 
 

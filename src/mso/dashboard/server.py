@@ -16,13 +16,23 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
 from collections import deque
 from collections.abc import Callable
 from importlib import resources
 from typing import Any
 from urllib.parse import urlsplit
 
-from mso.client import Client, NodeUnreachable, overlay_key, parse_address, request
+from mso.client import (
+    Client,
+    NodeUnreachable,
+    Refused,
+    load_signer,
+    overlay_key,
+    parse_address,
+    request,
+    split_netns,
+)
 from mso.dashboard.view import Tracker
 from mso.errors import MsoError
 from mso.net.http import BadRequest, read_request, response
@@ -55,6 +65,7 @@ class Dashboard:
         listen: str = "127.0.0.1:0",
         positions: Positions | None = None,
         expected: list[str] | None = None,
+        sign: str | None = None,
     ) -> None:
         if not addresses:
             raise MsoError("the dashboard needs the address of a node")
@@ -63,6 +74,9 @@ class Dashboard:
         self.addresses = list(addresses)
         self._psk = overlay_key(key)
         self._key = key
+        # an operator key file (default $MSO_SIGN): the page's controls are signed with it, for
+        # nodes started with --operator-key
+        self._signer = load_signer(sign if sign is not None else os.environ.get("MSO_SIGN"))
         self.name = name
         self.interval = interval
         self.host, self.port = parse_address(listen, default_port=0)
@@ -122,8 +136,11 @@ class Dashboard:
         for _ in range(len(self.addresses)):
             try:
                 if self._client is None:
-                    host, port = parse_address(self.addresses[self._via])
-                    self._client = await Client(host, port, self._psk, "dashboard").connect(2.0)
+                    netns, addr = split_netns(self.addresses[self._via])  # netns testbed
+                    host, port = parse_address(addr)
+                    self._client = await Client(
+                        host, port, self._psk, "dashboard", netns=netns
+                    ).connect(2.0)
                 reply = await self._client.call(m.StatusRequest(everywhere=True), 5.0)
                 if isinstance(reply, m.StatusReply):
                     return reply.nodes
@@ -331,8 +348,10 @@ class Dashboard:
     async def _ask(self, msg: m.Message) -> m.Message:
         try:
             reply: m.Message = await request(
-                self.addresses[self._via], msg, key=self._key, timeout=30.0
+                self.addresses[self._via], msg, key=self._key, timeout=30.0, signer=self._signer
             )
+        except Refused as exc:  # no operator authority: said to the page, nothing changed
+            raise BadRequest(403, str(exc)) from None
         except NodeUnreachable as exc:
             raise BadRequest(502, str(exc)) from None
         return reply

@@ -29,8 +29,10 @@ from mso.client import Client, NodeUnreachable, overlay_key
 from mso.emu.overlays import _claim, state_file
 from mso.errors import MsoError
 from mso.model.network import LinkSpec
+from mso.node.driver import PARENT_ENV
 from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 from mso.protocol import messages as m
+from mso.protocol.authority import Signer
 from mso.scenario import Scenario
 from mso.scenario.timeline import Crash, Restart, Timeline
 
@@ -92,6 +94,10 @@ class Emulator:
     dead_after_s: float | None = None  # every node's failure timeout (None: the node default)
     # modules every node may import app code from (None: $MSO_ALLOW_CODE, else the examples)
     allow_code: tuple[str, ...] | None = None
+    operator_keys: tuple[str, ...] = ()  # public keys every node obeys (--operator-key)
+    encrypt: bool = False  # ChaCha20-Poly1305 frames between every node and with the emulator
+    # this emulator's own key: its nodes take LinkStates and Shutdowns signed with it only
+    signer: Signer = field(default_factory=Signer)
 
     async def start(self, timeout: float = 20.0) -> None:
         names = list(self.scenario.network.nodes)
@@ -131,12 +137,28 @@ class Emulator:
     def _env(self) -> dict[str, str]:
         env = dict(os.environ)
         env["MSO_KEY"] = self.key or env.get("MSO_KEY", "") or "mso-insecure-default-key"
+        env["MSO_EMULATOR_KEY"] = self.signer.public_text()
+        if self.encrypt:
+            env["MSO_ENCRYPT"] = "1"
+        else:
+            env.pop("MSO_ENCRYPT", None)
         self.key = env["MSO_KEY"]
+        env[PARENT_ENV] = str(os.getpid())  # a node outlives no emulator, even one killed
         return env
 
     def _spawn(self, name: str, env: dict[str, str]) -> None:
         """Start node ``name``'s daemon process (again, for a restart)."""
         assert self.log_dir is not None
+        node = self.nodes[name]
+        node.log = self.log_dir / f"{name}.log"
+        with node.log.open("ab") as out:
+            node.process = subprocess.Popen(
+                self._node_command(name), stdout=out, stderr=subprocess.STDOUT, env=env,
+                start_new_session=True,
+            )  # fmt: skip
+
+    def _node_command(self, name: str) -> list[str]:
+        """The ``mso node`` command line of node ``name`` (its scenario capacities)."""
         node = self.nodes[name]
         spec = self.scenario.network.nodes[name]
         cmd = [
@@ -147,6 +169,7 @@ class Emulator:
                                                  spec.power.rx_uj_per_byte,
                                                  spec.power.cpu_energy)),
         ]  # fmt: skip
+        cmd += ["--energy", "model"]  # the scenario's device, not the host's battery
         if spec.battery_wh is not None:
             cmd += ["--battery-wh", str(spec.battery_wh)]
         if self.policy is not None:
@@ -161,11 +184,9 @@ class Emulator:
             cmd += ["--metrics", f"{node.host}:{self.metrics_port}"]
         for module in self.allow_code or ():
             cmd += ["--allow-code", module]
-        node.log = self.log_dir / f"{name}.log"
-        with node.log.open("ab") as out:
-            node.process = subprocess.Popen(
-                cmd, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True
-            )
+        for pub in self.operator_keys:
+            cmd += ["--operator-key", pub]
+        return cmd
 
     async def restart(self, node: str, timeout: float = 20.0) -> None:
         """Start a killed (or crashed) ``node`` again: a new process, so a new incarnation;
@@ -225,12 +246,17 @@ class Emulator:
                 self.failed = True
                 raise MsoError(f"node {node.id} exited at start; see {node.log}")
             try:
-                node.client = await Client(node.host, node.port, psk, "emulator").connect(1.0)
+                node.client = await self.client_for(node, psk).connect(1.0)
                 return
             except NodeUnreachable:
                 if loop.time() > deadline:
                     raise MsoError(f"node {node.id} did not start within {timeout:g} s") from None
                 await asyncio.sleep(0.05)
+
+    def client_for(self, node: EmulatedNode, psk: bytes, name: str = "emulator") -> Client:
+        """A (not yet connected) client of ``node``; it signs LinkStates and Shutdowns with
+        this emulator's key, and encrypts when the overlay does."""
+        return Client(node.host, node.port, psk, name, signer=self.signer, encrypt=self.encrypt)
 
     def _link_state(self, node: str, routes: bool) -> m.LinkState:
         net = self.scenario.network

@@ -37,6 +37,12 @@ class Vertex:
     params: dict[str, Any] = field(default_factory=dict)
     get_state: Code | None = None
     set_state: Code | None = None
+    # where its code runs on a node: a thread of the node's process, or a process of its own
+    # (a CPU-bound pure-Python vertex gets a core and a GIL to itself; import paths only)
+    isolation: str = "thread"
+
+
+ISOLATIONS = ("thread", "process")
 
 
 @dataclass
@@ -81,6 +87,7 @@ class App:
         params: dict[str, Any] | None = None,
         get_state: Code | None = None,
         set_state: Code | None = None,
+        isolation: str = "thread",
     ) -> Vertex:
         """Add a vertex; a duplicate id or a bad value is an AppError at once."""
         if not isinstance(id, str) or not id:
@@ -104,6 +111,7 @@ class App:
             params=dict(params or {}),
             get_state=get_state,
             set_state=set_state,
+            isolation=isolation,
         )
         _check_vertex_values(v, self._error)
         self.vertices[id] = v
@@ -360,6 +368,12 @@ def _check_vertex_values(v: Vertex, error: Callable[..., AppError]) -> None:
             f"expected a positive number of events per second up to {MAX_RATE:g}, got {v.rate!r}",
             f"vertices.{v.id}.rate",
             (*base, "rate"),
+        )
+    if v.isolation not in ISOLATIONS:
+        raise error(
+            f"expected one of {', '.join(ISOLATIONS)}, got {v.isolation!r}",
+            f"vertices.{v.id}.isolation",
+            (*base, "isolation"),
         )
     if not isinstance(v.params, dict):
         raise error(

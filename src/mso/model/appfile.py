@@ -21,8 +21,13 @@ VERTEX_KEYS = {
     "params",
     "get_state",
     "set_state",
+    "isolation",
 }
 EDGE_KEYS = {"from", "to", "format", "size"}
+# an app document travels to every node, which loads and places it on its control plane: a
+# bounded size keeps that well under a second (40,000 vertices took 10 s)
+MAX_VERTICES = 5_000
+MAX_EDGES = 20_000
 
 
 def _err(doc: Located, message: str, path: tuple[str | int, ...]) -> AppError:
@@ -56,6 +61,11 @@ def app_from_document(doc: Located, *, resolve_code: bool = True) -> App:
     vertices = data.get("vertices")
     if not isinstance(vertices, dict) or not vertices:
         raise _err(doc, "expected a non-empty mapping of vertex id to attributes", ("vertices",))
+    if len(vertices) > MAX_VERTICES:
+        raise _err(doc, f"more than {MAX_VERTICES:,} vertices ({len(vertices):,})", ("vertices",))
+    edge_list = data.get("edges")
+    if isinstance(edge_list, list) and len(edge_list) > MAX_EDGES:
+        raise _err(doc, f"more than {MAX_EDGES:,} edges ({len(edge_list):,})", ("edges",))
     app = App(name=name, located=doc)
     if "slo_ms" in data:
         slo = data["slo_ms"]

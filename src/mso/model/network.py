@@ -115,7 +115,9 @@ class Network:
         return tree
 
     def route(self, src: str, dst: str) -> list[str] | None:
-        """Nodes from ``src`` to ``dst`` inclusive, or None when unreachable."""
+        """Nodes from ``src`` to ``dst`` inclusive, or None when unreachable (or unknown)."""
+        if dst not in self._adj:
+            return None
         tree = self._tree(dst)  # walk from src toward dst: next hops are parents in dst's tree
         if src not in tree:
             return None

@@ -24,7 +24,7 @@ _COMPOSER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 MAX_BYTES = 4 * 1024 * 1024  # a document larger than this is refused before parsing
 MAX_DEPTH = 64  # nested mappings and sequences
 MAX_ALIASES = 256  # alias references (``*name``)
-MAX_EXPANDED = 100_000  # nodes an alias may add to the document when it is expanded
+MAX_EXPANDED = 20_000  # nodes an alias may add to the document when it is expanded
 
 # A path into the document: ("vertices", "B", "cost") or ("edges", 3).
 Path_ = tuple[str | int, ...]

@@ -86,6 +86,8 @@ class Counters:
         self.frames_malformed = 0  # did not decode or validate
         self.frames_dropped_loss = 0  # emulated loss (data frames only)
         self.frames_unroutable = 0  # no next hop in time, data with no route, TTL spent
+        self.frames_failed = 0  # handling one raised (a bug): counted, the connection lives on
+        self.frames_implausible = 0  # values no genuine node sends (mso.protocol.plausible)
 
     def as_dict(self) -> dict[str, int]:
         return dict(vars(self))

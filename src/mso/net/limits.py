@@ -6,7 +6,8 @@ within ``handshake_s`` is closed; so is one silent for ``idle_s`` (peers send he
 0.1 s; a client such as the emulator controller may sit idle much longer). A node serves at most
 ``max_connections`` at once and ``max_per_address`` from one address. Before authentication a
 connection can make the node buffer at most one 20-byte frame; after it at most one frame of
-``max_frame`` bytes.
+``max_frame`` bytes, and all connections together at most ``max_buffered`` of partial frames;
+a client that does not read its replies is closed past ``max_client_backlog``.
 """
 
 from __future__ import annotations
@@ -20,10 +21,17 @@ from mso.protocol.framing import MAX_FRAME
 class Limits:
     handshake_s: float = 5.0
     peer_idle_s: float = 60.0
-    client_idle_s: float = 900.0
+    client_idle_s: float = 3600.0  # the emulator controller may sit idle between link changes
     max_connections: int = 256
     max_per_address: int = 64
     max_frame: int = MAX_FRAME
+    # partial frames held across every connection; past it, a connection holding more than
+    # ``max_partial_share`` of a frame is closed (a member announcing big frames on many
+    # connections cannot fill the node's memory)
+    max_buffered: int = 64 * 1024 * 1024
+    max_partial_share: int = 1024 * 1024
+    # replies a client does not read: past this its connection is closed
+    max_client_backlog: int = 16 * 1024 * 1024
     sweep_s: float = 1.0  # how often idle and unfinished connections are looked for
 
 
@@ -37,6 +45,7 @@ class ConnectionCounters:
         self.connections_refused = 0  # over the node's or one address's limit
         self.handshake_timeouts = 0  # no key confirmation and hello in time
         self.idle_timeouts = 0
+        self.over_buffer = 0  # closed for holding too much (partial frames, unread replies)
 
     def as_dict(self) -> dict[str, int]:
         return dict(vars(self))

@@ -33,6 +33,7 @@ class EmulatorRoutes(TableRoutes):
         super().__init__(node_id)
         self.version = -1
         self.versions_refused = 0  # LinkStates that tried to jump the version ahead
+        self.malformed = 0  # LinkStates whose entries do not parse
 
     def apply(self, state: m.LinkState) -> bool:
         """Take ``state`` if it is newer than the last one taken; True if taken."""
@@ -41,7 +42,12 @@ class EmulatorRoutes(TableRoutes):
         if state.version - max(self.version, 0) > MAX_VERSION_STEP:
             self.versions_refused += 1
             return False
+        try:
+            routes: dict[str, Route] = {d: (str(r[0]), int(r[1])) for d, r in state.routes.items()}
+            neighbours = {n: neighbour_of(s) for n, s in state.neighbours.items()}
+        except (ValueError, TypeError, IndexError):
+            self.malformed += 1  # not what the emulator sends: the table stays as it was
+            return False
         self.version = state.version
-        routes: dict[str, Route] = {d: (str(r[0]), int(r[1])) for d, r in state.routes.items()}
-        self.update({n: neighbour_of(s) for n, s in state.neighbours.items()}, routes)
+        self.update(neighbours, routes)
         return True

@@ -1,10 +1,348 @@
-"""Where the kernel's routing view will go (not built yet).
+"""The kernel's routing view: what a device's routing daemon (babeld, OLSR, batman-adv's
+layer-3 mode, static routes) installed, read over netlink, with node ids learned from the nodes.
 
-On real devices and on the netns testbed a routing daemon (babeld, OLSR, batman-adv) keeps the
-kernel's routing table; the node must read it rather than be told. The plan: a ``KernelRoutes``
-that is a :class:`~mso.net.routes.TableRoutes` fed by pyroute2 — a dump of the main table at
-start, then ``RTM_NEWROUTE``/``RTM_DELROUTE`` events; a route whose gateway is the destination
-itself, or which has no gateway, is a neighbour — mapping addresses to node ids through the
-same ``--peer``-style address book, and byte counters read from the interface. It is the only
-view that needs netlink, so pyroute2 stays out of every other path.
+On a real MANET, and on the netns testbed, a routing daemon keeps the kernel's routing table and
+the kernel forwards multi-hop traffic; the node reads the table rather than being told. Three
+parts, of which only the first touches netlink (pyroute2 stays out of every other path):
+
+- **the table**: a dump of the main IPv4 table at start and again (debounced) after every
+  ``RTM_NEWROUTE``/``RTM_DELROUTE``. Connected-subnet routes (``proto kernel``) are left out:
+  on a shared ad hoc subnet they claim every node is one hop away, which only the daemon knows.
+- **membership**: every node announces itself in a small authenticated UDP datagram on its
+  node port, every :data:`ANNOUNCE_S` and at once when a new destination appears, to every
+  address the kernel has a route to. The datagram carries its id and port, its hop counts to
+  the nodes it reaches, and its address book (id -> address): a receiver learns the sender's
+  address from the datagram's source and the others' from the book, so membership spreads
+  with the announcements, with no static list.
+- **resolution** (:func:`resolve`, pure): a member is reachable when the kernel has a route to
+  its address; the route's gateway, named through the book, is the next hop; hops are 1 to a
+  neighbour and 1 + the next hop's announced count otherwise (the kernel table has none).
+
+The transport then opens its TCP connection straight to any reachable node (``neighbours``
+lists them all, ``next_hop(dst)`` is ``dst``): the kernel carries it over the hops. ``routes``
+keeps the daemon's real next hop and hop count, so probes walk the real path and the core sees
+the neighbours the radio has.
 """
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import hmac
+import ipaddress
+import logging
+import socket
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+
+from mso.net.base import Neighbour, Route
+from mso.net.netns import socket_in_netns
+from mso.net.routes import TableRoutes
+
+log = logging.getLogger("mso.node")
+
+ANNOUNCE_S = 1.0
+"""How often a node announces itself to every address it has a route to."""
+DEBOUNCE_S = 0.02
+"""A burst of netlink route events (a daemon installs many routes at once) is one re-read."""
+MAX_DATAGRAM = 60_000
+TAG_BYTES = 16
+MAX_HOPS = 64
+PROTO_KERNEL = 2  # rtnetlink RTPROT_KERNEL: a connected subnet
+RTN_UNICAST = 1
+MAIN_TABLE = 254
+RTMGRP_IPV4_ROUTE = 0x40
+
+
+@dataclass(frozen=True)
+class KernelRoute:
+    """One IPv4 route from the kernel's main table."""
+
+    dst: ipaddress.IPv4Network
+    gateway: str | None = None
+    proto: int = 0
+
+
+class Announce(msgspec.Struct, array_like=True, forbid_unknown_fields=True):
+    """A node's self-announcement (UDP, authenticated with the overlay key)."""
+
+    node: str
+    port: int
+    hops: dict[str, int]
+    book: dict[str, tuple[str, int]]
+
+
+_encoder = msgspec.msgpack.Encoder()
+_decoder = msgspec.msgpack.Decoder(Announce)
+
+
+def _tag(psk: bytes, body: bytes) -> bytes:
+    return hmac.new(psk, b"mso-announce" + body, hashlib.sha256).digest()[:TAG_BYTES]
+
+
+def seal_announce(psk: bytes, msg: Announce) -> bytes:
+    body = _encoder.encode(msg)
+    return _tag(psk, body) + body
+
+
+def open_announce(psk: bytes, datagram: bytes) -> Announce | None:
+    """The announcement in ``datagram``, or None if it is not ours, forged or malformed."""
+    if len(datagram) <= TAG_BYTES or len(datagram) > MAX_DATAGRAM:
+        return None
+    tag, body = datagram[:TAG_BYTES], datagram[TAG_BYTES:]
+    if not hmac.compare_digest(tag, _tag(psk, body)):
+        return None
+    try:
+        msg = _decoder.decode(body)
+        for ip, _port in msg.book.values():
+            ipaddress.IPv4Address(ip)
+    except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
+        return None
+    if not (0 < msg.port < 65536 and msg.node):
+        return None
+    return msg
+
+
+def lookup(table: Iterable[KernelRoute], ip: str) -> KernelRoute | None:
+    """The longest-prefix match for ``ip``, as the kernel would choose (first of equals)."""
+    addr = ipaddress.IPv4Address(ip)
+    best: KernelRoute | None = None
+    for r in table:
+        if addr in r.dst and (best is None or r.dst.prefixlen > best.dst.prefixlen):
+            best = r
+    return best
+
+
+def resolve(
+    node_id: str,
+    table: Iterable[KernelRoute],
+    book: Mapping[str, tuple[str, int]],
+    announced_hops: Mapping[str, Mapping[str, int]],
+) -> tuple[dict[str, Route], dict[str, Neighbour]]:
+    """Routes and reachable nodes by id from the kernel's table and the address book."""
+    table = [r for r in table if r.proto != PROTO_KERNEL]
+    by_ip = {ip: n for n, (ip, _) in book.items()}
+    routes: dict[str, Route] = {}
+    reach: dict[str, Neighbour] = {}
+    for node, (ip, port) in sorted(book.items()):
+        if node == node_id:
+            continue
+        r = lookup(table, ip)
+        if r is None:
+            continue
+        hop = by_ip.get(r.gateway or ip)
+        if hop is None or hop == node_id:
+            continue  # the gateway has not announced itself yet
+        via = announced_hops.get(hop, {}).get(node, 1)
+        hops = 1 if hop == node else min(1 + via, MAX_HOPS)
+        routes[node] = (hop, hops)
+        reach[node] = Neighbour(ip, port)
+    return routes, reach
+
+
+class _Datagrams(asyncio.DatagramProtocol):
+    def __init__(self, view: KernelRoutes) -> None:
+        self.view = view
+
+    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+        self.view.on_announce(data, str(addr[0]))
+
+
+class KernelRoutes(TableRoutes):
+    """A :class:`~mso.net.base.RoutingView` read from the kernel (see the module doc).
+
+    ``start()`` before the driver uses it and ``close()`` after; ``netns`` names a network
+    namespace to read and announce in (tests; a node started inside one leaves it None).
+    """
+
+    def __init__(
+        self,
+        node_id: str,
+        port: int,
+        psk: bytes,
+        *,
+        netns: str | None = None,
+        announce_s: float = ANNOUNCE_S,
+        host: str = "0.0.0.0",
+    ) -> None:
+        super().__init__(node_id)
+        self.port = port
+        self.psk = psk
+        self.netns = netns
+        self.announce_s = announce_s
+        self.host = host
+        self.table: list[KernelRoute] = []
+        self.book: dict[str, tuple[str, int]] = {}
+        self._direct: set[str] = set()  # book entries learned from the node itself
+        self.announced_hops: dict[str, dict[str, int]] = {}
+        self.rejected = 0
+        self._udp: asyncio.DatagramTransport | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._ipr: Any = None
+        self._events: Any = None
+        self._reread: asyncio.TimerHandle | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._announce_soon = False
+
+    def next_hop(self, dst: str) -> str | None:
+        """The kernel forwards: a reachable node is reached directly."""
+        return dst if dst in self._routes else None
+
+    async def start(self) -> None:
+        from pyroute2 import AsyncIPRoute  # netlink only here
+
+        self._loop = asyncio.get_running_loop()
+        self._ipr = AsyncIPRoute(netns=self.netns)
+        self._events = AsyncIPRoute(netns=self.netns)
+        await self._events.bind(groups=RTMGRP_IPV4_ROUTE)
+        sock = socket_in_netns(self.netns, socket.AF_INET, socket.SOCK_DGRAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((self.host, self.port))
+        sock.setblocking(False)
+        transport, _ = await self._loop.create_datagram_endpoint(
+            lambda: _Datagrams(self), sock=sock
+        )
+        self._udp = transport
+        await self.reread()
+        self._tasks = [
+            asyncio.create_task(self._follow(), name=f"kernel-routes-{self.node_id}"),
+            asyncio.create_task(self._announce_loop(), name=f"announce-{self.node_id}"),
+        ]
+
+    async def close(self) -> None:
+        for t in self._tasks:
+            t.cancel()
+        for t in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await t
+        if self._reread is not None:
+            self._reread.cancel()
+        if self._udp is not None:
+            self._udp.close()
+        for ipr in (self._ipr, self._events):
+            if ipr is not None:
+                with contextlib.suppress(Exception):
+                    ipr.close()
+
+    # -- the kernel's table ---------------------------------------------------------------
+    async def reread(self) -> None:
+        """Dump the main table and recompute."""
+        table: list[KernelRoute] = []
+        async for r in await self._ipr.route("dump", family=socket.AF_INET, table=MAIN_TABLE):
+            if r["type"] != RTN_UNICAST:
+                continue
+            dst = r.get("dst") or "0.0.0.0"
+            net = ipaddress.IPv4Network(f"{dst}/{r['dst_len']}", strict=False)
+            table.append(KernelRoute(net, r.get("gateway"), r["proto"]))
+        new_dsts = {r.dst for r in table} - {r.dst for r in self.table}
+        self.table = table
+        self._recompute()
+        if new_dsts and self._udp is not None:
+            self.announce()  # a new destination hears of us at once
+
+    async def _follow(self) -> None:
+        while True:
+            got = False
+            async for _msg in self._events.get():
+                got = True
+                self._schedule_reread()
+            if not got:  # the socket closed under us: nothing more will come
+                return
+
+    def _schedule_reread(self) -> None:
+        if self._reread is None and self._loop is not None:
+            self._reread = self._loop.call_later(DEBOUNCE_S, self._do_reread)
+
+    def _do_reread(self) -> None:
+        self._reread = None
+        task = asyncio.ensure_future(self.reread())
+        task.add_done_callback(_log_failure)
+
+    # -- membership -----------------------------------------------------------------------
+    def targets(self) -> set[str]:
+        """Where announcements go: every host route's address and every known member's."""
+        out = {str(r.dst.network_address) for r in self.table if r.dst.prefixlen == 32}
+        out |= {ip for n, (ip, _) in self.book.items() if n != self.node_id}
+        return out
+
+    def announce(self) -> None:
+        if self._udp is None:
+            return
+        msg = Announce(
+            self.node_id,
+            self.port,
+            {d: h for d, (_, h) in self._routes.items()},
+            dict(self.book),
+        )
+        datagram = seal_announce(self.psk, msg)
+        for ip in sorted(self.targets()):
+            port = next((p for n, (a, p) in self.book.items() if a == ip), self.port)
+            with contextlib.suppress(OSError):  # unreachable now: the next round retries
+                self._udp.sendto(datagram, (ip, port))
+
+    async def _announce_loop(self) -> None:
+        while True:
+            self.announce()
+            await asyncio.sleep(self.announce_s)  # a period, not a synchronisation
+
+    def on_announce(self, datagram: bytes, src_ip: str) -> None:
+        msg = open_announce(self.psk, datagram)
+        if msg is None:
+            self.rejected += 1
+            return
+        if msg.node == self.node_id:
+            return
+        changed = self.book.get(msg.node) != (src_ip, msg.port)
+        self.book[msg.node] = (src_ip, msg.port)
+        self._direct.add(msg.node)
+        for node, (ip, port) in msg.book.items():
+            if node != self.node_id and node not in self._direct and node not in self.book:
+                self.book[node] = (ip, port)
+                changed = True
+        hops = {d: h for d, h in msg.hops.items() if isinstance(h, int) and 0 < h <= MAX_HOPS}
+        if self.announced_hops.get(msg.node) != hops:
+            self.announced_hops[msg.node] = hops
+            changed = True
+        if changed:
+            self._recompute()
+
+    def _recompute(self) -> None:
+        routes, reach = resolve(self.node_id, self.table, self.book, self.announced_hops)
+        if routes != self._routes or reach != self._neighbours:
+            hops_changed = {d: h for d, (_, h) in routes.items()} != {
+                d: h for d, (_, h) in self._routes.items()
+            }
+            self.update(reach, routes)
+            if hops_changed and self._loop is not None and not self._announce_soon:
+                # the others count hops through ours: tell them now, once per burst
+                self._announce_soon = True
+                self._loop.call_soon(self._announce_now)
+
+    def _announce_now(self) -> None:
+        self._announce_soon = False
+        self.announce()
+
+    def wait_for(self, predicate: Callable[[KernelRoutes], bool]) -> asyncio.Future[None]:
+        """A future done once ``predicate(self)`` holds after a change (or already does)."""
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[None] = loop.create_future()
+        if predicate(self):
+            fut.set_result(None)
+            return fut
+
+        def check(_: object) -> None:
+            if not fut.done() and predicate(self):
+                fut.set_result(None)
+                unsubscribe()
+
+        unsubscribe = self.subscribe(check)
+        return fut
+
+
+def _log_failure(task: asyncio.Future[None]) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        log.warning("reading the kernel's routes failed: %s", task.exception())

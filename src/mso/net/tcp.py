@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 import zlib
 from collections import deque
 from collections.abc import Callable
@@ -31,7 +32,9 @@ from mso.net.forwarding import RouteWait
 from mso.net.limits import DEFAULT_LIMITS, ConnectionCounters, Limits
 from mso.net.shaping import Link
 from mso.protocol import messages as m
-from mso.protocol.framing import FrameCodec, FramingError
+from mso.protocol.authority import DOCUMENT_MESSAGES, Authority
+from mso.protocol.framing import FrameCodec, FramingError, WrongKey
+from mso.protocol.plausible import implausible
 
 log = logging.getLogger("mso.node")
 
@@ -48,7 +51,9 @@ class Connection(asyncio.Protocol):
 
     def __init__(self, net: TcpTransport, peer: str | None = None) -> None:
         self.net = net
-        self.codec = FrameCodec(net.psk, max_frame=net.limits.max_frame)
+        self.codec = FrameCodec(
+            net.psks, max_frame=net.limits.max_frame, encrypt=net.encrypt, responder=peer is None
+        )
         self.transport: asyncio.Transport | None = None
         self.peer = peer  # neighbour node id once known
         self.client: int | None = None
@@ -88,6 +93,11 @@ class Connection(asyncio.Protocol):
         self.net.counters.bytes_out += len(frame)
         if frame:
             self.transport.write(frame)
+            limit = self.net.limits.max_client_backlog
+            if self.client is not None and self.transport.get_write_buffer_size() > limit:
+                self.net.connection_counters.over_buffer += 1
+                log.warning("closing a client that does not read its replies")
+                self.transport.abort()
 
     def pause_writing(self) -> None:
         self.paused = True
@@ -108,18 +118,30 @@ class Connection(asyncio.Protocol):
             counters.frames_rejected += 1
             log.warning("closing connection: %s", exc)
             assert self.transport is not None
+            if isinstance(exc, WrongKey):
+                self.transport.write(self.codec.refusal())  # the peer learns why
             self.transport.close()
             return
         counters.frames_rejected += self.codec.rejected - rejected
         if flush and self.transport is not None:
             self.transport.write(flush)
+        if not self.net.hold(self, self.codec.buffered):
+            assert self.transport is not None
+            self.transport.abort()
+            return
         for payload in payloads:
             try:
                 env = m.unwrap(payload)
             except (msgspec.DecodeError, msgspec.ValidationError):
                 counters.frames_malformed += 1
                 continue
-            self.net.on_envelope(self, env, len(payload))
+            try:
+                self.net.on_envelope(self, env, len(payload))
+            except Exception as exc:  # a bug costs that frame, never the connection
+                counters.frames_failed += 1
+                log.error(
+                    "handling a frame from %s raised %s: %s", env.src, type(exc).__name__, exc
+                )
 
     def close(self) -> None:
         if self.link is not None:
@@ -145,17 +167,22 @@ class TcpTransport:
         node_id: str,
         host: str,
         port: int,
-        psk: bytes,
+        psk: bytes | list[bytes],
         view: RoutingView,
         limits: Limits = DEFAULT_LIMITS,
+        authority: Authority | None = None,
+        encrypt: bool = False,
     ) -> None:
         self._node_id = node_id
+        self.encrypt = encrypt  # ChaCha20-Poly1305 frames (every member must agree)
         self.limits = limits
+        self.authority = authority or Authority()
         self.connection_counters = ConnectionCounters()
         self.accepted: set[Connection] = set()  # connections others opened to this node
         self.host = host
         self.port = port
-        self.psk = psk
+        # the overlay keys: the first seals new connections, all are accepted (key rotation)
+        self.psks: list[bytes] = [psk] if isinstance(psk, bytes) else list(psk)
         self.view = view
         self.counters: Counters = view.counters
         self.loop = asyncio.get_running_loop()
@@ -170,6 +197,8 @@ class TcpTransport:
         self._on_client: ClientHandler = lambda client, msg: None
         self._closed = False
         self._sweeper: asyncio.TimerHandle | None = None
+        self._held: dict[Connection, int] = {}  # partial frames held, by connection
+        self._held_total = 0
         view.subscribe(self._routes_changed)
 
     @property
@@ -181,6 +210,13 @@ class TcpTransport:
 
     def set_client_handler(self, handler: ClientHandler) -> None:
         self._on_client = handler
+
+    def set_keys(self, keys: list[bytes]) -> None:
+        """Rotate the overlay key: new connections seal with ``keys[0]`` and accept any of
+        them; connections already open keep theirs, so nothing running is disturbed."""
+        if not keys or not all(keys):
+            raise ValueError("an overlay key is required")
+        self.psks = list(keys)
 
     def connected(self) -> list[str]:
         """Neighbours with an open connection."""
@@ -205,6 +241,21 @@ class TcpTransport:
             log.warning("refusing a connection from %s: too many connections", conn.address)
             return False
         self.accepted.add(conn)
+        return True
+
+    def hold(self, conn: Connection, held: int) -> bool:
+        """Note the partial frame ``conn`` holds; False when it must be closed because every
+        connection together holds too much and this one a large share of it."""
+        before = self._held.pop(conn, 0)
+        self._held_total += held - before
+        if held:
+            self._held[conn] = held
+        lim = self.limits
+        if self._held_total > lim.max_buffered and held > lim.max_partial_share:
+            self._held_total -= self._held.pop(conn)
+            self.connection_counters.over_buffer += 1
+            log.warning("closing a connection holding %d bytes of a partial frame", held)
+            return False
         return True
 
     def _sweep(self) -> None:
@@ -312,15 +363,33 @@ class TcpTransport:
             self.clients[conn.client] = conn
             return
         if conn.client is not None:
+            if not self.authority.open or isinstance(msg, m.Authorized):
+                verdict = self.authority.command(conn.codec.nonce, msg)
+                if isinstance(verdict, str):  # counted by the authority, told to the client
+                    # counted in status; at INFO, so a flood of them cannot fill a disk
+                    log.info("client %s: %s", conn.address or "?", verdict)
+                    conn.send_message("client", m.Refused(verdict))
+                    return
+                msg = verdict
             self._on_client(conn.client, msg)
             return
         if conn.peer is None:
             self.counters.frames_malformed += 1  # a peer must say hello first
             return
+        if why := implausible(msg, time.time_ns() // 1_000_000):
+            self.counters.frames_implausible += 1
+            log.info("from %s: %s: %s", env.src, type(msg).__name__, why)
+            return
+        if isinstance(msg, DOCUMENT_MESSAGES) and self.authority.operators:
+            why = self.authority.document(msg.document)
+            if why:  # an app no operator granted: its code is never loaded here
+                log.info("from %s: %s %s: %s", env.src, type(msg).__name__, msg.app, why)
+                return
         self._receiver(env.src, msg)
 
     def on_connection_lost(self, conn: Connection) -> None:
         self.accepted.discard(conn)
+        self._held_total -= self._held.pop(conn, 0)
         if conn.peer is not None and self.peers.get(conn.peer) is conn:
             del self.peers[conn.peer]
             if conn.link is not None:

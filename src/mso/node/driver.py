@@ -12,20 +12,26 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import threading
-from collections.abc import Hashable
+from collections.abc import Callable, Hashable
 from typing import Any
 
+from mso.management import load_policy
+from mso.model.appfile import loads_app
 from mso.net.base import RoutesChanged, RoutingView, encode
 from mso.net.limits import DEFAULT_LIMITS, Limits
 from mso.net.routes_emulator import EmulatorRoutes
 from mso.net.tcp import TcpTransport
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
+from mso.node.device import DeviceProbe
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
-from mso.runtime.executor import ThreadExecutor
+from mso.protocol.authority import Authority
+from mso.runtime.executor import Executor
 
 log = logging.getLogger("mso.node")
+DEVICE_PERIOD_S = 1.0
 
 
 class NodeDriver:
@@ -36,28 +42,39 @@ class NodeDriver:
         core: NodeCore,
         host: str,
         port: int,
-        psk: bytes,
+        psk: bytes | list[bytes],
         view: RoutingView | None = None,
         limits: Limits = DEFAULT_LIMITS,
+        authority: Authority | None = None,
+        encrypt: bool = False,
+        device: DeviceProbe | None = None,
     ) -> None:
         self.core = core
+        # what the OS measures (battery, CPU time, interface bytes), read every second and on
+        # every status request; None keeps the energy model alone (emulation)
+        self.device = device
+        self._device_timer: asyncio.TimerHandle | None = None
         self.loop = asyncio.get_running_loop()
         # without a view of its own the node waits for the emulator's LinkStates
         self.view: RoutingView = view if view is not None else EmulatorRoutes(core.id)
         self.counters = self.view.counters
         # subscribed before the driver: on a change the transport reconnects and releases
         # waiting frames first, then the core hears of the new routes
-        self.transport = TcpTransport(core.id, host, port, psk, self.view, limits)
+        self.authority = authority or Authority()
+        self.transport = TcpTransport(
+            core.id, host, port, psk, self.view, limits, self.authority, encrypt
+        )
         self.transport.set_receiver(self._receive)
         self.transport.set_client_handler(self._request)
         self.view.subscribe(self._routes_changed)
         self._timers: dict[Hashable, asyncio.TimerHandle] = {}
         # vertex code runs in the executor's threads; their results queue here and wake the
         # loop once per burst, not once per result
-        self.executor = ThreadExecutor(self._vertex_result)
+        self.executor = Executor(self._vertex_result)
         self._results: list[fx.VertexResult] = []
         self._results_lock = threading.Lock()
         self.stopped = asyncio.Event()
+        self._warmed: set[int] = set()  # app documents whose imports are done
         core.status_hook = self._link_status
         core.traffic = lambda: (self.counters.bytes_out, self.counters.bytes_in)
         core.clock = self.loop.time
@@ -68,36 +85,90 @@ class NodeDriver:
         return self.transport.server
 
     def _link_status(self) -> dict[str, Any]:
+        self._observe_device()
         return {
             "traffic": self.counters.as_dict(),
             "connections": self.transport.connection_counters.as_dict(),
             "connected": self.transport.connected(),
+            "tasks": len(asyncio.all_tasks(self.loop)),  # a soak watches these for leaks
+            "timers": len(self._timers),
+            "authority": {
+                "mode": "open" if self.authority.open else "signed",
+                "operators": sorted(self.authority.operators),
+                "refused": self.authority.refused,
+            },
         }
+
+    def _observe_device(self) -> None:
+        if self.device is not None:
+            self.core.monitor.observe(self.loop.time(), self.device.read())
+
+    def _device_tick(self) -> None:
+        self._observe_device()
+        self._device_timer = self.loop.call_later(DEVICE_PERIOD_S, self._device_tick)
 
     async def start(self) -> None:
         await self.transport.start()
         self._apply(self.core.start(self.loop.time()))
+        if self.device is not None:
+            self._device_tick()
         if self.view.routes() or self.view.neighbours():  # a static view knows them already
             self._routes_changed(None)
 
     async def stop(self) -> None:
         for t in self._timers.values():
             t.cancel()
+        if self._device_timer is not None:
+            self._device_timer.cancel()
         self.executor.shutdown()
         await self.transport.close()
         self.stopped.set()
 
     # -- inbound ----------------------------------------------------------------------------
     def _receive(self, src: str, msg: m.Message) -> None:
+        if isinstance(msg, m.AppAnnounce | m.AppSync) and msg.app not in self.core.apps:
+            self._warm(msg.document, lambda: self._receive_now(src, msg))
+            return
+        self._receive_now(src, msg)
+
+    def _receive_now(self, src: str, msg: m.Message) -> None:
         self._apply(self.core.receive(src, msg, self.loop.time()))
 
+    def _warm(self, document: str, then: Callable[[], None]) -> None:
+        """Import an app's code, formats and policy in a thread, then hand the message on.
+        The core loads the app on the control plane; with its modules already imported that
+        is quick, while a first import (numpy, scipy: seconds on a small CPU) would stop the
+        heartbeats and get this node declared failed. Messages for the app that overtake it
+        are held by the core until the announcement arrives."""
+
+        key = hash(document)
+        if key in self._warmed:  # imported once already (a redeploy, a rejoin): go on
+            then()
+            return
+
+        def done(_: asyncio.Future[None]) -> None:
+            if len(self._warmed) >= MAX_WARMED:
+                self._warmed.clear()
+            self._warmed.add(key)
+            if not self.stopped.is_set():
+                then()
+
+        self.loop.run_in_executor(None, warm_imports, document).add_done_callback(done)
+
     def _request(self, client: int, msg: m.Message) -> None:
-        if isinstance(msg, m.LinkState):
+        if isinstance(msg, m.DeployRequest):
+            self._warm(
+                msg.document, lambda: self._apply(self.core.request(client, msg, self.loop.time()))
+            )
+        elif isinstance(msg, m.LinkState):
             self.apply_links(msg)
         elif isinstance(msg, m.Shutdown):
             self.loop.create_task(self.stop())
         else:
-            self._apply(self.core.request(client, msg, self.loop.time()))
+            self._request_now(client, msg)
+
+    def _request_now(self, client: int, msg: m.Message) -> None:
+        self._apply(self.core.request(client, msg, self.loop.time()))
 
     def _routes_changed(self, _: RoutesChanged | None) -> None:
         self._apply(self.core.set_routes(dict(self.view.routes()), self.loop.time()))
@@ -166,3 +237,28 @@ async def run_node(core: NodeCore, host: str, port: int, psk: bytes) -> None:
     finally:
         if not driver.stopped.is_set():
             await driver.stop()
+
+
+MAX_WARMED = 256
+PARENT_ENV = "MSO_PARENT_PID"  # set by an emulator for the node processes it starts
+PARENT_CHECK_S = 0.5
+
+
+async def stop_with_parent(driver: NodeDriver, parent: int) -> None:
+    """Stop the node once the process that started it is gone (an emulator killed or crashed:
+    the node is re-parented), so no node process outlives its emulator."""
+    while not driver.stopped.is_set() and os.getppid() == parent:
+        await asyncio.sleep(PARENT_CHECK_S)
+    if not driver.stopped.is_set():
+        await driver.stop()
+
+
+def warm_imports(document: str) -> None:
+    """Import what an app document names (code, formats, its policy), as far as it loads;
+    errors are the core's to report when it loads the app for real."""
+    try:
+        app = loads_app(document, file="<warm>")
+        if app.policy is not None:
+            load_policy(app.policy, where="<warm>")
+    except Exception:  # the core reports it, with the app's name
+        log.debug("warming an app's imports failed", exc_info=True)

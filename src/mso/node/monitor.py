@@ -4,6 +4,11 @@ Fed cumulative counters with the time they were read; keeps the energy spent und
 power model (docs/architecture.md, "Energy model"), a smoothed drain, the expected lifetime
 (remaining energy / recent drain), and the history of neighbour and route changes.
 
+On a device (``mso node`` outside an emulator) the driver also hands it what the OS measures
+(:mod:`mso.node.device`): a battery's charge, charging state and drain replace the modelled
+remaining energy and drain, the process's CPU time gives the measured node load, and the
+interface counters the radio's bytes. ``snapshot()["sources"]`` says which figure is which.
+
 CPU energy is charged, by default, for the *modelled* work of the vertices that ran here: a
 vertex of cost c processing one event is c ms of CPU on a node of ``cpu: 1.0``, so c / cpu ms
 here (stand-in code is cheap, yet the experiment must drain the robot that would do the work).
@@ -20,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from mso.model.network import PowerModel
+from mso.node.device import Battery
 
 # drain and load are means over the last few samples: steady enough for a camera at 0.5
 # frames/s (three frames in the window), quick enough that work moved here is fully seen 6 s
@@ -47,23 +53,76 @@ class Monitor:
     _routes: dict[str, str] = field(default_factory=dict)
     _busy: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
     _watts: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
+    battery: Battery | None = None  # measured by the OS, when the device reports one
+    device: dict[str, Any] = field(default_factory=dict)  # last device reading (measured)
+    _cpu: tuple[float, float] | None = None  # (now, process cpu_s) of the last reading
+    _cpu_load: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
+
+    def observe(self, now: float, reading: dict[str, Any]) -> None:
+        """Take a device reading (:meth:`mso.node.device.DeviceProbe.read`)."""
+        b = reading.get("battery")
+        self.battery = b if isinstance(b, Battery) else None
+        cpu = reading.get("cpu_s")
+        if isinstance(cpu, float):
+            if self._cpu is not None and now > self._cpu[0]:
+                self._cpu_load.append(max(0.0, cpu - self._cpu[1]) / (now - self._cpu[0]))
+            self._cpu = (now, cpu)
+        self.device = {k: v for k, v in reading.items() if k != "battery"}
+        if self._cpu_load:
+            self.device["cpu_load"] = sum(self._cpu_load) / len(self._cpu_load)
+
+    @property
+    def measured_drain_w(self) -> float | None:
+        b = self.battery
+        return None if b is None or b.charging or b.power_w is None else b.power_w
 
     @property
     def capacity_j(self) -> float | None:
+        if self.battery is not None and self.battery.full_j is not None:
+            return self.battery.full_j
         return None if self.battery_wh is None else self.battery_wh * 3600.0
 
     @property
     def remaining_j(self) -> float | None:
         cap = self.capacity_j
+        if cap is not None and self.battery is not None:
+            return cap * self.battery.fraction
         return None if cap is None else max(0.0, cap - self.energy_j)
 
     @property
     def lifetime_s(self) -> float | None:
-        """Expected lifetime at the recent drain; None when wall-powered or not yet known."""
-        rem = self.remaining_j
-        if rem is None or self.drain_w <= 0:
+        """Expected lifetime at the recent drain; None when wall-powered, charging or not yet
+        known. A measured drain is preferred to the model's."""
+        if self.battery is not None and self.battery.charging:
             return None
-        return rem / self.drain_w
+        rem = self.remaining_j
+        drain = self.measured_drain_w or self.drain_w
+        if rem is None or drain <= 0:
+            return None
+        return rem / drain
+
+    def sources(self) -> dict[str, str]:
+        """Which figures the OS measured and which the energy model gives."""
+        b = self.battery
+        if b is not None:
+            battery = f"measured ({b.source})" + (", charging" if b.charging else "")
+            if b.full_j is None and self.battery_wh is not None:
+                battery += "; capacity modelled"
+        else:
+            battery = "modelled" if self.battery_wh is not None else "none (wall power)"
+        return {
+            "battery": battery,
+            "drain": "measured" if self.measured_drain_w is not None else "modelled",
+            "energy": "modelled (power model: idle, "
+            + ("measured vertex CPU time" if self.power.cpu_energy == "measured" else "vertex cost")
+            + ", bytes)",
+            "load": "modelled (vertex cost / cpu); node CPU time measured"
+            if "cpu_load" in self.device
+            else "modelled (vertex cost / cpu)",
+            "vertex_cpu": "measured (thread CPU time per vertex)",
+            "bytes": "measured (sockets)"
+            + ("; interfaces measured" if "iface_tx_bytes" in self.device else ""),
+        }
 
     def sample(
         self, now: float, work_ms: float, bytes_out: int, bytes_in: int, cpu_ms: float = 0.0
@@ -139,4 +198,16 @@ class Monitor:
             "neighbour_changes": self.neighbour_changes,
             "last_route_change": self.last_route_change,
             "recent": [f"{t:.3f} {w}" for t, w in self.events[-5:]],
+            "measured": self._measured(),
+            "sources": self.sources(),
         }
+
+    def _measured(self) -> dict[str, Any]:
+        out = dict(self.device)
+        b = self.battery
+        if b is not None:
+            out["battery_fraction"] = b.fraction
+            out["charging"] = b.charging
+            if b.power_w is not None:
+                out["battery_power_w"] = b.power_w
+        return out

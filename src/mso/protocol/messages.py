@@ -386,6 +386,22 @@ class Shutdown(_Msg, tag="shutdown"):
     pass
 
 
+# -- authority (mso.protocol.authority) -------------------------------------------------------
+class Authorized(_Msg, tag="auth"):
+    """A client command (``body``, an encoded message) signed with the Ed25519 key ``key``
+    (its id) over the node's hello nonce of this connection and ``body``."""
+
+    body: bytes
+    key: str
+    sig: bytes
+
+
+class Refused(_Msg, tag="refused"):
+    """The reply to a client command refused for want of authority, and why."""
+
+    reason: str
+
+
 Message = (
     PeerHello
     | ClientHello
@@ -407,6 +423,8 @@ Message = (
     | StatusReply
     | LinkState
     | Shutdown
+    | Authorized
+    | Refused
     | Marker
     | Prepare
     | Unprepare
@@ -439,7 +457,10 @@ def encode(msg: Message) -> bytes:
 
 def decode(data: bytes | msgspec.Raw) -> Message:
     """Decode and validate a message body; raises msgspec.DecodeError/ValidationError."""
-    return _MESSAGE_DECODER.decode(data)
+    try:
+        return _MESSAGE_DECODER.decode(data)
+    except UnicodeDecodeError as exc:  # msgspec lets an invalid UTF-8 tag through as this
+        raise msgspec.DecodeError(f"invalid UTF-8: {exc.reason}") from None
 
 
 def wrap(src: str, dst: str, msg: Message, ttl: int = 32) -> bytes:
@@ -448,7 +469,10 @@ def wrap(src: str, dst: str, msg: Message, ttl: int = 32) -> bytes:
 
 
 def unwrap(data: bytes) -> Envelope:
-    return _ENVELOPE_DECODER.decode(data)
+    try:
+        return _ENVELOPE_DECODER.decode(data)
+    except UnicodeDecodeError as exc:
+        raise msgspec.DecodeError(f"invalid UTF-8: {exc.reason}") from None
 
 
 def rewrap(env: Envelope) -> bytes:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import queue
 import threading
 from collections.abc import Callable
+from typing import Any
 
 from mso.protocol import effects as fx
 from mso.runtime.worker import VertexWorker
@@ -99,3 +100,46 @@ class ThreadExecutor:
             lane.jobs.put(fx.StopVertex(lane.worker.start.instance, "shutdown"))
         for lane in lanes:
             lane.thread.join(timeout / max(1, len(lanes)))
+
+
+class Executor:
+    """The node's executor: each instance on a thread of this process, or — for a vertex
+    with ``isolation: process`` — in a child process of its own (``mso.runtime.process_lane``,
+    started on first use). One interface for the driver; results go to ``deliver`` either way."""
+
+    def __init__(self, deliver: Callable[[fx.VertexResult], None]) -> None:
+        self.deliver = deliver
+        self.threads = ThreadExecutor(deliver)
+        self.processes: Any = None  # a ProcessExecutor once a vertex asks for one
+        self._in_process: set[int] = set()
+
+    def submit(self, eff: fx.VertexEffect) -> None:
+        if isinstance(eff, fx.StartVertex) and eff.vertex.isolation == "process":
+            try:
+                if self.processes is None:
+                    from mso.runtime.process_lane import ProcessExecutor
+
+                    self.processes = ProcessExecutor(self.deliver)
+                self.processes.submit(eff)
+            except (ValueError, OSError) as exc:  # code given as an object, no process left
+                error = f"cannot start {eff.vertex.id!r} in a process of its own: {exc}"
+                self.deliver(fx.VertexStarted(eff.instance, error=error))
+                return
+            self._in_process.add(eff.instance)
+            return
+        if eff.instance in self._in_process:
+            self.processes.submit(eff)
+            if isinstance(eff, fx.StopVertex):
+                self._in_process.discard(eff.instance)
+            return
+        self.threads.submit(eff)
+
+    @property
+    def instances(self) -> int:
+        return self.threads.instances + len(self._in_process)
+
+    def shutdown(self, timeout: float = 1.0) -> None:
+        self.threads.shutdown(timeout)
+        if self.processes is not None:
+            self.processes.shutdown(timeout)
+        self._in_process.clear()

@@ -8,14 +8,15 @@ radio range. This module only parses; :mod:`mso.scenario.timeline` plays the cha
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from mso.errors import ScenarioError
-from mso.model.mobility import RandomWaypoint
+from mso.model.mobility import Mobility, RandomWaypoint, Trace
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
 from mso.model.yamlfile import Located, load_yaml, load_yaml_file
+from mso.scenario.mobility_import import FORMATS, load_trace
 
 SCENARIO_KEYS = {
     "name",
@@ -28,6 +29,8 @@ SCENARIO_KEYS = {
     "mobility",
 }
 MOBILITY_KEYS = {"model", "area", "speed", "pause_s", "seed", "fixed", "step_s"}
+TRACE_KEYS = {"model", "file", "nodes", "dim", "step_s"}
+MOBILITY_MODELS = ("random_waypoint", *FORMATS)
 CHANGE_KEYS = {"at", "down", "up", "fail", "restart", "partition", "heal", "loss", "between"}
 CHANGE_KINDS = ("up", "down", "fail", "restart", "partition", "heal", "loss")
 MAX_NUMBER = 1e12  # capacities, powers, delays: larger ones only overflow the objectives
@@ -104,7 +107,7 @@ class Scenario:
     radio_range: float | None = None
     file: str | None = None
     changes: list[Change] = field(default_factory=list)
-    mobility: RandomWaypoint | None = None
+    mobility: Mobility | None = None
     mobility_step_s: float = 0.5
     link_template: LinkSpec | None = None
 
@@ -173,10 +176,18 @@ def scenario_from_document(doc: Located) -> Scenario:
                 **r.mapping(own["power"], POWER_KEYS, ("nodes", nid, "power")),
             }
         nodes.append(_node(r, nid, merged, ("nodes", nid)))
-    network = Network(nodes)
     radio_range = None
     if "radio_range" in data:
         radio_range = r.number(data["radio_range"], ("radio_range",), strict=True)
+    trace: Trace | None = None
+    if "mobility" in data:
+        if radio_range is None:
+            raise r.err("mobility needs node positions and a 'radio_range'", ("mobility",))
+        trace = _trace(r, data["mobility"], [n.id for n in nodes])
+    if trace is not None:  # a trace gives the start positions of the nodes it moves
+        starts = trace.start_positions()
+        nodes = [replace(n, pos=starts[n.id]) if n.id in starts else n for n in nodes]
+    network = Network(nodes)
     links = data.get("links")
     if links is not None and radio_range is not None:
         raise r.err("give either 'links' or 'radio_range', not both", ("radio_range",))
@@ -223,11 +234,45 @@ def scenario_from_document(doc: Located) -> Scenario:
         changes=changes,
         link_template=template,
     )
-    if "mobility" in data:
-        if radio_range is None:
-            raise r.err("mobility needs node positions and a 'radio_range'", ("mobility",))
+    if trace is not None:
+        scenario.mobility = trace
+        scenario.mobility_step_s = _step(r, data["mobility"])
+    elif "mobility" in data:
         scenario.mobility, scenario.mobility_step_s = _mobility(r, data["mobility"], network)
     return scenario
+
+
+def _step(r: _Reader, attrs: dict[str, Any]) -> float:
+    return r.number(attrs.get("step_s", 0.5), ("mobility", "step_s"), strict=True)
+
+
+def _trace(r: _Reader, raw: Any, ids: list[str]) -> Trace | None:
+    """The movement file a ``model: ns2`` or ``model: bonnmotion`` mobility names, or None for
+    another model. Its path is relative to the scenario file."""
+    path: tuple[str | int, ...] = ("mobility",)
+    if not isinstance(raw, dict) or raw.get("model") not in FORMATS:
+        return None
+    attrs = r.mapping(raw, TRACE_KEYS, path)
+    file = attrs.get("file")
+    if not isinstance(file, str) or not file:
+        raise r.err(f"expected the path of a movement file, got {file!r}", (*path, "file"))
+    order = attrs.get("nodes", ids)
+    if not (
+        isinstance(order, list) and order and all(isinstance(n, str) and n in ids for n in order)
+    ):
+        raise r.err(
+            f"expected a list of node ids (known: {', '.join(ids)}), got {order!r}",
+            (*path, "nodes"),
+        )
+    if len(set(order)) != len(order):
+        raise r.err(f"a node id is listed twice in {order!r}", (*path, "nodes"))
+    dim = attrs.get("dim", 2)
+    if attrs["model"] != "bonnmotion" and "dim" in attrs:
+        raise r.err("'dim' goes with model: bonnmotion only", (*path, "dim"))
+    if dim not in (2, 3) or isinstance(dim, bool):
+        raise r.err(f"expected dim 2 or 3, got {dim!r}", (*path, "dim"))
+    base = Path(r.doc.file).parent if r.doc.file else Path.cwd()
+    return load_trace(base / file, attrs["model"], list(order), dim=dim)
 
 
 def _mobility(r: _Reader, raw: Any, network: Network) -> tuple[RandomWaypoint, float]:
@@ -235,7 +280,8 @@ def _mobility(r: _Reader, raw: Any, network: Network) -> tuple[RandomWaypoint, f
     attrs = r.mapping(raw, MOBILITY_KEYS, path)
     if attrs.get("model") != "random_waypoint":
         raise r.err(
-            f"expected model: random_waypoint, got {attrs.get('model')!r}", (*path, "model")
+            f"expected model: one of {', '.join(MOBILITY_MODELS)}, got {attrs.get('model')!r}",
+            (*path, "model"),
         )
 
     def pair(key: str) -> tuple[float, float]:

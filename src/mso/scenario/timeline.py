@@ -19,7 +19,7 @@ import heapq
 import itertools
 from dataclasses import dataclass, replace
 
-from mso.model.mobility import WaypointTracks
+from mso.model.mobility import Trace, Tracks, tracks_for
 from mso.model.network import LinkSpec, Network
 from mso.scenario.format import (
     Change,
@@ -91,12 +91,15 @@ class Timeline:
         self._n = itertools.count()
         for c in scenario.changes if changes else []:
             self.add(c)
-        self._tracks: WaypointTracks | None = None
+        self._tracks: Tracks | None = None
+        self._moves_until: float | None = None  # a trace ends; random waypoint does not
         self._next_move: float | None = None
         sc = scenario
         if mobility and sc.mobility is not None and sc.radio_range is not None:
             starts = {n: s.pos for n, s in self.network.nodes.items() if s.pos is not None}
-            self._tracks = WaypointTracks(sc.mobility, starts)
+            self._tracks = tracks_for(sc.mobility, starts)
+            if isinstance(sc.mobility, Trace):
+                self._moves_until = sc.mobility.end
             self._next_move = sc.mobility_step_s
         self.positions: dict[str, tuple[float, float]] = {}
 
@@ -126,6 +129,8 @@ class Timeline:
                 self.positions = self._tracks.positions(move)
                 self._relink(self.positions, self.scenario.radio_range)
                 self._next_move = move + self.scenario.mobility_step_s
+                if self._moves_until is not None and move >= self._moves_until:
+                    self._next_move = None  # the trace is over: every node stays put
                 out += self._sync(move, "mobility")
             else:
                 break

@@ -1,0 +1,236 @@
+"""``mso emulate --backend netns``: the scenario on the namespace testbed, with a real routing
+daemon — the path a real deployment takes.
+
+Each node is the ordinary ``mso node`` daemon started inside its own network namespace with
+``--routes kernel``: it reads the routes babeld installs in its namespace and finds the other
+nodes by their announcements, and the kernel forwards multi-hop traffic. The controller keeps
+the user-space emulator's interface (:class:`~mso.emu.controller.Emulator`: deploy, status,
+kill, restart, play the timeline) but carries out link changes as nftables set updates on the
+testbed's bridge instead of LinkStates, and leaves routes to babeld: ``--convergence`` does not
+apply; the daemon's own convergence is what the middleware sees.
+
+It talks to every node over a socket made inside the node's namespace (to 127.0.0.1 there), so
+nothing outside the testbed's namespaces is contacted and the controller's traffic never
+touches the emulated radio. The testbed is torn down on every exit path (stop, Ctrl-C, an
+exception, interpreter exit, SIGTERM); what a killed controller leaves, the next run or
+``mso emulate --cleanup`` removes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import atexit
+import contextlib
+import os
+import secrets
+import shutil
+import subprocess
+import tempfile
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mso.client import Client
+from mso.emu.controller import EmulatedNode, Emulator
+from mso.emu.netns.testbed import Testbed, unavailable
+from mso.emu.overlays import _claim
+from mso.errors import MsoError
+from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
+from mso.protocol import messages as m
+
+NODE_PORT = 7000
+HEARTBEAT_NETNS_S = 0.2
+DEAD_AFTER_NETNS_S = 3.0
+"""babeld takes 1.6-2.8 s to re-route after a link break (its feasibility condition makes it ask
+the destination for a new sequence number), and the route is *missing* meanwhile: a failure
+timeout shorter than that declares live nodes failed (and they drop their apps when they hear
+it). So on this backend a node is declared failed after 3 s of silence unless told otherwise."""
+
+
+class NamespacesUnavailable(MsoError):
+    """Network namespaces (or babeld) cannot be used here; the user-space backend can."""
+
+
+def check_available() -> None:
+    """Raise :class:`NamespacesUnavailable` saying why the netns backend cannot run here."""
+    why = unavailable()
+    if why is None and shutil.which("babeld") is None:
+        why = "babeld is not installed (Debian: apt-get install babeld, or `make netns-deps`)"
+    if why is None and shutil.which("tc") is None:
+        why = "tc (iproute2) is not installed"
+    if why is not None:
+        raise NamespacesUnavailable(f"the netns backend cannot run here: {why}")
+
+
+@dataclass
+class NetnsEmulator(Emulator):
+    """An :class:`Emulator` whose nodes live in network namespaces and route with babeld."""
+
+    testbed: Testbed | None = None
+    babeld: dict[str, subprocess.Popen[bytes]] = field(default_factory=dict)
+    rates: dict[str, float | None] = field(default_factory=dict)
+
+    async def start(self, timeout: float = 30.0) -> None:
+        check_available()
+        names = list(self.scenario.network.nodes)
+        if self.heartbeat_s is None and self.dead_after_s is None:
+            self.heartbeat_s, self.dead_after_s = HEARTBEAT_NETNS_S, DEAD_AFTER_NETNS_S
+        self.name = _claim(self.name, self.scenario.name)
+        if not (self.key or os.environ.get("MSO_KEY")):
+            # nodes listen on their namespace's address, where the development key is refused:
+            # a fresh key for this run (the controller passes it to every node)
+            self.key = secrets.token_hex(16)
+        hb, da = self.heartbeat_s, self.dead_after_s
+        if hb is not None or da is not None:
+            why = check_timing(
+                HEARTBEAT_S if hb is None else hb, DEAD_AFTER_S if da is None else da
+            )
+            if why:
+                raise MsoError(why)
+        if self.log_dir is None:
+            self.log_dir = Path(tempfile.mkdtemp(prefix="mso-netns-"))
+            self._own_logs = True
+        self.testbed = tb = Testbed(names)
+        atexit.register(tb.teardown)  # an interpreter exit the finally below did not see
+        try:
+            await asyncio.to_thread(tb.build)
+            self._shape()
+            await self.push_links(routes=True)
+            env = self._env()
+            for name in names:
+                self.nodes[name] = EmulatedNode(name, tb.address(name), NODE_PORT)
+                self._start_babeld(name)
+                self._spawn(name, env)
+            await asyncio.gather(*(self._connect(n, timeout) for n in self.nodes.values()))
+            await self.wait_links(timeout)
+        except BaseException:
+            await self.stop()
+            raise
+        self._watch_task = asyncio.create_task(self._watch())
+        self.write_state()
+
+    # -- processes ------------------------------------------------------------------------
+    def _node_command(self, name: str) -> list[str]:
+        cmd = super()._node_command(name)
+        i = cmd.index("--listen")
+        cmd[i + 1] = f"0.0.0.0:{NODE_PORT}"
+        cmd[cmd.index("--energy") + 1] = "interfaces"  # each node's eth0 is its own radio
+        return [*cmd, "--routes", "kernel"]
+
+    def _spawn(self, name: str, env: dict[str, str]) -> None:
+        assert self.testbed is not None and self.log_dir is not None
+        node = self.nodes[name]
+        node.log = self.log_dir / f"{name}.log"
+        node.process = self.testbed.popen(name, self._node_command(name), node.log, env)
+
+    def _start_babeld(self, name: str) -> None:
+        assert self.testbed is not None and self.log_dir is not None
+        old = self.babeld.get(name)
+        if old is not None and old.poll() is None:
+            return
+        self.babeld[name] = self.testbed.babeld(name, self.log_dir)
+
+    def client_for(self, node: EmulatedNode, psk: bytes, name: str = "emulator") -> Client:
+        """A client connecting from inside the node's namespace, to 127.0.0.1 there."""
+        assert self.testbed is not None
+        return Client(
+            "127.0.0.1", node.port, psk, name, signer=self.signer, encrypt=self.encrypt,
+            netns=self.testbed.netns(node.id),
+        )  # fmt: skip
+
+    def kill(self, node: str) -> float:
+        """Fail-stop the device: its node process and its routing daemon (by PID)."""
+        at = super().kill(node)
+        proc = self.babeld.get(node)
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=5)
+        return at
+
+    async def restart(self, node: str, timeout: float = 30.0) -> None:
+        if node in self.nodes:
+            self._start_babeld(node)
+        await super().restart(node, timeout)
+
+    # -- links ----------------------------------------------------------------------------
+    def _shape(self) -> None:
+        """Each node's radio gets the fastest rate of its links (tbf on its egress)."""
+        assert self.testbed is not None
+        net = self.scenario.network
+        template = self.scenario.link_template
+        for n in net.nodes:
+            rates = [
+                s.bandwidth_mbps
+                for (a, b), s in net.links.items()
+                if n in (a, b) and s.bandwidth_mbps is not None
+            ]
+            rate = max(rates) if rates else (template.bandwidth_mbps if template else None)
+            self.testbed.shape(n, rate)
+            self.rates[n] = rate
+
+    async def push_links(self, routes: bool) -> None:
+        """Make the bridge's filter show the scenario's current links (babeld does the rest)."""
+        assert self.testbed is not None
+        self.version += 1
+        links = self.scenario.network.links
+        self.testbed.set_links(links, {k: s.loss for k, s in links.items()})
+
+    async def _links_changed(self) -> None:
+        await self.push_links(routes=True)
+
+    def reachable(self, node: str) -> set[str]:
+        """The nodes ``node`` can reach over the scenario's current links."""
+        net = self.scenario.network
+        seen, todo = {node}, deque([node])
+        while todo:
+            for n in net.neighbours(todo.popleft()):
+                if n not in seen and n not in self.dead:
+                    seen.add(n)
+                    todo.append(n)
+        return seen - {node}
+
+    async def wait_links(self, timeout: float = 30.0) -> None:
+        """Wait until every node has a connection to each node it can reach: babeld has
+        converged and the kernel views have learned every id."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        for name in self.live():
+            while True:
+                reply = await self.call(name, m.StatusRequest(), 5.0)
+                assert isinstance(reply, m.StatusReply)
+                connected = set(reply.nodes[name].get("connected", []))
+                if self.reachable(name) <= connected:
+                    break
+                if loop.time() > deadline:
+                    raise MsoError(
+                        f"node {name} did not reach {sorted(self.reachable(name) - connected)} "
+                        f"within {timeout:g} s; see {self.log_dir}"
+                    )
+                await asyncio.sleep(0.05)
+
+    def address(self, node: str) -> str:
+        """``NETNS@127.0.0.1:PORT``: the node as seen from inside its namespace, which is how
+        `mso status` / `mso deploy` in another terminal reach it (give them the overlay key:
+        --key or $MSO_KEY, since a run without one makes up its own)."""
+        n = self.nodes.get(node)
+        if n is None or self.testbed is None:
+            raise MsoError(f"unknown node {node!r} (nodes: {', '.join(self.nodes)})")
+        return f"{self.testbed.netns(node)}@127.0.0.1:{n.port}"
+
+    def counters(self, node: str) -> dict[str, int]:
+        """The kernel's byte and packet counters of ``node``'s radio (eth0)."""
+        assert self.testbed is not None
+        return self.testbed.counters(node)
+
+    async def stop(self, grace: float = 3.0) -> None:
+        try:
+            await super().stop(grace)
+        finally:
+            for proc in self.babeld.values():
+                if proc.poll() is None:
+                    proc.kill()
+                with contextlib.suppress(Exception):
+                    proc.wait(timeout=5)
+            if self.testbed is not None:
+                self.testbed.teardown()
+                atexit.unregister(self.testbed.teardown)

@@ -1,0 +1,223 @@
+"""Operator authority, distinct from overlay membership.
+
+The overlay key (:mod:`mso.protocol.framing`) makes a device a *member*: it may relay, host
+vertices and take part in the procedures. Changing what runs needs more: commands that deploy,
+undeploy, relocate, remap or shut a node down, and the emulator's LinkStates, must be signed
+with an Ed25519 key whose public half the node was configured with: an *operator* key
+(``mso node --operator-key``), or the key of the emulator that started the node (for its
+LinkStates and Shutdowns). A captured robot holds the overlay key but no operator key: it can
+neither deploy code, nor stop nodes, nor rewrite their routes.
+
+Two signed forms:
+
+- a command from a client is wrapped in :class:`~mso.protocol.messages.Authorized`, signed over
+  the *node's* hello nonce of that connection and the command's bytes, so it cannot be replayed
+  on another connection or to another node;
+- an app document carries a *grant* as its last line (a YAML comment, so line numbers in error
+  messages stay the same): the signature of the text before it. It travels verbatim in
+  ``AppAnnounce`` and ``AppSync``, and every node verifies it before it loads the document.
+
+Sans-IO: keys in, verdicts out. Without any key configured a node is in open mode: the overlay
+key is all there is (development, the tests' emulator).
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives.asymmetric.ed25519 import (
+    Ed25519PrivateKey,
+    Ed25519PublicKey,
+)
+
+from mso.protocol import messages as m
+
+PUBLIC_PREFIX = "mso-ed25519-pub:"
+PRIVATE_PREFIX = "mso-ed25519-key:"
+GRANT = "\n# mso-grant: "
+_CMD = b"mso-command-1"
+_DOC = b"mso-document-1"
+
+# client commands that change an overlay: an operator's (or the node's emulator's) signature
+OPERATOR_COMMANDS = (m.DeployRequest, m.StopApp, m.RelocateRequest, m.RemapRequest, m.Shutdown)
+# the emulator's own: only it (or an operator) may set a node's links and routes
+EMULATOR_COMMANDS = (m.LinkState, m.Shutdown)
+# peer messages that carry an app document (code to import): its grant is checked
+DOCUMENT_MESSAGES = (m.AppAnnounce, m.AppSync)
+
+
+class KeyError_(ValueError):
+    """A key text or file that is not an mso Ed25519 key."""
+
+
+def key_id(public: Ed25519PublicKey) -> str:
+    raw = public.public_bytes_raw()
+    return hashlib.blake2b(raw, digest_size=6).hexdigest()
+
+
+def public_text(public: Ed25519PublicKey) -> str:
+    return PUBLIC_PREFIX + base64.b64encode(public.public_bytes_raw()).decode()
+
+
+def _text_or_file(text: str) -> str:
+    """A key given inline, or the path of a file holding it."""
+    t = text.strip()
+    if t.startswith((PUBLIC_PREFIX, PRIVATE_PREFIX)):
+        return t
+    p = Path(t)
+    try:
+        if p.is_file() and p.stat().st_size < 4096:
+            return p.read_text(encoding="utf-8").strip()
+    except OSError:
+        pass
+    raise KeyError_(f"expected a key '{PUBLIC_PREFIX}...' or a file holding one, got {text!r}")
+
+
+def parse_public(text: str) -> Ed25519PublicKey:
+    t = _text_or_file(text)
+    if t.startswith(PRIVATE_PREFIX):  # the public half of a private key file is fine too
+        return parse_private(t).public_key()
+    try:
+        raw = base64.b64decode(t.removeprefix(PUBLIC_PREFIX), validate=True)
+        return Ed25519PublicKey.from_public_bytes(raw)
+    except ValueError:
+        raise KeyError_(f"not an Ed25519 public key: {text!r}") from None
+
+
+def parse_private(text: str) -> Ed25519PrivateKey:
+    t = _text_or_file(text)
+    if not t.startswith(PRIVATE_PREFIX):
+        raise KeyError_("expected a private key file (made by `mso keygen`)")
+    try:
+        raw = base64.b64decode(t.removeprefix(PRIVATE_PREFIX), validate=True)
+        return Ed25519PrivateKey.from_private_bytes(raw)
+    except ValueError:
+        raise KeyError_("not an Ed25519 private key") from None
+
+
+class Signer:
+    """Holds a private key: signs commands for one connection and app documents."""
+
+    def __init__(self, private: Ed25519PrivateKey | None = None) -> None:
+        self.private = private or Ed25519PrivateKey.generate()
+        self.public = self.private.public_key()
+        self.id = key_id(self.public)
+        self.signs = OPERATOR_COMMANDS + EMULATOR_COMMANDS  # what a client signs with it
+
+    @classmethod
+    def load(cls, text: str) -> Signer:
+        return cls(parse_private(text))
+
+    def private_text(self) -> str:
+        return PRIVATE_PREFIX + base64.b64encode(self.private.private_bytes_raw()).decode()
+
+    def public_text(self) -> str:
+        return public_text(self.public)
+
+    def command(self, node_nonce: bytes, msg: m.Message) -> m.Authorized:
+        body = m.encode(msg)
+        sig = self.private.sign(_CMD + node_nonce + body)
+        return m.Authorized(body=body, key=self.id, sig=sig)
+
+    def grant(self, document: str) -> str:
+        """``document`` with its grant line appended (an earlier grant is replaced)."""
+        text = strip_grant(document)
+        sig = self.private.sign(_DOC + text.encode())
+        return f"{text}{GRANT}{self.id} {base64.b64encode(sig).decode()}\n"
+
+
+def strip_grant(document: str) -> str:
+    text, sep, _ = document.rpartition(GRANT)
+    return text if sep else document
+
+
+@dataclass
+class Authority:
+    """What a node accepts: the operator keys and its emulator's key it was configured with."""
+
+    operators: dict[str, Ed25519PublicKey] = field(default_factory=dict)
+    emulator: Ed25519PublicKey | None = None
+    refused: int = 0  # commands and documents refused for want of authority
+
+    @classmethod
+    def configure(cls, operators: list[str], emulator: str | None = None) -> Authority:
+        auth = cls({}, parse_public(emulator) if emulator else None)
+        for text in operators:
+            pub = parse_public(text)
+            auth.operators[key_id(pub)] = pub
+        return auth
+
+    @classmethod
+    def from_env(cls, operators: list[str]) -> Authority:
+        """Operator keys given, plus the emulator's key if an emulator started this node."""
+        return cls.configure(operators, os.environ.get("MSO_EMULATOR_KEY") or None)
+
+    @property
+    def open(self) -> bool:
+        return not self.operators and self.emulator is None
+
+    def _signers(self, msg: m.Message) -> dict[str, Ed25519PublicKey] | None:
+        """Who may sign ``msg``; None when it needs no signature on this node."""
+        em = {key_id(self.emulator): self.emulator} if self.emulator is not None else {}
+        if isinstance(msg, EMULATOR_COMMANDS) and (em or self.operators):
+            return {**self.operators, **em}
+        if isinstance(msg, OPERATOR_COMMANDS) and self.operators:
+            return {**self.operators, **em}
+        return None
+
+    def command(self, node_nonce: bytes, msg: m.Message) -> m.Message | str:
+        """The command a client may carry out, or why it is refused."""
+        inner = msg
+        if isinstance(msg, m.Authorized):
+            try:
+                inner = m.decode(msg.body)
+            except Exception:
+                return self._refuse("a signed command that does not decode")
+            if isinstance(inner, m.Authorized):
+                return self._refuse("a signed command inside a signed command")
+            signers = self._signers(inner)
+            if signers is None:  # this node needs no signature for it: the command as it is
+                return inner
+            pub = signers.get(msg.key)
+            if pub is None:
+                return self._refuse(f"key {msg.key} has no authority on this node")
+            try:
+                pub.verify(msg.sig, _CMD + node_nonce + msg.body)
+            except InvalidSignature:
+                return self._refuse("bad signature (not made for this connection)")
+        elif self._signers(msg) is not None:
+            return self._refuse(
+                f"{type(msg).__name__} needs an operator's signature on this node "
+                "(give --sign KEYFILE or set $MSO_SIGN)"
+            )
+        if isinstance(inner, m.DeployRequest) and self.operators:
+            why = self.document(inner.document)
+            if why:
+                return why
+        return inner
+
+    def document(self, document: str) -> str:
+        """'' when ``document`` carries a valid operator grant (or none is needed)."""
+        if not self.operators:
+            return ""
+        text, sep, grant = document.rpartition(GRANT)
+        if not sep:
+            return self._refuse("the app document carries no operator grant")
+        kid, _, sig = grant.strip().partition(" ")
+        pub = self.operators.get(kid)
+        if pub is None:
+            return self._refuse(f"the app document's grant is by key {kid}, not an operator's")
+        try:
+            pub.verify(base64.b64decode(sig, validate=True), _DOC + text.encode())
+        except (InvalidSignature, ValueError):
+            return self._refuse("the app document's grant does not match it")
+        return ""
+
+    def _refuse(self, why: str) -> str:
+        self.refused += 1
+        return f"refused: {why}"

@@ -1,0 +1,159 @@
+"""The kernel routing view: resolution by id (pure), announcements, and the real thing over
+netlink in three network namespaces this test builds (a line A-B-C with static routes)."""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import os
+import shutil
+import subprocess
+from collections.abc import Iterator
+
+import pytest
+
+from mso.net.base import Neighbour
+from mso.net.routes_kernel import (
+    Announce,
+    KernelRoute,
+    KernelRoutes,
+    open_announce,
+    resolve,
+    seal_announce,
+)
+
+PSK = b"k" * 32
+
+
+def _r(dst: str, gw: str | None = None, proto: int = 42) -> KernelRoute:
+    return KernelRoute(ipaddress.IPv4Network(dst), gw, proto)
+
+
+def test_resolve_names_next_hops_and_counts_hops() -> None:
+    book = {"A": ("10.0.0.1", 7000), "B": ("10.0.0.2", 7000), "C": ("10.0.0.3", 7001)}
+    table = [
+        _r("10.0.0.0/24", proto=2),  # connected subnet: says nothing about who hears whom
+        _r("10.0.0.2/32", "10.0.0.2"),
+        _r("10.0.0.3/32", "10.0.0.2"),
+    ]
+    routes, reach = resolve("A", table, book, {"B": {"C": 1, "A": 1}})
+    assert routes == {"B": ("B", 1), "C": ("B", 2)}
+    assert reach == {"B": Neighbour("10.0.0.2", 7000), "C": Neighbour("10.0.0.3", 7001)}
+    # without B's announcement A still routes to C, assuming the shortest unknown distance
+    assert resolve("A", table, book, {})[0]["C"] == ("B", 2)
+    # a route whose gateway has not announced itself is not usable yet
+    assert resolve("A", table, {"A": book["A"], "C": book["C"]}, {})[0] == {}
+    # a subnet route via a gateway covers its members; a route with no gateway is a neighbour
+    routes, _ = resolve("A", [_r("10.0.0.0/30", "10.0.0.2"), _r("10.0.0.3/32")], book, {})
+    assert routes == {"B": ("B", 1), "C": ("C", 1)}
+
+
+def test_announcements_are_authenticated_and_validated() -> None:
+    msg = Announce("B", 7000, {"C": 1}, {"C": ("10.0.0.3", 7000)})
+    sealed = seal_announce(PSK, msg)
+    assert open_announce(PSK, sealed) == msg
+    assert open_announce(b"x" * 32, sealed) is None  # another overlay's key
+    assert open_announce(PSK, sealed[:-1] + b"\x00") is None  # tampered
+    assert open_announce(PSK, b"short") is None
+    bad = Announce("B", 7000, {}, {"C": ("not-an-ip", 1)})
+    assert open_announce(PSK, seal_announce(PSK, bad)) is None
+
+
+def test_view_learns_members_from_announcements() -> None:
+    view = KernelRoutes("A", 7000, PSK)
+    view.table = [_r("10.0.0.2/32", "10.0.0.2"), _r("10.0.0.3/32", "10.0.0.2")]
+    seen: list[dict[str, tuple[str, int]]] = []
+    view.subscribe(lambda ev: seen.append(dict(ev.routes)))
+    # B announces itself (and knows C): A learns both addresses, routes to both
+    msg = Announce("B", 7000, {"C": 1}, {"C": ("10.0.0.3", 7000)})
+    view.on_announce(seal_announce(PSK, msg), "10.0.0.2")
+    assert view.routes() == {"B": ("B", 1), "C": ("B", 2)}
+    assert view.next_hop("C") == "C"  # the kernel forwards: the transport goes straight there
+    assert view.next_hop("Z") is None
+    view.on_announce(seal_announce(PSK, msg), "10.0.0.2")  # nothing new: no event
+    view.on_announce(b"\x00" * 40, "10.0.0.9")
+    assert len(seen) == 1 and view.rejected == 1
+
+
+def _root_netns_reason() -> str | None:
+    if os.geteuid() != 0:
+        return "needs root to create network namespaces (CI runs as root)"
+    if shutil.which("ip") is None:
+        return "needs iproute2's ip command"
+    probe = subprocess.run(["ip", "netns", "add", "mso-t11-probe"], capture_output=True)
+    if probe.returncode != 0:
+        return f"network namespaces unavailable: {probe.stderr.decode().strip()}"
+    subprocess.run(["ip", "netns", "del", "mso-t11-probe"], capture_output=True)
+    return None
+
+
+_REASON = _root_netns_reason()
+
+
+def _ip(*args: str) -> None:
+    subprocess.run(["ip", *args], check=True, capture_output=True)
+
+
+@pytest.fixture
+def line3() -> Iterator[list[str]]:
+    """Namespaces A - B - C joined by veth pairs, /32 addresses, static host routes."""
+    tag = f"mso-kt{os.getpid() % 10000}"
+    names = [f"{tag}-{n}" for n in "ABC"]
+    try:
+        for ns in names:
+            _ip("netns", "add", ns)
+            _ip("-n", ns, "link", "set", "lo", "up")
+        a, b, c = names
+        _ip("-n", a, "link", "add", "eth0", "type", "veth", "peer", "name", "ea", "netns", b)
+        _ip("-n", c, "link", "add", "eth0", "type", "veth", "peer", "name", "ec", "netns", b)
+        for ns, dev, ip in ((a, "eth0", 1), (b, "ea", 2), (b, "ec", 2), (c, "eth0", 3)):
+            _ip("-n", ns, "addr", "add", f"10.77.0.{ip}/32", "dev", dev)
+            _ip("-n", ns, "link", "set", dev, "up")
+        subprocess.run(
+            ["ip", "netns", "exec", b, "sysctl", "-qw", "net.ipv4.ip_forward=1"], check=True
+        )
+        _ip("-n", a, "route", "add", "10.77.0.2/32", "dev", "eth0", "proto", "static")
+        _ip("-n", a, "route", "add", "10.77.0.3/32", "via", "10.77.0.2", "dev", "eth0", "onlink")
+        _ip("-n", b, "route", "add", "10.77.0.1/32", "dev", "ea", "proto", "static")
+        _ip("-n", b, "route", "add", "10.77.0.3/32", "dev", "ec", "proto", "static")
+        _ip("-n", c, "route", "add", "10.77.0.2/32", "dev", "eth0", "proto", "static")
+        _ip("-n", c, "route", "add", "10.77.0.1/32", "via", "10.77.0.2", "dev", "eth0", "onlink")
+        yield names
+    finally:
+        for ns in names:
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+@pytest.mark.skipif(_REASON is not None, reason=_REASON or "")
+def test_kernel_view_over_netlink_follows_route_changes(line3: list[str]) -> None:
+    async def main() -> None:
+        views = [
+            KernelRoutes(n, 7411, PSK, netns=ns, announce_s=0.2)
+            for n, ns in zip("ABC", line3, strict=True)
+        ]
+        for v in views:
+            await v.start()
+        a = views[0]
+        try:
+            want = {"B": ("B", 1), "C": ("B", 2)}
+            await asyncio.wait_for(a.wait_for(lambda v: dict(v.routes()) == want), 10)
+            assert a.neighbours()["C"] == Neighbour("10.77.0.3", 7411)
+            # a route the daemon withdraws is gone at once (an event, not a poll)
+            _ip("-n", line3[0], "route", "del", "10.77.0.3/32")
+            await asyncio.wait_for(a.wait_for(lambda v: "C" not in v.routes()), 5)
+            _ip("-n", line3[0], "route", "add", "10.77.0.3/32", "via", "10.77.0.2", "dev", "eth0",
+                "onlink")  # fmt: skip
+            await asyncio.wait_for(a.wait_for(lambda v: dict(v.routes()) == want), 5)
+        finally:
+            for v in views:
+                await v.close()
+
+    asyncio.run(main())
+
+
+def test_netns_addresses_split() -> None:
+    from mso.client import split_netns
+
+    assert split_netns("mso-1-n2@127.0.0.1:7000") == ("mso-1-n2", "127.0.0.1:7000")
+    assert split_netns("10.0.0.1:7000") == (None, "10.0.0.1:7000")
+    assert split_netns("@127.0.0.1:7000") == (None, "@127.0.0.1:7000")
