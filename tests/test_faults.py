@@ -341,3 +341,17 @@ def test_a_sync_older_than_a_moved_does_not_undo_it() -> None:
     moved = placed | {"mid": "N4"}
     core.receive("N4", m.AppSync("pipe", "N2", doc, 0, moved, []), 1.3)  # N4 runs it
     assert core.apps["pipe"].placed["mid"] == "N4"
+
+
+def test_a_beat_from_an_incarnation_that_has_since_reset_resets_nobody() -> None:
+    """N6's last beat before its reset (it held N3 failed) arrives after its first beat as
+    incarnation 1: it must not make N3, which holds N6 alive, reset too (a cascade of such
+    stale beats once reset every node of a healed partition, and the app was gone)."""
+    import msgspec
+
+    core = NodeCore("N3")
+    core.set_routes({"N6": ("N6", 1)}, 0.0)
+    core.receive("N6", NodeCore("N6", incarnation=1)._beat(), 1.0)
+    stale = msgspec.structs.replace(NodeCore("N6")._beat(), dead={"N3": 0})
+    core.receive("N6", stale, 1.001)
+    assert core.incarnation == 0 and not core.dead

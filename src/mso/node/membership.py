@@ -140,6 +140,9 @@ class Membership(Remapping):
             self._on_node_down(src, self.id, now)
             self._rejoin(src, msg.incarnation, now, announce=True)
             return
+        if known is not None and msg.incarnation < known:
+            return  # sent before it reset or restarted (it overtook nothing): what it holds
+            # failed and whom it outranks are gone with that incarnation
         self._incarnations[src] = msg.incarnation
         for node, inc in msg.dead.items():  # a node we never heard of (we restarted since)
             if node != self.id:  # failed in that incarnation: a newer one will be a restart,
@@ -160,6 +163,8 @@ class Membership(Remapping):
     def _on_dead_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
         """A node we declared failed is heard again: it restarted (a higher incarnation), or
         a partition healed. Then the side that loses the tie-break resets and rejoins."""
+        if msg.incarnation < self._incarnations.get(src, msg.incarnation):
+            return  # from an incarnation that has since reset: it must not reset us
         if msg.incarnation > self._dead_incarnation.get(src, 0):
             self._rejoin(src, msg.incarnation, now, announce=True)
         elif msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
