@@ -355,3 +355,26 @@ def test_a_beat_from_an_incarnation_that_has_since_reset_resets_nobody() -> None
     stale = msgspec.structs.replace(NodeCore("N6")._beat(), dead={"N3": 0})
     core.receive("N6", stale, 1.001)
     assert core.incarnation == 0 and not core.dead
+
+
+def test_a_restarted_node_that_held_everyone_failed_resets_nobody_that_runs_something() -> None:
+    """N3 restarts while cut off and holds N1 and N2 failed; when the cut heals the others
+    see it rejoin and hold it alive. Its claim that they failed must not reset N1, which runs
+    the whole app (it once reset every node N3 met): N3, which runs nothing, yields."""
+    sim = deployed_on_a_line()
+    sim.run_until(2.0)
+    sim.network.remove_link("N2", "N3")
+    sim.kill("N3")
+    sim.run_until(sim.now + 0.1)
+    sim.revive("N3")  # alone: no links; told by a node of its side that N1 and N2 failed
+    for n in ("N1", "N2"):
+        sim.cores["N3"].receive("N4", m.NodeDown(n, "N4", 0), sim.now)
+    sim.run_until(sim.now + 1.0)
+    assert sim.cores["N3"].dead == {"N1", "N2"}
+    sim.network.add_link(LinkSpec("N2", "N3", delay_ms=1.0))
+    sim.update_routes()
+    sim.run_until(sim.now + 3.0)
+    assert all(not c.dead for c in sim.cores.values())
+    assert sim.cores["N1"].incarnation == 0
+    assert set(sim.cores["N1"].apps["pipe"].stones) == {"src", "mid", "sink"}
+    assert not sim.cores["N1"].apps["pipe"].parked

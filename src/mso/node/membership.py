@@ -149,8 +149,11 @@ class Membership(Remapping):
                 self._incarnations.setdefault(node, inc)  # whose instances are gone
         if self.routes.get(src, ("", 0))[0] == src:  # a neighbour's beat, not a hello
             self.liveness.heard_from(src, now, msg)
-        if msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
-            self._reset(now, src)
+        if msg.dead.get(self.id) == self.incarnation:
+            if self._outranked_by(msg):
+                self._reset(now, src)
+            else:  # it runs nothing and holds us failed: our beat (we run something, and
+                self._send(src, self._beat())  # hold it alive) makes it yield
         else:
             self._answer_stale_claim(src, msg)
 
@@ -169,6 +172,9 @@ class Membership(Remapping):
             self._rejoin(src, msg.incarnation, now, announce=True)
         elif msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
             self._reset(now, src)
+        elif self.id not in msg.dead and msg.hosting > 0 and self._hosting() == 0:
+            self._reset(now, src)  # it holds us alive and runs something we hold failed: we
+            # run nothing, so we yield (it does not reset for us: see _outranked_by)
         else:
             self._answer_stale_claim(src, msg)
 
@@ -181,9 +187,11 @@ class Membership(Remapping):
         that counts fewer failed nodes (the larger one), then the one with the lower leader,
         then the lower-named node, stays and the other resets (two nodes of one side that
         hold each other failed — not neighbours, each cut off by other failures — would
-        otherwise tie for ever). One-sided (we hold the sender alive), we reset."""
+        otherwise tie for ever). One-sided (we hold the sender alive), we reset, unless the
+        sender runs nothing and we run something: it yields instead (``_on_dead_heartbeat``;
+        a restarted node that held everyone failed once reset every node it met)."""
         if msg.node not in self.dead:
-            return True
+            return not (msg.hosting == 0 and self._hosting() > 0)
 
         def rank(hosting: int, dead: int, leader: str, node: str) -> tuple[bool, int, str, str]:
             return (hosting == 0, dead, leader, node)  # the node's own name breaks a tie
