@@ -88,7 +88,7 @@ def test_emulate_then_drive_it_from_another_terminal(tmp_path: Path) -> None:
         sink = json.loads(out)["N4"]["apps"]["pipe"]["vertices"]["sink"]["stats"]
         assert sink["count"] > 50 and sink["repeats"] == 0 and sink["out_of_order"] == 0
         emu.send_signal(signal.SIGINT)  # Ctrl-C: everything stops, cleanly
-        rest, _ = emu.communicate(timeout=20)
+        rest, _ = emu.communicate(timeout=60)  # the summary and the stop, on a loaded CI box
         assert emu.returncode == 0, rest
         assert "Traceback" not in rest
     finally:
