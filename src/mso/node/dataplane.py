@@ -186,11 +186,12 @@ class DataPlane(NodeTables):
             if e in dep.parked_edges:
                 dep.dropped[e] = dep.dropped.get(e, 0) + len(payloads)
                 continue
-            seq = self._out(dep, e).push_many(payloads, self._now)
+            out = self._out(dep, e)
+            seq = out.push_many(payloads, self._now)
             dst_node = dep.placed[dep.app.edges[e].dst]
             t = ts if dep.layout.edge_chain[e] == chain else self._now
             if dst_node == self.id:
-                self._deliver(dep, e, seq, payloads, t)
+                self._deliver(dep, e, seq, payloads, t, out.acked)
             else:
                 key = (dep.app.name, e)
                 batch = self._outbox.get(key)
@@ -200,12 +201,18 @@ class DataPlane(NodeTables):
                     batch[1].extend(payloads)
                 if len(batch[1]) * len(payloads[0]) >= MAX_BATCH_BYTES:  # frames stay small
                     del self._outbox[key]
-                    data = m.Data(dep.app.name, e, dep.epoch, batch[0], batch[1], batch[2])
+                    data = m.Data(dep.app.name, e, dep.epoch, *batch, floor=out.acked)
                     self._effects.append(Send(dst_node, data))
         return sum(map(len, payloads))
 
     def _deliver(
-        self, dep: Deployment, edge: int, seq: int, events: list[bytes], ts: float = 0.0
+        self,
+        dep: Deployment,
+        edge: int,
+        seq: int,
+        events: list[bytes],
+        ts: float = 0.0,
+        floor: int = 0,
     ) -> None:
         dst = dep.app.edges[edge].dst
         if dst in dep.awaiting:  # moving here: keep until the handover
@@ -214,7 +221,7 @@ class DataPlane(NodeTables):
         ch = dep.inc.get(edge)
         if ch is None:
             ch = dep.inc[edge] = InChannel()
-        fresh = ch.accept(seq, events)
+        fresh = ch.accept(seq, events, floor)
         if fresh:
             self._enqueue(dep, dst, (edge, fresh, ts))
 
@@ -264,7 +271,7 @@ class DataPlane(NodeTables):
         if dst not in dep.stones:
             self.dropped_messages += 1
             return
-        self._deliver(dep, msg.edge, msg.seq, msg.events, msg.ts)
+        self._deliver(dep, msg.edge, msg.seq, msg.events, msg.ts, msg.floor)
 
     def _processed(
         self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexProcessed, now: float
@@ -376,7 +383,8 @@ class DataPlane(NodeTables):
         for (app, edge), batch in self._outbox.items():
             dep = self.apps[app]
             dst = dep.placed[dep.app.edges[edge].dst]
-            self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, *batch)))
+            floor = out.acked if (out := dep.out.get(edge)) is not None else 0
+            self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, *batch, floor=floor)))
         self._outbox.clear()
         for dep in self.apps.values():
             for edge, ch in list(dep.inc.items()):
@@ -395,9 +403,10 @@ class DataPlane(NodeTables):
                     continue
                 first, events = ch.unacked()
                 if dst == self.id:
-                    self._deliver(dep, edge, first, events)
-                else:
-                    self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, first, events)))
+                    self._deliver(dep, edge, first, events, floor=first)
+                else:  # ``first`` is the acked position: nothing below it will come again
+                    data = m.Data(app, edge, dep.epoch, first, events, floor=first)
+                    self._effects.append(Send(dst, data))
                 ch.waiting_since = now
         self._effects.append(SetTimer(("retransmit", app), now + RETRANSMIT_S))
 

@@ -97,9 +97,30 @@ class InChannel:
     released: int | None = None
     positions: dict[int, int] = field(default_factory=dict)  # sent with the acks
     reack: bool = False  # a duplicate arrived: the producer missed an ack, send it again
+    skipped: int = 0  # events the producer gave up before they arrived (see ``skip_to``)
 
-    def accept(self, seq: int, events: list[bytes]) -> list[bytes]:
-        """The events of a batch starting at ``seq`` that are new and in order."""
+    def __post_init__(self) -> None:
+        # (position, count): once ``processed`` reaches position, count events were skipped
+        self._skips: deque[tuple[int, int]] = deque()
+
+    def skip_to(self, floor: int) -> None:
+        """The producer will never send anything below ``floor`` again (a parked chain
+        dropped those events and counted them acknowledged): stop waiting for them. They count
+        as processed once everything delivered before them is."""
+        if floor <= self.expected:
+            return
+        n = floor - self.expected
+        self.skipped += n
+        if self.processed == self.expected:
+            self.processed = floor
+        else:
+            self._skips.append((self.expected, n))
+        self.expected = floor
+
+    def accept(self, seq: int, events: list[bytes], floor: int = 0) -> list[bytes]:
+        """The events of a batch starting at ``seq`` that are new and in order; ``floor`` is
+        the producer's lowest position it can still send (see :meth:`skip_to`)."""
+        self.skip_to(floor)
         end = seq + len(events)
         if end <= self.expected:
             self.duplicates += len(events)
@@ -115,6 +136,8 @@ class InChannel:
 
     def mark_processed(self, n: int = 1) -> None:
         self.processed += n
+        while self._skips and self._skips[0][0] == self.processed:
+            self.processed += self._skips.popleft()[1]
         if self.processed > self.expected:
             raise ValueError("processed more events than were delivered")
 

@@ -63,6 +63,9 @@ class Data(_Msg, tag="data"):
     # when the oldest of these events entered its chain (the nodes' shared clock): the chain's
     # tail measures end-to-end delay from it
     ts: float = 0.0
+    # the producer will never send anything below this again (its acked position): a consumer
+    # that still waits for an event below it skips to it (events a parked chain dropped)
+    floor: int = 0
 
 
 class Ack(_Msg, tag="ack"):
