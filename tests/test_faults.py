@@ -404,3 +404,29 @@ def test_a_consumer_skips_the_events_a_parked_chain_dropped() -> None:
     before = sink.count
     sim.run_until(sim.now + 1.0)
     assert sink.count >= before + 40 and sink.repeats == 0, vars(sink)  # it flows again
+
+
+def test_a_node_that_crashed_for_both_sides_does_not_decide_who_resets() -> None:
+    """N1 and N4 each run part of the app and hold each other failed after a partition
+    healed; N5 crashed meanwhile, and N1 has heard of it while N4's beat was sent before N4
+    had. Counting N5, N1 saw N4's side as the larger one and reset while N4 reset for N1:
+    the app was gone from every node (seed 1425). Only the nodes in dispute count."""
+    import msgspec
+
+    sim = Simulation(line_net(5))
+    sim.request("N1", m.DeployRequest(pipe_app(50), "app.yaml"))  # src on N1, sink on N4
+    sim.run_until(1.0)
+    n1, n4 = sim.cores["N1"], sim.cores["N4"]
+    assert n1.apps["pipe"].stones and n4.apps["pipe"].stones
+    now = sim.now
+    n1.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 3)}, now)  # N5 is gone
+    n4.set_routes({"N3": ("N3", 1), "N2": ("N3", 2), "N1": ("N3", 3)}, now)
+    for core, other in ((n1, "N4"), (n4, "N1")):
+        core.receive("N3", m.NodeDown(other, "N3", 0), now)
+        core.receive("N3", m.NodeDown("N5", "N3", 0), now)
+    beat4 = msgspec.structs.replace(n4._beat(), dead={"N1": 0})  # sent before N5 was heard of
+    beat1 = msgspec.structs.replace(n1._beat(), dead={"N4": 0})
+    n1.receive("N4", beat4, now)
+    n4.receive("N1", beat1, now)
+    assert n1.incarnation == 0 and "pipe" in n1.apps  # the lower leader stays
+    assert n4.incarnation == 1 and "pipe" not in n4.apps  # the other side yields

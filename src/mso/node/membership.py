@@ -10,6 +10,8 @@ deterministic tie-break resets (drops its apps) and rejoins, and is sent the app
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 from mso.errors import MsoError
 from mso.node.dataplane import RETRANSMIT_S
 from mso.node.remapping import Remapping
@@ -189,15 +191,23 @@ class Membership(Remapping):
         hold each other failed — not neighbours, each cut off by other failures — would
         otherwise tie for ever). One-sided (we hold the sender alive), we reset, unless the
         sender runs nothing and we run something: it yields instead (``_on_dead_heartbeat``;
-        a restarted node that held everyone failed once reset every node it met)."""
+        a restarted node that held everyone failed once reset every node it met).
+
+        Only failed nodes this node can reach count (the other side of the partition): a node
+        that really crashed is out of everyone's reach, and the two sides learn of it at
+        different moments; counted, it once made both nodes of a tie reset, and the app was
+        gone from every node."""
         if msg.node not in self.dead:
             return not (msg.hosting == 0 and self._hosting() > 0)
 
         def rank(hosting: int, dead: int, leader: str, node: str) -> tuple[bool, int, str, str]:
             return (hosting == 0, dead, leader, node)  # the node's own name breaks a tie
 
-        theirs = rank(msg.hosting, len(msg.dead), msg.leader or msg.node, msg.node)
-        return theirs < rank(self._hosting(), len(self.dead), self._leader(), self.id)
+        def disputed(dead: Iterable[str]) -> int:
+            return sum(1 for n in dead if n == self.id or n in self.routes)
+
+        theirs = rank(msg.hosting, disputed(msg.dead), msg.leader or msg.node, msg.node)
+        return theirs < rank(self._hosting(), disputed(self.dead), self._leader(), self.id)
 
     def _reset(self, now: float, by: str) -> None:
         """Rejoin as a new incarnation: the others have recovered without this node's
