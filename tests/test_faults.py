@@ -430,3 +430,21 @@ def test_a_node_that_crashed_for_both_sides_does_not_decide_who_resets() -> None
     n4.receive("N1", beat1, now)
     assert n1.incarnation == 0 and "pipe" in n1.apps  # the lower leader stays
     assert n4.incarnation == 1 and "pipe" not in n4.apps  # the other side yields
+
+
+def test_a_node_that_missed_the_apps_sync_gets_it_when_asked_to_host_a_vertex() -> None:
+    """A node reset while the view of the node that would sync it was in dispute; that node
+    failed before the dispute ended, so nobody synced it and every restore on it was refused
+    for ever (seed 1020). Its refusal now says it lacks the app, and the coordinator syncs it."""
+    sim = deployed_on_a_line()
+    del sim.cores["N2"].apps["pipe"]  # the sync it was owed is lost
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target="N2"), client=7)
+    sim.run_until(sim.now + 0.5)
+    (refused,) = [r for _, c, r in sim.replies if c == 7]
+    assert isinstance(refused, m.RelocateReply) and "does not run app" in refused.error
+    assert "pipe" in sim.cores["N2"].apps
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target="N2"), client=8)
+    sim.run_until(sim.now + 0.5)
+    (moved,) = [r for _, c, r in sim.replies if c == 8]
+    assert isinstance(moved, m.RelocateReply) and moved.ok, moved
+    assert placements(sim)["N3"]["mid"] == "N2" and "mid" in sim.cores["N2"].apps["pipe"].stones

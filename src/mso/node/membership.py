@@ -318,6 +318,18 @@ class Membership(Remapping):
             dep.app.name, dep.origin, dep.document, dep.epoch, placed, sorted(dep.vanished)
         )
 
+    def _app_missing(self, dep: Deployment, node: str) -> None:
+        """A live node asked to host a vertex does not hold the app: its sync was lost (the
+        node that owed it failed before it could send it; nobody else would). Sync it now,
+        or once this node's own view is not in dispute."""
+        if node in self.dead or node == self.id or not dep.running:
+            return
+        if self._disputed():
+            self._sync_pending.add(node)
+        else:
+            self._send(node, self._app_sync(dep))
+        super()._app_missing(dep, node)
+
     def _flush_syncs(self) -> None:
         """Sync the nodes that rejoined while this node's view was in dispute, once it is not."""
         if not self._sync_pending or self._disputed():

@@ -113,7 +113,9 @@ class Relocating(Deploying):
         vid = msg.vertex
         if dep is None:
             error = f"{self.id} does not run app {msg.app!r}"
-        elif vid not in dep.app.vertices:
+            self._send(src, m.Prepared(msg.app, vid, msg.rid, self.id, error, no_app=True))
+            return
+        if vid not in dep.app.vertices:
             error = f"{self.id}: unknown vertex {vid!r}"
         elif vid not in dep.stones and vid not in dep.awaiting:
             dep.awaiting[vid] = self._host(dep, vid)
@@ -170,6 +172,8 @@ class Relocating(Deploying):
         if reloc is None or dep is None:
             return
         if msg.error:
+            if msg.no_app:  # a node that missed the app's sync: the retry will find it
+                self._app_missing(dep, reloc.target)
             self._reloc_failed(reloc, msg.error, now)
             return
         reloc.on("prepared_restore" if reloc.restore else "prepared")

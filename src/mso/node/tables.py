@@ -346,3 +346,6 @@ class NodeTables:
 
     def _snapshotted(self, dep: Deployment, vid: str, h: Hosted, res: VertexSnapshot) -> None:
         """An instance's state was taken for a relocation."""
+
+    def _app_missing(self, dep: Deployment, node: str) -> None:
+        """``node`` refused to host a vertex of ``dep``'s app: it does not hold the app."""

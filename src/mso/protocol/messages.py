@@ -273,6 +273,7 @@ class Prepared(_Msg, tag="prepared"):
     rid: int
     node: str
     error: str = ""
+    no_app: bool = False  # refused because the node does not hold the app: sync it to it
 
 
 class Switch(_Msg, tag="switch"):
