@@ -448,3 +448,34 @@ def test_a_node_that_missed_the_apps_sync_gets_it_when_asked_to_host_a_vertex() 
     (moved,) = [r for _, c, r in sim.replies if c == 8]
     assert isinstance(moved, m.RelocateReply) and moved.ok, moved
     assert placements(sim)["N3"]["mid"] == "N2" and "mid" in sim.cores["N2"].apps["pipe"].stones
+
+
+MERGE = """
+name: merge
+vertices:
+  s1: {code: runtime_vertices:CountingSource, pinned: N1, rate: 50, output: runtime_vertices:Num}
+  s2: {code: runtime_vertices:CountingSource, pinned: N1, rate: 50, output: runtime_vertices:Num}
+  m: {code: runtime_vertices:Double, output: runtime_vertices:Num}
+  sink: {code: runtime_vertices:Recorder, pinned: N1}
+edges: [[s1, m], [s2, m], [m, sink]]
+"""
+
+
+def test_a_merge_vertex_fed_from_one_node_moves_with_both_markers() -> None:
+    """Both producers of the merge vertex m run on N1, and a remap moves m to N2. The first
+    Switch set N1's placement of m to N2, so the second sent its marker to N2 instead of the
+    old instance, which never handed over: the flow stalled and the views split (seed 1170).
+    Both markers must go the old way (here: to the instance on N1)."""
+    from mso.protocol import effects as fx
+
+    sim = Simulation(line_net())
+    sim.request("N1", m.DeployRequest(MERGE, "merge.yaml"))
+    sim.run_until(1.0)
+    core = sim.cores["N1"]
+    assert "m" in core.apps["merge"].stones
+    effects = [
+        *core.receive("N3", m.Switch("merge", 0, "N2", 99, "N1"), sim.now),
+        *core.receive("N3", m.Switch("merge", 1, "N2", 99, "N1"), sim.now),
+    ]
+    assert not [e for e in effects if isinstance(e, fx.Send) and isinstance(e.msg, m.Marker)]
+    assert [e for e in effects if isinstance(e, fx.SnapshotVertex)]  # both marked: hand over

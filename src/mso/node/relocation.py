@@ -189,7 +189,8 @@ class Relocating(Deploying):
         for e in dep.app.edges:
             if e.dst == msg.vertex:
                 edge = dep.app.edges.index(e)
-                self._send(dep.placed[e.src], m.Switch(msg.app, edge, reloc.target, msg.rid))
+                switch = m.Switch(msg.app, edge, reloc.target, msg.rid, reloc.source)
+                self._send(dep.placed[e.src], switch)
 
     def _on_switch(self, msg: m.Switch) -> None:
         """At the producer's node: new events go to the new instance; a marker goes the old way."""
@@ -198,6 +199,8 @@ class Relocating(Deploying):
             return
         edge = dep.app.edges[msg.edge]
         old = dep.placed[edge.dst]
+        if old == msg.to and msg.source:  # a merge vertex whose other input, produced here
+            old = msg.source  # too, switched first: its marker goes the old way as well
         key = (msg.app, msg.edge)
         batch = self._outbox.pop(key, None)
         if batch is not None:  # what is already queued leaves before the marker

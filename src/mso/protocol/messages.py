@@ -283,6 +283,9 @@ class Switch(_Msg, tag="switch"):
     edge: int
     to: str
     rid: int
+    # where the coordinator moves the vertex from: the marker's way once another input of the
+    # vertex, from this same node, has switched (the node's placement says ``to`` by then)
+    source: str = ""
 
 
 class Handover(_Msg, tag="handover"):
