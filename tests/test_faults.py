@@ -500,3 +500,26 @@ def test_the_checker_forgives_a_lost_app_only_when_every_node_was_down() -> None
     del sim.cores["N2"].apps["faults"]
     found = [v for v in check(sim, sched, vertices.RUNS.pop(str(seed), [])) if "know" in v.detail]
     assert [v.invariant for v in found] == ["placement"], found
+
+
+def test_a_restore_retried_without_a_producer_lost_since_does_not_wait_for_it() -> None:
+    """mid is restored on N1 and waits for its producer to resume; the producer's node resets
+    meanwhile (the producer is lost too, to be restored after mid). The coordinator's retry
+    names no producer any more, and mid must run instead of waiting for ever (seed 1193: the
+    recovery of six vertices stuck behind it)."""
+    from mso.protocol import effects as fx
+
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N3")  # src on N3, sink on N4
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 2)}, 0.0)
+    placed = {"src": "N3", "mid": "N2", "sink": "N4"}
+    core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["mid"]), 1.0)
+    effects = core.receive("N2", m.Prepare("pipe", "mid", 7, True, [[0, True], [1, False]]), 1.1)
+    (start,) = [e for e in effects if isinstance(e, fx.StartVertex)]
+    core.on_vertex(fx.VertexStarted(start.instance), 1.2)
+    dep = core.apps["pipe"]
+    assert "mid" in dep.awaiting  # waits for src's Resume
+    core.receive("N2", m.Prepare("pipe", "mid", 7, True, [[1, False]]), 2.2)  # src lost now
+    assert "mid" in dep.awaiting  # the sink has not said where it stands yet
+    core.receive("N4", m.Resume("pipe", 1, 7, False, 0), 2.3)
+    assert "mid" in dep.stones and not dep.awaiting and "mid" not in dep.restoring

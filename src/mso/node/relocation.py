@@ -136,6 +136,8 @@ class Relocating(Deploying):
                 pending = {(int(e), bool(p)) for e, p in msg.resumes}
                 dep.restoring[vid] = Restoring(msg.rid, src, pending)
                 self._handover_to[msg.rid] = src
+            else:  # a retry: an end lost since (its node reset) will not resume any more; it
+                old.pending &= {(int(e), bool(p)) for e, p in msg.resumes}  # is restored later
             if vid in dep.preparing:  # still starting: Prepared goes to the newest asker
                 dep.preparing[vid] = (msg.rid, src, True)
                 return
