@@ -86,6 +86,26 @@ def test_invariants_hold_after_a_seeded_fault_schedule(seed: int) -> None:
     assert not result.violations, "\n".join(map(str, result.violations))
 
 
+# seeds of the benchmark's phases (bench/faults.py) that once broke an invariant, with what
+# broke them; each cause also has its own scenario below where one could be built small
+BENCH = faults.Settings(start_s=1.0, faults_s=3.0, quiet_s=4.0, rate=10.0)
+FIXED: dict[int, str] = {
+    808: "a consumer waited for ever for events a parked chain had dropped",
+    1020: "a node that missed the app's sync refused every restore",
+    1170: "a merge vertex's second marker went to the new instance",
+    1193: "a restore waited for a producer lost since",
+    1425: "a crash both sides had not heard of made both sides reset",
+    1910: "every node was down at once (the app is gone, rightly)",
+    2784: "a restore retried after another coordinator's restore made a second instance",
+}
+
+
+@pytest.mark.parametrize("seed", sorted(FIXED))
+def test_benchmark_seeds_that_found_a_bug_stay_fixed(seed: int) -> None:
+    result = faults.run(seed, BENCH)
+    assert not result.violations, FIXED[seed] + "\n" + "\n".join(map(str, result.violations))
+
+
 LINE3 = pipe_app(50).replace("pinned: N4", "pinned: N1")  # src and sink on N1, mid anywhere
 
 
@@ -487,9 +507,7 @@ def test_the_checker_forgives_a_lost_app_only_when_every_node_was_down() -> None
     node that does not know the app is a violation."""
     from mso.sim.invariants import _everyone_failed
 
-    bench = faults.Settings(start_s=1.0, faults_s=3.0, quiet_s=4.0, rate=10.0)
-    assert _everyone_failed(faults.generate(1910, bench))
-    assert not faults.run(1910, bench).violations
+    assert _everyone_failed(faults.generate(1910, BENCH))
     seed = next(s for s in range(100) if not faults.generate(s, CI).faults["crash"])
     sched = faults.generate(seed, CI)
     assert not _everyone_failed(sched)

@@ -288,6 +288,18 @@ class Remapping(Relocating):
             why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
             self._reloc_failed(reloc, why, now)
             return
+        if reloc.vertex not in self._lost(dep):  # restored meanwhile by another coordinator
+            # (its target tells only the newest one) and maybe moved since: asked again, the
+            # target would start a second instance. Done; an instance prepared for this
+            # restore and never resumed is dropped.
+            where = dep.placed[reloc.vertex]
+            if where != reloc.target:
+                self._send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
+            reloc.on("handed_over")
+            self._end(reloc.pid)
+            reloc.target = where
+            self._relocation_ended(reloc, now, "")
+            return
         reloc.on("retry")
         remap = self._remap(reloc.remap)
         if remap is not None and remap.recovery is not None:
