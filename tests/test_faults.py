@@ -96,6 +96,8 @@ FIXED: dict[int, str] = {
     1193: "a restore waited for a producer lost since",
     1425: "a crash both sides had not heard of made both sides reset",
     1910: "every node was down at once (the app is gone, rightly)",
+    2665: "a remap restored a lost vertex that the failure recovery restored elsewhere",
+    2757: "a remap restored a lost vertex that the failure recovery restored elsewhere",
     2784: "a restore retried after another coordinator's restore made a second instance",
 }
 

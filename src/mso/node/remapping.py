@@ -168,6 +168,8 @@ class Remapping(Relocating):
                 continue
             if dep.layout.kinds[vertex] == "source" and not lost:
                 continue
+            if lost and remap.recovery is None:  # the failure recovery restores it (one node
+                continue  # coordinates it); restored here too, it would run twice
             self._rid += 1
             source = dep.placed[vertex]
             reloc = Relocation(self._rid, now, remap.app, vertex, source, node, None, remap=rid)
