@@ -95,6 +95,7 @@ FIXED: dict[int, str] = {
     1170: "a merge vertex's second marker went to the new instance",
     1193: "a restore waited for a producer lost since",
     1425: "a crash both sides had not heard of made both sides reset",
+    1800: "a producer switched to a move's target recovered the vertex as vanished too",
     1910: "every node was down at once (the app is gone, rightly)",
     2665: "a remap restored a lost vertex that the failure recovery restored elsewhere",
     2757: "a remap restored a lost vertex that the failure recovery restored elsewhere",

@@ -210,6 +210,8 @@ class Relocating(Deploying):
             self._effects.append(Send(old, data))
         seq = self._out(dep, msg.edge).next_seq
         dep.placed[edge.dst] = msg.to
+        dep.vanished.discard(edge.dst)  # the move's coordinator sees to it from now on (it
+        # restores it at the target if the old host went); a recovery here would make a twin
         marker = m.Marker(msg.app, msg.edge, seq, msg.rid, msg.to)
         if old == self.id:
             self._enqueue(dep, edge.dst, marker)
