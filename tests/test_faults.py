@@ -544,3 +544,17 @@ def test_a_restore_retried_without_a_producer_lost_since_does_not_wait_for_it() 
     assert "mid" in dep.awaiting  # the sink has not said where it stands yet
     core.receive("N4", m.Resume("pipe", 1, 7, False, 0), 2.3)
     assert "mid" in dep.stones and not dep.awaiting and "mid" not in dep.restoring
+
+
+def test_a_sync_says_where_its_sender_handed_a_vertex_over() -> None:
+    """N3 handed mid over to N4 while it held N1 failed, so N1 missed the Moved, and its view
+    (from older syncs) still places mid on N3. N3's sync at the rejoin says it handed mid to
+    N4: its first-hand word, taken (seed 1786). What it only heard stays hearsay."""
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N2").replace("pinned: N4", "pinned: N1")
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 2)}, 0.0)
+    placed = {"src": "N2", "mid": "N3", "sink": "N1"}
+    core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["sink"]), 1.0)
+    moved = placed | {"mid": "N4", "src": "N4"}  # N3 heard src moved: hearsay, not taken
+    core.receive("N3", m.AppSync("pipe", "N2", doc, 0, moved, [], {"mid": "N4"}), 1.1)
+    assert core.apps["pipe"].placed["mid"] == "N4" and core.apps["pipe"].placed["src"] == "N2"

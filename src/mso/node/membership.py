@@ -291,7 +291,9 @@ class Membership(Remapping):
         node that lost the tie-break) or miss moves made while we were away, and no Moved will
         ever correct it. But a sync is a snapshot and may be older than a Moved we have had
         since. So we take the sender's word where it is first-hand (a vertex it runs itself
-        and does not hold vanished), and its hearsay only where our own entry is known bad
+        and does not hold vanished, or one we place on it that it says it handed over, and
+        to whom: a node held failed when the old host broadcast the move missed its Moved),
+        and its hearsay only where our own entry is known bad
         (on a node we hold failed, vanished, or placed here where it does not run) — never
         where we run an instance ourselves, and never a vertex it places here (it holds
         that one vanished with our old incarnation)."""
@@ -304,6 +306,8 @@ class Membership(Remapping):
             if n == src and v not in gone:
                 return True
             mine = held.placed[v]
+            if mine == src and msg.handed.get(v) == n:  # it ran it and handed it over to n
+                return True
             bad = mine in self.dead or v in held.vanished or mine == self.id
             return bad and (v not in gone or v in held.vanished)
 
@@ -314,8 +318,9 @@ class Membership(Remapping):
 
     def _app_sync(self, dep: Deployment) -> m.AppSync:
         placed = dict(dep.placed)
+        handed = {v: n for v, n in dep.handed.items() if v not in dep.stones}
         return m.AppSync(
-            dep.app.name, dep.origin, dep.document, dep.epoch, placed, sorted(dep.vanished)
+            dep.app.name, dep.origin, dep.document, dep.epoch, placed, sorted(dep.vanished), handed
         )
 
     def _app_missing(self, dep: Deployment, node: str) -> None:

@@ -262,6 +262,7 @@ class Relocating(Deploying):
         self._stop(h, "moved")
         del dep.stones[vid]
         dep.placed[vid] = msg.to
+        dep.handed[vid] = msg.to
         handover = m.Handover(
             dep.app.name,
             vid,
@@ -287,6 +288,7 @@ class Relocating(Deploying):
         h.processed, h.emitted = msg.processed, msg.emitted
         dep.stones[msg.vertex] = h
         dep.placed[msg.vertex] = self.id
+        dep.handed.pop(msg.vertex, None)
         gated = bool(dep.out_edges.get(msg.vertex))
         for i, (expected, acked) in msg.inputs.items():
             dep.inc[i] = InChannel(
@@ -396,6 +398,7 @@ class Relocating(Deploying):
         dep.moved[vertex] = (self._now, dep.placed[vertex])
         dep.stones[vertex] = h
         dep.placed[vertex] = self.id
+        dep.handed.pop(vertex, None)
         for o in dep.out_edges.get(vertex, []):
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
             dep.out[o] = OutChannel(

@@ -153,6 +153,7 @@ class Deployment:
     recoveries: list[dict[str, Any]] = field(default_factory=list)  # what was done, bounded
     # vertices whose instances went with a node that has since rejoined: restored like lost ones
     vanished: set[str] = field(default_factory=set)
+    handed: dict[str, str] = field(default_factory=dict)  # vertex -> where this node handed it
     document: str = ""  # the app file as deployed, for a node that rejoins
     delays: dict[int, float] = field(default_factory=dict)  # at a tail's node: chain -> ms
     moved: dict[str, tuple[float, str]] = field(default_factory=dict)  # vertex -> (when, from)

@@ -213,6 +213,9 @@ class AppSync(_Msg, tag="app_sync"):
     epoch: int
     placed: dict[str, str]
     vanished: list[str] = msgspec.field(default_factory=list)
+    # vertices the sender ran and handed over, and to whom: its first-hand word on where they
+    # went (a node that missed the move's Moved, held failed then, learns it from this)
+    handed: dict[str, str] = msgspec.field(default_factory=dict)
 
 
 class Rewire(_Msg, tag="rewire"):
