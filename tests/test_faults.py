@@ -100,6 +100,7 @@ FIXED: dict[int, str] = {
     2665: "a remap restored a lost vertex that the failure recovery restored elsewhere",
     2757: "a remap restored a lost vertex that the failure recovery restored elsewhere",
     2784: "a restore retried after another coordinator's restore made a second instance",
+    4751: "a node restarted across a partition, given instances there, was taken as empty",
 }
 
 
@@ -558,3 +559,32 @@ def test_a_sync_says_where_its_sender_handed_a_vertex_over() -> None:
     moved = placed | {"mid": "N4", "src": "N4"}  # N3 heard src moved: hearsay, not taken
     core.receive("N3", m.AppSync("pipe", "N2", doc, 0, moved, [], {"mid": "N4"}), 1.1)
     assert core.apps["pipe"].placed["mid"] == "N4" and core.apps["pipe"].placed["src"] == "N2"
+
+
+def test_a_node_restarted_across_a_partition_and_given_instances_yields_when_it_heals() -> None:
+    """src and the sink run on N3, mid on N1. N1 is cut off; N3 restarts next to N2, whose
+    side restores all three on N3 (it holds N1 failed). When the cut heals N1 saw N3's new
+    incarnation as a rejoin, as if it came back empty, and mid ran twice with the views
+    apart (seeds 2504, 1722, 3254, 4264, 4751). A restarted node that already hosts
+    instances is the other side's: it is held failed again, yields and comes back empty."""
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N3").replace("pinned: N4", "pinned: N3")
+    sim = Simulation(line_net())
+    sim.request("N1", m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(1.0)
+    sim.request("N3", m.RelocateRequest("pipe", "mid", target="N1"))
+    sim.run_until(2.0)
+    assert "mid" in sim.cores["N1"].apps["pipe"].stones
+    sim.network.remove_link("N1", "N2")
+    sim.kill("N3")
+    sim.run_until(sim.now + 1.5)
+    sim.network.add_link(LinkSpec("N2", "N3", delay_ms=1.0))
+    sim.revive("N3")
+    sim.run_until(sim.now + 1.5)
+    assert set(sim.cores["N3"].apps["pipe"].stones) == {"src", "mid", "sink"}  # N2's side
+    sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
+    sim.update_routes()
+    sim.run_until(sim.now + 3.0)
+    deps = [c.apps["pipe"] for c in sim.cores.values()]
+    assert Counter(v for d in deps for v in d.stones) == {"src": 1, "mid": 1, "sink": 1}
+    assert len({tuple(sorted(d.placed.items())) for d in deps}) == 1
+    assert sim.cores["N3"].incarnation == 2  # it yielded

@@ -171,6 +171,9 @@ class Membership(Remapping):
         if msg.incarnation < self._incarnations.get(src, msg.incarnation):
             return  # from an incarnation that has since reset: it must not reset us
         if msg.incarnation > self._dead_incarnation.get(src, 0):
+            if msg.hosting > 0 and self._hosting() > 0 and self._disputed():
+                self._restarted_across(src, msg.incarnation)
+                return
             self._rejoin(src, msg.incarnation, now, announce=True)
         elif msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
             self._reset(now, src)
@@ -179,6 +182,15 @@ class Membership(Remapping):
             # run nothing, so we yield (it does not reset for us: see _outranked_by)
         else:
             self._answer_stale_claim(src, msg)
+
+    def _restarted_across(self, src: str, incarnation: int) -> None:
+        """``src`` restarted on the other side of a partition, which has since given it
+        instances (a restart brings none): its instances are that side's, and some may run
+        here too. Not a rejoin: we hold this incarnation failed as well and tell it, so that
+        it yields (it holds us alive and we run something) and comes back empty."""
+        self._incarnations[src] = incarnation
+        self._dead_incarnation[src] = incarnation
+        self._send(src, self._beat())
 
     def _hosting(self) -> int:
         return sum(len(dep.stones) for dep in self.apps.values())
