@@ -99,6 +99,7 @@ FIXED: dict[int, str] = {
     1910: "every node was down at once (the app is gone, rightly)",
     2665: "a remap restored a lost vertex that the failure recovery restored elsewhere",
     2757: "a remap restored a lost vertex that the failure recovery restored elsewhere",
+    3420: "a stale sync un-vanished a vertex that went with its node's reset",
     2784: "a restore retried after another coordinator's restore made a second instance",
     4751: "a node restarted across a partition, given instances there, was taken as empty",
 }
@@ -588,3 +589,17 @@ def test_a_node_restarted_across_a_partition_and_given_instances_yields_when_it_
     assert Counter(v for d in deps for v in d.stones) == {"src": 1, "mid": 1, "sink": 1}
     assert len({tuple(sorted(d.placed.items())) for d in deps}) == 1
     assert sim.cores["N3"].incarnation == 2  # it yielded
+
+
+def test_a_stale_sync_does_not_bring_back_a_vertex_that_vanished_with_its_node() -> None:
+    """mid vanished with N3's old incarnation (N3 reset). A sync sent before the reset still
+    places mid on N3: that is no news, and taking it made the recovery skip mid, which then
+    ran nowhere (seed 3420). A claim from N3 itself would be."""
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N2").replace("pinned: N4", "pinned: N1")
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 2)}, 0.0)
+    placed = {"src": "N2", "mid": "N3", "sink": "N1"}
+    core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["mid", "sink"]), 1.0)
+    assert core.apps["pipe"].vanished == {"mid", "sink"}
+    core.receive("N4", m.AppSync("pipe", "N2", doc, 0, placed, []), 1.1)  # sent before
+    assert "mid" in core.apps["pipe"].vanished

@@ -320,6 +320,8 @@ class Membership(Remapping):
             mine = held.placed[v]
             if mine == src and msg.handed.get(v) == n:  # it ran it and handed it over to n
                 return True
+            if n == mine and v in held.vanished:  # names the node whose old incarnation took
+                return False  # it: no news (a claim from that node would be)
             bad = mine in self.dead or v in held.vanished or mine == self.id
             return bad and (v not in gone or v in held.vanished)
 
