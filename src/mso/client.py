@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import os
 import socket
+import time
 from typing import TYPE_CHECKING, Any
 
 import msgspec
@@ -119,8 +120,11 @@ class Client:
     async def send(self, msg: m.Message) -> None:
         assert self._writer is not None
         if self.signer is not None and isinstance(msg, self.signer.signs):
+            now_ms = time.time_ns() // 1_000_000  # a grant's generation, an undeploy's time
             if isinstance(msg, m.DeployRequest):
-                msg = m.DeployRequest(self.signer.grant(msg.document), msg.file)
+                msg = m.DeployRequest(self.signer.grant(msg.document, now_ms), msg.file)
+            elif isinstance(msg, m.StopApp) and not msg.sig:  # verified by every node
+                msg = self.signer.undeploy(msg.app, now_ms)
             nonce = self._codec.peer_nonce
             assert nonce is not None
             msg = self.signer.command(nonce, msg)

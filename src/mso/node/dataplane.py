@@ -418,5 +418,11 @@ class DataPlane(NodeTables):
 
     def _on_marker_msg(self, msg: m.Marker, now: float) -> None:
         dep = self.apps.get(msg.app)
-        if dep is not None and 0 <= msg.edge < len(dep.app.edges):
-            self._enqueue(dep, dep.app.edges[msg.edge].dst, msg)
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            self._refusal("marker_unknown_edge")
+            return
+        dst = dep.app.edges[msg.edge].dst
+        if msg.to == self.id or dep.app.vertices[dst].pinned is not None:
+            self._refusal("marker_of_no_relocation")  # (its state would go nowhere)
+            return
+        self._enqueue(dep, dst, msg)
