@@ -319,6 +319,7 @@ class Deploying(DataPlane):
             self._refusal("stop_app_unauthorized")
             return
         if self.authority.signed and self._undeployed_before(msg):
+            self._refusal("undeploy_older_than_deployment")  # (maybe told again: harmless)
             return
         gone = self.apps.pop(msg.app, None)
         if gone is not None:
