@@ -261,6 +261,10 @@ WRONG_MEANING = [
     pytest.param("N2", "N1", m.Moved("pipe", "sink", "N1"), id="moved a pinned vertex"),
     pytest.param("N2", "N1", m.Rewire("pipe", 1, "N1", 5, True), id="rewire to a pinned vertex"),
     pytest.param("N2", "N1", m.Rewire("pipe", 9, "N1", 5, True), id="rewire of no edge"),
+    pytest.param("N2", "N1", m.Unprepare("pipe", "mid", 777), id="unprepare of nothing"),
+    pytest.param("N2", "N1", m.Moved("ghost-app", "mid", "N1"), id="moved of no app"),
+    pytest.param("N2", "N3", m.ChainDelay("pipe", 0, float("nan")), id="chain delay NaN"),
+    pytest.param("N2", "N3", m.ChainDelay("pipe", 5, 1.0), id="chain delay of no chain"),
 ]  # fmt: skip
 
 

@@ -353,7 +353,7 @@ class Relocating(Deploying):
         dep = self.apps.get(msg.app)
         if 0 <= msg.incarnation < self._incarnations.get(msg.node, msg.incarnation):
             return  # its instance went with that incarnation (a claim overtaken by a reset)
-        why = self._moved_refused(dep, msg) if dep is not None else ""
+        why = self._moved_refused(dep, msg) if dep is not None else "moved_unknown_app"
         if why:
             self._refusal(why)
             return
@@ -489,13 +489,15 @@ class Relocating(Deploying):
         to it, so nothing is lost)."""
         dep = self.apps.get(msg.app)
         if dep is None:
+            self._refusal("unprepare_unexpected")
             return
         h = dep.awaiting.get(msg.vertex)
         prep = dep.preparing.get(msg.vertex)
         restoring = dep.restoring.get(msg.vertex)
         ours = msg.rid in self._handover_to or (prep is not None and prep[0] == msg.rid)
         if h is None or not ours or (restoring is not None and restoring.rid != msg.rid):
-            return  # another move has taken the instance over since
+            self._refusal("unprepare_unexpected")  # (another move took the instance over since)
+            return
         self._stop(h, "abandoned")
         del dep.awaiting[msg.vertex]
         dep.preparing.pop(msg.vertex, None)
