@@ -18,7 +18,7 @@ import mso.examples
 from mso.dashboard.server import Dashboard
 from mso.emu.controller import Emulator
 from mso.emu.overlays import state_file
-from mso.scenario import load_scenario
+from mso.scenario import loads_scenario
 
 EXAMPLES = Path(mso.examples.__file__).parent  # the bundled app and scenario files
 KEY = "dashboard-test-overlay-key-4f1c"
@@ -67,13 +67,27 @@ class LiveDashboard:
             self.thread.join(10)
 
 
+# where the robots stand (metres): a zig-zag along a road, so a page that lays the topology out
+# from positions draws it differently from one that lays it out by hops (all on one row)
+POSITIONS = {"N1": (0, 0), "N2": (100, 40), "N3": (200, 0), "N4": (300, 40)}
+
+
+def convoy_line_with_positions() -> str:
+    """The bundled 4-robot line, its explicit links kept, each robot given a position."""
+    text = (EXAMPLES / "convoy-line.yaml").read_text()
+    for n, (x, y) in POSITIONS.items():
+        assert f"  {n}: {{}}" in text, n
+        text = text.replace(f"  {n}: {{}}", f"  {n}: {{pos: [{x}, {y}]}}")
+    return text
+
+
 def start_live(interval: float = 0.5, manage: bool = False) -> LiveDashboard:
     """The convoy on the 4-robot line, deployed from N1, rules off (only the test moves
     vertices), the dashboard on a free loopback port."""
     loop = asyncio.new_event_loop()
     thread = threading.Thread(target=loop.run_forever, daemon=True)
     thread.start()
-    emu = Emulator(load_scenario(EXAMPLES / "convoy-line.yaml"), key=KEY, manage=manage)
+    emu = Emulator(loads_scenario(convoy_line_with_positions()), key=KEY, manage=manage)
 
     async def up() -> Dashboard:
         await emu.start()

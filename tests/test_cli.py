@@ -184,19 +184,28 @@ def test_every_reporting_command_has_json() -> None:
     assert code == 0 and json.loads(out) == {"app": "fig2", "vertices": 9, "edges": 8}
 
 
-def test_the_status_path_imports_no_planner() -> None:
-    """`mso status` starts fast because it does not import numpy, scipy or the planner; the
-    time itself is measured by bench/cli_startup.py."""
+def test_the_status_path_imports_no_planner_rich_or_asyncio() -> None:
+    """`mso status` starts fast because its whole path (parse, ask a node, render) imports
+    neither numpy, scipy, the planner, rich nor asyncio; the time itself is measured by
+    bench/cli_startup.py. The node asked is a closed loopback port, so the command fails after
+    it has tried to connect."""
     import subprocess
     import sys
 
     probe = (
-        "import sys, mso, mso.cli, mso.client, mso.emu.overlays, mso.protocol.messages\n"
-        "heavy = {'numpy', 'scipy', 'yaml', 'mso.planning.placement', 'mso.model.app', 'rich'}\n"
+        "import sys\n"
+        "from mso.cli import main\n"
+        "try:\n"
+        "    main(['status', '--via', '127.0.0.1:1'])\n"
+        "except SystemExit as exc:\n"
+        "    print('exit', exc.code)\n"
+        "heavy = {'numpy', 'scipy', 'yaml', 'mso.planning.placement', 'mso.model.app', 'rich',\n"
+        "         'asyncio'}\n"
         "print(sorted(heavy & set(sys.modules)))"
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "[]"
+    assert out.stdout.splitlines() == ["exit 2", "[]"], out
+    assert "cannot reach node at 127.0.0.1:1" in out.stderr
 
 
 def test_status_watch_needs_a_positive_period() -> None:

@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from dashboard_live import KEY, LiveDashboard, start_live
+from dashboard_live import KEY, POSITIONS, LiveDashboard, start_live
 from mso.dashboard.view import Tracker
 
 
@@ -235,6 +235,17 @@ def test_dashboard_in_a_real_browser(live: LiveDashboard) -> None:
                 expect(page.locator(f'#topology g[data-node="{n}"]')).to_be_visible()
             expect(page.locator("#chains tbody tr")).to_have_count(6)
             expect(page.locator("#topology polyline")).not_to_have_count(0)
+            # laid out from the scenario's positions: left to right, N2 and N4 off N1's row
+            centres = {
+                n: (
+                    float(page.locator(f'#topology g[data-node="{n}"] circle').get_attribute("cx")),
+                    float(page.locator(f'#topology g[data-node="{n}"] circle').get_attribute("cy")),
+                )
+                for n in POSITIONS
+            }
+            xs = [centres[n][0] for n in sorted(POSITIONS, key=lambda n: POSITIONS[n][0])]
+            assert xs == sorted(xs) and len(set(xs)) == 4, centres
+            assert centres["N2"][1] != centres["N1"][1] == centres["N3"][1], centres
             expect(page.locator('#nodes tr[data-node="N1"] td').nth(2)).to_contain_text("%")
             cell = page.locator('#chains tr[data-chain="0"] span[data-vertex="scan_matcher"]')
             before = cell.get_attribute("data-node")

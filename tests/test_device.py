@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mso.cli import _measured_cell
 from mso.model.network import PowerModel
 from mso.node.device import DeviceProbe, read_battery, read_interfaces
 from mso.node.monitor import Monitor
+from mso.statusview import _measured_cell
 
 
 def _write(root: Path, rel: str, text: str) -> None:

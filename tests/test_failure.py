@@ -167,9 +167,8 @@ def test_a_silent_neighbour_is_declared_failed_within_the_deadline() -> None:
 
 
 def test_status_shows_the_failure_the_recovery_and_parked_chains() -> None:
-    from rich.console import Console
 
-    from mso.cli import render_status
+    from mso.statusview import status_text
 
     net = mesh()  # two more links, so that losing two nodes does not partition it
     net.add_link(LinkSpec("N1", "N3", delay_ms=1.0))
@@ -181,9 +180,7 @@ def test_status_shows_the_failure_the_recovery_and_parked_chains() -> None:
     sim.kill("N5", convergence_s=0.3)
     sim.run_until(sim.now + 6.0)
     nodes = {n: c.status(sim.now) for n, c in sim.cores.items() if n not in sim.dead}
-    console = Console(record=True, width=200)
-    render_status(console, nodes)
-    text = console.export_text()
+    text = status_text(nodes)
     assert f"failed nodes: {', '.join(sorted([victim, 'N5']))}" in text
     assert "app branch: chain j-c-s2 parked: 's2' is pinned to failed node N5" in text
     assert "recovered from" in text and "remap of" in text

@@ -25,6 +25,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         (
             "mso.cli",
             "mso.cliargs",
+            "mso.statusview",
             "mso.api",
             "mso.benchmarks",
             "mso.examples",

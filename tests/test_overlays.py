@@ -37,6 +37,7 @@ links: [[N1, N2]]
 def private_tmp(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Overlays of other tests (and of a user's own emulator) stay out of sight."""
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setenv("TMPDIR", str(tmp_path))  # where overlays_dir() looks
 
 
 def cli(*args: str) -> tuple[int, str, str]:

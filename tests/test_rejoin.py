@@ -6,11 +6,9 @@ from __future__ import annotations
 
 from collections import Counter
 
-from rich.console import Console
-
-from mso.cli import render_status
 from mso.model.network import LinkSpec
 from mso.sim.runner import Simulation
+from mso.statusview import status_text
 from test_failure import BRANCH, MESH_LINKS, PIPE, started, stats
 
 
@@ -65,9 +63,7 @@ def test_a_cut_off_sink_node_rejoins_and_its_parked_chain_runs_again() -> None:
     assert s2["count"] > 150 and s2["repeats"] == 0 and s2["out_of_order"] == 1, s2
     s1 = stats(sim, "branch", "s1")
     assert s1["count"] > s1_before + 200 and s1["repeats"] == 0, s1
-    console = Console(record=True, width=200)
-    render_status(console, {n: c.status(sim.now) for n, c in sim.cores.items()})
-    text = console.export_text()
+    text = status_text({n: c.status(sim.now) for n, c in sim.cores.items()})
     (line,) = [ln for ln in text.splitlines() if ln.startswith("rejoined (restarted")]
     assert "N5 (1)" in line  # (nodes that ran nothing may have yielded too)
     assert "failed nodes" not in text and "parked" not in text

@@ -7,6 +7,7 @@ import json
 import math
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -44,6 +45,19 @@ def percentile(values: list[float], q: float) -> float:
     lo = math.floor(pos)
     hi = min(lo + 1, len(s) - 1)
     return s[lo] + (s[hi] - s[lo]) * (pos - lo)
+
+
+class Progress:
+    """One line on stderr as each step of a long benchmark starts, with the time so far, so a
+    run of minutes shows where it is (stdout keeps the table alone)."""
+
+    def __init__(self, name: str, quiet: bool = False) -> None:
+        self.name, self.quiet = name, quiet
+        self.t0 = time.monotonic()
+
+    def __call__(self, what: str) -> None:
+        if not self.quiet:
+            print(f"[{time.monotonic() - self.t0:6.1f} s] {self.name}: {what}", file=sys.stderr)
 
 
 def write_results(out: Path, result: dict[str, Any], table: str) -> None:

@@ -61,7 +61,7 @@ from typing import Any
 import msgspec
 
 import mso.examples
-from mso.benchmarks.common import percentile, provenance
+from mso.benchmarks.common import Progress, percentile, provenance
 from mso.client import NodeUnreachable, overlay_key
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
@@ -647,9 +647,14 @@ def _first_chain(chains: list[list[str]], head: str, tail: str | None = None) ->
 
 
 async def measure(
-    scenario: Scenario, runs: int, budget_s: float, backend: str = "user"
+    scenario: Scenario,
+    runs: int,
+    budget_s: float,
+    backend: str = "user",
+    progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Every measurement on one emulated line (``backend`` netns: namespaces and babeld)."""
+    step = progress or Progress("table1", quiet=True)
     logs = tempfile.TemporaryDirectory(prefix="mso-bench-table1-")
     pause = Path(logs.name) / "beats.pause"
     kind: type[Emulator] = Emulator
@@ -676,7 +681,9 @@ async def measure(
     sr: dict[str, Any] = {"gaps": [], "lower": [], "redeploy_ms": [], "instances": []}
     final: dict[str, Any] = {}
     try:
+        step(f"starting {len(scenario.network.nodes)} node processes ({backend} backend)")
         await emu.start()
+        step("cold deployment of the convoy")
         # cold deployment (imports the vertex code on every node; not in the statistics), and
         # the node that coordinates remaps
         reply = await b.deploy(b.convoy_doc, str(APP_FILE))
@@ -695,6 +702,7 @@ async def measure(
         out["beats_placement"] = reply.placement
         await asyncio.sleep(0.5)
 
+        step(f"mapping, {runs} runs")
         mapping, mapping_wall = await phase_mapping(b)
 
         reply = await b.deploy(b.convoy_doc, str(APP_FILE))  # stays, flowing at the paper's rates
@@ -706,17 +714,23 @@ async def measure(
         out["convoy_chains"] = chains
         laser = _first_chain(chains, "laser")
         nav = [_first_chain(chains, h) for h in NAVIGATION_HEADS]
+        step(f"upstream and downstream relocations, {runs} runs each")
         reloc = await phase_relocation(b, placed, chains[laser])
         chain_movers = interior(chains[laser])
         nav_movers = [v for c in nav for v in interior(chains[c])]
         all_movers = [v for c in chains for v in interior(c)]
+        step(f"chain remaps, {runs} runs")
         chain_r = await phase_remap(b, "chain_remapping", placed, [laser], False, chain_movers)
+        step(f"global remaps of part of the app, {runs} runs")
         part_r = await phase_remap(b, "global_remapping_part", placed, nav, False, nav_movers)
+        step(f"global remaps of the whole app, {runs} runs")
         whole_r = await phase_remap(b, "global_remapping_whole", placed, [], True, all_movers)
 
+        step("interruption of the flow by a relocation")
         inter = await phase_interruption(b)
         events = await account(b, "relocations")
         await asyncio.sleep(0.2)
+        step("interruption by stop and redeploy, for comparison")
         sr = await phase_stop_redeploy(b)
         final = await account(b, "last redeployed instance")
 
@@ -727,7 +741,9 @@ async def measure(
         }  # fmt: skip
     except (MsoError, NodeUnreachable, TimeoutError, KeyError) as exc:
         b.failures.append(f"aborted: {type(exc).__name__}: {exc}")
+        step(f"aborted: {type(exc).__name__}: {exc}")
     finally:
+        step("stopping the node processes")
         await emu.stop()
         out["node_log_errors"] = node_log_errors(emu)
         logs.cleanup()
@@ -928,7 +944,11 @@ def render(result: dict[str, Any]) -> str:
 
 
 async def run(
-    runs: int = 30, quick: bool = False, variants: bool = True, netns: bool = False
+    runs: int = 30,
+    quick: bool = False,
+    variants: bool = True,
+    netns: bool = False,
+    progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Every Table 1 operation ``runs`` times (``quick``: 5, the specified line only);
     ``netns``: the same runs again on the netns backend, in the same run."""
@@ -936,7 +956,7 @@ async def run(
         runs = min(runs, 5)
     t0 = time.monotonic()
     budget = QUICK_DEADLINE_S if quick else DEADLINE_S
-    main_result = await measure(load_scenario(SCENARIO_FILE), runs, budget)
+    main_result = await measure(load_scenario(SCENARIO_FILE), runs, budget, progress=progress)
     result: dict[str, Any] = {
         "benchmark": "table1",
         "operations": main_result.pop("operations"),
@@ -945,12 +965,18 @@ async def run(
     }
     result |= main_result
     if variants and not quick:
-        result["unshaped"] = await measure(unshaped(load_scenario(SCENARIO_FILE)), runs, budget)
+        if progress:
+            progress("the same on unshaped links")
+        result["unshaped"] = await measure(
+            unshaped(load_scenario(SCENARIO_FILE)), runs, budget, progress=progress
+        )
     if netns:
         from mso.emu.netns.emulator import check_available
 
         check_available()
-        result["netns"] = await measure(load_scenario(SCENARIO_FILE), runs, budget, "netns")
+        result["netns"] = await measure(
+            load_scenario(SCENARIO_FILE), runs, budget, "netns", progress=progress
+        )
     result["paper_ms"] = {k: {"mean_ms": v[0], "std_ms": v[1]} for k, v in PAPER_MS.items()}
     result["ratio_to_paper"] = {
         k: (None if s["mean_ms"] is None else s["mean_ms"] / PAPER_MS[k][0])
@@ -988,12 +1014,20 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also run on the netns backend (root or a user namespace; babeld), in this run",
     )
+    ap.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     args = ap.parse_args(argv)
     if not 1 <= args.runs <= 1000:
         ap.error("--runs: 1..1000")
     out: Path = args.json or _default_json(args.quick)
+    progress = Progress("table1", quiet=args.quiet)
     result = asyncio.run(
-        run(args.runs, args.quick, variants=not args.no_variants, netns=args.netns)
+        run(
+            args.runs,
+            args.quick,
+            variants=not args.no_variants,
+            netns=args.netns,
+            progress=progress,
+        )
     )
     table = render(result)
     out.parent.mkdir(parents=True, exist_ok=True)
