@@ -6,11 +6,11 @@ N1, 50 events/s). The benchmark connects twice as a member (the overlay key): as
 frames made by :mod:`mso.protocol.wirefuzz`: every message type with well-typed fields of random
 meaning (apps, vertices, edges and nodes that may not exist, absurd numbers), some truncated,
 bit-flipped or random payloads, and after every ``--bad-tag-every``-th frame a forged one (a
-guessed tag). The hellos are left out (they would change a connection's role), and StopApp and
-DeployFailed from the neighbour, so that the app whose handlers are fuzzed keeps running. The
-node is started with an operator key (``--operator-key``): the fuzzer is a member without
-operator authority, so every client command that would change the overlay (deploy, undeploy,
-shutdown, LinkState, ...) must be refused.
+guessed tag). The hellos are left out (they would change a connection's role). The node is
+started with an operator key (``--operator-key``): the fuzzer is a member without operator
+authority, so every client command that would change the overlay (deploy, undeploy, shutdown,
+LinkState, ...) must be refused, and so must the neighbour's StopApp and DeployFailed (only an
+operator's signed undeploy stops a running app).
 
 Reported: frames/s, the node's RSS (VmRSS) before, during and after, its counters (frames
 rejected and malformed, messages dropped, handler errors, illegal transitions), and whether the
@@ -56,8 +56,7 @@ edges: [[src, mid], [mid, sink]]
 """
 OPERATOR = Signer()
 HELLOS = (m.ClientHello, m.PeerHello)
-CLIENT_TYPES = tuple(t for t in wirefuzz.MESSAGE_TYPES if t not in HELLOS)
-PEER_TYPES = tuple(t for t in CLIENT_TYPES if t not in (m.StopApp, m.DeployFailed))
+TYPES = tuple(t for t in wirefuzz.MESSAGE_TYPES if t not in HELLOS)
 
 
 def rss_kb(pid: int) -> int:
@@ -165,8 +164,8 @@ async def fuzz(pid: int, port: int, frames: int, seed: int, bad_every: int) -> d
 
     rng = random.Random(seed)
     conns = [
-        await Member.open(port, m.PeerHello("N2"), "N2", PEER_TYPES),
-        await Member.open(port, m.ClientHello("fuzz"), "client", CLIENT_TYPES),
+        await Member.open(port, m.PeerHello("N2"), "N2", TYPES),
+        await Member.open(port, m.ClientHello("fuzz"), "client", TYPES),
     ]
     t0 = time.monotonic()
     for i in range(frames):
@@ -210,6 +209,7 @@ async def fuzz(pid: int, port: int, frames: int, seed: int, bad_every: int) -> d
         },
         "node_alive": True,
         "last_handler_error": after.get("last_handler_error", ""),
+        "refusals": after.get("refusals", {}),  # messages of a wrong meaning, by reason
     }
 
 
@@ -238,6 +238,18 @@ def render(r: dict[str, Any]) -> str:
         f"| {c['illegal_transitions']:,} | {c['refused_for_authority']:,} | "
         + " / ".join(str(v) for v in r["sink_events"].values())
         + " |\n"
+        + _refusals(r.get("refusals", {}))
+    )
+
+
+def _refusals(by_reason: dict[str, int]) -> str:
+    top = sorted(by_reason.items(), key=lambda kv: -kv[1])[:12]
+    if not top:
+        return ""
+    rows = "".join(f"| {reason} | {n:,} |\n" for reason, n in top)
+    return (
+        "\nRefused by the core, the most frequent reasons:\n\n| reason | messages |\n|---|---:|\n"
+        + rows
     )
 
 

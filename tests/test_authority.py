@@ -57,10 +57,10 @@ def test_commands_signed_for_this_connection_only() -> None:
 
 def test_documents_carry_a_grant_that_survives_relay_but_not_edits() -> None:
     auth = Authority.configure([OPERATOR.public_text()])
-    granted = OPERATOR.grant(APP)
+    granted = OPERATOR.grant(APP, 1)
     assert auth.document(granted) == "" and strip_grant(granted) == APP
     assert "no operator grant" in auth.document(APP)
-    assert "not an operator's" in auth.document(ROGUE.grant(APP))
+    assert "not an operator's" in auth.document(ROGUE.grant(APP, 1))
     tampered = granted.replace("rate: 20", "rate: 99")
     assert "does not match" in auth.document(tampered)
     # the grant is a comment after the document: line numbers of errors do not move
@@ -111,7 +111,7 @@ def test_a_member_without_operator_authority_changes_nothing() -> None:
                 assert "needs an operator's signature" in await refused(port, msg)
                 assert "has no authority" in await refused(port, msg, ROGUE)
             # a deploy signed by the operator, but its document altered on the way: refused
-            forged = m.DeployRequest(OPERATOR.grant(APP).replace("rate: 20", "rate: 1"))
+            forged = m.DeployRequest(OPERATOR.grant(APP, 1).replace("rate: 20", "rate: 1"))
             client = await Client(HOST, port, KEY).connect()
             nonce = client._codec.peer_nonce
             assert nonce is not None
@@ -161,7 +161,7 @@ def test_an_announced_app_without_a_grant_is_never_loaded() -> None:
             for msg in [
                 m.PeerHello("N2"),
                 m.AppAnnounce(app="one", origin="N2", document=APP),
-                m.AppAnnounce(app="two", origin="N2", document=ROGUE.grant(APP)),
+                m.AppAnnounce(app="two", origin="N2", document=ROGUE.grant(APP, 1)),
             ]:
                 writer.write(codec.seal(m.wrap("N2", "N1", msg)))
             await writer.drain()

@@ -217,39 +217,68 @@ def test_a_node_process_path_counts_and_lives_on() -> None:
     assert st["node"] == "N1"
 
 
-# Messages of a wrong meaning into a running deployment at N2 (it hosts ``mid``), and whether the
-# core counts its refusal (dropped_messages, handler_errors or illegal_transitions). Those it
-# ignores without counting are marked: the core does not count them yet (noted in issue 13).
-NOT_COUNTED = pytest.mark.xfail(strict=True, reason="ignored without being counted")
+# Messages of a wrong meaning into a running deployment (``pipe``: src on N1, mid on N2, sink
+# pinned to N3; N1 its origin), each refused: nothing done, counted (dropped_messages, and by
+# reason in ``refusals``), and no handler raises (``handler_errors`` stays as it was).
 WRONG_MEANING = [
-    pytest.param("N1", m.Data("pipe", 0, 999, 0, [b"x"]), id="data of an old epoch"),
-    pytest.param("N3", m.Ack("pipe", 42, 0, 5), id="ack for an edge not there"),
-    pytest.param("N1", m.Switch("pipe", 99, "N3", 1), id="switch of an edge not there"),
-    pytest.param(
-        "N1", m.RelocateRequest("pipe", "ghost", "upstream"), id="relocate a vertex not there",
-        marks=NOT_COUNTED,
-    ),
-    pytest.param("N1", m.Marker("pipe", 99, 5, 1, "N3"), id="marker of an edge not there",
-                 marks=NOT_COUNTED),
-    pytest.param("N3", m.Prepared("pipe", "mid", 777, "N3"), id="prepared for no relocation",
-                 marks=NOT_COUNTED),
-    pytest.param("N1", m.Handover("pipe", "mid", 777, b"", {}, {}, 0, 0),
-                 id="handover nobody asked for", marks=NOT_COUNTED),
-    pytest.param("N3", m.ProbeReply("pipe", 0, 9, [], []), id="probe reply for no probe",
-                 marks=NOT_COUNTED),
-    pytest.param("N3", m.ChainBuilt("pipe", 99), id="chain built of a chain not there",
-                 marks=NOT_COUNTED),
-    pytest.param("N1", m.Resume("pipe", 0, 5, True, 0), id="resume for no replacement",
-                 marks=NOT_COUNTED),
+    pytest.param("N2", "N1", m.Data("pipe", 0, 999, 0, [b"x"]), id="data of an old epoch"),
+    pytest.param("N2", "N3", m.Ack("pipe", 42, 0, 5), id="ack for an edge not there"),
+    pytest.param("N2", "N1", m.Switch("pipe", 99, "N3", 1), id="switch of an edge not there"),
+    pytest.param("N2", "N1", m.Switch("pipe", -1, "N3", 1), id="switch of a negative edge"),
+    pytest.param("N2", "N1", m.Switch("pipe", 1, "N1", 1), id="switch of a pinned vertex"),
+    pytest.param("N1", "N3", m.Switch("pipe", 0, "N2", 1), id="switch to where it runs"),
+    pytest.param("N2", "N1", m.RelocateRequest("pipe", "ghost", "upstream"),
+                 id="relocate a vertex not there"),
+    pytest.param("N2", "N1", m.Marker("pipe", 99, 5, 1, "N3"), id="marker of an edge not there"),
+    pytest.param("N2", "N1", m.Marker("pipe", 0, 5, 1, "N2"), id="marker moving to its host"),
+    pytest.param("N2", "N3", m.Prepared("pipe", "mid", 777, "N3"), id="prepared for no relocation"),
+    pytest.param("N2", "N1", m.Handover("pipe", "mid", 777, b"", {}, {}, 0, 0),
+                 id="handover nobody asked for"),
+    pytest.param("N2", "N1", m.HandoverDone("pipe", "mid", 777), id="handover done of nothing"),
+    pytest.param("N2", "N3", m.ProbeReply("pipe", 0, 9, [], []), id="probe reply for no probe"),
+    pytest.param("N2", "N3", m.ProbeReply("pipe", -1, 9, [], []), id="remap probe reply, no remap"),
+    pytest.param("N2", "N3", m.ChainBuilt("pipe", 99), id="chain built of a chain not there"),
+    pytest.param("N1", "N3", m.ChainBuilt("pipe", 0), id="chain built after the deployment"),
+    pytest.param("N1", "N3", m.DeployFailed("pipe", "no"), id="deploy failed of a running app"),
+    pytest.param("N2", "N1", m.ChainPartReady("pipe", 0, "N3"), id="part ready for no build"),
+    pytest.param("N2", "N1", m.StartApp("pipe"), id="start of a running app"),
+    pytest.param("N2", "N1", m.Resume("pipe", 0, 5, True, 0), id="resume for no replacement"),
+    pytest.param("N2", "N1", m.Resume("pipe", 7, 5, True, 0), id="resume of an edge not there"),
+    pytest.param("N2", "N1", m.ChainPlaced("pipe", 99, {}), id="chain placed out of range"),
+    pytest.param("N2", "N1", m.ChainPlaced("pipe", -5, {}), id="chain placed negative"),
+    pytest.param("N2", "N1", m.ChainPlaced("pipe", 0, {"src": "N9"}), id="chain placed again"),
+    pytest.param("N2", "N1", m.BuildChain("pipe", 99, ["ghost"]), id="build of no chain"),
+    pytest.param("N2", "N1", m.BuildChain("pipe", 0, ["ghost"]), id="build of a ghost vertex"),
+    pytest.param("N2", "N1", m.BuildChain("pipe", 0, ["mid"]), id="build of a running app"),
+    pytest.param("N2", "N1", m.Prepare("pipe", "src", 5, True, [[1]]), id="resumes not pairs"),
+    pytest.param("N2", "N1", m.Prepare("pipe", "src", 5, True, [["x", "y"]]),
+                 id="resumes not numbers"),
+    pytest.param("N2", "N1", m.Prepare("pipe", "src", 5, True, [[99, True]]),
+                 id="resumes of an edge not there"),
+    pytest.param("N2", "N1", m.Prepare("pipe", "src", 5, True, [[1, True]]),
+                 id="resumes of another vertex's edge"),
+    pytest.param("N2", "N1", m.Moved("pipe", "ghost", "N1"), id="moved a vertex not there"),
+    pytest.param("N2", "N1", m.Moved("pipe", "sink", "N1"), id="moved a pinned vertex"),
+    pytest.param("N2", "N1", m.Rewire("pipe", 1, "N1", 5, True), id="rewire to a pinned vertex"),
+    pytest.param("N2", "N1", m.Rewire("pipe", 9, "N1", 5, True), id="rewire of no edge"),
+    pytest.param("N2", "N1", m.Unprepare("pipe", "mid", 777), id="unprepare of nothing"),
+    pytest.param("N2", "N1", m.Moved("ghost-app", "mid", "N1"), id="moved of no app"),
+    pytest.param("N2", "N3", m.ChainDelay("pipe", 0, float("nan")), id="chain delay NaN"),
+    pytest.param("N2", "N3", m.ChainDelay("pipe", 5, 1.0), id="chain delay of no chain"),
 ]  # fmt: skip
 
 
-@pytest.mark.parametrize(("src", "msg"), WRONG_MEANING)
+@pytest.mark.parametrize(("node", "src", "msg"), WRONG_MEANING)
 def test_a_refused_message_is_counted(
-    src: str, msg: m.Message, untouched: Simulation, monkeypatch: pytest.MonkeyPatch
+    node: str, src: str, msg: m.Message, untouched: Simulation, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(NodeCore, "strict", False)
-    core = untouched.cores["N2"]
-    before = counted(core)
+    monkeypatch.setattr(NodeCore, "strict", True)  # a handler that raises fails the test
+    core = untouched.cores[node]
+    before, errors, placed = counted(core), core.handler_errors, dict(core.apps["pipe"].placed)
     assert core.receive(src, msg, untouched.now) == []  # nothing done
-    assert counted(core) == before + 1
+    assert counted(core) == before + 1 and core.handler_errors == errors
+    assert core.apps["pipe"].placed == placed and core.apps["pipe"].running
+    status = core.status(untouched.now)
+    assert status["dropped_messages"] == core.dropped_messages
+    if not isinstance(msg, m.Data | m.Ack):  # (the data plane counts its drops as it did)
+        assert sum(status["refusals"].values()) >= 1

@@ -590,7 +590,7 @@ def test_app_policy_overrides_the_nodes() -> None:
 def test_broken_and_misbehaving_policies_are_reported_not_fatal() -> None:
     engine = RuleEngine(load_policy("custom_policy:Broken", where=WHERE))
     assert run(engine, poor_here(), [0.0, 1.0]) == []
-    assert list(engine.log) == [
+    assert [e for e in engine.log if "draining" not in e[1]] == [
         (0.0, "policy broken for app", "error: RuntimeError: sensor table missing")
     ]
     engine = RuleEngine(load_policy("custom_policy:MovesChainHead", where=WHERE))
@@ -601,7 +601,7 @@ def test_broken_and_misbehaving_policies_are_reported_not_fatal() -> None:
     spec = {"code": "custom_policy:MovesChainHead", "params": {"vertex": "B"}}
     engine = RuleEngine(load_policy(spec, where=WHERE))
     assert run(engine, poor_here(movable=False), [0.0, 1.0, 2.0]) == []
-    assert [d for _, _, d in engine.log] == [
+    assert [d for _, what, d in engine.log if "draining" not in what] == [
         "ignored: app/B is a chain end or pinned: never relocated"
     ]
 
@@ -634,3 +634,65 @@ def test_a_move_that_would_saturate_the_target_is_never_proposed() -> None:
     assert [o.target for o in rule.options(view, view.vertices[0])] == [None, "U"]
     loose = RelocationRule(LifetimePolicy(), RuleSettings(margin=0.0, max_load=2.0))
     assert [o.target for o in loose.options(view, view.vertices[0])] == [None, "U", "D"]
+
+
+# -- a draining node and a flat battery -------------------------------------------------------
+
+
+def leader_line(h_remaining: float, *, u_remaining: float = 36_000.0) -> Snapshot:
+    """H hosts B, which costs H a little: moving B to U saves H 2 % of its 5 W drain, less than
+    the margin. U has ``u_remaining`` J at the same drain."""
+    nodes = [
+        node("H", drain=5.0, remaining=h_remaining),
+        node("U", drain=5.0, remaining=u_remaining),
+    ]
+    light = VertexView("app", "B", "H", 0, 1.0, 25.0, 0.0, 0.0, 100, "U", None, True)
+    return snap(0.0, nodes, [light], [chain(vertices=("A", "B"), nodes=("U", "H"))])
+
+
+def test_a_draining_node_sheds_work_the_margin_would_keep() -> None:
+    # same drains: with equal batteries the 2 % gain is within the margin and nothing moves
+    assert run(RuleEngine(), leader_line(36_000.0), [float(t) for t in range(10)]) == []
+    # H's battery holds a tenth of U's: it is draining, and any gain for it is worth a move
+    engine = RuleEngine()
+    allowed = run(engine, leader_line(3_600.0), [float(t) for t in range(10)])
+    assert [(t, what.split(" (")[0]) for t, what in allowed] == [(2.0, "relocate app/B -> U")]
+    assert "H draining" in allowed[0][1]
+    assert engine.draining == {"H"}
+    assert any("H draining" in line for line in engine.status()["decisions"])
+
+
+def test_draining_has_hysteresis() -> None:
+    s = RuleSettings()  # enters under 0.5, leaves above 0.625
+    engine = RuleEngine(settings=s)
+    for ratio, expected in [(0.55, set()), (0.45, {"H"}), (0.55, {"H"}), (0.6, {"H"}),
+                            (0.7, set()), (0.55, set())]:  # fmt: skip
+        engine.evaluate(leader_line(36_000.0 * ratio))
+        assert engine.draining == expected, ratio
+
+
+def test_a_wall_powered_neighbour_makes_every_battery_node_draining() -> None:
+    nodes = [node("H", drain=5.0), node("U", drain=5.0, remaining=None)]
+    engine = RuleEngine()
+    engine.evaluate(snap(0.0, nodes))
+    assert engine.draining == {"H"}
+
+
+def test_nothing_moves_onto_a_flat_battery() -> None:
+    # U is empty: every lifetime there is 0 and the lifetime score of staying and of moving
+    # ties at its first level, where U's 0 used to decide nothing and H's relief won
+    nodes = [node("H", drain=5.0, remaining=3_600.0), node("U", drain=5.0, remaining=0.0)]
+    light = VertexView("app", "B", "H", 0, 10.0, 50.0, 0.0, 0.0, 100, "U", None, True)
+    s = snap(0.0, nodes, [light], [chain(vertices=("A", "B"), nodes=("U", "H"))])
+    for policy in POLICIES.values():
+        rule = RelocationRule(policy(), RuleSettings(margin=0.0), frozenset({"H"}))
+        assert rule.options(s, light) == [], policy.name
+        assert run(RuleEngine(policy()), s, [float(t) for t in range(10)]) == []
+    alive = snap(0.0, [nodes[0], node("U", drain=5.0, remaining=36_000.0)], [light], s.chains)
+    assert run(RuleEngine(), alive, [float(t) for t in range(10)]) != []  # the same, U charged
+
+
+def test_critical_ratio_is_checked() -> None:
+    for bad in (1.0, -0.1, float("nan")):
+        with pytest.raises(MsoError, match="critical_ratio"):
+            RuleSettings(critical_ratio=bad)

@@ -49,6 +49,7 @@ def test_render_names_units_and_labels() -> None:
         "monitor": {"battery_fraction": 0.25, "drain_w": 3.5, "energy_j": 12.0, "lifetime_s": None},
         "traffic": {"bytes_in": 10, "bytes_out": 20, "bytes_forwarded": 0, "frames_rejected": 1},
         "neighbours": ["N6", "N8"],
+        "refusals": {"stop_app_unauthorized": 3},
         "apps": {
             "a": {
                 "chains": [["s", "t"]],
@@ -75,6 +76,9 @@ def test_render_names_units_and_labels() -> None:
     assert flight.labels == {"node": "N7", "app": "a", "edge": "s->t"} and flight.value == 5
     member = fams["mso_vertex_chain_info"][0]
     assert member.labels == {"node": "N7", "app": "a", "chain": "s-t", "vertex": "s"}
+    (refused,) = (s for s in fams["mso_node_refused_messages"] if s.name.endswith("_total"))
+    assert refused.labels == {"node": "N7", "reason": "stop_app_unauthorized"}
+    assert refused.value == 3
 
 
 @pytest.fixture

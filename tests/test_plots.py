@@ -36,9 +36,6 @@ def test_benchmark_plots(tmp_path: Path) -> None:
                         "commands": {"mso status": {"p50_ms": 90.0, "p90_ms": 110.0}}} | machine,
         "rates": {"rows": [{"asked": 1.0, "got": 1.0, "error_pct": 0.0},
                            {"asked": 10.0, "got": 9.99, "error_pct": -0.1}]},
-        "lifetime": {"off": {"average_drain_w": {"N1": 4.0}, "leader_lifetime_s": 100.0},
-                     "on": {"average_drain_w": {"N1": 2.0}, "leader_lifetime_s": 200.0},
-                     "lifetime_ratio": 2.0},
     }  # fmt: skip
     assert set(results) == set(plots.BENCHMARKS)
     for name, draw in plots.BENCHMARKS.items():

@@ -53,7 +53,10 @@ def test_energy_rule_moves_work_off_a_poor_battery_and_loses_nothing() -> None:
     assert placed["work"] == "N2"  # one hop downstream, off the leader
     (done,) = sim.cores["N1"].manager.done
     assert "relocate work/work -> N2" in done and "lifetime" in done
-    decisions = sim.cores["N1"].manager.status()["decisions"]
+    status = sim.cores["N1"].manager.status()
+    draining = [d for d in status["decisions"] if "draining" in d.split(":")[0]]
+    assert draining[0].split(" ", 1)[1].startswith("N1 draining")  # 0.5 Wh against 5 Wh
+    decisions = [d for d in status["decisions"] if d not in draining]
     ends = ("held: confirming 1/3", "held: confirming 2/3", "allowed")
     assert [d.endswith(e) for d, e in zip(decisions, ends, strict=False)] == [True] * 3
     got = sink(sim, "work", "N3")

@@ -105,8 +105,11 @@ class Exchange:
     def seal(self, msg: m.Message) -> bytes:
         """One message as a frame (signed first when it changes the overlay and we sign)."""
         if self.signer is not None and isinstance(msg, self.signer.signs):
+            now_ms = time.time_ns() // 1_000_000  # a grant's generation, an undeploy's time
             if isinstance(msg, m.DeployRequest):
-                msg = m.DeployRequest(self.signer.grant(msg.document), msg.file)
+                msg = m.DeployRequest(self.signer.grant(msg.document, now_ms), msg.file)
+            elif isinstance(msg, m.StopApp) and not msg.sig:  # verified by every node
+                msg = self.signer.undeploy(msg.app, now_ms)
             nonce = self.codec.peer_nonce
             assert nonce is not None
             msg = self.signer.command(nonce, msg)

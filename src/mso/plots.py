@@ -143,20 +143,8 @@ def rates(result: dict[str, Any], out: Path) -> Path:
     return _save(fig, out)
 
 
-def lifetime(result: dict[str, Any], out: Path) -> Path:
-    """bench/lifetime.py: average drain per node with the energy rule off and on."""
-    off, on = result["off"], result["on"]
-    return _paired_bars(
-        off["average_drain_w"], on["average_drain_w"], ("rules off", "rules on"),
-        "average drain (W)",
-        f"leader lifetime {off['leader_lifetime_s']:.0f} s → {on['leader_lifetime_s']:.0f} s "
-        f"(×{result['lifetime_ratio']:.2f})", out,
-    )  # fmt: skip
-
-
 BENCHMARKS = {
     "dashboard": dashboard,
     "cli_startup": cli_startup,
     "rates": rates,
-    "lifetime": lifetime,
-}
+}  # the energy study (mso bench lifetime) draws its own plots

@@ -8,18 +8,29 @@ virtual-time simulator with ``model_time`` (each call takes its vertex's modelle
 the same node code as the daemon, the real vertex code, hours of battery in seconds. Static
 placements are imposed by pinning every vertex where the placement puts it.
 
+Two accountings, each a full set of runs:
+
+- ``board``: the whole board drains the battery — idle power included (a Raspberry Pi 3 B
+  idles at ~1.1 W, which no placement changes);
+- ``app``: only the energy the app causes drains it — CPU above idle and radio, the budget a
+  MagnetOS-style study counts (idle_w 0, a smaller battery so a run still ends).
+
 Reported per strategy: leader lifetime (its battery empty), network lifetime (first robot
-empty), energy per stored result (all robots' joules until the run ends / rows stored),
-results stored and their completeness (rows against events emitted), end-to-end delay
-p50/p99 from the SQLite log, the relocations the rules made; plus a PNG per strategy of every
-robot's battery over time with the relocations marked.
+empty), energy per stored result (all robots' joules until the run ends / rows stored; with the
+app's own share beside it), results stored and their completeness (rows against events
+emitted), end-to-end delay p50/p99 from the SQLite log, the relocations the rules made; plus a
+PNG per accounting of every robot's battery over time, one panel per strategy, the relocations
+marked. A robot whose battery is empty keeps running in the simulation (its time of death is
+recorded), so the leader's lifetime is measured even when a relay dies first.
 
     mso bench lifetime [--out bench/results/lifetime.json] [--plots docs/img] [--limit-s S]
+                       [--accounting board|app] [--only STRATEGY]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import tempfile
 import time
@@ -31,6 +42,7 @@ import yaml
 from mso.benchmarks.common import provenance, write_results
 from mso.examples.convoy import storage
 from mso.model.appfile import loads_app
+from mso.model.network import Network
 from mso.planning.baselines import BASELINES
 from mso.planning.placement import plan
 from mso.protocol import messages as m
@@ -43,6 +55,27 @@ APP_FILE = EXAMPLES / "convoy.yaml"
 SCENARIO_FILE = EXAMPLES / "convoy-study.yaml"
 LEADER = "N1"
 STRATEGIES = ("all-on-leader", "algorithm1-kept", "mso-rules", "ilp-optimal")
+ACCOUNTINGS = ("board", "app")
+APP_BUDGET_WH = 0.005  # the app's own budget: its tens of mW drain it in minutes of virtual time
+
+
+def network_for(accounting: str, scenario: Path = SCENARIO_FILE) -> Network:
+    """The study's line under an accounting: as written (``board``), or with idle power out
+    of the battery and the app's budget in it (``app``)."""
+    net = load_scenario(scenario).network
+    if accounting == "board":
+        return net
+    if accounting != "app":
+        raise ValueError(
+            f"accounting: expected one of {', '.join(ACCOUNTINGS)}, got {accounting!r}"
+        )
+    nodes = [
+        dataclasses.replace(
+            n, battery_wh=APP_BUDGET_WH, power=dataclasses.replace(n.power, idle_w=0.0)
+        )
+        for n in net.nodes.values()
+    ]
+    return Network(nodes, list(net.links.values()))
 
 
 def pinned_doc(doc: str, placement: dict[str, str]) -> str:
@@ -53,25 +86,38 @@ def pinned_doc(doc: str, placement: dict[str, str]) -> str:
     return str(yaml.safe_dump(data, sort_keys=False))
 
 
-def placement_for(strategy: str, doc: str) -> dict[str, str] | None:
+def placement_for(strategy: str, doc: str, net: Network) -> dict[str, str] | None:
     app = loads_app(doc, file=str(APP_FILE))
-    net = load_scenario(SCENARIO_FILE).network
     if strategy == "all-on-leader":
         return dict(BASELINES["source"](app, net, seed=0, objective="energy"))
     if strategy == "ilp-optimal":
         return dict(BASELINES["optimal"](app, net, seed=0, objective="energy"))
     if strategy == "algorithm1-kept":
         return dict(plan(app, net).placement)
-    return None  # mso-rules: Algorithm 1 as deployed, then the rules
+    if strategy == "mso-rules":
+        return None  # Algorithm 1 as deployed, then the rules
+    raise ValueError(f"strategy: expected one of {', '.join(STRATEGIES)}, got {strategy!r}")
 
 
-def run(strategy: str, limit_s: float, db: Path, step_s: float = 5.0) -> dict[str, Any]:
+def run(
+    strategy: str,
+    limit_s: float,
+    db: Path,
+    *,
+    accounting: str = "board",
+    step_s: float = 5.0,
+    network: Network | None = None,
+    until_leader_dies: bool = True,
+) -> dict[str, Any]:
+    """One strategy under one accounting, until the leader's battery is empty (or ``limit_s``
+    of virtual time; with ``until_leader_dies`` False, exactly ``limit_s``)."""
     doc = APP_FILE.read_text(encoding="utf-8")
-    placement = placement_for(strategy, doc)
+    net = network if network is not None else network_for(accounting)
+    placement = placement_for(strategy, doc, net)
     if placement is not None:
         doc = pinned_doc(doc, placement)
-    scenario = load_scenario(SCENARIO_FILE)
-    sim = Simulation(scenario.network, manage=strategy == "mso-rules", model_time=True)
+    sim = Simulation(net, manage=strategy == "mso-rules", model_time=True)
+    old_db = os.environ.get(storage.DB_ENV)
     os.environ[storage.DB_ENV] = str(db)
     storage.set_clock(lambda: sim.now)
     try:
@@ -85,8 +131,8 @@ def run(strategy: str, limit_s: float, db: Path, step_s: float = 5.0) -> dict[st
         battery: dict[str, list[tuple[float, float]]] = {n: [] for n in mons}
         died: dict[str, float] = {}
         started = time.perf_counter()
-        while sim.now < limit_s and LEADER not in died:
-            sim.run_until(sim.now + step_s)
+        while sim.now < limit_s and not (until_leader_dies and LEADER in died):
+            sim.run_until(min(sim.now + step_s, limit_s))
             for n, mon in mons.items():
                 frac = (mon.remaining_j or 0.0) / (mon.capacity_j or 1.0)
                 battery[n].append((round(sim.now, 1), round(frac, 5)))
@@ -103,20 +149,28 @@ def run(strategy: str, limit_s: float, db: Path, step_s: float = 5.0) -> dict[st
             for c in sim.cores.values()
             for d in c.manager.done
         )
-        final = {v: n for c in sim.cores.values() for v in c.apps["convoy"].stones for n in [c.id]}
+        final = {v: c.id for c in sim.cores.values() for v in c.apps["convoy"].stones}
     finally:
         storage.set_clock(time.monotonic)
-        os.environ.pop(storage.DB_ENV, None)
+        if old_db is None:
+            os.environ.pop(storage.DB_ENV, None)
+        else:
+            os.environ[storage.DB_ENV] = old_db
     s = storage.summary(db)
     stored = s["trajectory"]["distinct"] + s["targets"]["distinct"]
     energy = sum(mon.energy_j for mon in mons.values())
+    app_energy = sum(mon.cpu_energy_j + mon.radio_energy_j for mon in mons.values())
     return {
         "strategy": strategy,
+        "accounting": accounting,
         "leader_lifetime_s": died.get(LEADER),
         "network_lifetime_s": min(died.values()) if died else None,
         "first_to_die": min(died, key=lambda n: died[n]) if died else None,
-        "energy_j": round(energy, 2),
-        "energy_per_result_j": round(energy / stored, 4) if stored else None,
+        "died": died,
+        "energy_j": round(energy, 3),
+        "app_energy_j": round(app_energy, 3),
+        "energy_per_result_j": round(energy / stored, 5) if stored else None,
+        "app_energy_per_result_j": round(app_energy / stored, 5) if stored else None,
         "results_stored": stored,
         "events_emitted": emitted,
         "complete": s["trajectory"]["gaps"] == s["trajectory"]["repeats"] == 0
@@ -133,7 +187,7 @@ def run(strategy: str, limit_s: float, db: Path, step_s: float = 5.0) -> dict[st
         "placement_deployed": deployed,
         "placement_final": final,
         "average_drain_w": {
-            n: round(mon.energy_j / max(sim.now - mon.started_at, 1e-9), 4)
+            n: round(mon.energy_j / max(sim.now - mon.started_at, 1e-9), 5)
             for n, mon in mons.items()
         },
         "battery": battery,
@@ -143,7 +197,8 @@ def run(strategy: str, limit_s: float, db: Path, step_s: float = 5.0) -> dict[st
 
 
 def plot(results: list[dict[str, Any]], out: Path) -> list[Path]:
-    """One PNG per strategy: every robot's battery over time, the rules' relocations marked."""
+    """One PNG per accounting, a panel per strategy: every robot's battery over time, the
+    rules' relocations dotted."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -151,61 +206,96 @@ def plot(results: list[dict[str, Any]], out: Path) -> list[Path]:
 
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for r in results:
-        fig, ax = plt.subplots(figsize=(6.4, 3.2), dpi=100)
-        for node, series in r["battery"].items():
-            ax.plot([t for t, _ in series], [100 * f for _, f in series], label=node)
-        for t, _what in r["relocations"]:
-            ax.axvline(t, color="grey", linestyle=":", linewidth=0.8)
-        ax.set_title(f"{r['strategy']}: battery per robot" + (
-            f" ({len(r['relocations'])} relocations, dotted)" if r["relocations"] else ""
-        ))  # fmt: skip
-        ax.set_xlabel("virtual time (s)")
-        ax.set_ylabel("battery (%)")
-        ax.set_ylim(0, 101)
-        ax.legend(loc="lower left", fontsize=8)
+    for accounting in dict.fromkeys(r["accounting"] for r in results):
+        runs = [r for r in results if r["accounting"] == accounting]
+        fig, axes = plt.subplots(2, 2, figsize=(10, 6), dpi=100, sharey=True, squeeze=False)
+        for ax, r in zip(axes.flat, runs, strict=False):
+            for node, series in r["battery"].items():
+                ax.plot([t for t, _ in series], [100 * f for _, f in series], label=node)
+            for t, _what in r["relocations"]:
+                ax.axvline(t, color="grey", linestyle=":", linewidth=0.8)
+            moves = len(r["relocations"])
+            ax.set_title(f"{r['strategy']}" + (f" ({moves} relocations, dotted)" if moves else ""))
+            ax.set_xlabel("virtual time (s)")
+            ax.set_ylabel("battery (%)")
+            ax.set_ylim(0, 101)
+            ax.legend(loc="lower left", fontsize=8)
+        for ax in list(axes.flat)[len(runs) :]:
+            ax.set_visible(False)
+        what = "whole board (idle included)" if accounting == "board" else "the app's own energy"
+        fig.suptitle(f"battery per robot — accounting: {what}")
         fig.tight_layout()
-        path = out / f"lifetime-{r['strategy']}.png"
+        path = out / f"lifetime-{accounting}.png"
         fig.savefig(path)
         plt.close(fig)
         paths.append(path)
     return paths
 
 
+TARGETS = (  # (what, a, b, key, target, at least?)
+    ("leader lifetime, rules / all-on-leader", "mso-rules", "all-on-leader",
+     "leader_lifetime_s", 4.0, True),
+    ("leader lifetime, rules / Algorithm 1 kept", "mso-rules", "algorithm1-kept",
+     "leader_lifetime_s", 2.0, True),
+    ("network lifetime, rules / Algorithm 1 kept", "mso-rules", "algorithm1-kept",
+     "network_lifetime_s", 1.3, True),
+    ("energy per stored result, rules / ILP optimum", "mso-rules", "ilp-optimal",
+     "energy_per_result_j", 1.1, False),
+)  # fmt: skip
+
+
+def ratios(results: list[dict[str, Any]], accounting: str) -> list[dict[str, Any]]:
+    """Each target's ratio under ``accounting`` and whether it is met (None: not measured)."""
+    by = {r["strategy"]: r for r in results if r["accounting"] == accounting}
+    out = []
+    for what, a, b, key, target, at_least in TARGETS:
+        x = by.get(a, {}).get(key)
+        y = by.get(b, {}).get(key)
+        ratio = None if not x or not y else x / y
+        met = None if ratio is None else (ratio >= target if at_least else ratio <= target)
+        out.append({"what": what, "ratio": ratio, "target": target, "at_least": at_least,
+                    "met": met})  # fmt: skip
+    return out
+
+
 def markdown(results: list[dict[str, Any]]) -> str:
     def fmt(x: float | None, spec: str = ".0f") -> str:
         return "-" if x is None else format(x, spec)
 
-    lines = [
-        "| strategy | leader lifetime (s) | network lifetime (s) | energy / stored result (J) "
-        "| results stored (complete) | e2e p50 / p99 (ms) | relocations |",
-        "|---|---:|---:|---:|---:|---:|---:|",
-    ]
-    for r in results:
-        lines.append(
-            f"| {r['strategy']} | {fmt(r['leader_lifetime_s'])} | "
-            f"{fmt(r['network_lifetime_s'])} | {fmt(r['energy_per_result_j'], '.3f')} | "
-            f"{r['results_stored']} ({'yes' if r['complete'] else 'NO'}) | "
-            f"{fmt(r['delay_ms_p50'], '.1f')} / {fmt(r['delay_ms_p99'], '.1f')} | "
-            f"{len(r['relocations'])} |"
+    lines: list[str] = []
+    for accounting in dict.fromkeys(r["accounting"] for r in results):
+        title = (
+            "whole board, idle included"
+            if accounting == "board"
+            else "the app's own energy (CPU above idle + radio)"
         )
-    by = {r["strategy"]: r for r in results}
-
-    def ratio(a: str, b: str, key: str) -> str:
-        x, y = by[a][key], by[b][key]
-        return "-" if not x or not y else f"{x / y:.2f}×"
-
-    lines += [
-        "",
-        f"Leader lifetime, rules against all-on-leader: "
-        f"{ratio('mso-rules', 'all-on-leader', 'leader_lifetime_s')} (target ≥ 4×); against "
-        f"Algorithm 1 kept: {ratio('mso-rules', 'algorithm1-kept', 'leader_lifetime_s')} "
-        f"(target ≥ 2×). Network lifetime, rules against Algorithm 1 kept: "
-        f"{ratio('mso-rules', 'algorithm1-kept', 'network_lifetime_s')} (target ≥ 1.3×). "
-        f"Energy per stored result, rules against the ILP optimum: "
-        f"{ratio('mso-rules', 'ilp-optimal', 'energy_per_result_j')} (target ≤ 1.10×).",
-    ]
-    return "\n".join(lines) + "\n"
+        lines += [
+            f"Accounting **{accounting}** — {title}:",
+            "",
+            "| strategy | leader lifetime (s) | network lifetime (s) (first) "
+            "| energy / stored result (J) | of which the app's (J) "
+            "| results stored (complete) | e2e p50 / p99 (ms) | relocations |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        for r in (r for r in results if r["accounting"] == accounting):
+            first = f" ({r['first_to_die']})" if r["first_to_die"] else ""
+            lines.append(
+                f"| {r['strategy']} | {fmt(r['leader_lifetime_s'])} | "
+                f"{fmt(r['network_lifetime_s'])}{first} | "
+                f"{fmt(r['energy_per_result_j'], '.4f')} | "
+                f"{fmt(r['app_energy_per_result_j'], '.4f')} | "
+                f"{r['results_stored']} ({'yes' if r['complete'] else 'NO'}) | "
+                f"{fmt(r['delay_ms_p50'], '.1f')} / {fmt(r['delay_ms_p99'], '.1f')} | "
+                f"{len(r['relocations'])} |"
+            )
+        lines.append("")
+        for t in ratios(results, accounting):
+            sign = "≥" if t["at_least"] else "≤"
+            verdict = {None: "not measured", True: "met", False: "NOT met"}[t["met"]]
+            shown = "-" if t["ratio"] is None else f"{t['ratio']:.2f}×"
+            lines.append(f"- {t['what']}: **{shown}** (target {sign} {t['target']:g}×, {verdict})")
+        lines.append("")
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -214,19 +304,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "lifetime.json")
     ap.add_argument("--plots", type=Path, default=ROOT / "docs" / "img")
     ap.add_argument("--only", choices=STRATEGIES, action="append", help="run these only")
+    ap.add_argument("--accounting", choices=ACCOUNTINGS, action="append", help="these only")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     results = []
     with tempfile.TemporaryDirectory(prefix="mso-lifetime-") as tmp:
-        for strategy in args.only or STRATEGIES:
-            results.append(run(strategy, args.limit_s, Path(tmp) / f"{strategy}.sqlite"))
-            print(f"{strategy}: done in {results[-1]['wall_s']} s", flush=True)
+        for accounting in args.accounting or ACCOUNTINGS:
+            for strategy in args.only or STRATEGIES:
+                db = Path(tmp) / f"{accounting}-{strategy}.sqlite"
+                results.append(run(strategy, args.limit_s, db, accounting=accounting))
+                print(f"{accounting} {strategy}: done in {results[-1]['wall_s']} s", flush=True)
     plots = plot(results, args.plots)
     table = markdown(results)
     result = {
         "scenario": str(SCENARIO_FILE.relative_to(ROOT)),
         "app": str(APP_FILE.relative_to(ROOT)),
+        "app_budget_wh": APP_BUDGET_WH,
         "results": results,
+        "targets": {a: ratios(results, a) for a in dict.fromkeys(r["accounting"] for r in results)},
         "plots": [str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else str(p) for p in plots],
         "seconds": time.perf_counter() - t0,
         **provenance(),

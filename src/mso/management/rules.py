@@ -29,6 +29,7 @@ from mso.management.views import (
     Action,
     ActionKey,
     ChainView,
+    NodeView,
     Relocate,
     RemapChain,
     Snapshot,
@@ -50,6 +51,12 @@ class RuleSettings:
     chain_interval_s: float = 15.0  # a chain is remapped at most once per interval
     slo_confirm: int = 3  # evaluations in a row a policy must ask for a remap
     max_load: float = 1.0  # a move never loads its target's CPU beyond this (1.0 = saturated)
+    critical_ratio: float = 0.5  # a battery node expected to die this much sooner is draining
+
+    @property
+    def critical_exit(self) -> float:
+        """A draining node stays so until its lifetime ratio is back above this (hysteresis)."""
+        return min(1.0, 1.25 * self.critical_ratio)
 
     def __post_init__(self) -> None:
         for name in ("confirm", "slo_confirm"):
@@ -62,6 +69,7 @@ class RuleSettings:
                 raise MsoError(f"rule settings: {name}: expected a positive number, got {value!r}")
         for name in (
             "margin",
+            "critical_ratio",
             "vertex_interval_s",
             "node_interval_s",
             "route_settle_s",
@@ -70,6 +78,11 @@ class RuleSettings:
             value = getattr(self, name)
             if not _number(value) or value < 0:
                 raise MsoError(f"rule settings: {name}: expected a number >= 0, got {value!r}")
+        if self.critical_ratio >= 1:
+            raise MsoError(
+                f"rule settings: critical_ratio: expected a number below 1, "
+                f"got {self.critical_ratio!r}"
+            )
 
     @property
     def ping_pong_s(self) -> float:
@@ -249,15 +262,22 @@ class RelocationRule:
     move's one-time state transfer (``move_cost_j``) is charged as extra drain spread over
     ``horizon_s`` — its tx share on the source, its rx share on the target — before the move is
     scored, so a move must pay for itself within the horizon under any policy that looks at
-    drain or lifetime. The best move is proposed only if it beats "no change" by ``margin``.
+    drain or lifetime. The best move is proposed only if it beats "no change" by ``margin`` —
+    or by anything at all when the vertex's node is in ``draining`` (its battery is expected to
+    die far sooner than its neighbours', :func:`draining_update`) and the target would still
+    outlive it: every joule the draining node keeps then counts, however small a share of its
+    drain. A node whose battery is empty is never a target.
     Vertices of a chain whose routes changed less than ``route_settle_s`` ago wait.
     """
 
     name = "relocation"
 
-    def __init__(self, policy: Policy, settings: RuleSettings) -> None:
+    def __init__(
+        self, policy: Policy, settings: RuleSettings, draining: frozenset[str] = frozenset()
+    ) -> None:
         self.policy = policy
         self.settings = settings
+        self.draining = draining
 
     def options(self, snap: Snapshot, v: VertexView) -> list[Option]:
         """ "stay" first, then each candidate move; empty when the vertex has nowhere to go."""
@@ -266,6 +286,8 @@ class RelocationRule:
         targets: list[tuple[str, str]] = []
         for direction, node in (("upstream", v.upstream), ("downstream", v.downstream)):
             usable = node is not None and node != v.node and node in snap.nodes
+            if node is not None and usable and _empty(snap.nodes[node]):
+                continue  # a flat battery: whatever the scores say (all lifetimes there are 0)
             if node is not None and usable and all(node != t for _, t in targets):
                 if estimate(snap, {v.key: node})[node].load > self.settings.max_load:
                     continue  # it would saturate the target's CPU: never worth it
@@ -295,12 +317,15 @@ class RelocationRule:
             stay = opts[0]
             best = min(opts[1:], key=lambda o: (_nan(o.score), o.score, o.direction))
             gain = improvement(stay.score, best.score)
-            if best.target is None or gain <= self.settings.margin:
+            draining = v.node in self.draining and _relieves(snap, v, best.target)
+            margin = 0.0 if draining else self.settings.margin
+            if best.target is None or gain <= margin:
                 continue
-            shown = "inf" if math.isinf(gain) else f"{gain:.0%}"
+            shown = "inf" if math.isinf(gain) else f"{gain:.2g}" if gain < 0.01 else f"{gain:.0%}"
             reason = (
                 f"{self.policy.name}, {best.direction}: score {_show(stay.score)} -> "
-                f"{_show(best.score)} ({shown} better, move {best.move_cost_j:.3g} J)"
+                f"{_show(best.score)} ({shown} better, move {best.move_cost_j:.3g} J"
+                + (f"; {v.node} draining)" if draining else ")")
             )
             action = Relocate(v.app, v.id, best.target, reason)
             out.append(Proposal(action, self.settings.confirm, gain, self.name))
@@ -310,6 +335,55 @@ class RelocationRule:
         chain = snap.chain(v.app, v.chain)
         changed = None if chain is None else chain.route_changed_at
         return changed is not None and snap.now - changed < self.settings.route_settle_s
+
+
+def _empty(view: NodeView) -> bool:
+    return view.remaining_j is not None and view.remaining_j <= 0
+
+
+def _relieves(snap: Snapshot, v: VertexView, target: str | None) -> bool:
+    """Moving ``v`` to ``target`` leaves the target outliving ``v``'s node: the draining node
+    is relieved, not swapped for a new bottleneck (which only the margin may allow)."""
+    if target is None:
+        return False
+    est = estimate(snap, {v.key: target})
+    src, dst = est[v.node].lifetime_s, est[target].lifetime_s
+    return src is not None and (dst is None or dst >= src)
+
+
+def lifetime_ratio(snap: Snapshot, node: str) -> float | None:
+    """``node``'s expected lifetime over the longest of the other nodes in view (a wall-powered
+    one counts as infinite, so the ratio is 0); None when it has no battery, its lifetime is
+    not known yet, or no other node's is."""
+    view = snap.nodes.get(node)
+    if view is None or view.remaining_j is None or view.lifetime_s is None:
+        return None
+    others = [
+        math.inf if o.remaining_j is None else o.lifetime_s
+        for n, o in snap.nodes.items()
+        if n != node and (o.remaining_j is None or o.lifetime_s is not None)
+    ]
+    longest = max((x for x in others if x is not None), default=None)
+    if longest is None or longest <= 0:
+        return None
+    return 0.0 if math.isinf(longest) else view.lifetime_s / longest
+
+
+def draining_update(
+    draining: frozenset[str], snap: Snapshot, settings: RuleSettings
+) -> frozenset[str]:
+    """The nodes deemed draining after ``snap``: this node joins when its lifetime falls under
+    ``critical_ratio`` of its longest-lived neighbour's and leaves only once it is back above
+    ``critical_exit`` (hysteresis: a ratio hovering at the threshold does not flip the rule
+    on and off every evaluation)."""
+    ratio = lifetime_ratio(snap, snap.here)
+    if ratio is None:
+        return draining
+    if ratio < settings.critical_ratio:
+        return draining | {snap.here}
+    if ratio > settings.critical_exit:
+        return draining - {snap.here}
+    return draining
 
 
 class ChainRouteRule:
@@ -384,6 +458,7 @@ class RuleEngine:
         self.route_rule = ChainRouteRule(self.settings)
         self.log: deque[LogEntry] = deque(maxlen=log_size)
         self.evaluations = 0
+        self.draining: frozenset[str] = frozenset()  # this node, while its battery is draining
         self._last: dict[tuple[Any, ...], str] = {}
 
     def set_app_policy(self, app: str, policy: Policy | None) -> None:
@@ -405,12 +480,19 @@ class RuleEngine:
         self.evaluations += 1
         seen: dict[tuple[Any, ...], str] = {}
         proposals = self.route_rule.propose(snap)
+        was = self.draining
+        self.draining = draining_update(was, snap, self.settings)
+        if self.draining != was:
+            ratio = lifetime_ratio(snap, snap.here)
+            shown = "-" if ratio is None else f"{ratio:.2f}"
+            what = "draining" if snap.here in self.draining else "no longer draining"
+            self.log.append((snap.now, f"{snap.here} {what}", f"lifetime ratio {shown}"))
         for app in snap.apps():
             policy = self.policy_for(app)
             view = snap.for_app(app)
             try:
                 asked = list(policy.actions(view))
-                relocations = RelocationRule(policy, self.settings).propose(view)
+                relocations = RelocationRule(policy, self.settings, self.draining).propose(view)
             except Exception as exc:  # user code: report it, keep the node running
                 what = f"policy {policy.name} for {app}"
                 self._note(
@@ -479,6 +561,7 @@ class RuleEngine:
             "app_policies": {a: p.name for a, p in sorted(self.app_policies.items())},
             "settings": {name: getattr(s, name) for name in s.__dataclass_fields__},
             "evaluations": self.evaluations,
+            "draining": sorted(self.draining),
             "decisions": [f"{t:.1f} {what}: {d}" for t, what, d in self.log],
         }
 

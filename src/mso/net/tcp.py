@@ -381,8 +381,8 @@ class TcpTransport:
             log.info("from %s: %s: %s", env.src, type(msg).__name__, why)
             return
         if isinstance(msg, DOCUMENT_MESSAGES) and self.authority.operators:
-            why = self.authority.document(msg.document)
-            if why:  # an app no operator granted: its code is never loaded here
+            why = self.authority.document(msg.document, msg.app)
+            if why:  # an app no operator granted (or one undeployed since): never loaded here
                 log.info("from %s: %s %s: %s", env.src, type(msg).__name__, msg.app, why)
                 return
         self._receiver(env.src, msg)

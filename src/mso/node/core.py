@@ -35,6 +35,7 @@ from mso.protocol.procedures.status import StatusFanout
 __all__ = ["Deployment", "Effect", "Hosted", "NodeCore", "Reply", "Send", "SetTimer"]
 
 MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own
+REVOCATIONS_TOLD = 16  # the operator's latest undeploys told to each newly reachable node
 
 
 class NodeCore(Membership):
@@ -74,7 +75,7 @@ class NodeCore(Membership):
         self._handlers: dict[type, Callable[[str, Any, float], None]] = {
             m.Data: lambda src, msg, now: self._on_data(msg),
             m.Ack: lambda src, msg, now: self._on_ack(msg, now),
-            m.AppAnnounce: lambda src, msg, now: self._on_announce(msg, now),
+            m.AppAnnounce: lambda src, msg, now: self._on_announce(src, msg, now),
             m.Probe: lambda src, msg, now: self._on_probe(msg),
             m.ProbeReply: lambda src, msg, now: (
                 self._on_remap_probe(msg) if msg.chain < 0 else self._on_probe_reply(msg)
@@ -91,7 +92,7 @@ class NodeCore(Membership):
             ),
             m.StatusReply: lambda src, msg, now: self._on_status_reply(msg),
             m.Marker: lambda src, msg, now: self._on_marker_msg(msg, now),
-            m.RelocateRequest: lambda src, msg, now: self._relocate_request(None, msg, now),
+            m.RelocateRequest: lambda src, msg, now: self._on_relocate_request(msg, now),
             m.Prepare: lambda src, msg, now: self._on_prepare(src, msg),
             m.Prepared: lambda src, msg, now: self._on_prepared(msg, now),
             m.Unprepare: lambda src, msg, now: self._on_unprepare(msg, now),
@@ -134,8 +135,11 @@ class NodeCore(Membership):
         self.liveness.set_routes(now, set(self.routes) - self.dead, neighbours)
         if set(self.routes) - set(old):  # a hello: newly reachable nodes learn our incarnation
             beat = self._beat()  # (and whom we hold failed, if a partition just healed)
+            undeploys = list(self.authority.revoked.values())[-REVOCATIONS_TOLD:]
             for d in sorted(set(self.routes) - set(old)):
                 self._send(d, beat)
+                for stop in undeploys:  # and the operator's latest undeploys (a node that
+                    self._send(d, stop)  # restarted or was cut off has not heard them)
         waiting, self._probes_waiting = self._probes_waiting, []
         for deadline, probe in waiting:
             if deadline >= now:
@@ -168,6 +172,13 @@ class NodeCore(Membership):
         if isinstance(msg, m.DeployRequest):
             self._deploy_request(client, msg, now)
         elif isinstance(msg, m.StopApp):
+            why = self._undeploy_refused(msg)
+            if not why and self.authority.signed and self._undeployed_before(msg):
+                why = f"refused: this undeploy of {msg.app!r} is older than its deployment"
+            if why:
+                self._refusal("stop_app_unauthorized")
+                self._effects.append(Reply(client, m.Refused(why)))
+                return self._run(now)
             if msg.app in self.apps:
                 self._broadcast(msg)
             self._effects.append(Reply(client, m.StopApp(msg.app)))
@@ -332,6 +343,7 @@ class NodeCore(Membership):
             "neighbours": sorted(n for n, (hop, _) in self.routes.items() if hop == n),
             "apps": apps,
             "dropped_messages": self.dropped_messages,
+            "refusals": dict(sorted(self.refusals.items())),
             "illegal_transitions": self.illegal_transitions,
             "handler_errors": self.handler_errors,
             "last_handler_error": self.last_handler_error,

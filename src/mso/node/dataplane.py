@@ -422,10 +422,20 @@ class DataPlane(NodeTables):
 
     def _on_chain_delay(self, msg: m.ChainDelay, now: float) -> None:
         dep = self.apps.get(msg.app)
-        if dep is not None and 0 <= msg.chain < len(dep.layout.chains):
-            dep.chain_delay[msg.chain] = (msg.delay_ms, now)
+        chains = len(dep.layout.chains) if dep is not None else 0
+        if not 0 <= msg.chain < chains or not -1e9 <= msg.delay_ms <= 1e9:  # (NaN, inf too)
+            self._refusal("chain_delay_invalid")
+            return
+        assert dep is not None
+        dep.chain_delay[msg.chain] = (msg.delay_ms, now)
 
     def _on_marker_msg(self, msg: m.Marker, now: float) -> None:
         dep = self.apps.get(msg.app)
-        if dep is not None and 0 <= msg.edge < len(dep.app.edges):
-            self._enqueue(dep, dep.app.edges[msg.edge].dst, msg)
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            self._refusal("marker_unknown_edge")
+            return
+        dst = dep.app.edges[msg.edge].dst
+        if msg.to == self.id or dep.app.vertices[dst].pinned is not None:
+            self._refusal("marker_of_no_relocation")  # (its state would go nowhere)
+            return
+        self._enqueue(dep, dst, msg)

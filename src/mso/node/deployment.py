@@ -19,6 +19,7 @@ from mso.node.dataplane import RETRANSMIT_S, DataPlane
 from mso.node.tables import Deployment
 from mso.planning.placement import Hop, Layout
 from mso.protocol import messages as m
+from mso.protocol.authority import generation
 from mso.protocol.effects import Reply, Send, SetTimer
 from mso.protocol.procedures.deploy import Deploy
 from mso.protocol.procedures.relocate import STEP_TIMEOUT_S
@@ -35,6 +36,10 @@ class Deploying(DataPlane):
             load_policy(app.policy, where=f"{req.file}: policy")
         except MsoError as exc:
             self._effects.append(Reply(client, _failed_reply("", str(exc))))
+            return
+        revoked = self.authority.revocation(app.name, req.document)
+        if revoked:
+            self._effects.append(Reply(client, _failed_reply(app.name, revoked)))
             return
         if app.name in self.apps:
             reply = _failed_reply(app.name, f"an app named {app.name!r} is already deployed")
@@ -63,13 +68,34 @@ class Deploying(DataPlane):
         self.manager.app_policy(app.name, app.policy, where=f"{self.id}: {app.name}: policy")
         return app
 
-    def _on_announce(self, msg: m.AppAnnounce, now: float) -> None:
-        if msg.app in self.apps:
+    def _revoked(self, src: str, app: str, document: str) -> bool:
+        """An operator undeployed ``app`` after ``document`` was granted (a replay, or a node
+        that missed the undeploy): refused, and the sender is told the undeploy."""
+        if not self.authority.revocation(app, document):
+            return False
+        self._refusal("document_revoked")
+        stop = self.authority.revoked.get(app)
+        if stop is not None and src != self.id:
+            self._send(src, stop)
+        return True
+
+    def _named(self, app: App, name: str) -> bool:
+        """A document travels under its app's own name (a grant covers the document, not
+        the message's ``app``), else it is refused."""
+        if app.name == name:
+            return True
+        self._refusal("document_named_otherwise")
+        return False
+
+    def _on_announce(self, src: str, msg: m.AppAnnounce, now: float) -> None:
+        if msg.app in self.apps or self._revoked(src, msg.app, msg.document):
             return
         try:
             app = self._load_app(msg.app, msg.document)
         except MsoError as exc:
             self._send(msg.origin, m.DeployFailed(app=msg.app, reason=f"{self.id}: {exc}"))
+            return
+        if not self._named(app, msg.app):
             return
         layout = Layout(app, msg.origin)
         dep = Deployment(
@@ -133,7 +159,12 @@ class Deploying(DataPlane):
 
     def _on_probe_reply(self, msg: m.ProbeReply) -> None:
         dep = self.apps.get(msg.app)
-        if dep is None or msg.chain not in dep.probes:
+        if (
+            dep is None
+            or msg.chain not in dep.probes
+            or not 0 <= msg.segment < dep.probes_expected.get(msg.chain, 0)
+        ):
+            self._refusal("probe_reply_unexpected")
             return
         got = dep.probes[msg.chain]
         got[msg.segment] = [Hop(n, c) for n, c in zip(msg.nodes, msg.capacities, strict=False)]
@@ -160,7 +191,14 @@ class Deploying(DataPlane):
 
     def _on_placed(self, msg: m.ChainPlaced) -> None:
         dep = self.apps.get(msg.app)
-        if dep is None or msg.chain in dep.placed_chains:
+        if dep is None or not 0 <= msg.chain < len(dep.layout.chains):
+            self._refusal("chain_placed_unknown_chain")
+            return
+        if msg.chain in dep.placed_chains:
+            self._refusal("chain_placed_again")
+            return
+        if set(msg.assignments) != set(dep.layout.chains[msg.chain].vertices):
+            self._refusal("chain_placed_other_vertices")
             return
         dep.placed.update(msg.assignments)
         dep.placed_chains.add(msg.chain)
@@ -177,7 +215,11 @@ class Deploying(DataPlane):
     def _on_build(self, src: str, msg: m.BuildChain) -> None:
         """Host this node's part of a chain; it is ready once every instance has started."""
         dep = self.apps.get(msg.app)
-        if dep is None:
+        if dep is None or not 0 <= msg.chain < len(dep.layout.chains):
+            self._refusal("build_unknown_chain")
+            return
+        if dep.running or not set(msg.vertices) <= set(dep.layout.chains[msg.chain].vertices):
+            self._refusal("build_not_of_the_chain")  # (a running app is built already)
             return
         starting = set()
         for vid in msg.vertices:
@@ -193,7 +235,8 @@ class Deploying(DataPlane):
 
     def _on_part_ready(self, msg: m.ChainPartReady) -> None:
         dep = self.apps.get(msg.app)
-        if dep is None or msg.chain not in dep.parts_pending:
+        if dep is None or msg.node not in dep.parts_pending.get(msg.chain, ()):
+            self._refusal("part_ready_unexpected")
             return
         pending = dep.parts_pending[msg.chain]
         pending.discard(msg.node)
@@ -203,16 +246,21 @@ class Deploying(DataPlane):
 
     def _on_built(self, msg: m.ChainBuilt, now: float) -> None:
         dep = self.apps.get(msg.app)
-        if dep is None or dep.origin != self.id:
+        proc = self._deploying(msg.app)
+        if (
+            dep is None
+            or dep.origin != self.id
+            or proc is None  # no deployment of it in progress here
+            or msg.chain in dep.built
+            or not 0 <= msg.chain < len(dep.layout.chains)
+        ):
+            self._refusal("chain_built_unexpected")
             return
         dep.built.add(msg.chain)
-        proc = self._deploying(msg.app)
-        if proc is not None:
-            proc.on("built")
+        proc.on("built")
         if len(dep.built) == len(dep.layout.chains):
-            if proc is not None:
-                proc.on("all_built")
-                self._end(proc.pid)
+            proc.on("all_built")
+            self._end(proc.pid)
             self._broadcast(m.StartApp(msg.app))
             if dep.client is not None:
                 elapsed = self._elapsed_ms(dep.requested_at)
@@ -225,9 +273,11 @@ class Deploying(DataPlane):
         if dep is None or dep.origin != self.id:
             return
         proc = self._deploying(msg.app)
-        if proc is not None:
-            proc.fail(self, msg.reason)
-            self._end(proc.pid)
+        if proc is None:  # deployed (or failed) already: a failure report cannot stop it
+            self._refusal("deploy_failed_after_deployment")
+            return
+        proc.fail(self, msg.reason)
+        self._end(proc.pid)
         if dep.client is not None:
             self._effects.append(Reply(dep.client, _failed_reply(msg.app, msg.reason)))
             dep.client = None
@@ -236,6 +286,7 @@ class Deploying(DataPlane):
     def _on_start(self, msg: m.StartApp, now: float) -> None:
         dep = self.apps.get(msg.app)
         if dep is None or dep.running:
+            self._refusal("start_app_running")
             return
         dep.running = True
         dep.started_at = now
@@ -245,7 +296,31 @@ class Deploying(DataPlane):
                 self._start_source(dep, vid, now)
         self._effects.append(SetTimer(("retransmit", msg.app), now + RETRANSMIT_S))
 
+    def _undeploy_refused(self, msg: m.StopApp) -> str:
+        """Why this node does not stop ``msg.app`` ('' if it does). With operator keys only
+        an operator's signed undeploy stops a running app (a member's StopApp alone does
+        not); a deployment that has not started may be stopped by its origin after a
+        failure."""
+        if not self.authority.signed:
+            return ""
+        dep = self.apps.get(msg.app)
+        if not msg.sig and (dep is None or not dep.running):
+            return ""
+        return self.authority.undeploy(msg)  # (remembers the revocation)
+
+    def _undeployed_before(self, msg: m.StopApp) -> bool:
+        """An operator's undeploy older than the deployment running here (one told again to
+        a node that comes into reach): it stops nothing."""
+        dep = self.apps.get(msg.app)
+        return bool(msg.sig) and dep is not None and generation(dep.document) > msg.at
+
     def _on_stop_app(self, msg: m.StopApp, now: float) -> None:
+        if self._undeploy_refused(msg):
+            self._refusal("stop_app_unauthorized")
+            return
+        if self.authority.signed and self._undeployed_before(msg):
+            self._refusal("undeploy_older_than_deployment")  # (maybe told again: harmless)
+            return
         gone = self.apps.pop(msg.app, None)
         if gone is not None:
             self._stop_app(gone, "undeploy")

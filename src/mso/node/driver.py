@@ -61,6 +61,7 @@ class NodeDriver:
         # subscribed before the driver: on a change the transport reconnects and releases
         # waiting frames first, then the core hears of the new routes
         self.authority = authority or Authority()
+        core.authority = self.authority  # the core checks undeploys and revoked grants with it
         self.transport = TcpTransport(
             core.id, host, port, psk, self.view, limits, self.authority, encrypt
         )

@@ -18,6 +18,7 @@ from mso.node.remapping import Remapping
 from mso.node.tables import Deployment
 from mso.planning.placement import Layout
 from mso.protocol import messages as m
+from mso.protocol.authority import generation
 from mso.protocol.effects import Send, SetTimer
 from mso.protocol.procedures.membership import PeerLife
 from mso.protocol.procedures.relocate import S as RelocState
@@ -376,6 +377,12 @@ class Membership(Remapping):
 
     def _on_app_sync(self, src: str, msg: m.AppSync, now: float) -> None:
         held = self.apps.get(msg.app)
+        if self._revoked(src, msg.app, msg.document):
+            return
+        signed = self.authority.signed
+        if signed and held is not None and generation(msg.document) != generation(held.document):
+            self._refusal("app_sync_other_deployment")  # (an operator deployed it again since)
+            return
         if held is not None:
             self._merge_sync(src, held, msg)
             self._unpark(held)
@@ -386,6 +393,8 @@ class Membership(Remapping):
             app = self._load_app(msg.app, msg.document)
         except MsoError as exc:
             self.monitor.note_event(now, f"cannot rejoin app {msg.app}: {exc}")
+            return
+        if not self._named(app, msg.app):
             return
         layout = Layout(app, msg.origin)
         placed = dict(layout.initial_placement()) | {

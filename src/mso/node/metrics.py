@@ -57,6 +57,14 @@ def families(st: dict[str, Any]) -> Iterator[Metric]:
             fam = kind(f"mso_node_{name}", doc, labels=["node"])  # type: ignore[call-arg]
             fam.add_metric([node], float(value))  # type: ignore[attr-defined]
             yield fam
+    refused = CounterMetricFamily(
+        "mso_node_refused_messages",
+        "Messages refused for their meaning (or for want of authority), by reason.",
+        labels=["node", "reason"],
+    )
+    for reason, n in sorted(st.get("refusals", {}).items()):
+        refused.add_metric([node, reason], n)
+    yield refused
 
     vl = ["node", "app", "vertex"]
     processed = CounterMetricFamily(

@@ -76,6 +76,17 @@ class Relocating(Deploying):
         """Start a relocation this node coordinates (the management rules' entry point)."""
         self._relocate_request(None, req, now)
 
+    def _on_relocate_request(self, msg: m.RelocateRequest, now: float) -> None:
+        """A relocation asked by another node. Where operator keys are configured that is a
+        command a member has no authority for (a node's own rules relocate without asking)."""
+        if self.authority.signed:
+            self._refusal("relocate_from_member")
+            return
+        started = self._rid
+        self._relocate_request(None, msg, now)
+        if self._rid == started:  # refused (no such vertex, no route, ...): nothing began
+            self._refusal("relocate_refused")
+
     def _relocate_request(self, client: int | None, msg: m.RelocateRequest, now: float) -> None:
         dep = self.apps.get(msg.app)
         if dep is None or not dep.running:
@@ -111,6 +122,10 @@ class Relocating(Deploying):
         dep = self.apps.get(msg.app)
         error = ""
         vid = msg.vertex
+        resumes = _resumes(dep, vid, msg.resumes) if dep is not None else set()
+        if resumes is None:
+            self._refusal("prepare_malformed_resumes")
+            return
         if dep is None:
             error = f"{self.id} does not run app {msg.app!r}"
             self._send(src, m.Prepared(msg.app, vid, msg.rid, self.id, error, no_app=True))
@@ -122,8 +137,7 @@ class Relocating(Deploying):
             dep.preparing[vid] = (msg.rid, src, msg.restore)
             self._handover_to[msg.rid] = src
             if msg.restore:
-                pending = {(int(e), bool(p)) for e, p in msg.resumes}
-                dep.restoring[vid] = Restoring(msg.rid, src, pending)
+                dep.restoring[vid] = Restoring(msg.rid, src, resumes)
             return
         elif msg.restore and vid in dep.stones:  # it never went: nothing to restore
             self._send(src, m.Prepared(msg.app, vid, msg.rid, self.id, error))
@@ -133,11 +147,10 @@ class Relocating(Deploying):
         elif msg.restore and vid in dep.awaiting:  # asked again, maybe by a new
             old = dep.restoring.get(vid)  # coordinator after the first one failed
             if old is None or old.rid != msg.rid:
-                pending = {(int(e), bool(p)) for e, p in msg.resumes}
-                dep.restoring[vid] = Restoring(msg.rid, src, pending)
+                dep.restoring[vid] = Restoring(msg.rid, src, resumes)
                 self._handover_to[msg.rid] = src
             else:  # a retry: an end lost since (its node reset) will not resume any more; it
-                old.pending &= {(int(e), bool(p)) for e, p in msg.resumes}  # is restored later
+                old.pending &= resumes  # is restored later
             if vid in dep.preparing:  # still starting: Prepared goes to the newest asker
                 dep.preparing[vid] = (msg.rid, src, True)
                 return
@@ -171,7 +184,8 @@ class Relocating(Deploying):
     def _on_prepared(self, msg: m.Prepared, now: float) -> None:
         reloc = self._reloc(msg.rid)
         dep = self.apps.get(msg.app)
-        if reloc is None or dep is None:
+        if reloc is None or dep is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
+            self._refusal("prepared_unexpected")
             return
         if msg.error:
             if msg.no_app:  # a node that missed the app's sync: the retry will find it
@@ -197,12 +211,17 @@ class Relocating(Deploying):
     def _on_switch(self, msg: m.Switch) -> None:
         """At the producer's node: new events go to the new instance; a marker goes the old way."""
         dep = self.apps.get(msg.app)
-        if dep is None:
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            self._refusal("switch_unknown_edge")
             return
         edge = dep.app.edges[msg.edge]
         old = dep.placed[edge.dst]
         if old == msg.to and msg.source:  # a merge vertex whose other input, produced here
             old = msg.source  # too, switched first: its marker goes the old way as well
+        why = self._switch_refused(dep, edge.src, edge.dst, msg.to, old)
+        if why:
+            self._refusal(why)
+            return
         key = (msg.app, msg.edge)
         batch = self._outbox.pop(key, None)
         if batch is not None:  # what is already queued leaves before the marker
@@ -217,6 +236,25 @@ class Relocating(Deploying):
             self._enqueue(dep, edge.dst, marker)
         else:
             self._effects.append(Send(old, marker))
+
+    def _switch_refused(
+        self, dep: Deployment, producer: str, consumer: str, to: str, old: str
+    ) -> str:
+        """Why a Switch cannot be part of a relocation ('' if it can): a relocation never
+        moves a pinned vertex, nor to where it runs already (its instance would be handed
+        over to nobody; ``old`` is where it runs, the move's source once another input of
+        the vertex switched here). With operator keys, the producer must run here and ``to``
+        be a node this one can reach."""
+        if to == old:
+            return "switch_to_where_it_runs"
+        if dep.app.vertices[consumer].pinned is not None:
+            return "switch_of_a_pinned_vertex"
+        if self.authority.signed:
+            if producer not in dep.stones:
+                return "switch_not_the_producer"
+            if to != self.id and to not in self.routes:
+                return "switch_to_an_unknown_node"
+        return ""
 
     def _on_marker(self, dep: Deployment, msg: m.Marker) -> None:
         """At the old instance's node: once every input is marked, hand the state over."""
@@ -280,6 +318,7 @@ class Relocating(Deploying):
     def _on_handover(self, src: str, msg: m.Handover, now: float) -> None:
         dep = self.apps.get(msg.app)
         if dep is None or msg.vertex not in dep.awaiting:
+            self._refusal("handover_unexpected")
             return
         dep.moved[msg.vertex] = (now, src)
         h = dep.awaiting.pop(msg.vertex)
@@ -314,7 +353,8 @@ class Relocating(Deploying):
 
     def _on_handover_done(self, msg: m.HandoverDone, now: float) -> None:
         reloc = self._reloc(msg.rid)
-        if reloc is None:
+        if reloc is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
+            self._refusal("handover_done_unexpected")
             return
         reloc.on("handed_over")
         self._end(reloc.pid)
@@ -328,6 +368,10 @@ class Relocating(Deploying):
         dep = self.apps.get(msg.app)
         if 0 <= msg.incarnation < self._incarnations.get(msg.node, msg.incarnation):
             return  # its instance went with that incarnation (a claim overtaken by a reset)
+        why = self._moved_refused(dep, msg) if dep is not None else "moved_unknown_app"
+        if why:
+            self._refusal(why)
+            return
         if dep is not None and msg.vertex in dep.placed:
             dep.placed[msg.vertex] = msg.node
             dep.vanished.discard(msg.vertex)
@@ -335,12 +379,34 @@ class Relocating(Deploying):
                 if msg.vertex in c.vertices:
                     dep.placed_at[c.index] = now
 
+    def _moved_refused(self, dep: Deployment, msg: m.Moved) -> str:
+        """Why news that ``msg.vertex`` runs on ``msg.node`` is not taken ('' if it is): a
+        vertex not in the app; a pinned vertex anywhere but on its node. With operator keys
+        also a vertex this node runs itself (and is not handing over): its own view is
+        first-hand."""
+        if msg.vertex not in dep.app.vertices:
+            return "moved_unknown_vertex"
+        pin = dep.app.vertices[msg.vertex].pinned
+        if pin is not None and msg.node != pin:
+            return "moved_a_pinned_vertex"
+        h = dep.stones.get(msg.vertex)
+        here = h is not None and h.handing_over is None and msg.vertex not in dep.markers
+        if self.authority.signed and msg.node != self.id and here:
+            return "moved_a_vertex_running_here"
+        return ""
+
     def _on_rewire(self, msg: m.Rewire, now: float) -> None:
         """At a surviving end of an edge whose other end is being replaced on ``msg.to``."""
         dep = self.apps.get(msg.app)
         if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            self._refusal("rewire_unknown_edge")
             return
         edge = dep.app.edges[msg.edge]
+        replaced = edge.dst if msg.producer else edge.src
+        pin = dep.app.vertices[replaced].pinned
+        if pin is not None and msg.to != pin:
+            self._refusal("rewire_a_pinned_vertex")
+            return
         if msg.producer:  # we produce: say where we stand, then replay what is unacked
             dep.placed[edge.dst] = msg.to
             self._outbox.pop((msg.app, msg.edge), None)  # those events are in the replay
@@ -366,11 +432,13 @@ class Relocating(Deploying):
     def _on_resume(self, msg: m.Resume, now: float) -> None:
         dep = self.apps.get(msg.app)
         if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            self._refusal("resume_unexpected")
             return
         edge = dep.app.edges[msg.edge]
         vertex = edge.dst if msg.producer else edge.src
         restoring = dep.restoring.get(vertex)
         if restoring is None or restoring.rid != msg.rid:
+            self._refusal("resume_unexpected")
             return
         if msg.producer:
             gated = bool(dep.out_edges.get(vertex))
@@ -437,13 +505,15 @@ class Relocating(Deploying):
         to it, so nothing is lost)."""
         dep = self.apps.get(msg.app)
         if dep is None:
+            self._refusal("unprepare_unexpected")
             return
         h = dep.awaiting.get(msg.vertex)
         prep = dep.preparing.get(msg.vertex)
         restoring = dep.restoring.get(msg.vertex)
         ours = msg.rid in self._handover_to or (prep is not None and prep[0] == msg.rid)
         if h is None or not ours or (restoring is not None and restoring.rid != msg.rid):
-            return  # another move has taken the instance over since
+            self._refusal("unprepare_unexpected")  # (another move took the instance over since)
+            return
         self._stop(h, "abandoned")
         del dep.awaiting[msg.vertex]
         dep.preparing.pop(msg.vertex, None)
@@ -453,3 +523,18 @@ class Relocating(Deploying):
             if e.dst == msg.vertex:
                 dep.stash.pop(i, None)
         self.monitor.note_event(now, f"dropped {msg.vertex}, prepared for a move that failed")
+
+
+def _resumes(dep: Deployment, vid: str, resumes: list[list[Any]]) -> set[tuple[int, bool]] | None:
+    """A restore's ``[edge, producer?]`` pairs as a set, or None if one is malformed: not a
+    pair of an int and a bool, or not an edge of ``vid`` on that side."""
+    edges = dep.app.edges
+    out = set()
+    for r in resumes:
+        if len(r) != 2 or type(r[0]) is not int or type(r[1]) is not bool:
+            return None
+        e, producer = r
+        if not 0 <= e < len(edges) or (edges[e].dst if producer else edges[e].src) != vid:
+            return None
+        out.add((e, producer))
+    return out

@@ -126,7 +126,14 @@ class Remapping(Relocating):
     def _on_remap_probe(self, msg: m.ProbeReply) -> None:
         rid, k = divmod(msg.segment, 1000)
         remap = self._remap(rid)
-        if remap is None or k in remap.probes or remap.state is not RemapState.PROBING:
+        if (
+            remap is None
+            or msg.app != remap.app
+            or k in remap.probes
+            or not 0 <= k < remap.expected
+            or remap.state is not RemapState.PROBING
+        ):
+            self._refusal("probe_reply_unexpected")
             return
         remap.probes[k] = [Hop(n, c) for n, c in zip(msg.nodes, msg.capacities, strict=False)]
         if len(remap.probes) == remap.expected:

@@ -35,6 +35,7 @@ from mso.node.monitor import Monitor
 from mso.planning.placement import Hop, Layout
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.protocol.authority import Authority
 from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.effects import Effect, Reply, Send, SetTimer
 from mso.protocol.procedures.base import Deadline, Procedure
@@ -215,6 +216,13 @@ class NodeTables:
         self.routes: dict[str, tuple[str, int]] = {}  # destination -> (next hop, hops)
         self.apps: dict[str, Deployment] = {}
         self.dropped_messages = 0
+        # well-typed messages refused for their meaning (a vertex, edge or procedure that is
+        # not there; a member's command that needs an operator), by reason; each is also one
+        # of ``dropped_messages``
+        self.refusals: dict[str, int] = {}
+        # operator keys and the undeploys they signed; open (no keys) unless the driver shares
+        # its own (``mso node --operator-key``), which the transport checks frames with too
+        self.authority = Authority()
         self._effects: list[Effect] = []
         self._work: deque[tuple[str, str, m.Message]] = deque()
         # vertex instances this node asked the executor for: id -> (app, vertex)
@@ -255,6 +263,12 @@ class NodeTables:
     @property
     def now(self) -> float:
         return self._now
+
+    def _refusal(self, reason: str) -> None:
+        """A message refused for its meaning: nothing changed; counted by reason."""
+        self.dropped_messages += 1
+        if reason in self.refusals or len(self.refusals) < 64:
+            self.refusals[reason] = self.refusals.get(reason, 0) + 1
 
     def send(self, dst: str, msg: m.Message) -> None:
         self._send(dst, msg)

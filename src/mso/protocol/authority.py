@@ -14,8 +14,15 @@ Two signed forms:
   the *node's* hello nonce of that connection and the command's bytes, so it cannot be replayed
   on another connection or to another node;
 - an app document carries a *grant* as its last line (a YAML comment, so line numbers in error
-  messages stay the same): the signature of the text before it. It travels verbatim in
-  ``AppAnnounce`` and ``AppSync``, and every node verifies it before it loads the document.
+  messages stay the same): the signature of the text before it and of its *generation* (the
+  operator's clock, in ms, when it was signed). It travels verbatim in ``AppAnnounce`` and
+  ``AppSync``, and every node verifies it before it loads the document;
+- an undeploy carries the operator's signature of the app's name and the time it was made
+  (``StopApp.at``/``key``/``sig``), with no connection in it, so every node it is relayed to
+  verifies it, not only the first. It *revokes* every grant of that app made before it: a node
+  that holds the revocation refuses the app's older documents (a captured robot replaying an
+  undeployed app's announcement brings nothing back), and an undeploy older than the running
+  deployment stops nothing.
 
 Sans-IO: keys in, verdicts out. Without any key configured a node is in open mode: the overlay
 key is all there is (development, the tests' emulator).
@@ -41,7 +48,9 @@ PUBLIC_PREFIX = "mso-ed25519-pub:"
 PRIVATE_PREFIX = "mso-ed25519-key:"
 GRANT = "\n# mso-grant: "
 _CMD = b"mso-command-1"
-_DOC = b"mso-document-1"
+_DOC = b"mso-document-2"
+_UNDEPLOY = b"mso-undeploy-1"
+MAX_REVOKED = 4096  # apps whose undeploy a node remembers (the oldest is forgotten first)
 
 # client commands that change an overlay: an operator's (or the node's emulator's) signature
 OPERATOR_COMMANDS = (m.DeployRequest, m.StopApp, m.RelocateRequest, m.RemapRequest, m.Shutdown)
@@ -124,16 +133,40 @@ class Signer:
         sig = self.private.sign(_CMD + node_nonce + body)
         return m.Authorized(body=body, key=self.id, sig=sig)
 
-    def grant(self, document: str) -> str:
-        """``document`` with its grant line appended (an earlier grant is replaced)."""
+    def grant(self, document: str, at_ms: int) -> str:
+        """``document`` with its grant line appended (an earlier grant is replaced); ``at_ms``
+        (the signer's clock) is its generation: an undeploy made later revokes it."""
         text = strip_grant(document)
-        sig = self.private.sign(_DOC + text.encode())
-        return f"{text}{GRANT}{self.id} {base64.b64encode(sig).decode()}\n"
+        sig = self.private.sign(_grant_bytes(at_ms, text))
+        return f"{text}{GRANT}{self.id} {at_ms} {base64.b64encode(sig).decode()}\n"
+
+    def undeploy(self, app: str, at_ms: int) -> m.StopApp:
+        """An undeploy of ``app`` every node verifies; it revokes the grants made before
+        ``at_ms``."""
+        sig = self.private.sign(_undeploy_bytes(app, at_ms))
+        return m.StopApp(app, at=at_ms, key=self.id, sig=sig)
+
+
+def _grant_bytes(at_ms: int, text: str) -> bytes:
+    return _DOC + str(at_ms).encode() + b"\n" + text.encode()
+
+
+def _undeploy_bytes(app: str, at_ms: int) -> bytes:
+    return _UNDEPLOY + str(at_ms).encode() + b"\n" + app.encode()
 
 
 def strip_grant(document: str) -> str:
     text, sep, _ = document.rpartition(GRANT)
     return text if sep else document
+
+
+def generation(document: str) -> int:
+    """The generation of a document's grant (0 without a well-formed one)."""
+    _, sep, grant = document.rpartition(GRANT)
+    parts = grant.split()
+    if not sep or len(parts) != 3 or not parts[1].isdigit() or len(parts[1]) > 18:
+        return 0
+    return int(parts[1])
 
 
 @dataclass
@@ -143,6 +176,8 @@ class Authority:
     operators: dict[str, Ed25519PublicKey] = field(default_factory=dict)
     emulator: Ed25519PublicKey | None = None
     refused: int = 0  # commands and documents refused for want of authority
+    # app -> the operator's newest undeploy of it: grants made before it are revoked
+    revoked: dict[str, m.StopApp] = field(default_factory=dict)
 
     @classmethod
     def configure(cls, operators: list[str], emulator: str | None = None) -> Authority:
@@ -160,6 +195,11 @@ class Authority:
     @property
     def open(self) -> bool:
         return not self.operators and self.emulator is None
+
+    @property
+    def signed(self) -> bool:
+        """Operator keys are configured: apps come and go only by an operator's signature."""
+        return bool(self.operators)
 
     def _signers(self, msg: m.Message) -> dict[str, Ed25519PublicKey] | None:
         """Who may sign ``msg``; None when it needs no signature on this node."""
@@ -201,21 +241,56 @@ class Authority:
                 return why
         return inner
 
-    def document(self, document: str) -> str:
-        """'' when ``document`` carries a valid operator grant (or none is needed)."""
+    def document(self, document: str, app: str | None = None) -> str:
+        """'' when ``document`` carries a valid operator grant (or none is needed) and, if
+        the app's name is given, one its undeploy has not revoked."""
         if not self.operators:
             return ""
         text, sep, grant = document.rpartition(GRANT)
         if not sep:
             return self._refuse("the app document carries no operator grant")
-        kid, _, sig = grant.strip().partition(" ")
+        parts = grant.split()
+        if len(parts) != 3 or not parts[1].isdigit() or len(parts[1]) > 18:
+            return self._refuse("the app document's grant is not 'KEY GENERATION SIGNATURE'")
+        kid, at, sig = parts
         pub = self.operators.get(kid)
         if pub is None:
             return self._refuse(f"the app document's grant is by key {kid}, not an operator's")
         try:
-            pub.verify(base64.b64decode(sig, validate=True), _DOC + text.encode())
+            pub.verify(base64.b64decode(sig, validate=True), _grant_bytes(int(at), text))
         except (InvalidSignature, ValueError):
             return self._refuse("the app document's grant does not match it")
+        return self.revocation(app, document) if app is not None else ""
+
+    def revocation(self, app: str, document: str) -> str:
+        """'' unless an operator's undeploy of ``app`` revoked ``document``'s grant (the
+        grant's signature is checked by :meth:`document`; this is the cheap part)."""
+        stop = self.revoked.get(app) if self.operators else None
+        if stop is None or generation(document) > stop.at:
+            return ""
+        return self._refuse(
+            f"app {app!r} was undeployed by an operator at {stop.at} ms, after its grant was "
+            "made: only a grant signed since brings it back"
+        )
+
+    def undeploy(self, msg: m.StopApp) -> str:
+        """'' when ``msg`` carries an operator's signed undeploy (then its revocation is
+        remembered), else why not. Open nodes need none."""
+        if not self.operators or self.revoked.get(msg.app) == msg:  # (verified already)
+            return ""
+        if not msg.sig:
+            return self._refuse(f"undeploying {msg.app!r} needs an operator's signed undeploy")
+        pub = self.operators.get(msg.key)
+        if pub is None:
+            return self._refuse(f"the undeploy of {msg.app!r} is by key {msg.key}, no operator's")
+        try:
+            pub.verify(msg.sig, _undeploy_bytes(msg.app, msg.at))
+        except InvalidSignature:
+            return self._refuse(f"the undeploy of {msg.app!r} does not match its signature")
+        known = self.revoked.pop(msg.app, None)
+        self.revoked[msg.app] = msg if known is None or msg.at > known.at else known
+        while len(self.revoked) > MAX_REVOKED:
+            del self.revoked[next(iter(self.revoked))]
         return ""
 
     def _refuse(self, why: str) -> str:

@@ -148,7 +148,14 @@ class StartApp(_Msg, tag="start"):
 
 
 class StopApp(_Msg, tag="stop"):
+    """Undeploy ``app`` everywhere. On nodes with operator keys it carries the operator's
+    signature of ``app`` and ``at`` (its clock, ms) by key ``key``: every node verifies it, and
+    it revokes the app's grants made before ``at`` (:mod:`mso.protocol.authority`)."""
+
     app: str
+    at: int = 0
+    key: str = ""
+    sig: bytes = b""
 
 
 class DeployFailed(_Msg, tag="deploy_failed"):

@@ -3,11 +3,12 @@
 The app runs in this process, sequentially, for ``seconds`` of simulated time: every source is
 called at its rate in time order (a rate-less source once a simulated second), and each event is
 pushed through the graph at once, encoded and decoded with msgspec exactly as on the wire. Each
-call's thread CPU time is charged to its vertex, each encoded event's size to its edge. A
-vertex's cost is then its mean CPU time per event (per call for a source) in ms, scaled by
-``speed`` — how fast this host is relative to a node of ``cpu: 1.0`` — which is the app's
-unit (docs/app-format.md). ``write_back`` puts the figures into the YAML file in place, on
-the lines that hold them, so the file's layout and comments stay.
+call's thread CPU time (less what ran inside ``not_charged``: a simulated sensor's world) is
+charged to its vertex, each encoded event's size to its edge. A vertex's cost is then its mean
+CPU time per event (per call for a source) in ms, scaled by ``speed`` — how fast this host is
+relative to a node of ``cpu: 1.0`` — which is the app's unit (docs/app-format.md).
+``write_back`` puts the figures into the YAML file in place, on the lines that hold them, so
+the file's layout and comments stay.
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from __future__ import annotations
 import heapq
 import re
 import tempfile
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +26,7 @@ from mso.errors import MsoError
 from mso.model.app import App
 from mso.model.yamlfile import load_yaml_file
 from mso.runtime.instance import Instance
+from mso.runtime.worker import charged_thread_time
 
 
 @dataclass
@@ -110,7 +111,7 @@ def _run(
     def call(v: str, *args: Any) -> list[Any]:
         p = prof.vertices[v]
         inst = instances[v]
-        t0 = time.thread_time()
+        t0 = charged_thread_time()
         try:
             it = inst.iterator
             result = next(it, None) if it is not None else inst.fn(*args)
@@ -118,7 +119,7 @@ def _run(
             p.errors += 1
             p.last_error = f"{type(exc).__name__}: {exc}"
             result = None
-        p.cpu_s += time.thread_time() - t0
+        p.cpu_s += charged_thread_time() - t0
         p.calls += 1
         if result is None:
             return []

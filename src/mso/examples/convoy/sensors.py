@@ -3,7 +3,9 @@ scan at 5 Hz), odometry with drift (~38 B at 5 Hz), and a visible and an infrare
 frames at 0.5 Hz) in which the planted survivors appear when in view.
 
 A source's simulated time is its sequence number over its rate, so every reading is a pure
-function of (seed, seq): the world's clock is the sensor's, not the host's.
+function of (seed, seq): the world's clock is the sensor's, not the host's. Simulating the world
+(ray casting, rendering a frame, integrating the true motion) is the hardware's part and runs
+inside ``not_charged``: a robot is charged only for packing the reading, as a real driver would.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from mso.examples.convoy.world import (
     world,
     wrap,
 )
+from mso.runtime.worker import not_charged
 
 BEAMS = 180
 ANGLE_MIN = -math.pi / 2
@@ -122,15 +125,17 @@ class LaserSource:
         self.seed, self.hz = seed, hz
 
     def __call__(self, seq: int, now: float) -> LaserScan:
-        x, y, th = true_pose(seq / self.hz)
-        ranges = self.world.cast(x, y, th + beam_angles(), RANGE_MAX_M)
-        rng = np.random.default_rng([self.seed, 2, seq])
-        ranges = ranges + rng.normal(0.0, 0.02, BEAMS)
-        ranges[rng.random(BEAMS) < 0.02] = RANGE_MAX_M  # dropouts
-        dust = rng.random(BEAMS) < 0.02
-        ranges[dust] = rng.uniform(0.1, 1.0, int(dust.sum()))
-        ranges = np.clip(ranges, 0.0, RANGE_MAX_M)
-        intensity = np.clip(200 - 15 * ranges + rng.normal(0, 5, BEAMS), 0, 255).astype(np.uint8)
+        with not_charged():  # the scanner's hardware
+            x, y, th = true_pose(seq / self.hz)
+            ranges = self.world.cast(x, y, th + beam_angles(), RANGE_MAX_M)
+            rng = np.random.default_rng([self.seed, 2, seq])
+            ranges = ranges + rng.normal(0.0, 0.02, BEAMS)
+            ranges[rng.random(BEAMS) < 0.02] = RANGE_MAX_M  # dropouts
+            dust = rng.random(BEAMS) < 0.02
+            ranges[dust] = rng.uniform(0.1, 1.0, int(dust.sum()))
+            ranges = np.clip(ranges, 0.0, RANGE_MAX_M)
+            noise = rng.normal(0, 5, BEAMS)
+            intensity = np.clip(200 - 15 * ranges + noise, 0, 255).astype(np.uint8)
         return LaserScan(
             seq=seq,
             stamp=now,
@@ -144,7 +149,8 @@ class OdometrySource:
         self.odometer = Odometer(seed, hz)
 
     def __call__(self, seq: int, now: float) -> Odometry:
-        x, y, th = self.odometer.at(seq)
+        with not_charged():  # the wheel encoders
+            x, y, th = self.odometer.at(seq)
         o = self.odometer
         return Odometry(
             seq=seq,
@@ -187,6 +193,12 @@ class CameraSource:
         return SURVIVORS + extra
 
     def __call__(self, seq: int, now: float) -> Image:
+        with not_charged():  # the camera's sensor
+            pixels, odo = self._render(seq)
+        rows, cols = VISIBLE_SHAPE[:2] if self.camera == "visible" else INFRARED_SHAPE
+        return Image(seq, now, self.camera, rows, cols, pixels, odo)
+
+    def _render(self, seq: int) -> tuple[bytes, tuple[float, float, float]]:
         t = seq / self.hz
         pose = true_pose(t)
         rng = np.random.default_rng([self.seed, 3 if self.camera == "visible" else 4, seq])
@@ -209,5 +221,4 @@ class CameraSource:
             else:
                 img[patch] = 200.0 + rng.normal(0, 8, img[patch].shape)
         pixels = np.clip(img, 0, 255).astype(np.uint8).tobytes()
-        odo = self.odometer.at(round(t * LASER_HZ))
-        return Image(seq, now, self.camera, rows, cols, pixels, odo)
+        return pixels, self.odometer.at(round(t * LASER_HZ))
