@@ -321,11 +321,16 @@ class DataPlane(NodeTables):
         if released is None:
             return
         inputs, outputs = released
+        further = dict(outputs)  # and, known exactly at these positions, the ones downstream
+        for o, pos in outputs.items():
+            out = dep.out.get(o)
+            for e, p in (out.history.get(pos, {}) if out is not None else {}).items():
+                further.setdefault(e, p)
         for i, pos in inputs.items():
             ch = dep.inc.get(i)
             if ch is not None:
                 ch.released = max(ch.released or 0, pos)
-                ch.positions = outputs
+                ch.positions = further
                 self._ack(dep, i)
 
     def _ack(self, dep: Deployment, edge: int) -> None:
@@ -341,7 +346,7 @@ class DataPlane(NodeTables):
                 self.dropped_messages += 1  # move): nothing to release, never a crash
                 return
             out.on_ack(upto, self._now)
-            out.positions = ch.positions
+            out.note_positions(upto, dict(ch.positions))
             self._unblock(dep, edge)
             self._release(dep, producer)
         elif src_node not in self.dead:
@@ -360,8 +365,7 @@ class DataPlane(NodeTables):
         except ValueError:
             self.dropped_messages += 1
             return
-        if msg.upto >= out.acked:
-            out.positions = msg.positions
+        out.note_positions(msg.upto, msg.positions)
         self._unblock(dep, msg.edge)
         self._release(dep, dep.app.edges[msg.edge].src)
 

@@ -467,11 +467,13 @@ class Relocating(Deploying):
         dep.stones[vertex] = h
         dep.placed[vertex] = self.id
         dep.handed.pop(vertex, None)
-        for o in dep.out_edges.get(vertex, []):
+        outs = dep.out_edges.get(vertex, [])
+        for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
             dep.out[o] = OutChannel(
                 window=self.window, next_seq=base, acked=base, waiting_since=self._now
-            )
+            )  # positions further down, for a restore of its consumer (replayed from here)
+            dep.out[o].positions = {e: p for e, p in restoring.positions.items() if e not in outs}
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
             if e.dst == vertex:
                 for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):

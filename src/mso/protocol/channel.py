@@ -28,8 +28,21 @@ class OutChannel:
     # the consumer's output positions reported with the last ack (see AckGate)
     positions: dict[int, int] = field(default_factory=dict)
 
+    HISTORY = 64  # acks whose positions are kept, to look one up at an exact position
+
     def __post_init__(self) -> None:
         self._unacked: deque[bytes] = deque()
+        # ack position -> the positions that came with it: a vertex releasing a checkpoint
+        # at exactly such a position passes them on upstream (transitive, see AckGate)
+        self.history: dict[int, dict[int, int]] = {}
+
+    def note_positions(self, upto: int, positions: dict[int, int]) -> None:
+        """An ack up to ``upto`` came with the consumer's ``positions``."""
+        if upto >= self.acked:
+            self.positions = positions
+        self.history[upto] = positions
+        while len(self.history) > self.HISTORY:
+            del self.history[next(iter(self.history))]
 
     @property
     def in_flight(self) -> int:
@@ -159,7 +172,10 @@ class AckGate:
     downstream, so an event stays in its producer's replay buffer until it has left every node
     whose failure could lose it (upstream backup). Each processed batch leaves a checkpoint: the
     input positions it reached and the output positions it had produced by then; a checkpoint
-    is released once every output has been acknowledged up to its positions.
+    is released once every output has been acknowledged up to its positions. The ack upstream
+    carries those output positions, plus, where an ack from downstream came at exactly such a
+    position, the positions further down that came with it: a restore of several adjacent
+    vertices then numbers each replacement's output as the lost instance did.
     """
 
     checkpoints: deque[tuple[dict[int, int], dict[int, int]]] = field(default_factory=deque)
