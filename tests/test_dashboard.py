@@ -3,6 +3,7 @@ of the convoy (the page, the event stream, the controls, and what it refuses).""
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import shutil
@@ -246,6 +247,20 @@ def test_dashboard_in_a_real_browser(live: LiveDashboard) -> None:
             xs = [centres[n][0] for n in sorted(POSITIONS, key=lambda n: POSITIONS[n][0])]
             assert xs == sorted(xs) and len(set(xs)) == 4, centres
             assert centres["N2"][1] != centres["N1"][1] == centres["N3"][1], centres
+            # each chain is drawn along the route its events take: hop by hop over the line's
+            # links, through the relays (no straight stroke from N1 to N3)
+            links = {("N1", "N2"), ("N2", "N3"), ("N3", "N4")}
+            lines = page.locator("#topology polyline")
+            for i in range(lines.count()):
+                points = [
+                    tuple(map(float, p.split(",")))
+                    for p in (lines.nth(i).get_attribute("points") or "").split()
+                ]
+                at = [
+                    next(n for n, c in centres.items() if abs(c[0] - x) + abs(c[1] - y) < 15)
+                    for x, y in points
+                ]
+                assert all(tuple(sorted(p)) in links for p in itertools.pairwise(at)), at
             expect(page.locator('#nodes tr[data-node="N1"] td').nth(2)).to_contain_text("%")
             cell = page.locator('#chains tr[data-chain="0"] span[data-vertex="scan_matcher"]')
             before = cell.get_attribute("data-node")

@@ -64,6 +64,20 @@ function layout(nodes, links) {
   return pos;
 }
 
+// the path events take from node a to node b: a's next hop toward b, then that node's, ...
+// (the relays a chain's events cross); a straight line when the routes do not say
+function route(routes, a, b, pos) {
+  const path = [a];
+  let at = a;
+  while (at !== b && path.length <= Object.keys(pos).length) {
+    const next = ((routes || {})[at] || {})[b];
+    if (!next || !pos[next[0]] || path.includes(next[0])) return [a, b];
+    at = next[0];
+    path.push(at);
+  }
+  return at === b ? path : [a, b];
+}
+
 function drawTopology(v) {
   const svg = document.getElementById("topology");
   svg.replaceChildren();
@@ -75,8 +89,10 @@ function drawTopology(v) {
   const vertexColour = {};
   let k = 0;
   for (const app of v.apps) for (const c of app.chains) {
-    const hops = [];
-    for (const n of c.nodes) if (n && pos[n] && hops[hops.length - 1] !== n) hops.push(n);
+    const hosts = [];
+    for (const n of c.nodes) if (n && pos[n] && hosts[hosts.length - 1] !== n) hosts.push(n);
+    const hops = hosts.length ? [hosts[0]] : [];
+    for (let i = 1; i < hosts.length; i++) hops.push(...route(v.routes, hosts[i - 1], hosts[i], pos).slice(1));
     const off = ((k++ % 5) - 2) * 3;
     if (hops.length > 1) {
       const pts = hops.map((n) => `${pos[n][0] + off},${pos[n][1] + off}`).join(" ");
