@@ -15,9 +15,9 @@ unasked. One that had not started yet FAILED, as a failed construction does. A R
 CRASHED: its host restores the vertex in place (``restart``: FINISHED; a fresh instance takes
 its place and the surviving ends of its edges replay, as after a node failure), at most
 ``MAX_RESTARTS`` times in ``RESTART_WINDOW_S``; past that it stays CRASHED and its chains are
-reported parked until it is undeployed (``stop``). One that crashes while it waits for a
-handover or hands over (AWAITING, DRAINING, SNAPSHOTTING) stays CRASHED too: the relocation
-in flight ends by its deadline.
+reported parked until it is undeployed (``stop``). One that crashes while it hands over
+(DRAINING, SNAPSHOTTING) or waits for a handover (AWAITING) is CRASHED and not restored: the
+relocation in flight fails by its deadline (docs/architecture.md, Executor, says what is lost).
 
 An AWAITING instance's wait ends by its coordinator: a move that fails before any producer
 switched (its deadline passed with the target's answer lost, or a node it needed failed) sends
