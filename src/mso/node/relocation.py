@@ -210,21 +210,29 @@ class Relocating(Deploying):
         edge = dep.app.edges[msg.edge]
         old = dep.placed[edge.dst]
         why = self._switch_refused(dep, edge.src, edge.dst, msg.to)
+        if why == "switch_to_where_it_runs" and edge.src in dep.stones:
+            return  # a join's other input from here: switched with the first one, below
         if why:
             self._refusal(why)
             return
-        key = (msg.app, msg.edge)
-        batch = self._outbox.pop(key, None)
-        if batch is not None:  # what is already queued leaves before the marker
-            data = m.Data(msg.app, msg.edge, dep.epoch, *batch)
-            self._effects.append(Send(old, data))
-        seq = self._out(dep, msg.edge).next_seq
+        # where a consumer runs is one entry for all its inputs: every edge into it from a
+        # vertex here switches now, each with its marker (a join fed twice from this node)
+        siblings = [
+            i
+            for i, e in enumerate(dep.app.edges)
+            if e.dst == edge.dst and (i == msg.edge or e.src in dep.stones)
+        ]
+        for i in siblings:
+            batch = self._outbox.pop((msg.app, i), None)
+            if batch is not None:  # what is already queued leaves before the marker
+                self._effects.append(Send(old, m.Data(msg.app, i, dep.epoch, *batch)))
         dep.placed[edge.dst] = msg.to
-        marker = m.Marker(msg.app, msg.edge, seq, msg.rid, msg.to)
-        if old == self.id:
-            self._enqueue(dep, edge.dst, marker)
-        else:
-            self._effects.append(Send(old, marker))
+        for i in siblings:
+            marker = m.Marker(msg.app, i, self._out(dep, i).next_seq, msg.rid, msg.to)
+            if old == self.id:
+                self._enqueue(dep, edge.dst, marker)
+            else:
+                self._effects.append(Send(old, marker))
 
     def _switch_refused(self, dep: Deployment, producer: str, consumer: str, to: str) -> str:
         """Why a Switch cannot be part of a relocation ('' if it can): a relocation never
