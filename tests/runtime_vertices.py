@@ -157,3 +157,28 @@ class PidCounter(Counter):
         import os
 
         return {"pid": os.getpid(), "count": self.count}
+
+
+class ExitOn:
+    """Passes events on; its process ends with ``os._exit(3)`` (no cleanup, as a crashing C
+    extension would) on event ``seq``: every time, or with ``once`` (a file path) only the
+    first time (the file says it happened)."""
+
+    def __init__(self, seq: int, once: str = "") -> None:
+        self.seq = seq
+        self.once = once
+
+    def __call__(self, event: Num) -> Num:
+        import os
+
+        if event.seq == self.seq and not (self.once and os.path.exists(self.once)):
+            if self.once:
+                with open(self.once, "w"):
+                    pass
+            os._exit(3)
+        return event
+
+    def stats(self) -> dict[str, int]:
+        import os
+
+        return {"pid": os.getpid()}

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,23 @@ edges: [[src, count], [count, sink]]
 """
 
 
+def _vertices_importable(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Node processes import the test vertices from the tests directory."""
+    path = os.environ.get("PYTHONPATH", "")
+    monkeypatch.setenv("PYTHONPATH", f"{TESTS}{os.pathsep}{path}" if path else str(TESTS))
+
+
+async def _wait_for(emu: Any, check: Any, period: float = 0.1) -> dict[str, Any]:
+    """The overlay's status once ``check`` holds (or after 20 s: the asserts then say why)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + 20.0
+    while True:  # bounded poll of the overlay's status
+        st: dict[str, Any] = await emu.status()
+        if check(st) or loop.time() > deadline:
+            return st
+        await asyncio.sleep(period)  # poll period, not synchronisation
+
+
 def test_isolation_is_validated_with_its_place() -> None:
     bad = APP.replace("isolation: process", "isolation: container")
     with pytest.raises(AppError, match=r"vertices\.count\.isolation.*thread, process"):
@@ -38,8 +56,7 @@ def test_a_process_isolated_vertex_runs_apart_and_moves_with_its_state(
     from mso.emu.controller import Emulator
     from mso.scenario import loads_scenario
 
-    path = os.environ.get("PYTHONPATH", "")  # node processes import the vertices from here
-    monkeypatch.setenv("PYTHONPATH", f"{TESTS}{os.pathsep}{path}" if path else str(TESTS))
+    _vertices_importable(monkeypatch)
 
     async def run() -> tuple[dict[str, Any], dict[str, int], list[Any]]:
         emu = Emulator(loads_scenario(LINE3), manage=False)
@@ -48,15 +65,9 @@ def test_a_process_isolated_vertex_runs_apart_and_moves_with_its_state(
             reply = await emu.deploy(APP, "iso.yaml", "N1")
             assert reply.ok, reply.error
             pids = {n: node.process.pid for n, node in emu.nodes.items() if node.process}
-            loop = asyncio.get_running_loop()
 
             async def wait_for(check: Any) -> dict[str, Any]:
-                deadline = loop.time() + 20.0
-                while True:  # bounded poll of the overlay's status
-                    st = await emu.status()
-                    if check(st) or loop.time() > deadline:
-                        return st
-                    await asyncio.sleep(0.1)  # poll period, not synchronisation
+                return await _wait_for(emu, check)
 
             def counted(n: int) -> Any:
                 return lambda st: (
@@ -82,3 +93,93 @@ def test_a_process_isolated_vertex_runs_apart_and_moves_with_its_state(
     assert sink["repeats"] == 0 and sink["out_of_order"] == 0, sink
     assert sink["count"] == sink["next"]  # 0, 1, 2, ... with no gap and no repeat
     assert "count" not in st[home]["apps"]["iso"]["vertices"]
+
+
+LINE2 = "name: l2\nnodes: {N1: {}, N2: {}}\nlinks: [[N1, N2]]\n"
+CRASHY = """
+name: {name}
+vertices:
+  src: {{code: runtime_vertices:CountingSource, pinned: N1, rate: 400,
+        output: runtime_vertices:Num}}
+  mid: {{code: runtime_vertices:ExitOn, isolation: process, pinned: N2,
+        params: {{seq: {seq}, once: "{once}"}}, output: runtime_vertices:Num}}
+  sink: {{code: runtime_vertices:Recorder, pinned: N2}}
+edges: [[src, mid], [mid, sink]]
+"""
+
+
+def test_a_crashed_process_vertex_is_restored_in_place_and_loses_nothing(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """``ok``'s child is SIGKILLed mid-stream, then exits with code 3 on event 800 (once):
+    each time status counts the crash with its reason, the node stays up (nobody is declared
+    failed) and a fresh child takes over: the sink gets every event once, in order.
+    ``poison`` exits on event 300 every time, so each replay crashes it again: after
+    MAX_RESTARTS restores it stays crashed, its chain is reported parked with the reason,
+    and the sink has had exactly the events before it (the rest is held upstream)."""
+    from mso.emu.controller import Emulator
+    from mso.protocol.procedures.hosting import MAX_RESTARTS
+    from mso.scenario import loads_scenario
+
+    _vertices_importable(monkeypatch)
+    once = tmp_path / "exited-once"
+
+    async def run() -> tuple[list[dict[str, Any]], dict[str, Any]]:
+        emu = Emulator(loads_scenario(LINE2), manage=False)
+        await emu.start()
+        try:
+            for name, seq, flag in (("ok", 800, str(once)), ("poison", 300, "")):
+                app = CRASHY.format(name=name, seq=seq, once=flag)
+                reply = await emu.deploy(app, f"{name}.yaml", "N1")
+                assert reply.ok, reply.error
+
+            async def wait_for(check: Any) -> dict[str, Any]:
+                return await _wait_for(emu, check, 0.05)
+
+            def v(st: dict[str, Any], app: str, vid: str) -> dict[str, Any]:
+                got: dict[str, Any] = st["N2"]["apps"][app]["vertices"].get(vid, {})
+                return got
+
+            def sunk(st: dict[str, Any], app: str) -> int:
+                return int((v(st, app, "sink").get("stats") or {}).get("count", 0))
+
+            st = await wait_for(lambda st: sunk(st, "ok") >= 100)
+            os.kill(v(st, "ok", "mid")["stats"]["pid"], signal.SIGKILL)
+            seen = [await wait_for(lambda st: v(st, "ok", "mid").get("crashes", 0) >= 1)]
+            seen.append(
+                await wait_for(
+                    lambda st: v(st, "ok", "mid").get("crashes", 0) >= 2 and sunk(st, "ok") >= 1200
+                )
+            )
+            seen.append(
+                await wait_for(
+                    lambda st: (
+                        v(st, "poison", "mid").get("not_restarted", "")
+                        and st["N2"]["apps"]["poison"]["parked"]
+                    )
+                )
+            )
+            return seen, await emu.status()
+        finally:
+            await emu.stop()
+
+    (killed, exited, _poisoned), st = asyncio.run(run())
+    assert "killed by SIGKILL" in killed["N2"]["apps"]["ok"]["vertices"]["mid"]["last_crash"]
+    mid = exited["N2"]["apps"]["ok"]["vertices"]["mid"]
+    assert (mid["crashes"], mid["restarts"]) == (2, 2), mid
+    assert mid["last_crash"] == "N2: exit code 3"
+    sink = exited["N2"]["apps"]["ok"]["vertices"]["sink"]["stats"]
+    assert sink["repeats"] == 0 and sink["out_of_order"] == 0, sink
+    assert sink["count"] == sink["next"] >= 1200  # 0, 1, 2, ... with no gap and no repeat
+    assert st["N2"]["apps"]["ok"]["vertices"]["mid"]["state"] == "running"
+    poison = st["N2"]["apps"]["poison"]
+    assert poison["vertices"]["mid"]["state"] == "crashed"
+    assert poison["vertices"]["mid"]["crashes"] == MAX_RESTARTS + 1
+    assert poison["vertices"]["mid"]["restarts"] == MAX_RESTARTS
+    assert "exit code 3" in poison["vertices"]["mid"]["not_restarted"]
+    assert list(poison["parked"].values()) == [poison["vertices"]["mid"]["not_restarted"]]
+    psink = poison["vertices"]["sink"]["stats"]
+    assert psink["count"] == psink["next"] == 300 and psink["repeats"] == 0, psink
+    for node in ("N1", "N2"):  # the node never went down: everyone answers, nobody failed
+        assert st[node]["failed_nodes"] == [] and st[node]["failures"] == []
+        assert st[node]["illegal_transitions"] == 0 and st[node]["handler_errors"] == 0

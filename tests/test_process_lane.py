@@ -3,7 +3,9 @@ as the thread executor gives for the same effects."""
 
 from __future__ import annotations
 
+import os
 import queue
+import signal
 
 import msgspec
 import pytest
@@ -61,3 +63,38 @@ def test_code_given_as_an_object_is_refused() -> None:
     start = fx.StartVertex(3, "app", Vertex("f", lambda e: e), "operator")
     with pytest.raises(ValueError, match="import paths"):
         spec_of(start)
+
+
+def test_a_child_that_dies_unasked_is_reported_with_its_exit_status() -> None:
+    """A SIGKILL and an ``os._exit(3)`` each come back as VertexCrashed, in words; a child
+    told to stop is no crash; effects for a dead child are dropped, never raised."""
+    results: queue.SimpleQueue[fx.VertexResult] = queue.SimpleQueue()
+    ex = ProcessExecutor(results.put, "spawn")
+    vertex = Vertex("x", "runtime_vertices:ExitOn", input=Num, output=Num, params={"seq": 5})
+    ev = [msgspec.msgpack.encode(Num(seq=s)) for s in range(7)]
+    try:
+        for i in (1, 2, 3):
+            ex.submit(fx.StartVertex(i, "app", vertex, "operator", {0: Num}))
+        started = _collect(results, 3)
+        assert all(isinstance(r, fx.VertexStarted) and not r.error for r in started)
+        pid = ex.pid(1)
+        assert pid is not None
+        os.kill(pid, signal.SIGKILL)
+        (killed,) = _collect(results, 1)
+        assert isinstance(killed, fx.VertexCrashed) and killed.instance == 1
+        assert killed.reason == "killed by SIGKILL"
+        ex.submit(fx.FeedVertex(1, 0, ev[:1], 0.0))  # to the dead child: dropped quietly
+        ex.submit(fx.FeedVertex(2, 0, ev[:4], 0.0))
+        ex.submit(fx.FeedVertex(2, 0, ev[4:], 0.0))  # seq 5: the child exits with code 3
+        fed, exited = _collect(results, 2)
+        assert isinstance(fed, fx.VertexProcessed) and fed.count == 4
+        assert isinstance(exited, fx.VertexCrashed) and exited.instance == 2
+        assert exited.reason == "exit code 3"
+        ex.submit(fx.StopVertex(3, "undeploy"))
+        ex.submit(fx.StopVertex(1, "crashed"))
+        ex.submit(fx.StopVertex(2, "crashed"))
+        assert ex.instances == 0
+    finally:
+        ex.shutdown(5.0)
+    with pytest.raises(queue.Empty):  # the stopped child is not reported as a crash
+        results.get(timeout=0.5)

@@ -1720,9 +1720,11 @@ def bench_lifetime(args: tuple[str, ...]) -> None:
 @click.option("--json", "json_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--runs", type=click.IntRange(1, 100_000), default=30, show_default=True)
 @click.option("--quick", is_flag=True, help="A few runs, to check it works.")
-def bench_table1(json_file: Path | None, runs: int, quick: bool) -> None:
+@click.option("--quiet", is_flag=True, help="No progress lines on stderr.")
+def bench_table1(json_file: Path | None, runs: int, quick: bool, quiet: bool) -> None:
     """Table 1 of the paper: mapping, relocations, chain and global remaps, on 4 node processes."""
     from mso.benchmarks.table1 import main as table1
 
     args = ["--runs", str(runs)] + (["--json", str(json_file)] if json_file else [])
-    sys.exit(table1(args + (["--quick"] if quick else [])))
+    args += ["--quick"] if quick else []
+    sys.exit(table1(args + (["--quiet"] if quiet else [])))

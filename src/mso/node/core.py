@@ -22,7 +22,7 @@ from mso.model.network import PowerModel
 from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S
 from mso.node.manager import Manager
 from mso.node.membership import Membership
-from mso.node.tables import Deployment, Hosted
+from mso.node.tables import Deployment, Hosted, crash_status
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.effects import Effect, Reply, Send, SetTimer
@@ -330,7 +330,8 @@ class NodeCore(Membership):
                         "last_error": h.last_error,
                         "stats": h.stats,
                     }
-                    for vid, h in dep.stones.items()
+                    | crash_status(dep.crashes.get(vid))
+                    for vid, h in (dep.crashed | dep.stones).items()
                 },
                 "edges": edges,
             }

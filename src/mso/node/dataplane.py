@@ -16,6 +16,7 @@ from mso.node.tables import (
     FEED_BATCH,
     QUEUE_EVENTS,
     SOURCE_RUN,
+    Crashes,
     Deployment,
     Hosted,
     NodeTables,
@@ -76,6 +77,9 @@ class DataPlane(NodeTables):
         h = dep.stones.get(vid) or dep.awaiting.get(vid)
         if h is None or h.instance != res.instance:
             return
+        if isinstance(res, fx.VertexCrashed):
+            self._crashed(dep, vid, h, res, now)
+            return
         h.jobs -= 1
         h.busy_since = now if h.jobs else None
         h.cpu_s += res.cpu_s
@@ -91,6 +95,30 @@ class DataPlane(NodeTables):
             self._emitted(dep, vid, h, res, now)
         else:
             self._snapshotted(dep, vid, h, res)
+
+    def _crashed(
+        self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexCrashed, now: float
+    ) -> None:
+        """An instance's child process died unasked. Counted and reported, never fatal: what
+        it was working on is unanswered, so nothing it held was acknowledged (its producers
+        still hold it). One that had not started fails as a failed construction does."""
+        self._instances.pop(h.instance, None)
+        self._effects.append(fx.StopVertex(h.instance, "crashed"))  # frees its lane
+        h.jobs = h.queued = h.credit = 0
+        h.busy_since = None
+        h.crashed = res.reason
+        rec = dep.crashes.setdefault(vid, Crashes())
+        rec.count += 1
+        rec.last = f"{self.id}: {res.reason}"
+        rec.times.append(now)
+        self.monitor.note_event(now, f"{vid} crashed ({res.reason})")
+        h.life.on("crash")
+        if not h.started:
+            dep.stones.pop(vid, None)
+            dep.awaiting.pop(vid, None)
+            self._instance_failed(dep, vid, f"{self.id}: {vid!r} crashed starting ({res.reason})")
+            return
+        self._instance_crashed(dep, vid, h, now)
 
     def _started(
         self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexStarted, now: float
@@ -232,7 +260,7 @@ class DataPlane(NodeTables):
         """Feed the instance's worker while its bounded queue has room (backpressure: what
         is not fed is not acknowledged, so the producers' windows fill and they stop)."""
         h = dep.stones.get(vid)
-        while h is not None and h.pending and h.handing_over is None:
+        while h is not None and h.pending and h.handing_over is None and not h.crashed:
             item = h.pending[0]
             if isinstance(item, m.Marker):
                 if h.jobs:

@@ -13,11 +13,12 @@ from typing import Any
 
 from mso.errors import MsoError
 from mso.node.relocation import Relocating
-from mso.node.tables import Deployment
+from mso.node.tables import Deployment, Hosted
 from mso.planning.placement import Hop
 from mso.protocol import messages as m
 from mso.protocol.effects import Reply, SetTimer
 from mso.protocol.procedures.base import Deadline, Retry
+from mso.protocol.procedures.hosting import MAX_RESTARTS, RESTART_WINDOW_S, H
 from mso.protocol.procedures.relocate import STEP_ATTEMPTS, STEP_TIMEOUT_S, Relocation
 from mso.protocol.procedures.remap import PROBE_ATTEMPTS, Remap
 from mso.protocol.procedures.remap import S as RemapState
@@ -324,7 +325,66 @@ class Remapping(Relocating):
             remap.recovery["retried"].append(f"restore {reloc.vertex} on {reloc.target}")
         self._restore(dep, reloc, rid, now)  # idempotent at every end: just ask again
 
+    def _instance_crashed(self, dep: Deployment, vid: str, h: Hosted, now: float) -> None:
+        """Restore a crashed instance in place, as a restore after a node failure does: a
+        fresh instance here; its producers replay what it had not passed on (acks are chained,
+        so that is everything its outputs had not been acknowledged for) and its consumers say
+        where they stand, so every event reaches them once, in order. Its own state restarts
+        from its constructor. At most ``MAX_RESTARTS`` in ``RESTART_WINDOW_S``: a vertex that
+        crashes on an event would crash again on its replay; then it stays crashed, its
+        chains are reported parked and their events stay held (unacknowledged) upstream."""
+        rec = dep.crashes[vid]
+        rec.times = [t for t in rec.times if now - t < RESTART_WINDOW_S]
+        app = dep.app.name
+        if h.life.state is not H.CRASHED or dep.stones.get(vid) is not h:
+            if dep.awaiting.get(vid) is h:  # a replacement or a move's target, not fed yet:
+                del dep.awaiting[vid]  # a restore's retried prepare starts another one
+                dep.preparing.pop(vid, None)
+                dep.restoring.pop(vid, None)
+            return  # a move handing over: it ends by its deadline (docs/architecture.md)
+        if h.handing_over is not None or vid in dep.markers:
+            return
+        if len(rec.times) > MAX_RESTARTS:
+            rec.gave_up = (
+                f"{vid!r} crashed {len(rec.times)} times in {RESTART_WINDOW_S:g} s on {self.id} "
+                f"(last: {h.crashed}); not restarted"
+            )
+            for c in dep.layout.chains:
+                if vid in c.vertices:
+                    dep.parked.setdefault(c.index, rec.gave_up)
+            return
+        h.life.on("restart")
+        del dep.stones[vid]
+        dep.crashed[vid] = h
+        for i, e in enumerate(dep.app.edges):  # its channels: the surviving ends resume anew
+            if e.dst == vid:
+                dep.inc.pop(i, None)
+                dep.stash.pop(i, None)
+            elif e.src == vid:
+                dep.out.pop(i, None)
+                self._outbox.pop((app, i), None)
+        dep.gates.pop(vid, None)
+        dep.blocked_sources.discard(vid)
+        rec.restarts += 1
+        self._rid += 1
+        rec.restoring = self._rid
+        reloc = Relocation(self._rid, now, app, vid, self.id, self.id, None)
+        self._begin(reloc)
+        self._restore(dep, reloc, self._rid, now)
+
     def _relocation_ended(self, reloc: Relocation, now: float, error: str) -> None:
+        dep = self.apps.get(reloc.app)
+        rec = dep.crashes.get(reloc.vertex) if dep is not None else None
+        if dep is not None and rec is not None and rec.restoring == reloc.pid:
+            rec.restoring = None
+            if error:  # no instance of it runs anywhere now: say so where it crashed
+                rec.gave_up = f"restoring {reloc.vertex!r} after its crash failed: {error}"
+                for c in dep.layout.chains:
+                    if reloc.vertex in c.vertices:
+                        dep.parked.setdefault(c.index, rec.gave_up)
+            else:
+                dep.crashed.pop(reloc.vertex, None)
+            return
         if reloc.remap is not None and self._remap(reloc.remap) is not None:
             if error:  # one move failed: the remap fails, and says why
                 self._finish_remap(reloc.remap, now, error)

@@ -67,6 +67,31 @@ class Restoring:
 
 
 @dataclass
+class Crashes:
+    """One vertex's crashes at this node (its child process died unasked): how many, the
+    last one's reason, when the recent ones were (the restart budget), restores done."""
+
+    count: int = 0
+    restarts: int = 0
+    last: str = ""
+    times: list[float] = field(default_factory=list)
+    restoring: int | None = None  # the in-place restore under way (its procedure id)
+    gave_up: str = ""  # why it stays crashed (its restart budget is spent)
+
+
+def crash_status(rec: Crashes | None) -> dict[str, Any]:
+    """A vertex's crashes here, as status shows them next to its state."""
+    if rec is None:
+        return {"crashes": 0, "restarts": 0, "last_crash": "", "not_restarted": ""}
+    return {
+        "crashes": rec.count,
+        "restarts": rec.restarts,
+        "last_crash": rec.last,
+        "not_restarted": rec.gave_up,
+    }
+
+
+@dataclass
 class Hosted:
     """The core's record of one vertex instance whose code runs in the executor: what it was
     given, what it reported back, and where a source stands in its schedule."""
@@ -98,6 +123,7 @@ class Hosted:
     credit: int = 0
     ended: bool = False
     handing_over: m.Marker | None = None  # snapshot asked for this relocation
+    crashed: str = ""  # its child process died unasked: how (no results come any more)
     life: InstanceLife = field(init=False)  # its state at this host, by the table
 
     def __post_init__(self) -> None:
@@ -111,6 +137,8 @@ class Hosted:
         return 1.0 if v.code is None else 0.0  # a stand-in ticks once a second
 
     def state(self, now: float) -> str:
+        if self.crashed:
+            return "crashed"
         if not self.started:
             return "starting"
         busy = now - self.busy_since if self.busy_since is not None else 0.0
@@ -155,6 +183,8 @@ class Deployment:
     # vertices whose instances went with a node that has since rejoined: restored like lost ones
     vanished: set[str] = field(default_factory=set)
     document: str = ""  # the app file as deployed, for a node that rejoins
+    crashes: dict[str, Crashes] = field(default_factory=dict)  # vertex -> its crashes here
+    crashed: dict[str, Hosted] = field(default_factory=dict)  # crashed, not in ``stones``
     delays: dict[int, float] = field(default_factory=dict)  # at a tail's node: chain -> ms
     moved: dict[str, tuple[float, str]] = field(default_factory=dict)  # vertex -> (when, from)
     placed_at: dict[int, float] = field(default_factory=dict)  # chain -> when last (re)mapped
@@ -354,6 +384,9 @@ class NodeTables:
 
     def _instance_failed(self, dep: Deployment, vid: str, error: str) -> None:
         """An instance's code failed at construction: whoever asked for it is told."""
+
+    def _instance_crashed(self, dep: Deployment, vid: str, h: Hosted, now: float) -> None:
+        """A started instance's process died unasked (counted already): recover it."""
 
     def _on_marker(self, dep: Deployment, msg: m.Marker) -> None:
         """A relocation's marker reached an instance, behind every event sent before it."""

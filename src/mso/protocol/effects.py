@@ -185,4 +185,15 @@ class VertexSnapshot(Outcome):
     state: bytes = b""
 
 
-VertexResult = VertexStarted | VertexProcessed | VertexEmitted | VertexSnapshot
+@dataclass(frozen=True)
+class VertexCrashed(Outcome):
+    """The child process running an ``isolation: process`` instance died without being told
+    to stop (a segfault in a C extension, an OOM kill, ``os._exit``): its state and the effects
+    it had not answered are gone. ``reason`` says how it ended ("killed by SIGKILL", "exit code
+    3"); ``exit_code`` is the child's (negative: the signal's number)."""
+
+    reason: str = ""
+    exit_code: int | None = None
+
+
+VertexResult = VertexStarted | VertexProcessed | VertexEmitted | VertexSnapshot | VertexCrashed

@@ -134,6 +134,13 @@ class Executor:
             return
         self.threads.submit(eff)
 
+    def pid(self, instance: int) -> int | None:
+        """The child process running ``instance`` (None on a thread): tests kill it."""
+        if instance not in self._in_process or self.processes is None:
+            return None
+        pid: int | None = self.processes.pid(instance)
+        return pid
+
     @property
     def instances(self) -> int:
         return self.threads.instances + len(self._in_process)

@@ -1,4 +1,4 @@
-"""A process lane (prototype, not used by the daemon): one vertex instance in a child process.
+"""A process lane: one vertex instance in a child process (``isolation: process``).
 
 Why: CPython's GIL lets one thread run Python at a time, so two CPU-bound pure-Python vertices
 in one node's threads share one core, and the node's event loop gets the GIL only every switch
@@ -13,6 +13,11 @@ pickled (the child is started with the ``forkserver`` or ``spawn`` context and o
 
 The interface is the thread executor's (``submit(effect)``; results to ``deliver`` from a reader
 thread), so the driver could take either; docs/benchmarks.md compares the two.
+
+A child that dies without being told to stop (a segfault in a C extension, an OOM kill,
+``os._exit``) is reported, never silent: its reader sees the pipe close, collects the exit
+status and delivers :class:`~mso.protocol.effects.VertexCrashed` ("killed by SIGKILL", "exit
+code 3"); the node core then restores the instance (``docs/architecture.md``, Executor).
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import multiprocessing
+import signal
 import threading
 from collections.abc import Callable
 from multiprocessing.connection import Connection
@@ -188,6 +194,8 @@ class _ProcLane:
         self.proc = ctx.Process(target=_child, args=(child,), daemon=True)
         self.proc.start()
         child.close()
+        self.instance = start.instance
+        self.stopping = False  # told to stop: its pipe closing is no crash
         self.lock = threading.Lock()  # submit is called from the loop; sends stay whole
         self.reader = threading.Thread(
             target=self._read, daemon=True, name=f"mso-p-{start.vertex.id}"
@@ -206,11 +214,34 @@ class _ProcLane:
             try:
                 raw = self.conn.recv_bytes()
             except (EOFError, OSError):
+                if not self.stopping:
+                    self.deliver(self._crashed())
                 return
             res = dec.decode(raw)
             d = decoders.get(res.kind)
             if d is not None:
                 self.deliver(d.decode(res.body))
+
+    def _crashed(self) -> fx.VertexCrashed:
+        """The child's pipe closed unasked: wait for its exit status and say it in words."""
+        self.proc.join(2.0)
+        if self.proc.is_alive():  # it closed its end of the pipe but lives on: end it
+            self.proc.kill()
+            self.proc.join(2.0)
+            return fx.VertexCrashed(self.instance, reason="closed its pipe", exit_code=None)
+        return fx.VertexCrashed(self.instance, reason=exit_words(self.proc.exitcode))
+
+
+def exit_words(code: int | None) -> str:
+    """A child's exit status in words: "killed by SIGKILL", "exit code 3"."""
+    if code is None:
+        return "ended with no exit status"
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit code {code}"
 
 
 class ProcessExecutor:
@@ -231,6 +262,13 @@ class ProcessExecutor:
         lane = self._lanes.get(eff.instance)
         if lane is None:
             return
+        if isinstance(eff, fx.StopVertex):
+            lane.stopping = True
+            del self._lanes[eff.instance]
+        with contextlib.suppress(OSError):  # the child is gone: its reader reports how it ended
+            self._send(lane, eff)
+
+    def _send(self, lane: _ProcLane, eff: fx.VertexEffect) -> None:
         if isinstance(eff, fx.FeedVertex):
             lane.send(Feed(eff.edge, eff.events, eff.ts))
         elif isinstance(eff, fx.RunSource):
@@ -243,7 +281,11 @@ class ProcessExecutor:
             lane.send(Snapshot(eff.token))
         elif isinstance(eff, fx.StopVertex):
             lane.send(Stop())
-            del self._lanes[eff.instance]
+
+    def pid(self, instance: int) -> int | None:
+        """The process running ``instance`` (tests kill it to play a crash)."""
+        lane = self._lanes.get(instance)
+        return lane.proc.pid if lane is not None else None
 
     @property
     def instances(self) -> int:
@@ -254,6 +296,7 @@ class ProcessExecutor:
         lanes = list(self._lanes.values())
         self._lanes.clear()
         for lane in lanes:
+            lane.stopping = True
             with contextlib.suppress(OSError):  # the child is gone already
                 lane.send(Stop())
         for lane in lanes:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
 import sqlite3
 import tempfile
 from pathlib import Path
@@ -69,6 +70,14 @@ def _relocations(status: dict[str, Any]) -> list[str]:
     return [f"{n}: {d}" for n, st in sorted(status.items()) for d in st["management"]["done"]]
 
 
+def _readable(done: str) -> str:
+    """A rule's action as the demo prints it: without the node's clock reading and the policy's
+    raw score vectors (the dashboard and `mso status --json` keep them)."""
+    node, _, rest = done.partition(": ")
+    rest = rest.split(" ", 1)[1] if rest[:1].isdigit() else rest  # "19490.0 relocate ..."
+    return f"{node}: " + re.sub(r"score \([^)]*\) -> \([^)]*\) \(([^)]*)\)", r"\1", rest)
+
+
 async def _run(console: Console, duration: float, db: Path, dashboard: bool) -> dict[str, Any]:
     from mso.emu.controller import Emulator
     from mso.scenario import load_scenario
@@ -109,7 +118,7 @@ async def _run(console: Console, duration: float, db: Path, dashboard: bool) -> 
         while loop.time() - t0 < duration:
             await asyncio.sleep(min(3.0, max(0.1, duration - (loop.time() - t0))))
             status = await emu.status()
-            console.print(_battery_line(status, loop.time() - t0))
+            console.print(_battery_line(status, loop.time() - t0), soft_wrap=True)
             for node in sorted(status):
                 now_draining = node in status[node]["management"].get("draining", [])
                 if now_draining != (node in draining):
@@ -121,7 +130,9 @@ async def _run(console: Console, duration: float, db: Path, dashboard: bool) -> 
             for r in _relocations(status):
                 if r not in seen:
                     seen.append(r)
-                    console.print(f"  [bold]relocation by the rules[/bold] {r}")
+                    console.print(
+                        f"  [bold]relocation by the rules[/bold] {_readable(r)}", soft_wrap=True
+                    )
         sources = {
             v: st["emitted"]
             for n in status.values()

@@ -10,6 +10,15 @@ sent before the switch, SNAPSHOTTING once every input is marked and everything b
 markers is processed, and FINISHED when its state and channels are handed over. Any instance
 may be stopped (undeploy, reset, failed construction): FAILED.
 
+An instance in a child process of its own (``isolation: process``) may *crash*: the child dies
+unasked. One that had not started yet FAILED, as a failed construction does. A RUNNING one is
+CRASHED: its host restores the vertex in place (``restart``: FINISHED; a fresh instance takes
+its place and the surviving ends of its edges replay, as after a node failure), at most
+``MAX_RESTARTS`` times in ``RESTART_WINDOW_S``; past that it stays CRASHED and its chains are
+reported parked until it is undeployed (``stop``). One that crashes while it hands over
+(DRAINING, SNAPSHOTTING) or waits for a handover (AWAITING) is CRASHED and not restored: the
+relocation in flight fails by its deadline (docs/architecture.md, Executor, says what is lost).
+
 An AWAITING instance's wait ends by its coordinator: a move that fails before any producer
 switched (its deadline passed with the target's answer lost, or a node it needed failed) sends
 ``Unprepare`` and the target stops the instance (``stop``). Once a producer has switched, the
@@ -38,6 +47,11 @@ class H(enum.Enum):
     AWAITING = "awaiting"
     DRAINING = "draining"
     SNAPSHOTTING = "snapshotting"
+    CRASHED = "crashed"
+
+
+MAX_RESTARTS = 3  # crashes of one vertex at one host restored in place within ...
+RESTART_WINDOW_S = 60.0  # ... this long; one more and it stays crashed
 
 
 class InstanceLife(StateMachine):
@@ -50,23 +64,35 @@ class InstanceLife(StateMachine):
             "started": H.RUNNING,
             "started_for_move": H.AWAITING,
             "stop": Phase.FAILED,
+            "crash": Phase.FAILED,  # as a failed construction
         },
         H.AWAITING: {
             "handover": H.RUNNING,  # a relocation: the old instance's state arrived
             "resumed": H.RUNNING,  # a restore: every surviving end has resumed it
             "stop": Phase.FAILED,  # unprepared, undeployed or reset
+            "crash": H.CRASHED,
         },
         H.RUNNING: {
             "marker": H.DRAINING,
             "all_marked": H.SNAPSHOTTING,
             "stop": Phase.FAILED,
+            "crash": H.CRASHED,
         },
         H.DRAINING: {
             "marker": H.DRAINING,
             "all_marked": H.SNAPSHOTTING,
             "stop": Phase.FAILED,
+            "crash": H.CRASHED,
         },
-        H.SNAPSHOTTING: {"handed_over": Phase.FINISHED, "stop": Phase.FAILED},
+        H.SNAPSHOTTING: {
+            "handed_over": Phase.FINISHED,
+            "stop": Phase.FAILED,
+            "crash": H.CRASHED,
+        },
+        H.CRASHED: {
+            "restart": Phase.FINISHED,  # a fresh instance replaces it (restored in place)
+            "stop": Phase.FAILED,  # undeployed or reset while it stays crashed
+        },
     }
 
     def __init__(self, vertex: str) -> None:
