@@ -209,9 +209,10 @@ class Relocating(Deploying):
             return
         edge = dep.app.edges[msg.edge]
         old = dep.placed[edge.dst]
-        why = self._switch_refused(dep, edge.src, edge.dst, msg.to)
-        if why == "switch_to_where_it_runs" and edge.src in dep.stones:
+        if (msg.edge, msg.rid) in dep.switched:
+            dep.switched.discard((msg.edge, msg.rid))
             return  # a join's other input from here: switched with the first one, below
+        why = self._switch_refused(dep, edge.src, edge.dst, msg.to)
         if why:
             self._refusal(why)
             return
@@ -227,6 +228,7 @@ class Relocating(Deploying):
             if batch is not None:  # what is already queued leaves before the marker
                 self._effects.append(Send(old, m.Data(msg.app, i, dep.epoch, *batch)))
         dep.placed[edge.dst] = msg.to
+        dep.switched |= {(i, msg.rid) for i in siblings if i != msg.edge}
         for i in siblings:
             marker = m.Marker(msg.app, i, self._out(dep, i).next_seq, msg.rid, msg.to)
             if old == self.id:

@@ -172,6 +172,9 @@ class Deployment:
     # coordinator, restore) until its instance has started
     stash: dict[int, list[tuple[int, list[bytes]]]] = field(default_factory=dict)
     markers: dict[str, set[int]] = field(default_factory=dict)  # vertex -> edges marked
+    # (edge, relocation) switched along with another input of the same consumer: its own
+    # Switch, when it comes, has nothing left to do
+    switched: set[tuple[int, int]] = field(default_factory=set)
     blocked_sources: set[str] = field(default_factory=set)
     started_at: float = 0.0
     parked: dict[int, str] = field(default_factory=dict)  # chain -> why it cannot run
