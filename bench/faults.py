@@ -73,11 +73,17 @@ def render(result: dict[str, Any]) -> str:
         "",
         f"Seeds with a violation: {len(s['failing_seeds']):,} of {s['seeds']:,}.",
         "",
-        "| invariant violated | violations | seeds |",
-        "|---|---:|---:|",
-        *[f"| {k} | {v:,} | {s['seeds_by_invariant'][k]:,} |" for k, v in s["violations"].items()],
-        "",
     ]
+    if s["violations"]:
+        lines += [
+            "| invariant violated | violations | seeds |",
+            "|---|---:|---:|",
+            *[
+                f"| {k} | {v:,} | {s['seeds_by_invariant'][k]:,} |"
+                for k, v in s["violations"].items()
+            ],
+            "",
+        ]
     if s["failing_seeds"]:
         lines.append(
             "First failing seeds (replay with `faults.run(seed, Settings(start_s=1, "

@@ -86,6 +86,33 @@ def test_invariants_hold_after_a_seeded_fault_schedule(seed: int) -> None:
     assert not result.violations, "\n".join(map(str, result.violations))
 
 
+# seeds of the benchmark's phases (bench/faults.py) that once broke an invariant, with what
+# broke them; each cause also has its own scenario below where one could be built small
+BENCH = faults.Settings(start_s=1.0, faults_s=3.0, quiet_s=4.0, rate=10.0)
+FIXED: dict[int, str] = {
+    808: "a consumer waited for ever for events a parked chain had dropped",
+    1020: "a node that missed the app's sync refused every restore",
+    1170: "a merge vertex's second marker went to the new instance",
+    1193: "a restore waited for a producer lost since",
+    1425: "a crash both sides had not heard of made both sides reset",
+    1800: "a producer switched to a move's target recovered the vertex as vanished too",
+    1910: "every node was down at once (the app is gone, rightly)",
+    2665: "a remap restored a lost vertex that the failure recovery restored elsewhere",
+    2757: "a remap restored a lost vertex that the failure recovery restored elsewhere",
+    3420: "a stale sync un-vanished a vertex that went with its node's reset",
+    1684: "adjacent vertices restored together numbered their output from scratch",
+    2257: "adjacent vertices restored together numbered their output from scratch",
+    2784: "a restore retried after another coordinator's restore made a second instance",
+    4751: "a node restarted across a partition, given instances there, was taken as empty",
+}
+
+
+@pytest.mark.parametrize("seed", sorted(FIXED))
+def test_benchmark_seeds_that_found_a_bug_stay_fixed(seed: int) -> None:
+    result = faults.run(seed, BENCH)
+    assert not result.violations, FIXED[seed] + "\n" + "\n".join(map(str, result.violations))
+
+
 LINE3 = pipe_app(50).replace("pinned: N4", "pinned: N1")  # src and sink on N1, mid anywhere
 
 
@@ -378,3 +405,234 @@ def test_a_restarted_node_that_held_everyone_failed_resets_nobody_that_runs_some
     assert sim.cores["N1"].incarnation == 0
     assert set(sim.cores["N1"].apps["pipe"].stones) == {"src", "mid", "sink"}
     assert not sim.cores["N1"].apps["pipe"].parked
+
+
+def test_a_consumer_skips_the_events_a_parked_chain_dropped() -> None:
+    """Data frames src -> mid are lost when the sink's node N3 fails: parking drops the events
+    in flight at N1 and counts them acknowledged, so once N3 is back N1 sends from after them
+    and mid (on N2) waited for the first of them for ever. The producer's floor, carried in
+    its frames, tells mid to skip them (seed 808 of the fault schedules)."""
+    sim = Simulation(line_net())
+    sim.request("N1", m.DeployRequest(pipe_app(50).replace("pinned: N4", "pinned: N3"), "a.yaml"))
+    sim.run_until(1.0)
+    assert sim.cores["N2"].apps["pipe"].placed["mid"] == "N2"
+    sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0, loss=1.0))  # data frames only
+    sim.kill("N3")
+    sim.run_until(sim.now + 1.5)
+    n1 = sim.cores["N1"].apps["pipe"]
+    assert n1.parked and n1.dropped.get(0, 0) > 0
+    sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
+    sim.network.add_link(LinkSpec("N2", "N3", delay_ms=1.0))
+    sim.revive("N3")
+    sim.run_until(sim.now + 3.0)
+    mid_in = sim.cores["N2"].apps["pipe"].inc[0]
+    assert mid_in.skipped > 0 and mid_in.processed == mid_in.expected
+    sink = sim.instance("N3", "pipe", "sink")
+    before = sink.count
+    sim.run_until(sim.now + 1.0)
+    assert sink.count >= before + 40 and sink.repeats == 0, vars(sink)  # it flows again
+
+
+def test_a_node_that_crashed_for_both_sides_does_not_decide_who_resets() -> None:
+    """N1 and N4 each run part of the app and hold each other failed after a partition
+    healed; N5 crashed meanwhile, and N1 has heard of it while N4's beat was sent before N4
+    had. Counting N5, N1 saw N4's side as the larger one and reset while N4 reset for N1:
+    the app was gone from every node (seed 1425). Only the nodes in dispute count."""
+    import msgspec
+
+    sim = Simulation(line_net(5))
+    sim.request("N1", m.DeployRequest(pipe_app(50), "app.yaml"))  # src on N1, sink on N4
+    sim.run_until(1.0)
+    n1, n4 = sim.cores["N1"], sim.cores["N4"]
+    assert n1.apps["pipe"].stones and n4.apps["pipe"].stones
+    now = sim.now
+    n1.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 3)}, now)  # N5 is gone
+    n4.set_routes({"N3": ("N3", 1), "N2": ("N3", 2), "N1": ("N3", 3)}, now)
+    for core, other in ((n1, "N4"), (n4, "N1")):
+        core.receive("N3", m.NodeDown(other, "N3", 0), now)
+        core.receive("N3", m.NodeDown("N5", "N3", 0), now)
+    beat4 = msgspec.structs.replace(n4._beat(), dead={"N1": 0})  # sent before N5 was heard of
+    beat1 = msgspec.structs.replace(n1._beat(), dead={"N4": 0})
+    n1.receive("N4", beat4, now)
+    n4.receive("N1", beat1, now)
+    assert n1.incarnation == 0 and "pipe" in n1.apps  # the lower leader stays
+    assert n4.incarnation == 1 and "pipe" not in n4.apps  # the other side yields
+
+
+def test_a_node_that_missed_the_apps_sync_gets_it_when_asked_to_host_a_vertex() -> None:
+    """A node reset while the view of the node that would sync it was in dispute; that node
+    failed before the dispute ended, so nobody synced it and every restore on it was refused
+    for ever (seed 1020). Its refusal now says it lacks the app, and the coordinator syncs it."""
+    sim = deployed_on_a_line()
+    del sim.cores["N2"].apps["pipe"]  # the sync it was owed is lost
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target="N2"), client=7)
+    sim.run_until(sim.now + 0.5)
+    (refused,) = [r for _, c, r in sim.replies if c == 7]
+    assert isinstance(refused, m.RelocateReply) and "does not run app" in refused.error
+    assert "pipe" in sim.cores["N2"].apps
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target="N2"), client=8)
+    sim.run_until(sim.now + 0.5)
+    (moved,) = [r for _, c, r in sim.replies if c == 8]
+    assert isinstance(moved, m.RelocateReply) and moved.ok, moved
+    assert placements(sim)["N3"]["mid"] == "N2" and "mid" in sim.cores["N2"].apps["pipe"].stones
+
+
+MERGE = """
+name: merge
+vertices:
+  s1: {code: runtime_vertices:CountingSource, pinned: N1, rate: 50, output: runtime_vertices:Num}
+  s2: {code: runtime_vertices:CountingSource, pinned: N1, rate: 50, output: runtime_vertices:Num}
+  m: {code: runtime_vertices:Double, output: runtime_vertices:Num}
+  sink: {code: runtime_vertices:Recorder, pinned: N1}
+edges: [[s1, m], [s2, m], [m, sink]]
+"""
+
+
+def test_a_merge_vertex_fed_from_one_node_moves_with_both_markers() -> None:
+    """Both producers of the merge vertex m run on N1, and a remap moves m to N2. The first
+    Switch set N1's placement of m to N2, so the second sent its marker to N2 instead of the
+    old instance, which never handed over: the flow stalled and the views split (seed 1170).
+    Both markers must go the old way (here: to the instance on N1)."""
+    from mso.protocol import effects as fx
+
+    sim = Simulation(line_net())
+    sim.request("N1", m.DeployRequest(MERGE, "merge.yaml"))
+    sim.run_until(1.0)
+    core = sim.cores["N1"]
+    assert "m" in core.apps["merge"].stones
+    effects = [
+        *core.receive("N3", m.Switch("merge", 0, "N2", 99, "N1"), sim.now),
+        *core.receive("N3", m.Switch("merge", 1, "N2", 99, "N1"), sim.now),
+    ]
+    assert not [e for e in effects if isinstance(e, fx.Send) and isinstance(e.msg, m.Marker)]
+    assert [e for e in effects if isinstance(e, fx.SnapshotVertex)]  # both marked: hand over
+
+
+def test_the_checker_forgives_a_lost_app_only_when_every_node_was_down() -> None:
+    """An app lives in its nodes' memory only: in seed 1910 (the benchmark's phases) every
+    node is down at 2.119 s, so the app is rightly gone from all of them. Anywhere else, a
+    node that does not know the app is a violation."""
+    from mso.sim.invariants import _everyone_failed
+
+    assert _everyone_failed(faults.generate(1910, BENCH))
+    seed = next(s for s in range(100) if not faults.generate(s, CI).faults["crash"])
+    sched = faults.generate(seed, CI)
+    assert not _everyone_failed(sched)
+    sim = Simulation(sched.network, seed=seed, manage=False)
+    vertices.RUNS.pop(str(seed), None)
+    sim.request("N1", m.DeployRequest(sched.app, "faults.yaml"))
+    sim.run_until(3.0)
+    del sim.cores["N2"].apps["faults"]
+    found = [v for v in check(sim, sched, vertices.RUNS.pop(str(seed), [])) if "know" in v.detail]
+    assert [v.invariant for v in found] == ["placement"], found
+
+
+def test_a_restore_retried_without_a_producer_lost_since_does_not_wait_for_it() -> None:
+    """mid is restored on N1 and waits for its producer to resume; the producer's node resets
+    meanwhile (the producer is lost too, to be restored after mid). The coordinator's retry
+    names no producer any more, and mid must run instead of waiting for ever (seed 1193: the
+    recovery of six vertices stuck behind it)."""
+    from mso.protocol import effects as fx
+
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N3")  # src on N3, sink on N4
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 2)}, 0.0)
+    placed = {"src": "N3", "mid": "N2", "sink": "N4"}
+    core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["mid"]), 1.0)
+    effects = core.receive("N2", m.Prepare("pipe", "mid", 7, True, [[0, True], [1, False]]), 1.1)
+    (start,) = [e for e in effects if isinstance(e, fx.StartVertex)]
+    core.on_vertex(fx.VertexStarted(start.instance), 1.2)
+    dep = core.apps["pipe"]
+    assert "mid" in dep.awaiting  # waits for src's Resume
+    core.receive("N2", m.Prepare("pipe", "mid", 7, True, [[1, False]]), 2.2)  # src lost now
+    assert "mid" in dep.awaiting  # the sink has not said where it stands yet
+    core.receive("N4", m.Resume("pipe", 1, 7, False, 0), 2.3)
+    assert "mid" in dep.stones and not dep.awaiting and "mid" not in dep.restoring
+
+
+def test_a_sync_says_where_its_sender_handed_a_vertex_over() -> None:
+    """N3 handed mid over to N4 while it held N1 failed, so N1 missed the Moved, and its view
+    (from older syncs) still places mid on N3. N3's sync at the rejoin says it handed mid to
+    N4: its first-hand word, taken (seed 1786). What it only heard stays hearsay."""
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N2").replace("pinned: N4", "pinned: N1")
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 2)}, 0.0)
+    placed = {"src": "N2", "mid": "N3", "sink": "N1"}
+    core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["sink"]), 1.0)
+    moved = placed | {"mid": "N4", "src": "N4"}  # N3 heard src moved: hearsay, not taken
+    core.receive("N3", m.AppSync("pipe", "N2", doc, 0, moved, [], {"mid": "N4"}), 1.1)
+    assert core.apps["pipe"].placed["mid"] == "N4" and core.apps["pipe"].placed["src"] == "N2"
+
+
+def test_a_node_restarted_across_a_partition_and_given_instances_yields_when_it_heals() -> None:
+    """src and the sink run on N3, mid on N1. N1 is cut off; N3 restarts next to N2, whose
+    side restores all three on N3 (it holds N1 failed). When the cut heals N1 saw N3's new
+    incarnation as a rejoin, as if it came back empty, and mid ran twice with the views
+    apart (seeds 2504, 1722, 3254, 4264, 4751). A restarted node that already hosts
+    instances is the other side's: it is held failed again, yields and comes back empty."""
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N3").replace("pinned: N4", "pinned: N3")
+    sim = Simulation(line_net())
+    sim.request("N1", m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(1.0)
+    sim.request("N3", m.RelocateRequest("pipe", "mid", target="N1"))
+    sim.run_until(2.0)
+    assert "mid" in sim.cores["N1"].apps["pipe"].stones
+    sim.network.remove_link("N1", "N2")
+    sim.kill("N3")
+    sim.run_until(sim.now + 1.5)
+    sim.network.add_link(LinkSpec("N2", "N3", delay_ms=1.0))
+    sim.revive("N3")
+    sim.run_until(sim.now + 1.5)
+    assert set(sim.cores["N3"].apps["pipe"].stones) == {"src", "mid", "sink"}  # N2's side
+    sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
+    sim.update_routes()
+    sim.run_until(sim.now + 3.0)
+    deps = [c.apps["pipe"] for c in sim.cores.values()]
+    assert Counter(v for d in deps for v in d.stones) == {"src": 1, "mid": 1, "sink": 1}
+    assert len({tuple(sorted(d.placed.items())) for d in deps}) == 1
+    assert sim.cores["N3"].incarnation == 2  # it yielded
+
+
+def test_a_stale_sync_does_not_bring_back_a_vertex_that_vanished_with_its_node() -> None:
+    """mid vanished with N3's old incarnation (N3 reset). A sync sent before the reset still
+    places mid on N3: that is no news, and taking it made the recovery skip mid, which then
+    ran nowhere (seed 3420). A claim from N3 itself would be."""
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N2").replace("pinned: N4", "pinned: N1")
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 2)}, 0.0)
+    placed = {"src": "N2", "mid": "N3", "sink": "N1"}
+    core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["mid", "sink"]), 1.0)
+    assert core.apps["pipe"].vanished == {"mid", "sink"}
+    core.receive("N4", m.AppSync("pipe", "N2", doc, 0, placed, []), 1.1)  # sent before
+    assert "mid" in core.apps["pipe"].vanished
+
+
+CASCADE = """
+name: pipe
+vertices:
+  src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 200, output: runtime_vertices:Num}
+  a: {code: runtime_vertices:Double, output: runtime_vertices:Num}
+  b: {code: runtime_vertices:Double, output: runtime_vertices:Num}
+  sink: {code: runtime_vertices:Recorder, pinned: N1}
+edges: [[src, a], [a, b], [b, sink]]
+"""
+
+
+def test_adjacent_vertices_restored_together_repeat_nothing() -> None:
+    """a and b, adjacent, run on N3, which fails: both are restored from src's replay. b's
+    producer is then a fresh instance whose channel had no positions, so b numbered its
+    output from where the sink stood and the sink got an event twice (seeds 1684, 2257,
+    2708, 2752, 4387, 4640, 1422). Acks now carry the positions further down, known
+    exactly where the checkpoints meet, and each replacement numbers as the lost one did."""
+    sim = Simulation(line_net())
+    sim.request("N1", m.DeployRequest(CASCADE, "app.yaml"))
+    sim.run_until(1.0)
+    for v in ("a", "b"):
+        sim.request("N1", m.RelocateRequest("pipe", v, target="N3"))
+        sim.run_until(sim.now + 0.5)
+    assert set(sim.cores["N3"].apps["pipe"].stones) == {"a", "b"}
+    sim.kill("N3")
+    sim.run_until(sim.now + 2.0)
+    assert {"a", "b"} <= set(sim.cores["N1"].apps["pipe"].stones)
+    sink = sim.instance("N1", "pipe", "sink")
+    assert sink.repeats == 0 and sink.out_of_order == 0 and sink.count > 700, vars(sink)

@@ -40,6 +40,9 @@ def test_the_emulator_view_follows_newer_link_states_only() -> None:
     # a LinkState that arrives late cannot roll the table back
     assert not view.apply(links(0, {}))
     assert view.next_hop("N4") == "N2" and len(seen) == 1
+    # an infinite hop count (a fuzzed frame once raised out of the handler) is malformed
+    assert not view.apply(links(2, {"N4": ["N2", float("inf")]}))
+    assert view.malformed == 1 and view.next_hop("N4") == "N2"
 
 
 def test_every_taken_table_is_news_in_subscription_order() -> None:

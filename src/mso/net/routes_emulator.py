@@ -45,7 +45,7 @@ class EmulatorRoutes(TableRoutes):
         try:
             routes: dict[str, Route] = {d: (str(r[0]), int(r[1])) for d, r in state.routes.items()}
             neighbours = {n: neighbour_of(s) for n, s in state.neighbours.items()}
-        except (ValueError, TypeError, IndexError):
+        except (ValueError, TypeError, IndexError, OverflowError):  # (int(inf) overflows)
             self.malformed += 1  # not what the emulator sends: the table stays as it was
             return False
         self.version = state.version

@@ -214,11 +214,12 @@ class DataPlane(NodeTables):
             if e in dep.parked_edges:
                 dep.dropped[e] = dep.dropped.get(e, 0) + len(payloads)
                 continue
-            seq = self._out(dep, e).push_many(payloads, self._now)
+            out = self._out(dep, e)
+            seq = out.push_many(payloads, self._now)
             dst_node = dep.placed[dep.app.edges[e].dst]
             t = ts if dep.layout.edge_chain[e] == chain else self._now
             if dst_node == self.id:
-                self._deliver(dep, e, seq, payloads, t)
+                self._deliver(dep, e, seq, payloads, t, out.acked)
             else:
                 key = (dep.app.name, e)
                 batch = self._outbox.get(key)
@@ -228,12 +229,18 @@ class DataPlane(NodeTables):
                     batch[1].extend(payloads)
                 if len(batch[1]) * len(payloads[0]) >= MAX_BATCH_BYTES:  # frames stay small
                     del self._outbox[key]
-                    data = m.Data(dep.app.name, e, dep.epoch, batch[0], batch[1], batch[2])
+                    data = m.Data(dep.app.name, e, dep.epoch, *batch, floor=out.acked)
                     self._effects.append(Send(dst_node, data))
         return sum(map(len, payloads))
 
     def _deliver(
-        self, dep: Deployment, edge: int, seq: int, events: list[bytes], ts: float = 0.0
+        self,
+        dep: Deployment,
+        edge: int,
+        seq: int,
+        events: list[bytes],
+        ts: float = 0.0,
+        floor: int = 0,
     ) -> None:
         dst = dep.app.edges[edge].dst
         if dst in dep.awaiting:  # moving here: keep until the handover
@@ -242,7 +249,7 @@ class DataPlane(NodeTables):
         ch = dep.inc.get(edge)
         if ch is None:
             ch = dep.inc[edge] = InChannel()
-        fresh = ch.accept(seq, events)
+        fresh = ch.accept(seq, events, floor)
         if fresh:
             self._enqueue(dep, dst, (edge, fresh, ts))
 
@@ -292,7 +299,7 @@ class DataPlane(NodeTables):
         if dst not in dep.stones:
             self.dropped_messages += 1
             return
-        self._deliver(dep, msg.edge, msg.seq, msg.events, msg.ts)
+        self._deliver(dep, msg.edge, msg.seq, msg.events, msg.ts, msg.floor)
 
     def _processed(
         self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexProcessed, now: float
@@ -342,11 +349,16 @@ class DataPlane(NodeTables):
         if released is None:
             return
         inputs, outputs = released
+        further = dict(outputs)  # and, known exactly at these positions, the ones downstream
+        for o, pos in outputs.items():
+            out = dep.out.get(o)
+            for e, p in (out.history.get(pos, {}) if out is not None else {}).items():
+                further.setdefault(e, p)
         for i, pos in inputs.items():
             ch = dep.inc.get(i)
             if ch is not None:
                 ch.released = max(ch.released or 0, pos)
-                ch.positions = outputs
+                ch.positions = further
                 self._ack(dep, i)
 
     def _ack(self, dep: Deployment, edge: int) -> None:
@@ -362,7 +374,7 @@ class DataPlane(NodeTables):
                 self.dropped_messages += 1  # move): nothing to release, never a crash
                 return
             out.on_ack(upto, self._now)
-            out.positions = ch.positions
+            out.note_positions(upto, dict(ch.positions))
             self._unblock(dep, edge)
             self._release(dep, producer)
         elif src_node not in self.dead:
@@ -381,8 +393,7 @@ class DataPlane(NodeTables):
         except ValueError:
             self.dropped_messages += 1
             return
-        if msg.upto >= out.acked:
-            out.positions = msg.positions
+        out.note_positions(msg.upto, msg.positions)
         self._unblock(dep, msg.edge)
         self._release(dep, dep.app.edges[msg.edge].src)
 
@@ -404,7 +415,8 @@ class DataPlane(NodeTables):
         for (app, edge), batch in self._outbox.items():
             dep = self.apps[app]
             dst = dep.placed[dep.app.edges[edge].dst]
-            self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, *batch)))
+            floor = out.acked if (out := dep.out.get(edge)) is not None else 0
+            self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, *batch, floor=floor)))
         self._outbox.clear()
         for dep in self.apps.values():
             for edge, ch in list(dep.inc.items()):
@@ -423,9 +435,10 @@ class DataPlane(NodeTables):
                     continue
                 first, events = ch.unacked()
                 if dst == self.id:
-                    self._deliver(dep, edge, first, events)
-                else:
-                    self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, first, events)))
+                    self._deliver(dep, edge, first, events, floor=first)
+                else:  # ``first`` is the acked position: nothing below it will come again
+                    data = m.Data(app, edge, dep.epoch, first, events, floor=first)
+                    self._effects.append(Send(dst, data))
                 ch.waiting_since = now
         self._effects.append(SetTimer(("retransmit", app), now + RETRANSMIT_S))
 

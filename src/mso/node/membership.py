@@ -10,6 +10,8 @@ deterministic tie-break resets (drops its apps) and rejoins, and is sent the app
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 from mso.errors import MsoError
 from mso.node.dataplane import RETRANSMIT_S
 from mso.node.remapping import Remapping
@@ -170,6 +172,9 @@ class Membership(Remapping):
         if msg.incarnation < self._incarnations.get(src, msg.incarnation):
             return  # from an incarnation that has since reset: it must not reset us
         if msg.incarnation > self._dead_incarnation.get(src, 0):
+            if msg.hosting > 0 and self._hosting() > 0 and self._disputed():
+                self._restarted_across(src, msg.incarnation)
+                return
             self._rejoin(src, msg.incarnation, now, announce=True)
         elif msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
             self._reset(now, src)
@@ -178,6 +183,15 @@ class Membership(Remapping):
             # run nothing, so we yield (it does not reset for us: see _outranked_by)
         else:
             self._answer_stale_claim(src, msg)
+
+    def _restarted_across(self, src: str, incarnation: int) -> None:
+        """``src`` restarted on the other side of a partition, which has since given it
+        instances (a restart brings none): its instances are that side's, and some may run
+        here too. Not a rejoin: we hold this incarnation failed as well and tell it, so that
+        it yields (it holds us alive and we run something) and comes back empty."""
+        self._incarnations[src] = incarnation
+        self._dead_incarnation[src] = incarnation
+        self._send(src, self._beat())
 
     def _hosting(self) -> int:
         return sum(len(dep.stones) for dep in self.apps.values())
@@ -190,15 +204,23 @@ class Membership(Remapping):
         hold each other failed — not neighbours, each cut off by other failures — would
         otherwise tie for ever). One-sided (we hold the sender alive), we reset, unless the
         sender runs nothing and we run something: it yields instead (``_on_dead_heartbeat``;
-        a restarted node that held everyone failed once reset every node it met)."""
+        a restarted node that held everyone failed once reset every node it met).
+
+        Only failed nodes this node can reach count (the other side of the partition): a node
+        that really crashed is out of everyone's reach, and the two sides learn of it at
+        different moments; counted, it once made both nodes of a tie reset, and the app was
+        gone from every node."""
         if msg.node not in self.dead:
             return not (msg.hosting == 0 and self._hosting() > 0)
 
         def rank(hosting: int, dead: int, leader: str, node: str) -> tuple[bool, int, str, str]:
             return (hosting == 0, dead, leader, node)  # the node's own name breaks a tie
 
-        theirs = rank(msg.hosting, len(msg.dead), msg.leader or msg.node, msg.node)
-        return theirs < rank(self._hosting(), len(self.dead), self._leader(), self.id)
+        def disputed(dead: Iterable[str]) -> int:
+            return sum(1 for n in dead if n == self.id or n in self.routes)
+
+        theirs = rank(msg.hosting, disputed(msg.dead), msg.leader or msg.node, msg.node)
+        return theirs < rank(self._hosting(), disputed(self.dead), self._leader(), self.id)
 
     def _reset(self, now: float, by: str) -> None:
         """Rejoin as a new incarnation: the others have recovered without this node's
@@ -282,7 +304,9 @@ class Membership(Remapping):
         node that lost the tie-break) or miss moves made while we were away, and no Moved will
         ever correct it. But a sync is a snapshot and may be older than a Moved we have had
         since. So we take the sender's word where it is first-hand (a vertex it runs itself
-        and does not hold vanished), and its hearsay only where our own entry is known bad
+        and does not hold vanished, or one we place on it that it says it handed over, and
+        to whom: a node held failed when the old host broadcast the move missed its Moved),
+        and its hearsay only where our own entry is known bad
         (on a node we hold failed, vanished, or placed here where it does not run) — never
         where we run an instance ourselves, and never a vertex it places here (it holds
         that one vanished with our old incarnation)."""
@@ -295,6 +319,10 @@ class Membership(Remapping):
             if n == src and v not in gone:
                 return True
             mine = held.placed[v]
+            if mine == src and msg.handed.get(v) == n:  # it ran it and handed it over to n
+                return True
+            if n == mine and v in held.vanished:  # names the node whose old incarnation took
+                return False  # it: no news (a claim from that node would be)
             bad = mine in self.dead or v in held.vanished or mine == self.id
             return bad and (v not in gone or v in held.vanished)
 
@@ -305,9 +333,22 @@ class Membership(Remapping):
 
     def _app_sync(self, dep: Deployment) -> m.AppSync:
         placed = dict(dep.placed)
+        handed = {v: n for v, n in dep.handed.items() if v not in dep.stones}
         return m.AppSync(
-            dep.app.name, dep.origin, dep.document, dep.epoch, placed, sorted(dep.vanished)
+            dep.app.name, dep.origin, dep.document, dep.epoch, placed, sorted(dep.vanished), handed
         )
+
+    def _app_missing(self, dep: Deployment, node: str) -> None:
+        """A live node asked to host a vertex does not hold the app: its sync was lost (the
+        node that owed it failed before it could send it; nobody else would). Sync it now,
+        or once this node's own view is not in dispute."""
+        if node in self.dead or node == self.id or not dep.running:
+            return
+        if self._disputed():
+            self._sync_pending.add(node)
+        else:
+            self._send(node, self._app_sync(dep))
+        super()._app_missing(dep, node)
 
     def _flush_syncs(self) -> None:
         """Sync the nodes that rejoined while this node's view was in dispute, once it is not."""

@@ -128,7 +128,9 @@ class Relocating(Deploying):
             return
         if dep is None:
             error = f"{self.id} does not run app {msg.app!r}"
-        elif vid not in dep.app.vertices:
+            self._send(src, m.Prepared(msg.app, vid, msg.rid, self.id, error, no_app=True))
+            return
+        if vid not in dep.app.vertices:
             error = f"{self.id}: unknown vertex {vid!r}"
         elif vid not in dep.stones and vid not in dep.awaiting:
             dep.awaiting[vid] = self._host(dep, vid)
@@ -147,6 +149,8 @@ class Relocating(Deploying):
             if old is None or old.rid != msg.rid:
                 dep.restoring[vid] = Restoring(msg.rid, src, resumes)
                 self._handover_to[msg.rid] = src
+            else:  # a retry: an end lost since (its node reset) will not resume any more; it
+                old.pending &= resumes  # is restored later
             if vid in dep.preparing:  # still starting: Prepared goes to the newest asker
                 dep.preparing[vid] = (msg.rid, src, True)
                 return
@@ -184,6 +188,8 @@ class Relocating(Deploying):
             self._refusal("prepared_unexpected")
             return
         if msg.error:
+            if msg.no_app:  # a node that missed the app's sync: the retry will find it
+                self._app_missing(dep, reloc.target)
             self._reloc_failed(reloc, msg.error, now)
             return
         reloc.on("prepared_restore" if reloc.restore else "prepared")
@@ -199,7 +205,8 @@ class Relocating(Deploying):
         for e in dep.app.edges:
             if e.dst == msg.vertex:
                 edge = dep.app.edges.index(e)
-                self._send(dep.placed[e.src], m.Switch(msg.app, edge, reloc.target, msg.rid))
+                switch = m.Switch(msg.app, edge, reloc.target, msg.rid, reloc.source)
+                self._send(dep.placed[e.src], switch)
 
     def _on_switch(self, msg: m.Switch) -> None:
         """At the producer's node: new events go to the new instance; a marker goes the old way."""
@@ -209,39 +216,35 @@ class Relocating(Deploying):
             return
         edge = dep.app.edges[msg.edge]
         old = dep.placed[edge.dst]
-        if (msg.edge, msg.rid) in dep.switched:
-            dep.switched.discard((msg.edge, msg.rid))
-            return  # a join's other input from here: switched with the first one, below
-        why = self._switch_refused(dep, edge.src, edge.dst, msg.to)
+        if old == msg.to and msg.source:  # a merge vertex whose other input, produced here
+            old = msg.source  # too, switched first: its marker goes the old way as well
+        why = self._switch_refused(dep, edge.src, edge.dst, msg.to, old)
         if why:
             self._refusal(why)
             return
-        # where a consumer runs is one entry for all its inputs: every edge into it from a
-        # vertex here switches now, each with its marker (a join fed twice from this node)
-        siblings = [
-            i
-            for i, e in enumerate(dep.app.edges)
-            if e.dst == edge.dst and (i == msg.edge or e.src in dep.stones)
-        ]
-        for i in siblings:
-            batch = self._outbox.pop((msg.app, i), None)
-            if batch is not None:  # what is already queued leaves before the marker
-                self._effects.append(Send(old, m.Data(msg.app, i, dep.epoch, *batch)))
+        key = (msg.app, msg.edge)
+        batch = self._outbox.pop(key, None)
+        if batch is not None:  # what is already queued leaves before the marker
+            data = m.Data(msg.app, msg.edge, dep.epoch, *batch)
+            self._effects.append(Send(old, data))
+        seq = self._out(dep, msg.edge).next_seq
         dep.placed[edge.dst] = msg.to
-        dep.switched |= {(i, msg.rid) for i in siblings if i != msg.edge}
-        for i in siblings:
-            marker = m.Marker(msg.app, i, self._out(dep, i).next_seq, msg.rid, msg.to)
-            if old == self.id:
-                self._enqueue(dep, edge.dst, marker)
-            else:
-                self._effects.append(Send(old, marker))
+        dep.vanished.discard(edge.dst)  # the move's coordinator sees to it from now on (it
+        # restores it at the target if the old host went); a recovery here would make a twin
+        marker = m.Marker(msg.app, msg.edge, seq, msg.rid, msg.to)
+        if old == self.id:
+            self._enqueue(dep, edge.dst, marker)
+        else:
+            self._effects.append(Send(old, marker))
 
-    def _switch_refused(self, dep: Deployment, producer: str, consumer: str, to: str) -> str:
+    def _switch_refused(
+        self, dep: Deployment, producer: str, consumer: str, to: str, old: str
+    ) -> str:
         """Why a Switch cannot be part of a relocation ('' if it can): a relocation never
         moves a pinned vertex, nor to where it runs already (its instance would be handed
-        over to nobody). With operator keys, the producer must run here and ``to`` be a node
-        this one can reach."""
-        old = dep.placed[consumer]
+        over to nobody; ``old`` is where it runs, the move's source once another input of
+        the vertex switched here). With operator keys, the producer must run here and ``to``
+        be a node this one can reach."""
         if to == old:
             return "switch_to_where_it_runs"
         if dep.app.vertices[consumer].pinned is not None:
@@ -297,6 +300,7 @@ class Relocating(Deploying):
         self._stop(h, "moved")
         del dep.stones[vid]
         dep.placed[vid] = msg.to
+        dep.handed[vid] = msg.to
         handover = m.Handover(
             dep.app.name,
             vid,
@@ -323,6 +327,7 @@ class Relocating(Deploying):
         h.processed, h.emitted = msg.processed, msg.emitted
         dep.stones[msg.vertex] = h
         dep.placed[msg.vertex] = self.id
+        dep.handed.pop(msg.vertex, None)
         gated = bool(dep.out_edges.get(msg.vertex))
         for i, (expected, acked) in msg.inputs.items():
             dep.inc[i] = InChannel(
@@ -461,11 +466,14 @@ class Relocating(Deploying):
         dep.moved[vertex] = (self._now, dep.placed[vertex])
         dep.stones[vertex] = h
         dep.placed[vertex] = self.id
-        for o in dep.out_edges.get(vertex, []):
+        dep.handed.pop(vertex, None)
+        outs = dep.out_edges.get(vertex, [])
+        for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
             dep.out[o] = OutChannel(
                 window=self.window, next_seq=base, acked=base, waiting_since=self._now
-            )
+            )  # positions further down, for a restore of its consumer (replayed from here)
+            dep.out[o].positions = {e: p for e, p in restoring.positions.items() if e not in outs}
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
             if e.dst == vertex:
                 for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):

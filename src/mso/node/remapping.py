@@ -199,6 +199,8 @@ class Remapping(Relocating):
                 continue
             if dep.layout.kinds[vertex] == "source" and not lost:
                 continue
+            if lost and remap.recovery is None:  # the failure recovery restores it (one node
+                continue  # coordinates it); restored here too, it would run twice
             self._rid += 1
             source = dep.placed[vertex]
             reloc = Relocation(self._rid, now, remap.app, vertex, source, node, None, remap=rid)
@@ -318,6 +320,18 @@ class Remapping(Relocating):
         if reloc.attempts >= STEP_ATTEMPTS or reloc.target in self.dead:
             why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
             self._reloc_failed(reloc, why, now)
+            return
+        if reloc.vertex not in self._lost(dep):  # restored meanwhile by another coordinator
+            # (its target tells only the newest one) and maybe moved since: asked again, the
+            # target would start a second instance. Done; an instance prepared for this
+            # restore and never resumed is dropped.
+            where = dep.placed[reloc.vertex]
+            if where != reloc.target:
+                self._send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
+            reloc.on("handed_over")
+            self._end(reloc.pid)
+            reloc.target = where
+            self._relocation_ended(reloc, now, "")
             return
         reloc.on("retry")
         remap = self._remap(reloc.remap)

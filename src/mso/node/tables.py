@@ -172,9 +172,6 @@ class Deployment:
     # coordinator, restore) until its instance has started
     stash: dict[int, list[tuple[int, list[bytes]]]] = field(default_factory=dict)
     markers: dict[str, set[int]] = field(default_factory=dict)  # vertex -> edges marked
-    # (edge, relocation) switched along with another input of the same consumer: its own
-    # Switch, when it comes, has nothing left to do
-    switched: set[tuple[int, int]] = field(default_factory=set)
     blocked_sources: set[str] = field(default_factory=set)
     started_at: float = 0.0
     parked: dict[int, str] = field(default_factory=dict)  # chain -> why it cannot run
@@ -185,6 +182,7 @@ class Deployment:
     recoveries: list[dict[str, Any]] = field(default_factory=list)  # what was done, bounded
     # vertices whose instances went with a node that has since rejoined: restored like lost ones
     vanished: set[str] = field(default_factory=set)
+    handed: dict[str, str] = field(default_factory=dict)  # vertex -> where this node handed it
     document: str = ""  # the app file as deployed, for a node that rejoins
     crashes: dict[str, Crashes] = field(default_factory=dict)  # vertex -> its crashes here
     crashed: dict[str, Hosted] = field(default_factory=dict)  # crashed, not in ``stones``
@@ -396,3 +394,6 @@ class NodeTables:
 
     def _snapshotted(self, dep: Deployment, vid: str, h: Hosted, res: VertexSnapshot) -> None:
         """An instance's state was taken for a relocation."""
+
+    def _app_missing(self, dep: Deployment, node: str) -> None:
+        """``node`` refused to host a vertex of ``dep``'s app: it does not hold the app."""

@@ -28,8 +28,21 @@ class OutChannel:
     # the consumer's output positions reported with the last ack (see AckGate)
     positions: dict[int, int] = field(default_factory=dict)
 
+    HISTORY = 64  # acks whose positions are kept, to look one up at an exact position
+
     def __post_init__(self) -> None:
         self._unacked: deque[bytes] = deque()
+        # ack position -> the positions that came with it: a vertex releasing a checkpoint
+        # at exactly such a position passes them on upstream (transitive, see AckGate)
+        self.history: dict[int, dict[int, int]] = {}
+
+    def note_positions(self, upto: int, positions: dict[int, int]) -> None:
+        """An ack up to ``upto`` came with the consumer's ``positions``."""
+        if upto >= self.acked:
+            self.positions = positions
+        self.history[upto] = positions
+        while len(self.history) > self.HISTORY:
+            del self.history[next(iter(self.history))]
 
     @property
     def in_flight(self) -> int:
@@ -97,9 +110,30 @@ class InChannel:
     released: int | None = None
     positions: dict[int, int] = field(default_factory=dict)  # sent with the acks
     reack: bool = False  # a duplicate arrived: the producer missed an ack, send it again
+    skipped: int = 0  # events the producer gave up before they arrived (see ``skip_to``)
 
-    def accept(self, seq: int, events: list[bytes]) -> list[bytes]:
-        """The events of a batch starting at ``seq`` that are new and in order."""
+    def __post_init__(self) -> None:
+        # (position, count): once ``processed`` reaches position, count events were skipped
+        self._skips: deque[tuple[int, int]] = deque()
+
+    def skip_to(self, floor: int) -> None:
+        """The producer will never send anything below ``floor`` again (a parked chain
+        dropped those events and counted them acknowledged): stop waiting for them. They count
+        as processed once everything delivered before them is."""
+        if floor <= self.expected:
+            return
+        n = floor - self.expected
+        self.skipped += n
+        if self.processed == self.expected:
+            self.processed = floor
+        else:
+            self._skips.append((self.expected, n))
+        self.expected = floor
+
+    def accept(self, seq: int, events: list[bytes], floor: int = 0) -> list[bytes]:
+        """The events of a batch starting at ``seq`` that are new and in order; ``floor`` is
+        the producer's lowest position it can still send (see :meth:`skip_to`)."""
+        self.skip_to(floor)
         end = seq + len(events)
         if end <= self.expected:
             self.duplicates += len(events)
@@ -115,6 +149,8 @@ class InChannel:
 
     def mark_processed(self, n: int = 1) -> None:
         self.processed += n
+        while self._skips and self._skips[0][0] == self.processed:
+            self.processed += self._skips.popleft()[1]
         if self.processed > self.expected:
             raise ValueError("processed more events than were delivered")
 
@@ -136,7 +172,10 @@ class AckGate:
     downstream, so an event stays in its producer's replay buffer until it has left every node
     whose failure could lose it (upstream backup). Each processed batch leaves a checkpoint: the
     input positions it reached and the output positions it had produced by then; a checkpoint
-    is released once every output has been acknowledged up to its positions.
+    is released once every output has been acknowledged up to its positions. The ack upstream
+    carries those output positions, plus, where an ack from downstream came at exactly such a
+    position, the positions further down that came with it: a restore of several adjacent
+    vertices then numbers each replacement's output as the lost instance did.
     """
 
     checkpoints: deque[tuple[dict[int, int], dict[int, int]]] = field(default_factory=deque)

@@ -63,6 +63,9 @@ class Data(_Msg, tag="data"):
     # when the oldest of these events entered its chain (the nodes' shared clock): the chain's
     # tail measures end-to-end delay from it
     ts: float = 0.0
+    # the producer will never send anything below this again (its acked position): a consumer
+    # that still waits for an event below it skips to it (events a parked chain dropped)
+    floor: int = 0
 
 
 class Ack(_Msg, tag="ack"):
@@ -217,6 +220,9 @@ class AppSync(_Msg, tag="app_sync"):
     epoch: int
     placed: dict[str, str]
     vanished: list[str] = msgspec.field(default_factory=list)
+    # vertices the sender ran and handed over, and to whom: its first-hand word on where they
+    # went (a node that missed the move's Moved, held failed then, learns it from this)
+    handed: dict[str, str] = msgspec.field(default_factory=dict)
 
 
 class Rewire(_Msg, tag="rewire"):
@@ -277,6 +283,7 @@ class Prepared(_Msg, tag="prepared"):
     rid: int
     node: str
     error: str = ""
+    no_app: bool = False  # refused because the node does not hold the app: sync it to it
 
 
 class Switch(_Msg, tag="switch"):
@@ -286,6 +293,9 @@ class Switch(_Msg, tag="switch"):
     edge: int
     to: str
     rid: int
+    # where the coordinator moves the vertex from: the marker's way once another input of the
+    # vertex, from this same node, has switched (the node's placement says ``to`` by then)
+    source: str = ""
 
 
 class Handover(_Msg, tag="handover"):

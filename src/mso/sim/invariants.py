@@ -9,7 +9,8 @@ names its invariant, so a benchmark can count them by kind and a failing seed sa
 - ``membership``: no live node still holds another failed once all are back and linked;
 - ``hosted-once``: every vertex runs exactly once over the live nodes;
 - ``placement``: every live node knows the app, all agree on its placement, and each vertex is
-  placed on a live node that hosts it;
+  placed on a live node that hosts it (unless every node was down at one moment: an app lives
+  in its nodes' memory only, so then it is gone from all of them, and no node may know it);
 - ``dangling-edge``: both ends of every edge have its channel where the placement says;
 - ``parked``: no chain is still parked;
 - ``duplicate`` / ``reorder``: a sink instance got an event of a stream twice, or after a later
@@ -29,6 +30,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from mso.protocol import messages as m
+from mso.scenario.format import NodeFailure, NodeRestart
 from mso.sim.runner import Simulation
 from mso.sim.schedule import Schedule
 from mso.sim.vertices import SinkRecord
@@ -94,9 +96,11 @@ def check(sim: Simulation, sched: Schedule, records: list[SinkRecord]) -> list[V
     out += check_procedures(sim)
     apps = {n: st["apps"].get(APP) for n, st in status.items()}
     missing_app = sorted(n for n, a in apps.items() if a is None)
+    known = {n: a for n, a in apps.items() if a is not None}
+    if not known and _everyone_failed(sched):
+        return out  # the app went with the last node that held it: nothing left to check
     if missing_app:
         out.append(Violation("placement", f"{missing_app} do not know the app"))
-    known = {n: a for n, a in apps.items() if a is not None}
     if not known:
         return out
     placements = {tuple(sorted(a["placement"].items())) for a in known.values()}
@@ -129,6 +133,22 @@ def check(sim: Simulation, sched: Schedule, records: list[SinkRecord]) -> list[V
                     out.append(Violation("dangling-edge", f"{name}: no channel on {node} ({end})"))
     out += _events(sim, sched, records, known, status)
     return out
+
+
+def _everyone_failed(sched: Schedule) -> bool:
+    """Every node was down at one moment of the schedule (restarts at an instant counted
+    before failures at it, so a node back at the moment another fails never counts)."""
+    down: set[str] = set()
+    changes = sorted(
+        (c for c in sched.changes if isinstance(c, NodeFailure | NodeRestart)), key=lambda c: c.at
+    )
+    for _, group in itertools.groupby(changes, key=lambda c: c.at):
+        now = list(group)
+        down -= {c.node for c in now if isinstance(c, NodeRestart)}
+        down |= {c.node for c in now if isinstance(c, NodeFailure)}
+        if down >= set(sched.network.nodes):
+            return True
+    return False
 
 
 def _events(
