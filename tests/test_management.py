@@ -7,6 +7,7 @@ node, 2 W at the default 4 W cpu_w.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from collections.abc import Sequence
 
@@ -21,6 +22,7 @@ from mso.management import (
     ChainView,
     DelayPolicy,
     EnergyPolicy,
+    EnergyRemapRule,
     Guard,
     LifetimePolicy,
     NodeView,
@@ -29,12 +31,14 @@ from mso.management import (
     Relocate,
     RelocationRule,
     RemapChain,
+    RemapChains,
     RuleEngine,
     RuleSettings,
     Snapshot,
     VertexView,
     estimate,
     improvement,
+    lifetime_weight,
     load_policy,
     move_cost_j,
 )
@@ -696,3 +700,96 @@ def test_critical_ratio_is_checked() -> None:
     for bad in (1.0, -0.1, float("nan")):
         with pytest.raises(MsoError, match="critical_ratio"):
             RuleSettings(critical_ratio=bad)
+
+
+# -- the energy remap of a join -----------------------------------------------------------------
+
+
+def test_lifetime_weight_scales_capacity_by_remaining_lifetime() -> None:
+    nodes = [
+        node("H", drain=2.0),  # 1800 s
+        node("U"),  # 3600 s: the longest among the battery nodes
+        node("D", remaining=0.0),  # flat
+        node("W", remaining=None),  # wall powered
+        node("N", drain=0.0),  # draws nothing yet: no lifetime known
+    ]
+    s = snap(0.0, nodes)
+    weights = {n: lifetime_weight(s, n) for n in ("H", "U", "D", "W", "N", "far")}
+    assert weights == {"H": 0.5, "U": 1.0, "D": 0.0, "W": 1.0, "N": 1.0, "far": 1.0}
+    assert Policy().capacity_weight(s, "H") == 0.5  # every policy weighs so by default
+
+
+def joined(*, moved_at: float | None = None, moved_from: str | None = None) -> Snapshot:
+    """J joins chains 0 (A -> J) and 1 (B -> J) and heads chain 2 (J -> C): A and B on U, J on
+    H, C on D. H's battery holds a tenth of U's and D's: H is draining."""
+    j = dataclasses.replace(
+        vertex("J", movable=False, state=10), moved_at=moved_at, moved_from=moved_from
+    )
+    chains = [
+        dataclasses.replace(chain(vertices=("A", "J"), nodes=("U", "H")), index=0),
+        dataclasses.replace(chain(vertices=("B", "J"), nodes=("U", "H")), index=1),
+        dataclasses.replace(chain(vertices=("J", "C"), nodes=("H", "D")), index=2),
+    ]
+    nodes = [node("H", drain=3.0, remaining=360.0), node("U"), node("D", drain=2.0)]
+    return snap(100.0, nodes, [j], chains)
+
+
+def test_a_draining_node_asks_to_remap_the_chains_of_a_join_it_cannot_relocate() -> None:
+    s = joined()
+    engine = RuleEngine(LifetimePolicy())
+    assert RelocationRule(LifetimePolicy(), RuleSettings(), frozenset({"H"})).propose(s) == []
+    allowed = run(engine, s, [100.0, 101.0, 102.0, 103.0])
+    assert len(allowed) == 1 and allowed[0][0] == 102.0  # confirmed 3 times
+    (action,) = [a for _, a in engine.guard.allowed]
+    assert isinstance(action, RemapChains) and action.chains == (0, 1, 2)
+    assert action.place == (("J", "U"),)  # U outlives D: the join goes there
+    weights = dict(action.weights)
+    assert weights["H"] == 0.0 and weights["U"] == 1.0 and weights["D"] == 0.5
+    assert "H draining, sheds join/fork J" in action.reason
+    # one energy remap per app per energy_interval_s from this node
+    later = run(engine, s, [110.0 + k for k in range(100)])
+    assert later == []
+    assert any("remapped for energy at 102.0" in d for d in engine.status()["decisions"])
+
+
+def test_an_energy_remap_waits_while_the_app_is_being_reconfigured_here() -> None:
+    engine = RuleEngine(LifetimePolicy())
+    for t in (100.0, 101.0, 102.0, 103.0):
+        busy = dataclasses.replace(joined(), now=t, busy=frozenset({"app"}))
+        assert engine.evaluate(busy) == []
+    assert any("in flight here" in d for d in engine.status()["decisions"])
+
+
+def test_the_energy_remap_never_sends_a_join_back_nor_onto_a_shorter_lived_node() -> None:
+    rule = EnergyRemapRule(LifetimePolicy(), RuleSettings(), frozenset({"H"}))
+    # it came from U 60 s ago: U is out (no ping-pong), D is the only candidate
+    (p,) = rule.propose(joined(moved_at=40.0, moved_from="U"))
+    assert isinstance(p.action, RemapChains) and p.action.place == (("J", "D"),)
+    assert dict(p.action.weights)["U"] == 0.0
+    # past the no-ping-pong window U is back
+    (p,) = rule.propose(joined(moved_at=-30.0, moved_from="U"))
+    assert isinstance(p.action, RemapChains) and p.action.place == (("J", "U"),)
+    # it arrived 10 s ago: the drains in view do not show it yet
+    assert rule.propose(joined(moved_at=90.0, moved_from="U")) == []
+    # every neighbour expected to die sooner than H: nowhere to go
+    s = joined()
+    poorer = {
+        n: dataclasses.replace(v, remaining_j=10.0, lifetime_s=10.0) for n, v in s.nodes.items()
+    }
+    poorer["H"] = s.nodes["H"]
+    assert rule.propose(dataclasses.replace(s, nodes=poorer)) == []
+    # not draining: nothing
+    assert EnergyRemapRule(LifetimePolicy(), RuleSettings()).propose(joined()) == []
+
+
+class KeepOff(Policy):
+    name = "keep-off"
+
+    def capacity_weight(self, snap: Snapshot, node: str) -> float:
+        return 0.0 if node == "U" else 1.0
+
+
+def test_a_policy_decides_the_weights_of_an_energy_remap() -> None:
+    (p,) = EnergyRemapRule(KeepOff(), RuleSettings(), frozenset({"H"})).propose(joined())
+    assert isinstance(p.action, RemapChains) and p.action.place == (("J", "D"),)
+    assert dict(p.action.weights) == {"H": 0.0, "U": 0.0, "D": 1.0}

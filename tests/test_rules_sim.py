@@ -171,3 +171,47 @@ def test_a_met_delay_slo_changes_nothing() -> None:
     assert remaps(sim) == []
     delay = sim.cores["N4"].status(sim.now)["apps"]["pipe"]["chain_delay_ms"]["src-mid-sink"]
     assert 2.0 < delay < 50.0
+
+
+JOINED = """
+name: joined
+vertices:
+  s1: {code: runtime_vertices:CountingSource, pinned: N1, rate: 20, cost: 0.1,
+       output: runtime_vertices:Num}
+  s2: {code: runtime_vertices:CountingSource, pinned: N1, rate: 20, cost: 0.1,
+       output: runtime_vertices:Num}
+  join: {code: runtime_vertices:Counter, cost: 10, output: runtime_vertices:Num}
+  sink: {code: runtime_vertices:Recorder, pinned: N4, cost: 0.1}
+edges: [[s1, join], [s2, join], [join, sink]]
+"""
+
+
+def line4(small: str) -> Network:
+    """Four robots in a line; ``small`` has a fifth of the others' battery."""
+    nodes = [
+        NodeSpec(f"N{i}", battery_wh=1.0 if f"N{i}" == small else 5.0, power=POWER)
+        for i in range(1, 5)
+    ]
+    links = [LinkSpec(f"N{i}", f"N{i + 1}", delay_ms=1) for i in range(1, 4)]
+    return Network(nodes, links)
+
+
+def test_a_draining_node_sheds_a_join_by_an_energy_remap_and_loses_nothing() -> None:
+    """The join (tail of two chains, head of a third) is never relocated; on the small
+    battery it makes N2 draining, and the rules remap its chains with the join placed on a
+    longer-lived neighbour, once: nothing sends it back, no event is lost or repeated."""
+    sim = deployed(line4(small="N2"), JOINED)
+    assert sim.cores["N1"].apps["joined"].placed["join"] == "N2"  # Algorithm 1's choice
+    sim.run_until(40.0)
+    done = [d for c in sim.cores.values() for d in c.manager.done]
+    (remap,) = done  # the only reconfiguration, by N2
+    assert remap in sim.cores["N2"].manager.done
+    assert "remap joined chains 0, 1, 2" in remap and "N2 draining, sheds join/fork join" in remap
+    maps = [dict(c.apps["joined"].placed) for c in sim.cores.values()]
+    assert all(mp == maps[0] for mp in maps)
+    assert maps[0]["join"] in ("N1", "N3")
+    got = sink(sim, "joined", "N4")
+    stones = sim.cores["N1"].apps["joined"].stones
+    sent = stones["s1"].emitted + stones["s2"].emitted
+    assert got["repeats"] == 0 and got["out_of_order"] == 0  # the counter's state moved with it
+    assert sent - 5 <= got["count"] <= sent

@@ -18,10 +18,11 @@ Two accountings, each a full set of runs:
 Reported per strategy: leader lifetime (its battery empty), network lifetime (first robot
 empty), energy per stored result (all robots' joules until the run ends / rows stored; with the
 app's own share beside it), results stored and their completeness (rows against events
-emitted), end-to-end delay p50/p99 from the SQLite log, the relocations the rules made; plus a
-PNG per accounting of every robot's battery over time, one panel per strategy, the relocations
-marked. A robot whose battery is empty keeps running in the simulation (its time of death is
-recorded), so the leader's lifetime is measured even when a relay dies first.
+emitted), end-to-end delay p50/p99 from the SQLite log, the relocations and remaps the rules
+made; plus a PNG per accounting of every robot's battery over time, one panel per strategy, the
+relocations (dotted) and remaps (dashed) marked. A robot whose battery is empty keeps running
+in the simulation (its time of death is recorded), so the leader's lifetime is measured even
+when a relay dies first.
 
     mso bench lifetime [--out bench/results/lifetime.json] [--plots docs/img] [--limit-s S]
                        [--accounting board|app] [--only STRATEGY]
@@ -198,7 +199,7 @@ def run(
 
 def plot(results: list[dict[str, Any]], out: Path) -> list[Path]:
     """One PNG per accounting, a panel per strategy: every robot's battery over time, the
-    rules' relocations dotted."""
+    rules' relocations dotted, their remaps dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -212,10 +213,14 @@ def plot(results: list[dict[str, Any]], out: Path) -> list[Path]:
         for ax, r in zip(axes.flat, runs, strict=False):
             for node, series in r["battery"].items():
                 ax.plot([t for t, _ in series], [100 * f for _, f in series], label=node)
-            for t, _what in r["relocations"]:
-                ax.axvline(t, color="grey", linestyle=":", linewidth=0.8)
-            moves = len(r["relocations"])
-            ax.set_title(f"{r['strategy']}" + (f" ({moves} relocations, dotted)" if moves else ""))
+            for t, what in r["relocations"]:
+                remap = what.startswith("remap")
+                style = {"color": "black", "linestyle": "--"} if remap else {"linestyle": ":"}
+                ax.axvline(t, **({"color": "grey", "linewidth": 0.8} | style))
+            moves, remaps = _counts(r)
+            shown = [f"{moves} relocations, dotted"] if moves else []
+            shown += [f"{remaps} remaps, dashed"] if remaps else []
+            ax.set_title(f"{r['strategy']}" + (f" ({'; '.join(shown)})" if shown else ""))
             ax.set_xlabel("virtual time (s)")
             ax.set_ylabel("battery (%)")
             ax.set_ylim(0, 101)
@@ -258,6 +263,12 @@ def ratios(results: list[dict[str, Any]], accounting: str) -> list[dict[str, Any
     return out
 
 
+def _counts(r: dict[str, Any]) -> tuple[int, int]:
+    """(relocations, remaps) the rules made in a run."""
+    remaps = sum(1 for _, what in r["relocations"] if what.startswith("remap"))
+    return len(r["relocations"]) - remaps, remaps
+
+
 def markdown(results: list[dict[str, Any]]) -> str:
     def fmt(x: float | None, spec: str = ".0f") -> str:
         return "-" if x is None else format(x, spec)
@@ -274,7 +285,7 @@ def markdown(results: list[dict[str, Any]]) -> str:
             "",
             "| strategy | leader lifetime (s) | network lifetime (s) (first) "
             "| energy / stored result (J) | of which the app's (J) "
-            "| results stored (complete) | e2e p50 / p99 (ms) | relocations |",
+            "| results stored (complete) | e2e p50 / p99 (ms) | relocations / remaps |",
             "|---|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for r in (r for r in results if r["accounting"] == accounting):
@@ -286,7 +297,7 @@ def markdown(results: list[dict[str, Any]]) -> str:
                 f"{fmt(r['app_energy_per_result_j'], '.4f')} | "
                 f"{r['results_stored']} ({'yes' if r['complete'] else 'NO'}) | "
                 f"{fmt(r['delay_ms_p50'], '.1f')} / {fmt(r['delay_ms_p99'], '.1f')} | "
-                f"{len(r['relocations'])} |"
+                "{} / {} |".format(*_counts(r))
             )
         lines.append("")
         for t in ratios(results, accounting):

@@ -19,6 +19,7 @@ from mso.management.policy import (
     energy_score,
     estimate,
     lifetime_score,
+    lifetime_weight,
     load_policy,
     move_cost_j,
     move_cost_split_j,
@@ -28,6 +29,7 @@ from mso.management.policy import (
 )
 from mso.management.rules import (
     ChainRouteRule,
+    EnergyRemapRule,
     Guard,
     Option,
     Proposal,
@@ -43,6 +45,7 @@ from mso.management.views import (
     NodeView,
     Relocate,
     RemapChain,
+    RemapChains,
     Snapshot,
     VertexView,
 )
@@ -57,6 +60,7 @@ __all__ = [
     "ChainView",
     "DelayPolicy",
     "EnergyPolicy",
+    "EnergyRemapRule",
     "Guard",
     "LifetimePolicy",
     "NodeEstimate",
@@ -68,6 +72,7 @@ __all__ = [
     "Relocate",
     "RelocationRule",
     "RemapChain",
+    "RemapChains",
     "RuleEngine",
     "RuleSettings",
     "Score",
@@ -78,6 +83,7 @@ __all__ = [
     "estimate",
     "improvement",
     "lifetime_score",
+    "lifetime_weight",
     "load_policy",
     "move_cost_j",
     "move_cost_split_j",

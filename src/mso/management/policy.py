@@ -226,6 +226,33 @@ def slo_violations(snap: Snapshot) -> list[Action]:
     return out
 
 
+def lifetime_weight(snap: Snapshot, node: str) -> float:
+    """How much of ``node``'s capacity a remap's planner should see, by remaining lifetime:
+    its expected lifetime over the longest among the battery nodes in view, in [0, 1]. A flat
+    battery weighs 0; a wall-powered node, one whose lifetime is not known yet, and one not in
+    view weigh 1 (nothing says to avoid them). Algorithm 1 gives each node a share of a chain's
+    cost proportional to its capacity, so a node expected to die in half the time of the
+    longest-lived one is given half the work it would otherwise get."""
+    view = snap.nodes.get(node)
+    if view is None or view.remaining_j is None:
+        return 1.0
+    if view.remaining_j <= 0:
+        return 0.0
+    if view.lifetime_s is None:
+        return 1.0
+    longest = max(
+        (
+            min(o.lifetime_s, LIFETIME_CAP_S)
+            for o in snap.nodes.values()
+            if o.battery and o.lifetime_s is not None
+        ),
+        default=0.0,
+    )
+    if longest <= 0:
+        return 1.0
+    return max(0.0, min(1.0, min(view.lifetime_s, LIFETIME_CAP_S) / longest))
+
+
 # -- policies ------------------------------------------------------------------------------
 
 
@@ -246,6 +273,12 @@ class Policy:
 
     def actions(self, snap: Snapshot) -> list[Action]:
         return []
+
+    def capacity_weight(self, snap: Snapshot, node: str) -> float:
+        """The factor (0..1) on ``node``'s probed capacity when an energy remap re-places
+        chains (:class:`~mso.management.rules.EnergyRemapRule`): 0 keeps work off it. The
+        default weighs by remaining lifetime (:func:`lifetime_weight`)."""
+        return lifetime_weight(snap, node)
 
     def __repr__(self) -> str:
         return f"<policy {self.name}>"
@@ -317,6 +350,10 @@ class _Adapted(Policy):
     def actions(self, snap: Snapshot) -> list[Action]:
         act: Callable[[Snapshot], Any] | None = getattr(self.inner, "actions", None)
         return [] if act is None else list(act(snap))
+
+    def capacity_weight(self, snap: Snapshot, node: str) -> float:
+        weigh: Callable[[Snapshot, str], Any] | None = getattr(self.inner, "capacity_weight", None)
+        return lifetime_weight(snap, node) if weigh is None else float(weigh(snap, node))
 
 
 def _policy_like(obj: Any) -> bool:

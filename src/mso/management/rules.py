@@ -32,6 +32,7 @@ from mso.management.views import (
     NodeView,
     Relocate,
     RemapChain,
+    RemapChains,
     Snapshot,
     VertexView,
 )
@@ -52,6 +53,7 @@ class RuleSettings:
     slo_confirm: int = 3  # evaluations in a row a policy must ask for a remap
     max_load: float = 1.0  # a move never loads its target's CPU beyond this (1.0 = saturated)
     critical_ratio: float = 0.5  # a battery node expected to die this much sooner is draining
+    energy_interval_s: float = 120.0  # an app is remapped for energy at most once per interval
 
     @property
     def critical_exit(self) -> float:
@@ -74,6 +76,7 @@ class RuleSettings:
             "node_interval_s",
             "route_settle_s",
             "chain_interval_s",
+            "energy_interval_s",
         ):
             value = getattr(self, name)
             if not _number(value) or value < 0:
@@ -151,6 +154,7 @@ class Guard:
         self._moves: dict[str, tuple[float, str]] = {}  # vertex key -> (when, node it left)
         self._last_relocation: float | None = None
         self._remaps: dict[tuple[str, int], float] = {}
+        self._energy: dict[str, float] = {}  # app -> when this node last remapped it for energy
 
     def streak(self, action: Action) -> int:
         """Consecutive reviews that have proposed ``action`` (0 right after it was allowed)."""
@@ -181,6 +185,8 @@ class Guard:
                 why = f"confirming {n}/{p.confirm}"
             elif isinstance(a, RemapChain):
                 why = self._remap_hold(a, now)
+            elif isinstance(a, RemapChains):
+                why = self._energy_hold(a, snap, remapped)
             else:
                 why = self._relocation_hold(a, snap, remapped, relocated)
             if why is None:
@@ -189,6 +195,11 @@ class Guard:
                 if isinstance(a, RemapChain):
                     remapped.add((a.app, a.chain))
                     self._remaps[a.app, a.chain] = now
+                elif isinstance(a, RemapChains):
+                    for c in a.chains:
+                        remapped.add((a.app, c))
+                        self._remaps[a.app, c] = now
+                    self._energy[a.app] = now
                 else:
                     relocated = True
                     v = snap.vertex(a.vertex_key)
@@ -202,6 +213,25 @@ class Guard:
         if last is not None and now - last < self.settings.chain_interval_s:
             limit = self.settings.chain_interval_s
             return f"chain remapped at {last:.1f} (at most once per {limit:g}s)"
+        return None
+
+    def _energy_hold(
+        self, a: RemapChains, snap: Snapshot, remapped: set[tuple[str, int]]
+    ) -> str | None:
+        """Storms and ping-pong: one energy remap per app per ``energy_interval_s`` from this
+        node, none while another reconfiguration of the app runs here, and the chain limit."""
+        now, limit = snap.now, self.settings.energy_interval_s
+        last = self._energy.get(a.app)
+        if last is not None and now - last < limit:
+            return f"{a.app} remapped for energy at {last:.1f} (at most once per {limit:g}s)"
+        if a.app in snap.busy:
+            return f"a relocation or remap of {a.app} is in flight here"
+        for c in a.chains:
+            if (a.app, c) in remapped:
+                return f"chain {c} is being remapped"
+            why = self._remap_hold(RemapChain(a.app, c), now)
+            if why is not None:
+                return why
         return None
 
     def _relocation_hold(
@@ -238,6 +268,8 @@ class Guard:
         self._moves = {k: m for k, m in self._moves.items() if now - m[0] < keep}
         keep = self.settings.chain_interval_s
         self._remaps = {k: t for k, t in self._remaps.items() if now - t < keep}
+        keep = self.settings.energy_interval_s
+        self._energy = {k: t for k, t in self._energy.items() if now - t < keep}
 
 
 # -- rules ---------------------------------------------------------------------------------
@@ -253,7 +285,18 @@ class Option:
     move_cost_j: float
 
 
-class RelocationRule:
+class _PolicyRule:
+    """A rule that weighs options by an app's policy, knowing whether this node is draining."""
+
+    def __init__(
+        self, policy: Policy, settings: RuleSettings, draining: frozenset[str] = frozenset()
+    ) -> None:
+        self.policy = policy
+        self.settings = settings
+        self.draining = draining
+
+
+class RelocationRule(_PolicyRule):
     """Intra-chain remapping (§3.4.1): move a vertex upstream or downstream when it pays.
 
     For each movable vertex, "no change" is scored against moving it onto its ``upstream`` and
@@ -271,13 +314,6 @@ class RelocationRule:
     """
 
     name = "relocation"
-
-    def __init__(
-        self, policy: Policy, settings: RuleSettings, draining: frozenset[str] = frozenset()
-    ) -> None:
-        self.policy = policy
-        self.settings = settings
-        self.draining = draining
 
     def options(self, snap: Snapshot, v: VertexView) -> list[Option]:
         """ "stay" first, then each candidate move; empty when the vertex has nowhere to go."""
@@ -384,6 +420,127 @@ def draining_update(
     if ratio > settings.critical_exit:
         return draining - {snap.here}
     return draining
+
+
+class EnergyRemapRule(_PolicyRule):
+    """Energy remap: a draining node sheds a chain end that relocation cannot move.
+
+    A join or fork vertex (the tail of several chains, or the tail of one and the head of
+    others) is never relocated (§3.4.1), and a route or SLO remap keeps a lone chain's ends; on
+    a node in ``draining`` such a vertex can hold most of its drain. For the hosted unpinned one
+    with the largest CPU drain, the node looks for the node in view where that vertex alone
+    would beat "no change" by ``margin`` under the policy, the most (the move's state transfer
+    charged as in :class:`RelocationRule`), among the nodes the policy's
+    :meth:`~mso.management.Policy.capacity_weight` gives a weight above 0 — never this node, a
+    flat battery, a node expected to die no later than this one, nor, within ``ping_pong_s``
+    of its last move, the node the vertex came from. It then asks for a remap of every chain
+    that ends or starts at the vertex with the vertex placed there, and the planner re-placing
+    the rest of those chains seeing each node's probed capacity times its weight.
+
+    It does not ask for a vertex that arrived less than ``vertex_interval_s`` ago (the drains
+    in view do not show it yet), nor while another host of those chains in view is
+    shorter-lived (that node asks first). The guard allows one per app per
+    ``energy_interval_s`` from this node, and none while a relocation or remap of the app runs
+    here.
+    """
+
+    name = "energy"
+
+    def propose(self, snap: Snapshot) -> list[Proposal]:
+        here = snap.nodes.get(snap.here)
+        if snap.here not in self.draining or here is None or here.lifetime_s is None:
+            return []
+        ends = [v for v in snap.vertices if not v.pinned and len(self.chains_at(snap, v)) > 1]
+        if not ends:
+            return []
+        # the chain end that costs this node the most CPU first; one proposal per app
+        v = max(ends, key=lambda v: (v.cost * v.rate, v.key))
+        moved = None if v.moved_at is None else snap.now - v.moved_at
+        if moved is not None and moved < self.settings.vertex_interval_s:
+            return []  # it just arrived: the drains in view do not show it yet
+        chains = self.chains_at(snap, v)
+        for c in chains:
+            for n in c.nodes:
+                other = snap.nodes.get(n)
+                if (
+                    n != snap.here
+                    and other is not None
+                    and other.battery
+                    and (other.lifetime_s is not None and other.lifetime_s < here.lifetime_s)
+                ):
+                    return []  # a shorter-lived host of these chains: it asks first
+        weights = self.weights(snap)
+        if moved is not None and moved < self.settings.ping_pong_s and v.moved_from in weights:
+            weights[v.moved_from] = 0.0  # no ping-pong: not back to the node it left
+        best = self.best_gain(snap, v, weights)
+        if best is None:
+            return []
+        target, gain = best
+        shown = "inf" if math.isinf(gain) else f"{gain:.0%}"
+        reason = (
+            f"{self.policy.name}: {snap.here} draining, sheds join/fork {v.id} "
+            f"({shown} better on {target})"
+        )
+        indices = tuple(c.index for c in chains)
+        action = RemapChains(
+            v.app, indices, tuple(sorted(weights.items())), reason, ((v.id, target),)
+        )
+        return [Proposal(action, self.settings.confirm, gain, self.name)]
+
+    @staticmethod
+    def chains_at(snap: Snapshot, v: VertexView) -> list[ChainView]:
+        """The chains ending or starting at ``v`` (longer than one vertex), by index."""
+        return sorted(
+            (
+                c
+                for c in snap.chains
+                if c.app == v.app
+                and len(c.vertices) > 1
+                and v.id in (c.vertices[0], c.vertices[-1])
+            ),
+            key=lambda c: c.index,
+        )
+
+    def weights(self, snap: Snapshot) -> dict[str, float]:
+        """The planner's capacity factor of each node in view (nodes not listed weigh 1)."""
+        here = snap.nodes[snap.here]
+        assert here.lifetime_s is not None
+        out: dict[str, float] = {}
+        for n, view in sorted(snap.nodes.items()):
+            w = float(self.policy.capacity_weight(snap, n))
+            shorter = view.battery and (
+                _empty(view) or (view.lifetime_s is not None and view.lifetime_s <= here.lifetime_s)
+            )
+            out[n] = (
+                0.0 if n == snap.here or shorter or not math.isfinite(w) else min(1.0, max(0.0, w))
+            )
+        return out
+
+    def best_gain(
+        self, snap: Snapshot, v: VertexView, weights: dict[str, float]
+    ) -> tuple[str, float] | None:
+        """The node in view (weight > 0) where ``v`` alone scores best under the policy, with
+        its gain over "no change", if that beats ``margin``. All candidates are scored on the
+        same nodes (this one and the candidates), so the policy compares like with like; the
+        move's state transfer is charged over ``horizon_s``."""
+        horizon = self.settings.horizon_s
+        candidates = [
+            n
+            for n in sorted(n for n, w in weights.items() if w > 0)
+            if estimate(snap, {v.key: n})[n].load <= self.settings.max_load
+        ]
+        if not candidates:
+            return None
+        local = snap.with_nodes({snap.here, *candidates})
+        stay = self.policy.score(local, {})
+        scored = []
+        for n in candidates:
+            tx_j, rx_j = move_cost_split_j(local, v, n)
+            charged = with_extra_drain(local, {snap.here: tx_j / horizon, n: rx_j / horizon})
+            scored.append((self.policy.score(charged, {v.key: n}), n))
+        score, best = min(scored, key=lambda sn: (_nan(sn[0]), sn[0], sn[1]))
+        gain = improvement(stay, score)
+        return (best, gain) if gain > self.settings.margin else None
 
 
 class ChainRouteRule:
@@ -493,6 +650,7 @@ class RuleEngine:
             try:
                 asked = list(policy.actions(view))
                 relocations = RelocationRule(policy, self.settings, self.draining).propose(view)
+                energy = EnergyRemapRule(policy, self.settings, self.draining).propose(view)
             except Exception as exc:  # user code: report it, keep the node running
                 what = f"policy {policy.name} for {app}"
                 self._note(
@@ -507,13 +665,16 @@ class RuleEngine:
                 else:
                     proposals.append(proposal)
             proposals.extend(relocations)
+            proposals.extend(energy)
         allowed: list[Action] = []
         for p, why in self.guard.review(proposals, snap):
             a = p.action
             if why is None:
                 allowed.append(a)
-                if isinstance(a, RemapChain):
-                    chain = snap.chain(a.app, a.chain)
+                indices: tuple[int, ...] = (a.chain,) if isinstance(a, RemapChain) else ()
+                indices = a.chains if isinstance(a, RemapChains) else indices
+                for index in indices:
+                    chain = snap.chain(a.app, index)
                     if chain is not None:
                         self.route_rule.done(chain)
             self._note(seen, a.key, snap.now, str(a), "allowed" if why is None else f"held: {why}")

@@ -59,6 +59,7 @@ class VertexView:
     movable: bool  # False for chain heads/tails and pinned vertices (§3.4.1)
     moved_at: float | None = None
     moved_from: str | None = None
+    pinned: bool = False  # pinned by the app: no relocation or remap ever moves it
 
     @property
     def key(self) -> str:
@@ -98,6 +99,7 @@ class Snapshot:
     nodes: Mapping[str, NodeView]  # this node and the neighbours it has heard from
     vertices: tuple[VertexView, ...]  # the vertices hosted here
     chains: tuple[ChainView, ...]  # the chains that touch this node
+    busy: frozenset[str] = frozenset()  # apps with a relocation or remap this node coordinates
 
     def vertex(self, key: str) -> VertexView | None:
         """The hosted vertex with ``key`` (``app/id``), if any."""
@@ -170,4 +172,28 @@ class RemapChain:
         return f"remap {self.app} chain {self.chain}{why}"
 
 
-Action = Relocate | RemapChain
+@dataclass(frozen=True, slots=True)
+class RemapChains:
+    """Re-place several chains together, e.g. every chain that ends or starts at a join or fork
+    vertex, which relocation never moves (an energy remap). Each vertex in ``place`` goes to the
+    node given (the planner anchors it there); the planner places the rest seeing each node's
+    probed capacity times its weight in ``weights`` (nodes not listed: 1), so a weight of 0
+    keeps them off that node."""
+
+    app: str
+    chains: tuple[int, ...]
+    weights: tuple[tuple[str, float], ...] = ()
+    reason: str = ""
+    place: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def key(self) -> ActionKey:
+        return ("remap-chains", self.app, *self.chains)
+
+    def __str__(self) -> str:
+        why = f" ({self.reason})" if self.reason else ""
+        shown = ", ".join(str(c) for c in self.chains)
+        return f"remap {self.app} chains {shown}{why}"
+
+
+Action = Relocate | RemapChain | RemapChains

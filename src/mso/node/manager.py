@@ -20,6 +20,7 @@ from mso.management import (
     NodeView,
     Relocate,
     RemapChain,
+    RemapChains,
     RuleEngine,
     RuleSettings,
     Snapshot,
@@ -141,7 +142,10 @@ class Manager:
                 continue
             vertices += self._vertices(dep, now)
             chains += self._chains(dep)
-        return Snapshot(now, core.id, nodes, tuple(vertices), tuple(chains))
+        busy = frozenset(
+            app for p in core.procedures.values() if (app := getattr(p, "app", None)) is not None
+        )
+        return Snapshot(now, core.id, nodes, tuple(vertices), tuple(chains), busy)
 
     def _vertices(self, dep: Deployment, now: float) -> list[VertexView]:
         core, lay = self.core, dep.layout
@@ -178,6 +182,7 @@ class Manager:
                     movable,
                     moved[0] if moved else None,
                     moved[1] if moved else None,
+                    vid in lay.pinned,
                 )
             )
         return out
@@ -225,6 +230,9 @@ class Manager:
                 self._sent.append((now + WINDOW + 1, action.target, added))
         elif isinstance(action, RemapChain):
             core.remap(m.RemapRequest(action.app, [action.chain]), now)
+        elif isinstance(action, RemapChains):
+            req = m.RemapRequest(action.app, list(action.chains))
+            core.remap(req, now, weights=dict(action.weights), place=dict(action.place))
         self.done.append(f"{now:.1f} {action}")
         del self.done[:-50]
 

@@ -27,11 +27,26 @@ from mso.protocol.procedures.remap import S as RemapState
 class Remapping(Relocating):
     """A node's part in remaps and recoveries (it coordinates them)."""
 
-    def remap(self, req: m.RemapRequest, now: float) -> None:
-        """Start a chain or global remap this node coordinates."""
-        self._remap_request(None, req, now)
+    def remap(
+        self,
+        req: m.RemapRequest,
+        now: float,
+        weights: dict[str, float] | None = None,
+        place: dict[str, str] | None = None,
+    ) -> None:
+        """Start a chain or global remap this node coordinates. An energy remap also says
+        where some re-placed vertices go (``place``: the planner anchors them there) and
+        scales each node's probed capacity for the planner (``weights``)."""
+        self._remap_request(None, req, now, weights, place)
 
-    def _remap_request(self, client: int | None, msg: m.RemapRequest, now: float) -> None:
+    def _remap_request(
+        self,
+        client: int | None,
+        msg: m.RemapRequest,
+        now: float,
+        weights: dict[str, float] | None = None,
+        place: dict[str, str] | None = None,
+    ) -> None:
         dep = self.apps.get(msg.app)
         if dep is None or not dep.running:
             self._remap_refuse(client, msg.app, f"no running app named {msg.app!r}")
@@ -55,8 +70,11 @@ class Remapping(Relocating):
         stays |= {c.head for c in chains if c.head not in tails}
         placed = {v: dep.placed[v] for v in stays}
         movable = in_set - stays
+        placed |= {v: n for v, n in (place or {}).items() if v in movable}
         self._rid += 1
-        self._begin(Remap(self._rid, now, msg.app, order, client, placed, movable))
+        remap = Remap(self._rid, now, msg.app, order, client, placed, movable)
+        remap.weights = dict(weights or {})
+        self._begin(remap)
         self._remap_next_chain(self._rid, now)
 
     def _remap_refuse(self, client: int | None, app: str, reason: str) -> None:
@@ -148,7 +166,12 @@ class Remapping(Relocating):
         remap.on("placed")
         ci = remap.chains.pop(0)
         remap.probe_attempts = 0
-        by_pair = {(h[0].node, h[-1].node): h for h in remap.probes.values() if h}
+        w = remap.weights
+        by_pair = {
+            (h[0].node, h[-1].node): [Hop(x.node, x.capacity * w.get(x.node, 1.0)) for x in h]
+            for h in remap.probes.values()
+            if h
+        }
         try:
             assigned, _ = dep.layout.place(
                 ci, remap.placed, lambda a, b: by_pair.get((a, b), []), self._distances()

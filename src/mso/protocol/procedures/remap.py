@@ -56,6 +56,7 @@ class Remap(Procedure):
         self.probes: dict[int, list[Hop]] = {}
         self.expected = 0
         self.probe_attempts = 0
+        self.weights: dict[str, float] = {}  # node -> factor on its probed capacity
 
     @property
     def name(self) -> str:
