@@ -780,6 +780,11 @@ def test_the_energy_remap_never_sends_a_join_back_nor_onto_a_shorter_lived_node(
     assert rule.propose(dataclasses.replace(s, nodes=poorer)) == []
     # not draining: nothing
     assert EnergyRemapRule(LifetimePolicy(), RuleSettings()).propose(joined()) == []
+    # energy remaps switched off: a draining node only relocates
+    off = RuleSettings(energy_remap=False)
+    assert EnergyRemapRule(LifetimePolicy(), off, frozenset({"H"})).propose(joined()) == []
+    with pytest.raises(MsoError, match="energy_remap: expected true or false"):
+        RuleSettings(energy_remap=1)  # type: ignore[arg-type]
 
 
 class KeepOff(Policy):

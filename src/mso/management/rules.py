@@ -54,6 +54,7 @@ class RuleSettings:
     max_load: float = 1.0  # a move never loads its target's CPU beyond this (1.0 = saturated)
     critical_ratio: float = 0.5  # a battery node expected to die this much sooner is draining
     energy_interval_s: float = 120.0  # an app is remapped for energy at most once per interval
+    energy_remap: bool = True  # False: a draining node only relocates (no energy remaps)
 
     @property
     def critical_exit(self) -> float:
@@ -61,6 +62,10 @@ class RuleSettings:
         return min(1.0, 1.25 * self.critical_ratio)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.energy_remap, bool):
+            raise MsoError(
+                f"rule settings: energy_remap: expected true or false, got {self.energy_remap!r}"
+            )
         for name in ("confirm", "slo_confirm"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -448,7 +453,9 @@ class EnergyRemapRule(_PolicyRule):
 
     def propose(self, snap: Snapshot) -> list[Proposal]:
         here = snap.nodes.get(snap.here)
-        if snap.here not in self.draining or here is None or here.lifetime_s is None:
+        if not self.settings.energy_remap or snap.here not in self.draining:
+            return []
+        if here is None or here.lifetime_s is None:
             return []
         ends = [v for v in snap.vertices if not v.pinned and len(self.chains_at(snap, v)) > 1]
         if not ends:
