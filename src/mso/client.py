@@ -96,7 +96,7 @@ class Exchange:
                 "(give --key or set $MSO_KEY)"
             ) from None
         except FramingError as exc:
-            raise NodeUnreachable(f"no mso hello from {self.where}: {exc}") from None
+            raise self.no_hello(exc) from None
         return flush
 
     def no_hello(self, exc: BaseException) -> NodeUnreachable:
