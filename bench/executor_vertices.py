@@ -13,6 +13,8 @@ from typing import Any
 
 import msgspec
 
+from mso.benchmarks.common import SequenceCheck
+
 
 class Seq(msgspec.Struct, array_like=True, frozen=True):
     """One event: its number at the source, and when the source made it."""
@@ -77,16 +79,13 @@ class Burn:
         self.done = state
 
 
-class Checker:
+class Checker(SequenceCheck):
     """A sink that checks order and counts; ``delay_s`` per event (a sleep: a slow device or
     disk, not CPU). Its last arrival time and seq, read twice, give the rate between them."""
 
     def __init__(self, delay_s: float = 0.0) -> None:
+        super().__init__()
         self.delay_s = delay_s
-        self.count = 0
-        self.next = 0
-        self.repeats = 0
-        self.out_of_order = 0
         self.missing = 0
         self.first_t = 0.0
         self.first_seq = -1
@@ -100,13 +99,7 @@ class Checker:
         now = time.monotonic()
         if self.count == 0:
             self.first_t, self.first_seq = now, event.seq
-        self.count += 1
-        if event.seq < self.next:
-            self.repeats += 1
-        elif event.seq > self.next:
-            self.out_of_order += 1
-            self.missing += event.seq - self.next
-        self.next = max(self.next, event.seq + 1)
+        self.missing += self.see(event.seq)
         self.last_t, self.last_seq = now, event.seq
         if event.t:
             self.latency_max = max(self.latency_max, now - event.t)

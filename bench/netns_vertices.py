@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import msgspec
 
+from mso.benchmarks.common import SequenceCheck
+
 
 class Blob(msgspec.Struct, array_like=True, frozen=True):
     seq: int
@@ -48,17 +50,14 @@ class BeatSource:
         return Beat(self.sent - 1)
 
 
-class GapTimer:
+class GapTimer(SequenceCheck):
     """Times every inter-arrival gap over ``min_gap_s`` (CLOCK_MONOTONIC, the clock of the
     controller's loop): ``(start, end)`` of each, the last 100; and counts order violations."""
 
     def __init__(self, min_gap_s: float = 0.05) -> None:
+        super().__init__()
         self.min_gap_s = min_gap_s
         self.last: float | None = None
-        self.next = 0
-        self.count = 0
-        self.repeats = 0
-        self.out_of_order = 0
         self.gaps: list[tuple[float, float]] = []
 
     def __call__(self, event: Beat) -> None:
@@ -69,12 +68,7 @@ class GapTimer:
             self.gaps.append((self.last, now))
             del self.gaps[:-100]
         self.last = now
-        self.count += 1
-        if event.seq < self.next:
-            self.repeats += 1
-        elif event.seq > self.next:
-            self.out_of_order += 1
-        self.next = max(self.next, event.seq + 1)
+        self.see(event.seq)
 
     def stats(self) -> dict[str, object]:
         return {

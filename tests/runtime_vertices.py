@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import msgspec
 
+from mso.benchmarks.common import SequenceCheck
+
 
 def pipe_app(rate: int) -> str:
     """src (N1) -> mid -> sink (N4), the app most runtime tests deploy. ``mid`` declares its
@@ -43,22 +45,11 @@ class Double:
         return Num(seq=event.seq, pad=event.pad)
 
 
-class Recorder:
+class Recorder(SequenceCheck):
     """Checks per-producer order: every event's seq must be the previous one + 1."""
 
-    def __init__(self) -> None:
-        self.count = 0
-        self.next = 0
-        self.out_of_order = 0
-        self.repeats = 0
-
     def __call__(self, event: Num) -> None:
-        self.count += 1
-        if event.seq < self.next:
-            self.repeats += 1
-        elif event.seq > self.next:
-            self.out_of_order += 1
-        self.next = max(self.next, event.seq + 1)
+        self.see(event.seq)
 
     def stats(self) -> dict[str, int]:
         return {

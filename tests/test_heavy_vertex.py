@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING, Any
 
 import msgspec
 
+from mso.benchmarks.common import SequenceCheck
+
 if TYPE_CHECKING:
     import pytest
 
@@ -96,22 +98,11 @@ class Burn:
         return event
 
 
-class InOrder:
+class InOrder(SequenceCheck):
     """Counts arrivals; an arrival that is not the next expected number is counted as such."""
 
-    def __init__(self) -> None:
-        self.count = 0
-        self.next = 0
-        self.repeats = 0
-        self.out_of_order = 0
-
     def __call__(self, event: Item) -> None:
-        self.count += 1
-        if event.seq < self.next:
-            self.repeats += 1
-        elif event.seq > self.next:
-            self.out_of_order += 1
-        self.next = max(self.next, event.seq + 1)
+        self.see(event.seq)
 
     def stats(self) -> dict[str, int]:
         return vars(self).copy()

@@ -47,6 +47,29 @@ def percentile(values: list[float], q: float) -> float:
     return s[lo] + (s[hi] - s[lo]) * (pos - lo)
 
 
+class SequenceCheck:
+    """A sink's check of one producer's numbering 0, 1, 2, ...: the events seen, repeats (a
+    number already passed) and arrivals out of order (a number ahead of the next expected).
+    The benchmarks' and tests' order-checking sinks build on it."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.next = 0
+        self.repeats = 0
+        self.out_of_order = 0
+
+    def see(self, seq: int) -> int:
+        """Count event ``seq``; returns how many numbers it skipped (0 when in order)."""
+        self.count += 1
+        skipped = max(0, seq - self.next)
+        if seq < self.next:
+            self.repeats += 1
+        elif skipped:
+            self.out_of_order += 1
+        self.next = max(self.next, seq + 1)
+        return skipped
+
+
 class Progress:
     """One line on stderr as each step of a long benchmark starts, with the time so far, so a
     run of minutes shows where it is (stdout keeps the table alone)."""

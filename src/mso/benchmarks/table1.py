@@ -61,7 +61,7 @@ from typing import Any
 import msgspec
 
 import mso.examples
-from mso.benchmarks.common import Progress, percentile, provenance
+from mso.benchmarks.common import Progress, SequenceCheck, percentile, provenance
 from mso.client import NodeUnreachable, overlay_key
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
@@ -124,14 +124,11 @@ class Relay:
         self.count = int(state)
 
 
-class GapSink:
+class GapSink(SequenceCheck):
     """Checks order and relay state; keeps the wall time of the last ``history`` arrivals."""
 
     def __init__(self, history: int = 600) -> None:
-        self.count = 0
-        self.next = 0
-        self.repeats = 0
-        self.out_of_order = 0
+        super().__init__()
         self.relay_mismatch = 0
         self.first = 0.0
         self.last = 0.0
@@ -146,12 +143,7 @@ class GapSink:
             self.first = now
         self.last = now
         self.arrivals.append(now)
-        self.count += 1
-        if event.seq < self.next:
-            self.repeats += 1
-        elif event.seq > self.next:
-            self.out_of_order += 1
-        self.next = max(self.next, event.seq + 1)
+        self.see(event.seq)
         if event.relay != event.seq:
             self.relay_mismatch += 1
 
