@@ -28,7 +28,7 @@ from mso.examples.convoy import (
     TargetMap,
     TrajectoryFollower,
 )
-from mso.examples.convoy.localization import Pose
+from mso.examples.convoy.localization import Pose, filtered_ranges, scan_points
 from mso.examples.convoy.planning import astar
 from mso.examples.convoy.sensors import BEAMS, in_view, scan_ranges
 from mso.examples.convoy.storage import summary
@@ -54,7 +54,7 @@ def test_the_laser_sees_the_walls_of_the_map() -> None:
 def test_scan_filter_removes_dust_and_dropouts() -> None:
     scan = LaserSource()(3, 0.0)
     raw = scan_ranges(scan)
-    out = np.frombuffer(ScanFilter()(scan).ranges, dtype="<f4")
+    out = filtered_ranges(ScanFilter()(scan))
     x, y, th = true_pose(3 / 5)
     truth = world(7).cast(x, y, th + -math.pi / 2 + math.pi / BEAMS * np.arange(BEAMS), 10.0)
     ok = np.isfinite(out)
@@ -62,6 +62,20 @@ def test_scan_filter_removes_dust_and_dropouts() -> None:
     # every beam kept is near the truth; the raw scan had outliers (dust or dropouts)
     assert np.abs(out[ok] - truth[ok]).max() < 0.3
     assert (np.abs(raw - truth) > 0.3).any()
+
+
+def test_scan_end_points_travel_in_millimetres_and_lose_under_one() -> None:
+    filtered = ScanFilter()(LaserSource()(3, 0.0))
+    points = ScanMatcher()(filtered)
+    xs, ys = scan_points(points)
+    r = filtered_ranges(filtered)[::2]
+    a = (-math.pi / 2 + math.pi / BEAMS * np.arange(BEAMS))[::2]
+    ok = np.isfinite(r)
+    assert len(xs) == ok.sum() > 0
+    assert np.abs(xs - r[ok] * np.cos(a[ok])).max() <= 0.0005 + 1e-9
+    assert np.abs(ys - r[ok] * np.sin(a[ok])).max() <= 0.0005 + 1e-9
+    # two bytes a coordinate: about half of what float32 end points took
+    assert len(msgspec.msgpack.encode(points)) < 4 * len(xs) + 40
 
 
 def test_odometry_drifts_and_odom_filter_gives_increments() -> None:

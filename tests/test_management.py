@@ -787,6 +787,31 @@ def test_the_energy_remap_never_sends_a_join_back_nor_onto_a_shorter_lived_node(
         RuleSettings(energy_remap=1)  # type: ignore[arg-type]
 
 
+def test_an_energy_remap_spares_a_node_that_runs_pinned_vertices() -> None:
+    """U runs the pinned sources (A, B): the join goes to D, though U outlives D, while a
+    node without pinned vertices is in view; the rest of the chains are still weighed by
+    lifetime (U may take movable work back). When D is ruled out for now (the join just came
+    from it) the remap waits rather than fall back on U. When every other node runs pinned
+    vertices, or spare_pinned is off, U is a candidate like any other."""
+    s = dataclasses.replace(joined(), pinned_hosts=frozenset({"U"}))
+    rule = EnergyRemapRule(LifetimePolicy(), RuleSettings(), frozenset({"H"}))
+    (p,) = rule.propose(s)
+    assert isinstance(p.action, RemapChains) and p.action.place == (("J", "D"),)
+    assert dict(p.action.weights) == {"H": 0.0, "U": 1.0, "D": 0.5}
+    back = dataclasses.replace(joined(moved_at=40.0, moved_from="D"), pinned_hosts=frozenset({"U"}))
+    assert rule.propose(back) == []
+    for other in (
+        rule.propose(dataclasses.replace(s, pinned_hosts=frozenset({"U", "D"}))),
+        EnergyRemapRule(
+            LifetimePolicy(), RuleSettings(spare_pinned=False), frozenset({"H"})
+        ).propose(s),
+    ):
+        (p,) = other
+        assert isinstance(p.action, RemapChains) and p.action.place == (("J", "U"),)
+    with pytest.raises(MsoError, match="spare_pinned: expected true or false"):
+        RuleSettings(spare_pinned="yes")  # type: ignore[arg-type]
+
+
 class KeepOff(Policy):
     name = "keep-off"
 

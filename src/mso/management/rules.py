@@ -55,6 +55,9 @@ class RuleSettings:
     critical_ratio: float = 0.5  # a battery node expected to die this much sooner is draining
     energy_interval_s: float = 120.0  # an app is remapped for energy at most once per interval
     energy_remap: bool = True  # False: a draining node only relocates (no energy remaps)
+    # an energy remap places the join on a node that runs pinned vertices only when no other
+    # candidate is left (False: any candidate the policy weighs above 0)
+    spare_pinned: bool = True
 
     @property
     def critical_exit(self) -> float:
@@ -62,10 +65,10 @@ class RuleSettings:
         return min(1.0, 1.25 * self.critical_ratio)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.energy_remap, bool):
-            raise MsoError(
-                f"rule settings: energy_remap: expected true or false, got {self.energy_remap!r}"
-            )
+        for name in ("energy_remap", "spare_pinned"):
+            value = getattr(self, name)
+            if not isinstance(value, bool):
+                raise MsoError(f"rule settings: {name}: expected true or false, got {value!r}")
         for name in ("confirm", "slo_confirm"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -438,9 +441,13 @@ class EnergyRemapRule(_PolicyRule):
     charged as in :class:`RelocationRule`), among the nodes the policy's
     :meth:`~mso.management.Policy.capacity_weight` gives a weight above 0 — never this node, a
     flat battery, a node expected to die no later than this one, nor, within ``ping_pong_s``
-    of its last move, the node the vertex came from. It then asks for a remap of every chain
-    that ends or starts at the vertex with the vertex placed there, and the planner re-placing
-    the rest of those chains seeing each node's probed capacity times its weight.
+    of its last move, the node the vertex came from; and with ``spare_pinned``, a node that
+    runs pinned vertices only when every other node in view does too (the paper's robot that
+    "cannot offload any of its local sensing": its battery is kept for what only it can do,
+    and the app ends when it dies, while movable work finds another host). It then asks for a
+    remap of every chain that ends or starts at the vertex with the vertex placed there, and
+    the planner re-placing the rest of those chains seeing each node's probed capacity times
+    its weight.
 
     It does not ask for a vertex that arrived less than ``vertex_interval_s`` ago (the drains
     in view do not show it yet), nor while another host of those chains in view is
@@ -536,6 +543,10 @@ class EnergyRemapRule(_PolicyRule):
             for n in sorted(n for n, w in weights.items() if w > 0)
             if estimate(snap, {v.key: n})[n].load <= self.settings.max_load
         ]
+        if self.settings.spare_pinned and any(  # the robot that cannot offload its sensing
+            n != snap.here and n not in snap.pinned_hosts for n in snap.nodes
+        ):
+            candidates = [n for n in candidates if n not in snap.pinned_hosts]
         if not candidates:
             return None
         local = snap.with_nodes({snap.here, *candidates})

@@ -100,6 +100,9 @@ class Snapshot:
     vertices: tuple[VertexView, ...]  # the vertices hosted here
     chains: tuple[ChainView, ...]  # the chains that touch this node
     busy: frozenset[str] = frozenset()  # apps with a relocation or remap this node coordinates
+    # nodes that run a pinned vertex of an app this node holds: work there cannot move, and the
+    # app stops for good when such a node dies
+    pinned_hosts: frozenset[str] = frozenset()
 
     def vertex(self, key: str) -> VertexView | None:
         """The hosted vertex with ``key`` (``app/id``), if any."""

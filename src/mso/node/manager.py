@@ -145,7 +145,10 @@ class Manager:
         busy = frozenset(
             app for p in core.procedures.values() if (app := getattr(p, "app", None)) is not None
         )
-        return Snapshot(now, core.id, nodes, tuple(vertices), tuple(chains), busy)
+        pinned_hosts = frozenset(
+            node for dep in core.apps.values() for node in dep.layout.pinned.values()
+        )
+        return Snapshot(now, core.id, nodes, tuple(vertices), tuple(chains), busy, pinned_hosts)
 
     def _vertices(self, dep: Deployment, now: float) -> list[VertexView]:
         core, lay = self.core, dep.layout

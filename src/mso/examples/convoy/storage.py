@@ -112,6 +112,19 @@ def _pct(values: list[float], q: float) -> float | None:
     return float(np.percentile(values, q)) if values else None
 
 
+def stored_by(path: str | Path, t: float) -> int:
+    """Distinct results (trajectory and target rows) stored by time ``t`` (the rows' clock)."""
+    conn = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        return sum(
+            int(conn.execute(f"SELECT COUNT(DISTINCT seq) FROM {table} WHERE stored_at <= ?",
+                             (t,)).fetchone()[0])
+            for table in ("trajectory", "targets")
+        )  # fmt: skip
+    finally:
+        conn.close()
+
+
 def summary(path: str | Path) -> dict[str, Any]:
     """What the log says: rows and their completeness per kind, end-to-end delay, the
     localization error against the ground truth, survivors found against those planted."""
