@@ -3,6 +3,7 @@ otherwise, a policy named in the app is loaded and obeyed, a flapping link cause
 
 from __future__ import annotations
 
+from mso.management import RuleSettings
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
 from mso.protocol import messages as m
 from mso.sim.runner import Simulation
@@ -215,3 +216,19 @@ def test_a_draining_node_sheds_a_join_by_an_energy_remap_and_loses_nothing() -> 
     sent = stones["s1"].emitted + stones["s2"].emitted
     assert got["repeats"] == 0 and got["out_of_order"] == 0  # the counter's state moved with it
     assert sent - 5 <= got["count"] <= sent
+
+
+def test_an_energy_remap_keeps_the_join_off_the_robot_with_the_sensors() -> None:
+    """N1 runs the pinned sources and outlives N3: the lifetime policy alone would put the join
+    on N1; the rules as shipped (spare_pinned) put it on N3 and leave N1 its battery."""
+    nodes = [
+        NodeSpec(n, battery_wh=b, power=POWER)
+        for n, b in (("N1", 5.0), ("N2", 1.0), ("N3", 2.0), ("N4", 5.0))
+    ]
+    net = Network(nodes, [LinkSpec(f"N{i}", f"N{i + 1}", delay_ms=1) for i in range(1, 4)])
+    for rules, where in ((None, "N3"), (RuleSettings(spare_pinned=False), "N1")):
+        sim = deployed(net, JOINED, **({} if rules is None else {"rules": rules}))
+        sim.run_until(20.0)
+        (remap,) = [d for c in sim.cores.values() for d in c.manager.done]
+        assert "N2 draining, sheds join/fork join" in remap and f"better on {where}" in remap
+        assert sim.cores["N1"].apps["joined"].placed["join"] == where
