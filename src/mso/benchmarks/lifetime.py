@@ -119,12 +119,15 @@ def run(
     step_s: float = 5.0,
     network: Network | None = None,
     until_leader_dies: bool = True,
+    placement: dict[str, str] | None = None,
 ) -> dict[str, Any]:
     """One strategy under one accounting, until the leader's battery is empty (or ``limit_s``
-    of virtual time; with ``until_leader_dies`` False, exactly ``limit_s``)."""
+    of virtual time; with ``until_leader_dies`` False, exactly ``limit_s``). ``placement``
+    imposes a static placement of its own (``strategy`` then only names the run)."""
     doc = APP_FILE.read_text(encoding="utf-8")
     net = network if network is not None else network_for(accounting)
-    placement = placement_for(strategy, doc, net)
+    if placement is None:
+        placement = placement_for(strategy, doc, net)
     if placement is not None:
         doc = pinned_doc(doc, placement)
     sim = Simulation(net, manage=strategy in RULES, rules=RULES.get(strategy), model_time=True)
