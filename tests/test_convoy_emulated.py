@@ -1,6 +1,7 @@
 """The real convoy app end to end on the emulated 4-robot line: every result the leader's
 sensors caused is a row in the trailing robot's SQLite log, once, also across a relocation of
-the stateful Bayesian target map (its probability map moves with it)."""
+the stateful target map (the targets it found move with it; the Bayesian filter before it is a
+join, a chain end, which relocation never moves)."""
 
 from __future__ import annotations
 
@@ -44,9 +45,9 @@ def test_convoy_rows_in_sqlite_equal_events_emitted(
             reply = await emu.deploy(doc, "convoy.yaml", "N1")
             assert reply.ok, reply.error
             await asyncio.sleep(4.0)
-            host = reply.placement["bayes_inference"]
+            host = reply.placement["target_map"]
             target = "N2" if host != "N2" else "N3"
-            moved = await emu.relocate("convoy", "bayes_inference", target=target)
+            moved = await emu.relocate("convoy", "target_map", target=target)
             assert moved.ok, moved.error
             await asyncio.sleep(4.0)
             status = await emu.status()
@@ -65,7 +66,7 @@ def test_convoy_rows_in_sqlite_equal_events_emitted(
             await emu.stop()
 
     status, emitted, target = asyncio.run(run())
-    assert "bayes_inference" in status[target]["apps"]["convoy"]["vertices"]
+    assert "target_map" in status[target]["apps"]["convoy"]["vertices"]
     assert emitted["laser"] >= 30 and emitted["visible_camera"] >= 3
     s = summary(db)
     # every laser scan emitted became one trajectory row, every frame pair one target row:

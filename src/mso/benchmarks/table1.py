@@ -205,7 +205,9 @@ TARGET_P50_MS = {
 }
 TARGET_GAP_MS = 5.0
 TARGET_GAP_RATIO = 100.0
-NAVIGATION_HEADS = ("laser", "odometry", "localization")
+# the navigation pipeline's three chains, by (head, tail): localization also feeds the target
+# map (its poses place camera frames in the map), a chain of its own left out of "part"
+NAVIGATION = (("laser", "localization"), ("odometry", "localization"), ("localization", "storage"))
 PAUSE_S = 0.02  # between operations
 SETTLE_S = 0.04  # after a relocation of the relay, before its sink is read
 RESUME_S = 3.0  # how long the flow may take to resume after a relocation
@@ -705,7 +707,7 @@ async def measure(
         out["convoy_placement"] = dict(placed)
         out["convoy_chains"] = chains
         laser = _first_chain(chains, "laser")
-        nav = [_first_chain(chains, h) for h in NAVIGATION_HEADS]
+        nav = [_first_chain(chains, h, t) for h, t in NAVIGATION]
         step(f"upstream and downstream relocations, {runs} runs each")
         reloc = await phase_relocation(b, placed, chains[laser])
         chain_movers = interior(chains[laser])

@@ -75,6 +75,26 @@ class Pose(msgspec.Struct, frozen=True):
     y: float
     theta: float
     spread: float  # standard deviation of the particle positions, metres
+    # the odometry pose (dead reckoning, drift included) at ``odom_seq``: with the estimate it
+    # gives the map -> odom correction, so a consumer puts odometry-stamped data (a camera
+    # frame) in the map frame — what ROS's amcl publishes as its map -> odom transform
+    odom: tuple[float, float, float]
+
+
+def map_from_odom(pose: Pose) -> tuple[float, float, float]:
+    """The transform taking odometry-frame poses to the map frame: estimate ∘ odom⁻¹."""
+    ox, oy, oth = pose.odom
+    dth = pose.theta - oth
+    c, s = math.cos(dth), math.sin(dth)
+    return (pose.x - (c * ox - s * oy), pose.y - (s * ox + c * oy), float(wrap(dth)))
+
+
+def compose(
+    t: tuple[float, float, float], p: tuple[float, float, float]
+) -> tuple[float, float, float]:
+    """``t`` applied to the pose ``p`` (2-D rigid transforms)."""
+    c, s = math.cos(t[2]), math.sin(t[2])
+    return (t[0] + c * p[0] - s * p[1], t[1] + s * p[0] + c * p[1], float(wrap(t[2] + p[2])))
 
 
 class ScanFilter:
@@ -159,6 +179,8 @@ class Localizer:
         )
         self.w: Array = np.full(particles, 1.0 / particles)
         self.odom_seq = 0  # reading 0 is the start: no motion before it
+        # the odometry pose, integrated from the increments: odometry starts at the same spot
+        self.odom: tuple[float, float, float] = (x, y, th)
         self.scan_seq = -1  # the last scan weighed
         # the two inputs come by different paths (over different robots), so either may run
         # ahead: they are merged back into time order (odometry j moves the particles from
@@ -197,6 +219,8 @@ class Localizer:
         p[:, 0] += c * dx - s * dy
         p[:, 1] += s * dx + c * dy
         p[:, 2] = wrap(p[:, 2] + dth)
+        if d.seq > self.odom_seq:
+            self.odom = compose(self.odom, (d.dx, d.dy, d.dtheta))
         self.odom_seq = max(self.odom_seq, d.seq)
 
     def update(self, scan: ScanPoints) -> None:
@@ -229,13 +253,14 @@ class Localizer:
         x, y = float(w @ p[:, 0]), float(w @ p[:, 1])
         th = math.atan2(float(w @ np.sin(p[:, 2])), float(w @ np.cos(p[:, 2])))
         spread = math.sqrt(float(w @ ((p[:, 0] - x) ** 2 + (p[:, 1] - y) ** 2)))
-        return Pose(scan.seq, scan.stamp, self.odom_seq, x, y, th, spread)
+        return Pose(scan.seq, scan.stamp, self.odom_seq, x, y, th, spread, self.odom)
 
     def get_state(self) -> dict[str, Any]:
         return {
             "p": self.p.astype("<f8").tobytes(),
             "w": self.w.astype("<f8").tobytes(),
             "odom_seq": self.odom_seq,
+            "odom": list(self.odom),
             "scan_seq": self.scan_seq,
             "odoms": [msgspec.msgpack.encode(e) for e in self.odoms],
             "scans": [msgspec.msgpack.encode(e) for e in self.scans],
@@ -247,6 +272,8 @@ class Localizer:
         self.w = np.frombuffer(state["w"], dtype="<f8").copy()
         self.n = len(self.w)
         self.odom_seq = int(state["odom_seq"])
+        ox, oy, oth = (float(v) for v in state["odom"])
+        self.odom = (ox, oy, oth)
         self.scan_seq = int(state["scan_seq"])
         self.odoms = deque(msgspec.msgpack.decode(r, type=OdomDelta) for r in state["odoms"])
         self.scans = deque(msgspec.msgpack.decode(r, type=ScanPoints) for r in state["scans"])

@@ -12,6 +12,7 @@ import msgspec
 import numpy as np
 import numpy.typing as npt
 
+from mso.examples.convoy.localization import Pose, compose, map_from_odom
 from mso.examples.convoy.sensors import CAMERA_RANGE_M, FOV_RAD, Image
 from mso.examples.convoy.world import world, wrap
 
@@ -139,7 +140,12 @@ class BlobFusion:
 class BayesFilter:
     """A per-cell target probability map (log-odds, MAP_CELL_M cells). Every cell the cameras
     see is updated: toward "target" where a fused detection points, toward "none" elsewhere.
-    Stateful: the map moves with the vertex."""
+
+    A join: frames carry the odometry pose they were taken at, which drifts (metres within
+    minutes); the localizer's poses give the map -> odom correction, and each frame is placed
+    in the map by the latest one (it changes by centimetres a second, so the latest is as good
+    as one at the frame's own time). Before the first pose, odometry is taken as is: it starts
+    at the map's known start. Stateful: the map and the correction move with the vertex."""
 
     def __init__(self, seed: int = 7) -> None:
         self.world = world(seed)
@@ -148,9 +154,18 @@ class BayesFilter:
         self.logodds = np.full((round(rows / k), round(cols / k)), math.log(PRIOR / (1 - PRIOR)))
         r, c = np.mgrid[0 : self.logodds.shape[0], 0 : self.logodds.shape[1]]
         self.cx, self.cy = (c.ravel() + 0.5) * MAP_CELL_M, (r.ravel() + 0.5) * MAP_CELL_M
+        self.map_odom: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self.pose_seq = -1  # the localizer's estimate the correction comes from
 
-    def __call__(self, det: Detections) -> TargetBelief:
-        x, y, th = det.pose
+    def __call__(self, event: Detections | Pose) -> TargetBelief | None:
+        if isinstance(event, Pose):
+            if event.seq > self.pose_seq:
+                self.map_odom, self.pose_seq = map_from_odom(event), event.seq
+            return None
+        return self.update(event)
+
+    def update(self, det: Detections) -> TargetBelief:
+        x, y, th = compose(self.map_odom, det.pose)
         d = np.hypot(self.cx - x, self.cy - y)
         bearing = wrap(np.arctan2(self.cy - y, self.cx - x) - th)
         view = np.nonzero((np.abs(bearing) < FOV_RAD / 2) & (d > 0.5) & (d < CAMERA_RANGE_M))[0]
@@ -168,12 +183,20 @@ class BayesFilter:
         cells = [(float(self.cx[i]), float(self.cy[i]), float(p[i])) for i in above]
         return TargetBelief(det.seq, det.stamp, cells, float(p.max()), len(det.hits))
 
-    def get_state(self) -> bytes:
-        return self.logodds.astype("<f4").tobytes()
+    def get_state(self) -> dict[str, Any]:
+        return {
+            "logodds": self.logodds.astype("<f4").tobytes(),
+            "map_odom": list(self.map_odom),
+            "pose_seq": self.pose_seq,
+        }
 
-    def set_state(self, state: bytes) -> None:
+    def set_state(self, state: dict[str, Any]) -> None:
         shape = self.logodds.shape
-        self.logodds = np.frombuffer(state, dtype="<f4").astype(np.float64).reshape(shape)
+        self.logodds = (
+            np.frombuffer(state["logodds"], dtype="<f4").astype(np.float64).reshape(shape)
+        )
+        mx, my, mth = (float(v) for v in state["map_odom"])
+        self.map_odom, self.pose_seq = (mx, my, mth), int(state["pose_seq"])
 
 
 class TargetMap:
