@@ -25,6 +25,7 @@ MAP_CELL_M = 0.5  # the target probability map
 PRIOR = 0.01
 P_DET_HIT, P_DET_FALSE = 0.9, 0.02  # P(detection | target), P(detection | no target)
 FOUND_P = 0.95
+RANGE_SIGMA = 0.15  # a detection's range error, relative (its blob's width in whole pixels)
 
 
 class Blobs(msgspec.Struct, frozen=True):
@@ -170,12 +171,20 @@ class BayesFilter:
         bearing = wrap(np.arctan2(self.cy - y, self.cx - x) - th)
         view = np.nonzero((np.abs(bearing) < FOV_RAD / 2) & (d > 0.5) & (d < CAMERA_RANGE_M))[0]
         view = view[self.world.line_of_sight(x, y, self.cx[view], self.cy[view])]
-        hit = np.zeros(len(view), dtype=bool)
+        # how well each cell explains a detection: its bearing within 5°, and its distance
+        # within the range error of the blob's width (whole pixels: ~15 % at range) gets the
+        # full evidence, further along the ray a share falling off as a Gaussian — a full
+        # share all along a wide window let the same viewpoints, lap after lap, build a phantom
+        # a couple of metres behind a survivor
+        weight = np.zeros(len(view))
         for b, r in det.hits:
             near = np.abs(wrap(bearing[view] - b)) < math.radians(5.0)
-            hit |= near & (np.abs(d[view] - r) < max(1.0, 0.3 * r))
+            sigma = max(0.5, RANGE_SIGMA * r)
+            off = np.maximum(np.abs(d[view] - r) - sigma, 0.0)
+            weight = np.maximum(weight, near * np.exp(-0.5 * (off / sigma) ** 2))
+        hit = weight > 0.1
         flat = self.logodds.reshape(-1)
-        flat[view[hit]] += math.log(P_DET_HIT / P_DET_FALSE)
+        flat[view[hit]] += weight[hit] * math.log(P_DET_HIT / P_DET_FALSE)
         flat[view[~hit]] += math.log((1 - P_DET_HIT) / (1 - P_DET_FALSE))
         np.clip(flat, -8.0, 8.0, out=flat)
         p = 1.0 / (1.0 + np.exp(-flat))
