@@ -57,8 +57,10 @@ def scan_points(scan: ScanPoints) -> tuple[Array, Array]:
     return xs, ys
 
 
-class OdomDelta(msgspec.Struct, frozen=True):
-    """Motion since the previous odometry reading, in that reading's robot frame."""
+class OdomDelta(msgspec.Struct, frozen=True, array_like=True):
+    """Motion since the previous odometry reading, in that reading's robot frame. Encoded as
+    an array (no field names): it and Pose cross the radio at 5 Hz, a third of their bytes
+    were names."""
 
     seq: int
     stamp: float
@@ -67,7 +69,7 @@ class OdomDelta(msgspec.Struct, frozen=True):
     dtheta: float
 
 
-class Pose(msgspec.Struct, frozen=True):
+class Pose(msgspec.Struct, frozen=True, array_like=True):
     seq: int  # the laser scan this estimate answers
     stamp: float  # that scan's time at the source
     odom_seq: int  # the last odometry reading it includes
