@@ -169,11 +169,11 @@ def test_astar_finds_the_shortest_path_on_a_small_grid() -> None:
 
 def test_planner_heads_for_the_next_waypoint_and_keeps_its_state() -> None:
     planner = PathPlanner()
-    plan = planner(Pose(0, 0.0, 0, 2.0, 3.0, 0.0, 0.05, (2.0, 3.0, 0.0)))
+    plan = planner(Pose.of(0, 0.0, 0, (2.0, 3.0, 0.0), 0.05, (2.0, 3.0, 0.0)))
     assert plan.goal == 1 and plan.path
     assert math.hypot(plan.path[-1][0] - 26.0, plan.path[-1][1] - 3.0) < 0.3
     near = planner(
-        Pose(1, 0.2, 0, 25.5, 3.0, 0.0, 0.05, (25.5, 3.0, 0.0))
+        Pose.of(1, 0.2, 0, (25.5, 3.0, 0.0), 0.05, (25.5, 3.0, 0.0))
     )  # waypoint reached: the next one
     assert near.goal == 2
     again = PathPlanner()
@@ -256,7 +256,7 @@ def test_the_target_map_places_frames_by_the_localized_pose_not_by_drifting_odom
         x, y, th = true_pose(t)
         odom = (reading.x_mm / 1e3, reading.y_mm / 1e3, reading.theta_mrad / 1e3)
         drift = max(drift, math.hypot(odom[0] - x, odom[1] - y))
-        assert bayes(Pose(k, t, k, x, y, th, 0.1, odom)) is None  # a pose updates, no output
+        assert bayes(Pose.of(k, t, k, (x, y, th), 0.1, odom)) is None  # a pose updates, no output
         fuse(detect(frame("visible", seq)))
         det = fuse(detect(frame("infrared", seq)))
         assert det is not None and det.pose == pytest.approx(odom, abs=1e-3)
@@ -292,7 +292,7 @@ def test_storage_rows_carry_what_completeness_and_delay_need(tmp_path: Path) -> 
     traj = TrajectoryFollower()
     planner = PathPlanner()
     for k in (0, 1, 2, 4, 4):  # a gap (3) and a repeat (4)
-        store(traj(planner(Pose(k, 99.9, k, *true_pose(k / 5), 0.05, true_pose(k / 5)))))
+        store(traj(planner(Pose.of(k, 99.9, k, true_pose(k / 5), 0.05, true_pose(k / 5)))))
     store.close()
     s = summary(db)
     assert s["trajectory"] == {

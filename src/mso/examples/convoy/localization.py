@@ -70,17 +70,59 @@ class OdomDelta(msgspec.Struct, frozen=True, array_like=True):
 
 
 class Pose(msgspec.Struct, frozen=True, array_like=True):
+    """The localizer's estimate. Travels as whole millimetres and milliradians, as Odometry
+    does (38 bytes instead of 76: it crosses the radio at 5 Hz on two edges); read it in metres
+    and radians through the properties, build it with :meth:`of`."""
+
     seq: int  # the laser scan this estimate answers
     stamp: float  # that scan's time at the source
     odom_seq: int  # the last odometry reading it includes
-    x: float
-    y: float
-    theta: float
-    spread: float  # standard deviation of the particle positions, metres
+    x_mm: int
+    y_mm: int
+    theta_mrad: int
+    spread_mm: int  # standard deviation of the particle positions
     # the odometry pose (dead reckoning, drift included) at ``odom_seq``: with the estimate it
     # gives the map -> odom correction, so a consumer puts odometry-stamped data (a camera
     # frame) in the map frame — what ROS's amcl publishes as its map -> odom transform
-    odom: tuple[float, float, float]
+    odom_mm: tuple[int, int, int]  # x, y (mm), theta (mrad)
+
+    @classmethod
+    def of(
+        cls,
+        seq: int,
+        stamp: float,
+        odom_seq: int,
+        pose: tuple[float, float, float],
+        spread: float,
+        odom: tuple[float, float, float],
+    ) -> Pose:
+        """From metres and radians."""
+        return cls(seq, stamp, odom_seq, *_milli(pose), round(spread * 1e3), _milli(odom))
+
+    @property
+    def x(self) -> float:
+        return self.x_mm / 1e3
+
+    @property
+    def y(self) -> float:
+        return self.y_mm / 1e3
+
+    @property
+    def theta(self) -> float:
+        return self.theta_mrad / 1e3
+
+    @property
+    def spread(self) -> float:
+        return self.spread_mm / 1e3
+
+    @property
+    def odom(self) -> tuple[float, float, float]:
+        x, y, th = self.odom_mm
+        return (x / 1e3, y / 1e3, th / 1e3)
+
+
+def _milli(pose: tuple[float, float, float]) -> tuple[int, int, int]:
+    return (round(pose[0] * 1e3), round(pose[1] * 1e3), round(pose[2] * 1e3))
 
 
 def map_from_odom(pose: Pose) -> tuple[float, float, float]:
@@ -255,7 +297,7 @@ class Localizer:
         x, y = float(w @ p[:, 0]), float(w @ p[:, 1])
         th = math.atan2(float(w @ np.sin(p[:, 2])), float(w @ np.cos(p[:, 2])))
         spread = math.sqrt(float(w @ ((p[:, 0] - x) ** 2 + (p[:, 1] - y) ** 2)))
-        return Pose(scan.seq, scan.stamp, self.odom_seq, x, y, th, spread, self.odom)
+        return Pose.of(scan.seq, scan.stamp, self.odom_seq, (x, y, th), spread, self.odom)
 
     def get_state(self) -> dict[str, Any]:
         return {
