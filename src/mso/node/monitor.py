@@ -29,7 +29,9 @@ from mso.node.device import Battery
 
 # drain and load are means over the last few samples: steady enough for a camera at 0.5
 # frames/s (three frames in the window), quick enough that work moved here is fully seen 6 s
-# later (the management rules weigh moves with them)
+# later (the management rules weigh moves with them). The means are weighted by each sample's
+# length: a status request samples in between the periodic samples, and a burst (a vertex's
+# start-up) caught in such a sliver must count for the sliver's time, not for a whole sample
 WINDOW = 6
 
 
@@ -51,8 +53,9 @@ class Monitor:
     _last: tuple[float, float, int, int] | None = None  # now, work_ms, bytes_out, bytes_in
     _neighbours: frozenset[str] = frozenset()
     _routes: dict[str, str] = field(default_factory=dict)
-    _busy: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
-    _watts: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
+    # (seconds, CPU-busy seconds) and (seconds, joules) of each recent sample
+    _busy: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=WINDOW))
+    _spent: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=WINDOW))
     battery: Battery | None = None  # measured by the OS, when the device reports one
     device: dict[str, Any] = field(default_factory=dict)  # last device reading (measured)
     _cpu: tuple[float, float] | None = None  # (now, process cpu_s) of the last reading
@@ -148,12 +151,10 @@ class Monitor:
         self.energy_j += spent
         self.cpu_energy_j += cpu_j
         self.radio_energy_j += radio_j
-        watts = spent / dt
-        self._watts.append(watts)
-        self.drain_w = sum(self._watts) / len(self._watts)
-        busy = max(0.0, work_ms - w0) / 1e3 / dt / self.cpu_speed
-        self._busy.append(busy)
-        self.load = sum(self._busy) / len(self._busy)
+        self._spent.append((dt, spent))
+        self.drain_w = _rate(self._spent)
+        self._busy.append((dt, max(0.0, work_ms - w0) / 1e3 / self.cpu_speed))
+        self.load = _rate(self._busy)
         self._last = (now, work_ms, bytes_out, bytes_in)
 
     def note_routes(self, now: float, routes: dict[str, tuple[str, int]]) -> None:
@@ -211,3 +212,9 @@ class Monitor:
             if b.power_w is not None:
                 out["battery_power_w"] = b.power_w
         return out
+
+
+def _rate(samples: deque[tuple[float, float]]) -> float:
+    """Amount per second over the window: the total over the total time, so that each sample
+    counts for as long as it lasted (a 50 ms sliver with a burst does not weigh like 1 s)."""
+    return sum(x for _, x in samples) / sum(dt for dt, _ in samples)
