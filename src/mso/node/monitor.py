@@ -49,6 +49,7 @@ class Monitor:
     route_changes: int = 0
     neighbour_changes: int = 0
     last_route_change: float | None = None
+    last_start: float | None = None  # when a vertex instance last started here (note_start)
     events: list[tuple[float, str]] = field(default_factory=list)  # recent, bounded
     _last: tuple[float, float, int, int] | None = None  # now, work_ms, bytes_out, bytes_in
     _neighbours: frozenset[str] = frozenset()
@@ -176,6 +177,13 @@ class Monitor:
             self.note_event(now, f"neighbours: +{sorted(new)} -{sorted(gone)}")
         self._routes, self._neighbours = nexthops, neighbours
 
+    def note_start(self, now: float) -> None:
+        """A vertex instance started here (its ``open()`` returned). Its construction (imports,
+        a database, a map) and first calls are charged like any work, so for a while the drain
+        says more about starting than about running: the rules wait (``RuleSettings.warmup_s``)
+        before judging this node by it."""
+        self.last_start = now
+
     def note_event(self, now: float, what: str) -> None:
         """Keep a line for the recent-events list in status."""
         self.events.append((now, what))
@@ -198,6 +206,7 @@ class Monitor:
             "route_changes": self.route_changes,
             "neighbour_changes": self.neighbour_changes,
             "last_route_change": self.last_route_change,
+            "last_start": self.last_start,
             "recent": [f"{t:.3f} {w}" for t, w in self.events[-5:]],
             "measured": self._measured(),
             "sources": self.sources(),
