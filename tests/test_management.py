@@ -675,6 +675,36 @@ def test_draining_has_hysteresis() -> None:
         assert engine.draining == expected, ratio
 
 
+def test_a_node_warming_up_is_not_judged_by_its_start_up() -> None:
+    """A vertex started on H at 0.5: for ``warmup_s`` its drain includes the start-up, so its
+    draining state stands (either way) and its rules move nothing; then H is judged."""
+    assert RuleSettings().warmup_s == 10.0
+    with pytest.raises(MsoError, match="warmup_s: expected a number >= 0"):
+        RuleSettings(warmup_s=-1.0)
+    poor = dataclasses.replace(leader_line(3_600.0), last_start=0.5)  # H looks draining
+    engine = RuleEngine()
+    for t in range(1, 11):  # warming up until 10.5
+        assert engine.evaluate(dataclasses.replace(poor, now=float(t))) == []
+        assert engine.draining == frozenset()
+    assert engine.status()["warming_until"] == 10.5
+    assert engine.status()["decisions"] == [
+        "1.0 H warming up: a vertex started at 0.5: its drain is judged from 10.5"
+    ]
+    allowed = [
+        (t, str(a).split(" (")[0])
+        for t in (11.0, 12.0, 13.0)
+        for a in engine.evaluate(dataclasses.replace(poor, now=t))
+    ]
+    assert allowed == [(13.0, "relocate app/B -> U")]  # confirmed 3 times after the warm-up
+    assert engine.draining == {"H"} and engine.status()["warming_until"] is None
+    # a judgement made on steady figures stands while another instance warms up
+    rich = dataclasses.replace(leader_line(36_000.0), last_start=20.0)
+    engine.evaluate(dataclasses.replace(rich, now=21.0))
+    assert engine.draining == {"H"}
+    engine.evaluate(dataclasses.replace(rich, now=30.0))
+    assert engine.draining == frozenset()
+
+
 def test_a_wall_powered_neighbour_makes_every_battery_node_draining() -> None:
     nodes = [node("H", drain=5.0), node("U", drain=5.0, remaining=None)]
     engine = RuleEngine()

@@ -26,6 +26,20 @@ def test_energy_follows_the_power_model() -> None:
     assert Monitor(POWER, battery_wh=None).lifetime_s is None  # wall power
 
 
+def test_a_short_sample_counts_for_its_length_only() -> None:
+    """A status request samples between the periodic samples: a burst (a vertex's start-up)
+    caught in a 50 ms sliver is spread over the window's time, not weighed as a whole sample
+    (the sliver alone reads 101 W; as one sample of six it made the drain 17.7 W)."""
+    mon = Monitor(PowerModel(idle_w=1.0, cpu_w=10.0), battery_wh=1.0)
+    for t in range(6):
+        mon.sample(float(t), 0.0, 0, 0)
+    mon.sample(5.05, 500.0, 0, 0)  # 0.5 s of CPU lands in the sliver
+    mon.sample(6.0, 500.0, 0, 0)
+    # the window (six samples) spans 1 s .. 6 s: 5 s idle at 1 W plus 5 J of CPU
+    assert mon.drain_w == pytest.approx(10.0 / 5.0)
+    assert mon.load == pytest.approx(0.5 / 5.0)
+
+
 def test_route_and_neighbour_changes_are_recorded() -> None:
     mon = Monitor()
     mon.note_routes(0.0, {"B": ("B", 1), "C": ("B", 2)})

@@ -58,6 +58,10 @@ class RuleSettings:
     # an energy remap places the join on a node that runs pinned vertices only when no other
     # candidate is left (False: any candidate the policy weighs above 0)
     spare_pinned: bool = True
+    # after a vertex instance starts here, its start-up work (imports, open(), first calls) is
+    # in this node's drain for this long: no draining judgement, no relocation or energy
+    # remap off this node until then
+    warmup_s: float = 10.0
 
     @property
     def critical_exit(self) -> float:
@@ -85,6 +89,7 @@ class RuleSettings:
             "route_settle_s",
             "chain_interval_s",
             "energy_interval_s",
+            "warmup_s",
         ):
             value = getattr(self, name)
             if not _number(value) or value < 0:
@@ -413,13 +418,29 @@ def lifetime_ratio(snap: Snapshot, node: str) -> float | None:
     return 0.0 if math.isinf(longest) else view.lifetime_s / longest
 
 
+def warming_until(snap: Snapshot, settings: RuleSettings) -> float | None:
+    """When this node's figures are its own again, while they are not: ``warmup_s`` after a
+    vertex instance last started here (``Snapshot.last_start``). Until then its drain, load and
+    lifetime include the start-up (imports, ``open()``, first calls), a burst the node will
+    not repeat; judged by them, a node with a long-lived battery can look as if it will die
+    soon. None when the node is warm (or no start is known)."""
+    if snap.last_start is None:
+        return None
+    until = snap.last_start + settings.warmup_s
+    return until if snap.now < until else None
+
+
 def draining_update(
     draining: frozenset[str], snap: Snapshot, settings: RuleSettings
 ) -> frozenset[str]:
     """The nodes deemed draining after ``snap``: this node joins when its lifetime falls under
     ``critical_ratio`` of its longest-lived neighbour's and leaves only once it is back above
     ``critical_exit`` (hysteresis: a ratio hovering at the threshold does not flip the rule
-    on and off every evaluation)."""
+    on and off every evaluation). While this node warms up (:func:`warming_until`) its state
+    stays as it was: a start-up burst neither makes it draining nor clears a judgement made
+    on steady figures."""
+    if warming_until(snap, settings) is not None:
+        return draining
     ratio = lifetime_ratio(snap, snap.here)
     if ratio is None:
         return draining
@@ -614,9 +635,12 @@ class RuleEngine:
     app's ``policy:``), else by the node's. Per app, each evaluation collects the policy's own
     ``actions()`` (relocations need ``confirm``, remaps ``slo_confirm`` evaluations in a row)
     and the relocation rule's proposal; the route rule adds chain remaps. At most one
-    relocation is returned per evaluation. A policy that raises is reported in the log and its
-    app skipped for that evaluation. ``log`` keeps recent decisions as ``(now, action,
-    "allowed" | "held: why" | "ignored: why" | "error: what")``, each written when it changes.
+    relocation is returned per evaluation. While this node warms up (:func:`warming_until`)
+    the relocation and energy-remap rules propose nothing and the draining state stands: the
+    figures they would weigh are the start-up's, not the node's. A policy that raises is
+    reported in the log and its app skipped for that evaluation. ``log`` keeps recent decisions
+    as ``(now, action, "allowed" | "held: why" | "ignored: why" | "error: what")``, each
+    written when it changes.
     """
 
     def __init__(
@@ -634,6 +658,7 @@ class RuleEngine:
         self.log: deque[LogEntry] = deque(maxlen=log_size)
         self.evaluations = 0
         self.draining: frozenset[str] = frozenset()  # this node, while its battery is draining
+        self.warming: float | None = None  # until when this node warms up (warming_until)
         self._last: dict[tuple[Any, ...], str] = {}
 
     def set_app_policy(self, app: str, policy: Policy | None) -> None:
@@ -662,13 +687,27 @@ class RuleEngine:
             shown = "-" if ratio is None else f"{ratio:.2f}"
             what = "draining" if snap.here in self.draining else "no longer draining"
             self.log.append((snap.now, f"{snap.here} {what}", f"lifetime ratio {shown}"))
+        warm = self.warming is None
+        self.warming = warming_until(snap, self.settings)
+        if warm and self.warming is not None:
+            self.log.append(
+                (
+                    snap.now,
+                    f"{snap.here} warming up",
+                    f"a vertex started at {snap.last_start:.1f}: its drain is judged "
+                    f"from {self.warming:.1f}",
+                )
+            )
         for app in snap.apps():
             policy = self.policy_for(app)
             view = snap.for_app(app)
             try:
                 asked = list(policy.actions(view))
-                relocations = RelocationRule(policy, self.settings, self.draining).propose(view)
-                energy = EnergyRemapRule(policy, self.settings, self.draining).propose(view)
+                relocations: list[Proposal] = []
+                energy: list[Proposal] = []
+                if self.warming is None:  # start-up in the figures: no move for energy or load
+                    relocations = RelocationRule(policy, self.settings, self.draining).propose(view)
+                    energy = EnergyRemapRule(policy, self.settings, self.draining).propose(view)
             except Exception as exc:  # user code: report it, keep the node running
                 what = f"policy {policy.name} for {app}"
                 self._note(
@@ -741,6 +780,7 @@ class RuleEngine:
             "settings": {name: getattr(s, name) for name in s.__dataclass_fields__},
             "evaluations": self.evaluations,
             "draining": sorted(self.draining),
+            "warming_until": self.warming,
             "decisions": [f"{t:.1f} {what}: {d}" for t, what, d in self.log],
         }
 

@@ -103,6 +103,9 @@ class Snapshot:
     # nodes that run a pinned vertex of an app this node holds: work there cannot move, and the
     # app stops for good when such a node dies
     pinned_hosts: frozenset[str] = frozenset()
+    # when a vertex instance last started on this node (deployment, a move here, a remap, a
+    # restore): its drain and load include that start-up work for a while (RuleSettings.warmup_s)
+    last_start: float | None = None
 
     def vertex(self, key: str) -> VertexView | None:
         """The hosted vertex with ``key`` (``app/id``), if any."""

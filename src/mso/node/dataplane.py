@@ -123,6 +123,7 @@ class DataPlane(NodeTables):
     def _started(
         self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexStarted, now: float
     ) -> None:
+        self.monitor.note_start(now)  # its start-up CPU is in the figures from now on
         if res.error:  # user code failing at construction: refuse, change nothing
             self._stop(h, "failed")
             dep.stones.pop(vid, None)

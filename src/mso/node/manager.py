@@ -148,7 +148,9 @@ class Manager:
         pinned_hosts = frozenset(
             node for dep in core.apps.values() for node in dep.layout.pinned.values()
         )
-        return Snapshot(now, core.id, nodes, tuple(vertices), tuple(chains), busy, pinned_hosts)
+        return Snapshot(
+            now, core.id, nodes, tuple(vertices), tuple(chains), busy, pinned_hosts, mon.last_start
+        )
 
     def _vertices(self, dep: Deployment, now: float) -> list[VertexView]:
         core, lay = self.core, dep.layout

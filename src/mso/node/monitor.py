@@ -29,7 +29,9 @@ from mso.node.device import Battery
 
 # drain and load are means over the last few samples: steady enough for a camera at 0.5
 # frames/s (three frames in the window), quick enough that work moved here is fully seen 6 s
-# later (the management rules weigh moves with them)
+# later (the management rules weigh moves with them). The means are weighted by each sample's
+# length: a status request samples in between the periodic samples, and a burst (a vertex's
+# start-up) caught in such a sliver must count for the sliver's time, not for a whole sample
 WINDOW = 6
 
 
@@ -47,12 +49,14 @@ class Monitor:
     route_changes: int = 0
     neighbour_changes: int = 0
     last_route_change: float | None = None
+    last_start: float | None = None  # when a vertex instance last started here (note_start)
     events: list[tuple[float, str]] = field(default_factory=list)  # recent, bounded
     _last: tuple[float, float, int, int] | None = None  # now, work_ms, bytes_out, bytes_in
     _neighbours: frozenset[str] = frozenset()
     _routes: dict[str, str] = field(default_factory=dict)
-    _busy: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
-    _watts: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
+    # (seconds, CPU-busy seconds) and (seconds, joules) of each recent sample
+    _busy: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=WINDOW))
+    _spent: deque[tuple[float, float]] = field(default_factory=lambda: deque(maxlen=WINDOW))
     battery: Battery | None = None  # measured by the OS, when the device reports one
     device: dict[str, Any] = field(default_factory=dict)  # last device reading (measured)
     _cpu: tuple[float, float] | None = None  # (now, process cpu_s) of the last reading
@@ -148,12 +152,10 @@ class Monitor:
         self.energy_j += spent
         self.cpu_energy_j += cpu_j
         self.radio_energy_j += radio_j
-        watts = spent / dt
-        self._watts.append(watts)
-        self.drain_w = sum(self._watts) / len(self._watts)
-        busy = max(0.0, work_ms - w0) / 1e3 / dt / self.cpu_speed
-        self._busy.append(busy)
-        self.load = sum(self._busy) / len(self._busy)
+        self._spent.append((dt, spent))
+        self.drain_w = _rate(self._spent)
+        self._busy.append((dt, max(0.0, work_ms - w0) / 1e3 / self.cpu_speed))
+        self.load = _rate(self._busy)
         self._last = (now, work_ms, bytes_out, bytes_in)
 
     def note_routes(self, now: float, routes: dict[str, tuple[str, int]]) -> None:
@@ -174,6 +176,13 @@ class Monitor:
             gone, new = self._neighbours - neighbours, neighbours - self._neighbours
             self.note_event(now, f"neighbours: +{sorted(new)} -{sorted(gone)}")
         self._routes, self._neighbours = nexthops, neighbours
+
+    def note_start(self, now: float) -> None:
+        """A vertex instance started here (its ``open()`` returned). Its construction (imports,
+        a database, a map) and first calls are charged like any work, so for a while the drain
+        says more about starting than about running: the rules wait (``RuleSettings.warmup_s``)
+        before judging this node by it."""
+        self.last_start = now
 
     def note_event(self, now: float, what: str) -> None:
         """Keep a line for the recent-events list in status."""
@@ -197,6 +206,7 @@ class Monitor:
             "route_changes": self.route_changes,
             "neighbour_changes": self.neighbour_changes,
             "last_route_change": self.last_route_change,
+            "last_start": self.last_start,
             "recent": [f"{t:.3f} {w}" for t, w in self.events[-5:]],
             "measured": self._measured(),
             "sources": self.sources(),
@@ -211,3 +221,9 @@ class Monitor:
             if b.power_w is not None:
                 out["battery_power_w"] = b.power_w
         return out
+
+
+def _rate(samples: deque[tuple[float, float]]) -> float:
+    """Amount per second over the window: the total over the total time, so that each sample
+    counts for as long as it lasted (a 50 ms sliver with a burst does not weigh like 1 s)."""
+    return sum(x for _, x in samples) / sum(dt for dt, _ in samples)
