@@ -33,7 +33,9 @@ class Blobs(msgspec.Struct, frozen=True):
     stamp: float
     camera: str
     pose: tuple[float, float, float]
-    blobs: list[tuple[float, float, int]]  # bearing (rad, left +), angular width (rad), pixels
+    # bearing (rad, left +), angular width (rad), pixels, cut by the frame's left or right edge
+    # (then its width is only what shows, and the range it gives only an upper bound)
+    blobs: list[tuple[float, float, int, bool]]
 
 
 class Detections(msgspec.Struct, frozen=True):
@@ -42,7 +44,8 @@ class Detections(msgspec.Struct, frozen=True):
     seq: int
     stamp: float
     pose: tuple[float, float, float]
-    hits: list[tuple[float, float]]  # bearing (rad), range estimate (m)
+    # bearing (rad), range estimate (m), and whether that range is only an upper bound
+    hits: list[tuple[float, float, bool]]
     visible: int  # blobs seen by each camera alone
     infrared: int
 
@@ -90,7 +93,7 @@ class BlobDetector:
 
         mask = classify(img)
         labels, n = ndimage.label(mask)
-        blobs: list[tuple[float, float, int]] = []
+        blobs: list[tuple[float, float, int, bool]] = []
         if n:
             idx = np.arange(1, n + 1)
             areas = ndimage.sum_labels(mask, labels, idx)
@@ -101,7 +104,8 @@ class BlobDetector:
                 centre = (c0 + c1) / 2 / img.cols
                 bearing = (0.5 - centre) * FOV_RAD
                 width = (c1 - c0) / img.cols * FOV_RAD
-                blobs.append((bearing, width, int(areas[k])))
+                clipped = c0 == 0 or c1 == img.cols
+                blobs.append((bearing, width, int(areas[k]), clipped))
         return Blobs(img.seq, img.stamp, img.camera, img.pose, blobs)
 
 
@@ -122,10 +126,10 @@ class BlobFusion:
             return None
         vis, ir = (b, twin) if b.camera == "visible" else (twin, b)
         hits = []
-        for ib, iw, _ in ir.blobs:
-            if any(abs(ib - vb) < self.MATCH_RAD + max(iw, vw) / 2 for vb, vw, _ in vis.blobs):
+        for ib, iw, _, cut in ir.blobs:
+            if any(abs(ib - vb) < self.MATCH_RAD + max(iw, vw) / 2 for vb, vw, _, _ in vis.blobs):
                 rng = FIGURE_HALF_WIDTH_M / math.tan(max(iw, 1e-3) / 2)
-                hits.append((ib, min(rng, CAMERA_RANGE_M)))
+                hits.append((ib, min(rng, CAMERA_RANGE_M), cut))
         return Detections(
             b.seq, min(b.stamp, twin.stamp), ir.pose, hits, len(vis.blobs), len(ir.blobs)
         )
@@ -175,12 +179,14 @@ class BayesFilter:
         # within the range error of the blob's width (whole pixels: ~15 % at range) gets the
         # full evidence, further along the ray a share falling off as a Gaussian — a full
         # share all along a wide window let the same viewpoints, lap after lap, build a phantom
-        # a couple of metres behind a survivor
+        # a couple of metres behind a survivor. A blob cut by the frame's edge shows narrower
+        # than it is: its range is only an upper bound, every cell before it may be the one
         weight = np.zeros(len(view))
-        for b, r in det.hits:
+        for b, r, bound in det.hits:
             near = np.abs(wrap(bearing[view] - b)) < math.radians(5.0)
             sigma = max(0.5, RANGE_SIGMA * r)
-            off = np.maximum(np.abs(d[view] - r) - sigma, 0.0)
+            short = 0.0 if bound else r - d[view]
+            off = np.maximum(np.maximum(d[view] - r, short) - sigma, 0.0)
             weight = np.maximum(weight, near * np.exp(-0.5 * (off / sigma) ** 2))
         hit = weight > 0.1
         flat = self.logodds.reshape(-1)
