@@ -799,6 +799,12 @@ def test_the_energy_remap_never_sends_a_join_back_nor_onto_a_shorter_lived_node(
     # past the no-ping-pong window U is back
     (p,) = rule.propose(joined(moved_at=-30.0, moved_from="U"))
     assert isinstance(p.action, RemapChains) and p.action.place == (("J", "U"),)
+    # ... unless H would die before the hold lifts (30 s left at 3 W, the hold 60 s more):
+    # then it goes back rather than die with it
+    dying = joined(moved_at=40.0, moved_from="U")
+    dying.nodes["H"] = dataclasses.replace(dying.nodes["H"], remaining_j=90.0, lifetime_s=30.0)
+    (p,) = rule.propose(dying)
+    assert isinstance(p.action, RemapChains) and p.action.place == (("J", "U"),)
     # it arrived 10 s ago: the drains in view do not show it yet
     assert rule.propose(joined(moved_at=90.0, moved_from="U")) == []
     # every neighbour expected to die sooner than H: nowhere to go

@@ -250,7 +250,8 @@ def plot(results: list[dict[str, Any]], out: Path) -> list[Path]:
             moves, remaps = _counts(r)
             shown = [f"{moves} relocations, dotted"] if moves else []
             shown += [f"{remaps} remaps, dashed"] if remaps else []
-            ax.set_title(f"{r['strategy']}" + (f" ({'; '.join(shown)})" if shown else ""))
+            title = r["strategy"] + (f"\n{'; '.join(shown)}" if shown else "")
+            ax.set_title(title, fontsize=10)  # two lines: long names overlapped their neighbour
             ax.set_xlabel("virtual time (s)")
             ax.set_ylabel("battery (%)")
             ax.set_ylim(0, 101)
