@@ -462,10 +462,11 @@ class EnergyRemapRule(_PolicyRule):
     charged as in :class:`RelocationRule`), among the nodes the policy's
     :meth:`~mso.management.Policy.capacity_weight` gives a weight above 0 — never this node, a
     flat battery, a node expected to die no later than this one, nor, within ``ping_pong_s``
-    of its last move, the node the vertex came from (unless this node would die first); and with ``spare_pinned``, a node that
-    runs pinned vertices only when every other node in view does too (the paper's robot that
-    "cannot offload any of its local sensing": its battery is kept for what only it can do,
-    and the app ends when it dies, while movable work finds another host). It then asks for a
+    of its last move, the node the vertex came from (unless this node would die first); and
+    with ``spare_pinned``, a node that runs pinned vertices only when every other node in view
+    does too (the paper's robot that "cannot offload any of its local sensing": its battery
+    is kept for what only it can do, and the app ends when it dies, while movable work finds
+    another host). It then asks for a
     remap of every chain that ends or starts at the vertex with the vertex placed there, and
     the planner re-placing the rest of those chains seeing each node's probed capacity times
     its weight.
