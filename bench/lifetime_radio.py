@@ -280,16 +280,20 @@ def heartbeats(t: Tally, node: str, dur: float) -> dict[str, dict[str, float]]:
         now_b = after = compact = 0
         full: set[tuple[str, str, int]] = set()
         suppressed = 0
+        figures: dict[str, m.Figures] = {}  # each sender's latest (a beat may carry none)
         for h in beats:
             now_b += h.size
             msg = h.msg
             assert isinstance(msg, m.Heartbeat)
+            if msg.figures is not None:
+                figures[h.a] = msg.figures
             period = (h.a, h.b, int(h.at // MONITOR_PERIOD_S))
             if period not in full:  # its figures, once per monitor period
                 full.add(period)
                 after += h.size
-                cb = _CompactBeat(_ids(msg.node), msg.cpu, msg.load, msg.drain_w,
-                                  msg.remaining_j, msg.lifetime_s, msg.incarnation,
+                f = figures.get(h.a) or m.Figures(0.0, 0.0, 0.0, None, None, (0.0,) * 4)
+                cb = _CompactBeat(_ids(msg.node), f.cpu, f.load, f.drain_w,
+                                  f.remaining_j, f.lifetime_s, msg.incarnation,
                                   {_ids(k): v for k, v in msg.dead.items()}, _ids(msg.leader),
                                   msg.hosting)  # fmt: skip
                 compact += _compact_frame(h.a, h.b, m.CONTROL, cb)

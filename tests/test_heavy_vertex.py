@@ -184,7 +184,7 @@ def test_liveness_keeps_heartbeat_inter_arrivals() -> None:
 
     lv = Liveness(0.05, 0.15)
     lv.set_neighbours(0.0, {"N2"})
-    beat = m.Heartbeat("N2", 1.0, 0.0, 0.0, None, None, [0.0, 0.0, 0.0, 0.0])
+    beat = m.Heartbeat("N2", figures=m.Figures(1.0, 0.0, 0.0, None, None, (0.0, 0.0, 0.0, 0.0)))
     for k in range(GAP_SAMPLES + 10):
         lv.heard_from("N2", k * 0.05 + (0.02 if k == GAP_SAMPLES + 5 else 0.0), beat)
     gaps = lv.stats()["inter_arrival"]["N2"]
@@ -193,3 +193,45 @@ def test_liveness_keeps_heartbeat_inter_arrivals() -> None:
     assert gaps["p50_ms"] == 50.0 and gaps["max_ms"] == 70.0
     lv.set_neighbours(1e3, set())  # a lost link forgets the figures
     assert lv.stats()["inter_arrival"] == {} and lv.stats()["dead_after_s"] == 0.15
+
+
+def test_heartbeats_carry_the_figures_once_a_monitor_period_and_to_a_new_neighbour() -> None:
+    """Liveness and membership ride on every beat; the monitor's figures (they change once a
+    second, the power model never) on one beat in ten, and on the first beat to a neighbour
+    whose link just came up. The receiver keeps the last figures it was given."""
+    from mso.node.core import NodeCore
+    from mso.protocol import messages as m
+    from mso.protocol.effects import Send
+
+    core = NodeCore("N1")
+    core.start(0.0)
+    core.set_routes({"N2": ("N2", 1)}, 0.0)
+
+    def beats(now: float) -> dict[str, m.Heartbeat]:
+        for n in core.liveness.neighbours:  # they live: slim beats of theirs say so
+            core.receive(n, m.Heartbeat(n), now)
+        out = core.on_timer(("heartbeat",), now)
+        return {e.dst: e.msg for e in out if isinstance(e, Send) and isinstance(e.msg, m.Heartbeat)}
+
+    sent = [beats(0.1 * k) for k in range(1, 21)]
+    with_figures = [k for k, b in enumerate(sent) if b["N2"].figures is not None]
+    assert with_figures == [0, 10]  # the first beat, then one a period
+    assert all(b["N2"].incarnation == core.incarnation for b in sent)
+    # a new neighbour gets them on its first beat, the old one keeps to the period
+    assert beats(2.1)["N2"].figures is not None  # the 21st beat: a period on
+    core.set_routes({"N2": ("N2", 1), "N3": ("N3", 1)}, 2.15)
+    b = beats(2.2)
+    assert b["N3"].figures is not None and b["N2"].figures is None
+    # a slim beat is a fraction of a full one on the wire
+    full, slim = (len(m.encode(x)) for x in (sent[0]["N2"], sent[1]["N2"]))
+    assert slim < full / 2
+
+    # the receiver: figures from the last beat that had them, liveness from every beat
+    rx = NodeCore("N2")
+    rx.start(0.0)
+    rx.set_routes({"N1": ("N1", 1)}, 0.0)
+    rx.receive("N1", sent[0]["N2"], 0.1)
+    rx.receive("N1", sent[1]["N2"], 0.2)
+    at, fig = rx.liveness.heard["N1"]
+    assert at == 0.1 and fig == sent[0]["N2"].figures
+    assert rx.liveness.last_heard["N1"] == 0.2

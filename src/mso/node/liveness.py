@@ -85,7 +85,8 @@ class Liveness:
     dead_after_s: float = DEAD_AFTER_S
     neighbours: dict[str, float] = field(default_factory=dict)  # neighbour -> since
     last_heard: dict[str, float] = field(default_factory=dict)
-    heard: dict[str, tuple[float, m.Heartbeat]] = field(default_factory=dict)
+    # each neighbour's figures as its last beat that carried them said (and when)
+    heard: dict[str, tuple[float, m.Figures]] = field(default_factory=dict)
     reachable: set[str] = field(default_factory=set)
     gone: dict[str, float] = field(default_factory=dict)  # unreachable node -> since
     gaps: dict[str, Gaps] = field(default_factory=dict)  # neighbour -> heartbeat inter-arrivals
@@ -110,7 +111,8 @@ class Liveness:
     def heard_from(self, node: str, now: float, beat: m.Heartbeat | None = None) -> None:
         self.last_heard[node] = now
         if beat is not None:
-            self.heard[node] = (now, beat)
+            if beat.figures is not None:
+                self.heard[node] = (now, beat.figures)
             self.gaps.setdefault(node, Gaps()).beat(now)
 
     def suspects(self, now: float, dead: set[str]) -> list[str]:

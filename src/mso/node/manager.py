@@ -123,16 +123,16 @@ class Manager:
             )
         }
         self._sent = [s for s in self._sent if s[0] > now]
-        for n, (at, beat) in core.liveness.heard.items():
+        for n, (at, fig) in core.liveness.heard.items():
             if n not in core.dead:
                 nodes[n] = NodeView(
                     n,
-                    beat.cpu,
-                    PowerModel(beat.power[0], beat.power[1], beat.power[2], beat.power[3]),
-                    beat.load + sum(load for _, to, load in self._sent if to == n),
-                    beat.drain_w,
-                    beat.remaining_j,
-                    beat.lifetime_s,
+                    fig.cpu,
+                    PowerModel(*fig.power),
+                    fig.load + sum(load for _, to, load in self._sent if to == n),
+                    fig.drain_w,
+                    fig.remaining_j,
+                    fig.lifetime_s,
                     at,
                 )
         vertices: list[VertexView] = []

@@ -24,6 +24,7 @@ from mso.protocol.procedures.membership import PeerLife
 from mso.protocol.procedures.relocate import S as RelocState
 
 REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
+FIGURES_EVERY_S = 1.0  # the monitor samples once a second: its figures ride on one beat a period
 
 
 class Membership(Remapping):
@@ -36,33 +37,40 @@ class Membership(Remapping):
             peer = self.peers[node] = PeerLife(node)
         return peer
 
-    def _beat(self) -> m.Heartbeat:
+    def _beat(self, figures: bool = True) -> m.Heartbeat:
+        """This node's beat; with ``figures``, its monitor's figures too (see Heartbeat)."""
         mon, pw = self.monitor, self.power
+        power = (pw.idle_w, pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte)
         return m.Heartbeat(
             self.id,
-            self.capacity,
-            mon.load,
-            mon.drain_w,
-            mon.remaining_j,
-            mon.lifetime_s,
-            [pw.idle_w, pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte],
             self.incarnation,
             dict(self._dead_incarnation),
             self._leader(),
             self._hosting(),
+            m.Figures(self.capacity, mon.load, mon.drain_w, mon.remaining_j, mon.lifetime_s, power)
+            if figures
+            else None,
         )
 
     def _heartbeat(self, now: float) -> None:
-        """Tell the neighbours we live (with our figures); declare the silent ones failed."""
-        beat = self._beat()
-        for n in sorted(self.liveness.neighbours):
+        """Tell the neighbours we live; declare the silent ones failed. Our figures go on one
+        beat per monitor period, and on the first beat to a neighbour since its link came up
+        (``_briefed``: the time the link came up, when it was given them)."""
+        every = max(1, round(FIGURES_EVERY_S / self.liveness.period_s))
+        full = self._beat()
+        slim = full if self._beats % every == 0 else self._beat(figures=False)
+        for n, since in sorted(self.liveness.neighbours.items()):
             if n not in self.dead:
-                self._effects.append(Send(n, beat))
+                briefed = self._briefed.get(n) == since
+                self._briefed[n] = since
+                self._effects.append(Send(n, slim if briefed else full))
+        for n in set(self._briefed) - set(self.liveness.neighbours):
+            del self._briefed[n]  # bounded by the neighbours
         self._beats += 1
         if self._beats % REJOIN_EVERY == 0:  # a failed node we can reach again: a healed
             for n in sorted(self.dead):  # partition; tell it, so one side rejoins the other
                 if n in self.routes:
-                    self._effects.append(Send(n, beat))
+                    self._effects.append(Send(n, full))
         for n in self.liveness.suspects(now, self.dead):
             self._on_node_down(n, self.id, now)
         self._flush_syncs()

@@ -280,6 +280,7 @@ class NodeTables:
         self._incarnations: dict[str, int] = {}  # last incarnation heard of, per node
         self._dead_incarnation: dict[str, int] = {}  # the incarnation declared failed
         self._beats = 0
+        self._briefed: dict[str, float] = {}  # neighbour -> its link's start, once told our figures
         # nodes that rejoined while this node's own view was in dispute (it holds a reachable
         # node failed: a healed partition whose losing side has not reset yet): synced after
         self._sync_pending: set[str] = set()
