@@ -206,6 +206,19 @@ def test_blob_detector_finds_a_planted_survivor_and_nothing_on_a_blank_frame() -
     assert detect(blank).blobs == []
 
 
+def test_a_blob_cut_by_the_frame_takes_its_range_from_where_it_meets_the_ground() -> None:
+    """Frame 25: the survivor at the frame's right edge shows narrower than it is (its width
+    would say 5.0 m); the range from its lowest row is within half a metre of the truth, and
+    so is a whole blob's range from its width (frame 24)."""
+    detect = BlobDetector()
+    for seq in (24, 25):
+        img = frame("infrared", seq)
+        (truth,) = in_view(world(7), true_pose(seq * 2.0), SURVIVORS)
+        ((_, width, _, rng),) = detect(img).blobs
+        assert rng == pytest.approx(truth[1], abs=0.5)
+    assert 0.35 / math.tan(width / 2) > truth[1] + 0.8  # the cut blob's width misleads
+
+
 def test_fusion_needs_both_cameras() -> None:
     """The warm pipe at (20, 1.2) shows in infrared only: fusion makes no detection of it."""
     detect, fuse = BlobDetector(), BlobFusion()

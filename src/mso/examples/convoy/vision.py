@@ -13,7 +13,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mso.examples.convoy.localization import Pose, compose, map_from_odom
-from mso.examples.convoy.sensors import CAMERA_RANGE_M, FOV_RAD, Image
+from mso.examples.convoy.sensors import CAMERA_HEIGHT_M, CAMERA_RANGE_M, FOV_RAD, Image
 from mso.examples.convoy.world import world, wrap
 
 # CMVision-style colour class of a survivor's high-visibility clothing: a box in YUV
@@ -33,9 +33,11 @@ class Blobs(msgspec.Struct, frozen=True):
     stamp: float
     camera: str
     pose: tuple[float, float, float]
-    # bearing (rad, left +), angular width (rad), pixels, cut by the frame's left or right edge
-    # (then its width is only what shows, and the range it gives only an upper bound)
-    blobs: list[tuple[float, float, int, bool]]
+    # bearing (rad, left +), angular width (rad), pixels, range (m): from the width a figure
+    # shows, or — when the frame's left or right edge cuts it, so it shows narrower than it
+    # is (5.0 m for one 3.9 m away) — from where it meets the ground (flat ground, the
+    # camera's known height)
+    blobs: list[tuple[float, float, int, float]]
 
 
 class Detections(msgspec.Struct, frozen=True):
@@ -44,8 +46,7 @@ class Detections(msgspec.Struct, frozen=True):
     seq: int
     stamp: float
     pose: tuple[float, float, float]
-    # bearing (rad), range estimate (m), and whether that range is only an upper bound
-    hits: list[tuple[float, float, bool]]
+    hits: list[tuple[float, float]]  # bearing (rad), range estimate (m)
     visible: int  # blobs seen by each camera alone
     infrared: int
 
@@ -93,7 +94,7 @@ class BlobDetector:
 
         mask = classify(img)
         labels, n = ndimage.label(mask)
-        blobs: list[tuple[float, float, int, bool]] = []
+        blobs: list[tuple[float, float, int, float]] = []
         if n:
             idx = np.arange(1, n + 1)
             areas = ndimage.sum_labels(mask, labels, idx)
@@ -104,8 +105,12 @@ class BlobDetector:
                 centre = (c0 + c1) / 2 / img.cols
                 bearing = (0.5 - centre) * FOV_RAD
                 width = (c1 - c0) / img.cols * FOV_RAD
-                clipped = c0 == 0 or c1 == img.cols
-                blobs.append((bearing, width, int(areas[k]), clipped))
+                if c0 == 0 or c1 == img.cols:  # cut by the frame: where it meets the ground
+                    below = (sl[0].stop - 1 - img.rows // 2) * FOV_RAD / img.cols
+                    rng = CAMERA_HEIGHT_M / math.tan(below) if below > 0 else CAMERA_RANGE_M
+                else:
+                    rng = FIGURE_HALF_WIDTH_M / math.tan(max(width, 1e-3) / 2)
+                blobs.append((bearing, width, int(areas[k]), min(rng, CAMERA_RANGE_M)))
         return Blobs(img.seq, img.stamp, img.camera, img.pose, blobs)
 
 
@@ -126,10 +131,9 @@ class BlobFusion:
             return None
         vis, ir = (b, twin) if b.camera == "visible" else (twin, b)
         hits = []
-        for ib, iw, _, cut in ir.blobs:
+        for ib, iw, _, rng in ir.blobs:  # the infrared camera's: it has more columns
             if any(abs(ib - vb) < self.MATCH_RAD + max(iw, vw) / 2 for vb, vw, _, _ in vis.blobs):
-                rng = FIGURE_HALF_WIDTH_M / math.tan(max(iw, 1e-3) / 2)
-                hits.append((ib, min(rng, CAMERA_RANGE_M), cut))
+                hits.append((ib, rng))
         return Detections(
             b.seq, min(b.stamp, twin.stamp), ir.pose, hits, len(vis.blobs), len(ir.blobs)
         )
@@ -176,17 +180,15 @@ class BayesFilter:
         view = np.nonzero((np.abs(bearing) < FOV_RAD / 2) & (d > 0.5) & (d < CAMERA_RANGE_M))[0]
         view = view[self.world.line_of_sight(x, y, self.cx[view], self.cy[view])]
         # how well each cell explains a detection: its bearing within 5°, and its distance
-        # within the range error of the blob's width (whole pixels: ~15 % at range) gets the
-        # full evidence, further along the ray a share falling off as a Gaussian — a full
-        # share all along a wide window let the same viewpoints, lap after lap, build a phantom
-        # a couple of metres behind a survivor. A blob cut by the frame's edge shows narrower
-        # than it is: its range is only an upper bound, every cell before it may be the one
+        # within the range error of the blob (whole pixels: ~15 % at range) gets the full
+        # evidence, further along the ray a share falling off as a Gaussian — a full share all
+        # along a wide window let the same viewpoints, lap after lap, build a phantom a couple
+        # of metres behind a survivor
         weight = np.zeros(len(view))
-        for b, r, bound in det.hits:
+        for b, r in det.hits:
             near = np.abs(wrap(bearing[view] - b)) < math.radians(5.0)
             sigma = max(0.5, RANGE_SIGMA * r)
-            short = 0.0 if bound else r - d[view]
-            off = np.maximum(np.maximum(d[view] - r, short) - sigma, 0.0)
+            off = np.maximum(np.abs(d[view] - r) - sigma, 0.0)
             weight = np.maximum(weight, near * np.exp(-0.5 * (off / sigma) ** 2))
         hit = weight > 0.1
         flat = self.logodds.reshape(-1)
