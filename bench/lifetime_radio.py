@@ -51,9 +51,9 @@ import msgspec
 
 from mso.benchmarks import lifetime as study
 from mso.benchmarks.common import provenance, write_results
-from mso.node.core import MONITOR_PERIOD_S
 from mso.node.dataplane import RETRANSMIT_S
 from mso.node.liveness import HEARTBEAT_S
+from mso.node.membership import MONITOR_PERIOD_S
 from mso.protocol import framing
 from mso.protocol import messages as m
 from mso.sim.runner import Simulation

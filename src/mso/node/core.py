@@ -21,7 +21,7 @@ from mso.management import RuleSettings
 from mso.model.network import PowerModel
 from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S
 from mso.node.manager import Manager
-from mso.node.membership import Membership
+from mso.node.membership import MONITOR_PERIOD_S, Membership
 from mso.node.tables import Deployment, Hosted, crash_status
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
@@ -34,7 +34,6 @@ from mso.protocol.procedures.status import StatusFanout
 
 __all__ = ["Deployment", "Effect", "Hosted", "NodeCore", "Reply", "Send", "SetTimer"]
 
-MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own
 REVOCATIONS_TOLD = 16  # the operator's latest undeploys told to each newly reachable node
 
 

@@ -24,7 +24,8 @@ from mso.protocol.procedures.membership import PeerLife
 from mso.protocol.procedures.relocate import S as RelocState
 
 REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
-FIGURES_EVERY_S = 1.0  # the monitor samples once a second: its figures ride on one beat a period
+MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own: its figures ride on one beat
+# of each period (they change no faster)
 
 
 class Membership(Remapping):
@@ -56,7 +57,7 @@ class Membership(Remapping):
         """Tell the neighbours we live; declare the silent ones failed. Our figures go on one
         beat per monitor period, and on the first beat to a neighbour since its link came up
         (``_briefed``: the time the link came up, when it was given them)."""
-        every = max(1, round(FIGURES_EVERY_S / self.liveness.period_s))
+        every = max(1, round(MONITOR_PERIOD_S / self.liveness.period_s))
         full = self._beat()
         slim = full if self._beats % every == 0 else self._beat(figures=False)
         for n, since in sorted(self.liveness.neighbours.items()):
