@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+import msgspec
+
 from mso.errors import MsoError
 from mso.node.dataplane import RETRANSMIT_S
 from mso.node.remapping import Remapping
@@ -38,8 +40,8 @@ class Membership(Remapping):
             peer = self.peers[node] = PeerLife(node)
         return peer
 
-    def _beat(self, figures: bool = True) -> m.Heartbeat:
-        """This node's beat; with ``figures``, its monitor's figures too (see Heartbeat)."""
+    def _beat(self) -> m.Heartbeat:
+        """This node's beat with its monitor's figures (see Heartbeat)."""
         mon, pw = self.monitor, self.power
         power = (pw.idle_w, pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte)
         return m.Heartbeat(
@@ -48,9 +50,7 @@ class Membership(Remapping):
             dict(self._dead_incarnation),
             self._leader(),
             self._hosting(),
-            m.Figures(self.capacity, mon.load, mon.drain_w, mon.remaining_j, mon.lifetime_s, power)
-            if figures
-            else None,
+            m.Figures(self.capacity, mon.load, mon.drain_w, mon.remaining_j, mon.lifetime_s, power),
         )
 
     def _heartbeat(self, now: float) -> None:
@@ -59,7 +59,7 @@ class Membership(Remapping):
         (``_briefed``: the time the link came up, when it was given them)."""
         every = max(1, round(MONITOR_PERIOD_S / self.liveness.period_s))
         full = self._beat()
-        slim = full if self._beats % every == 0 else self._beat(figures=False)
+        slim = full if self._beats % every == 0 else msgspec.structs.replace(full, figures=None)
         for n, since in sorted(self.liveness.neighbours.items()):
             if n not in self.dead:
                 briefed = self._briefed.get(n) == since
