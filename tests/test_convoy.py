@@ -64,7 +64,7 @@ def test_scan_filter_removes_dust_and_dropouts() -> None:
     assert (np.abs(raw - truth) > 0.3).any()
 
 
-def test_scan_end_points_travel_in_millimetres_and_lose_under_one() -> None:
+def test_scan_points_travel_as_millimetre_ranges_and_lose_under_one() -> None:
     filtered = ScanFilter()(LaserSource()(3, 0.0))
     points = ScanMatcher()(filtered)
     xs, ys = scan_points(points)
@@ -74,8 +74,8 @@ def test_scan_end_points_travel_in_millimetres_and_lose_under_one() -> None:
     assert len(xs) == ok.sum() > 0
     assert np.abs(xs - r[ok] * np.cos(a[ok])).max() <= 0.0005 + 1e-9
     assert np.abs(ys - r[ok] * np.sin(a[ok])).max() <= 0.0005 + 1e-9
-    # two bytes a coordinate: about half of what float32 end points took
-    assert len(msgspec.msgpack.encode(points)) < 4 * len(xs) + 40
+    # two bytes a beam, angles implied: half of what int16 x, y end points took
+    assert len(msgspec.msgpack.encode(points)) <= 2 * len(r) + 40
 
 
 def test_odometry_drifts_and_odom_filter_gives_increments() -> None:
