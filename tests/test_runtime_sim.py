@@ -161,3 +161,71 @@ def test_end_to_end_delay_is_measured_per_chain_and_reported_to_its_head() -> No
     assert tail == {"src-mid-sink": pytest.approx(6.0)}  # three 2 ms hops, src on N1, sink on N4
     ms, _ = sim.cores["N1"].apps["pipe"].chain_delay[0]  # the head's node knows it too
     assert ms == pytest.approx(6.0)
+
+
+FORK = """
+name: fork
+vertices:
+  src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 100,
+        output: runtime_vertices:Num}
+  left: {code: runtime_vertices:Recorder, pinned: N3}
+  right: {code: runtime_vertices:Recorder, pinned: N3}
+edges:
+  - [src, left]
+  - [src, right]
+"""
+
+
+def _data_frames(sim: Simulation) -> list[tuple[str, str, m.Data]]:
+    """Every Data frame the simulation puts on its network, from now on (a send hook)."""
+    sent: list[tuple[str, str, m.Data]] = []
+    inner = sim._send
+
+    def send(node: str, dst: str, msg: m.Message) -> bool:
+        if isinstance(msg, m.Data):
+            sent.append((node, dst, msg))
+        return inner(node, dst, msg)
+
+    sim._send = send  # type: ignore[method-assign]
+    return sent
+
+
+def test_a_fork_to_one_node_sends_each_batch_once() -> None:
+    """src feeds two vertices on N3: each batch crosses the two hops once, in one frame that
+    names both edges, and each consumer still gets every event once and in order."""
+    sim = Simulation(line(3))
+    sent = _data_frames(sim)
+    reply = deploy(sim, FORK)
+    assert reply.ok, reply.error
+    sim.run_until(sim.now + 3.0)
+    fresh = [d for _, _, d in sent if d.edge == 0 or d.also]
+    assert fresh and all(d.also == [(1, d.seq, d.floor)] for d in fresh if d.edge == 0)
+    assert not [d for _, _, d in sent if d.edge == 1 and not d.also]  # never sent alone
+    emitted = sim.cores["N1"].apps["fork"].stones["src"].emitted
+    for sink in ("left", "right"):
+        stats = sink_stats(sim, "fork", sink)
+        assert stats["repeats"] == 0 and stats["out_of_order"] == 0
+        assert emitted - 5 <= stats["count"] <= emitted
+
+
+@pytest.mark.parametrize(
+    "also",
+    [[(0, 0, 0)], [(1, 0, 0), (1, 0, 0)], [(2, 0, 0)], [(-1, 0, 0)]],
+    ids=["the main edge again", "an edge twice", "an edge the app lacks", "a negative edge"],
+)
+def test_a_folded_frame_naming_a_wrong_edge_is_dropped_whole(
+    also: list[tuple[int, int, int]],
+) -> None:
+    """Nothing of such a frame is delivered, not even to its valid edges; the node goes on."""
+    sim = Simulation(line(3))
+    reply = deploy(sim, FORK)
+    assert reply.ok, reply.error
+    core = sim.cores["N3"]
+    dep = core.apps["fork"]
+    before, expected = core.dropped_messages, dep.inc[0].expected
+    frame = m.Data("fork", 0, dep.epoch, expected, [b"\x91\x00"], 0.0, 0, also)
+    core.receive("N1", frame, sim.now)
+    assert core.dropped_messages == before + 1
+    assert dep.inc[0].expected == expected  # the main edge took nothing either
+    core.receive("N1", m.Data("fork", 0, dep.epoch, expected, [b"\x91\x00"]), sim.now)
+    assert dep.inc[0].expected == expected + 1  # the same frame, unfolded, is taken

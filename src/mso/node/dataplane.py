@@ -290,17 +290,24 @@ class DataPlane(NodeTables):
 
     def _on_data(self, msg: m.Data) -> None:
         dep = self.apps.get(msg.app)
-        if dep is None or msg.epoch != dep.epoch or not 0 <= msg.edge < len(dep.app.edges):
+        if dep is None or msg.epoch != dep.epoch:
             self.dropped_messages += 1
             return
-        dst = dep.app.edges[msg.edge].dst
-        if dst in dep.awaiting:  # a relocated instance before its handover: keep for later
-            dep.stash.setdefault(msg.edge, []).append((msg.seq, msg.events))
+        parts = [(msg.edge, msg.seq, msg.floor), *msg.also]
+        edges = {edge for edge, _, _ in parts}
+        n = len(dep.app.edges)
+        if len(edges) < len(parts) or not all(0 <= e < n for e in edges):
+            self.dropped_messages += 1  # an edge twice, or one the app does not have
             return
-        if dst not in dep.stones:
-            self.dropped_messages += 1
-            return
-        self._deliver(dep, msg.edge, msg.seq, msg.events, msg.ts, msg.floor)
+        for i, (edge, seq, floor) in enumerate(parts):
+            events = msg.events if i == 0 else list(msg.events)  # each edge its own list
+            dst = dep.app.edges[edge].dst
+            if dst in dep.awaiting:  # a relocated instance before its handover: keep for later
+                dep.stash.setdefault(edge, []).append((seq, events))
+            elif dst not in dep.stones:
+                self.dropped_messages += 1
+            else:
+                self._deliver(dep, edge, seq, events, msg.ts, floor)
 
     def _processed(
         self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexProcessed, now: float
@@ -413,11 +420,21 @@ class DataPlane(NodeTables):
             self._effects.append(SetTimer(("source", dep.app.name, producer), self._now))
 
     def _flush(self) -> None:
-        for (app, edge), batch in self._outbox.items():
+        """Send what the outbox gathered: one frame per edge, except that edges carrying the
+        same events at the same time to the same node share one (``Data.also``)."""
+        frames: dict[tuple[str, str, float, tuple[bytes, ...]], m.Data] = {}
+        for (app, edge), (seq, events, ts) in self._outbox.items():
             dep = self.apps[app]
             dst = dep.placed[dep.app.edges[edge].dst]
             floor = out.acked if (out := dep.out.get(edge)) is not None else 0
-            self._effects.append(Send(dst, m.Data(app, edge, dep.epoch, *batch, floor=floor)))
+            key = (app, dst, ts, tuple(events))
+            data = frames.get(key)
+            if data is None:
+                frames[key] = m.Data(app, edge, dep.epoch, seq, events, ts, floor)
+            else:
+                data.also.append((edge, seq, floor))
+        for (_, dst, _, _), data in frames.items():
+            self._effects.append(Send(dst, data))
         self._outbox.clear()
         for dep in self.apps.values():
             for edge, ch in list(dep.inc.items()):

@@ -53,7 +53,12 @@ class ClientHello(_Msg, tag="client"):
 
 # -- data plane ------------------------------------------------------------------------------
 class Data(_Msg, tag="data"):
-    """Events ``seq, seq+1, ...`` on one edge instance, encoded with the edge's format."""
+    """Events ``seq, seq+1, ...`` on one edge instance, encoded with the edge's format.
+
+    ``also`` folds in other edges that carry the very same events at the same time to the
+    same node — a vertex whose output feeds several vertices on one robot — as
+    ``(edge, seq, floor)``: one frame on the radio, not one per edge (an empty ``also`` costs
+    one byte). Retransmissions go edge by edge."""
 
     app: str
     edge: int
@@ -66,6 +71,7 @@ class Data(_Msg, tag="data"):
     # the producer will never send anything below this again (its acked position): a consumer
     # that still waits for an event below it skips to it (events a parked chain dropped)
     floor: int = 0
+    also: list[tuple[int, int, int]] = msgspec.field(default_factory=list)
 
 
 class Ack(_Msg, tag="ack"):
