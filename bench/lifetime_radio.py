@@ -59,11 +59,12 @@ from mso.protocol import messages as m
 from mso.sim.runner import Simulation
 
 # bench/lifetime_floor.py's leader-side vertices, and the ones its lowest leader draw ("nav
-# filter, odom filter off, camera blobs+fusion") keeps on the leader; the others go where
+# filter+matcher, odom filter off, camera blobs+fusion" since the scan matcher sends ranges,
+# 2026-11-25) keeps on the leader; the others go where
 # Algorithm 1 puts them, or to N2 when that is the leader
 FRONT = ("scan_filter", "scan_matcher", "odom_filter", "visible_blobs", "infrared_blobs",
          "blob_fusion", "bayes_inference", "target_map")  # fmt: skip
-FLOOR_ON_LEADER = ("scan_filter", "visible_blobs", "infrared_blobs", "blob_fusion")
+FLOOR_ON_LEADER = ("scan_filter", "scan_matcher", "visible_blobs", "infrared_blobs", "blob_fusion")
 PLACEMENTS = ("floor", "algorithm1-kept")
 WIRE_FRAMING_B = 4 + framing.TAG_BYTES  # u32 length + tag per frame on the real stream
 COALESCE_S = 0.1  # acks of one link gathered this long: well under RETRANSMIT_S (0.25 s)
