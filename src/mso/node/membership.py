@@ -268,12 +268,29 @@ class Membership(Remapping):
         if self.routes.get(src, ("", 0))[0] == src:  # a neighbour's beat, not a hello
             self.liveness.heard_from(src, now, msg)
         if msg.dead.get(self.id) == self.incarnation:
-            if self._outranked_by(msg):
+            if self._outranked_by(msg) and self._cut_off(msg):  # a healed partition we did
+                self._on_node_down(src, self.id, now)  # not see: hold it failed too, and the
+                self._send(src, self._beat())  # rank settles it (it is the smaller side)
+            elif self._outranked_by(msg):
                 self._reset(now, src)
             else:  # it runs nothing and holds us failed: our beat (we run something, and
                 self._send(src, self._beat())  # hold it alive) makes it yield
         else:
             self._answer_stale_claim(src, msg)
+
+    def _cut_off(self, msg: m.Heartbeat) -> bool:
+        """``msg.node``, which we hold alive, holds us failed, and with us most of the nodes
+        we reach and hold alive: it was cut off from them (a partition that just healed),
+        and we did not declare it because our suspicion of it had not ended yet when it came
+        back into reach (others had: a confirmation takes a round trip). Resetting for it
+        would make the larger side reset for the smaller one; a node that only we missed
+        (it stalled, or it alone lost our routes) holds failed just us and a few, and we
+        yield to it as before."""
+        if msg.node in self.dead:
+            return False
+        seen = {n for n in self.routes if n not in self.dead and n != msg.node} | {self.id}
+        held = sum(1 for n in seen if n in msg.dead)
+        return held > len(seen) - held
 
     def _answer_stale_claim(self, src: str, msg: m.Heartbeat) -> None:
         """``src`` holds an older incarnation of ours failed: our beat tells it we are back."""
