@@ -104,6 +104,8 @@ FIXED: dict[int, str] = {
     2257: "adjacent vertices restored together numbered their output from scratch",
     2784: "a restore retried after another coordinator's restore made a second instance",
     4751: "a node restarted across a partition, given instances there, was taken as empty",
+    1665: "a partition healed while some of the larger side still asked about the cut-off "
+    "node: those that had not declared it reset for it, and the app was gone everywhere",
 }
 
 

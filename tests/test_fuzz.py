@@ -265,6 +265,8 @@ WRONG_MEANING = [
     pytest.param("N2", "N1", m.Moved("ghost-app", "mid", "N1"), id="moved of no app"),
     pytest.param("N2", "N3", m.ChainDelay("pipe", 0, float("nan")), id="chain delay NaN"),
     pytest.param("N2", "N3", m.ChainDelay("pipe", 5, 1.0), id="chain delay of no chain"),
+    pytest.param("N2", "N1", m.Hears("N3", 777, True), id="hears for no suspicion"),
+    pytest.param("N2", "N1", m.Hears("N3", 777, False), id="hears no for no suspicion"),
 ]  # fmt: skip
 
 

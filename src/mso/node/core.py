@@ -28,6 +28,7 @@ from mso.protocol import messages as m
 from mso.protocol.effects import Effect, Reply, Send, SetTimer
 from mso.protocol.procedures.base import Deadline, IllegalTransition, Procedure, Retry
 from mso.protocol.procedures.deploy import Deploy
+from mso.protocol.procedures.membership import Suspicion, Vouch
 from mso.protocol.procedures.relocate import Relocation
 from mso.protocol.procedures.remap import Remap
 from mso.protocol.procedures.status import StatusFanout
@@ -105,6 +106,8 @@ class NodeCore(Membership):
                 msg.node, msg.detector, now, msg.incarnation
             ),
             m.NodeUp: lambda src, msg, now: self._on_node_up(msg, now),
+            m.Suspect: lambda src, msg, now: self._on_suspect(src, msg, now),
+            m.Hears: lambda src, msg, now: self._on_hears(src, msg, now),
             m.AppSync: lambda src, msg, now: self._on_app_sync(src, msg, now),
             m.Rewire: lambda src, msg, now: self._on_rewire(msg, now),
             m.Resume: lambda src, msg, now: self._on_resume(msg, now),
@@ -132,6 +135,7 @@ class NodeCore(Membership):
                     dep.route_changed[c.index] = now
         neighbours = {d for d, (hop, _) in self.routes.items() if hop == d}
         self.liveness.set_routes(now, set(self.routes) - self.dead, neighbours)
+        self._back_in_reach(now)
         if set(self.routes) - set(old):  # a hello: newly reachable nodes learn our incarnation
             beat = self._beat()  # (and whom we hold failed, if a partition just healed)
             undeploys = list(self.authority.revoked.values())[-REVOCATIONS_TOLD:]
@@ -162,6 +166,7 @@ class NodeCore(Membership):
             self.dropped_messages += 1
             return []
         self.liveness.heard_from(src, now)
+        self._guarded("heard", self._heard_directly, src, now)
         self._work.append((src, "", msg))
         return self._run(now)
 
@@ -236,6 +241,11 @@ class NodeCore(Membership):
         elif isinstance(proc, Deploy):  # a probe or a chain build was lost: stop it everywhere
             self._on_deploy_failed(m.DeployFailed(proc.app, f"{self.id}: {why}"), now)
             self._end(proc.pid)
+        elif isinstance(proc, Suspicion):  # nobody said they hear the node: it failed
+            proc.expire(self)
+            self._suspected(proc, now)
+        elif isinstance(proc, Vouch):  # the node asked on others' behalf did not answer
+            self._vouch_expired(proc)
         else:
             proc.expire(self)
             self._end(proc.pid)
@@ -349,6 +359,7 @@ class NodeCore(Membership):
             "last_handler_error": self.last_handler_error,
             "procedures": self.open_procedures(now),
             "failed_nodes": sorted(self.dead),
+            "suspected_nodes": sorted(self._suspicions),
             "incarnation": self.incarnation,
             "management": self.manager.status(),
             "failures": list(self.failures),

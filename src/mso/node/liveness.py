@@ -7,7 +7,9 @@ talking, and a broken link (rather than a dead node) shows up in the routing vie
 neighbour, which is not a failure. The clock starts when a node becomes a neighbour, so a new
 link is not suspected before its first heartbeat could arrive. A node the routing view stops
 reaching at all (it drops every route to it, as a routing protocol does for a node that fell
-silent) is failed too once it has stayed unreachable for ``dead_after_s``.
+silent) is *suspected* once it has stayed unreachable for ``dead_after_s``: one node's missing
+route is not evidence of a failure while others still hear the node, so membership asks them
+before declaring it (:class:`mso.protocol.procedures.membership.Suspicion`).
 
 Heartbeats also carry the sender's monitored figures; the table of what neighbours last said
 (``heard``) is what the management rules weigh a move toward a neighbour with.
@@ -115,8 +117,8 @@ class Liveness:
                 self.heard[node] = (now, beat.figures)
             self.gaps.setdefault(node, Gaps()).beat(now)
 
-    def suspects(self, now: float, dead: set[str]) -> list[str]:
-        """Neighbours silent for longer than ``dead_after_s`` (sorted, deterministic)."""
+    def silent(self, now: float, dead: set[str]) -> list[str]:
+        """Neighbours silent for longer than ``dead_after_s`` (sorted, deterministic): failed."""
         out = []
         for n, since in sorted(self.neighbours.items()):
             if n in dead:
@@ -124,8 +126,28 @@ class Liveness:
             last = max(since, self.last_heard.get(n, since))
             if now - last > self.dead_after_s:
                 out.append(n)
-        out += [n for n, t in self.gone.items() if n not in dead and now - t > self.dead_after_s]
-        return sorted(set(out))
+        return out
+
+    def unreachable(self, now: float, dead: set[str]) -> list[str]:
+        """Nodes out of reach for longer than ``dead_after_s`` (sorted): suspected only."""
+        late = self.dead_after_s
+        return sorted(n for n, t in self.gone.items() if n not in dead and now - t > late)
+
+    def suspects(self, now: float, dead: set[str]) -> list[str]:
+        """Both of the above (sorted, deterministic)."""
+        return sorted({*self.silent(now, dead), *self.unreachable(now, dead)})
+
+    def hears(self, node: str, now: float) -> bool:
+        """Heard from ``node`` within the liveness window: it was alive then (fail-stop), the
+        answer a suspecting node asks for."""
+        last = self.last_heard.get(node)
+        return last is not None and now - last <= self.dead_after_s
+
+    def vouched(self, node: str, now: float) -> None:
+        """Someone hears ``node``, still out of this node's reach: judge it again from now
+        (one liveness window later it is suspected, and others asked, again)."""
+        if node in self.gone:
+            self.gone[node] = now
 
     def rejoin(self, node: str, now: float, reachable: bool, route: tuple[str, int] | None) -> None:
         """A node declared failed is back: watch it again from now."""

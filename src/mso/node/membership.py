@@ -1,11 +1,13 @@
 """Membership at one node: heartbeats, fail-stop failure detection, incarnations, reset, rejoin.
 
 Each node beats to its neighbours (with its monitor's figures); a neighbour silent for the
-liveness window is declared failed, and the detector tells everyone. The chains a failed node
-touched are recovered (:mod:`mso.node.remapping`); chains pinned to it are parked. A node that
-restarts comes back as a higher incarnation; after a partition heals, the side that loses a
-deterministic tie-break resets (drops its apps) and rejoins, and is sent the apps again
-(``AppSync``) with its pinned vertices restored.
+liveness window is declared failed, and the detector tells everyone. A node out of this node's
+reach for the window is only suspected: it is declared failed when none of the nodes this node
+still reaches hears it (a :class:`Suspicion`), not on this node's missing route alone. The
+chains a failed node touched are recovered (:mod:`mso.node.remapping`); chains pinned to it
+are parked. A node that restarts comes back as a higher incarnation; after a partition heals,
+the side that loses a deterministic tie-break resets (drops its apps) and rejoins, and is sent
+the apps again (``AppSync``) with its pinned vertices restored.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from mso.planning.placement import Layout
 from mso.protocol import messages as m
 from mso.protocol.authority import generation
 from mso.protocol.effects import Send, SetTimer
-from mso.protocol.procedures.membership import PeerLife
+from mso.protocol.procedures.membership import P, PeerLife, Suspicion, Vouch
 from mso.protocol.procedures.relocate import S as RelocState
 
 REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
@@ -72,12 +74,111 @@ class Membership(Remapping):
             for n in sorted(self.dead):  # partition; tell it, so one side rejoins the other
                 if n in self.routes:
                     self._effects.append(Send(n, full))
-        for n in self.liveness.suspects(now, self.dead):
+        for n in self.liveness.silent(now, self.dead):
             self._on_node_down(n, self.id, now)
+        for n in self.liveness.unreachable(now, self.dead):
+            self._suspect(n, now)
         self._flush_syncs()
         for dep in list(self.apps.values()):  # this node may have become an app's recovery
             self._maybe_recover(dep, now)  # coordinator (it runs part of it now): no-op else
         self._effects.append(SetTimer(("heartbeat",), now + self.liveness.period_s))
+
+    def _suspect(self, node: str, now: float) -> None:
+        """``node`` has been out of this node's reach for the liveness window. A routing
+        protocol drops a dead node's routes, but it may also leave one node without a route
+        to a live one for seconds while the others still hear it: so ask the nodes this node
+        still reaches, and declare it only if none does (:class:`Suspicion`)."""
+        if node in self._suspicions or node in self.dead or node == self.id:
+            return
+        self._peer(node).on("unreachable")
+        asked = sorted(n for n in self.routes if n not in self.dead and n != node)
+        if not asked:  # nobody left to ask: this node is cut off from everyone
+            self._on_node_down(node, self.id, now)
+            return
+        self._rid += 1
+        proc = Suspicion(self._rid, now, node, asked, self.liveness.dead_after_s)
+        self._begin(proc)
+        self._suspicions[node] = proc.pid
+        proc.start(self)
+
+    def _on_suspect(self, src: str, msg: m.Suspect, now: float) -> None:
+        """Another node lost ``msg.node``: say whether we hear it (we heard it within our
+        liveness window, and do not hold it failed; asked about ourselves, we live). If we do
+        not but reach it, we ask it and answer when it does or our :class:`Vouch` expires."""
+        node = msg.node
+        if node == self.id or node in self.dead or self.liveness.hears(node, now):
+            self._send(src, m.Hears(node, msg.rid, node not in self.dead))
+            return
+        if node not in self.routes or node == src:
+            self._send(src, m.Hears(node, msg.rid, False))
+            return
+        proc = self.procedures.get(self._vouching.get(node, -1))
+        if not isinstance(proc, Vouch):
+            self._rid += 1
+            proc = Vouch(self._rid, now, node, self.liveness.dead_after_s / 2)
+            self._begin(proc)
+            self._vouching[node] = proc.pid  # (bounded by the nodes this node reaches)
+            proc.start(self)
+        proc.ask(src, msg.rid)
+
+    def _on_hears(self, src: str, msg: m.Hears, now: float) -> None:
+        proc = self.procedures.get(msg.rid)
+        if isinstance(proc, Vouch) and src == proc.node == msg.node and msg.yes:
+            self._vouching.pop(proc.node, None)
+            proc.answered(self)
+            self._end(proc.pid)
+            return
+        if not isinstance(proc, Suspicion) or proc.node != msg.node or src not in proc.missing:
+            if not self._ours(msg.rid):  # (ours: a late answer to a suspicion that ended)
+                self._refusal("hears_unasked")  # no such suspicion, or not asked (or twice)
+            return
+        proc.answer(src, msg.yes)
+        if proc.done:
+            self._suspected(proc, now)
+
+    def _vouch_expired(self, proc: Vouch) -> None:
+        """The node we asked on others' behalf did not answer: we tell them no."""
+        self._vouching.pop(proc.node, None)
+        proc.expire(self)
+        self._end(proc.pid)
+
+    def _suspected(self, proc: Suspicion, now: float) -> None:
+        """A suspicion ended with its answers or at its deadline: act on its outcome."""
+        self._end(proc.pid)
+        self._suspicions.pop(proc.node, None)
+        if proc.outcome == "vouched":  # someone hears it: ask again a window from now
+            self._peer(proc.node).on("vouched")
+            self.liveness.vouched(proc.node, now)
+        elif proc.node in self.routes:  # (back in reach since: nothing to confirm)
+            self._peer(proc.node).on("reachable")
+        else:
+            self._on_node_down(proc.node, self.id, now)
+
+    def _unsuspect(self, node: str, event: str) -> None:
+        """End ``node``'s open suspicion, if any (``event``: why, by the peer's table; '' to
+        leave the peer's state to the caller)."""
+        pid = self._suspicions.pop(node, None)
+        if pid is None:
+            return
+        proc = self.procedures.get(pid)
+        if isinstance(proc, Suspicion):
+            proc.end()
+            self._end(pid)
+        if event:
+            self._peer(node).on(event)
+
+    def _back_in_reach(self, now: float) -> None:
+        """The routes changed: a suspected node this node reaches again is not suspected."""
+        for node in sorted(self._suspicions):
+            if node in self.routes:
+                self._unsuspect(node, "reachable")
+
+    def _heard_directly(self, src: str, now: float) -> None:
+        """A message from a suspected node (it reaches us though we do not reach it): it
+        lives, which is what the suspicion asked."""
+        if src in self._suspicions:
+            self._unsuspect(src, "vouched")
+            self.liveness.vouched(src, now)
 
     def _on_node_down(
         self, node: str, detector: str, now: float, incarnation: int | None = None
@@ -87,7 +188,12 @@ class Membership(Remapping):
         known = self._incarnations.get(node, 0)
         if incarnation is not None and incarnation < known:
             return  # that incarnation failed, and a newer one is already back
-        self._peer(node).on("silent" if detector == self.id else "reported_down")
+        self._unsuspect(node, "")
+        peer = self._peer(node)
+        if detector != self.id:
+            peer.on("reported_down")
+        else:  # our own word: confirmed by the nodes we asked, or a neighbour's silence
+            peer.on("confirmed" if peer.state is P.SUSPECT else "silent")
         self.dead.add(node)
         self._dead_incarnation[node] = known if incarnation is None else incarnation
         self.liveness.forget(node)
@@ -162,12 +268,29 @@ class Membership(Remapping):
         if self.routes.get(src, ("", 0))[0] == src:  # a neighbour's beat, not a hello
             self.liveness.heard_from(src, now, msg)
         if msg.dead.get(self.id) == self.incarnation:
-            if self._outranked_by(msg):
+            if self._outranked_by(msg) and self._cut_off(msg):  # a healed partition we did
+                self._on_node_down(src, self.id, now)  # not see: hold it failed too, and the
+                self._send(src, self._beat())  # rank settles it (it is the smaller side)
+            elif self._outranked_by(msg):
                 self._reset(now, src)
             else:  # it runs nothing and holds us failed: our beat (we run something, and
                 self._send(src, self._beat())  # hold it alive) makes it yield
         else:
             self._answer_stale_claim(src, msg)
+
+    def _cut_off(self, msg: m.Heartbeat) -> bool:
+        """``msg.node``, which we hold alive, holds us failed, and with us most of the nodes
+        we reach and hold alive: it was cut off from them (a partition that just healed),
+        and we did not declare it because our suspicion of it had not ended yet when it came
+        back into reach (others had: a confirmation takes a round trip). Resetting for it
+        would make the larger side reset for the smaller one; a node that only we missed
+        (it stalled, or it alone lost our routes) holds failed just us and a few, and we
+        yield to it as before."""
+        if msg.node in self.dead:
+            return False
+        seen = {n for n in self.routes if n not in self.dead and n != msg.node} | {self.id}
+        held = sum(1 for n in seen if n in msg.dead)
+        return held > len(seen) - held
 
     def _answer_stale_claim(self, src: str, msg: m.Heartbeat) -> None:
         """``src`` holds an older incarnation of ours failed: our beat tells it we are back."""
@@ -249,6 +372,10 @@ class Membership(Remapping):
             self.liveness.rejoin(node, now, node in self.routes, self.routes.get(node))
         for node in self.dead:
             self._peer(node).on("reset")
+        for node in sorted(self._suspicions):  # (their procedures were ended above)
+            self._peer(node).on("reset")
+        self._suspicions.clear()
+        self._vouching.clear()
         self.dead.clear()
         self._dead_incarnation.clear()
         self.incarnation += 1

@@ -259,7 +259,7 @@ class NodeTables:
         self._instances: dict[int, tuple[str, str]] = {}
         self._next_instance = 0
         # ids of procedures this node coordinates: distinct per node, small enough for msgpack
-        self._rid = (zlib.crc32(node_id.encode()) & 0xFFFFFF) << 20
+        self._rid = self._rid_base = (zlib.crc32(node_id.encode()) & 0xFFFFFF) << 20
         self._probes_waiting: list[tuple[float, m.Probe]] = []  # (give up at, probe)
         self._handover_to: dict[int, str] = {}  # rid -> coordinator, at a relocation's target
         # per edge: (first seq, events, when the oldest entered its chain)
@@ -277,6 +277,12 @@ class NodeTables:
         self._early: dict[str, list[tuple[str, m.Message]]] = {}
         self.dead: set[str] = set()  # nodes known to have failed (fail-stop)
         self.peers: dict[str, PeerLife] = {}  # each other node's state, by its table
+        # nodes out of this node's reach that it asks others about before declaring them
+        # failed: node -> its Suspicion's procedure id (one each, so bounded by the nodes)
+        self._suspicions: dict[str, int] = {}
+        # nodes this node was asked about, does not hear, reaches, and asked itself: node ->
+        # its Vouch's procedure id (one each, bounded by the nodes it reaches)
+        self._vouching: dict[str, int] = {}
         self._incarnations: dict[str, int] = {}  # last incarnation heard of, per node
         self._dead_incarnation: dict[str, int] = {}  # the incarnation declared failed
         self._beats = 0
@@ -315,6 +321,10 @@ class NodeTables:
 
     def elapsed_ms(self, since: float) -> float:
         return self._elapsed_ms(since)
+
+    def _ours(self, pid: int) -> bool:
+        """``pid`` is (was) a procedure of this node's: an answer to it may come late."""
+        return self._rid_base < pid <= self._rid
 
     def _reloc(self, pid: int) -> Relocation | None:
         proc = self.procedures.get(pid)

@@ -219,6 +219,24 @@ class NodeDown(_Msg, tag="node_down"):
     incarnation: int = 0  # the incarnation that failed: news of an older one is stale
 
 
+class Suspect(_Msg, tag="suspect"):
+    """From a node that lost every route to ``node``, to each node it still reaches: do you
+    hear it? Answered with :class:`Hears`; ``rid`` is the asker's suspicion (a procedure)."""
+
+    node: str
+    rid: int
+
+
+class Hears(_Msg, tag="hears"):
+    """The answer to :class:`Suspect`: ``yes`` if the sender heard ``node`` within its own
+    liveness window (and does not hold it failed). A yes keeps ``node`` from being declared
+    failed on the asker's missing route alone."""
+
+    node: str
+    rid: int
+    yes: bool
+
+
 class NodeUp(_Msg, tag="node_up"):
     """``node``, declared failed, is back as a new ``incarnation`` that hosts nothing."""
 
@@ -477,6 +495,8 @@ Message = (
     | ChainDelay
     | NodeUp
     | AppSync
+    | Suspect
+    | Hears
 )
 
 _ENVELOPE_DECODER = msgspec.msgpack.Decoder(Envelope)

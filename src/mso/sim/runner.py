@@ -86,6 +86,9 @@ class Simulation:
         self._seq = itertools.count()
         self._timers: dict[tuple[str, Hashable], float] = {}
         self.dead: set[str] = set()  # killed nodes: they receive and do nothing
+        # (node, destination): node's routing view has no route there although the links do
+        # (a routing protocol that has not converged; see :meth:`lose_route`)
+        self.lost_routes: set[tuple[str, str]] = set()
         self.executors = {n: self._executor(n) for n in network.nodes}
         self.update_routes()
         for n, core in self.cores.items():
@@ -119,12 +122,23 @@ class Simulation:
             routes: dict[str, tuple[str, int]] = {}
             for dst in self.network.nodes:
                 route = self.network.route(n, dst)
-                if route is not None and dst != n:
+                if route is not None and dst != n and (n, dst) not in self.lost_routes:
                     routes[dst] = (route[1], len(route) - 1)
             self._apply(n, core.set_routes(routes, self.now))
         for n, wait in self.waiting.items():
             if wait and n not in self.dead:
                 wait.release(self.now, self._resender(n))
+
+    def lose_route(self, node: str, dst: str, lost: bool = True) -> None:
+        """``node``'s routing view loses (or, ``lost=False``, regains) its route to ``dst``
+        while the links stay: what babeld did to one node of a mesh for 12 s after a relay
+        died, while the others still heard ``dst``. Only ``node``'s own frames to ``dst`` are
+        affected (they wait, as a driver's do); frames it relays are not modelled."""
+        if lost:
+            self.lost_routes.add((node, dst))
+        else:
+            self.lost_routes.discard((node, dst))
+        self.update_routes()
 
     def _resender(self, node: str) -> Callable[[str, tuple[str, m.Message], int], bool]:
         def resend(dst: str, item: tuple[str, m.Message], kind: int) -> bool:
@@ -143,7 +157,7 @@ class Simulation:
     def _send(self, node: str, dst: str, msg: m.Message) -> bool:
         """Put ``msg`` on the in-memory network; False when there is no route to ``dst``."""
         route = self.network.route(node, dst)
-        if route is None:
+        if route is None or (node, dst) in self.lost_routes:
             return False
         delay = 0.0
         lossy = m.kind_of(msg) == m.DATA

@@ -6,16 +6,16 @@ from __future__ import annotations
 from mso.protocol.procedures.base import Procedure, StateMachine, table_rows
 from mso.protocol.procedures.deploy import Deploy
 from mso.protocol.procedures.hosting import AWAIT_NOTE, InstanceLife
-from mso.protocol.procedures.membership import PeerLife
+from mso.protocol.procedures.membership import PeerLife, Suspicion, Vouch
 from mso.protocol.procedures.relocate import Relocation
 from mso.protocol.procedures.remap import Remap
 from mso.protocol.procedures.status import StatusFanout
 
-PROCEDURES: list[type[Procedure]] = [Deploy, Relocation, Remap, StatusFanout]
+PROCEDURES: list[type[Procedure]] = [Deploy, Relocation, Remap, StatusFanout, Suspicion, Vouch]
 # the other ends: a vertex instance at its host, and each other node as one node holds it
 PARTICIPANTS: list[tuple[type[StateMachine], str]] = [
     (InstanceLife, AWAIT_NOTE),
-    (PeerLife, "silence judged against the liveness window"),
+    (PeerLife, "silence judged against the liveness window; out of reach, asked about"),
 ]
 
 

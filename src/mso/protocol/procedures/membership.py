@@ -1,4 +1,4 @@
-"""Membership, as one node sees each other node: alive or failed, by incarnation.
+"""Membership, as one node sees each other node: alive, suspected or failed, by incarnation.
 
 Fail-stop failures (paper §3.4, assumption 3) with restarts and partitions: a neighbour silent
 for the liveness window is declared failed by this node (``silent``) or by another detector
@@ -8,21 +8,33 @@ then ALIVE again (``rejoined``). A node that learns it was declared failed by a 
 outranks it *resets*: it drops its apps, forgets whom it held failed (``reset``) and comes back
 as its next incarnation; the others restore what it hosted and send it the apps (``AppSync``).
 
-The waits have deadlines: silence is judged against the liveness window (``dead_after_s``); a
-failed node that is reachable again is sent a heartbeat every ``REJOIN_EVERY`` beats so a
-healed partition is noticed even if nobody speaks first.
+A node this node's routing view stopped reaching altogether is only *suspected*
+(``unreachable``): one node's missing route is no evidence that the node died while others
+still hear it (babeld once left one node of a mesh with no route to a live node for 12 s, and
+its word reset that node every 4 s). The :class:`Suspicion` asks the nodes this node still
+reaches whether they hear it (SWIM's indirect probe, adapted to routes): one yes keeps it alive
+(``vouched``; asked again a liveness window later if still out of reach), and it is declared
+failed (``confirmed``) only when every node asked said no, or none said yes by the deadline. A
+node asked that has not heard the suspect itself but reaches it asks it in turn (a
+:class:`Vouch`, SWIM's ping-req): a node's neighbours are not always among those still reached.
+
+The waits have deadlines: silence is judged against the liveness window (``dead_after_s``), a
+suspicion's answers too; a failed node that is reachable again is sent a heartbeat every
+``REJOIN_EVERY`` beats so a healed partition is noticed even if nobody speaks first.
 """
 
 from __future__ import annotations
 
 import enum
-from typing import ClassVar
+from typing import Any, ClassVar
 
-from mso.protocol.procedures.base import StateMachine, Table
+from mso.protocol import messages as m
+from mso.protocol.procedures.base import NodeContext, Phase, Procedure, StateMachine, Table
 
 
 class P(enum.Enum):
     ALIVE = "alive"
+    SUSPECT = "suspect"
     FAILED = "failed"
 
 
@@ -32,7 +44,14 @@ class PeerLife(StateMachine):
     NAME = "peer"
     INITIAL = P.ALIVE
     TRANSITIONS: ClassVar[Table] = {
-        P.ALIVE: {"silent": P.FAILED, "reported_down": P.FAILED},
+        P.ALIVE: {"silent": P.FAILED, "reported_down": P.FAILED, "unreachable": P.SUSPECT},
+        P.SUSPECT: {
+            "vouched": P.ALIVE,
+            "reachable": P.ALIVE,
+            "confirmed": P.FAILED,
+            "reported_down": P.FAILED,
+            "reset": P.ALIVE,
+        },
         P.FAILED: {"rejoined": P.ALIVE, "reset": P.ALIVE},
     }
 
@@ -43,3 +62,117 @@ class PeerLife(StateMachine):
     @property
     def name(self) -> str:
         return f"peer {self.node}"
+
+
+class Q(enum.Enum):
+    ASKING = "asking"
+
+
+class Suspicion(Procedure):
+    """This node lost every route to ``node``: before declaring it failed, it asks the nodes it
+    still reaches (``asked``) whether they hear it. The outcome (``vouched``, ``confirmed`` or,
+    when the wait ended for another reason, ``ended``) is for the node to act on."""
+
+    NAME = "suspicion"
+    INITIAL = Q.ASKING
+    DEADLINE_S = 0.5  # the node sets it per run to its liveness window (``dead_after_s``)
+    TRANSITIONS: ClassVar[Table] = {
+        Q.ASKING: {
+            "denied": Q.ASKING,
+            "all_denied": Phase.FINISHED,
+            "vouched": Phase.FINISHED,
+            "deadline": Phase.FINISHED,
+            "ended": Phase.FINISHED,
+        }
+    }
+
+    def __init__(
+        self, pid: int, now: float, node: str, asked: list[str], deadline_s: float | None = None
+    ) -> None:
+        super().__init__(pid, now, deadline_s)
+        self.node = node
+        self.missing = set(asked)
+        self.outcome = ""
+
+    @property
+    def name(self) -> str:
+        return f"suspicion of {self.node}"
+
+    def start(self, ctx: NodeContext) -> None:
+        for n in sorted(self.missing):
+            ctx.send(n, m.Suspect(self.node, self.pid))
+
+    def answer(self, src: str, yes: bool) -> None:
+        """One asked node's answer (an answer from a node not asked, or twice, is refused
+        by the caller)."""
+        self.missing.discard(src)
+        if yes:
+            self.on("vouched")
+            self.outcome = "vouched"
+        elif self.missing:
+            self.on("denied")
+        else:
+            self.on("all_denied")
+            self.outcome = "confirmed"
+
+    def expire(self, ctx: NodeContext) -> None:
+        """Nobody said yes in time (a node asked may have died too): confirmed."""
+        self.on("deadline")
+        self.outcome = "confirmed"
+
+    def end(self) -> None:
+        """The wait is moot: the node came back into reach, was heard, or declared failed."""
+        self.on("ended")
+        self.outcome = "ended"
+
+    def describe(self) -> dict[str, Any]:
+        return super().describe() | {"node": self.node, "waiting_for": sorted(self.missing)}
+
+
+class Vouch(Procedure):
+    """Asked whether this node hears ``node``, which it does not hear itself but reaches: it
+    asks ``node`` (a ``Suspect`` about itself, which a live node answers yes) and answers its
+    askers (``askers``: asker -> their suspicion's id) with what came back by the deadline —
+    SWIM's ping-req. Half the askers' window, so that a no still reaches them in time."""
+
+    NAME = "vouch"
+    INITIAL = Q.ASKING
+    DEADLINE_S = 0.25  # the node sets it per run to half its liveness window
+    MAX_ASKERS = 64  # one entry per asking node; a flood of names is not kept
+    TRANSITIONS: ClassVar[Table] = {
+        Q.ASKING: {"asked": Q.ASKING, "answered": Phase.FINISHED, "deadline": Phase.FINISHED}
+    }
+
+    def __init__(self, pid: int, now: float, node: str, deadline_s: float | None = None) -> None:
+        super().__init__(pid, now, deadline_s)
+        self.node = node
+        self.askers: dict[str, int] = {}
+
+    @property
+    def name(self) -> str:
+        return f"vouch for {self.node}"
+
+    def ask(self, asker: str, rid: int) -> None:
+        self.on("asked")
+        if asker in self.askers or len(self.askers) < self.MAX_ASKERS:
+            self.askers[asker] = rid
+
+    def start(self, ctx: NodeContext) -> None:
+        ctx.send(self.node, m.Suspect(self.node, self.pid))
+
+    def _tell(self, ctx: NodeContext, yes: bool) -> None:
+        for asker, rid in sorted(self.askers.items()):
+            ctx.send(asker, m.Hears(self.node, rid, yes))
+
+    def answered(self, ctx: NodeContext) -> None:
+        """``node`` answered: it lives."""
+        self.on("answered")
+        self._tell(ctx, True)
+
+    def expire(self, ctx: NodeContext) -> None:
+        """``node`` did not answer in time: we do not hear it."""
+        self.on("deadline")
+        self._tell(ctx, False)
+
+    def describe(self) -> dict[str, Any]:
+        return super().describe() | {"node": self.node, "askers": sorted(self.askers)}

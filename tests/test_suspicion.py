@@ -1,0 +1,247 @@
+"""A failure declared on one node's missing route must be confirmed by the nodes it still
+reaches: a node the others still hear is not declared failed (and reset) on one node's word,
+while a node that every node has lost is still declared failed, about as fast as before.
+
+Seen on the netns mesh: after a relay died, babeld left N4 with no route to N6 for over 12 s
+while N3 still heard N6; N4 declared N6 failed every 3 s and N6 reset, dropping its sink."""
+
+from __future__ import annotations
+
+from mso.node.core import Effect, NodeCore, Send
+from mso.protocol import messages as m
+from mso.sim.runner import Simulation
+from test_failure import PIPE, emitted, recoveries, started, stats, where
+
+
+def sink_instance(sim: Simulation) -> int:
+    return sim.cores["N6"].apps["pipe"].stones["sink"].instance
+
+
+def assert_nobody_held_failed_but(sim: Simulation, dead: set[str]) -> None:
+    for n, core in sim.cores.items():
+        if n not in sim.dead:
+            assert core.dead == dead, (n, core.dead)
+            assert {f["node"] for f in core.failures} <= dead, (n, core.failures)
+
+
+def test_a_node_that_loses_its_route_to_a_node_others_hear_does_not_declare_it() -> None:
+    sim = started(PIPE)  # src on N1, mid on N3, sink pinned on N6
+    assert where(sim, "pipe", "mid") == "N3"
+    incarnation, instance = sim.cores["N6"].incarnation, sink_instance(sim)
+    before = stats(sim, "pipe", "sink")["count"]
+    sim.lose_route("N4", "N6")  # the others still route to N6; N3 and N5 are its neighbours
+    sim.lose_route("N6", "N4")
+    sim.run_until(sim.now + 6.0)  # twelve liveness windows with no route between N4 and N6
+    assert_nobody_held_failed_but(sim, set())
+    assert sim.cores["N6"].incarnation == incarnation  # N6 never reset ...
+    assert sink_instance(sim) == instance  # ... so its sink is the same instance
+    got, sent = stats(sim, "pipe", "sink"), emitted(sim, "pipe", "src")
+    assert got["count"] > before + 500  # it kept receiving
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
+    assert sent - 5 <= got["count"] <= sent
+    sim.lose_route("N4", "N6", lost=False)  # babeld converges: nothing was disturbed
+    sim.lose_route("N6", "N4", lost=False)
+    sim.run_until(sim.now + 2.0)
+    assert_nobody_held_failed_but(sim, set())
+    assert not sim.cores["N4"].procedures  # no suspicion left open
+
+
+def test_a_killed_relay_is_recovered_while_one_survivor_has_no_route_to_the_sink() -> None:
+    """The netns mesh's flaky run, in virtual time: the relay that runs ``mid`` dies, and one
+    survivor is left with no route to the sink's node for seconds."""
+    sim = started(PIPE)
+    victim = where(sim, "pipe", "mid")
+    assert victim == "N3"
+    incarnation, instance = sim.cores["N6"].incarnation, sink_instance(sim)
+    sim.lose_route("N4", "N6")
+    sim.lose_route("N6", "N4")
+    sim.kill(victim, convergence_s=0.3)
+    sim.run_until(sim.now + 6.0)
+    assert_nobody_held_failed_but(sim, {victim})  # the relay, and only it
+    assert where(sim, "pipe", "mid") != victim
+    (rec,) = recoveries(sim, "pipe")
+    assert rec["ok"] and rec["lost"] == ["mid"], rec
+    assert sim.cores["N6"].incarnation == incarnation and sink_instance(sim) == instance
+    got, sent = stats(sim, "pipe", "sink"), emitted(sim, "pipe", "src")
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
+    assert sent - 5 <= got["count"] <= sent  # nothing from the source lost, nothing twice
+
+
+def first_declared(sim: Simulation, victim: str, t0: float) -> tuple[float, float]:
+    """When the first and the last survivor held ``victim`` failed, after ``t0``."""
+    at = [
+        min(f["at"] for f in c.failures if f["node"] == victim) - t0
+        for n, c in sim.cores.items()
+        if n != victim
+    ]
+    return min(at), max(at)
+
+
+def test_a_node_every_node_loses_is_still_declared_failed_about_as_fast() -> None:
+    """Every survivor's routes drop the dead node at once (no neighbour is left to time its
+    silence): they ask each other, nobody hears it, and it is declared. Before confirmation
+    every survivor declared it at 0.5 s (dead_after_s); now one round trip later."""
+    sim = started(PIPE)
+    t0 = sim.now
+    sim.kill("N5", convergence_s=0.0)
+    sim.run_until(t0 + 3.0)
+    assert_nobody_held_failed_but(sim, {"N5"})
+    first, last = first_declared(sim, "N5", t0)
+    dead_after, period = 0.5, 0.1
+    assert dead_after <= first and last <= dead_after + period + 0.02, (first, last)
+    assert all(not c.procedures or c.id == "N5" for c in sim.cores.values())
+
+
+def test_a_silent_neighbour_is_still_declared_without_asking() -> None:
+    """The neighbour-silence case keeps its fast, unconfirmed detection (the routing view
+    still lists the node as a neighbour, and it stopped beating)."""
+    sim = started(PIPE)
+    sim.trace = []
+    t0 = sim.now
+    sim.kill("N4", convergence_s=5.0)
+    sim.run_until(t0 + 1.0)
+    first, _ = first_declared(sim, "N4", t0)
+    assert 0.5 <= first <= 0.6
+    asked = [t for t in sim.trace if t[3] in ("Suspect", "Hears")]
+    assert asked == []
+
+
+def test_a_partition_is_still_a_failure_for_both_sides() -> None:
+    """A clean cut: nobody a side still reaches hears the other side, so each declares it."""
+    from test_rejoin import cut
+
+    sim = started(PIPE)
+    t0 = sim.now
+    cut(sim, [("N3", "N6"), ("N5", "N6")])  # N6 alone
+    sim.run_until(t0 + 0.65)
+    for n, core in sim.cores.items():
+        assert core.dead == ({"N1", "N2", "N3", "N4", "N5"} if n == "N6" else {"N6"}), n
+    assert [r for r in sim.replies if isinstance(r[2], m.Refused)] == []
+
+
+# -- one core, by hand: the suspicion's answers, its deadline, what ends it -------------------
+def suspecting(now: float = 1.0) -> tuple[NodeCore, list[Effect]]:
+    """N1 reaches N2 and N3 (N2 a neighbour); N4 was reachable through N2 until time 0."""
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 2)}, -1.0)
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2)}, 0.0)  # N4 out of reach from now
+    core.receive("N2", core._beat(), now - 0.05)  # N2 beats (it is N1's beat, as any beat)
+    return core, core.on_timer(("heartbeat",), now)
+
+
+def asked(effects: list[Effect]) -> dict[str, m.Suspect]:
+    return {e.dst: e.msg for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Suspect)}
+
+
+def test_a_node_out_of_reach_is_asked_about_not_declared() -> None:
+    core, effects = suspecting()
+    queries = asked(effects)
+    assert sorted(queries) == ["N2", "N3"] and {q.node for q in queries.values()} == {"N4"}
+    assert core.dead == set() and core.status(1.0)["suspected_nodes"] == ["N4"]
+    (rid,) = {q.rid for q in queries.values()}
+    core.receive("N2", m.Hears("N4", rid, False), 1.01)
+    assert core.dead == set()  # N3 has not answered
+    core.receive("N3", m.Hears("N4", rid, True), 1.02)  # N3 hears N4
+    assert core.dead == set() and core.procedures == {}
+    assert core.peers["N4"].state.name == "ALIVE"
+    assert asked(core.on_timer(("heartbeat",), 1.4)) == {}  # a window later, not before,
+    core.receive("N2", core._beat(), 1.55)
+    assert sorted(asked(core.on_timer(("heartbeat",), 1.6))) == ["N2", "N3"]  # asked again
+
+
+def test_a_node_nobody_hears_is_declared_once_all_say_no() -> None:
+    core, effects = suspecting()
+    (rid,) = {q.rid for q in asked(effects).values()}
+    core.receive("N2", m.Hears("N4", rid, False), 1.01)
+    out = core.receive("N3", m.Hears("N4", rid, False), 1.02)
+    assert core.dead == {"N4"} and core.failures[-1]["detector"] == "N1"
+    told = {e.dst for e in out if isinstance(e, Send) and isinstance(e.msg, m.NodeDown)}
+    assert told == {"N2", "N3"}
+    assert core.procedures == {}
+
+
+def test_a_suspicion_nobody_answers_is_confirmed_at_its_deadline() -> None:
+    """A node asked may have died too: its silence does not hold the declaration back."""
+    from mso.protocol.procedures.base import Deadline
+
+    core, effects = suspecting()
+    (rid,) = {q.rid for q in asked(effects).values()}
+    assert core.procedures[rid].deadline == 1.0 + core.liveness.dead_after_s
+    core.receive("N2", m.Hears("N4", rid, False), 1.01)
+    core.on_timer(Deadline(rid), 1.0 + core.liveness.dead_after_s)
+    assert core.dead == {"N4"} and core.procedures == {}
+
+
+def test_a_suspicion_ends_when_the_node_is_back_in_reach_or_heard() -> None:
+    core, _ = suspecting()
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N3", 3)}, 1.1)
+    assert core.procedures == {} and core.peers["N4"].state.name == "ALIVE"
+    core, _ = suspecting()
+    core.receive("N4", m.ChainDelay("nothing", 0, 1.0), 1.1)  # N4 reaches us: it lives
+    assert core.procedures == {} and core.peers["N4"].state.name == "ALIVE"
+    core, _ = suspecting()
+    core.receive("N3", m.NodeDown("N4", "N3"), 1.1)  # another detector's word ends it
+    assert core.procedures == {} and core.dead == {"N4"}
+
+
+def test_a_node_cut_off_from_everyone_declares_without_asking() -> None:
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1)}, -1.0)
+    core.set_routes({}, 0.0)
+    effects = core.on_timer(("heartbeat",), 1.0)
+    assert asked(effects) == {} and core.dead == {"N2"}
+
+
+def test_a_node_says_it_hears_a_node_only_when_it_heard_it_in_its_window() -> None:
+    """(One it reaches but has not heard in its window it asks: the test below.)"""
+    core = NodeCore("N2")
+    core.set_routes({"N1": ("N1", 1), "N4": ("N4", 1)}, 0.0)
+    core.receive("N4", core._beat(), 1.0)
+
+    def answer(about: str, now: float) -> bool:
+        (e,) = [e for e in core.receive("N1", m.Suspect(about, 7), now) if isinstance(e, Send)]
+        assert isinstance(e.msg, m.Hears) and e.dst == "N1" and e.msg.rid == 7
+        return e.msg.yes
+
+    assert answer("N4", 1.4)  # heard 0.4 s ago
+    assert not answer("N9", 1.0)  # never heard of it, out of reach
+    assert answer("N2", 1.0)  # itself: alive
+    core.receive("N1", m.NodeDown("N4", "N1"), 1.0)
+    assert not answer("N4", 1.0)  # held failed
+
+
+def test_a_node_reaching_none_of_the_suspects_neighbours_learns_it_lives_through_others() -> None:
+    """N4 keeps routes only to N1 and N2, neither of them N6's neighbour: they have not heard
+    N6 themselves, but they reach it, so they ask it (SWIM's ping-req) and answer yes."""
+    sim = started(PIPE)
+    incarnation = sim.cores["N6"].incarnation
+    sim.trace = []
+    for a, b in (("N4", "N6"), ("N4", "N3"), ("N4", "N5")):
+        sim.lose_route(a, b)
+        sim.lose_route(b, a)
+    sim.run_until(sim.now + 4.0)
+    assert_nobody_held_failed_but(sim, set())
+    assert sim.cores["N6"].incarnation == incarnation
+    pinged = {(dst, src) for _, dst, src, kind in sim.trace if kind == "Suspect"}
+    assert {("N1", "N4"), ("N2", "N4"), ("N6", "N1"), ("N6", "N2")} <= pinged
+    got, sent = stats(sim, "pipe", "sink"), emitted(sim, "pipe", "src")
+    assert got["repeats"] == 0 and sent - 5 <= got["count"] <= sent
+
+
+def test_a_node_asked_about_one_it_reaches_but_does_not_hear_asks_it() -> None:
+    from mso.protocol.procedures.base import Deadline
+
+    core = NodeCore("N2")
+    core.set_routes({"N1": ("N1", 1), "N3": ("N3", 1), "N6": ("N3", 2)}, 0.0)
+    (ping,) = [e for e in core.receive("N1", m.Suspect("N6", 41), 1.0) if isinstance(e, Send)]
+    assert ping.dst == "N6" and isinstance(ping.msg, m.Suspect) and ping.msg.node == "N6"
+    assert [e for e in core.receive("N4", m.Suspect("N6", 42), 1.01) if isinstance(e, Send)] == []
+    answer = m.Hears("N6", ping.msg.rid, True)
+    (yes, yes4) = [e for e in core.receive("N6", answer, 1.02) if isinstance(e, Send)]
+    assert (yes.dst, yes.msg) == ("N1", m.Hears("N6", 41, True))
+    assert (yes4.dst, yes4.msg) == ("N4", m.Hears("N6", 42, True))
+    assert core.procedures == {}
+    (ping,) = [e for e in core.receive("N1", m.Suspect("N6", 43), 2.0) if isinstance(e, Send)]
+    (no,) = [e for e in core.on_timer(Deadline(ping.msg.rid), 2.25) if isinstance(e, Send)]
+    assert (no.dst, no.msg) == ("N1", m.Hears("N6", 43, False))
+    assert core.procedures == {}
