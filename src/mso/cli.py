@@ -330,7 +330,13 @@ def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) ->
 
 
 @main.command(short_help="Run the bundled convoy app on an emulated 4-robot line.")
-@click.option("--duration", type=POSITIVE, default=40.0, show_default=True, help="Seconds to run.")
+@click.option(
+    "--duration",
+    type=POSITIVE,
+    default=56.0,
+    show_default=True,
+    help="Seconds to run (56: the leader turns the first corner, where the second survivor lies).",
+)
 @click.option("--plan-only", is_flag=True, help="Only form chains and plan; start no nodes.")
 @click.option(
     "--dashboard",
