@@ -245,3 +245,32 @@ def test_a_node_asked_about_one_it_reaches_but_does_not_hear_asks_it() -> None:
     (no,) = [e for e in core.on_timer(Deadline(ping.msg.rid), 2.25) if isinstance(e, Send)]
     assert (no.dst, no.msg) == ("N1", m.Hears("N6", 43, False))
     assert core.procedures == {}
+
+
+def _beat_holding_failed(sim: Simulation, sender: str, failed: list[str]) -> m.Heartbeat:
+    """``sender``'s beat (it runs something) holding ``failed`` failed in their incarnations."""
+    dead = {n: sim.cores[n].incarnation for n in failed}
+    core = sim.cores[sender]
+    return m.Heartbeat(sender, core.incarnation, dead, sender, 1)
+
+
+def test_a_beat_from_a_node_that_held_most_of_us_failed_does_not_reset_the_larger_side() -> None:
+    """N6 was cut off from everyone, held them all failed, and came back before N1 finished
+    confirming it (others had): N1 holds N6 failed too, and the rank resets N6, not N1."""
+    sim = started(PIPE)
+    n1 = sim.cores["N1"]
+    incarnation = n1.incarnation
+    beat = _beat_holding_failed(sim, "N6", ["N1", "N2", "N3", "N4", "N5"])
+    n1.receive("N6", beat, sim.now)
+    assert n1.incarnation == incarnation and "pipe" in n1.apps  # N1 did not reset
+    assert "N6" in n1.dead
+
+
+def test_a_beat_from_a_node_that_alone_missed_us_still_resets_us() -> None:
+    """N6 held only N1 failed (N1 stalled, say, and N6 declared it): N1 yields, as before."""
+    sim = started(PIPE)
+    n1 = sim.cores["N1"]
+    incarnation = n1.incarnation
+    n1.receive("N6", _beat_holding_failed(sim, "N6", ["N1"]), sim.now)
+    assert n1.incarnation == incarnation + 1  # reset: a new incarnation
+    assert "N6" not in n1.dead
