@@ -41,6 +41,7 @@ from mso.management import (
     lifetime_weight,
     load_policy,
     move_cost_j,
+    relays,
 )
 from mso.model.network import PowerModel
 
@@ -189,6 +190,46 @@ def test_estimate_uses_the_chain_when_the_successor_shares_the_node() -> None:
     assert est["D"].drain_w == pytest.approx(1.0)  # not involved at all
     assert est["U"].drain_w == pytest.approx(1.0 + 2.0 - 2e-4 + 4e-4)  # cpu, in local, out tx
     assert est["H"].drain_w == pytest.approx(1.0 - 2.0 - 1e-4 + 2e-4)  # cpu, in rx gone, out rx
+
+
+def with_hops(view: NodeView, **hops: int) -> NodeView:
+    return dataclasses.replace(view, hops=hops)
+
+
+def test_estimate_charges_the_relay_a_move_leaves_behind() -> None:
+    # the line U - H - D: B moves from H downstream to D, but A's output (100 B/s from U)
+    # still crosses H on its way to D: H saves its receiving and its sending B's output
+    # (200 B/s to D), and pays 100 B/s received and sent again as the relay
+    nodes = [
+        with_hops(node("H"), U=1, D=1),
+        with_hops(node("U"), H=1, D=2),
+        with_hops(node("D"), H=1, U=2),
+    ]
+    s = snap(0.0, nodes, [vertex()], [chain()])
+    est = estimate(s, {"app/B": "D"})
+    assert est["H"].drain_w == pytest.approx(1.0 - 2.0 - 1e-4 - 4e-4 + 3e-4)
+    assert est["U"].drain_w == pytest.approx(1.0)  # it sends as many bytes as before
+    assert est["D"].drain_w == pytest.approx(1.0 + 2.0 - 2e-4 + 1e-4)  # cpu, out local, in rx
+    # the same picture without the routes: the relay is not seen (the estimate before)
+    blind = estimate(snap(0.0, [node("H"), node("U"), node("D")], [vertex()], [chain()]), {})
+    assert blind["H"].drain_w == pytest.approx(1.0)
+    assert estimate(s, {})["H"].drain_w == pytest.approx(1.0)
+
+
+def test_relays_share_a_mesh_hop_and_need_a_known_distance() -> None:
+    # U reaches D through X or Y (equal routes): each is charged half
+    nodes = [
+        with_hops(node("U"), X=1, Y=1, D=2),
+        with_hops(node("X"), U=1, D=1, Y=2),
+        with_hops(node("Y"), U=1, D=1, X=2),
+        node("D"),
+        with_hops(node("Z"), U=1, D=3),  # off every shortest route
+    ]
+    s = snap(0.0, nodes, here="X")
+    assert relays(s, "U", "D") == {"X": 0.5, "Y": 0.5}
+    assert relays(s, "D", "U") == {"X": 0.5, "Y": 0.5}  # D reports no routes; U's do
+    assert relays(s, "U", "X") == {}  # neighbours: no relay
+    assert relays(snap(0.0, [node("X"), node("Y")], here="X"), "U", "D") == {}
 
 
 def test_estimate_refuses_unknown_vertices_and_nodes() -> None:
@@ -805,6 +846,14 @@ def test_the_energy_remap_never_sends_a_join_back_nor_onto_a_shorter_lived_node(
     dying.nodes["H"] = dataclasses.replace(dying.nodes["H"], remaining_j=90.0, lifetime_s=30.0)
     (p,) = rule.propose(dying)
     assert isinstance(p.action, RemapChains) and p.action.place == (("J", "U"),)
+    # ... or too soon after it lifts to act then (within vertex_interval_s, 30 s): 64 s left
+    # goes back now; 100 s left waits for the hold to lift (D is the candidate meanwhile)
+    for life, back in ((64.0, True), (100.0, False)):
+        s = joined(moved_at=40.0, moved_from="U")
+        s.nodes["H"] = dataclasses.replace(s.nodes["H"], remaining_j=3 * life, lifetime_s=life)
+        (p,) = rule.propose(s)
+        assert isinstance(p.action, RemapChains)
+        assert p.action.place == (("J", "U" if back else "D"),), life
     # it arrived 10 s ago: the drains in view do not show it yet
     assert rule.propose(joined(moved_at=90.0, moved_from="U")) == []
     # every neighbour expected to die sooner than H: nowhere to go

@@ -24,6 +24,7 @@ from mso.management.policy import (
     move_cost_j,
     move_cost_split_j,
     neighbour_nodes,
+    relays,
     slo_violations,
     with_extra_drain,
 )
@@ -88,6 +89,7 @@ __all__ = [
     "move_cost_j",
     "move_cost_split_j",
     "neighbour_nodes",
+    "relays",
     "slo_violations",
     "with_extra_drain",
 ]

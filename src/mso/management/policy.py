@@ -95,8 +95,9 @@ def estimate(snap: Snapshot, moves: Mapping[str, str]) -> dict[str, NodeEstimate
     rate r events/s) from A to B moves ``c * r / 1000 / cpu`` of load and ``cpu_w`` times that of
     drain (each side with its own cpu and power model). Each byte v receives from its
     predecessor's node costs that node ``tx_uj_per_byte`` and v's node ``rx_uj_per_byte``; the
-    same for what v sends its successor; co-located vertices exchange bytes for free. Relays
-    between the two nodes are not charged, nor are nodes without a view.
+    same for what v sends its successor; co-located vertices exchange bytes for free. Each node
+    in view that relays between the two (:func:`relays`) pays both, receiving and sending on;
+    nodes without a view pay nothing.
     """
     load = {n: view.load for n, view in snap.nodes.items()}
     drain = {n: view.drain_w for n, view in snap.nodes.items()}
@@ -126,6 +127,9 @@ def estimate(snap: Snapshot, moves: Mapping[str, str]) -> dict[str, NodeEstimate
             drain[sender] += snap.nodes[sender].power.tx_uj_per_byte * bytes_per_s * 1e-6
         if receiver in snap.nodes:
             drain[receiver] += snap.nodes[receiver].power.rx_uj_per_byte * bytes_per_s * 1e-6
+        for relay, share in relays(snap, sender, receiver).items():
+            pw = snap.nodes[relay].power
+            drain[relay] += (pw.rx_uj_per_byte + pw.tx_uj_per_byte) * share * bytes_per_s * 1e-6
 
     # every edge touching a moved vertex, once, with its ends before and after the moves
     edges: dict[tuple[Any, ...], tuple[str | None, str | None, str | None, str | None, float]] = {}
@@ -145,6 +149,31 @@ def estimate(snap: Snapshot, moves: Mapping[str, str]) -> dict[str, NodeEstimate
         n: NodeEstimate(load[n], drain[n], _lifetime(view.remaining_j, drain[n]))
         for n, view in snap.nodes.items()
     }
+
+
+def relays(snap: Snapshot, sender: str, receiver: str) -> dict[str, float]:
+    """The nodes in view that relay traffic from ``sender`` to ``receiver``, each with the
+    share of it that crosses it, by the hop counts the nodes report (NodeView.hops).
+
+    A node X lies on a shortest route when its hops to both ends add up to their distance
+    (known if either end is in view and reports the other). Where several such nodes are the
+    same number of hops from the sender (a mesh with equal routes), each takes an equal share:
+    the routing protocol picks one, and which is not known here. Nothing is charged when the
+    distance is unknown."""
+    a, b = snap.nodes.get(sender), snap.nodes.get(receiver)
+    dist = (a.hops.get(receiver) if a is not None else None) or (
+        b.hops.get(sender) if b is not None else None
+    )
+    if dist is None or dist < 2:
+        return {}
+    levels: dict[int, list[str]] = {}
+    for n, view in snap.nodes.items():
+        to_a, to_b = view.hops.get(sender), view.hops.get(receiver)
+        if n in (sender, receiver) or to_a is None or to_b is None:
+            continue
+        if to_a + to_b == dist:
+            levels.setdefault(to_a, []).append(n)
+    return {n: 1.0 / len(ns) for ns in levels.values() for n in ns}
 
 
 def move_cost_j(snap: Snapshot, vertex: VertexView | str, target: str) -> float:

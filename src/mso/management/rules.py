@@ -462,7 +462,8 @@ class EnergyRemapRule(_PolicyRule):
     charged as in :class:`RelocationRule`), among the nodes the policy's
     :meth:`~mso.management.Policy.capacity_weight` gives a weight above 0 — never this node, a
     flat battery, a node expected to die no later than this one, nor, within ``ping_pong_s``
-    of its last move, the node the vertex came from (unless this node would die first); and
+    of its last move, the node the vertex came from (unless this node would die first, or
+    within ``vertex_interval_s`` of the hold's end); and
     with ``spare_pinned``, a node that runs pinned vertices only when every other node in view
     does too (the paper's robot that "cannot offload any of its local sensing": its battery
     is kept for what only it can do, and the app ends when it dies, while movable work finds
@@ -510,11 +511,14 @@ class EnergyRemapRule(_PolicyRule):
             moved is not None
             and moved < self.settings.ping_pong_s
             and v.moved_from in weights
-            and here.lifetime_s > self.settings.ping_pong_s - moved
+            and here.lifetime_s
+            > self.settings.ping_pong_s - moved + self.settings.vertex_interval_s
         ):
             # no ping-pong: not back to the node it left — unless this node is expected to die
-            # before that hold lifts (in the energy study a robot that had just taken the join
-            # died with it 1 s before it could hand it back)
+            # before that hold lifts, or too soon after it to act then (one vertex interval):
+            # in the energy study a robot that had just taken the join died with it 1 s before
+            # the hold lifted, and once, the lifetime it expected always 4 s past the hold's
+            # end, 4 s after it
             weights[v.moved_from] = 0.0
         best = self.best_gain(snap, v, weights)
         if best is None:

@@ -29,6 +29,8 @@ class NodeView:
     remaining_j: float | None  # None: wall powered
     lifetime_s: float | None  # remaining / drain; None if wall powered or not yet known
     heard_at: float  # when this information was produced
+    # hops from this node to each node it routes to, as it last said (empty: not known)
+    hops: Mapping[str, int] = dataclasses.field(default_factory=dict)
 
     @property
     def battery(self) -> bool:

@@ -120,6 +120,7 @@ class Manager:
                 mon.remaining_j,
                 mon.lifetime_s,
                 now,
+                {dst: hops for dst, (_, hops) in core.routes.items()},
             )
         }
         self._sent = [s for s in self._sent if s[0] > now]
@@ -134,6 +135,7 @@ class Manager:
                     fig.remaining_j,
                     fig.lifetime_s,
                     at,
+                    fig.hops,
                 )
         vertices: list[VertexView] = []
         chains: list[ChainView] = []

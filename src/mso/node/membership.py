@@ -52,7 +52,15 @@ class Membership(Remapping):
             dict(self._dead_incarnation),
             self._leader(),
             self._hosting(),
-            m.Figures(self.capacity, mon.load, mon.drain_w, mon.remaining_j, mon.lifetime_s, power),
+            m.Figures(
+                self.capacity,
+                mon.load,
+                mon.drain_w,
+                mon.remaining_j,
+                mon.lifetime_s,
+                power,
+                {dst: hops for dst, (_, hops) in sorted(self.routes.items())},
+            ),
         )
 
     def _heartbeat(self, now: float) -> None:

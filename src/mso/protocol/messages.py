@@ -190,6 +190,9 @@ class Figures(msgspec.Struct, array_like=True, frozen=True):
     remaining_j: float | None
     lifetime_s: float | None
     power: tuple[float, float, float, float]  # idle_w, cpu_w, tx_uj_per_byte, rx_uj_per_byte
+    # the sender's routes: hops to each node it reaches. With them a node tells which nodes
+    # in its view relay the traffic between two others (a move's radio cost at the relays)
+    hops: dict[str, int] = msgspec.field(default_factory=dict)
 
 
 class Heartbeat(_Msg, tag="heartbeat"):
