@@ -92,6 +92,18 @@ def test_message_decoder_random_bytes(data: bytes) -> None:
             decode(data)
 
 
+@pytest.mark.parametrize("hops", [0, -3, 65, 10**6])
+def test_figures_claiming_an_impossible_route_length_do_not_decode(hops: int) -> None:
+    """The rules' estimate charges relays by the hop counts neighbours report: a count no
+    route can have is refused with the frame, not believed."""
+    power = (0.0, 0.0, 0.0, 0.0)
+    good = m.Figures(1.0, 0.0, 0.0, None, None, power, {"N1": 1, "N3": 64})
+    assert m.decode(m.encode(m.Heartbeat("N2", figures=good))) == m.Heartbeat("N2", figures=good)
+    bad = m.Figures(1.0, 0.0, 0.0, None, None, power, {"N1": hops})
+    with pytest.raises(msgspec.ValidationError, match=r"Expected `int` (>= 1|<= 64)"):
+        m.decode(m.encode(m.Heartbeat("N2", figures=bad)))
+
+
 APP = pipe_app(50).replace("pinned: N4", "pinned: N3")
 
 

@@ -9,7 +9,7 @@ code is only ever named here by the import paths in an app document, never shipp
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 import msgspec
 
@@ -181,6 +181,10 @@ class Marker(_Msg, tag="marker"):
     to: str  # where the vertex is going: its old instance hands over there
 
 
+Hops = Annotated[int, msgspec.Meta(ge=1, le=64)]
+"""A route's length: no route between the robots of one overlay is longer."""
+
+
 class Figures(msgspec.Struct, array_like=True, frozen=True):
     """A node's monitored figures, what the rules weigh a move toward it by."""
 
@@ -192,7 +196,7 @@ class Figures(msgspec.Struct, array_like=True, frozen=True):
     power: tuple[float, float, float, float]  # idle_w, cpu_w, tx_uj_per_byte, rx_uj_per_byte
     # the sender's routes: hops to each node it reaches. With them a node tells which nodes
     # in its view relay the traffic between two others (a move's radio cost at the relays)
-    hops: dict[str, int] = msgspec.field(default_factory=dict)
+    hops: dict[str, Hops] = msgspec.field(default_factory=dict)
 
 
 class Heartbeat(_Msg, tag="heartbeat"):
