@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+
+import pytest
 
 _TESTS = str(Path(__file__).resolve().parent)
 if _TESTS not in sys.path:
@@ -21,3 +24,16 @@ os.environ.setdefault(
 
 # in tests, a message at a moment a procedure's transition table does not allow raises
 NodeCore.strict = True
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _convoy_log_in_pytests_tmp(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The convoy's storage vertex writes $MSO_CONVOY_DB, else mso-convoy.sqlite in the
+    system's temp dir: a test that deploys the convoy without saying where would leave that
+    file behind. Tests that set it themselves still do."""
+    old = os.environ.get("MSO_CONVOY_DB")
+    if old is None:
+        os.environ["MSO_CONVOY_DB"] = str(tmp_path_factory.mktemp("convoy") / "convoy.sqlite")
+    yield
+    if old is None:
+        os.environ.pop("MSO_CONVOY_DB", None)
