@@ -517,8 +517,8 @@ class EnergyRemapRule(_PolicyRule):
             # no ping-pong: not back to the node it left — unless this node is expected to die
             # before that hold lifts, or too soon after it to act then (one vertex interval):
             # in the energy study a robot that had just taken the join died with it 1 s before
-            # the hold lifted, and once, the lifetime it expected always 4 s past the hold's
-            # end, 4 s after it
+            # the hold lifted; another, always expecting to live 4 s past the hold's end, died
+            # 4 s after it, still holding the join
             weights[v.moved_from] = 0.0
         best = self.best_gain(snap, v, weights)
         if best is None:
