@@ -154,11 +154,17 @@ def compose(
 class ScanFilter:
     """Removes isolated spikes (dust) with a median over 5 beams and marks dropouts invalid."""
 
-    def __call__(self, scan: LaserScan) -> FilteredScan:
-        from scipy import ndimage  # not at import: see mso.examples.convoy
+    def __init__(self) -> None:
+        # scipy at creation, in the worker: not at import (see mso.examples.convoy), and not at
+        # the first scan either, where its ~150 ms import held up the flow and every remap
+        # waiting for it to drain
+        from scipy import ndimage
 
+        self._median = ndimage.median_filter
+
+    def __call__(self, scan: LaserScan) -> FilteredScan:
         r = scan_ranges(scan)
-        smooth = ndimage.median_filter(r, size=5, mode="nearest")
+        smooth = self._median(r, size=5, mode="nearest")
         bad = (smooth >= RANGE_MAX_M * 0.99) | (smooth < 0.15) | (np.abs(r - smooth) > 0.3)
         mm = np.where(bad, 0, np.clip(np.rint(smooth * 1e3), 1, 65535)).astype("<u2")
         return FilteredScan(scan.seq, scan.stamp, mm.tobytes())

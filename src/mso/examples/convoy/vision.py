@@ -89,9 +89,13 @@ class BlobDetector:
     """Colour or intensity class, connected components (``scipy.ndimage.label``), per-blob
     area and extent, turned into bearings with the camera's field of view."""
 
-    def __call__(self, img: Image) -> Blobs:
-        from scipy import ndimage  # not at import: see mso.examples.convoy
+    def __init__(self) -> None:
+        from scipy import ndimage  # at creation, in the worker: see ScanFilter
 
+        self._ndimage = ndimage
+
+    def __call__(self, img: Image) -> Blobs:
+        ndimage = self._ndimage
         mask = classify(img)
         labels, n = ndimage.label(mask)
         blobs: list[tuple[float, float, int, float]] = []
