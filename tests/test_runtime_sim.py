@@ -176,7 +176,7 @@ edges:
 """
 
 
-def _data_frames(sim: Simulation) -> list[tuple[str, str, m.Data]]:
+def data_frames(sim: Simulation) -> list[tuple[str, str, m.Data]]:
     """Every Data frame the simulation puts on its network, from now on (a send hook)."""
     sent: list[tuple[str, str, m.Data]] = []
     inner = sim._send
@@ -194,7 +194,7 @@ def test_a_fork_to_one_node_sends_each_batch_once() -> None:
     """src feeds two vertices on N3: each batch crosses the two hops once, in one frame that
     names both edges, and each consumer still gets every event once and in order."""
     sim = Simulation(line(3))
-    sent = _data_frames(sim)
+    sent = data_frames(sim)
     reply = deploy(sim, FORK)
     assert reply.ok, reply.error
     sim.run_until(sim.now + 3.0)

@@ -422,19 +422,21 @@ class DataPlane(NodeTables):
     def _flush(self) -> None:
         """Send what the outbox gathered: one frame per edge, except that edges carrying the
         same events at the same time to the same node share one (``Data.also``)."""
-        frames: dict[tuple[str, str, float, tuple[bytes, ...]], m.Data] = {}
+        # (app, node, ts) -> its frames; events are compared, not hashed: the batches of one
+        # emit share their payload objects, so a fork's comparison is a pointer walk
+        frames: dict[tuple[str, str, float], list[m.Data]] = {}
         for (app, edge), (seq, events, ts) in self._outbox.items():
             dep = self.apps[app]
             dst = dep.placed[dep.app.edges[edge].dst]
             floor = out.acked if (out := dep.out.get(edge)) is not None else 0
-            key = (app, dst, ts, tuple(events))
-            data = frames.get(key)
+            same = frames.setdefault((app, dst, ts), [])
+            data = next((d for d in same if d.events == events), None)
             if data is None:
-                frames[key] = m.Data(app, edge, dep.epoch, seq, events, ts, floor)
+                same.append(m.Data(app, edge, dep.epoch, seq, events, ts, floor))
             else:
                 data.also.append((edge, seq, floor))
-        for (_, dst, _, _), data in frames.items():
-            self._effects.append(Send(dst, data))
+        for (_, dst, _), datas in frames.items():
+            self._effects.extend(Send(dst, data) for data in datas)
         self._outbox.clear()
         for dep in self.apps.values():
             for edge, ch in list(dep.inc.items()):

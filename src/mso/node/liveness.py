@@ -133,10 +133,6 @@ class Liveness:
         late = self.dead_after_s
         return sorted(n for n, t in self.gone.items() if n not in dead and now - t > late)
 
-    def suspects(self, now: float, dead: set[str]) -> list[str]:
-        """Both of the above (sorted, deterministic)."""
-        return sorted({*self.silent(now, dead), *self.unreachable(now, dead)})
-
     def hears(self, node: str, now: float) -> bool:
         """Heard from ``node`` within the liveness window: it was alive then (fail-stop), the
         answer a suspecting node asks for."""

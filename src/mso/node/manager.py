@@ -120,7 +120,7 @@ class Manager:
                 mon.remaining_j,
                 mon.lifetime_s,
                 now,
-                {dst: hops for dst, (_, hops) in core.routes.items()},
+                core.route_hops(),
             )
         }
         self._sent = [s for s in self._sent if s[0] > now]

@@ -59,7 +59,7 @@ class Membership(Remapping):
                 mon.remaining_j,
                 mon.lifetime_s,
                 power,
-                {dst: hops for dst, (_, hops) in sorted(self.routes.items())},
+                self.route_hops(),
             ),
         )
 

@@ -376,10 +376,12 @@ class NodeTables:
     def known_nodes(self) -> list[str]:
         return sorted({self.id, *self.routes})
 
+    def route_hops(self) -> dict[str, int]:
+        """Hops to each node this node routes to (itself not included)."""
+        return {n: hops for n, (_, hops) in self.routes.items()}
+
     def _distances(self) -> dict[str, int]:
-        d = {n: hops for n, (_, hops) in self.routes.items()}
-        d[self.id] = 0
-        return d
+        return {**self.route_hops(), self.id: 0}
 
     def _sample(self, now: float) -> None:
         out, inc = self.traffic()

@@ -55,10 +55,11 @@ def filtered_ranges(scan: FilteredScan) -> Array:
 
 def scan_points(scan: ScanPoints) -> tuple[Array, Array]:
     """A scan's valid end points in metres (robot frame)."""
-    mm = np.frombuffer(scan.ranges_mm, dtype="<u2")
-    a = beam_angles()[:: max(1, scan.step)][: len(mm)]
-    ok = mm[: len(a)] > 0
-    r = mm[: len(a)][ok] / 1e3
+    a = beam_angles()[:: max(1, scan.step)]
+    mm = np.frombuffer(scan.ranges_mm, dtype="<u2")[: len(a)]  # extra ranges: no such beam
+    a = a[: len(mm)]
+    ok = mm > 0
+    r = mm[ok] / 1e3
     xs: Array = r * np.cos(a[ok])
     ys: Array = r * np.sin(a[ok])
     return xs, ys
