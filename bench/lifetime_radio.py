@@ -51,11 +51,11 @@ import msgspec
 
 from mso.benchmarks import lifetime as study
 from mso.benchmarks.common import provenance, write_results
-from mso.node.dataplane import RETRANSMIT_S
-from mso.node.liveness import HEARTBEAT_S
-from mso.node.membership import MONITOR_PERIOD_S
 from mso.protocol import framing
 from mso.protocol import messages as m
+from mso.protocol.dataplane import RETRANSMIT_S
+from mso.protocol.procedures.membership.liveness import HEARTBEAT_S
+from mso.protocol.procedures.membership.peers import MONITOR_PERIOD_S
 from mso.sim.runner import Simulation
 
 # bench/lifetime_floor.py's leader-side vertices, and the ones its lowest leader draw ("nav

@@ -53,19 +53,19 @@ def overlay(granted_at: int = 1000) -> Simulation:
 def apps(sim: Simulation) -> dict[str, Any]:
     """Every node's apps, their placement and whether they run."""
     return {
-        n: {a: (dict(d.placed), d.running, sorted(d.stones)) for a, d in c.apps.items()}
+        n: {a: (dict(d.placed), d.running, sorted(d.instances)) for a, d in c.apps.items()}
         for n, c in sim.cores.items()
     }
 
 
 def sunk(sim: Simulation) -> int:
-    return int(sim.cores["N3"].apps["pipe"].stones["sink"].processed)
+    return int(sim.cores["N3"].instances("pipe")["sink"].processed)
 
 
 def robot(sim: Simulation, node: str, msg: m.Message, src: str = "N9") -> list[Any]:
     """The robot's message delivered to ``node`` (as a neighbour's; it may claim any source)."""
     effects = sim.cores[node].receive(src, msg, sim.now)
-    sim._apply(node, effects)
+    sim.apply(node, effects)
     return effects
 
 

@@ -38,9 +38,7 @@ def started(doc: str, net: Network | None = None) -> Simulation:
 
 
 def where(sim: Simulation, app: str, vertex: str) -> str:
-    (node,) = [
-        n for n, c in sim.cores.items() if n not in sim.dead and vertex in c.apps[app].stones
-    ]
+    (node,) = [n for n, c in sim.cores.items() if n not in sim.dead and vertex in c.instances(app)]
     return node
 
 
@@ -51,7 +49,7 @@ def stats(sim: Simulation, app: str, vertex: str) -> dict[str, int]:
 
 
 def emitted(sim: Simulation, app: str, vertex: str) -> int:
-    return sim.cores[where(sim, app, vertex)].apps[app].stones[vertex].emitted
+    return sim.cores[where(sim, app, vertex)].instances(app)[vertex].emitted
 
 
 def recoveries(sim: Simulation, app: str) -> list[dict[str, Any]]:
@@ -70,7 +68,7 @@ def test_interior_node_failure_is_detected_and_recovered_without_loss() -> None:
     sim.run_until(sim.now + 5.0)
     survivors = [n for n in sim.cores if n != victim]
     for n in survivors:  # every survivor knows, whether it detected it or was told
-        assert sim.cores[n].dead == {victim}
+        assert sim.cores[n].failed == {victim}
     detectors = {f["detector"] for n in survivors for f in sim.cores[n].failures}
     assert detectors <= set(sim.network.nodes) - {victim}
     assert where(sim, "pipe", "mid") != victim
@@ -124,7 +122,7 @@ def test_two_nodes_failing_at_once() -> None:
     sim.run_until(sim.now + 8.0)
     for n, core in sim.cores.items():
         if n not in victims:
-            assert core.dead == set(victims)
+            assert core.failed == set(victims)
     assert all(r["ok"] for r in recoveries(sim, "branch"))
     sent = emitted(sim, "branch", "src")
     for sink in ("s1", "s2"):
@@ -151,7 +149,7 @@ def test_a_broken_link_is_not_a_failure() -> None:
     sim.network.remove_link("N1", "N2")
     sim.update_routes()
     sim.run_until(sim.now + 3.0)
-    assert all(not core.dead for core in sim.cores.values())
+    assert all(not core.failed for core in sim.cores.values())
     assert recoveries(sim, "pipe") == []
 
 
@@ -222,7 +220,7 @@ def test_a_recovery_that_cannot_complete_is_retried_later_not_at_once() -> None:
     sim.update_routes()
     sim.run_until(sim.now + 3.0)
     core = sim.cores["N1"]
-    assert core.dead == {victim, "N6"}
+    assert core.failed == {victim, "N6"}
     recs = [r for c in sim.cores.values() for r in c.apps["pipe"].recoveries]
     failed = [r for r in recs if not r["ok"]]
     assert failed and "no route" in failed[0]["error"], recs

@@ -11,6 +11,7 @@ import pytest
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.node.core import NodeCore
 from mso.protocol import messages as m
+from mso.protocol.events import HeartbeatTick
 from mso.sim import faults, vertices
 from mso.sim.invariants import check
 from mso.sim.runner import Simulation
@@ -64,10 +65,10 @@ def test_the_checker_catches_a_vertex_that_vanished_and_a_duplicate() -> None:
     sim.run_until(3.0)
     records = vertices.RUNS.pop(str(seed), [])
     assert records and all(r.streams for r in records)
-    host = next(n for n, c in sim.cores.items() if "faults" in c.apps and c.apps["faults"].stones)
-    stones = sim.cores[host].apps["faults"].stones
-    gone = next(iter(stones))
-    del stones[gone]
+    host = next(n for n, c in sim.cores.items() if "faults" in c.apps and c.instances("faults"))
+    instances = sim.cores[host].apps["faults"].instances  # the table itself: broken on purpose
+    gone = next(iter(instances))
+    del instances[gone]
     stream = next(iter(records[0].streams.values()))
     stream.duplicates += 1
     found = {v.invariant for v in check(sim, sched, records)}
@@ -140,12 +141,12 @@ def line3() -> Simulation:
     sim = deployed_on_a_line()
     sim.request("N1", m.RelocateRequest("pipe", "mid", target="N3"))
     sim.run_until(2.0)
-    assert "mid" in sim.cores["N3"].apps["pipe"].stones
+    assert "mid" in sim.cores["N3"].instances("pipe")
     return sim
 
 
 def placements(sim: Simulation) -> dict[str, dict[str, str]]:
-    return {n: dict(c.apps["pipe"].placed) for n, c in sim.cores.items() if "pipe" in c.apps}
+    return {n: dict(c.placement("pipe")) for n, c in sim.cores.items() if "pipe" in c.apps}
 
 
 def test_a_node_restarted_inside_the_side_that_loses_a_partition_learns_the_winners_view() -> None:
@@ -157,15 +158,15 @@ def test_a_node_restarted_inside_the_side_that_loses_a_partition_learns_the_winn
     sim.network.remove_link("N1", "N2")
     sim.update_routes()
     sim.run_until(sim.now + 2.0)
-    assert "mid" in sim.cores["N1"].apps["pipe"].stones  # restored by N1, alone
+    assert "mid" in sim.cores["N1"].instances("pipe")  # restored by N1, alone
     sim.network.add_link(LinkSpec("N2", "N3", delay_ms=1.0))
     sim.revive("N3")
     sim.run_until(sim.now + 1.0)
-    assert sim.cores["N3"].apps["pipe"].placed["mid"] == "N3"  # N2's view, synced to it
+    assert sim.cores["N3"].placement("pipe")["mid"] == "N3"  # N2's view, synced to it
     sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
     sim.update_routes()
     sim.run_until(sim.now + 4.0)
-    assert all(not c.dead for c in sim.cores.values())
+    assert all(not c.failed for c in sim.cores.values())
     assert sim.cores["N1"].incarnation == 0 and sim.cores["N2"].incarnation == 1
     views = placements(sim)
     assert views["N3"] == views["N1"] == views["N2"] and views["N1"]["mid"] == "N1", views
@@ -177,23 +178,23 @@ def test_a_node_that_ran_every_vertex_and_restarted_at_once_gets_them_all_back()
     recovery; the lowest-named live node must do it."""
     sim = deployed_on_a_line()
     sim.run_until(2.0)
-    assert set(sim.cores["N1"].apps["pipe"].stones) == {"src", "mid", "sink"}
+    assert set(sim.cores["N1"].instances("pipe")) == {"src", "mid", "sink"}
     sim.kill("N1")
     sim.run_until(sim.now + 0.1)  # shorter than failure detection
     sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
     sim.revive("N1")
     sim.run_until(sim.now + 3.0)
     assert sim.cores["N1"].incarnation == 1
-    assert set(sim.cores["N1"].apps["pipe"].stones) == {"src", "mid", "sink"}
+    assert set(sim.cores["N1"].instances("pipe")) == {"src", "mid", "sink"}
     assert all(c.apps["pipe"].vanished == set() for c in sim.cores.values())
-    assert all(not c.apps["pipe"].stones for n, c in sim.cores.items() if n != "N1")
+    assert all(not c.instances("pipe") for n, c in sim.cores.items() if n != "N1")
 
 
 def test_a_committed_move_whose_old_host_fails_restores_the_vertex_at_its_target() -> None:
     """mid moves N3 -> N2; N3 fails once the producer has switched (its marker is lost with
     it). The new instance on N2 would wait for a handover forever: it is restored instead."""
-    from mso.protocol.procedures.relocate import Relocation
-    from mso.protocol.procedures.relocate import S as RelocState
+    from mso.protocol.procedures.relocation import Relocation
+    from mso.protocol.procedures.relocation import S as RelocState
 
     sim = line3()
     sim.request("N1", m.RelocateRequest("pipe", "mid", target="N2"), client=7)
@@ -212,7 +213,7 @@ def test_a_committed_move_whose_old_host_fails_restores_the_vertex_at_its_target
     (reply,) = [r for _, c, r in sim.replies if c == 7]
     assert isinstance(reply, m.RelocateReply) and reply.ok and reply.node == "N2", reply
     live = {n: c.apps["pipe"] for n, c in sim.cores.items() if n != "N3"}
-    assert "mid" in live["N2"].stones and not live["N2"].awaiting
+    assert "mid" in live["N2"].instances and not live["N2"].awaiting
     assert all(d.placed["mid"] == "N2" for d in live.values())
     sink = sim.instance("N1", "pipe", "sink")
     before = sink.count
@@ -229,7 +230,7 @@ def test_a_vertex_on_a_failed_node_is_not_relocated_but_restored_when_its_node_i
     sim.run_until(1.0)
     sim.request("N1", m.RelocateRequest("pipe", "mid", target="N3"))
     sim.run_until(2.0)
-    assert set(sim.cores["N3"].apps["pipe"].stones) == {"mid", "sink"}
+    assert set(sim.cores["N3"].instances("pipe")) == {"mid", "sink"}
     sim.kill("N3")
     sim.run_until(sim.now + 1.5)
     assert sim.cores["N2"].apps["pipe"].parked
@@ -242,7 +243,7 @@ def test_a_vertex_on_a_failed_node_is_not_relocated_but_restored_when_its_node_i
     sim.revive("N3")
     sim.run_until(sim.now + 3.0)
     deps = {n: c.apps["pipe"] for n, c in sim.cores.items()}
-    assert Counter(v for d in deps.values() for v in d.stones) == {"src": 1, "mid": 1, "sink": 1}
+    assert Counter(v for d in deps.values() for v in d.instances) == {"src": 1, "mid": 1, "sink": 1}
     assert not any(d.awaiting or d.parked for d in deps.values())
 
 
@@ -260,15 +261,15 @@ def test_two_nodes_that_hold_each_other_failed_with_equal_ranks_settle_by_name()
     sim.run_until(1.0)
     sim.kill("N1")
     sim.run_until(sim.now + 1.5)
-    assert sim.cores["N2"].dead == {"N1", "N5"} and sim.cores["N5"].dead == {"N1", "N2"}
+    assert sim.cores["N2"].failed == {"N1", "N5"} and sim.cores["N5"].failed == {"N1", "N2"}
     sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
     sim.network.add_link(LinkSpec("N1", "N5", delay_ms=1.0))
     sim.revive("N1")
     sim.run_until(sim.now + 4.0)
-    assert all(not c.dead for c in sim.cores.values())
+    assert all(not c.failed for c in sim.cores.values())
     assert sim.cores["N2"].incarnation == 0 and sim.cores["N5"].incarnation == 1
     deps = [c.apps["pipe"] for c in sim.cores.values()]
-    assert Counter(v for d in deps for v in d.stones) == {"src": 1, "mid": 1, "sink": 1}
+    assert Counter(v for d in deps for v in d.instances) == {"src": 1, "mid": 1, "sink": 1}
     assert not any(d.parked for d in deps)
 
 
@@ -334,7 +335,7 @@ def test_a_node_that_becomes_the_recovery_coordinator_later_starts_the_recovery(
     core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["mid", "sink"]), 1.0)
     assert not [p for p in core.procedures.values() if isinstance(p, Remap)]  # N2's job
     core.receive("N2", m.Moved("pipe", "sink", "N1"), 1.1)  # the sink runs here again
-    core.on_timer(("heartbeat",), 1.2)
+    core.on_timer(HeartbeatTick(), 1.2)
     (remap,) = [p for p in core.procedures.values() if isinstance(p, Remap)]
     assert remap.recovery is not None and remap.recovery["lost"] == ["mid"]
 
@@ -349,9 +350,9 @@ def test_a_restarted_node_learns_from_beats_which_incarnations_failed() -> None:
     core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2)}, 0.0)
     placed = {"src": "N2", "mid": "N3", "sink": "N1"}
     core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["sink"]), 1.0)
-    beat = msgspec.structs.replace(NodeCore("N2")._beat(), dead={"N3": 0})
+    beat = msgspec.structs.replace(NodeCore("N2").membership.beat(), failed={"N3": 0})
     core.receive("N2", beat, 1.1)
-    core.receive("N3", NodeCore("N3", incarnation=1)._beat(), 1.2)
+    core.receive("N3", NodeCore("N3", incarnation=1).membership.beat(), 1.2)
     assert [r["node"] for r in core.rejoins] == ["N3"]
     assert "mid" in core.apps["pipe"].vanished
 
@@ -366,10 +367,10 @@ def test_a_sync_older_than_a_moved_does_not_undo_it() -> None:
     core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["sink"]), 1.0)
     core.receive("N2", m.Moved("pipe", "mid", "N3"), 1.1)  # handed over to N3
     core.receive("N3", m.AppSync("pipe", "N2", doc, 0, placed, []), 1.2)  # sent before
-    assert core.apps["pipe"].placed["mid"] == "N3"
+    assert core.placement("pipe")["mid"] == "N3"
     moved = placed | {"mid": "N4"}
     core.receive("N4", m.AppSync("pipe", "N2", doc, 0, moved, []), 1.3)  # N4 runs it
-    assert core.apps["pipe"].placed["mid"] == "N4"
+    assert core.placement("pipe")["mid"] == "N4"
 
 
 def test_a_beat_from_an_incarnation_that_has_since_reset_resets_nobody() -> None:
@@ -380,10 +381,10 @@ def test_a_beat_from_an_incarnation_that_has_since_reset_resets_nobody() -> None
 
     core = NodeCore("N3")
     core.set_routes({"N6": ("N6", 1)}, 0.0)
-    core.receive("N6", NodeCore("N6", incarnation=1)._beat(), 1.0)
-    stale = msgspec.structs.replace(NodeCore("N6")._beat(), dead={"N3": 0})
+    core.receive("N6", NodeCore("N6", incarnation=1).membership.beat(), 1.0)
+    stale = msgspec.structs.replace(NodeCore("N6").membership.beat(), failed={"N3": 0})
     core.receive("N6", stale, 1.001)
-    assert core.incarnation == 0 and not core.dead
+    assert core.incarnation == 0 and not core.failed
 
 
 def test_a_restarted_node_that_held_everyone_failed_resets_nobody_that_runs_something() -> None:
@@ -399,13 +400,13 @@ def test_a_restarted_node_that_held_everyone_failed_resets_nobody_that_runs_some
     for n in ("N1", "N2"):
         sim.cores["N3"].receive("N4", m.NodeDown(n, "N4", 0), sim.now)
     sim.run_until(sim.now + 1.0)
-    assert sim.cores["N3"].dead == {"N1", "N2"}
+    assert sim.cores["N3"].failed == {"N1", "N2"}
     sim.network.add_link(LinkSpec("N2", "N3", delay_ms=1.0))
     sim.update_routes()
     sim.run_until(sim.now + 3.0)
-    assert all(not c.dead for c in sim.cores.values())
+    assert all(not c.failed for c in sim.cores.values())
     assert sim.cores["N1"].incarnation == 0
-    assert set(sim.cores["N1"].apps["pipe"].stones) == {"src", "mid", "sink"}
+    assert set(sim.cores["N1"].instances("pipe")) == {"src", "mid", "sink"}
     assert not sim.cores["N1"].apps["pipe"].parked
 
 
@@ -417,7 +418,7 @@ def test_a_consumer_skips_the_events_a_parked_chain_dropped() -> None:
     sim = Simulation(line_net())
     sim.request("N1", m.DeployRequest(pipe_app(50).replace("pinned: N4", "pinned: N3"), "a.yaml"))
     sim.run_until(1.0)
-    assert sim.cores["N2"].apps["pipe"].placed["mid"] == "N2"
+    assert sim.cores["N2"].placement("pipe")["mid"] == "N2"
     sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0, loss=1.0))  # data frames only
     sim.kill("N3")
     sim.run_until(sim.now + 1.5)
@@ -446,15 +447,17 @@ def test_a_node_that_crashed_for_both_sides_does_not_decide_who_resets() -> None
     sim.request("N1", m.DeployRequest(pipe_app(50), "app.yaml"))  # src on N1, sink on N4
     sim.run_until(1.0)
     n1, n4 = sim.cores["N1"], sim.cores["N4"]
-    assert n1.apps["pipe"].stones and n4.apps["pipe"].stones
+    assert n1.instances("pipe") and n4.instances("pipe")
     now = sim.now
     n1.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 3)}, now)  # N5 is gone
     n4.set_routes({"N3": ("N3", 1), "N2": ("N3", 2), "N1": ("N3", 3)}, now)
     for core, other in ((n1, "N4"), (n4, "N1")):
         core.receive("N3", m.NodeDown(other, "N3", 0), now)
         core.receive("N3", m.NodeDown("N5", "N3", 0), now)
-    beat4 = msgspec.structs.replace(n4._beat(), dead={"N1": 0})  # sent before N5 was heard of
-    beat1 = msgspec.structs.replace(n1._beat(), dead={"N4": 0})
+    beat4 = msgspec.structs.replace(
+        n4.membership.beat(), failed={"N1": 0}
+    )  # sent before N5 was heard of
+    beat1 = msgspec.structs.replace(n1.membership.beat(), failed={"N4": 0})
     n1.receive("N4", beat4, now)
     n4.receive("N1", beat1, now)
     assert n1.incarnation == 0 and "pipe" in n1.apps  # the lower leader stays
@@ -476,7 +479,7 @@ def test_a_node_that_missed_the_apps_sync_gets_it_when_asked_to_host_a_vertex() 
     sim.run_until(sim.now + 0.5)
     (moved,) = [r for _, c, r in sim.replies if c == 8]
     assert isinstance(moved, m.RelocateReply) and moved.ok, moved
-    assert placements(sim)["N3"]["mid"] == "N2" and "mid" in sim.cores["N2"].apps["pipe"].stones
+    assert placements(sim)["N3"]["mid"] == "N2" and "mid" in sim.cores["N2"].instances("pipe")
 
 
 MERGE = """
@@ -501,7 +504,7 @@ def test_a_merge_vertex_fed_from_one_node_moves_with_both_markers() -> None:
     sim.request("N1", m.DeployRequest(MERGE, "merge.yaml"))
     sim.run_until(1.0)
     core = sim.cores["N1"]
-    assert "m" in core.apps["merge"].stones
+    assert "m" in core.instances("merge")
     effects = [
         *core.receive("N3", m.Switch("merge", 0, "N2", 99, "N1"), sim.now),
         *core.receive("N3", m.Switch("merge", 1, "N2", 99, "N1"), sim.now),
@@ -549,7 +552,7 @@ def test_a_restore_retried_without_a_producer_lost_since_does_not_wait_for_it() 
     core.receive("N2", m.Prepare("pipe", "mid", 7, True, [[1, False]]), 2.2)  # src lost now
     assert "mid" in dep.awaiting  # the sink has not said where it stands yet
     core.receive("N4", m.Resume("pipe", 1, 7, False, 0), 2.3)
-    assert "mid" in dep.stones and not dep.awaiting and "mid" not in dep.restoring
+    assert "mid" in dep.instances and not dep.awaiting and "mid" not in dep.restoring
 
 
 def test_a_sync_says_where_its_sender_handed_a_vertex_over() -> None:
@@ -563,7 +566,7 @@ def test_a_sync_says_where_its_sender_handed_a_vertex_over() -> None:
     core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["sink"]), 1.0)
     moved = placed | {"mid": "N4", "src": "N4"}  # N3 heard src moved: hearsay, not taken
     core.receive("N3", m.AppSync("pipe", "N2", doc, 0, moved, [], {"mid": "N4"}), 1.1)
-    assert core.apps["pipe"].placed["mid"] == "N4" and core.apps["pipe"].placed["src"] == "N2"
+    assert core.placement("pipe")["mid"] == "N4" and core.placement("pipe")["src"] == "N2"
 
 
 def test_a_node_restarted_across_a_partition_and_given_instances_yields_when_it_heals() -> None:
@@ -578,19 +581,19 @@ def test_a_node_restarted_across_a_partition_and_given_instances_yields_when_it_
     sim.run_until(1.0)
     sim.request("N3", m.RelocateRequest("pipe", "mid", target="N1"))
     sim.run_until(2.0)
-    assert "mid" in sim.cores["N1"].apps["pipe"].stones
+    assert "mid" in sim.cores["N1"].instances("pipe")
     sim.network.remove_link("N1", "N2")
     sim.kill("N3")
     sim.run_until(sim.now + 1.5)
     sim.network.add_link(LinkSpec("N2", "N3", delay_ms=1.0))
     sim.revive("N3")
     sim.run_until(sim.now + 1.5)
-    assert set(sim.cores["N3"].apps["pipe"].stones) == {"src", "mid", "sink"}  # N2's side
+    assert set(sim.cores["N3"].instances("pipe")) == {"src", "mid", "sink"}  # N2's side
     sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
     sim.update_routes()
     sim.run_until(sim.now + 3.0)
     deps = [c.apps["pipe"] for c in sim.cores.values()]
-    assert Counter(v for d in deps for v in d.stones) == {"src": 1, "mid": 1, "sink": 1}
+    assert Counter(v for d in deps for v in d.instances) == {"src": 1, "mid": 1, "sink": 1}
     assert len({tuple(sorted(d.placed.items())) for d in deps}) == 1
     assert sim.cores["N3"].incarnation == 2  # it yielded
 
@@ -632,9 +635,9 @@ def test_adjacent_vertices_restored_together_repeat_nothing() -> None:
     for v in ("a", "b"):
         sim.request("N1", m.RelocateRequest("pipe", v, target="N3"))
         sim.run_until(sim.now + 0.5)
-    assert set(sim.cores["N3"].apps["pipe"].stones) == {"a", "b"}
+    assert set(sim.cores["N3"].instances("pipe")) == {"a", "b"}
     sim.kill("N3")
     sim.run_until(sim.now + 2.0)
-    assert {"a", "b"} <= set(sim.cores["N1"].apps["pipe"].stones)
+    assert {"a", "b"} <= set(sim.cores["N1"].instances("pipe"))
     sink = sim.instance("N1", "pipe", "sink")
     assert sink.repeats == 0 and sink.out_of_order == 0 and sink.count > 700, vars(sink)

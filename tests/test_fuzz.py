@@ -150,7 +150,7 @@ def test_every_handler_survives_messages_of_wrong_meaning(
             effects = core.request(rng.randrange(5), msg, sim.now)
         else:
             effects = core.receive(rng.choice(["N1", "N2", "N3", "N9"]), msg, sim.now)
-        sim._apply(node, effects)
+        sim.apply(node, effects)
     sim.run_until(sim.now + 0.5)
     for core in sim.cores.values():
         assert sum(len(v) for v in core._early.values()) <= core.MAX_EARLY * 65
@@ -288,10 +288,10 @@ def test_a_refused_message_is_counted(
 ) -> None:
     monkeypatch.setattr(NodeCore, "strict", True)  # a handler that raises fails the test
     core = untouched.cores[node]
-    before, errors, placed = counted(core), core.handler_errors, dict(core.apps["pipe"].placed)
+    before, errors, placed = counted(core), core.handler_errors, dict(core.placement("pipe"))
     assert core.receive(src, msg, untouched.now) == []  # nothing done
     assert counted(core) == before + 1 and core.handler_errors == errors
-    assert core.apps["pipe"].placed == placed and core.apps["pipe"].running
+    assert core.placement("pipe") == placed and core.apps["pipe"].running
     status = core.status(untouched.now)
     assert status["dropped_messages"] == core.dropped_messages
     if not isinstance(msg, m.Data | m.Ack):  # (the data plane counts its drops as it did)

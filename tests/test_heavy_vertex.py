@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 import msgspec
 
 from mso.benchmarks.common import SequenceCheck
+from mso.protocol.events import HeartbeatTick
 
 if TYPE_CHECKING:
     import pytest
@@ -179,8 +180,8 @@ def test_detection_settings_are_checked() -> None:
 
 def test_liveness_keeps_heartbeat_inter_arrivals() -> None:
     """Status shows how late each neighbour's heartbeats came (bounded, per neighbour)."""
-    from mso.node.liveness import GAP_SAMPLES, Liveness
     from mso.protocol import messages as m
+    from mso.protocol.procedures.membership.liveness import GAP_SAMPLES, Liveness
 
     lv = Liveness(0.05, 0.15)
     lv.set_neighbours(0.0, {"N2"})
@@ -210,7 +211,7 @@ def test_heartbeats_carry_the_figures_once_a_monitor_period_and_to_a_new_neighbo
     def beats(now: float) -> dict[str, m.Heartbeat]:
         for n in core.liveness.neighbours:  # they live: slim beats of theirs say so
             core.receive(n, m.Heartbeat(n), now)
-        out = core.on_timer(("heartbeat",), now)
+        out = core.on_timer(HeartbeatTick(), now)
         return {e.dst: e.msg for e in out if isinstance(e, Send) and isinstance(e.msg, m.Heartbeat)}
 
     sent = [beats(0.1 * k) for k in range(1, 21)]

@@ -118,7 +118,7 @@ def test_a_crashed_process_vertex_is_restored_in_place_and_loses_nothing(
     MAX_RESTARTS restores it stays crashed, its chain is reported parked with the reason,
     and the sink has had exactly the events before it (the rest is held upstream)."""
     from mso.emu.controller import Emulator
-    from mso.protocol.procedures.hosting import MAX_RESTARTS
+    from mso.protocol.procedures.instance import MAX_RESTARTS
     from mso.scenario import loads_scenario
 
     _vertices_importable(monkeypatch)

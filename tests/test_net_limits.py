@@ -145,7 +145,7 @@ def test_an_incarnation_at_the_end_of_its_range_is_not_believed() -> None:
                 writer.write(codec.seal(m.wrap("N2", "N1", msg)))
             await writer.drain()
             for _ in range(200):  # until the plausible one was taken
-                if "N5" in driver.core.dead:
+                if "N5" in driver.core.failed:
                     break
                 await asyncio.sleep(0.01)
             writer.close()

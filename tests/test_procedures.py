@@ -7,8 +7,8 @@ import pytest
 from mso.protocol import messages as m
 from mso.protocol.procedures.base import IllegalTransition, Phase, table_rows
 from mso.protocol.procedures.deploy import Deploy
-from mso.protocol.procedures.hosting import H
-from mso.protocol.procedures.relocate import Relocation
+from mso.protocol.procedures.instance import H
+from mso.protocol.procedures.relocation import Relocation
 from mso.protocol.procedures.remap import Remap
 from mso.protocol.procedures.status import StatusFanout
 from mso.sim.runner import Simulation
@@ -48,7 +48,7 @@ def test_a_status_fan_out_answers_by_its_deadline_without_a_dead_node() -> None:
 def test_a_relocation_whose_target_never_answers_fails_at_its_deadline() -> None:
     sim = Simulation(line(4))
     assert deploy(sim, PIPE).ok
-    mid = next(n for n, c in sim.cores.items() if "mid" in c.apps["pipe"].stones)
+    mid = next(n for n, c in sim.cores.items() if "mid" in c.instances("pipe"))
     target = "N3" if mid != "N3" else "N2"
     sim.cores[target].strict = False
     sim.kill(target, convergence_s=60.0)  # its Prepared never comes, no failure is known yet
@@ -78,8 +78,8 @@ def test_the_architecture_page_shows_the_tables_the_code_has() -> None:
 def test_an_instance_moves_through_its_lifecycle_at_both_hosts() -> None:
     sim = Simulation(line(4))
     assert deploy(sim, PIPE).ok
-    old = next(n for n, c in sim.cores.items() if "mid" in c.apps["pipe"].stones)
-    leaving = sim.cores[old].apps["pipe"].stones["mid"]
+    old = next(n for n, c in sim.cores.items() if "mid" in c.instances("pipe"))
+    leaving = sim.cores[old].instances("pipe")["mid"]
     assert leaving.life.state is H.RUNNING
     target = "N3" if old != "N3" else "N2"
     sim.request("N1", m.RelocateRequest("pipe", "mid", target=target), client=5)
@@ -87,7 +87,7 @@ def test_an_instance_moves_through_its_lifecycle_at_both_hosts() -> None:
     ((_, _, reply),) = [(t, c, r) for t, c, r in sim.replies if c == 5]
     assert isinstance(reply, m.RelocateReply) and reply.ok, reply
     assert leaving.life.state is Phase.FINISHED  # handed over, then stopped
-    arrived = sim.cores[target].apps["pipe"].stones["mid"]
+    arrived = sim.cores[target].instances("pipe")["mid"]
     assert arrived.life.state is H.RUNNING
     with pytest.raises(IllegalTransition, match="'handover' is not allowed in state RUNNING"):
         arrived.life.on("handover")  # a second handover for a running instance
@@ -98,14 +98,9 @@ def test_a_move_that_fails_before_any_switch_leaves_no_instance_at_its_target() 
     instance it prepared (Unprepare) and the vertex runs on where it was, losing nothing."""
     sim = Simulation(line(4))
     assert deploy(sim, PIPE).ok
-    old = next(n for n, c in sim.cores.items() if "mid" in c.apps["pipe"].stones)
+    old = next(n for n, c in sim.cores.items() if "mid" in c.instances("pipe"))
     target = "N3" if old != "N3" else "N2"
-    send = sim._send
-
-    def lose_prepared(node: str, dst: str, msg: m.Message) -> bool:
-        return True if isinstance(msg, m.Prepared) else send(node, dst, msg)
-
-    sim._send = lose_prepared  # type: ignore[method-assign]
+    sim.drop = lambda node, dst, msg: isinstance(msg, m.Prepared)
     sim.request("N1", m.RelocateRequest("pipe", "mid", target=target), client=5)
     sim.run_until(sim.now + 1.0)
     waiting = sim.cores[target].apps["pipe"].awaiting["mid"]
@@ -115,10 +110,10 @@ def test_a_move_that_fails_before_any_switch_leaves_no_instance_at_its_target() 
     assert isinstance(reply, m.RelocateReply) and not reply.ok
     assert "mid" not in sim.cores[target].apps["pipe"].awaiting
     assert waiting.life.state is Phase.FAILED
-    assert "mid" in sim.cores[old].apps["pipe"].stones
-    before = sim.cores[old].apps["pipe"].stones["mid"].processed
+    assert "mid" in sim.cores[old].instances("pipe")
+    before = sim.cores[old].instances("pipe")["mid"].processed
     sim.run_until(sim.now + 1.0)
-    assert sim.cores[old].apps["pipe"].stones["mid"].processed > before
+    assert sim.cores[old].instances("pipe")["mid"].processed > before
 
 
 def test_a_vertex_that_has_seen_no_event_yet_moves() -> None:
@@ -127,10 +122,10 @@ def test_a_vertex_that_has_seen_no_event_yet_moves() -> None:
     app = PIPE.replace("runtime_vertices:CountingSource", "runtime_vertices:Silent")
     sim = Simulation(line(4))
     assert deploy(sim, app).ok
-    old = next(n for n, c in sim.cores.items() if "mid" in c.apps["pipe"].stones)
+    old = next(n for n, c in sim.cores.items() if "mid" in c.instances("pipe"))
     target = "N3" if old != "N3" else "N2"
     sim.request("N1", m.RelocateRequest("pipe", "mid", target=target), client=5)
     sim.run_until(sim.now + 1.0)
     ((_, _, reply),) = [(t, c, r) for t, c, r in sim.replies if c == 5]
     assert isinstance(reply, m.RelocateReply) and reply.ok, reply
-    assert "mid" in sim.cores[target].apps["pipe"].stones
+    assert "mid" in sim.cores[target].instances("pipe")

@@ -30,7 +30,7 @@ def instances(sim: Simulation, app: str) -> Counter[str]:
         v
         for n, c in sim.cores.items()
         if n not in sim.dead and app in c.apps
-        for v in c.apps[app].stones
+        for v in c.instances(app)
     )
 
 
@@ -40,14 +40,14 @@ def test_a_cut_off_sink_node_rejoins_and_its_parked_chain_runs_again() -> None:
     cut(sim, n5)
     sim.run_until(sim.now + 3.0)
     for n, core in sim.cores.items():
-        assert core.dead == ({"N5"} if n != "N5" else set(sim.network.nodes) - {"N5"}), n
+        assert core.failed == ({"N5"} if n != "N5" else set(sim.network.nodes) - {"N5"}), n
     assert "j-c-s2" in sim.cores["N1"].status(sim.now)["apps"]["branch"]["parked"]
     s1_before = stats(sim, "branch", "s1")["count"]
-    hosting = {n for n, c in sim.cores.items() if n != "N5" and c.apps["branch"].stones}
+    hosting = {n for n, c in sim.cores.items() if n != "N5" and c.instances("branch")}
 
     heal(sim, n5)
     sim.run_until(sim.now + 5.0)
-    assert all(not core.dead for core in sim.cores.values())
+    assert all(not core.failed for core in sim.cores.values())
     # N5 lost the tie-break (it counted everyone else failed) and rejoined as incarnation 1;
     # the nodes of the larger side that ran vertices kept theirs (those that ran none may
     # have yielded: they lose nothing by it)
@@ -74,12 +74,12 @@ def test_a_healed_even_split_rejoins_the_side_with_the_higher_leader() -> None:
     across = [("N3", "N6"), ("N1", "N4"), ("N2", "N5"), ("N3", "N5")]
     cut(sim, across)  # {N1, N2, N3} | {N4, N5, N6}
     sim.run_until(sim.now + 3.0)
-    assert sim.cores["N1"].dead == {"N4", "N5", "N6"}
-    assert sim.cores["N6"].dead == {"N1", "N2", "N3"}
+    assert sim.cores["N1"].failed == {"N4", "N5", "N6"}
+    assert sim.cores["N6"].failed == {"N1", "N2", "N3"}
 
     heal(sim, across)
     sim.run_until(sim.now + 6.0)
-    assert all(not core.dead for core in sim.cores.values())
+    assert all(not core.failed for core in sim.cores.values())
     # three failed nodes each side: the side led by N1 stays (N1 runs src), the other
     # resets and rejoins (N6 ran the sink); nodes that ran nothing may yield either way
     assert sim.cores["N1"].incarnation == 0 and sim.cores["N6"].incarnation == 1
@@ -95,11 +95,11 @@ def test_a_restarted_node_is_a_new_incarnation_and_gets_its_pinned_vertex_back()
     links = [(a, b) for a, b in MESH_LINKS if "N5" in (a, b)]
     sim.kill("N5", convergence_s=0.3)
     sim.run_until(sim.now + 3.0)
-    assert all(core.dead == {"N5"} for n, core in sim.cores.items() if n != "N5")
+    assert all(core.failed == {"N5"} for n, core in sim.cores.items() if n != "N5")
     heal(sim, links)
     sim.revive("N5")  # a new process: incarnation 1, no apps
     sim.run_until(sim.now + 5.0)
-    assert all(not core.dead for core in sim.cores.values())
+    assert all(not core.failed for core in sim.cores.values())
     assert sim.cores["N5"].incarnation == 1
     assert set(instances(sim, "branch").values()) == {1}
     s2 = stats(sim, "branch", "s2")
@@ -111,19 +111,20 @@ def test_a_node_told_an_app_again_rearms_its_retransmission() -> None:
     app; AppSync must arm it again, or lost frames from this node are never resent."""
     from mso.node.core import NodeCore, SetTimer
     from mso.protocol import messages as m
+    from mso.protocol.events import Retransmit
 
     core = NodeCore("N6")
     placed = {"src": "N1", "mid": "N3", "sink": "N6"}
     effects = core.receive("N1", m.AppSync("pipe", "N1", PIPE, 0, placed, ["sink"]), 5.0)
     dep = core.apps["pipe"]
     assert dep.running and dep.placed == placed and dep.vanished == {"sink"}
-    assert not dep.stones  # the sink is restored by the survivors' coordinator, not here
+    assert not dep.instances  # the sink is restored by the survivors' coordinator, not here
     timers = [e.key for e in effects if isinstance(e, SetTimer)]
-    assert ("retransmit", "pipe") in timers
+    assert Retransmit("pipe") in timers
 
 
 def test_after_a_reset_a_node_still_out_of_reach_is_failed_again_unless_a_route_appears() -> None:
-    from mso.node.liveness import Liveness
+    from mso.protocol.procedures.membership.liveness import Liveness
 
     live = Liveness(period_s=0.1, dead_after_s=0.5)
     live.set_routes(0.0, {"N2"}, {"N2"})

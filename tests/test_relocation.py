@@ -46,7 +46,7 @@ def relocate(sim: Simulation, via: str, **kw: str) -> m.RelocateReply:
 
 
 def where(sim: Simulation, vertex: str) -> set[str]:
-    return {n for n, c in sim.cores.items() if vertex in c.apps["pipe"].stones}
+    return {n for n, c in sim.cores.items() if vertex in c.instances("pipe")}
 
 
 def sink_stats(sim: Simulation) -> dict[str, int]:
@@ -71,14 +71,14 @@ def test_upstream_and_downstream_moves_lose_nothing_and_keep_state() -> None:
         moves += 1
         assert where(sim, "counter") == {reply.node}
         # every node learned the new place
-        assert all(c.apps["pipe"].placed["counter"] == reply.node for c in sim.cores.values())
+        assert all(c.placement("pipe")["counter"] == reply.node for c in sim.cores.values())
     assert moves >= 4
     # an upstream move never made the new instance drop events as a gap (no go-back-N stall)
     gaps = sum(ch.gaps for c in sim.cores.values() for ch in c.apps["pipe"].inc.values())
     assert gaps == 0
     sim.run_until(sim.now + 1.0)
     stats = sink_stats(sim)
-    emitted = sim.cores["N1"].apps["pipe"].stones["src"].emitted
+    emitted = sim.cores["N1"].instances("pipe")["src"].emitted
     assert stats["repeats"] == 0 and stats["out_of_order"] == 0
     assert emitted - 10 <= stats["count"] <= emitted
     counter_node = next(iter(where(sim, "counter")))
@@ -98,10 +98,10 @@ def test_upstream_and_downstream_moves_lose_nothing_and_keep_state() -> None:
 )
 def test_refusals_leave_the_overlay_as_it_was(kw: dict[str, str], error: str) -> None:
     sim = started()
-    before = {n: dict(c.apps["pipe"].placed) for n, c in sim.cores.items()}
+    before = {n: dict(c.placement("pipe")) for n, c in sim.cores.items()}
     reply = relocate(sim, "N2", **kw)
     assert not reply.ok and error in reply.error
-    assert {n: dict(c.apps["pipe"].placed) for n, c in sim.cores.items()} == before
+    assert {n: dict(c.placement("pipe")) for n, c in sim.cores.items()} == before
 
 
 FORK = """
@@ -142,7 +142,7 @@ def test_moves_in_and_out_of_a_folded_fork_lose_nothing() -> None:
         together.append(where(sim, "left") == where(sim, "right"))
     assert seen == together == [False, False, True, False, True]  # folded while together
     sim.run_until(sim.now + 1.0)
-    emitted = sim.cores["N1"].apps["pipe"].stones["src"].emitted
+    emitted = sim.cores["N1"].instances("pipe")["src"].emitted
     for sink in ("lsink", "rsink"):
         stats = sim.cores["N4"].status(sim.now)["apps"]["pipe"]["vertices"][sink]["stats"]
         assert stats["repeats"] == 0 and stats["out_of_order"] == 0

@@ -47,7 +47,7 @@ def remap(sim: Simulation, via: str, chains: list[int], everything: bool = False
 
 def accounting(sim: Simulation) -> tuple[dict[str, int], int]:
     sink = sim.cores["N5"].status(sim.now)["apps"]["merge"]["vertices"]["sink"]["stats"]
-    stones = sim.cores["N1"].apps["merge"].stones
+    stones = sim.cores["N1"].instances("merge")
     return sink, stones["s1"].emitted + stones["s2"].emitted
 
 
@@ -60,12 +60,12 @@ def test_chain_remap_follows_a_shorter_route_and_loses_nothing() -> None:
     net = line5()
     sim = started(net)
     tail_chain = chain_index(sim, "m", "sink")
-    before = dict(sim.cores["N1"].apps["merge"].placed)
+    before = dict(sim.cores["N1"].placement("merge"))
     net.add_link(LinkSpec("N2", "N5", delay_ms=1.0))  # the convoy closes up: a shortcut (Fig. 4)
     sim.update_routes()
     reply = remap(sim, "N3", [tail_chain])
     assert reply.ok, reply.error
-    placed = sim.cores["N4"].apps["merge"].placed
+    placed = sim.cores["N4"].placement("merge")
     assert reply.moved and all(placed[v] == n for v, n in reply.moved.items())
     assert placed["m"] == before["m"] and placed["sink"] == "N5"  # head and tail stay
     assert all(placed[v] in ("N2", "N5") for v in ("c", "counter", "d"))  # along the new route
@@ -89,10 +89,10 @@ def test_global_remap_in_dependency_order_loses_nothing() -> None:
     assert sink["repeats"] == 0 and sink["out_of_order"] == 0
     assert emitted - 10 <= sink["count"] <= emitted
     # every node agrees on the mapping, and each vertex runs exactly once
-    maps = [dict(c.apps["merge"].placed) for c in sim.cores.values()]
+    maps = [dict(c.placement("merge")) for c in sim.cores.values()]
     assert all(mp == maps[0] for mp in maps)
     for v, node in maps[0].items():
-        hosts = [n for n, c in sim.cores.items() if v in c.apps["merge"].stones]
+        hosts = [n for n, c in sim.cores.items() if v in c.instances("merge")]
         assert hosts == [node]
 
 
@@ -117,5 +117,5 @@ def test_reconfigurations_of_different_chains_at_the_same_time() -> None:
     sink, emitted = accounting(sim)
     assert sink["repeats"] == 0 and sink["out_of_order"] == 0
     assert emitted - 10 <= sink["count"] <= emitted
-    maps = [dict(c.apps["merge"].placed) for c in sim.cores.values()]
+    maps = [dict(c.placement("merge")) for c in sim.cores.values()]
     assert all(mp == maps[0] for mp in maps)

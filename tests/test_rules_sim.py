@@ -51,9 +51,9 @@ def sink(sim: Simulation, app: str, node: str) -> dict[str, int]:
 
 def test_energy_rule_moves_work_off_a_poor_battery_and_loses_nothing() -> None:
     sim = deployed(robots(leader_wh=0.5), WORK)
-    assert sim.cores["N1"].apps["work"].placed["work"] == "N1"
+    assert sim.cores["N1"].placement("work")["work"] == "N1"
     sim.run_until(15.0)
-    placed = sim.cores["N3"].apps["work"].placed
+    placed = sim.cores["N3"].placement("work")
     assert placed["work"] == "N2"  # one hop downstream, off the leader
     (done,) = sim.cores["N1"].manager.done
     assert "relocate work/work -> N2" in done and "lifetime" in done
@@ -65,7 +65,7 @@ def test_energy_rule_moves_work_off_a_poor_battery_and_loses_nothing() -> None:
     ends = ("held: confirming 1/3", "held: confirming 2/3", "allowed")
     assert [d.endswith(e) for d, e in zip(decisions, ends, strict=False)] == [True] * 3
     got = sink(sim, "work", "N3")
-    sent = sim.cores["N1"].apps["work"].stones["src"].emitted
+    sent = sim.cores["N1"].instances("work")["src"].emitted
     assert got["repeats"] == 0 and got["out_of_order"] == 0
     assert sent - 3 <= got["count"] <= sent
 
@@ -73,14 +73,14 @@ def test_energy_rule_moves_work_off_a_poor_battery_and_loses_nothing() -> None:
 def test_energy_rule_stays_put_when_nothing_is_gained() -> None:
     sim = deployed(robots(leader_wh=5.0), WORK)  # equal batteries: the fast leader is best
     sim.run_until(15.0)
-    assert sim.cores["N1"].apps["work"].placed["work"] == "N1"
+    assert sim.cores["N1"].placement("work")["work"] == "N1"
     assert all(not c.manager.done for c in sim.cores.values())
 
 
 def test_no_rule_runs_when_management_is_off() -> None:
     sim = deployed(robots(leader_wh=0.5), WORK, manage=False)
     sim.run_until(15.0)
-    assert sim.cores["N1"].apps["work"].placed["work"] == "N1"
+    assert sim.cores["N1"].placement("work")["work"] == "N1"
 
 
 def test_a_policy_named_in_the_app_is_loaded_and_obeyed() -> None:
@@ -88,7 +88,7 @@ def test_a_policy_named_in_the_app_is_loaded_and_obeyed() -> None:
                        "params: {node: N2}}")  # fmt: skip
     sim = deployed(robots(leader_wh=5.0), doc)  # lifetime would keep it on N1 (test above)
     sim.run_until(15.0)
-    assert sim.cores["N1"].apps["work"].placed["work"] == "N2"
+    assert sim.cores["N1"].placement("work")["work"] == "N2"
     assert "prefer-node" in sim.cores["N1"].manager.status()["app_policies"].values()
 
 
@@ -118,7 +118,7 @@ def remaps(sim: Simulation) -> list[str]:
 
 def test_a_route_change_inside_a_chain_remaps_it_once_routes_settle() -> None:
     sim = deployed(square(), pipe_app(100))
-    mid = sim.cores["N1"].apps["pipe"].placed["mid"]
+    mid = sim.cores["N1"].placement("pipe")["mid"]
     assert mid in ("N2", "N3")
     other = "N3" if mid == "N2" else "N2"
     sim.run_until(5.0)
@@ -130,16 +130,16 @@ def test_a_route_change_inside_a_chain_remaps_it_once_routes_settle() -> None:
     sim.run_until(12.0)
     (done,) = remaps(sim)
     assert done.startswith("8.0 remap pipe chain 0")  # by the head's node, once
-    assert sim.cores["N4"].apps["pipe"].placed["mid"] == other
+    assert sim.cores["N4"].placement("pipe")["mid"] == other
     got = sink(sim, "pipe", "N4")
-    sent = sim.cores["N1"].apps["pipe"].stones["src"].emitted
+    sent = sim.cores["N1"].instances("pipe")["src"].emitted
     assert got["repeats"] == 0 and got["out_of_order"] == 0
     assert sent - 5 <= got["count"] <= sent
 
 
 def test_a_link_flapping_every_second_never_triggers_a_remap_while_it_flaps() -> None:
     sim = deployed(square(), pipe_app(50))
-    mid = sim.cores["N1"].apps["pipe"].placed["mid"]
+    mid = sim.cores["N1"].placement("pipe")["mid"]
     t = 2.0
     for k in range(30):  # down, up, down, ... once a second for 30 s
         sim.run_until(t)
@@ -150,7 +150,7 @@ def test_a_link_flapping_every_second_never_triggers_a_remap_while_it_flaps() ->
         sim.update_routes()
         t += 1.0
     assert remaps(sim) == []
-    assert all(not c.dead for c in sim.cores.values())  # nobody was taken for dead either
+    assert all(not c.failed for c in sim.cores.values())  # nobody was taken for dead either
     sim.run_until(t + 10.0)
     assert len(remaps(sim)) <= 1  # once it is stable, at most one remap
     got = sink(sim, "pipe", "N4")
@@ -206,17 +206,17 @@ def test_a_draining_node_sheds_a_join_by_an_energy_remap_and_loses_nothing() -> 
     battery it makes N2 draining, and the rules remap its chains with the join placed on a
     longer-lived neighbour, once: nothing sends it back, no event is lost or repeated."""
     sim = deployed(line4(small="N2"), JOINED)
-    assert sim.cores["N1"].apps["joined"].placed["join"] == "N2"  # Algorithm 1's choice
+    assert sim.cores["N1"].placement("joined")["join"] == "N2"  # Algorithm 1's choice
     sim.run_until(40.0)
     done = [d for c in sim.cores.values() for d in c.manager.done]
     (remap,) = done  # the only reconfiguration, by N2
     assert remap in sim.cores["N2"].manager.done
     assert "remap joined chains 0, 1, 2" in remap and "N2 draining, sheds join/fork join" in remap
-    maps = [dict(c.apps["joined"].placed) for c in sim.cores.values()]
+    maps = [dict(c.placement("joined")) for c in sim.cores.values()]
     assert all(mp == maps[0] for mp in maps)
     assert maps[0]["join"] in ("N1", "N3")
     got = sink(sim, "joined", "N4")
-    stones = sim.cores["N1"].apps["joined"].stones
+    stones = sim.cores["N1"].instances("joined")
     sent = stones["s1"].emitted + stones["s2"].emitted
     assert got["repeats"] == 0 and got["out_of_order"] == 0  # the counter's state moved with it
     assert sent - 5 <= got["count"] <= sent
@@ -235,7 +235,7 @@ def test_an_energy_remap_keeps_the_join_off_the_robot_with_the_sensors() -> None
         sim.run_until(20.0)
         (remap,) = [d for c in sim.cores.values() for d in c.manager.done]
         assert "N2 draining, sheds join/fork join" in remap and f"better on {where}" in remap
-        assert sim.cores["N1"].apps["joined"].placed["join"] == where
+        assert sim.cores["N1"].placement("joined")["join"] == where
 
 
 BURST = """
@@ -287,14 +287,14 @@ def test_a_start_up_burst_is_not_taken_for_draining() -> None:
                 if n in core.manager.engine.draining:
                     draining.setdefault(n, sim.now)
             if t == 1:  # Algorithm 1's placement: each robot has a vertex it may shed
-                placed = sim.cores["N1"].apps["burst"].placed
+                placed = sim.cores["N1"].placement("burst")
                 assert (placed["work"], placed["tail"]) == ("N1", "N4")
             if t == 2:  # the start-up dominates N4's drain: it looks short-lived
                 life = {n: c.monitor.lifetime_s or 0.0 for n, c in sim.cores.items()}
                 assert life["N4"] < rules.critical_ratio * life["N3"]
             if t == 10 and rules.warmup_s:  # still warming up (instances started just after 0)
                 assert draining == {} and all(not c.manager.done for c in sim.cores.values())
-        placed = sim.cores["N1"].apps["burst"].placed
+        placed = sim.cores["N1"].placement("burst")
         done = {n: c.manager.done for n, c in sim.cores.items() if c.manager.done}
         if rules.warmup_s:
             assert draining == {"N1": 11.0}  # the leader, once warm; never N4

@@ -62,7 +62,7 @@ def test_distributed_deployment_matches_central_plan(app_file: str, scenario_fil
     for node, core in sim.cores.items():
         dep = core.apps[loads_app(doc).name]
         assert dep.placed == expected
-        assert set(dep.stones) == {v for v, n in expected.items() if n == node}
+        assert set(dep.instances) == {v for v, n in expected.items() if n == node}
 
 
 def test_every_event_arrives_once_and_in_order() -> None:
@@ -71,7 +71,7 @@ def test_every_event_arrives_once_and_in_order() -> None:
     assert reply.ok, reply.error
     sim.run_until(sim.now + 5.0)
     stats = sink_stats(sim, "pipe", "sink")
-    emitted = sim.cores["N1"].apps["pipe"].stones["src"].emitted
+    emitted = sim.cores["N1"].instances("pipe")["src"].emitted
     assert emitted >= 450
     assert stats["repeats"] == 0 and stats["out_of_order"] == 0
     # only what is still in flight (a few ms at 100 events/s) may be missing
@@ -147,8 +147,8 @@ def test_user_code_that_fails_never_takes_a_node_down() -> None:
     flaky = PIPE.replace("code: runtime_vertices:Double,", "code: runtime_vertices:Flaky,")
     assert deploy(sim, flaky).ok  # the same nodes still deploy and run the next app
     sim.run_until(sim.now + 2.0)
-    mid = next(c for c in sim.cores.values() if "mid" in c.apps["pipe"].stones)
-    stone = mid.apps["pipe"].stones["mid"]
+    mid = next(c for c in sim.cores.values() if "mid" in c.instances("pipe"))
+    stone = mid.instances("pipe")["mid"]
     assert stone.errors > 50 and "bad reading" in stone.last_error
     assert sink_stats(sim, "pipe", "sink")["count"] >= 2 * stone.errors - 5
 
@@ -179,14 +179,12 @@ edges:
 def data_frames(sim: Simulation) -> list[tuple[str, str, m.Data]]:
     """Every Data frame the simulation puts on its network, from now on (a send hook)."""
     sent: list[tuple[str, str, m.Data]] = []
-    inner = sim._send
 
-    def send(node: str, dst: str, msg: m.Message) -> bool:
+    def tap(node: str, dst: str, msg: m.Message) -> None:
         if isinstance(msg, m.Data):
             sent.append((node, dst, msg))
-        return inner(node, dst, msg)
 
-    sim._send = send  # type: ignore[method-assign]
+    sim.taps.append(tap)
     return sent
 
 
@@ -201,7 +199,7 @@ def test_a_fork_to_one_node_sends_each_batch_once() -> None:
     fresh = [d for _, _, d in sent if d.edge == 0 or d.also]
     assert fresh and all(d.also == [(1, d.seq, d.floor)] for d in fresh if d.edge == 0)
     assert not [d for _, _, d in sent if d.edge == 1 and not d.also]  # never sent alone
-    emitted = sim.cores["N1"].apps["fork"].stones["src"].emitted
+    emitted = sim.cores["N1"].instances("fork")["src"].emitted
     for sink in ("left", "right"):
         stats = sink_stats(sim, "fork", sink)
         assert stats["repeats"] == 0 and stats["out_of_order"] == 0

@@ -125,7 +125,7 @@ def test_a_control_frame_with_no_route_waits_for_one_and_data_does_not() -> None
     sim = Simulation(net, manage=False)
     sim.trace = []
     ack = m.Ack("x", 0, 0, 1)
-    sim._apply("A", [Send("B", m.StatusRequest(req=7)), Send("B", ack)])
+    sim.apply("A", [Send("B", m.StatusRequest(req=7)), Send("B", ack)])
     assert len(sim.waiting["A"]) == 1 and sim.waiting["A"].dropped == 1  # the ack is data
     drive(sim, Timeline(loads_scenario("nodes: {A: {}, B: {}}\n"), network=net), 0.5)
     assert len(sim.waiting["A"]) == 1  # no route yet: still held
@@ -138,7 +138,7 @@ def test_a_control_frame_with_no_route_waits_for_one_and_data_does_not() -> None
     # held longer than the route wait (1 s): given up, not sent when a route finally appears
     net.remove_link("A", "B")
     sim.links_changed()
-    sim._apply("A", [Send("B", m.StatusRequest(req=8))])
+    sim.apply("A", [Send("B", m.StatusRequest(req=8))])
     sim.run_until(sim.now + 1.5)
     net.add_link(LinkSpec("A", "B", delay_ms=1.0))
     sim.links_changed()

@@ -9,18 +9,19 @@ from __future__ import annotations
 
 from mso.node.core import Effect, NodeCore, Send
 from mso.protocol import messages as m
+from mso.protocol.events import HeartbeatTick
 from mso.sim.runner import Simulation
 from test_failure import PIPE, emitted, recoveries, started, stats, where
 
 
 def sink_instance(sim: Simulation) -> int:
-    return sim.cores["N6"].apps["pipe"].stones["sink"].instance
+    return sim.cores["N6"].instances("pipe")["sink"].instance
 
 
 def assert_nobody_held_failed_but(sim: Simulation, dead: set[str]) -> None:
     for n, core in sim.cores.items():
         if n not in sim.dead:
-            assert core.dead == dead, (n, core.dead)
+            assert core.failed == dead, (n, core.failed)
             assert {f["node"] for f in core.failures} <= dead, (n, core.failures)
 
 
@@ -115,7 +116,7 @@ def test_a_partition_is_still_a_failure_for_both_sides() -> None:
     cut(sim, [("N3", "N6"), ("N5", "N6")])  # N6 alone
     sim.run_until(t0 + 0.65)
     for n, core in sim.cores.items():
-        assert core.dead == ({"N1", "N2", "N3", "N4", "N5"} if n == "N6" else {"N6"}), n
+        assert core.failed == ({"N1", "N2", "N3", "N4", "N5"} if n == "N6" else {"N6"}), n
     assert [r for r in sim.replies if isinstance(r[2], m.Refused)] == []
 
 
@@ -125,8 +126,10 @@ def suspecting(now: float = 1.0) -> tuple[NodeCore, list[Effect]]:
     core = NodeCore("N1")
     core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 2)}, -1.0)
     core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2)}, 0.0)  # N4 out of reach from now
-    core.receive("N2", core._beat(), now - 0.05)  # N2 beats (it is N1's beat, as any beat)
-    return core, core.on_timer(("heartbeat",), now)
+    core.receive(
+        "N2", core.membership.beat(), now - 0.05
+    )  # N2 beats (it is N1's beat, as any beat)
+    return core, core.on_timer(HeartbeatTick(), now)
 
 
 def asked(effects: list[Effect]) -> dict[str, m.Suspect]:
@@ -137,16 +140,16 @@ def test_a_node_out_of_reach_is_asked_about_not_declared() -> None:
     core, effects = suspecting()
     queries = asked(effects)
     assert sorted(queries) == ["N2", "N3"] and {q.node for q in queries.values()} == {"N4"}
-    assert core.dead == set() and core.status(1.0)["suspected_nodes"] == ["N4"]
+    assert core.failed == set() and core.status(1.0)["suspected_nodes"] == ["N4"]
     (rid,) = {q.rid for q in queries.values()}
     core.receive("N2", m.Hears("N4", rid, False), 1.01)
-    assert core.dead == set()  # N3 has not answered
+    assert core.failed == set()  # N3 has not answered
     core.receive("N3", m.Hears("N4", rid, True), 1.02)  # N3 hears N4
-    assert core.dead == set() and core.procedures == {}
-    assert core.peers["N4"].state.name == "ALIVE"
-    assert asked(core.on_timer(("heartbeat",), 1.4)) == {}  # a window later, not before,
-    core.receive("N2", core._beat(), 1.55)
-    assert sorted(asked(core.on_timer(("heartbeat",), 1.6))) == ["N2", "N3"]  # asked again
+    assert core.failed == set() and core.procedures == {}
+    assert core.peer_state("N4") == "ALIVE"
+    assert asked(core.on_timer(HeartbeatTick(), 1.4)) == {}  # a window later, not before,
+    core.receive("N2", core.membership.beat(), 1.55)
+    assert sorted(asked(core.on_timer(HeartbeatTick(), 1.6))) == ["N2", "N3"]  # asked again
 
 
 def test_a_node_nobody_hears_is_declared_once_all_say_no() -> None:
@@ -154,7 +157,7 @@ def test_a_node_nobody_hears_is_declared_once_all_say_no() -> None:
     (rid,) = {q.rid for q in asked(effects).values()}
     core.receive("N2", m.Hears("N4", rid, False), 1.01)
     out = core.receive("N3", m.Hears("N4", rid, False), 1.02)
-    assert core.dead == {"N4"} and core.failures[-1]["detector"] == "N1"
+    assert core.failed == {"N4"} and core.failures[-1]["detector"] == "N1"
     told = {e.dst for e in out if isinstance(e, Send) and isinstance(e.msg, m.NodeDown)}
     assert told == {"N2", "N3"}
     assert core.procedures == {}
@@ -162,41 +165,41 @@ def test_a_node_nobody_hears_is_declared_once_all_say_no() -> None:
 
 def test_a_suspicion_nobody_answers_is_confirmed_at_its_deadline() -> None:
     """A node asked may have died too: its silence does not hold the declaration back."""
-    from mso.protocol.procedures.base import Deadline
+    from mso.protocol.events import Deadline
 
     core, effects = suspecting()
     (rid,) = {q.rid for q in asked(effects).values()}
     assert core.procedures[rid].deadline == 1.0 + core.liveness.dead_after_s
     core.receive("N2", m.Hears("N4", rid, False), 1.01)
     core.on_timer(Deadline(rid), 1.0 + core.liveness.dead_after_s)
-    assert core.dead == {"N4"} and core.procedures == {}
+    assert core.failed == {"N4"} and core.procedures == {}
 
 
 def test_a_suspicion_ends_when_the_node_is_back_in_reach_or_heard() -> None:
     core, _ = suspecting()
     core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N3", 3)}, 1.1)
-    assert core.procedures == {} and core.peers["N4"].state.name == "ALIVE"
+    assert core.procedures == {} and core.peer_state("N4") == "ALIVE"
     core, _ = suspecting()
     core.receive("N4", m.ChainDelay("nothing", 0, 1.0), 1.1)  # N4 reaches us: it lives
-    assert core.procedures == {} and core.peers["N4"].state.name == "ALIVE"
+    assert core.procedures == {} and core.peer_state("N4") == "ALIVE"
     core, _ = suspecting()
     core.receive("N3", m.NodeDown("N4", "N3"), 1.1)  # another detector's word ends it
-    assert core.procedures == {} and core.dead == {"N4"}
+    assert core.procedures == {} and core.failed == {"N4"}
 
 
 def test_a_node_cut_off_from_everyone_declares_without_asking() -> None:
     core = NodeCore("N1")
     core.set_routes({"N2": ("N2", 1)}, -1.0)
     core.set_routes({}, 0.0)
-    effects = core.on_timer(("heartbeat",), 1.0)
-    assert asked(effects) == {} and core.dead == {"N2"}
+    effects = core.on_timer(HeartbeatTick(), 1.0)
+    assert asked(effects) == {} and core.failed == {"N2"}
 
 
 def test_a_node_says_it_hears_a_node_only_when_it_heard_it_in_its_window() -> None:
     """(One it reaches but has not heard in its window it asks: the test below.)"""
     core = NodeCore("N2")
     core.set_routes({"N1": ("N1", 1), "N4": ("N4", 1)}, 0.0)
-    core.receive("N4", core._beat(), 1.0)
+    core.receive("N4", core.membership.beat(), 1.0)
 
     def answer(about: str, now: float) -> bool:
         (e,) = [e for e in core.receive("N1", m.Suspect(about, 7), now) if isinstance(e, Send)]
@@ -229,7 +232,7 @@ def test_a_node_reaching_none_of_the_suspects_neighbours_learns_it_lives_through
 
 
 def test_a_node_asked_about_one_it_reaches_but_does_not_hear_asks_it() -> None:
-    from mso.protocol.procedures.base import Deadline
+    from mso.protocol.events import Deadline
 
     core = NodeCore("N2")
     core.set_routes({"N1": ("N1", 1), "N3": ("N3", 1), "N6": ("N3", 2)}, 0.0)
@@ -263,7 +266,7 @@ def test_a_beat_from_a_node_that_held_most_of_us_failed_does_not_reset_the_large
     beat = _beat_holding_failed(sim, "N6", ["N1", "N2", "N3", "N4", "N5"])
     n1.receive("N6", beat, sim.now)
     assert n1.incarnation == incarnation and "pipe" in n1.apps  # N1 did not reset
-    assert "N6" in n1.dead
+    assert "N6" in n1.failed
 
 
 def test_a_beat_from_a_node_that_alone_missed_us_still_resets_us() -> None:
@@ -273,4 +276,4 @@ def test_a_beat_from_a_node_that_alone_missed_us_still_resets_us() -> None:
     incarnation = n1.incarnation
     n1.receive("N6", _beat_holding_failed(sim, "N6", ["N1"]), sim.now)
     assert n1.incarnation == incarnation + 1  # reset: a new incarnation
-    assert "N6" not in n1.dead
+    assert "N6" not in n1.failed

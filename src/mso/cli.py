@@ -685,7 +685,7 @@ def node(
 ) -> None:
     """Run the identical mso daemon of one device."""
     from mso.model.network import PowerModel
-    from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
+    from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 
     heartbeat_s = HEARTBEAT_S if heartbeat_s is None else heartbeat_s
     dead_after_s = DEAD_AFTER_S if dead_after_s is None else dead_after_s
@@ -790,7 +790,7 @@ def _node(
     from mso.net.routes_static import StaticRoutes
     from mso.node.core import NodeCore
     from mso.node.driver import PARENT_ENV, NodeDriver, stop_with_parent
-    from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S
+    from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S
 
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING,
@@ -1355,7 +1355,7 @@ def _emulate(
     from mso.emu.netns.emulator import NamespacesUnavailable, NetnsEmulator, check_available
     from mso.model.appfile import load_app
     from mso.model.yamlfile import read_text_file
-    from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
+    from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
     from mso.scenario import load_scenario
 
     if heartbeat_s is not None or dead_after_s is not None:

@@ -158,7 +158,7 @@ def run(
         wall = time.perf_counter() - started
         emitted = {
             v: h.emitted
-            for v, h in sim.cores[LEADER].apps["convoy"].stones.items()
+            for v, h in sim.cores[LEADER].apps["convoy"].instances.items()
             if v in ("laser", "visible_camera")
         }
         relocations = sorted(
@@ -166,7 +166,7 @@ def run(
             for c in sim.cores.values()
             for d in c.manager.done
         )
-        final = {v: c.id for c in sim.cores.values() for v in c.apps["convoy"].stones}
+        final = {v: c.id for c in sim.cores.values() for v in c.apps["convoy"].instances}
     finally:
         storage.set_clock(time.monotonic)
         if old_db is None:

@@ -30,9 +30,9 @@ from mso.emu.overlays import _claim, state_file
 from mso.errors import MsoError
 from mso.model.network import LinkSpec
 from mso.node.driver import PARENT_ENV
-from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 from mso.protocol import messages as m
 from mso.protocol.authority import Signer
+from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 from mso.scenario import Scenario
 from mso.scenario.timeline import Crash, Restart, Timeline
 

@@ -1,47 +1,87 @@
-"""The node core: a router over one node's tables. Sans-IO.
+"""The node core: a router over one node's components. Sans-IO.
 
-Fed ``(message, now)``, ``(timer, now)``, a client request or an executor result; returns
-effects (send a message to a node, reply to a client, set or cancel a timer, start, feed or
-stop a vertex instance). It never reads a clock or a socket and never runs user code: the
+Fed ``(message, now)``, ``(timer, now)``, a client request, a routing view or an executor
+result; returns effects (send a message to a node, reply to a client, set or cancel a timer,
+start, feed or stop a vertex instance). It never reads a socket and never runs user code: the
 asyncio driver (``mso.node.driver``) supplies real time, connections and the executor; the
 simulator supplies virtual ones.
 
-This module is only the router: a message type → handler table, the timer keys, the deadline
-of every procedure this node coordinates, and status. The handlers are this node's part in each
-distributed procedure, one module per group, layered as :mod:`mso.node.tables` describes.
+The core owns the node's shared tables (its apps, routes and open procedures) and composes the
+components that act on them, each through the narrow
+:class:`~mso.protocol.context.NodeContext` the core implements:
+
+- the data plane (:mod:`mso.protocol.dataplane`): instances, edges, acks, backpressure;
+- one component per distributed procedure, every role of it in one module
+  (:mod:`mso.protocol.procedures`): deploy, relocation, restore, remap and recovery,
+  membership;
+- the management loop (:mod:`mso.node.manager`): a view in, actions out.
+
+One routing table covers wire messages, client requests, timer keys and the deadlines of the
+procedures open here; internal events (:mod:`mso.protocol.events`) go to the components
+subscribed to their type. Components never call each other through the core.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any
+import zlib
+from collections import deque
+from collections.abc import Callable, Hashable
+from typing import Any, TypeVar
 
 from mso.errors import MsoError
 from mso.management import RuleSettings
 from mso.model.network import PowerModel
-from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S
 from mso.node.manager import Manager
-from mso.node.membership import MONITOR_PERIOD_S, Membership
-from mso.node.tables import Deployment, Hosted, crash_status
+from mso.node.monitor import Monitor
+from mso.node.status import node_status
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
-from mso.protocol.effects import Effect, Reply, Send, SetTimer
-from mso.protocol.procedures.base import Deadline, IllegalTransition, Procedure, Retry
-from mso.protocol.procedures.deploy import Deploy
-from mso.protocol.procedures.membership import Suspicion, Vouch
-from mso.protocol.procedures.relocate import Relocation
-from mso.protocol.procedures.remap import Remap
+from mso.protocol.authority import Authority
+from mso.protocol.dataplane import DataPlane
+from mso.protocol.effects import CancelTimer, Effect, Reply, Send, SetTimer
+from mso.protocol.events import (
+    AppMissing,
+    Deadline,
+    HeartbeatTick,
+    InstanceCrashed,
+    InstanceFailed,
+    InstanceReady,
+    InternalEvent,
+    MarkerReached,
+    MonitorTick,
+    NodeReset,
+    PeerFailed,
+    RecoverTick,
+    RecoveryDue,
+    RelocationEnded,
+    Retransmit,
+    Retry,
+    RoutesChanged,
+    Snapshotted,
+    SourceTick,
+)
+from mso.protocol.procedures.base import IllegalTransition, Procedure
+from mso.protocol.procedures.deploy import Deploy, Deployer
+from mso.protocol.procedures.membership.detector import Suspicion, Vouch
+from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S, Liveness
+from mso.protocol.procedures.membership.peers import MONITOR_PERIOD_S, Membership
+from mso.protocol.procedures.relocation import Relocation, Relocator
+from mso.protocol.procedures.remap import Remap, Remapper
+from mso.protocol.procedures.restore import Restorer
 from mso.protocol.procedures.status import StatusFanout
+from mso.protocol.state import AppState, HostedInstance
 
-__all__ = ["Deployment", "Effect", "Hosted", "NodeCore", "Reply", "Send", "SetTimer"]
+__all__ = ["AppState", "Effect", "HostedInstance", "NodeCore", "Reply", "Send", "SetTimer"]
 
-REVOCATIONS_TOLD = 16  # the operator's latest undeploys told to each newly reachable node
+E = TypeVar("E")
+Handler = Callable[[str, Any, float], None]
 
 
-class NodeCore(Membership):
-    """One node's state machine: the router over its tables and procedures."""
+class NodeCore:
+    """One node's state machine: the router over its components (see the module docstring)."""
 
-    manager: Manager
+    # an illegal transition raises (tests set this) instead of only being counted
+    strict = False
     # messages that may overtake the announcement of their app: held until it arrives
     EARLY = (m.ChainPlaced, m.BuildChain, m.ChainPartReady, m.ChainBuilt, m.StartApp)
     MAX_EARLY = 1000
@@ -60,67 +100,164 @@ class NodeCore(Membership):
         manage: bool = True,
         rules: RuleSettings | None = None,
         incarnation: int = 0,
+        clock: Callable[[], float] | None = None,
     ) -> None:
-        super().__init__(
-            node_id,
-            capacity=capacity,
-            window=window,
-            power=power,
-            battery_wh=battery_wh,
-            heartbeat_s=heartbeat_s,
-            dead_after_s=dead_after_s,
-            incarnation=incarnation,
+        self.id = node_id
+        self.capacity = capacity
+        self.window = window
+        self.power = power or PowerModel()
+        self.monitor = Monitor(power or PowerModel(), battery_wh, cpu_speed=capacity)
+        # read only to report how long a request took (a whole deployment can finish inside
+        # one synchronous run); None in simulation, where ``now`` is exact
+        self.clock = clock
+        # the driver's inputs: cumulative bytes (sent, received), its links for status
+        self._traffic = (0, 0)
+        self._links: dict[str, Any] = {}
+        # operator keys and the undeploys they signed; open (no keys) unless the driver shares
+        # its own (``mso node --operator-key``), which the transport checks frames with too
+        self.authority = Authority()
+        self.routes: dict[str, tuple[str, int]] = {}  # destination -> (next hop, hops)
+        self.apps: dict[str, AppState] = {}
+        self.procedures: dict[int, Procedure] = {}  # the procedures this node coordinates
+        self.dropped_messages = 0
+        # well-typed messages refused for their meaning (a vertex, edge or procedure that is
+        # not there; a member's command that needs an operator), by reason; each is also one
+        # of ``dropped_messages``
+        self.refusals: dict[str, int] = {}
+        self.illegal_transitions = 0
+        self.handler_errors = 0  # messages whose handling raised (a bug), and the last one
+        self.last_handler_error = ""
+        self._now = 0.0
+        self._effects: list[Effect] = []
+        self._work: deque[tuple[str, m.Message]] = deque()
+        # ids of procedures this node coordinates: distinct per node, small enough for msgpack
+        self._rid = self._rid_base = (zlib.crc32(node_id.encode()) & 0xFFFFFF) << 20
+        # messages for an app whose announcement has not arrived yet (another path overtook it)
+        self._early: dict[str, list[tuple[str, m.Message]]] = {}
+        self._subscribers: dict[type, list[Callable[[Any], None]]] = {}
+
+        # the components, lowest first; each gets this core as its context
+        self.dataplane = dp = DataPlane(self)
+        # management rules and policies (§3.5); the node policy is checked here, at start
+        self.manager = Manager(self, policy, rules, enabled=manage)
+        self.deployer = Deployer(self, dp, self.manager)
+        self.relocator = Relocator(self, dp)
+        self.restorer = Restorer(self, dp, self.relocator)
+        self.relocator.replacements = self.restorer
+        self.remapper = Remapper(self, dp, self.relocator)
+        liveness = Liveness(heartbeat_s, dead_after_s)
+        self.membership = Membership(self, dp, self.deployer, self.remapper, liveness, incarnation)
+
+        # internal events: who hears what, in this order
+        self._subscribe(InstanceReady, self.relocator.on_instance_ready)
+        self._subscribe(InstanceReady, self.deployer.on_instance_ready)
+        self._subscribe(InstanceFailed, self.relocator.on_instance_failed)
+        self._subscribe(InstanceFailed, self.deployer.on_instance_failed)
+        self._subscribe(InstanceCrashed, self.restorer.on_instance_crashed)
+        self._subscribe(MarkerReached, self.relocator.on_marker_reached)
+        self._subscribe(Snapshotted, self.relocator.on_snapshotted)
+        self._subscribe(RelocationEnded, self.restorer.on_relocation_ended)
+        self._subscribe(RelocationEnded, self.remapper.on_relocation_ended)
+        self._subscribe(PeerFailed, self.relocator.on_peer_failed)
+        self._subscribe(PeerFailed, self.remapper.on_peer_failed)
+        self._subscribe(RoutesChanged, self.membership.on_routes_changed)
+        self._subscribe(RoutesChanged, self.deployer.on_routes_changed)
+        self._subscribe(RoutesChanged, self.remapper.on_routes_changed)
+        self._subscribe(RecoveryDue, self.remapper.on_recovery_due)
+        self._subscribe(AppMissing, self.membership.on_app_missing)
+        self._subscribe(NodeReset, lambda ev: self.deployer.on_reset())
+        self._subscribe(NodeReset, lambda ev: self.relocator.on_reset())
+        self._subscribe(NodeReset, lambda ev: self._early.clear())
+
+        # the router: message type -> the role of the procedure it belongs to
+        dep, rel, res, rem, mem = (
+            self.deployer,
+            self.relocator,
+            self.restorer,
+            self.remapper,
+            self.membership,
         )
-        # the router: message type -> the handler of the procedure it belongs to
-        self._handlers: dict[type, Callable[[str, Any, float], None]] = {
-            m.Data: lambda src, msg, now: self._on_data(msg),
-            m.Ack: lambda src, msg, now: self._on_ack(msg, now),
-            m.AppAnnounce: lambda src, msg, now: self._on_announce(src, msg, now),
-            m.Probe: lambda src, msg, now: self._on_probe(msg),
+        self._messages: dict[type, Handler] = {
+            m.Data: lambda src, msg, now: dp.on_data(msg),
+            m.Ack: lambda src, msg, now: dp.on_ack(msg, now),
+            m.ChainDelay: lambda src, msg, now: dp.on_chain_delay(msg, now),
+            m.Marker: lambda src, msg, now: dp.on_marker_msg(msg, now),
+            m.AppAnnounce: self._on_announce,
+            m.Probe: lambda src, msg, now: dep.on_probe(msg),
             m.ProbeReply: lambda src, msg, now: (
-                self._on_remap_probe(msg) if msg.chain < 0 else self._on_probe_reply(msg)
+                rem.on_probe_reply(msg) if msg.chain < 0 else dep.on_probe_reply(msg)
             ),  # chain -1 marks a remap's probe
-            m.ChainPlaced: lambda src, msg, now: self._on_placed(msg),
-            m.BuildChain: lambda src, msg, now: self._on_build(src, msg),
-            m.ChainPartReady: lambda src, msg, now: self._on_part_ready(msg),
-            m.ChainBuilt: lambda src, msg, now: self._on_built(msg, now),
-            m.StartApp: lambda src, msg, now: self._on_start(msg, now),
-            m.StopApp: lambda src, msg, now: self._on_stop_app(msg, now),
-            m.DeployFailed: lambda src, msg, now: self._on_deploy_failed(msg, now),
-            m.StatusRequest: lambda src, msg, now: self._send(
+            m.ChainPlaced: lambda src, msg, now: dep.on_placed(msg),
+            m.BuildChain: lambda src, msg, now: dep.on_build(src, msg),
+            m.ChainPartReady: lambda src, msg, now: dep.on_part_ready(msg),
+            m.ChainBuilt: lambda src, msg, now: dep.on_built(msg, now),
+            m.StartApp: lambda src, msg, now: dep.on_start(msg, now),
+            m.StopApp: self._on_stop_app,
+            m.DeployFailed: lambda src, msg, now: dep.on_deploy_failed(msg, now),
+            m.RelocateRequest: lambda src, msg, now: rel.on_relocate_request(msg, now),
+            m.Prepare: lambda src, msg, now: rel.on_prepare(src, msg),
+            m.Prepared: lambda src, msg, now: rel.on_prepared(msg, now),
+            m.Unprepare: lambda src, msg, now: rel.on_unprepare(msg, now),
+            m.Switch: lambda src, msg, now: rel.on_switch(msg),
+            m.Handover: lambda src, msg, now: rel.on_handover(src, msg, now),
+            m.HandoverDone: lambda src, msg, now: rel.on_handover_done(msg, now),
+            m.Moved: lambda src, msg, now: rel.on_moved(msg, now),
+            m.Rewire: lambda src, msg, now: res.on_rewire(msg, now),
+            m.Resume: lambda src, msg, now: res.on_resume(msg, now),
+            m.Heartbeat: mem.on_heartbeat,
+            m.NodeDown: lambda src, msg, now: mem.on_node_down(
+                msg.node, msg.detector, now, msg.incarnation
+            ),
+            m.NodeUp: lambda src, msg, now: mem.on_node_up(msg, now),
+            m.Suspect: mem.on_suspect,
+            m.Hears: mem.on_hears,
+            m.AppSync: mem.on_app_sync,
+            m.StatusRequest: lambda src, msg, now: self.send(
                 src, m.StatusReply(req=msg.req, nodes={self.id: self.status(now)})
             ),
             m.StatusReply: lambda src, msg, now: self._on_status_reply(msg),
-            m.Marker: lambda src, msg, now: self._on_marker_msg(msg, now),
-            m.RelocateRequest: lambda src, msg, now: self._on_relocate_request(msg, now),
-            m.Prepare: lambda src, msg, now: self._on_prepare(src, msg),
-            m.Prepared: lambda src, msg, now: self._on_prepared(msg, now),
-            m.Unprepare: lambda src, msg, now: self._on_unprepare(msg, now),
-            m.Switch: lambda src, msg, now: self._on_switch(msg),
-            m.Handover: lambda src, msg, now: self._on_handover(src, msg, now),
-            m.Moved: lambda src, msg, now: self._on_moved(msg, now),
-            m.HandoverDone: lambda src, msg, now: self._on_handover_done(msg, now),
-            m.ChainDelay: lambda src, msg, now: self._on_chain_delay(msg, now),
-            m.Heartbeat: lambda src, msg, now: self._on_heartbeat(src, msg, now),
-            m.NodeDown: lambda src, msg, now: self._on_node_down(
-                msg.node, msg.detector, now, msg.incarnation
-            ),
-            m.NodeUp: lambda src, msg, now: self._on_node_up(msg, now),
-            m.Suspect: lambda src, msg, now: self._on_suspect(src, msg, now),
-            m.Hears: lambda src, msg, now: self._on_hears(src, msg, now),
-            m.AppSync: lambda src, msg, now: self._on_app_sync(src, msg, now),
-            m.Rewire: lambda src, msg, now: self._on_rewire(msg, now),
-            m.Resume: lambda src, msg, now: self._on_resume(msg, now),
         }
-        # management rules and policies (§3.5); the node policy is checked here, at start
-        self.manager = Manager(self, policy, rules, enabled=manage)
+        # client requests (CLI, API, emulator controller)
+        self._requests: dict[type, Callable[[int, Any, float], None]] = {
+            m.DeployRequest: dep.deploy_request,
+            m.StopApp: self._undeploy_request,
+            m.RelocateRequest: self._relocate_request,
+            m.RemapRequest: lambda client, msg, now: rem.request(client, msg, now),
+            m.StatusRequest: self._status_request,
+        }
+        # timer keys
+        self._timers: dict[type, Callable[[Any, float], None]] = {
+            Deadline: self._on_deadline,
+            Retry: self._on_retry,
+            SourceTick: lambda key, now: dp.source_tick(key.app, key.vertex, now),
+            Retransmit: lambda key, now: dp.retransmit(key.app, now),
+            MonitorTick: self._on_monitor_tick,
+            HeartbeatTick: lambda key, now: mem.heartbeat(now),
+            RecoverTick: rem.on_recover_tick,
+        }
+        # a procedure whose deadline passed: its defined failure, told to whoever waits
+        self._expiries: dict[type, Callable[[Any, float], None]] = {
+            Relocation: rel.expire,
+            Remap: rem.expire,
+            Deploy: dep.expire,
+            Suspicion: mem.suspicion_expired,
+            Vouch: lambda proc, now: mem.vouch_expired(proc),
+        }
 
+    # -- the driver's entry points ---------------------------------------------------------
     def start(self, now: float) -> list[Effect]:
         """Begin monitoring; drivers call this once when the node starts."""
         self._sample(now)
-        self._effects.append(SetTimer(("monitor",), now + MONITOR_PERIOD_S))
-        self._effects.append(SetTimer(("heartbeat",), now + self.liveness.period_s))
+        self._effects.append(SetTimer(MonitorTick(), now + MONITOR_PERIOD_S))
+        self.membership.start(now)
         return self._run(now)
+
+    def observe(self, bytes_out: int, bytes_in: int, links: dict[str, Any] | None = None) -> None:
+        """The driver's readings: its cumulative bytes sent and received (relayed included),
+        and for status, the state of its links and connections."""
+        self._traffic = (bytes_out, bytes_in)
+        if links is not None:
+            self._links = links
 
     def set_routes(self, routes: dict[str, tuple[str, int]], now: float = 0.0) -> list[Effect]:
         """Take the routing view's current routes; returns effects (a recovery waiting for
@@ -129,133 +266,237 @@ class NodeCore(Membership):
         old, self.routes = self.routes, {d: r for d, r in routes.items() if d != self.id}
         self.monitor.note_routes(now, self.routes)
         changed = {d for d in set(old) | set(self.routes) if old.get(d) != self.routes.get(d)}
-        for dep in self.apps.values():  # a route inside a chain changed (the route rule's event)
-            for c in dep.layout.chains:
-                if changed & {dep.placed.get(v) for v in c.vertices}:
-                    dep.route_changed[c.index] = now
-        neighbours = {d for d, (hop, _) in self.routes.items() if hop == d}
-        self.liveness.set_routes(now, set(self.routes) - self.dead, neighbours)
-        self._back_in_reach(now)
-        if set(self.routes) - set(old):  # a hello: newly reachable nodes learn our incarnation
-            beat = self._beat()  # (and whom we hold failed, if a partition just healed)
-            undeploys = list(self.authority.revoked.values())[-REVOCATIONS_TOLD:]
-            for d in sorted(set(self.routes) - set(old)):
-                self._send(d, beat)
-                for stop in undeploys:  # and the operator's latest undeploys (a node that
-                    self._send(d, stop)  # restarted or was cut off has not heard them)
-        waiting, self._probes_waiting = self._probes_waiting, []
-        for deadline, probe in waiting:
-            if deadline >= now:
-                self._forward_probe(probe, now)
-        for dep in list(self.apps.values()):
-            self._maybe_recover(dep, now)
+        event = RoutesChanged(frozenset(changed), frozenset(set(self.routes) - set(old)))
+        self._guarded("routes", self.publish, event)
         return self._run(now)
 
     def on_vertex(self, res: fx.VertexResult, now: float) -> list[Effect]:
         """A result from the executor (drivers call this, like ``receive``)."""
         self._now = now
-        self._guarded(type(res).__name__, self._on_vertex, res, now)
+        self._guarded(type(res).__name__, self.dataplane.on_vertex, res, now)
         return self._run(now)
 
     def receive(self, src: str, msg: m.Message, now: float) -> list[Effect]:
-        if src in self.dead:  # a node declared failed is heard only to rejoin
-            if isinstance(msg, m.Heartbeat):
-                self._now = now
-                self._on_dead_heartbeat(src, msg, now)
-                return self._run(now)
-            self.dropped_messages += 1
-            return []
-        self.liveness.heard_from(src, now)
-        self._guarded("heard", self._heard_directly, src, now)
-        self._work.append((src, "", msg))
+        self._now = now
+        admitted = [False]
+
+        def admit() -> None:
+            admitted[0] = self.membership.admit(src, msg, now)
+
+        self._guarded("heard", admit)
+        if admitted[0]:
+            self._work.append((src, msg))
         return self._run(now)
 
     def request(self, client: int, msg: m.Message, now: float) -> list[Effect]:
         """A request from a client connection (CLI, API, emulator controller)."""
         self._now = now
-        if isinstance(msg, m.DeployRequest):
-            self._deploy_request(client, msg, now)
-        elif isinstance(msg, m.StopApp):
-            why = self._undeploy_refused(msg)
-            if not why and self.authority.signed and self._undeployed_before(msg):
-                why = f"refused: this undeploy of {msg.app!r} is older than its deployment"
-            if why:
-                self._refusal("stop_app_unauthorized")
-                self._effects.append(Reply(client, m.Refused(why)))
-                return self._run(now)
-            if msg.app in self.apps:
-                self._broadcast(msg)
-            self._effects.append(Reply(client, m.StopApp(msg.app)))
-        elif isinstance(msg, m.RelocateRequest):
-            self._relocate_request(client, msg, now)
-        elif isinstance(msg, m.RemapRequest):
-            self._remap_request(client, msg, now)
-        elif isinstance(msg, m.StatusRequest):
-            self._status_request(client, msg, now)
-        else:
+        handle = self._requests.get(type(msg))
+        if handle is None:
             self.dropped_messages += 1
+        else:
+            handle(client, msg, now)
         return self._run(now)
 
     def on_timer(self, key: Any, now: float) -> list[Effect]:
         self._now = now
-        self._guarded("timer", self._on_timer, key, now)
+        handle = self._timers.get(type(key))
+        if handle is not None:
+            self._guarded("timer", handle, key, now)
         return self._run(now)
 
-    def _on_timer(self, key: Any, now: float) -> None:
-        if isinstance(key, Deadline):
-            proc = self.procedures.get(key.pid)
-            if proc is not None and not proc.done and now >= proc.deadline - 1e-9:
-                self._expire(proc, now)  # (a procedure may have pushed its deadline on)
-            return
-        if isinstance(key, Retry):
-            proc = self.procedures.get(key.pid)
-            if isinstance(proc, Relocation):
-                self._step_timeout(key.pid, now)
-            elif isinstance(proc, Remap):
-                self._remap_probe_timeout(key.pid, key.attempt, now)
-            return
-        kind = key[0]
-        if kind == "source":
-            self._source_tick(key[1], key[2], now)
-        elif kind == "retransmit":
-            self._retransmit(key[1], now)
-        elif kind == "monitor":
-            self._sample(now)
-            self._report_delays(now)
-            self.manager.tick(now)
-            self._effects.append(SetTimer(("monitor",), now + MONITOR_PERIOD_S))
-        elif kind == "heartbeat":
-            self._heartbeat(now)
-        elif kind == "recover":
-            dep = self.apps.get(key[1])
-            if dep is not None:
-                self._maybe_recover(dep, now)
+    # -- the context the components act through ---------------------------------------------
+    @property
+    def now(self) -> float:
+        return self._now
 
-    def _expire(self, proc: Procedure, now: float) -> None:
-        """A procedure's deadline passed: its defined failure, reported to whoever waits."""
-        why = f"{proc.name} did not finish within {proc.deadline - proc.started_at:g} s"
-        if isinstance(proc, Relocation):
-            self._reloc_failed(proc, why, now)
-        elif isinstance(proc, Remap):
-            self._finish_remap(proc.pid, now, why)
-        elif isinstance(proc, Deploy):  # a probe or a chain build was lost: stop it everywhere
-            self._on_deploy_failed(m.DeployFailed(proc.app, f"{self.id}: {why}"), now)
-            self._end(proc.pid)
-        elif isinstance(proc, Suspicion):  # nobody said they hear the node: it failed
-            proc.expire(self)
-            self._suspected(proc, now)
-        elif isinstance(proc, Vouch):  # the node asked on others' behalf did not answer
-            self._vouch_expired(proc)
+    @property
+    def failed(self) -> set[str]:
+        """The nodes this node holds failed (membership's one set)."""
+        return self.membership.failed
+
+    @property
+    def incarnation(self) -> int:
+        return self.membership.incarnation
+
+    def send(self, dst: str, msg: m.Message) -> None:
+        if dst == self.id:
+            self._work.append((self.id, msg))
         else:
-            proc.expire(self)
-            self._end(proc.pid)
+            self._effects.append(Send(dst, msg))
+
+    def broadcast(self, msg: m.Message) -> None:
+        """To every node not held failed, including those heard of but out of reach right
+        now: a partition shorter than failure detection declares nobody failed, so no rejoin
+        would ever tell them what they missed; the driver holds the frame until routes come
+        back (``mso.net.forwarding``), and a longer cut ends in a rejoin, which syncs."""
+        for n in sorted({*self.known_nodes(), *self.membership.heard_of()}):
+            if n not in self.failed:
+                self.send(n, msg)
+
+    def reply(self, client: int, msg: m.Message) -> None:
+        self._effects.append(Reply(client, msg))
+
+    def emit(self, effect: Effect) -> None:
+        self._effects.append(effect)
+
+    def set_timer(self, key: Hashable, at: float) -> None:
+        self._effects.append(SetTimer(key, at))
+
+    def loop_back(self, src: str, msg: m.Message) -> None:
+        self._work.append((src, msg))
+
+    def new_pid(self) -> int:
+        self._rid += 1
+        return self._rid
+
+    def ours(self, pid: int) -> bool:
+        return self._rid_base < pid <= self._rid
+
+    def begin(self, proc: Procedure) -> None:
+        self.procedures[proc.pid] = proc
+        self._effects.append(SetTimer(Deadline(proc.pid), proc.deadline))
+
+    def end(self, pid: int) -> None:
+        if self.procedures.pop(pid, None) is not None:
+            self._effects.append(CancelTimer(Deadline(pid)))
+
+    def procedure(self, pid: int | None) -> Procedure | None:
+        return self.procedures.get(pid) if pid is not None else None
+
+    def open(self) -> list[Procedure]:
+        return list(self.procedures.values())
+
+    def publish(self, event: InternalEvent) -> None:
+        for handle in self._subscribers.get(type(event), ()):
+            handle(event)
+
+    def refusal(self, reason: str) -> None:
+        self.dropped_messages += 1
+        if reason in self.refusals or len(self.refusals) < 64:
+            self.refusals[reason] = self.refusals.get(reason, 0) + 1
+
+    def dropped(self) -> None:
+        self.dropped_messages += 1
+
+    def note_event(self, now: float, what: str) -> None:
+        self.monitor.note_event(now, what)
+
+    def note_start(self, now: float) -> None:
+        self.monitor.note_start(now)
+
+    def elapsed_ms(self, since: float) -> float:
+        """Time since a request, for the replies that report it: the clock when the driver
+        gave one, else ``now``."""
+        end = self.clock() if self.clock is not None else self._now
+        return max(0.0, end - since) * 1e3
+
+    def incarnation_of(self, node: str, default: int) -> int:
+        return self.membership.incarnation_of(node, default)
+
+    def figures(self) -> m.Figures:
+        """This node's monitored figures, as its heartbeats carry them."""
+        mon, pw = self.monitor, self.power
+        power = (pw.idle_w, pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte)
+        return m.Figures(
+            self.capacity,
+            mon.load,
+            mon.drain_w,
+            mon.remaining_j,
+            mon.lifetime_s,
+            power,
+            self.route_hops(),
+        )
+
+    def known_nodes(self) -> list[str]:
+        return sorted({self.id, *self.routes})
+
+    def route_hops(self) -> dict[str, int]:
+        """Hops to each node this node routes to (itself not included)."""
+        return {n: hops for n, (_, hops) in self.routes.items()}
+
+    def distances(self) -> dict[str, int]:
+        return {**self.route_hops(), self.id: 0}
+
+    # -- what the rules (and tests) may ask for, and read --------------------------------------
+    def relocate(self, req: m.RelocateRequest, now: float) -> None:
+        """Start a relocation this node coordinates (the management rules' entry point)."""
+        self.relocator.request(None, req, now)
+
+    def remap(
+        self,
+        req: m.RemapRequest,
+        now: float,
+        weights: dict[str, float] | None = None,
+        place: dict[str, str] | None = None,
+    ) -> None:
+        """Start a chain or global remap this node coordinates (see Remapper.remap)."""
+        self.remapper.remap(req, now, weights, place)
+
+    def relocation_target(self, dep: AppState, vertex: str, direction: str = "") -> str:
+        return self.relocator.relocation_target(dep, vertex, direction)
+
+    def placement(self, app: str) -> dict[str, str]:
+        """Where this node holds each vertex of ``app`` to run (empty: no such app here)."""
+        dep = self.apps.get(app)
+        return dict(dep.placed) if dep is not None else {}
+
+    def instances(self, app: str) -> dict[str, HostedInstance]:
+        """The instances of ``app`` running here, by vertex (a view: do not change them)."""
+        dep = self.apps.get(app)
+        return dict(dep.instances) if dep is not None else {}
+
+    def peer_state(self, node: str) -> str:
+        """How this node holds ``node``: ALIVE, SUSPECT or FAILED (by its peer table)."""
+        peer = self.membership.peers.get(node)
+        return peer.state.name if peer is not None else "ALIVE"
+
+    def open_procedures(self, now: float) -> list[dict[str, Any]]:
+        """Procedures still running here, with their deadlines (overdue ones flagged)."""
+        return [
+            p.describe() | {"id": pid, "overdue": now > p.deadline}
+            for pid, p in sorted(self.procedures.items())
+        ]
+
+    def status(self, now: float) -> dict[str, Any]:
+        self._sample(now)
+        return node_status(self, now)
+
+    @property
+    def failures(self) -> list[dict[str, Any]]:
+        """Nodes this node declared or heard declared failed: who, when, by whom (recent)."""
+        return self.membership.failures
+
+    @property
+    def rejoins(self) -> list[dict[str, Any]]:
+        """Nodes back as a new incarnation: who, when (recent)."""
+        return self.membership.rejoins
+
+    @property
+    def liveness(self) -> Liveness:
+        """The failure detector's view of the neighbours (heartbeats heard, the window)."""
+        return self.membership.liveness
+
+    @property
+    def heard(self) -> dict[str, tuple[float, m.Figures]]:
+        """What each neighbour's last beat said of its figures, and when."""
+        return self.membership.liveness.heard
+
+    @property
+    def links(self) -> dict[str, Any]:
+        """What the driver last said of its links (empty in simulation)."""
+        return self._links
+
+    # -- the router's own handlers ------------------------------------------------------------
+    def _subscribe(self, kind: type[E], handle: Callable[[E], None]) -> None:
+        self._subscribers.setdefault(kind, []).append(handle)
 
     def _run(self, now: float) -> list[Effect]:
         self._now = now
         while self._work:
-            src, _, msg = self._work.popleft()
+            src, msg = self._work.popleft()
             self._guarded(type(msg).__name__, self._dispatch, src, msg, now)
-        self._flush()
+        self.dataplane.flush()
         out, self._effects = self._effects, []
         return out
 
@@ -285,91 +526,63 @@ class NodeCore(Membership):
             else:
                 self.dropped_messages += 1
             return
-        handler = self._handlers.get(type(msg))
+        handler = self._messages.get(type(msg))
         if handler is None:
             self.dropped_messages += 1  # a client's request, or a link message, from a node
             return
         handler(src, msg, now)
 
-    def status(self, now: float) -> dict[str, Any]:
-        apps: dict[str, Any] = {}
-        for name, dep in self.apps.items():
-            up = max(now - dep.started_at, 1e-9) if dep.running else 0.0
-            edges = {}
-            for i, e in enumerate(dep.app.edges):
-                if i in dep.out or i in dep.inc:
-                    inc = dep.inc.get(i)
-                    out = dep.out.get(i)
-                    sent = out.next_seq if out else 0
-                    edges[f"{e.src}->{e.dst}"] = {
-                        "sent": sent,
-                        "delivered": inc.expected if inc else 0,
-                        "duplicates": inc.duplicates if inc else 0,
-                        "in_flight": out.in_flight if out else 0,
-                        "events_per_s": (sent / up) if up else 0.0,
-                    }
-            apps[name] = {
-                "running": dep.running,
-                "parked": {dep.layout.chains[c].name: why for c, why in dep.parked.items()},
-                "recoveries": list(dep.recoveries),
-                "dropped_parked": {
-                    f"{dep.app.edges[e].src}->{dep.app.edges[e].dst}": n
-                    for e, n in sorted(dep.dropped.items())
-                },
-                "chain_delay_ms": {
-                    dep.layout.chains[c].name: round(ms, 3) for c, ms in sorted(dep.delays.items())
-                },
-                "slo_ms": dep.app.slo_ms,
-                "origin": dep.origin,
-                "placement": dict(dep.placed),
-                "chains": [list(c.vertices) for c in dep.layout.chains],
-                "vertices": {
-                    vid: {
-                        "kind": h.kind,
-                        "state": h.state(now),
-                        "busy_s": round(now - h.busy_since, 3) if h.busy_since else 0.0,
-                        "queued": h.queued
-                        + sum(len(p[1]) for p in h.pending if not isinstance(p, m.Marker)),
-                        "processed": h.processed,
-                        "emitted": h.emitted,
-                        "calls": h.calls,
-                        "ended": h.ended,  # its stream is over (a source's, or every input's)
-                        "errors": h.errors,
-                        "cpu_s": h.cpu_s,
-                        "last_error": h.last_error,
-                        "stats": h.stats,
-                    }
-                    | crash_status(dep.crashes.get(vid))
-                    for vid, h in (dep.crashed | dep.stones).items()
-                },
-                "edges": edges,
-            }
-        extra = self.status_hook() if self.status_hook is not None else {}
+    def _on_announce(self, src: str, msg: m.AppAnnounce, now: float) -> None:
+        self.deployer.on_announce(src, msg, now)
+        if msg.app in self.apps:
+            self._work.extend(self._early.pop(msg.app, []))
+
+    def _on_stop_app(self, src: str, msg: m.StopApp, now: float) -> None:
+        self.deployer.on_stop_app(msg, now)
+        self._early.pop(msg.app, None)
+
+    def _relocate_request(self, client: int, msg: m.RelocateRequest, now: float) -> None:
+        self.relocator.request(client, msg, now)  # (a refusal is told to the client)
+
+    def _undeploy_request(self, client: int, msg: m.StopApp, now: float) -> None:
+        why = self.deployer.undeploy_refused(msg)
+        if not why and self.authority.signed and self.deployer.undeployed_before(msg):
+            why = f"refused: this undeploy of {msg.app!r} is older than its deployment"
+        if why:
+            self.refusal("stop_app_unauthorized")
+            self._effects.append(Reply(client, m.Refused(why)))
+            return
+        if msg.app in self.apps:
+            self.broadcast(msg)
+        self._effects.append(Reply(client, m.StopApp(msg.app)))
+
+    def _on_deadline(self, key: Deadline, now: float) -> None:
+        proc = self.procedures.get(key.pid)
+        if proc is None or proc.done or now < proc.deadline - 1e-9:
+            return  # (a procedure may have pushed its deadline on)
+        expire = self._expiries.get(type(proc))
+        if expire is not None:
+            expire(proc, now)
+        else:
+            proc.expire(self)
+            self.end(proc.pid)
+
+    def _on_retry(self, key: Retry, now: float) -> None:
+        proc = self.procedures.get(key.pid)
+        if isinstance(proc, Relocation):
+            self.relocator.on_retry(key, now)
+        elif isinstance(proc, Remap):
+            self.remapper.on_retry(key, now)
+
+    def _on_monitor_tick(self, key: MonitorTick, now: float) -> None:
         self._sample(now)
-        return extra | {
-            "node": self.id,
-            "monitor": self.monitor.snapshot() | {"work_ms": self.work_ms, "cpu_ms": self.cpu_ms},
-            "routes": {d: list(r) for d, r in sorted(self.routes.items())},
-            "neighbours": sorted(n for n, (hop, _) in self.routes.items() if hop == n),
-            "apps": apps,
-            "dropped_messages": self.dropped_messages,
-            "refusals": dict(sorted(self.refusals.items())),
-            "illegal_transitions": self.illegal_transitions,
-            "handler_errors": self.handler_errors,
-            "last_handler_error": self.last_handler_error,
-            "procedures": self.open_procedures(now),
-            "failed_nodes": sorted(self.dead),
-            "suspected_nodes": sorted(self._suspicions),
-            "incarnation": self.incarnation,
-            "management": self.manager.status(),
-            "failures": list(self.failures),
-            "rejoins": list(self.rejoins),
-            "liveness": self.liveness.stats(),
-            "heard": {
-                n: {"at": t, "load": b.load, "drain_w": b.drain_w, "lifetime_s": b.lifetime_s}
-                for n, (t, b) in sorted(self.liveness.heard.items())
-            },
-        }
+        self.dataplane.report_delays(now)
+        self.manager.tick(now)
+        self._effects.append(SetTimer(MonitorTick(), now + MONITOR_PERIOD_S))
+
+    def _sample(self, now: float) -> None:
+        out, inc = self._traffic
+        self.monitor.sample(now, self.dataplane.work_ms, out, inc, self.dataplane.cpu_ms)
 
     def _status_request(self, client: int, req: m.StatusRequest, now: float) -> None:
         mine = {self.id: self.status(now)}
@@ -377,9 +590,8 @@ class NodeCore(Membership):
         if not req.everywhere or not others:
             self._effects.append(Reply(client, m.StatusReply(req.req, mine)))
             return
-        self._rid += 1
-        fanout = StatusFanout(self._rid, now, client, mine, others)
-        self._begin(fanout)
+        fanout = StatusFanout(self.new_pid(), now, client, mine, others)
+        self.begin(fanout)
         fanout.start(self)
 
     def _on_status_reply(self, msg: m.StatusReply) -> None:
@@ -387,4 +599,4 @@ class NodeCore(Membership):
         if isinstance(fanout, StatusFanout):
             fanout.receive(self, msg)
             if fanout.done:
-                self._end(fanout.pid)
+                self.end(fanout.pid)

@@ -28,6 +28,7 @@ from mso.node.device import DeviceProbe
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority
+from mso.protocol.events import MonitorTick
 from mso.runtime.executor import Executor
 
 log = logging.getLogger("mso.node")
@@ -76,17 +77,23 @@ class NodeDriver:
         self._results_lock = threading.Lock()
         self.stopped = asyncio.Event()
         self._warmed: set[int] = set()  # app documents whose imports are done
-        core.status_hook = self._link_status
-        core.traffic = lambda: (self.counters.bytes_out, self.counters.bytes_in)
-        core.clock = self.loop.time
+        core.clock = self.loop.time  # (monotonic: what a request's elapsed time is read on)
 
     @property
     def _server(self) -> asyncio.Server | None:
         """The listening server (tests read its port)."""
         return self.transport.server
 
+    def _observe(self, status: bool = False) -> None:
+        """Hand the core what the driver measures: byte counters always; for a status, the
+        device's readings and the links' state too."""
+        links = None
+        if status:
+            self._observe_device()
+            links = self._link_status()
+        self.core.observe(self.counters.bytes_out, self.counters.bytes_in, links)
+
     def _link_status(self) -> dict[str, Any]:
-        self._observe_device()
         return {
             "traffic": self.counters.as_dict(),
             "connections": self.transport.connection_counters.as_dict(),
@@ -133,6 +140,8 @@ class NodeDriver:
         self._receive_now(src, msg)
 
     def _receive_now(self, src: str, msg: m.Message) -> None:
+        if isinstance(msg, m.StatusRequest):
+            self._observe(status=True)
         self._apply(self.core.receive(src, msg, self.loop.time()))
 
     def _warm(self, document: str, then: Callable[[], None]) -> None:
@@ -169,6 +178,8 @@ class NodeDriver:
             self._request_now(client, msg)
 
     def _request_now(self, client: int, msg: m.Message) -> None:
+        if isinstance(msg, m.StatusRequest):
+            self._observe(status=True)
         self._apply(self.core.request(client, msg, self.loop.time()))
 
     def _routes_changed(self, _: RoutesChanged | None) -> None:
@@ -217,6 +228,8 @@ class NodeDriver:
 
     def _fire(self, key: Hashable) -> None:
         self._timers.pop(key, None)
+        if isinstance(key, MonitorTick):  # the monitor samples the byte counters
+            self._observe()
         self._apply(self.core.on_timer(key, self.loop.time()))
 
     # -- links ------------------------------------------------------------------------------

@@ -12,7 +12,7 @@ holds, so no two nodes act on the same thing.
 from __future__ import annotations
 
 from collections import deque
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from mso.errors import MsoError
 from mso.management import (
@@ -32,12 +32,46 @@ from mso.node.monitor import WINDOW
 
 if TYPE_CHECKING:
     from mso.management import Action
-    from mso.node.remapping import Remapping
-    from mso.node.tables import Deployment
+    from mso.node.monitor import Monitor
+    from mso.protocol import messages as m
+    from mso.protocol.procedures.base import Procedure
+    from mso.protocol.state import AppState
+
+
+class ManagedNode(Protocol):
+    """What the management loop reads of its node, and the two things it asks of it."""
+
+    id: str
+    capacity: float
+    power: PowerModel
+    monitor: Monitor
+    routes: dict[str, tuple[str, int]]
+    apps: dict[str, AppState]
+    procedures: dict[int, Procedure]
+
+    @property
+    def failed(self) -> set[str]: ...
+
+    @property
+    def heard(self) -> dict[str, tuple[float, m.Figures]]: ...
+
+    def route_hops(self) -> dict[str, int]: ...
+
+    def relocation_target(self, dep: AppState, vertex: str, direction: str = "") -> str: ...
+
+    def relocate(self, req: m.RelocateRequest, now: float) -> None: ...
+
+    def remap(
+        self,
+        req: m.RemapRequest,
+        now: float,
+        weights: dict[str, float] | None = None,
+        place: dict[str, str] | None = None,
+    ) -> None: ...
 
 
 class _Rates:
-    """Per-vertex rates over the last ``WINDOW`` samples of the stone's cumulative counters:
+    """Per-vertex rates over the last ``WINDOW`` samples of the instance's cumulative counters:
     a mean over a window, like the monitor's load, so a camera at 0.5 frames/s reads 0.5."""
 
     def __init__(self, now: float, count: int, bytes_in: int, bytes_out: int) -> None:
@@ -63,7 +97,7 @@ class Manager:
 
     def __init__(
         self,
-        core: Remapping,
+        core: ManagedNode,
         policy: Any = None,
         settings: RuleSettings | None = None,
         enabled: bool = True,
@@ -98,14 +132,14 @@ class Manager:
 
     def _measure(self, now: float) -> None:
         for dep in self.core.apps.values():
-            for vid, stone in dep.stones.items():
-                count = stone.emitted if stone.kind == "source" else stone.processed
+            for vid, instance in dep.instances.items():
+                count = instance.emitted if instance.kind == "source" else instance.processed
                 key = (dep.app.name, vid)
                 r = self._rates.get(key)
                 if r is None:
-                    self._rates[key] = _Rates(now, count, stone.bytes_in, stone.bytes_out)
+                    self._rates[key] = _Rates(now, count, instance.bytes_in, instance.bytes_out)
                 else:
-                    r.update(now, count, stone.bytes_in, stone.bytes_out)
+                    r.update(now, count, instance.bytes_in, instance.bytes_out)
 
     def snapshot(self, now: float) -> Snapshot:
         core = self.core
@@ -124,8 +158,8 @@ class Manager:
             )
         }
         self._sent = [s for s in self._sent if s[0] > now]
-        for n, (at, fig) in core.liveness.heard.items():
-            if n not in core.dead:
+        for n, (at, fig) in core.heard.items():
+            if n not in core.failed:
                 nodes[n] = NodeView(
                     n,
                     fig.cpu,
@@ -154,10 +188,10 @@ class Manager:
             now, core.id, nodes, tuple(vertices), tuple(chains), busy, pinned_hosts, mon.last_start
         )
 
-    def _vertices(self, dep: Deployment, now: float) -> list[VertexView]:
+    def _vertices(self, dep: AppState, now: float) -> list[VertexView]:
         core, lay = self.core, dep.layout
         out = []
-        for vid, stone in sorted(dep.stones.items()):
+        for vid, instance in sorted(dep.instances.items()):
             chain = next(c.index for c in lay.chains if vid in c.vertices)
             try:
                 core.relocation_target(dep, vid)
@@ -169,7 +203,7 @@ class Manager:
             if movable:
                 up = _target(core, dep, vid, "upstream")
                 down = _target(core, dep, vid, "downstream")
-                state = stone.state_size  # measured by the executor, off the control plane
+                state = instance.state_size  # measured by the executor, off the control plane
                 movable = state >= 0
             r = self._rates.get((dep.app.name, vid))
             moved = dep.moved.get(vid)
@@ -194,7 +228,7 @@ class Manager:
             )
         return out
 
-    def _chains(self, dep: Deployment) -> list[ChainView]:
+    def _chains(self, dep: AppState) -> list[ChainView]:
         core = self.core
         out = []
         for c in dep.layout.chains:
@@ -231,7 +265,7 @@ class Manager:
         if isinstance(action, Relocate):
             core.relocate(m.RelocateRequest(action.app, action.vertex, target=action.target), now)
             r = self._rates.get((action.app, action.vertex))
-            beat = core.liveness.heard.get(action.target)
+            beat = core.heard.get(action.target)
             if r is not None and beat is not None:
                 added = dep.app.vertices[action.vertex].cost * r.rate / 1e3 / beat[1].cpu
                 self._sent.append((now + WINDOW + 1, action.target, added))
@@ -247,7 +281,7 @@ class Manager:
         return self.engine.status() | {"enabled": self.enabled, "done": list(self.done)}
 
 
-def _target(core: Remapping, dep: Deployment, vid: str, direction: str) -> str | None:
+def _target(core: ManagedNode, dep: AppState, vid: str, direction: str) -> str | None:
     """One hop of a relocation (§3.4.1): the neighbour on the way to where an upstream or
     downstream relocation would take ``vid``. Moving a hop at a time keeps every move cheap to
     weigh (a neighbour's figures are known from its heartbeats) and easy to undo."""
@@ -257,4 +291,4 @@ def _target(core: Remapping, dep: Deployment, vid: str, direction: str) -> str |
         return None
     route = core.routes.get(target)
     hop = route[0] if route is not None else None
-    return hop if hop is not None and hop not in core.dead else None
+    return hop if hop is not None and hop not in core.failed else None

@@ -208,11 +208,11 @@ class Heartbeat(_Msg, tag="heartbeat"):
     cost 111 bytes, ten a second to every neighbour — over half an interior robot's radio."""
 
     node: str
-    # membership: a restarted or reset node comes back with a higher incarnation; ``dead``
+    # membership: a restarted or reset node comes back with a higher incarnation; ``failed``
     # (node -> the incarnation declared failed) and ``leader`` (the lowest node the sender
     # counts alive) let two sides of a healed partition agree which one rejoins the other
     incarnation: int = 0
-    dead: dict[str, int] = msgspec.field(default_factory=dict)
+    failed: dict[str, int] = msgspec.field(default_factory=dict)
     leader: str = ""
     hosting: int = 0  # vertex instances the sender runs: a node with none yields first
     figures: Figures | None = None  # None: as on the last beat that carried them

@@ -78,8 +78,6 @@ class Simulation:
             for n, spec in network.nodes.items()
         }
         self.bytes = {n: [0, 0] for n in network.nodes}  # sent, received (relays count both)
-        for n, core in self.cores.items():
-            core.traffic = self._traffic_of(n)
         self.replies: list[tuple[float, int, m.Message]] = []
         self.delivered = 0
         self._heap: list[_Item] = []
@@ -89,10 +87,14 @@ class Simulation:
         # (node, destination): node's routing view has no route there although the links do
         # (a routing protocol that has not converged; see :meth:`lose_route`)
         self.lost_routes: set[tuple[str, str]] = set()
+        # a test's view of the network: each tap sees every message put on it (from, to,
+        # message); ``drop`` loses the ones it returns True for, as a radio would
+        self.taps: list[Callable[[str, str, m.Message], None]] = []
+        self.drop: Callable[[str, str, m.Message], bool] | None = None
         self.executors = {n: self._executor(n) for n in network.nodes}
         self.update_routes()
         for n, core in self.cores.items():
-            self._apply(n, core.start(self.now))
+            self.apply(n, core.start(self.now))
 
     def _executor(self, node: str) -> SimExecutor:
         ex: SimExecutor
@@ -105,14 +107,25 @@ class Simulation:
         )
         return ex
 
+    def hosts(self, app: str, vertex: str) -> list[str]:
+        """The live nodes that run an instance of ``vertex`` (one, unless a move is under way
+        or something went wrong)."""
+        return sorted(
+            n for n, c in self.cores.items() if n not in self.dead and vertex in c.instances(app)
+        )
+
+    def placement(self, node: str, app: str) -> dict[str, str]:
+        """Where ``node`` holds each vertex of ``app`` to run."""
+        return self.cores[node].placement(app)
+
+    def failed(self, node: str) -> set[str]:
+        """The nodes ``node`` holds failed."""
+        return set(self.cores[node].failed)
+
     def instance(self, node: str, app: str, vertex: str) -> Any:
         """The user's object behind ``vertex`` on ``node`` (tests read its own state)."""
-        h = self.cores[node].apps[app].stones[vertex]
+        h = self.cores[node].instances(app)[vertex]
         return self.executors[node].instance_of(h.instance)
-
-    def _traffic_of(self, node: str) -> Callable[[], tuple[int, int]]:
-        counters = self.bytes[node]
-        return lambda: (counters[0], counters[1])
 
     def update_routes(self) -> None:
         """Give every core its routing view of the current links."""
@@ -124,7 +137,7 @@ class Simulation:
                 route = self.network.route(n, dst)
                 if route is not None and dst != n and (n, dst) not in self.lost_routes:
                     routes[dst] = (route[1], len(route) - 1)
-            self._apply(n, core.set_routes(routes, self.now))
+            self.apply(n, core.set_routes(routes, self.now))
         for n, wait in self.waiting.items():
             if wait and n not in self.dead:
                 wait.release(self.now, self._resender(n))
@@ -159,6 +172,10 @@ class Simulation:
         route = self.network.route(node, dst)
         if route is None or (node, dst) in self.lost_routes:
             return False
+        for tap in self.taps:
+            tap(node, dst, msg)
+        if self.drop is not None and self.drop(node, dst, msg):
+            return True  # lost on the way
         delay = 0.0
         lossy = m.kind_of(msg) == m.DATA
         for a, b in itertools.pairwise(route):
@@ -182,7 +199,9 @@ class Simulation:
     def _push(self, at: float, kind: str, node: str, payload: Any) -> None:
         heapq.heappush(self._heap, _Item(at, next(self._seq), kind, node, payload))
 
-    def _apply(self, node: str, effects: list[Effect]) -> None:
+    def apply(self, node: str, effects: list[Effect]) -> None:
+        """Carry out ``effects`` as if ``node``'s core had returned them (tests inject
+        messages this way)."""
         for eff in effects:
             if isinstance(eff, Send):
                 if not self._send(node, eff.dst, eff.msg):  # no route: control frames wait
@@ -200,7 +219,9 @@ class Simulation:
                 self.executors[node].submit(eff, self.now)
 
     def request(self, node: str, msg: m.Message, client: int = 1) -> None:
-        self._apply(node, self.cores[node].request(client, msg, self.now))
+        core = self.cores[node]
+        core.observe(self.bytes[node][0], self.bytes[node][1])
+        self.apply(node, core.request(client, msg, self.now))
 
     def kill(self, node: str, convergence_s: float = 0.0) -> None:
         """Fail-stop ``node`` now: it falls silent and its links go; the survivors' routing
@@ -227,11 +248,10 @@ class Simulation:
             rules=self._rules,
             incarnation=old.incarnation + 1,
         )
-        core.traffic = self._traffic_of(node)
         self.executors[node] = self._executor(node)  # the old instances went with the process
         self.dead.discard(node)
         self._timers = {k: v for k, v in self._timers.items() if k[0] != node}
-        self._apply(node, core.start(self.now))
+        self.apply(node, core.start(self.now))
         self.update_routes()
 
     def run_until(self, t: float) -> None:
@@ -244,17 +264,20 @@ class Simulation:
             if item.node in self.dead:
                 continue
             core = self.cores[item.node]
+            core.observe(
+                self.bytes[item.node][0], self.bytes[item.node][1]
+            )  # its driver's byte counters, as inputs
             if item.kind == "msg":
                 src, msg = item.payload
                 self.delivered += 1
                 if self.trace is not None:
                     self.trace.append((self.now, item.node, src, type(msg).__name__))
-                self._apply(item.node, core.receive(src, msg, self.now))
+                self.apply(item.node, core.receive(src, msg, self.now))
             elif item.kind == "vertex":
                 executor, result = item.payload
                 if executor is self.executors[item.node]:
-                    self._apply(item.node, core.on_vertex(result, self.now))
+                    self.apply(item.node, core.on_vertex(result, self.now))
             elif self._timers.get((item.node, item.payload)) == item.at:
                 del self._timers[(item.node, item.payload)]
-                self._apply(item.node, core.on_timer(item.payload, self.now))
+                self.apply(item.node, core.on_timer(item.payload, self.now))
         self.now = max(self.now, t)

@@ -35,8 +35,8 @@ from mso.emu.controller import EmulatedNode, Emulator
 from mso.emu.netns.testbed import Testbed, unavailable
 from mso.emu.overlays import _claim
 from mso.errors import MsoError
-from mso.node.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 from mso.protocol import messages as m
+from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 
 NODE_PORT = 7000
 HEARTBEAT_NETNS_S = 0.2

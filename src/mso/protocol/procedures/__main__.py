@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from mso.protocol.procedures.base import Procedure, StateMachine, table_rows
 from mso.protocol.procedures.deploy import Deploy
-from mso.protocol.procedures.hosting import AWAIT_NOTE, InstanceLife
-from mso.protocol.procedures.membership import PeerLife, Suspicion, Vouch
-from mso.protocol.procedures.relocate import Relocation
+from mso.protocol.procedures.instance import AWAIT_NOTE, InstanceLife
+from mso.protocol.procedures.membership.detector import PeerLife, Suspicion, Vouch
+from mso.protocol.procedures.relocation import Relocation
 from mso.protocol.procedures.remap import Remap
 from mso.protocol.procedures.status import StatusFanout
 

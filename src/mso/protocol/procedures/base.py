@@ -8,17 +8,18 @@ core strict, where they raise). Every procedure has a deadline: the core arms on
 procedure, and a procedure still running when it fires fails with a defined outcome
 (:meth:`Procedure.expire`) — no wait can hang forever.
 
-Procedures are sans-IO: they act on the node through a :class:`NodeContext` (send, reply, set
-a timer, the node's tables), which the core implements.
+Procedures are sans-IO: they act on the node through a
+:class:`~mso.protocol.context.NodeContext` (send, reply, set a timer, the node's tables), which
+the core implements.
 """
 
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
-from typing import Any, ClassVar, Protocol
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
-from mso.protocol import messages as m
+if TYPE_CHECKING:
+    from mso.protocol import messages as m
 
 Table = dict[enum.Enum, dict[str, enum.Enum]]  # state -> {event: next state}
 
@@ -34,38 +35,16 @@ class Phase(enum.Enum):
     FAILED = "failed"
 
 
-@dataclass(frozen=True)
-class Deadline:
-    """Timer key: procedure ``pid``'s deadline."""
-
-    pid: int
+STEP_TIMEOUT_S = 1.0  # a step of a procedure not answered by then is sent again (or given up)
 
 
-@dataclass(frozen=True)
-class Retry:
-    """Timer key: procedure ``pid``'s step ``attempt`` was not answered in time."""
-
-    pid: int
-    attempt: int
-
-
-class NodeContext(Protocol):
-    """What a procedure may do to its node (the core implements it)."""
-
-    id: str
-
-    @property
-    def now(self) -> float: ...
+class Messenger(Protocol):
+    """What a procedure's own methods may do to its node when it ends: tell others. (The
+    node's whole :class:`~mso.protocol.context.NodeContext` is one.)"""
 
     def send(self, dst: str, msg: m.Message) -> None: ...
 
-    def broadcast(self, msg: m.Message) -> None: ...
-
     def reply(self, client: int, msg: m.Message) -> None: ...
-
-    def set_timer(self, key: Any, at: float) -> None: ...
-
-    def elapsed_ms(self, since: float) -> float: ...
 
 
 class StateMachine:
@@ -117,13 +96,13 @@ class Procedure(StateMachine):
         except IllegalTransition as exc:
             raise IllegalTransition(f"{exc} (procedure {self.pid})") from None
 
-    def fail(self, ctx: NodeContext, error: str) -> None:
+    def fail(self, ctx: Messenger, error: str) -> None:
         """End unsuccessfully (every state may fail); subclasses report to whoever waits."""
         if not self.done:
             self.error = error
             self.state = Phase.FAILED
 
-    def expire(self, ctx: NodeContext) -> None:
+    def expire(self, ctx: Messenger) -> None:
         """The deadline passed with the procedure still running: its defined failure."""
         self.fail(ctx, f"{self.name} did not finish within {self.DEADLINE_S:g} s")
 

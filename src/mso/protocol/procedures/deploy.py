@@ -1,15 +1,46 @@
-"""Deployment (Algorithm 1) as its origin sees it: BUILDING while chains are probed, placed
-and built across the nodes (each chain by the node holding its head), FINISHED when every chain
-reports built and the origin starts the app, FAILED when a node refuses (bad code, placement
-impossible) or at the deadline — then the app is stopped everywhere and the client told why,
-instead of waiting for ever on a probe or a chain build that was lost."""
+"""Deployment (§3.3, Algorithm 1), every role in one place: the origin, each chain head's node,
+each probe hop, each builder.
+
+- The **origin** (the node a client asked) announces the app to every node (``AppAnnounce``)
+  and opens the :class:`Deploy` procedure: BUILDING while chains are probed, placed and built
+  across the nodes, FINISHED when every chain reports built (``ChainBuilt``) and the origin
+  starts the app (``StartApp``), FAILED when a node refuses (bad code, placement impossible)
+  or at the deadline — then the app is stopped everywhere and the client told why, instead of
+  waiting for ever on a probe or a chain build that was lost.
+- A **chain head's node**, once every chain its chain depends on is placed, probes the route
+  toward the chain's furthest pinned vertex (``Probe`` → ``ProbeReply``: each hop appends its
+  capacity), places the chain in proportion to cost and capacity, and tells everyone
+  (``ChainPlaced``); it then asks each node on it to build its part (``BuildChain`` →
+  ``ChainPartReady``) and tells the origin the chain is built.
+- A **probe hop** appends itself and forwards; one whose route still goes through a failed node
+  holds the probe until its routes go around it (at most ``STEP_TIMEOUT_S``).
+- A **builder** hosts its vertices and reports its part ready once every instance has started.
+
+Undeploying (``StopApp``) is here too: with operator keys only an operator's signed undeploy
+stops a running app.
+"""
 
 from __future__ import annotations
 
 import enum
-from typing import Any, ClassVar
+import zlib
+from typing import Any, ClassVar, Protocol
 
-from mso.protocol.procedures.base import Phase, Procedure, Table
+from mso.errors import MsoError
+from mso.management import load_policy
+from mso.model.app import App
+from mso.model.appfile import loads_app
+from mso.planning.placement import Hop, Layout
+from mso.protocol import messages as m
+from mso.protocol.authority import generation
+from mso.protocol.context import NodeContext
+from mso.protocol.dataplane import RETRANSMIT_S, DataPlane
+from mso.protocol.effects import Reply, Send, SetTimer
+from mso.protocol.events import InstanceFailed, InstanceReady, Retransmit, RoutesChanged
+from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
+from mso.protocol.state import AppState
+
+MAX_WAITING_PROBES = 256  # probes held at a hop whose route still goes through a failed node
 
 
 class S(enum.Enum):
@@ -30,3 +61,367 @@ class Deploy(Procedure):
 
     def describe(self) -> dict[str, Any]:
         return super().describe() | {"app": self.app}
+
+
+class AppPolicies(Protocol):
+    """What deployment needs of the management rules: an app's policy checked (and loaded)
+    when the app arrives, and forgotten when it goes."""
+
+    def app_policy(self, app: str, spec: Any, where: str) -> None: ...
+
+    def forget(self, app: str) -> None: ...
+
+
+class Deployer:
+    """This node's part in deploying and undeploying apps, in every role (module docstring)."""
+
+    def __init__(self, ctx: NodeContext, dp: DataPlane, policies: AppPolicies) -> None:
+        self.ctx = ctx
+        self.dp = dp
+        self.policies = policies
+        self._clients: dict[str, tuple[int, float]] = {}  # app -> (client, asked at), origin
+        self._epochs = zlib.crc32(ctx.id.encode()) & 0xFFFF
+        self._waiting_probes: list[tuple[float, m.Probe]] = []  # (give up at, probe)
+
+    def _deploying(self, app: str) -> Deploy | None:
+        for proc in self.ctx.open():
+            if isinstance(proc, Deploy) and proc.app == app:
+                return proc
+        return None
+
+    def expire(self, proc: Deploy, now: float) -> None:
+        """The deadline passed: a probe or a chain build was lost; stop it everywhere."""
+        why = f"{proc.name} did not finish within {proc.deadline - proc.started_at:g} s"
+        self.on_deploy_failed(m.DeployFailed(proc.app, f"{self.ctx.id}: {why}"), now)
+        self.ctx.end(proc.pid)
+
+    def on_routes_changed(self, ev: RoutesChanged) -> None:
+        """Probes held for routes around a failure go on."""
+        now = self.ctx.now
+        waiting, self._waiting_probes = self._waiting_probes, []
+        for deadline, probe in waiting:
+            if deadline >= now:
+                self._forward_probe(probe, now)
+
+    def on_reset(self) -> None:
+        self._waiting_probes.clear()
+
+    def deploy_request(self, client: int, req: m.DeployRequest, now: float) -> None:
+        try:
+            app = loads_app(req.document, file=req.file)
+            load_policy(app.policy, where=f"{req.file}: policy")
+        except MsoError as exc:
+            self.ctx.emit(Reply(client, _failed_reply("", str(exc))))
+            return
+        revoked = self.ctx.authority.revocation(app.name, req.document)
+        if revoked:
+            self.ctx.emit(Reply(client, _failed_reply(app.name, revoked)))
+            return
+        if app.name in self.ctx.apps:
+            reply = _failed_reply(app.name, f"an app named {app.name!r} is already deployed")
+            self.ctx.emit(Reply(client, reply))
+            return
+        known = set(self.ctx.known_nodes())
+        for v in app.vertices.values():
+            if v.pinned is not None and v.pinned not in known:
+                reason = (
+                    f"vertex {v.id!r} is pinned to node {v.pinned!r}, which is not reachable "
+                    f"(reachable: {', '.join(sorted(known))})"
+                )
+                self.ctx.emit(Reply(client, _failed_reply(app.name, reason)))
+                return
+        self._clients[app.name] = (client, now)
+        self.ctx.begin(Deploy(self.ctx.new_pid(), now, app.name))
+        epoch = self._epochs = (self._epochs + 1) & 0x7FFFFFFF
+        self.ctx.broadcast(
+            m.AppAnnounce(app=app.name, origin=self.ctx.id, document=req.document, epoch=epoch)
+        )
+
+    def load_app(self, name: str, document: str) -> App:
+        """An app announced (or synced) by another node, with its policy checked and loaded."""
+        app = loads_app(document, file=f"<{name}>")
+        self.policies.app_policy(app.name, app.policy, where=f"{self.ctx.id}: {app.name}: policy")
+        return app
+
+    def revoked(self, src: str, app: str, document: str) -> bool:
+        """An operator undeployed ``app`` after ``document`` was granted (a replay, or a node
+        that missed the undeploy): refused, and the sender is told the undeploy."""
+        if not self.ctx.authority.revocation(app, document):
+            return False
+        self.ctx.refusal("document_revoked")
+        stop = self.ctx.authority.revoked.get(app)
+        if stop is not None and src != self.ctx.id:
+            self.ctx.send(src, stop)
+        return True
+
+    def named(self, app: App, name: str) -> bool:
+        """A document travels under its app's own name (a grant covers the document, not
+        the message's ``app``), else it is refused."""
+        if app.name == name:
+            return True
+        self.ctx.refusal("document_named_otherwise")
+        return False
+
+    def on_announce(self, src: str, msg: m.AppAnnounce, now: float) -> None:
+        if msg.app in self.ctx.apps or self.revoked(src, msg.app, msg.document):
+            return
+        try:
+            app = self.load_app(msg.app, msg.document)
+        except MsoError as exc:
+            self.ctx.send(msg.origin, m.DeployFailed(app=msg.app, reason=f"{self.ctx.id}: {exc}"))
+            return
+        if not self.named(app, msg.app):
+            return
+        layout = Layout(app, msg.origin)
+        dep = AppState(
+            app=app,
+            layout=layout,
+            origin=msg.origin,
+            placed=layout.initial_placement(),
+            epoch=msg.epoch,
+            document=msg.document,
+        )
+        for i, e in enumerate(app.edges):
+            dep.out_edges.setdefault(e.src, []).append(i)
+        if msg.origin == self.ctx.id and msg.app in self._clients:
+            dep.client, dep.requested_at = self._clients.pop(msg.app)
+        self.ctx.apps[msg.app] = dep
+        self._start_ready_chains(dep)
+
+    def _start_ready_chains(self, dep: AppState) -> None:
+        lay = dep.layout
+        for ci in lay.order:
+            if ci in dep.started_chains or not lay.ready(ci, dep.placed_chains):
+                continue
+            head = lay.chains[ci].head
+            if dep.placed.get(head) != self.ctx.id:
+                continue
+            dep.started_chains.add(ci)
+            target, _ = lay.target(ci, dep.placed, self.ctx.distances())
+            pairs = lay.probes_needed(ci, dep.placed, target)
+            dep.probes[ci] = {}
+            if not pairs:
+                self._place(dep, ci)
+                continue
+            dep.probes_expected[ci] = len(pairs)
+            for k, (a, b) in enumerate(pairs):
+                self.ctx.send(a, m.Probe(dep.app.name, ci, k, self.ctx.id, b, [], []))
+
+    def on_probe(self, msg: m.Probe) -> None:
+        msg.nodes.append(self.ctx.id)
+        msg.capacities.append(self.ctx.capacity)
+        if msg.target == self.ctx.id:
+            reply = m.ProbeReply(msg.app, msg.chain, msg.segment, msg.nodes, msg.capacities)
+            self.ctx.send(msg.requester, reply)
+            return
+        self._forward_probe(msg, self.ctx.now)
+
+    def _forward_probe(self, msg: m.Probe, now: float) -> None:
+        nxt = self.ctx.routes.get(msg.target)
+        if nxt is not None and nxt[0] in self.ctx.failed:
+            # our routes do not go around a failure yet (the coordinator's already do): wait
+            # for them rather than lose the probe and the coordinator's STEP_TIMEOUT_S
+            if len(self._waiting_probes) < MAX_WAITING_PROBES:
+                self._waiting_probes.append((now + STEP_TIMEOUT_S, msg))
+            return
+        if nxt is None:
+            reply = m.ProbeReply(msg.app, msg.chain, msg.segment, [], [])
+            self.ctx.send(msg.requester, reply)
+            return
+        self.ctx.emit(Send(nxt[0], msg))  # the next hop appends itself in turn
+
+    def on_probe_reply(self, msg: m.ProbeReply) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if (
+            dep is None
+            or msg.chain not in dep.probes
+            or not 0 <= msg.segment < dep.probes_expected.get(msg.chain, 0)
+        ):
+            self.ctx.refusal("probe_reply_unexpected")
+            return
+        got = dep.probes[msg.chain]
+        got[msg.segment] = [Hop(n, c) for n, c in zip(msg.nodes, msg.capacities, strict=False)]
+        if len(got) == dep.probes_expected.get(msg.chain):
+            self._place(dep, msg.chain)
+
+    def _place(self, dep: AppState, ci: int) -> None:
+        lay = dep.layout
+        hops_by_pair: dict[tuple[str, str], list[Hop]] = {}
+        dep.probes_expected.pop(ci, None)
+        for hops in dep.probes.pop(ci, {}).values():
+            if hops:
+                hops_by_pair[(hops[0].node, hops[-1].node)] = hops
+
+        def probe(a: str, b: str) -> list[Hop]:
+            return hops_by_pair.get((a, b), [])
+
+        try:
+            assigned, _ = lay.place(ci, dep.placed, probe, self.ctx.distances())
+        except MsoError as exc:
+            self.ctx.send(dep.origin, m.DeployFailed(dep.app.name, f"{self.ctx.id}: {exc}"))
+            return
+        self.ctx.broadcast(m.ChainPlaced(dep.app.name, ci, assigned))
+
+    def on_placed(self, msg: m.ChainPlaced) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not 0 <= msg.chain < len(dep.layout.chains):
+            self.ctx.refusal("chain_placed_unknown_chain")
+            return
+        if msg.chain in dep.placed_chains:
+            self.ctx.refusal("chain_placed_again")
+            return
+        if set(msg.assignments) != set(dep.layout.chains[msg.chain].vertices):
+            self.ctx.refusal("chain_placed_other_vertices")
+            return
+        dep.placed.update(msg.assignments)
+        dep.placed_chains.add(msg.chain)
+        chain = dep.layout.chains[msg.chain]
+        if msg.assignments.get(chain.head) == self.ctx.id and msg.chain in dep.started_chains:
+            by_node: dict[str, list[str]] = {}
+            for v in chain.vertices:
+                by_node.setdefault(msg.assignments[v], []).append(v)
+            dep.parts_pending[msg.chain] = set(by_node)
+            for node, verts in by_node.items():
+                self.ctx.send(node, m.BuildChain(dep.app.name, msg.chain, verts))
+        self._start_ready_chains(dep)
+
+    def on_build(self, src: str, msg: m.BuildChain) -> None:
+        """Host this node's part of a chain; it is ready once every instance has started."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not 0 <= msg.chain < len(dep.layout.chains):
+            self.ctx.refusal("build_unknown_chain")
+            return
+        if dep.running or not set(msg.vertices) <= set(dep.layout.chains[msg.chain].vertices):
+            self.ctx.refusal("build_not_of_the_chain")  # (a running app is built already)
+            return
+        starting = set()
+        for vid in msg.vertices:
+            h = dep.instances.get(vid)
+            if h is None:
+                h = dep.instances[vid] = self.dp.host(dep, vid)
+            if not h.started:
+                starting.add(vid)
+        if starting:
+            dep.building[msg.chain] = (src, starting)
+        else:
+            self.ctx.send(src, m.ChainPartReady(msg.app, msg.chain, self.ctx.id))
+
+    def on_part_ready(self, msg: m.ChainPartReady) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or msg.node not in dep.parts_pending.get(msg.chain, ()):
+            self.ctx.refusal("part_ready_unexpected")
+            return
+        pending = dep.parts_pending[msg.chain]
+        pending.discard(msg.node)
+        if not pending:
+            del dep.parts_pending[msg.chain]
+            self.ctx.send(dep.origin, m.ChainBuilt(msg.app, msg.chain))
+
+    def on_built(self, msg: m.ChainBuilt, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        proc = self._deploying(msg.app)
+        if (
+            dep is None
+            or dep.origin != self.ctx.id
+            or proc is None  # no deployment of it in progress here
+            or msg.chain in dep.built
+            or not 0 <= msg.chain < len(dep.layout.chains)
+        ):
+            self.ctx.refusal("chain_built_unexpected")
+            return
+        dep.built.add(msg.chain)
+        proc.on("built")
+        if len(dep.built) == len(dep.layout.chains):
+            proc.on("all_built")
+            self.ctx.end(proc.pid)
+            self.ctx.broadcast(m.StartApp(msg.app))
+            if dep.client is not None:
+                elapsed = self.ctx.elapsed_ms(dep.requested_at)
+                reply = m.DeployReply(msg.app, True, dict(dep.placed), elapsed)
+                self.ctx.emit(Reply(dep.client, reply))
+                dep.client = None
+
+    def on_deploy_failed(self, msg: m.DeployFailed, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or dep.origin != self.ctx.id:
+            return
+        proc = self._deploying(msg.app)
+        if proc is None:  # deployed (or failed) already: a failure report cannot stop it
+            self.ctx.refusal("deploy_failed_after_deployment")
+            return
+        proc.fail(self.ctx, msg.reason)
+        self.ctx.end(proc.pid)
+        if dep.client is not None:
+            self.ctx.emit(Reply(dep.client, _failed_reply(msg.app, msg.reason)))
+            dep.client = None
+        self.ctx.broadcast(m.StopApp(msg.app))
+
+    def on_start(self, msg: m.StartApp, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or dep.running:
+            self.ctx.refusal("start_app_running")
+            return
+        dep.running = True
+        dep.started_at = now
+        dep.placed_at = dict.fromkeys(range(len(dep.layout.chains)), now)
+        for vid, h in dep.instances.items():
+            if h.kind == "source":
+                self.dp.start_source(dep, vid, now)
+        self.ctx.emit(SetTimer(Retransmit(msg.app), now + RETRANSMIT_S))
+
+    def undeploy_refused(self, msg: m.StopApp) -> str:
+        """Why this node does not stop ``msg.app`` ('' if it does). With operator keys only
+        an operator's signed undeploy stops a running app (a member's StopApp alone does
+        not); a deployment that has not started may be stopped by its origin after a
+        failure."""
+        if not self.ctx.authority.signed:
+            return ""
+        dep = self.ctx.apps.get(msg.app)
+        if not msg.sig and (dep is None or not dep.running):
+            return ""
+        return self.ctx.authority.undeploy(msg)  # (remembers the revocation)
+
+    def undeployed_before(self, msg: m.StopApp) -> bool:
+        """An operator's undeploy older than the deployment running here (one told again to
+        a node that comes into reach): it stops nothing."""
+        dep = self.ctx.apps.get(msg.app)
+        return bool(msg.sig) and dep is not None and generation(dep.document) > msg.at
+
+    def on_stop_app(self, msg: m.StopApp, now: float) -> None:
+        if self.undeploy_refused(msg):
+            self.ctx.refusal("stop_app_unauthorized")
+            return
+        if self.ctx.authority.signed and self.undeployed_before(msg):
+            self.ctx.refusal("undeploy_older_than_deployment")  # (maybe told again: harmless)
+            return
+        gone = self.ctx.apps.pop(msg.app, None)
+        if gone is not None:
+            self.dp.stop_app(gone, "undeploy")
+        self.policies.forget(msg.app)
+
+    def on_instance_ready(self, ev: InstanceReady) -> None:
+        """A builder's instance started: its part of the chain may be ready."""
+        dep = self.ctx.apps.get(ev.app)
+        if dep is None:
+            return
+        vid = ev.vertex
+        for ci, (asker, starting) in list(dep.building.items()):
+            starting.discard(vid)
+            if not starting:
+                del dep.building[ci]
+                self.ctx.send(asker, m.ChainPartReady(dep.app.name, ci, self.ctx.id))
+
+    def on_instance_failed(self, ev: InstanceFailed) -> None:
+        """A builder's instance failed to start: the deployment fails (at its origin)."""
+        dep = self.ctx.apps.get(ev.app)
+        if dep is None:
+            return
+        vid, error = ev.vertex, ev.error
+        for ci, (_, starting) in list(dep.building.items()):
+            if vid in starting:
+                del dep.building[ci]
+                self.ctx.send(dep.origin, m.DeployFailed(dep.app.name, error))
+
+
+def _failed_reply(app: str, reason: str) -> m.DeployReply:
+    return m.DeployReply(app=app, ok=False, placement={}, elapsed_ms=0.0, error=reason)

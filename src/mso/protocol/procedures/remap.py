@@ -1,16 +1,46 @@
-"""Chain remap (§3.4.2), global remap (§3.4.3) and failure recovery, as their coordinator
-sees them: PROBING each chain's route in dependency order (re-probed if a probe is lost) and
-placing it with the deployment's own placement code, then MOVING the vertices whose node
-changed one at a time (relocations, or restores for lost instances), then FINISHED. A remap
-fails when placement fails, a probe is never answered, a step fails, or at its deadline."""
+"""Chain remap (§3.4.2), global remap (§3.4.3) and failure recovery, at the one node that
+coordinates each.
+
+A :class:`Remap` is PROBING each chain's route in dependency order (re-probed if a probe is
+lost, ``Retry``) and placing it with the deployment's own placement code, then MOVING the
+vertices whose node changed one at a time — each a child :class:`~.relocation.Relocation`, or a
+restore for a lost instance — then FINISHED. It fails when placement fails, a probe is never
+answered, a child fails, or at its deadline. A remap's probe travels as a deployment's does
+(:mod:`.deploy`'s probe hops), marked by chain -1 and its segment ``pid * 1000 + k``.
+
+**Recovery** is the rule that turns a failure into a remap, as pure decisions on the node's own
+tables (:meth:`Remapper.maybe_recover`): exactly one node acts for an app — the lowest-named
+surviving node that hosts part of it — and every node derives the same choice from the same
+placement and failure set, so two detectors never both remap. It remaps only the chains that
+lost a vertex (a chain remap, or a global one if a chain's end was lost), waits for the routing
+view to route around the failure first, and parks the chains pinned to a failed node: their
+edges stop carrying events (counted as dropped), so a dead sink on one branch does not hold back
+the branches that still run. Membership publishes :class:`~mso.protocol.events.PeerFailed`; the
+recovery goes on from there, in one direction: membership → remap → restore.
+"""
 
 from __future__ import annotations
 
 import enum
 from typing import Any, ClassVar
 
+from mso.errors import MsoError
 from mso.planning.placement import Hop
-from mso.protocol.procedures.base import Phase, Procedure, Table
+from mso.protocol import messages as m
+from mso.protocol.context import NodeContext
+from mso.protocol.dataplane import DataPlane
+from mso.protocol.effects import Reply, SetTimer
+from mso.protocol.events import (
+    PeerFailed,
+    RecoverTick,
+    RecoveryDue,
+    RelocationEnded,
+    Retry,
+    RoutesChanged,
+)
+from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
+from mso.protocol.procedures.relocation import Relocation, Relocator
+from mso.protocol.state import AppState
 
 PROBE_ATTEMPTS = 5
 
@@ -64,3 +94,355 @@ class Remap(Procedure):
 
     def describe(self) -> dict[str, Any]:
         return super().describe() | {"app": self.app, "chains_left": list(self.chains)}
+
+
+class Remapper:
+    """This node's part in remaps and recoveries: it coordinates them (module docstring)."""
+
+    def __init__(self, ctx: NodeContext, dp: DataPlane, relocator: Relocator) -> None:
+        self.ctx = ctx
+        self.dp = dp
+        self.relocator = relocator
+
+    def _remap(self, pid: int | None) -> Remap | None:
+        proc = self.ctx.procedure(pid)
+        return proc if isinstance(proc, Remap) else None
+
+    def expire(self, remap: Remap, now: float) -> None:
+        why = f"{remap.name} did not finish within {remap.deadline - remap.started_at:g} s"
+        self._finish(remap.pid, now, why)
+
+    # -- what moves a remap or a recovery on ----------------------------------------------
+    def on_relocation_ended(self, ev: RelocationEnded) -> None:
+        """One of a remap's moves ended: the next one, or the remap fails and says why."""
+        if ev.remap is None or self._remap(ev.remap) is None:
+            return
+        if ev.error:
+            self._finish(ev.remap, self.ctx.now, ev.error)
+        else:
+            self._step(ev.remap, self.ctx.now, moved=(ev.vertex, ev.target))
+
+    def on_peer_failed(self, ev: PeerFailed) -> None:
+        for dep in list(self.ctx.apps.values()):
+            self.park(dep)
+            self.maybe_recover(dep, self.ctx.now)
+
+    def on_recovery_due(self, ev: RecoveryDue) -> None:
+        for dep in list(self.ctx.apps.values()):
+            if ev.app is None or dep.app.name == ev.app:
+                self.maybe_recover(dep, self.ctx.now)
+
+    def on_recover_tick(self, key: RecoverTick, now: float) -> None:
+        dep = self.ctx.apps.get(key.app)
+        if dep is not None:
+            self.maybe_recover(dep, now)
+
+    def on_routes_changed(self, ev: RoutesChanged) -> None:
+        """A route inside a chain changed (the route rule's event); a recovery waiting for
+        routes around a failed node may start."""
+        now = self.ctx.now
+        for dep in self.ctx.apps.values():
+            for c in dep.layout.chains:
+                if ev.changed & {dep.placed.get(v) for v in c.vertices}:
+                    dep.route_changed[c.index] = now
+        for dep in list(self.ctx.apps.values()):
+            self.maybe_recover(dep, now)
+
+    # -- the procedure, at its coordinator ---------------------------------------------------
+    def remap(
+        self,
+        req: m.RemapRequest,
+        now: float,
+        weights: dict[str, float] | None = None,
+        place: dict[str, str] | None = None,
+    ) -> None:
+        """Start a chain or global remap this node coordinates. An energy remap also says
+        where some re-placed vertices go (``place``: the planner anchors them there) and
+        scales each node's probed capacity for the planner (``weights``)."""
+        self.request(None, req, now, weights, place)
+
+    def request(
+        self,
+        client: int | None,
+        msg: m.RemapRequest,
+        now: float,
+        weights: dict[str, float] | None = None,
+        place: dict[str, str] | None = None,
+    ) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not dep.running:
+            self._refuse(client, msg.app, f"no running app named {msg.app!r}")
+            return
+        lay = dep.layout
+        bad = [c for c in msg.chains if not 0 <= c < len(lay.chains)]
+        if bad or (not msg.chains and not msg.everything):
+            reason = f"unknown chain {bad[0]}" if bad else "name the chains to remap, or all"
+            reason += f" (chains 0..{len(lay.chains) - 1})"
+            self._refuse(client, msg.app, reason)
+            return
+        wanted = set(range(len(lay.chains))) if msg.everything else set(msg.chains)
+        order = [c for c in lay.order if c in wanted]
+        # what stays: everything outside the set, pinned vertices, the heads of chains fed from
+        # outside the set (sources included), and a lone chain's head and tail (§3.4.2)
+        chains = [lay.chains[c] for c in order]
+        in_set = {v for c in chains for v in c.vertices}
+        tails = {c.tail for c in chains}
+        ends = {chains[0].head, chains[0].tail} if len(chains) == 1 else set()
+        stays = {v for v in dep.placed if v not in in_set or v in lay.pinned or v in ends}
+        stays |= {c.head for c in chains if c.head not in tails}
+        placed = {v: dep.placed[v] for v in stays}
+        movable = in_set - stays
+        placed |= {v: n for v, n in (place or {}).items() if v in movable}
+        remap = Remap(self.ctx.new_pid(), now, msg.app, order, client, placed, movable)
+        remap.weights = dict(weights or {})
+        self.ctx.begin(remap)
+        self._next_chain(remap.pid, now)
+
+    def _refuse(self, client: int | None, app: str, reason: str) -> None:
+        if client is not None:
+            self.ctx.emit(Reply(client, m.RemapReply(app, False, {}, error=reason)))
+
+    def _next_chain(self, rid: int, now: float) -> None:
+        remap = self._remap(rid)
+        dep = self.ctx.apps.get(remap.app) if remap is not None else None
+        if remap is None or dep is None:
+            return
+        if not remap.chains:
+            remap.on("placed_all")
+            order = {v: i for i, v in enumerate(dep.app.topological_order())}
+            moves = [
+                (v, n)
+                for v, n in remap.placed.items()
+                if (v in remap.movable and dep.placed.get(v) != n) or v in dep.vanished
+            ]
+            # replacements for lost instances first (upstream first, so each one's producer
+            # is running when it resumes), then the relocations of live ones
+            lost = dep.lost(self.ctx.failed)
+            moves.sort(key=lambda vn: (vn[0] not in lost, order[vn[0]]))
+            remap.moves = moves
+            self._step(rid, now)
+            return
+        ci = remap.chains[0]
+        lay = dep.layout
+        head = lay.chains[ci].head
+        if head not in remap.placed:
+            remap.placed[head] = self._live_home(dep, head, remap.placed)
+        target, _ = lay.target(ci, remap.placed, self.ctx.distances())
+        pairs = lay.probes_needed(ci, remap.placed, target)
+        remap.probes, remap.expected = {}, len(pairs)
+        if not pairs:
+            self._place(rid, now)
+            return
+        remap.on("probe")
+        remap.probe_attempts += 1
+        for k, (a, b) in enumerate(pairs):  # chain -1 - rid marks a remap's probe
+            self.ctx.send(a, m.Probe(remap.app, -1, rid * 1000 + k, self.ctx.id, b, [], []))
+        self.ctx.emit(SetTimer(Retry(rid, remap.probe_attempts), now + STEP_TIMEOUT_S))
+
+    def _live_home(self, dep: AppState, vertex: str, placed: dict[str, str]) -> str:
+        """Where a vertex stays during a remap: its node, or if that failed, its first
+        predecessor's (an upstream move), or for a lost unpinned source, this node."""
+        node = dep.placed[vertex]
+        if node not in self.ctx.failed:
+            return node
+        for pred in dep.app.predecessors()[vertex]:
+            home = placed.get(pred, dep.placed[pred])
+            if home not in self.ctx.failed:
+                return home
+        return self.ctx.id
+
+    def on_retry(self, key: Retry, now: float) -> None:
+        """A probe was lost (a route through a failed node): probe again, a few times."""
+        rid, attempt = key.pid, key.attempt
+        remap = self._remap(rid)
+        if remap is None or attempt != remap.probe_attempts or len(remap.probes) >= remap.expected:
+            return
+        if remap.probe_attempts >= PROBE_ATTEMPTS:
+            self._finish(rid, now, "probes along the chain's route were not answered")
+            return
+        if remap.recovery is not None:
+            remap.recovery["retried"].append(f"probe {remap.chains[0]}")
+        self._next_chain(rid, now)
+
+    def on_probe_reply(self, msg: m.ProbeReply) -> None:
+        rid, k = divmod(msg.segment, 1000)
+        remap = self._remap(rid)
+        if (
+            remap is None
+            or msg.app != remap.app
+            or k in remap.probes
+            or not 0 <= k < remap.expected
+            or remap.state is not S.PROBING
+        ):
+            self.ctx.refusal("probe_reply_unexpected")
+            return
+        remap.probes[k] = [Hop(n, c) for n, c in zip(msg.nodes, msg.capacities, strict=False)]
+        if len(remap.probes) == remap.expected:
+            self._place(rid, self.ctx.now)
+
+    def _place(self, rid: int, now: float) -> None:
+        remap = self._remap(rid)
+        dep = self.ctx.apps.get(remap.app) if remap is not None else None
+        if remap is None or dep is None:
+            return
+        remap.on("placed")
+        ci = remap.chains.pop(0)
+        remap.probe_attempts = 0
+        w = remap.weights
+        by_pair = {
+            (h[0].node, h[-1].node): [Hop(x.node, x.capacity * w.get(x.node, 1.0)) for x in h]
+            for h in remap.probes.values()
+            if h
+        }
+        try:
+            assigned, _ = dep.layout.place(
+                ci, remap.placed, lambda a, b: by_pair.get((a, b), []), self.ctx.distances()
+            )
+        except MsoError as exc:
+            self._finish(rid, now, str(exc))
+            return
+        remap.placed.update(assigned)
+        self._next_chain(rid, now)
+
+    def _step(self, rid: int, now: float, moved: tuple[str, str] | None = None) -> None:
+        """Relocate (or, if its node failed, restore) the next vertex whose node changed;
+        done when none is left."""
+        remap = self._remap(rid)
+        dep = self.ctx.apps.get(remap.app) if remap is not None else None
+        if remap is None or dep is None:
+            return
+        if moved is not None:
+            remap.on("moved")
+            remap.moved[moved[0]] = moved[1]
+        while remap.moves:
+            vertex, node = remap.moves.pop(0)
+            lost = dep.placed[vertex] in self.ctx.failed or vertex in dep.vanished
+            if dep.placed.get(vertex) == node and not lost:
+                continue
+            if dep.layout.kinds[vertex] == "source" and not lost:
+                continue
+            if lost and remap.recovery is None:  # the failure recovery restores it (one node
+                continue  # coordinates it); restored here too, it would run twice
+            pid = self.ctx.new_pid()
+            source = dep.placed[vertex]
+            reloc = Relocation(pid, now, remap.app, vertex, source, node, None, remap=rid)
+            if remap.recovery is not None:
+                reloc.retried = remap.recovery["retried"]
+            self.ctx.begin(reloc)
+            if lost:
+                self.relocator.start_restore(dep, reloc, pid, now)
+            else:
+                self.ctx.send(node, m.Prepare(remap.app, vertex, pid))
+            return
+        remap.on("all_moved")
+        self._finish(rid, now, "")
+
+    def _finish(self, rid: int, now: float, error: str) -> None:
+        remap = self._remap(rid)
+        if remap is None:
+            return
+        if error:
+            remap.fail(self.ctx, error)
+        self.ctx.end(rid)
+        if remap.client is not None:
+            elapsed = self.ctx.elapsed_ms(remap.started_at)
+            reply = m.RemapReply(remap.app, not error, remap.moved, elapsed, error)
+            self.ctx.emit(Reply(remap.client, reply))
+        dep = self.ctx.apps.get(remap.app)
+        if remap.recovery is not None and dep is not None:
+            remap.recovery.update(
+                moved=dict(remap.moved),
+                ok=not error,
+                error=error,
+                took_ms=round(self.ctx.elapsed_ms(remap.started_at), 3),
+            )
+            dep.recovering = None
+            if error:  # e.g. no route yet to a node that is about to be declared failed too:
+                # try again later (sooner if routes or failures change), never in a loop
+                self.ctx.emit(SetTimer(RecoverTick(dep.app.name), now + STEP_TIMEOUT_S))
+            else:
+                self.maybe_recover(dep, now)  # another failure may have happened meanwhile
+
+    def maybe_recover(self, dep: AppState, now: float) -> None:
+        """Remap the chains that lost vertices with a failed node. Exactly one node acts for
+        an app: the lowest-named surviving node that hosts part of it (if none does, the
+        lowest-named node alive). Every node derives the
+        same choice from the same placement and failure set, so two detectors never both
+        remap (a coordinator that is itself dead is skipped by the same rule)."""
+        if not dep.running or dep.recovering is not None:
+            return
+        lost = dep.lost(self.ctx.failed)
+        if not lost:
+            return
+        live = {n for v, n in dep.placed.items() if v not in lost}
+        if not live:  # every instance went (a node that ran them all restarted at once):
+            live = {
+                self.ctx.id,
+                *(n for n in self.ctx.routes if n not in self.ctx.failed),
+            }  # lowest alive
+        if min(live) != self.ctx.id:
+            return
+        if any(d in self.ctx.routes for d in self.ctx.failed) or any(
+            hop in self.ctx.failed for hop, _ in self.ctx.routes.values()
+        ):
+            return  # wait for the routing view to route around the failure (set_routes)
+        lay = dep.layout
+        touched = [
+            ci
+            for ci, c in enumerate(lay.chains)
+            if ci not in dep.parked and any(v in lost for v in c.vertices)
+        ]
+        if not touched:
+            return
+        chains = [lay.chains[c] for c in touched]
+        in_set = {v for c in chains for v in c.vertices}
+        ends = {v for c in chains for v in (c.head, c.tail)}
+        stays = {v for v in dep.placed if v not in in_set or v in lay.pinned}
+        stays |= {v for v in ends if v not in lost}
+        placed = {v: dep.placed[v] for v in stays}
+        order = [c for c in lay.order if c in touched]
+        kind = "global" if any(v in lost for v in ends) else "chain"
+        record: dict[str, Any] = {
+            "at": now,
+            "failed": sorted(self.ctx.failed),
+            "remap": kind,
+            "chains": [lay.chains[c].name for c in order],
+            "lost": sorted(lost),
+            "parked": {lay.chains[c].name: why for c, why in sorted(dep.parked.items())},
+            "retried": [],  # steps sent again after STEP_TIMEOUT_S (a lost message)
+        }
+        dep.recoveries.append(record)
+        del dep.recoveries[:-20]
+        pid = self.ctx.new_pid()
+        self.ctx.begin(Remap(pid, now, dep.app.name, order, None, placed, in_set - stays, record))
+        dep.recovering = pid
+        self._next_chain(pid, now)
+
+    def park(self, dep: AppState) -> None:
+        """Chains with a vertex pinned to a failed node cannot run anywhere: park them. Their
+        edges stop carrying events (counted as dropped), so a dead sink on one branch does not
+        hold back, through acks and backpressure, the branches that still run."""
+        for ci, chain in enumerate(dep.layout.chains):
+            for v in chain.vertices:
+                pin = dep.app.vertices[v].pinned
+                if pin in self.ctx.failed and ci not in dep.parked:
+                    dep.parked[ci] = f"{v!r} is pinned to failed node {pin}"
+        edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}
+        for e in sorted(edges - dep.parked_edges):
+            out = dep.out.get(e)
+            if out is not None and out.in_flight:
+                dep.dropped[e] = dep.dropped.get(e, 0) + out.in_flight
+                out.on_ack(out.next_seq, self.ctx.now)
+                producer = dep.app.edges[e].src
+                if producer in dep.instances:
+                    self.dp.release(dep, producer)
+                self.dp.unblock(dep, e)
+        dep.parked_edges |= edges
+
+    def unpark(self, dep: AppState) -> None:
+        """Chains parked for a pinned node that is back run again (after their restore)."""
+        for ci in list(dep.parked):
+            pins = {dep.app.vertices[v].pinned for v in dep.layout.chains[ci].vertices}
+            if not pins & self.ctx.failed:
+                del dep.parked[ci]
+        dep.parked_edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}

@@ -7,7 +7,7 @@ import enum
 from typing import Any, ClassVar
 
 from mso.protocol import messages as m
-from mso.protocol.procedures.base import NodeContext, Phase, Procedure, Table
+from mso.protocol.procedures.base import Messenger, Phase, Procedure, Table
 
 
 class S(enum.Enum):
@@ -30,11 +30,11 @@ class StatusFanout(Procedure):
         self.got = dict(mine)
         self.missing = set(others)
 
-    def start(self, ctx: NodeContext) -> None:
+    def start(self, ctx: Messenger) -> None:
         for n in sorted(self.missing):
             ctx.send(n, m.StatusRequest(req=self.pid))
 
-    def receive(self, ctx: NodeContext, msg: m.StatusReply) -> None:
+    def receive(self, ctx: Messenger, msg: m.StatusReply) -> None:
         self.on("reply")
         self.got.update(msg.nodes)
         self.missing.difference_update(msg.nodes)
@@ -42,7 +42,7 @@ class StatusFanout(Procedure):
             self.on("all_answered")
             ctx.reply(self.client, m.StatusReply(self.pid, self.got))
 
-    def expire(self, ctx: NodeContext) -> None:
+    def expire(self, ctx: Messenger) -> None:
         """The defined outcome of a late node: answer with the others."""
         self.on("deadline")
         ctx.reply(self.client, m.StatusReply(self.pid, self.got))

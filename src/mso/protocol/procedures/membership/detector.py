@@ -1,4 +1,5 @@
-"""Membership, as one node sees each other node: alive, suspected or failed, by incarnation.
+"""The failure detector's state machines: each other node as this node holds it (alive,
+suspected or failed, by incarnation), and the two waits of an indirect probe.
 
 Fail-stop failures (paper §3.4, assumption 3) with restarts and partitions: a neighbour silent
 for the liveness window is declared failed by this node (``silent``) or by another detector
@@ -29,7 +30,7 @@ import enum
 from typing import Any, ClassVar
 
 from mso.protocol import messages as m
-from mso.protocol.procedures.base import NodeContext, Phase, Procedure, StateMachine, Table
+from mso.protocol.procedures.base import Messenger, Phase, Procedure, StateMachine, Table
 
 
 class P(enum.Enum):
@@ -98,7 +99,7 @@ class Suspicion(Procedure):
     def name(self) -> str:
         return f"suspicion of {self.node}"
 
-    def start(self, ctx: NodeContext) -> None:
+    def start(self, ctx: Messenger) -> None:
         for n in sorted(self.missing):
             ctx.send(n, m.Suspect(self.node, self.pid))
 
@@ -115,7 +116,7 @@ class Suspicion(Procedure):
             self.on("all_denied")
             self.outcome = "confirmed"
 
-    def expire(self, ctx: NodeContext) -> None:
+    def expire(self, ctx: Messenger) -> None:
         """Nobody said yes in time (a node asked may have died too): confirmed."""
         self.on("deadline")
         self.outcome = "confirmed"
@@ -157,19 +158,19 @@ class Vouch(Procedure):
         if asker in self.askers or len(self.askers) < self.MAX_ASKERS:
             self.askers[asker] = rid
 
-    def start(self, ctx: NodeContext) -> None:
+    def start(self, ctx: Messenger) -> None:
         ctx.send(self.node, m.Suspect(self.node, self.pid))
 
-    def _tell(self, ctx: NodeContext, yes: bool) -> None:
+    def _tell(self, ctx: Messenger, yes: bool) -> None:
         for asker, rid in sorted(self.askers.items()):
             ctx.send(asker, m.Hears(self.node, rid, yes))
 
-    def answered(self, ctx: NodeContext) -> None:
+    def answered(self, ctx: Messenger) -> None:
         """``node`` answered: it lives."""
         self.on("answered")
         self._tell(ctx, True)
 
-    def expire(self, ctx: NodeContext) -> None:
+    def expire(self, ctx: Messenger) -> None:
         """``node`` did not answer in time: we do not hear it."""
         self.on("deadline")
         self._tell(ctx, False)

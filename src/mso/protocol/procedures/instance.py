@@ -1,7 +1,7 @@
 """A vertex instance's life at the node that hosts it: the host's part in deployment,
 relocation (as old host and as new host) and restore.
 
-The coordinator's side of a relocation is :class:`~mso.protocol.procedures.relocate.Relocation`;
+The coordinator's side of a relocation is :class:`~mso.protocol.procedures.relocation.Relocation`;
 this is the other end. An instance is STARTING until the executor has constructed it. One
 asked for by a build then RUNS; one asked for by a relocation or restore (the *new host*) is
 AWAITING until the old host's handover arrives or every surviving end of its edges has resumed

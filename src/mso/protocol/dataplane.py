@@ -1,80 +1,102 @@
 """The data plane at one node: vertex instances in the executor, edges, acks, backpressure.
 
-The core never runs vertex code: it asks the executor (``mso.runtime``) to start, feed, run,
-snapshot and stop instances, and takes their results in :meth:`DataPlane.on_vertex`. Each
-instance has a bounded queue of events fed and not yet processed; what is not fed is not
-acknowledged, so a slow consumer fills its producers' windows and they wait (backpressure).
-Acks are chained: a vertex's inputs are acknowledged once its outputs are, so what is acked
-upstream is safe downstream and a failure loses nothing the survivors cannot replay.
+A component of the node core (:mod:`mso.node.core`), acting through its
+:class:`~mso.protocol.context.NodeContext`. It never runs vertex code: it asks the executor
+(``mso.runtime``) to start, feed, run, snapshot and stop instances, and takes their results in
+:meth:`DataPlane.on_vertex`. Each instance has a bounded queue of events fed and not yet
+processed; what is not fed is not acknowledged, so a slow consumer fills its producers' windows
+and they wait (backpressure). Acks are chained: a vertex's inputs are acknowledged once its
+outputs are, so what is acked upstream is safe downstream and a failure loses nothing the
+survivors cannot replay.
+
+What the procedures need to know of an instance's life it publishes as internal events
+(:mod:`mso.protocol.events`): ready, failed at construction, crashed, a marker reached it, its
+state was taken. Markers travel in-band with the events, so an instance meets one only after
+everything sent before it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 
-from mso.node.tables import (
-    FEED_BATCH,
-    QUEUE_EVENTS,
-    SOURCE_RUN,
-    Crashes,
-    Deployment,
-    Hosted,
-    NodeTables,
-)
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.channel import AckGate, InChannel, OutChannel
+from mso.protocol.context import NodeContext
 from mso.protocol.effects import Send, SetTimer
+from mso.protocol.events import (
+    InstanceCrashed,
+    InstanceFailed,
+    InstanceReady,
+    MarkerReached,
+    Retransmit,
+    Snapshotted,
+    SourceTick,
+)
+from mso.protocol.state import AppState, Crashes, HostedInstance
 
+QUEUE_EVENTS = 1024  # events fed to an instance's worker and not processed yet, at most
+FEED_BATCH = 256  # events per feed at most, so markers and stops are not held behind a batch
+SOURCE_RUN = 4096  # calls of a rated source per run at most
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
 RETRANSMIT_S = 0.25
 MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
 DELAY_SMOOTHING = 0.2  # weight of the newest batch in a chain's delay average
 
 
-class DataPlane(NodeTables):
+class DataPlane:
     """Vertex instances and the edges between them (see the module docstring)."""
 
-    def _host(self, dep: Deployment, vid: str) -> Hosted:
+    def __init__(self, ctx: NodeContext) -> None:
+        self.ctx = ctx
+        # vertex instances this node asked the executor for: id -> (app, vertex)
+        self._instances: dict[int, tuple[str, str]] = {}
+        self._next_instance = 0
+        # per edge: (first seq, events, when the oldest entered its chain)
+        self.outbox: dict[tuple[str, int], tuple[int, list[bytes], float]] = {}
+        self.work_ms = 0.0  # modelled CPU work of every event processed here (cost units)
+        self.cpu_ms = 0.0  # measured CPU time of the vertex code that ran here
+
+    def host(self, dep: AppState, vid: str) -> HostedInstance:
         """Ask the executor for a new instance of ``vid``."""
         self._next_instance += 1
         iid = self._next_instance
         self._instances[iid] = (dep.app.name, vid)
         edges = dep.app.edges
         inputs = {i: dep.app.edge_format(e) for i, e in enumerate(edges) if e.dst == vid}
-        h = Hosted(iid, dep.app.vertices[vid], dep.layout.kinds[vid])
-        self._submit(h, fx.StartVertex(iid, dep.app.name, h.vertex, h.kind, inputs))
+        h = HostedInstance(iid, dep.app.vertices[vid], dep.layout.kinds[vid])
+        self.submit(h, fx.StartVertex(iid, dep.app.name, h.vertex, h.kind, inputs))
         return h
 
-    def _submit(self, h: Hosted, eff: fx.VertexEffect, events: int = 0) -> None:
-        self._effects.append(eff)
+    def submit(self, h: HostedInstance, eff: fx.VertexEffect, events: int = 0) -> None:
+        self.ctx.emit(eff)
         h.jobs += 1
         h.queued += events
         if h.busy_since is None:
-            h.busy_since = self._now
+            h.busy_since = self.ctx.now
 
-    def _stop(self, h: Hosted, reason: str) -> None:
+    def stop(self, h: HostedInstance, reason: str) -> None:
         if not h.life.done:
             h.life.on("stop")
         self._instances.pop(h.instance, None)
-        self._effects.append(fx.StopVertex(h.instance, reason))
+        self.ctx.emit(fx.StopVertex(h.instance, reason))
 
-    def _stop_app(self, dep: Deployment, reason: str) -> None:
-        for h in [*dep.stones.values(), *dep.awaiting.values()]:
-            self._stop(h, reason)
+    def stop_app(self, dep: AppState, reason: str) -> None:
+        for h in [*dep.instances.values(), *dep.awaiting.values()]:
+            self.stop(h, reason)
 
-    def _stop_all(self, reason: str) -> None:
-        for dep in self.apps.values():
-            self._stop_app(dep, reason)
+    def stop_all(self, reason: str) -> None:
+        for dep in self.ctx.apps.values():
+            self.stop_app(dep, reason)
 
-    def _on_vertex(self, res: fx.VertexResult, now: float) -> None:
+    def on_vertex(self, res: fx.VertexResult, now: float) -> None:
         """A result from the executor: account for it, then act on what it says."""
         owner = self._instances.get(res.instance)
-        dep = self.apps.get(owner[0]) if owner is not None else None
+        dep = self.ctx.apps.get(owner[0]) if owner is not None else None
         if owner is None or dep is None:
             return  # stopped meanwhile
         vid = owner[1]
-        h = dep.stones.get(vid) or dep.awaiting.get(vid)
+        h = dep.instances.get(vid) or dep.awaiting.get(vid)
         if h is None or h.instance != res.instance:
             return
         if isinstance(res, fx.VertexCrashed):
@@ -94,72 +116,76 @@ class DataPlane(NodeTables):
         elif isinstance(res, fx.VertexEmitted):
             self._emitted(dep, vid, h, res, now)
         else:
-            self._snapshotted(dep, vid, h, res)
+            self.ctx.publish(Snapshotted(dep.app.name, vid, res))
 
     def _crashed(
-        self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexCrashed, now: float
+        self, dep: AppState, vid: str, h: HostedInstance, res: fx.VertexCrashed, now: float
     ) -> None:
         """An instance's child process died unasked. Counted and reported, never fatal: what
         it was working on is unanswered, so nothing it held was acknowledged (its producers
         still hold it). One that had not started fails as a failed construction does."""
         self._instances.pop(h.instance, None)
-        self._effects.append(fx.StopVertex(h.instance, "crashed"))  # frees its lane
+        self.ctx.emit(fx.StopVertex(h.instance, "crashed"))  # frees its lane
         h.jobs = h.queued = h.credit = 0
         h.busy_since = None
         h.crashed = res.reason
         rec = dep.crashes.setdefault(vid, Crashes())
         rec.count += 1
-        rec.last = f"{self.id}: {res.reason}"
+        rec.last = f"{self.ctx.id}: {res.reason}"
         rec.times.append(now)
-        self.monitor.note_event(now, f"{vid} crashed ({res.reason})")
+        self.ctx.note_event(now, f"{vid} crashed ({res.reason})")
         h.life.on("crash")
         if not h.started:
-            dep.stones.pop(vid, None)
+            dep.instances.pop(vid, None)
             dep.awaiting.pop(vid, None)
-            self._instance_failed(dep, vid, f"{self.id}: {vid!r} crashed starting ({res.reason})")
+            self.ctx.publish(
+                InstanceFailed(
+                    dep.app.name, vid, f"{self.ctx.id}: {vid!r} crashed starting ({res.reason})"
+                )
+            )
             return
-        self._instance_crashed(dep, vid, h, now)
+        self.ctx.publish(InstanceCrashed(dep.app.name, vid, h.instance))
 
     def _started(
-        self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexStarted, now: float
+        self, dep: AppState, vid: str, h: HostedInstance, res: fx.VertexStarted, now: float
     ) -> None:
-        self.monitor.note_start(now)  # its start-up CPU is in the figures from now on
+        self.ctx.note_start(now)  # its start-up CPU is in the figures from now on
         if res.error:  # user code failing at construction: refuse, change nothing
-            self._stop(h, "failed")
-            dep.stones.pop(vid, None)
+            self.stop(h, "failed")
+            dep.instances.pop(vid, None)
             dep.awaiting.pop(vid, None)
-            self._instance_failed(dep, vid, f"{self.id}: {res.error}")
+            self.ctx.publish(InstanceFailed(dep.app.name, vid, f"{self.ctx.id}: {res.error}"))
             return
         h.started, h.mode = True, res.mode
         h.life.on("started_for_move" if vid in dep.awaiting else "started")
-        self._instance_ready(dep, vid)
-        if h.kind == "source" and vid in dep.stones:
-            self._start_source(dep, vid, now)
+        self.ctx.publish(InstanceReady(dep.app.name, vid))
+        if h.kind == "source" and vid in dep.instances:
+            self.start_source(dep, vid, now)
 
-    def _out(self, dep: Deployment, edge: int) -> OutChannel:
+    def out(self, dep: AppState, edge: int) -> OutChannel:
         ch = dep.out.get(edge)
         if ch is None:
-            ch = dep.out[edge] = OutChannel(window=self.window)
+            ch = dep.out[edge] = OutChannel(window=self.ctx.window)
         return ch
 
-    def _start_source(self, dep: Deployment, vid: str, now: float) -> None:
-        h = dep.stones[vid]
+    def start_source(self, dep: AppState, vid: str, now: float) -> None:
+        h = dep.instances[vid]
         if not h.started or not dep.running:
             return
         if h.mode == "loop":
-            self._grant(dep, vid)
+            self.grant(dep, vid)
             return
         h.t0, h.asked = now, 0
-        self._effects.append(SetTimer(("source", dep.app.name, vid), now))
+        self.ctx.emit(SetTimer(SourceTick(dep.app.name, vid), now))
 
-    def _room(self, dep: Deployment, vid: str) -> int:
-        return min((self._out(dep, e).room for e in dep.out_edges.get(vid, [])), default=SOURCE_RUN)
+    def _room(self, dep: AppState, vid: str) -> int:
+        return min((self.out(dep, e).room for e in dep.out_edges.get(vid, [])), default=SOURCE_RUN)
 
-    def _source_tick(self, app: str, vid: str, now: float) -> None:
+    def source_tick(self, app: str, vid: str, now: float) -> None:
         """A rated source keeps its schedule: event k is due at t0 + k / rate; a late tick
         asks for every event due since (up to the window), so the rate holds on average."""
-        dep = self.apps.get(app)
-        h = dep.stones.get(vid) if dep is not None else None
+        dep = self.ctx.apps.get(app)
+        h = dep.instances.get(vid) if dep is not None else None
         if dep is None or h is None or not dep.running or not h.started or h.jobs or h.ended:
             return  # a run in flight schedules the next tick when it is done
         rate = h.rate
@@ -170,23 +196,23 @@ class DataPlane(NodeTables):
             if room <= 0:  # backpressure: a full window holds the source until an ack
                 dep.blocked_sources.add(vid)
             else:
-                self._effects.append(SetTimer(("source", app, vid), h.t0 + h.asked / rate))
+                self.ctx.emit(SetTimer(SourceTick(app, vid), h.t0 + h.asked / rate))
             return
-        self._submit(h, fx.RunSource(h.instance, h.asked, n, now))
+        self.submit(h, fx.RunSource(h.instance, h.asked, n, now))
         h.asked += n
 
-    def _grant(self, dep: Deployment, vid: str) -> None:
+    def grant(self, dep: AppState, vid: str) -> None:
         """A free-running source may make as many calls as its window has room for."""
-        h = dep.stones[vid]
+        h = dep.instances[vid]
         if not h.started or h.ended or not dep.running:
             return
         room = self._room(dep, vid) - h.credit
-        if room > 0 and (h.credit == 0 or room >= min(FEED_BATCH, self.window // 4)):
+        if room > 0 and (h.credit == 0 or room >= min(FEED_BATCH, self.ctx.window // 4)):
             h.credit += room
-            self._effects.append(fx.Credit(h.instance, room))
+            self.ctx.emit(fx.Credit(h.instance, room))
 
     def _emitted(
-        self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexEmitted, now: float
+        self, dep: AppState, vid: str, h: HostedInstance, res: fx.VertexEmitted, now: float
     ) -> None:
         h.calls += res.calls
         self.work_ms += h.vertex.cost * res.calls
@@ -197,16 +223,16 @@ class DataPlane(NodeTables):
             outputs = [*outputs, fx.END_OF_STREAM]
         if outputs:
             h.emitted += fx.events_in(outputs)
-            h.bytes_out += self._emit(dep, edges, outputs, now, -1) * len(edges)
+            h.bytes_out += self.send_events(dep, edges, outputs, now, -1) * len(edges)
         if h.mode == "loop":
             h.credit -= res.calls
-            self._grant(dep, vid)
+            self.grant(dep, vid)
         elif dep.running and not h.ended:
             at = h.t0 + h.asked / h.rate
-            self._effects.append(SetTimer(("source", dep.app.name, vid), max(at, now)))
+            self.ctx.emit(SetTimer(SourceTick(dep.app.name, vid), max(at, now)))
 
-    def _emit(
-        self, dep: Deployment, edges: Iterable[int], payloads: list[bytes], ts: float, chain: int
+    def send_events(
+        self, dep: AppState, edges: Iterable[int], payloads: list[bytes], ts: float, chain: int
     ) -> int:
         """Send encoded events on every edge in ``edges``; returns their size in bytes.
         ``ts`` is when they entered chain ``chain``: an edge of that chain carries it on, an
@@ -215,28 +241,28 @@ class DataPlane(NodeTables):
             if e in dep.parked_edges:
                 dep.dropped[e] = dep.dropped.get(e, 0) + len(payloads)
                 continue
-            out = self._out(dep, e)
-            seq = out.push_many(payloads, self._now)
+            out = self.out(dep, e)
+            seq = out.push_many(payloads, self.ctx.now)
             dst_node = dep.placed[dep.app.edges[e].dst]
-            t = ts if dep.layout.edge_chain[e] == chain else self._now
-            if dst_node == self.id:
-                self._deliver(dep, e, seq, payloads, t, out.acked)
+            t = ts if dep.layout.edge_chain[e] == chain else self.ctx.now
+            if dst_node == self.ctx.id:
+                self.deliver(dep, e, seq, payloads, t, out.acked)
             else:
                 key = (dep.app.name, e)
-                batch = self._outbox.get(key)
+                batch = self.outbox.get(key)
                 if batch is None:
-                    self._outbox[key] = batch = (seq, list(payloads), t)
+                    self.outbox[key] = batch = (seq, list(payloads), t)
                 else:
                     batch[1].extend(payloads)
                 if len(batch[1]) * len(payloads[0]) >= MAX_BATCH_BYTES:  # frames stay small
-                    del self._outbox[key]
+                    del self.outbox[key]
                     data = m.Data(dep.app.name, e, dep.epoch, *batch, floor=out.acked)
-                    self._effects.append(Send(dst_node, data))
+                    self.ctx.emit(Send(dst_node, data))
         return sum(map(len, payloads))
 
-    def _deliver(
+    def deliver(
         self,
-        dep: Deployment,
+        dep: AppState,
         edge: int,
         seq: int,
         events: list[bytes],
@@ -252,29 +278,29 @@ class DataPlane(NodeTables):
             ch = dep.inc[edge] = InChannel()
         fresh = ch.accept(seq, events, floor)
         if fresh:
-            self._enqueue(dep, dst, (edge, fresh, ts))
+            self.enqueue(dep, dst, (edge, fresh, ts))
 
-    def _enqueue(
-        self, dep: Deployment, vid: str, item: tuple[int, list[bytes], float] | m.Marker
+    def enqueue(
+        self, dep: AppState, vid: str, item: tuple[int, list[bytes], float] | m.Marker
     ) -> None:
         """Events and markers for an instance, in arrival order: a marker is handled once
         everything before it has been processed."""
-        h = dep.stones.get(vid)
+        h = dep.instances.get(vid)
         if h is not None:
             h.pending.append(item)
-            self._pump(dep, vid)
+            self.pump(dep, vid)
 
-    def _pump(self, dep: Deployment, vid: str) -> None:
+    def pump(self, dep: AppState, vid: str) -> None:
         """Feed the instance's worker while its bounded queue has room (backpressure: what
         is not fed is not acknowledged, so the producers' windows fill and they stop)."""
-        h = dep.stones.get(vid)
+        h = dep.instances.get(vid)
         while h is not None and h.pending and h.handing_over is None and not h.crashed:
             item = h.pending[0]
             if isinstance(item, m.Marker):
                 if h.jobs:
                     return
                 h.pending.popleft()
-                self._on_marker(dep, item)
+                self.ctx.publish(MarkerReached(dep.app.name, item))
                 continue
             if h.queued >= QUEUE_EVENTS:
                 return
@@ -286,31 +312,31 @@ class DataPlane(NodeTables):
                 h.pending.popleft()
                 feed = events
             h.bytes_in += sum(map(len, feed))
-            self._submit(h, fx.FeedVertex(h.instance, edge, feed, ts), len(feed))
+            self.submit(h, fx.FeedVertex(h.instance, edge, feed, ts), len(feed))
 
-    def _on_data(self, msg: m.Data) -> None:
-        dep = self.apps.get(msg.app)
+    def on_data(self, msg: m.Data) -> None:
+        dep = self.ctx.apps.get(msg.app)
         if dep is None or msg.epoch != dep.epoch:
-            self.dropped_messages += 1
+            self.ctx.dropped()
             return
         parts = [(msg.edge, msg.seq, msg.floor), *msg.also]
         edges = {edge for edge, _, _ in parts}
         n = len(dep.app.edges)
         if len(edges) < len(parts) or not all(0 <= e < n for e in edges):
-            self.dropped_messages += 1  # an edge twice, or one the app does not have
+            self.ctx.dropped()  # an edge twice, or one the app does not have
             return
         for i, (edge, seq, floor) in enumerate(parts):
             events = msg.events if i == 0 else list(msg.events)  # each edge its own list
             dst = dep.app.edges[edge].dst
             if dst in dep.awaiting:  # a relocated instance before its handover: keep for later
                 dep.stash.setdefault(edge, []).append((seq, events))
-            elif dst not in dep.stones:
-                self.dropped_messages += 1
+            elif dst not in dep.instances:
+                self.ctx.dropped()
             else:
-                self._deliver(dep, edge, seq, events, msg.ts, floor)
+                self.deliver(dep, edge, seq, events, msg.ts, floor)
 
     def _processed(
-        self, dep: Deployment, vid: str, h: Hosted, res: fx.VertexProcessed, now: float
+        self, dep: AppState, vid: str, h: HostedInstance, res: fx.VertexProcessed, now: float
     ) -> None:
         """A batch went through the edge's consumer: pass its outputs on, acknowledge."""
         edge = res.edge
@@ -333,7 +359,7 @@ class DataPlane(NodeTables):
         out_edges = dep.out_edges.get(vid, [])
         if res.outputs and out_edges:
             h.emitted += fx.events_in(res.outputs)
-            sent = self._emit(dep, out_edges, res.outputs, ts, chain)
+            sent = self.send_events(dep, out_edges, res.outputs, ts, chain)
             h.bytes_out += sent * len(out_edges)
         if out_edges:  # chained acks: the inputs are acked once the outputs are
             if ch.released is None:
@@ -341,13 +367,13 @@ class DataPlane(NodeTables):
             gate = dep.gates.get(vid)
             if gate is None:
                 gate = dep.gates[vid] = AckGate()
-            gate.record({edge: ch.processed}, {o: self._out(dep, o).next_seq for o in out_edges})
-            self._release(dep, vid)
+            gate.record({edge: ch.processed}, {o: self.out(dep, o).next_seq for o in out_edges})
+            self.release(dep, vid)
         elif ch.processed - ch._acked >= ACK_EVERY:
-            self._ack(dep, edge)
-        self._pump(dep, vid)
+            self.ack(dep, edge)
+        self.pump(dep, vid)
 
-    def _release(self, dep: Deployment, vid: str) -> None:
+    def release(self, dep: AppState, vid: str) -> None:
         """Acknowledge the inputs of ``vid`` as far as its outputs have been acknowledged."""
         gate = dep.gates.get(vid)
         if gate is None:
@@ -367,66 +393,66 @@ class DataPlane(NodeTables):
             if ch is not None:
                 ch.released = max(ch.released or 0, pos)
                 ch.positions = further
-                self._ack(dep, i)
+                self.ack(dep, i)
 
-    def _ack(self, dep: Deployment, edge: int) -> None:
+    def ack(self, dep: AppState, edge: int) -> None:
         ch = dep.inc.get(edge)
         upto = ch.ack_due() if ch is not None else None  # nothing arrived yet: nothing to ack
         if ch is None or upto is None:
             return
         producer = dep.app.edges[edge].src
         src_node = dep.placed[producer]
-        if src_node == self.id:
-            out = self._out(dep, edge)
+        if src_node == self.ctx.id:
+            out = self.out(dep, edge)
             if upto > out.next_seq:  # this channel never sent that far (a fresh one after a
-                self.dropped_messages += 1  # move): nothing to release, never a crash
+                self.ctx.dropped()  # move): nothing to release, never a crash
                 return
-            out.on_ack(upto, self._now)
+            out.on_ack(upto, self.ctx.now)
             out.note_positions(upto, dict(ch.positions))
-            self._unblock(dep, edge)
-            self._release(dep, producer)
-        elif src_node not in self.dead:
-            self._effects.append(
+            self.unblock(dep, edge)
+            self.release(dep, producer)
+        elif src_node not in self.ctx.failed:
+            self.ctx.emit(
                 Send(src_node, m.Ack(dep.app.name, edge, dep.epoch, upto, dict(ch.positions)))
             )
 
-    def _on_ack(self, msg: m.Ack, now: float) -> None:
-        dep = self.apps.get(msg.app)
+    def on_ack(self, msg: m.Ack, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
         if dep is None or msg.epoch != dep.epoch or msg.edge not in dep.out:
-            self.dropped_messages += 1
+            self.ctx.dropped()
             return
         out = dep.out[msg.edge]
         try:
             out.on_ack(msg.upto, now)
         except ValueError:
-            self.dropped_messages += 1
+            self.ctx.dropped()
             return
         out.note_positions(msg.upto, msg.positions)
-        self._unblock(dep, msg.edge)
-        self._release(dep, dep.app.edges[msg.edge].src)
+        self.unblock(dep, msg.edge)
+        self.release(dep, dep.app.edges[msg.edge].src)
 
-    def _unblock(self, dep: Deployment, edge: int) -> None:
+    def unblock(self, dep: AppState, edge: int) -> None:
         """An ack freed room on ``edge``: wake its producer if backpressure stopped it. A
         rated source skips the time it was held (a sensor does not deliver missed samples)."""
         producer = dep.app.edges[edge].src
-        h = dep.stones.get(producer)
+        h = dep.instances.get(producer)
         if h is None or h.kind != "source":
             return
         if h.mode == "loop":
-            self._grant(dep, producer)
+            self.grant(dep, producer)
         elif producer in dep.blocked_sources:
             dep.blocked_sources.discard(producer)
-            h.t0 = self._now - h.asked / h.rate
-            self._effects.append(SetTimer(("source", dep.app.name, producer), self._now))
+            h.t0 = self.ctx.now - h.asked / h.rate
+            self.ctx.emit(SetTimer(SourceTick(dep.app.name, producer), self.ctx.now))
 
-    def _flush(self) -> None:
+    def flush(self) -> None:
         """Send what the outbox gathered: one frame per edge, except that edges carrying the
         same events at the same time to the same node share one (``Data.also``)."""
         # (app, node, ts) -> its frames; events are compared, not hashed: the batches of one
         # emit share their payload objects, so a fork's comparison is a pointer walk
         frames: dict[tuple[str, str, float], list[m.Data]] = {}
-        for (app, edge), (seq, events, ts) in self._outbox.items():
-            dep = self.apps[app]
+        for (app, edge), (seq, events, ts) in self.outbox.items():
+            dep = self.ctx.apps[app]
             dst = dep.placed[dep.app.edges[edge].dst]
             floor = out.acked if (out := dep.out.get(edge)) is not None else 0
             same = frames.setdefault((app, dst, ts), [])
@@ -436,58 +462,59 @@ class DataPlane(NodeTables):
             else:
                 data.also.append((edge, seq, floor))
         for (_, dst, _), datas in frames.items():
-            self._effects.extend(Send(dst, data) for data in datas)
-        self._outbox.clear()
-        for dep in self.apps.values():
+            for data in datas:
+                self.ctx.emit(Send(dst, data))
+        self.outbox.clear()
+        for dep in self.ctx.apps.values():
             for edge, ch in list(dep.inc.items()):
                 if ch.reack or ch.processed != ch._acked:
-                    self._ack(dep, edge)
+                    self.ack(dep, edge)
 
-    def _retransmit(self, app: str, now: float) -> None:
+    def retransmit(self, app: str, now: float) -> None:
         """Go-back-N: resend what has waited a whole period without any ack progress."""
-        dep = self.apps.get(app)
+        dep = self.ctx.apps.get(app)
         if dep is None or not dep.running:
             return
         for edge, ch in dep.out.items():
             if ch.overdue(now, RETRANSMIT_S):
                 dst = dep.placed[dep.app.edges[edge].dst]
-                if dst in self.dead:  # held until the consumer is restored elsewhere
+                if dst in self.ctx.failed:  # held until the consumer is restored elsewhere
                     continue
                 first, events = ch.unacked()
-                if dst == self.id:
-                    self._deliver(dep, edge, first, events, floor=first)
+                if dst == self.ctx.id:
+                    self.deliver(dep, edge, first, events, floor=first)
                 else:  # ``first`` is the acked position: nothing below it will come again
                     data = m.Data(app, edge, dep.epoch, first, events, floor=first)
-                    self._effects.append(Send(dst, data))
+                    self.ctx.emit(Send(dst, data))
                 ch.waiting_since = now
-        self._effects.append(SetTimer(("retransmit", app), now + RETRANSMIT_S))
+        self.ctx.emit(SetTimer(Retransmit(app), now + RETRANSMIT_S))
 
-    def _report_delays(self, now: float) -> None:
+    def report_delays(self, now: float) -> None:
         """Tell each chain's head node the delay measured at its tail (here)."""
-        for dep in self.apps.values():
+        for dep in self.ctx.apps.values():
             for chain, ms in dep.delays.items():
                 head = dep.placed[dep.layout.chains[chain].head]
-                if head == self.id:
+                if head == self.ctx.id:
                     dep.chain_delay[chain] = (ms, now)
-                elif head not in self.dead:
-                    self._send(head, m.ChainDelay(dep.app.name, chain, ms))
+                elif head not in self.ctx.failed:
+                    self.ctx.send(head, m.ChainDelay(dep.app.name, chain, ms))
 
-    def _on_chain_delay(self, msg: m.ChainDelay, now: float) -> None:
-        dep = self.apps.get(msg.app)
+    def on_chain_delay(self, msg: m.ChainDelay, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
         chains = len(dep.layout.chains) if dep is not None else 0
         if not 0 <= msg.chain < chains or not -1e9 <= msg.delay_ms <= 1e9:  # (NaN, inf too)
-            self._refusal("chain_delay_invalid")
+            self.ctx.refusal("chain_delay_invalid")
             return
         assert dep is not None
         dep.chain_delay[msg.chain] = (msg.delay_ms, now)
 
-    def _on_marker_msg(self, msg: m.Marker, now: float) -> None:
-        dep = self.apps.get(msg.app)
+    def on_marker_msg(self, msg: m.Marker, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
         if dep is None or not 0 <= msg.edge < len(dep.app.edges):
-            self._refusal("marker_unknown_edge")
+            self.ctx.refusal("marker_unknown_edge")
             return
         dst = dep.app.edges[msg.edge].dst
-        if msg.to == self.id or dep.app.vertices[dst].pinned is not None:
-            self._refusal("marker_of_no_relocation")  # (its state would go nowhere)
+        if msg.to == self.ctx.id or dep.app.vertices[dst].pinned is not None:
+            self.ctx.refusal("marker_of_no_relocation")  # (its state would go nowhere)
             return
-        self._enqueue(dep, dst, msg)
+        self.enqueue(dep, dst, msg)

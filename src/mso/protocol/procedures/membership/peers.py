@@ -1,39 +1,144 @@
-"""Membership at one node: heartbeats, fail-stop failure detection, incarnations, reset, rejoin.
+"""Membership at one node, the component: heartbeats, fail-stop failure detection, the one set
+of failed peers, incarnations, reset and rejoin.
 
 Each node beats to its neighbours (with its monitor's figures); a neighbour silent for the
 liveness window is declared failed, and the detector tells everyone. A node out of this node's
 reach for the window is only suspected: it is declared failed when none of the nodes this node
-still reaches hears it (a :class:`Suspicion`), not on this node's missing route alone. The
-chains a failed node touched are recovered (:mod:`mso.node.remapping`); chains pinned to it
-are parked. A node that restarts comes back as a higher incarnation; after a partition heals,
-the side that loses a deterministic tie-break resets (drops its apps) and rejoins, and is sent
-the apps again (``AppSync``) with its pinned vertices restored.
+still reaches hears it (a :class:`~.detector.Suspicion`), not on this node's missing route
+alone. Declaring is one place (:meth:`Membership.on_node_down`); it publishes
+:class:`~mso.protocol.events.PeerFailed`, on which moves that needed the node fail or become
+restores and the chains it touched are recovered (:mod:`..remap`). A node that restarts comes
+back as a higher incarnation; after a partition heals, the side that loses a deterministic
+tie-break resets (drops its apps) and rejoins, and is sent the apps again (``AppSync``) with its
+pinned vertices restored.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Any
 
 import msgspec
 
 from mso.errors import MsoError
-from mso.node.dataplane import RETRANSMIT_S
-from mso.node.remapping import Remapping
-from mso.node.tables import Deployment
 from mso.planning.placement import Layout
 from mso.protocol import messages as m
 from mso.protocol.authority import generation
+from mso.protocol.context import NodeContext
+from mso.protocol.dataplane import RETRANSMIT_S, DataPlane
 from mso.protocol.effects import Send, SetTimer
-from mso.protocol.procedures.membership import P, PeerLife, Suspicion, Vouch
-from mso.protocol.procedures.relocate import S as RelocState
+from mso.protocol.events import (
+    AppMissing,
+    HeartbeatTick,
+    NodeReset,
+    PeerFailed,
+    RecoveryDue,
+    Retransmit,
+    RoutesChanged,
+)
+from mso.protocol.procedures.deploy import Deployer
+from mso.protocol.procedures.membership.detector import P, PeerLife, Suspicion, Vouch
+from mso.protocol.procedures.membership.liveness import Liveness
+from mso.protocol.procedures.remap import Remapper
+from mso.protocol.state import AppState
 
 REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
 MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own: its figures ride on one beat
 # of each period (they change no faster)
+REVOCATIONS_TOLD = 16  # the operator's latest undeploys told to each newly reachable node
 
 
-class Membership(Remapping):
-    """A node's part in membership (see the module docstring)."""
+class Membership:
+    """This node's view of the others, and its part in keeping it (module docstring)."""
+
+    def __init__(
+        self,
+        ctx: NodeContext,
+        dp: DataPlane,
+        deployer: Deployer,
+        recovery: Remapper,
+        liveness: Liveness,
+        incarnation: int = 0,
+    ) -> None:
+        self.ctx = ctx
+        self.dp = dp
+        self.deployer = deployer
+        self.recovery = recovery
+        self.liveness = liveness
+        # grows when this node restarts (the daemon passes its start time) or rejoins after a
+        # partition: others then know its old instances are gone
+        self.incarnation = incarnation
+        self.failed: set[str] = set()  # nodes known to have failed (fail-stop): the one set
+        self.peers: dict[str, PeerLife] = {}  # each other node's state, by its table
+        self.failures: list[dict[str, Any]] = []  # failed nodes: who, when, detected by whom
+        self.rejoins: list[dict[str, Any]] = []  # nodes back as a new incarnation: who, when
+        # nodes out of this node's reach that it asks others about before declaring them
+        # failed: node -> its Suspicion's procedure id (one each, so bounded by the nodes)
+        self._suspicions: dict[str, int] = {}
+        # nodes this node was asked about, does not hear, reaches, and asked itself: node ->
+        # its Vouch's procedure id (one each, bounded by the nodes it reaches)
+        self._vouching: dict[str, int] = {}
+        self._incarnations: dict[str, int] = {}  # last incarnation heard of, per node
+        self._failed_incarnation: dict[str, int] = {}  # the incarnation declared failed
+        self._beats = 0
+        self._briefed: dict[str, float] = {}  # neighbour -> its link's start, once told our figures
+        # nodes that rejoined while this node's own view was in dispute (it holds a reachable
+        # node failed: a healed partition whose losing side has not reset yet): synced after
+        self._sync_pending: set[str] = set()
+
+    def start(self, now: float) -> None:
+        self.ctx.set_timer(HeartbeatTick(), now + self.liveness.period_s)
+
+    def heard_of(self) -> set[str]:
+        """Every node whose incarnation this node has heard (reachable now or not)."""
+        return set(self._incarnations)
+
+    def incarnation_of(self, node: str, default: int) -> int:
+        return self._incarnations.get(node, default)
+
+    def admit(self, src: str, msg: m.Message, now: float) -> bool:
+        """Whether ``msg`` from ``src`` goes on to its handler: a node declared failed is
+        heard only to rejoin (its heartbeat is handled here)."""
+        if src in self.failed:
+            if isinstance(msg, m.Heartbeat):
+                self.on_failed_heartbeat(src, msg, now)
+            else:
+                self.ctx.dropped()
+            return False
+        self.liveness.heard_from(src, now)
+        self.heard_directly(src, now)
+        return True
+
+    def on_routes_changed(self, ev: RoutesChanged) -> None:
+        """Who is a neighbour and who is reachable; a suspected node in reach again is not
+        suspected; newly reachable nodes learn our incarnation (and whom we hold failed, if a
+        partition just healed) and the operator's latest undeploys (a node that restarted or
+        was cut off has not heard them)."""
+        now, routes = self.ctx.now, self.ctx.routes
+        neighbours = {d for d, (hop, _) in routes.items() if hop == d}
+        self.liveness.set_routes(now, set(routes) - self.failed, neighbours)
+        self.back_in_reach(now)
+        if ev.appeared:
+            beat = self.beat()
+            undeploys = list(self.ctx.authority.revoked.values())[-REVOCATIONS_TOLD:]
+            for d in sorted(ev.appeared):
+                self.ctx.send(d, beat)
+                for stop in undeploys:
+                    self.ctx.send(d, stop)
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "failed_nodes": sorted(self.failed),
+            "suspected_nodes": sorted(self._suspicions),
+            "incarnation": self.incarnation,
+            "failures": list(self.failures),
+            "rejoins": list(self.rejoins),
+            "liveness": self.liveness.stats(),
+            "heard": {
+                n: {"at": t, "load": b.load, "drain_w": b.drain_w, "lifetime_s": b.lifetime_s}
+                for n, (t, b) in sorted(self.liveness.heard.items())
+            },
+        }
 
     def _peer(self, node: str) -> PeerLife:
         """How this node holds ``node`` (alive until declared failed), by the table."""
@@ -42,125 +147,118 @@ class Membership(Remapping):
             peer = self.peers[node] = PeerLife(node)
         return peer
 
-    def _beat(self) -> m.Heartbeat:
+    def beat(self) -> m.Heartbeat:
         """This node's beat with its monitor's figures (see Heartbeat)."""
-        mon, pw = self.monitor, self.power
-        power = (pw.idle_w, pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte)
         return m.Heartbeat(
-            self.id,
+            self.ctx.id,
             self.incarnation,
-            dict(self._dead_incarnation),
+            dict(self._failed_incarnation),
             self._leader(),
             self._hosting(),
-            m.Figures(
-                self.capacity,
-                mon.load,
-                mon.drain_w,
-                mon.remaining_j,
-                mon.lifetime_s,
-                power,
-                self.route_hops(),
-            ),
+            self.ctx.figures(),
         )
 
-    def _heartbeat(self, now: float) -> None:
+    def heartbeat(self, now: float) -> None:
         """Tell the neighbours we live; declare the silent ones failed. Our figures go on one
         beat per monitor period, and on the first beat to a neighbour since its link came up
         (``_briefed``: the time the link came up, when it was given them)."""
         every = max(1, round(MONITOR_PERIOD_S / self.liveness.period_s))
-        full = self._beat()
+        full = self.beat()
         slim = full if self._beats % every == 0 else msgspec.structs.replace(full, figures=None)
         for n, since in sorted(self.liveness.neighbours.items()):
-            if n not in self.dead:
+            if n not in self.failed:
                 briefed = self._briefed.get(n) == since
                 self._briefed[n] = since
-                self._effects.append(Send(n, slim if briefed else full))
+                self.ctx.emit(Send(n, slim if briefed else full))
         for n in set(self._briefed) - set(self.liveness.neighbours):
             del self._briefed[n]  # bounded by the neighbours
         self._beats += 1
         if self._beats % REJOIN_EVERY == 0:  # a failed node we can reach again: a healed
-            for n in sorted(self.dead):  # partition; tell it, so one side rejoins the other
-                if n in self.routes:
-                    self._effects.append(Send(n, full))
-        for n in self.liveness.silent(now, self.dead):
-            self._on_node_down(n, self.id, now)
-        for n in self.liveness.unreachable(now, self.dead):
+            for n in sorted(self.failed):  # partition; tell it, so one side rejoins the other
+                if n in self.ctx.routes:
+                    self.ctx.emit(Send(n, full))
+        for n in self.liveness.silent(now, self.failed):
+            self.on_node_down(n, self.ctx.id, now)
+        for n in self.liveness.unreachable(now, self.failed):
             self._suspect(n, now)
         self._flush_syncs()
-        for dep in list(self.apps.values()):  # this node may have become an app's recovery
-            self._maybe_recover(dep, now)  # coordinator (it runs part of it now): no-op else
-        self._effects.append(SetTimer(("heartbeat",), now + self.liveness.period_s))
+        # this node may have become an app's recovery coordinator (it runs part of it now)
+        self.ctx.publish(RecoveryDue())
+        self.ctx.set_timer(HeartbeatTick(), now + self.liveness.period_s)
 
     def _suspect(self, node: str, now: float) -> None:
         """``node`` has been out of this node's reach for the liveness window. A routing
         protocol drops a dead node's routes, but it may also leave one node without a route
         to a live one for seconds while the others still hear it: so ask the nodes this node
         still reaches, and declare it only if none does (:class:`Suspicion`)."""
-        if node in self._suspicions or node in self.dead or node == self.id:
+        if node in self._suspicions or node in self.failed or node == self.ctx.id:
             return
         self._peer(node).on("unreachable")
-        asked = sorted(n for n in self.routes if n not in self.dead and n != node)
+        asked = sorted(n for n in self.ctx.routes if n not in self.failed and n != node)
         if not asked:  # nobody left to ask: this node is cut off from everyone
-            self._on_node_down(node, self.id, now)
+            self.on_node_down(node, self.ctx.id, now)
             return
-        self._rid += 1
-        proc = Suspicion(self._rid, now, node, asked, self.liveness.dead_after_s)
-        self._begin(proc)
+        proc = Suspicion(self.ctx.new_pid(), now, node, asked, self.liveness.dead_after_s)
+        self.ctx.begin(proc)
         self._suspicions[node] = proc.pid
-        proc.start(self)
+        proc.start(self.ctx)
 
-    def _on_suspect(self, src: str, msg: m.Suspect, now: float) -> None:
+    def on_suspect(self, src: str, msg: m.Suspect, now: float) -> None:
         """Another node lost ``msg.node``: say whether we hear it (we heard it within our
         liveness window, and do not hold it failed; asked about ourselves, we live). If we do
         not but reach it, we ask it and answer when it does or our :class:`Vouch` expires."""
         node = msg.node
-        if node == self.id or node in self.dead or self.liveness.hears(node, now):
-            self._send(src, m.Hears(node, msg.rid, node not in self.dead))
+        if node == self.ctx.id or node in self.failed or self.liveness.hears(node, now):
+            self.ctx.send(src, m.Hears(node, msg.rid, node not in self.failed))
             return
-        if node not in self.routes or node == src:
-            self._send(src, m.Hears(node, msg.rid, False))
+        if node not in self.ctx.routes or node == src:
+            self.ctx.send(src, m.Hears(node, msg.rid, False))
             return
-        proc = self.procedures.get(self._vouching.get(node, -1))
+        proc = self.ctx.procedure(self._vouching.get(node, -1))
         if not isinstance(proc, Vouch):
-            self._rid += 1
-            proc = Vouch(self._rid, now, node, self.liveness.dead_after_s / 2)
-            self._begin(proc)
+            proc = Vouch(self.ctx.new_pid(), now, node, self.liveness.dead_after_s / 2)
+            self.ctx.begin(proc)
             self._vouching[node] = proc.pid  # (bounded by the nodes this node reaches)
-            proc.start(self)
+            proc.start(self.ctx)
         proc.ask(src, msg.rid)
 
-    def _on_hears(self, src: str, msg: m.Hears, now: float) -> None:
-        proc = self.procedures.get(msg.rid)
+    def on_hears(self, src: str, msg: m.Hears, now: float) -> None:
+        proc = self.ctx.procedure(msg.rid)
         if isinstance(proc, Vouch) and src == proc.node == msg.node and msg.yes:
             self._vouching.pop(proc.node, None)
-            proc.answered(self)
-            self._end(proc.pid)
+            proc.answered(self.ctx)
+            self.ctx.end(proc.pid)
             return
         if not isinstance(proc, Suspicion) or proc.node != msg.node or src not in proc.missing:
-            if not self._ours(msg.rid):  # (ours: a late answer to a suspicion that ended)
-                self._refusal("hears_unasked")  # no such suspicion, or not asked (or twice)
+            if not self.ctx.ours(msg.rid):  # (ours: a late answer to a suspicion that ended)
+                self.ctx.refusal("hears_unasked")  # no such suspicion, or not asked (or twice)
             return
         proc.answer(src, msg.yes)
         if proc.done:
-            self._suspected(proc, now)
+            self.suspected(proc, now)
 
-    def _vouch_expired(self, proc: Vouch) -> None:
+    def suspicion_expired(self, proc: Suspicion, now: float) -> None:
+        """Nobody said they hear the suspected node in time: it failed."""
+        proc.expire(self.ctx)
+        self.suspected(proc, now)
+
+    def vouch_expired(self, proc: Vouch) -> None:
         """The node we asked on others' behalf did not answer: we tell them no."""
         self._vouching.pop(proc.node, None)
-        proc.expire(self)
-        self._end(proc.pid)
+        proc.expire(self.ctx)
+        self.ctx.end(proc.pid)
 
-    def _suspected(self, proc: Suspicion, now: float) -> None:
+    def suspected(self, proc: Suspicion, now: float) -> None:
         """A suspicion ended with its answers or at its deadline: act on its outcome."""
-        self._end(proc.pid)
+        self.ctx.end(proc.pid)
         self._suspicions.pop(proc.node, None)
         if proc.outcome == "vouched":  # someone hears it: ask again a window from now
             self._peer(proc.node).on("vouched")
             self.liveness.vouched(proc.node, now)
-        elif proc.node in self.routes:  # (back in reach since: nothing to confirm)
+        elif proc.node in self.ctx.routes:  # (back in reach since: nothing to confirm)
             self._peer(proc.node).on("reachable")
         else:
-            self._on_node_down(proc.node, self.id, now)
+            self.on_node_down(proc.node, self.ctx.id, now)
 
     def _unsuspect(self, node: str, event: str) -> None:
         """End ``node``'s open suspicion, if any (``event``: why, by the peer's table; '' to
@@ -168,121 +266,81 @@ class Membership(Remapping):
         pid = self._suspicions.pop(node, None)
         if pid is None:
             return
-        proc = self.procedures.get(pid)
+        proc = self.ctx.procedure(pid)
         if isinstance(proc, Suspicion):
             proc.end()
-            self._end(pid)
+            self.ctx.end(pid)
         if event:
             self._peer(node).on(event)
 
-    def _back_in_reach(self, now: float) -> None:
+    def back_in_reach(self, now: float) -> None:
         """The routes changed: a suspected node this node reaches again is not suspected."""
         for node in sorted(self._suspicions):
-            if node in self.routes:
+            if node in self.ctx.routes:
                 self._unsuspect(node, "reachable")
 
-    def _heard_directly(self, src: str, now: float) -> None:
+    def heard_directly(self, src: str, now: float) -> None:
         """A message from a suspected node (it reaches us though we do not reach it): it
         lives, which is what the suspicion asked."""
         if src in self._suspicions:
             self._unsuspect(src, "vouched")
             self.liveness.vouched(src, now)
 
-    def _on_node_down(
+    def on_node_down(
         self, node: str, detector: str, now: float, incarnation: int | None = None
     ) -> None:
-        if node in self.dead or node == self.id:
+        if node in self.failed or node == self.ctx.id:
             return
         known = self._incarnations.get(node, 0)
         if incarnation is not None and incarnation < known:
             return  # that incarnation failed, and a newer one is already back
         self._unsuspect(node, "")
         peer = self._peer(node)
-        if detector != self.id:
+        if detector != self.ctx.id:
             peer.on("reported_down")
         else:  # our own word: confirmed by the nodes we asked, or a neighbour's silence
             peer.on("confirmed" if peer.state is P.SUSPECT else "silent")
-        self.dead.add(node)
-        self._dead_incarnation[node] = known if incarnation is None else incarnation
+        self.failed.add(node)
+        self._failed_incarnation[node] = known if incarnation is None else incarnation
         self.liveness.forget(node)
         self.failures.append({"node": node, "detector": detector, "at": now})
         del self.failures[:-50]
-        self.monitor.note_event(now, f"node {node} failed (detected by {detector})")
-        if detector == self.id:  # tell everyone; the others learn it from us or another detector
-            for n in self.known_nodes():
-                if n != self.id and n not in self.dead:
-                    self._send(n, m.NodeDown(node, self.id, self._dead_incarnation[node]))
-        for reloc in self._relocations():  # moves that needed the failed node
-            if reloc.restore or node not in (reloc.source, reloc.target):
-                continue
-            dep = self.apps.get(reloc.app)
-            if node == reloc.source and reloc.state is RelocState.SWITCHING and dep is not None:
-                # committed: producers send to the new instance, which waits for a handover
-                # the old host will never send; restore the vertex there instead
-                reloc.on("source_failed")
-                self._restore(dep, reloc, reloc.pid, now)
-                continue
-            reason = f"node {node} failed during the relocation of {reloc.vertex!r}"
-            self._reloc_failed(reloc, reason, now)
-        for dep in list(self.apps.values()):
-            self._park(dep)
-            self._maybe_recover(dep, now)
-
-    def _park(self, dep: Deployment) -> None:
-        """Chains with a vertex pinned to a failed node cannot run anywhere: park them. Their
-        edges stop carrying events (counted as dropped), so a dead sink on one branch does not
-        hold back, through acks and backpressure, the branches that still run."""
-        for ci, chain in enumerate(dep.layout.chains):
-            for v in chain.vertices:
-                pin = dep.app.vertices[v].pinned
-                if pin in self.dead and ci not in dep.parked:
-                    dep.parked[ci] = f"{v!r} is pinned to failed node {pin}"
-        edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}
-        for e in sorted(edges - dep.parked_edges):
-            out = dep.out.get(e)
-            if out is not None and out.in_flight:
-                dep.dropped[e] = dep.dropped.get(e, 0) + out.in_flight
-                out.on_ack(out.next_seq, self._now)
-                producer = dep.app.edges[e].src
-                if producer in dep.stones:
-                    self._release(dep, producer)
-                self._unblock(dep, e)
-        dep.parked_edges |= edges
-
-    def _unpark(self, dep: Deployment) -> None:
-        """Chains parked for a pinned node that is back run again (after their restore)."""
-        for ci in list(dep.parked):
-            pins = {dep.app.vertices[v].pinned for v in dep.layout.chains[ci].vertices}
-            if not pins & self.dead:
-                del dep.parked[ci]
-        dep.parked_edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}
+        self.ctx.note_event(now, f"node {node} failed (detected by {detector})")
+        if (
+            detector == self.ctx.id
+        ):  # tell everyone; the others learn it from us or another detector
+            for n in self.ctx.known_nodes():
+                if n != self.ctx.id and n not in self.failed:
+                    self.ctx.send(n, m.NodeDown(node, self.ctx.id, self._failed_incarnation[node]))
+        # moves that needed it fail or become restores; the chains it touched are recovered
+        self.ctx.publish(PeerFailed(node))
 
     def _leader(self) -> str:
-        return min({self.id, *(n for n in self.routes if n not in self.dead)})
+        return min({self.ctx.id, *(n for n in self.ctx.routes if n not in self.failed)})
 
-    def _on_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
+    def on_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
         known = self._incarnations.get(src)
         if known is not None and msg.incarnation > known:  # it restarted: its instances went
-            self._on_node_down(src, self.id, now)
+            self.on_node_down(src, self.ctx.id, now)
             self._rejoin(src, msg.incarnation, now, announce=True)
             return
         if known is not None and msg.incarnation < known:
             return  # sent before it reset or restarted (it overtook nothing): what it holds
             # failed and whom it outranks are gone with that incarnation
         self._incarnations[src] = msg.incarnation
-        for node, inc in msg.dead.items():  # a node we never heard of (we restarted since)
-            if node != self.id:  # failed in that incarnation: a newer one will be a restart,
+        for node, inc in msg.failed.items():  # a node we never heard of (we restarted since)
+            if node != self.ctx.id:  # failed in that incarnation: a newer one will be a restart,
                 self._incarnations.setdefault(node, inc)  # whose instances are gone
-        if self.routes.get(src, ("", 0))[0] == src:  # a neighbour's beat, not a hello
+        if self.ctx.routes.get(src, ("", 0))[0] == src:  # a neighbour's beat, not a hello
             self.liveness.heard_from(src, now, msg)
-        if msg.dead.get(self.id) == self.incarnation:
+        if msg.failed.get(self.ctx.id) == self.incarnation:
             if self._outranked_by(msg) and self._cut_off(msg):  # a healed partition we did
-                self._on_node_down(src, self.id, now)  # not see: hold it failed too, and the
-                self._send(src, self._beat())  # rank settles it (it is the smaller side)
+                self.on_node_down(src, self.ctx.id, now)  # not see: hold it failed too, and the
+                self.ctx.send(src, self.beat())  # rank settles it (it is the smaller side)
             elif self._outranked_by(msg):
                 self._reset(now, src)
             else:  # it runs nothing and holds us failed: our beat (we run something, and
-                self._send(src, self._beat())  # hold it alive) makes it yield
+                self.ctx.send(src, self.beat())  # hold it alive) makes it yield
         else:
             self._answer_stale_claim(src, msg)
 
@@ -294,31 +352,33 @@ class Membership(Remapping):
         would make the larger side reset for the smaller one; a node that only we missed
         (it stalled, or it alone lost our routes) holds failed just us and a few, and we
         yield to it as before."""
-        if msg.node in self.dead:
+        if msg.node in self.failed:
             return False
-        seen = {n for n in self.routes if n not in self.dead and n != msg.node} | {self.id}
-        held = sum(1 for n in seen if n in msg.dead)
+        seen = {n for n in self.ctx.routes if n not in self.failed and n != msg.node} | {
+            self.ctx.id
+        }
+        held = sum(1 for n in seen if n in msg.failed)
         return held > len(seen) - held
 
     def _answer_stale_claim(self, src: str, msg: m.Heartbeat) -> None:
         """``src`` holds an older incarnation of ours failed: our beat tells it we are back."""
-        claim = msg.dead.get(self.id)
+        claim = msg.failed.get(self.ctx.id)
         if claim is not None and claim < self.incarnation:
-            self._send(src, self._beat())
+            self.ctx.send(src, self.beat())
 
-    def _on_dead_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
+    def on_failed_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
         """A node we declared failed is heard again: it restarted (a higher incarnation), or
         a partition healed. Then the side that loses the tie-break resets and rejoins."""
         if msg.incarnation < self._incarnations.get(src, msg.incarnation):
             return  # from an incarnation that has since reset: it must not reset us
-        if msg.incarnation > self._dead_incarnation.get(src, 0):
+        if msg.incarnation > self._failed_incarnation.get(src, 0):
             if msg.hosting > 0 and self._hosting() > 0 and self._disputed():
                 self._restarted_across(src, msg.incarnation)
                 return
             self._rejoin(src, msg.incarnation, now, announce=True)
-        elif msg.dead.get(self.id) == self.incarnation and self._outranked_by(msg):
+        elif msg.failed.get(self.ctx.id) == self.incarnation and self._outranked_by(msg):
             self._reset(now, src)
-        elif self.id not in msg.dead and msg.hosting > 0 and self._hosting() == 0:
+        elif self.ctx.id not in msg.failed and msg.hosting > 0 and self._hosting() == 0:
             self._reset(now, src)  # it holds us alive and runs something we hold failed: we
             # run nothing, so we yield (it does not reset for us: see _outranked_by)
         else:
@@ -330,11 +390,11 @@ class Membership(Remapping):
         here too. Not a rejoin: we hold this incarnation failed as well and tell it, so that
         it yields (it holds us alive and we run something) and comes back empty."""
         self._incarnations[src] = incarnation
-        self._dead_incarnation[src] = incarnation
-        self._send(src, self._beat())
+        self._failed_incarnation[src] = incarnation
+        self.ctx.send(src, self.beat())
 
     def _hosting(self) -> int:
-        return sum(len(dep.stones) for dep in self.apps.values())
+        return sum(len(dep.instances) for dep in self.ctx.apps.values())
 
     def _outranked_by(self, msg: m.Heartbeat) -> bool:
         """After a partition both sides may hold the other failed. A node that runs nothing
@@ -343,106 +403,105 @@ class Membership(Remapping):
         then the lower-named node, stays and the other resets (two nodes of one side that
         hold each other failed — not neighbours, each cut off by other failures — would
         otherwise tie for ever). One-sided (we hold the sender alive), we reset, unless the
-        sender runs nothing and we run something: it yields instead (``_on_dead_heartbeat``;
+        sender runs nothing and we run something: it yields instead (``_on_failed_heartbeat``;
         a restarted node that held everyone failed once reset every node it met).
 
         Only failed nodes this node can reach count (the other side of the partition): a node
         that really crashed is out of everyone's reach, and the two sides learn of it at
         different moments; counted, it once made both nodes of a tie reset, and the app was
         gone from every node."""
-        if msg.node not in self.dead:
+        if msg.node not in self.failed:
             return not (msg.hosting == 0 and self._hosting() > 0)
 
         def rank(hosting: int, dead: int, leader: str, node: str) -> tuple[bool, int, str, str]:
             return (hosting == 0, dead, leader, node)  # the node's own name breaks a tie
 
         def disputed(dead: Iterable[str]) -> int:
-            return sum(1 for n in dead if n == self.id or n in self.routes)
+            return sum(1 for n in dead if n == self.ctx.id or n in self.ctx.routes)
 
-        theirs = rank(msg.hosting, disputed(msg.dead), msg.leader or msg.node, msg.node)
-        return theirs < rank(self._hosting(), disputed(self.dead), self._leader(), self.id)
+        theirs = rank(msg.hosting, disputed(msg.failed), msg.leader or msg.node, msg.node)
+        return theirs < rank(self._hosting(), disputed(self.failed), self._leader(), self.ctx.id)
 
     def _reset(self, now: float, by: str) -> None:
         """Rejoin as a new incarnation: the others have recovered without this node's
         instances, so it drops them (and every app) and is told the apps again."""
-        dropped = sorted(self.apps)
-        self._stop_all("reset")
-        self.apps.clear()
-        for pid in list(self.procedures):  # nobody waits for them any more
-            self._end(pid)
-        self._outbox.clear()
-        self._early.clear()
-        self._handover_to.clear()
-        self._probes_waiting.clear()
+        dropped = sorted(self.ctx.apps)
+        self.dp.stop_all("reset")
+        self.ctx.apps.clear()
+        for proc in self.ctx.open():  # nobody waits for them any more
+            self.ctx.end(proc.pid)
+        self.dp.outbox.clear()
+        self.ctx.publish(NodeReset())  # each component drops what it waited for
         self._sync_pending.clear()  # it holds no app any more: nothing to sync
-        self._stop_all("reset")
-        for node in self.dead:
-            self.liveness.rejoin(node, now, node in self.routes, self.routes.get(node))
-        for node in self.dead:
+        for node in self.failed:
+            self.liveness.rejoin(node, now, node in self.ctx.routes, self.ctx.routes.get(node))
+        for node in self.failed:
             self._peer(node).on("reset")
         for node in sorted(self._suspicions):  # (their procedures were ended above)
             self._peer(node).on("reset")
         self._suspicions.clear()
         self._vouching.clear()
-        self.dead.clear()
-        self._dead_incarnation.clear()
+        self.failed.clear()
+        self._failed_incarnation.clear()
         self.incarnation += 1
-        self.monitor.note_event(
+        self.ctx.note_event(
             now,
             f"declared failed by {by}: rejoined as incarnation {self.incarnation}"
             + (f", dropping {', '.join(dropped)}" if dropped else ""),
         )
-        self._heartbeat(now)
-        beat = self._beat()
-        for n in sorted(self.routes):  # everyone learns the new incarnation, not just neighbours
+        self.heartbeat(now)
+        beat = self.beat()
+        for n in sorted(
+            self.ctx.routes
+        ):  # everyone learns the new incarnation, not just neighbours
             if n not in self.liveness.neighbours:
-                self._send(n, beat)
+                self.ctx.send(n, beat)
 
     def _rejoin(self, node: str, incarnation: int, now: float, announce: bool) -> None:
         """``node`` is back with no instances: restore what it hosted, unpark what was pinned
         to it, and tell it the apps."""
-        if node in self.dead:
+        if node in self.failed:
             self._peer(node).on("rejoined")
-        self.dead.discard(node)
-        self._dead_incarnation.pop(node, None)
+        self.failed.discard(node)
+        self._failed_incarnation.pop(node, None)
         self._incarnations[node] = incarnation
-        self.liveness.rejoin(node, now, node in self.routes, self.routes.get(node))
+        self.liveness.rejoin(node, now, node in self.ctx.routes, self.ctx.routes.get(node))
         self.rejoins.append({"node": node, "incarnation": incarnation, "at": now})
         del self.rejoins[:-50]
-        self.monitor.note_event(now, f"node {node} rejoined (incarnation {incarnation})")
+        self.ctx.note_event(now, f"node {node} rejoined (incarnation {incarnation})")
         if announce:
-            for n in self.known_nodes():
-                if n not in (self.id, node) and n not in self.dead:
-                    self._send(n, m.NodeUp(node, incarnation))
+            for n in self.ctx.known_nodes():
+                if n not in (self.ctx.id, node) and n not in self.failed:
+                    self.ctx.send(n, m.NodeUp(node, incarnation))
         disputed = self._disputed()
         if disputed:
             self._sync_pending.add(node)
-        for dep in list(self.apps.values()):
+        for dep in list(self.ctx.apps.values()):
             dep.vanished |= {v for v, n in dep.placed.items() if n == node}
-            self._unpark(dep)
+            self.recovery.unpark(dep)
             if not dep.running:
                 continue
             if not disputed:
-                self._send(node, self._app_sync(dep))
+                self.ctx.send(node, self._app_sync(dep))
             self._claim(dep)
-            self._maybe_recover(dep, now)
+            self.recovery.maybe_recover(dep, now)
 
-    def _claim(self, dep: Deployment) -> None:
+    def _claim(self, dep: AppState) -> None:
         """Tell everyone where the instances this node runs are (a node that rejoins may
         have spread, or been told, a view in which they run elsewhere: a node of a partition's
         losing side claims the vertices it ran until it resets, and its reset tells nobody).
         An instance being handed over is left out: its Moved follows."""
-        for vid, h in sorted(dep.stones.items()):
+        for vid, h in sorted(dep.instances.items()):
             if h.handing_over is None and vid not in dep.markers:
-                self._broadcast(m.Moved(dep.app.name, vid, self.id, self.incarnation))
+                self.ctx.broadcast(m.Moved(dep.app.name, vid, self.ctx.id, self.incarnation))
 
     def _disputed(self) -> bool:
         """This node holds a node it can reach failed: a partition healed and one side is
         about to reset. Until then its view of the apps may be the losing side's, so it syncs
         no node that rejoins (its sync would spread that view; nothing would correct it)."""
-        return any(n in self.routes for n in self.dead)
+        return any(n in self.ctx.routes for n in self.failed)
 
-    def _merge_sync(self, src: str, held: Deployment, msg: m.AppSync) -> None:
+    def _merge_sync(self, src: str, held: AppState, msg: m.AppSync) -> None:
         """Take from a sync what is better than our view of an app we already hold. Ours may
         come from a side of a partition that has since reset (a restarted node synced by a
         node that lost the tie-break) or miss moves made while we were away, and no Moved will
@@ -454,11 +513,11 @@ class Membership(Remapping):
         (on a node we hold failed, vanished, or placed here where it does not run) — never
         where we run an instance ourselves, and never a vertex it places here (it holds
         that one vanished with our old incarnation)."""
-        ours = set(held.stones) | set(held.awaiting) | set(held.restoring)
+        ours = set(held.instances) | set(held.awaiting) | set(held.restoring)
         gone = set(msg.vanished)
 
         def better(v: str, n: str) -> bool:
-            if v not in held.placed or v in ours or n == self.id:
+            if v not in held.placed or v in ours or n == self.ctx.id:
                 return False
             if n == src and v not in gone:
                 return True
@@ -467,7 +526,7 @@ class Membership(Remapping):
                 return True
             if n == mine and v in held.vanished:  # names the node whose old incarnation took
                 return False  # it: no news (a claim from that node would be)
-            bad = mine in self.dead or v in held.vanished or mine == self.id
+            bad = mine in self.failed or v in held.vanished or mine == self.ctx.id
             return bad and (v not in gone or v in held.vanished)
 
         taken = {v for v, n in msg.placed.items() if better(v, n)}
@@ -475,24 +534,24 @@ class Membership(Remapping):
             held.placed[v] = msg.placed[v]
         held.vanished = (held.vanished - taken) | (taken & gone)
 
-    def _app_sync(self, dep: Deployment) -> m.AppSync:
+    def _app_sync(self, dep: AppState) -> m.AppSync:
         placed = dict(dep.placed)
-        handed = {v: n for v, n in dep.handed.items() if v not in dep.stones}
+        handed = {v: n for v, n in dep.handed.items() if v not in dep.instances}
         return m.AppSync(
             dep.app.name, dep.origin, dep.document, dep.epoch, placed, sorted(dep.vanished), handed
         )
 
-    def _app_missing(self, dep: Deployment, node: str) -> None:
+    def on_app_missing(self, ev: AppMissing) -> None:
         """A live node asked to host a vertex does not hold the app: its sync was lost (the
         node that owed it failed before it could send it; nobody else would). Sync it now,
         or once this node's own view is not in dispute."""
-        if node in self.dead or node == self.id or not dep.running:
+        dep, node = self.ctx.apps.get(ev.app), ev.node
+        if dep is None or node in self.failed or node == self.ctx.id or not dep.running:
             return
         if self._disputed():
             self._sync_pending.add(node)
         else:
-            self._send(node, self._app_sync(dep))
-        super()._app_missing(dep, node)
+            self.ctx.send(node, self._app_sync(dep))
 
     def _flush_syncs(self) -> None:
         """Sync the nodes that rejoined while this node's view was in dispute, once it is not."""
@@ -500,59 +559,59 @@ class Membership(Remapping):
             return
         pending, self._sync_pending = sorted(self._sync_pending), set()
         for node in pending:
-            if node in self.dead:
+            if node in self.failed:
                 continue
-            for dep in self.apps.values():
+            for dep in self.ctx.apps.values():
                 if dep.running:
-                    self._send(node, self._app_sync(dep))
+                    self.ctx.send(node, self._app_sync(dep))
 
-    def _on_node_up(self, msg: m.NodeUp, now: float) -> None:
-        if msg.node == self.id:
+    def on_node_up(self, msg: m.NodeUp, now: float) -> None:
+        if msg.node == self.ctx.id:
             return
-        if msg.node not in self.dead and msg.node not in self._incarnations:
+        if msg.node not in self.failed and msg.node not in self._incarnations:
             self._incarnations[msg.node] = msg.incarnation
             return
-        if msg.node in self.dead:
-            if msg.incarnation > self._dead_incarnation.get(msg.node, 0):
+        if msg.node in self.failed:
+            if msg.incarnation > self._failed_incarnation.get(msg.node, 0):
                 self._rejoin(msg.node, msg.incarnation, now, announce=False)
         elif msg.incarnation > self._incarnations.get(msg.node, msg.incarnation):
-            self._on_node_down(msg.node, msg.node, now)  # restarted unnoticed by us
+            self.on_node_down(msg.node, msg.node, now)  # restarted unnoticed by us
             self._rejoin(msg.node, msg.incarnation, now, announce=False)
 
-    def _on_app_sync(self, src: str, msg: m.AppSync, now: float) -> None:
-        held = self.apps.get(msg.app)
-        if self._revoked(src, msg.app, msg.document):
+    def on_app_sync(self, src: str, msg: m.AppSync, now: float) -> None:
+        held = self.ctx.apps.get(msg.app)
+        if self.deployer.revoked(src, msg.app, msg.document):
             return
-        signed = self.authority.signed
+        signed = self.ctx.authority.signed
         if signed and held is not None and generation(msg.document) != generation(held.document):
-            self._refusal("app_sync_other_deployment")  # (an operator deployed it again since)
+            self.ctx.refusal("app_sync_other_deployment")  # (an operator deployed it again since)
             return
         if held is not None:
             self._merge_sync(src, held, msg)
-            self._unpark(held)
-            self._park(held)
-            self._maybe_recover(held, now)
+            self.recovery.unpark(held)
+            self.recovery.park(held)
+            self.recovery.maybe_recover(held, now)
             return
         try:
-            app = self._load_app(msg.app, msg.document)
+            app = self.deployer.load_app(msg.app, msg.document)
         except MsoError as exc:
-            self.monitor.note_event(now, f"cannot rejoin app {msg.app}: {exc}")
+            self.ctx.note_event(now, f"cannot rejoin app {msg.app}: {exc}")
             return
-        if not self._named(app, msg.app):
+        if not self.deployer.named(app, msg.app):
             return
         layout = Layout(app, msg.origin)
         placed = dict(layout.initial_placement()) | {
             v: n for v, n in msg.placed.items() if v in app.vertices
         }
-        dep = Deployment(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
+        dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
         dep.vanished = {v for v in msg.vanished if v in app.vertices}
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
         dep.running, dep.started_at = True, now
         dep.placed_at = dict.fromkeys(range(len(layout.chains)), now)
         for i, e in enumerate(app.edges):
             dep.out_edges.setdefault(e.src, []).append(i)
-        self.apps[msg.app] = dep
+        self.ctx.apps[msg.app] = dep
         # (re)arm go-back-N for the app: a timer left from before a reset may have lapsed
-        self._effects.append(SetTimer(("retransmit", msg.app), now + RETRANSMIT_S))
-        self._park(dep)
-        self._maybe_recover(dep, now)
+        self.ctx.emit(SetTimer(Retransmit(msg.app), now + RETRANSMIT_S))
+        self.recovery.park(dep)
+        self.recovery.maybe_recover(dep, now)

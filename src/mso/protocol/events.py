@@ -1,0 +1,180 @@
+"""Typed timer keys and internal events: how a node's components hear of each other. Sans-IO.
+
+A *timer key* names what a timer is for; the driver keeps one timer per key (setting a key again
+moves it) and hands the key back to the core when it fires. An *internal event* is something one
+component of the node core learnt that others act on: membership declares a peer failed, the data
+plane has an instance ready or a marker reached, a relocation ended. The core delivers each event
+to the components subscribed to its type, in the order they subscribed, at once (a component's
+handler runs before the publisher goes on, as a direct call would). Both are frozen dataclasses,
+so a typo in a key or an event is a type error, not a silent miss.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from mso.protocol import messages as m
+    from mso.protocol.effects import VertexSnapshot
+
+
+# -- timer keys ------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Deadline:
+    """Procedure ``pid``'s deadline."""
+
+    pid: int
+
+
+@dataclass(frozen=True)
+class Retry:
+    """Procedure ``pid``'s step ``attempt`` was not answered in time."""
+
+    pid: int
+    attempt: int
+
+
+@dataclass(frozen=True)
+class SourceTick:
+    """A rated source of ``app`` is due to be called again."""
+
+    app: str
+    vertex: str
+
+
+@dataclass(frozen=True)
+class Retransmit:
+    """Go-back-N for ``app``'s edges: resend what waited a whole period without an ack."""
+
+    app: str
+
+
+@dataclass(frozen=True)
+class MonitorTick:
+    """Sample the monitor, report chain delays, run the management rules."""
+
+
+@dataclass(frozen=True)
+class HeartbeatTick:
+    """Beat to the neighbours; judge the silent and the unreachable."""
+
+
+@dataclass(frozen=True)
+class RecoverTick:
+    """Try ``app``'s failure recovery again (an earlier attempt failed)."""
+
+    app: str
+
+
+TimerKey = Deadline | Retry | SourceTick | Retransmit | MonitorTick | HeartbeatTick | RecoverTick
+
+
+# -- internal events -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PeerFailed:
+    """Membership declared ``node`` failed (fail-stop): its instances are gone."""
+
+    node: str
+
+
+@dataclass(frozen=True)
+class RoutesChanged:
+    """The routing view changed: ``changed`` are the destinations whose route differs,
+    ``appeared`` those newly reachable."""
+
+    changed: frozenset[str]
+    appeared: frozenset[str]
+
+
+@dataclass(frozen=True)
+class RecoveryDue:
+    """Something a failure recovery waits on may have changed (a beat, a rejoin, a sync):
+    check ``app`` (every app when None)."""
+
+    app: str | None = None
+
+
+@dataclass(frozen=True)
+class InstanceReady:
+    """An instance's code was constructed (``open()`` ran): a build or a move goes on."""
+
+    app: str
+    vertex: str
+
+
+@dataclass(frozen=True)
+class InstanceFailed:
+    """An instance's code failed at construction (or its process died starting)."""
+
+    app: str
+    vertex: str
+    error: str
+
+
+@dataclass(frozen=True)
+class InstanceCrashed:
+    """A started instance's process died unasked (counted already): restore it in place."""
+
+    app: str
+    vertex: str
+    instance: int
+
+
+@dataclass(frozen=True)
+class MarkerReached:
+    """A relocation's marker reached an instance, behind every event sent before it."""
+
+    app: str
+    marker: m.Marker
+
+
+@dataclass(frozen=True)
+class Snapshotted:
+    """An instance's state was taken for the relocation it is handing over in."""
+
+    app: str
+    vertex: str
+    result: VertexSnapshot
+
+
+@dataclass(frozen=True)
+class RelocationEnded:
+    """A relocation or restore this node coordinated ended (``error`` empty: it succeeded,
+    ``vertex`` runs on ``target``); whoever started it (a remap, a crash restore) goes on."""
+
+    pid: int
+    app: str
+    vertex: str
+    target: str
+    remap: int | None
+    error: str
+
+
+@dataclass(frozen=True)
+class AppMissing:
+    """``node``, asked to host a vertex of ``app``, does not hold the app (its sync was lost)."""
+
+    app: str
+    node: str
+
+
+@dataclass(frozen=True)
+class NodeReset:
+    """This node was declared failed by a side that outranks it: it drops every app and the
+    procedures and waits that went with them, and rejoins as its next incarnation."""
+
+
+InternalEvent = (
+    PeerFailed
+    | RoutesChanged
+    | RecoveryDue
+    | InstanceReady
+    | InstanceFailed
+    | InstanceCrashed
+    | MarkerReached
+    | Snapshotted
+    | RelocationEnded
+    | AppMissing
+    | NodeReset
+)

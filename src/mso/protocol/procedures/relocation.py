@@ -1,0 +1,669 @@
+"""Relocation (§3.4.1), every role in one place: the coordinator (relocation and restore modes),
+the producer, the old host and the new host.
+
+A *relocation* moves a running vertex with its state and loses no event::
+
+    coordinator           new host            producer(s)           old host
+      Prepare  ──────────▶  host an instance
+               ◀──────────  Prepared (once started)
+      Switch   ─────────────────────────────▶  send to the new host;
+                                               Marker ─────────────▶  drain to the marker(s)
+                                                                      snapshot
+                            Handover  ◀─────────────────────────────  state + channels
+               ◀──────────  HandoverDone       (the old host tells everyone: Moved)
+
+The coordinator's :class:`Relocation` is PREPARING, then SWITCHING once the new instance is
+prepared and the producers are told to switch, then FINISHED at ``HandoverDone``. Before the
+switch a failure (a refusal, a node it needs failing, its deadline) ends it and the target drops
+the instance it prepared (``Unprepare``); once producers have switched the move is committed, and
+if the old host fails the move becomes a *restore* at the same target (``source_failed``).
+
+A *restore* replaces an instance lost with a failed node (or a crashed one): PREPARING (the target
+creates the instance) → RESUMING (the surviving ends of its edges say where they stand and
+replay: their roles are in :mod:`.restore`) → FINISHED when the replacement runs. Its prepare
+is retried (``Retry``) a few times, since messages to a node behind a failure can be lost while
+routes converge. A step arriving in the wrong state raises :class:`IllegalTransition`.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import Any, ClassVar, Protocol
+
+from mso.errors import MsoError
+from mso.protocol import effects as fx
+from mso.protocol import messages as m
+from mso.protocol.channel import AckGate, InChannel, OutChannel
+from mso.protocol.context import NodeContext
+from mso.protocol.dataplane import DataPlane
+from mso.protocol.effects import Reply, Send, SetTimer
+from mso.protocol.events import (
+    AppMissing,
+    Deadline,
+    InstanceFailed,
+    InstanceReady,
+    MarkerReached,
+    PeerFailed,
+    RelocationEnded,
+    Retry,
+    Snapshotted,
+)
+from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
+from mso.protocol.state import AppState, Restoring
+
+# once producers have switched, the move is committed: the old instance hands over after it has
+# processed everything before the markers, which a slow vertex may take a while to do
+SWITCH_DEADLINE_S = 60.0
+STEP_ATTEMPTS = 5
+
+
+class S(enum.Enum):
+    PREPARING = "preparing"
+    SWITCHING = "switching"
+    RESUMING = "resuming"
+
+
+class Relocation(Procedure):
+    """A relocation (or, with ``restore``, a restore) this node coordinates."""
+
+    NAME = "relocation"
+    INITIAL = S.PREPARING
+    DEADLINE_S = 5.0
+    TRANSITIONS: ClassVar[Table] = {
+        S.PREPARING: {
+            "prepared": S.SWITCHING,
+            "prepared_restore": S.RESUMING,
+            "retry": S.PREPARING,
+            "handed_over": Phase.FINISHED,  # a restore of a vertex that never went
+        },
+        # the old host failed after producers switched: its instance and what it held are
+        # gone, the new one waits for a handover that never comes; it is restored instead
+        S.SWITCHING: {"handed_over": Phase.FINISHED, "source_failed": S.RESUMING},
+        # a restore's prepare is re-sent until answered: answers may come more than once
+        S.RESUMING: {
+            "prepared_restore": S.RESUMING,
+            "handed_over": Phase.FINISHED,
+            "retry": S.RESUMING,
+        },
+    }
+
+    def __init__(
+        self,
+        pid: int,
+        now: float,
+        app: str,
+        vertex: str,
+        source: str,
+        target: str,
+        client: int | None,
+        remap: int | None = None,
+    ) -> None:
+        super().__init__(pid, now)
+        self.app = app
+        self.vertex = vertex
+        self.source = source  # node the vertex leaves
+        self.target = target  # node it goes to
+        self.client = client
+        self.remap = remap  # the remap this relocation is a step of
+        # a restore: no marker, no handover; the surviving ends of its edges resume it
+        # (``resumes``: [edge, the other end is the producer])
+        self.restore = False
+        self.resumes: list[list[Any]] = []
+        self.attempts = 0
+        self.retried: list[str] | None = None  # a recovery's log of steps sent again
+
+    def as_restore(self, now: float | None = None) -> None:
+        """Become a restore, with a restore's deadline from ``now`` (a committed relocation
+        whose old host failed) or from the start."""
+        self.restore = True
+        since = self.started_at if now is None else max(self.started_at, now)
+        self.deadline = since + STEP_TIMEOUT_S * (STEP_ATTEMPTS + 1)
+
+    @property
+    def name(self) -> str:
+        return "restore" if self.restore else self.NAME
+
+    def describe(self) -> dict[str, Any]:
+        return super().describe() | {
+            "app": self.app,
+            "vertex": self.vertex,
+            "from": self.source,
+            "to": self.target,
+        }
+
+
+class Replacements(Protocol):
+    """The replacement's side of a restore (:mod:`.restore`): once every surviving end has
+    resumed it, it runs."""
+
+    def activate(self, dep: AppState, vertex: str) -> None: ...
+
+
+class Relocator:
+    """This node's part in relocations and restores, in every role (module docstring)."""
+
+    def __init__(self, ctx: NodeContext, dp: DataPlane) -> None:
+        self.ctx = ctx
+        self.dp = dp
+        self.replacements: Replacements | None = None  # the core wires the restore roles in
+        self._handover_to: dict[int, str] = {}  # rid -> coordinator, at a move's new host
+
+    def _reloc(self, pid: int) -> Relocation | None:
+        proc = self.ctx.procedure(pid)
+        return proc if isinstance(proc, Relocation) else None
+
+    def _open(self) -> list[Relocation]:
+        return [p for p in self.ctx.open() if isinstance(p, Relocation)]
+
+    def _activate(self, dep: AppState, vertex: str) -> None:
+        assert self.replacements is not None
+        self.replacements.activate(dep, vertex)
+
+    def forget(self, rid: int) -> None:
+        """A restore's replacement ran or was dropped: no handover will be reported for it."""
+        self._handover_to.pop(rid, None)
+
+    def expect_handover(self, rid: int, coordinator: str) -> None:
+        self._handover_to[rid] = coordinator
+
+    def on_reset(self) -> None:
+        self._handover_to.clear()
+
+    def expire(self, reloc: Relocation, now: float) -> None:
+        why = f"{reloc.name} did not finish within {reloc.deadline - reloc.started_at:g} s"
+        self.fail(reloc, why, now)
+
+    def on_peer_failed(self, ev: PeerFailed) -> None:
+        """Moves that needed the failed node: before the switch they fail; a committed move
+        whose old host failed becomes a restore at its target."""
+        node, now = ev.node, self.ctx.now
+        for reloc in self._open():
+            if reloc.restore or node not in (reloc.source, reloc.target):
+                continue
+            dep = self.ctx.apps.get(reloc.app)
+            if node == reloc.source and reloc.state is S.SWITCHING and dep is not None:
+                # committed: producers send to the new instance, which waits for a handover
+                # the old host will never send; restore the vertex there instead
+                reloc.on("source_failed")
+                self.start_restore(dep, reloc, reloc.pid, now)
+                continue
+            self.fail(reloc, f"node {node} failed during the relocation of {reloc.vertex!r}", now)
+
+    def _refuse(self, client: int | None, msg: m.RelocateRequest, reason: str) -> None:
+        if client is not None:
+            reply = m.RelocateReply(msg.app, msg.vertex, False, error=reason)
+            self.ctx.emit(Reply(client, reply))
+
+    def relocation_target(self, dep: AppState, vertex: str, direction: str = "") -> str:
+        """Where an upstream or downstream relocation takes ``vertex`` (MsoError if it cannot
+        move): upstream is its predecessor's node; downstream is its successor's node or, when
+        they share a node, the next node toward the chain's tail."""
+        app, lay = dep.app, dep.layout
+        if vertex not in app.vertices:
+            raise MsoError(f"unknown vertex {vertex!r} in app {app.name!r}")
+        for c in lay.chains:
+            if vertex in (c.head, c.tail):
+                raise MsoError(
+                    f"{vertex!r} is an end of chain {c.name}; chain ends are never relocated "
+                    f"(it would disturb the chains before or after it)"
+                )
+        pinned = app.vertices[vertex].pinned
+        if pinned is not None:
+            raise MsoError(f"{vertex!r} is pinned to {pinned}; pinned vertices are not relocated")
+        if not direction:
+            return ""
+        (pred,) = app.predecessors()[vertex]
+        (succ,) = app.successors()[vertex]
+        here = dep.placed[vertex]
+        if direction == "upstream":
+            target = dep.placed[pred]
+        elif direction == "downstream":
+            target = dep.placed[succ]
+            if target == here:
+                tail = dep.placed[next(c for c in lay.chains if vertex in c.vertices).tail]
+                route = self.ctx.routes.get(tail) if here == self.ctx.id else None
+                target = route[0] if route else tail
+        else:
+            raise MsoError(f"expected direction 'upstream' or 'downstream', got {direction!r}")
+        if target == here:
+            where = "predecessor's" if direction == "upstream" else "next downstream"
+            raise MsoError(f"{vertex!r} already runs on its {where} node {here}")
+        return target
+
+    def relocate(self, req: m.RelocateRequest, now: float) -> None:
+        """Start a relocation this node coordinates (the management rules' entry point)."""
+        self.request(None, req, now)
+
+    def on_relocate_request(self, msg: m.RelocateRequest, now: float) -> None:
+        """A relocation asked by another node. Where operator keys are configured that is a
+        command a member has no authority for (a node's own rules relocate without asking)."""
+        if self.ctx.authority.signed:
+            self.ctx.refusal("relocate_from_member")
+            return
+        if not self.request(None, msg, now):  # refused (no such vertex, no route, ...)
+            self.ctx.refusal("relocate_refused")
+
+    def request(self, client: int | None, msg: m.RelocateRequest, now: float) -> bool:
+        """Coordinate a relocation (a client's, a member's or the rules'); False if refused
+        (the client, if any, is told why)."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not dep.running:
+            self._refuse(client, msg, f"no running app named {msg.app!r}")
+            return False
+        try:
+            target = self.relocation_target(dep, msg.vertex, "" if msg.target else msg.direction)
+        except MsoError as exc:
+            self._refuse(client, msg, str(exc))
+            return False
+        target = msg.target or target
+        if target != self.ctx.id and target not in self.ctx.routes:
+            self._refuse(client, msg, f"target node {target!r} is not reachable")
+            return False
+        source = dep.placed[msg.vertex]
+        if target == source:
+            self._refuse(client, msg, f"{msg.vertex!r} already runs on {target}")
+            return False
+        if msg.vertex in dep.lost(self.ctx.failed):  # no instance to hand over: restored
+            why = f"node {source} failed" if source in self.ctx.failed else "its node restarted"
+            self._refuse(client, msg, f"{msg.vertex!r} does not run anywhere ({why})")
+            return False
+        if any(r.app == msg.app and r.vertex == msg.vertex for r in self._open()):
+            self._refuse(client, msg, f"{msg.vertex!r} is already being relocated")
+            return False
+        pid = self.ctx.new_pid()
+        self.ctx.begin(Relocation(pid, now, msg.app, msg.vertex, source, target, client))
+        self.ctx.send(target, m.Prepare(msg.app, msg.vertex, pid))
+        return True
+
+    def on_prepare(self, src: str, msg: m.Prepare) -> None:
+        """At a relocation's (or restore's) target: create the new instance; it is
+        Prepared once the executor has started it (or refused if its code fails)."""
+        dep = self.ctx.apps.get(msg.app)
+        error = ""
+        vid = msg.vertex
+        resumes = _resumes(dep, vid, msg.resumes) if dep is not None else set()
+        if resumes is None:
+            self.ctx.refusal("prepare_malformed_resumes")
+            return
+        if dep is None:
+            error = f"{self.ctx.id} does not run app {msg.app!r}"
+            self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, error, no_app=True))
+            return
+        if vid not in dep.app.vertices:
+            error = f"{self.ctx.id}: unknown vertex {vid!r}"
+        elif vid not in dep.instances and vid not in dep.awaiting:
+            dep.awaiting[vid] = self.dp.host(dep, vid)
+            dep.preparing[vid] = (msg.rid, src, msg.restore)
+            self._handover_to[msg.rid] = src
+            if msg.restore:
+                dep.restoring[vid] = Restoring(msg.rid, src, resumes)
+            return
+        elif msg.restore and vid in dep.instances:  # it never went: nothing to restore
+            self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, error))
+            self.ctx.send(src, m.HandoverDone(dep.app.name, vid, msg.rid))
+            self.ctx.broadcast(m.Moved(dep.app.name, vid, self.ctx.id, self.ctx.incarnation))
+            return
+        elif msg.restore and vid in dep.awaiting:  # asked again, maybe by a new
+            old = dep.restoring.get(vid)  # coordinator after the first one failed
+            if old is None or old.rid != msg.rid:
+                dep.restoring[vid] = Restoring(msg.rid, src, resumes)
+                self._handover_to[msg.rid] = src
+            else:  # a retry: an end lost since (its node reset) will not resume any more; it
+                old.pending &= resumes  # is restored later
+            if vid in dep.preparing:  # still starting: Prepared goes to the newest asker
+                dep.preparing[vid] = (msg.rid, src, True)
+                return
+        self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, error))
+        if dep is not None and not error and msg.restore:
+            restoring = dep.restoring.get(vid)
+            if restoring is not None and not restoring.pending:
+                self._activate(dep, vid)  # nothing to wait for (a lone vertex)
+
+    def fail(self, reloc: Relocation, why: str, now: float) -> None:
+        """A relocation or restore failed: whoever waits (a client, a remap) is told. If no
+        producer had switched yet, the target drops the instance it prepared."""
+        if reloc.state is S.PREPARING and reloc.target not in self.ctx.failed:
+            self.ctx.send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
+        reloc.fail(self.ctx, why)
+        self.ctx.end(reloc.pid)
+        self._ended(reloc, why)
+
+    def _ended(self, reloc: Relocation, error: str) -> None:
+        """Tell whoever waits for a relocation how it ended: its client, and (by an internal
+        event) whoever started it: a remap, a crash restore."""
+        if reloc.client is not None and error:
+            self._refuse(reloc.client, m.RelocateRequest(reloc.app, reloc.vertex), error)
+        elif reloc.client is not None:
+            elapsed = self.ctx.elapsed_ms(reloc.started_at)
+            reply = m.RelocateReply(reloc.app, reloc.vertex, True, reloc.target, elapsed)
+            self.ctx.emit(Reply(reloc.client, reply))
+        ended = RelocationEnded(
+            reloc.pid, reloc.app, reloc.vertex, reloc.target, reloc.remap, error
+        )
+        self.ctx.publish(ended)
+
+    def on_prepared(self, msg: m.Prepared, now: float) -> None:
+        reloc = self._reloc(msg.rid)
+        dep = self.ctx.apps.get(msg.app)
+        if reloc is None or dep is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
+            self.ctx.refusal("prepared_unexpected")
+            return
+        if msg.error:
+            if msg.no_app:  # a node that missed the app's sync: the retry will find it
+                self.ctx.publish(AppMissing(dep.app.name, reloc.target))
+            self.fail(reloc, msg.error, now)
+            return
+        reloc.on("prepared_restore" if reloc.restore else "prepared")
+        if not reloc.restore:  # committed: the old instance drains what it holds, then hands
+            reloc.deadline = max(reloc.deadline, now + SWITCH_DEADLINE_S)  # over; a busy
+            self.ctx.set_timer(Deadline(reloc.pid), reloc.deadline)  # vertex may take a while
+        if reloc.restore:  # the surviving ends of its edges resume the replacement
+            edges = dep.app.edges
+            for edge, producer in reloc.resumes:
+                other = dep.placed[edges[edge].src if producer else edges[edge].dst]
+                self.ctx.send(other, m.Rewire(msg.app, edge, reloc.target, msg.rid, producer))
+            return
+        for e in dep.app.edges:
+            if e.dst == msg.vertex:
+                edge = dep.app.edges.index(e)
+                switch = m.Switch(msg.app, edge, reloc.target, msg.rid, reloc.source)
+                self.ctx.send(dep.placed[e.src], switch)
+
+    def on_switch(self, msg: m.Switch) -> None:
+        """At the producer's node: new events go to the new instance; a marker goes the old way."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            self.ctx.refusal("switch_unknown_edge")
+            return
+        edge = dep.app.edges[msg.edge]
+        old = dep.placed[edge.dst]
+        if old == msg.to and msg.source:  # a merge vertex whose other input, produced here
+            old = msg.source  # too, switched first: its marker goes the old way as well
+        why = self._switch_refused(dep, edge.src, edge.dst, msg.to, old)
+        if why:
+            self.ctx.refusal(why)
+            return
+        key = (msg.app, msg.edge)
+        batch = self.dp.outbox.pop(key, None)
+        if batch is not None:  # what is already queued leaves before the marker
+            data = m.Data(msg.app, msg.edge, dep.epoch, *batch)
+            self.ctx.emit(Send(old, data))
+        seq = self.dp.out(dep, msg.edge).next_seq
+        dep.placed[edge.dst] = msg.to
+        dep.vanished.discard(edge.dst)  # the move's coordinator sees to it from now on (it
+        # restores it at the target if the old host went); a recovery here would make a twin
+        marker = m.Marker(msg.app, msg.edge, seq, msg.rid, msg.to)
+        if old == self.ctx.id:
+            self.dp.enqueue(dep, edge.dst, marker)
+        else:
+            self.ctx.emit(Send(old, marker))
+
+    def _switch_refused(
+        self, dep: AppState, producer: str, consumer: str, to: str, old: str
+    ) -> str:
+        """Why a Switch cannot be part of a relocation ('' if it can): a relocation never
+        moves a pinned vertex, nor to where it runs already (its instance would be handed
+        over to nobody; ``old`` is where it runs, the move's source once another input of
+        the vertex switched here). With operator keys, the producer must run here and ``to``
+        be a node this one can reach."""
+        if to == old:
+            return "switch_to_where_it_runs"
+        if dep.app.vertices[consumer].pinned is not None:
+            return "switch_of_a_pinned_vertex"
+        if self.ctx.authority.signed:
+            if producer not in dep.instances:
+                return "switch_not_the_producer"
+            if to != self.ctx.id and to not in self.ctx.routes:
+                return "switch_to_an_unknown_node"
+        return ""
+
+    def on_marker_reached(self, ev: MarkerReached) -> None:
+        """At the old instance's node: once every input is marked, hand the state over."""
+        dep, msg = self.ctx.apps.get(ev.app), ev.marker
+        if dep is None:
+            return
+        vid = dep.app.edges[msg.edge].dst
+        h = dep.instances.get(vid)
+        if h is None:
+            return
+        marked = dep.markers.setdefault(vid, set())
+        marked.add(msg.edge)
+        ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vid]
+        if not set(ins) <= marked:
+            h.life.on("marker")
+            return
+        del dep.markers[vid]
+        h.life.on("all_marked")
+        h.handing_over = msg  # the state is taken once everything before is processed
+        self.dp.submit(h, fx.SnapshotVertex(h.instance, msg.rid))
+
+    def on_snapshotted(self, ev: Snapshotted) -> None:
+        """The old instance's state is taken: hand it and the channels over, then free it."""
+        dep, vid, res = self.ctx.apps.get(ev.app), ev.vertex, ev.result
+        h = dep.instances.get(vid) if dep is not None else None
+        msg = h.handing_over if h is not None and h.instance == res.instance else None
+        if dep is None or h is None or msg is None:
+            return
+        ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vid]
+        for i in ins:  # acknowledge what the old instance processed, then forget the inputs
+            self.dp.ack(dep, i)
+        inputs = {
+            i: [ch.expected, ch._acked] if (ch := dep.inc.pop(i, None)) else [0, 0] for i in ins
+        }
+        outputs: dict[int, list[Any]] = {}
+        for i in dep.out_edges.get(vid, []):
+            out = dep.out.pop(i, None)
+            if out is not None:
+                _, events = out.unacked()
+                outputs[i] = [out.next_seq, out.acked, events, out.positions]
+        gate = dep.gates.pop(vid, None)
+        key_batches = [k for k in self.dp.outbox if k[0] == dep.app.name and k[1] in outputs]
+        for k in key_batches:  # queued output leaves from here before the handover
+            batch = self.dp.outbox.pop(k)
+            dst = dep.placed[dep.app.edges[k[1]].dst]
+            self.ctx.emit(Send(dst, m.Data(k[0], k[1], dep.epoch, *batch)))
+        h.life.on("handed_over")
+        self.dp.stop(h, "moved")
+        del dep.instances[vid]
+        dep.placed[vid] = msg.to
+        dep.handed[vid] = msg.to
+        handover = m.Handover(
+            dep.app.name,
+            vid,
+            msg.rid,
+            res.state,
+            inputs,
+            outputs,
+            h.processed,
+            h.emitted,
+            gate.to_wire() if gate is not None else [],
+        )
+        self.ctx.send(msg.to, handover)
+        self.ctx.broadcast(m.Moved(dep.app.name, vid, msg.to))
+
+    def on_handover(self, src: str, msg: m.Handover, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or msg.vertex not in dep.awaiting:
+            self.ctx.refusal("handover_unexpected")
+            return
+        dep.moved[msg.vertex] = (now, src)
+        h = dep.awaiting.pop(msg.vertex)
+        h.life.on("handover")
+        self.ctx.emit(fx.RestoreVertex(h.instance, msg.state))  # before any feed
+        h.processed, h.emitted = msg.processed, msg.emitted
+        dep.instances[msg.vertex] = h
+        dep.placed[msg.vertex] = self.ctx.id
+        dep.handed.pop(msg.vertex, None)
+        gated = bool(dep.out_edges.get(msg.vertex))
+        for i, (expected, acked) in msg.inputs.items():
+            dep.inc[i] = InChannel(
+                expected=expected,
+                processed=expected,
+                _acked=acked,
+                released=acked if gated else None,
+            )
+        for i, (next_seq, acked, events, positions) in msg.outputs.items():
+            ch = OutChannel(window=self.ctx.window, next_seq=acked, acked=acked, waiting_since=now)
+            ch.push_many(events, now)
+            ch.next_seq = next_seq
+            ch.positions = {int(k): int(v) for k, v in positions.items()}
+            dep.out[i] = ch
+        if msg.gate:
+            dep.gates[msg.vertex] = AckGate.from_wire(msg.gate)
+        for i in msg.inputs:  # what arrived early, in order, now that positions are known
+            for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
+                self.dp.deliver(dep, i, seq, events)
+        coordinator = self._handover_to.pop(msg.rid, None)
+        if coordinator is not None:
+            self.ctx.send(coordinator, m.HandoverDone(msg.app, msg.vertex, msg.rid))
+
+    def on_handover_done(self, msg: m.HandoverDone, now: float) -> None:
+        reloc = self._reloc(msg.rid)
+        if reloc is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
+            self.ctx.refusal("handover_done_unexpected")
+            return
+        reloc.on("handed_over")
+        self.ctx.end(reloc.pid)
+        if reloc.restore:
+            dep = self.ctx.apps.get(reloc.app)
+            if dep is not None:
+                dep.placed[reloc.vertex] = reloc.target
+        self._ended(reloc, "")
+
+    def on_moved(self, msg: m.Moved, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if 0 <= msg.incarnation < self.ctx.incarnation_of(msg.node, msg.incarnation):
+            return  # its instance went with that incarnation (a claim overtaken by a reset)
+        why = self._moved_refused(dep, msg) if dep is not None else "moved_unknown_app"
+        if why:
+            self.ctx.refusal(why)
+            return
+        if dep is not None and msg.vertex in dep.placed:
+            dep.placed[msg.vertex] = msg.node
+            dep.vanished.discard(msg.vertex)
+            for c in dep.layout.chains:
+                if msg.vertex in c.vertices:
+                    dep.placed_at[c.index] = now
+
+    def _moved_refused(self, dep: AppState, msg: m.Moved) -> str:
+        """Why news that ``msg.vertex`` runs on ``msg.node`` is not taken ('' if it is): a
+        vertex not in the app; a pinned vertex anywhere but on its node. With operator keys
+        also a vertex this node runs itself (and is not handing over): its own view is
+        first-hand."""
+        if msg.vertex not in dep.app.vertices:
+            return "moved_unknown_vertex"
+        pin = dep.app.vertices[msg.vertex].pinned
+        if pin is not None and msg.node != pin:
+            return "moved_a_pinned_vertex"
+        h = dep.instances.get(msg.vertex)
+        here = h is not None and h.handing_over is None and msg.vertex not in dep.markers
+        if self.ctx.authority.signed and msg.node != self.ctx.id and here:
+            return "moved_a_vertex_running_here"
+        return ""
+
+    def start_restore(self, dep: AppState, reloc: Relocation, rid: int, now: float) -> None:
+        """Start a replacement for ``reloc.vertex`` on ``reloc.target``: its surviving
+        producers replay what it had not passed on, its consumers say where they stand."""
+        if not reloc.restore:
+            reloc.as_restore(now)
+            self.ctx.emit(SetTimer(Deadline(rid), reloc.deadline))
+        edges = dep.app.edges
+        lost = dep.lost(self.ctx.failed)
+        reloc.resumes = [
+            [i, True] for i, e in enumerate(edges) if e.dst == reloc.vertex and e.src not in lost
+        ] + [[i, False] for i, e in enumerate(edges) if e.src == reloc.vertex and e.dst not in lost]
+        reloc.attempts += 1
+        prepare = m.Prepare(dep.app.name, reloc.vertex, rid, True, reloc.resumes)
+        self.ctx.send(reloc.target, prepare)
+        self.ctx.emit(SetTimer(Retry(rid, reloc.attempts), now + STEP_TIMEOUT_S))
+
+    def on_retry(self, key: Retry, now: float) -> None:
+        """A restore's prepare was not answered in time: ask again, a few times."""
+        rid = key.pid
+        reloc = self._reloc(rid)
+        if reloc is None or not reloc.restore:
+            return
+        dep = self.ctx.apps.get(reloc.app)
+        if dep is None:
+            return
+        if reloc.attempts >= STEP_ATTEMPTS or reloc.target in self.ctx.failed:
+            why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
+            self.fail(reloc, why, now)
+            return
+        if reloc.vertex not in dep.lost(
+            self.ctx.failed
+        ):  # restored meanwhile by another coordinator
+            # (its target tells only the newest one) and maybe moved since: asked again, the
+            # target would start a second instance. Done; an instance prepared for this
+            # restore and never resumed is dropped.
+            where = dep.placed[reloc.vertex]
+            if where != reloc.target:
+                self.ctx.send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
+            reloc.on("handed_over")
+            self.ctx.end(reloc.pid)
+            reloc.target = where
+            self._ended(reloc, "")
+            return
+        reloc.on("retry")
+        if reloc.retried is not None:  # a recovery's record of what it sent again
+            reloc.retried.append(f"restore {reloc.vertex} on {reloc.target}")
+        self.start_restore(dep, reloc, rid, now)  # idempotent at every end: just ask again
+
+    def on_instance_ready(self, ev: InstanceReady) -> None:
+        """A move's new instance started: the coordinator hears it is prepared."""
+        dep, vid = self.ctx.apps.get(ev.app), ev.vertex
+        prep = dep.preparing.pop(vid, None) if dep is not None else None
+        if dep is not None and prep is not None:  # a relocation's or a restore's
+            rid, coordinator, restore = prep
+            self.ctx.send(coordinator, m.Prepared(dep.app.name, vid, rid, self.ctx.id, ""))
+            restoring = dep.restoring.get(vid)
+            if restore and restoring is not None and not restoring.pending:
+                self._activate(dep, vid)  # nothing to wait for (a lone vertex)
+
+    def on_instance_failed(self, ev: InstanceFailed) -> None:
+        """A move's new instance failed to start: the coordinator hears why."""
+        dep, vid, error = self.ctx.apps.get(ev.app), ev.vertex, ev.error
+        prep = dep.preparing.pop(vid, None) if dep is not None else None
+        if dep is not None and prep is not None:
+            dep.restoring.pop(vid, None)
+            self._handover_to.pop(prep[0], None)
+            self.ctx.send(prep[1], m.Prepared(dep.app.name, vid, prep[0], self.ctx.id, error))
+
+    def on_unprepare(self, msg: m.Unprepare, now: float) -> None:
+        """At a failed move's target: drop the instance prepared for it (nothing was switched
+        to it, so nothing is lost)."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None:
+            self.ctx.refusal("unprepare_unexpected")
+            return
+        h = dep.awaiting.get(msg.vertex)
+        prep = dep.preparing.get(msg.vertex)
+        restoring = dep.restoring.get(msg.vertex)
+        ours = msg.rid in self._handover_to or (prep is not None and prep[0] == msg.rid)
+        if h is None or not ours or (restoring is not None and restoring.rid != msg.rid):
+            self.ctx.refusal("unprepare_unexpected")  # (another move took the instance over since)
+            return
+        self.dp.stop(h, "abandoned")
+        del dep.awaiting[msg.vertex]
+        dep.preparing.pop(msg.vertex, None)
+        dep.restoring.pop(msg.vertex, None)
+        self._handover_to.pop(msg.rid, None)
+        for i, e in enumerate(dep.app.edges):
+            if e.dst == msg.vertex:
+                dep.stash.pop(i, None)
+        self.ctx.note_event(now, f"dropped {msg.vertex}, prepared for a move that failed")
+
+
+def _resumes(dep: AppState, vid: str, resumes: list[list[Any]]) -> set[tuple[int, bool]] | None:
+    """A restore's ``[edge, producer?]`` pairs as a set, or None if one is malformed: not a
+    pair of an int and a bool, or not an edge of ``vid`` on that side."""
+    edges = dep.app.edges
+    out = set()
+    for r in resumes:
+        if len(r) != 2 or type(r[0]) is not int or type(r[1]) is not bool:
+            return None
+        e, producer = r
+        if not 0 <= e < len(edges) or (edges[e].dst if producer else edges[e].src) != vid:
+            return None
+        out.add((e, producer))
+    return out

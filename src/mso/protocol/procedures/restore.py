@@ -1,0 +1,202 @@
+"""Restore, the participants' side: the surviving ends of a lost instance's edges, the
+replacement, and the restart budget of an instance that crashes.
+
+A restore replaces an instance that is gone — with a failed node (a recovery's child), with a
+node's old incarnation, or with its own crashed process — at a target the coordinator chose (its
+side, and the new host's prepare, are in :mod:`.relocation`)::
+
+    coordinator          replacement (target)        surviving ends of its edges
+      Prepare(restore) ─▶  host an instance
+               ◀──────── Prepared
+      Rewire ─────────────────────────────────────▶  producer: Resume(acked), replay unacked
+                                                    consumer: Resume(expected next)
+                           ◀──────────────────────  Resume (one per edge end)
+                           every end resumed: runs (``activate``), Moved to all
+               ◀──────── HandoverDone
+
+Producers replay what they hold unacknowledged (acks are chained, so that is everything the
+lost instance had not passed on); the replacement numbers its output from the positions its
+producers' acks carried, so what it regenerates by replay carries the numbers it had and
+consumers drop it as duplicates: every event reaches them once, in order.
+
+A crashed instance (``isolation: process``) is restored in place the same way, at most
+``MAX_RESTARTS`` times in ``RESTART_WINDOW_S``: a vertex that crashes on an event would crash
+again on its replay; then it stays crashed, its chains are reported parked and their events
+stay held (unacknowledged) upstream.
+"""
+
+from __future__ import annotations
+
+from mso.protocol import messages as m
+from mso.protocol.channel import InChannel, OutChannel
+from mso.protocol.context import NodeContext
+from mso.protocol.dataplane import DataPlane
+from mso.protocol.effects import Send
+from mso.protocol.events import InstanceCrashed, RelocationEnded
+from mso.protocol.procedures.instance import MAX_RESTARTS, RESTART_WINDOW_S, H
+from mso.protocol.procedures.relocation import Relocation, Relocator
+from mso.protocol.state import AppState
+
+
+class Restorer:
+    """The surviving ends, the replacement and the restart budget (module docstring)."""
+
+    def __init__(self, ctx: NodeContext, dp: DataPlane, relocator: Relocator) -> None:
+        self.ctx = ctx
+        self.dp = dp
+        self.relocator = relocator
+
+    def on_rewire(self, msg: m.Rewire, now: float) -> None:
+        """At a surviving end of an edge whose other end is being replaced on ``msg.to``."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            self.ctx.refusal("rewire_unknown_edge")
+            return
+        edge = dep.app.edges[msg.edge]
+        replaced = edge.dst if msg.producer else edge.src
+        pin = dep.app.vertices[replaced].pinned
+        if pin is not None and msg.to != pin:
+            self.ctx.refusal("rewire_a_pinned_vertex")
+            return
+        if msg.producer:  # we produce: say where we stand, then replay what is unacked
+            dep.placed[edge.dst] = msg.to
+            self.dp.outbox.pop((msg.app, msg.edge), None)  # those events are in the replay
+            out = self.dp.out(dep, msg.edge)
+            self.ctx.send(
+                msg.to,
+                m.Resume(msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions)),
+            )
+            first, events = out.unacked()
+            if events:
+                data = m.Data(msg.app, msg.edge, dep.epoch, first, events, now)
+                if msg.to == self.ctx.id:
+                    self.ctx.loop_back(self.ctx.id, data)
+                else:
+                    self.ctx.emit(Send(msg.to, data))
+            out.waiting_since = now
+        else:  # we consume: say which event we expect next
+            dep.placed[edge.src] = msg.to
+            inc = dep.inc.get(msg.edge)
+            start = inc.expected if inc is not None else 0
+            self.ctx.send(msg.to, m.Resume(msg.app, msg.edge, msg.rid, False, start))
+
+    def on_resume(self, msg: m.Resume, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            self.ctx.refusal("resume_unexpected")
+            return
+        edge = dep.app.edges[msg.edge]
+        vertex = edge.dst if msg.producer else edge.src
+        restoring = dep.restoring.get(vertex)
+        if restoring is None or restoring.rid != msg.rid:
+            self.ctx.refusal("resume_unexpected")
+            return
+        if msg.producer:
+            gated = bool(dep.out_edges.get(vertex))
+            dep.inc[msg.edge] = InChannel(
+                expected=msg.start,
+                processed=msg.start,
+                _acked=msg.start,
+                released=msg.start if gated else None,
+            )
+            for o, pos in msg.positions.items():
+                restoring.positions[o] = max(restoring.positions.get(o, 0), pos)
+        else:
+            restoring.consumer_start[msg.edge] = msg.start
+        restoring.pending.discard((msg.edge, msg.producer))
+        if not restoring.pending:
+            self.activate(dep, vertex)
+
+    def activate(self, dep: AppState, vertex: str) -> None:
+        """Every surviving end has resumed: the replacement runs. Its output is numbered from
+        the positions of the last ack its producers got, so what it regenerates by replay
+        carries the numbers it had and consumers drop it as duplicates."""
+        restoring = dep.restoring.pop(vertex)
+        h = dep.awaiting.pop(vertex)
+        h.life.on("resumed")
+        dep.moved[vertex] = (self.ctx.now, dep.placed[vertex])
+        dep.instances[vertex] = h
+        dep.placed[vertex] = self.ctx.id
+        dep.handed.pop(vertex, None)
+        outs = dep.out_edges.get(vertex, [])
+        for o in outs:
+            base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
+            dep.out[o] = OutChannel(
+                window=self.ctx.window, next_seq=base, acked=base, waiting_since=self.ctx.now
+            )  # positions further down, for a restore of its consumer (replayed from here)
+            dep.out[o].positions = {e: p for e, p in restoring.positions.items() if e not in outs}
+        for i, e in enumerate(dep.app.edges):  # what arrived early, in order
+            if e.dst == vertex:
+                for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
+                    self.dp.deliver(dep, i, seq, events)
+        self.ctx.broadcast(m.Moved(dep.app.name, vertex, self.ctx.id, self.ctx.incarnation))
+        self.relocator.forget(restoring.rid)
+        self.ctx.send(restoring.coordinator, m.HandoverDone(dep.app.name, vertex, restoring.rid))
+        if h.kind == "source":
+            self.dp.start_source(dep, vertex, self.ctx.now)
+
+    def on_instance_crashed(self, ev: InstanceCrashed) -> None:
+        """Restore a crashed instance in place, as a restore after a node failure does: a
+        fresh instance here; its producers replay what it had not passed on (acks are chained,
+        so that is everything its outputs had not been acknowledged for) and its consumers say
+        where they stand, so every event reaches them once, in order. Its own state restarts
+        from its constructor. At most ``MAX_RESTARTS`` in ``RESTART_WINDOW_S``: a vertex that
+        crashes on an event would crash again on its replay; then it stays crashed, its
+        chains are reported parked and their events stay held (unacknowledged) upstream."""
+        dep, vid, now = self.ctx.apps.get(ev.app), ev.vertex, self.ctx.now
+        h = dep.instances.get(vid) if dep is not None else None
+        if dep is not None and (h is None or h.instance != ev.instance):
+            h = dep.awaiting.get(vid)
+        if dep is None or h is None or h.instance != ev.instance:
+            return
+        rec = dep.crashes[vid]
+        rec.times = [t for t in rec.times if now - t < RESTART_WINDOW_S]
+        app = dep.app.name
+        if h.life.state is not H.CRASHED or dep.instances.get(vid) is not h:
+            if dep.awaiting.get(vid) is h:  # a replacement or a move's target, not fed yet:
+                del dep.awaiting[vid]  # a restore's retried prepare starts another one
+                dep.preparing.pop(vid, None)
+                dep.restoring.pop(vid, None)
+            return  # a move handing over: it ends by its deadline (docs/architecture.md)
+        if h.handing_over is not None or vid in dep.markers:
+            return
+        if len(rec.times) > MAX_RESTARTS:
+            rec.gave_up = (
+                f"{vid!r} crashed {len(rec.times)} times in {RESTART_WINDOW_S:g} s on "
+                f"{self.ctx.id} (last: {h.crashed}); not restarted"
+            )
+            for c in dep.layout.chains:
+                if vid in c.vertices:
+                    dep.parked.setdefault(c.index, rec.gave_up)
+            return
+        h.life.on("restart")
+        del dep.instances[vid]
+        dep.crashed[vid] = h
+        for i, e in enumerate(dep.app.edges):  # its channels: the surviving ends resume anew
+            if e.dst == vid:
+                dep.inc.pop(i, None)
+                dep.stash.pop(i, None)
+            elif e.src == vid:
+                dep.out.pop(i, None)
+                self.dp.outbox.pop((app, i), None)
+        dep.gates.pop(vid, None)
+        dep.blocked_sources.discard(vid)
+        rec.restarts += 1
+        pid = rec.restoring = self.ctx.new_pid()
+        reloc = Relocation(pid, now, app, vid, self.ctx.id, self.ctx.id, None)
+        self.ctx.begin(reloc)
+        self.relocator.start_restore(dep, reloc, pid, now)
+
+    def on_relocation_ended(self, ev: RelocationEnded) -> None:
+        """A restore in place after a crash ended: the vertex runs again, or stays crashed."""
+        dep, error = self.ctx.apps.get(ev.app), ev.error
+        rec = dep.crashes.get(ev.vertex) if dep is not None else None
+        if dep is not None and rec is not None and rec.restoring == ev.pid:
+            rec.restoring = None
+            if error:  # no instance of it runs anywhere now: say so where it crashed
+                rec.gave_up = f"restoring {ev.vertex!r} after its crash failed: {error}"
+                for c in dep.layout.chains:
+                    if ev.vertex in c.vertices:
+                        dep.parked.setdefault(c.index, rec.gave_up)
+            else:
+                dep.crashed.pop(ev.vertex, None)

@@ -1,0 +1,173 @@
+"""What a node holds of each app (:class:`AppState`) and of each vertex instance it hosts.
+
+Every component of the node core reads and writes these records through the app they belong
+to; none keeps a second copy. The data plane owns the instances and channels, the procedures
+their own bookkeeping fields (marked below by who uses them).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+
+from mso.model.app import App, Vertex
+from mso.planning.placement import Hop, Layout
+from mso.protocol import messages as m
+from mso.protocol.channel import AckGate, InChannel, OutChannel
+from mso.protocol.procedures.instance import InstanceLife
+
+BUSY_AFTER_S = 1.0  # an instance working on one effect this long is reported busy ...
+HUNG_AFTER_S = 10.0  # ... and this long, hung (status only: it never takes the node down)
+
+
+@dataclass
+class Restoring:
+    """A replacement instance waiting to hear where each of its surviving edges stands."""
+
+    rid: int
+    coordinator: str
+    pending: set[tuple[int, bool]]
+    positions: dict[int, int] = field(default_factory=dict)  # output -> from producers' acks
+    consumer_start: dict[int, int] = field(default_factory=dict)  # output -> consumer expects
+
+
+@dataclass
+class Crashes:
+    """One vertex's crashes at this node (its child process died unasked): how many, the
+    last one's reason, when the recent ones were (the restart budget), restores done."""
+
+    count: int = 0
+    restarts: int = 0
+    last: str = ""
+    times: list[float] = field(default_factory=list)
+    restoring: int | None = None  # the in-place restore under way (its procedure id)
+    gave_up: str = ""  # why it stays crashed (its restart budget is spent)
+
+
+def crash_status(rec: Crashes | None) -> dict[str, Any]:
+    """A vertex's crashes here, as status shows them next to its state."""
+    if rec is None:
+        return {"crashes": 0, "restarts": 0, "last_crash": "", "not_restarted": ""}
+    return {
+        "crashes": rec.count,
+        "restarts": rec.restarts,
+        "last_crash": rec.last,
+        "not_restarted": rec.gave_up,
+    }
+
+
+@dataclass
+class HostedInstance:
+    """The core's record of one vertex instance whose code runs in the executor: what it was
+    given, what it reported back, and where a source stands in its schedule."""
+
+    instance: int
+    vertex: Vertex
+    kind: str
+    started: bool = False
+    mode: str = ""  # a source's: timer (rated) or loop (paced by credit)
+    processed: int = 0
+    emitted: int = 0  # events produced (not calls)
+    calls: int = 0  # times a source was called
+    errors: int = 0
+    cpu_s: float = 0.0
+    bytes_in: int = 0  # encoded size of the events it consumed and produced
+    bytes_out: int = 0
+    last_error: str = ""
+    stats: Any = None
+    state_size: int = 0
+    # effects submitted whose results have not come back, events among them, since when
+    jobs: int = 0
+    queued: int = 0
+    busy_since: float | None = None
+    # delivered, not yet fed: (edge, events, when they entered their chain) or a marker
+    pending: deque[tuple[int, list[bytes], float] | m.Marker] = field(default_factory=deque)
+    # a rated source: schedule origin and calls asked for; a loop source: credit granted
+    t0: float = 0.0
+    asked: int = 0
+    credit: int = 0
+    ended: bool = False
+    handing_over: m.Marker | None = None  # snapshot asked for this relocation
+    crashed: str = ""  # its child process died unasked: how (no results come any more)
+    life: InstanceLife = field(init=False)  # its state at this host, by the table
+
+    def __post_init__(self) -> None:
+        self.life = InstanceLife(self.vertex.id)
+
+    @property
+    def rate(self) -> float:
+        v = self.vertex
+        if v.rate:
+            return v.rate
+        return 1.0 if v.code is None else 0.0  # a stand-in ticks once a second
+
+    def state(self, now: float) -> str:
+        if self.crashed:
+            return "crashed"
+        if not self.started:
+            return "starting"
+        busy = now - self.busy_since if self.busy_since is not None else 0.0
+        return "hung" if busy >= HUNG_AFTER_S else "busy" if busy >= BUSY_AFTER_S else "running"
+
+
+@dataclass
+class AppState:
+    """One app as this node holds it: the shared layout, where each vertex is placed, the
+    instances that run here and their channels, and each procedure's per-app bookkeeping."""
+
+    app: App
+    layout: Layout
+    origin: str
+    placed: dict[str, str]
+    placed_chains: set[int] = field(default_factory=set)
+    started_chains: set[int] = field(default_factory=set)
+    probes: dict[int, dict[int, list[Hop]]] = field(default_factory=dict)
+    probes_expected: dict[int, int] = field(default_factory=dict)
+    parts_pending: dict[int, set[str]] = field(default_factory=dict)
+    instances: dict[str, HostedInstance] = field(default_factory=dict)
+    out: dict[int, OutChannel] = field(default_factory=dict)
+    inc: dict[int, InChannel] = field(default_factory=dict)
+    gates: dict[str, AckGate] = field(default_factory=dict)  # vertex -> chained acks
+    decoders: dict[int, msgspec.msgpack.Decoder[Any]] = field(default_factory=dict)
+    running: bool = False
+    epoch: int = 0
+    awaiting: dict[str, HostedInstance] = field(default_factory=dict)  # prepared, awaiting handover
+    building: dict[int, tuple[str, set[str]]] = field(default_factory=dict)  # chain -> (asker,
+    # vertices still starting)
+    preparing: dict[str, tuple[int, str, bool]] = field(default_factory=dict)  # vertex -> (rid,
+    # coordinator, restore) until its instance has started
+    stash: dict[int, list[tuple[int, list[bytes]]]] = field(default_factory=dict)
+    markers: dict[str, set[int]] = field(default_factory=dict)  # vertex -> edges marked
+    blocked_sources: set[str] = field(default_factory=set)
+    started_at: float = 0.0
+    parked: dict[int, str] = field(default_factory=dict)  # chain -> why it cannot run
+    parked_edges: set[int] = field(default_factory=set)  # edges of parked chains
+    dropped: dict[int, int] = field(default_factory=dict)  # edge -> events a parked chain lost
+    recovering: int | None = None  # the remap recovering from a failure, at its coordinator
+    restoring: dict[str, Restoring] = field(default_factory=dict)  # replacements awaiting
+    recoveries: list[dict[str, Any]] = field(default_factory=list)  # what was done, bounded
+    # vertices whose instances went with a node that has since rejoined: restored like lost ones
+    vanished: set[str] = field(default_factory=set)
+    handed: dict[str, str] = field(default_factory=dict)  # vertex -> where this node handed it
+    document: str = ""  # the app file as deployed, for a node that rejoins
+    crashes: dict[str, Crashes] = field(default_factory=dict)  # vertex -> its crashes here
+    # crashed, not in ``instances``
+    crashed: dict[str, HostedInstance] = field(default_factory=dict)
+    delays: dict[int, float] = field(default_factory=dict)  # at a tail's node: chain -> ms
+    moved: dict[str, tuple[float, str]] = field(default_factory=dict)  # vertex -> (when, from)
+    placed_at: dict[int, float] = field(default_factory=dict)  # chain -> when last (re)mapped
+    route_changed: dict[int, float] = field(default_factory=dict)  # chain -> last route change
+    chain_delay: dict[int, tuple[float, float]] = field(default_factory=dict)  # at a head's
+    # at the origin only
+    built: set[int] = field(default_factory=set)
+    client: int | None = None
+    requested_at: float = 0.0
+    out_edges: dict[str, list[int]] = field(default_factory=dict)
+
+    def lost(self, failed: set[str]) -> set[str]:
+        """Vertices with no running instance: on a failed node, or gone with a node's old
+        incarnation."""
+        return {v for v, n in self.placed.items() if n in failed} | self.vanished
