@@ -1,7 +1,8 @@
 """One inter-node hop of the data plane: mso against a bare msgspec-over-TCP baseline.
 
 mso: a 2-node emulated scenario (N1 - N2, unshaped link), an app ``src -> sink`` with ``src``
-(``dataplane_vertices:StampSource``) pinned on N1 and ``sink`` (``LatencySink``) pinned on N2.
+(``mso.benchmarks.vertices.dataplane:StampSource``) pinned on N1 and ``sink``
+(``LatencySink``) pinned on N2.
 Saturated rows: the source has no ``rate`` and emits as fast as the send window allows.
 Paced rows: ``rate: 1000`` (one event per ms), so latency is the path's, not the queue's.
 
@@ -41,15 +42,14 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
+from mso.benchmarks.common import src_digest
+from mso.benchmarks.vertices.dataplane import LatencySink, Stamped, pad_len
+
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
-if str(HERE) not in sys.path:
-    sys.path.insert(0, str(HERE))
-
-import msgspec  # noqa: E402
-
-from dataplane_vertices import LatencySink, Stamped, pad_len  # noqa: E402
-from mso.benchmarks.common import allow_code, src_digest  # noqa: E402
+VERTICES = "mso.benchmarks.vertices.dataplane"  # the vertex code the nodes import
 
 SIZES = (38, 967, 3000)
 PACED_RATE = 1000.0
@@ -73,9 +73,9 @@ def app_yaml(name: str, size: int, rate: float | None, warmup: float, window: fl
     return f"""\
 name: {name}
 vertices:
-  src: {{code: dataplane_vertices:StampSource, pinned: N1, params: {{size: {size}}},
-        output: dataplane_vertices:Stamped{rate_attr}}}
-  sink: {{code: dataplane_vertices:LatencySink, pinned: N2, input: dataplane_vertices:Stamped,
+  src: {{code: {VERTICES}:StampSource, pinned: N1, params: {{size: {size}}},
+        output: {VERTICES}:Stamped{rate_attr}}}
+  sink: {{code: {VERTICES}:LatencySink, pinned: N2, input: {VERTICES}:Stamped,
          params: {{warmup_s: {warmup}, window_s: {window}}}}}
 edges:
   - {{from: src, to: sink, size: {size}}}
@@ -283,10 +283,9 @@ async def run_mso(
     scen_file = tmp / "dataplane-pair.yaml"
     scen_file.write_text(SCENARIO)
     saved = dict(os.environ)
-    path = os.environ.get("PYTHONPATH", "")
-    extra = [str(tmp)] if env_extra else []
-    os.environ["PYTHONPATH"] = os.pathsep.join([*extra, str(HERE), *([path] if path else [])])
-    allow_code("dataplane_vertices")  # the nodes may import the bench's vertices
+    if env_extra:  # profiling: the nodes pick up the sitecustomize.py written to tmp
+        path = os.environ.get("PYTHONPATH", "")
+        os.environ["PYTHONPATH"] = os.pathsep.join([str(tmp), *([path] if path else [])])
     os.environ.update(env_extra or {})
     emu = Emulator(load_scenario(scen_file), log_dir=tmp)
     out: list[dict[str, Any]] = []

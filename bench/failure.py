@@ -1,6 +1,6 @@
 """Fail-stop failure of a relaying node: detection time, recovery time, events lost.
 
-The app ``src -> mid -> sink`` (``failure_vertices``: a counting source at 200 events/s pinned to
+The app ``src -> mid -> sink`` (``vertices.failure``: a counting source at 200 events/s pinned to
 the first node, a stateless pass-through ``mid`` left unpinned, a gap-timing sink pinned to the
 last node) runs on two emulated topologies, one ``mso node`` process per node:
 
@@ -50,7 +50,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import os
 import shutil
 import statistics
 import sys
@@ -59,7 +58,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mso.benchmarks.common import allow_code, percentile, provenance, write_results
+from mso.benchmarks.common import percentile, provenance, write_results
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.protocol import messages as m
@@ -67,6 +66,7 @@ from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
+VERTICES = "mso.benchmarks.vertices.failure"  # the vertex code the nodes import
 APP = "fail"
 RATE = 200.0
 STEADY_S = 1.5  # flow before the kill
@@ -107,14 +107,14 @@ links: [[N1, N2], [N2, N3], [N3, N6], [N1, N4], [N4, N5], [N5, N6], [N2, N5], [N
 
 def app_yaml(first: str, last: str, rate: float) -> str:
     """src (pinned to ``first``) -> mid (unpinned) -> sink (pinned to ``last``)."""
-    fmt = "failure_vertices:Seq"
+    fmt = f"{VERTICES}:Seq"
     return f"""\
 name: {APP}
 vertices:
-  src:  {{code: failure_vertices:CountingSource, pinned: {first}, rate: {rate:g},
+  src:  {{code: {VERTICES}:CountingSource, pinned: {first}, rate: {rate:g},
          output: {fmt}}}
-  mid:  {{code: failure_vertices:PassThrough, input: {fmt}, output: {fmt}}}
-  sink: {{code: failure_vertices:GapSink, pinned: {last}, input: {fmt}}}
+  mid:  {{code: {VERTICES}:PassThrough, input: {fmt}, output: {fmt}}}
+  sink: {{code: {VERTICES}:GapSink, pinned: {last}, input: {fmt}}}
 edges:
   - [src, mid]
   - [mid, sink]
@@ -351,50 +351,41 @@ async def run(
     """``runs`` fresh-emulator runs per topology, within the time budget."""
     t0 = time.monotonic()
     budget = RUN_BUDGET_S * runs * len(topologies)
-    saved = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *([saved] if saved else [])])
-    allow_code("failure_vertices")  # the nodes may import the bench's vertices
     result: dict[str, Any] = {"topologies": {}, "rows": [], "notes": []}
-    try:
-        with tempfile.TemporaryDirectory(prefix="mso-bench-failure-") as tmp:
-            for topology in topologies:
-                rows = []
-                for k in range(runs):
-                    if time.monotonic() - t0 > budget:
-                        result["notes"].append(f"{topology}: budget spent after {k} runs")
-                        break
-                    try:
-                        row = await asyncio.wait_for(
-                            one_run(
-                                topology,
-                                k,
-                                convergence,
-                                rate,
-                                manage,
-                                Path(tmp),
-                                detection,
-                                backend,
-                            ),
-                            RUN_TIMEOUT_S,
-                        )
-                    except TimeoutError:
-                        row = {"topology": topology, "run": k, "error": "run timed out"}
-                    rows.append(row)
-                    status = "ok" if not row["error"] else f"FAILED: {row['error']}"
-                    print(
-                        f"{topology} run {k}: victim {row.get('victim')} -> "
-                        f"{row.get('mid_after')}, detection {_f(row.get('detection_ms'))} ms, "
-                        f"recovery {_f(row.get('recovery_ms'))} ms, "
-                        f"lost {row.get('lost')}, dup {row.get('duplicated')} ({status})",
-                        file=sys.stderr,
+    with tempfile.TemporaryDirectory(prefix="mso-bench-failure-") as tmp:
+        for topology in topologies:
+            rows = []
+            for k in range(runs):
+                if time.monotonic() - t0 > budget:
+                    result["notes"].append(f"{topology}: budget spent after {k} runs")
+                    break
+                try:
+                    row = await asyncio.wait_for(
+                        one_run(
+                            topology,
+                            k,
+                            convergence,
+                            rate,
+                            manage,
+                            Path(tmp),
+                            detection,
+                            backend,
+                        ),
+                        RUN_TIMEOUT_S,
                     )
-                result["topologies"][topology] = topology_summary(rows)
-                result["rows"] += rows
-    finally:
-        if saved is None:
-            os.environ.pop("PYTHONPATH", None)
-        else:
-            os.environ["PYTHONPATH"] = saved
+                except TimeoutError:
+                    row = {"topology": topology, "run": k, "error": "run timed out"}
+                rows.append(row)
+                status = "ok" if not row["error"] else f"FAILED: {row['error']}"
+                print(
+                    f"{topology} run {k}: victim {row.get('victim')} -> "
+                    f"{row.get('mid_after')}, detection {_f(row.get('detection_ms'))} ms, "
+                    f"recovery {_f(row.get('recovery_ms'))} ms, "
+                    f"lost {row.get('lost')}, dup {row.get('duplicated')} ({status})",
+                    file=sys.stderr,
+                )
+            result["topologies"][topology] = topology_summary(rows)
+            result["rows"] += rows
     result["seconds"] = time.monotonic() - t0
     return result
 

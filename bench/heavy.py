@@ -2,7 +2,7 @@
 
 On an emulated line N1-N2-N3 (0.5 ms, 54 Mbit/s links, management rules off) the app
 ``src`` (N1, ``--rate`` events/s, a fixed number of events) -> ``heavy`` (unpinned, lands on N2;
-``executor_vertices:Burn``, a busy loop until its thread has used ``--cpu`` s of CPU per event)
+``vertices.executor:Burn``, a busy loop until its thread has used ``--cpu`` s of CPU per event)
 -> ``sink`` (N3, checks order) runs for ``--duration`` s. A third of the way in ``heavy`` is
 relocated downstream (onto the sink's node N3) and two thirds in upstream (onto the source's
 node N1), while it computes.
@@ -37,19 +37,20 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from mso.benchmarks.common import allow_code, provenance, write_results
+from mso.benchmarks.common import provenance, write_results
+from mso.benchmarks.vertices.executor import Burn, Seq
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
+VERTICES = "mso.benchmarks.vertices.executor"  # the vertex code the nodes import
 APP = "heavy"
 POLL_S = 0.5
 DRAIN_S = 30.0
@@ -63,15 +64,15 @@ links: [[N1, N2], [N2, N3]]
 
 
 def app_yaml(cpu_s: float, rate: float, limit: int) -> str:
-    fmt = "executor_vertices:Seq"
+    fmt = f"{VERTICES}:Seq"
     return f"""\
 name: {APP}
 vertices:
-  src:   {{code: executor_vertices:Counting, pinned: N1, rate: {rate:g},
+  src:   {{code: {VERTICES}:Counting, pinned: N1, rate: {rate:g},
           params: {{limit: {limit}}}, output: {fmt}}}
-  heavy: {{code: executor_vertices:Burn, params: {{cpu_s: {cpu_s:g}}}, input: {fmt},
+  heavy: {{code: {VERTICES}:Burn, params: {{cpu_s: {cpu_s:g}}}, input: {fmt},
           output: {fmt}}}
-  sink:  {{code: executor_vertices:Checker, pinned: N3, input: {fmt}}}
+  sink:  {{code: {VERTICES}:Checker, pinned: N3, input: {fmt}}}
 edges:
   - [src, heavy]
   - [heavy, sink]
@@ -225,9 +226,6 @@ def _start(instance: int, code: str, params: dict[str, Any], kind: str = "operat
     from mso.model.app import Vertex
     from mso.protocol import effects as fx
 
-    sys.path.insert(0, str(HERE))
-    from executor_vertices import Seq
-
     vertex = Vertex(f"v{instance}", code, params=params, input=Seq, output=Seq)
     return fx.StartVertex(instance, "bench", vertex, kind, {0: Seq})
 
@@ -240,9 +238,6 @@ async def _workload(kind: str, n: int, events: int, work: int, batch: int) -> di
     from mso.protocol import effects as fx
     from mso.runtime.executor import ThreadExecutor
     from mso.runtime.process_lane import ProcessExecutor
-
-    sys.path.insert(0, str(HERE))
-    from executor_vertices import Seq
 
     loop = asyncio.get_running_loop()
     done = asyncio.Event()
@@ -274,7 +269,7 @@ async def _workload(kind: str, n: int, events: int, work: int, batch: int) -> di
     payload = msgspec.msgpack.encode(Seq(1, 0.0))
     try:
         for i in range(n):
-            ex.submit(_start(i, "executor_vertices:Burn", {"work": work}))
+            ex.submit(_start(i, f"{VERTICES}:Burn", {"work": work}))
         while got["started"] < n:  # processes start first (not timed)
             await asyncio.sleep(0.01)
         tick = asyncio.create_task(ticker())
@@ -311,9 +306,6 @@ async def _workload(kind: str, n: int, events: int, work: int, batch: int) -> di
 
 def _calibrate(target_s: float = 0.05) -> int:
     """Burn's ``work`` for about ``target_s`` of CPU per event on this machine."""
-    sys.path.insert(0, str(HERE))
-    from executor_vertices import Burn, Seq
-
     w = 20_000
     t = time.thread_time()
     Burn(work=w)(Seq(0))
@@ -374,10 +366,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.workers:
         if not 1 <= args.events <= 1000:
             ap.error("--events: 1..1000")
-        os.environ["PYTHONPATH"] = os.pathsep.join(
-            [str(HERE), *([os.environ["PYTHONPATH"]] if "PYTHONPATH" in os.environ else [])]
-        )
-        allow_code("executor_vertices")  # the nodes may import the bench's vertices
         w = workers(10 if args.quick else args.events) | provenance()
         wout: Path = args.json or RESULTS / "heavy-workers.json"
         wout.write_text(json.dumps(w, indent=2) + "\n")
@@ -391,8 +379,6 @@ def main(argv: list[str] | None = None) -> int:
     if not 0.0 < args.cpu <= 10.0 or not 0.01 <= args.rate <= 10.0:
         ap.error("--cpu: 0..10 s, --rate: 0.01..10 events/s")
     out: Path = args.json or RESULTS / ("heavy-quick.json" if args.quick else "heavy.json")
-    saved = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *([saved] if saved else [])])
     t0 = time.monotonic()
     hb, dead = args.heartbeat, args.dead_after
     result: dict[str, Any] = {"benchmark": "heavy", "heartbeat_s": hb, "dead_after_s": dead}

@@ -12,8 +12,8 @@ A 2-node emulated scenario (N1 - N2, unshaped link). The node processes' residen
 
 After each deployment the benchmark waits until every sink has received the first event, then at
 least one source period (11 s at 0.1 events/s) and until the RSS has settled (two samples 0.5 s
-apart within 1%, bounded). Vertex code: dataplane_vertices
-(IdleSource, CountSink), imported by the nodes from the bench directory on PYTHONPATH.
+apart within 1%, bounded). Vertex code:
+mso.benchmarks.vertices.dataplane (IdleSource, CountSink), a module of the package.
 
 Usage: .venv/bin/python bench/memory.py [--quick]
 """
@@ -23,19 +23,19 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-from mso.benchmarks.common import allow_code, src_digest
+from mso.benchmarks.common import src_digest
 from mso.emu.controller import Emulator
 from mso.scenario import load_scenario
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
+VERTICES = "mso.benchmarks.vertices.dataplane"  # the vertex code the nodes import
 TARGET_MB = 100.0
 RATE = 0.1
 
@@ -50,12 +50,12 @@ def app_yaml(name: str, pairs: int, sink_node: str) -> str:
     lines = [f"name: {name}", "vertices:"]
     for i in range(pairs):
         lines.append(
-            f"  src{i}: {{code: dataplane_vertices:IdleSource, pinned: N1, rate: {RATE},"
-            " output: dataplane_vertices:Stamped}"
+            f"  src{i}: {{code: {VERTICES}:IdleSource, pinned: N1, rate: {RATE},"
+            f" output: {VERTICES}:Stamped}}"
         )
         lines.append(
-            f"  sink{i}: {{code: dataplane_vertices:CountSink, pinned: {sink_node},"
-            " input: dataplane_vertices:Stamped}"
+            f"  sink{i}: {{code: {VERTICES}:CountSink, pinned: {sink_node},"
+            f" input: {VERTICES}:Stamped}}"
         )
     lines.append("edges:")
     lines += [f"  - [src{i}, sink{i}]" for i in range(pairs)]
@@ -114,10 +114,6 @@ async def run(quick: bool) -> dict[str, Any]:
     # twice and every timer of the app has been re-armed once, before RSS is read
     min_s, max_s = (1.0, 3.0) if quick else (1.0 / RATE + 1.0, 1.0 / RATE + 10.0)
     results: dict[str, Any] = {"phases": {}}
-    saved = dict(os.environ)
-    path = os.environ.get("PYTHONPATH", "")
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *([path] if path else [])])
-    allow_code("dataplane_vertices")  # the nodes may import the bench's vertices
     with tempfile.TemporaryDirectory(prefix="mso-bench-memory-") as tmpdir:
         tmp = Path(tmpdir)
         (tmp / "memory-pair.yaml").write_text(SCENARIO)
@@ -160,8 +156,6 @@ async def run(quick: bool) -> dict[str, Any]:
             results["phases"]["after undeploy"] = {"rss": await settle(pids, 1.0, max_s)}
         finally:
             await emu.stop()
-            os.environ.clear()
-            os.environ.update(saved)
     return results
 
 

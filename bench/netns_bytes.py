@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import os
 import sys
 import time
 from pathlib import Path
@@ -32,6 +31,7 @@ from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
+VERTICES = "mso.benchmarks.vertices.netns"  # the vertex code the nodes import
 LINE = """
 name: line3
 link_defaults: {bandwidth_mbps: 100}
@@ -46,9 +46,9 @@ def app(rate: float, size: int) -> str:
     return f"""
 name: bytes
 vertices:
-  src: {{code: netns_vertices:BlobSource, pinned: N1, rate: {rate}, params: {{size: {size}}},
-        output: netns_vertices:Blob}}
-  sink: {{code: netns_vertices:CountingSink, pinned: N3}}
+  src: {{code: {VERTICES}:BlobSource, pinned: N1, rate: {rate}, params: {{size: {size}}},
+        output: {VERTICES}:Blob}}
+  sink: {{code: {VERTICES}:CountingSink, pinned: N3}}
 edges: [[src, sink]]
 """
 
@@ -71,10 +71,6 @@ def delta(a: dict[str, dict[str, int]], b: dict[str, dict[str, int]]) -> dict[st
 async def run(rate: float, size: int, seconds: float) -> dict[str, Any]:
     check_available()
     t_start = time.monotonic()
-    saved = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *([saved] if saved else [])])
-    allowed = os.environ.get("MSO_ALLOW_CODE", "")
-    os.environ["MSO_ALLOW_CODE"] = ",".join(x for x in (allowed, "netns_vertices") if x)
     emu = NetnsEmulator(loads_scenario(LINE), manage=False)
     loop = asyncio.get_running_loop()
     try:
@@ -93,11 +89,6 @@ async def run(rate: float, size: int, seconds: float) -> dict[str, Any]:
         sink = (await emu.status("N3"))["N3"]["apps"]["bytes"]["vertices"]["sink"]["stats"]
     finally:
         await emu.stop()
-        if saved is None:
-            os.environ.pop("PYTHONPATH", None)
-        else:
-            os.environ["PYTHONPATH"] = saved
-        os.environ["MSO_ALLOW_CODE"] = allowed
     idle, flow = delta(c0, c1), delta(c2, c3)
     scale = (t3 - t2) / (t1 - t0)
 

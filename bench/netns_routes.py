@@ -15,7 +15,7 @@ lets the link's frames through:
   status, polled every 10 ms on a connection inside its namespace);
 * lag_ms: mso_reroute_ms - kernel_reroute_ms, what the kernel view adds (netlink event, a
   20 ms debounce, a table dump, then the core);
-* flow_gap_ms: a 200 events/s flow from N1 to N4 runs throughout (``netns_vertices``): the
+* flow_gap_ms: a 200 events/s flow from N1 to N4 runs throughout (``vertices.netns``): the
   sink's inter-arrival gap that spans the break, i.e. how long the app saw nothing; events
   lost, repeated or out of order are counted over all breaks.
 
@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import os
 import socket
 import sys
 import time
@@ -44,11 +43,12 @@ from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
-FLOW = """
+VERTICES = "mso.benchmarks.vertices.netns"  # the vertex code the nodes import
+FLOW = f"""
 name: flow
 vertices:
-  src: {code: netns_vertices:BeatSource, pinned: N1, rate: 200, output: netns_vertices:Beat}
-  sink: {code: netns_vertices:GapTimer, pinned: N4, input: netns_vertices:Beat}
+  src: {{code: {VERTICES}:BeatSource, pinned: N1, rate: 200, output: {VERTICES}:Beat}}
+  sink: {{code: {VERTICES}:GapTimer, pinned: N4, input: {VERTICES}:Beat}}
 edges: [[src, sink]]
 """
 SQUARE = """
@@ -180,11 +180,6 @@ def summary(values: list[float]) -> dict[str, Any]:
 async def run(runs: int) -> dict[str, Any]:
     check_available()
     t_start = time.monotonic()
-    saved = {k: os.environ.get(k) for k in ("PYTHONPATH", "MSO_ALLOW_CODE")}
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *filter(None, [saved["PYTHONPATH"]])])
-    os.environ["MSO_ALLOW_CODE"] = ",".join(
-        filter(None, [saved["MSO_ALLOW_CODE"], "netns_vertices"])
-    )
     emu = NetnsEmulator(loads_scenario(SQUARE), manage=False)
     loop = asyncio.get_running_loop()
     t0 = loop.time()
@@ -208,11 +203,6 @@ async def run(runs: int) -> dict[str, Any]:
     finally:
         watch.close()
         await emu.stop()
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
     ok = [r for r in rows if not r["error"]]
     return {
         "benchmark": "netns_routes",

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import os
 import sys
 import tempfile
 import time
@@ -31,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from failure import app_yaml, log_lines, node_status, summary, vertex
-from mso.benchmarks.common import allow_code, provenance, write_results
+from mso.benchmarks.common import provenance, write_results
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.model.network import LinkSpec
@@ -177,9 +176,6 @@ def main() -> int:
         ap.error("--runs and --outage must be positive")
     out: Path = args.json or RESULTS / ("partition-quick.json" if args.quick else "partition.json")
     started = time.monotonic()
-    saved = os.environ.get("PYTHONPATH")  # node processes import failure_vertices from here
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *([saved] if saved else [])])
-    allow_code("failure_vertices")  # the nodes may import the bench's vertices
 
     async def all_runs() -> list[dict[str, Any]]:
         with tempfile.TemporaryDirectory(prefix="mso-partition-") as tmp:

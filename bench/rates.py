@@ -1,7 +1,7 @@
 """Does a ``rate:`` source hold its rate, from 1 to 50,000 events/s?
 
 Two emulated nodes N1-N2 (0.5 ms, 54 Mbit/s, management off): ``src`` (N1, rated
-``executor_vertices:Counting``) -> ``sink`` (N2, ``executor_vertices:Checker``). For each asked
+``vertices.executor:Counting``) -> ``sink`` (N2, ``vertices.executor:Checker``). For each asked
 rate the app is deployed, left ``--warmup`` s, then the sink's last arrival (time, seq) is read
 twice, a window apart (``max(--window, 10 events)``); the rate got is
 ``(seq2 - seq1) / (t2 - t1)``: events that arrived at the sink per second, measured on arrival
@@ -16,19 +16,19 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import os
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from mso.benchmarks.common import allow_code, provenance, write_results
+from mso.benchmarks.common import provenance, write_results
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
+VERTICES = "mso.benchmarks.vertices.executor"  # the vertex code the nodes import
 RATES = [1, 10, 100, 1000, 10_000, 50_000]
 
 LINE2 = """\
@@ -40,12 +40,12 @@ links: [[N1, N2]]
 
 
 def app_yaml(name: str, rate: float) -> str:
-    fmt = "executor_vertices:Seq"
+    fmt = f"{VERTICES}:Seq"
     return f"""\
 name: {name}
 vertices:
-  src:  {{code: executor_vertices:Counting, pinned: N1, rate: {rate:g}, output: {fmt}}}
-  sink: {{code: executor_vertices:Checker, pinned: N2, input: {fmt}}}
+  src:  {{code: {VERTICES}:Counting, pinned: N1, rate: {rate:g}, output: {fmt}}}
+  sink: {{code: {VERTICES}:Checker, pinned: N2, input: {fmt}}}
 edges:
   - [src, sink]
 """
@@ -152,9 +152,6 @@ def main(argv: list[str] | None = None) -> int:
     if not rates or any(not 0.1 <= r <= 100_000 for r in rates) or not 1 <= window <= 120:
         ap.error("--rates: 0.1..100000 events/s each; --window 1..120 s")
     out: Path = args.json or RESULTS / ("rates-quick.json" if args.quick else "rates.json")
-    saved = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *([saved] if saved else [])])
-    allow_code("executor_vertices")  # the nodes may import the bench's vertices
     t0 = time.monotonic()
     rows = asyncio.run(run(rates, args.warmup, window))
     result: dict[str, Any] = {

@@ -1,7 +1,7 @@
 """A slow sink: is the source held back to its pace, with nothing lost and no node failed?
 
 Two emulated nodes N1-N2 (0.5 ms, 54 Mbit/s, management off): ``src`` (N1, a rated source asking
-``--rate`` events/s) -> ``sink`` (N2, ``executor_vertices:Checker`` sleeping ``--delay`` s per
+``--rate`` events/s) -> ``sink`` (N2, ``vertices.executor:Checker`` sleeping ``--delay`` s per
 event: 50 ms, so 20 events/s at most) for ``--duration`` s. Every second both nodes' status is
 read. Figures:
 
@@ -22,19 +22,19 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import os
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from mso.benchmarks.common import allow_code, provenance, write_results
+from mso.benchmarks.common import provenance, write_results
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
+VERTICES = "mso.benchmarks.vertices.executor"  # the vertex code the nodes import
 APP = "slow"
 DRAIN_MAX_S = 400.0
 
@@ -47,13 +47,13 @@ links: [[N1, N2]]
 
 
 def app_yaml(rate: float, delay: float, limit: int) -> str:
-    fmt = "executor_vertices:Seq"
+    fmt = f"{VERTICES}:Seq"
     return f"""\
 name: {APP}
 vertices:
-  src:  {{code: executor_vertices:Counting, pinned: N1, rate: {rate:g},
+  src:  {{code: {VERTICES}:Counting, pinned: N1, rate: {rate:g},
          params: {{limit: {limit}}}, output: {fmt}}}
-  sink: {{code: executor_vertices:Checker, pinned: N2, params: {{delay_s: {delay:g}}},
+  sink: {{code: {VERTICES}:Checker, pinned: N2, params: {{delay_s: {delay:g}}},
          input: {fmt}}}
 edges:
   - [src, sink]
@@ -207,9 +207,6 @@ def main(argv: list[str] | None = None) -> int:
     if not 5.0 <= duration <= 600.0 or not 1.0 <= args.rate <= 50_000 or not 0 < args.delay <= 1:
         ap.error("--duration 5..600 s, --rate 1..50000, --delay 0..1 s")
     out: Path = args.json or RESULTS / ("slowsink-quick.json" if args.quick else "slowsink.json")
-    saved = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join([str(HERE), *([saved] if saved else [])])
-    allow_code("executor_vertices")  # the nodes may import the bench's vertices
     t0 = time.monotonic()
     r = asyncio.run(run(args.rate, args.delay, duration, args.drain))
     result: dict[str, Any] = {

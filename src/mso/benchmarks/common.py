@@ -90,12 +90,3 @@ def write_results(out: Path, result: dict[str, Any], table: str) -> None:
     out.with_suffix(".md").write_text(table)
     print(table)
     print(f"written: {out} and {out.with_suffix('.md')} ({result['seconds']:.0f} s)")
-
-
-def allow_code(*modules: str) -> None:
-    """Let the node processes a benchmark starts import its own vertex modules (a node imports
-    only from allowed modules: docs/security.md); they inherit ``$MSO_ALLOW_CODE``."""
-    import os
-
-    have = [m for m in os.environ.get("MSO_ALLOW_CODE", "").split(",") if m]
-    os.environ["MSO_ALLOW_CODE"] = ",".join(dict.fromkeys([*have, *modules]))

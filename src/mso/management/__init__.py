@@ -4,6 +4,8 @@ Pure: the node core builds a :class:`Snapshot` each ``period_s`` and carries out
 :meth:`RuleEngine.evaluate` returns. See docs/policies.md.
 """
 
+from mso.management.engine import RuleEngine
+from mso.management.guard import Guard, Proposal, RuleSettings
 from mso.management.policy import (
     DEFAULT_POLICY,
     POLICIES,
@@ -31,12 +33,8 @@ from mso.management.policy import (
 from mso.management.rules import (
     ChainRouteRule,
     EnergyRemapRule,
-    Guard,
     Option,
-    Proposal,
     RelocationRule,
-    RuleEngine,
-    RuleSettings,
     improvement,
 )
 from mso.management.views import (

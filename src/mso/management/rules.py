@@ -1,23 +1,17 @@
 """Management rules (paper §3.5): when to relocate a vertex or remap a chain. Pure, deterministic.
 
-Each evaluation the node hands :meth:`RuleEngine.evaluate` a :class:`Snapshot`; the rules propose
-actions and the :class:`Guard` lets through only those that have been proposed long enough and
-respect the rate limits, so a noisy monitor or a flapping link does not make vertices oscillate.
-The guard records an action when it allows it (there is no separate "done" call): an action the
-node then fails to carry out still counts against the rate limits, which is the safe side.
+Each rule looks at a :class:`~mso.management.views.Snapshot` and proposes actions; the
+:class:`~mso.management.guard.Guard` decides which go through and the
+:class:`~mso.management.engine.RuleEngine` runs both once per evaluation.
 """
 
 from __future__ import annotations
 
 import math
-from collections import deque
-from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
-from mso.errors import MsoError
+from mso.management.guard import Proposal, RuleSettings
 from mso.management.policy import (
-    LifetimePolicy,
     Policy,
     Score,
     estimate,
@@ -26,8 +20,6 @@ from mso.management.policy import (
     with_extra_drain,
 )
 from mso.management.views import (
-    Action,
-    ActionKey,
     ChainView,
     NodeView,
     Relocate,
@@ -36,92 +28,6 @@ from mso.management.views import (
     Snapshot,
     VertexView,
 )
-
-
-@dataclass(frozen=True, slots=True)
-class RuleSettings:
-    """Hysteresis and rate limits of the rules; docs/policies.md explains each default."""
-
-    period_s: float = 1.0  # how often the node runs the rules
-    confirm: int = 3  # evaluations in a row a relocation must be the best choice
-    margin: float = 0.1  # relative improvement over "no change" a move must beat
-    horizon_s: float = 60.0  # a move's one-time energy is spread over this long
-    vertex_interval_s: float = 30.0  # a vertex moves at most once per interval
-    node_interval_s: float = 5.0  # this node starts at most one relocation per interval
-    route_settle_s: float = 3.0  # routes must be stable this long before a chain remap
-    chain_interval_s: float = 15.0  # a chain is remapped at most once per interval
-    slo_confirm: int = 3  # evaluations in a row a policy must ask for a remap
-    max_load: float = 1.0  # a move never loads its target's CPU beyond this (1.0 = saturated)
-    critical_ratio: float = 0.5  # a battery node expected to die this much sooner is draining
-    energy_interval_s: float = 120.0  # an app is remapped for energy at most once per interval
-    energy_remap: bool = True  # False: a draining node only relocates (no energy remaps)
-    # an energy remap places the join on a node that runs pinned vertices only when no other
-    # candidate is left (False: any candidate the policy weighs above 0)
-    spare_pinned: bool = True
-    # after a vertex instance starts here, its start-up work (imports, open(), first calls) is
-    # in this node's drain for this long: no draining judgement, no relocation or energy
-    # remap off this node until then
-    warmup_s: float = 10.0
-
-    @property
-    def critical_exit(self) -> float:
-        """A draining node stays so until its lifetime ratio is back above this (hysteresis)."""
-        return min(1.0, 1.25 * self.critical_ratio)
-
-    def __post_init__(self) -> None:
-        for name in ("energy_remap", "spare_pinned"):
-            value = getattr(self, name)
-            if not isinstance(value, bool):
-                raise MsoError(f"rule settings: {name}: expected true or false, got {value!r}")
-        for name in ("confirm", "slo_confirm"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise MsoError(f"rule settings: {name}: expected an integer >= 1, got {value!r}")
-        for name in ("period_s", "horizon_s", "max_load"):
-            value = getattr(self, name)
-            if not _number(value) or value <= 0:
-                raise MsoError(f"rule settings: {name}: expected a positive number, got {value!r}")
-        for name in (
-            "margin",
-            "critical_ratio",
-            "vertex_interval_s",
-            "node_interval_s",
-            "route_settle_s",
-            "chain_interval_s",
-            "energy_interval_s",
-            "warmup_s",
-        ):
-            value = getattr(self, name)
-            if not _number(value) or value < 0:
-                raise MsoError(f"rule settings: {name}: expected a number >= 0, got {value!r}")
-        if self.critical_ratio >= 1:
-            raise MsoError(
-                f"rule settings: critical_ratio: expected a number below 1, "
-                f"got {self.critical_ratio!r}"
-            )
-
-    @property
-    def ping_pong_s(self) -> float:
-        """A vertex does not go back to the node it left for this long."""
-        return 4 * self.vertex_interval_s
-
-
-def _number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-
-
-@dataclass(frozen=True, slots=True)
-class Proposal:
-    """An action a rule wants, how many evaluations in a row it must be wanted, and its value.
-
-    ``priority`` orders proposals of one kind (larger first): for relocations, the relative
-    improvement, so the most useful one gets the evaluation's single relocation.
-    """
-
-    action: Action
-    confirm: int = 1
-    priority: float = 0.0
-    rule: str = ""
 
 
 def improvement(base: Score, new: Score) -> float:
@@ -140,152 +46,6 @@ def improvement(base: Score, new: Score) -> float:
     if math.isinf(base) or math.isinf(new) or base == 0:
         return math.inf
     return (base - new) / abs(base)
-
-
-# -- the oscillation guard -----------------------------------------------------------------
-
-
-class Guard:
-    """Lets a proposal through only when it is confirmed and within every rate limit.
-
-    - confirmation: an action must be proposed in ``confirm`` consecutive reviews (a review
-      without it starts the count again);
-    - a vertex moves at most once per ``vertex_interval_s`` (its own record and the snapshot's
-      ``moved_at``, so moves made by other nodes count);
-    - no ping-pong: a vertex is not sent back to the node it left within ``ping_pong_s``;
-    - this node starts at most one relocation per ``node_interval_s`` and per review;
-    - a chain is remapped at most once per ``chain_interval_s``, and its vertices are not
-      relocated in the review that remaps it.
-
-    Call :meth:`review` once per evaluation; ``allowed`` keeps the recent allowed actions.
-    """
-
-    def __init__(self, settings: RuleSettings, *, history: int = 100) -> None:
-        self.settings = settings
-        self.allowed: deque[tuple[float, Action]] = deque(maxlen=history)
-        self._streak: dict[ActionKey, int] = {}
-        self._moves: dict[str, tuple[float, str]] = {}  # vertex key -> (when, node it left)
-        self._last_relocation: float | None = None
-        self._remaps: dict[tuple[str, int], float] = {}
-        self._energy: dict[str, float] = {}  # app -> when this node last remapped it for energy
-
-    def streak(self, action: Action) -> int:
-        """Consecutive reviews that have proposed ``action`` (0 right after it was allowed)."""
-        return self._streak.get(action.key, 0)
-
-    def review(
-        self, proposals: Sequence[Proposal], snap: Snapshot
-    ) -> list[tuple[Proposal, str | None]]:
-        """Each distinct proposal with None (allowed) or why it is held; remaps first."""
-        now = snap.now
-        unique: dict[ActionKey, Proposal] = {}
-        for p in proposals:
-            unique.setdefault(p.action.key, p)
-        self._streak = {k: self._streak.get(k, 0) + 1 for k in unique}
-        self._forget(now)
-        ordered = sorted(
-            unique.values(),
-            key=lambda p: (isinstance(p.action, Relocate), -p.priority, repr(p.action.key)),
-        )
-        remapped: set[tuple[str, int]] = set()
-        relocated = False
-        out: list[tuple[Proposal, str | None]] = []
-        for p in ordered:
-            a = p.action
-            n = self._streak[a.key]
-            why: str | None
-            if n < p.confirm:
-                why = f"confirming {n}/{p.confirm}"
-            elif isinstance(a, RemapChain):
-                why = self._remap_hold(a, now)
-            elif isinstance(a, RemapChains):
-                why = self._energy_hold(a, snap, remapped)
-            else:
-                why = self._relocation_hold(a, snap, remapped, relocated)
-            if why is None:
-                self._streak[a.key] = 0
-                self.allowed.append((now, a))
-                if isinstance(a, RemapChain):
-                    remapped.add((a.app, a.chain))
-                    self._remaps[a.app, a.chain] = now
-                elif isinstance(a, RemapChains):
-                    for c in a.chains:
-                        remapped.add((a.app, c))
-                        self._remaps[a.app, c] = now
-                    self._energy[a.app] = now
-                else:
-                    relocated = True
-                    v = snap.vertex(a.vertex_key)
-                    self._moves[a.vertex_key] = (now, snap.here if v is None else v.node)
-                    self._last_relocation = now
-            out.append((p, why))
-        return out
-
-    def _remap_hold(self, a: RemapChain, now: float) -> str | None:
-        last = self._remaps.get((a.app, a.chain))
-        if last is not None and now - last < self.settings.chain_interval_s:
-            limit = self.settings.chain_interval_s
-            return f"chain remapped at {last:.1f} (at most once per {limit:g}s)"
-        return None
-
-    def _energy_hold(
-        self, a: RemapChains, snap: Snapshot, remapped: set[tuple[str, int]]
-    ) -> str | None:
-        """Storms and ping-pong: one energy remap per app per ``energy_interval_s`` from this
-        node, none while another reconfiguration of the app runs here, and the chain limit."""
-        now, limit = snap.now, self.settings.energy_interval_s
-        last = self._energy.get(a.app)
-        if last is not None and now - last < limit:
-            return f"{a.app} remapped for energy at {last:.1f} (at most once per {limit:g}s)"
-        if a.app in snap.busy:
-            return f"a relocation or remap of {a.app} is in flight here"
-        for c in a.chains:
-            if (a.app, c) in remapped:
-                return f"chain {c} is being remapped"
-            why = self._remap_hold(RemapChain(a.app, c), now)
-            if why is not None:
-                return why
-        return None
-
-    def _relocation_hold(
-        self, a: Relocate, snap: Snapshot, remapped: set[tuple[str, int]], relocated: bool
-    ) -> str | None:
-        now, s = snap.now, self.settings
-        v = snap.vertex(a.vertex_key)
-        history = [self._moves[a.vertex_key]] if a.vertex_key in self._moves else []
-        if v is not None and v.moved_at is not None:
-            history.append((v.moved_at, v.moved_from or ""))
-        if v is not None and (v.app, v.chain) in remapped:
-            return "its chain is being remapped"
-        last = max((t for t, _ in history), default=None)
-        if last is not None and now - last < s.vertex_interval_s:
-            return f"vertex moved at {last:.1f} (at most once per {s.vertex_interval_s:g}s)"
-        for t, left in sorted(history):
-            if left == a.target and now - t < s.ping_pong_s:
-                return (
-                    f"would go back to {left}, which it left at {t:.1f} "
-                    f"(not within {s.ping_pong_s:g}s)"
-                )
-        if relocated:
-            return "one relocation per evaluation"
-        if self._last_relocation is not None and now - self._last_relocation < s.node_interval_s:
-            return (
-                f"this node started a relocation at {self._last_relocation:.1f} "
-                f"(at most one per {s.node_interval_s:g}s)"
-            )
-        return None
-
-    def _forget(self, now: float) -> None:
-        """Drop records no limit can use any more, so the guard stays small."""
-        keep = self.settings.ping_pong_s
-        self._moves = {k: m for k, m in self._moves.items() if now - m[0] < keep}
-        keep = self.settings.chain_interval_s
-        self._remaps = {k: t for k, t in self._remaps.items() if now - t < keep}
-        keep = self.settings.energy_interval_s
-        self._energy = {k: t for k, t in self._energy.items() if now - t < keep}
-
-
-# -- rules ---------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True, slots=True)
@@ -634,168 +394,6 @@ class ChainRouteRule:
 
     def forget(self, app: str) -> None:
         self._handled = {k: t for k, t in self._handled.items() if k[0] != app}
-
-
-# -- the engine ----------------------------------------------------------------------------
-
-LogEntry = tuple[float, str, str]
-
-
-class RuleEngine:
-    """Runs the rules on a snapshot and returns the actions the guard allows.
-
-    Every app is managed by its own policy if one was set (:meth:`set_app_policy`, from the
-    app's ``policy:``), else by the node's. Per app, each evaluation collects the policy's own
-    ``actions()`` (relocations need ``confirm``, remaps ``slo_confirm`` evaluations in a row)
-    and the relocation rule's proposal; the route rule adds chain remaps. At most one
-    relocation is returned per evaluation. While this node warms up (:func:`warming_until`)
-    the relocation and energy-remap rules propose nothing and the draining state stands: the
-    figures they would weigh are the start-up's, not the node's. A policy that raises is
-    reported in the log and its app skipped for that evaluation. ``log`` keeps recent decisions
-    as ``(now, action, "allowed" | "held: why" | "ignored: why" | "error: what")``, each
-    written when it changes.
-    """
-
-    def __init__(
-        self,
-        policy: Policy | None = None,
-        settings: RuleSettings | None = None,
-        *,
-        log_size: int = 200,
-    ) -> None:
-        self.policy = policy if policy is not None else LifetimePolicy()
-        self.settings = settings if settings is not None else RuleSettings()
-        self.app_policies: dict[str, Policy] = {}
-        self.guard = Guard(self.settings)
-        self.route_rule = ChainRouteRule(self.settings)
-        self.log: deque[LogEntry] = deque(maxlen=log_size)
-        self.evaluations = 0
-        self.draining: frozenset[str] = frozenset()  # this node, while its battery is draining
-        self.warming: float | None = None  # until when this node warms up (warming_until)
-        self._last: dict[tuple[Any, ...], str] = {}
-
-    def set_app_policy(self, app: str, policy: Policy | None) -> None:
-        """Manage ``app`` by ``policy`` (None: by the node's policy again)."""
-        if policy is None:
-            self.app_policies.pop(app, None)
-        else:
-            self.app_policies[app] = policy
-
-    def policy_for(self, app: str) -> Policy:
-        return self.app_policies.get(app, self.policy)
-
-    def forget(self, app: str) -> None:
-        """Drop what the engine keeps about an app that stopped."""
-        self.app_policies.pop(app, None)
-        self.route_rule.forget(app)
-
-    def evaluate(self, snap: Snapshot) -> list[Action]:
-        self.evaluations += 1
-        seen: dict[tuple[Any, ...], str] = {}
-        proposals = self.route_rule.propose(snap)
-        was = self.draining
-        self.draining = draining_update(was, snap, self.settings)
-        if self.draining != was:
-            ratio = lifetime_ratio(snap, snap.here)
-            shown = "-" if ratio is None else f"{ratio:.2f}"
-            what = "draining" if snap.here in self.draining else "no longer draining"
-            self.log.append((snap.now, f"{snap.here} {what}", f"lifetime ratio {shown}"))
-        warm = self.warming is None
-        self.warming = warming_until(snap, self.settings)
-        if warm and self.warming is not None:
-            self.log.append(
-                (
-                    snap.now,
-                    f"{snap.here} warming up",
-                    f"a vertex started at {snap.last_start:.1f}: its drain is judged "
-                    f"from {self.warming:.1f}",
-                )
-            )
-        for app in snap.apps():
-            policy = self.policy_for(app)
-            view = snap.for_app(app)
-            try:
-                asked = list(policy.actions(view))
-                relocations: list[Proposal] = []
-                energy: list[Proposal] = []
-                if self.warming is None:  # start-up in the figures: no move for energy or load
-                    relocations = RelocationRule(policy, self.settings, self.draining).propose(view)
-                    energy = EnergyRemapRule(policy, self.settings, self.draining).propose(view)
-            except Exception as exc:  # user code: report it, keep the node running
-                what = f"policy {policy.name} for {app}"
-                self._note(
-                    seen, ("error", app), snap.now, what, f"error: {type(exc).__name__}: {exc}"
-                )
-                continue
-            for act in asked:
-                proposal, problem = self._check(act, view, policy)
-                if proposal is None:
-                    decision = f"ignored: {problem}"
-                    self._note(seen, ("ignored", repr(act)), snap.now, str(act), decision)
-                else:
-                    proposals.append(proposal)
-            proposals.extend(relocations)
-            proposals.extend(energy)
-        allowed: list[Action] = []
-        for p, why in self.guard.review(proposals, snap):
-            a = p.action
-            if why is None:
-                allowed.append(a)
-                indices: tuple[int, ...] = (a.chain,) if isinstance(a, RemapChain) else ()
-                indices = a.chains if isinstance(a, RemapChains) else indices
-                for index in indices:
-                    chain = snap.chain(a.app, index)
-                    if chain is not None:
-                        self.route_rule.done(chain)
-            self._note(seen, a.key, snap.now, str(a), "allowed" if why is None else f"held: {why}")
-        self._last = seen
-        return allowed
-
-    def _check(self, act: object, snap: Snapshot, policy: Policy) -> tuple[Proposal | None, str]:
-        """A policy's own action as a proposal, or why it cannot be one."""
-        rule = f"policy {policy.name}"
-        if isinstance(act, Relocate):
-            v = snap.vertex(act.vertex_key)
-            if v is None:
-                return None, f"{act.vertex_key} is not hosted on {snap.here}"
-            if not v.movable:
-                return None, f"{v.key} is a chain end or pinned: never relocated"
-            if act.target == v.node:
-                return None, f"{v.key} already runs on {v.node}"
-            if act.target not in snap.nodes:
-                return None, f"no view of node {act.target}"
-            return Proposal(act, self.settings.confirm, 0.0, rule), ""
-        if isinstance(act, RemapChain):
-            chain = snap.chain(act.app, act.chain)
-            if chain is None or not chain.coordinator:
-                return None, f"{snap.here} does not coordinate {act.app} chain {act.chain}"
-            return Proposal(act, self.settings.slo_confirm, 0.0, rule), ""
-        return None, f"not an action: {act!r}"
-
-    def _note(
-        self,
-        seen: dict[tuple[Any, ...], str],
-        key: tuple[Any, ...],
-        now: float,
-        what: str,
-        decision: str,
-    ) -> None:
-        seen[key] = decision
-        if self._last.get(key) != decision:
-            self.log.append((now, what, decision))
-
-    def status(self) -> dict[str, Any]:
-        """Policies, settings and recent decisions, for ``mso status``."""
-        s = self.settings
-        return {
-            "policy": self.policy.name,
-            "app_policies": {a: p.name for a, p in sorted(self.app_policies.items())},
-            "settings": {name: getattr(s, name) for name in s.__dataclass_fields__},
-            "evaluations": self.evaluations,
-            "draining": sorted(self.draining),
-            "warming_until": self.warming,
-            "decisions": [f"{t:.1f} {what}: {d}" for t, what, d in self.log],
-        }
 
 
 def _nan(score: Score) -> bool:

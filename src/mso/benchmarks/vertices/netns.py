@@ -1,6 +1,6 @@
-"""Vertex code for bench/netns_bytes.py: a source of fixed-size events and a counting sink.
-Node processes import it by module name; the benchmark puts bench/ on their PYTHONPATH and
-allows the module (``MSO_ALLOW_CODE``)."""
+"""Vertex code for bench/netns_bytes.py and netns_routes.py: a source of fixed-size events, a
+counting sink, and a gap-timing sink. Node processes import it by its module path
+(``mso.benchmarks.vertices.netns:BlobSource``)."""
 
 from __future__ import annotations
 

@@ -1,10 +1,9 @@
 """Vertex code for bench/failure.py: a counting source, a pass-through and a gap-timing sink.
 
-Node processes import it by module name (``failure_vertices:GapSink``): the benchmark puts the
-bench directory on the PYTHONPATH it starts the nodes with. The sink stamps every arrival with
-``time.monotonic()`` -- CLOCK_MONOTONIC, the clock of the nodes' and the controller's asyncio
-loops (``loop.time()``), all on one host -- so its gaps line up with the controller's kill time
-and the nodes' failure records.
+Node processes import it by its module path (``mso.benchmarks.vertices.failure:GapSink``). The
+sink stamps every arrival with ``time.monotonic()`` -- CLOCK_MONOTONIC, the clock of the nodes'
+and the controller's asyncio loops (``loop.time()``), all on one host -- so its gaps line up
+with the controller's kill time and the nodes' failure records.
 """
 
 from __future__ import annotations

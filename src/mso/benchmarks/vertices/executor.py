@@ -1,9 +1,8 @@
 """Vertex code for the executor benchmarks (bench/heavy.py, slowsink.py, rates.py).
 
-Node processes import it by module name (``executor_vertices:Burn``): the benchmarks put the
-bench directory on the PYTHONPATH they start the nodes with. It imports nothing heavy, because
-the nodes import it while they deploy. Sinks stamp arrivals with ``time.monotonic()``, the clock
-of every node's and the controller's event loop on this host.
+Node processes import it by its module path (``mso.benchmarks.vertices.executor:Burn``). It
+imports nothing heavy, because the nodes import it while they deploy. Sinks stamp arrivals with
+``time.monotonic()``, the clock of every node's and the controller's event loop on this host.
 """
 
 from __future__ import annotations

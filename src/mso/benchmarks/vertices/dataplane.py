@@ -1,7 +1,7 @@
 """Vertex code for bench/dataplane.py and bench/memory.py.
 
-Node processes import it by module name (``dataplane_vertices:StampSource``): the benchmarks put
-the bench directory on the PYTHONPATH they start the nodes with. The bare-TCP baseline of
+Node processes import it by its module path (``mso.benchmarks.vertices.dataplane:StampSource``),
+allowed by default like all of ``mso.benchmarks``. The bare-TCP baseline of
 bench/dataplane.py uses the very same event type and sink, so both sides do the same per-event
 work.
 
