@@ -18,15 +18,16 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("protocol", ("mso.protocol",)),
     ("node runtime", ("mso.runtime", "mso.node")),
     ("net", ("mso.net", "mso.client")),
-    ("drivers", ("mso.node.driver", "mso.node.metrics", "mso.sim")),
-    ("emulator", ("mso.emu",)),
+    ("drivers", ("mso.node.driver", "mso.node.metrics", "mso.sim", "mso.daemon")),
+    # the client API finds an emulator's nodes by name (mso.emu.overlays); the emulator asks
+    # its nodes through it
+    ("emulator / client API", ("mso.emu", "mso.api")),
     (
         "front ends",
         (
             "mso.cli",
             "mso.cliargs",
             "mso.statusview",
-            "mso.api",
             "mso.benchmarks",
             "mso.examples",
             "mso.dashboard",

@@ -1,29 +1,117 @@
-"""The Python API to a running overlay: what the CLI does, from a program.
+"""The Python API to a running overlay, and mso's one client path: the CLI, the dashboard and
+the emulator controller ask their nodes through it, so a reply is judged in one place.
 
     from mso.api import Overlay
 
     overlay = Overlay("127.0.1.1:7000", key="...", sign="op.key")   # sign: an operator key
     overlay.deploy("examples/convoy.yaml")
     overlay.relocate("convoy", "scan_matcher", direction="upstream")
-    overlay.remap("convoy", chains=[0, 4])          # or everything=True
+    overlay.remap("convoy", chains=[0, 4])          # or everything=True, or chains=["a-b-c"]
     print(overlay.status()["N1"]["apps"])
 
-Every call connects to the given node, which may be any node of the overlay. Refusals raise
-:class:`mso.errors.MsoError` with the node's reason. ``AsyncOverlay`` is the same for asyncio code.
+The address is any node of the overlay (``HOST:PORT``), a node id of a running emulator, or
+None: the node of the one emulator running (or of ``overlay=NAME``). Refusals raise
+:class:`mso.errors.MsoError` with the node's reason (:class:`CommandFailed` when the node
+answered and did not do it). ``AsyncOverlay`` is the same for asyncio code; it can also keep
+one connection open (:meth:`AsyncOverlay.open`, or a connected client given).
+
+Light to import: ``mso status`` comes through here and imports neither asyncio nor the model.
 """
 
 from __future__ import annotations
 
-import asyncio
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
-from mso.client import load_signer, request
+from mso.client import connect, load_signer, request, request_blocking
 from mso.errors import MsoError
-from mso.model.app import App
-from mso.model.appfile import load_app
-from mso.model.yamlfile import read_text_file
 from mso.protocol import messages as m
+
+if TYPE_CHECKING:
+    from mso.client import Client
+    from mso.model.app import App
+    from mso.protocol.authority import Signer
+
+R = TypeVar("R")
+
+DEPLOY_S = 30.0  # a deployment probes routes and starts every vertex: it may take a while
+COMMAND_S = 10.0  # any other command's reply
+
+
+class CommandFailed(MsoError):
+    """The node answered and did not carry the command out; ``reason`` is the node's word."""
+
+    def __init__(self, what: str, reason: str) -> None:
+        super().__init__(f"{what}: {reason}")
+        self.reason = reason
+
+
+def expect(reply: Any, kind: type[R]) -> R:
+    """``reply`` if it is of the kind asked for (ok or not); anything else is an error."""
+    if not isinstance(reply, kind):
+        raise MsoError(f"unexpected reply {reply!r}")
+    return reply
+
+
+def judge(reply: Any, kind: type[R], what: str) -> R:
+    """``reply`` if it is of the kind asked for and says ok; else :class:`CommandFailed`."""
+    if not isinstance(reply, kind) or not getattr(reply, "ok", False):
+        raise CommandFailed(what, getattr(reply, "error", "") or repr(reply))
+    return reply
+
+
+def resolve_address(via: str | None, overlay: str | None = None) -> str:
+    """``HOST:PORT`` as given; a node id of a running emulator (in ``overlay``, if named); or,
+    given nothing, the first node of the one running emulator (or of ``overlay``)."""
+    from mso.emu.overlays import emulator_address, find_overlay
+
+    if via is None:
+        _, state = find_overlay(overlay)
+        return str(next(iter(state["nodes"].values())))
+    if ":" in via:
+        return via
+    addr = emulator_address(via, overlay)
+    if addr is None:
+        raise MsoError(f"unknown node {via!r}: no running emulator knows it; use HOST:PORT")
+    return addr
+
+
+def deploy_request(app_file: str | Path) -> m.DeployRequest:
+    """An app file as a deploy request, validated here first so errors point at its lines."""
+    from mso.model.appfile import load_app
+    from mso.model.yamlfile import read_text_file
+
+    path = Path(app_file)
+    load_app(path)
+    return m.DeployRequest(read_text_file(path), str(path))
+
+
+def asked_node(nodes: dict[str, Any]) -> dict[str, Any]:
+    """The status of the node asked (a status not asked everywhere holds that node only)."""
+    return next(iter(nodes.values()), {})
+
+
+def running(nodes: dict[str, Any]) -> list[str]:
+    """The apps running, by name, as the node asked sees them."""
+    return sorted(asked_node(nodes).get("apps", {}))
+
+
+def chain_indices(nodes: dict[str, Any], app: str, chains: Sequence[int | str]) -> list[int]:
+    """Chains named by index (``3``, ``"3"``) or as ``head-...-tail`` -> their indices."""
+    found = asked_node(nodes).get("apps", {}).get(app)
+    if found is None:
+        raise MsoError(f"no running app named {app!r}")
+    known = ["-".join(c) for c in found["chains"]]
+    indices: list[int] = []
+    for c in chains:
+        if isinstance(c, int) or c.isdigit():
+            indices.append(int(c))
+        elif c in known:
+            indices.append(known.index(c))
+        else:
+            raise MsoError(f"unknown chain {c!r} (chains: {', '.join(known)})")
+    return indices
 
 
 class AsyncOverlay:
@@ -31,89 +119,163 @@ class AsyncOverlay:
 
     def __init__(
         self,
-        address: str,
+        address: str | None = None,
         *,
         key: str | None = None,
-        timeout: float = 30.0,
+        timeout: float | None = None,
         sign: str | None = None,
+        overlay: str | None = None,
+        signer: Signer | None = None,
+        client: Client | None = None,
     ) -> None:
-        self.address = address
+        self._address, self._overlay = address, overlay
         self.key = key
-        self.timeout = timeout
-        # an operator key file: commands that change the overlay are signed with it
-        self.signer = load_signer(sign)
+        self.timeout = timeout  # every reply's; None: DEPLOY_S for a deployment, else COMMAND_S
+        # an operator key (a file, or loaded): commands that change the overlay are signed
+        self.signer = signer if signer is not None else load_signer(sign)
+        self._client = client  # a connection kept open (by the caller, or by open())
+        self._owned = False
 
-    async def _call(self, msg: m.Message) -> Any:
-        return await request(
-            self.address, msg, key=self.key, timeout=self.timeout, signer=self.signer
+    @property
+    def address(self) -> str:
+        """The node asked, resolved when first needed (so a bad app file is reported first)."""
+        if self._address is None or ":" not in self._address:
+            self._address = resolve_address(self._address, self._overlay)
+        return self._address
+
+    async def open(self, name: str = "cli", timeout: float = 5.0) -> AsyncOverlay:
+        """Keep one connection open for the calls that follow, until :meth:`close`."""
+        if self._client is None:
+            self._client = await connect(
+                self.address, key=self.key, signer=self.signer, name=name, timeout=timeout
+            )
+            self._owned = True
+        return self
+
+    async def close(self) -> None:
+        if self._client is not None and self._owned:
+            client, self._client = self._client, None
+            await client.close()
+
+    async def ask(self, msg: m.Message, timeout: float = COMMAND_S) -> m.Message:
+        """Send one message and return the reply, unjudged."""
+        wait = self.timeout or timeout
+        if self._client is not None:
+            return await self._client.call(msg, wait)
+        reply: m.Message = await request(
+            self.address, msg, key=self.key, timeout=wait, signer=self.signer
         )
-
-    async def deploy(self, app_file: str | Path) -> m.DeployReply:
-        """Deploy an app file (validated here first, so errors point at its lines)."""
-        path = Path(app_file)
-        load_app(path)
-        reply = await self._call(m.DeployRequest(read_text_file(path), str(path)))
-        if not isinstance(reply, m.DeployReply) or not reply.ok:
-            raise MsoError(f"deployment failed: {getattr(reply, 'error', reply)}")
         return reply
 
-    async def undeploy(self, app: str | App) -> None:
-        await self._call(m.StopApp(app.name if isinstance(app, App) else app))
+    async def deploy(self, app_file: str | Path, *, check: bool = True) -> m.DeployReply:
+        """Deploy an app file (validated here first, so errors point at its lines)."""
+        return await self.deploy_request(deploy_request(app_file), check=check)
+
+    async def deploy_request(self, req: m.DeployRequest, *, check: bool = True) -> m.DeployReply:
+        """Deploy an app document; ``check=False`` returns a failed deployment's reply too."""
+        reply = await self.ask(req, DEPLOY_S)
+        if check:
+            return judge(reply, m.DeployReply, "deployment failed")
+        return expect(reply, m.DeployReply)
+
+    async def undeploy(self, app: str | App, *, check: bool = True) -> None:
+        """Stop an app on every node (``check``: an error if it runs nowhere)."""
+        name = app if isinstance(app, str) else app.name
+        if check and name not in (apps := await self.apps()):
+            raise MsoError(f"no running app named {name!r} (running: {', '.join(apps) or 'none'})")
+        await self.ask(m.StopApp(name))
 
     async def relocate(
-        self, app: str, vertex: str, *, direction: str = "", target: str = ""
+        self, app: str, vertex: str, *, direction: str = "", target: str = "", check: bool = True
     ) -> m.RelocateReply:
         """Move one interior vertex upstream, downstream, or to ``target`` (§3.4.1)."""
-        reply = await self._call(m.RelocateRequest(app, vertex, direction, target))
-        if not isinstance(reply, m.RelocateReply) or not reply.ok:
-            raise MsoError(f"relocation refused: {getattr(reply, 'error', reply)}")
-        return reply
+        reply = await self.ask(m.RelocateRequest(app, vertex, direction, target))
+        if check:
+            return judge(reply, m.RelocateReply, "relocation refused")
+        return expect(reply, m.RelocateReply)
 
     async def remap(
-        self, app: str, *, chains: list[int] | None = None, everything: bool = False
+        self,
+        app: str,
+        *,
+        chains: Sequence[int | str] = (),
+        everything: bool = False,
+        check: bool = True,
     ) -> m.RemapReply:
-        """Re-place chains (by index) or all of them, in dependency order (§3.4.2, §3.4.3)."""
-        reply = await self._call(m.RemapRequest(app, list(chains or []), everything))
-        if not isinstance(reply, m.RemapReply) or not reply.ok:
-            raise MsoError(f"remap refused: {getattr(reply, 'error', reply)}")
-        return reply
+        """Re-place chains (by index or ``head-...-tail``) or all of them, in dependency order
+        (§3.4.2, §3.4.3)."""
+        indices = [c for c in chains if isinstance(c, int)]
+        if len(indices) < len(chains):  # a name: the chains are as the node knows them
+            indices = chain_indices(await self.status(everywhere=False), app, chains)
+        reply = await self.ask(m.RemapRequest(app, indices, everything))
+        if check:
+            return judge(reply, m.RemapReply, "remap refused")
+        return expect(reply, m.RemapReply)
 
-    async def status(self) -> dict[str, Any]:
-        """Every reachable node's status, by node id."""
-        reply = await self._call(m.StatusRequest(everywhere=True))
-        if not isinstance(reply, m.StatusReply):
-            raise MsoError(f"unexpected reply {reply!r}")
-        return reply.nodes
+    async def status(
+        self, *, everywhere: bool = True, timeout: float = COMMAND_S
+    ) -> dict[str, Any]:
+        """Every reachable node's status, by node id (only the node asked's, if not
+        ``everywhere``)."""
+        reply = await self.ask(m.StatusRequest(everywhere=everywhere), timeout)
+        return expect(reply, m.StatusReply).nodes
+
+    async def apps(self) -> list[str]:
+        """The apps running, by name."""
+        return running(await self.status(everywhere=False))
 
 
 class Overlay:
-    """Blocking access to an overlay through one of its nodes (not for use inside a loop)."""
+    """Blocking access to an overlay through one of its nodes (not for use inside a loop).
+
+    :meth:`status` asks over a blocking socket (no asyncio: ``mso status`` starts quicker)."""
 
     def __init__(
         self,
-        address: str,
+        address: str | None = None,
         *,
         key: str | None = None,
-        timeout: float = 30.0,
+        timeout: float | None = None,
         sign: str | None = None,
+        overlay: str | None = None,
     ) -> None:
-        self._async = AsyncOverlay(address, key=key, timeout=timeout, sign=sign)
+        self._async = AsyncOverlay(address, key=key, timeout=timeout, sign=sign, overlay=overlay)
+
+    @property
+    def address(self) -> str:
+        return self._async.address
 
     def deploy(self, app_file: str | Path) -> m.DeployReply:
-        return asyncio.run(self._async.deploy(app_file))
+        import asyncio
+
+        req = deploy_request(app_file)  # before the address: file errors first
+        return asyncio.run(self._async.deploy_request(req))
 
     def undeploy(self, app: str | App) -> None:
+        import asyncio
+
         asyncio.run(self._async.undeploy(app))
 
     def relocate(
         self, app: str, vertex: str, *, direction: str = "", target: str = ""
     ) -> m.RelocateReply:
+        import asyncio
+
         return asyncio.run(self._async.relocate(app, vertex, direction=direction, target=target))
 
     def remap(
-        self, app: str, *, chains: list[int] | None = None, everything: bool = False
+        self, app: str, *, chains: Sequence[int | str] = (), everything: bool = False
     ) -> m.RemapReply:
+        import asyncio
+
         return asyncio.run(self._async.remap(app, chains=chains, everything=everything))
 
-    def status(self) -> dict[str, Any]:
-        return asyncio.run(self._async.status())
+    def status(self, *, everywhere: bool = True) -> dict[str, Any]:
+        msg = m.StatusRequest(everywhere=everywhere)
+        reply = request_blocking(
+            self.address, msg, key=self._async.key, timeout=self._async.timeout or COMMAND_S
+        )
+        return expect(reply, m.StatusReply).nodes
+
+    def apps(self) -> list[str]:
+        return running(self.status(everywhere=False))

@@ -274,6 +274,22 @@ def parse_address(text: str, default_port: int = 7000) -> tuple[str, int]:
     return host, number
 
 
+async def connect(
+    address: str,
+    *,
+    key: str | None = None,
+    signer: Signer | None = None,
+    name: str = "cli",
+    timeout: float = 5.0,
+) -> Client:
+    """A connection to the node at ``address``, its key checked. ``NETNS@HOST:PORT`` connects
+    from inside network namespace NETNS (a node of the netns testbed)."""
+    netns, address = split_netns(address)
+    host, port = parse_address(address)
+    client = Client(host, port, overlay_key(key), name, signer=signer, netns=netns)
+    return await client.connect(timeout)
+
+
 async def request(
     address: str,
     msg: m.Message,
@@ -282,11 +298,8 @@ async def request(
     timeout: float = 10.0,
     signer: Signer | None = None,
 ) -> Any:
-    """Connect, send one request, return the reply. ``NETNS@HOST:PORT`` connects from inside
-    network namespace NETNS (a node of the netns testbed)."""
-    netns, address = split_netns(address)
-    host, port = parse_address(address)
-    client = await Client(host, port, overlay_key(key), signer=signer, netns=netns).connect()
+    """Connect (:func:`connect`), send one request, return the reply."""
+    client = await connect(address, key=key, signer=signer)
     try:
         return await client.call(msg, timeout)
     finally:

@@ -18,25 +18,16 @@ import json
 import logging
 import os
 from collections import deque
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from importlib import resources
 from typing import Any
 from urllib.parse import urlsplit
 
-from mso.client import (
-    Client,
-    NodeUnreachable,
-    Refused,
-    load_signer,
-    overlay_key,
-    parse_address,
-    request,
-    split_netns,
-)
+from mso.api import AsyncOverlay, CommandFailed
+from mso.client import NodeUnreachable, Refused, load_signer, parse_address
 from mso.dashboard.view import Tracker
 from mso.errors import MsoError
 from mso.net.http import BadRequest, read_request, response
-from mso.protocol import messages as m
 
 log = logging.getLogger("mso.dashboard")
 
@@ -72,7 +63,6 @@ class Dashboard:
         if not interval > 0:
             raise MsoError(f"--interval: expected seconds > 0, got {interval:g}")
         self.addresses = list(addresses)
-        self._psk = overlay_key(key)
         self._key = key
         # an operator key file (default $MSO_SIGN): the page's controls are signed with it, for
         # nodes started with --operator-key
@@ -89,7 +79,7 @@ class Dashboard:
         self._streams: set[asyncio.Queue[bytes]] = set()
         self._server: asyncio.Server | None = None
         self._poller: asyncio.Task[None] | None = None
-        self._client: Client | None = None
+        self._session: AsyncOverlay | None = None  # one connection kept for the polls
         self._via = 0  # index in addresses of the node asked
         self._tracker: Tracker | None = None
         self._changed = asyncio.Event()
@@ -122,8 +112,8 @@ class Dashboard:
             self._server.close()
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self._server.wait_closed(), 2.0)
-        if self._client is not None:
-            await self._client.close()
+        if self._session is not None:
+            await self._session.close()
 
     async def wait_update(self, timeout: float) -> None:
         """Until the next view is made (for tests and the benchmark)."""
@@ -135,22 +125,16 @@ class Dashboard:
         """Everyone's status through one node; another node if that one stops answering."""
         for _ in range(len(self.addresses)):
             try:
-                if self._client is None:
-                    netns, addr = split_netns(self.addresses[self._via])  # netns testbed
-                    host, port = parse_address(addr)
-                    self._client = await Client(
-                        host, port, self._psk, "dashboard", netns=netns
-                    ).connect(2.0)
-                reply = await self._client.call(m.StatusRequest(everywhere=True), 5.0)
-                if isinstance(reply, m.StatusReply):
-                    return reply.nodes
-                raise NodeUnreachable(f"unexpected reply {type(reply).__name__}")
-            except (NodeUnreachable, ConnectionError, OSError) as exc:
+                if self._session is None:
+                    session = AsyncOverlay(self.addresses[self._via], key=self._key)
+                    self._session = await session.open("dashboard", 2.0)
+                return await self._session.status(timeout=5.0)
+            except (MsoError, ConnectionError, OSError) as exc:
                 self.error = str(exc)
-                if self._client is not None:
+                if self._session is not None:
                     with contextlib.suppress(Exception):
-                        await self._client.close()
-                self._client = None
+                        await self._session.close()
+                self._session = None
                 self._via = (self._via + 1) % len(self.addresses)
         raise NodeUnreachable(self.error)
 
@@ -297,15 +281,16 @@ class Dashboard:
             raise BadRequest(400, "direction: expected upstream or downstream")
         if bool(target) == bool(direction):
             raise BadRequest(400, "give exactly one of target or direction")
-        reply = await self._ask(m.RelocateRequest(app, vertex, direction, target))
         loop = asyncio.get_running_loop()
         assert self._tracker is not None
-        if not isinstance(reply, m.RelocateReply) or not reply.ok:
-            why = getattr(reply, "error", "") or repr(reply)
+        try:
+            async with self._controls() as overlay:
+                reply = await overlay.relocate(app, vertex, direction=direction, target=target)
+        except CommandFailed as exc:
             self._tracker.note(
-                loop.time(), "relocation", f"{vertex} → {target or direction}", why, ok=False
+                loop.time(), "relocation", f"{vertex} → {target or direction}", exc.reason, ok=False
             )
-            return {"ok": False, "error": why}
+            return {"ok": False, "error": exc.reason}
         self._tracker.attribute(
             loop.time(),
             app,
@@ -328,14 +313,15 @@ class Dashboard:
             raise BadRequest(400, "chains: expected a list of chain indices")
         if bool(chains) == everything:
             raise BadRequest(400, "give chains or all, not both or neither")
-        reply = await self._ask(m.RemapRequest(app, chains, everything))
         loop = asyncio.get_running_loop()
         assert self._tracker is not None
         what = f"{app}: remap of " + ("every chain" if everything else f"chains {chains}")
-        if not isinstance(reply, m.RemapReply) or not reply.ok:
-            why = getattr(reply, "error", "") or repr(reply)
-            self._tracker.note(loop.time(), "remap", what, why, ok=False)
-            return {"ok": False, "error": why}
+        try:
+            async with self._controls() as overlay:
+                reply = await overlay.remap(app, chains=chains, everything=everything)
+        except CommandFailed as exc:
+            self._tracker.note(loop.time(), "remap", what, exc.reason, ok=False)
+            return {"ok": False, "error": exc.reason}
         self._tracker.note(
             loop.time(), "remap", what, "asked from the dashboard", took_ms=reply.elapsed_ms
         )
@@ -345,16 +331,18 @@ class Dashboard:
             )
         return {"ok": True, "moved": reply.moved, "elapsed_ms": reply.elapsed_ms}
 
-    async def _ask(self, msg: m.Message) -> m.Message:
+    @contextlib.asynccontextmanager
+    async def _controls(self) -> AsyncIterator[AsyncOverlay]:
+        """The overlay through the node polled, signed with the operator key if there is one;
+        a refusal for want of authority or a node that does not answer is said to the page."""
         try:
-            reply: m.Message = await request(
-                self.addresses[self._via], msg, key=self._key, timeout=30.0, signer=self._signer
+            yield AsyncOverlay(
+                self.addresses[self._via], key=self._key, timeout=30.0, signer=self._signer
             )
         except Refused as exc:  # no operator authority: said to the page, nothing changed
             raise BadRequest(403, str(exc)) from None
         except NodeUnreachable as exc:
             raise BadRequest(502, str(exc)) from None
-        return reply
 
 
 def _text(req: dict[str, Any], name: str, default: str | None = None) -> str:

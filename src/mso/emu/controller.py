@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mso.api import AsyncOverlay
 from mso.client import Client, NodeUnreachable, overlay_key
 from mso.emu.overlays import _claim, state_file
 from mso.errors import MsoError
@@ -292,9 +293,8 @@ class Emulator:
         net = self.scenario.network
         for name in self.nodes:
             while True:
-                reply = await self.call(name, m.StatusRequest(), 5.0)
-                assert isinstance(reply, m.StatusReply)
-                connected = set(reply.nodes[name].get("connected", []))
+                nodes = await self.overlay(name).status(everywhere=False, timeout=5.0)
+                connected = set(nodes[name].get("connected", []))
                 if set(net.neighbours(name)) <= connected:
                     break
                 if loop.time() > deadline:
@@ -359,16 +359,22 @@ class Emulator:
             raise MsoError(f"unknown node {node!r} (nodes: {', '.join(self.nodes)})")
         return f"{n.host}:{n.port}"
 
+    def overlay(self, node: str) -> AsyncOverlay:
+        """The overlay through ``node``, over the connection this emulator keeps to it (its
+        requests and their replies are judged in :mod:`mso.api`, as the CLI's are)."""
+        address = self.address(node)
+        client = self.nodes[node].client
+        if client is None:
+            raise MsoError(f"node {node} is not running")
+        return AsyncOverlay(address, client=client)
+
     async def call(self, node: str, msg: m.Message, timeout: float = 10.0) -> m.Message:
-        n = self.nodes[node]
-        assert n.client is not None
-        return await n.client.call(msg, timeout)
+        return await self.overlay(node).ask(msg, timeout)
 
     async def deploy(self, document: str, file: str, via: str) -> m.DeployReply:
-        self.address(via)
-        reply = await self.call(via, m.DeployRequest(document=document, file=file), 30.0)
-        assert isinstance(reply, m.DeployReply)
-        return reply
+        """Deploy from ``via``; a failed deployment's reply is returned, not raised."""
+        req = m.DeployRequest(document=document, file=file)
+        return await self.overlay(via).deploy_request(req, check=False)
 
     async def relocate(
         self,
@@ -379,21 +385,16 @@ class Emulator:
         target: str = "",
         via: str | None = None,
     ) -> m.RelocateReply:
-        reply = await self.call(
-            via or self.live()[0], m.RelocateRequest(app, vertex, direction, target), 10.0
-        )
-        assert isinstance(reply, m.RelocateReply)
-        return reply
+        """Relocate through ``via``; a refusal's reply is returned, not raised."""
+        ov = self.overlay(via or self.live()[0])
+        return await ov.relocate(app, vertex, direction=direction, target=target, check=False)
 
     async def undeploy(self, app: str, via: str | None = None) -> None:
         """Stop an app on every node (its stones are freed)."""
-        await self.call(via or self.live()[0], m.StopApp(app), 10.0)
+        await self.overlay(via or self.live()[0]).undeploy(app, check=False)
 
     async def status(self, via: str | None = None) -> dict[str, Any]:
-        via = via or self.live()[0]
-        reply = await self.call(via, m.StatusRequest(everywhere=True), 5.0)
-        assert isinstance(reply, m.StatusReply)
-        return reply.nodes
+        return await self.overlay(via or self.live()[0]).status(timeout=5.0)
 
     def node_positions(self) -> dict[str, tuple[float, float]]:
         """Where the nodes are now: moved by the timeline, else as the scenario placed them."""

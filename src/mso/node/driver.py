@@ -77,7 +77,6 @@ class NodeDriver:
         self._results_lock = threading.Lock()
         self.stopped = asyncio.Event()
         self._warmed: set[int] = set()  # app documents whose imports are done
-        core.clock = self.loop.time  # (monotonic: what a request's elapsed time is read on)
 
     @property
     def _server(self) -> asyncio.Server | None:

@@ -35,7 +35,6 @@ from mso.emu.controller import EmulatedNode, Emulator
 from mso.emu.netns.testbed import Testbed, unavailable
 from mso.emu.overlays import _claim
 from mso.errors import MsoError
-from mso.protocol import messages as m
 from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 
 NODE_PORT = 7000
@@ -196,9 +195,8 @@ class NetnsEmulator(Emulator):
         deadline = loop.time() + timeout
         for name in self.live():
             while True:
-                reply = await self.call(name, m.StatusRequest(), 5.0)
-                assert isinstance(reply, m.StatusReply)
-                connected = set(reply.nodes[name].get("connected", []))
+                nodes = await self.overlay(name).status(everywhere=False, timeout=5.0)
+                connected = set(nodes[name].get("connected", []))
                 if self.reachable(name) <= connected:
                     break
                 if loop.time() > deadline:

@@ -100,9 +100,7 @@ async def _run(console: Console, duration: float, db: Path, dashboard: bool) -> 
             console.print(
                 f"dashboard: [bold]{board.url}[/bold] (open it now; it stops with the demo)"
             )
-        reply = await emu.deploy(APP_FILE.read_text(encoding="utf-8"), str(APP_FILE), "N1")
-        if not reply.ok:
-            raise RuntimeError(f"deployment failed: {reply.error}")
+        reply = await emu.overlay("N1").deploy(APP_FILE)  # a refusal: one line, exit 2
         t0 = loop.time()
         table = Table(title=f"deployed in {reply.elapsed_ms:.0f} ms: vertex → robot")
         nodes = list(emu.nodes)

@@ -1,0 +1,143 @@
+"""Build one node from its settled settings and run it: the core, the transport with its
+keys, the routing view (kernel routes, fixed peers, or the emulator's), the device probe, the
+driver that feeds the core, the metrics endpoint, and the ends a daemon needs (SIGHUP re-reads
+the key file; an emulator's node stops with its emulator)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import sys
+import time
+from typing import TYPE_CHECKING
+
+from mso.daemon.config import DEV_KEY_WARNING, NodeFlags, NodeSettings, read_keys, settle
+from mso.errors import MsoError
+
+if TYPE_CHECKING:
+    from mso.net.base import RoutingView
+    from mso.net.routes_kernel import KernelRoutes
+    from mso.node.core import NodeCore
+    from mso.node.driver import NodeDriver
+
+log = logging.getLogger("mso.node")
+
+
+def run_daemon(flags: NodeFlags) -> None:
+    """Settle and check the options, then run the node until it is stopped (Ctrl-C, a
+    Shutdown from its emulator, its emulator's end)."""
+    settings = settle(flags)
+    logging.basicConfig(
+        level=logging.INFO if settings.verbose else logging.WARNING,
+        format=f"%(asctime)s {settings.node_id} %(levelname)s %(message)s",
+    )
+    core = build_core(settings)  # checks the policy before anything listens
+    if settings.dev_key:
+        print(DEV_KEY_WARNING, file=sys.stderr, flush=True)
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(serve(settings, core))
+
+
+def build_core(s: NodeSettings) -> NodeCore:
+    from mso.node.core import NodeCore
+
+    return NodeCore(
+        s.node_id,
+        capacity=s.cpu,
+        power=s.power,
+        battery_wh=s.battery_wh,
+        policy=s.policy,
+        manage=s.manage,
+        heartbeat_s=s.heartbeat_s,
+        dead_after_s=s.dead_after_s,
+        # a restarted daemon is a new incarnation: the others restore what it hosted before
+        incarnation=time.time_ns() // 1_000_000,
+        clock=time.monotonic,  # the asyncio loop's clock: what a reply's elapsed time is read on
+    )
+
+
+def overlay_keys(s: NodeSettings) -> list[bytes]:
+    """The overlay keys (the first seals): the key file's, else the one key."""
+    from mso.client import overlay_key
+
+    if s.key_file is not None:
+        return [overlay_key(k) for k in read_keys(s.key_file)]
+    return [overlay_key(s.key)]
+
+
+async def routing_view(
+    s: NodeSettings, psk: bytes
+) -> tuple[RoutingView | None, KernelRoutes | None]:
+    """Where routes come from: the kernel's (read over netlink), fixed peers, or (None) the
+    emulator's; the kernel view too, to close."""
+    from mso.net.routes_static import StaticRoutes
+
+    if s.routes_from == "kernel":
+        from mso.net.routes_kernel import KernelRoutes
+
+        kernel = KernelRoutes(s.node_id, s.port, psk, host=s.host)
+        try:
+            await kernel.start()
+        except OSError as exc:
+            raise MsoError(f"--routes kernel: cannot read routes or bind: {exc}") from None
+        return kernel, kernel
+    if s.routes_from == "auto" and s.peers:
+        return StaticRoutes(s.node_id, s.peers), None
+    return None, None
+
+
+def rotate_keys_on_hangup(s: NodeSettings, driver: NodeDriver) -> None:
+    """SIGHUP: take the key file again; open connections keep theirs."""
+    import signal
+
+    key_file = s.key_file
+    if key_file is None:
+        return
+
+    def rotate() -> None:
+        try:
+            driver.transport.set_keys(overlay_keys(s))
+            log.warning("overlay keys re-read from %s", key_file)
+        except MsoError as exc:
+            log.error("keeping the old keys: %s", exc)
+
+    asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, rotate)
+
+
+async def serve(s: NodeSettings, core: NodeCore) -> None:
+    """Run the node until its driver stops."""
+    from mso.node.device import DeviceProbe
+    from mso.node.driver import PARENT_ENV, NodeDriver, stop_with_parent
+
+    keys = overlay_keys(s)
+    view, kernel = await routing_view(s, keys[0])  # announcements are sealed with the first
+    device = DeviceProbe(battery=s.energy == "auto", interfaces=s.energy != "model")
+    driver = NodeDriver(  # no view: the emulator's
+        core, s.host, s.port, keys, view, device=device, authority=s.authority, encrypt=s.encrypt
+    )
+    rotate_keys_on_hangup(s, driver)
+    try:
+        await driver.start()
+    except OSError as exc:
+        raise MsoError(f"cannot listen on {s.listen}: {exc.strerror}") from None
+    exporter = None
+    if s.metrics_at is not None:
+        from mso.node.metrics import MetricsServer
+
+        loop = asyncio.get_running_loop()
+        exporter = MetricsServer(lambda: core.status(loop.time()), *s.metrics_at)
+        await exporter.start()
+    watch = None
+    if parent := os.environ.get(PARENT_ENV):  # started by an emulator: end with it
+        watch = asyncio.create_task(stop_with_parent(driver, int(parent)))
+    try:
+        await driver.stopped.wait()
+    finally:
+        if watch is not None:
+            watch.cancel()
+        if exporter is not None:
+            await exporter.stop()
+        if kernel is not None:
+            await kernel.close()

@@ -1,0 +1,309 @@
+"""A node's settings: the flags given, over its ``--config`` file, over the defaults, checked
+in one place so that a mistake is reported in one line before anything listens."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from mso.errors import MsoError
+
+if TYPE_CHECKING:
+    from mso.model.network import PowerModel
+    from mso.net.base import Neighbour
+    from mso.protocol.authority import Authority
+
+DEFAULT_LISTEN = "127.0.0.1:7000"
+DEV_KEY_WARNING = (
+    "warning: using the built-in development key: anyone who has mso can join this overlay; "
+    "give --key or set $MSO_KEY"
+)
+NODE_CONFIG_KEYS = {
+    "id",
+    "listen",
+    "cpu",
+    "key",
+    "peers",
+    "battery_wh",
+    "power",
+    "policy",
+    "manage",
+    "allow_code",
+    "operator_keys",
+    "key_file",
+    "encrypt",
+    "routes",
+    "energy",
+}
+
+
+@dataclass
+class NodeFlags:
+    """What a command line gave (None, or empty: not given, so the config file or the default
+    decides)."""
+
+    config_file: Path | None = None
+    node_id: str | None = None
+    listen: str | None = None
+    cpu: float | None = None
+    battery_wh: float | None = None
+    power: PowerModel | None = None  # parsed by the front end (its own error message)
+    peers: tuple[str, ...] = ()
+    energy: str | None = None
+    routes_from: str | None = None
+    policy: str | None = None
+    manage: bool | None = None
+    heartbeat_s: float | None = None
+    dead_after_s: float | None = None
+    metrics: str | None = None
+    allow_code: tuple[str, ...] = ()
+    operator_keys: tuple[str, ...] = ()
+    key_file: Path | None = None
+    encrypt: bool | None = None
+    insecure: bool = False
+    key: str | None = None
+    verbose: bool = False
+
+
+@dataclass
+class NodeSettings:
+    """Everything the assembly needs, checked."""
+
+    node_id: str
+    listen: str
+    host: str
+    port: int
+    cpu: float
+    power: PowerModel
+    heartbeat_s: float
+    dead_after_s: float
+    key: str | None = None
+    key_file: Path | None = None
+    dev_key: bool = False  # the built-in development key: said on stderr at start
+    encrypt: bool = False
+    authority: Authority | None = None
+    battery_wh: float | None = None
+    policy: str | None = None
+    manage: bool = True
+    peers: dict[str, Neighbour] = field(default_factory=dict)
+    metrics_at: tuple[str, int] | None = None
+    routes_from: str = "auto"
+    energy: str = "auto"
+    verbose: bool = False
+
+
+def settle(flags: NodeFlags) -> NodeSettings:
+    """The flags over the config file over the defaults, every value checked; restricts this
+    process's code imports (before anything of an app is loaded)."""
+    from mso.client import parse_address
+    from mso.model.network import PowerModel
+    from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
+
+    heartbeat_s = HEARTBEAT_S if flags.heartbeat_s is None else flags.heartbeat_s
+    dead_after_s = DEAD_AFTER_S if flags.dead_after_s is None else flags.dead_after_s
+    if why := check_timing(heartbeat_s, dead_after_s):
+        raise MsoError(why)
+    cfg = node_config(flags.config_file) if flags.config_file is not None else {}
+    node_id = flags.node_id or cfg.get("id")
+    if not node_id:
+        raise MsoError("a node needs an id: --id N1, or 'id:' in its --config file")
+    all_peers = tuple(f"{n}={a}" for n, a in cfg.get("peers", {}).items()) + flags.peers
+    power = flags.power or PowerModel(**cfg.get("power", {}))
+    set_code_allowlist(flags.allow_code or tuple(cfg.get("allow_code", ())))
+    key = flags.key if flags.key is not None else cfg.get("key")
+    key_file = flags.key_file or (Path(cfg["key_file"]) if "key_file" in cfg else None)
+    if key_file is not None:
+        key = read_keys(key_file)[0]  # checked now; re-read on SIGHUP
+    encrypt = bool(cfg.get("encrypt", False)) if flags.encrypt is None else flags.encrypt
+    authority = node_authority(flags.operator_keys or tuple(cfg.get("operator_keys", ())))
+    listen = flags.listen or cfg.get("listen", DEFAULT_LISTEN)
+    dev_key = check_key(key, listen, flags.insecure)
+    battery = flags.battery_wh if flags.battery_wh is not None else cfg.get("battery_wh")
+    if battery is not None and battery <= 0:
+        raise MsoError(f"--battery-wh: expected a number > 0, got {battery:g}")
+    cpu = float(flags.cpu if flags.cpu is not None else cfg.get("cpu", 1.0))
+    host, port = parse_address(listen)
+    metrics_at = None
+    if flags.metrics is not None:
+        metrics_at = parse_address(flags.metrics, default_port=-1)
+        if not 0 <= metrics_at[1] < 65536:
+            raise MsoError(f"--metrics: expected HOST:PORT, got {flags.metrics!r}")
+    if cpu <= 0:
+        raise MsoError(f"--cpu: expected a number > 0, got {cpu:g}")
+    peers = static_peers(all_peers)
+    energy = flags.energy or cfg.get("energy", "auto")
+    routes_from = flags.routes_from or cfg.get("routes", "auto")
+    check_routes(energy, routes_from, peers, host, port, listen)
+    return NodeSettings(
+        node_id=node_id,
+        listen=listen,
+        host=host,
+        port=port,
+        cpu=cpu,
+        power=power,
+        heartbeat_s=heartbeat_s,
+        dead_after_s=dead_after_s,
+        key=key,
+        key_file=key_file,
+        dev_key=dev_key,
+        encrypt=encrypt,
+        authority=authority,
+        battery_wh=battery,
+        policy=flags.policy if flags.policy is not None else cfg.get("policy"),
+        manage=flags.manage if flags.manage is not None else cfg.get("manage", True),
+        peers=peers,
+        metrics_at=metrics_at,
+        routes_from=routes_from,
+        energy=energy,
+        verbose=flags.verbose,
+    )
+
+
+def static_peers(peers: tuple[str, ...]) -> dict[str, Neighbour]:
+    """``NODE=HOST:PORT`` each -> the fixed neighbours of a set-up without a routing daemon."""
+    from mso.client import parse_address
+    from mso.net.base import Neighbour
+
+    static: dict[str, Neighbour] = {}
+    for p in peers:
+        name, _, addr = p.partition("=")
+        if not name or not addr:
+            raise MsoError(f"--peer: expected NODE=HOST:PORT, got {p!r}")
+        phost, pport = parse_address(addr)
+        static[name] = Neighbour(phost, pport)
+    return static
+
+
+def check_routes(
+    energy: str, routes_from: str, peers: dict[str, Neighbour], host: str, port: int, listen: str
+) -> None:
+    """Where energy and routes come from (a config file's values are checked here too)."""
+    if energy not in ("auto", "model", "interfaces"):
+        raise MsoError(f"energy: expected auto, model or interfaces, got {energy!r}")
+    if routes_from not in ("auto", "kernel", "emulator"):
+        raise MsoError(f"routes: expected auto, kernel or emulator, got {routes_from!r}")
+    if routes_from == "kernel" and peers:
+        raise MsoError("give either --peer (a fixed set-up) or --routes kernel, not both")
+    if routes_from == "kernel" and (port == 0 or host.startswith("127.") or host == "localhost"):
+        raise MsoError(
+            f"--routes kernel: listen on a routable address and a fixed port "
+            f"(e.g. --listen 0.0.0.0:7000), got {listen}"
+        )
+
+
+def node_config(path: Path) -> dict[str, Any]:
+    """A node configuration file: id, listen, cpu, key, peers (node id -> HOST:PORT)."""
+    from mso.errors import SpecError
+    from mso.model.yamlfile import load_yaml_file
+
+    doc = load_yaml_file(path)
+    data = doc.data
+    if not isinstance(data, dict):
+        raise SpecError("expected a mapping with 'id' and 'listen'", file=doc.file, line=1)
+    for k, v in data.items():
+        line = doc.line((k,))
+        if k not in NODE_CONFIG_KEYS:
+            allowed = ", ".join(sorted(NODE_CONFIG_KEYS))
+            raise SpecError(
+                f"unknown attribute {k!r} (expected one of: {allowed})",
+                file=doc.file,
+                line=line,
+                field=str(k),
+            )
+        if why := _config_value_problem(k, v):
+            raise SpecError(why, file=doc.file, line=line, field=k)
+    return data
+
+
+def _config_value_problem(k: str, v: Any) -> str | None:
+    """What is wrong with the value ``v`` of attribute ``k`` of a node config file, if anything."""
+    if k == "peers" and not (isinstance(v, dict) and all(isinstance(a, str) for a in v.values())):
+        return "expected a mapping of node id to HOST:PORT"
+    if k == "power" and not (
+        isinstance(v, dict)
+        and set(v) <= {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte"}
+        and all(
+            isinstance(x, int | float) and not isinstance(x, bool) and 0 <= x < 1e12
+            for x in v.values()
+        )
+    ):
+        return "expected {idle_w, cpu_w, tx_uj_per_byte, rx_uj_per_byte} as numbers >= 0"
+    if k in ("cpu", "battery_wh") and not (
+        isinstance(v, int | float) and not isinstance(v, bool) and 0 < v < 1e12
+    ):
+        return f"expected a number > 0, got {v!r}"
+    if k in ("manage", "encrypt") and not isinstance(v, bool):
+        return f"expected true or false, got {v!r}"
+    if k in ("allow_code", "operator_keys") and not (
+        isinstance(v, list) and all(isinstance(x, str) and x for x in v)
+    ):
+        return "expected a list of strings"
+    if k in ("id", "listen", "key", "key_file") and not isinstance(v, str):
+        return f"expected a string, got {v!r}"
+    return None
+
+
+def read_keys(path: Path) -> list[str]:
+    """A key file: overlay keys one a line (the first seals), '#' comments."""
+    from mso.errors import SpecError
+    from mso.model.yamlfile import read_text_file
+
+    keys = [
+        line.strip()
+        for line in read_text_file(path).splitlines()
+        if line.strip() and not line.strip().startswith("#")
+    ]
+    if not keys:
+        raise SpecError("no overlay key in the key file", file=str(path))
+    return keys
+
+
+def node_authority(keys: tuple[str, ...]) -> Authority:
+    """The operator keys (and the emulator's, from $MSO_EMULATOR_KEY) this node obeys."""
+    from mso.protocol.authority import Authority, KeyError_
+
+    try:
+        return Authority.from_env(list(keys))
+    except KeyError_ as exc:
+        raise MsoError(f"--operator-key: {exc}") from None
+
+
+def check_key(key: str | None, listen: str, insecure: bool) -> bool:
+    """Protected mode: an empty key is an error; the built-in development key is announced,
+    and refused on an address beyond loopback unless ``--insecure``."""
+    import ipaddress
+
+    from mso.client import DEFAULT_KEY, parse_address
+
+    if key == "":
+        raise MsoError("--key: an empty overlay key is refused (give one, or leave --key out)")
+    if key is not None and key != DEFAULT_KEY:
+        return False
+    host, _ = parse_address(listen)
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback and not insecure:
+        raise MsoError(
+            f"--listen {listen}: refusing to listen beyond loopback with the built-in "
+            "development key; give --key or $MSO_KEY (or --insecure for a lab network)"
+        )
+    return True
+
+
+def set_code_allowlist(modules: tuple[str, ...]) -> tuple[str, ...]:
+    """Restrict this process's imports to ``modules`` (else $MSO_ALLOW_CODE) plus the bundled
+    examples, before anything of an app is loaded."""
+    from mso.model.imports import DEFAULT_ALLOWED, ImportPathError, allow_code
+
+    if not modules:
+        modules = tuple(m for m in os.environ.get("MSO_ALLOW_CODE", "").split(",") if m)
+    allowed = (*DEFAULT_ALLOWED, *modules)
+    try:
+        allow_code(allowed)
+    except ImportPathError as exc:
+        raise MsoError(f"--allow-code: {exc}") from None
+    return allowed
