@@ -295,7 +295,7 @@ def heartbeats(t: Tally, node: str, dur: float) -> dict[str, dict[str, float]]:
                 f = figures.get(h.a) or m.Figures(0.0, 0.0, 0.0, None, None, (0.0,) * 4)
                 cb = _CompactBeat(_ids(msg.node), f.cpu, f.load, f.drain_w,
                                   f.remaining_j, f.lifetime_s, msg.incarnation,
-                                  {_ids(k): v for k, v in msg.dead.items()}, _ids(msg.leader),
+                                  {_ids(k): v for k, v in msg.failed.items()}, _ids(msg.leader),
                                   msg.hosting)  # fmt: skip
                 compact += _compact_frame(h.a, h.b, m.CONTROL, cb)
             elif any(h.at - HEARTBEAT_S < u <= h.at for u in other[(h.a, h.b)]):

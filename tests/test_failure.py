@@ -38,7 +38,9 @@ def started(doc: str, net: Network | None = None) -> Simulation:
 
 
 def where(sim: Simulation, app: str, vertex: str) -> str:
-    (node,) = [n for n, c in sim.cores.items() if n not in sim.dead and vertex in c.instances(app)]
+    (node,) = [
+        n for n, c in sim.cores.items() if n not in sim.killed and vertex in c.instances(app)
+    ]
     return node
 
 
@@ -53,7 +55,7 @@ def emitted(sim: Simulation, app: str, vertex: str) -> int:
 
 
 def recoveries(sim: Simulation, app: str) -> list[dict[str, Any]]:
-    return [r for n, c in sim.cores.items() if n not in sim.dead for r in c.apps[app].recoveries]
+    return [r for n, c in sim.cores.items() if n not in sim.killed for r in c.apps[app].recoveries]
 
 
 PIPE = pipe_app(100).replace("pinned: N4", "pinned: N6")
@@ -177,7 +179,7 @@ def test_status_shows_the_failure_the_recovery_and_parked_chains() -> None:
     sim.kill(victim, convergence_s=0.3)
     sim.kill("N5", convergence_s=0.3)
     sim.run_until(sim.now + 6.0)
-    nodes = {n: c.status(sim.now) for n, c in sim.cores.items() if n not in sim.dead}
+    nodes = {n: c.status(sim.now) for n, c in sim.cores.items() if n not in sim.killed}
     text = status_text(nodes)
     assert f"failed nodes: {', '.join(sorted([victim, 'N5']))}" in text
     assert "app branch: chain j-c-s2 parked: 's2' is pinned to failed node N5" in text

@@ -7,9 +7,9 @@ import pytest
 from mso.protocol import messages as m
 from mso.protocol.procedures.base import IllegalTransition, Phase, table_rows
 from mso.protocol.procedures.deploy import Deploy
-from mso.protocol.procedures.instance import H
-from mso.protocol.procedures.relocation import Relocation
-from mso.protocol.procedures.remap import Remap
+from mso.protocol.procedures.instance import H, InstanceEvent
+from mso.protocol.procedures.relocation import Relocation, RelocationEvent
+from mso.protocol.procedures.remap import Remap, RemapEvent
 from mso.protocol.procedures.status import StatusFanout
 from mso.sim.runner import Simulation
 from test_runtime_sim import PIPE, deploy, line
@@ -17,13 +17,15 @@ from test_runtime_sim import PIPE, deploy, line
 
 def test_an_event_the_table_does_not_allow_raises() -> None:
     reloc = Relocation(1, 0.0, "app", "v", "N1", "N2", None)
-    with pytest.raises(IllegalTransition, match="'switched' is not allowed in state PREPARING"):
-        reloc.on("switched")
+    with pytest.raises(IllegalTransition, match="'moved' is not allowed in state PREPARING"):
+        reloc.on(RemapEvent.MOVED)  # another machine's event is in no state of this table
+    with pytest.raises(IllegalTransition, match="'handed_over' is not allowed in state PREP"):
+        Relocation(3, 0.0, "app", "v", "N1", "N2", None).on(InstanceEvent.HANDED_OVER)
     reloc = Relocation(2, 0.0, "app", "v", "N1", "N2", None)
-    reloc.on("prepared")
+    reloc.on(RelocationEvent.PREPARED)
     with pytest.raises(IllegalTransition):
-        reloc.on("prepared")  # a second Prepared for a relocation is a protocol error
-    reloc.on("handed_over")
+        reloc.on(RelocationEvent.PREPARED)  # a second Prepared is a protocol error
+    reloc.on(RelocationEvent.HANDED_OVER)
     assert reloc.state is Phase.FINISHED and reloc.done
 
 
@@ -90,7 +92,7 @@ def test_an_instance_moves_through_its_lifecycle_at_both_hosts() -> None:
     arrived = sim.cores[target].instances("pipe")["mid"]
     assert arrived.life.state is H.RUNNING
     with pytest.raises(IllegalTransition, match="'handover' is not allowed in state RUNNING"):
-        arrived.life.on("handover")  # a second handover for a running instance
+        arrived.life.on(InstanceEvent.HANDOVER)  # a second handover for a running instance
 
 
 def test_a_move_that_fails_before_any_switch_leaves_no_instance_at_its_target() -> None:

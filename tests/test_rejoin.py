@@ -29,7 +29,7 @@ def instances(sim: Simulation, app: str) -> Counter[str]:
     return Counter(
         v
         for n, c in sim.cores.items()
-        if n not in sim.dead and app in c.apps
+        if n not in sim.killed and app in c.apps
         for v in c.instances(app)
     )
 

@@ -20,7 +20,7 @@ def sink_instance(sim: Simulation) -> int:
 
 def assert_nobody_held_failed_but(sim: Simulation, dead: set[str]) -> None:
     for n, core in sim.cores.items():
-        if n not in sim.dead:
+        if n not in sim.killed:
             assert core.failed == dead, (n, core.failed)
             assert {f["node"] for f in core.failures} <= dead, (n, core.failures)
 

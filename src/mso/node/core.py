@@ -29,7 +29,7 @@ from collections.abc import Callable, Hashable
 from typing import Any, TypeVar
 
 from mso.errors import MsoError
-from mso.management import RuleSettings
+from mso.management import Action, Relocate, RemapChain, RemapChains, RuleSettings
 from mso.model.network import PowerModel
 from mso.node.manager import Manager
 from mso.node.monitor import Monitor
@@ -418,21 +418,7 @@ class NodeCore:
     def distances(self) -> dict[str, int]:
         return {**self.route_hops(), self.id: 0}
 
-    # -- what the rules (and tests) may ask for, and read --------------------------------------
-    def relocate(self, req: m.RelocateRequest, now: float) -> None:
-        """Start a relocation this node coordinates (the management rules' entry point)."""
-        self.relocator.request(None, req, now)
-
-    def remap(
-        self,
-        req: m.RemapRequest,
-        now: float,
-        weights: dict[str, float] | None = None,
-        place: dict[str, str] | None = None,
-    ) -> None:
-        """Start a chain or global remap this node coordinates (see Remapper.remap)."""
-        self.remapper.remap(req, now, weights, place)
-
+    # -- what the management loop and tests read: the inspection API ---------------------------
     def relocation_target(self, dep: AppState, vertex: str, direction: str = "") -> str:
         return self.relocator.relocation_target(dep, vertex, direction)
 
@@ -577,8 +563,20 @@ class NodeCore:
     def _on_monitor_tick(self, key: MonitorTick, now: float) -> None:
         self._sample(now)
         self.dataplane.report_delays(now)
-        self.manager.tick(now)
+        for action in self.manager.tick(now):  # the rules' decisions, carried out here
+            self._carry_out(action, now)
         self._effects.append(SetTimer(MonitorTick(), now + MONITOR_PERIOD_S))
+
+    def _carry_out(self, action: Action, now: float) -> None:
+        """A management action, by the same procedures a user's request starts."""
+        if isinstance(action, Relocate):
+            req = m.RelocateRequest(action.app, action.vertex, target=action.target)
+            self.relocator.request(None, req, now)
+        elif isinstance(action, RemapChain):
+            self.remapper.remap(m.RemapRequest(action.app, [action.chain]), now)
+        elif isinstance(action, RemapChains):
+            req2 = m.RemapRequest(action.app, list(action.chains))
+            self.remapper.remap(req2, now, weights=dict(action.weights), place=dict(action.place))
 
     def _sample(self, now: float) -> None:
         out, inc = self._traffic

@@ -19,8 +19,6 @@ from mso.management import (
     ChainView,
     NodeView,
     Relocate,
-    RemapChain,
-    RemapChains,
     RuleEngine,
     RuleSettings,
     Snapshot,
@@ -39,7 +37,7 @@ if TYPE_CHECKING:
 
 
 class ManagedNode(Protocol):
-    """What the management loop reads of its node, and the two things it asks of it."""
+    """What the management loop reads of its node (a view: it changes nothing)."""
 
     id: str
     capacity: float
@@ -58,16 +56,6 @@ class ManagedNode(Protocol):
     def route_hops(self) -> dict[str, int]: ...
 
     def relocation_target(self, dep: AppState, vertex: str, direction: str = "") -> str: ...
-
-    def relocate(self, req: m.RelocateRequest, now: float) -> None: ...
-
-    def remap(
-        self,
-        req: m.RemapRequest,
-        now: float,
-        weights: dict[str, float] | None = None,
-        place: dict[str, str] | None = None,
-    ) -> None: ...
 
 
 class _Rates:
@@ -120,15 +108,16 @@ class Manager:
             del self._rates[key]
 
     # -- one evaluation ---------------------------------------------------------------------
-    def tick(self, now: float) -> None:
+    def tick(self, now: float) -> list[Action]:
+        """One evaluation: the actions the rules and the guard allow, for the core to carry
+        out with the same procedures a user triggers."""
         self._measure(now)
         if not self.enabled:
-            return
+            return []
         snap = self.snapshot(now)
         if not snap.vertices and not snap.chains:
-            return
-        for action in self.engine.evaluate(snap):
-            self._carry_out(action, now)
+            return []
+        return [a for a in self.engine.evaluate(snap) if self._taken(a, now)]
 
     def _measure(self, now: float) -> None:
         for dep in self.core.apps.values():
@@ -255,27 +244,22 @@ class Manager:
             )
         return out
 
-    def _carry_out(self, action: Action, now: float) -> None:
-        from mso.protocol import messages as m
-
+    def _taken(self, action: Action, now: float) -> bool:
+        """Whether ``action`` is still to be taken (its app runs and is not being recovered);
+        if so, what it will change is noted: work sent to a neighbour, the log of actions."""
         core = self.core
         dep = core.apps.get(action.app)
         if dep is None or not dep.running or dep.recovering is not None:
-            return
+            return False
         if isinstance(action, Relocate):
-            core.relocate(m.RelocateRequest(action.app, action.vertex, target=action.target), now)
             r = self._rates.get((action.app, action.vertex))
             beat = core.heard.get(action.target)
             if r is not None and beat is not None:
                 added = dep.app.vertices[action.vertex].cost * r.rate / 1e3 / beat[1].cpu
                 self._sent.append((now + WINDOW + 1, action.target, added))
-        elif isinstance(action, RemapChain):
-            core.remap(m.RemapRequest(action.app, [action.chain]), now)
-        elif isinstance(action, RemapChains):
-            req = m.RemapRequest(action.app, list(action.chains))
-            core.remap(req, now, weights=dict(action.weights), place=dict(action.place))
         self.done.append(f"{now:.1f} {action}")
         del self.done[:-50]
+        return True
 
     def status(self) -> dict[str, Any]:
         return self.engine.status() | {"enabled": self.enabled, "done": list(self.done)}

@@ -33,6 +33,7 @@ from mso.protocol.events import (
     Snapshotted,
     SourceTick,
 )
+from mso.protocol.procedures.instance import InstanceEvent
 from mso.protocol.state import AppState, Crashes, HostedInstance
 
 QUEUE_EVENTS = 1024  # events fed to an instance's worker and not processed yet, at most
@@ -77,7 +78,7 @@ class DataPlane:
 
     def stop(self, h: HostedInstance, reason: str) -> None:
         if not h.life.done:
-            h.life.on("stop")
+            h.life.on(InstanceEvent.STOP)
         self._instances.pop(h.instance, None)
         self.ctx.emit(fx.StopVertex(h.instance, reason))
 
@@ -134,7 +135,7 @@ class DataPlane:
         rec.last = f"{self.ctx.id}: {res.reason}"
         rec.times.append(now)
         self.ctx.note_event(now, f"{vid} crashed ({res.reason})")
-        h.life.on("crash")
+        h.life.on(InstanceEvent.CRASH)
         if not h.started:
             dep.instances.pop(vid, None)
             dep.awaiting.pop(vid, None)
@@ -157,7 +158,7 @@ class DataPlane:
             self.ctx.publish(InstanceFailed(dep.app.name, vid, f"{self.ctx.id}: {res.error}"))
             return
         h.started, h.mode = True, res.mode
-        h.life.on("started_for_move" if vid in dep.awaiting else "started")
+        h.life.on(InstanceEvent.STARTED_FOR_MOVE if vid in dep.awaiting else InstanceEvent.STARTED)
         self.ctx.publish(InstanceReady(dep.app.name, vid))
         if h.kind == "source" and vid in dep.instances:
             self.start_source(dep, vid, now)

@@ -233,8 +233,8 @@ def run(seed: int, settings: Settings | None = None) -> Result:
 
     def request(at: float, node: str, msg: m.Message) -> Call:
         def do(s: Simulation) -> None:
-            if node in s.dead:
-                log.append(f"{s.now:012.6f} request via dead {node} skipped")
+            if node in s.killed:
+                log.append(f"{s.now:012.6f} request via killed {node} skipped")
                 return
             log.append(f"{s.now:012.6f} request via {node}: {msg!r}")
             s.request(node, msg, client=2)
@@ -272,7 +272,7 @@ def run(seed: int, settings: Settings | None = None) -> Result:
 
 def _ask_status(sim: Simulation) -> None:
     """Ask the first live node for every node's status (checked by the invariants)."""
-    first = next(n for n in sorted(sim.cores) if n not in sim.dead)
+    first = next(n for n in sorted(sim.cores) if n not in sim.killed)
     sim.request(first, m.StatusRequest(req=0, everywhere=True), client=STATUS_CLIENT)
 
 

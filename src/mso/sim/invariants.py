@@ -54,7 +54,7 @@ def check_procedures(sim: Simulation) -> list[Violation]:
     A no-op until the core reports ``open_procedures(now)``."""
     out: list[Violation] = []
     for n, core in sorted(sim.cores.items()):
-        if n in sim.dead:
+        if n in sim.killed:
             continue
         opened = getattr(core, "open_procedures", None)
         if callable(opened):
@@ -74,7 +74,7 @@ def check(sim: Simulation, sched: Schedule, records: list[SinkRecord]) -> list[V
     """Check the invariants at the end of a quiet period."""
     out: list[Violation] = []
     now = sim.now
-    live = sorted(n for n in sim.cores if n not in sim.dead)
+    live = sorted(n for n in sim.cores if n not in sim.killed)
     deploys = [r for _, c, r in sim.replies if isinstance(r, m.DeployReply)]
     if not deploys or not deploys[0].ok:
         err = deploys[0].error if deploys else "no reply"

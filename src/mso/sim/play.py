@@ -29,10 +29,10 @@ def apply(sim: Simulation, actions: list[Action], convergence_s: float = 0.0) ->
     """Carry out a timeline's actions on the simulation."""
     for action in actions:
         if isinstance(action, Crash):
-            if action.node not in sim.dead:
+            if action.node not in sim.killed:
                 sim.kill(action.node, convergence_s)
         elif isinstance(action, Restart):
-            if action.node in sim.dead:
+            if action.node in sim.killed:
                 sim.revive(action.node)
         else:
             sim.links_changed(convergence_s)
@@ -110,7 +110,7 @@ def simulate(
 def _placement(sim: Simulation, app: str) -> dict[str, str]:
     for n in sorted(sim.cores):
         dep = sim.cores[n].apps.get(app)
-        if n not in sim.dead and dep is not None and dep.running:
+        if n not in sim.killed and dep is not None and dep.running:
             return dict(dep.placed)
     return {}
 
@@ -125,7 +125,7 @@ def _report(
     convergence_s: float,
     moves: list[tuple[float, str, str, str]],
 ) -> dict[str, Any]:
-    live = [n for n in sim.cores if n not in sim.dead]
+    live = [n for n in sim.cores if n not in sim.killed]
     status = {n: sim.cores[n].status(sim.now) for n in live}
     deploy = [r for _, _, r in sim.replies if isinstance(r, m.DeployReply)]
     reply = deploy[0] if deploy else None

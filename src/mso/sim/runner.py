@@ -83,7 +83,7 @@ class Simulation:
         self._heap: list[_Item] = []
         self._seq = itertools.count()
         self._timers: dict[tuple[str, Hashable], float] = {}
-        self.dead: set[str] = set()  # killed nodes: they receive and do nothing
+        self.killed: set[str] = set()  # killed nodes: they receive and do nothing
         # (node, destination): node's routing view has no route there although the links do
         # (a routing protocol that has not converged; see :meth:`lose_route`)
         self.lost_routes: set[tuple[str, str]] = set()
@@ -111,7 +111,7 @@ class Simulation:
         """The live nodes that run an instance of ``vertex`` (one, unless a move is under way
         or something went wrong)."""
         return sorted(
-            n for n, c in self.cores.items() if n not in self.dead and vertex in c.instances(app)
+            n for n, c in self.cores.items() if n not in self.killed and vertex in c.instances(app)
         )
 
     def placement(self, node: str, app: str) -> dict[str, str]:
@@ -130,7 +130,7 @@ class Simulation:
     def update_routes(self) -> None:
         """Give every core its routing view of the current links."""
         for n, core in self.cores.items():
-            if n in self.dead:
+            if n in self.killed:
                 continue
             routes: dict[str, tuple[str, int]] = {}
             for dst in self.network.nodes:
@@ -139,7 +139,7 @@ class Simulation:
                     routes[dst] = (route[1], len(route) - 1)
             self.apply(n, core.set_routes(routes, self.now))
         for n, wait in self.waiting.items():
-            if wait and n not in self.dead:
+            if wait and n not in self.killed:
                 wait.release(self.now, self._resender(n))
 
     def lose_route(self, node: str, dst: str, lost: bool = True) -> None:
@@ -226,7 +226,7 @@ class Simulation:
     def kill(self, node: str, convergence_s: float = 0.0) -> None:
         """Fail-stop ``node`` now: it falls silent and its links go; the survivors' routing
         views learn the new routes ``convergence_s`` later, as a routing protocol's would."""
-        self.dead.add(node)
+        self.killed.add(node)
         self.waiting[node] = RouteWait()  # what it held died with it
         for n in list(self.network.neighbours(node)):
             self.network.remove_link(node, n)
@@ -249,7 +249,7 @@ class Simulation:
             incarnation=old.incarnation + 1,
         )
         self.executors[node] = self._executor(node)  # the old instances went with the process
-        self.dead.discard(node)
+        self.killed.discard(node)
         self._timers = {k: v for k, v in self._timers.items() if k[0] != node}
         self.apply(node, core.start(self.now))
         self.update_routes()
@@ -261,7 +261,7 @@ class Simulation:
             if item.kind == "routes":
                 self.update_routes()
                 continue
-            if item.node in self.dead:
+            if item.node in self.killed:
                 continue
             core = self.cores[item.node]
             core.observe(

@@ -21,7 +21,9 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 if TYPE_CHECKING:
     from mso.protocol import messages as m
 
-Table = dict[enum.Enum, dict[str, enum.Enum]]  # state -> {event: next state}
+# state -> {event: next state}; each machine's events are an enum of its own, so a misspelt
+# event is a type error, not a transition missed at run time
+Table = dict[enum.Enum, dict[enum.Enum, enum.Enum]]
 
 
 class IllegalTransition(Exception):
@@ -67,12 +69,12 @@ class StateMachine:
     def done(self) -> bool:
         return self.state in (Phase.FINISHED, Phase.FAILED)
 
-    def on(self, event: str) -> None:
+    def on(self, event: enum.Enum) -> None:
         """Take the transition ``event`` from the current state, or raise."""
         nxt = self.TRANSITIONS.get(self.state, {}).get(event)
         if nxt is None:
             raise IllegalTransition(
-                f"{self.name}: event {event!r} is not allowed in state {self.state.name}"
+                f"{self.name}: event {event.value!r} is not allowed in state {self.state.name}"
             )
         self.state = nxt
 
@@ -90,7 +92,7 @@ class Procedure(StateMachine):
         self.deadline = now + (self.DEADLINE_S if deadline_s is None else deadline_s)
         self.error = ""
 
-    def on(self, event: str) -> None:
+    def on(self, event: enum.Enum) -> None:
         try:
             super().on(event)
         except IllegalTransition as exc:
@@ -113,7 +115,7 @@ class Procedure(StateMachine):
 def table_rows(cls: type[StateMachine]) -> list[tuple[str, str, str]]:
     """(state, event, next state) rows of a procedure's table: the docs are drawn from them."""
     return [
-        (state.name, event, nxt.name)
+        (state.name, str(event.value), nxt.name)
         for state, events in cls.TRANSITIONS.items()
         for event, nxt in events.items()
     ]

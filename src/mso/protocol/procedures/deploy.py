@@ -47,12 +47,19 @@ class S(enum.Enum):
     BUILDING = "building"
 
 
+class DeployEvent(enum.Enum):
+    """What moves a Deploy along its table."""
+
+    BUILT = "built"
+    ALL_BUILT = "all_built"
+
+
 class Deploy(Procedure):
     NAME = "deploy"
     INITIAL = S.BUILDING
     DEADLINE_S = 30.0
     TRANSITIONS: ClassVar[Table] = {
-        S.BUILDING: {"built": S.BUILDING, "all_built": Phase.FINISHED},
+        S.BUILDING: {DeployEvent.BUILT: S.BUILDING, DeployEvent.ALL_BUILT: Phase.FINISHED},
     }
 
     def __init__(self, pid: int, now: float, app: str) -> None:
@@ -330,9 +337,9 @@ class Deployer:
             self.ctx.refusal("chain_built_unexpected")
             return
         dep.built.add(msg.chain)
-        proc.on("built")
+        proc.on(DeployEvent.BUILT)
         if len(dep.built) == len(dep.layout.chains):
-            proc.on("all_built")
+            proc.on(DeployEvent.ALL_BUILT)
             self.ctx.end(proc.pid)
             self.ctx.broadcast(m.StartApp(msg.app))
             if dep.client is not None:

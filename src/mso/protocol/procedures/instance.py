@@ -54,6 +54,21 @@ MAX_RESTARTS = 3  # crashes of one vertex at one host restored in place within .
 RESTART_WINDOW_S = 60.0  # ... this long; one more and it stays crashed
 
 
+class InstanceEvent(enum.Enum):
+    """What moves a InstanceLife along its table."""
+
+    STARTED = "started"
+    STARTED_FOR_MOVE = "started_for_move"
+    STOP = "stop"
+    CRASH = "crash"
+    HANDOVER = "handover"
+    RESUMED = "resumed"
+    MARKER = "marker"
+    ALL_MARKED = "all_marked"
+    HANDED_OVER = "handed_over"
+    RESTART = "restart"
+
+
 class InstanceLife(StateMachine):
     """One vertex instance's state at its host (see the module docstring)."""
 
@@ -61,37 +76,37 @@ class InstanceLife(StateMachine):
     INITIAL = H.STARTING
     TRANSITIONS: ClassVar[Table] = {
         H.STARTING: {
-            "started": H.RUNNING,
-            "started_for_move": H.AWAITING,
-            "stop": Phase.FAILED,
-            "crash": Phase.FAILED,  # as a failed construction
+            InstanceEvent.STARTED: H.RUNNING,
+            InstanceEvent.STARTED_FOR_MOVE: H.AWAITING,
+            InstanceEvent.STOP: Phase.FAILED,
+            InstanceEvent.CRASH: Phase.FAILED,  # as a failed construction
         },
         H.AWAITING: {
-            "handover": H.RUNNING,  # a relocation: the old instance's state arrived
-            "resumed": H.RUNNING,  # a restore: every surviving end has resumed it
-            "stop": Phase.FAILED,  # unprepared, undeployed or reset
-            "crash": H.CRASHED,
+            InstanceEvent.HANDOVER: H.RUNNING,  # a relocation: the old instance's state arrived
+            InstanceEvent.RESUMED: H.RUNNING,  # a restore: every surviving end has resumed it
+            InstanceEvent.STOP: Phase.FAILED,  # unprepared, undeployed or reset
+            InstanceEvent.CRASH: H.CRASHED,
         },
         H.RUNNING: {
-            "marker": H.DRAINING,
-            "all_marked": H.SNAPSHOTTING,
-            "stop": Phase.FAILED,
-            "crash": H.CRASHED,
+            InstanceEvent.MARKER: H.DRAINING,
+            InstanceEvent.ALL_MARKED: H.SNAPSHOTTING,
+            InstanceEvent.STOP: Phase.FAILED,
+            InstanceEvent.CRASH: H.CRASHED,
         },
         H.DRAINING: {
-            "marker": H.DRAINING,
-            "all_marked": H.SNAPSHOTTING,
-            "stop": Phase.FAILED,
-            "crash": H.CRASHED,
+            InstanceEvent.MARKER: H.DRAINING,
+            InstanceEvent.ALL_MARKED: H.SNAPSHOTTING,
+            InstanceEvent.STOP: Phase.FAILED,
+            InstanceEvent.CRASH: H.CRASHED,
         },
         H.SNAPSHOTTING: {
-            "handed_over": Phase.FINISHED,
-            "stop": Phase.FAILED,
-            "crash": H.CRASHED,
+            InstanceEvent.HANDED_OVER: Phase.FINISHED,
+            InstanceEvent.STOP: Phase.FAILED,
+            InstanceEvent.CRASH: H.CRASHED,
         },
         H.CRASHED: {
-            "restart": Phase.FINISHED,  # a fresh instance replaces it (restored in place)
-            "stop": Phase.FAILED,  # undeployed or reset while it stays crashed
+            InstanceEvent.RESTART: Phase.FINISHED,  # a fresh instance takes its place (in place)
+            InstanceEvent.STOP: Phase.FAILED,  # undeployed or reset while it stays crashed
         },
     }
 

@@ -49,6 +49,7 @@ from mso.protocol.events import (
     Snapshotted,
 )
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
+from mso.protocol.procedures.instance import InstanceEvent
 from mso.protocol.state import AppState, Restoring
 
 # once producers have switched, the move is committed: the old instance hands over after it has
@@ -63,6 +64,16 @@ class S(enum.Enum):
     RESUMING = "resuming"
 
 
+class RelocationEvent(enum.Enum):
+    """What moves a Relocation along its table."""
+
+    PREPARED = "prepared"
+    PREPARED_RESTORE = "prepared_restore"
+    RETRY = "retry"
+    HANDED_OVER = "handed_over"
+    SOURCE_FAILED = "source_failed"
+
+
 class Relocation(Procedure):
     """A relocation (or, with ``restore``, a restore) this node coordinates."""
 
@@ -71,19 +82,22 @@ class Relocation(Procedure):
     DEADLINE_S = 5.0
     TRANSITIONS: ClassVar[Table] = {
         S.PREPARING: {
-            "prepared": S.SWITCHING,
-            "prepared_restore": S.RESUMING,
-            "retry": S.PREPARING,
-            "handed_over": Phase.FINISHED,  # a restore of a vertex that never went
+            RelocationEvent.PREPARED: S.SWITCHING,
+            RelocationEvent.PREPARED_RESTORE: S.RESUMING,
+            RelocationEvent.RETRY: S.PREPARING,
+            RelocationEvent.HANDED_OVER: Phase.FINISHED,  # a restore of a vertex that never went
         },
         # the old host failed after producers switched: its instance and what it held are
         # gone, the new one waits for a handover that never comes; it is restored instead
-        S.SWITCHING: {"handed_over": Phase.FINISHED, "source_failed": S.RESUMING},
+        S.SWITCHING: {
+            RelocationEvent.HANDED_OVER: Phase.FINISHED,
+            RelocationEvent.SOURCE_FAILED: S.RESUMING,
+        },
         # a restore's prepare is re-sent until answered: answers may come more than once
         S.RESUMING: {
-            "prepared_restore": S.RESUMING,
-            "handed_over": Phase.FINISHED,
-            "retry": S.RESUMING,
+            RelocationEvent.PREPARED_RESTORE: S.RESUMING,
+            RelocationEvent.HANDED_OVER: Phase.FINISHED,
+            RelocationEvent.RETRY: S.RESUMING,
         },
     }
 
@@ -184,7 +198,7 @@ class Relocator:
             if node == reloc.source and reloc.state is S.SWITCHING and dep is not None:
                 # committed: producers send to the new instance, which waits for a handover
                 # the old host will never send; restore the vertex there instead
-                reloc.on("source_failed")
+                reloc.on(RelocationEvent.SOURCE_FAILED)
                 self.start_restore(dep, reloc, reloc.pid, now)
                 continue
             self.fail(reloc, f"node {node} failed during the relocation of {reloc.vertex!r}", now)
@@ -229,10 +243,6 @@ class Relocator:
             where = "predecessor's" if direction == "upstream" else "next downstream"
             raise MsoError(f"{vertex!r} already runs on its {where} node {here}")
         return target
-
-    def relocate(self, req: m.RelocateRequest, now: float) -> None:
-        """Start a relocation this node coordinates (the management rules' entry point)."""
-        self.request(None, req, now)
 
     def on_relocate_request(self, msg: m.RelocateRequest, now: float) -> None:
         """A relocation asked by another node. Where operator keys are configured that is a
@@ -353,7 +363,7 @@ class Relocator:
                 self.ctx.publish(AppMissing(dep.app.name, reloc.target))
             self.fail(reloc, msg.error, now)
             return
-        reloc.on("prepared_restore" if reloc.restore else "prepared")
+        reloc.on(RelocationEvent.PREPARED_RESTORE if reloc.restore else RelocationEvent.PREPARED)
         if not reloc.restore:  # committed: the old instance drains what it holds, then hands
             reloc.deadline = max(reloc.deadline, now + SWITCH_DEADLINE_S)  # over; a busy
             self.ctx.set_timer(Deadline(reloc.pid), reloc.deadline)  # vertex may take a while
@@ -430,10 +440,10 @@ class Relocator:
         marked.add(msg.edge)
         ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vid]
         if not set(ins) <= marked:
-            h.life.on("marker")
+            h.life.on(InstanceEvent.MARKER)
             return
         del dep.markers[vid]
-        h.life.on("all_marked")
+        h.life.on(InstanceEvent.ALL_MARKED)
         h.handing_over = msg  # the state is taken once everything before is processed
         self.dp.submit(h, fx.SnapshotVertex(h.instance, msg.rid))
 
@@ -462,7 +472,7 @@ class Relocator:
             batch = self.dp.outbox.pop(k)
             dst = dep.placed[dep.app.edges[k[1]].dst]
             self.ctx.emit(Send(dst, m.Data(k[0], k[1], dep.epoch, *batch)))
-        h.life.on("handed_over")
+        h.life.on(InstanceEvent.HANDED_OVER)
         self.dp.stop(h, "moved")
         del dep.instances[vid]
         dep.placed[vid] = msg.to
@@ -488,7 +498,7 @@ class Relocator:
             return
         dep.moved[msg.vertex] = (now, src)
         h = dep.awaiting.pop(msg.vertex)
-        h.life.on("handover")
+        h.life.on(InstanceEvent.HANDOVER)
         self.ctx.emit(fx.RestoreVertex(h.instance, msg.state))  # before any feed
         h.processed, h.emitted = msg.processed, msg.emitted
         dep.instances[msg.vertex] = h
@@ -522,7 +532,7 @@ class Relocator:
         if reloc is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
             self.ctx.refusal("handover_done_unexpected")
             return
-        reloc.on("handed_over")
+        reloc.on(RelocationEvent.HANDED_OVER)
         self.ctx.end(reloc.pid)
         if reloc.restore:
             dep = self.ctx.apps.get(reloc.app)
@@ -599,12 +609,12 @@ class Relocator:
             where = dep.placed[reloc.vertex]
             if where != reloc.target:
                 self.ctx.send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
-            reloc.on("handed_over")
+            reloc.on(RelocationEvent.HANDED_OVER)
             self.ctx.end(reloc.pid)
             reloc.target = where
             self._ended(reloc, "")
             return
-        reloc.on("retry")
+        reloc.on(RelocationEvent.RETRY)
         if reloc.retried is not None:  # a recovery's record of what it sent again
             reloc.retried.append(f"restore {reloc.vertex} on {reloc.target}")
         self.start_restore(dep, reloc, rid, now)  # idempotent at every end: just ask again

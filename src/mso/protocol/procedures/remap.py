@@ -50,16 +50,26 @@ class S(enum.Enum):
     MOVING = "moving"
 
 
+class RemapEvent(enum.Enum):
+    """What moves a Remap along its table."""
+
+    PROBE = "probe"
+    PLACED = "placed"
+    PLACED_ALL = "placed_all"
+    MOVED = "moved"
+    ALL_MOVED = "all_moved"
+
+
 class Remap(Procedure):
     NAME = "remap"
     INITIAL = S.PROBING
     TRANSITIONS: ClassVar[Table] = {
         S.PROBING: {
-            "probe": S.PROBING,  # probes sent for the next chain (or sent again)
-            "placed": S.PROBING,  # a chain placed, more to go
-            "placed_all": S.MOVING,
+            RemapEvent.PROBE: S.PROBING,  # probes sent for the next chain (or sent again)
+            RemapEvent.PLACED: S.PROBING,  # a chain placed, more to go
+            RemapEvent.PLACED_ALL: S.MOVING,
         },
-        S.MOVING: {"moved": S.MOVING, "all_moved": Phase.FINISHED},
+        S.MOVING: {RemapEvent.MOVED: S.MOVING, RemapEvent.ALL_MOVED: Phase.FINISHED},
     }
 
     def __init__(
@@ -208,7 +218,7 @@ class Remapper:
         if remap is None or dep is None:
             return
         if not remap.chains:
-            remap.on("placed_all")
+            remap.on(RemapEvent.PLACED_ALL)
             order = {v: i for i, v in enumerate(dep.app.topological_order())}
             moves = [
                 (v, n)
@@ -233,7 +243,7 @@ class Remapper:
         if not pairs:
             self._place(rid, now)
             return
-        remap.on("probe")
+        remap.on(RemapEvent.PROBE)
         remap.probe_attempts += 1
         for k, (a, b) in enumerate(pairs):  # chain -1 - rid marks a remap's probe
             self.ctx.send(a, m.Probe(remap.app, -1, rid * 1000 + k, self.ctx.id, b, [], []))
@@ -285,7 +295,7 @@ class Remapper:
         dep = self.ctx.apps.get(remap.app) if remap is not None else None
         if remap is None or dep is None:
             return
-        remap.on("placed")
+        remap.on(RemapEvent.PLACED)
         ci = remap.chains.pop(0)
         remap.probe_attempts = 0
         w = remap.weights
@@ -312,7 +322,7 @@ class Remapper:
         if remap is None or dep is None:
             return
         if moved is not None:
-            remap.on("moved")
+            remap.on(RemapEvent.MOVED)
             remap.moved[moved[0]] = moved[1]
         while remap.moves:
             vertex, node = remap.moves.pop(0)
@@ -334,7 +344,7 @@ class Remapper:
             else:
                 self.ctx.send(node, m.Prepare(remap.app, vertex, pid))
             return
-        remap.on("all_moved")
+        remap.on(RemapEvent.ALL_MOVED)
         self._finish(rid, now, "")
 
     def _finish(self, rid: int, now: float, error: str) -> None:

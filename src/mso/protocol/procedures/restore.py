@@ -33,7 +33,7 @@ from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
 from mso.protocol.effects import Send
 from mso.protocol.events import InstanceCrashed, RelocationEnded
-from mso.protocol.procedures.instance import MAX_RESTARTS, RESTART_WINDOW_S, H
+from mso.protocol.procedures.instance import MAX_RESTARTS, RESTART_WINDOW_S, H, InstanceEvent
 from mso.protocol.procedures.relocation import Relocation, Relocator
 from mso.protocol.state import AppState
 
@@ -113,7 +113,7 @@ class Restorer:
         carries the numbers it had and consumers drop it as duplicates."""
         restoring = dep.restoring.pop(vertex)
         h = dep.awaiting.pop(vertex)
-        h.life.on("resumed")
+        h.life.on(InstanceEvent.RESUMED)
         dep.moved[vertex] = (self.ctx.now, dep.placed[vertex])
         dep.instances[vertex] = h
         dep.placed[vertex] = self.ctx.id
@@ -169,7 +169,7 @@ class Restorer:
                 if vid in c.vertices:
                     dep.parked.setdefault(c.index, rec.gave_up)
             return
-        h.life.on("restart")
+        h.life.on(InstanceEvent.RESTART)
         del dep.instances[vid]
         dep.crashed[vid] = h
         for i, e in enumerate(dep.app.edges):  # its channels: the surviving ends resume anew

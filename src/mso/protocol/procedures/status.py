@@ -14,12 +14,24 @@ class S(enum.Enum):
     WAITING = "waiting"
 
 
+class StatusEvent(enum.Enum):
+    """What moves a StatusFanout along its table."""
+
+    REPLY = "reply"
+    ALL_ANSWERED = "all_answered"
+    DEADLINE = "deadline"
+
+
 class StatusFanout(Procedure):
     NAME = "status"
     INITIAL = S.WAITING
     DEADLINE_S = 1.0
     TRANSITIONS: ClassVar[Table] = {
-        S.WAITING: {"reply": S.WAITING, "all_answered": Phase.FINISHED, "deadline": Phase.FINISHED}
+        S.WAITING: {
+            StatusEvent.REPLY: S.WAITING,
+            StatusEvent.ALL_ANSWERED: Phase.FINISHED,
+            StatusEvent.DEADLINE: Phase.FINISHED,
+        }
     }
 
     def __init__(
@@ -35,14 +47,14 @@ class StatusFanout(Procedure):
             ctx.send(n, m.StatusRequest(req=self.pid))
 
     def receive(self, ctx: Messenger, msg: m.StatusReply) -> None:
-        self.on("reply")
+        self.on(StatusEvent.REPLY)
         self.got.update(msg.nodes)
         self.missing.difference_update(msg.nodes)
         if not self.missing:
-            self.on("all_answered")
+            self.on(StatusEvent.ALL_ANSWERED)
             ctx.reply(self.client, m.StatusReply(self.pid, self.got))
 
     def expire(self, ctx: Messenger) -> None:
         """The defined outcome of a late node: answer with the others."""
-        self.on("deadline")
+        self.on(StatusEvent.DEADLINE)
         ctx.reply(self.client, m.StatusReply(self.pid, self.got))

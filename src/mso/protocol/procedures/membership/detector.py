@@ -39,21 +39,38 @@ class P(enum.Enum):
     FAILED = "failed"
 
 
+class PeerEvent(enum.Enum):
+    """What moves a PeerLife along its table."""
+
+    SILENT = "silent"
+    REPORTED_DOWN = "reported_down"
+    UNREACHABLE = "unreachable"
+    VOUCHED = "vouched"
+    REACHABLE = "reachable"
+    CONFIRMED = "confirmed"
+    RESET = "reset"
+    REJOINED = "rejoined"
+
+
 class PeerLife(StateMachine):
     """Another node, as this node holds it."""
 
     NAME = "peer"
     INITIAL = P.ALIVE
     TRANSITIONS: ClassVar[Table] = {
-        P.ALIVE: {"silent": P.FAILED, "reported_down": P.FAILED, "unreachable": P.SUSPECT},
-        P.SUSPECT: {
-            "vouched": P.ALIVE,
-            "reachable": P.ALIVE,
-            "confirmed": P.FAILED,
-            "reported_down": P.FAILED,
-            "reset": P.ALIVE,
+        P.ALIVE: {
+            PeerEvent.SILENT: P.FAILED,
+            PeerEvent.REPORTED_DOWN: P.FAILED,
+            PeerEvent.UNREACHABLE: P.SUSPECT,
         },
-        P.FAILED: {"rejoined": P.ALIVE, "reset": P.ALIVE},
+        P.SUSPECT: {
+            PeerEvent.VOUCHED: P.ALIVE,
+            PeerEvent.REACHABLE: P.ALIVE,
+            PeerEvent.CONFIRMED: P.FAILED,
+            PeerEvent.REPORTED_DOWN: P.FAILED,
+            PeerEvent.RESET: P.ALIVE,
+        },
+        P.FAILED: {PeerEvent.REJOINED: P.ALIVE, PeerEvent.RESET: P.ALIVE},
     }
 
     def __init__(self, node: str) -> None:
@@ -69,6 +86,16 @@ class Q(enum.Enum):
     ASKING = "asking"
 
 
+class SuspicionEvent(enum.Enum):
+    """What moves a Suspicion along its table."""
+
+    DENIED = "denied"
+    ALL_DENIED = "all_denied"
+    VOUCHED = "vouched"
+    DEADLINE = "deadline"
+    ENDED = "ended"
+
+
 class Suspicion(Procedure):
     """This node lost every route to ``node``: before declaring it failed, it asks the nodes it
     still reaches (``asked``) whether they hear it. The outcome (``vouched``, ``confirmed`` or,
@@ -79,11 +106,11 @@ class Suspicion(Procedure):
     DEADLINE_S = 0.5  # the node sets it per run to its liveness window (``dead_after_s``)
     TRANSITIONS: ClassVar[Table] = {
         Q.ASKING: {
-            "denied": Q.ASKING,
-            "all_denied": Phase.FINISHED,
-            "vouched": Phase.FINISHED,
-            "deadline": Phase.FINISHED,
-            "ended": Phase.FINISHED,
+            SuspicionEvent.DENIED: Q.ASKING,
+            SuspicionEvent.ALL_DENIED: Phase.FINISHED,
+            SuspicionEvent.VOUCHED: Phase.FINISHED,
+            SuspicionEvent.DEADLINE: Phase.FINISHED,
+            SuspicionEvent.ENDED: Phase.FINISHED,
         }
     }
 
@@ -108,26 +135,34 @@ class Suspicion(Procedure):
         by the caller)."""
         self.missing.discard(src)
         if yes:
-            self.on("vouched")
+            self.on(SuspicionEvent.VOUCHED)
             self.outcome = "vouched"
         elif self.missing:
-            self.on("denied")
+            self.on(SuspicionEvent.DENIED)
         else:
-            self.on("all_denied")
+            self.on(SuspicionEvent.ALL_DENIED)
             self.outcome = "confirmed"
 
     def expire(self, ctx: Messenger) -> None:
         """Nobody said yes in time (a node asked may have died too): confirmed."""
-        self.on("deadline")
+        self.on(SuspicionEvent.DEADLINE)
         self.outcome = "confirmed"
 
     def end(self) -> None:
         """The wait is moot: the node came back into reach, was heard, or declared failed."""
-        self.on("ended")
+        self.on(SuspicionEvent.ENDED)
         self.outcome = "ended"
 
     def describe(self) -> dict[str, Any]:
         return super().describe() | {"node": self.node, "waiting_for": sorted(self.missing)}
+
+
+class VouchEvent(enum.Enum):
+    """What moves a Vouch along its table."""
+
+    ASKED = "asked"
+    ANSWERED = "answered"
+    DEADLINE = "deadline"
 
 
 class Vouch(Procedure):
@@ -141,7 +176,11 @@ class Vouch(Procedure):
     DEADLINE_S = 0.25  # the node sets it per run to half its liveness window
     MAX_ASKERS = 64  # one entry per asking node; a flood of names is not kept
     TRANSITIONS: ClassVar[Table] = {
-        Q.ASKING: {"asked": Q.ASKING, "answered": Phase.FINISHED, "deadline": Phase.FINISHED}
+        Q.ASKING: {
+            VouchEvent.ASKED: Q.ASKING,
+            VouchEvent.ANSWERED: Phase.FINISHED,
+            VouchEvent.DEADLINE: Phase.FINISHED,
+        }
     }
 
     def __init__(self, pid: int, now: float, node: str, deadline_s: float | None = None) -> None:
@@ -154,7 +193,7 @@ class Vouch(Procedure):
         return f"vouch for {self.node}"
 
     def ask(self, asker: str, rid: int) -> None:
-        self.on("asked")
+        self.on(VouchEvent.ASKED)
         if asker in self.askers or len(self.askers) < self.MAX_ASKERS:
             self.askers[asker] = rid
 
@@ -167,12 +206,12 @@ class Vouch(Procedure):
 
     def answered(self, ctx: Messenger) -> None:
         """``node`` answered: it lives."""
-        self.on("answered")
+        self.on(VouchEvent.ANSWERED)
         self._tell(ctx, True)
 
     def expire(self, ctx: Messenger) -> None:
         """``node`` did not answer in time: we do not hear it."""
-        self.on("deadline")
+        self.on(VouchEvent.DEADLINE)
         self._tell(ctx, False)
 
     def describe(self) -> dict[str, Any]:

@@ -37,7 +37,7 @@ from mso.protocol.events import (
     RoutesChanged,
 )
 from mso.protocol.procedures.deploy import Deployer
-from mso.protocol.procedures.membership.detector import P, PeerLife, Suspicion, Vouch
+from mso.protocol.procedures.membership.detector import P, PeerEvent, PeerLife, Suspicion, Vouch
 from mso.protocol.procedures.membership.liveness import Liveness
 from mso.protocol.procedures.remap import Remapper
 from mso.protocol.state import AppState
@@ -193,7 +193,7 @@ class Membership:
         still reaches, and declare it only if none does (:class:`Suspicion`)."""
         if node in self._suspicions or node in self.failed or node == self.ctx.id:
             return
-        self._peer(node).on("unreachable")
+        self._peer(node).on(PeerEvent.UNREACHABLE)
         asked = sorted(n for n in self.ctx.routes if n not in self.failed and n != node)
         if not asked:  # nobody left to ask: this node is cut off from everyone
             self.on_node_down(node, self.ctx.id, now)
@@ -253,16 +253,16 @@ class Membership:
         self.ctx.end(proc.pid)
         self._suspicions.pop(proc.node, None)
         if proc.outcome == "vouched":  # someone hears it: ask again a window from now
-            self._peer(proc.node).on("vouched")
+            self._peer(proc.node).on(PeerEvent.VOUCHED)
             self.liveness.vouched(proc.node, now)
         elif proc.node in self.ctx.routes:  # (back in reach since: nothing to confirm)
-            self._peer(proc.node).on("reachable")
+            self._peer(proc.node).on(PeerEvent.REACHABLE)
         else:
             self.on_node_down(proc.node, self.ctx.id, now)
 
-    def _unsuspect(self, node: str, event: str) -> None:
-        """End ``node``'s open suspicion, if any (``event``: why, by the peer's table; '' to
-        leave the peer's state to the caller)."""
+    def _unsuspect(self, node: str, event: PeerEvent | None) -> None:
+        """End ``node``'s open suspicion, if any (``event``: why, by the peer's table; None
+        to leave the peer's state to the caller)."""
         pid = self._suspicions.pop(node, None)
         if pid is None:
             return
@@ -277,13 +277,13 @@ class Membership:
         """The routes changed: a suspected node this node reaches again is not suspected."""
         for node in sorted(self._suspicions):
             if node in self.ctx.routes:
-                self._unsuspect(node, "reachable")
+                self._unsuspect(node, PeerEvent.REACHABLE)
 
     def heard_directly(self, src: str, now: float) -> None:
         """A message from a suspected node (it reaches us though we do not reach it): it
         lives, which is what the suspicion asked."""
         if src in self._suspicions:
-            self._unsuspect(src, "vouched")
+            self._unsuspect(src, PeerEvent.VOUCHED)
             self.liveness.vouched(src, now)
 
     def on_node_down(
@@ -294,12 +294,12 @@ class Membership:
         known = self._incarnations.get(node, 0)
         if incarnation is not None and incarnation < known:
             return  # that incarnation failed, and a newer one is already back
-        self._unsuspect(node, "")
+        self._unsuspect(node, None)
         peer = self._peer(node)
         if detector != self.ctx.id:
-            peer.on("reported_down")
+            peer.on(PeerEvent.REPORTED_DOWN)
         else:  # our own word: confirmed by the nodes we asked, or a neighbour's silence
-            peer.on("confirmed" if peer.state is P.SUSPECT else "silent")
+            peer.on(PeerEvent.CONFIRMED if peer.state is P.SUSPECT else PeerEvent.SILENT)
         self.failed.add(node)
         self._failed_incarnation[node] = known if incarnation is None else incarnation
         self.liveness.forget(node)
@@ -436,9 +436,9 @@ class Membership:
         for node in self.failed:
             self.liveness.rejoin(node, now, node in self.ctx.routes, self.ctx.routes.get(node))
         for node in self.failed:
-            self._peer(node).on("reset")
+            self._peer(node).on(PeerEvent.RESET)
         for node in sorted(self._suspicions):  # (their procedures were ended above)
-            self._peer(node).on("reset")
+            self._peer(node).on(PeerEvent.RESET)
         self._suspicions.clear()
         self._vouching.clear()
         self.failed.clear()
@@ -461,7 +461,7 @@ class Membership:
         """``node`` is back with no instances: restore what it hosted, unpark what was pinned
         to it, and tell it the apps."""
         if node in self.failed:
-            self._peer(node).on("rejoined")
+            self._peer(node).on(PeerEvent.REJOINED)
         self.failed.discard(node)
         self._failed_incarnation.pop(node, None)
         self._incarnations[node] = incarnation
