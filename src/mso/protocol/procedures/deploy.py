@@ -96,23 +96,35 @@ class Deployer:
                 return proc
         return None
 
-    def expire(self, proc: Deploy, now: float) -> None:
-        """The deadline passed: a probe or a chain build was lost; stop it everywhere."""
-        why = f"{proc.name} did not finish within {proc.deadline - proc.started_at:g} s"
-        self.on_deploy_failed(m.DeployFailed(proc.app, f"{self.ctx.id}: {why}"), now)
-        self.ctx.end(proc.pid)
-
-    def on_routes_changed(self, ev: RoutesChanged) -> None:
-        """Probes held for routes around a failure go on."""
-        now = self.ctx.now
-        waiting, self._waiting_probes = self._waiting_probes, []
-        for deadline, probe in waiting:
-            if deadline >= now:
-                self._forward_probe(probe, now)
-
     def on_reset(self) -> None:
         self._waiting_probes.clear()
 
+    def load_app(self, name: str, document: str) -> App:
+        """An app announced (or synced) by another node, with its policy checked and loaded."""
+        app = loads_app(document, file=f"<{name}>")
+        self.policies.app_policy(app.name, app.policy, where=f"{self.ctx.id}: {app.name}: policy")
+        return app
+
+    def revoked(self, src: str, app: str, document: str) -> bool:
+        """An operator undeployed ``app`` after ``document`` was granted (a replay, or a node
+        that missed the undeploy): refused, and the sender is told the undeploy."""
+        if not self.ctx.authority.revocation(app, document):
+            return False
+        self.ctx.refusal("document_revoked")
+        stop = self.ctx.authority.revoked.get(app)
+        if stop is not None and src != self.ctx.id:
+            self.ctx.send(src, stop)
+        return True
+
+    def named(self, app: App, name: str) -> bool:
+        """A document travels under its app's own name (a grant covers the document, not
+        the message's ``app``), else it is refused."""
+        if app.name == name:
+            return True
+        self.ctx.refusal("document_named_otherwise")
+        return False
+
+    # -- the origin: announces, waits for every chain built, starts the app --------------------
     def deploy_request(self, client: int, req: m.DeployRequest, now: float) -> None:
         try:
             app = loads_app(req.document, file=req.file)
@@ -144,31 +156,52 @@ class Deployer:
             m.AppAnnounce(app=app.name, origin=self.ctx.id, document=req.document, epoch=epoch)
         )
 
-    def load_app(self, name: str, document: str) -> App:
-        """An app announced (or synced) by another node, with its policy checked and loaded."""
-        app = loads_app(document, file=f"<{name}>")
-        self.policies.app_policy(app.name, app.policy, where=f"{self.ctx.id}: {app.name}: policy")
-        return app
+    def on_built(self, msg: m.ChainBuilt, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        proc = self._deploying(msg.app)
+        if (
+            dep is None
+            or dep.origin != self.ctx.id
+            or proc is None  # no deployment of it in progress here
+            or msg.chain in dep.built
+            or not 0 <= msg.chain < len(dep.layout.chains)
+        ):
+            self.ctx.refusal("chain_built_unexpected")
+            return
+        dep.built.add(msg.chain)
+        proc.on(DeployEvent.BUILT)
+        if len(dep.built) == len(dep.layout.chains):
+            proc.on(DeployEvent.ALL_BUILT)
+            self.ctx.end(proc.pid)
+            self.ctx.broadcast(m.StartApp(msg.app))
+            if dep.client is not None:
+                elapsed = self.ctx.elapsed_ms(dep.requested_at)
+                reply = m.DeployReply(msg.app, True, dict(dep.placed), elapsed)
+                self.ctx.emit(Reply(dep.client, reply))
+                dep.client = None
 
-    def revoked(self, src: str, app: str, document: str) -> bool:
-        """An operator undeployed ``app`` after ``document`` was granted (a replay, or a node
-        that missed the undeploy): refused, and the sender is told the undeploy."""
-        if not self.ctx.authority.revocation(app, document):
-            return False
-        self.ctx.refusal("document_revoked")
-        stop = self.ctx.authority.revoked.get(app)
-        if stop is not None and src != self.ctx.id:
-            self.ctx.send(src, stop)
-        return True
+    def on_deploy_failed(self, msg: m.DeployFailed, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or dep.origin != self.ctx.id:
+            return
+        proc = self._deploying(msg.app)
+        if proc is None:  # deployed (or failed) already: a failure report cannot stop it
+            self.ctx.refusal("deploy_failed_after_deployment")
+            return
+        proc.fail(self.ctx, msg.reason)
+        self.ctx.end(proc.pid)
+        if dep.client is not None:
+            self.ctx.emit(Reply(dep.client, _failed_reply(msg.app, msg.reason)))
+            dep.client = None
+        self.ctx.broadcast(m.StopApp(msg.app))
 
-    def named(self, app: App, name: str) -> bool:
-        """A document travels under its app's own name (a grant covers the document, not
-        the message's ``app``), else it is refused."""
-        if app.name == name:
-            return True
-        self.ctx.refusal("document_named_otherwise")
-        return False
+    def expire(self, proc: Deploy, now: float) -> None:
+        """The deadline passed: a probe or a chain build was lost; stop it everywhere."""
+        why = f"{proc.name} did not finish within {proc.deadline - proc.started_at:g} s"
+        self.on_deploy_failed(m.DeployFailed(proc.app, f"{self.ctx.id}: {why}"), now)
+        self.ctx.end(proc.pid)
 
+    # -- every node: takes the app; a chain head's node probes, places, builds -----------------
     def on_announce(self, src: str, msg: m.AppAnnounce, now: float) -> None:
         if msg.app in self.ctx.apps or self.revoked(src, msg.app, msg.document):
             return
@@ -213,29 +246,6 @@ class Deployer:
             dep.probes_expected[ci] = len(pairs)
             for k, (a, b) in enumerate(pairs):
                 self.ctx.send(a, m.Probe(dep.app.name, ci, k, self.ctx.id, b, [], []))
-
-    def on_probe(self, msg: m.Probe) -> None:
-        msg.nodes.append(self.ctx.id)
-        msg.capacities.append(self.ctx.capacity)
-        if msg.target == self.ctx.id:
-            reply = m.ProbeReply(msg.app, msg.chain, msg.segment, msg.nodes, msg.capacities)
-            self.ctx.send(msg.requester, reply)
-            return
-        self._forward_probe(msg, self.ctx.now)
-
-    def _forward_probe(self, msg: m.Probe, now: float) -> None:
-        nxt = self.ctx.routes.get(msg.target)
-        if nxt is not None and nxt[0] in self.ctx.failed:
-            # our routes do not go around a failure yet (the coordinator's already do): wait
-            # for them rather than lose the probe and the coordinator's STEP_TIMEOUT_S
-            if len(self._waiting_probes) < MAX_WAITING_PROBES:
-                self._waiting_probes.append((now + STEP_TIMEOUT_S, msg))
-            return
-        if nxt is None:
-            reply = m.ProbeReply(msg.app, msg.chain, msg.segment, [], [])
-            self.ctx.send(msg.requester, reply)
-            return
-        self.ctx.emit(Send(nxt[0], msg))  # the next hop appends itself in turn
 
     def on_probe_reply(self, msg: m.ProbeReply) -> None:
         dep = self.ctx.apps.get(msg.app)
@@ -292,6 +302,63 @@ class Deployer:
                 self.ctx.send(node, m.BuildChain(dep.app.name, msg.chain, verts))
         self._start_ready_chains(dep)
 
+    def on_part_ready(self, msg: m.ChainPartReady) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or msg.node not in dep.parts_pending.get(msg.chain, ()):
+            self.ctx.refusal("part_ready_unexpected")
+            return
+        pending = dep.parts_pending[msg.chain]
+        pending.discard(msg.node)
+        if not pending:
+            del dep.parts_pending[msg.chain]
+            self.ctx.send(dep.origin, m.ChainBuilt(msg.app, msg.chain))
+
+    def on_start(self, msg: m.StartApp, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or dep.running:
+            self.ctx.refusal("start_app_running")
+            return
+        dep.running = True
+        dep.started_at = now
+        dep.placed_at = dict.fromkeys(range(len(dep.layout.chains)), now)
+        for vid, h in dep.instances.items():
+            if h.kind == "source":
+                self.dp.start_source(dep, vid, now)
+        self.ctx.emit(SetTimer(Retransmit(msg.app), now + RETRANSMIT_S))
+
+    # -- a probe hop: appends itself, forwards (or holds for routes) ---------------------------
+    def on_probe(self, msg: m.Probe) -> None:
+        msg.nodes.append(self.ctx.id)
+        msg.capacities.append(self.ctx.capacity)
+        if msg.target == self.ctx.id:
+            reply = m.ProbeReply(msg.app, msg.chain, msg.segment, msg.nodes, msg.capacities)
+            self.ctx.send(msg.requester, reply)
+            return
+        self._forward_probe(msg, self.ctx.now)
+
+    def _forward_probe(self, msg: m.Probe, now: float) -> None:
+        nxt = self.ctx.routes.get(msg.target)
+        if nxt is not None and nxt[0] in self.ctx.failed:
+            # our routes do not go around a failure yet (the coordinator's already do): wait
+            # for them rather than lose the probe and the coordinator's STEP_TIMEOUT_S
+            if len(self._waiting_probes) < MAX_WAITING_PROBES:
+                self._waiting_probes.append((now + STEP_TIMEOUT_S, msg))
+            return
+        if nxt is None:
+            reply = m.ProbeReply(msg.app, msg.chain, msg.segment, [], [])
+            self.ctx.send(msg.requester, reply)
+            return
+        self.ctx.emit(Send(nxt[0], msg))  # the next hop appends itself in turn
+
+    def on_routes_changed(self, ev: RoutesChanged) -> None:
+        """Probes held for routes around a failure go on."""
+        now = self.ctx.now
+        waiting, self._waiting_probes = self._waiting_probes, []
+        for deadline, probe in waiting:
+            if deadline >= now:
+                self._forward_probe(probe, now)
+
+    # -- a builder: hosts its part, says when it is ready --------------------------------------
     def on_build(self, src: str, msg: m.BuildChain) -> None:
         """Host this node's part of a chain; it is ready once every instance has started."""
         dep = self.ctx.apps.get(msg.app)
@@ -313,69 +380,30 @@ class Deployer:
         else:
             self.ctx.send(src, m.ChainPartReady(msg.app, msg.chain, self.ctx.id))
 
-    def on_part_ready(self, msg: m.ChainPartReady) -> None:
-        dep = self.ctx.apps.get(msg.app)
-        if dep is None or msg.node not in dep.parts_pending.get(msg.chain, ()):
-            self.ctx.refusal("part_ready_unexpected")
+    def on_instance_ready(self, ev: InstanceReady) -> None:
+        """A builder's instance started: its part of the chain may be ready."""
+        dep = self.ctx.apps.get(ev.app)
+        if dep is None:
             return
-        pending = dep.parts_pending[msg.chain]
-        pending.discard(msg.node)
-        if not pending:
-            del dep.parts_pending[msg.chain]
-            self.ctx.send(dep.origin, m.ChainBuilt(msg.app, msg.chain))
+        vid = ev.vertex
+        for ci, (asker, starting) in list(dep.building.items()):
+            starting.discard(vid)
+            if not starting:
+                del dep.building[ci]
+                self.ctx.send(asker, m.ChainPartReady(dep.app.name, ci, self.ctx.id))
 
-    def on_built(self, msg: m.ChainBuilt, now: float) -> None:
-        dep = self.ctx.apps.get(msg.app)
-        proc = self._deploying(msg.app)
-        if (
-            dep is None
-            or dep.origin != self.ctx.id
-            or proc is None  # no deployment of it in progress here
-            or msg.chain in dep.built
-            or not 0 <= msg.chain < len(dep.layout.chains)
-        ):
-            self.ctx.refusal("chain_built_unexpected")
+    def on_instance_failed(self, ev: InstanceFailed) -> None:
+        """A builder's instance failed to start: the deployment fails (at its origin)."""
+        dep = self.ctx.apps.get(ev.app)
+        if dep is None:
             return
-        dep.built.add(msg.chain)
-        proc.on(DeployEvent.BUILT)
-        if len(dep.built) == len(dep.layout.chains):
-            proc.on(DeployEvent.ALL_BUILT)
-            self.ctx.end(proc.pid)
-            self.ctx.broadcast(m.StartApp(msg.app))
-            if dep.client is not None:
-                elapsed = self.ctx.elapsed_ms(dep.requested_at)
-                reply = m.DeployReply(msg.app, True, dict(dep.placed), elapsed)
-                self.ctx.emit(Reply(dep.client, reply))
-                dep.client = None
+        vid, error = ev.vertex, ev.error
+        for ci, (_, starting) in list(dep.building.items()):
+            if vid in starting:
+                del dep.building[ci]
+                self.ctx.send(dep.origin, m.DeployFailed(dep.app.name, error))
 
-    def on_deploy_failed(self, msg: m.DeployFailed, now: float) -> None:
-        dep = self.ctx.apps.get(msg.app)
-        if dep is None or dep.origin != self.ctx.id:
-            return
-        proc = self._deploying(msg.app)
-        if proc is None:  # deployed (or failed) already: a failure report cannot stop it
-            self.ctx.refusal("deploy_failed_after_deployment")
-            return
-        proc.fail(self.ctx, msg.reason)
-        self.ctx.end(proc.pid)
-        if dep.client is not None:
-            self.ctx.emit(Reply(dep.client, _failed_reply(msg.app, msg.reason)))
-            dep.client = None
-        self.ctx.broadcast(m.StopApp(msg.app))
-
-    def on_start(self, msg: m.StartApp, now: float) -> None:
-        dep = self.ctx.apps.get(msg.app)
-        if dep is None or dep.running:
-            self.ctx.refusal("start_app_running")
-            return
-        dep.running = True
-        dep.started_at = now
-        dep.placed_at = dict.fromkeys(range(len(dep.layout.chains)), now)
-        for vid, h in dep.instances.items():
-            if h.kind == "source":
-                self.dp.start_source(dep, vid, now)
-        self.ctx.emit(SetTimer(Retransmit(msg.app), now + RETRANSMIT_S))
-
+    # -- undeploy: with operator keys, only an operator stops a running app --------------------
     def undeploy_refused(self, msg: m.StopApp) -> str:
         """Why this node does not stop ``msg.app`` ('' if it does). With operator keys only
         an operator's signed undeploy stops a running app (a member's StopApp alone does
@@ -405,29 +433,6 @@ class Deployer:
         if gone is not None:
             self.dp.stop_app(gone, "undeploy")
         self.policies.forget(msg.app)
-
-    def on_instance_ready(self, ev: InstanceReady) -> None:
-        """A builder's instance started: its part of the chain may be ready."""
-        dep = self.ctx.apps.get(ev.app)
-        if dep is None:
-            return
-        vid = ev.vertex
-        for ci, (asker, starting) in list(dep.building.items()):
-            starting.discard(vid)
-            if not starting:
-                del dep.building[ci]
-                self.ctx.send(asker, m.ChainPartReady(dep.app.name, ci, self.ctx.id))
-
-    def on_instance_failed(self, ev: InstanceFailed) -> None:
-        """A builder's instance failed to start: the deployment fails (at its origin)."""
-        dep = self.ctx.apps.get(ev.app)
-        if dep is None:
-            return
-        vid, error = ev.vertex, ev.error
-        for ci, (_, starting) in list(dep.building.items()):
-            if vid in starting:
-                del dep.building[ci]
-                self.ctx.send(dep.origin, m.DeployFailed(dep.app.name, error))
 
 
 def _failed_reply(app: str, reason: str) -> m.DeployReply:

@@ -177,36 +177,50 @@ class Relocator:
         """A restore's replacement ran or was dropped: no handover will be reported for it."""
         self._handover_to.pop(rid, None)
 
-    def expect_handover(self, rid: int, coordinator: str) -> None:
-        self._handover_to[rid] = coordinator
-
     def on_reset(self) -> None:
         self._handover_to.clear()
 
-    def expire(self, reloc: Relocation, now: float) -> None:
-        why = f"{reloc.name} did not finish within {reloc.deadline - reloc.started_at:g} s"
-        self.fail(reloc, why, now)
+    # -- the coordinator: asks, switches the producers, ends (a restore: retries) --------------
+    def request(self, client: int | None, msg: m.RelocateRequest, now: float) -> bool:
+        """Coordinate a relocation (a client's, a member's or the rules'); False if refused
+        (the client, if any, is told why)."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not dep.running:
+            self._refuse(client, msg, f"no running app named {msg.app!r}")
+            return False
+        try:
+            target = self.relocation_target(dep, msg.vertex, "" if msg.target else msg.direction)
+        except MsoError as exc:
+            self._refuse(client, msg, str(exc))
+            return False
+        target = msg.target or target
+        if target != self.ctx.id and target not in self.ctx.routes:
+            self._refuse(client, msg, f"target node {target!r} is not reachable")
+            return False
+        source = dep.placed[msg.vertex]
+        if target == source:
+            self._refuse(client, msg, f"{msg.vertex!r} already runs on {target}")
+            return False
+        if msg.vertex in dep.lost(self.ctx.failed):  # no instance to hand over: restored
+            why = f"node {source} failed" if source in self.ctx.failed else "its node restarted"
+            self._refuse(client, msg, f"{msg.vertex!r} does not run anywhere ({why})")
+            return False
+        if any(r.app == msg.app and r.vertex == msg.vertex for r in self._open()):
+            self._refuse(client, msg, f"{msg.vertex!r} is already being relocated")
+            return False
+        pid = self.ctx.new_pid()
+        self.ctx.begin(Relocation(pid, now, msg.app, msg.vertex, source, target, client))
+        self.ctx.send(target, m.Prepare(msg.app, msg.vertex, pid))
+        return True
 
-    def on_peer_failed(self, ev: PeerFailed) -> None:
-        """Moves that needed the failed node: before the switch they fail; a committed move
-        whose old host failed becomes a restore at its target."""
-        node, now = ev.node, self.ctx.now
-        for reloc in self._open():
-            if reloc.restore or node not in (reloc.source, reloc.target):
-                continue
-            dep = self.ctx.apps.get(reloc.app)
-            if node == reloc.source and reloc.state is S.SWITCHING and dep is not None:
-                # committed: producers send to the new instance, which waits for a handover
-                # the old host will never send; restore the vertex there instead
-                reloc.on(RelocationEvent.SOURCE_FAILED)
-                self.start_restore(dep, reloc, reloc.pid, now)
-                continue
-            self.fail(reloc, f"node {node} failed during the relocation of {reloc.vertex!r}", now)
-
-    def _refuse(self, client: int | None, msg: m.RelocateRequest, reason: str) -> None:
-        if client is not None:
-            reply = m.RelocateReply(msg.app, msg.vertex, False, error=reason)
-            self.ctx.emit(Reply(client, reply))
+    def on_relocate_request(self, msg: m.RelocateRequest, now: float) -> None:
+        """A relocation asked by another node. Where operator keys are configured that is a
+        command a member has no authority for (a node's own rules relocate without asking)."""
+        if self.ctx.authority.signed:
+            self.ctx.refusal("relocate_from_member")
+            return
+        if not self.request(None, msg, now):  # refused (no such vertex, no route, ...)
+            self.ctx.refusal("relocate_refused")
 
     def relocation_target(self, dep: AppState, vertex: str, direction: str = "") -> str:
         """Where an upstream or downstream relocation takes ``vertex`` (MsoError if it cannot
@@ -244,47 +258,143 @@ class Relocator:
             raise MsoError(f"{vertex!r} already runs on its {where} node {here}")
         return target
 
-    def on_relocate_request(self, msg: m.RelocateRequest, now: float) -> None:
-        """A relocation asked by another node. Where operator keys are configured that is a
-        command a member has no authority for (a node's own rules relocate without asking)."""
-        if self.ctx.authority.signed:
-            self.ctx.refusal("relocate_from_member")
-            return
-        if not self.request(None, msg, now):  # refused (no such vertex, no route, ...)
-            self.ctx.refusal("relocate_refused")
+    def _refuse(self, client: int | None, msg: m.RelocateRequest, reason: str) -> None:
+        if client is not None:
+            reply = m.RelocateReply(msg.app, msg.vertex, False, error=reason)
+            self.ctx.emit(Reply(client, reply))
 
-    def request(self, client: int | None, msg: m.RelocateRequest, now: float) -> bool:
-        """Coordinate a relocation (a client's, a member's or the rules'); False if refused
-        (the client, if any, is told why)."""
+    def on_prepared(self, msg: m.Prepared, now: float) -> None:
+        reloc = self._reloc(msg.rid)
         dep = self.ctx.apps.get(msg.app)
-        if dep is None or not dep.running:
-            self._refuse(client, msg, f"no running app named {msg.app!r}")
-            return False
-        try:
-            target = self.relocation_target(dep, msg.vertex, "" if msg.target else msg.direction)
-        except MsoError as exc:
-            self._refuse(client, msg, str(exc))
-            return False
-        target = msg.target or target
-        if target != self.ctx.id and target not in self.ctx.routes:
-            self._refuse(client, msg, f"target node {target!r} is not reachable")
-            return False
-        source = dep.placed[msg.vertex]
-        if target == source:
-            self._refuse(client, msg, f"{msg.vertex!r} already runs on {target}")
-            return False
-        if msg.vertex in dep.lost(self.ctx.failed):  # no instance to hand over: restored
-            why = f"node {source} failed" if source in self.ctx.failed else "its node restarted"
-            self._refuse(client, msg, f"{msg.vertex!r} does not run anywhere ({why})")
-            return False
-        if any(r.app == msg.app and r.vertex == msg.vertex for r in self._open()):
-            self._refuse(client, msg, f"{msg.vertex!r} is already being relocated")
-            return False
-        pid = self.ctx.new_pid()
-        self.ctx.begin(Relocation(pid, now, msg.app, msg.vertex, source, target, client))
-        self.ctx.send(target, m.Prepare(msg.app, msg.vertex, pid))
-        return True
+        if reloc is None or dep is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
+            self.ctx.refusal("prepared_unexpected")
+            return
+        if msg.error:
+            if msg.no_app:  # a node that missed the app's sync: the retry will find it
+                self.ctx.publish(AppMissing(dep.app.name, reloc.target))
+            self.fail(reloc, msg.error, now)
+            return
+        reloc.on(RelocationEvent.PREPARED_RESTORE if reloc.restore else RelocationEvent.PREPARED)
+        if not reloc.restore:  # committed: the old instance drains what it holds, then hands
+            reloc.deadline = max(reloc.deadline, now + SWITCH_DEADLINE_S)  # over; a busy
+            self.ctx.set_timer(Deadline(reloc.pid), reloc.deadline)  # vertex may take a while
+        if reloc.restore:  # the surviving ends of its edges resume the replacement
+            edges = dep.app.edges
+            for edge, producer in reloc.resumes:
+                other = dep.placed[edges[edge].src if producer else edges[edge].dst]
+                self.ctx.send(other, m.Rewire(msg.app, edge, reloc.target, msg.rid, producer))
+            return
+        for e in dep.app.edges:
+            if e.dst == msg.vertex:
+                edge = dep.app.edges.index(e)
+                switch = m.Switch(msg.app, edge, reloc.target, msg.rid, reloc.source)
+                self.ctx.send(dep.placed[e.src], switch)
 
+    def on_handover_done(self, msg: m.HandoverDone, now: float) -> None:
+        reloc = self._reloc(msg.rid)
+        if reloc is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
+            self.ctx.refusal("handover_done_unexpected")
+            return
+        reloc.on(RelocationEvent.HANDED_OVER)
+        self.ctx.end(reloc.pid)
+        if reloc.restore:
+            dep = self.ctx.apps.get(reloc.app)
+            if dep is not None:
+                dep.placed[reloc.vertex] = reloc.target
+        self._ended(reloc, "")
+
+    def fail(self, reloc: Relocation, why: str, now: float) -> None:
+        """A relocation or restore failed: whoever waits (a client, a remap) is told. If no
+        producer had switched yet, the target drops the instance it prepared."""
+        if reloc.state is S.PREPARING and reloc.target not in self.ctx.failed:
+            self.ctx.send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
+        reloc.fail(self.ctx, why)
+        self.ctx.end(reloc.pid)
+        self._ended(reloc, why)
+
+    def _ended(self, reloc: Relocation, error: str) -> None:
+        """Tell whoever waits for a relocation how it ended: its client, and (by an internal
+        event) whoever started it: a remap, a crash restore."""
+        if reloc.client is not None and error:
+            self._refuse(reloc.client, m.RelocateRequest(reloc.app, reloc.vertex), error)
+        elif reloc.client is not None:
+            elapsed = self.ctx.elapsed_ms(reloc.started_at)
+            reply = m.RelocateReply(reloc.app, reloc.vertex, True, reloc.target, elapsed)
+            self.ctx.emit(Reply(reloc.client, reply))
+        ended = RelocationEnded(
+            reloc.pid, reloc.app, reloc.vertex, reloc.target, reloc.remap, error
+        )
+        self.ctx.publish(ended)
+
+    def expire(self, reloc: Relocation, now: float) -> None:
+        why = f"{reloc.name} did not finish within {reloc.deadline - reloc.started_at:g} s"
+        self.fail(reloc, why, now)
+
+    def on_peer_failed(self, ev: PeerFailed) -> None:
+        """Moves that needed the failed node: before the switch they fail; a committed move
+        whose old host failed becomes a restore at its target."""
+        node, now = ev.node, self.ctx.now
+        for reloc in self._open():
+            if reloc.restore or node not in (reloc.source, reloc.target):
+                continue
+            dep = self.ctx.apps.get(reloc.app)
+            if node == reloc.source and reloc.state is S.SWITCHING and dep is not None:
+                # committed: producers send to the new instance, which waits for a handover
+                # the old host will never send; restore the vertex there instead
+                reloc.on(RelocationEvent.SOURCE_FAILED)
+                self.start_restore(dep, reloc, reloc.pid, now)
+                continue
+            self.fail(reloc, f"node {node} failed during the relocation of {reloc.vertex!r}", now)
+
+    def start_restore(self, dep: AppState, reloc: Relocation, rid: int, now: float) -> None:
+        """Start a replacement for ``reloc.vertex`` on ``reloc.target``: its surviving
+        producers replay what it had not passed on, its consumers say where they stand."""
+        if not reloc.restore:
+            reloc.as_restore(now)
+            self.ctx.emit(SetTimer(Deadline(rid), reloc.deadline))
+        edges = dep.app.edges
+        lost = dep.lost(self.ctx.failed)
+        reloc.resumes = [
+            [i, True] for i, e in enumerate(edges) if e.dst == reloc.vertex and e.src not in lost
+        ] + [[i, False] for i, e in enumerate(edges) if e.src == reloc.vertex and e.dst not in lost]
+        reloc.attempts += 1
+        prepare = m.Prepare(dep.app.name, reloc.vertex, rid, True, reloc.resumes)
+        self.ctx.send(reloc.target, prepare)
+        self.ctx.emit(SetTimer(Retry(rid, reloc.attempts), now + STEP_TIMEOUT_S))
+
+    def on_retry(self, key: Retry, now: float) -> None:
+        """A restore's prepare was not answered in time: ask again, a few times."""
+        rid = key.pid
+        reloc = self._reloc(rid)
+        if reloc is None or not reloc.restore:
+            return
+        dep = self.ctx.apps.get(reloc.app)
+        if dep is None:
+            return
+        if reloc.attempts >= STEP_ATTEMPTS or reloc.target in self.ctx.failed:
+            why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
+            self.fail(reloc, why, now)
+            return
+        if reloc.vertex not in dep.lost(
+            self.ctx.failed
+        ):  # restored meanwhile by another coordinator
+            # (its target tells only the newest one) and maybe moved since: asked again, the
+            # target would start a second instance. Done; an instance prepared for this
+            # restore and never resumed is dropped.
+            where = dep.placed[reloc.vertex]
+            if where != reloc.target:
+                self.ctx.send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
+            reloc.on(RelocationEvent.HANDED_OVER)
+            self.ctx.end(reloc.pid)
+            reloc.target = where
+            self._ended(reloc, "")
+            return
+        reloc.on(RelocationEvent.RETRY)
+        if reloc.retried is not None:  # a recovery's record of what it sent again
+            reloc.retried.append(f"restore {reloc.vertex} on {reloc.target}")
+        self.start_restore(dep, reloc, rid, now)  # idempotent at every end: just ask again
+
+    # -- the new host: prepares an instance, takes the handover --------------------------------
     def on_prepare(self, src: str, msg: m.Prepare) -> None:
         """At a relocation's (or restore's) target: create the new instance; it is
         Prepared once the executor has started it (or refused if its code fails)."""
@@ -329,56 +439,87 @@ class Relocator:
             if restoring is not None and not restoring.pending:
                 self._activate(dep, vid)  # nothing to wait for (a lone vertex)
 
-    def fail(self, reloc: Relocation, why: str, now: float) -> None:
-        """A relocation or restore failed: whoever waits (a client, a remap) is told. If no
-        producer had switched yet, the target drops the instance it prepared."""
-        if reloc.state is S.PREPARING and reloc.target not in self.ctx.failed:
-            self.ctx.send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
-        reloc.fail(self.ctx, why)
-        self.ctx.end(reloc.pid)
-        self._ended(reloc, why)
+    def on_instance_ready(self, ev: InstanceReady) -> None:
+        """A move's new instance started: the coordinator hears it is prepared."""
+        dep, vid = self.ctx.apps.get(ev.app), ev.vertex
+        prep = dep.preparing.pop(vid, None) if dep is not None else None
+        if dep is not None and prep is not None:  # a relocation's or a restore's
+            rid, coordinator, restore = prep
+            self.ctx.send(coordinator, m.Prepared(dep.app.name, vid, rid, self.ctx.id, ""))
+            restoring = dep.restoring.get(vid)
+            if restore and restoring is not None and not restoring.pending:
+                self._activate(dep, vid)  # nothing to wait for (a lone vertex)
 
-    def _ended(self, reloc: Relocation, error: str) -> None:
-        """Tell whoever waits for a relocation how it ended: its client, and (by an internal
-        event) whoever started it: a remap, a crash restore."""
-        if reloc.client is not None and error:
-            self._refuse(reloc.client, m.RelocateRequest(reloc.app, reloc.vertex), error)
-        elif reloc.client is not None:
-            elapsed = self.ctx.elapsed_ms(reloc.started_at)
-            reply = m.RelocateReply(reloc.app, reloc.vertex, True, reloc.target, elapsed)
-            self.ctx.emit(Reply(reloc.client, reply))
-        ended = RelocationEnded(
-            reloc.pid, reloc.app, reloc.vertex, reloc.target, reloc.remap, error
-        )
-        self.ctx.publish(ended)
+    def on_instance_failed(self, ev: InstanceFailed) -> None:
+        """A move's new instance failed to start: the coordinator hears why."""
+        dep, vid, error = self.ctx.apps.get(ev.app), ev.vertex, ev.error
+        prep = dep.preparing.pop(vid, None) if dep is not None else None
+        if dep is not None and prep is not None:
+            dep.restoring.pop(vid, None)
+            self._handover_to.pop(prep[0], None)
+            self.ctx.send(prep[1], m.Prepared(dep.app.name, vid, prep[0], self.ctx.id, error))
 
-    def on_prepared(self, msg: m.Prepared, now: float) -> None:
-        reloc = self._reloc(msg.rid)
+    def on_unprepare(self, msg: m.Unprepare, now: float) -> None:
+        """At a failed move's target: drop the instance prepared for it (nothing was switched
+        to it, so nothing is lost)."""
         dep = self.ctx.apps.get(msg.app)
-        if reloc is None or dep is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
-            self.ctx.refusal("prepared_unexpected")
+        if dep is None:
+            self.ctx.refusal("unprepare_unexpected")
             return
-        if msg.error:
-            if msg.no_app:  # a node that missed the app's sync: the retry will find it
-                self.ctx.publish(AppMissing(dep.app.name, reloc.target))
-            self.fail(reloc, msg.error, now)
+        h = dep.awaiting.get(msg.vertex)
+        prep = dep.preparing.get(msg.vertex)
+        restoring = dep.restoring.get(msg.vertex)
+        ours = msg.rid in self._handover_to or (prep is not None and prep[0] == msg.rid)
+        if h is None or not ours or (restoring is not None and restoring.rid != msg.rid):
+            self.ctx.refusal("unprepare_unexpected")  # (another move took the instance over since)
             return
-        reloc.on(RelocationEvent.PREPARED_RESTORE if reloc.restore else RelocationEvent.PREPARED)
-        if not reloc.restore:  # committed: the old instance drains what it holds, then hands
-            reloc.deadline = max(reloc.deadline, now + SWITCH_DEADLINE_S)  # over; a busy
-            self.ctx.set_timer(Deadline(reloc.pid), reloc.deadline)  # vertex may take a while
-        if reloc.restore:  # the surviving ends of its edges resume the replacement
-            edges = dep.app.edges
-            for edge, producer in reloc.resumes:
-                other = dep.placed[edges[edge].src if producer else edges[edge].dst]
-                self.ctx.send(other, m.Rewire(msg.app, edge, reloc.target, msg.rid, producer))
-            return
-        for e in dep.app.edges:
+        self.dp.stop(h, "abandoned")
+        del dep.awaiting[msg.vertex]
+        dep.preparing.pop(msg.vertex, None)
+        dep.restoring.pop(msg.vertex, None)
+        self._handover_to.pop(msg.rid, None)
+        for i, e in enumerate(dep.app.edges):
             if e.dst == msg.vertex:
-                edge = dep.app.edges.index(e)
-                switch = m.Switch(msg.app, edge, reloc.target, msg.rid, reloc.source)
-                self.ctx.send(dep.placed[e.src], switch)
+                dep.stash.pop(i, None)
+        self.ctx.note_event(now, f"dropped {msg.vertex}, prepared for a move that failed")
 
+    def on_handover(self, src: str, msg: m.Handover, now: float) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or msg.vertex not in dep.awaiting:
+            self.ctx.refusal("handover_unexpected")
+            return
+        dep.moved[msg.vertex] = (now, src)
+        h = dep.awaiting.pop(msg.vertex)
+        h.life.on(InstanceEvent.HANDOVER)
+        self.ctx.emit(fx.RestoreVertex(h.instance, msg.state))  # before any feed
+        h.processed, h.emitted = msg.processed, msg.emitted
+        dep.instances[msg.vertex] = h
+        dep.placed[msg.vertex] = self.ctx.id
+        dep.handed.pop(msg.vertex, None)
+        gated = bool(dep.out_edges.get(msg.vertex))
+        for i, (expected, acked) in msg.inputs.items():
+            dep.inc[i] = InChannel(
+                expected=expected,
+                processed=expected,
+                _acked=acked,
+                released=acked if gated else None,
+            )
+        for i, (next_seq, acked, events, positions) in msg.outputs.items():
+            ch = OutChannel(window=self.ctx.window, next_seq=acked, acked=acked, waiting_since=now)
+            ch.push_many(events, now)
+            ch.next_seq = next_seq
+            ch.positions = {int(k): int(v) for k, v in positions.items()}
+            dep.out[i] = ch
+        if msg.gate:
+            dep.gates[msg.vertex] = AckGate.from_wire(msg.gate)
+        for i in msg.inputs:  # what arrived early, in order, now that positions are known
+            for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
+                self.dp.deliver(dep, i, seq, events)
+        coordinator = self._handover_to.pop(msg.rid, None)
+        if coordinator is not None:
+            self.ctx.send(coordinator, m.HandoverDone(msg.app, msg.vertex, msg.rid))
+
+    # -- a producer: switches its edge, sends a marker the old way -----------------------------
     def on_switch(self, msg: m.Switch) -> None:
         """At the producer's node: new events go to the new instance; a marker goes the old way."""
         dep = self.ctx.apps.get(msg.app)
@@ -427,6 +568,7 @@ class Relocator:
                 return "switch_to_an_unknown_node"
         return ""
 
+    # -- the old host: drains to the markers, snapshots, hands over ----------------------------
     def on_marker_reached(self, ev: MarkerReached) -> None:
         """At the old instance's node: once every input is marked, hand the state over."""
         dep, msg = self.ctx.apps.get(ev.app), ev.marker
@@ -491,55 +633,7 @@ class Relocator:
         self.ctx.send(msg.to, handover)
         self.ctx.broadcast(m.Moved(dep.app.name, vid, msg.to))
 
-    def on_handover(self, src: str, msg: m.Handover, now: float) -> None:
-        dep = self.ctx.apps.get(msg.app)
-        if dep is None or msg.vertex not in dep.awaiting:
-            self.ctx.refusal("handover_unexpected")
-            return
-        dep.moved[msg.vertex] = (now, src)
-        h = dep.awaiting.pop(msg.vertex)
-        h.life.on(InstanceEvent.HANDOVER)
-        self.ctx.emit(fx.RestoreVertex(h.instance, msg.state))  # before any feed
-        h.processed, h.emitted = msg.processed, msg.emitted
-        dep.instances[msg.vertex] = h
-        dep.placed[msg.vertex] = self.ctx.id
-        dep.handed.pop(msg.vertex, None)
-        gated = bool(dep.out_edges.get(msg.vertex))
-        for i, (expected, acked) in msg.inputs.items():
-            dep.inc[i] = InChannel(
-                expected=expected,
-                processed=expected,
-                _acked=acked,
-                released=acked if gated else None,
-            )
-        for i, (next_seq, acked, events, positions) in msg.outputs.items():
-            ch = OutChannel(window=self.ctx.window, next_seq=acked, acked=acked, waiting_since=now)
-            ch.push_many(events, now)
-            ch.next_seq = next_seq
-            ch.positions = {int(k): int(v) for k, v in positions.items()}
-            dep.out[i] = ch
-        if msg.gate:
-            dep.gates[msg.vertex] = AckGate.from_wire(msg.gate)
-        for i in msg.inputs:  # what arrived early, in order, now that positions are known
-            for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
-                self.dp.deliver(dep, i, seq, events)
-        coordinator = self._handover_to.pop(msg.rid, None)
-        if coordinator is not None:
-            self.ctx.send(coordinator, m.HandoverDone(msg.app, msg.vertex, msg.rid))
-
-    def on_handover_done(self, msg: m.HandoverDone, now: float) -> None:
-        reloc = self._reloc(msg.rid)
-        if reloc is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
-            self.ctx.refusal("handover_done_unexpected")
-            return
-        reloc.on(RelocationEvent.HANDED_OVER)
-        self.ctx.end(reloc.pid)
-        if reloc.restore:
-            dep = self.ctx.apps.get(reloc.app)
-            if dep is not None:
-                dep.placed[reloc.vertex] = reloc.target
-        self._ended(reloc, "")
-
+    # -- every node: where the vertex runs now -------------------------------------------------
     def on_moved(self, msg: m.Moved, now: float) -> None:
         dep = self.ctx.apps.get(msg.app)
         if 0 <= msg.incarnation < self.ctx.incarnation_of(msg.node, msg.incarnation):
@@ -570,98 +664,6 @@ class Relocator:
         if self.ctx.authority.signed and msg.node != self.ctx.id and here:
             return "moved_a_vertex_running_here"
         return ""
-
-    def start_restore(self, dep: AppState, reloc: Relocation, rid: int, now: float) -> None:
-        """Start a replacement for ``reloc.vertex`` on ``reloc.target``: its surviving
-        producers replay what it had not passed on, its consumers say where they stand."""
-        if not reloc.restore:
-            reloc.as_restore(now)
-            self.ctx.emit(SetTimer(Deadline(rid), reloc.deadline))
-        edges = dep.app.edges
-        lost = dep.lost(self.ctx.failed)
-        reloc.resumes = [
-            [i, True] for i, e in enumerate(edges) if e.dst == reloc.vertex and e.src not in lost
-        ] + [[i, False] for i, e in enumerate(edges) if e.src == reloc.vertex and e.dst not in lost]
-        reloc.attempts += 1
-        prepare = m.Prepare(dep.app.name, reloc.vertex, rid, True, reloc.resumes)
-        self.ctx.send(reloc.target, prepare)
-        self.ctx.emit(SetTimer(Retry(rid, reloc.attempts), now + STEP_TIMEOUT_S))
-
-    def on_retry(self, key: Retry, now: float) -> None:
-        """A restore's prepare was not answered in time: ask again, a few times."""
-        rid = key.pid
-        reloc = self._reloc(rid)
-        if reloc is None or not reloc.restore:
-            return
-        dep = self.ctx.apps.get(reloc.app)
-        if dep is None:
-            return
-        if reloc.attempts >= STEP_ATTEMPTS or reloc.target in self.ctx.failed:
-            why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
-            self.fail(reloc, why, now)
-            return
-        if reloc.vertex not in dep.lost(
-            self.ctx.failed
-        ):  # restored meanwhile by another coordinator
-            # (its target tells only the newest one) and maybe moved since: asked again, the
-            # target would start a second instance. Done; an instance prepared for this
-            # restore and never resumed is dropped.
-            where = dep.placed[reloc.vertex]
-            if where != reloc.target:
-                self.ctx.send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
-            reloc.on(RelocationEvent.HANDED_OVER)
-            self.ctx.end(reloc.pid)
-            reloc.target = where
-            self._ended(reloc, "")
-            return
-        reloc.on(RelocationEvent.RETRY)
-        if reloc.retried is not None:  # a recovery's record of what it sent again
-            reloc.retried.append(f"restore {reloc.vertex} on {reloc.target}")
-        self.start_restore(dep, reloc, rid, now)  # idempotent at every end: just ask again
-
-    def on_instance_ready(self, ev: InstanceReady) -> None:
-        """A move's new instance started: the coordinator hears it is prepared."""
-        dep, vid = self.ctx.apps.get(ev.app), ev.vertex
-        prep = dep.preparing.pop(vid, None) if dep is not None else None
-        if dep is not None and prep is not None:  # a relocation's or a restore's
-            rid, coordinator, restore = prep
-            self.ctx.send(coordinator, m.Prepared(dep.app.name, vid, rid, self.ctx.id, ""))
-            restoring = dep.restoring.get(vid)
-            if restore and restoring is not None and not restoring.pending:
-                self._activate(dep, vid)  # nothing to wait for (a lone vertex)
-
-    def on_instance_failed(self, ev: InstanceFailed) -> None:
-        """A move's new instance failed to start: the coordinator hears why."""
-        dep, vid, error = self.ctx.apps.get(ev.app), ev.vertex, ev.error
-        prep = dep.preparing.pop(vid, None) if dep is not None else None
-        if dep is not None and prep is not None:
-            dep.restoring.pop(vid, None)
-            self._handover_to.pop(prep[0], None)
-            self.ctx.send(prep[1], m.Prepared(dep.app.name, vid, prep[0], self.ctx.id, error))
-
-    def on_unprepare(self, msg: m.Unprepare, now: float) -> None:
-        """At a failed move's target: drop the instance prepared for it (nothing was switched
-        to it, so nothing is lost)."""
-        dep = self.ctx.apps.get(msg.app)
-        if dep is None:
-            self.ctx.refusal("unprepare_unexpected")
-            return
-        h = dep.awaiting.get(msg.vertex)
-        prep = dep.preparing.get(msg.vertex)
-        restoring = dep.restoring.get(msg.vertex)
-        ours = msg.rid in self._handover_to or (prep is not None and prep[0] == msg.rid)
-        if h is None or not ours or (restoring is not None and restoring.rid != msg.rid):
-            self.ctx.refusal("unprepare_unexpected")  # (another move took the instance over since)
-            return
-        self.dp.stop(h, "abandoned")
-        del dep.awaiting[msg.vertex]
-        dep.preparing.pop(msg.vertex, None)
-        dep.restoring.pop(msg.vertex, None)
-        self._handover_to.pop(msg.rid, None)
-        for i, e in enumerate(dep.app.edges):
-            if e.dst == msg.vertex:
-                dep.stash.pop(i, None)
-        self.ctx.note_event(now, f"dropped {msg.vertex}, prepared for a move that failed")
 
 
 def _resumes(dep: AppState, vid: str, resumes: list[list[Any]]) -> set[tuple[int, bool]] | None:

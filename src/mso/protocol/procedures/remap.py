@@ -122,7 +122,7 @@ class Remapper:
         why = f"{remap.name} did not finish within {remap.deadline - remap.started_at:g} s"
         self._finish(remap.pid, now, why)
 
-    # -- what moves a remap or a recovery on ----------------------------------------------
+    # -- what moves a remap or a recovery on ---------------------------------------------------
     def on_relocation_ended(self, ev: RelocationEnded) -> None:
         """One of a remap's moves ended: the next one, or the remap fails and says why."""
         if ev.remap is None or self._remap(ev.remap) is None:
@@ -158,7 +158,7 @@ class Remapper:
         for dep in list(self.ctx.apps.values()):
             self.maybe_recover(dep, now)
 
-    # -- the procedure, at its coordinator ---------------------------------------------------
+    # -- the remap, at its coordinator: probe and place each chain, then move ------------------
     def remap(
         self,
         req: m.RemapRequest,
@@ -373,6 +373,7 @@ class Remapper:
             else:
                 self.maybe_recover(dep, now)  # another failure may have happened meanwhile
 
+    # -- the recovery rule: who coordinates, what is touched, what parks -----------------------
     def maybe_recover(self, dep: AppState, now: float) -> None:
         """Remap the chains that lost vertices with a failed node. Exactly one node acts for
         an app: the lowest-named surviving node that hosts part of it (if none does, the

@@ -46,6 +46,7 @@ class Restorer:
         self.dp = dp
         self.relocator = relocator
 
+    # -- a surviving end: says where it stands, replays ----------------------------------------
     def on_rewire(self, msg: m.Rewire, now: float) -> None:
         """At a surviving end of an edge whose other end is being replaced on ``msg.to``."""
         dep = self.ctx.apps.get(msg.app)
@@ -80,6 +81,7 @@ class Restorer:
             start = inc.expected if inc is not None else 0
             self.ctx.send(msg.to, m.Resume(msg.app, msg.edge, msg.rid, False, start))
 
+    # -- the replacement: runs once every surviving end has resumed it -------------------------
     def on_resume(self, msg: m.Resume, now: float) -> None:
         dep = self.ctx.apps.get(msg.app)
         if dep is None or not 0 <= msg.edge < len(dep.app.edges):
@@ -135,6 +137,7 @@ class Restorer:
         if h.kind == "source":
             self.dp.start_source(dep, vertex, self.ctx.now)
 
+    # -- a crashed instance: restored in place, within its restart budget ----------------------
     def on_instance_crashed(self, ev: InstanceCrashed) -> None:
         """Restore a crashed instance in place, as a restore after a node failure does: a
         fresh instance here; its producers replay what it had not passed on (acks are chained,

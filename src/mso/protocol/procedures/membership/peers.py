@@ -96,36 +96,6 @@ class Membership:
     def incarnation_of(self, node: str, default: int) -> int:
         return self._incarnations.get(node, default)
 
-    def admit(self, src: str, msg: m.Message, now: float) -> bool:
-        """Whether ``msg`` from ``src`` goes on to its handler: a node declared failed is
-        heard only to rejoin (its heartbeat is handled here)."""
-        if src in self.failed:
-            if isinstance(msg, m.Heartbeat):
-                self.on_failed_heartbeat(src, msg, now)
-            else:
-                self.ctx.dropped()
-            return False
-        self.liveness.heard_from(src, now)
-        self.heard_directly(src, now)
-        return True
-
-    def on_routes_changed(self, ev: RoutesChanged) -> None:
-        """Who is a neighbour and who is reachable; a suspected node in reach again is not
-        suspected; newly reachable nodes learn our incarnation (and whom we hold failed, if a
-        partition just healed) and the operator's latest undeploys (a node that restarted or
-        was cut off has not heard them)."""
-        now, routes = self.ctx.now, self.ctx.routes
-        neighbours = {d for d, (hop, _) in routes.items() if hop == d}
-        self.liveness.set_routes(now, set(routes) - self.failed, neighbours)
-        self.back_in_reach(now)
-        if ev.appeared:
-            beat = self.beat()
-            undeploys = list(self.ctx.authority.revoked.values())[-REVOCATIONS_TOLD:]
-            for d in sorted(ev.appeared):
-                self.ctx.send(d, beat)
-                for stop in undeploys:
-                    self.ctx.send(d, stop)
-
     def status(self) -> dict[str, Any]:
         return {
             "failed_nodes": sorted(self.failed),
@@ -147,6 +117,13 @@ class Membership:
             peer = self.peers[node] = PeerLife(node)
         return peer
 
+    def _leader(self) -> str:
+        return min({self.ctx.id, *(n for n in self.ctx.routes if n not in self.failed)})
+
+    def _hosting(self) -> int:
+        return sum(len(dep.instances) for dep in self.ctx.apps.values())
+
+    # -- the detector: beats out, silence and unreachability judged, suspicion asked -----------
     def beat(self) -> m.Heartbeat:
         """This node's beat with its monitor's figures (see Heartbeat)."""
         return m.Heartbeat(
@@ -185,6 +162,49 @@ class Membership:
         # this node may have become an app's recovery coordinator (it runs part of it now)
         self.ctx.publish(RecoveryDue())
         self.ctx.set_timer(HeartbeatTick(), now + self.liveness.period_s)
+
+    def admit(self, src: str, msg: m.Message, now: float) -> bool:
+        """Whether ``msg`` from ``src`` goes on to its handler: a node declared failed is
+        heard only to rejoin (its heartbeat is handled here)."""
+        if src in self.failed:
+            if isinstance(msg, m.Heartbeat):
+                self.on_failed_heartbeat(src, msg, now)
+            else:
+                self.ctx.dropped()
+            return False
+        self.liveness.heard_from(src, now)
+        self.heard_directly(src, now)
+        return True
+
+    def heard_directly(self, src: str, now: float) -> None:
+        """A message from a suspected node (it reaches us though we do not reach it): it
+        lives, which is what the suspicion asked."""
+        if src in self._suspicions:
+            self._unsuspect(src, PeerEvent.VOUCHED)
+            self.liveness.vouched(src, now)
+
+    def on_routes_changed(self, ev: RoutesChanged) -> None:
+        """Who is a neighbour and who is reachable; a suspected node in reach again is not
+        suspected; newly reachable nodes learn our incarnation (and whom we hold failed, if a
+        partition just healed) and the operator's latest undeploys (a node that restarted or
+        was cut off has not heard them)."""
+        now, routes = self.ctx.now, self.ctx.routes
+        neighbours = {d for d, (hop, _) in routes.items() if hop == d}
+        self.liveness.set_routes(now, set(routes) - self.failed, neighbours)
+        self.back_in_reach(now)
+        if ev.appeared:
+            beat = self.beat()
+            undeploys = list(self.ctx.authority.revoked.values())[-REVOCATIONS_TOLD:]
+            for d in sorted(ev.appeared):
+                self.ctx.send(d, beat)
+                for stop in undeploys:
+                    self.ctx.send(d, stop)
+
+    def back_in_reach(self, now: float) -> None:
+        """The routes changed: a suspected node this node reaches again is not suspected."""
+        for node in sorted(self._suspicions):
+            if node in self.ctx.routes:
+                self._unsuspect(node, PeerEvent.REACHABLE)
 
     def _suspect(self, node: str, now: float) -> None:
         """``node`` has been out of this node's reach for the liveness window. A routing
@@ -273,19 +293,7 @@ class Membership:
         if event:
             self._peer(node).on(event)
 
-    def back_in_reach(self, now: float) -> None:
-        """The routes changed: a suspected node this node reaches again is not suspected."""
-        for node in sorted(self._suspicions):
-            if node in self.ctx.routes:
-                self._unsuspect(node, PeerEvent.REACHABLE)
-
-    def heard_directly(self, src: str, now: float) -> None:
-        """A message from a suspected node (it reaches us though we do not reach it): it
-        lives, which is what the suspicion asked."""
-        if src in self._suspicions:
-            self._unsuspect(src, PeerEvent.VOUCHED)
-            self.liveness.vouched(src, now)
-
+    # -- declaring a peer failed: one place ----------------------------------------------------
     def on_node_down(
         self, node: str, detector: str, now: float, incarnation: int | None = None
     ) -> None:
@@ -315,9 +323,7 @@ class Membership:
         # moves that needed it fail or become restores; the chains it touched are recovered
         self.ctx.publish(PeerFailed(node))
 
-    def _leader(self) -> str:
-        return min({self.ctx.id, *(n for n in self.ctx.routes if n not in self.failed)})
-
+    # -- heartbeats in: restarts, healed partitions, who resets --------------------------------
     def on_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
         known = self._incarnations.get(src)
         if known is not None and msg.incarnation > known:  # it restarted: its instances went
@@ -392,9 +398,6 @@ class Membership:
         self._incarnations[src] = incarnation
         self._failed_incarnation[src] = incarnation
         self.ctx.send(src, self.beat())
-
-    def _hosting(self) -> int:
-        return sum(len(dep.instances) for dep in self.ctx.apps.values())
 
     def _outranked_by(self, msg: m.Heartbeat) -> bool:
         """After a partition both sides may hold the other failed. A node that runs nothing
@@ -486,6 +489,20 @@ class Membership:
             self._claim(dep)
             self.recovery.maybe_recover(dep, now)
 
+    def on_node_up(self, msg: m.NodeUp, now: float) -> None:
+        if msg.node == self.ctx.id:
+            return
+        if msg.node not in self.failed and msg.node not in self._incarnations:
+            self._incarnations[msg.node] = msg.incarnation
+            return
+        if msg.node in self.failed:
+            if msg.incarnation > self._failed_incarnation.get(msg.node, 0):
+                self._rejoin(msg.node, msg.incarnation, now, announce=False)
+        elif msg.incarnation > self._incarnations.get(msg.node, msg.incarnation):
+            self.on_node_down(msg.node, msg.node, now)  # restarted unnoticed by us
+            self._rejoin(msg.node, msg.incarnation, now, announce=False)
+
+    # -- app sync: a node that rejoins (or missed an app) is told it ---------------------------
     def _claim(self, dep: AppState) -> None:
         """Tell everyone where the instances this node runs are (a node that rejoins may
         have spread, or been told, a view in which they run elsewhere: a node of a partition's
@@ -564,19 +581,6 @@ class Membership:
             for dep in self.ctx.apps.values():
                 if dep.running:
                     self.ctx.send(node, self._app_sync(dep))
-
-    def on_node_up(self, msg: m.NodeUp, now: float) -> None:
-        if msg.node == self.ctx.id:
-            return
-        if msg.node not in self.failed and msg.node not in self._incarnations:
-            self._incarnations[msg.node] = msg.incarnation
-            return
-        if msg.node in self.failed:
-            if msg.incarnation > self._failed_incarnation.get(msg.node, 0):
-                self._rejoin(msg.node, msg.incarnation, now, announce=False)
-        elif msg.incarnation > self._incarnations.get(msg.node, msg.incarnation):
-            self.on_node_down(msg.node, msg.node, now)  # restarted unnoticed by us
-            self._rejoin(msg.node, msg.incarnation, now, announce=False)
 
     def on_app_sync(self, src: str, msg: m.AppSync, now: float) -> None:
         held = self.ctx.apps.get(msg.app)
