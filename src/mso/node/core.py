@@ -235,6 +235,11 @@ class NodeCore:
             HeartbeatTick: lambda key, now: mem.heartbeat(now),
             RecoverTick: rem.on_recover_tick,
         }
+        # a procedure's step not answered in time: asked again (or given up)
+        self._retries: dict[type, Callable[[Retry, float], None]] = {
+            Relocation: rel.on_retry,
+            Remap: rem.on_retry,
+        }
         # a procedure whose deadline passed: its defined failure, told to whoever waits
         self._expiries: dict[type, Callable[[Any, float], None]] = {
             Relocation: rel.expire,
@@ -277,14 +282,15 @@ class NodeCore:
         return self._run(now)
 
     def receive(self, src: str, msg: m.Message, now: float) -> list[Effect]:
+        """A message from another node (or relayed by one)."""
         self._now = now
-        admitted = [False]
-
-        def admit() -> None:
-            admitted[0] = self.membership.admit(src, msg, now)
-
-        self._guarded("heard", admit)
-        if admitted[0]:
+        if src in self.failed:  # a node declared failed is heard only to rejoin
+            if not isinstance(msg, m.Heartbeat):
+                self.dropped_messages += 1
+                return []
+            self._guarded("heard", self.membership.on_failed_heartbeat, src, msg, now)
+        else:
+            self._guarded("heard", self.membership.heard, src, now)
             self._work.append((src, msg))
         return self._run(now)
 
@@ -555,10 +561,9 @@ class NodeCore:
 
     def _on_retry(self, key: Retry, now: float) -> None:
         proc = self.procedures.get(key.pid)
-        if isinstance(proc, Relocation):
-            self.relocator.on_retry(key, now)
-        elif isinstance(proc, Remap):
-            self.remapper.on_retry(key, now)
+        retry = self._retries.get(type(proc))
+        if retry is not None:
+            retry(key, now)
 
     def _on_monitor_tick(self, key: MonitorTick, now: float) -> None:
         self._sample(now)

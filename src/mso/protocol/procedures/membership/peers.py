@@ -163,18 +163,11 @@ class Membership:
         self.ctx.publish(RecoveryDue())
         self.ctx.set_timer(HeartbeatTick(), now + self.liveness.period_s)
 
-    def admit(self, src: str, msg: m.Message, now: float) -> bool:
-        """Whether ``msg`` from ``src`` goes on to its handler: a node declared failed is
-        heard only to rejoin (its heartbeat is handled here)."""
-        if src in self.failed:
-            if isinstance(msg, m.Heartbeat):
-                self.on_failed_heartbeat(src, msg, now)
-            else:
-                self.ctx.dropped()
-            return False
+    def heard(self, src: str, now: float) -> None:
+        """A message from ``src``, which this node holds alive: it lives (and if suspected,
+        it reaches us though we do not reach it)."""
         self.liveness.heard_from(src, now)
         self.heard_directly(src, now)
-        return True
 
     def heard_directly(self, src: str, now: float) -> None:
         """A message from a suspected node (it reaches us though we do not reach it): it
