@@ -68,8 +68,9 @@ class Membership:
         # grows when this node restarts (the daemon passes its start time) or rejoins after a
         # partition: others then know its old instances are gone
         self.incarnation = incarnation
-        self.failed: set[str] = set()  # nodes known to have failed (fail-stop): the one set
         self.peers: dict[str, PeerLife] = {}  # each other node's state, by its table
+        # the peers whose table says FAILED (fail-stop), kept by ``_move`` alone: read only
+        self.failed: set[str] = set()
         self.failures: list[dict[str, Any]] = []  # failed nodes: who, when, detected by whom
         self.rejoins: list[dict[str, Any]] = []  # nodes back as a new incarnation: who, when
         # nodes out of this node's reach that it asks others about before declaring them
@@ -109,6 +110,16 @@ class Membership:
                 for n, (t, b) in sorted(self.liveness.heard.items())
             },
         }
+
+    def _move(self, node: str, event: PeerEvent) -> None:
+        """Take ``node``'s peer along its table; the failed set follows the table (it is its
+        index: a peer is in it exactly while its table says FAILED)."""
+        peer = self._peer(node)
+        peer.on(event)
+        if peer.state is P.FAILED:
+            self.failed.add(node)
+        else:
+            self.failed.discard(node)
 
     def _peer(self, node: str) -> PeerLife:
         """How this node holds ``node`` (alive until declared failed), by the table."""
@@ -206,7 +217,7 @@ class Membership:
         still reaches, and declare it only if none does (:class:`Suspicion`)."""
         if node in self._suspicions or node in self.failed or node == self.ctx.id:
             return
-        self._peer(node).on(PeerEvent.UNREACHABLE)
+        self._move(node, PeerEvent.UNREACHABLE)
         asked = sorted(n for n in self.ctx.routes if n not in self.failed and n != node)
         if not asked:  # nobody left to ask: this node is cut off from everyone
             self.on_node_down(node, self.ctx.id, now)
@@ -266,10 +277,10 @@ class Membership:
         self.ctx.end(proc.pid)
         self._suspicions.pop(proc.node, None)
         if proc.outcome == "vouched":  # someone hears it: ask again a window from now
-            self._peer(proc.node).on(PeerEvent.VOUCHED)
+            self._move(proc.node, PeerEvent.VOUCHED)
             self.liveness.vouched(proc.node, now)
         elif proc.node in self.ctx.routes:  # (back in reach since: nothing to confirm)
-            self._peer(proc.node).on(PeerEvent.REACHABLE)
+            self._move(proc.node, PeerEvent.REACHABLE)
         else:
             self.on_node_down(proc.node, self.ctx.id, now)
 
@@ -284,7 +295,7 @@ class Membership:
             proc.end()
             self.ctx.end(pid)
         if event:
-            self._peer(node).on(event)
+            self._move(node, event)
 
     # -- declaring a peer failed: one place ----------------------------------------------------
     def on_node_down(
@@ -296,12 +307,11 @@ class Membership:
         if incarnation is not None and incarnation < known:
             return  # that incarnation failed, and a newer one is already back
         self._unsuspect(node, None)
-        peer = self._peer(node)
         if detector != self.ctx.id:
-            peer.on(PeerEvent.REPORTED_DOWN)
+            self._move(node, PeerEvent.REPORTED_DOWN)
         else:  # our own word: confirmed by the nodes we asked, or a neighbour's silence
-            peer.on(PeerEvent.CONFIRMED if peer.state is P.SUSPECT else PeerEvent.SILENT)
-        self.failed.add(node)
+            suspected = self._peer(node).state is P.SUSPECT
+            self._move(node, PeerEvent.CONFIRMED if suspected else PeerEvent.SILENT)
         self._failed_incarnation[node] = known if incarnation is None else incarnation
         self.liveness.forget(node)
         self.failures.append({"node": node, "detector": detector, "at": now})
@@ -431,13 +441,12 @@ class Membership:
         self._sync_pending.clear()  # it holds no app any more: nothing to sync
         for node in self.failed:
             self.liveness.rejoin(node, now, node in self.ctx.routes, self.ctx.routes.get(node))
-        for node in self.failed:
-            self._peer(node).on(PeerEvent.RESET)
+        for node in sorted(self.failed):
+            self._move(node, PeerEvent.RESET)
         for node in sorted(self._suspicions):  # (their procedures were ended above)
-            self._peer(node).on(PeerEvent.RESET)
+            self._move(node, PeerEvent.RESET)
         self._suspicions.clear()
         self._vouching.clear()
-        self.failed.clear()
         self._failed_incarnation.clear()
         self.incarnation += 1
         self.ctx.note_event(
@@ -457,8 +466,7 @@ class Membership:
         """``node`` is back with no instances: restore what it hosted, unpark what was pinned
         to it, and tell it the apps."""
         if node in self.failed:
-            self._peer(node).on(PeerEvent.REJOINED)
-        self.failed.discard(node)
+            self._move(node, PeerEvent.REJOINED)
         self._failed_incarnation.pop(node, None)
         self._incarnations[node] = incarnation
         self.liveness.rejoin(node, now, node in self.ctx.routes, self.ctx.routes.get(node))
