@@ -257,12 +257,23 @@ class NodeCore:
         self.membership.start(now)
         return self._run(now)
 
-    def observe(self, bytes_out: int, bytes_in: int, links: dict[str, Any] | None = None) -> None:
-        """The driver's readings: its cumulative bytes sent and received (relayed included),
-        and for status, the state of its links and connections."""
+    def observe(
+        self,
+        now: float,
+        bytes_out: int,
+        bytes_in: int,
+        *,
+        links: dict[str, Any] | None = None,
+        device: dict[str, Any] | None = None,
+    ) -> None:
+        """What the driver measures, as inputs: its cumulative bytes sent and received
+        (relayed included); for a status, the state of its links and connections; on a
+        device, what the OS reads (battery, CPU time, interface bytes: ``DeviceProbe.read``)."""
         self._traffic = (bytes_out, bytes_in)
         if links is not None:
             self._links = links
+        if device is not None:
+            self.monitor.observe(now, device)
 
     def set_routes(self, routes: dict[str, tuple[str, int]], now: float = 0.0) -> list[Effect]:
         """Take the routing view's current routes; returns effects (a recovery waiting for

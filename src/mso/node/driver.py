@@ -83,14 +83,13 @@ class NodeDriver:
         """The listening server (tests read its port)."""
         return self.transport.server
 
-    def _observe(self, status: bool = False) -> None:
+    def _observe(self, status: bool = False, device: bool = False) -> None:
         """Hand the core what the driver measures: byte counters always; for a status, the
-        device's readings and the links' state too."""
-        links = None
-        if status:
-            self._observe_device()
-            links = self._link_status()
-        self.core.observe(self.counters.bytes_out, self.counters.bytes_in, links)
+        device's readings and the links' state too; the device's every second."""
+        links = self._link_status() if status else None
+        reading = self.device.read() if self.device is not None and (status or device) else None
+        c = self.counters
+        self.core.observe(self.loop.time(), c.bytes_out, c.bytes_in, links=links, device=reading)
 
     def _link_status(self) -> dict[str, Any]:
         return {
@@ -106,12 +105,8 @@ class NodeDriver:
             },
         }
 
-    def _observe_device(self) -> None:
-        if self.device is not None:
-            self.core.monitor.observe(self.loop.time(), self.device.read())
-
     def _device_tick(self) -> None:
-        self._observe_device()
+        self._observe(device=True)
         self._device_timer = self.loop.call_later(DEVICE_PERIOD_S, self._device_tick)
 
     async def start(self) -> None:

@@ -220,7 +220,7 @@ class Simulation:
 
     def request(self, node: str, msg: m.Message, client: int = 1) -> None:
         core = self.cores[node]
-        core.observe(self.bytes[node][0], self.bytes[node][1])
+        core.observe(self.now, self.bytes[node][0], self.bytes[node][1])
         self.apply(node, core.request(client, msg, self.now))
 
     def kill(self, node: str, convergence_s: float = 0.0) -> None:
@@ -264,9 +264,8 @@ class Simulation:
             if item.node in self.killed:
                 continue
             core = self.cores[item.node]
-            core.observe(
-                self.bytes[item.node][0], self.bytes[item.node][1]
-            )  # its driver's byte counters, as inputs
+            sent, received = self.bytes[item.node]
+            core.observe(self.now, sent, received)  # its driver's byte counters, as inputs
             if item.kind == "msg":
                 src, msg = item.payload
                 self.delivered += 1
