@@ -200,9 +200,7 @@ async def one_run(
     loop = asyncio.get_running_loop()
     try:
         await emu.start()
-        reply = await emu.deploy(app_yaml(first, last, rate), "failure.yaml", first)
-        if not reply.ok:
-            raise MsoError(f"deploy failed: {reply.error}")
+        reply = await emu.deploy(app_yaml(first, last, rate), "failure.yaml", first, check=True)
         row["placed"] = reply.placement["mid"]
         await asyncio.sleep(STEADY_S)
         before = await node_status(emu, first)

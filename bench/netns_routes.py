@@ -188,9 +188,7 @@ async def run(runs: int) -> dict[str, Any]:
     sink: dict[str, Any] = {}
     try:
         await watch.start()
-        reply = await emu.deploy(FLOW, "flow.yaml", "N1")
-        if not reply.ok:
-            raise RuntimeError(f"deploy failed: {reply.error}")
+        await emu.deploy(FLOW, "flow.yaml", "N1", check=True)
         await asyncio.sleep(1.0)
         for k in range(runs):
             row = await one_break(emu, watch, k)
