@@ -83,8 +83,7 @@ async def cost(pairs: int, seconds: float) -> dict[str, Any]:
     emu = Emulator(load_scenario(EXAMPLES / "convoy-line.yaml"), manage=False)
     await emu.start()
     try:
-        reply = await emu.deploy((EXAMPLES / "convoy.yaml").read_text(), "convoy.yaml", "N1")
-        assert reply.ok, reply.error
+        await emu.deploy((EXAMPLES / "convoy.yaml").read_text(), "convoy.yaml", "N1", check=True)
         await asyncio.sleep(2.0)  # past the deployment
         off: list[dict[str, float]] = []
         on: list[dict[str, float]] = []
@@ -141,8 +140,7 @@ async def keep_up(n: int, seconds: float, rate: int) -> dict[str, Any]:
     await emu.start(timeout=120.0)
     started = time.monotonic() - t0
     try:
-        reply = await emu.deploy(pipe(n, rate), "pipe.yaml", "N1")
-        assert reply.ok, reply.error
+        await emu.deploy(pipe(n, rate), "pipe.yaml", "N1", check=True)
         board = Dashboard([emu.address(x) for x in emu.nodes], name="bench", interval=1.0,
                           expected=list(emu.nodes))  # fmt: skip
         url = await board.start()

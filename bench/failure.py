@@ -61,7 +61,6 @@ from typing import Any
 from mso.benchmarks.common import percentile, provenance, write_results
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
-from mso.protocol import messages as m
 from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
@@ -137,9 +136,8 @@ def summary(values: list[float]) -> dict[str, Any]:
 
 async def node_status(emu: Emulator, node: str) -> dict[str, Any]:
     """One node's own status (not ``everywhere``: that waits up to 1 s for a dead node)."""
-    reply = await emu.call(node, m.StatusRequest(), 5.0)
-    assert isinstance(reply, m.StatusReply)
-    st: dict[str, Any] = reply.nodes[node]
+    nodes = await emu.overlay(node).status(everywhere=False, timeout=5.0)
+    st: dict[str, Any] = nodes[node]
     return st
 
 
@@ -202,9 +200,7 @@ async def one_run(
     loop = asyncio.get_running_loop()
     try:
         await emu.start()
-        reply = await emu.deploy(app_yaml(first, last, rate), "failure.yaml", first)
-        if not reply.ok:
-            raise MsoError(f"deploy failed: {reply.error}")
+        reply = await emu.deploy(app_yaml(first, last, rate), "failure.yaml", first, check=True)
         row["placed"] = reply.placement["mid"]
         await asyncio.sleep(STEADY_S)
         before = await node_status(emu, first)

@@ -33,8 +33,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from mso.api import AsyncOverlay
 from mso.benchmarks.common import provenance, write_results
-from mso.client import Client, overlay_key
+from mso.client import overlay_key
 from mso.protocol import messages as m
 from mso.protocol import wirefuzz
 from mso.protocol.authority import Signer
@@ -67,13 +68,8 @@ def rss_kb(pid: int) -> int:
 
 
 async def status(port: int) -> dict[str, Any]:
-    client = await Client("127.0.0.1", port, overlay_key(KEY)).connect()
-    try:
-        reply = await client.call(m.StatusRequest(), timeout=30)
-        assert isinstance(reply, m.StatusReply)
-        return dict(reply.nodes["N1"])
-    finally:
-        await client.close()
+    nodes = await AsyncOverlay(f"127.0.0.1:{port}", key=KEY).status(everywhere=False, timeout=30)
+    return dict(nodes["N1"])
 
 
 def sink_events(st: dict[str, Any]) -> int:
@@ -154,10 +150,8 @@ async def fuzz(pid: int, port: int, frames: int, seed: int, bad_every: int) -> d
             break
         except Exception:
             await asyncio.sleep(0.05)
-    client = await Client("127.0.0.1", port, overlay_key(KEY), signer=OPERATOR).connect()
-    reply = await client.call(m.DeployRequest(APP, "pipe.yaml"), timeout=30)
-    await client.close()
-    assert isinstance(reply, m.DeployReply) and reply.ok, reply
+    operator = AsyncOverlay(f"127.0.0.1:{port}", key=KEY, signer=OPERATOR)
+    await operator.deploy_request(m.DeployRequest(APP, "pipe.yaml"))  # a refusal raises
     await asyncio.sleep(2.0)
     before = await status(port)
     rss: dict[str, Any] = {"before_kb": rss_kb(pid), "samples_kb": []}

@@ -45,7 +45,6 @@ from typing import Any
 from mso.benchmarks.common import provenance, write_results
 from mso.benchmarks.vertices.executor import Burn, Seq
 from mso.emu.controller import Emulator
-from mso.errors import MsoError
 from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
@@ -101,9 +100,7 @@ async def phase(
     relocations: list[dict[str, Any]] = []
     try:
         await emu.start()
-        reply = await emu.deploy(app_yaml(cpu_s, rate, limit), "heavy.yaml", "N1")
-        if not reply.ok:
-            raise MsoError(f"deploy failed: {reply.error}")
+        reply = await emu.deploy(app_yaml(cpu_s, rate, limit), "heavy.yaml", "N1", check=True)
         out["placement"] = reply.placement
         t0 = loop.time()
         plan = [(duration / 3, "downstream"), (2 * duration / 3, "upstream")] if moves else []

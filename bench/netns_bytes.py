@@ -79,9 +79,7 @@ async def run(rate: float, size: int, seconds: float) -> dict[str, Any]:
         t0, c0 = loop.time(), await read(emu)
         await asyncio.sleep(seconds)  # the idle window
         t1, c1 = loop.time(), await read(emu)
-        reply = await emu.deploy(app(rate, size), "bytes.yaml", "N1")
-        if not reply.ok:
-            raise RuntimeError(f"deploy failed: {reply.error}")
+        await emu.deploy(app(rate, size), "bytes.yaml", "N1", check=True)
         await asyncio.sleep(1.0)
         t2, c2 = loop.time(), await read(emu)
         await asyncio.sleep(seconds)  # the flowing window

@@ -38,7 +38,6 @@ from typing import Any
 
 from mso.benchmarks.common import percentile, provenance, write_results
 from mso.emu.netns.emulator import NetnsEmulator, check_available
-from mso.protocol import messages as m
 from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
@@ -93,9 +92,8 @@ class KernelWatch:
 
 
 async def mso_route(emu: NetnsEmulator, node: str, dst: str) -> list[Any] | None:
-    reply = await emu.call(node, m.StatusRequest(), 5.0)
-    assert isinstance(reply, m.StatusReply)
-    route: list[Any] | None = reply.nodes[node]["routes"].get(dst)
+    nodes = await emu.overlay(node).status(everywhere=False, timeout=5.0)
+    route: list[Any] | None = nodes[node]["routes"].get(dst)
     return route
 
 
@@ -159,9 +157,8 @@ async def one_break(emu: NetnsEmulator, watch: KernelWatch, k: int) -> dict[str,
 
 
 async def sink_stats(emu: NetnsEmulator) -> dict[str, Any]:
-    reply = await emu.call("N4", m.StatusRequest(), 5.0)
-    assert isinstance(reply, m.StatusReply)
-    stats: dict[str, Any] = reply.nodes["N4"]["apps"]["flow"]["vertices"]["sink"]["stats"]
+    nodes = await emu.overlay("N4").status(everywhere=False, timeout=5.0)
+    stats: dict[str, Any] = nodes["N4"]["apps"]["flow"]["vertices"]["sink"]["stats"]
     return stats
 
 
@@ -191,9 +188,7 @@ async def run(runs: int) -> dict[str, Any]:
     sink: dict[str, Any] = {}
     try:
         await watch.start()
-        reply = await emu.deploy(FLOW, "flow.yaml", "N1")
-        if not reply.ok:
-            raise RuntimeError(f"deploy failed: {reply.error}")
+        await emu.deploy(FLOW, "flow.yaml", "N1", check=True)
         await asyncio.sleep(1.0)
         for k in range(runs):
             row = await one_break(emu, watch, k)

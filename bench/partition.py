@@ -32,7 +32,6 @@ from typing import Any
 from failure import app_yaml, log_lines, node_status, summary, vertex
 from mso.benchmarks.common import provenance, write_results
 from mso.emu.controller import Emulator
-from mso.errors import MsoError
 from mso.model.network import LinkSpec
 from mso.scenario import loads_scenario
 
@@ -61,9 +60,7 @@ async def one_run(k: int, outage: float, logs: Path) -> dict[str, Any]:
     loop = asyncio.get_running_loop()
     try:
         await emu.start()
-        reply = await emu.deploy(app_yaml("N1", "N4", RATE), "partition.yaml", "N1")
-        if not reply.ok:
-            raise MsoError(f"deploy failed: {reply.error}")
+        await emu.deploy(app_yaml("N1", "N4", RATE), "partition.yaml", "N1", check=True)
         await asyncio.sleep(STEADY_S)
         before = {n: await node_status(emu, n) for n in emu.nodes}
         link = scenario.network.link("N3", "N4") or LinkSpec("N3", "N4")

@@ -23,7 +23,6 @@ from typing import Any
 
 from mso.benchmarks.common import provenance, write_results
 from mso.emu.controller import Emulator
-from mso.errors import MsoError
 from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
@@ -62,9 +61,7 @@ async def one_rate(
 ) -> dict[str, Any]:
     app = f"rate{k}"
     loop = asyncio.get_running_loop()
-    reply = await emu.deploy(app_yaml(app, rate), f"{app}.yaml", "N1")
-    if not reply.ok:
-        raise MsoError(f"deploy failed: {reply.error}")
+    await emu.deploy(app_yaml(app, rate), f"{app}.yaml", "N1", check=True)
     try:
         span = max(window, 10.0 / rate)
         await asyncio.sleep(max(warmup, 1.5 / rate))  # at least one event before the window

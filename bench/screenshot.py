@@ -29,8 +29,7 @@ async def shoot(wait: float, out: Path) -> None:
     await emu.start()
     board = None
     try:
-        reply = await emu.deploy((EXAMPLES / "convoy.yaml").read_text(), "convoy.yaml", "N1")
-        assert reply.ok, reply.error
+        await emu.deploy((EXAMPLES / "convoy.yaml").read_text(), "convoy.yaml", "N1", check=True)
         board = Dashboard([emu.address(n) for n in emu.nodes], name=str(emu.name),
                           positions=emu.node_positions, expected=list(emu.nodes))  # fmt: skip
         url = await board.start()

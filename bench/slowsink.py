@@ -29,7 +29,6 @@ from typing import Any
 
 from mso.benchmarks.common import provenance, write_results
 from mso.emu.controller import Emulator
-from mso.errors import MsoError
 from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
@@ -74,9 +73,7 @@ async def run(rate: float, delay: float, duration: float, drain: bool) -> dict[s
     try:
         await emu.start()
         # a source that stops at what it could emit at full rate over the run (never reached)
-        reply = await emu.deploy(app_yaml(rate, delay, int(rate * duration)), "slow.yaml", "N1")
-        if not reply.ok:
-            raise MsoError(f"deploy failed: {reply.error}")
+        await emu.deploy(app_yaml(rate, delay, int(rate * duration)), "slow.yaml", "N1", check=True)
         t0 = loop.time()
         nodes: dict[str, Any] = {}
         while loop.time() < t0 + duration:

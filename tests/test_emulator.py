@@ -170,6 +170,37 @@ def test_python_api_against_running_daemons(tmp_path: Path) -> None:
     assert "mid" in status[moved.node]["apps"]["pipe"]["vertices"]
 
 
+def test_the_benchmarks_client_path_through_the_api() -> None:
+    """What the benchmarks ask through mso.api: a deployment judged there (``check``), a call's
+    own timeout, and a connection of its own (signed and encrypted as the emulator's) that its
+    caller closes while the emulator's kept connection goes on serving."""
+    from mso.api import CommandFailed
+    from mso.client import NodeUnreachable
+
+    async def run() -> None:
+        emu = Emulator(loads_scenario(LINE), encrypt=True)
+        await emu.start()
+        try:
+            assert (await emu.deploy(APP, "pipe.yaml", "N1", check=True)).ok
+            with pytest.raises(CommandFailed, match="deployment failed"):  # it runs already
+                await emu.deploy(APP, "pipe.yaml", "N1", check=True)
+            trial = await emu.open_overlay("N4", "trial", timeout=2.0)
+            try:
+                reply = await trial.remap("pipe", chains=[0], check=False, timeout=10.0)
+                assert reply.app == "pipe"
+                with pytest.raises(NodeUnreachable, match="did not answer in time"):
+                    await trial.remap("pipe", everything=True, timeout=1e-9)
+            finally:
+                await trial.close()
+            kept = emu.overlay("N4")
+            await kept.close()  # not its own: the emulator's connection stays open
+            assert "pipe" in (await kept.status(everywhere=False, timeout=5.0))["N4"]["apps"]
+        finally:
+            await emu.stop()
+
+    asyncio.run(run())
+
+
 def test_static_peers_from_config_files(tmp_path: Path) -> None:
     """Without an emulator: two daemons configured by files, as on real devices."""
     from mso.client import request

@@ -13,7 +13,8 @@ The address is any node of the overlay (``HOST:PORT``), a node id of a running e
 None: the node of the one emulator running (or of ``overlay=NAME``). Refusals raise
 :class:`mso.errors.MsoError` with the node's reason (:class:`CommandFailed` when the node
 answered and did not do it). ``AsyncOverlay`` is the same for asyncio code; it can also keep
-one connection open (:meth:`AsyncOverlay.open`, or a connected client given).
+one connection open (:meth:`AsyncOverlay.open`, or a connected client given), so that repeated
+timed calls do not each pay a connect and a key check. Its every call takes a ``timeout``.
 
 Light to import: ``mso status`` comes through here and imports neither asyncio nor the model.
 """
@@ -127,14 +128,16 @@ class AsyncOverlay:
         overlay: str | None = None,
         signer: Signer | None = None,
         client: Client | None = None,
+        owned: bool = False,
     ) -> None:
         self._address, self._overlay = address, overlay
         self.key = key
-        self.timeout = timeout  # every reply's; None: DEPLOY_S for a deployment, else COMMAND_S
+        # every reply's, over any call's own; None: each call's (DEPLOY_S, COMMAND_S by default)
+        self.timeout = timeout
         # an operator key (a file, or loaded): commands that change the overlay are signed
         self.signer = signer if signer is not None else load_signer(sign)
         self._client = client  # a connection kept open (by the caller, or by open())
-        self._owned = False
+        self._owned = owned  # close() closes it: opened here, or handed over with ``owned``
 
     @property
     def address(self) -> str:
@@ -167,13 +170,17 @@ class AsyncOverlay:
         )
         return reply
 
-    async def deploy(self, app_file: str | Path, *, check: bool = True) -> m.DeployReply:
+    async def deploy(
+        self, app_file: str | Path, *, check: bool = True, timeout: float = DEPLOY_S
+    ) -> m.DeployReply:
         """Deploy an app file (validated here first, so errors point at its lines)."""
-        return await self.deploy_request(deploy_request(app_file), check=check)
+        return await self.deploy_request(deploy_request(app_file), check=check, timeout=timeout)
 
-    async def deploy_request(self, req: m.DeployRequest, *, check: bool = True) -> m.DeployReply:
+    async def deploy_request(
+        self, req: m.DeployRequest, *, check: bool = True, timeout: float = DEPLOY_S
+    ) -> m.DeployReply:
         """Deploy an app document; ``check=False`` returns a failed deployment's reply too."""
-        reply = await self.ask(req, DEPLOY_S)
+        reply = await self.ask(req, timeout)
         if check:
             return judge(reply, m.DeployReply, "deployment failed")
         return expect(reply, m.DeployReply)
@@ -186,10 +193,17 @@ class AsyncOverlay:
         await self.ask(m.StopApp(name))
 
     async def relocate(
-        self, app: str, vertex: str, *, direction: str = "", target: str = "", check: bool = True
+        self,
+        app: str,
+        vertex: str,
+        *,
+        direction: str = "",
+        target: str = "",
+        check: bool = True,
+        timeout: float = COMMAND_S,
     ) -> m.RelocateReply:
         """Move one interior vertex upstream, downstream, or to ``target`` (§3.4.1)."""
-        reply = await self.ask(m.RelocateRequest(app, vertex, direction, target))
+        reply = await self.ask(m.RelocateRequest(app, vertex, direction, target), timeout)
         if check:
             return judge(reply, m.RelocateReply, "relocation refused")
         return expect(reply, m.RelocateReply)
@@ -201,13 +215,14 @@ class AsyncOverlay:
         chains: Sequence[int | str] = (),
         everything: bool = False,
         check: bool = True,
+        timeout: float = COMMAND_S,
     ) -> m.RemapReply:
         """Re-place chains (by index or ``head-...-tail``) or all of them, in dependency order
-        (§3.4.2, §3.4.3)."""
+        (§3.4.2, §3.4.3); a remap of the whole app may want a longer ``timeout``."""
         indices = [c for c in chains if isinstance(c, int)]
         if len(indices) < len(chains):  # a name: the chains are as the node knows them
             indices = chain_indices(await self.status(everywhere=False), app, chains)
-        reply = await self.ask(m.RemapRequest(app, indices, everything))
+        reply = await self.ask(m.RemapRequest(app, indices, everything), timeout)
         if check:
             return judge(reply, m.RemapReply, "remap refused")
         return expect(reply, m.RemapReply)

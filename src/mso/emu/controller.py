@@ -368,13 +368,25 @@ class Emulator:
             raise MsoError(f"node {node} is not running")
         return AsyncOverlay(address, client=client)
 
+    async def open_overlay(
+        self, node: str, name: str = "emulator", timeout: float = 5.0
+    ) -> AsyncOverlay:
+        """The overlay through ``node`` over a new connection (signed and encrypted as this
+        emulator's), for the caller to close: a node that drops it leaves the kept one be."""
+        address = self.address(node)
+        client = self.client_for(self.nodes[node], overlay_key(self.key), name)
+        return AsyncOverlay(address, client=await client.connect(timeout), owned=True)
+
     async def call(self, node: str, msg: m.Message, timeout: float = 10.0) -> m.Message:
         return await self.overlay(node).ask(msg, timeout)
 
-    async def deploy(self, document: str, file: str, via: str) -> m.DeployReply:
-        """Deploy from ``via``; a failed deployment's reply is returned, not raised."""
+    async def deploy(
+        self, document: str, file: str, via: str, *, check: bool = False
+    ) -> m.DeployReply:
+        """Deploy from ``via``; a failed deployment's reply is returned, not raised (unless
+        ``check``: then it raises :class:`mso.api.CommandFailed`)."""
         req = m.DeployRequest(document=document, file=file)
-        return await self.overlay(via).deploy_request(req, check=False)
+        return await self.overlay(via).deploy_request(req, check=check)
 
     async def relocate(
         self,

@@ -1,6 +1,8 @@
 """Table 1's operations, each timed ``runs`` times on a running line: mapping, relocations,
 remaps, and the measurement app's interruption by a relocation and by a stop-and-redeploy.
-:class:`Bench` is the state they share and the few requests they make through the emulator.
+:class:`Bench` is the state they share and the few requests they make, through :mod:`mso.api`
+over the emulator's kept connections (a timed call pays no connect): a refusal's reply is
+recorded as a failure of the run, not raised.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import mso.examples
-from mso.client import NodeUnreachable, overlay_key
+from mso.client import NodeUnreachable
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.model.appfile import loads_app
@@ -89,9 +91,8 @@ class Bench:
         return False
 
     async def node_status(self, node: str) -> dict[str, Any]:
-        reply = await self.emu.call(node, m.StatusRequest(), 5.0)
-        assert isinstance(reply, m.StatusReply)
-        status: dict[str, Any] = reply.nodes[node]
+        nodes = await self.emu.overlay(node).status(everywhere=False, timeout=5.0)
+        status: dict[str, Any] = nodes[node]
         return status
 
     async def app_view(self, app: str) -> tuple[dict[str, str], list[list[str]]]:
@@ -124,38 +125,40 @@ class Bench:
             await asyncio.sleep(0.002)
         return False
 
-    async def deploy(self, document: str, file: str) -> m.DeployReply:
-        return await asyncio.wait_for(self.emu.deploy(document, file, "N1"), 30.0)
+    async def deploy(self, document: str, file: str, *, check: bool = False) -> m.DeployReply:
+        """Deploy from N1; ``check``: a failure raises (the setup cannot go on without it)."""
+        return await asyncio.wait_for(self.emu.deploy(document, file, "N1", check=check), 30.0)
 
     async def remap(self, chains: list[int], everything: bool = False) -> m.RemapReply:
-        reply = await self.emu.call(
-            self.remap_via, m.RemapRequest(CONVOY, chains, everything), 30.0
+        """Remap through :attr:`remap_via`, waiting up to 30 s: a whole-app remap is slow."""
+        ov = self.emu.overlay(self.remap_via)
+        return await ov.remap(
+            CONVOY, chains=chains, everything=everything, check=False, timeout=30.0
         )
-        assert isinstance(reply, m.RemapReply)
-        return reply
+
+
+async def trial_remap(emu: Emulator, node: str, chain: int) -> m.RemapReply:
+    """An untimed no-op remap of ``chain`` coordinated by ``node``, on a connection of its own,
+    so a node that drops the connection does not take the emulator's connection with it."""
+    ov = await emu.open_overlay(node, "table1-remap-trial", timeout=2.0)
+    try:
+        return await ov.remap(CONVOY, chains=[chain], check=False, timeout=10.0)
+    finally:
+        await ov.close()
 
 
 async def pick_remap_via(b: Bench, chain: int) -> None:
-    """The node remaps are sent to: N1 if it can coordinate one, else the first node that can.
-
-    Each node is tried once with an untimed no-op remap of ``chain`` on a connection of its own,
-    so a node that drops the connection does not take the emulator's connection with it.
-    """
-    emu = b.emu
+    """The node remaps are sent to: N1 if it can coordinate one, else the first node that can
+    (each tried once, with :func:`trial_remap`)."""
     for node in ("N1", "N4", "N3", "N2"):
-        n = emu.nodes[node]
-        client = emu.client_for(n, overlay_key(emu.key), "table1-remap-trial")
         try:
-            await client.connect(2.0)
-            reply = await client.call(m.RemapRequest(CONVOY, [chain]), 10.0)
+            reply = await trial_remap(b.emu, node, chain)
         except NodeUnreachable as exc:
             b.notes.append(
                 f"a remap coordinated by {node} failed ({exc}); see node_log_errors in the JSON"
             )
             continue
-        finally:
-            await client.close()
-        if isinstance(reply, m.RemapReply) and reply.ok:
+        if reply.ok:
             b.remap_via = node
             return
         b.notes.append(f"a remap coordinated by {node} was refused: {reply}")
