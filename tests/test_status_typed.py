@@ -9,6 +9,7 @@ import json
 
 import msgspec
 
+from mso.api import typed_status
 from mso.node.status import LinkStatus, NodeStatus, from_wire, node_status, to_wire
 from mso.protocol import messages as m
 from mso.protocol.authority import AuthorityStatus
@@ -176,3 +177,15 @@ def test_the_drivers_links_stand_at_the_top_level() -> None:
     assert st["connected"] == ["N2"] and st["tasks"] == 7
     typed = from_wire(st)
     assert typed == node_status(core, sim.now) and typed.authority == links.authority
+
+
+def test_a_client_types_the_nodes_it_was_given() -> None:
+    sim = _running()
+    nodes = {n: c.status(sim.now) for n, c in sim.cores.items()}
+    typed = typed_status(nodes)
+    assert sorted(typed) == sorted(nodes)
+    assert all(to_wire(t) == nodes[n] for n, t in typed.items())
+    assert (
+        typed["N1"].apps["pipe"].vertices["src"].kind
+        == nodes["N1"]["apps"]["pipe"]["vertices"]["src"]["kind"]
+    )
