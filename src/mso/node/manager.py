@@ -272,6 +272,7 @@ class Manager:
         return True
 
     def status(self) -> ManagementStatus:
+        """The engine's record with the loop's own fields (the wire shows them side by side)."""
         engine = msgspec.structs.asdict(self.engine.status())
         return ManagementStatus(**engine, enabled=self.enabled, done=list(self.done))
 

@@ -220,6 +220,7 @@ class Monitor:
         del self.events[:-20]
 
     def status(self) -> MonitorStatus:
+        """The figures as last sampled (the core samples before it asks)."""
         life = self.lifetime_s
         return MonitorStatus(
             energy_j=self.energy_j,

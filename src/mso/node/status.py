@@ -22,18 +22,15 @@ from typing import TYPE_CHECKING, Any, Protocol
 import msgspec
 from msgspec import UNSET, UnsetType
 
-from mso.node.manager import ManagementStatus
-from mso.node.monitor import MonitorStatus
+from mso.node.manager import ManagementStatus, Manager
+from mso.node.monitor import Monitor, MonitorStatus
 from mso.protocol.authority import AuthorityStatus
 from mso.protocol.procedures.membership.liveness import LivenessStatus
-from mso.protocol.procedures.membership.peers import Heard
+from mso.protocol.procedures.membership.peers import Heard, Membership
 from mso.protocol.state import AppState, AppStatus
 
 if TYPE_CHECKING:
-    from mso.node.manager import Manager
-    from mso.node.monitor import Monitor
     from mso.protocol.dataplane import DataPlane
-    from mso.protocol.procedures.membership.peers import Membership
 
 
 class Route(msgspec.Struct, frozen=True, array_like=True):

@@ -211,6 +211,7 @@ class Authority:
         return bool(self.operators)
 
     def status(self) -> AuthorityStatus:
+        """For the driver's part of status (the key ids, never the keys)."""
         return AuthorityStatus(
             mode="open" if self.open else "signed",
             operators=sorted(self.operators),

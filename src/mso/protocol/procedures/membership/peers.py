@@ -148,6 +148,7 @@ class Membership:
                     self.ctx.send(d, stop)
 
     def status(self) -> MembershipStatus:
+        """Whom this node holds failed or suspects, and what its detector measured."""
         return MembershipStatus(
             failed_nodes=sorted(self.failed),
             suspected_nodes=sorted(self._suspicions),
