@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import msgspec
+
 from mso.model.network import PowerModel
 from mso.node.device import DeviceProbe, read_battery, read_interfaces
 from mso.node.monitor import Monitor
@@ -59,24 +61,24 @@ def test_charge_based_batteries_add_up(tmp_path: Path) -> None:
 def test_monitor_prefers_measured_figures(tmp_path: Path) -> None:
     _laptop(tmp_path)
     mon = Monitor(PowerModel(idle_w=1.0), battery_wh=5.0)
-    modelled = mon.snapshot()
-    assert modelled["sources"]["battery"] == "modelled"
-    assert modelled["remaining_j"] == 5.0 * 3600
+    modelled = mon.status()
+    assert modelled.sources["battery"] == "modelled"
+    assert modelled.remaining_j == 5.0 * 3600
     probe = DeviceProbe(sys_root=tmp_path)
     mon.observe(0.0, probe.read())
     mon.observe(1.0, probe.read())
-    snap = mon.snapshot()
-    assert snap["sources"]["battery"] == "measured (BAT0)"
-    assert snap["sources"]["drain"] == "measured"
-    assert snap["remaining_j"] == 0.8 * 50 * 3600
-    assert snap["lifetime_s"] == 0.8 * 50 * 3600 / 10.0  # at the measured 10 W
-    assert snap["measured"]["iface_tx_bytes"] == 256 and "cpu_load" in snap["measured"]
-    cell = _measured_cell(snap)
+    snap = mon.status()
+    assert snap.sources["battery"] == "measured (BAT0)"
+    assert snap.sources["drain"] == "measured"
+    assert snap.remaining_j == 0.8 * 50 * 3600
+    assert snap.lifetime_s == 0.8 * 50 * 3600 / 10.0  # at the measured 10 W
+    assert snap.measured["iface_tx_bytes"] == 256 and "cpu_load" in snap.measured
+    cell = _measured_cell(msgspec.to_builtins(snap))  # as status carries it
     assert cell.startswith("battery, W, cpu ") and cell.endswith("radio 256 B/1.0 kB")
     _laptop(tmp_path, status="Charging")
     mon.observe(2.0, probe.read())
     assert mon.lifetime_s is None  # on the charger: no end in sight
-    assert "charging" in mon.snapshot()["sources"]["battery"]
+    assert "charging" in mon.status().sources["battery"]
 
 
 def test_model_only_when_the_os_reports_nothing(tmp_path: Path) -> None:
@@ -84,7 +86,7 @@ def test_model_only_when_the_os_reports_nothing(tmp_path: Path) -> None:
     mon.observe(0.0, DeviceProbe(battery=False, interfaces=False, sys_root=tmp_path).read())
     mon.sample(0.0, 0.0, 0, 0)
     mon.sample(10.0, 0.0, 0, 0)
-    snap = mon.snapshot()
-    assert snap["sources"]["battery"] == "modelled" and snap["sources"]["drain"] == "modelled"
-    assert snap["remaining_j"] == 3600 - 20.0 and snap["lifetime_s"] == (3600 - 20.0) / 2.0
-    assert _measured_cell(snap) == "-"
+    snap = mon.status()
+    assert snap.sources["battery"] == "modelled" and snap.sources["drain"] == "modelled"
+    assert snap.remaining_j == 3600 - 20.0 and snap.lifetime_s == (3600 - 20.0) / 2.0
+    assert _measured_cell(msgspec.to_builtins(snap)) == "-"

@@ -188,12 +188,12 @@ def test_liveness_keeps_heartbeat_inter_arrivals() -> None:
     beat = m.Heartbeat("N2", figures=m.Figures(1.0, 0.0, 0.0, None, None, (0.0, 0.0, 0.0, 0.0)))
     for k in range(GAP_SAMPLES + 10):
         lv.heard_from("N2", k * 0.05 + (0.02 if k == GAP_SAMPLES + 5 else 0.0), beat)
-    gaps = lv.stats()["inter_arrival"]["N2"]
-    assert gaps["n"] == GAP_SAMPLES + 9
+    gaps = lv.status().inter_arrival["N2"]
+    assert gaps.n == GAP_SAMPLES + 9
     assert len(lv.gaps["N2"].recent) == GAP_SAMPLES
-    assert gaps["p50_ms"] == 50.0 and gaps["max_ms"] == 70.0
+    assert gaps.p50_ms == 50.0 and gaps.max_ms == 70.0
     lv.set_neighbours(1e3, set())  # a lost link forgets the figures
-    assert lv.stats()["inter_arrival"] == {} and lv.stats()["dead_after_s"] == 0.15
+    assert lv.status().inter_arrival == {} and lv.status().dead_after_s == 0.15
 
 
 def test_heartbeats_carry_the_figures_once_a_monitor_period_and_to_a_new_neighbour() -> None:

@@ -629,7 +629,7 @@ def test_app_policy_overrides_the_nodes() -> None:
     engine.set_app_policy("app", load_policy("custom_policy:PreferNode", where=WHERE))
     allowed = run(engine, poor_here(), [0.0, 1.0, 2.0])
     assert [what.split(" (")[0] for _, what in allowed] == ["relocate app/B -> D"]
-    assert engine.status()["app_policies"] == {"app": "prefer-node"}
+    assert engine.status().app_policies == {"app": "prefer-node"}
 
 
 def test_broken_and_misbehaving_policies_are_reported_not_fatal() -> None:
@@ -666,10 +666,10 @@ def test_status_shows_policy_settings_and_decisions() -> None:
     engine = RuleEngine()
     run(engine, poor_here(), [0.0, 1.0, 2.0])
     status = engine.status()
-    assert status["policy"] == "lifetime" and status["evaluations"] == 3
-    assert status["settings"]["confirm"] == 3
-    assert status["decisions"][-1].startswith("2.0 relocate app/B -> U (")
-    assert status["decisions"][-1].endswith(": allowed")
+    assert status.policy == "lifetime" and status.evaluations == 3
+    assert status.settings["confirm"] == 3
+    assert status.decisions[-1].startswith("2.0 relocate app/B -> U (")
+    assert status.decisions[-1].endswith(": allowed")
 
 
 def test_a_move_that_would_saturate_the_target_is_never_proposed() -> None:
@@ -704,7 +704,7 @@ def test_a_draining_node_sheds_work_the_margin_would_keep() -> None:
     assert [(t, what.split(" (")[0]) for t, what in allowed] == [(2.0, "relocate app/B -> U")]
     assert "H draining" in allowed[0][1]
     assert engine.draining == {"H"}
-    assert any("H draining" in line for line in engine.status()["decisions"])
+    assert any("H draining" in line for line in engine.status().decisions)
 
 
 def test_draining_has_hysteresis() -> None:
@@ -727,8 +727,8 @@ def test_a_node_warming_up_is_not_judged_by_its_start_up() -> None:
     for t in range(1, 11):  # warming up until 10.5
         assert engine.evaluate(dataclasses.replace(poor, now=float(t))) == []
         assert engine.draining == frozenset()
-    assert engine.status()["warming_until"] == 10.5
-    assert engine.status()["decisions"] == [
+    assert engine.status().warming_until == 10.5
+    assert engine.status().decisions == [
         "1.0 H warming up: a vertex started at 0.5: its drain is judged from 10.5"
     ]
     allowed = [
@@ -737,7 +737,7 @@ def test_a_node_warming_up_is_not_judged_by_its_start_up() -> None:
         for a in engine.evaluate(dataclasses.replace(poor, now=t))
     ]
     assert allowed == [(13.0, "relocate app/B -> U")]  # confirmed 3 times after the warm-up
-    assert engine.draining == {"H"} and engine.status()["warming_until"] is None
+    assert engine.draining == {"H"} and engine.status().warming_until is None
     # a judgement made on steady figures stands while another instance warms up
     rich = dataclasses.replace(leader_line(36_000.0), last_start=20.0)
     engine.evaluate(dataclasses.replace(rich, now=21.0))
@@ -820,7 +820,7 @@ def test_a_draining_node_asks_to_remap_the_chains_of_a_join_it_cannot_relocate()
     # one energy remap per app per energy_interval_s from this node
     later = run(engine, s, [110.0 + k for k in range(100)])
     assert later == []
-    assert any("remapped for energy at 102.0" in d for d in engine.status()["decisions"])
+    assert any("remapped for energy at 102.0" in d for d in engine.status().decisions)
 
 
 def test_an_energy_remap_waits_while_the_app_is_being_reconfigured_here() -> None:
@@ -828,7 +828,7 @@ def test_an_energy_remap_waits_while_the_app_is_being_reconfigured_here() -> Non
     for t in (100.0, 101.0, 102.0, 103.0):
         busy = dataclasses.replace(joined(), now=t, busy=frozenset({"app"}))
         assert engine.evaluate(busy) == []
-    assert any("in flight here" in d for d in engine.status()["decisions"])
+    assert any("in flight here" in d for d in engine.status().decisions)
 
 
 def test_the_energy_remap_never_sends_a_join_back_nor_onto_a_shorter_lived_node() -> None:

@@ -58,10 +58,10 @@ def test_energy_rule_moves_work_off_a_poor_battery_and_loses_nothing() -> None:
     (done,) = sim.cores["N1"].manager.done
     assert "relocate work/work -> N2" in done and "lifetime" in done
     status = sim.cores["N1"].manager.status()
-    draining = [d for d in status["decisions"] if "draining" in d.split(":")[0]]
+    draining = [d for d in status.decisions if "draining" in d.split(":")[0]]
     assert draining[0].split(" ", 1)[1].startswith("N1 draining")  # 0.5 Wh against 5 Wh
-    warming = [d for d in status["decisions"] if "warming up" in d.split(":")[0]]
-    decisions = [d for d in status["decisions"] if d not in draining + warming]
+    warming = [d for d in status.decisions if "warming up" in d.split(":")[0]]
+    decisions = [d for d in status.decisions if d not in draining + warming]
     ends = ("held: confirming 1/3", "held: confirming 2/3", "allowed")
     assert [d.endswith(e) for d, e in zip(decisions, ends, strict=False)] == [True] * 3
     got = sink(sim, "work", "N3")
@@ -89,7 +89,7 @@ def test_a_policy_named_in_the_app_is_loaded_and_obeyed() -> None:
     sim = deployed(robots(leader_wh=5.0), doc)  # lifetime would keep it on N1 (test above)
     sim.run_until(15.0)
     assert sim.cores["N1"].placement("work")["work"] == "N2"
-    assert "prefer-node" in sim.cores["N1"].manager.status()["app_policies"].values()
+    assert "prefer-node" in sim.cores["N1"].manager.status().app_policies.values()
 
 
 def test_a_policy_that_cannot_be_loaded_fails_the_deployment_clearly() -> None:

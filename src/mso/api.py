@@ -8,6 +8,7 @@ the emulator controller ask their nodes through it, so a reply is judged in one 
     overlay.relocate("convoy", "scan_matcher", direction="upstream")
     overlay.remap("convoy", chains=[0, 4])          # or everything=True, or chains=["a-b-c"]
     print(overlay.status()["N1"]["apps"])
+    print(typed_status(overlay.status())["N1"].monitor.drain_w)   # typed: mso.node.status
 
 The address is any node of the overlay (``HOST:PORT``), a node id of a running emulator, or
 None: the node of the one emulator running (or of ``overlay=NAME``). Refusals raise
@@ -32,6 +33,7 @@ from mso.protocol import messages as m
 if TYPE_CHECKING:
     from mso.client import Client
     from mso.model.app import App
+    from mso.node.status import NodeStatus
     from mso.protocol.authority import Signer
 
 R = TypeVar("R")
@@ -91,6 +93,14 @@ def deploy_request(app_file: str | Path) -> m.DeployRequest:
 def asked_node(nodes: dict[str, Any]) -> dict[str, Any]:
     """The status of the node asked (a status not asked everywhere holds that node only)."""
     return next(iter(nodes.values()), {})
+
+
+def typed_status(nodes: dict[str, Any]) -> dict[str, NodeStatus]:
+    """A status reply's nodes as typed records (:class:`mso.node.status.NodeStatus`); it
+    imports the node's modules, so plain ``status()`` stays light."""
+    from mso.node.status import from_wire
+
+    return {node: from_wire(status) for node, status in nodes.items()}
 
 
 def running(nodes: dict[str, Any]) -> list[str]:

@@ -9,6 +9,8 @@ from __future__ import annotations
 from collections import deque
 from typing import Any
 
+import msgspec
+
 from mso.management.guard import Guard, Proposal, RuleSettings
 from mso.management.policy import LifetimePolicy, Policy
 from mso.management.rules import (
@@ -22,6 +24,18 @@ from mso.management.rules import (
 from mso.management.views import Action, Relocate, RemapChain, RemapChains, Snapshot
 
 LogEntry = tuple[float, str, str]
+
+
+class EngineStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """What the rules run by and what they decided lately, for status."""
+
+    policy: str
+    app_policies: dict[str, str]  # app -> its own policy
+    settings: dict[str, Any]  # RuleSettings, by field
+    evaluations: int
+    draining: list[str]  # this node, while its battery is draining
+    warming_until: float | None
+    decisions: list[str]  # "time what: decision", recent
 
 
 class RuleEngine:
@@ -167,15 +181,15 @@ class RuleEngine:
         if self._last.get(key) != decision:
             self.log.append((now, what, decision))
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> EngineStatus:
         """Policies, settings and recent decisions, for ``mso status``."""
         s = self.settings
-        return {
-            "policy": self.policy.name,
-            "app_policies": {a: p.name for a, p in sorted(self.app_policies.items())},
-            "settings": {name: getattr(s, name) for name in s.__dataclass_fields__},
-            "evaluations": self.evaluations,
-            "draining": sorted(self.draining),
-            "warming_until": self.warming,
-            "decisions": [f"{t:.1f} {what}: {d}" for t, what, d in self.log],
-        }
+        return EngineStatus(
+            policy=self.policy.name,
+            app_policies={a: p.name for a, p in sorted(self.app_policies.items())},
+            settings={name: getattr(s, name) for name in s.__dataclass_fields__},
+            evaluations=self.evaluations,
+            draining=sorted(self.draining),
+            warming_until=self.warming,
+            decisions=[f"{t:.1f} {what}: {d}" for t, what, d in self.log],
+        )

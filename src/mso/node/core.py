@@ -33,7 +33,7 @@ from mso.management import Action, Relocate, RemapChain, RemapChains, RuleSettin
 from mso.model.network import PowerModel
 from mso.node.manager import Manager
 from mso.node.monitor import Monitor
-from mso.node.status import node_status
+from mso.node.status import LinkStatus, node_status, to_wire
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority
@@ -112,7 +112,7 @@ class NodeCore:
         self.clock = clock
         # the driver's inputs: cumulative bytes (sent, received), its links for status
         self._traffic = (0, 0)
-        self._links: dict[str, Any] = {}
+        self._links: LinkStatus | None = None
         # operator keys and the undeploys they signed; open (no keys) unless the driver shares
         # its own (``mso node --operator-key``), which the transport checks frames with too
         self.authority = Authority()
@@ -263,7 +263,7 @@ class NodeCore:
         bytes_out: int,
         bytes_in: int,
         *,
-        links: dict[str, Any] | None = None,
+        links: LinkStatus | None = None,
         device: dict[str, Any] | None = None,
     ) -> None:
         """What the driver measures, as inputs: its cumulative bytes sent and received
@@ -462,8 +462,11 @@ class NodeCore:
         ]
 
     def status(self, now: float) -> dict[str, Any]:
+        """This node's status as the wire carries it: the typed record
+        (:class:`~mso.node.status.NodeStatus`, composed from the components' own) made plain
+        in one place; :func:`mso.node.status.from_wire` types it again."""
         self._sample(now)
-        return node_status(self, now)
+        return to_wire(node_status(self, now))
 
     @property
     def failures(self) -> list[dict[str, Any]]:
@@ -486,8 +489,8 @@ class NodeCore:
         return self.membership.liveness.heard
 
     @property
-    def links(self) -> dict[str, Any]:
-        """What the driver last said of its links (empty in simulation)."""
+    def links(self) -> LinkStatus | None:
+        """What the driver last said of its links (None in simulation)."""
         return self._links
 
     # -- the router's own handlers ------------------------------------------------------------

@@ -15,7 +15,6 @@ import logging
 import os
 import threading
 from collections.abc import Callable, Hashable
-from typing import Any
 
 from mso.management import load_policy
 from mso.model.appfile import loads_app
@@ -25,6 +24,7 @@ from mso.net.routes_emulator import EmulatorRoutes
 from mso.net.tcp import TcpTransport
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
 from mso.node.device import DeviceProbe
+from mso.node.status import LinkStatus
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority
@@ -91,19 +91,15 @@ class NodeDriver:
         c = self.counters
         self.core.observe(self.loop.time(), c.bytes_out, c.bytes_in, links=links, device=reading)
 
-    def _link_status(self) -> dict[str, Any]:
-        return {
-            "traffic": self.counters.as_dict(),
-            "connections": self.transport.connection_counters.as_dict(),
-            "connected": self.transport.connected(),
-            "tasks": len(asyncio.all_tasks(self.loop)),  # a soak watches these for leaks
-            "timers": len(self._timers),
-            "authority": {
-                "mode": "open" if self.authority.open else "signed",
-                "operators": sorted(self.authority.operators),
-                "refused": self.authority.refused,
-            },
-        }
+    def _link_status(self) -> LinkStatus:
+        return LinkStatus(
+            traffic=self.counters.as_dict(),
+            connections=self.transport.connection_counters.as_dict(),
+            connected=self.transport.connected(),
+            tasks=len(asyncio.all_tasks(self.loop)),
+            timers=len(self._timers),
+            authority=self.authority.status(),
+        )
 
     def _device_tick(self) -> None:
         self._observe(device=True)

@@ -14,6 +14,8 @@ from __future__ import annotations
 from collections import deque
 from typing import TYPE_CHECKING, Any, Protocol
 
+import msgspec
+
 from mso.errors import MsoError
 from mso.management import (
     ChainView,
@@ -25,6 +27,7 @@ from mso.management import (
     VertexView,
     load_policy,
 )
+from mso.management.engine import EngineStatus
 from mso.model.network import PowerModel
 from mso.node.monitor import WINDOW
 
@@ -34,6 +37,13 @@ if TYPE_CHECKING:
     from mso.protocol import messages as m
     from mso.protocol.procedures.base import Procedure
     from mso.protocol.state import AppState
+
+
+class ManagementStatus(EngineStatus, frozen=True, kw_only=True):
+    """The rule engine's status and the loop's own: whether it runs, what it did."""
+
+    enabled: bool
+    done: list[str]  # "time action", recent
 
 
 class ManagedNode(Protocol):
@@ -261,8 +271,10 @@ class Manager:
         del self.done[:-50]
         return True
 
-    def status(self) -> dict[str, Any]:
-        return self.engine.status() | {"enabled": self.enabled, "done": list(self.done)}
+    def status(self) -> ManagementStatus:
+        """The engine's record with the loop's own fields (the wire shows them side by side)."""
+        engine = msgspec.structs.asdict(self.engine.status())
+        return ManagementStatus(**engine, enabled=self.enabled, done=list(self.done))
 
 
 def _target(core: ManagedNode, dep: AppState, vid: str, direction: str) -> str | None:

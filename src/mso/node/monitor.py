@@ -7,7 +7,7 @@ power model (docs/architecture.md, "Energy model"), a smoothed drain, the expect
 On a device (``mso node`` outside an emulator) the driver also hands it what the OS measures
 (:mod:`mso.node.device`): a battery's charge, charging state and drain replace the modelled
 remaining energy and drain, the process's CPU time gives the measured node load, and the
-interface counters the radio's bytes. ``snapshot()["sources"]`` says which figure is which.
+interface counters the radio's bytes. ``status().sources`` says which figure is which.
 
 CPU energy is charged, by default, for the *modelled* work of the vertices that ran here: a
 vertex of cost c processing one event is c ms of CPU on a node of ``cpu: 1.0``, so c / cpu ms
@@ -24,6 +24,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
+import msgspec
+
 from mso.model.network import PowerModel
 from mso.node.device import Battery
 
@@ -33,6 +35,30 @@ from mso.node.device import Battery
 # length: a status request samples in between the periodic samples, and a burst (a vertex's
 # start-up) caught in such a sliver must count for the sliver's time, not for a whole sample
 WINDOW = 6
+
+
+class MonitorStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """The monitor's figures for status: energy, load, changes seen, and which figures the OS
+    measured (``measured``, ``sources``: free-form, as the device reports them)."""
+
+    energy_j: float
+    cpu_energy_j: float
+    radio_energy_j: float
+    battery_j: float | None  # None: wall-powered
+    remaining_j: float | None
+    battery_fraction: float | None
+    drain_w: float
+    load: float
+    lifetime_s: float | None  # None: wall-powered, charging or not yet known
+    route_changes: int
+    neighbour_changes: int
+    last_route_change: float | None
+    last_start: float | None
+    recent: list[str]  # the last few events, "time what"
+    measured: dict[str, Any]
+    sources: dict[str, str]
+    work_ms: float  # the data plane's counters as last sampled: what energy was charged for
+    cpu_ms: float
 
 
 @dataclass
@@ -51,6 +77,9 @@ class Monitor:
     last_route_change: float | None = None
     last_start: float | None = None  # when a vertex instance last started here (note_start)
     events: list[tuple[float, str]] = field(default_factory=list)  # recent, bounded
+    # the cumulative modelled vertex work and measured vertex CPU time last sampled
+    work_ms: float = 0.0
+    cpu_ms: float = 0.0
     _last: tuple[float, float, int, int] | None = None  # now, work_ms, bytes_out, bytes_in
     _neighbours: frozenset[str] = frozenset()
     _routes: dict[str, str] = field(default_factory=dict)
@@ -133,6 +162,7 @@ class Monitor:
     ) -> None:
         """Charge the energy spent since the last sample (counters are cumulative; ``cpu_ms``
         is the measured CPU time of the vertex code, used with ``cpu_energy: measured``)."""
+        self.work_ms, self.cpu_ms = work_ms, cpu_ms
         if self.power.cpu_energy == "measured":
             work_ms = cpu_ms
         if self._last is None:
@@ -189,28 +219,31 @@ class Monitor:
         self.events.append((now, what))
         del self.events[:-20]
 
-    def snapshot(self) -> dict[str, Any]:
+    def status(self) -> MonitorStatus:
+        """The figures as last sampled (the core samples before it asks)."""
         life = self.lifetime_s
-        return {
-            "energy_j": self.energy_j,
-            "cpu_energy_j": self.cpu_energy_j,
-            "radio_energy_j": self.radio_energy_j,
-            "battery_j": self.capacity_j,
-            "remaining_j": self.remaining_j,
-            "battery_fraction": None
+        return MonitorStatus(
+            energy_j=self.energy_j,
+            cpu_energy_j=self.cpu_energy_j,
+            radio_energy_j=self.radio_energy_j,
+            battery_j=self.capacity_j,
+            remaining_j=self.remaining_j,
+            battery_fraction=None
             if self.capacity_j is None
             else (self.remaining_j or 0.0) / self.capacity_j,
-            "drain_w": self.drain_w,
-            "load": self.load,
-            "lifetime_s": None if life is None or math.isinf(life) else life,
-            "route_changes": self.route_changes,
-            "neighbour_changes": self.neighbour_changes,
-            "last_route_change": self.last_route_change,
-            "last_start": self.last_start,
-            "recent": [f"{t:.3f} {w}" for t, w in self.events[-5:]],
-            "measured": self._measured(),
-            "sources": self.sources(),
-        }
+            drain_w=self.drain_w,
+            load=self.load,
+            lifetime_s=None if life is None or math.isinf(life) else life,
+            route_changes=self.route_changes,
+            neighbour_changes=self.neighbour_changes,
+            last_route_change=self.last_route_change,
+            last_start=self.last_start,
+            recent=[f"{t:.3f} {w}" for t, w in self.events[-5:]],
+            measured=self._measured(),
+            sources=self.sources(),
+            work_ms=self.work_ms,
+            cpu_ms=self.cpu_ms,
+        )
 
     def _measured(self) -> dict[str, Any]:
         out = dict(self.device)

@@ -1,24 +1,89 @@
-"""A node's status: what ``mso status``, the dashboard and the metrics endpoint show, built
-from each component's own figures.
+"""A node's status: what ``mso status``, the dashboard and the metrics endpoint show, composed
+from each component's own typed record.
 
-The core answers a status request with :func:`node_status`; each app's part is
-:func:`app_status` (placement, chains, parked chains and recoveries, each edge's channel, each
-vertex instance's counters and state), the rest the node's (monitor, routes, membership,
-procedures, what was refused). Everything in it is plain data (JSON and msgpack safe).
+Each component reports its part as a ``msgspec.Struct`` beside the figures it owns: an app's
+(:class:`~mso.protocol.state.AppStatus`, with its vertices and edges) in
+:mod:`mso.protocol.state`, membership's in :mod:`~mso.protocol.procedures.membership.peers`
+(the detector's in ``liveness``), the monitor's in :mod:`mso.node.monitor`, the management
+loop's in :mod:`mso.node.manager` (the rule engine's in :mod:`mso.management.engine`), the
+authority's in :mod:`mso.protocol.authority`. :func:`node_status` composes them into a
+:class:`NodeStatus`; :func:`to_wire` is the one place it becomes the plain dict a
+``StatusReply`` carries and every consumer reads, and :func:`from_wire` gives a client the typed
+record back.
 """
 
 from __future__ import annotations
 
+import datetime
+import decimal
+import uuid
 from typing import TYPE_CHECKING, Any, Protocol
 
-from mso.protocol import messages as m
-from mso.protocol.state import AppState, crash_status
+import msgspec
+from msgspec import UNSET, UnsetType
+
+from mso.node.manager import ManagementStatus, Manager
+from mso.node.monitor import Monitor, MonitorStatus
+from mso.protocol.authority import AuthorityStatus
+from mso.protocol.procedures.membership.liveness import LivenessStatus
+from mso.protocol.procedures.membership.peers import Heard, Membership
+from mso.protocol.state import AppState, AppStatus
 
 if TYPE_CHECKING:
-    from mso.node.manager import Manager
-    from mso.node.monitor import Monitor
     from mso.protocol.dataplane import DataPlane
-    from mso.protocol.procedures.membership.peers import Membership
+
+
+class Route(msgspec.Struct, frozen=True, array_like=True):
+    """A route as status shows it: ``[next hop, hops]``."""
+
+    hop: str
+    hops: int
+
+
+class LinkStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """What the asyncio driver says of its links and connections (a simulation has none)."""
+
+    traffic: dict[str, int]  # the transport's frame and byte counters
+    connections: dict[str, int]  # connections refused or closed by the limits
+    connected: list[str]  # neighbours with an open connection
+    tasks: int  # a soak watches these for leaks
+    timers: int
+    authority: AuthorityStatus
+
+
+class NodeStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """One node's status, as the wire carries it: the driver's links (absent in simulation),
+    the node's own figures and each component's part. The links' and membership's fields
+    stand at the top level on the wire, so they are declared here again;
+    :func:`node_status` fills them from :class:`LinkStatus` and
+    :class:`~mso.protocol.procedures.membership.peers.MembershipStatus` whole."""
+
+    traffic: dict[str, int] | UnsetType = UNSET
+    connections: dict[str, int] | UnsetType = UNSET
+    connected: list[str] | UnsetType = UNSET
+    tasks: int | UnsetType = UNSET
+    timers: int | UnsetType = UNSET
+    authority: AuthorityStatus | UnsetType = UNSET
+    node: str
+    monitor: MonitorStatus
+    routes: dict[str, Route]  # by destination
+    neighbours: list[str]
+    apps: dict[str, AppStatus]
+    dropped_messages: int
+    refusals: dict[str, int]  # messages refused, by reason
+    illegal_transitions: int
+    handler_errors: int
+    last_handler_error: str
+    procedures: list[dict[str, Any]]  # open ones: each procedure describes itself
+    management: ManagementStatus
+    # membership's (MembershipStatus)
+    failed_nodes: list[str]
+    suspected_nodes: list[str]
+    incarnation: int
+    failures: list[dict[str, Any]]
+    rejoins: list[dict[str, Any]]
+    liveness: LivenessStatus
+    heard: dict[str, Heard]
 
 
 class StatusSource(Protocol):
@@ -38,83 +103,54 @@ class StatusSource(Protocol):
     last_handler_error: str
 
     @property
-    def links(self) -> dict[str, Any]: ...
+    def links(self) -> LinkStatus | None: ...
 
     def open_procedures(self, now: float) -> list[dict[str, Any]]: ...
 
 
-def app_status(dep: AppState, now: float) -> dict[str, Any]:
-    """One app as this node holds and runs it."""
-    up = max(now - dep.started_at, 1e-9) if dep.running else 0.0
-    edges = {}
-    for i, e in enumerate(dep.app.edges):
-        if i in dep.out or i in dep.inc:
-            inc = dep.inc.get(i)
-            out = dep.out.get(i)
-            sent = out.next_seq if out else 0
-            edges[f"{e.src}->{e.dst}"] = {
-                "sent": sent,
-                "delivered": inc.expected if inc else 0,
-                "duplicates": inc.duplicates if inc else 0,
-                "in_flight": out.in_flight if out else 0,
-                "events_per_s": (sent / up) if up else 0.0,
-            }
-    return {
-        "running": dep.running,
-        "parked": {dep.layout.chains[c].name: why for c, why in dep.parked.items()},
-        "recoveries": list(dep.recoveries),
-        "dropped_parked": {
-            f"{dep.app.edges[e].src}->{dep.app.edges[e].dst}": n
-            for e, n in sorted(dep.dropped.items())
-        },
-        "chain_delay_ms": {
-            dep.layout.chains[c].name: round(ms, 3) for c, ms in sorted(dep.delays.items())
-        },
-        "slo_ms": dep.app.slo_ms,
-        "origin": dep.origin,
-        "placement": dict(dep.placed),
-        "chains": [list(c.vertices) for c in dep.layout.chains],
-        "vertices": {
-            vid: {
-                "kind": h.kind,
-                "state": h.state(now),
-                "busy_s": round(now - h.busy_since, 3) if h.busy_since else 0.0,
-                "queued": h.queued
-                + sum(len(p[1]) for p in h.pending if not isinstance(p, m.Marker)),
-                "processed": h.processed,
-                "emitted": h.emitted,
-                "calls": h.calls,
-                "ended": h.ended,  # its stream is over (a source's, or every input's)
-                "errors": h.errors,
-                "cpu_s": h.cpu_s,
-                "last_error": h.last_error,
-                "stats": h.stats,
-            }
-            | crash_status(dep.crashes.get(vid))
-            for vid, h in (dep.crashed | dep.instances).items()
-        },
-        "edges": edges,
-    }
-
-
-def node_status(core: StatusSource, now: float) -> dict[str, Any]:
-    """The node's status: the driver's links, then each component's part."""
-    dp = core.dataplane
-    return (
-        core.links
-        | {
-            "node": core.id,
-            "monitor": core.monitor.snapshot() | {"work_ms": dp.work_ms, "cpu_ms": dp.cpu_ms},
-            "routes": {d: list(r) for d, r in sorted(core.routes.items())},
-            "neighbours": sorted(n for n, (hop, _) in core.routes.items() if hop == n),
-            "apps": {name: app_status(dep, now) for name, dep in core.apps.items()},
-            "dropped_messages": core.dropped_messages,
-            "refusals": dict(sorted(core.refusals.items())),
-            "illegal_transitions": core.illegal_transitions,
-            "handler_errors": core.handler_errors,
-            "last_handler_error": core.last_handler_error,
-            "procedures": core.open_procedures(now),
-            "management": core.manager.status(),
-        }
-        | core.membership.status()
+def node_status(core: StatusSource, now: float) -> NodeStatus:
+    """The node's status: the driver's links, then each component's part (the monitor as
+    last sampled)."""
+    links = msgspec.structs.asdict(core.links) if core.links is not None else {}
+    return NodeStatus(
+        **links,
+        node=core.id,
+        monitor=core.monitor.status(),
+        routes={d: Route(hop, hops) for d, (hop, hops) in sorted(core.routes.items())},
+        neighbours=sorted(n for n, (hop, _) in core.routes.items() if hop == n),
+        apps={name: dep.status(now) for name, dep in core.apps.items()},
+        dropped_messages=core.dropped_messages,
+        refusals=dict(sorted(core.refusals.items())),
+        illegal_transitions=core.illegal_transitions,
+        handler_errors=core.handler_errors,
+        last_handler_error=core.last_handler_error,
+        procedures=core.open_procedures(now),
+        management=core.manager.status(),
+        **msgspec.structs.asdict(core.membership.status()),
     )
+
+
+# what msgpack carries as it is: left so in the free-form figures (a vertex's ``stats``), which
+# to_builtins would otherwise turn into strings
+_AS_IS = (
+    bytes,
+    bytearray,
+    memoryview,
+    datetime.datetime,
+    datetime.date,
+    datetime.time,
+    datetime.timedelta,
+    uuid.UUID,
+    decimal.Decimal,
+)
+
+
+def to_wire(status: NodeStatus) -> dict[str, Any]:
+    """The plain dict a ``StatusReply`` carries and every consumer reads: the one conversion."""
+    wire: dict[str, Any] = msgspec.to_builtins(status, builtin_types=_AS_IS)
+    return wire
+
+
+def from_wire(status: dict[str, Any]) -> NodeStatus:
+    """A node's status from a ``StatusReply``, typed (fields a newer node adds are ignored)."""
+    return msgspec.convert(status, NodeStatus)

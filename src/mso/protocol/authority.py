@@ -36,6 +36,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import msgspec
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import (
     Ed25519PrivateKey,
@@ -169,6 +170,14 @@ def generation(document: str) -> int:
     return int(parts[1])
 
 
+class AuthorityStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """How a node checks commands, for status: open or signed, by which operator keys."""
+
+    mode: str  # open | signed
+    operators: list[str]  # key ids
+    refused: int
+
+
 @dataclass
 class Authority:
     """What a node accepts: the operator keys and its emulator's key it was configured with."""
@@ -200,6 +209,14 @@ class Authority:
     def signed(self) -> bool:
         """Operator keys are configured: apps come and go only by an operator's signature."""
         return bool(self.operators)
+
+    def status(self) -> AuthorityStatus:
+        """For the driver's part of status (the key ids, never the keys)."""
+        return AuthorityStatus(
+            mode="open" if self.open else "signed",
+            operators=sorted(self.operators),
+            refused=self.refused,
+        )
 
     def _signers(self, msg: m.Message) -> dict[str, Ed25519PublicKey] | None:
         """Who may sign ``msg``; None when it needs no signature on this node."""

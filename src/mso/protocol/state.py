@@ -47,16 +47,52 @@ class Crashes:
     gave_up: str = ""  # why it stays crashed (its restart budget is spent)
 
 
-def crash_status(rec: Crashes | None) -> dict[str, Any]:
-    """A vertex's crashes here, as status shows them next to its state."""
-    if rec is None:
-        return {"crashes": 0, "restarts": 0, "last_crash": "", "not_restarted": ""}
-    return {
-        "crashes": rec.count,
-        "restarts": rec.restarts,
-        "last_crash": rec.last,
-        "not_restarted": rec.gave_up,
-    }
+class EdgeStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """One edge's ends at this node: what its producer here sent, its consumer here got."""
+
+    sent: int
+    delivered: int
+    duplicates: int
+    in_flight: int
+    events_per_s: float
+
+
+class VertexStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """One vertex instance at this node: its state, counters and crashes; ``stats`` is
+    whatever its code's ``stats()`` returned (free-form)."""
+
+    kind: str
+    state: str
+    busy_s: float
+    queued: int
+    processed: int
+    emitted: int
+    calls: int
+    ended: bool  # its stream is over (a source's, or every input's)
+    errors: int
+    cpu_s: float
+    last_error: str
+    stats: Any
+    crashes: int
+    restarts: int
+    last_crash: str
+    not_restarted: str
+
+
+class AppStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """One app as this node holds and runs it (chains and edges by name)."""
+
+    running: bool
+    parked: dict[str, str]  # chain -> why it cannot run
+    recoveries: list[dict[str, Any]]  # what each recovery did (mso.protocol.procedures.remap)
+    dropped_parked: dict[str, int]
+    chain_delay_ms: dict[str, float]
+    slo_ms: float | None
+    origin: str
+    placement: dict[str, str]
+    chains: list[list[str]]
+    vertices: dict[str, VertexStatus]
+    edges: dict[str, EdgeStatus]
 
 
 @dataclass
@@ -112,6 +148,30 @@ class HostedInstance:
         busy = now - self.busy_since if self.busy_since is not None else 0.0
         return "hung" if busy >= HUNG_AFTER_S else "busy" if busy >= BUSY_AFTER_S else "running"
 
+    def status(self, now: float, crashes: Crashes | None) -> VertexStatus:
+        """This instance for status, with its vertex's crashes here (kept apart from it: they
+        outlive the instance)."""
+        rec = crashes or Crashes()
+        return VertexStatus(
+            kind=self.kind,
+            state=self.state(now),
+            busy_s=round(now - self.busy_since, 3) if self.busy_since else 0.0,
+            queued=self.queued
+            + sum(len(p[1]) for p in self.pending if not isinstance(p, m.Marker)),
+            processed=self.processed,
+            emitted=self.emitted,
+            calls=self.calls,
+            ended=self.ended,
+            errors=self.errors,
+            cpu_s=self.cpu_s,
+            last_error=self.last_error,
+            stats=self.stats,
+            crashes=rec.count,
+            restarts=rec.restarts,
+            last_crash=rec.last,
+            not_restarted=rec.gave_up,
+        )
+
 
 @dataclass
 class AppState:
@@ -166,6 +226,44 @@ class AppState:
     client: int | None = None
     requested_at: float = 0.0
     out_edges: dict[str, list[int]] = field(default_factory=dict)
+
+    def status(self, now: float) -> AppStatus:
+        """This app as this node holds and runs it: placement, chains, parked chains and
+        recoveries, each edge with an end here, each instance here (crashed ones too)."""
+        up = max(now - self.started_at, 1e-9) if self.running else 0.0
+        edges = {}
+        for i, e in enumerate(self.app.edges):
+            if i in self.out or i in self.inc:
+                inc = self.inc.get(i)
+                out = self.out.get(i)
+                sent = out.next_seq if out else 0
+                edges[f"{e.src}->{e.dst}"] = EdgeStatus(
+                    sent=sent,
+                    delivered=inc.expected if inc else 0,
+                    duplicates=inc.duplicates if inc else 0,
+                    in_flight=out.in_flight if out else 0,
+                    events_per_s=(sent / up) if up else 0.0,
+                )
+        chains = self.layout.chains
+        return AppStatus(
+            running=self.running,
+            parked={chains[c].name: why for c, why in self.parked.items()},
+            recoveries=list(self.recoveries),
+            dropped_parked={
+                f"{self.app.edges[e].src}->{self.app.edges[e].dst}": n
+                for e, n in sorted(self.dropped.items())
+            },
+            chain_delay_ms={chains[c].name: round(ms, 3) for c, ms in sorted(self.delays.items())},
+            slo_ms=self.app.slo_ms,
+            origin=self.origin,
+            placement=dict(self.placed),
+            chains=[list(c.vertices) for c in chains],
+            vertices={
+                vid: h.status(now, self.crashes.get(vid))
+                for vid, h in (self.crashed | self.instances).items()
+            },
+            edges=edges,
+        )
 
     def lost(self, failed: set[str]) -> set[str]:
         """Vertices with no running instance: on a failed node, or gone with a node's old

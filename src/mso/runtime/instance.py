@@ -73,10 +73,10 @@ class Instance:
         method = self.hook("stats")
         if method is None:
             return None
-        try:
-            return method()
+        try:  # plain data, or it could not be shown (nor sent) at all
+            return msgspec.to_builtins(method())
         except Exception as exc:
-            return {"error": f"{type(exc).__name__}: {exc}"}
+            return {"error": f"stats(): {type(exc).__name__}: {exc}"}
 
     def get_state(self) -> Any:
         hook = self.vertex.get_state

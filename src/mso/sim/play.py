@@ -14,8 +14,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from mso.errors import MsoError
 from mso.model.appfile import loads_app
+from mso.node.monitor import MonitorStatus
 from mso.protocol import messages as m
 from mso.scenario.format import Scenario
 from mso.scenario.timeline import Action, Crash, Restart, Timeline
@@ -174,13 +177,17 @@ def _report(
             decisions += [f"{n}: {d}" for d in status[n]["management"]["done"]]
     energy = {}
     for n in sim.cores:
-        mon = status[n]["monitor"] if n in status else sim.cores[n].monitor.snapshot()
+        mon = (  # a killed node answers no status: its monitor is read in place
+            msgspec.convert(status[n]["monitor"], MonitorStatus)
+            if n in status
+            else sim.cores[n].monitor.status()
+        )
         energy[n] = {
             "alive": n in status,
             "incarnation": sim.cores[n].incarnation,
-            "energy_j": mon["energy_j"],
-            "drain_w": mon["drain_w"],
-            "battery_fraction": mon["battery_fraction"],
+            "energy_j": mon.energy_j,
+            "drain_w": mon.drain_w,
+            "battery_fraction": mon.battery_fraction,
             "bytes_sent": sim.bytes[n][0],
             "bytes_received": sim.bytes[n][1],
         }

@@ -24,7 +24,8 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+
+import msgspec
 
 from mso.protocol import messages as m
 
@@ -46,6 +47,24 @@ def check_timing(heartbeat_s: float, dead_after_s: float) -> str | None:
     return None
 
 
+class InterArrival(msgspec.Struct, frozen=True, kw_only=True):
+    """One neighbour's heartbeat inter-arrival figures (ms): how close it came to the window."""
+
+    n: int
+    p50_ms: float
+    p99_ms: float
+    max_ms: float  # since it became a neighbour
+    recent_max_ms: float
+
+
+class LivenessStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """The detector's settings and what it measured, shown under ``liveness`` in status."""
+
+    heartbeat_s: float
+    dead_after_s: float
+    inter_arrival: dict[str, InterArrival]
+
+
 @dataclass
 class Gaps:
     """One neighbour's recent heartbeat inter-arrival times (s), bounded; and the largest."""
@@ -63,15 +82,15 @@ class Gaps:
             self.max_s = max(self.max_s, gap)
         self.last = now
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> InterArrival:
         s = sorted(self.recent)
-        return {
-            "n": self.count,
-            "p50_ms": round(_pct(s, 50) * 1e3, 3),
-            "p99_ms": round(_pct(s, 99) * 1e3, 3),
-            "max_ms": round(self.max_s * 1e3, 3),  # since it became a neighbour
-            "recent_max_ms": round((s[-1] if s else 0.0) * 1e3, 3),
-        }
+        return InterArrival(
+            n=self.count,
+            p50_ms=round(_pct(s, 50) * 1e3, 3),
+            p99_ms=round(_pct(s, 99) * 1e3, 3),
+            max_ms=round(self.max_s * 1e3, 3),
+            recent_max_ms=round((s[-1] if s else 0.0) * 1e3, 3),
+        )
 
 
 def _pct(s: list[float], q: float) -> float:
@@ -165,10 +184,10 @@ class Liveness:
         self.reachable.discard(node)
         self.gaps.pop(node, None)
 
-    def stats(self) -> dict[str, Any]:
+    def status(self) -> LivenessStatus:
         """For status: the settings and each neighbour's heartbeat inter-arrival figures."""
-        return {
-            "heartbeat_s": self.period_s,
-            "dead_after_s": self.dead_after_s,
-            "inter_arrival": {n: g.summary() for n, g in sorted(self.gaps.items())},
-        }
+        return LivenessStatus(
+            heartbeat_s=self.period_s,
+            dead_after_s=self.dead_after_s,
+            inter_arrival={n: g.summary() for n, g in sorted(self.gaps.items())},
+        )

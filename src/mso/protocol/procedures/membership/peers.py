@@ -38,7 +38,7 @@ from mso.protocol.events import (
 )
 from mso.protocol.procedures.deploy import Deployer
 from mso.protocol.procedures.membership.detector import P, PeerEvent, PeerLife, Suspicion, Vouch
-from mso.protocol.procedures.membership.liveness import Liveness
+from mso.protocol.procedures.membership.liveness import Liveness, LivenessStatus
 from mso.protocol.procedures.remap import Remapper
 from mso.protocol.state import AppState
 
@@ -46,6 +46,27 @@ REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes dec
 MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own: its figures ride on one beat
 # of each period (they change no faster)
 REVOCATIONS_TOLD = 16  # the operator's latest undeploys told to each newly reachable node
+
+
+class Heard(msgspec.Struct, frozen=True, kw_only=True):
+    """What a neighbour's last beat said of its figures, and when: what the rules weighed."""
+
+    at: float
+    load: float
+    drain_w: float
+    lifetime_s: float | None
+
+
+class MembershipStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """Membership's part of a node's status (at the node's top level on the wire)."""
+
+    failed_nodes: list[str]
+    suspected_nodes: list[str]
+    incarnation: int
+    failures: list[dict[str, Any]]  # who, when, detected by whom (recent)
+    rejoins: list[dict[str, Any]]  # who, as which incarnation, when (recent)
+    liveness: LivenessStatus
+    heard: dict[str, Heard]
 
 
 class Membership:
@@ -97,19 +118,20 @@ class Membership:
     def incarnation_of(self, node: str, default: int) -> int:
         return self._incarnations.get(node, default)
 
-    def status(self) -> dict[str, Any]:
-        return {
-            "failed_nodes": sorted(self.failed),
-            "suspected_nodes": sorted(self._suspicions),
-            "incarnation": self.incarnation,
-            "failures": list(self.failures),
-            "rejoins": list(self.rejoins),
-            "liveness": self.liveness.stats(),
-            "heard": {
-                n: {"at": t, "load": b.load, "drain_w": b.drain_w, "lifetime_s": b.lifetime_s}
+    def status(self) -> MembershipStatus:
+        """Whom this node holds failed or suspects, and what its detector measured."""
+        return MembershipStatus(
+            failed_nodes=sorted(self.failed),
+            suspected_nodes=sorted(self._suspicions),
+            incarnation=self.incarnation,
+            failures=list(self.failures),
+            rejoins=list(self.rejoins),
+            liveness=self.liveness.status(),
+            heard={
+                n: Heard(at=t, load=b.load, drain_w=b.drain_w, lifetime_s=b.lifetime_s)
                 for n, (t, b) in sorted(self.liveness.heard.items())
             },
-        }
+        )
 
     def _move(self, node: str, event: PeerEvent) -> None:
         """Take ``node``'s peer along its table; the failed set follows the table (it is its
