@@ -170,7 +170,7 @@ def test_the_drivers_links_stand_at_the_top_level() -> None:
         timers=3,
         authority=AuthorityStatus(mode="open", operators=[], refused=0),
     )
-    core.observe(0, 0, links)
+    core.observe(sim.now, 0, 0, links=links)
     st = core.status(sim.now)
     assert list(st) == LINK_KEYS + NODE_KEYS
     assert st["authority"] == {"mode": "open", "operators": [], "refused": 0}
