@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
-from mso.client import Client, overlay_key
+from mso.client import Client, NodeUnreachable, overlay_key
 from mso.node.core import NodeCore
 from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
@@ -91,3 +91,35 @@ def test_bad_frames_are_dropped_counted_and_the_node_lives_on() -> None:
     assert traffic["frames_malformed"] >= 2
     assert st["apps"] == {}  # nothing from an unauthenticated peer was acted on
     assert st["node"] == "N1"  # and the node still answers
+
+
+def test_a_late_reply_is_never_read_as_the_next_calls_answer() -> None:
+    """A call that times out leaves its reply on the way; on a kept connection the next call
+    would read it as its own answer. The client opens the connection anew instead."""
+
+    async def main() -> None:
+        driver, port = await start_node()
+        try:
+            loop = asyncio.get_running_loop()
+            # a peer the node routes to but that never answers: a status fan-out waits for it
+            # until its deadline (1 s) and then answers late
+            driver._apply(driver.core.set_routes({"N2": ("N2", 1)}, loop.time()))
+            client = await Client(HOST, port, overlay_key("secret")).connect()
+            try:
+                late = m.StatusRequest(req=0, everywhere=True)
+                try:
+                    await client.call(late, timeout=0.2)
+                    raise AssertionError("the fan-out should outlast the call's timeout")
+                except NodeUnreachable:
+                    pass
+                while driver.core.procedures:  # the fan-out's late answer has gone out
+                    await asyncio.sleep(0.01)
+                reply = await client.call(m.RelocateRequest("none", "v"), timeout=5.0)
+                assert isinstance(reply, m.RelocateReply), reply  # its own answer
+                assert not reply.ok and "no running app" in reply.error
+            finally:
+                await client.close()
+        finally:
+            await driver.stop()
+
+    asyncio.run(main())

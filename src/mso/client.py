@@ -159,8 +159,12 @@ class Client:
         self.netns = netns  # connect from inside this network namespace (the netns testbed)
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
+        self._encrypt = encrypt
         self._x = Exchange(host, port, psk, signer, encrypt)
         self._codec = self._x.codec
+        # a call timed out: its reply may still come and would be read as the next call's, so
+        # the next call opens the connection anew (replies carry no request id)
+        self._stale = False
 
     @property
     def signer(self) -> Signer | None:
@@ -228,8 +232,23 @@ class Client:
         return self._x.next_message()
 
     async def call(self, msg: m.Message, timeout: float = 10.0) -> m.Message:
+        """Send ``msg`` and wait for the node's answer to it."""
+        if self._stale:
+            await self._reopen(timeout)
         await self.send(msg)
-        return await self.receive(timeout)
+        try:
+            return await self.receive(timeout)
+        except NodeUnreachable:
+            self._stale = True
+            raise
+
+    async def _reopen(self, timeout: float) -> None:
+        """A fresh connection (and key exchange) in place of one a late reply may arrive on."""
+        await self.close()
+        self._x = Exchange(self.host, self.port, self.psk, self._x.signer, self._encrypt)
+        self._codec = self._x.codec
+        self._stale = False
+        await self.connect(min(timeout, 5.0))
 
     async def close(self) -> None:
         if self._writer is not None:
