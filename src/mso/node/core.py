@@ -54,6 +54,7 @@ from mso.protocol.events import (
     RecoverTick,
     RecoveryDue,
     RelocationEnded,
+    ReplacementPrepared,
     Retransmit,
     Retry,
     RoutesChanged,
@@ -143,7 +144,6 @@ class NodeCore:
         self.deployer = Deployer(self, dp, self.manager)
         self.relocator = Relocator(self, dp)
         self.restorer = Restorer(self, dp, self.relocator)
-        self.relocator.replacements = self.restorer
         self.remapper = Remapper(self, dp, self.relocator)
         liveness = Liveness(heartbeat_s, dead_after_s)
         self.membership = Membership(self, dp, self.deployer, self.remapper, liveness, incarnation)
@@ -154,6 +154,7 @@ class NodeCore:
         self._subscribe(InstanceFailed, self.relocator.on_instance_failed)
         self._subscribe(InstanceFailed, self.deployer.on_instance_failed)
         self._subscribe(InstanceCrashed, self.restorer.on_instance_crashed)
+        self._subscribe(ReplacementPrepared, self.restorer.on_replacement_prepared)
         self._subscribe(MarkerReached, self.relocator.on_marker_reached)
         self._subscribe(Snapshotted, self.relocator.on_snapshotted)
         self._subscribe(RelocationEnded, self.restorer.on_relocation_ended)

@@ -152,6 +152,16 @@ class RelocationEnded:
 
 
 @dataclass(frozen=True)
+class ReplacementPrepared:
+    """A restore's replacement instance of ``vertex`` started at this node (its coordinator
+    is told): it runs as soon as every surviving end of its edges has resumed it, at once if
+    it has none."""
+
+    app: str
+    vertex: str
+
+
+@dataclass(frozen=True)
 class AppMissing:
     """``node``, asked to host a vertex of ``app``, does not hold the app (its sync was lost)."""
 
@@ -175,6 +185,7 @@ InternalEvent = (
     | MarkerReached
     | Snapshotted
     | RelocationEnded
+    | ReplacementPrepared
     | AppMissing
     | NodeReset
 )

@@ -28,7 +28,7 @@ routes converge. A step arriving in the wrong state raises :class:`IllegalTransi
 from __future__ import annotations
 
 import enum
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar
 
 from mso.errors import MsoError
 from mso.protocol import effects as fx
@@ -45,6 +45,7 @@ from mso.protocol.events import (
     MarkerReached,
     PeerFailed,
     RelocationEnded,
+    ReplacementPrepared,
     Retry,
     Snapshotted,
 )
@@ -146,20 +147,12 @@ class Relocation(Procedure):
         }
 
 
-class Replacements(Protocol):
-    """The replacement's side of a restore (:mod:`.restore`): once every surviving end has
-    resumed it, it runs."""
-
-    def activate(self, dep: AppState, vertex: str) -> None: ...
-
-
 class Relocator:
     """This node's part in relocations and restores, in every role (module docstring)."""
 
     def __init__(self, ctx: NodeContext, dp: DataPlane) -> None:
         self.ctx = ctx
         self.dp = dp
-        self.replacements: Replacements | None = None  # the core wires the restore roles in
         self._handover_to: dict[int, str] = {}  # rid -> coordinator, at a move's new host
 
     def _reloc(self, pid: int) -> Relocation | None:
@@ -168,10 +161,6 @@ class Relocator:
 
     def _open(self) -> list[Relocation]:
         return [p for p in self.ctx.open() if isinstance(p, Relocation)]
-
-    def _activate(self, dep: AppState, vertex: str) -> None:
-        assert self.replacements is not None
-        self.replacements.activate(dep, vertex)
 
     def forget(self, rid: int) -> None:
         """A restore's replacement ran or was dropped: no handover will be reported for it."""
@@ -434,10 +423,8 @@ class Relocator:
                 dep.preparing[vid] = (msg.rid, src, True)
                 return
         self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, error))
-        if dep is not None and not error and msg.restore:
-            restoring = dep.restoring.get(vid)
-            if restoring is not None and not restoring.pending:
-                self._activate(dep, vid)  # nothing to wait for (a lone vertex)
+        if not error and msg.restore:  # the replacement may have no end to wait for
+            self.ctx.publish(ReplacementPrepared(msg.app, vid))
 
     def on_instance_ready(self, ev: InstanceReady) -> None:
         """A move's new instance started: the coordinator hears it is prepared."""
@@ -446,9 +433,8 @@ class Relocator:
         if dep is not None and prep is not None:  # a relocation's or a restore's
             rid, coordinator, restore = prep
             self.ctx.send(coordinator, m.Prepared(dep.app.name, vid, rid, self.ctx.id, ""))
-            restoring = dep.restoring.get(vid)
-            if restore and restoring is not None and not restoring.pending:
-                self._activate(dep, vid)  # nothing to wait for (a lone vertex)
+            if restore:  # the replacement may have no end to wait for
+                self.ctx.publish(ReplacementPrepared(dep.app.name, vid))
 
     def on_instance_failed(self, ev: InstanceFailed) -> None:
         """A move's new instance failed to start: the coordinator hears why."""

@@ -32,7 +32,7 @@ from mso.protocol.channel import InChannel, OutChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
 from mso.protocol.effects import Send
-from mso.protocol.events import InstanceCrashed, RelocationEnded
+from mso.protocol.events import InstanceCrashed, RelocationEnded, ReplacementPrepared
 from mso.protocol.procedures.instance import MAX_RESTARTS, RESTART_WINDOW_S, H, InstanceEvent
 from mso.protocol.procedures.relocation import Relocation, Relocator
 from mso.protocol.state import AppState
@@ -108,6 +108,14 @@ class Restorer:
         restoring.pending.discard((msg.edge, msg.producer))
         if not restoring.pending:
             self.activate(dep, vertex)
+
+    def on_replacement_prepared(self, ev: ReplacementPrepared) -> None:
+        """The replacement started here: with no surviving end to wait for (a lone vertex),
+        it runs now."""
+        dep = self.ctx.apps.get(ev.app)
+        restoring = dep.restoring.get(ev.vertex) if dep is not None else None
+        if dep is not None and restoring is not None and not restoring.pending:
+            self.activate(dep, ev.vertex)
 
     def activate(self, dep: AppState, vertex: str) -> None:
         """Every surviving end has resumed: the replacement runs. Its output is numbered from
