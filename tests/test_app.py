@@ -521,7 +521,7 @@ def test_unknown_attribute_app_level() -> None:
         """
     )
     assert_at(err, 4, "sinks", "unknown attribute 'sinks'")
-    assert "(expected one of: edges, name, policy, slo_ms, vertices)" in err.message
+    assert "(expected one of: edges, name, planner, policy, slo_ms, vertices)" in err.message
 
 
 def test_unknown_attribute_vertex_level() -> None:

@@ -44,6 +44,11 @@ class Vertex:
 
 ISOLATIONS = ("thread", "process")
 
+PLANNERS = ("paper", "bytes")
+"""How Algorithm 1 splits a chain along its probed route (``mso.planning.placement``):
+``paper`` -- in proportion to cost and capacity, as the paper does; ``bytes`` -- the split
+cheapest in energy per event, computing weighed against carrying each edge's bytes."""
+
 
 @dataclass
 class Edge:
@@ -71,6 +76,8 @@ class App:
     slo_ms: float | None = None
     # the management policy: a shipped name, an import path, or {name|code, params}
     policy: str | dict[str, Any] | None = None
+    # how chains are split along their routes (PLANNERS); None: the planner's default
+    planner: str | None = None
     located: Located | None = field(default=None, compare=False, repr=False)
 
     # -- builder -------------------------------------------------------------------------
@@ -221,6 +228,12 @@ class App:
                 f"expected a positive number of milliseconds, got {self.slo_ms!r}",
                 "slo_ms",
                 ("slo_ms",),
+            )
+        if self.planner is not None and self.planner not in PLANNERS:
+            raise self._error(
+                f"expected one of {', '.join(PLANNERS)}, got {self.planner!r}",
+                "planner",
+                ("planner",),
             )
         for v in self.vertices.values():
             _check_vertex_values(v, self._error)

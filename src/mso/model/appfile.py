@@ -6,10 +6,10 @@ from pathlib import Path
 from typing import Any
 
 from mso.errors import AppError, SpecError
-from mso.model.app import App
+from mso.model.app import PLANNERS, App
 from mso.model.yamlfile import Located, load_yaml, load_yaml_file
 
-APP_KEYS = {"name", "vertices", "edges", "slo_ms", "policy"}
+APP_KEYS = {"name", "vertices", "edges", "slo_ms", "policy", "planner"}
 POLICY_KEYS = {"name", "code", "params"}
 VERTEX_KEYS = {
     "code",
@@ -74,6 +74,11 @@ def app_from_document(doc: Located, *, resolve_code: bool = True) -> App:
         app.slo_ms = float(slo)
     if "policy" in data:
         app.policy = _policy(doc, data["policy"])
+    if "planner" in data:
+        planner = data["planner"]
+        if not isinstance(planner, str) or planner not in PLANNERS:
+            raise _err(doc, f"expected one of {', '.join(PLANNERS)}, got {planner!r}", ("planner",))
+        app.planner = planner
     for vid, attrs in vertices.items():
         path: tuple[str | int, ...] = ("vertices", vid)
         if not isinstance(vid, str):

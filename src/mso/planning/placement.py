@@ -23,14 +23,16 @@ from __future__ import annotations
 
 import bisect
 import itertools
+import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from mso.errors import PlanningError
-from mso.model.app import App
+from mso.model.app import PLANNERS, App
 from mso.model.chains import Chain, chain_dependencies, chain_order, form_chains
-from mso.model.network import Network, NodeSpec
+from mso.model.network import Network, NodeSpec, PowerModel
+from mso.planning.objectives import edge_bytes
 
 Capacity = Callable[[NodeSpec], float]
 
@@ -40,12 +42,25 @@ def cpu_capacity(node: NodeSpec) -> float:
     return node.cpu
 
 
+_POWER = PowerModel()
+
+DEFAULT_PLANNER = "paper"
+
+
 @dataclass(frozen=True)
 class Hop:
-    """What a probe collects at one node of its route."""
+    """What a probe collects at one node of its route: its capacity and, for the ``bytes``
+    planner, its power figures (a node that does not report them is taken at the defaults)."""
 
     node: str
     capacity: float
+    cpu_w: float = _POWER.cpu_w
+    tx_uj_per_byte: float = _POWER.tx_uj_per_byte
+    rx_uj_per_byte: float = _POWER.rx_uj_per_byte
+
+    def weighted(self, factor: float) -> Hop:
+        """The same hop with its capacity scaled (a remap's lifetime weight)."""
+        return replace(self, capacity=self.capacity * factor)
 
 
 # probe(from_node, to_node) -> the hops of the route, both ends included.
@@ -112,6 +127,130 @@ def assign_along(
     return out
 
 
+@dataclass(frozen=True)
+class Traffic:
+    """What the ``bytes`` planner knows of an app besides costs: bytes per event of each edge
+    (parallel edges summed), each vertex's CPU load in ms per second at ``cpu: 1.0`` (cost times
+    its event rate), and the load already placed on each node."""
+
+    edge_bytes: Mapping[tuple[str, str], float]
+    load: Mapping[str, float]
+    used: Mapping[str, float] = field(default_factory=dict)
+    tail_bytes: float = 0.0  # what the chain's tail sends on toward the probe's target
+    # what the tail sends to vertices already placed: (their node, bytes per event)
+    tail_placed: tuple[tuple[str, float], ...] = ()
+
+
+def _compute_uj(cost: float, hop: Hop) -> float:
+    """µJ of CPU one event of a vertex of ``cost`` takes on ``hop`` (the energy objective's)."""
+    if cost == 0:
+        return 0.0
+    if hop.capacity <= 0:
+        return math.inf
+    return cost / hop.capacity * hop.cpu_w * 1e3
+
+
+def assign_bytes(
+    costs: Sequence[float],
+    loads: Sequence[float],
+    sizes: Sequence[float],
+    hops: Sequence[Hop],
+    used: Sequence[float] | None = None,
+    *,
+    to_end: bool,
+    pulls: Sequence[tuple[int, float]] = (),
+) -> list[int]:
+    """Route position of each vertex of a chain segment, the cheapest in energy per event.
+
+    The segment's vertices follow an anchor at position 0; ``sizes[i]`` is the bytes per event
+    into vertex ``i`` and ``sizes[-1]`` those out of the last one, which travel to the route's
+    end when ``to_end`` (an anchor or the probe's target lies there); ``pulls`` are further
+    (position, bytes) the last vertex sends to vertices already placed. Computing vertex ``i`` at
+    ``p`` costs its CPU energy there; an edge from ``q`` to ``p`` costs its bytes times the
+    tx+rx µJ per byte of hops ``q..p``, so the chain is cut at its small edges. Positions never
+    decrease (a chain never goes back along its route). A node takes vertices only while their
+    load (``loads``, ms/s at cpu 1.0) fits what its capacity leaves (``capacity * 1000 - used``).
+
+    A dynamic programme over (vertex, position) with a running minimum over earlier positions:
+    O(len(costs) * len(hops)). Each state keeps the load of its cheapest path only, so capacity
+    is respected by every answer though the answer may miss a costlier-to-reach feasible
+    optimum; with no feasible split at all, capacity is ignored (the paper's split ignores it
+    always).
+    """
+    k, r = len(costs), len(hops)
+    if r == 0:
+        raise ValueError("a route has at least one node")
+    if k == 0:
+        return []
+    acc = [0.0]  # acc[p]: µJ per byte from position 0 to p
+    for a, b in itertools.pairwise(hops):
+        acc.append(acc[-1] + a.tx_uj_per_byte + b.rx_uj_per_byte)
+    left = [h.capacity * 1e3 - (used[p] if used else 0.0) for p, h in enumerate(hops)]
+    for limited in (True, False):
+        out = _bytes_dp(costs, loads, sizes, hops, acc, left if limited else None, to_end, pulls)
+        if out is not None:
+            return out
+    return [0] * k  # every split costs infinite energy (no CPU anywhere): stay on the anchor
+
+
+def _bytes_dp(
+    costs: Sequence[float],
+    loads: Sequence[float],
+    sizes: Sequence[float],
+    hops: Sequence[Hop],
+    acc: Sequence[float],
+    left: Sequence[float] | None,
+    to_end: bool,
+    pulls: Sequence[tuple[int, float]],
+) -> list[int] | None:
+    k, r, inf = len(costs), len(hops), math.inf
+    prev_val = [inf] * r
+    prev_load = [0.0] * r
+    parent: list[list[int]] = []
+    for i in range(k):
+        val, load, par = [inf] * r, [0.0] * r, [-1] * r
+        best, best_q = (0.0, 0) if i == 0 else (inf, -1)  # the anchor sits at position 0
+        for p in range(r):
+            compute = _compute_uj(costs[i], hops[p])
+            if not math.isinf(compute):
+                if best_q >= 0 and (left is None or loads[i] <= left[p] + 1e-9):
+                    val[p] = best + sizes[i] * acc[p] + compute  # arrive from q < p
+                    load[p], par[p] = loads[i], best_q
+                stay = prev_load[p] + loads[i]  # after vertex i-1 on the same node
+                fits = left is None or stay <= left[p] + 1e-9
+                if i > 0 and fits and prev_val[p] + compute <= val[p]:
+                    val[p], load[p], par[p] = prev_val[p] + compute, stay, p
+            if i > 0 and prev_val[p] - sizes[i] * acc[p] < best:
+                best, best_q = prev_val[p] - sizes[i] * acc[p], p
+        prev_val, prev_load = val, load
+        parent.append(par)
+    end = [
+        v
+        + (sizes[k] * (acc[r - 1] - acc[p]) if to_end else 0.0)
+        + sum(b * abs(acc[p] - acc[q]) for q, b in pulls)
+        for p, v in enumerate(prev_val)
+    ]
+    p = min(range(r), key=lambda q: (end[q], q))
+    if math.isinf(end[p]):
+        return None
+    out = [0] * k
+    for i in range(k - 1, -1, -1):
+        out[i] = p
+        p = parent[i][p]
+    return out
+
+
+def vertex_loads(app: App) -> dict[str, float]:
+    """Each vertex's CPU load in ms per second at ``cpu: 1.0``: its cost times its event rate
+    (a source's ``rate``, 1/s if not given; any other vertex's the sum of its inputs')."""
+    pred = app.predecessors()
+    rate: dict[str, float] = {}
+    for v in app.topological_order():
+        vert = app.vertices[v]
+        rate[v] = sum(rate[u] for u in pred[v]) if pred[v] else float(vert.rate or 1.0)
+    return {v: rate[v] * float(app.vertices[v].cost) for v in app.vertices}
+
+
 class _Graph:
     """Reachability helpers over an app, computed once per plan."""
 
@@ -139,13 +278,39 @@ def place_chain(
     *,
     target: str | None = None,
     downstream_cost: float = 0.0,
+    planner: str = "paper",
+    traffic: Traffic | None = None,
 ) -> tuple[dict[str, str], list[str]]:
     """Place the unplaced vertices of ``chain``; returns (assignments, the last probed route).
 
     ``placed`` must hold the head. ``target`` is the node the final probe heads for (the node of
     the furthest pinned vertex downstream), and ``downstream_cost`` the cost of the chains after
     this one on the way there; with no target the free tail end stays on the last anchor's node.
+    ``planner`` splits each segment: ``paper`` by cost and capacity, ``bytes`` by energy with
+    ``traffic`` (required then) giving edge sizes and loads.
     """
+    if planner not in PLANNERS:
+        raise PlanningError(f"unknown planner {planner!r} (known: {', '.join(PLANNERS)})")
+    if planner == "bytes" and traffic is None:
+        raise PlanningError("the bytes planner needs the app's traffic (edge sizes and loads)")
+
+    def split(
+        seg: Sequence[str], hops: Sequence[Hop], to_end: bool, out_bytes: float, tail: bool
+    ) -> list[int]:
+        assert traffic is not None
+        at = {h.node: p for p, h in enumerate(hops)}
+        pulls = [(at.get(n, 0), b) for n, b in traffic.tail_placed] if tail else []
+        sizes = [traffic.edge_bytes.get(ab, 0.0) for ab in itertools.pairwise(seg)]
+        return assign_bytes(
+            [cost[v] for v in seg[1:]],
+            [traffic.load.get(v, 0.0) for v in seg[1:]],
+            [*sizes, out_bytes],
+            hops,
+            [traffic.used.get(h.node, 0.0) for h in hops],
+            to_end=to_end,
+            pulls=pulls,
+        )
+
     verts = chain.vertices
     if verts[0] not in placed:
         raise PlanningError(f"chain {chain.name}: its head {verts[0]!r} is not placed yet")
@@ -159,6 +324,12 @@ def place_chain(
         hops = _probe(probe, a, b, chain)
         route = [h.node for h in hops]
         interior = verts[i + 1 : j]
+        if planner == "bytes":
+            assert traffic is not None
+            nxt = traffic.edge_bytes.get((verts[j - 1], verts[j]), 0.0)
+            idx = split(verts[i:j], hops, True, nxt, False)
+            out.update({v: hops[k].node for v, k in zip(interior, idx, strict=True)})
+            continue
         idx = assign_along(
             [cost[v] for v in interior],
             [h.capacity for h in hops],
@@ -172,6 +343,11 @@ def place_chain(
         start = placed[verts[last]]
         hops = _probe(probe, start, target, chain) if target is not None else [Hop(start, 1.0)]
         route = [h.node for h in hops]
+        if planner == "bytes":
+            assert traffic is not None
+            idx = split(verts[last:], hops, target is not None, traffic.tail_bytes, True)
+            out.update({v: hops[n].node for v, n in zip(rest, idx, strict=True)})
+            return out, route
         segment_cost = sum(cost[v] for v in verts[last:])
         denom = segment_cost + downstream_cost
         fraction = segment_cost / denom if denom > 0 else 1.0
@@ -190,6 +366,12 @@ def _probe(probe: Probe, a: str, b: str, chain: Chain) -> Sequence[Hop]:
     return hops
 
 
+def hop_of(node: NodeSpec, capacity: float) -> Hop:
+    """The hop a probe collects at ``node``: ``capacity`` and the node's power model."""
+    pw = node.power
+    return Hop(node.id, capacity, pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte)
+
+
 def network_probe(network: Network, capacity: Capacity = cpu_capacity) -> Probe:
     """A probe over a known network: the shortest route and each node's capacity."""
 
@@ -197,7 +379,7 @@ def network_probe(network: Network, capacity: Capacity = cpu_capacity) -> Probe:
         route = network.route(a, b)
         if route is None:
             return []
-        return [Hop(n, capacity(network.nodes[n])) for n in route]
+        return [hop_of(network.nodes[n], capacity(network.nodes[n])) for n in route]
 
     return probe
 
@@ -212,15 +394,23 @@ class Layout:
     placement as the central :func:`plan`.
     """
 
-    def __init__(self, app: App, origin: str) -> None:
+    def __init__(self, app: App, origin: str, planner: str | None = None) -> None:
         self.app = app
         self.origin = origin
+        self.planner = planner or app.planner or DEFAULT_PLANNER
+        if self.planner not in PLANNERS:
+            raise PlanningError(f"unknown planner {self.planner!r} (known: {', '.join(PLANNERS)})")
         self.chains = form_chains(app)
         self.order = chain_order(self.chains)
         self.graph = _Graph(app)
         self.cost = {v.id: float(v.cost) for v in app.vertices.values()}
         self.pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
         self.kinds = app.kinds()  # once: the node looks them up per hosted vertex
+        self.edge_bytes: dict[tuple[str, str], float] = {}
+        for e in app.edges:
+            k = (e.src, e.dst)
+            self.edge_bytes[k] = self.edge_bytes.get(k, 0.0) + edge_bytes(e)
+        self.load = vertex_loads(app)
         # the chain each edge lies in (every edge lies in exactly one, §3.2)
         index = {(e.src, e.dst): i for i, e in enumerate(app.edges)}
         self.edge_chain = [-1] * len(app.edges)
@@ -285,6 +475,34 @@ class Layout:
         )
         return self.pinned[best[2]], down_cost
 
+    def traffic(
+        self,
+        chain: int,
+        placed: Mapping[str, str],
+        target: str | None,
+        distances: Mapping[str, int],
+    ) -> Traffic:
+        """The bytes planner's view of one chain: edge sizes, loads, the load this app already
+        put on each node, and what its tail sends on: to vertices already placed (to their
+        nodes), and toward ``target`` (into vertices from which a vertex pinned to ``target``
+        is reachable)."""
+        used: dict[str, float] = {}
+        for v, n in placed.items():
+            used[n] = used.get(n, 0.0) + self.load.get(v, 0.0)
+        tail = self.chains[chain].tail
+        tail_bytes = 0.0
+        tail_placed: list[tuple[str, float]] = []
+        if tail not in placed:
+            ends = {v for v, n in self.pinned.items() if n == target}
+            for e in self.app.edges:
+                if e.src != tail:
+                    continue
+                if e.dst in placed:
+                    tail_placed.append((placed[e.dst], float(edge_bytes(e))))
+                elif target is not None and ends & self.graph.reach(e.dst, forward=True):
+                    tail_bytes += edge_bytes(e)
+        return Traffic(self.edge_bytes, self.load, used, tail_bytes, tuple(tail_placed))
+
     def last_anchor_node(self, chain: int, placed: Mapping[str, str]) -> str:
         verts = self.chains[chain].vertices
         return placed[max((v for v in verts if v in placed), key=verts.index)]
@@ -313,6 +531,9 @@ class Layout:
     ) -> tuple[dict[str, str], list[str]]:
         """Place one chain whose dependencies are met: (assignments incl. anchors, route)."""
         target, downstream = self.target(chain, placed, distances)
+        traffic = None
+        if self.planner == "bytes":
+            traffic = self.traffic(chain, placed, target, distances)
         assigned, route = place_chain(
             self.chains[chain],
             self.cost,
@@ -320,6 +541,8 @@ class Layout:
             probe,
             target=target,
             downstream_cost=downstream,
+            planner=self.planner,
+            traffic=traffic,
         )
         full = {v: assigned.get(v) or placed[v] for v in self.chains[chain].vertices}
         return full, route
@@ -332,11 +555,12 @@ def plan(
     capacity: Capacity = cpu_capacity,
     origin: str | None = None,
     probe: Probe | None = None,
+    planner: str | None = None,
 ) -> Plan:
     """Algorithm 1 run centrally: place every chain in dependency order.
 
     ``origin`` hosts unpinned sources (default: the network's first node), as the deploying
-    node does in a distributed deployment.
+    node does in a distributed deployment. ``planner`` overrides the app's (``planner:``).
     """
     if not network.nodes:
         raise PlanningError("the network has no nodes")
@@ -350,7 +574,7 @@ def plan(
                 f"(nodes: {', '.join(network.nodes)})"
             )
     probe = probe or network_probe(network, capacity)
-    layout = Layout(app, origin)
+    layout = Layout(app, origin, planner)
     placed = layout.initial_placement()
     routes: dict[int, list[str]] = {}
     for ci in layout.order:
