@@ -225,3 +225,22 @@ def test_the_status_path_imports_no_planner_rich_or_asyncio() -> None:
 def test_status_watch_needs_a_positive_period() -> None:
     code, _, err = run("status", "--watch", "0", "--via", "127.0.0.1:9")
     assert code == 2 and "--watch: expected seconds > 0" in err
+
+
+def test_plan_and_compare_name_the_planner() -> None:
+    app, scen = str(EXAMPLES / "camera.yaml"), str(EXAMPLES / "camera-line.yaml")
+    code, out, _ = run("plan", app, "--scenario", scen, "--planner", "bytes", "--json")
+    assert code == 0
+    doc = json.loads(out)
+    assert doc["split"] == "bytes" and doc["placement"]["downscale"] == "R1"
+    code, out, _ = run("plan", app, "--scenario", scen, "--json")
+    assert json.loads(out)["split"] == "paper"
+    code, out, _ = run("compare", app, "--scenario", scen, "--json")
+    assert code == 0
+    rows = json.loads(out)
+    assert rows["algorithm1"] == rows["algorithm1:paper"]
+    assert rows["algorithm1:bytes"]["energy"] < rows["algorithm1:paper"]["energy"] / 2
+    # the optimum respects capacity: the camera robot is not loaded beyond its CPU
+    assert rows["optimal:energy"]["energy"] <= rows["algorithm1:bytes"]["energy"] + 1e-12
+    code, out, err = run("deploy", app, "--planner", "fastest")
+    assert code != 0 and "fastest" in out + err

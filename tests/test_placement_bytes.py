@@ -191,3 +191,25 @@ def test_bytes_planner_costs_no_more_energy_than_paper_on_examples() -> None:
         e_paper = energy_per_event(app, net, plan(app, net, planner="paper").placement)
         assert e_bytes <= e_paper * (1 + 1e-9), app_file
         assert math.isfinite(e_bytes)
+
+
+def test_probe_reply_power_figures_validated() -> None:
+    from mso.planning.placement import probed_hops
+
+    good = probed_hops(["A", "B"], [1.0, 2.0], [[4.0, 2.0, 1.0], [8.0, 20.0, 1.0]])
+    assert good[1] == Hop("B", 2.0, 8.0, 20.0, 1.0)
+    # none (an older peer), too few, negative or not finite: the defaults for every hop
+    for power in ([], [[4.0, 2.0, 1.0]], [[4.0, -2.0, 1.0]] * 2, [[math.nan, 2.0, 1.0]] * 2):
+        assert probed_hops(["A", "B"], [1.0, 2.0], power) == [Hop("A", 1.0), Hop("B", 2.0)]
+
+
+def test_with_planner_rewrites_the_document() -> None:
+    from mso.model.appfile import with_planner
+
+    text = (EXAMPLES / "section33.yaml").read_text()
+    assert loads_app(with_planner(text, "bytes"), resolve_code=False).planner == "bytes"
+    again = with_planner(with_planner(text, "bytes"), "paper")
+    assert again.count("planner:") == 1
+    assert loads_app(again, resolve_code=False).planner == "paper"
+    with pytest.raises(AppError, match="unknown planner"):
+        with_planner(text, "fastest")

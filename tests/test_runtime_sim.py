@@ -55,7 +55,7 @@ def test_distributed_deployment_matches_central_plan(app_file: str, scenario_fil
     scenario = load_scenario(EXAMPLES / scenario_file)
     expected = plan(loads_app(doc), scenario.network).placement
     sim = Simulation(scenario.network)
-    reply = deploy(sim, doc)
+    reply = deploy(sim, doc, via=next(iter(scenario.network.nodes)))
     assert reply.ok, reply.error
     assert reply.placement == expected
     # every node learned the whole mapping, and hosts exactly its own vertices
@@ -227,3 +227,22 @@ def test_a_folded_frame_naming_a_wrong_edge_is_dropped_whole(
     assert dep.inc[0].expected == expected  # the main edge took nothing either
     core.receive("N1", m.Data("fork", 0, dep.epoch, expected, [b"\x91\x00"]), sim.now)
     assert dep.inc[0].expected == expected + 1  # the same frame, unfolded, is taken
+
+
+@pytest.mark.parametrize(
+    ("app_file", "scenario_file"),
+    [("camera.yaml", "camera-line.yaml"), ("fig2.yaml", "line4.yaml")],
+)
+def test_distributed_bytes_planner_matches_central_plan(app_file: str, scenario_file: str) -> None:
+    """``planner: bytes`` in the document: the probes carry each hop's power figures and
+    every node reaches the central plan's placement."""
+    from mso.model.appfile import with_planner
+
+    doc = with_planner((EXAMPLES / app_file).read_text(), "bytes")
+    scenario = load_scenario(EXAMPLES / scenario_file)
+    expected = plan(loads_app(doc, resolve_code=False), scenario.network).placement
+    assert expected == plan(loads_app(doc), scenario.network, planner="bytes").placement
+    sim = Simulation(scenario.network)
+    reply = deploy(sim, doc, via=next(iter(scenario.network.nodes)))
+    assert reply.ok, reply.error
+    assert reply.placement == expected

@@ -80,14 +80,18 @@ def resolve_address(via: str | None, overlay: str | None = None) -> str:
     return addr
 
 
-def deploy_request(app_file: str | Path) -> m.DeployRequest:
-    """An app file as a deploy request, validated here first so errors point at its lines."""
-    from mso.model.appfile import load_app
+def deploy_request(app_file: str | Path, planner: str | None = None) -> m.DeployRequest:
+    """An app file as a deploy request, validated here first so errors point at its lines;
+    ``planner`` overrides the app's ``planner:`` (written into the document every node reads)."""
+    from mso.model.appfile import load_app, with_planner
     from mso.model.yamlfile import read_text_file
 
     path = Path(app_file)
     load_app(path)
-    return m.DeployRequest(read_text_file(path), str(path))
+    text = read_text_file(path)
+    if planner is not None:
+        text = with_planner(text, planner, file=str(path))
+    return m.DeployRequest(text, str(path))
 
 
 def asked_node(nodes: dict[str, Any]) -> dict[str, Any]:
@@ -181,10 +185,17 @@ class AsyncOverlay:
         return reply
 
     async def deploy(
-        self, app_file: str | Path, *, check: bool = True, timeout: float = DEPLOY_S
+        self,
+        app_file: str | Path,
+        *,
+        check: bool = True,
+        timeout: float = DEPLOY_S,
+        planner: str | None = None,
     ) -> m.DeployReply:
-        """Deploy an app file (validated here first, so errors point at its lines)."""
-        return await self.deploy_request(deploy_request(app_file), check=check, timeout=timeout)
+        """Deploy an app file (validated here first, so errors point at its lines);
+        ``planner`` overrides the app's."""
+        req = deploy_request(app_file, planner)
+        return await self.deploy_request(req, check=check, timeout=timeout)
 
     async def deploy_request(
         self, req: m.DeployRequest, *, check: bool = True, timeout: float = DEPLOY_S
@@ -270,10 +281,10 @@ class Overlay:
     def address(self) -> str:
         return self._async.address
 
-    def deploy(self, app_file: str | Path) -> m.DeployReply:
+    def deploy(self, app_file: str | Path, *, planner: str | None = None) -> m.DeployReply:
         import asyncio
 
-        req = deploy_request(app_file)  # before the address: file errors first
+        req = deploy_request(app_file, planner)  # before the address: file errors first
         return asyncio.run(self._async.deploy_request(req))
 
     def undeploy(self, app: str | App) -> None:

@@ -43,6 +43,11 @@ from mso.errors import MsoError
 )
 @click.option("--via", help="Node to deploy from (default: the first node).")
 @click.option(
+    "--planner",
+    type=click.Choice(["paper", "bytes"]),  # mso.model.app.PLANNERS (not imported: startup)
+    help="How chains are split along their routes (overrides the app's planner:).",
+)
+@click.option(
     "--convergence", type=NON_NEGATIVE, default=0.0, show_default=True,
     help="Seconds routes take to follow a link change.",
 )  # fmt: skip
@@ -91,6 +96,7 @@ def emulate(
     backend: str,
     cleanup: bool,
     via: str | None,
+    planner: str | None,
     convergence: float,
     heartbeat_s: float | None,
     dead_after_s: float | None,
@@ -118,7 +124,7 @@ def emulate(
         scenario_file, app_file, duration, via, convergence, key, as_json, heartbeat_s,
         dead_after_s, allow_code, name=name, manage=manage,
         dashboard=(dashboard_listen or "") if with_dashboard or dashboard_listen else None,
-        metrics_port=metrics_port, encrypt=encrypt, backend=backend,
+        metrics_port=metrics_port, encrypt=encrypt, backend=backend, planner=planner,
     )  # fmt: skip
 
 
@@ -178,6 +184,7 @@ def _emulate(
     metrics_port: int | None = None,
     encrypt: bool = False,
     backend: str = "user",
+    planner: str | None = None,
 ) -> None:
     import asyncio
     import signal
@@ -262,7 +269,7 @@ def _emulate(
             moving = asyncio.create_task(emu.play_mobility(t0))
             if app is not None and app_file is not None:
                 origin = via or next(iter(emu.nodes))
-                reply = await emu.overlay(origin).deploy(app_file)
+                reply = await emu.overlay(origin).deploy(app_file, planner=planner)
                 out.print(f"deployed {reply.app} from {origin} in {reply.elapsed_ms:.1f} ms")
                 mapping = Table(title="vertex → node")
                 mapping.add_column("vertex")

@@ -43,6 +43,11 @@ def _app_or_only(overlay: Overlay, app_name: str | None) -> str:
 @click.command()
 @click.argument("app_file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--via", help="Node to deploy from: a node id of the running emulator or HOST:PORT.")
+@click.option(
+    "--planner",
+    type=click.Choice(["paper", "bytes"]),  # mso.model.app.PLANNERS (not imported: startup)
+    help="How chains are split along their routes (overrides the app's planner:).",
+)
 @sign_option
 @overlay_option
 @key_option
@@ -51,6 +56,7 @@ def _app_or_only(overlay: Overlay, app_name: str | None) -> str:
 def deploy(
     app_file: Path,
     via: str | None,
+    planner: str | None,
     overlay: str | None,
     sign: str | None,
     key: str | None,
@@ -59,7 +65,7 @@ def deploy(
     """Deploy an app from any node (distributed Algorithm 1)."""
     from mso.api import Overlay
 
-    reply = Overlay(via, overlay=overlay, key=key, sign=sign).deploy(app_file)
+    reply = Overlay(via, overlay=overlay, key=key, sign=sign).deploy(app_file, planner=planner)
     if as_json:
         click.echo(
             json.dumps(

@@ -150,3 +150,25 @@ def _policy(doc: Located, spec: Any) -> str | dict[str, Any]:
         f"expected a policy name, an import path or {{name|code, params}}, got {spec!r}",
         ("policy",),
     )
+
+
+def with_planner(text: str, planner: str, *, file: str | None = None) -> str:
+    """The app document ``text`` with its ``planner:`` set to ``planner`` (``--planner`` on
+    ``mso deploy`` and ``mso emulate``): every node derives its placement from the document, so
+    the choice travels in it. The result is checked to load with that planner."""
+    import re
+
+    if planner not in PLANNERS:
+        raise AppError(f"unknown planner {planner!r} (expected one of {', '.join(PLANNERS)})")
+    line = f"planner: {planner}"
+    pattern = re.compile(r"^planner:[^\n]*$", re.MULTILINE)
+    out = (
+        pattern.sub(line, text, count=1)
+        if pattern.search(text)
+        else text.rstrip("\n") + f"\n{line}\n"
+    )
+    if loads_app(out, file=file, resolve_code=False).planner != planner:
+        raise AppError(
+            "cannot set the planner in this document: give it a top-level 'planner:' key"
+        )
+    return out

@@ -31,6 +31,7 @@ from mso.planning.objectives import (
     route_tables,
     vertex_energy_j,
 )
+from mso.planning.placement import vertex_loads
 
 MAX_ILP_VARIABLES = 2000
 """:func:`optimal` refuses models with more variables than this. It counts ``x[v, n]`` (one per
@@ -125,7 +126,12 @@ def greedy_capacity(app: App, network: Network) -> dict[str, str]:
 
 
 def optimal(
-    app: App, network: Network, objective: str = "energy", time_limit: float = 10.0
+    app: App,
+    network: Network,
+    objective: str = "energy",
+    time_limit: float = 10.0,
+    *,
+    capacity: bool = True,
 ) -> dict[str, str]:
     """A placement minimising ``objective`` (a key of :data:`~mso.planning.objectives.OBJECTIVES`)
     exactly, by a mixed-integer program solved with HiGHS (``scipy.optimize.milp``).
@@ -136,7 +142,11 @@ def optimal(
     ``x``); a pair with no route has no ``y``, so it is infeasible. ``max_load`` forbids such
     pairs with ``x[u, n] + x[v, m] <= 1`` and minimises ``z >= load_n``; ``hops`` minimises
     ``z >= d_v >= d_u + sum y[e, n, m] * hops(n, m)``. Nodes where a vertex would cost infinite
-    energy or load (``cpu <= 0``) are excluded for it.
+    energy or load (``cpu <= 0``) are excluded for it. With ``capacity`` (the default) every
+    node's load stays within its CPU: ``sum_v load_v * x[v, n] <= 1000 * cpu_n``, a vertex's
+    load being its cost times its event rate in ms per second
+    (:func:`~mso.planning.placement.vertex_loads`) -- a yardstick no deployable placement
+    could reach is no yardstick.
 
     Raises PlanningError when the model would exceed :data:`MAX_ILP_VARIABLES`, when no
     placement routes every edge, or when ``time_limit`` seconds pass before optimality is
@@ -239,6 +249,13 @@ def optimal(
                     if (n, m) not in reach:
                         row([(x(u, n), 1.0), (x(w, m), 1.0)], -np.inf, 1.0)
 
+    if capacity:
+        loads = vertex_loads(app)
+        for n, node in enumerate(nodes):
+            terms = [(x(i, n), loads[t.id]) for i, t in enumerate(verts) if loads[t.id] > 0]
+            if terms:
+                row(terms, -np.inf, 1000.0 * max(network.nodes[node].cpu, 0.0))
+
     if objective == "hops":
         for v in range(nv):
             row([(z, 1.0), (d0 + v, -1.0)], 0.0, np.inf)
@@ -257,8 +274,10 @@ def optimal(
         options={"time_limit": time_limit, "mip_rel_gap": 0.0},
     )
     if res.status == 2:
+        within = " within every node's CPU capacity" if capacity else ""
         raise PlanningError(
-            f"no placement of app {app.name!r} routes every edge between its pinned vertices"
+            f"no placement of app {app.name!r} routes every edge between its pinned "
+            f"vertices{within}"
         )
     if res.status == 1:
         raise PlanningError(f"the {objective} ILP did not prove optimality within {time_limit:g} s")

@@ -75,6 +75,7 @@ class Plan:
     chains: list[Chain]
     order: list[int]
     routes: dict[int, list[str]] = field(default_factory=dict)
+    planner: str = DEFAULT_PLANNER  # how chains were split along their routes
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -372,6 +373,22 @@ def hop_of(node: NodeSpec, capacity: float) -> Hop:
     return Hop(node.id, capacity, pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte)
 
 
+def probed_hops(
+    nodes: Sequence[str], capacities: Sequence[float], power: Sequence[Sequence[float]] = ()
+) -> list[Hop]:
+    """The hops a probe reply carries. Power figures are taken only when there is one valid
+    ``[cpu_w, tx, rx]`` (finite, non-negative) per hop; otherwise each hop gets the defaults,
+    so a reply from a node that predates them, or a malformed one, still places the chain."""
+    n = min(len(nodes), len(capacities))
+    ok = len(power) == len(nodes) and all(
+        len(f) == 3 and all(isinstance(x, int | float) and math.isfinite(x) and x >= 0 for x in f)
+        for f in power
+    )
+    if not ok:
+        return [Hop(nodes[i], capacities[i]) for i in range(n)]
+    return [Hop(nodes[i], capacities[i], *map(float, power[i])) for i in range(n)]
+
+
 def network_probe(network: Network, capacity: Capacity = cpu_capacity) -> Probe:
     """A probe over a known network: the shortest route and each node's capacity."""
 
@@ -583,4 +600,10 @@ def plan(
         placed.update(assigned)
         routes[ci] = route
     placement = {v: placed[v] for v in app.vertices}
-    return Plan(placement=placement, chains=layout.chains, order=layout.order, routes=routes)
+    return Plan(
+        placement=placement,
+        chains=layout.chains,
+        order=layout.order,
+        routes=routes,
+        planner=layout.planner,
+    )

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Protocol
 if TYPE_CHECKING:
     from collections.abc import Hashable
 
+    from mso.model.network import PowerModel
     from mso.protocol import messages as m
     from mso.protocol.authority import Authority
     from mso.protocol.effects import Effect
@@ -51,6 +52,11 @@ class NodeContext(Protocol):
 
     @property
     def capacity(self) -> float: ...
+
+    @property
+    def power(self) -> PowerModel:
+        """This node's power model: its figures travel in probes for the bytes planner."""
+        ...
 
     @property
     def authority(self) -> Authority: ...

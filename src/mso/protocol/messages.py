@@ -99,7 +99,9 @@ class AppAnnounce(_Msg, tag="announce"):
 
 
 class Probe(_Msg, tag="probe"):
-    """Travels hop by hop toward ``target``; each hop appends its capacity."""
+    """Travels hop by hop toward ``target``; each hop appends its capacity and its power
+    figures ``[cpu_w, tx_uj_per_byte, rx_uj_per_byte]`` (for the bytes planner; a peer that
+    predates them sends none, and the planner takes the defaults for every hop)."""
 
     app: str
     chain: int
@@ -108,6 +110,7 @@ class Probe(_Msg, tag="probe"):
     target: str
     nodes: list[str]
     capacities: list[float]
+    power: list[list[float]] = []
 
 
 class ProbeReply(_Msg, tag="probe_reply"):
@@ -116,6 +119,7 @@ class ProbeReply(_Msg, tag="probe_reply"):
     segment: int
     nodes: list[str]
     capacities: list[float]
+    power: list[list[float]] = []
 
 
 class ChainPlaced(_Msg, tag="placed"):

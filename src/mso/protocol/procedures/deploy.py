@@ -30,7 +30,7 @@ from mso.errors import MsoError
 from mso.management import load_policy
 from mso.model.app import App
 from mso.model.appfile import loads_app
-from mso.planning.placement import Hop, Layout
+from mso.planning.placement import Hop, Layout, probed_hops
 from mso.protocol import messages as m
 from mso.protocol.authority import generation
 from mso.protocol.context import NodeContext
@@ -257,7 +257,7 @@ class Deployer:
             self.ctx.refusal("probe_reply_unexpected")
             return
         got = dep.probes[msg.chain]
-        got[msg.segment] = [Hop(n, c) for n, c in zip(msg.nodes, msg.capacities, strict=False)]
+        got[msg.segment] = probed_hops(msg.nodes, msg.capacities, msg.power)
         if len(got) == dep.probes_expected.get(msg.chain):
             self._place(dep, msg.chain)
 
@@ -330,8 +330,13 @@ class Deployer:
     def on_probe(self, msg: m.Probe) -> None:
         msg.nodes.append(self.ctx.id)
         msg.capacities.append(self.ctx.capacity)
+        if len(msg.power) == len(msg.nodes) - 1:  # every hop so far reported (else: none did)
+            pw = self.ctx.power
+            msg.power.append([pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte])
         if msg.target == self.ctx.id:
-            reply = m.ProbeReply(msg.app, msg.chain, msg.segment, msg.nodes, msg.capacities)
+            reply = m.ProbeReply(
+                msg.app, msg.chain, msg.segment, msg.nodes, msg.capacities, msg.power
+            )
             self.ctx.send(msg.requester, reply)
             return
         self._forward_probe(msg, self.ctx.now)

@@ -25,7 +25,7 @@ import enum
 from typing import Any, ClassVar
 
 from mso.errors import MsoError
-from mso.planning.placement import Hop
+from mso.planning.placement import Hop, probed_hops
 from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
@@ -286,7 +286,7 @@ class Remapper:
         ):
             self.ctx.refusal("probe_reply_unexpected")
             return
-        remap.probes[k] = [Hop(n, c) for n, c in zip(msg.nodes, msg.capacities, strict=False)]
+        remap.probes[k] = probed_hops(msg.nodes, msg.capacities, msg.power)
         if len(remap.probes) == remap.expected:
             self._place(rid, self.ctx.now)
 
@@ -300,7 +300,7 @@ class Remapper:
         remap.probe_attempts = 0
         w = remap.weights
         by_pair = {
-            (h[0].node, h[-1].node): [Hop(x.node, x.capacity * w.get(x.node, 1.0)) for x in h]
+            (h[0].node, h[-1].node): [x.weighted(w.get(x.node, 1.0)) for x in h]
             for h in remap.probes.values()
             if h
         }
