@@ -43,6 +43,7 @@ from mso.management import (
     move_cost_j,
     relays,
 )
+from mso.management.rules import lifetime_ratio
 from mso.model.network import PowerModel
 
 WHERE = "app.yaml: policy"
@@ -746,11 +747,12 @@ def test_a_node_warming_up_is_not_judged_by_its_start_up() -> None:
     assert engine.draining == frozenset()
 
 
-def test_a_wall_powered_neighbour_makes_every_battery_node_draining() -> None:
+def test_a_wall_powered_neighbour_alone_makes_no_battery_node_draining() -> None:
+    # it did before issue 25 (an infinite lifetime to compare with)
     nodes = [node("H", drain=5.0), node("U", drain=5.0, remaining=None)]
     engine = RuleEngine()
     engine.evaluate(snap(0.0, nodes))
-    assert engine.draining == {"H"}
+    assert engine.draining == frozenset()
 
 
 def test_nothing_moves_onto_a_flat_battery() -> None:
@@ -908,3 +910,26 @@ def test_a_policy_decides_the_weights_of_an_energy_remap() -> None:
     (p,) = EnergyRemapRule(KeepOff(), RuleSettings(), frozenset({"H"})).propose(joined())
     assert isinstance(p.action, RemapChains) and p.action.place == (("J", "D"),)
     assert dict(p.action.weights) == {"H": 0.0, "U": 0.0, "D": 1.0}
+
+
+def test_a_wall_powered_neighbour_does_not_make_a_node_draining() -> None:
+    """Issue 25: R4 with 9.8 h of battery beside a wall-powered node is not "draining" (it
+    used to be: the wall node counted as an infinite lifetime, so any gain moved its work);
+    a move onto the wall node must now beat the margin like any other."""
+    # H: 9.8 h at 5 W; U on wall power; moving B saves H 2 % -- within the margin
+    nodes = [node("H", drain=5.0, remaining=9.8 * 3600 * 5.0), node("U", remaining=None)]
+    light = VertexView("app", "B", "H", 0, 1.0, 25.0, 0.0, 0.0, 100, "U", None, True)
+    s = snap(0.0, nodes, [light], [chain(vertices=("A", "B"), nodes=("U", "H"))])
+    assert lifetime_ratio(s, "H") is None  # no battery peer to compare with
+    engine = RuleEngine()
+    assert run(engine, s, [float(t) for t in range(10)]) == []
+    assert engine.draining == frozenset()
+    # the wall node is still a place to put work: a gain beyond the margin moves B there
+    heavy = dataclasses.replace(light, cost=20.0)  # 0.5 of H busy: 2 W of its 5 W
+    s2 = snap(0.0, nodes, [heavy], [chain(vertices=("A", "B"), nodes=("U", "H"))])
+    moved = run(RuleEngine(), s2, [float(t) for t in range(10)])
+    assert [what.split(" (")[0] for _, what in moved] == ["relocate app/B -> U"]
+    assert "draining" not in moved[0][1]
+    # beside a battery peer that lasts ten times longer, H is draining as before
+    rich = node("D", drain=5.0, remaining=10 * 9.8 * 3600 * 5.0)
+    assert lifetime_ratio(snap(0.0, [*nodes, rich]), "H") == pytest.approx(0.1)
