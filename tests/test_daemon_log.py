@@ -137,6 +137,6 @@ def test_mso_node_logs_start_deploy_a_move_and_its_stop_on_sigterm(tmp_path: Pat
     assert "operator_keys=off" in lines[0]
     assert any("event=deploy app=pipe by=N1" in ln for ln in lines), text
     (move,) = [ln for ln in lines if "event=relocation" in ln]
-    assert f'vertex=mid move="{host} -> {other}" by=operator took_ms=' in move, move
+    assert f'vertex=mid move="{host} -> {to}" by=operator took_ms=' in move, move
     assert "event=stop reason=SIGTERM" in lines[-1] and "relocation:1" in lines[-1], text
     assert codes == [0, 0]
