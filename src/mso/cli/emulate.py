@@ -24,7 +24,12 @@ from mso.errors import MsoError
 
 @click.command()
 @click.argument("scenario_file", required=False, type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--app", "app_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--app",
+    "app_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="An app file to deploy once the nodes are up (default: none, an empty overlay).",
+)
 @click.option(
     "--duration", type=POSITIVE, default=None, help="Seconds to run (default: until Ctrl-C)."
 )
