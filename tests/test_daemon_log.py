@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,7 @@ import pytest
 from mso.daemon.config import NodeFlags, settle
 from mso.daemon.logs import LogfmtFormatter, logfmt
 from mso.errors import MsoError
+from mso.model.imports import allow_code, allowed_code
 from mso.protocol import messages as m
 from mso.protocol.events import Happened
 from mso.sim.runner import Simulation
@@ -61,6 +63,17 @@ def test_a_log_record_is_one_logfmt_line() -> None:
     assert "\n" not in line_ and line_.endswith('level=warning node=N1 msg="x\\ny"')
 
 
+@pytest.fixture
+def keep_allowlist() -> Iterator[None]:
+    """settle() restricts this process's code imports, as a daemon's must: undone after."""
+    before = allowed_code()
+    try:
+        yield
+    finally:
+        allow_code(before)
+
+
+@pytest.mark.usefixtures("keep_allowlist")
 def test_a_config_file_holds_every_option_rules_included(tmp_path: Path) -> None:
     cfg = tmp_path / "n1.yaml"
     cfg.write_text(
