@@ -45,6 +45,13 @@ class Double:
         return Num(seq=event.seq, pad=event.pad)
 
 
+class WrongOutput:
+    """Declares ``Num`` but returns a dict without ``seq``: its own mistake, to be blamed on it."""
+
+    def __call__(self, event: Num) -> dict[str, int]:
+        return {"n": event.seq}
+
+
 class Recorder(SequenceCheck):
     """Checks per-producer order: every event's seq must be the previous one + 1."""
 

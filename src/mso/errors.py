@@ -51,3 +51,17 @@ class ScenarioError(SpecError):
 
 class PlanningError(MsoError):
     """No placement satisfies the request (e.g. a pinned node is unreachable)."""
+
+
+def with_code_hint(message: str) -> str:
+    """An import failure of app code, with how code reaches a node: the first thing a user
+    whose own package is "not found" needs to know, as the error is often seen on a node."""
+    if "does not resolve: no module named" not in message:
+        return message
+    module = message.rpartition("no module named ")[2].strip("'\"")
+    top = module.split(".")[0]
+    return (
+        f"{message} (app code must be importable on every node: install its package there, "
+        f"e.g. pip install -e ., or put it on PYTHONPATH; nodes run only allowed code: "
+        f"--allow-code {top} or $MSO_ALLOW_CODE)"
+    )

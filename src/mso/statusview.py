@@ -78,6 +78,21 @@ def _size(n: float) -> str:
     return f"{n:.1f} GB"
 
 
+def _clip(text: str, width: int) -> str:
+    text = " ".join(str(text).split())  # one line, whatever the vertex wrote
+    return text if len(text) <= width else text[: width - 1] + "…"
+
+
+def _stats_cell(stats: Any) -> str:
+    """A vertex's own ``stats()``, compactly: ``k=v`` pairs (numbers rounded), clipped."""
+    if stats is None or stats == {}:
+        return ""
+    if isinstance(stats, dict):
+        parts = [f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in stats.items()]
+        return _clip(" ".join(parts), 48)
+    return _clip(str(stats), 48)
+
+
 def status_text(nodes: dict[str, Any]) -> str:
     """Nodes with their traffic; per app, vertices (where, events, CPU) and edges."""
     out: list[str] = []
@@ -173,14 +188,22 @@ def status_text(nodes: dict[str, Any]) -> str:
         for note in app.get("notes", []):
             out.append(f"app {name}: {note}")
         vt = Table(f"app {name}: vertices")
-        for col in ("vertex", "node", "kind", "events", "cpu ms", "errors"):
-            vt.add_column(col, justify="right" if col in ("events", "cpu ms", "errors") else "left")
+        numbers = ("events", "cpu ms", "errors", "crashes")
+        for col in ("vertex", "node", "kind", *numbers, "stats"):
+            vt.add_column(col, justify="right" if col in numbers else "left")
+        problems = []
         for v, (nid, vs) in app["vertices"].items():
             events = vs["emitted"] if vs["kind"] == "source" else vs["processed"]
             vt.add_row(
-                v, nid, vs["kind"], str(events), f"{vs['cpu_s'] * 1e3:.1f}", str(vs["errors"])
-            )
+                v, nid, vs["kind"], str(events), f"{vs['cpu_s'] * 1e3:.1f}", str(vs["errors"]),
+                str(vs.get("crashes", 0)), _stats_cell(vs.get("stats")),
+            )  # fmt: skip
+            if vs.get("last_error"):
+                problems.append(f"  {v}: last error: {_clip(vs['last_error'], 160)}")
+            if vs.get("last_crash"):
+                problems.append(f"  {v}: last crash: {_clip(vs['last_crash'], 160)}")
         out.append(str(vt))
+        out.extend(problems)
         et = Table(f"app {name}: edges")
         for col in ("edge", "sent", "delivered", "duplicates", "events/s"):
             et.add_column(col, justify="left" if col == "edge" else "right")
@@ -194,3 +217,25 @@ def status_text(nodes: dict[str, Any]) -> str:
             )
         out.append(str(et))
     return "\n".join(out)
+
+
+ERROR_ALARM = 5  # errors a vertex may add between two looks before the console flags it
+
+
+def error_alarms(
+    seen: dict[str, int], nodes: dict[str, Any], app: str, threshold: int = ERROR_ALARM
+) -> list[str]:
+    """The vertices of ``app`` whose error count grew by ``threshold`` or more since the last
+    call (``seen`` keeps the counts between calls): one line each, with its last error, so a
+    vertex failing on every event is not buried in a summary."""
+    lines = []
+    for nid in sorted(nodes):
+        vertices = nodes[nid].get("apps", {}).get(app, {}).get("vertices", {})
+        for v, vs in sorted(vertices.items()):
+            errors = int(vs.get("errors", 0))
+            grew = errors - seen.get(v, 0)
+            seen[v] = errors
+            if grew >= threshold:
+                last = _clip(vs.get("last_error", ""), 120)
+                lines.append(f"vertex {v} on {nid}: {grew} new errors ({errors} in all): {last}")
+    return lines

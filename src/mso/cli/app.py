@@ -26,6 +26,10 @@ def validate(app_file: Path, no_import: bool, as_json: bool) -> None:
     from mso.model.appfile import load_app
 
     app = load_app(app_file, resolve_code=not no_import)
+    if not no_import:  # as deploy would: a policy that does not load fails here, not there
+        from mso.management import load_policy
+
+        load_policy(app.policy, where=f"{app_file}: policy")
     if as_json:
         doc = {"app": app.name, "vertices": len(app.vertices), "edges": len(app.edges)}
         click.echo(json.dumps(doc))

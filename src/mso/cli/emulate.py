@@ -24,7 +24,12 @@ from mso.errors import MsoError
 
 @click.command()
 @click.argument("scenario_file", required=False, type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--app", "app_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--app",
+    "app_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="An app file to deploy once the nodes are up (default: none, an empty overlay).",
+)
 @click.option(
     "--duration", type=POSITIVE, default=None, help="Seconds to run (default: until Ctrl-C)."
 )
@@ -221,6 +226,10 @@ def _emulate(
         except NamespacesUnavailable as exc:
             out.print(f"[yellow]{exc}[/yellow]; using the user-space backend instead")
 
+    from rich.markup import escape
+
+    from mso.statusview import error_alarms
+
     async def run() -> dict[str, Any]:
         emu = kind(
             scenario,
@@ -278,11 +287,14 @@ def _emulate(
                     mapping.add_row(v, n)
                 out.print(mapping)
             end = None if duration is None else t0 + duration
+            errors: dict[str, int] = {}
             while end is None or loop.time() < end:
                 await asyncio.sleep(min(2.0, max(0.0, (end or 1e18) - loop.time())))
                 if app is not None:
                     nodes = await emu.status()
                     out.print(f"t={loop.time() - t0:5.1f}s  " + sink_line(nodes, app.name))
+                    for alarm in error_alarms(errors, nodes, app.name):
+                        out.print(f"[red]errors:[/red] {escape(alarm)}")
             changes.cancel()
             moving.cancel()
             return await emu.status()

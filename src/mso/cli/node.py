@@ -20,7 +20,8 @@ if TYPE_CHECKING:
     "--config",
     "config_file",
     type=click.Path(dir_okay=False, path_type=Path),
-    help="YAML with id, listen, cpu, key, peers; flags given override it.",
+    help="YAML holding any of these options (docs/fleet.md), rules: included; flags given "
+    "override it.",
 )
 @click.option("--id", "node_id", help="This node's id, e.g. N1.")
 @click.option("--listen", help="HOST:PORT to serve (default 127.0.0.1:7000).")
@@ -73,6 +74,14 @@ if TYPE_CHECKING:
     help="Seconds of silence after which a neighbour is declared failed (default 0.5).",
 )  # fmt: skip
 @click.option(
+    "--rule",
+    "rules",
+    multiple=True,
+    metavar="NAME=VALUE",
+    help="A management rule setting (repeat), e.g. vertex_interval_s=10, margin=0.05, "
+    "warmup_s=5 (docs/policies.md).",
+)
+@click.option(
     "--metrics",
     help="HOST:PORT to serve Prometheus metrics on at /metrics (default: off).",
 )
@@ -97,7 +106,10 @@ if TYPE_CHECKING:
     help="Allow listening beyond loopback with the built-in development key (never on robots).",
 )
 @key_option
-@click.option("-v", "--verbose", is_flag=True)
+@click.option(
+    "-v", "--verbose", is_flag=True,
+    help="Debug lines too (default: info: start, deploys, moves, failures, stop).",
+)  # fmt: skip
 @user_errors
 def node(
     config_file: Path | None,
@@ -113,6 +125,7 @@ def node(
     manage: bool | None,
     heartbeat_s: float | None,
     dead_after_s: float | None,
+    rules: tuple[str, ...],
     metrics: str | None,
     allow_code: tuple[str, ...],
     operator_keys: tuple[str, ...],
@@ -123,7 +136,6 @@ def node(
     verbose: bool,
 ) -> None:
     """Run the identical mso daemon of one device."""
-    """Run the identical mso daemon of one device."""
     from mso.daemon.assembly import run_daemon
     from mso.daemon.config import NodeFlags
 
@@ -132,7 +144,7 @@ def node(
         power=_power(power), peers=peers, energy=energy, routes_from=routes_from, policy=policy,
         manage=manage, heartbeat_s=heartbeat_s, dead_after_s=dead_after_s, metrics=metrics,
         allow_code=allow_code, operator_keys=operator_keys, key_file=key_file, encrypt=encrypt,
-        insecure=insecure, key=key, verbose=verbose,
+        insecure=insecure, key=key, verbose=verbose, rules=rules,
     )  # fmt: skip
     run_daemon(flags)
 

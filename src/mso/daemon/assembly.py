@@ -14,6 +14,7 @@ import time
 from typing import TYPE_CHECKING
 
 from mso.daemon.config import DEV_KEY_WARNING, NodeFlags, NodeSettings, read_keys, settle
+from mso.daemon.logs import KV, setup_logging
 from mso.errors import MsoError
 
 if TYPE_CHECKING:
@@ -29,10 +30,7 @@ def run_daemon(flags: NodeFlags) -> None:
     """Settle and check the options, then run the node until it is stopped (Ctrl-C, a
     Shutdown from its emulator, its emulator's end)."""
     settings = settle(flags)
-    logging.basicConfig(
-        level=logging.INFO if settings.verbose else logging.WARNING,
-        format=f"%(asctime)s {settings.node_id} %(levelname)s %(message)s",
-    )
+    setup_logging(settings.node_id, settings.verbose)
     core = build_core(settings)  # checks the policy before anything listens
     if settings.dev_key:
         print(DEV_KEY_WARNING, file=sys.stderr, flush=True)
@@ -50,6 +48,7 @@ def build_core(s: NodeSettings) -> NodeCore:
         battery_wh=s.battery_wh,
         policy=s.policy,
         manage=s.manage,
+        rules=s.rules,
         heartbeat_s=s.heartbeat_s,
         dead_after_s=s.dead_after_s,
         # a restarted daemon is a new incarnation: the others restore what it hosted before
@@ -132,8 +131,12 @@ async def serve(s: NodeSettings, core: NodeCore) -> None:
     watch = None
     if parent := os.environ.get(PARENT_ENV):  # started by an emulator: end with it
         watch = asyncio.create_task(stop_with_parent(driver, int(parent)))
+    started = time.monotonic()
+    log.info("start", extra={KV: start_fields(s, driver, view)})
+    why = stop_on_signals(driver)
     try:
         await driver.stopped.wait()
+        log.info("stop", extra={KV: stop_fields(driver, why, time.monotonic() - started)})
     finally:
         if watch is not None:
             watch.cancel()
@@ -141,3 +144,80 @@ async def serve(s: NodeSettings, core: NodeCore) -> None:
             await exporter.stop()
         if kernel is not None:
             await kernel.close()
+
+
+def describe_routes(s: NodeSettings, view: RoutingView | None) -> str:
+    """Where this node's routes come from, for its start line."""
+    if s.routes_from == "kernel":
+        return "kernel"
+    if view is not None:
+        return "static:" + ",".join(sorted(s.peers))
+    return "emulator"
+
+
+def start_fields(
+    s: NodeSettings, driver: NodeDriver, view: RoutingView | None
+) -> dict[str, object]:
+    """The start line: enough to tell from a robot's journal which node this is, where it
+    listens, how it finds its neighbours and who may command it."""
+    server = driver.transport.server
+    bound = server.sockets[0].getsockname()[:2] if server is not None and server.sockets else None
+    rules = ""
+    if s.rules is not None:
+        import dataclasses
+
+        from mso.management.guard import RuleSettings
+
+        default = RuleSettings()
+        rules = ",".join(
+            f"{f.name}:{getattr(s.rules, f.name)}"
+            for f in dataclasses.fields(s.rules)
+            if getattr(s.rules, f.name) != getattr(default, f.name)
+        )
+    return {
+        "event": "start",
+        "listen": f"{bound[0]}:{bound[1]}" if bound else s.listen,
+        "routes": describe_routes(s, view),
+        "incarnation": driver.core.incarnation,
+        "operator_keys": "on" if s.authority is not None and s.authority.signed else "off",
+        "encrypt": "on" if s.encrypt else "off",
+        "policy": s.policy or "lifetime",
+        "manage": "on" if s.manage else "off",
+        "rules": rules or "defaults",
+        "pid": os.getpid(),
+    }
+
+
+def stop_on_signals(driver: NodeDriver) -> list[str]:
+    """SIGTERM (systemd's stop) and SIGINT stop the node cleanly, so its stop line is written;
+    the list it returns names the signal once one came."""
+    import signal
+
+    why: list[str] = []
+    loop = asyncio.get_running_loop()
+    stopping: list[asyncio.Task[None]] = []  # held, so the task is not collected mid-stop
+
+    def stop(sig: signal.Signals) -> None:
+        if not why:
+            why.append(sig.name)
+            stopping.append(loop.create_task(driver.stop()))
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop, sig)
+    return why
+
+
+def stop_fields(driver: NodeDriver, why: list[str], uptime_s: float) -> dict[str, object]:
+    """The stop line: why, how long it ran, what it hosted and what it saw happen."""
+    core = driver.core
+    hosted = sum(len(dep.instances) for dep in core.apps.values())
+    seen = ",".join(f"{k}:{n}" for k, n in sorted(driver.seen.items()))
+    return {
+        "event": "stop",
+        "reason": why[0] if why else "shutdown request",
+        "uptime_s": round(uptime_s, 1),
+        "apps": ",".join(sorted(core.apps)) or "none",
+        "vertices": hosted,
+        "seen": seen or "nothing",
+        "failed_peers": ",".join(sorted(core.failed)) or "none",
+    }

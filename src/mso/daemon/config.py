@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 from mso.errors import MsoError
 
 if TYPE_CHECKING:
+    from mso.management.guard import RuleSettings
     from mso.model.network import PowerModel
     from mso.net.base import Neighbour
     from mso.protocol.authority import Authority
@@ -36,6 +37,12 @@ NODE_CONFIG_KEYS = {
     "encrypt",
     "routes",
     "energy",
+    "heartbeat",
+    "dead_after",
+    "metrics",
+    "insecure",
+    "verbose",
+    "rules",
 }
 
 
@@ -65,6 +72,7 @@ class NodeFlags:
     insecure: bool = False
     key: str | None = None
     verbose: bool = False
+    rules: tuple[str, ...] = ()  # NAME=VALUE, each a RuleSettings field
 
 
 @dataclass
@@ -92,6 +100,7 @@ class NodeSettings:
     routes_from: str = "auto"
     energy: str = "auto"
     verbose: bool = False
+    rules: RuleSettings | None = None  # None: the defaults (docs/policies.md)
 
 
 def settle(flags: NodeFlags) -> NodeSettings:
@@ -101,11 +110,13 @@ def settle(flags: NodeFlags) -> NodeSettings:
     from mso.model.network import PowerModel
     from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 
-    heartbeat_s = HEARTBEAT_S if flags.heartbeat_s is None else flags.heartbeat_s
-    dead_after_s = DEAD_AFTER_S if flags.dead_after_s is None else flags.dead_after_s
+    cfg = node_config(flags.config_file) if flags.config_file is not None else {}
+    heartbeat_s = flags.heartbeat_s if flags.heartbeat_s is not None else cfg.get("heartbeat")
+    heartbeat_s = HEARTBEAT_S if heartbeat_s is None else heartbeat_s
+    dead_after_s = flags.dead_after_s if flags.dead_after_s is not None else cfg.get("dead_after")
+    dead_after_s = DEAD_AFTER_S if dead_after_s is None else dead_after_s
     if why := check_timing(heartbeat_s, dead_after_s):
         raise MsoError(why)
-    cfg = node_config(flags.config_file) if flags.config_file is not None else {}
     node_id = flags.node_id or cfg.get("id")
     if not node_id:
         raise MsoError("a node needs an id: --id N1, or 'id:' in its --config file")
@@ -119,17 +130,18 @@ def settle(flags: NodeFlags) -> NodeSettings:
     encrypt = bool(cfg.get("encrypt", False)) if flags.encrypt is None else flags.encrypt
     authority = node_authority(flags.operator_keys or tuple(cfg.get("operator_keys", ())))
     listen = flags.listen or cfg.get("listen", DEFAULT_LISTEN)
-    dev_key = check_key(key, listen, flags.insecure)
+    dev_key = check_key(key, listen, flags.insecure or bool(cfg.get("insecure", False)))
     battery = flags.battery_wh if flags.battery_wh is not None else cfg.get("battery_wh")
     if battery is not None and battery <= 0:
         raise MsoError(f"--battery-wh: expected a number > 0, got {battery:g}")
     cpu = float(flags.cpu if flags.cpu is not None else cfg.get("cpu", 1.0))
     host, port = parse_address(listen)
     metrics_at = None
-    if flags.metrics is not None:
-        metrics_at = parse_address(flags.metrics, default_port=-1)
+    metrics = flags.metrics if flags.metrics is not None else cfg.get("metrics")
+    if metrics is not None:
+        metrics_at = parse_address(metrics, default_port=-1)
         if not 0 <= metrics_at[1] < 65536:
-            raise MsoError(f"--metrics: expected HOST:PORT, got {flags.metrics!r}")
+            raise MsoError(f"--metrics: expected HOST:PORT, got {metrics!r}")
     if cpu <= 0:
         raise MsoError(f"--cpu: expected a number > 0, got {cpu:g}")
     peers = static_peers(all_peers)
@@ -157,8 +169,47 @@ def settle(flags: NodeFlags) -> NodeSettings:
         metrics_at=metrics_at,
         routes_from=routes_from,
         energy=energy,
-        verbose=flags.verbose,
+        verbose=flags.verbose or bool(cfg.get("verbose", False)),
+        rules=rule_settings(cfg.get("rules", {}), flags.rules),
     )
+
+
+def rule_settings(given: dict[str, Any], flags: tuple[str, ...]) -> RuleSettings | None:
+    """The management rules' settings: a config file's ``rules:`` mapping, then each
+    ``--rule NAME=VALUE`` over it; None when neither says anything (the defaults)."""
+    import dataclasses
+
+    from mso.management.guard import RuleSettings
+
+    names = {f.name: f for f in dataclasses.fields(RuleSettings)}
+    values = dict(given)
+    for text in flags:
+        name, eq, raw = text.partition("=")
+        if not eq or name not in names:
+            raise MsoError(
+                f"--rule: expected NAME=VALUE with NAME one of {', '.join(names)}, got {text!r}"
+            )
+        values[name] = _rule_value(name, raw, names[name].default)
+    if not values:
+        return None
+    unknown = sorted(set(values) - set(names))
+    if unknown:
+        raise MsoError(
+            f"rules: unknown setting {unknown[0]!r} (expected one of {', '.join(names)})"
+        )
+    return RuleSettings(**values)  # checks each value, naming the setting
+
+
+def _rule_value(name: str, raw: str, default: Any) -> Any:
+    """``--rule`` text as the type of the setting's default."""
+    try:
+        if isinstance(default, bool):
+            if raw.lower() not in ("true", "false"):
+                raise ValueError(raw)
+            return raw.lower() == "true"
+        return type(default)(raw)
+    except ValueError:
+        raise MsoError(f"--rule {name}: expected a {type(default).__name__}, got {raw!r}") from None
 
 
 def static_peers(peers: tuple[str, ...]) -> dict[str, Neighbour]:
@@ -194,7 +245,8 @@ def check_routes(
 
 
 def node_config(path: Path) -> dict[str, Any]:
-    """A node configuration file: id, listen, cpu, key, peers (node id -> HOST:PORT)."""
+    """A node configuration file: any of ``mso node``'s options by name (peers: node id ->
+    HOST:PORT; rules: setting -> value), each checked here with its line."""
     from mso.errors import SpecError
     from mso.model.yamlfile import load_yaml_file
 
@@ -234,13 +286,19 @@ def _config_value_problem(k: str, v: Any) -> str | None:
         isinstance(v, int | float) and not isinstance(v, bool) and 0 < v < 1e12
     ):
         return f"expected a number > 0, got {v!r}"
-    if k in ("manage", "encrypt") and not isinstance(v, bool):
+    if k in ("heartbeat", "dead_after") and not (
+        isinstance(v, int | float) and not isinstance(v, bool) and 0 < v < 1e6
+    ):
+        return f"expected seconds > 0, got {v!r}"
+    if k == "rules" and not (isinstance(v, dict) and all(isinstance(x, str) for x in v)):
+        return "expected a mapping of rule setting to value (docs/policies.md), e.g. warmup_s: 5"
+    if k in ("manage", "encrypt", "insecure", "verbose") and not isinstance(v, bool):
         return f"expected true or false, got {v!r}"
     if k in ("allow_code", "operator_keys") and not (
         isinstance(v, list) and all(isinstance(x, str) and x for x in v)
     ):
         return "expected a list of strings"
-    if k in ("id", "listen", "key", "key_file") and not isinstance(v, str):
+    if k in ("id", "listen", "key", "key_file", "metrics") and not isinstance(v, str):
         return f"expected a string, got {v!r}"
     return None
 

@@ -14,7 +14,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from mso.errors import MsoError
+from mso.errors import MsoError, with_code_hint
 from mso.management.views import (
     Action,
     NodeView,
@@ -459,7 +459,7 @@ def _load_path(path: str, params: Mapping[str, Any], where: str) -> Policy:
     try:
         obj = resolve(path)
     except ImportPathError as exc:
-        raise PolicyError(f"{where}: {exc}") from None
+        raise PolicyError(f"{where}: {with_code_hint(str(exc))}") from None
     if isinstance(obj, type) or (callable(obj) and not _policy_like(obj)):
         made = _create(obj, params, repr(path), where)
     elif _policy_like(obj):

@@ -15,7 +15,7 @@ from typing import Any
 
 import msgspec
 
-from mso.errors import AppError
+from mso.errors import AppError, with_code_hint
 from mso.model.graph import topological_order
 from mso.model.imports import ImportPathError, resolve
 from mso.model.yamlfile import Located
@@ -285,7 +285,8 @@ class App:
                 try:
                     obj = resolve(value)
                 except ImportPathError as exc:
-                    raise self._error(str(exc), f"vertices.{v.id}.{attr}", (*base, attr)) from None
+                    why = with_code_hint(str(exc))
+                    raise self._error(why, f"vertices.{v.id}.{attr}", (*base, attr)) from None
                 if not callable(obj):
                     raise self._error(
                         f"expected {value!r} to name a callable, got {type(obj).__name__}",
@@ -311,7 +312,7 @@ class App:
         try:
             obj = resolve(path)
         except ImportPathError as exc:
-            raise self._error(str(exc), field, loc) from None
+            raise self._error(with_code_hint(str(exc)), field, loc) from None
         if not _is_struct(obj):
             raise self._error(
                 f"expected {path!r} to name a msgspec.Struct type, got {obj!r}", field, loc

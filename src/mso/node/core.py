@@ -42,6 +42,7 @@ from mso.protocol.effects import CancelTimer, Effect, Reply, Send, SetTimer
 from mso.protocol.events import (
     AppMissing,
     Deadline,
+    Happened,
     HeartbeatTick,
     InstanceCrashed,
     InstanceFailed,
@@ -75,6 +76,7 @@ from mso.protocol.state import AppState, HostedInstance
 __all__ = ["AppState", "Effect", "HostedInstance", "NodeCore", "Reply", "Send", "SetTimer"]
 
 E = TypeVar("E")
+MAX_HAPPENED = 256  # what happened, kept for the driver to log
 Handler = Callable[[str, Any, float], None]
 
 
@@ -136,6 +138,8 @@ class NodeCore:
         # messages for an app whose announcement has not arrived yet (another path overtook it)
         self._early: dict[str, list[tuple[str, m.Message]]] = {}
         self._subscribers: dict[type, list[Callable[[Any], None]]] = {}
+        # what the driver logs (it drains them); bounded, as a simulation never drains
+        self._happened: deque[Happened] = deque(maxlen=MAX_HAPPENED)
 
         # the components, lowest first; each gets this core as its context
         self.dataplane = dp = DataPlane(self)
@@ -169,6 +173,7 @@ class NodeCore:
         self._subscribe(NodeReset, lambda ev: self.deployer.on_reset())
         self._subscribe(NodeReset, lambda ev: self.relocator.on_reset())
         self._subscribe(NodeReset, lambda ev: self._early.clear())
+        self._subscribe(Happened, self._happened.append)
 
         # the router: message type -> the role of the procedure it belongs to
         dep, rel, res, rem, mem = (
@@ -495,6 +500,14 @@ class NodeCore:
         return self._links
 
     # -- the router's own handlers ------------------------------------------------------------
+    def drain_happened(self) -> list[Happened]:
+        """What happened since the last call, oldest first: the driver logs it."""
+        if not self._happened:
+            return []
+        out = list(self._happened)
+        self._happened.clear()
+        return out
+
     def _subscribe(self, kind: type[E], handle: Callable[[E], None]) -> None:
         self._subscribers.setdefault(kind, []).append(handle)
 
@@ -540,13 +553,19 @@ class NodeCore:
         handler(src, msg, now)
 
     def _on_announce(self, src: str, msg: m.AppAnnounce, now: float) -> None:
+        known = msg.app in self.apps
         self.deployer.on_announce(src, msg, now)
         if msg.app in self.apps:
             self._work.extend(self._early.pop(msg.app, []))
+            if not known:
+                self.publish(Happened("deploy", msg.app, by=self.apps[msg.app].origin))
 
     def _on_stop_app(self, src: str, msg: m.StopApp, now: float) -> None:
+        known = msg.app in self.apps
         self.deployer.on_stop_app(msg, now)
         self._early.pop(msg.app, None)
+        if known and msg.app not in self.apps:
+            self.publish(Happened("undeploy", msg.app, by=src))
 
     def _relocate_request(self, client: int, msg: m.RelocateRequest, now: float) -> None:
         self.relocator.request(client, msg, now)  # (a refusal is told to the client)

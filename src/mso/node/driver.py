@@ -28,7 +28,7 @@ from mso.node.status import LinkStatus
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority
-from mso.protocol.events import MonitorTick
+from mso.protocol.events import Happened, MonitorTick
 from mso.runtime.executor import Executor
 
 log = logging.getLogger("mso.node")
@@ -77,6 +77,7 @@ class NodeDriver:
         self._results_lock = threading.Lock()
         self.stopped = asyncio.Event()
         self._warmed: set[int] = set()  # app documents whose imports are done
+        self.seen: dict[str, int] = {}  # what happened, by kind: the stop line's summary
 
     @property
     def _server(self) -> asyncio.Server | None:
@@ -199,6 +200,23 @@ class NodeDriver:
                     timer.cancel()
             else:
                 self.executor.submit(eff)
+        for h in self.core.drain_happened():
+            self._log_happened(h)
+
+    def _log_happened(self, h: Happened) -> None:
+        """One line for what the core reported: a deployment, a move, a peer failed or back."""
+        self.seen[h.what] = self.seen.get(h.what, 0) + 1
+        level = logging.WARNING if h.error or h.what in ("peer_failed", "reset") else logging.INFO
+        if h.by == "remap" and not h.error:
+            level = logging.DEBUG  # a remap's steps: the remap's own line says where all went
+        if log.isEnabledFor(level):
+            kv: dict[str, object] = {"event": h.what, "app": h.app}
+            if h.subject:
+                kv["vertex" if h.app else "peer"] = h.subject
+            if h.detail:
+                kv["move" if h.app else "detail"] = h.detail
+            kv |= {"by": h.by, "took_ms": h.took_ms, "error": h.error}
+            log.log(level, "%s", h.what, extra={"kv": kv})
 
     def _vertex_result(self, result: fx.VertexResult) -> None:
         """Called from a worker thread."""

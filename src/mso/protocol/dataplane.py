@@ -65,8 +65,11 @@ class DataPlane:
         self._instances[iid] = (dep.app.name, vid)
         edges = dep.app.edges
         inputs = {i: dep.app.edge_format(e) for i, e in enumerate(edges) if e.dst == vid}
+        outputs = {i: dep.app.edge_format(e) for i, e in enumerate(edges) if e.src == vid}
+        names = {i: f"{e.src} -> {e.dst}" for i, e in enumerate(edges) if vid in (e.src, e.dst)}
         h = HostedInstance(iid, dep.app.vertices[vid], dep.layout.kinds[vid])
-        self.submit(h, fx.StartVertex(iid, dep.app.name, h.vertex, h.kind, inputs))
+        start = fx.StartVertex(iid, dep.app.name, h.vertex, h.kind, inputs, None, outputs, names)
+        self.submit(h, start)
         return h
 
     def submit(self, h: HostedInstance, eff: fx.VertexEffect, events: int = 0) -> None:

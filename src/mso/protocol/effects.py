@@ -61,6 +61,11 @@ class StartVertex:
     inputs: dict[int, Any] = field(default_factory=dict)
     # restored instances get their state before they open
     state: bytes | None = None
+    # each output edge's format (None: any): what it emits is checked here, at the producer,
+    # so a wrong output is blamed on the vertex that made it, not on its consumer
+    outputs: dict[int, Any] = field(default_factory=dict)
+    # each input and output edge as errors name it: "producer -> consumer"
+    edge_names: dict[int, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -175,6 +175,22 @@ class NodeReset:
     procedures and waits that went with them, and rejoins as its next incarnation."""
 
 
+@dataclass(frozen=True)
+class Happened:
+    """Something an operator wants one log line about: an app deployed or undeployed here, a
+    move this node coordinated or now hosts, a peer declared failed or back. Published by the
+    component that saw it; the core keeps the last few for its driver to drain and log
+    (``NodeCore.drain_happened``), as the core itself never logs."""
+
+    what: str  # deploy, undeploy, relocation, restore, hosted, remap, recovery, peer_failed, ...
+    app: str = ""
+    subject: str = ""  # the vertex moved, the peer failed
+    detail: str = ""  # where it went: "N1 -> N2", "a->N2 b->N3"
+    by: str = ""  # who asked: operator, rule, remap, recovery, crash, a node's id
+    took_ms: float | None = None
+    error: str = ""
+
+
 InternalEvent = (
     PeerFailed
     | RoutesChanged
@@ -188,4 +204,5 @@ InternalEvent = (
     | ReplacementPrepared
     | AppMissing
     | NodeReset
+    | Happened
 )

@@ -52,6 +52,8 @@ class VertexSpec(msgspec.Struct, frozen=True):
     get_state: str | None
     set_state: str | None
     inputs: dict[int, str | None]  # edge -> format import path
+    outputs: dict[int, str | None] = {}  # output edge -> format import path
+    edge_names: dict[int, str] = {}  # edge -> "producer -> consumer"
 
 
 class Start(msgspec.Struct, tag=True):
@@ -125,6 +127,8 @@ def spec_of(start: fx.StartVertex) -> VertexSpec:
         get_state=_path(v.get_state),
         set_state=_path(v.set_state),
         inputs={e: _path(f) for e, f in start.inputs.items()},
+        outputs={e: _path(f) for e, f in start.outputs.items()},
+        edge_names=dict(start.edge_names),
     )
 
 
@@ -157,11 +161,16 @@ def _child(conn: Connection) -> None:
         if isinstance(job, Start):
             s = job.spec
             fmts = {e: (resolve(f) if f else None) for e, f in s.inputs.items()}
+            outs = {e: (resolve(f) if f else None) for e, f in s.outputs.items()}
             vertex = Vertex(
                 s.id, s.code, 1.0, None, s.input, s.output, s.rate, s.params, s.get_state,
                 s.set_state,
             )  # fmt: skip
-            worker = VertexWorker(fx.StartVertex(job.instance, job.app, vertex, s.kind, fmts))
+            worker = VertexWorker(
+                fx.StartVertex(
+                    job.instance, job.app, vertex, s.kind, fmts, None, outs, s.edge_names
+                )
+            )
             started = worker.open()
             loop_source = started.mode == "loop"
             send(started)

@@ -65,6 +65,12 @@ class VertexWorker:
         self._state_size = 0
         self.ended = False
         self.ended_inputs: set[int] = set()  # input edges whose stream has ended
+        # output edge -> (its declared format, a decoder for it): outputs are checked at once
+        self._checks: dict[int, tuple[type, msgspec.msgpack.Decoder[Any]]] = {
+            e: (fmt, msgspec.msgpack.Decoder(fmt))
+            for e, fmt in start.outputs.items()
+            if isinstance(fmt, type)
+        }
 
     # -- bookkeeping shared by every result -------------------------------------------------
     def _error(self, text: str) -> None:
@@ -130,7 +136,8 @@ class VertexWorker:
                 try:
                     event = decode(payload)
                 except (msgspec.DecodeError, msgspec.ValidationError) as exc:
-                    self._error(f"undecodable event on edge {eff.edge}: {exc}")
+                    edge = self.start.edge_names.get(eff.edge, f"edge {eff.edge}")
+                    self._error(f"undecodable event on edge {edge}: {exc}")
                     continue
                 try:
                     result = fn(event)
@@ -256,10 +263,32 @@ class VertexWorker:
         payloads = []
         for ev in outs:
             try:
-                payloads.append(encode(ev))
+                payload = encode(ev)
             except (TypeError, ValueError, OverflowError) as exc:
                 self._error(f"cannot encode {type(ev).__name__}: {exc}")
+                continue
+            if self._checks and (why := self._mismatch(ev, payload)):
+                self._error(why)  # here, at the producer that made it: its consumer never sees it
+                continue
+            payloads.append(payload)
         return payloads
+
+    def _mismatch(self, ev: Any, payload: bytes) -> str:
+        """Why an output does not fit an output edge's declared format ("" if it does). An
+        instance of the format fits at no cost; anything else (a dict, another Struct) is
+        decoded as the consumer would, so what decodes there is still accepted."""
+        for edge, (fmt, decoder) in self._checks.items():
+            if isinstance(ev, fmt):
+                continue
+            try:
+                decoder.decode(payload)
+            except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+                name = self.start.edge_names.get(edge, f"edge {edge}")
+                return (
+                    f"output {type(ev).__name__} does not match {fmt.__name__}, the format of "
+                    f"edge {name}: {exc}"
+                )
+        return ""
 
 
 def _why(exc: BaseException) -> str:

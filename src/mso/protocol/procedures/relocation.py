@@ -40,6 +40,7 @@ from mso.protocol.effects import Reply, Send, SetTimer
 from mso.protocol.events import (
     AppMissing,
     Deadline,
+    Happened,
     InstanceFailed,
     InstanceReady,
     MarkerReached,
@@ -314,6 +315,17 @@ class Relocator:
             reloc.pid, reloc.app, reloc.vertex, reloc.target, reloc.remap, error
         )
         self.ctx.publish(ended)
+        self.ctx.publish(
+            Happened(
+                reloc.name,
+                reloc.app,
+                reloc.vertex,
+                f"{reloc.source} -> {reloc.target}",
+                by=who_asked(reloc),
+                took_ms=round(self.ctx.elapsed_ms(reloc.started_at), 3),
+                error=error,
+            )
+        )
 
     def expire(self, reloc: Relocation, now: float) -> None:
         why = f"{reloc.name} did not finish within {reloc.deadline - reloc.started_at:g} s"
@@ -504,6 +516,7 @@ class Relocator:
         coordinator = self._handover_to.pop(msg.rid, None)
         if coordinator is not None:
             self.ctx.send(coordinator, m.HandoverDone(msg.app, msg.vertex, msg.rid))
+        self.ctx.publish(Happened("hosted", msg.app, msg.vertex, f"{src} -> {self.ctx.id}"))
 
     # -- a producer: switches its edge, sends a marker the old way -----------------------------
     def on_switch(self, msg: m.Switch) -> None:
@@ -665,3 +678,13 @@ def _resumes(dep: AppState, vid: str, resumes: list[list[Any]]) -> set[tuple[int
             return None
         out.add((e, producer))
     return out
+
+
+def who_asked(reloc: Relocation) -> str:
+    """Who a move is for, in words for its log line: an operator's request, a step of a remap,
+    a restore (a crash or a failure), else this node's rules."""
+    if reloc.client is not None:
+        return "operator"
+    if reloc.remap is not None:
+        return "remap"
+    return "recovery" if reloc.restore else "rule"

@@ -31,6 +31,7 @@ from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
 from mso.protocol.effects import Reply, SetTimer
 from mso.protocol.events import (
+    Happened,
     PeerFailed,
     RecoverTick,
     RecoveryDue,
@@ -358,6 +359,22 @@ class Remapper:
             elapsed = self.ctx.elapsed_ms(remap.started_at)
             reply = m.RemapReply(remap.app, not error, remap.moved, elapsed, error)
             self.ctx.emit(Reply(remap.client, reply))
+        if remap.client is not None:
+            by = "operator"
+        elif remap.recovery is not None:
+            by = "failure of " + ",".join(remap.recovery.get("failed", ()))
+        else:
+            by = "rule"
+        self.ctx.publish(
+            Happened(
+                remap.name,
+                remap.app,
+                detail=" ".join(f"{v}->{n}" for v, n in sorted(remap.moved.items())) or "unchanged",
+                by=by,
+                took_ms=round(self.ctx.elapsed_ms(remap.started_at), 3),
+                error=error,
+            )
+        )
         dep = self.ctx.apps.get(remap.app)
         if remap.recovery is not None and dep is not None:
             remap.recovery.update(

@@ -29,6 +29,7 @@ from mso.protocol.dataplane import RETRANSMIT_S, DataPlane
 from mso.protocol.effects import Send, SetTimer
 from mso.protocol.events import (
     AppMissing,
+    Happened,
     HeartbeatTick,
     NodeReset,
     PeerFailed,
@@ -339,6 +340,7 @@ class Membership:
         self.failures.append({"node": node, "detector": detector, "at": now})
         del self.failures[:-50]
         self.ctx.note_event(now, f"node {node} failed (detected by {detector})")
+        self.ctx.publish(Happened("peer_failed", subject=node, by=detector))
         if (
             detector == self.ctx.id
         ):  # tell everyone; the others learn it from us or another detector
@@ -476,6 +478,9 @@ class Membership:
             f"declared failed by {by}: rejoined as incarnation {self.incarnation}"
             + (f", dropping {', '.join(dropped)}" if dropped else ""),
         )
+        self.ctx.publish(
+            Happened("reset", subject=self.ctx.id, detail=f"incarnation {self.incarnation}", by=by)
+        )
         self.heartbeat(now)
         beat = self.beat()
         for n in sorted(
@@ -495,6 +500,9 @@ class Membership:
         self.rejoins.append({"node": node, "incarnation": incarnation, "at": now})
         del self.rejoins[:-50]
         self.ctx.note_event(now, f"node {node} rejoined (incarnation {incarnation})")
+        self.ctx.publish(
+            Happened("peer_rejoined", subject=node, detail=f"incarnation {incarnation}")
+        )
         if announce:
             for n in self.ctx.known_nodes():
                 if n not in (self.ctx.id, node) and n not in self.failed:
