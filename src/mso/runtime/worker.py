@@ -129,7 +129,7 @@ class VertexWorker:
                     continue
                 try:
                     event = decode(payload)
-                except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+                except (msgspec.DecodeError, msgspec.ValidationError, RecursionError) as exc:
                     self._error(f"undecodable event on edge {eff.edge}: {exc}")
                     continue
                 try:
