@@ -27,18 +27,13 @@ def encrypt_default() -> bool:
     return os.environ.get("MSO_ENCRYPT", "").lower() in ("1", "true", "yes", "on")
 
 
-def overlay_key(text: str | None = None, address: str | None = None) -> bytes:
-    """The overlay's pre-shared key: given, or $MSO_KEY, or the one an emulator of this user
-    made up for the overlay with a node at ``address``, or the (insecure) development key. An
-    empty key is an error, never a silent fall-back to the development key."""
+def overlay_key(text: str | None = None) -> bytes:
+    """The overlay's pre-shared key: given, or $MSO_KEY, or the (insecure) development key (an
+    emulated overlay's own key is found by :func:`mso.api.key_for`). An empty key is an error,
+    never a silent fall-back to the development key."""
     if text == "":
         raise MsoError("--key: an empty overlay key is refused (give one, or leave --key out)")
-    chosen = text or os.environ.get("MSO_KEY")
-    if not chosen and address is not None:
-        from mso.emu.overlays import key_for
-
-        chosen = key_for(address)
-    return psk_from_text(chosen or DEFAULT_KEY)
+    return psk_from_text(text or os.environ.get("MSO_KEY") or DEFAULT_KEY)
 
 
 class NodeUnreachable(MsoError):
@@ -293,10 +288,9 @@ async def connect(
 ) -> Client:
     """A connection to the node at ``address``, its key checked. ``NETNS@HOST:PORT`` connects
     from inside network namespace NETNS (a node of the netns testbed)."""
-    psk = overlay_key(key, address)
     netns, address = split_netns(address)
     host, port = parse_address(address)
-    client = Client(host, port, psk, name, signer=signer, netns=netns)
+    client = Client(host, port, overlay_key(key), name, signer=signer, netns=netns)
     return await client.connect(timeout)
 
 
@@ -321,10 +315,9 @@ def request_blocking(
 ) -> Any:
     """:func:`request` over a blocking socket, for a CLI command that asks once: it spares the
     ~30 ms of importing asyncio (``mso status`` answers within its start-up budget)."""
-    psk = overlay_key(key, address)
     netns, address = split_netns(address)
     host, port = parse_address(address)
-    x = Exchange(host, port, psk)
+    x = Exchange(host, port, overlay_key(key))
     deadline = time.monotonic() + timeout
     try:
         if netns is None and not _ip_literal(host):
