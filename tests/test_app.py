@@ -282,7 +282,12 @@ def test_bad_edge_size(size: str, shown: str) -> None:
             size: {size}
         """
     )
-    assert_at(err, 8, "edges[0].size", f"expected a non-negative integer byte count, got {shown}")
+    assert_at(
+        err,
+        8,
+        "edges[0].size",
+        f"expected a non-negative integer byte count up to 16777216 (16 MiB), got {shown}",
+    )
 
 
 def test_negative_edge_size_builder() -> None:
@@ -291,7 +296,7 @@ def test_negative_edge_size_builder() -> None:
     app.vertex("B")
     app.edge("A", "B", size=-5)
     assert str(builder_error(app)) == (
-        "edges[0].size: expected a non-negative integer byte count, got -5"
+        "edges[0].size: expected a non-negative integer byte count up to 16777216 (16 MiB), got -5"
     )
 
 
@@ -740,3 +745,17 @@ def test_builder_checks_slo_ms(slo: object) -> None:
 def test_policy_is_named_in_the_app(text: str, policy: object) -> None:
     app = loads_app(f"name: t\n{text}\nvertices:\n  A:\n", file=FILE)
     assert app.policy == policy
+
+
+def test_an_edge_size_is_bounded_by_the_largest_frame() -> None:
+    """``size: 1e29`` (as an integer) used to be accepted: an edge's bytes per event are at most
+    what one frame can carry, and exactly that is still fine."""
+    from mso.model.app import MAX_EDGE_SIZE
+    from mso.protocol.framing import MAX_FRAME
+
+    assert MAX_EDGE_SIZE == MAX_FRAME
+    doc = "name: x\nvertices:\n  A: {}\n  B: {}\nedges:\n  - {from: A, to: B, size: %d}\n"
+    assert loads_app(doc % MAX_EDGE_SIZE, file="a.yaml").edges[0].size == MAX_EDGE_SIZE
+    for size in (MAX_EDGE_SIZE + 1, 10**29):
+        with pytest.raises(AppError, match=r"a.yaml:6: edges\[0\].size: expected a non-negative"):
+            loads_app(doc % size, file="a.yaml")

@@ -92,6 +92,18 @@ CASES = [
     app("rate-zero", vertex("rate: 0"), "f.yaml:3: vertices.A.rate: expected a positive"),
     app("rate-nan", vertex("rate: .nan"), "f.yaml:3: vertices.A.rate: expected a positive"),
     app("pinned-number", vertex("pinned: 5"), "f.yaml:3: vertices.A.pinned: expected a node id"),
+    app(
+        "edge-size-1e29",
+        "name: x\nvertices:\n  A: {}\n  B: {}\nedges:\n  - {from: A, to: B, size: 1"
+        + "0" * 29
+        + "}\n",
+        "f.yaml:6: edges[0].size: expected a non-negative integer byte count up to 16777216",
+    ),
+    app(
+        "edge-size-past-a-frame",
+        "name: x\nvertices:\n  A: {}\n  B: {}\nedges:\n  - {from: A, to: B, size: 16777217}\n",
+        "f.yaml:6: edges[0].size: expected a non-negative integer byte count up to 16777216",
+    ),
     app("params-list", vertex("params: [1]"), "f.yaml:3: vertices.A.params: expected a mapping"),
     app("code-not-a-path", vertex("code: 'rm -rf /'"), "vertices.A.code: expected an import path"),
     app("code-missing-module", vertex("code: 'no_such_mod:X'"), "no module named 'no_such_mod'"),

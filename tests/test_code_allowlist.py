@@ -89,15 +89,15 @@ def test_every_node_refuses_an_announced_app_and_runs_nothing(
     assert not mark.exists() and "evil_module" not in sys.modules
 
 
-def test_a_node_process_refuses_os_system(tmp_path: Path) -> None:
-    """``mso node`` with the default allowlist: the deploy fails with the reason, nothing ran."""
+def _deploy_to_node_process(docs: list[str], env: dict[str, str]) -> list[m.Message]:
+    """Start ``mso node`` on loopback with ``env`` and deploy each document over TCP, one
+    connection each; the node is stopped (by its PID) whatever happens."""
     import socket
 
-    mark = tmp_path / "mark"
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    env = {**os.environ, "MSO_KEY": "k", "MSO_EVIL_MARK": str(mark), "MSO_ALLOW_CODE": ""}
+    env = {**os.environ, "MSO_KEY": "k", **env}
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(TESTS), env.get("PYTHONPATH")) if p)
     node = subprocess.Popen(
         [sys.executable, "-m", "mso", "node", "--id", "N1", "--listen", f"127.0.0.1:{port}"],
@@ -106,23 +106,154 @@ def test_a_node_process_refuses_os_system(tmp_path: Path) -> None:
         stderr=subprocess.DEVNULL,
     )
 
-    async def deploy() -> m.Message:
+    async def deploy_all() -> list[m.Message]:
         for _ in range(200):  # until the node listens
             try:
-                client = await Client("127.0.0.1", port, overlay_key("k")).connect(1.0)
+                await (await Client("127.0.0.1", port, overlay_key("k")).connect(1.0)).close()
                 break
             except Exception:
                 await asyncio.sleep(0.05)
-        try:
-            return await client.call(m.DeployRequest(evil_app(mark), "evil.yaml"))
-        finally:
-            await client.close()
+        replies = []
+        for doc in docs:
+            client = await Client("127.0.0.1", port, overlay_key("k")).connect(2.0)
+            try:
+                replies.append(await client.call(m.DeployRequest(doc, "app.yaml")))
+            finally:
+                await client.close()
+        return replies
 
     try:
-        reply = asyncio.run(deploy())
+        return asyncio.run(asyncio.wait_for(deploy_all(), 60))
     finally:
         node.terminate()
         node.wait(10)
+
+
+def test_a_node_process_refuses_os_system(tmp_path: Path) -> None:
+    """``mso node`` with the default allowlist: the deploy fails with the reason, nothing ran."""
+    mark = tmp_path / "mark"
+    env = {"MSO_EVIL_MARK": str(mark), "MSO_ALLOW_CODE": ""}
+    (reply,) = _deploy_to_node_process([evil_app(mark)], env)
     assert isinstance(reply, m.DeployReply) and not reply.ok
     assert "not on this node's code allowlist" in reply.error
+    assert not mark.exists()
+
+
+# Every way an attribute path could reach code the owner never named, with a fragment of the
+# reason the refusal gives, and the keyword arguments (a policy's params) under which it would
+# run `touch MARK` if it were called.
+TRICKS: list[tuple[str, str, dict[str, object]]] = [
+    ("allowed_tricks:os.system", "the module 'os'", {"command": "touch MARK"}),
+    ("allowed_tricks:sys.modules", "the module 'sys'", {}),
+    ("allowed_tricks:builtins.eval", "the module 'builtins'", {}),
+    ("allowed_tricks:subprocess.getoutput", "the module 'subprocess'", {"cmd": "touch MARK"}),
+    ("allowed_tricks:Popen", "of 'subprocess', a module not on the allowlist", {}),
+    ("allowed_tricks:system", "'builtin_function_or_method' object", {"command": "touch MARK"}),
+    ("allowed_tricks:evaluate", "'builtin_function_or_method' object", {}),
+    ("allowed_tricks:shell", "not found under its own name", {"command": "touch MARK"}),
+    ("allowed_tricks:run", "'partial' object", {"args": "touch MARK"}),
+    ("allowed_tricks:made", "compiled from '<string>'", {"command": "touch MARK"}),
+    ("allowed_tricks:nested", "not found under its own name", {"command": "touch MARK"}),
+    ("allowed_tricks:managed", "contextlib.py", {"command": "touch MARK"}),
+    ("allowed_tricks:rmtree", "shutil.py", {}),
+    ("allowed_tricks:Holder.runner", "'builtin_function_or_method'", {"command": "touch MARK"}),
+    ("allowed_tricks:Holder.sub.getoutput", "the module 'subprocess'", {"cmd": "touch MARK"}),
+    ("allowed_tricks:holder.method", "'Holder' object; a path may pass only through classes", {}),
+    ("allowed_tricks:holder", "'Holder' object, not a class or function", {}),
+    ("allowed_tricks:Sub.communicate", "of 'subprocess', a module not on the allowlist", {}),
+    ("allowed_tricks:Holder.__init__.__globals__", "'__init__' is a special attribute", {}),
+    ("allowed_tricks:__builtins__", "'__builtins__' is a special attribute", {}),
+    ("allowed_tricks:whatever", "'builtin_function_or_method'", {"command": "touch MARK"}),
+    (
+        "mso.benchmarks.common:os.system",
+        "not on this node's code allowlist",
+        {"command": "touch MARK"},
+    ),
+    ("mso.benchmarks.common:write_results", "not on this node's code allowlist", {}),
+]
+
+
+@pytest.fixture
+def tricks_allowed(allowlist: None) -> None:
+    allow_code((*DEFAULT_ALLOWED, "allowed_tricks"))
+
+
+@pytest.mark.parametrize(("path", "why", "params"), TRICKS, ids=[t[0] for t in TRICKS])
+def test_every_attribute_path_trick_is_refused(
+    tricks_allowed: None, path: str, why: str, params: dict[str, object]
+) -> None:
+    """The allowlist applies to the object the path reaches, not to the module it starts in."""
+    from mso.model.imports import resolve
+
+    with pytest.raises(ImportPathError) as info:
+        resolve(path)
+    assert f"import path {path!r} is refused" in str(info.value)
+    assert why in str(info.value)
+
+
+def test_code_defined_in_an_allowed_module_still_resolves(tricks_allowed: None) -> None:
+    import allowed_tricks as t
+    from mso.model.imports import path_of, resolve
+
+    assert resolve("allowed_tricks:plain") is t.plain
+    assert resolve("allowed_tricks:Holder") is t.Holder
+    assert resolve("allowed_tricks:Holder.Inner") is t.Holder.Inner
+    assert resolve("allowed_tricks:Holder.method") is t.Holder.method
+    assert resolve("allowed_tricks:Holder.make")().__class__ is t.Holder
+    assert resolve("allowed_tricks:Sub") is t.Sub  # a subclass defined here is a definition
+    assert resolve("mso.examples.convoy:Storage").__module__ == "mso.examples.convoy.storage"
+    assert path_of(t.Holder.Inner) == "allowed_tricks:Holder.Inner"
+
+
+def _trick_app(path: str, params: dict[str, object], mark: Path, as_vertex: bool) -> str:
+    shown = {k: str(v).replace("MARK", str(mark)) for k, v in params.items()}
+    params_yaml = "{" + ", ".join(f"{k}: '{v}'" for k, v in shown.items()) + "}"
+    if as_vertex:
+        return (
+            "name: tricks\nvertices:\n"
+            f"  A: {{code: 'mso.sim.vertices:Source', pinned: N1}}\n"
+            f"  B: {{code: '{path}', params: {params_yaml}}}\n"
+            "edges:\n  - [A, B]\n"
+        )
+    return (
+        f"name: tricks\npolicy: {{code: '{path}', params: {params_yaml}}}\n"
+        "vertices:\n  A: {pinned: N1}\n  B: {}\nedges:\n  - [A, B]\n"
+    )
+
+
+@pytest.mark.parametrize("as_vertex", [False, True], ids=["policy", "vertex"])
+@pytest.mark.parametrize(("path", "why", "params"), TRICKS, ids=[t[0] for t in TRICKS])
+def test_an_announced_trick_is_refused_by_every_node(
+    tricks_allowed: None,
+    tmp_path: Path,
+    path: str,
+    why: str,
+    params: dict[str, object],
+    as_vertex: bool,
+) -> None:
+    """A member announces an app whose policy or vertex code is the trick (with params that
+    would run a shell command): each node refuses it, names the path and why, runs nothing."""
+    mark = tmp_path / "mark"
+    doc = _trick_app(path, params, mark, as_vertex)
+    for nid in ("N2", "N3"):
+        core = NodeCore(nid)
+        out = core.receive("N1", m.AppAnnounce(app="tricks", origin="N1", document=doc), 0.0)
+        failed = [e.msg for e in out if isinstance(e, Send) and isinstance(e.msg, m.DeployFailed)]
+        assert failed, f"{nid} accepted {path}"
+        assert path in failed[0].reason and why in failed[0].reason
+        assert "tricks" not in core.apps
+    assert not mark.exists()
+
+
+def test_a_node_process_refuses_attribute_path_tricks(tmp_path: Path) -> None:
+    """``mso node --allow-code allowed_tricks`` over TCP: a deploy whose policy reaches
+    ``os.system`` (or a lambda or partial around it) through the allowed module is refused
+    with the path and the reason, and no command runs."""
+    mark = tmp_path / "mark"
+    chosen = [t for t in TRICKS if t[0].startswith("allowed_tricks") and t[2]]
+    docs = [_trick_app(path, params, mark, as_vertex=False) for path, _, params in chosen]
+    replies = _deploy_to_node_process(docs, {"MSO_ALLOW_CODE": "allowed_tricks"})
+    for (path, why, _), reply in zip(chosen, replies, strict=True):
+        assert isinstance(reply, m.DeployReply) and not reply.ok, path
+        assert f"import path {path!r} is refused" in reply.error and why in reply.error
     assert not mark.exists()

@@ -123,3 +123,47 @@ def test_a_late_reply_is_never_read_as_the_next_calls_answer() -> None:
             await driver.stop()
 
     asyncio.run(main())
+
+
+def test_a_body_nested_100000_deep_is_refused_and_counted() -> None:
+    """msgspec gives up on deep nesting with RecursionError, which used to escape the
+    connection and drop it uncounted: now such a frame is dropped as malformed, counted, and
+    the same connection is still served."""
+    import msgspec
+
+    deep = b"\x91" * 100_000 + b"\xc0"
+    enc = msgspec.msgpack.Encoder()
+
+    def envelope(body: bytes) -> bytes:  # an envelope whose raw body is ``body``
+        head = enc.encode(m.Envelope("client", "N1", 32, 0, msgspec.Raw(b"\xc0")))
+        return head[:-1] + body
+
+    in_envelope = envelope(deep)  # skipped as the envelope's raw body
+    in_message = envelope(enc.encode(m.StatusReply(1, nodes={"x": 0}))[:-1] + deep)
+
+    async def run() -> tuple[dict[str, Any], dict[str, Any]]:
+        driver, port = await start_node()
+        try:
+            before = (await status(port))["traffic"]
+            reader, writer = await asyncio.open_connection(HOST, port)
+            codec = FrameCodec(overlay_key("secret"))
+            writer.write(codec.hello())
+            _, confirm = codec.feed(await reader.readexactly(20))
+            writer.write(confirm)
+            frames = [m.wrap("client", "N1", m.ClientHello("x")), in_envelope, in_message]
+            for p in [*frames, m.wrap("client", "N1", m.StatusRequest(req=7))]:
+                writer.write(codec.seal(p))
+            await writer.drain()
+            while True:  # the same connection answers after the deep frames
+                payloads, _ = codec.feed(await asyncio.wait_for(reader.read(65536), 5.0))
+                replies = [m.decode(m.unwrap(p).body) for p in payloads]
+                got = [r for r in replies if isinstance(r, m.StatusReply) and r.req == 7]
+                if got:
+                    writer.close()
+                    return before, got[0].nodes["N1"]["traffic"]
+        finally:
+            await driver.stop()
+
+    before, after = asyncio.run(asyncio.wait_for(run(), 30))
+    assert after["frames_malformed"] - before["frames_malformed"] == 2
+    assert after["frames_failed"] == before["frames_failed"]

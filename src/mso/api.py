@@ -22,6 +22,7 @@ Light to import: ``mso status`` comes through here and imports neither asyncio n
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -62,6 +63,17 @@ def judge(reply: Any, kind: type[R], what: str) -> R:
     if not isinstance(reply, kind) or not getattr(reply, "ok", False):
         raise CommandFailed(what, getattr(reply, "error", "") or repr(reply))
     return reply
+
+
+def key_for(key: str | None, address: str) -> str | None:
+    """The overlay key to reach ``address`` with: ``key`` if given, else $MSO_KEY, else the key
+    an emulator of this user made up for the overlay that has a node there (None: neither,
+    the development key)."""
+    if key is not None or os.environ.get("MSO_KEY"):
+        return key
+    from mso.emu.overlays import key_for as emulated_key
+
+    return emulated_key(address)
 
 
 def resolve_address(via: str | None, overlay: str | None = None) -> str:
@@ -164,7 +176,11 @@ class AsyncOverlay:
         """Keep one connection open for the calls that follow, until :meth:`close`."""
         if self._client is None:
             self._client = await connect(
-                self.address, key=self.key, signer=self.signer, name=name, timeout=timeout
+                self.address,
+                key=key_for(self.key, self.address),
+                signer=self.signer,
+                name=name,
+                timeout=timeout,
             )
             self._owned = True
         return self
@@ -180,7 +196,7 @@ class AsyncOverlay:
         if self._client is not None:
             return await self._client.call(msg, wait)
         reply: m.Message = await request(
-            self.address, msg, key=self.key, timeout=wait, signer=self.signer
+            self.address, msg, key=key_for(self.key, self.address), timeout=wait, signer=self.signer
         )
         return reply
 
@@ -309,7 +325,10 @@ class Overlay:
     def status(self, *, everywhere: bool = True) -> dict[str, Any]:
         msg = m.StatusRequest(everywhere=everywhere)
         reply = request_blocking(
-            self.address, msg, key=self._async.key, timeout=self._async.timeout or COMMAND_S
+            self.address,
+            msg,
+            key=key_for(self._async.key, self.address),
+            timeout=self._async.timeout or COMMAND_S,
         )
         return expect(reply, m.StatusReply).nodes
 

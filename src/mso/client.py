@@ -28,7 +28,11 @@ def encrypt_default() -> bool:
 
 
 def overlay_key(text: str | None = None) -> bytes:
-    """The overlay's pre-shared key: given, or $MSO_KEY, or the (insecure) default."""
+    """The overlay's pre-shared key: given, or $MSO_KEY, or the (insecure) development key (an
+    emulated overlay's own key is found by :func:`mso.api.key_for`). An empty key is an error,
+    never a silent fall-back to the development key."""
+    if text == "":
+        raise MsoError("--key: an empty overlay key is refused (give one, or leave --key out)")
     return psk_from_text(text or os.environ.get("MSO_KEY") or DEFAULT_KEY)
 
 

@@ -79,10 +79,14 @@ allow_code_option = click.option(
     multiple=True,
     metavar="MODULE",
     help="A module (and its submodules) whose vertex, format and policy code this node may "
-    "import (repeat; default: $MSO_ALLOW_CODE, comma-separated; mso's bundled examples always).",
+    "import (repeat; default: $MSO_ALLOW_CODE, comma-separated; mso's bundled vertex modules "
+    "always).",
 )
 key_option = click.option(
-    "--key", envvar="MSO_KEY", help="Overlay pre-shared key (default: $MSO_KEY, else a dev key)."
+    "--key",
+    envvar="MSO_KEY",
+    help="Overlay pre-shared key (default: $MSO_KEY; else an emulated overlay's own key file, "
+    "else the development key, loopback only).",
 )
 overlay_option = click.option(
     "--overlay",

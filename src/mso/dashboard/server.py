@@ -5,15 +5,17 @@ Server-Sent Events; relays the page's relocation and remap requests to the overl
 A small HTTP/1.1 server on asyncio's streams (no framework: five routes, one of them a stream)
 so the dashboard adds no dependency and little CPU. It binds 127.0.0.1 unless told otherwise.
 The overlay key stays in this process: the page never sees it, and a control request is taken
-only from a page this server served (same-origin JSON; a loopback server also checks ``Host``,
-so a web page elsewhere cannot drive the overlay through the user's browser, DNS rebinding
-included).
+only from a page this server served (same-origin JSON), and on every address it listens on
+it checks ``Host`` (the address or name it listens on, an address literal of that kind, or
+``localhost``) and ``Origin``: a web page elsewhere cannot drive the overlay through the
+user's browser, DNS rebinding included (a rebound name is never an address literal).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import ipaddress
 import json
 import logging
 import os
@@ -38,7 +40,6 @@ STATIC = {
 }
 MAX_BODY = 4096
 MAX_STREAMS = 32
-LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
 CSP = "Content-Security-Policy: default-src 'self'; style-src 'self'; img-src 'self' data:\r\n"
 Positions = Callable[[], dict[str, tuple[float, float]]]
 
@@ -204,12 +205,50 @@ class Dashboard:
             with contextlib.suppress(Exception):
                 await writer.wait_closed()
 
+    def _host_ok(self, name: str | None) -> bool:
+        """Is ``name`` (a ``Host`` header's) one this dashboard is reached by? A page that
+        rebinds its own name to this address still sends its own name, so names other than
+        ``localhost`` and the one given to ``--listen`` are refused, on every address."""
+        if not name:
+            return False
+        name = name.lower()
+        if name in ("localhost", self.host.lower()):
+            return True
+        try:
+            asked = ipaddress.ip_address(name)
+        except ValueError:
+            return False
+        try:
+            bound = ipaddress.ip_address(self.host)
+        except ValueError:  # listening on a name: localhost's literals, or only that name
+            return self.host.lower() == "localhost" and asked.is_loopback
+        if bound.is_unspecified:  # every address of this machine: any literal
+            return True
+        return asked.is_loopback if bound.is_loopback else asked == bound
+
     def _check_host(self, headers: dict[str, str]) -> None:
-        if self.host not in ("127.0.0.1", "::1", "localhost"):
-            return  # bound to a routable address on purpose: names vary
-        host = urlsplit("//" + headers.get("host", "")).hostname
-        if host not in LOOPBACK_NAMES:
-            raise BadRequest(403, "this dashboard answers on localhost only")
+        """Refuse a request whose ``Host`` is not this dashboard's, or that a page of another
+        origin sent (checked for every request, on every address it listens on)."""
+        host = headers.get("host", "")
+        try:
+            name = urlsplit("//" + host).hostname
+        except ValueError:
+            name = None
+        if not self._host_ok(name):
+            raise BadRequest(
+                403,
+                f"Host {host[:100]!r} refused: this dashboard answers to the address it listens "
+                f"on ({self.host}) or localhost only",
+            )
+        origin = headers.get("origin")
+        if origin is not None:
+            parts = urlsplit(origin)
+            if parts.scheme != "http" or parts.netloc != host:
+                raise BadRequest(
+                    403,
+                    f"Origin {origin[:100]!r} refused: requests come from the dashboard's own "
+                    "page only",
+                )
 
     async def _route(
         self, method: str, path: str, headers: dict[str, str], body: bytes
@@ -225,9 +264,6 @@ class Dashboard:
         if method == "GET" and path == "/api/view":
             return 200, "application/json", self._document()
         if method == "POST" and path in ("/api/relocate", "/api/remap"):
-            origin = headers.get("origin")
-            if origin is not None and urlsplit(origin).netloc != headers.get("host"):
-                raise BadRequest(403, "control requests come from the dashboard's own page")
             if not headers.get("content-type", "").startswith("application/json"):
                 raise BadRequest(415, "expected a JSON body (Content-Type: application/json)")
             try:

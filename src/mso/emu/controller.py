@@ -16,6 +16,7 @@ import contextlib
 import json
 import os
 import random
+import secrets
 import shutil
 import socket
 import subprocess
@@ -27,7 +28,7 @@ from typing import Any
 
 from mso.api import AsyncOverlay
 from mso.client import Client, NodeUnreachable, overlay_key
-from mso.emu.overlays import _claim, state_file
+from mso.emu.overlays import _claim, remove_key, state_file, write_key
 from mso.errors import MsoError
 from mso.model.network import LinkSpec
 from mso.node.driver import PARENT_ENV
@@ -135,9 +136,21 @@ class Emulator:
         self._watch_task = asyncio.create_task(self._watch())
         self.write_state()
 
+    def __post_init__(self) -> None:
+        if self.key == "":  # never a silent fall-back to the development key
+            raise MsoError("--key: an empty overlay key is refused (give one, or leave --key out)")
+
     def _env(self) -> dict[str, str]:
+        """The nodes' environment. Their overlay key is the one given (``--key``, $MSO_KEY),
+        else one made up for this run and left for this user only (:func:`write_key`): with
+        the development key any local user could join a loopback overlay."""
         env = dict(os.environ)
-        env["MSO_KEY"] = self.key or env.get("MSO_KEY", "") or "mso-insecure-default-key"
+        key = self.key or env.get("MSO_KEY", "")
+        if not key:
+            key = secrets.token_hex(16)
+            assert self.name is not None
+            write_key(self.name, key)
+        env["MSO_KEY"] = key
         env["MSO_EMULATOR_KEY"] = self.signer.public_text()
         if self.encrypt:
             env["MSO_ENCRYPT"] = "1"
@@ -457,6 +470,7 @@ class Emulator:
             with contextlib.suppress(OSError, ValueError):
                 if json.loads(path.read_text()).get("pid") == os.getpid():
                     path.unlink()
+                    remove_key(self.name)
         clean = all(
             n.process is None or n.process.returncode in (0, -9) for n in self.nodes.values()
         )

@@ -1,7 +1,10 @@
 """Running overlays on this machine: each emulator claims a name and keeps a state file (its
 pid, its nodes' addresses, where its dashboard is, node positions; never the key) under
-``$TMPDIR/mso-UID/overlays/``, so commands in another terminal find it by name. Light on
-imports on purpose: ``mso status`` reads these before anything else."""
+``$TMPDIR/mso-UID/overlays/``, so commands in another terminal find it by name. An emulator
+that made up its overlay key (none given) leaves it beside, in ``NAME.key`` (mode 0600, in a
+directory only its user may enter), so that user's ``mso status``/``mso deploy`` reach it and
+no other local user can. Light on imports on purpose: ``mso status`` reads these before
+anything else."""
 
 from __future__ import annotations
 
@@ -33,6 +36,71 @@ def state_file(name: str) -> Path:
     return overlays_dir() / f"{name}.json"
 
 
+def key_file(name: str) -> Path:
+    return overlays_dir() / f"{name}.key"
+
+
+def _private(path: Path) -> bool:
+    """Is ``path`` ours and closed to everyone else (not planted by another local user)?"""
+    try:
+        st = path.lstat()
+    except OSError:
+        return False
+    return st.st_uid == os.getuid() and not st.st_mode & 0o077
+
+
+def _safe_folder(folder: Path) -> bool:
+    """Is ``folder`` (made private now if it is ours) a place only this user can reach into:
+    owned by us, not a link, in a parent that is ours and that no one else may write?"""
+    try:
+        st, up = folder.lstat(), folder.parent.lstat()
+    except OSError:
+        return False
+    uid = os.getuid()
+    if st.st_uid != uid or up.st_uid != uid or up.st_mode & 0o022 or folder.is_symlink():
+        return False
+    if st.st_mode & 0o077:  # made by an older mso: ours, so close it
+        folder.chmod(0o700)
+    return True
+
+
+def write_key(name: str, key: str) -> None:
+    """Leave overlay ``name``'s key for its user's later commands (mode 0600, never followed
+    through a link); refused if the directory is not private to this user."""
+    folder = overlays_dir()
+    if not _safe_folder(folder):
+        raise MsoError(
+            f"{folder} is not private to this user (owned by uid {os.getuid()}, mode 0700): "
+            "not writing the overlay key there; give --key or set $MSO_KEY"
+        )
+    path = key_file(name)
+    with contextlib.suppress(FileNotFoundError):
+        path.unlink()
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(key + "\n")
+
+
+def remove_key(name: str) -> None:
+    with contextlib.suppress(OSError):
+        key_file(name).unlink()
+
+
+def key_for(address: str) -> str | None:
+    """The key an emulator of this user made up for the overlay that has a node at
+    ``address`` (None: no such overlay, or its key was given, not made up)."""
+    for name, state in running_overlays().items():
+        if address in state["nodes"].values():
+            path = key_file(name)
+            if not _private(path):  # absent, or not ours: never use a planted key
+                return None
+            try:
+                return path.read_text().strip() or None
+            except OSError:
+                return None
+    return None
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -59,6 +127,7 @@ def running_overlays() -> dict[str, dict[str, Any]]:
         if not _alive(pid):
             with contextlib.suppress(OSError):
                 path.unlink()
+            remove_key(path.stem)
             continue
         if isinstance(state.get("nodes"), dict):
             found[path.stem] = state

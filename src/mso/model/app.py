@@ -254,10 +254,13 @@ class App:
                 raise self._error(f"duplicate edge {e.src} -> {e.dst}", where, path)
             seen.add((e.src, e.dst))
             if e.size is not None and (
-                isinstance(e.size, bool) or not isinstance(e.size, int) or e.size < 0
+                isinstance(e.size, bool)
+                or not isinstance(e.size, int)
+                or not 0 <= e.size <= MAX_EDGE_SIZE
             ):
                 raise self._error(
-                    f"expected a non-negative integer byte count, got {e.size!r}",
+                    f"expected a non-negative integer byte count up to {MAX_EDGE_SIZE} "
+                    f"(16 MiB), got {e.size!r}",
                     f"{where}.size",
                     (*path, "size"),
                 )
@@ -360,6 +363,9 @@ def _is_number(x: object) -> bool:
 
 MAX_COST = 1e9  # work units per event: beyond it sums and objectives would overflow
 MAX_RATE = 1e7  # events per second of a source
+# bytes per event of an edge: no event larger than a frame (mso.protocol.framing.MAX_FRAME)
+# can travel, and 10**29 bytes made the planners' and energy model's sums meaningless
+MAX_EDGE_SIZE = 16 * 1024 * 1024
 
 
 def _check_vertex_values(v: Vertex, error: Callable[..., AppError]) -> None:

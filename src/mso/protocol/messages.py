@@ -519,12 +519,21 @@ def encode(msg: Message) -> bytes:
     return _ENCODER.encode(msg)
 
 
+def _too_deep() -> msgspec.DecodeError:
+    # msgspec raises RecursionError on a body nested ~1,000 deep: as a DecodeError it is
+    # dropped and counted like any malformed frame, where it used to escape the connection's
+    # data_received and drop the connection uncounted
+    return msgspec.DecodeError("nested too deeply")
+
+
 def decode(data: bytes | msgspec.Raw) -> Message:
     """Decode and validate a message body; raises msgspec.DecodeError/ValidationError."""
     try:
         return _MESSAGE_DECODER.decode(data)
     except UnicodeDecodeError as exc:  # msgspec lets an invalid UTF-8 tag through as this
         raise msgspec.DecodeError(f"invalid UTF-8: {exc.reason}") from None
+    except RecursionError:
+        raise _too_deep() from None
 
 
 def wrap(src: str, dst: str, msg: Message, ttl: int = 32) -> bytes:
@@ -537,6 +546,8 @@ def unwrap(data: bytes) -> Envelope:
         return _ENVELOPE_DECODER.decode(data)
     except UnicodeDecodeError as exc:
         raise msgspec.DecodeError(f"invalid UTF-8: {exc.reason}") from None
+    except RecursionError:  # skipping a deeply nested body
+        raise _too_deep() from None
 
 
 def rewrap(env: Envelope) -> bytes:

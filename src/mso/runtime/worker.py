@@ -135,7 +135,7 @@ class VertexWorker:
                     continue
                 try:
                     event = decode(payload)
-                except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+                except (msgspec.DecodeError, msgspec.ValidationError, RecursionError) as exc:
                     edge = self.start.edge_names.get(eff.edge, f"edge {eff.edge}")
                     self._error(f"undecodable event on edge {edge}: {exc}")
                     continue

@@ -21,8 +21,6 @@ from __future__ import annotations
 import asyncio
 import atexit
 import contextlib
-import os
-import secrets
 import shutil
 import subprocess
 import tempfile
@@ -75,10 +73,6 @@ class NetnsEmulator(Emulator):
         if self.heartbeat_s is None and self.dead_after_s is None:
             self.heartbeat_s, self.dead_after_s = HEARTBEAT_NETNS_S, DEAD_AFTER_NETNS_S
         self.name = _claim(self.name, self.scenario.name)
-        if not (self.key or os.environ.get("MSO_KEY")):
-            # nodes listen on their namespace's address, where the development key is refused:
-            # a fresh key for this run (the controller passes it to every node)
-            self.key = secrets.token_hex(16)
         hb, da = self.heartbeat_s, self.dead_after_s
         if hb is not None or da is not None:
             why = check_timing(
@@ -208,8 +202,8 @@ class NetnsEmulator(Emulator):
 
     def address(self, node: str) -> str:
         """``NETNS@127.0.0.1:PORT``: the node as seen from inside its namespace, which is how
-        `mso status` / `mso deploy` in another terminal reach it (give them the overlay key:
-        --key or $MSO_KEY, since a run without one makes up its own)."""
+        `mso status` / `mso deploy` in another terminal reach it (with the key given, or the
+        one this run made up and left for its user: :func:`mso.emu.overlays.key_for`)."""
         n = self.nodes.get(node)
         if n is None or self.testbed is None:
             raise MsoError(f"unknown node {node!r} (nodes: {', '.join(self.nodes)})")
