@@ -22,10 +22,12 @@ recovery goes on from there, in one direction: membership → remap → restore.
 from __future__ import annotations
 
 import enum
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from mso.errors import MsoError
-from mso.planning.placement import Hop, probed_hops
+from mso.model.app import App
+from mso.planning.placement import Hop, Layout, probed_hops
 from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
@@ -392,49 +394,29 @@ class Remapper:
 
     # -- the recovery rule: who coordinates, what is touched, what parks -----------------------
     def maybe_recover(self, dep: AppState, now: float) -> None:
-        """Remap the chains that lost vertices with a failed node. Exactly one node acts for
-        an app: the lowest-named surviving node that hosts part of it (if none does, the
-        lowest-named node alive). Every node derives the
-        same choice from the same placement and failure set, so two detectors never both
-        remap (a coordinator that is itself dead is skipped by the same rule)."""
+        """Remap the chains that lost vertices with a failed node, if this node is the one
+        that coordinates it (:func:`recovery_coordinator`) and the routes already go around
+        the failure; what is remapped is :func:`recovery_plan`'s."""
         if not dep.running or dep.recovering is not None:
             return
-        lost = dep.lost(self.ctx.failed)
+        failed, routes = self.ctx.failed, self.ctx.routes
+        lost = dep.lost(failed)
         if not lost:
             return
-        live = {n for v, n in dep.placed.items() if v not in lost}
-        if not live:  # every instance went (a node that ran them all restarted at once):
-            live = {
-                self.ctx.id,
-                *(n for n in self.ctx.routes if n not in self.ctx.failed),
-            }  # lowest alive
-        if min(live) != self.ctx.id:
+        alive = {self.ctx.id, *(n for n in routes if n not in failed)}
+        if recovery_coordinator(dep.placed, lost, alive) != self.ctx.id:
             return
-        if any(d in self.ctx.routes for d in self.ctx.failed) or any(
-            hop in self.ctx.failed for hop, _ in self.ctx.routes.values()
-        ):
+        if not routes_settled(routes, failed):
             return  # wait for the routing view to route around the failure (set_routes)
-        lay = dep.layout
-        touched = [
-            ci
-            for ci, c in enumerate(lay.chains)
-            if ci not in dep.parked and any(v in lost for v in c.vertices)
-        ]
-        if not touched:
+        plan = recovery_plan(dep.layout, dep.placed, lost, set(dep.parked))
+        if plan is None:
             return
-        chains = [lay.chains[c] for c in touched]
-        in_set = {v for c in chains for v in c.vertices}
-        ends = {v for c in chains for v in (c.head, c.tail)}
-        stays = {v for v in dep.placed if v not in in_set or v in lay.pinned}
-        stays |= {v for v in ends if v not in lost}
-        placed = {v: dep.placed[v] for v in stays}
-        order = [c for c in lay.order if c in touched]
-        kind = "global" if any(v in lost for v in ends) else "chain"
+        lay = dep.layout
         record: dict[str, Any] = {
             "at": now,
-            "failed": sorted(self.ctx.failed),
-            "remap": kind,
-            "chains": [lay.chains[c].name for c in order],
+            "failed": sorted(failed),
+            "remap": plan.kind,
+            "chains": [lay.chains[c].name for c in plan.chains],
             "lost": sorted(lost),
             "parked": {lay.chains[c].name: why for c, why in sorted(dep.parked.items())},
             "retried": [],  # steps sent again after STEP_TIMEOUT_S (a lost message)
@@ -442,7 +424,8 @@ class Remapper:
         dep.recoveries.append(record)
         del dep.recoveries[:-20]
         pid = self.ctx.new_pid()
-        self.ctx.begin(Remap(pid, now, dep.app.name, order, None, placed, in_set - stays, record))
+        remap = Remap(pid, now, dep.app.name, plan.chains, None, plan.stays, plan.movable, record)
+        self.ctx.begin(remap)
         dep.recovering = pid
         self._next_chain(pid, now)
 
@@ -450,11 +433,8 @@ class Remapper:
         """Chains with a vertex pinned to a failed node cannot run anywhere: park them. Their
         edges stop carrying events (counted as dropped), so a dead sink on one branch does not
         hold back, through acks and backpressure, the branches that still run."""
-        for ci, chain in enumerate(dep.layout.chains):
-            for v in chain.vertices:
-                pin = dep.app.vertices[v].pinned
-                if pin in self.ctx.failed and ci not in dep.parked:
-                    dep.parked[ci] = f"{v!r} is pinned to failed node {pin}"
+        for ci, why in pinned_to_failed(dep.app, dep.layout, self.ctx.failed).items():
+            dep.parked.setdefault(ci, why)
         edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}
         for e in sorted(edges - dep.parked_edges):
             out = dep.out.get(e)
@@ -474,3 +454,70 @@ class Remapper:
             if not pins & self.ctx.failed:
                 del dep.parked[ci]
         dep.parked_edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}
+
+
+# -- the recovery rule, as pure functions of what every node holds ------------------------------
+@dataclass(frozen=True)
+class RecoveryPlan:
+    """What a recovery remaps: ``chains`` in dependency order, ``stays`` (vertex -> node, kept
+    where it is), ``movable`` (re-placed), and whether a chain's end was lost (``global``)."""
+
+    chains: list[int]
+    stays: dict[str, str]
+    movable: set[str]
+    kind: str
+
+
+def recovery_coordinator(placed: dict[str, str], lost: set[str], alive: set[str]) -> str:
+    """The one node that recovers an app: the lowest-named node that still hosts part of it,
+    or if none does (every instance went at once), the lowest-named node alive. Every node
+    derives the same answer from the same placement and failure set, so two detectors never
+    both remap."""
+    hosting = {n for v, n in placed.items() if v not in lost}
+    return min(hosting or alive)
+
+
+def routes_settled(routes: dict[str, tuple[str, int]], failed: set[str]) -> bool:
+    """The routing view goes around every failed node: none is a destination or a next hop
+    (probes and restores sent before would be lost on the way)."""
+    return not any(d in routes for d in failed) and not any(
+        hop in failed for hop, _ in routes.values()
+    )
+
+
+def recovery_plan(
+    layout: Layout, placed: dict[str, str], lost: set[str], parked: set[int]
+) -> RecoveryPlan | None:
+    """The chains that lost a vertex and are not parked, remapped as a chain remap (§3.4.2) or,
+    when one lost an end, a global remap (§3.4.3); pinned vertices and surviving ends stay.
+    None when nothing is to be remapped."""
+    touched = [
+        ci
+        for ci, c in enumerate(layout.chains)
+        if ci not in parked and any(v in lost for v in c.vertices)
+    ]
+    if not touched:
+        return None
+    chains = [layout.chains[c] for c in touched]
+    in_set = {v for c in chains for v in c.vertices}
+    ends = {v for c in chains for v in (c.head, c.tail)}
+    stays = {v for v in placed if v not in in_set or v in layout.pinned}
+    stays |= {v for v in ends if v not in lost}
+    return RecoveryPlan(
+        chains=[c for c in layout.order if c in touched],
+        stays={v: placed[v] for v in stays},
+        movable=in_set - stays,
+        kind="global" if any(v in lost for v in ends) else "chain",
+    )
+
+
+def pinned_to_failed(app: App, layout: Layout, failed: set[str]) -> dict[int, str]:
+    """The chains with a vertex pinned to a failed node (chain -> why): they cannot run
+    anywhere until that node is back, so they are parked."""
+    out: dict[int, str] = {}
+    for ci, chain in enumerate(layout.chains):
+        for v in chain.vertices:
+            pin = app.vertices[v].pinned
+            if pin in failed and ci not in out:
+                out[ci] = f"{v!r} is pinned to failed node {pin}"
+    return out
