@@ -17,9 +17,11 @@ receiver on CPU 1 (the controller stays on CPU 0). The sink measures per-event l
 processes) and events/s over a window that opens after a warm-up.
 
 Usage: .venv/bin/python bench/dataplane.py [--quick] [--profile SIZE@CPUS ...]
-  --profile 3000@0,1: one extra mso run (saturated, that size, sender/receiver on those CPUs)
+  --profile 3000@0,1[@RATE]: one extra mso run (saturated, or paced at RATE events/s; that
+             size, sender/receiver on those CPUs)
              with cProfile in both node processes, enabled by a sitecustomize.py written to the
-             temp dir; top functions go to bench/results/dataplane-profile-SIZE-CPUS.txt. The
+             temp dir (every thread profiled); own time by stage per event and the top functions
+             go to bench/results/dataplane-profile-SIZE-CPUS[-pacedRATE].txt. The
              profiler slows the nodes down (its events/s are not comparable). Repeatable.
   --only-profile: skip the measurements, run the --profile runs only.
 """
@@ -372,33 +374,200 @@ if _dir:
         _prof.dump_stats(os.path.join(_dir, f"profile-{os.getpid()}.prof"))
 
     atexit.register(_dump)
+
+    import threading
+
+    import itertools
+
+    _run = threading.Thread.run
+    _threads = itertools.count()
+
+    def _profiled_run(self):
+        # worker threads (vertex calls) get a profile of their own, dumped when they end
+        prof = cProfile.Profile()
+        prof.enable()
+        try:
+            _run(self)
+        finally:
+            prof.disable()
+            name = f"profile-{os.getpid()}-t{next(_threads)}.prof"
+            prof.dump_stats(os.path.join(_dir, name))
+
+    threading.Thread.run = _profiled_run
 """
 
 
+# where a function's own time goes: (stage, substrings of "file:function" or of a builtin's
+# name), first match wins; any other builtin (msgspec, hashing) goes where its callers go
+STAGES: list[tuple[str, tuple[str, ...]]] = [
+    ("idle", ("'poll' of 'select.epoll", "'get' of '_queue.SimpleQueue", "'acquire' of '_thread")),
+    (
+        "ack",
+        (
+            "channel.py:on_ack",
+            "dataplane.py:on_ack",
+            "dataplane.py:ack",
+            "ack_due",
+            "dataplane.py:release",
+            "channel.py:release",
+            "channel.py:record",
+        ),
+    ),
+    (
+        "hand-off (queue, wake-up, results)",
+        (
+            "executor.py:",
+            "driver.py:_vertex_result",
+            "driver.py:_drain_results",
+            "call_soon_threadsafe",
+            "_write_to_self",
+            "_read_from_self",
+            "_process_self_data",
+            "'put' of '_queue.SimpleQueue",
+            "threading.py:",
+        ),
+    ),
+    (
+        "vertex call (decode, user code, encode)",
+        ("worker.py:", "vertices/dataplane.py:", "instance.py:"),
+    ),
+    (
+        "read, authenticate, decode",
+        (
+            "tcp.py:data_received",
+            "framing.py:feed",
+            "framing.py:_open",
+            "framing.py:_confirm",
+            "'recv' of '_socket",
+            "tcp.py:on_envelope",
+            "base.py:decode",
+        ),
+    ),
+    ("encode, seal", ("base.py:encode", "framing.py:seal", "framing.py:_seal")),
+    (
+        "write",
+        (
+            "'send' of '_socket",
+            "selector_events.py:write",
+            "tcp.py:write_frame",
+            "tcp.py:send",
+            "tcp.py:_send_toward",
+            "tcp.py:send_message",
+        ),
+    ),
+    (
+        "channel, data plane, core",
+        (
+            "channel.py:",
+            "dataplane.py:",
+            "core.py:",
+            "state.py:",
+            "context.py:",
+            "driver.py:",
+            "effects.py:",
+            "messages.py:",
+            "procedures/",
+            "protocol/events.py:",
+        ),
+    ),
+    ("event loop", ("base_events.py:", "events.py:", "selectors.py:", "selector_events.py:")),
+    (
+        "start-up",
+        (
+            "importlib",
+            "compile",
+            "marshal",
+            "exec",
+            "__build_class__",
+            "_imp.",
+            "/re/",
+            "sre_",
+            "yaml",
+            "click",
+            "frozen",
+        ),
+    ),
+]
+
+
+def _stage_of(func: tuple[str, int, str]) -> str | None:
+    label = f"{func[0]}:{func[2]}"
+    for stage, keys in STAGES:
+        if any(k in label for k in keys):
+            return stage
+    return None
+
+
+def stage_breakdown(paths: list[Path], other: dict[str, float] | None = None) -> dict[str, float]:
+    """Own time (s) per stage over the given profiles of one process (its threads); what
+    fits no stage is added up per function into ``other``."""
+    out: dict[str, float] = {}
+    other = {} if other is None else other
+    for path in paths:
+        raw: dict[Any, Any] = pstats.Stats(str(path)).stats  # type: ignore[attr-defined]
+        for func, (_, _, tt, _, callers) in raw.items():
+            stage = _stage_of(func)
+            if stage is None and func[0] == "~" and callers:
+                total = sum(c[2] for c in callers.values()) or 1.0
+                for caller, c in callers.items():
+                    st = _stage_of(caller) or "other"
+                    out[st] = out.get(st, 0.0) + tt * c[2] / total
+                    if st == "other":
+                        key = f"{func[2]} from {caller[0]}:{caller[2]}"
+                        other[key] = other.get(key, 0.0) + tt * c[2] / total
+                continue
+            out[stage or "other"] = out.get(stage or "other", 0.0) + tt
+            if stage is None:
+                key = f"{func[0]}:{func[2]}"
+                other[key] = other.get(key, 0.0) + tt
+    return out
+
+
 async def run_profile(
-    size: int, cpus: tuple[int, int], warmup: float, window: float, tmp: Path
+    size: int, rate: float, cpus: tuple[int, int], warmup: float, window: float, tmp: Path
 ) -> str:
     (tmp / "sitecustomize.py").write_text(SITECUSTOMIZE)
     rows = await run_mso(
-        cpus, [(size, 0.0)], warmup, window, tmp, {"MSO_BENCH_PROFILE_DIR": str(tmp)}
+        cpus, [(size, rate)], warmup, window, tmp, {"MSO_BENCH_PROFILE_DIR": str(tmp)}
     )
     text = io.StringIO()
     row = rows[0]
     eps = row.get("sink", {}).get("events_per_s", 0.0)
+    events = int(row.get("source_emitted") or 0)
+    how = f"paced at {rate:g} events/s" if rate else "saturated"
     text.write(
-        f"mso {size} B saturated, sender CPU {cpus[0]}, receiver CPU {cpus[1]}, under cProfile: "
-        f"{eps:,.0f} events/s; CPU use {json.dumps(row.get('cpu_util'))}\n"
-        "profile-<pid>.prof: the lower pid is N1 (the source's node), the higher N2 (the sink's)\n"
+        f"mso {size} B {how}, sender CPU {cpus[0]}, receiver CPU {cpus[1]}, under cProfile: "
+        f"{eps:,.0f} events/s; CPU use {json.dumps(row.get('cpu_util'))}; "
+        f"{events:,} events emitted\n"
+        "profile-<pid>.prof: the lower pid is N1 (the source's node), the higher N2 (the sink's); "
+        "profile-<pid>-t<thread>.prof: that node's other threads (vertex workers)\n"
     )
-    profiles = sorted(tmp.glob("profile-*.prof"), key=lambda p: int(p.stem.split("-")[1]))
-    if not profiles:
+    mains = sorted(
+        (p for p in tmp.glob("profile-*.prof") if "-t" not in p.stem),
+        key=lambda p: int(p.stem.split("-")[1]),
+    )
+    if not mains:
         text.write("no profile was written (did the nodes exit normally?)\n")
-    for prof, node in zip(profiles, ("N1 (sender)", "N2 (receiver)"), strict=False):
-        stats = pstats.Stats(str(prof), stream=text)
-        text.write(f"\n=== {node}, {prof.name}: top 30 by own time ===\n")
-        stats.sort_stats("tottime").print_stats(30)
-        text.write(f"\n=== {node}, {prof.name}: top 25 by cumulative time ===\n")
-        stats.sort_stats("cumulative").print_stats(25)
+    for prof, node in zip(mains, ("N1 (sender)", "N2 (receiver)"), strict=False):
+        pid = prof.stem.split("-")[1]
+        threads = sorted(tmp.glob(f"profile-{pid}-t*.prof"))
+        other: dict[str, float] = {}
+        stages = stage_breakdown([prof, *threads], other)
+        busy = {k: v for k, v in stages.items() if k not in ("idle", "start-up")}
+        total = sum(busy.values())
+        text.write(f"\n=== {node}: own time by stage, µs per event (of {events:,}) ===\n")
+        text.write("| stage | µs per event | share |\n|---|---:|---:|\n")
+        for k, v in sorted(busy.items(), key=lambda kv: -kv[1]):
+            per = v / events * 1e6 if events else 0.0
+            text.write(f"| {k} | {per:.2f} | {v / total if total else 0:.0%} |\n")
+        text.write(f"| total | {total / events * 1e6 if events else 0:.2f} | 100% |\n")
+        text.write("\nother, the largest:\n")
+        for k, v in sorted(other.items(), key=lambda kv: -kv[1])[:15]:
+            text.write(f"  {v / events * 1e6 if events else 0:8.2f} µs/event  {k}\n")
+        for name, path in [(prof.name, prof)] + [(t.name, t) for t in threads]:
+            stats = pstats.Stats(str(path), stream=text)
+            text.write(f"\n=== {node}, {name}: top 25 by own time ===\n")
+            stats.sort_stats("tottime").print_stats(25)
     return text.getvalue()
 
 
@@ -535,14 +704,14 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--reps: 1..5")
     cases = [(size, 0.0) for size in SIZES for _ in range(reps)]
     cases += [(size, PACED_RATE) for size in SIZES]
-    profiles: list[tuple[int, tuple[int, int]]] = []
+    profiles: list[tuple[int, tuple[int, int], float]] = []
     for spec in args.profile:
         try:
-            size_text, _, cpu_text = spec.partition("@")
+            size_text, cpu_text, *rate_text = spec.split("@")
             a, b = (int(c) for c in cpu_text.split(","))
-            profiles.append((int(size_text), (a, b)))
-        except ValueError:
-            ap.error(f"--profile: expected SIZE@CPU,CPU such as 3000@0,1, got {spec!r}")
+            profiles.append((int(size_text), (a, b), float(rate_text[0]) if rate_text else 0.0))
+        except (ValueError, IndexError):
+            ap.error(f"--profile: expected SIZE@CPU,CPU[@RATE] such as 3000@0,1, got {spec!r}")
     original = os.sched_getaffinity(0)
     rows: list[dict[str, Any]] = []
     profile_text: dict[str, str] = {}
@@ -560,13 +729,13 @@ def main(argv: list[str] | None = None) -> int:
 
                 for r in asyncio.run(run_mso(cpus, cases, warmup, window, tmp, None, baseline)):
                     rows.append({"placement": placement, **r})
-            for size, cpus in profiles:
+            for size, cpus, rate in profiles:
                 os.sched_setaffinity(0, {cpus[0]})
-                tag = f"{size}-{cpus[0]}{cpus[1]}"
+                tag = f"{size}-{cpus[0]}{cpus[1]}" + (f"-paced{rate:g}" if rate else "")
                 ptmp = tmp / f"profile-{tag}"
                 ptmp.mkdir()
                 profile_text[tag] = asyncio.run(
-                    run_profile(size, cpus, warmup, max(window, 2.0), ptmp)
+                    run_profile(size, rate, cpus, warmup, max(window, 2.0), ptmp)
                 )
     finally:
         os.sched_setaffinity(0, original)
