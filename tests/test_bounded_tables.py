@@ -45,3 +45,38 @@ def test_early_messages_are_bounded_per_peer_in_bytes_and_time_and_go_with_their
     assert len(core.early) == 0 and core.early.bytes == 0
     assert core.refusals["early_expired"] == lim.per_peer + 1
     assert core.status(sim.now)["refusals"]["early_expired"] == lim.per_peer + 1
+
+
+def test_invented_failures_cannot_grow_the_failure_maps_or_the_heartbeats() -> None:
+    """50,000 ``NodeDown``s about invented nodes, beats from 50,000 invented senders and a beat
+    holding 50,000 nodes failed: no table of N1 grows past its bound, its beats stay small,
+    and the overlay runs on with nobody held failed."""
+    sim = Simulation(mesh())
+    sim.run_until(1.0)
+    core, mem = sim.cores["N1"], sim.cores["N1"].membership
+    bound = mem.known_bound()
+    assert bound < 50_000
+    before = (len(mem._failed_incarnation), len(mem.peers), len(mem._incarnations))
+    for i in range(50_000):
+        sim.apply("N1", core.receive("N2", m.NodeDown(f"ghost{i}", "N2", 1), sim.now))
+    assert core.refusals["node_down_unknown"] == 50_000
+    assert (len(mem._failed_incarnation), len(mem.peers), len(mem._incarnations)) == before
+    assert core.failed == set() and mem.beat().failed == {}
+    for i in range(50_000):  # beats in invented names (a member can give any name)
+        sim.apply("N1", core.receive(f"ghost{i}", m.Heartbeat(f"ghost{i}", 1), sim.now))
+    assert len(mem._incarnations) <= bound and len(mem.liveness.last_heard) <= bound
+    assert core.refusals["unknown_node_over_bound"] >= 50_000 - bound
+    # a beat of a real neighbour holding 50,000 nodes failed is refused whole
+    huge = {f"ghost{i}": 1 for i in range(50_000)}
+    incarnations = dict(mem._incarnations)
+    sim.apply("N1", core.receive("N2", m.Heartbeat("N2", 0, huge), sim.now))
+    assert core.refusals["heartbeat_failed_map_over_bound"] == 1
+    assert mem._incarnations == incarnations
+    # a NodeDown now names one of the invented nodes N1 has heard of: its maps stay bounded
+    for i in range(50_000):
+        sim.apply("N1", core.receive("N2", m.NodeDown(f"ghost{i}", "N2", 1), sim.now))
+    assert len(mem._failed_incarnation) <= bound and len(mem.beat().failed) <= bound
+    assert len(core.failures) <= 50
+    sim.run_until(sim.now + 2.0)
+    for n, c in sim.cores.items():
+        assert not (c.failed & set(sim.cores)), (n, c.failed)
