@@ -140,6 +140,7 @@ def test_an_incarnation_at_the_end_of_its_range_is_not_believed() -> None:
                 m.PeerHello("N2"),
                 m.NodeDown("N3", "N2", 2**62),
                 m.NodeUp("N4", 2**62),
+                m.NodeUp("N5", 7),  # (a NodeDown about a node never heard of is refused)
                 m.NodeDown("N5", "N2", 7),
             ]:
                 writer.write(codec.seal(m.wrap("N2", "N1", msg)))
