@@ -93,8 +93,7 @@ class Connection(asyncio.Protocol):
         self.net.counters.bytes_out += len(frame)
         if frame:
             self.transport.write(frame)
-            limit = self.net.limits.max_client_backlog
-            if self.client is not None and self.transport.get_write_buffer_size() > limit:
+            if self.client is not None and self.net.over_backlog(self.transport):
                 self.net.connection_counters.over_buffer += 1
                 log.warning("closing a client that does not read its replies")
                 self.transport.abort()
@@ -260,6 +259,21 @@ class TcpTransport:
             log.warning("closing a connection holding %d bytes of a partial frame", held)
             return False
         return True
+
+    def over_backlog(self, transport: asyncio.Transport) -> bool:
+        """Whether a client's unread replies are too many: its own past its bound, or a
+        large share while every client's together are past theirs."""
+        lim, backlog = self.limits, transport.get_write_buffer_size()
+        if backlog > lim.max_client_backlog:
+            return True
+        if backlog <= lim.max_partial_share:
+            return False
+        total = sum(
+            c.transport.get_write_buffer_size()
+            for c in self.clients.values()
+            if c.transport is not None
+        )
+        return total > lim.max_clients_backlog
 
     def _sweep(self) -> None:
         """Close connections that did not authenticate in time, or fell silent."""
