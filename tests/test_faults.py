@@ -397,6 +397,9 @@ def test_a_restarted_node_that_held_everyone_failed_resets_nobody_that_runs_some
     sim.kill("N3")
     sim.run_until(sim.now + 0.1)
     sim.revive("N3")  # alone: no links; told by a node of its side that N1 and N2 failed
+    # (its beat names them first: a NodeDown about a node never heard of is refused)
+    beat = m.Heartbeat("N4", 0, {"N1": 0, "N2": 0})
+    sim.apply("N3", sim.cores["N3"].receive("N4", beat, sim.now))
     for n in ("N1", "N2"):
         sim.cores["N3"].receive("N4", m.NodeDown(n, "N4", 0), sim.now)
     sim.run_until(sim.now + 1.0)

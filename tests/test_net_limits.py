@@ -140,6 +140,7 @@ def test_an_incarnation_at_the_end_of_its_range_is_not_believed() -> None:
                 m.PeerHello("N2"),
                 m.NodeDown("N3", "N2", 2**62),
                 m.NodeUp("N4", 2**62),
+                m.NodeUp("N5", 7),  # (a NodeDown about a node never heard of is refused)
                 m.NodeDown("N5", "N2", 7),
             ]:
                 writer.write(codec.seal(m.wrap("N2", "N1", msg)))
@@ -160,3 +161,43 @@ def test_an_incarnation_at_the_end_of_its_range_is_not_believed() -> None:
     st = asyncio.run(run())
     assert st["failed_nodes"] == ["N5"]
     assert st["traffic"]["frames_implausible"] == 2
+
+
+def test_twenty_clients_that_never_read_are_closed_by_their_backlog_together() -> None:
+    """Each stays under its own bound, but together they are past the node's: each holding
+    a large share is closed, counted, and the node answers a reading client; what the
+    clients left unread stays under the node's bound."""
+    limits = Limits(max_partial_share=64 << 10, max_clients_backlog=1 << 20)
+
+    async def run() -> dict[str, Any]:
+        driver = NodeDriver(NodeCore("N1"), HOST, 0, overlay_key("k"), limits=limits)
+        await driver.start()
+        port = driver.transport.port
+        counters = driver.transport.connection_counters
+        try:
+            conns = [await member(port) for _ in range(20)]
+            ask = m.wrap("c", "N1", m.StatusRequest())
+            for _, w, codec in conns:  # 3,000 replies each: about 9 MiB, under 16 MiB
+                w.write(b"".join(codec.seal(ask) for _ in range(3000)))
+            for _ in range(1000):  # until the node has answered (it closes them as it does)
+                if counters.over_buffer >= 19:
+                    break
+                await asyncio.sleep(0.01)
+            backlog = sum(
+                c.transport.get_write_buffer_size()
+                for c in driver.transport.clients.values()
+                if c.transport is not None
+            )
+            assert backlog <= limits.max_clients_backlog
+            client = await Client(HOST, port, overlay_key("k")).connect()
+            reply = await client.call(m.StatusRequest())
+            await client.close()
+            assert isinstance(reply, m.StatusReply)
+            for _, w, _ in conns:
+                w.close()
+            return reply.nodes["N1"]
+        finally:
+            await driver.stop()
+
+    st = asyncio.run(run())
+    assert st["connections"]["over_buffer"] >= 19

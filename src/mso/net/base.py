@@ -26,10 +26,12 @@ from typing import Protocol, runtime_checkable
 from mso.protocol import messages as m
 
 Kind = int
-"""A frame's kind: one of :data:`CONTROL`, :data:`DATA`, :data:`MARKER` (``Envelope.kind``)."""
+"""A frame's kind: :data:`CONTROL`, :data:`DATA`, :data:`MARKER` or :data:`HEARTBEAT`
+(``Envelope.kind``)."""
 CONTROL: Kind = m.CONTROL
 DATA: Kind = m.DATA
 MARKER: Kind = m.MARKER
+HEARTBEAT: Kind = m.HEARTBEAT
 
 Route = tuple[str, int]
 """``(next hop, hops)`` toward a destination, as :meth:`NodeCore.set_routes` takes it."""
@@ -88,6 +90,11 @@ class Counters:
         self.frames_unroutable = 0  # no next hop in time, data with no route, TTL spent
         self.frames_failed = 0  # handling one raised (a bug): counted, the connection lives on
         self.frames_implausible = 0  # values no genuine node sends (mso.protocol.plausible)
+        # a link's queue of that class was full (mso.net.shaping): dropped, not queued
+        self.frames_dropped_queue = 0
+        # a frame to relay or take whose kind is unknown, not its message's, or whose size
+        # its kind does not allow (a bulk frame claiming to be a heartbeat)
+        self.frames_bad_kind = 0
 
     def as_dict(self) -> dict[str, int]:
         return dict(vars(self))

@@ -7,13 +7,17 @@ within ``handshake_s`` is closed; so is one silent for ``idle_s`` (peers send he
 ``max_connections`` at once and ``max_per_address`` from one address. Before authentication a
 connection can make the node buffer at most one 20-byte frame; after it at most one frame of
 ``max_frame`` bytes, and all connections together at most ``max_buffered`` of partial frames;
-a client that does not read its replies is closed past ``max_client_backlog``.
+a client that does not read its replies is closed past ``max_client_backlog``, or past
+``max_partial_share`` while all clients together hold more than ``max_clients_backlog``. Each link's
+queues are bounded per class (``queues``, :mod:`mso.net.shaping`), and a heartbeat, which
+overtakes every other frame, may be at most ``max_beat_frame`` bytes, relayed or not.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+from mso.net.shaping import QueueBounds
 from mso.protocol.framing import MAX_FRAME
 
 
@@ -30,9 +34,18 @@ class Limits:
     # connections cannot fill the node's memory)
     max_buffered: int = 64 * 1024 * 1024
     max_partial_share: int = 1024 * 1024
-    # replies a client does not read: past this its connection is closed
+    # replies a client does not read: past this its connection is closed; and past
+    # ``max_clients_backlog`` across every client, one holding over ``max_partial_share``
+    # (20 clients each under the first bound once took a node to 1.18 GB)
     max_client_backlog: int = 16 * 1024 * 1024
+    max_clients_backlog: int = 64 * 1024 * 1024
     sweep_s: float = 1.0  # how often idle and unfinished connections are looked for
+    # bytes each class may queue on one link; a beat's largest frame (its failed map is
+    # bounded by membership: about 20 bytes a node)
+    queues: QueueBounds = field(default_factory=QueueBounds)
+    max_beat_frame: int = 256 * 1024
+    # frames held for a neighbour whose connection is being set up, per neighbour
+    max_held_bytes: int = 64 * 1024 * 1024
 
 
 DEFAULT_LIMITS = Limits()

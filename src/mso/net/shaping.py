@@ -1,4 +1,13 @@
-"""The sending side of one emulated link: bandwidth, delay, loss, control before data.
+"""The sending side of one link: a bounded queue per class, heartbeats first; and on an
+emulated link bandwidth, delay and loss.
+
+Each class of frame has its own queue, bounded in bytes, and they leave in this order:
+heartbeats, control, then data and markers (in order with each other). A relay once queued
+every frame it forwarded in one unbounded control queue, ahead of its own heartbeats: 20 x 8
+MiB control frames through it had three nodes declared failed. Now a beat waits for at most
+the one frame already on its way, and a class whose queue is full drops what comes next
+(counted, ``frames_dropped_queue``), leaving the other classes alone. A frame always fits an
+empty queue, so no frame the wire allows is refused for its size alone.
 
 Shaping happens in the sender, as the user-space emulator's links have no kernel queue of their
 own: frames are serialised at the link's bandwidth (a token-bucket-like ``next free`` time),
@@ -12,14 +21,45 @@ import asyncio
 import random
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Protocol
 
-from mso.net.base import CONTROL, DATA, Kind, LinkShape
+from mso.net.base import DATA, HEARTBEAT, MARKER, Kind, LinkShape
 
 # The event loop's timers have millisecond resolution (epoll), so a frame due within this slack
 # leaves now instead of waiting a whole tick: bandwidth holds on average, with bursts of up to a
 # millisecond's worth, and delays under a millisecond are not emulated (loopback adds ~50 µs).
 TIMER_SLACK_S = 1e-3
+
+
+@dataclass(frozen=True)
+class QueueBounds:
+    """Bytes each class may have queued on one link (a frame always fits an empty queue)."""
+
+    heartbeat: int = 1 << 20
+    control: int = 64 << 20  # a deploy announces a 4 MiB document to every node behind a link
+    data: int = 32 << 20  # the channels' windows keep genuine data far below this
+
+
+class _Queue:
+    """One class's frames, with their bytes."""
+
+    def __init__(self, bound: int) -> None:
+        self.bound = bound
+        self.frames: deque[bytes] = deque()
+        self.bytes = 0
+
+    def put(self, payload: bytes) -> bool:
+        if self.frames and self.bytes + len(payload) > self.bound:
+            return False
+        self.frames.append(payload)
+        self.bytes += len(payload)
+        return True
+
+    def take(self) -> bytes:
+        payload = self.frames.popleft()
+        self.bytes -= len(payload)
+        return payload
 
 
 class FrameWriter(Protocol):
@@ -32,10 +72,11 @@ class FrameWriter(Protocol):
 
 
 class Link:
-    """Two queues (control leaves first) in front of a writer, shaped by a :class:`LinkShape`.
+    """Three bounded queues (heartbeats, control, data: in that order) in front of a writer,
+    shaped by a :class:`LinkShape`.
 
     ``seed`` makes emulated loss repeatable per (sender, receiver) pair; ``on_loss`` counts a
-    frame the link dropped.
+    frame the link dropped, ``on_full`` one its class's queue had no room for.
     """
 
     def __init__(
@@ -45,14 +86,19 @@ class Link:
         seed: int,
         loop: asyncio.AbstractEventLoop,
         on_loss: Callable[[], None] = lambda: None,
+        bounds: QueueBounds | None = None,
+        on_full: Callable[[], None] = lambda: None,
     ) -> None:
         self.writer = writer
         self.shape = shape
         self.loop = loop
         self.on_loss = on_loss
         self._rng = random.Random(seed)
-        self._control: deque[bytes] = deque()
-        self._data: deque[bytes] = deque()  # data and markers, in order
+        self.on_full = on_full
+        b = bounds or QueueBounds()
+        self._beats, self._control = _Queue(b.heartbeat), _Queue(b.control)
+        self._data = _Queue(b.data)  # data and markers, in order
+        self._queues = (self._beats, self._control, self._data)  # the order they leave in
         self._next_free = 0.0
         self._in_air: deque[tuple[float, bytes]] = deque()
         self._timer: asyncio.TimerHandle | None = None
@@ -61,19 +107,36 @@ class Link:
         if kind == DATA and self.shape.loss and self._rng.random() < self.shape.loss:
             self.on_loss()
             return
-        (self._control if kind == CONTROL else self._data).append(payload)
+        queue = (
+            self._beats
+            if kind == HEARTBEAT
+            else self._data
+            if kind in (DATA, MARKER)
+            else self._control
+        )
+        if not queue.put(payload):
+            self.on_full()
+            return
         self.pump()
+
+    @property
+    def queued(self) -> tuple[int, int, int]:
+        """Bytes queued per class: heartbeats, control, data."""
+        return (self._beats.bytes, self._control.bytes, self._data.bytes)
 
     def pump(self) -> None:
         """Move queued frames onto the wire (or into the air) while the writer takes them."""
         bandwidth, delay_s = self.shape.bandwidth_mbps, self.shape.delay_ms / 1e3
         shaped = self.shape.shaped
         now = self.loop.time()
-        while (self._control or self._data) and not self.writer.paused:
+        while not self.writer.paused:
+            queue = next((q for q in self._queues if q.frames), None)
+            if queue is None:
+                break
             if bandwidth is not None and self._next_free > now + TIMER_SLACK_S:
                 self._arm(self._next_free - TIMER_SLACK_S)
                 break
-            payload = (self._control or self._data).popleft()
+            payload = queue.take()
             if not shaped:
                 self.writer.write_frame(payload)
                 continue

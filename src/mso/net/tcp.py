@@ -27,7 +27,7 @@ from collections.abc import Callable
 
 import msgspec
 
-from mso.net.base import Counters, Kind, Receiver, RoutesChanged, RoutingView
+from mso.net.base import HEARTBEAT, Counters, Kind, Receiver, RoutesChanged, RoutingView
 from mso.net.forwarding import RouteWait
 from mso.net.limits import DEFAULT_LIMITS, ConnectionCounters, Limits
 from mso.net.shaping import Link
@@ -93,8 +93,7 @@ class Connection(asyncio.Protocol):
         self.net.counters.bytes_out += len(frame)
         if frame:
             self.transport.write(frame)
-            limit = self.net.limits.max_client_backlog
-            if self.client is not None and self.transport.get_write_buffer_size() > limit:
+            if self.client is not None and self.net.over_backlog(self.transport):
                 self.net.connection_counters.over_buffer += 1
                 log.warning("closing a client that does not read its replies")
                 self.transport.abort()
@@ -189,8 +188,11 @@ class TcpTransport:
         self.peers: dict[str, Connection] = {}
         self.clients: dict[int, Connection] = {}
         self.held: dict[str, deque[tuple[bytes, Kind]]] = {}
+        self._held_bytes: dict[str, int] = {}
         # frames waiting for a route: (payload, size to count as forwarded once sent)
-        self.waiting: RouteWait[tuple[bytes, int]] = RouteWait(on_drop=self._unroutable)
+        self.waiting: RouteWait[tuple[bytes, int]] = RouteWait(
+            on_drop=self._unroutable, size=lambda item: len(item[0])
+        )
         self.server: asyncio.Server | None = None
         self._client_ids = 0
         self._receiver: Receiver = lambda src, msg: None
@@ -258,6 +260,21 @@ class TcpTransport:
             return False
         return True
 
+    def over_backlog(self, transport: asyncio.Transport) -> bool:
+        """Whether a client's unread replies are too many: its own past its bound, or a
+        large share while every client's together are past theirs."""
+        lim, backlog = self.limits, transport.get_write_buffer_size()
+        if backlog > lim.max_client_backlog:
+            return True
+        if backlog <= lim.max_partial_share:
+            return False
+        total = sum(
+            c.transport.get_write_buffer_size()
+            for c in self.clients.values()
+            if c.transport is not None
+        )
+        return total > lim.max_clients_backlog
+
     def _sweep(self) -> None:
         """Close connections that did not authenticate in time, or fell silent."""
         now = self.loop.time()
@@ -316,7 +333,19 @@ class TcpTransport:
             return False
         return True
 
+    def _bad_kind(self, kind: int, size: int) -> bool:
+        """A frame's kind is unknown, or it is a heartbeat too large to be one (it would
+        overtake every frame on the link): refused and counted, relayed or not."""
+        if kind in m.KINDS and (kind != HEARTBEAT or size <= self.limits.max_beat_frame):
+            return False
+        self.counters.frames_bad_kind += 1
+        return True
+
     def _forward(self, env: m.Envelope, size: int) -> None:
+        """Relay a frame for another node, checked like one of this node's own (its kind, a
+        beat's size) and queued by its class on the next link, whose queues are bounded."""
+        if self._bad_kind(env.kind, size):
+            return
         env.ttl -= 1
         if env.ttl <= 0:
             self._unroutable()
@@ -337,10 +366,12 @@ class TcpTransport:
     def _hold(self, node: str, payload: bytes, kind: Kind) -> None:
         """Keep frames for a neighbour whose connection is still being set up (bounded)."""
         held = self.held.setdefault(node, deque())
-        if len(held) >= MAX_HELD:
+        size = self._held_bytes.get(node, 0) + len(payload)
+        if len(held) >= MAX_HELD or size > self.limits.max_held_bytes:
             self._unroutable()
             return
         held.append((payload, kind))
+        self._held_bytes[node] = size
 
     # -- inbound ----------------------------------------------------------------------------
     def on_envelope(self, conn: Connection, env: m.Envelope, size: int) -> None:
@@ -375,6 +406,9 @@ class TcpTransport:
             return
         if conn.peer is None:
             self.counters.frames_malformed += 1  # a peer must say hello first
+            return
+        if env.kind != m.kind_of(msg):  # it would have been queued as another class
+            self.counters.frames_bad_kind += 1
             return
         if why := implausible(msg, time.time_ns() // 1_000_000):
             self.counters.frames_implausible += 1
@@ -442,11 +476,17 @@ class TcpTransport:
         if conn is None or spec is None:
             return
         held = self.held.pop(node, None)
+        self._held_bytes.pop(node, None)
         if conn.link is None or conn.link.shape != spec.shape:
             seed = zlib.crc32(f"{self._node_id}-{node}".encode())
-            conn.link = Link(conn, spec.shape, seed, self.loop, self._lost)
+            conn.link = Link(
+                conn, spec.shape, seed, self.loop, self._lost, self.limits.queues, self._full
+            )
         for payload, kind in held or ():
             conn.link.send(payload, kind)
 
     def _lost(self) -> None:
         self.counters.frames_dropped_loss += 1
+
+    def _full(self) -> None:
+        self.counters.frames_dropped_queue += 1

@@ -31,6 +31,7 @@ from typing import Any, TypeVar
 from mso.errors import MsoError
 from mso.management import Action, Relocate, RemapChain, RemapChains, RuleSettings
 from mso.model.network import PowerModel
+from mso.node.early import EarlyLimits, EarlyMessages
 from mso.node.manager import Manager
 from mso.node.monitor import Monitor
 from mso.node.status import LinkStatus, node_status, to_wire
@@ -87,7 +88,6 @@ class NodeCore:
     strict = False
     # messages that may overtake the announcement of their app: held until it arrives
     EARLY = (m.ChainPlaced, m.BuildChain, m.ChainPartReady, m.ChainBuilt, m.StartApp)
-    MAX_EARLY = 1000
 
     def __init__(
         self,
@@ -104,6 +104,7 @@ class NodeCore:
         rules: RuleSettings | None = None,
         incarnation: int = 0,
         clock: Callable[[], float] | None = None,
+        early: EarlyLimits | None = None,
     ) -> None:
         self.id = node_id
         self.capacity = capacity
@@ -135,8 +136,9 @@ class NodeCore:
         self._work: deque[tuple[str, m.Message]] = deque()
         # ids of procedures this node coordinates: distinct per node, small enough for msgpack
         self._rid = self._rid_base = (zlib.crc32(node_id.encode()) & 0xFFFFFF) << 20
-        # messages for an app whose announcement has not arrived yet (another path overtook it)
-        self._early: dict[str, list[tuple[str, m.Message]]] = {}
+        # messages for an app whose announcement has not arrived yet (another path overtook
+        # it): bounded per peer and in total, by count and bytes, and in time
+        self.early = EarlyMessages(early)
         self._subscribers: dict[type, list[Callable[[Any], None]]] = {}
         # what the driver logs (it drains them); bounded, as a simulation never drains
         self._happened: deque[Happened] = deque(maxlen=MAX_HAPPENED)
@@ -172,7 +174,8 @@ class NodeCore:
         self._subscribe(AppMissing, self.membership.on_app_missing)
         self._subscribe(NodeReset, lambda ev: self.deployer.on_reset())
         self._subscribe(NodeReset, lambda ev: self.relocator.on_reset())
-        self._subscribe(NodeReset, lambda ev: self._early.clear())
+        self._subscribe(NodeReset, lambda ev: self.early.clear())
+        self._subscribe(PeerFailed, self._drop_early_of)
         self._subscribe(Happened, self._happened.append)
 
         # the router: message type -> the role of the procedure it belongs to
@@ -540,11 +543,9 @@ class NodeCore:
 
     def _dispatch(self, src: str, msg: m.Message, now: float) -> None:
         if isinstance(msg, self.EARLY) and msg.app not in self.apps:
-            held = self._early.setdefault(msg.app, [])
-            if len(held) < self.MAX_EARLY and len(self._early) <= 64:
-                held.append((src, msg))  # replayed when the app's announcement arrives
-            else:
-                self.dropped_messages += 1
+            # replayed when the app's announcement arrives (or refused, counted)
+            for reason in self.early.hold(src, msg.app, msg, now):
+                self.refusal(reason)
             return
         handler = self._messages.get(type(msg))
         if handler is None:
@@ -556,14 +557,14 @@ class NodeCore:
         known = msg.app in self.apps
         self.deployer.on_announce(src, msg, now)
         if msg.app in self.apps:
-            self._work.extend(self._early.pop(msg.app, []))
+            self._work.extend(self.early.pop(msg.app))
             if not known:
                 self.publish(Happened("deploy", msg.app, by=self.apps[msg.app].origin))
 
     def _on_stop_app(self, src: str, msg: m.StopApp, now: float) -> None:
         known = msg.app in self.apps
         self.deployer.on_stop_app(msg, now)
-        self._early.pop(msg.app, None)
+        self.early.drop_app(msg.app)
         if known and msg.app not in self.apps:
             self.publish(Happened("undeploy", msg.app, by=src))
 
@@ -599,8 +600,15 @@ class NodeCore:
         if retry is not None:
             retry(key, now)
 
+    def _drop_early_of(self, ev: PeerFailed) -> None:
+        """A failed peer's early messages go with it (its announcement will not come)."""
+        for _ in range(self.early.drop_peer(ev.node)):
+            self.refusal("early_peer_failed")
+
     def _on_monitor_tick(self, key: MonitorTick, now: float) -> None:
         self._sample(now)
+        for reason in self.early.expire(now):
+            self.refusal(reason)
         self.dataplane.report_delays(now)
         for action in self.manager.tick(now):  # the rules' decisions, carried out here
             self._carry_out(action, now)

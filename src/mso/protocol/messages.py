@@ -13,13 +13,15 @@ from typing import Annotated, Any
 
 import msgspec
 
-CONTROL, DATA, MARKER = 0, 1, 2  # Envelope.kind
+CONTROL, DATA, MARKER, HEARTBEAT = 0, 1, 2, 3  # Envelope.kind
+KINDS = frozenset({CONTROL, DATA, MARKER, HEARTBEAT})
 
 
 class Envelope(msgspec.Struct, array_like=True):
     """Routing header. ``kind``: CONTROL overtakes queued data; DATA (events, acks) is what an
     emulated lossy link may drop, recovered by retransmission; MARKER travels in order with the
-    data it follows and is never dropped by emulated loss."""
+    data it follows and is never dropped by emulated loss; HEARTBEAT overtakes everything, so
+    bulk control never delays liveness (and is refused beyond a small size)."""
 
     src: str
     dst: str
@@ -31,6 +33,8 @@ class Envelope(msgspec.Struct, array_like=True):
 def kind_of(msg: Message) -> int:
     if isinstance(msg, Data | Ack):
         return DATA
+    if isinstance(msg, Heartbeat):
+        return HEARTBEAT
     return MARKER if isinstance(msg, Marker) else CONTROL
 
 

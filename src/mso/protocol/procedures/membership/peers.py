@@ -15,7 +15,7 @@ pinned vertices restored.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 import msgspec
@@ -47,6 +47,12 @@ REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes dec
 MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own: its figures ride on one beat
 # of each period (they change no faster)
 REVOCATIONS_TOLD = 16  # the operator's latest undeploys told to each newly reachable node
+# Nodes a node keeps tables of (incarnations, failures, last heard) beyond those it routes to:
+# at least this many, or this factor times the nodes it routes to. A member can name any node
+# (nodes have no identities yet), so the tables admit a node the routing view does not show
+# only below this bound: 50,000 invented names once put a 50,000-entry map into every beat.
+MIN_KNOWN = 256
+KNOWN_PER_ROUTE = 4
 
 
 class Heard(msgspec.Struct, frozen=True, kw_only=True):
@@ -115,6 +121,25 @@ class Membership:
     def heard_of(self) -> set[str]:
         """Every node whose incarnation this node has heard (reachable now or not)."""
         return set(self._incarnations)
+
+    def known_bound(self) -> int:
+        """How many nodes this node keeps tables of: scales with the nodes it routes to."""
+        return max(MIN_KNOWN, KNOWN_PER_ROUTE * (len(self.ctx.routes) + 1))
+
+    def admits(self, node: str, table: Mapping[str, object]) -> bool:
+        """Whether ``table`` may hold ``node``: it does already, the routing view shows the
+        node, or the table is below :meth:`known_bound`."""
+        return node in table or node in self.ctx.routes or len(table) < self.known_bound()
+
+    def heard_of_node(self, node: str) -> bool:
+        """Whether this node has ever heard of ``node`` (its incarnation, a route, a message
+        from it, a peer state): a failure claim about any other is about nobody."""
+        return (
+            node in self._incarnations
+            or node in self.ctx.routes
+            or node in self.peers
+            or node in self.liveness.last_heard
+        )
 
     def incarnation_of(self, node: str, default: int) -> int:
         return self._incarnations.get(node, default)
@@ -199,8 +224,9 @@ class Membership:
 
     def heard(self, src: str, now: float) -> None:
         """A message from ``src``, which this node holds alive: it lives (and if suspected,
-        it reaches us though we do not reach it)."""
-        self.liveness.heard_from(src, now)
+        it reaches us though we do not reach it). Noted only within the tables' bound."""
+        if self.admits(src, self.liveness.last_heard):
+            self.liveness.heard_from(src, now)
         self.heard_directly(src, now)
 
     def heard_directly(self, src: str, now: float) -> None:
@@ -326,6 +352,9 @@ class Membership:
     ) -> None:
         if node in self.failed or node == self.ctx.id:
             return
+        if not self.heard_of_node(node) or not self.admits(node, self._failed_incarnation):
+            self.ctx.refusal("node_down_unknown")  # nobody it ever heard of: no such node
+            return
         known = self._incarnations.get(node, 0)
         if incarnation is not None and incarnation < known:
             return  # that incarnation failed, and a newer one is already back
@@ -352,7 +381,12 @@ class Membership:
 
     # -- heartbeats in: restarts, healed partitions, who resets --------------------------------
     def on_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
+        if self._oversized(msg):
+            return
         known = self._incarnations.get(src)
+        if known is None and not self.admits(src, self._incarnations):
+            self.ctx.refusal("unknown_node_over_bound")
+            return
         if known is not None and msg.incarnation > known:  # it restarted: its instances went
             self.on_node_down(src, self.ctx.id, now)
             self._rejoin(src, msg.incarnation, now, announce=True)
@@ -362,8 +396,9 @@ class Membership:
             # failed and whom it outranks are gone with that incarnation
         self._incarnations[src] = msg.incarnation
         for node, inc in msg.failed.items():  # a node we never heard of (we restarted since)
-            if node != self.ctx.id:  # failed in that incarnation: a newer one will be a restart,
-                self._incarnations.setdefault(node, inc)  # whose instances are gone
+            if node != self.ctx.id and self.admits(node, self._incarnations):  # failed in that
+                self._incarnations.setdefault(node, inc)  # incarnation: a newer one will be a
+                # restart, whose instances are gone
         if self.ctx.routes.get(src, ("", 0))[0] == src:  # a neighbour's beat, not a hello
             self.liveness.heard_from(src, now, msg)
         if msg.failed.get(self.ctx.id) == self.incarnation:
@@ -376,6 +411,14 @@ class Membership:
                 self.ctx.send(src, self.beat())  # hold it alive) makes it yield
         else:
             self._answer_stale_claim(src, msg)
+
+    def _oversized(self, msg: m.Heartbeat) -> bool:
+        """A beat holding far more nodes failed than this node could know of: refused, as
+        weighing it would cost every beat that much (a sender's map is bounded like ours)."""
+        if len(msg.failed) <= KNOWN_PER_ROUTE * self.known_bound():
+            return False
+        self.ctx.refusal("heartbeat_failed_map_over_bound")
+        return True
 
     def _cut_off(self, msg: m.Heartbeat) -> bool:
         """``msg.node``, which we hold alive, holds us failed, and with us most of the nodes
@@ -402,6 +445,8 @@ class Membership:
     def on_failed_heartbeat(self, src: str, msg: m.Heartbeat, now: float) -> None:
         """A node we declared failed is heard again: it restarted (a higher incarnation), or
         a partition healed. Then the side that loses the tie-break resets and rejoins."""
+        if self._oversized(msg):
+            return
         if msg.incarnation < self._incarnations.get(src, msg.incarnation):
             return  # from an incarnation that has since reset: it must not reset us
         if msg.incarnation > self._failed_incarnation.get(src, 0):
@@ -524,7 +569,10 @@ class Membership:
         if msg.node == self.ctx.id:
             return
         if msg.node not in self.failed and msg.node not in self._incarnations:
-            self._incarnations[msg.node] = msg.incarnation
+            if self.admits(msg.node, self._incarnations):
+                self._incarnations[msg.node] = msg.incarnation
+            else:
+                self.ctx.refusal("unknown_node_over_bound")
             return
         if msg.node in self.failed:
             if msg.incarnation > self._failed_incarnation.get(msg.node, 0):
