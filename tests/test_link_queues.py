@@ -106,3 +106,36 @@ def test_frames_waiting_for_a_route_are_bounded_by_bytes() -> None:
     assert held == [True, True, False, False, False] and wait.dropped == 3
     assert wait.release(0.5, lambda dst, item, kind: True) == 2 and wait.bytes == 0
     assert wait.hold("N9", frame, CONTROL, 0.6)  # room again once they left
+
+
+def test_a_marker_is_never_dropped_by_a_full_data_queue() -> None:
+    """A data frame a full queue drops is sent again (go-back-N); a relocation's marker is
+    not, so it goes past the bound (by a small slack) and the move still hands over."""
+    import asyncio
+
+    from mso.net.base import DATA, MARKER, LinkShape
+    from mso.net.shaping import Link, QueueBounds
+
+    class Stuck:
+        paused = True  # the connection pushes back: nothing leaves the queues
+
+        def write_frame(self, payload: bytes) -> None:
+            raise AssertionError("nothing should be written")
+
+    full: list[int] = []
+    loop = asyncio.new_event_loop()
+    try:
+        bounds = QueueBounds(data=1000, marker_slack=200)
+        link = Link(Stuck(), LinkShape(), 1, loop, bounds=bounds, on_full=lambda: full.append(1))
+        for _ in range(10):
+            link.send(b"d" * 100, DATA)
+        assert link.queued[2] == 1000 and not full
+        link.send(b"d" * 100, DATA)  # a data frame past the bound: dropped, counted
+        assert full == [1]
+        link.send(b"m" * 50, MARKER)  # a marker is not
+        assert full == [1] and link.queued[2] == 1050
+        for _ in range(4):
+            link.send(b"m" * 50, MARKER)
+        assert full == [1, 1] and link.queued[2] == 1200  # the slack is bounded too
+    finally:
+        loop.close()

@@ -39,6 +39,9 @@ class QueueBounds:
     heartbeat: int = 1 << 20
     control: int = 64 << 20  # a deploy announces a 4 MiB document to every node behind a link
     data: int = 32 << 20  # the channels' windows keep genuine data far below this
+    # markers go past a full data queue by up to this much: a data frame dropped is resent
+    # (go-back-N), a marker is not, and without it a relocation would wait for its deadline
+    marker_slack: int = 1 << 20
 
 
 class _Queue:
@@ -49,8 +52,8 @@ class _Queue:
         self.frames: deque[bytes] = deque()
         self.bytes = 0
 
-    def put(self, payload: bytes) -> bool:
-        if self.frames and self.bytes + len(payload) > self.bound:
+    def put(self, payload: bytes, slack: int = 0) -> bool:
+        if self.frames and self.bytes + len(payload) > self.bound + slack:
             return False
         self.frames.append(payload)
         self.bytes += len(payload)
@@ -96,6 +99,7 @@ class Link:
         self._rng = random.Random(seed)
         self.on_full = on_full
         b = bounds or QueueBounds()
+        self._marker_slack = b.marker_slack
         self._beats, self._control = _Queue(b.heartbeat), _Queue(b.control)
         self._data = _Queue(b.data)  # data and markers, in order
         self._queues = (self._beats, self._control, self._data)  # the order they leave in
@@ -114,7 +118,7 @@ class Link:
             if kind in (DATA, MARKER)
             else self._control
         )
-        if not queue.put(payload):
+        if not queue.put(payload, self._marker_slack if kind == MARKER else 0):
             self.on_full()
             return
         self.pump()
