@@ -18,7 +18,8 @@ from mso.node.core import NodeCore  # noqa: E402
 # node processes the tests start (the emulator's) may import the tests' own vertex modules
 os.environ.setdefault(
     "MSO_ALLOW_CODE",
-    "runtime_vertices,apphelpers,custom_policy,test_heavy_vertex,slow_import_vertices",
+    "runtime_vertices,apphelpers,custom_policy,test_heavy_vertex,slow_import_vertices,"
+    "ros2_vertices",
 )
 
 # in tests, a message at a moment a procedure's transition table does not allow raises

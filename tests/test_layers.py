@@ -30,6 +30,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "mso.statusview",
             "mso.benchmarks",
             "mso.examples",
+            "mso.ros2",  # vertex code, like the examples (the optional ros2 extra)
             "mso.dashboard",
             "mso.plots",
         ),

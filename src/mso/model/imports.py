@@ -31,8 +31,14 @@ _PATH = re.compile(r"^[A-Za-z_][\w]*(\.[A-Za-z_][\w]*)*:[A-Za-z_][\w]*(\.[A-Za-z
 
 # what a node may run unless its owner says otherwise: the vertex and format code shipped with
 # mso. Not all of mso.examples and mso.benchmarks: their harnesses write files and start
-# processes, and a policy's params become a callable's keyword arguments.
-DEFAULT_ALLOWED = ("mso.examples.convoy", "mso.sim.vertices", "mso.benchmarks.vertices")
+# processes, and a policy's params become a callable's keyword arguments. mso.ros2 (the
+# optional extra) holds the ROS 2 and bag vertices and the message formats.
+DEFAULT_ALLOWED = (
+    "mso.examples.convoy",
+    "mso.sim.vertices",
+    "mso.benchmarks.vertices",
+    "mso.ros2",
+)
 _MODULE = re.compile(r"^[A-Za-z_][\w]*(\.[A-Za-z_][\w]*)*$")
 _allowed: tuple[str, ...] | None = None
 

@@ -1,0 +1,100 @@
+"""An in-process Zenoh router on 127.0.0.1 and an independent ROS 2 talker and listener
+written from rmw_zenoh's design document (literal keys, rosbags' CDR, the attachment packed
+by hand): what a ROS 2 node on rmw_zenoh would put on the wire and expect from it. Nothing of
+mso.ros2 is used here, so the round trips test mso against the document, not against itself.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+from rosbags.typesys import Stores, get_typestore
+
+STORE = get_typestore(Stores.ROS2_JAZZY)
+STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _config(mode: str, listen: str | None = None, connect: str | None = None) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps([listen]))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps([connect]))
+    return conf
+
+
+def router(port: int) -> Any:
+    """A Zenoh router listening on 127.0.0.1:port only (rmw_zenohd's role)."""
+    return zenoh.open(_config("router", listen=f"tcp/127.0.0.1:{port}"))
+
+
+def ros_peer(port: int) -> Any:
+    """A session as rmw_zenoh opens one: a peer connected to the router, no multicast."""
+    return zenoh.open(_config("peer", connect=f"tcp/127.0.0.1:{port}"))
+
+
+def chatter_key(domain: int = 0, hash_: str = STRING_HASH, topic: str = "chatter") -> str:
+    return f"{domain}/{topic}/std_msgs::msg::dds_::String_/{hash_}"
+
+
+def cdr_string(text: str) -> bytes:
+    msg = STORE.types["std_msgs/msg/String"](data=text)
+    return bytes(STORE.serialize_cdr(msg, "std_msgs/msg/String"))
+
+
+def attachment(seq: int, gid: bytes) -> bytes:
+    return struct.pack("<qq", seq, time.time_ns()) + bytes([16]) + gid
+
+
+def tokens(session: Any, prefix: str = "@ros2_lv/0/**") -> list[str]:
+    return [str(r.ok.key_expr) for r in session.liveliness().get(prefix, timeout=2.0) if r.ok]
+
+
+def wait_for(check: Callable[[], bool], timeout: float = 10.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if check():
+            return True
+        time.sleep(0.02)
+    return check()
+
+
+class Listener:
+    """A ROS 2 listener as rmw_zenoh would be one: subscribes on the literal key, requires
+    the 33-byte attachment, decodes CDR with rosbags."""
+
+    def __init__(self, session: Any, key: str) -> None:
+        self.got: list[tuple[str, int, int, bytes]] = []  # text, seq, stamp, gid
+        self.bad = 0
+        self.lock = threading.Lock()
+        self.sub = session.declare_subscriber(key, self._on)
+
+    def _on(self, sample: Any) -> None:
+        att = sample.attachment.to_bytes() if sample.attachment is not None else b""
+        if len(att) != 33 or att[16] != 16:
+            with self.lock:
+                self.bad += 1
+            return
+        seq, stamp = struct.unpack_from("<qq", att)
+        msg = STORE.deserialize_cdr(sample.payload.to_bytes(), "std_msgs/msg/String")
+        with self.lock:
+            self.got.append((msg.data, seq, stamp, att[17:]))
+
+    def texts(self) -> list[str]:
+        with self.lock:
+            return [g[0] for g in self.got]
