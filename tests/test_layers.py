@@ -54,6 +54,7 @@ CORE_ORDER = [
     "mso.protocol.procedures.remap",
     "mso.protocol.procedures.membership.liveness",
     "mso.protocol.procedures.membership.detector",
+    "mso.protocol.procedures.membership.status",
     "mso.protocol.procedures.membership.peers",
     "mso.node.device",
     "mso.node.monitor",

@@ -26,7 +26,8 @@ from mso.node.manager import ManagementStatus, Manager
 from mso.node.monitor import Monitor, MonitorStatus
 from mso.protocol.authority import AuthorityStatus
 from mso.protocol.procedures.membership.liveness import LivenessStatus
-from mso.protocol.procedures.membership.peers import Heard, Membership
+from mso.protocol.procedures.membership.peers import Membership
+from mso.protocol.procedures.membership.status import Heard
 from mso.protocol.state import AppState, AppStatus
 
 if TYPE_CHECKING:
@@ -56,7 +57,7 @@ class NodeStatus(msgspec.Struct, frozen=True, kw_only=True):
     the node's own figures and each component's part. The links' and membership's fields
     stand at the top level on the wire, so they are declared here again;
     :func:`node_status` fills them from :class:`LinkStatus` and
-    :class:`~mso.protocol.procedures.membership.peers.MembershipStatus` whole."""
+    :class:`~mso.protocol.procedures.membership.status.MembershipStatus` whole."""
 
     traffic: dict[str, int] | UnsetType = UNSET
     connections: dict[str, int] | UnsetType = UNSET

@@ -39,7 +39,8 @@ from mso.protocol.events import (
 )
 from mso.protocol.procedures.deploy import Deployer
 from mso.protocol.procedures.membership.detector import P, PeerEvent, PeerLife, Suspicion, Vouch
-from mso.protocol.procedures.membership.liveness import Liveness, LivenessStatus
+from mso.protocol.procedures.membership.liveness import Liveness
+from mso.protocol.procedures.membership.status import Heard, MembershipStatus
 from mso.protocol.procedures.remap import Remapper
 from mso.protocol.state import AppState
 
@@ -53,27 +54,6 @@ REVOCATIONS_TOLD = 16  # the operator's latest undeploys told to each newly reac
 # only below this bound: 50,000 invented names once put a 50,000-entry map into every beat.
 MIN_KNOWN = 256
 KNOWN_PER_ROUTE = 4
-
-
-class Heard(msgspec.Struct, frozen=True, kw_only=True):
-    """What a neighbour's last beat said of its figures, and when: what the rules weighed."""
-
-    at: float
-    load: float
-    drain_w: float
-    lifetime_s: float | None
-
-
-class MembershipStatus(msgspec.Struct, frozen=True, kw_only=True):
-    """Membership's part of a node's status (at the node's top level on the wire)."""
-
-    failed_nodes: list[str]
-    suspected_nodes: list[str]
-    incarnation: int
-    failures: list[dict[str, Any]]  # who, when, detected by whom (recent)
-    rejoins: list[dict[str, Any]]  # who, as which incarnation, when (recent)
-    liveness: LivenessStatus
-    heard: dict[str, Heard]
 
 
 class Membership:
