@@ -390,9 +390,6 @@ class Emulator:
         client = self.client_for(self.nodes[node], overlay_key(self.key), name)
         return AsyncOverlay(address, client=await client.connect(timeout), owned=True)
 
-    async def call(self, node: str, msg: m.Message, timeout: float = 10.0) -> m.Message:
-        return await self.overlay(node).ask(msg, timeout)
-
     async def deploy(
         self, document: str, file: str, via: str, *, check: bool = False
     ) -> m.DeployReply:

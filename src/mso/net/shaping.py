@@ -134,8 +134,10 @@ class Link:
         shaped = self.shape.shaped
         now = self.loop.time()
         while not self.writer.paused:
-            queue = next((q for q in self._queues if q.frames), None)
-            if queue is None:
+            # the first class with something queued (no generator per frame: this is per send)
+            beats, control, data = self._queues
+            queue = beats if beats.frames else control if control.frames else data
+            if not queue.frames:
                 break
             if bandwidth is not None and self._next_free > now + TIMER_SLACK_S:
                 self._arm(self._next_free - TIMER_SLACK_S)
