@@ -12,14 +12,23 @@ each event is delivered once and in order.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Hashable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 
 @dataclass
 class OutChannel:
-    """Producer side of one edge instance."""
+    """Producer side of one edge instance.
+
+    It keeps every event from ``base`` on: the unacknowledged ones (from ``acked``), and before
+    them any that a *retention* still holds. A retention (:meth:`retain`) keeps the events
+    from a sequence number on, acknowledged or not, until its owner releases it: chain
+    replication retains the events after a snapshot until the replica has acknowledged it, so
+    a replacement can start from the replica plus their replay. Retained events do not count
+    against the window (the consumer has them); they are bounded by their owner, and local to
+    this channel: a relocation hands over the unacknowledged events only.
+    """
 
     window: int = 4096
     next_seq: int = 0
@@ -31,7 +40,9 @@ class OutChannel:
     HISTORY = 64  # acks whose positions are kept, to look one up at an exact position
 
     def __post_init__(self) -> None:
-        self._unacked: deque[bytes] = deque()
+        self._unacked: deque[bytes] = deque()  # events from ``base`` to ``next_seq``
+        self.base = self.acked
+        self.retentions: dict[Hashable, int] = {}  # owner -> first seq it retains
         # ack position -> the positions that came with it: a vertex releasing a checkpoint
         # at exactly such a position passes them on upstream (transitive, see AckGate)
         self.history: dict[int, dict[int, int]] = {}
@@ -79,12 +90,18 @@ class OutChannel:
         if upto > self.next_seq:
             raise ValueError(f"ack for {upto} beyond the last event sent ({self.next_seq - 1})")
         released = max(0, upto - self.acked)
-        for _ in range(released):
-            self._unacked.popleft()
         self.acked += released
         if released:
             self.waiting_since = now
+            self._trim()
         return released
+
+    def _trim(self) -> None:
+        """Forget the events below both the ack and every retention."""
+        keep = min(self.retentions.values(), default=self.acked)
+        for _ in range(min(keep, self.acked) - self.base):
+            self._unacked.popleft()
+        self.base = max(self.base, min(keep, self.acked))
 
     def overdue(self, now: float, timeout: float) -> bool:
         """Events have waited ``timeout`` with no ack progress: time to send them again."""
@@ -92,9 +109,46 @@ class OutChannel:
 
     def unacked(self, start: int | None = None) -> tuple[int, list[bytes]]:
         """``(first seq, events)`` still unacknowledged from ``start`` (default: all)."""
-        begin = self.acked if start is None else max(start, self.acked)
-        skip = begin - self.acked
+        return self.events_from(self.acked if start is None else max(start, self.acked))
+
+    def events_from(self, start: int) -> tuple[int, list[bytes]]:
+        """``(first seq, events)`` kept from ``start`` on (no earlier than ``base``)."""
+        begin = max(start, self.base)
+        skip = begin - self.base
         return begin, [p for i, p in enumerate(self._unacked) if i >= skip]
+
+    # -- retention: keep events past their ack until released ---------------------------------
+    def retain(self, owner: Hashable, start: int) -> None:
+        """Keep every event from ``start`` on, acknowledged or not, until ``owner`` releases
+        it (:meth:`release`). ``start`` must still be kept (``base`` <= start <= next_seq):
+        retain before acknowledging, e.g. at the snapshot's position. Retaining again moves the
+        owner's retention (forward or back, within what is kept)."""
+        if not self.base <= start <= self.next_seq:
+            raise ValueError(
+                f"cannot retain from {start}: events {self.base}..{self.next_seq - 1} are kept"
+            )
+        self.retentions[owner] = start
+        self._trim()
+
+    def release(self, owner: Hashable, upto: int | None = None) -> None:
+        """``owner`` no longer needs the events below ``upto`` (None: any of them)."""
+        if owner not in self.retentions:
+            return
+        if upto is None:
+            del self.retentions[owner]
+        else:
+            self.retentions[owner] = max(self.retentions[owner], min(upto, self.next_seq))
+        self._trim()
+
+    def retained(self, owner: Hashable) -> tuple[int, list[bytes]] | None:
+        """``(first seq, events)`` that ``owner`` retains (to replay them), or None."""
+        start = self.retentions.get(owner)
+        return None if start is None else self.events_from(start)
+
+    @property
+    def kept(self) -> int:
+        """Events held now: unacknowledged and retained."""
+        return self.next_seq - self.base
 
 
 @dataclass
