@@ -192,6 +192,8 @@ def _report(
             "bytes_received": sim.bytes[n][1],
         }
     requests = [r for _, _, r in sim.replies if isinstance(r, m.RelocateReply | m.RemapReply)]
+    failed = sorted(failures.values(), key=lambda f: f["at"])
+    episodes = _episodes(sim, timeline, moves, failed)
     return {
         "scenario": scenario.name,
         "app": app,
@@ -211,13 +213,49 @@ def _report(
             "requests": len(requests),
             "recoveries": sorted(recoveries.values(), key=lambda r: r.get("at") or 0.0),
             "rejoins": sorted(rejoins.values(), key=lambda r: r["at"]),
+            "episodes": episodes,
         },
-        "failures": sorted(failures.values(), key=lambda f: f["at"]),
+        "failures": failed,
+        "messages": sim.census.messages_json(),
         "energy": energy,
         "placement": _placement(sim, app),
         "timeline": [[round(t, 3), what] for t, what in timeline.played],
         "alive": live,
     }
+
+
+def _episodes(
+    sim: Simulation,
+    timeline: Timeline,
+    moves: list[tuple[float, str, str, str]],
+    failures: list[dict[str, Any]],
+) -> list[dict[str, Any]]:
+    """Each burst of control messages (the deployment, a move, a remap, a failure's detection
+    and recovery, a rejoin: :mod:`mso.sim.census`) with what it cost and what set it off: the
+    scenario's changes since the burst before, the vertex moves and failures seen during it.
+    Each failure record gets its episode's ``control_messages`` and ``nodes_involved`` too."""
+    out: list[dict[str, Any]] = []
+    before = -1.0
+    bursts = sim.census.episodes(cuts=[t for t, _ in timeline.played])
+    for i, ep in enumerate(bursts):
+        # a move is sampled up to one sample period after its messages; a change or a failure
+        # belongs to the burst it sets off, which may begin a detection window later
+        until = bursts[i + 1].since if i + 1 < len(bursts) else float("inf")
+        record = ep.to_json()
+        record["changes"] = [w for t, w in timeline.played if before < t <= ep.until]
+        record["moves"] = [
+            {"at": round(t, 3), "vertex": v, "from": a, "to": b}
+            for t, v, a, b in moves
+            if ep.since <= t < until
+        ]
+        record["failures"] = sorted({f["node"] for f in failures if ep.since <= f["at"] < until})
+        for f in failures:
+            if ep.since <= f["at"] < until:
+                f["control_messages"] = ep.control_messages
+                f["nodes_involved"] = len(ep.nodes_involved)
+        out.append(record)
+        before = ep.until
+    return out
 
 
 __all__ = ["Call", "apply", "drive", "simulate"]

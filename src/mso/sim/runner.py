@@ -20,6 +20,7 @@ from mso.net.forwarding import RouteWait
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.sim.census import Census
 from mso.sim.executor import SimExecutor
 
 
@@ -91,6 +92,8 @@ class Simulation:
         # message); ``drop`` loses the ones it returns True for, as a radio would
         self.taps: list[Callable[[str, str, m.Message], None]] = []
         self.drop: Callable[[str, str, m.Message], bool] | None = None
+        # every message counted by type, and the control messages kept for locality tallies
+        self.census = Census()
         self.executors = {n: self._executor(n) for n in network.nodes}
         self.update_routes()
         for n, core in self.cores.items():
@@ -172,6 +175,7 @@ class Simulation:
         route = self.network.route(node, dst)
         if route is None or (node, dst) in self.lost_routes:
             return False
+        self.census.note(self.now, node, dst, msg, route)
         for tap in self.taps:
             tap(node, dst, msg)
         if self.drop is not None and self.drop(node, dst, msg):
