@@ -138,12 +138,26 @@ def test_kernel_view_over_netlink_follows_route_changes(line3: list[str]) -> Non
             want = {"B": ("B", 1), "C": ("B", 2)}
             await asyncio.wait_for(a.wait_for(lambda v: dict(v.routes()) == want), 10)
             assert a.neighbours()["C"] == Neighbour("10.77.0.3", 7411)
-            # a route the daemon withdraws is gone at once (an event, not a poll)
+            assert a.next_hop("C") == "C"
+            # a route the daemon withdraws is gone at once (an event, not a poll); B still
+            # announces its own kernel route to C, so A reaches C through B, at the overlay
+            await asyncio.wait_for(a.wait_for(lambda v: "C" in v.neighbours()), 5)
             _ip("-n", line3[0], "route", "del", "10.77.0.3/32")
-            await asyncio.wait_for(a.wait_for(lambda v: "C" not in v.routes()), 5)
+            await asyncio.wait_for(a.wait_for(lambda v: "C" not in v.neighbours()), 5)
+            assert a.routes()["C"] == ("B", 2) and a.next_hop("C") == "B"
             _ip("-n", line3[0], "route", "add", "10.77.0.3/32", "via", "10.77.0.2", "dev", "eth0",
                 "onlink")  # fmt: skip
-            await asyncio.wait_for(a.wait_for(lambda v: dict(v.routes()) == want), 5)
+            await asyncio.wait_for(a.wait_for(lambda v: "C" in v.neighbours()), 5)
+            assert dict(a.routes()) == want and a.next_hop("C") == "C"  # direct again
+            # a rule that sends C's address to a table saying unreachable (as batmand's 67
+            # does, or a starved route) hides the main table's route: relayed again
+            _ip("-n", line3[0], "route", "add", "unreachable", "10.77.0.3/32", "table", "77")
+            _ip("-n", line3[0], "rule", "add", "to", "10.77.0.3/32", "lookup", "77", "pref",
+                "700")  # fmt: skip
+            await asyncio.wait_for(a.wait_for(lambda v: "C" not in v.neighbours()), 5)
+            assert a.next_hop("C") == "B"
+            _ip("-n", line3[0], "rule", "del", "pref", "700")
+            await asyncio.wait_for(a.wait_for(lambda v: "C" in v.neighbours()), 5)
         finally:
             for v in views:
                 await v.close()

@@ -5,23 +5,31 @@ On a real MANET, and on the netns testbed, a routing daemon keeps the kernel's r
 the kernel forwards multi-hop traffic; the node reads the table rather than being told. Three
 parts, of which only the first touches netlink (pyroute2 stays out of every other path):
 
-- **the table**: a dump of the main IPv4 table at start and again (debounced) after every
-  ``RTM_NEWROUTE``/``RTM_DELROUTE``. Connected-subnet routes (``proto kernel``) are left out:
-  on a shared ad hoc subnet they claim every node is one hop away, which only the daemon knows.
+- **the tables**: a dump of the policy rules and every IPv4 table at start and again
+  (debounced) after every route or rule event, looked up as the kernel does
+  (:mod:`mso.net.routes_policy`): batmand's table 66 behind its rules counts like babeld's
+  main-table routes. Connected-subnet routes (``proto kernel``) are left out: on a shared ad
+  hoc subnet they claim every node is one hop away, which only the daemon knows.
 - **membership**: every node announces itself in a small authenticated UDP datagram on its
   node port, every :data:`ANNOUNCE_S` and at once when a new destination appears, to every
-  address the kernel has a route to. The datagram carries its id and port, its hop counts to
-  the nodes it reaches, and its address book (id -> address): a receiver learns the sender's
-  address from the datagram's source and the others' from the book, so membership spreads
-  with the announcements, with no static list.
+  address the kernel has a route to and every member it knows of. The datagram carries its id
+  and port, its hop counts to the nodes its kernel reaches, and its address book (id ->
+  address): a receiver learns the sender's address from the datagram's source and the others'
+  from the book, so membership spreads with the announcements, with no static list -- and a
+  node learns of nodes it has no route to, so a reactive daemon gets the first packet that
+  makes it find the route.
 - **resolution** (:func:`resolve`, pure): a member is reachable when the kernel has a route to
   its address; the route's gateway, named through the book, is the next hop; hops are 1 to a
   neighbour and 1 + the next hop's announced count otherwise (the kernel table has none).
+- **the overlay relay** (:func:`relays`): a member the kernel has no route to (a daemon that
+  starves a route, an asymmetric route, a reactive daemon still looking) but that a reachable
+  node announces, is routed through that node: frames go there and it forwards them, until the
+  kernel route returns and they go direct again.
 
 The transport then opens its TCP connection straight to any reachable node (``neighbours``
-lists them all, ``next_hop(dst)`` is ``dst``): the kernel carries it over the hops. ``routes``
-keeps the daemon's real next hop and hop count, so probes walk the real path and the core sees
-the neighbours the radio has.
+lists them all, ``next_hop(dst)`` is ``dst``, or the relay): the kernel carries it over the
+hops. ``routes`` keeps the daemon's real next hop and hop count, so probes walk the real path
+and the core sees the neighbours the radio has.
 """
 
 from __future__ import annotations
@@ -34,7 +42,6 @@ import ipaddress
 import logging
 import socket
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import msgspec
@@ -42,6 +49,19 @@ import msgspec
 from mso.net.base import Neighbour, Route
 from mso.net.netns import socket_in_netns
 from mso.net.routes import TableRoutes
+from mso.net.routes_policy import (
+    DEFAULT_RULES,
+    LOCAL_TABLE,
+    RTN_UNICAST,
+    KernelRoute,
+    Policy,
+    Rule,
+    longest_match,
+    route_from_netlink,
+    rule_from_netlink,
+)
+
+__all__ = ["Announce", "KernelRoute", "KernelRoutes", "Policy", "resolve"]
 
 log = logging.getLogger("mso.node")
 
@@ -52,19 +72,9 @@ DEBOUNCE_S = 0.02
 MAX_DATAGRAM = 60_000
 TAG_BYTES = 16
 MAX_HOPS = 64
-PROTO_KERNEL = 2  # rtnetlink RTPROT_KERNEL: a connected subnet
-RTN_UNICAST = 1
-MAIN_TABLE = 254
 RTMGRP_IPV4_ROUTE = 0x40
-
-
-@dataclass(frozen=True)
-class KernelRoute:
-    """One IPv4 route from the kernel's main table."""
-
-    dst: ipaddress.IPv4Network
-    gateway: str | None = None
-    proto: int = 0
+RTMGRP_IPV4_RULE = 0x80
+AF = socket.AF_INET
 
 
 class Announce(msgspec.Struct, array_like=True, forbid_unknown_fields=True):
@@ -108,30 +118,32 @@ def open_announce(psk: bytes, datagram: bytes) -> Announce | None:
 
 
 def lookup(table: Iterable[KernelRoute], ip: str) -> KernelRoute | None:
-    """The longest-prefix match for ``ip``, as the kernel would choose (first of equals)."""
-    addr = ipaddress.IPv4Address(ip)
-    best: KernelRoute | None = None
-    for r in table:
-        if addr in r.dst and (best is None or r.dst.prefixlen > best.dst.prefixlen):
-            best = r
-    return best
+    """The longest-prefix match for ``ip`` in one table (first of equals)."""
+    return longest_match(table, ipaddress.IPv4Address(ip))
 
 
 def resolve(
     node_id: str,
-    table: Iterable[KernelRoute],
+    table: Policy | Iterable[KernelRoute],
     book: Mapping[str, tuple[str, int]],
     announced_hops: Mapping[str, Mapping[str, int]],
 ) -> tuple[dict[str, Route], dict[str, Neighbour]]:
-    """Routes and reachable nodes by id from the kernel's table and the address book."""
-    table = [r for r in table if r.proto != PROTO_KERNEL]
+    """Routes and reachable nodes by id from the kernel's tables and the address book.
+
+    ``table`` is the kernel's :class:`~mso.net.routes_policy.Policy` (rules and tables) or
+    one table's routes (looked up as the main table under the default rules). A member the
+    kernel has no route to is still routed when a reachable node announces a kernel route to
+    it: through that node, at the overlay level (:func:`relays`); it is not in the
+    reachable set, since no connection goes straight to it.
+    """
+    policy = table if isinstance(table, Policy) else Policy(table)
     by_ip = {ip: n for n, (ip, _) in book.items()}
     routes: dict[str, Route] = {}
     reach: dict[str, Neighbour] = {}
     for node, (ip, port) in sorted(book.items()):
         if node == node_id:
             continue
-        r = lookup(table, ip)
+        r = policy.lookup(ip)
         if r is None:
             continue
         hop = by_ip.get(r.gateway or ip)
@@ -141,7 +153,35 @@ def resolve(
         hops = 1 if hop == node else min(1 + via, MAX_HOPS)
         routes[node] = (hop, hops)
         reach[node] = Neighbour(ip, port)
+    routes.update(relays(node_id, routes, book, announced_hops))
     return routes, reach
+
+
+def relays(
+    node_id: str,
+    direct: Mapping[str, Route],
+    book: Mapping[str, tuple[str, int]],
+    announced_hops: Mapping[str, Mapping[str, int]],
+) -> dict[str, Route]:
+    """Overlay routes to the members the kernel has no route to: through the reachable node
+    that announces the fewest hops to it (ties: the smaller id), ``(relay, hops)``.
+
+    Announcements carry kernel routes only, so a relay always hands the frame to its kernel:
+    one overlay hop, never a loop between two nodes that each think the other reaches it.
+    """
+    out: dict[str, Route] = {}
+    for node in sorted(book):
+        if node == node_id or node in direct:
+            continue
+        best: tuple[int, str] | None = None
+        for relay, (_, hops) in direct.items():
+            via = announced_hops.get(relay, {}).get(node)
+            if via is not None and relay != node:
+                cand = (min(hops + via, MAX_HOPS), relay)
+                best = cand if best is None or cand < best else best
+        if best is not None:
+            out[node] = (best[1], best[0])
+    return out
 
 
 class _Datagrams(asyncio.DatagramProtocol):
@@ -175,7 +215,8 @@ class KernelRoutes(TableRoutes):
         self.netns = netns
         self.announce_s = announce_s
         self.host = host
-        self.table: list[KernelRoute] = []
+        self.table: list[KernelRoute] = []  # every table's routes
+        self.rules: list[Rule] = list(DEFAULT_RULES)
         self.book: dict[str, tuple[str, int]] = {}
         self._direct: set[str] = set()  # book entries learned from the node itself
         self.announced_hops: dict[str, dict[str, int]] = {}
@@ -189,8 +230,12 @@ class KernelRoutes(TableRoutes):
         self._announce_soon = False
 
     def next_hop(self, dst: str) -> str | None:
-        """The kernel forwards: a reachable node is reached directly."""
-        return dst if dst in self._routes else None
+        """The kernel forwards: a reachable node is reached directly; one the kernel has no
+        route to goes through the node that relays for it (:func:`relays`)."""
+        if dst in self._neighbours:
+            return dst
+        route = self._routes.get(dst)
+        return None if route is None else route[0]
 
     async def start(self) -> None:
         from pyroute2 import AsyncIPRoute  # netlink only here
@@ -198,7 +243,7 @@ class KernelRoutes(TableRoutes):
         self._loop = asyncio.get_running_loop()
         self._ipr = AsyncIPRoute(netns=self.netns)
         self._events = AsyncIPRoute(netns=self.netns)
-        await self._events.bind(groups=RTMGRP_IPV4_ROUTE)
+        await self._events.bind(groups=RTMGRP_IPV4_ROUTE | RTMGRP_IPV4_RULE)
         sock = socket_in_netns(self.netns, socket.AF_INET, socket.SOCK_DGRAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind((self.host, self.port))
@@ -230,16 +275,15 @@ class KernelRoutes(TableRoutes):
 
     # -- the kernel's table ---------------------------------------------------------------
     async def reread(self) -> None:
-        """Dump the main table and recompute."""
+        """Dump the rules and every table, and recompute."""
+        rules = [rule_from_netlink(r) async for r in await self._ipr.rule("dump", family=AF)]
         table: list[KernelRoute] = []
-        async for r in await self._ipr.route("dump", family=socket.AF_INET, table=MAIN_TABLE):
-            if r["type"] != RTN_UNICAST:
-                continue
-            dst = r.get("dst") or "0.0.0.0"
-            net = ipaddress.IPv4Network(f"{dst}/{r['dst_len']}", strict=False)
-            table.append(KernelRoute(net, r.get("gateway"), r["proto"]))
+        async for msg in await self._ipr.route("dump", family=AF):
+            r = route_from_netlink(msg)
+            if r is not None:
+                table.append(r)
         new_dsts = {r.dst for r in table} - {r.dst for r in self.table}
-        self.table = table
+        self.table, self.rules = table, rules or list(DEFAULT_RULES)
         self._recompute()
         if new_dsts and self._udp is not None:
             self.announce()  # a new destination hears of us at once
@@ -265,7 +309,11 @@ class KernelRoutes(TableRoutes):
     # -- membership -----------------------------------------------------------------------
     def targets(self) -> set[str]:
         """Where announcements go: every host route's address and every known member's."""
-        out = {str(r.dst.network_address) for r in self.table if r.dst.prefixlen == 32}
+        out = {
+            str(r.dst.network_address)
+            for r in self.table
+            if r.dst.prefixlen == 32 and r.type == RTN_UNICAST and r.table != LOCAL_TABLE
+        }
         out |= {ip for n, (ip, _) in self.book.items() if n != self.node_id}
         return out
 
@@ -275,7 +323,8 @@ class KernelRoutes(TableRoutes):
         msg = Announce(
             self.node_id,
             self.port,
-            {d: h for d, (_, h) in self._routes.items()},
+            # kernel routes only: what others may relay through this node (see relays)
+            {d: h for d, (_, h) in self._routes.items() if d in self._neighbours},
             dict(self.book),
         )
         datagram = seal_announce(self.psk, msg)
@@ -311,7 +360,8 @@ class KernelRoutes(TableRoutes):
             self._recompute()
 
     def _recompute(self) -> None:
-        routes, reach = resolve(self.node_id, self.table, self.book, self.announced_hops)
+        policy = Policy(self.table, self.rules)
+        routes, reach = resolve(self.node_id, policy, self.book, self.announced_hops)
         if routes != self._routes or reach != self._neighbours:
             hops_changed = {d: h for d, (_, h) in routes.items()} != {
                 d: h for d, (_, h) in self._routes.items()
