@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Protocol
 
 
 @dataclass(frozen=True)
@@ -173,8 +174,14 @@ class Network:
             self.add_link(LinkSpec(a, b, t.bandwidth_mbps, t.delay_ms, t.loss))
         return added, removed
 
-    def links_from_positions(self, radio_range: float, template: LinkSpec | None = None) -> None:
-        """Replace the links with one per pair of nodes within ``radio_range`` of each other."""
+    def links_from_positions(
+        self,
+        radio_range: float,
+        template: LinkSpec | None = None,
+        propagation: LinkModel | None = None,
+    ) -> None:
+        """Replace the links with one per pair of nodes within ``radio_range`` of each other
+        (shaped by ``propagation``, which may also leave a pair unlinked, when given)."""
         for a, b in list(self.links):
             self.remove_link(a, b)
         ids = list(self.nodes)
@@ -182,6 +189,18 @@ class Network:
             pa = self.nodes[a].pos
             for b in ids[i + 1 :]:
                 pb = self.nodes[b].pos
-                if pa is not None and pb is not None and math.dist(pa, pb) <= radio_range:
-                    t = template or LinkSpec(a, b)
+                if pa is None or pb is None or math.dist(pa, pb) > radio_range:
+                    continue
+                t = template or LinkSpec(a, b)
+                if propagation is None:
                     self.add_link(LinkSpec(a, b, t.bandwidth_mbps, t.delay_ms, t.loss))
+                elif (spec := propagation.link(a, b, math.dist(pa, pb), t)) is not None:
+                    self.add_link(spec)
+
+
+class LinkModel(Protocol):
+    """What shapes a link from its length (:class:`mso.model.propagation.Propagation`)."""
+
+    def link(
+        self, a: str, b: str, distance_m: float, template: LinkSpec | None = None
+    ) -> LinkSpec | None: ...

@@ -15,6 +15,7 @@ from typing import Any
 from mso.errors import ScenarioError
 from mso.model.mobility import Mobility, RandomWaypoint, Trace
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
+from mso.model.propagation import MODELS, Propagation
 from mso.model.yamlfile import Located, load_yaml, load_yaml_file
 from mso.scenario.mobility_import import FORMATS, load_trace
 
@@ -27,7 +28,12 @@ SCENARIO_KEYS = {
     "link_defaults",
     "changes",
     "mobility",
+    "propagation",
 }
+PROPAGATION_KEYS = {
+    "model", "tx_dbm", "ref_loss_db", "ref_distance_m", "exponent", "sensitivity_dbm",
+    "width_db", "shadowing_db", "seed", "max_loss", "retry_delay_ms", "curve",
+}  # fmt: skip
 MOBILITY_KEYS = {"model", "area", "speed", "pause_s", "seed", "fixed", "step_s"}
 TRACE_KEYS = {"model", "file", "nodes", "dim", "step_s"}
 MOBILITY_MODELS = ("random_waypoint", *FORMATS)
@@ -110,6 +116,7 @@ class Scenario:
     mobility: Mobility | None = None
     mobility_step_s: float = 0.5
     link_template: LinkSpec | None = None
+    propagation: Propagation | None = None
 
 
 class _Reader:
@@ -179,6 +186,17 @@ def scenario_from_document(doc: Located) -> Scenario:
     radio_range = None
     if "radio_range" in data:
         radio_range = r.number(data["radio_range"], ("radio_range",), strict=True)
+    propagation = None
+    if "propagation" in data:
+        propagation = _propagation(r, data["propagation"])
+        if "links" in data:
+            raise r.err("'propagation' shapes links from positions, not listed 'links'",
+                        ("propagation",))  # fmt: skip
+        if radio_range is None:
+            radio_range = propagation.range_m()
+            if radio_range <= 0:
+                raise r.err("this propagation model links no pair of nodes at any distance",
+                            ("propagation",))  # fmt: skip
     trace: Trace | None = None
     if "mobility" in data:
         if radio_range is None:
@@ -199,7 +217,7 @@ def scenario_from_document(doc: Located) -> Scenario:
                     "a node needs 'pos: [x, y]' when the scenario has a radio_range",
                     ("nodes", n.id),
                 )
-        network.links_from_positions(radio_range, template)
+        network.links_from_positions(radio_range, template, propagation)
     elif links is not None:
         if not isinstance(links, list):
             raise r.err("expected a list of links", ("links",))
@@ -233,6 +251,7 @@ def scenario_from_document(doc: Located) -> Scenario:
         file=doc.file,
         changes=changes,
         link_template=template,
+        propagation=propagation,
     )
     if trace is not None:
         scenario.mobility = trace
@@ -240,6 +259,61 @@ def scenario_from_document(doc: Located) -> Scenario:
     elif "mobility" in data:
         scenario.mobility, scenario.mobility_step_s = _mobility(r, data["mobility"], network)
     return scenario
+
+
+def _propagation(r: _Reader, raw: Any) -> Propagation:
+    """The ``propagation:`` block: a link model (:mod:`mso.model.propagation`), checked."""
+    path: tuple[str | int, ...] = ("propagation",)
+    attrs = r.mapping(raw, PROPAGATION_KEYS, path)
+    if not attrs:
+        raise r.err(f"expected a mapping with 'model' ({', '.join(MODELS)})", path)
+    model = attrs.get("model", "log_distance")
+    if model not in MODELS:
+        raise r.err(f"unknown model {model!r} (expected one of: {', '.join(MODELS)})",
+                    (*path, "model"))  # fmt: skip
+    values: dict[str, Any] = {"model": model}
+    for key in ("tx_dbm", "ref_loss_db", "sensitivity_dbm"):  # signed decibels
+        if key in attrs:
+            values[key] = r.number(attrs[key], (*path, key), low=-MAX_NUMBER)
+    for key in ("ref_distance_m", "exponent", "width_db"):
+        if key in attrs:
+            values[key] = r.number(attrs[key], (*path, key), strict=True)
+    for key in ("shadowing_db", "retry_delay_ms"):
+        if key in attrs:
+            values[key] = r.number(attrs[key], (*path, key))
+    if "max_loss" in attrs:
+        values["max_loss"] = r.number(attrs["max_loss"], (*path, "max_loss"), strict=True)
+        if values["max_loss"] >= 1.0:
+            raise r.err(f"expected a loss in (0, 1), got {attrs['max_loss']!r}",
+                        (*path, "max_loss"))  # fmt: skip
+    if "seed" in attrs:
+        seed = attrs["seed"]
+        if not isinstance(seed, int) or isinstance(seed, bool):
+            raise r.err(f"expected an integer seed, got {seed!r}", (*path, "seed"))
+        values["seed"] = seed
+    if model == "curve":
+        values["curve"] = _curve(r, attrs.get("curve"), (*path, "curve"))
+    elif "curve" in attrs:
+        raise r.err("'curve' goes with 'model: curve'", (*path, "curve"))
+    return Propagation(**values)
+
+
+def _curve(r: _Reader, raw: Any, path: tuple[str | int, ...]) -> tuple[tuple[float, float], ...]:
+    """``[[distance_m, loss], ...]``, distances increasing, losses in [0, 1]."""
+    if not isinstance(raw, list) or not raw:
+        raise r.err("expected a list of [distance_m, loss] points", path)
+    points: list[tuple[float, float]] = []
+    for i, point in enumerate(raw):
+        if not (isinstance(point, list) and len(point) == 2):
+            raise r.err(f"expected [distance_m, loss], got {point!r}", (*path, i))
+        d = r.number(point[0], (*path, i))
+        p = r.number(point[1], (*path, i))
+        if p > 1.0:
+            raise r.err(f"expected a loss in [0, 1], got {point[1]!r}", (*path, i))
+        if points and d <= points[-1][0]:
+            raise r.err(f"distances must increase, got {d:g} after {points[-1][0]:g}", (*path, i))
+        points.append((d, p))
+    return tuple(points)
 
 
 def _step(r: _Reader, attrs: dict[str, Any]) -> float:

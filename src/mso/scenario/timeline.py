@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import math
 from dataclasses import dataclass, replace
 
 from mso.model.mobility import Trace, Tracks, tracks_for
@@ -186,6 +187,12 @@ class Timeline:
                     continue
                 if (pa[0] - pb[0]) ** 2 + (pa[1] - pb[1]) ** 2 <= radio_range**2:
                     k = _key(a, b)
+                    model = self.scenario.propagation
+                    if model is not None:  # the link's loss and delay follow its length
+                        shaped = model.link(a, b, math.dist(pa, pb), self.template)
+                        if shaped is not None:
+                            radio[k] = self._with_loss(k, shaped)
+                        continue
                     old = self.radio.get(k)
                     spec = old or LinkSpec(
                         a, b, self.template.bandwidth_mbps, self.template.delay_ms,
