@@ -213,3 +213,77 @@ def test_with_planner_rewrites_the_document() -> None:
     assert loads_app(again, resolve_code=False).planner == "paper"
     with pytest.raises(AppError, match="unknown planner"):
         with_planner(text, "fastest")
+
+
+def fork_app(big: int) -> App:
+    """s (N1) -> f, a fork: f -> x (``big`` bytes) -> t1 (N4, 10 bytes) and f -> y -> t2 (N1)."""
+    app = App("fork")
+    app.vertex("s", pinned="N1", cost=0)
+    for v in ("f", "x", "y"):
+        app.vertex(v, cost=1)
+    app.vertex("t1", pinned="N4", cost=0)
+    app.vertex("t2", pinned="N1", cost=0)
+    for a, b, size in [("s", "f", 100), ("f", "x", big), ("x", "t1", 10), ("f", "y", 50)]:
+        app.edge(a, b, size=size)
+    app.edge("y", "t2", size=50)
+    return app.validate(resolve_code=False)
+
+
+def test_a_fork_is_not_pulled_by_bytes_a_later_vertex_reduces() -> None:
+    # f's 5000-byte output shrinks to 10 bytes at x, which may sit anywhere on the way to N4:
+    # only 10 bytes must travel toward N4 from f (and nothing from f -> y -> t2 on N1), so f
+    # stays by its 100-byte input and x carries the 10 bytes instead.
+    app = fork_app(5000)
+    lay = Layout(app, "N1", "bytes")
+    flow = lay.bottleneck("N4")
+    assert flow["x"] == 10 and flow["f"] == 10 and flow["y"] == 0 and flow["t1"] == math.inf
+    p = plan(app, line(), planner="bytes").placement
+    assert p["f"] == "N1" and p["x"] == "N1" and p["y"] == "N1"
+
+
+def test_a_merge_is_pulled_by_its_placed_inputs() -> None:
+    # m merges a (N1 side, 10 bytes) and b (5000 bytes, pinned on N4) and sends 10 bytes to
+    # t on N4: the chain that places m comes from N1, and the big input pulls m to N4.
+    app = App("merge")
+    app.vertex("s", pinned="N1", cost=0)
+    app.vertex("b", pinned="N4", cost=0)
+    app.vertex("a", cost=1)
+    app.vertex("m", cost=1)
+    app.vertex("t", pinned="N4", cost=0)
+    for x, y, size in [("s", "a", 10), ("a", "m", 10), ("b", "m", 5000), ("m", "t", 10)]:
+        app.edge(x, y, size=size)
+    app.validate(resolve_code=False)
+    p = plan(app, line(), planner="bytes").placement
+    assert p["m"] == "N4"
+    net = line()
+    assert energy_per_event(app, net, p) < energy_per_event(
+        app, net, plan(app, net, planner="paper").placement
+    )
+
+
+def test_load_of_vertices_with_nowhere_else_to_go_is_reserved() -> None:
+    # c1 runs between two vertices pinned on N1 and must stay there (600 ms/s); c2's
+    # vertex v (600 ms/s) would sit on N1 by its big input, but N1 has no room left for it.
+    app = App("reserved")
+    app.vertex("s", pinned="N1", cost=0, rate=100)
+    app.vertex("k", cost=6)
+    app.vertex("t1", pinned="N1", cost=0)
+    app.vertex("v", cost=6)
+    app.vertex("t2", pinned="N4", cost=0)
+    for x, y, size in [("s", "v", 5000), ("v", "t2", 10), ("s", "k", 10), ("k", "t1", 10)]:
+        app.edge(x, y, size=size)
+    app.validate(resolve_code=False)
+    lay = Layout(app, "N1", "bytes")
+    assert lay.forced == {"k": "N1"}
+    p = plan(app, line(), planner="bytes").placement
+    assert p["k"] == "N1" and p["v"] != "N1"
+
+
+def test_bytes_chains_are_placed_one_after_another() -> None:
+    # every node places its chain knowing every earlier one: a deployment reaches the plan
+    fig2 = load_app(EXAMPLES / "fig2.yaml", resolve_code=False)
+    lay = Layout(fig2, "N1", "bytes")
+    for earlier, later in itertools.pairwise(lay.order):
+        assert earlier in lay.deps[later]
+    paper = Layout(fig2, "N1", "paper")
+    assert any(not paper.deps[c] for c in paper.order[1:])  # the paper's chains go concurrently

@@ -259,8 +259,14 @@ class _Graph:
         self.succ = app.successors()
         self.pred = app.predecessors()
         self.order = {v: i for i, v in enumerate(app.vertices)}
+        self._last: dict[bool, tuple[str, set[str]]] = {}  # per direction
 
     def reach(self, start: str, forward: bool) -> set[str]:
+        """The vertices reachable from ``start`` (itself included); the last answer is kept,
+        as placing a chain asks for its tail's (downstream) twice."""
+        last = self._last.get(forward)
+        if last is not None and last[0] == start:
+            return last[1]
         nbrs = self.succ if forward else self.pred
         seen, stack = {start}, [start]
         while stack:
@@ -268,6 +274,7 @@ class _Graph:
                 if w not in seen:
                     seen.add(w)
                     stack.append(w)
+        self._last[forward] = (start, seen)
         return seen
 
 
@@ -428,6 +435,13 @@ class Layout:
             k = (e.src, e.dst)
             self.edge_bytes[k] = self.edge_bytes.get(k, 0.0) + edge_bytes(e)
         self.load = vertex_loads(app)
+        self.out_bytes: dict[str, list[tuple[str, float]]] = {v: [] for v in app.vertices}
+        self.in_bytes: dict[str, list[tuple[str, float]]] = {v: [] for v in app.vertices}
+        for (a, b), size in self.edge_bytes.items():
+            self.out_bytes[a].append((b, size))
+            self.in_bytes[b].append((a, size))
+        self.topo = app.topological_order()
+        self._flow: dict[str, dict[str, float]] = {}  # target -> bottleneck()
         # the chain each edge lies in (every edge lies in exactly one, §3.2)
         index = {(e.src, e.dst): i for i, e in enumerate(app.edges)}
         self.edge_chain = [-1] * len(app.edges)
@@ -440,6 +454,13 @@ class Layout:
             if len(c) > 1:
                 placer.setdefault(c.tail, c.index)
         self.placer = placer
+        # vertices whose chain runs between two vertices pinned to one node have nowhere else
+        # to go: their load is reserved there before any chain is split
+        self.forced: dict[str, str] = {}
+        for c in self.chains:
+            at = self.pinned.get(c.head)
+            if at is not None and at == self.pinned.get(c.tail):
+                self.forced.update({v: at for v in c.vertices[1:-1] if v not in self.pinned})
         self.deps: list[set[int]] = []
         for c, leading in zip(self.chains, chain_dependencies(self.chains), strict=True):
             d = set(leading)
@@ -447,6 +468,11 @@ class Layout:
             if p is not None and p != c.index and c.tail not in self.pinned:
                 d.add(p)
             self.deps.append(d)
+        if self.planner == "bytes":
+            # the bytes planner weighs where a chain's neighbours went and what load is left
+            # on each node: chains are placed one after another, each knowing every earlier one
+            for before, ci in itertools.pairwise(self.order):
+                self.deps[ci].add(before)
 
     def initial_placement(self) -> dict[str, str]:
         """Pinned vertices, and unpinned heads no chain leads to (sources) on the origin."""
@@ -484,6 +510,8 @@ class Layout:
                 best = key
         if best is None:
             return None, 0.0
+        if self.planner != "paper":
+            return self.pinned[best[2]], 0.0  # the cost fraction is the paper split's only
         to_target = self.graph.reach(best[2], forward=False)
         down_cost = sum(
             sum(self.cost[v] for v in o.vertices)
@@ -497,28 +525,51 @@ class Layout:
         chain: int,
         placed: Mapping[str, str],
         target: str | None,
-        distances: Mapping[str, int],
     ) -> Traffic:
         """The bytes planner's view of one chain: edge sizes, loads, the load this app already
-        put on each node, and what its tail sends on: to vertices already placed (to their
-        nodes), and toward ``target`` (into vertices from which a vertex pinned to ``target``
-        is reachable)."""
+        put on each node (and the load reserved for :attr:`forced` vertices), and what its tail
+        exchanges: with vertices already placed (their nodes pull it), and toward ``target``
+        (the bytes that must still get to vertices pinned there, :meth:`bottleneck`). Every
+        earlier chain is in ``placed``: with this planner chains are placed one at a time."""
         used: dict[str, float] = {}
         for v, n in placed.items():
-            used[n] = used.get(n, 0.0) + self.load.get(v, 0.0)
-        tail = self.chains[chain].tail
+            used[n] = used.get(n, 0.0) + self.load[v]
+        for v, n in self.forced.items():
+            if v not in placed:
+                used[n] = used.get(n, 0.0) + self.load[v]
+        verts = self.chains[chain].vertices
+        tail = verts[-1]
         tail_bytes = 0.0
         tail_placed: list[tuple[str, float]] = []
         if tail not in placed:
-            ends = {v for v, n in self.pinned.items() if n == target}
-            for e in self.app.edges:
-                if e.src != tail:
-                    continue
-                if e.dst in placed:
-                    tail_placed.append((placed[e.dst], float(edge_bytes(e))))
-                elif target is not None and ends & self.graph.reach(e.dst, forward=True):
-                    tail_bytes += edge_bytes(e)
+            for u, size in self.in_bytes[tail]:
+                node = placed.get(u)
+                if u != verts[-2] and node is not None:
+                    tail_placed.append((node, size))  # a merge's other inputs pull it too
+            flow = self.bottleneck(target) if target is not None else {}
+            for w, size in self.out_bytes[tail]:
+                node = placed.get(w)
+                if node is not None:
+                    tail_placed.append((node, size))
+                else:
+                    tail_bytes += min(size, flow.get(w, 0.0))
         return Traffic(self.edge_bytes, self.load, used, tail_bytes, tuple(tail_placed))
+
+    def bottleneck(self, target: str) -> dict[str, float]:
+        """For every vertex: the bytes per event that must still travel from it to the
+        vertices pinned to ``target`` when every later vertex may sit anywhere on the way. A
+        path can be cut at its smallest edge, so an edge carries at most what lies beyond it;
+        0 with no path there, infinite at such a vertex. One pass per target, kept."""
+        flow = self._flow.get(target)
+        if flow is None:
+            flow = {}
+            for v in reversed(self.topo):
+                if self.pinned.get(v) == target:
+                    flow[v] = math.inf
+                else:
+                    flow[v] = sum(min(size, flow[w]) for w, size in self.out_bytes[v])
+            self._flow[target] = flow
+        return flow
 
     def last_anchor_node(self, chain: int, placed: Mapping[str, str]) -> str:
         verts = self.chains[chain].vertices
@@ -550,7 +601,7 @@ class Layout:
         target, downstream = self.target(chain, placed, distances)
         traffic = None
         if self.planner == "bytes":
-            traffic = self.traffic(chain, placed, target, distances)
+            traffic = self.traffic(chain, placed, target)
         assigned, route = place_chain(
             self.chains[chain],
             self.cost,
@@ -594,9 +645,12 @@ def plan(
     layout = Layout(app, origin, planner)
     placed = layout.initial_placement()
     routes: dict[int, list[str]] = {}
+    distances: dict[str, dict[str, int]] = {}  # chains often start at one node
     for ci in layout.order:
         start = layout.last_anchor_node(ci, placed)
-        assigned, route = layout.place(ci, placed, probe, network.distances(start))
+        if start not in distances:
+            distances[start] = network.distances(start)
+        assigned, route = layout.place(ci, placed, probe, distances[start])
         placed.update(assigned)
         routes[ci] = route
     placement = {v: placed[v] for v in app.vertices}
