@@ -5,6 +5,8 @@ Importable by node processes when the tests directory is on PYTHONPATH.
 
 from __future__ import annotations
 
+from typing import Any
+
 import msgspec
 
 from mso.benchmarks.common import SequenceCheck
@@ -180,3 +182,42 @@ class ExitOn:
         import os
 
         return {"pid": os.getpid()}
+
+
+class SqliteLog:
+    """A sink that appends a row per event to the SQLite file it is given (``mso profile``
+    must measure it without touching that file)."""
+
+    def __init__(self, db: str) -> None:
+        self.db = db
+        self.conn: Any = None
+
+    def open(self) -> None:
+        import sqlite3
+
+        self.conn = sqlite3.connect(self.db)
+        self.conn.execute("CREATE TABLE IF NOT EXISTS log (seq INTEGER)")
+
+    def __call__(self, event: Num) -> None:
+        self.conn.execute("INSERT INTO log VALUES (?)", (event.seq,))
+        self.conn.commit()
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+class EnvLog:
+    """A sink that writes where the environment says, and declares ``dry_run`` so profiling
+    can point it at a scratch directory instead."""
+
+    def __init__(self) -> None:
+        import os
+
+        self.path = os.environ["MSO_TEST_ENVLOG"]
+
+    def dry_run(self, scratch: str) -> None:
+        self.path = f"{scratch}/envlog.txt"
+
+    def __call__(self, event: Num) -> None:
+        with open(self.path, "a") as f:
+            f.write(f"{event.seq}\n")

@@ -70,6 +70,7 @@ def profile(app_file: Path, seconds: float, speed: float, write: bool, as_json: 
                     "costs": costs,
                     "sizes": {f"{a}->{b}": n for (a, b), n in sizes.items()},
                     "errors": {v: p.errors for v, p in prof.vertices.items() if p.errors},
+                    "scratch": prof.scratch,
                 }
             )
         )
@@ -87,6 +88,8 @@ def profile(app_file: Path, seconds: float, speed: float, write: bool, as_json: 
                 str(p.errors) + (f" ({p.last_error})" if p.errors else ""),
             )
         console().print(table)
+        for what in prof.scratch:
+            click.echo(f"kept off the real file: {what}")
     if write:
         for why in write_back(app_file, costs, sizes):
             click.echo(f"not written: {why}", err=True)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import sqlite3
 import tempfile
 import time
@@ -58,6 +59,15 @@ class Storage:
         self.clock: Callable[[], float] = _clock
         self.conn: sqlite3.Connection | None = None
         self.rows = 0
+
+    def dry_run(self, scratch: str) -> None:
+        """``mso profile``: log into a copy of the database in ``scratch``, never the real one
+        (its path may come from $MSO_CONVOY_DB, which profiling cannot see)."""
+        real = Path(self.path)
+        copy = Path(scratch) / real.name
+        if real.is_file() and not copy.exists():
+            shutil.copy2(real, copy)
+        self.path = str(copy)
 
     def open(self) -> None:
         conn = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
