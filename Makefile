@@ -43,8 +43,8 @@ bench: $(STAMP)
 # the netns backend (`mso emulate --backend netns`) needs babeld and nftables (Debian's packages;
 # root). The netns tests install them themselves in CI (CI=true, root).
 netns-deps:
-	command -v babeld >/dev/null && command -v nft >/dev/null || \
-	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq babeld nftables)
+	command -v babeld >/dev/null && command -v batmand >/dev/null && command -v nft >/dev/null || \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq babeld batmand nftables)
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -1,7 +1,8 @@
 """The netns backend: one network namespace per node, babeld routing, the kernel forwarding,
 each node on the kernel routing view. A 4-node line whose links move, a 6-node mesh that loses
-a relay. Skipped, with the reason, only where namespaces (or babeld) are unavailable; in CI
-(root, CI=true) the test setup installs babeld and nftables from Debian's packages."""
+a relay; the line again with batmand, whose routes live in table 66 behind policy rules.
+Skipped, with the reason, only where namespaces (or babeld) are unavailable; in CI (root,
+CI=true) the test setup installs babeld, batmand and nftables from Debian's packages."""
 
 from __future__ import annotations
 
@@ -28,12 +29,12 @@ def _install_in_ci() -> None:
     """CI runs as root on a fresh machine: the feature's Debian packages come from here."""
     if os.environ.get("CI") != "true" or os.geteuid() != 0 or shutil.which("apt-get") is None:
         return
-    if shutil.which("babeld") and shutil.which("nft"):
+    if shutil.which("babeld") and shutil.which("batmand") and shutil.which("nft"):
         return
     env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
     subprocess.run(["apt-get", "update", "-qq"], env=env, capture_output=True, timeout=300)
     subprocess.run(
-        ["apt-get", "install", "-y", "-qq", "babeld", "nftables"],
+        ["apt-get", "install", "-y", "-qq", "babeld", "batmand", "nftables"],
         env=env,
         capture_output=True,
         timeout=300,
@@ -367,3 +368,38 @@ def test_the_convoy_runs_on_the_netns_line() -> None:
     for node, s in status.items():
         for vid, v in s["apps"]["convoy"]["vertices"].items():
             assert v["errors"] == 0, (node, vid, v["last_error"])
+
+
+BATMAND = None if shutil.which("batmand") else "batmand is not installed (apt-get install batmand)"
+
+
+@pytest.mark.skipif(BATMAND is not None, reason=BATMAND or "")
+def test_batmand_routes_in_policy_tables_carry_the_overlay() -> None:
+    """batmand installs its routes in table 66 behind policy rules, not in main: the kernel
+    view reads them (before, mso saw no other node) and the app runs over them."""
+    from mso.emu.netns.emulator import NetnsEmulator
+
+    async def run() -> None:
+        emu = NetnsEmulator(loads_scenario(LINE), routing="batmand")
+        await emu.start()
+        try:
+            assert emu.testbed is not None
+            ns = emu.testbed.netns("N1")
+            rules = subprocess.run(["ip", "-n", ns, "rule"], capture_output=True, text=True)
+            assert "lookup 66" in rules.stdout
+            main = subprocess.run(["ip", "-n", ns, "route"], capture_output=True, text=True)
+            assert emu.testbed.address("N4") not in main.stdout  # not in the main table
+            status = await emu.status("N1")
+            assert status["N1"]["routes"]["N2"] == ["N2", 1]
+            assert status["N1"]["routes"]["N4"][0] == "N2"
+            reply = await emu.deploy(APP, "pipe.yaml", "N2")
+            assert reply.ok, reply.error
+            s = await until(
+                emu.status, lambda s: sink_at(s, "N4")["count"] >= 100, 15, "events arrive"
+            )
+            got = sink_at(s, "N4")
+            assert got["repeats"] == 0 and got["out_of_order"] == 0 and sink_errors(s, "N4") == 0
+        finally:
+            await emu.stop()
+
+    asyncio.run(run())

@@ -42,6 +42,13 @@ from mso.errors import MsoError
     "network namespace per node on a filtered bridge, babeld routing, the kernel forwarding.",
 )
 @click.option(
+    "--routing",
+    type=click.Choice(["babeld", "batmand"]),  # mso.emu.netns.daemons.DAEMONS (startup)
+    default="babeld",
+    show_default=True,
+    help="The routing daemon in every namespace (--backend netns).",
+)
+@click.option(
     "--cleanup",
     is_flag=True,
     help="Remove what a crashed netns emulation left (namespaces, processes inside) and exit.",
@@ -99,6 +106,7 @@ def emulate(
     app_file: Path | None,
     duration: float | None,
     backend: str,
+    routing: str,
     cleanup: bool,
     via: str | None,
     planner: str | None,
@@ -130,6 +138,7 @@ def emulate(
         dead_after_s, allow_code, name=name, manage=manage,
         dashboard=(dashboard_listen or "") if with_dashboard or dashboard_listen else None,
         metrics_port=metrics_port, encrypt=encrypt, backend=backend, planner=planner,
+        routing=routing,
     )  # fmt: skip
 
 
@@ -190,6 +199,7 @@ def _emulate(
     encrypt: bool = False,
     backend: str = "user",
     planner: str | None = None,
+    routing: str = "babeld",
 ) -> None:
     import asyncio
     import signal
@@ -221,7 +231,7 @@ def _emulate(
         raise MsoError("--metrics is not available with --backend netns yet")
     if backend == "netns":
         try:
-            check_available()
+            check_available(routing)
             kind = NetnsEmulator
         except NamespacesUnavailable as exc:
             out.print(f"[yellow]{exc}[/yellow]; using the user-space backend instead")
@@ -243,6 +253,8 @@ def _emulate(
             allow_code=allow_code or None,
             encrypt=encrypt,
         )
+        if isinstance(emu, NetnsEmulator):
+            emu.routing = routing
         loop = asyncio.get_running_loop()
         task = asyncio.current_task()
         if task is not None:  # SIGTERM stops like Ctrl-C: the finally below tears down
@@ -251,7 +263,7 @@ def _emulate(
             await emu.start()
         board = None
         try:
-            where = "namespaces (babeld)" if isinstance(emu, NetnsEmulator) else "processes"
+            where = f"namespaces ({routing})" if isinstance(emu, NetnsEmulator) else "processes"
             out.print(
                 f"emulating {scenario.name} as overlay {emu.name}: {len(emu.nodes)} node {where} "
                 + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)

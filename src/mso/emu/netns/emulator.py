@@ -1,12 +1,12 @@
 """``mso emulate --backend netns``: the scenario on the namespace testbed, with a real routing
-daemon — the path a real deployment takes.
+daemon (babeld or batmand: ``--routing``) — the path a real deployment takes.
 
 Each node is the ordinary ``mso node`` daemon started inside its own network namespace with
-``--routes kernel``: it reads the routes babeld installs in its namespace and finds the other
+``--routes kernel``: it reads the routes the daemon installs in its namespace and finds the other
 nodes by their announcements, and the kernel forwards multi-hop traffic. The controller keeps
 the user-space emulator's interface (:class:`~mso.emu.controller.Emulator`: deploy, status,
 kill, restart, play the timeline) but carries out link changes as nftables set updates on the
-testbed's bridge instead of LinkStates, and leaves routes to babeld: ``--convergence`` does not
+testbed's bridge instead of LinkStates, and leaves routes to the daemon: ``--convergence`` does not
 apply; the daemon's own convergence is what the middleware sees.
 
 It talks to every node over a socket made inside the node's namespace (to 127.0.0.1 there), so
@@ -30,6 +30,7 @@ from pathlib import Path
 
 from mso.client import Client
 from mso.emu.controller import EmulatedNode, Emulator
+from mso.emu.netns.daemons import DAEMONS, missing
 from mso.emu.netns.testbed import Testbed, unavailable
 from mso.emu.overlays import _claim
 from mso.errors import MsoError
@@ -45,14 +46,16 @@ it). So on this backend a node is declared failed after 3 s of silence unless to
 
 
 class NamespacesUnavailable(MsoError):
-    """Network namespaces (or babeld) cannot be used here; the user-space backend can."""
+    """Network namespaces (or the routing daemon) cannot be used here; the user-space
+    backend can."""
 
 
-def check_available() -> None:
-    """Raise :class:`NamespacesUnavailable` saying why the netns backend cannot run here."""
+def check_available(routing: str = "babeld") -> None:
+    """Raise :class:`NamespacesUnavailable` saying why the netns backend cannot run here with
+    routing daemon ``routing``."""
     why = unavailable()
-    if why is None and shutil.which("babeld") is None:
-        why = "babeld is not installed (Debian: apt-get install babeld, or `make netns-deps`)"
+    if why is None:
+        why = missing(routing)
     if why is None and shutil.which("tc") is None:
         why = "tc (iproute2) is not installed"
     if why is not None:
@@ -61,14 +64,16 @@ def check_available() -> None:
 
 @dataclass
 class NetnsEmulator(Emulator):
-    """An :class:`Emulator` whose nodes live in network namespaces and route with babeld."""
+    """An :class:`Emulator` whose nodes live in network namespaces and route with a routing
+    daemon (``routing``: a name in :data:`~mso.emu.netns.daemons.DAEMONS`)."""
 
     testbed: Testbed | None = None
-    babeld: dict[str, subprocess.Popen[bytes]] = field(default_factory=dict)
+    routing: str = "babeld"
+    routers: dict[str, subprocess.Popen[bytes]] = field(default_factory=dict)
     rates: dict[str, float | None] = field(default_factory=dict)
 
     async def start(self, timeout: float = 30.0) -> None:
-        check_available()
+        check_available(self.routing)
         names = list(self.scenario.network.nodes)
         if self.heartbeat_s is None and self.dead_after_s is None:
             self.heartbeat_s, self.dead_after_s = HEARTBEAT_NETNS_S, DEAD_AFTER_NETNS_S
@@ -92,7 +97,7 @@ class NetnsEmulator(Emulator):
             env = self._env()
             for name in names:
                 self.nodes[name] = EmulatedNode(name, tb.address(name), NODE_PORT)
-                self._start_babeld(name)
+                self._start_router(name)
                 self._spawn(name, env)
             await asyncio.gather(*(self._connect(n, timeout) for n in self.nodes.values()))
             await self.wait_links(timeout)
@@ -116,12 +121,12 @@ class NetnsEmulator(Emulator):
         node.log = self.log_dir / f"{name}.log"
         node.process = self.testbed.popen(name, self._node_command(name), node.log, env)
 
-    def _start_babeld(self, name: str) -> None:
+    def _start_router(self, name: str) -> None:
         assert self.testbed is not None and self.log_dir is not None
-        old = self.babeld.get(name)
+        old = self.routers.get(name)
         if old is not None and old.poll() is None:
             return
-        self.babeld[name] = self.testbed.babeld(name, self.log_dir)
+        self.routers[name] = DAEMONS[self.routing](self.testbed, name, self.log_dir)
 
     def client_for(self, node: EmulatedNode, psk: bytes, name: str = "emulator") -> Client:
         """A client connecting from inside the node's namespace, to 127.0.0.1 there."""
@@ -134,7 +139,7 @@ class NetnsEmulator(Emulator):
     def kill(self, node: str) -> float:
         """Fail-stop the device: its node process and its routing daemon (by PID)."""
         at = super().kill(node)
-        proc = self.babeld.get(node)
+        proc = self.routers.get(node)
         if proc is not None and proc.poll() is None:
             proc.kill()
             proc.wait(timeout=5)
@@ -142,7 +147,7 @@ class NetnsEmulator(Emulator):
 
     async def restart(self, node: str, timeout: float = 30.0) -> None:
         if node in self.nodes:
-            self._start_babeld(node)
+            self._start_router(node)
         await super().restart(node, timeout)
 
     # -- links ----------------------------------------------------------------------------
@@ -162,7 +167,8 @@ class NetnsEmulator(Emulator):
             self.rates[n] = rate
 
     async def push_links(self, routes: bool) -> None:
-        """Make the bridge's filter show the scenario's current links (babeld does the rest)."""
+        """Make the bridge's filter show the scenario's current links (the routing daemon
+        does the rest)."""
         assert self.testbed is not None
         self.version += 1
         links = self.scenario.network.links
@@ -183,7 +189,7 @@ class NetnsEmulator(Emulator):
         return seen - {node}
 
     async def wait_links(self, timeout: float = 30.0) -> None:
-        """Wait until every node has a connection to each node it can reach: babeld has
+        """Wait until every node has a connection to each node it can reach: the daemon has
         converged and the kernel views have learned every id."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
@@ -218,7 +224,7 @@ class NetnsEmulator(Emulator):
         try:
             await super().stop(grace)
         finally:
-            for proc in self.babeld.values():
+            for proc in self.routers.values():
                 if proc.poll() is None:
                     proc.kill()
                 with contextlib.suppress(Exception):

@@ -192,7 +192,7 @@ class Testbed:
             lines = [
                 "link set lo up",
                 f"link set eth0 address {self.mac(n)}",
-                f"addr add {self.address(n)}/16 dev eth0",
+                f"addr add {self.address(n)}/16 brd + dev eth0",  # batmand needs one
                 "link set eth0 up",
             ]
             lines += [
