@@ -221,3 +221,18 @@ class EnvLog:
     def __call__(self, event: Num) -> None:
         with open(self.path, "a") as f:
             f.write(f"{event.seq}\n")
+
+
+SEEN: dict[str, list[int]] = {}  # run -> every seq any SeenSink instance of it received
+
+
+class SeenSink:
+    """Records every seq it gets in :data:`SEEN` under its ``run`` param, across instances
+    (a restored or reset sink keeps adding to the same list): a test reads loss, duplicates
+    and order over the whole run."""
+
+    def __init__(self, run: str = "") -> None:
+        self.seen = SEEN.setdefault(run, [])
+
+    def __call__(self, event: Num) -> None:
+        self.seen.append(event.seq)

@@ -558,7 +558,9 @@ def test_unknown_attribute_edge_level() -> None:
         """
     )
     assert_at(err, 8, "edges[0].fmt", "unknown attribute 'fmt'")
-    assert "(expected one of: format, from, size, to)" in err.message
+    assert (
+        "(expected one of: buffer_age_s, buffer_bytes, deadline_ms, format, from, " in err.message
+    )
 
 
 @pytest.mark.parametrize("text", ["", "\n\n", "# only a comment\n"])

@@ -43,7 +43,7 @@ def status(placement: dict[str, str], delivered: int, *, done: list[str] | None 
                     "chains": [["src", "mid", "sink"]],
                     "chain_delay_ms": {"src-mid-sink": 1.5},
                     "parked": {},
-                    "dropped_parked": {"src->mid": dropped} if nid == "N1" else {},
+                    "given_up": {"src->mid": dropped} if nid == "N1" else {},
                     "recoveries": [],
                     "vertices": {
                         v: {"kind": "operator", "processed": 0, "emitted": 0, "cpu_s": 0.0}

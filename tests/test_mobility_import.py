@@ -210,6 +210,7 @@ def test_the_simulator_plays_an_imported_trace(tmp_path: Path) -> None:
     moves = [t for t, what in r["timeline"] if what == "mobility"]
     assert moves and min(moves) <= 3.0 and max(moves) >= 6.0  # links went and came back
     ev = r["events"]
-    # 50 events/s: up to 2.5 s before the gap, and again for a few seconds after R4 arrives
-    assert 50 * 2.5 + 100 <= ev["delivered"]["sink"] < ev["emitted"]["src"]
-    assert ev["dropped_parked"] > 50  # nothing got through meanwhile: the chain was parked
+    # 50 events/s: nothing got through during the gap, but the source kept what it made
+    # meanwhile (store and forward) and every event arrived once R4 linked them again
+    assert ev["delivered"]["sink"] == ev["emitted"]["src"] >= 450, ev
+    assert ev["given_up"] == 0

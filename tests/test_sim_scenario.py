@@ -60,13 +60,11 @@ def test_simulate_plays_a_restart_and_reports_it(tmp_path: Path) -> None:
     assert r["energy"]["N3"]["incarnation"] == 1 and all(e["alive"] for e in r["energy"].values())
     assert r["placement"] == {"src": "N1", "mid": "N3", "sink": "N6"}
     ev = r["events"]
-    # parked for about 2 s at 100 events/s: those were dropped, the rest arrived
-    assert 150 <= ev["dropped_parked"] <= 260, ev
+    # parked for about 2 s at 100 events/s: the source kept them (store and forward) and they
+    # arrived once mid was back, with what was on the way to N3 when it died (unacknowledged)
+    assert ev["given_up"] == 0, ev
     assert ev["emitted"]["src"] >= 790
-    # what was sent to N3 between the crash and its detection (0.5 s) went with it: the
-    # chain was parked, so nothing replays it (not counted in dropped_parked either)
-    lost = ev["emitted"]["src"] - ev["dropped_parked"] - ev["delivered"]["sink"]
-    assert 0 <= lost <= 60, ev
+    assert 0 <= ev["emitted"]["src"] - ev["delivered"]["sink"] <= 20, ev
     # human output: the same figures as tables
     code, text = run_cli(sc, "--app", app, "--duration", "8")
     assert code == 0, text

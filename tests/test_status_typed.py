@@ -62,7 +62,7 @@ APP_KEYS = [
     "running",
     "parked",
     "recoveries",
-    "dropped_parked",
+    "given_up",
     "chain_delay_ms",
     "slo_ms",
     "origin",
@@ -89,7 +89,22 @@ VERTEX_KEYS = [
     "last_crash",
     "not_restarted",
 ]
-EDGE_KEYS = ["sent", "delivered", "duplicates", "in_flight", "events_per_s"]
+EDGE_KEYS = [
+    "sent",
+    "delivered",
+    "duplicates",
+    "in_flight",
+    "events_per_s",
+    "waiting",
+    "held_bytes",
+    "spilled_bytes",
+    "dropped",
+    "superseded",
+    "expired",
+    "lost",
+    "deadline_missed",
+    "late",
+]
 MANAGEMENT_KEYS = [
     "policy",
     "app_policies",

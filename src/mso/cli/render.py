@@ -76,7 +76,7 @@ def render_simulation(console: Console, r: dict[str, Any]) -> None:
         et.add_row(v, "delivered", str(n))
     console.print(et)
     console.print(
-        f"dropped on parked chains: {ev['dropped_parked']}, "
+        f"given up by edge bounds and QoS: {ev['given_up']}, "
         f"frames lost on lossy links (resent): {ev['frames_lost_on_links']}"
     )
     rc = r["reconfigurations"]

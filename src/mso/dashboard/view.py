@@ -50,7 +50,7 @@ class Entry:
     what: str
     why: str = ""
     took_ms: float | None = None
-    lost: int | None = None  # events lost (dropped on parked chains) while it ran
+    lost: int | None = None  # events given up (edge bounds and QoS) while it ran
     ok: bool = True
 
     def as_dict(self) -> dict[str, Any]:
@@ -74,7 +74,7 @@ class Tracker:
     _history: deque[tuple[float, dict[str, Any]]] = field(default_factory=deque)
     _seen: set[tuple[Any, ...]] = field(default_factory=set)
     _placement: dict[tuple[str, str], str] = field(default_factory=dict)
-    _dropped: dict[str, int] = field(default_factory=dict)  # app -> dropped on parked chains
+    _dropped: dict[str, int] = field(default_factory=dict)  # app -> given up by edge bounds and QoS
     # (app, vertex) -> (node, kind, why, took_ms, when) of a move asked for, not yet seen
     _requested: dict[tuple[str, str], tuple[str, str, str, float | None, float]] = field(
         default_factory=dict
@@ -253,7 +253,7 @@ class Tracker:
                 )  # fmt: skip
                 agg["delay"].update(app.get("chain_delay_ms", {}))
                 agg["parked"].update(app.get("parked", {}))
-                agg["dropped"] += sum(app.get("dropped_parked", {}).values())
+                agg["dropped"] += sum(app.get("given_up", {}).values())
                 for v, vs in app["vertices"].items():
                     agg["placement"][v] = nid
                     agg["vertices"][v] = {
@@ -308,7 +308,7 @@ class Tracker:
                     "chains": chains,
                     "placement": agg["placement"],
                     "vertices": agg["vertices"],
-                    "dropped_parked": dropped,
+                    "given_up": dropped,
                 }
             )
         return out

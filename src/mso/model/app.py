@@ -18,6 +18,7 @@ import msgspec
 from mso.errors import AppError, with_code_hint
 from mso.model.graph import topological_order
 from mso.model.imports import ImportPathError, resolve
+from mso.model.qos import DEFAULT_BUFFER_AGE_S, DEFAULT_BUFFER_BYTES, QOS_KEYS, check_edge_qos
 from mso.model.yamlfile import Located
 
 Code = str | Callable[..., Any]
@@ -58,6 +59,15 @@ class Edge:
     dst: str
     format: type[msgspec.Struct] | str | None = None
     size: int | None = None  # bytes per event, an estimate for planning and energy
+    # delivery settings (mso.model.qos): reliability, history, deadline, lifespan, and the
+    # store-and-forward bound (bytes, age) with what happens past it
+    qos: str = "reliable"
+    keep_last: int | None = None
+    deadline_ms: float | None = None
+    lifespan_ms: float | None = None
+    buffer_bytes: int = DEFAULT_BUFFER_BYTES
+    buffer_age_s: float = DEFAULT_BUFFER_AGE_S
+    overflow: str = "buffer"
 
 
 @dataclass
@@ -131,9 +141,14 @@ class App:
         *,
         format: type[msgspec.Struct] | str | None = None,
         size: int | None = None,
+        **qos: Any,
     ) -> Edge:
-        """Add an edge ``src -> dst``; endpoints are checked by :meth:`validate`."""
-        e = Edge(src=src, dst=dst, format=format, size=size)
+        """Add an edge ``src -> dst``; endpoints are checked by :meth:`validate`; ``qos``:
+        the keys of :data:`mso.model.qos.QOS_KEYS`."""
+        unknown = sorted(set(qos) - set(QOS_KEYS))
+        if unknown:
+            raise AppError(f"unknown edge setting {unknown[0]!r}", field="edges")
+        e = Edge(src=src, dst=dst, format=format, size=size, **qos)
         self.edges.append(e)
         return e
 
@@ -264,6 +279,7 @@ class App:
                     f"{where}.size",
                     (*path, "size"),
                 )
+            check_edge_qos(e, self._error, where, path)
             if e.format is not None and not isinstance(e.format, str) and not _is_struct(e.format):
                 raise self._error(
                     f"expected an import path 'package.module:Struct' or a msgspec.Struct type, "

@@ -7,6 +7,7 @@ from typing import Any
 
 from mso.errors import AppError, SpecError
 from mso.model.app import PLANNERS, App
+from mso.model.qos import QOS_KEYS
 from mso.model.yamlfile import Located, load_yaml, load_yaml_file
 
 APP_KEYS = {"name", "vertices", "edges", "slo_ms", "policy", "planner"}
@@ -23,7 +24,7 @@ VERTEX_KEYS = {
     "set_state",
     "isolation",
 }
-EDGE_KEYS = {"from", "to", "format", "size"}
+EDGE_KEYS = {"from", "to", "format", "size", *QOS_KEYS}
 # an app document travels to every node, which loads and places it on its control plane: a
 # bounded size keeps that well under a second (40,000 vertices took 10 s)
 MAX_VERTICES = 5_000
@@ -108,7 +109,10 @@ def app_from_document(doc: Located, *, resolve_code: bool = True) -> App:
             for key in ("from", "to"):
                 if not isinstance(item.get(key), str):
                     raise _err(doc, f"expected a vertex id, got {item.get(key)!r}", (*path, key))
-            app.edge(item["from"], item["to"], format=item.get("format"), size=item.get("size"))
+            qos = {k: item[k] for k in QOS_KEYS if k in item}
+            app.edge(
+                item["from"], item["to"], format=item.get("format"), size=item.get("size"), **qos
+            )
         else:
             raise _err(doc, f"expected [producer, consumer] or a mapping, got {item!r}", path)
     return app.validate(resolve_code=resolve_code)

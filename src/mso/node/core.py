@@ -72,6 +72,7 @@ from mso.protocol.procedures.relocation import Relocation, Relocator
 from mso.protocol.procedures.remap import Remap, Remapper
 from mso.protocol.procedures.restore import Restorer
 from mso.protocol.procedures.status import StatusFanout
+from mso.protocol.spill import MemorySpill, SpillStore
 from mso.protocol.state import AppState, HostedInstance
 
 __all__ = ["AppState", "Effect", "HostedInstance", "NodeCore", "Reply", "Send", "SetTimer"]
@@ -105,8 +106,12 @@ class NodeCore:
         incarnation: int = 0,
         clock: Callable[[], float] | None = None,
         early: EarlyLimits | None = None,
+        spill: SpillStore | None = None,
     ) -> None:
         self.id = node_id
+        # where edges spill what they cannot deliver yet, and positions kept across restarts
+        # (the driver's: a file under the daemon's state directory; in memory otherwise)
+        self.spill: SpillStore = spill if spill is not None else MemorySpill()
         self.capacity = capacity
         self.window = window
         self.power = power or PowerModel()

@@ -11,10 +11,13 @@ each event is delivered once and in order.
 
 from __future__ import annotations
 
+import itertools
 from collections import deque
 from collections.abc import Hashable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
+
+from mso.protocol.spill import SpillStore
 
 
 @dataclass
@@ -28,6 +31,12 @@ class OutChannel:
     a replacement can start from the replica plus their replay. Retained events do not count
     against the window (the consumer has them); they are bounded by their owner, and local to
     this channel: a relocation hands over the unacknowledged events only.
+
+    Store and forward: events numbered but not sent yet (from ``sent``) wait while the consumer
+    is out of reach, and go out, a window at a time, once it is back. Past the window and
+    ``mem_limit`` bytes in memory, the newest events spill to ``store`` (the driver's durable
+    log) and come back into memory as acks make room. The data plane applies the edge's bound
+    and overflow policy (:mod:`mso.protocol.dataplane`); the counts of what it gave up are here.
     """
 
     window: int = 4096
@@ -36,13 +45,25 @@ class OutChannel:
     waiting_since: float = 0.0  # when the oldest unacknowledged event started waiting
     # the consumer's output positions reported with the last ack (see AckGate)
     positions: dict[int, int] = field(default_factory=dict)
+    store: SpillStore | None = None  # where events past the window and mem_limit spill
+    key: str = ""  # this edge instance's name in the store
+    mem_limit: int = 8 << 20  # bytes in memory past the window before events spill
 
     HISTORY = 64  # acks whose positions are kept, to look one up at an exact position
 
     def __post_init__(self) -> None:
-        self._unacked: deque[bytes] = deque()  # events from ``base`` to ``next_seq``
+        self._unacked: deque[bytes] = deque()  # events from ``base`` on, in memory
         self.base = self.acked
+        self.sent = self.next_seq  # events from here on have not been sent yet
+        self.mem_bytes = 0
+        self.spilled = 0  # the newest events, in the store
+        self.stamps: deque[tuple[int, float]] = deque()  # (first seq, when it was numbered)
         self.retentions: dict[Hashable, int] = {}  # owner -> first seq it retains
+        # what the edge's policies gave up, counted (reported in status, never silent)
+        self.dropped = 0  # past the bound (overflow policy), or best effort out of reach
+        self.superseded = 0  # keep_last: older events replaced by newer ones
+        self.expired = 0  # lifespan: too old to deliver
+        self.given_up = 0  # best effort: lost on the way, not sent again
         # ack position -> the positions that came with it: a vertex releasing a checkpoint
         # at exactly such a position passes them on upstream (transitive, see AckGate)
         self.history: dict[int, dict[int, int]] = {}
@@ -64,12 +85,7 @@ class OutChannel:
 
     def push(self, payload: bytes, now: float = 0.0) -> int:
         """Number a new event and keep it until acknowledged; returns its sequence number."""
-        seq = self.next_seq
-        if seq == self.acked:
-            self.waiting_since = now
-        self._unacked.append(payload)
-        self.next_seq += 1
-        return seq
+        return self.push_many([payload], now)
 
     @property
     def room(self) -> int:
@@ -81,7 +97,18 @@ class OutChannel:
         seq = self.next_seq
         if seq == self.acked:
             self.waiting_since = now
-        self._unacked.extend(payloads)
+        size = sum(map(len, payloads))
+        if self.store is not None and (
+            self.spilled
+            or (seq - self.base >= self.window and self.mem_bytes + size > self.mem_limit)
+        ):
+            self.store.append(self.key, seq, payloads)
+            self.spilled += len(payloads)
+        else:
+            self._unacked.extend(payloads)
+            self.mem_bytes += size
+        if not self.stamps or now > self.stamps[-1][1] + 1e-3:
+            self.stamps.append((seq, now))
         self.next_seq += len(payloads)
         return seq
 
@@ -98,10 +125,61 @@ class OutChannel:
 
     def _trim(self) -> None:
         """Forget the events below both the ack and every retention."""
-        keep = min(self.retentions.values(), default=self.acked)
-        for _ in range(min(keep, self.acked) - self.base):
-            self._unacked.popleft()
-        self.base = max(self.base, min(keep, self.acked))
+        keep = min(min(self.retentions.values(), default=self.acked), self.acked)
+        n = keep - self.base
+        if n <= 0:
+            return
+        in_memory = min(n, len(self._unacked))
+        for _ in range(in_memory):
+            self.mem_bytes -= len(self._unacked.popleft())
+        self.spilled -= n - in_memory
+        self.base = keep
+        self.sent = max(self.sent, keep)
+        while len(self.stamps) > 1 and self.stamps[1][0] <= keep:
+            self.stamps.popleft()
+        if self.spilled and self.store is not None:
+            self.store.trim(self.key, keep + len(self._unacked))
+            self._refill()
+
+    def _refill(self) -> None:
+        """Bring the oldest spilled events back into memory while there is room."""
+        assert self.store is not None
+        while self.spilled and self.mem_bytes < self.mem_limit:
+            first = self.base + len(self._unacked)
+            back = self.store.read(self.key, first, min(self.spilled, 256))
+            if not back:
+                break
+            self._unacked.extend(back)
+            self.mem_bytes += sum(map(len, back))
+            self.spilled -= len(back)
+            self.store.trim(self.key, first + len(back))
+
+    def drop_front(self, upto: int, now: float) -> int:
+        """Give up the events below ``upto`` as if acknowledged (an overflow policy or a
+        lifespan did); the consumer skips them by the floor of the next frame. Returns how
+        many were given up."""
+        return self.on_ack(min(max(upto, self.acked), self.next_seq), now)
+
+    @property
+    def spill_bytes(self) -> int:
+        return self.store.size(self.key) if self.spilled and self.store is not None else 0
+
+    @property
+    def kept_bytes(self) -> int:
+        return self.mem_bytes + self.spill_bytes
+
+    def age(self, now: float) -> float:
+        """How long the oldest event kept has waited."""
+        return now - self.stamps[0][1] if self.stamps and self.kept else 0.0
+
+    def stamp(self, seq: int) -> float:
+        """When ``seq`` was numbered (to the millisecond; the oldest kept if before)."""
+        t = self.stamps[0][1] if self.stamps else 0.0
+        for first, at in self.stamps:
+            if first > seq:
+                break
+            t = at
+        return t
 
     def overdue(self, now: float, timeout: float) -> bool:
         """Events have waited ``timeout`` with no ack progress: time to send them again."""
@@ -111,11 +189,31 @@ class OutChannel:
         """``(first seq, events)`` still unacknowledged from ``start`` (default: all)."""
         return self.events_from(self.acked if start is None else max(start, self.acked))
 
-    def events_from(self, start: int) -> tuple[int, list[bytes]]:
-        """``(first seq, events)`` kept from ``start`` on (no earlier than ``base``)."""
+    def events_from(self, start: int, count: int | None = None) -> tuple[int, list[bytes]]:
+        """``(first seq, events)`` kept from ``start`` on (no earlier than ``base``), at most
+        ``count`` of them."""
         begin = max(start, self.base)
-        skip = begin - self.base
-        return begin, [p for i, p in enumerate(self._unacked) if i >= skip]
+        end = self.next_seq if count is None else min(self.next_seq, begin + count)
+        in_memory = self.base + len(self._unacked)
+        out = (
+            list(
+                itertools.islice(self._unacked, begin - self.base, min(end, in_memory) - self.base)
+            )
+            if begin < in_memory
+            else []
+        )
+        if end > in_memory and self.store is not None:
+            frm = max(begin, in_memory)
+            out += self.store.read(self.key, frm, end - frm)
+        return begin, out
+
+    def unsent(self, limit: int) -> tuple[int, list[bytes]]:
+        """The next events to send, within the window and at most ``limit``; they count as
+        sent from now on."""
+        end = min(self.next_seq, self.acked + self.window, self.sent + limit)
+        first, events = self.events_from(self.sent, max(0, end - self.sent))
+        self.sent = max(self.sent, first + len(events))
+        return first, events
 
     # -- retention: keep events past their ack until released ---------------------------------
     def retain(self, owner: Hashable, start: int) -> None:
@@ -165,6 +263,11 @@ class InChannel:
     positions: dict[int, int] = field(default_factory=dict)  # sent with the acks
     reack: bool = False  # a duplicate arrived: the producer missed an ack, send it again
     skipped: int = 0  # events the producer gave up before they arrived (see ``skip_to``)
+    # QoS at the consumer (mso.protocol.delivery): events never fed, and the deadline
+    superseded: int = 0  # keep_last: newer ones came before they were fed
+    expired: int = 0  # lifespan: too old when their turn came
+    deadline_missed: int = 0  # arrivals later than deadline_ms after the one before
+    last_at: float | None = None  # when the last new event arrived
 
     def __post_init__(self) -> None:
         # (position, count): once ``processed`` reaches position, count events were skipped

@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from mso.protocol.effects import Effect
     from mso.protocol.events import InternalEvent
     from mso.protocol.procedures.base import Procedure
+    from mso.protocol.spill import SpillStore
     from mso.protocol.state import AppState
 
 
@@ -60,6 +61,11 @@ class NodeContext(Protocol):
 
     @property
     def authority(self) -> Authority: ...
+
+    @property
+    def spill(self) -> SpillStore:
+        """Where edges spill events they cannot deliver yet (the driver's durable log)."""
+        ...
 
     # -- effects ---------------------------------------------------------------------------
     def send(self, dst: str, msg: m.Message) -> None:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+from mso.protocol import delivery
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.channel import AckGate, InChannel, OutChannel
@@ -55,6 +56,9 @@ class DataPlane:
         self._next_instance = 0
         # per edge: (first seq, events, when the oldest entered its chain)
         self.outbox: dict[tuple[str, int], tuple[int, list[bytes], float]] = {}
+        # (app, epoch, edge) -> a source's channel kept across this node's reset, until the
+        # source is restored here (bounded: one per edge of the apps it ran)
+        self.carried: dict[tuple[str, int, int], OutChannel] = {}
         self.work_ms = 0.0  # modelled CPU work of every event processed here (cost units)
         self.cpu_ms = 0.0  # measured CPU time of the vertex code that ran here
 
@@ -91,7 +95,24 @@ class DataPlane:
 
     def stop_all(self, reason: str) -> None:
         for dep in self.ctx.apps.values():
+            if reason == "reset":  # its sources' edges outlive the reset (see ``carried``)
+                for vid, h in dep.instances.items():
+                    if h.kind == "source":
+                        for e in dep.out_edges.get(vid, []):
+                            if e in dep.out:
+                                self.carried[(dep.app.name, dep.epoch, e)] = dep.out[e]
             self.stop_app(dep, reason)
+
+    def carry_over(self, dep: AppState, edge: int, start: int) -> OutChannel | None:
+        """A source restored here after this node reset: the channel its edge had before the
+        reset, if it still holds ``start`` (where the consumer stands): what the source made
+        while cut off is still delivered, and it numbers on from there, never from 0."""
+        ch = self.carried.pop((dep.app.name, dep.epoch, edge), None)
+        if ch is None or not ch.acked <= start <= ch.next_seq:
+            return None
+        ch.on_ack(start, self.ctx.now)
+        ch.sent = start  # the rest goes (again), a window at a time
+        return ch
 
     def on_vertex(self, res: fx.VertexResult, now: float) -> None:
         """A result from the executor: account for it, then act on what it says."""
@@ -169,8 +190,22 @@ class DataPlane:
     def out(self, dep: AppState, edge: int) -> OutChannel:
         ch = dep.out.get(edge)
         if ch is None:
-            ch = dep.out[edge] = OutChannel(window=self.ctx.window)
+            ch = dep.out[edge] = self.channel(dep, edge)
         return ch
+
+    def channel(self, dep: AppState, edge: int, start: int = 0) -> OutChannel:
+        """A new producer end of ``edge`` numbering from ``start``; past its window and memory
+        bound it spills to the node's store (what an earlier end here left there is gone)."""
+        key = f"{dep.app.name}/{dep.epoch}/{edge}"
+        self.ctx.spill.drop(key)
+        now = self.ctx.now
+        return OutChannel(self.ctx.window, start, start, now, store=self.ctx.spill, key=key)
+
+    def held(self, dep: AppState, edge: int) -> bool:
+        """The consumer of ``edge`` is out of reach (failed, or no route to it): its events
+        wait here until it is back or restored elsewhere (store and forward)."""
+        dst = dep.placed[dep.app.edges[edge].dst]
+        return dst != self.ctx.id and (dst in self.ctx.failed or dst not in self.ctx.routes)
 
     def start_source(self, dep: AppState, vid: str, now: float) -> None:
         h = dep.instances[vid]
@@ -179,11 +214,16 @@ class DataPlane:
         if h.mode == "loop":
             self.grant(dep, vid)
             return
-        h.t0, h.asked = now, 0
+        h.t0 = now - h.asked / h.rate if h.rate else now  # (restored: numbers on, see asked)
         self.ctx.emit(SetTimer(SourceTick(dep.app.name, vid), now))
 
     def _room(self, dep: AppState, vid: str) -> int:
-        return min((self.out(dep, e).room for e in dep.out_edges.get(vid, [])), default=SOURCE_RUN)
+        return min((self.edge_room(dep, e) for e in dep.out_edges.get(vid, [])), default=SOURCE_RUN)
+
+    def edge_room(self, dep: AppState, edge: int) -> int:
+        """Events the producer of ``edge`` may make now (the window, or the store's bound)."""
+        held = self.held(dep, edge)
+        return delivery.room(self.out(dep, edge), dep.app.edges[edge], held)
 
     def source_tick(self, app: str, vid: str, now: float) -> None:
         """A rated source keeps its schedule: event k is due at t0 + k / rate; a late tick
@@ -242,11 +282,12 @@ class DataPlane:
         ``ts`` is when they entered chain ``chain``: an edge of that chain carries it on, an
         edge that starts another chain starts it from now."""
         for e in edges:
-            if e in dep.parked_edges:
-                dep.dropped[e] = dep.dropped.get(e, 0) + len(payloads)
-                continue
             out = self.out(dep, e)
             seq = out.push_many(payloads, self.ctx.now)
+            if out.sent != seq or self.held(dep, e):  # out of reach, or a backlog to send first
+                self.hold(dep, e, out)
+                continue
+            out.sent = out.next_seq
             dst_node = dep.placed[dep.app.edges[e].dst]
             t = ts if dep.layout.edge_chain[e] == chain else self.ctx.now
             if dst_node == self.ctx.id:
@@ -263,6 +304,51 @@ class DataPlane:
                     data = m.Data(dep.app.name, e, dep.epoch, *batch, floor=out.acked)
                     self.ctx.emit(Send(dst_node, data))
         return sum(map(len, payloads))
+
+    # -- store and forward ---------------------------------------------------------------------
+    def hold(self, dep: AppState, edge: int, out: OutChannel) -> None:
+        """Events wait on ``edge``: apply its bound, history and lifespan, then send what a
+        reachable consumer's window admits."""
+        if delivery.enforce(out, dep.app.edges[edge], self.held(dep, edge), self.ctx.now):
+            self.gave_up(dep, edge)
+        self.drain(dep, edge)
+
+    def gave_up(self, dep: AppState, edge: int) -> None:
+        """Events of ``edge`` were given up as if acknowledged: pass that on upstream (chained
+        acks) and wake a producer held by the bound."""
+        producer = dep.app.edges[edge].src
+        if producer in dep.instances:
+            self.release(dep, producer)
+        self.unblock(dep, edge)
+
+    def drain(self, dep: AppState, edge: int) -> None:
+        """Send what ``edge`` holds unsent, as far as its window admits, in frames of about
+        ``MAX_BATCH_BYTES`` (after an outage, or events handed over unsent)."""
+        out = dep.out.get(edge)
+        if out is None or out.sent >= out.next_seq or self.held(dep, edge):
+            return
+        app, dst = dep.app.name, dep.placed[dep.app.edges[edge].dst]
+        batch = self.outbox.pop((app, edge), None)  # what was sent before goes first
+        if batch is not None:
+            self.ctx.emit(Send(dst, m.Data(app, edge, dep.epoch, *batch, floor=out.acked)))
+        per_frame = max(1, MAX_BATCH_BYTES // max(1, out.kept_bytes // max(1, out.kept)))
+        ts = out.stamp(out.sent)
+        while True:
+            first, events = out.unsent(per_frame)
+            if not events:
+                return
+            self.transmit(dep, edge, first, events, ts, out.acked)
+
+    def transmit(
+        self, dep: AppState, edge: int, first: int, events: list[bytes], ts: float, floor: int
+    ) -> None:
+        """Events ``first``... of ``edge`` to its consumer, now (here: delivered at once)."""
+        dst = dep.placed[dep.app.edges[edge].dst]
+        if dst == self.ctx.id:
+            self.deliver(dep, edge, first, events, ts, floor)
+        else:
+            data = m.Data(dep.app.name, edge, dep.epoch, first, events, ts, floor)
+            self.ctx.emit(Send(dst, data))
 
     def deliver(
         self,
@@ -282,6 +368,12 @@ class DataPlane:
             ch = dep.inc[edge] = InChannel()
         fresh = ch.accept(seq, events, floor)
         if fresh:
+            deadline = dep.app.edges[edge].deadline_ms
+            now = self.ctx.now
+            late = ch.last_at is not None and (now - ch.last_at) * 1e3 > (deadline or 0)
+            if deadline is not None and late:
+                ch.deadline_missed += 1
+            ch.last_at = now
             self.enqueue(dep, dst, (edge, fresh, ts))
 
     def enqueue(
@@ -308,6 +400,12 @@ class DataPlane:
                 continue
             if h.queued >= QUEUE_EVENTS:
                 return
+            qos = dep.app.edges[item[0]]
+            if qos.keep_last is not None or qos.lifespan_ms is not None:
+                if not h.queued and self._give_up_input(dep, vid, h):
+                    continue
+                if qos.keep_last is not None and h.queued >= qos.keep_last:
+                    return  # the newest N wait here, where newer ones can supersede them
             edge, events, ts = item
             if len(events) > FEED_BATCH:
                 feed = events[:FEED_BATCH]
@@ -365,6 +463,12 @@ class DataPlane:
             h.emitted += fx.events_in(res.outputs)
             sent = self.send_events(dep, out_edges, res.outputs, ts, chain)
             h.bytes_out += sent * len(out_edges)
+        self._input_done(dep, vid, edge, ch)
+        self.pump(dep, vid)
+
+    def _input_done(self, dep: AppState, vid: str, edge: int, ch: InChannel) -> None:
+        """Events of ``edge`` are processed (or given up by its QoS): acknowledge them."""
+        out_edges = dep.out_edges.get(vid, [])
         if out_edges:  # chained acks: the inputs are acked once the outputs are
             if ch.released is None:
                 ch.released = ch._acked
@@ -375,7 +479,50 @@ class DataPlane:
             self.release(dep, vid)
         elif ch.processed - ch._acked >= ACK_EVERY:
             self.ack(dep, edge)
-        self.pump(dep, vid)
+
+    def _give_up_input(self, dep: AppState, vid: str, h: HostedInstance) -> bool:
+        """With nothing in the worker, apply the QoS of the next waiting events' edge:
+        expired ones (lifespan) and all but the newest ``keep_last`` (superseded) are counted
+        and acknowledged unfed. True if any were."""
+        item = h.pending[0]
+        assert not isinstance(item, m.Marker)
+        edge, events, ts = item
+        e, ch = dep.app.edges[edge], dep.inc.get(edge)
+        if ch is None:
+            return False
+        if e.lifespan_ms is not None and self.ctx.now - ts > e.lifespan_ms / 1e3:
+            h.pending.popleft()
+            ch.expired += len(events)
+            ch.mark_processed(len(events))
+            self._input_done(dep, vid, edge, ch)
+            return True
+        if e.keep_last is None:
+            return False
+        waiting = 0
+        for it in h.pending:
+            if isinstance(it, m.Marker):
+                break  # (what follows a marker is the next instance's)
+            if it[0] == edge:
+                waiting += len(it[1])
+        extra = waiting - e.keep_last
+        if extra <= 0:
+            return False
+        kept: list[tuple[int, list[bytes], float] | m.Marker] = []
+        left = extra
+        while h.pending and left:
+            it = h.pending.popleft()
+            if isinstance(it, m.Marker) or it[0] != edge:
+                kept.append(it)
+                continue
+            n = min(left, len(it[1]))
+            left -= n
+            if n < len(it[1]):
+                kept.append((edge, it[1][n:], it[2]))
+        h.pending.extendleft(reversed(kept))
+        ch.superseded += extra
+        ch.mark_processed(extra)
+        self._input_done(dep, vid, edge, ch)
+        return True
 
     def release(self, dep: AppState, vid: str) -> None:
         """Acknowledge the inputs of ``vid`` as far as its outputs have been acknowledged."""
@@ -413,6 +560,7 @@ class DataPlane:
                 return
             out.on_ack(upto, self.ctx.now)
             out.note_positions(upto, dict(ch.positions))
+            self.drain(dep, edge)
             self.unblock(dep, edge)
             self.release(dep, producer)
         elif src_node not in self.ctx.failed:
@@ -432,6 +580,7 @@ class DataPlane:
             self.ctx.dropped()
             return
         out.note_positions(msg.upto, msg.positions)
+        self.drain(dep, msg.edge)
         self.unblock(dep, msg.edge)
         self.release(dep, dep.app.edges[msg.edge].src)
 
@@ -475,22 +624,35 @@ class DataPlane:
                     self.ack(dep, edge)
 
     def retransmit(self, app: str, now: float) -> None:
-        """Go-back-N: resend what has waited a whole period without any ack progress."""
+        """Go-back-N: resend what has waited a whole period without any ack progress (a
+        window at most; a best-effort edge gives it up instead). Then the periodic part of
+        store and forward: bounds and lifespans applied, backlogs drained to consumers back
+        in reach, producers the bound held woken."""
         dep = self.ctx.apps.get(app)
         if dep is None or not dep.running:
             return
-        for edge, ch in dep.out.items():
-            if ch.overdue(now, RETRANSMIT_S):
-                dst = dep.placed[dep.app.edges[edge].dst]
-                if dst in self.ctx.failed:  # held until the consumer is restored elsewhere
-                    continue
-                first, events = ch.unacked()
-                if dst == self.ctx.id:
-                    self.deliver(dep, edge, first, events, floor=first)
+        for edge, ch in list(dep.out.items()):
+            e = dep.app.edges[edge]
+            held = self.held(dep, edge)
+            if delivery.enforce(ch, e, held, now):
+                self.gave_up(dep, edge)
+            if held:  # kept until the consumer is back or restored elsewhere
+                self.unblock(dep, edge)  # (it may make events into the store now)
+                continue
+            if ch.overdue(now, RETRANSMIT_S) and ch.sent > ch.acked:
+                if e.qos == "best_effort":
+                    ch.given_up += ch.drop_front(ch.sent, now)
+                    self.gave_up(dep, edge)
                 else:  # ``first`` is the acked position: nothing below it will come again
-                    data = m.Data(app, edge, dep.epoch, first, events, floor=first)
-                    self.ctx.emit(Send(dst, data))
+                    first, events = ch.events_from(ch.acked, min(ch.sent - ch.acked, ch.window))
+                    per_frame = max(1, MAX_BATCH_BYTES // max(1, ch.kept_bytes // ch.kept))
+                    for i in range(0, len(events), per_frame):
+                        chunk = events[i : i + per_frame]
+                        self.transmit(dep, edge, first + i, chunk, ch.stamp(first), first)
                 ch.waiting_since = now
+            self.drain(dep, edge)
+            if dep.app.edges[edge].src in dep.blocked_sources:
+                self.unblock(dep, edge)
         self.ctx.emit(SetTimer(Retransmit(app), now + RETRANSMIT_S))
 
     def report_delays(self, now: float) -> None:

@@ -48,13 +48,23 @@ class Crashes:
 
 
 class EdgeStatus(msgspec.Struct, frozen=True, kw_only=True):
-    """One edge's ends at this node: what its producer here sent, its consumer here got."""
+    """One edge's ends at this node: what its producer here sent and holds, its consumer here
+    got, and what the edge's bound and QoS gave up (counted, never silent)."""
 
-    sent: int
+    sent: int  # events numbered (the next sequence number)
     delivered: int
     duplicates: int
-    in_flight: int
+    in_flight: int  # unacknowledged, sent or waiting
     events_per_s: float
+    waiting: int = 0  # not sent yet: the consumer is out of reach, or a backlog drains
+    held_bytes: int = 0  # bytes the producer keeps (memory and spill)
+    spilled_bytes: int = 0  # of which in the spill store
+    dropped: int = 0  # given up past the bound (overflow policy), or best effort unreachable
+    superseded: int = 0  # keep_last: replaced by newer ones (not lost)
+    expired: int = 0  # lifespan
+    lost: int = 0  # best effort: lost on the way, not sent again
+    deadline_missed: int = 0
+    late: bool = False  # nothing arrived within deadline_ms
 
 
 class VertexStatus(msgspec.Struct, frozen=True, kw_only=True):
@@ -85,7 +95,7 @@ class AppStatus(msgspec.Struct, frozen=True, kw_only=True):
     running: bool
     parked: dict[str, str]  # chain -> why it cannot run
     recoveries: list[dict[str, Any]]  # what each recovery did (mso.protocol.procedures.remap)
-    dropped_parked: dict[str, int]
+    given_up: dict[str, int]  # edge -> events dropped, expired or lost by its bound and QoS
     chain_delay_ms: dict[str, float]
     slo_ms: float | None
     origin: str
@@ -204,8 +214,6 @@ class AppState:
     blocked_sources: set[str] = field(default_factory=set)
     started_at: float = 0.0
     parked: dict[int, str] = field(default_factory=dict)  # chain -> why it cannot run
-    parked_edges: set[int] = field(default_factory=set)  # edges of parked chains
-    dropped: dict[int, int] = field(default_factory=dict)  # edge -> events a parked chain lost
     recovering: int | None = None  # the remap recovering from a failure, at its coordinator
     restoring: dict[str, Restoring] = field(default_factory=dict)  # replacements awaiting
     recoveries: list[dict[str, Any]] = field(default_factory=list)  # what was done, bounded
@@ -232,27 +240,43 @@ class AppState:
         recoveries, each edge with an end here, each instance here (crashed ones too)."""
         up = max(now - self.started_at, 1e-9) if self.running else 0.0
         edges = {}
+        given_up: dict[str, int] = {}
         for i, e in enumerate(self.app.edges):
             if i in self.out or i in self.inc:
                 inc = self.inc.get(i)
                 out = self.out.get(i)
                 sent = out.next_seq if out else 0
-                edges[f"{e.src}->{e.dst}"] = EdgeStatus(
+                name = f"{e.src}->{e.dst}"
+                edges[name] = EdgeStatus(
                     sent=sent,
                     delivered=inc.expected if inc else 0,
                     duplicates=inc.duplicates if inc else 0,
                     in_flight=out.in_flight if out else 0,
                     events_per_s=(sent / up) if up else 0.0,
+                    waiting=out.next_seq - out.sent if out else 0,
+                    held_bytes=out.kept_bytes if out else 0,
+                    spilled_bytes=out.spill_bytes if out else 0,
+                    dropped=out.dropped if out else 0,
+                    superseded=(out.superseded if out else 0) + (inc.superseded if inc else 0),
+                    expired=(out.expired if out else 0) + (inc.expired if inc else 0),
+                    lost=out.given_up if out else 0,
+                    deadline_missed=inc.deadline_missed if inc else 0,
+                    late=bool(
+                        inc is not None
+                        and e.deadline_ms is not None
+                        and inc.last_at is not None
+                        and (now - inc.last_at) * 1e3 > e.deadline_ms
+                    ),
                 )
+                gone = edges[name].dropped + edges[name].expired + edges[name].lost
+                if gone:
+                    given_up[name] = gone
         chains = self.layout.chains
         return AppStatus(
             running=self.running,
             parked={chains[c].name: why for c, why in self.parked.items()},
             recoveries=list(self.recoveries),
-            dropped_parked={
-                f"{self.app.edges[e].src}->{self.app.edges[e].dst}": n
-                for e, n in sorted(self.dropped.items())
-            },
+            given_up=given_up,
             chain_delay_ms={chains[c].name: round(ms, 3) for c, ms in sorted(self.delays.items())},
             slo_ms=self.app.slo_ms,
             origin=self.origin,

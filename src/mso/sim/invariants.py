@@ -160,7 +160,7 @@ def _events(
 ) -> list[Violation]:
     out: list[Violation] = []
     failures = any(core.failures or core.rejoins for core in sim.cores.values())
-    parked = any(sum(a["dropped_parked"].values()) for a in known.values())
+    parked = any(sum(a["given_up"].values()) for a in known.values())
     blamed = failures or parked or sched.faults["crash"] or sched.faults["partition"]
     for rec in records:
         for (src, born), s in sorted(rec.streams.items()):

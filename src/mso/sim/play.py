@@ -134,7 +134,7 @@ def _report(
     reply = deploy[0] if deploy else None
     sent: dict[str, int] = {}  # edge -> highest sequence number sent (over every node)
     delivered: dict[str, int] = {}
-    dropped: dict[str, int] = {}  # edge -> events dropped while its chain was parked
+    dropped: dict[str, int] = {}  # edge -> events its bound and QoS gave up (counted)
     recoveries: dict[tuple[Any, ...], dict[str, Any]] = {}
     vertices: dict[str, dict[str, Any]] = {}
     for n, st in status.items():
@@ -144,7 +144,7 @@ def _report(
         for e, c in a["edges"].items():
             sent[e] = max(sent.get(e, 0), c["sent"])
             delivered[e] = max(delivered.get(e, 0), c["delivered"])
-        for e, k in a["dropped_parked"].items():
+        for e, k in a["given_up"].items():
             dropped[e] = max(dropped.get(e, 0), k)
         for rec in a["recoveries"]:
             recoveries[(rec.get("at"), tuple(rec.get("failed", ())))] = rec
@@ -155,13 +155,13 @@ def _report(
     sinks = sorted(v for v, d in vertices.items() if d["kind"] == "sink")
     edges = [e.split("->") for e in sent.keys() | delivered.keys()]
     events = {
-        "emitted": {  # what entered the network: sent, or dropped on a parked chain
-            s: max((sent[e] + dropped.get(e, 0) for e in sent if e.split("->")[0] == s), default=0)
+        "emitted": {  # what entered the network: numbered on the source's edges
+            s: max((sent[e] for e in sent if e.split("->")[0] == s), default=0)
             for s in sources
         },
         "delivered": {k: sum(delivered.get(f"{a}->{b}", 0) for a, b in edges if b == k)
         for k in sinks},
-        "dropped_parked": sum(dropped.values()),
+        "given_up": sum(dropped.values()),
         "frames_lost_on_links": sim.lost,
     }  # fmt: skip
     failures: dict[tuple[str, float], dict[str, Any]] = {}

@@ -33,7 +33,7 @@ from typing import Any, ClassVar
 from mso.errors import MsoError
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
-from mso.protocol.channel import AckGate, InChannel, OutChannel
+from mso.protocol.channel import AckGate, InChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
 from mso.protocol.effects import Reply, Send, SetTimer
@@ -503,7 +503,7 @@ class Relocator:
                 released=acked if gated else None,
             )
         for i, (next_seq, acked, events, positions) in msg.outputs.items():
-            ch = OutChannel(window=self.ctx.window, next_seq=acked, acked=acked, waiting_since=now)
+            ch = self.dp.channel(dep, i, acked)
             ch.push_many(events, now)
             ch.next_seq = next_seq
             ch.positions = {int(k): int(v) for k, v in positions.items()}

@@ -430,22 +430,12 @@ class Remapper:
         self._next_chain(pid, now)
 
     def park(self, dep: AppState) -> None:
-        """Chains with a vertex pinned to a failed node cannot run anywhere: park them. Their
-        edges stop carrying events (counted as dropped), so a dead sink on one branch does not
-        hold back, through acks and backpressure, the branches that still run."""
+        """Chains with a vertex pinned to a failed node cannot run anywhere: park them (they
+        are reported, and not remapped). Their edges keep what they cannot deliver, within
+        each edge's bound (store and forward, :mod:`mso.protocol.delivery`), for the node's
+        return."""
         for ci, why in pinned_to_failed(dep.app, dep.layout, self.ctx.failed).items():
             dep.parked.setdefault(ci, why)
-        edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}
-        for e in sorted(edges - dep.parked_edges):
-            out = dep.out.get(e)
-            if out is not None and out.in_flight:
-                dep.dropped[e] = dep.dropped.get(e, 0) + out.in_flight
-                out.on_ack(out.next_seq, self.ctx.now)
-                producer = dep.app.edges[e].src
-                if producer in dep.instances:
-                    self.dp.release(dep, producer)
-                self.dp.unblock(dep, e)
-        dep.parked_edges |= edges
 
     def unpark(self, dep: AppState) -> None:
         """Chains parked for a pinned node that is back run again (after their restore)."""
@@ -453,7 +443,6 @@ class Remapper:
             pins = {dep.app.vertices[v].pinned for v in dep.layout.chains[ci].vertices}
             if not pins & self.ctx.failed:
                 del dep.parked[ci]
-        dep.parked_edges = {e for e, c in enumerate(dep.layout.edge_chain) if c in dep.parked}
 
 
 # -- the recovery rule, as pure functions of what every node holds ------------------------------

@@ -28,10 +28,9 @@ stay held (unacknowledged) upstream.
 from __future__ import annotations
 
 from mso.protocol import messages as m
-from mso.protocol.channel import InChannel, OutChannel
+from mso.protocol.channel import InChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
-from mso.protocol.effects import Send
 from mso.protocol.events import InstanceCrashed, RelocationEnded, ReplacementPrepared
 from mso.protocol.procedures.instance import MAX_RESTARTS, RESTART_WINDOW_S, H, InstanceEvent
 from mso.protocol.procedures.relocation import Relocation, Relocator
@@ -67,13 +66,15 @@ class Restorer:
                 msg.to,
                 m.Resume(msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions)),
             )
-            first, events = out.unacked()
-            if events:
-                data = m.Data(msg.app, msg.edge, dep.epoch, first, events, now)
-                if msg.to == self.ctx.id:
-                    self.ctx.loop_back(self.ctx.id, data)
-                else:
-                    self.ctx.emit(Send(msg.to, data))
+            out.sent = out.acked  # everything unacknowledged goes again, a window at a time
+            if msg.to == self.ctx.id:
+                first, events = out.unsent(out.window)
+                if events:
+                    self.ctx.loop_back(
+                        self.ctx.id, m.Data(msg.app, msg.edge, dep.epoch, first, events, now)
+                    )
+            else:
+                self.dp.drain(dep, msg.edge)
             out.waiting_since = now
         else:  # we consume: say which event we expect next
             dep.placed[edge.src] = msg.to
@@ -131,9 +132,11 @@ class Restorer:
         outs = dep.out_edges.get(vertex, [])
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
-            dep.out[o] = OutChannel(
-                window=self.ctx.window, next_seq=base, acked=base, waiting_since=self.ctx.now
-            )  # positions further down, for a restore of its consumer (replayed from here)
+            carried = self.dp.carry_over(dep, o, base) if h.kind == "source" else None
+            dep.out[o] = carried or self.dp.channel(dep, o, base)
+            # a source numbers on from its edges' positions: its sequence never restarts
+            h.asked = max(h.asked, dep.out[o].next_seq) if h.kind == "source" else h.asked
+            # positions further down, for a restore of its consumer (replayed from here)
             dep.out[o].positions = {e: p for e, p in restoring.positions.items() if e not in outs}
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
             if e.dst == vertex:

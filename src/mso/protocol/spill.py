@@ -1,0 +1,79 @@
+"""Where an edge's producer spills the events it cannot deliver yet, and what it persists.
+
+Sans-IO: the protocol only sees this interface; the driver provides it. The simulator gives
+each node a :class:`MemorySpill` that outlives the node's restarts (as a file would); the daemon
+a SQLite file under its state directory (:mod:`mso.daemon.spill`). Keys name an edge instance
+(``app/epoch/edge``); events are kept by sequence number, contiguous per key, appended at the
+end and trimmed at the front. Positions are small integers that must survive a restart (the
+next sequence number of a source), saved on change.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections import deque
+from typing import Protocol
+
+
+class SpillStore(Protocol):
+    """A durable log of events per edge, and positions that survive a restart."""
+
+    def append(self, key: str, seq: int, events: list[bytes]) -> None:
+        """Keep ``events`` as ``seq``, ``seq + 1``, ... (after what ``key`` holds)."""
+
+    def read(self, key: str, start: int, count: int) -> list[bytes]:
+        """Up to ``count`` events of ``key`` from ``start`` on, in order."""
+        ...
+
+    def trim(self, key: str, below: int) -> None:
+        """Forget the events of ``key`` below ``below``."""
+
+    def drop(self, key: str) -> None:
+        """Forget every event of ``key``."""
+
+    def size(self, key: str) -> int:
+        """Bytes of the events ``key`` holds."""
+        ...
+
+    def save_position(self, key: str, value: int) -> None: ...
+
+    def position(self, key: str) -> int | None: ...
+
+
+class MemorySpill:
+    """The simulator's spill store: in memory, per node, kept across the node's restarts."""
+
+    def __init__(self) -> None:
+        self._logs: dict[str, deque[tuple[int, bytes]]] = {}
+        self._bytes: dict[str, int] = {}
+        self._positions: dict[str, int] = {}
+
+    def append(self, key: str, seq: int, events: list[bytes]) -> None:
+        log = self._logs.setdefault(key, deque())
+        log.extend((seq + i, e) for i, e in enumerate(events))
+        self._bytes[key] = self._bytes.get(key, 0) + sum(map(len, events))
+
+    def read(self, key: str, start: int, count: int) -> list[bytes]:
+        log = self._logs.get(key)
+        if not log or count <= 0:
+            return []
+        skip = max(0, start - log[0][0])
+        return [e for _, e in itertools.islice(log, skip, skip + count)]
+
+    def trim(self, key: str, below: int) -> None:
+        log = self._logs.get(key)
+        while log and log[0][0] < below:
+            self._bytes[key] -= len(log.popleft()[1])
+
+    def drop(self, key: str) -> None:
+        self._logs.pop(key, None)
+        self._bytes.pop(key, None)
+
+    def size(self, key: str) -> int:
+        return self._bytes.get(key, 0)
+
+    def save_position(self, key: str, value: int) -> None:
+        self._positions[key] = value
+
+    def position(self, key: str) -> int | None:
+        return self._positions.get(key)

@@ -1,0 +1,190 @@
+"""Store and forward on every edge: a consumer out of reach gets every event once, in order,
+when it is back; the store's bound and its overflow policies; sequence numbers that never
+restart (simulator, virtual clock)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from mso.model.network import LinkSpec, Network, NodeSpec
+from mso.protocol import messages as m
+from mso.sim.runner import Simulation
+from runtime_vertices import SEEN
+
+
+def pair(a: str = "N1", b: str = "N2") -> Network:
+    return Network([NodeSpec(a), NodeSpec(b)], [LinkSpec(a, b, delay_ms=1.0)])
+
+
+def app(run: str, rate: float = 20, size: int = 0, sink_on: str = "N2", **edge: Any) -> str:
+    qos = "".join(f", {k}: {v}" for k, v in edge.items())
+    return (
+        "name: sf\nvertices:\n"
+        f"  src: {{code: runtime_vertices:CountingSource, pinned: N1, rate: {rate},\n"
+        f"        params: {{size: {size}}}, output: runtime_vertices:Num}}\n"
+        f"  sink: {{code: runtime_vertices:SeenSink, pinned: {sink_on}, params: {{run: {run}}}}}\n"
+        f"edges: [{{from: src, to: sink{qos}}}]\n"
+    )
+
+
+def started(text: str, net: Network | None = None) -> Simulation:
+    sim = Simulation(net or pair())
+    sim.request("N1", m.DeployRequest(text, "sf.yaml"))
+    sim.run_until(1.0)
+    assert all(c.instances("sf") for c in sim.cores.values()), "deployed"
+    return sim
+
+
+def cut(sim: Simulation, seconds: float, b: str = "N2") -> None:
+    """``b`` out of N1's reach for ``seconds``, then back."""
+    sim.network.remove_link("N1", b)
+    sim.links_changed()
+    sim.run_until(sim.now + seconds)
+    sim.network.add_link(LinkSpec("N1", b, delay_ms=1.0))
+    sim.links_changed()
+
+
+def emitted(sim: Simulation) -> int:
+    return max(c.apps["sf"].out[0].next_seq for c in sim.cores.values() if 0 in c.apps["sf"].out)
+
+
+def test_a_sink_out_of_reach_then_back_gets_every_event_once_in_order() -> None:
+    SEEN.pop("a", None)
+    sim = started(app("a"))
+    cut(sim, 12.0)
+    sim.run_until(sim.now + 5.0)
+    seen = SEEN["a"]
+    n = emitted(sim)
+    assert n >= 20 * 17
+    assert seen == sorted(set(seen)), "no duplicate, in order"
+    assert seen[0] == 0 and seen[-1] >= n - 5 and len(seen) == seen[-1] + 1, "none lost"
+    for c in sim.cores.values():
+        assert not c.status(sim.now)["apps"]["sf"]["given_up"]
+
+
+def once_in_order(seen: list[int]) -> bool:
+    return seen == sorted(set(seen))
+
+
+def test_either_side_resetting_after_the_heal_loses_nothing_and_never_renumbers() -> None:
+    """After a partition one side resets (the tie-break): the sink's side (N2 > N1) or the
+    source's (N1 > M0). A source's side that resets keeps its edge's buffer for the source's
+    restore there, and the source numbers on: before, its seq restarted at 0 (duplicates at
+    the sink) and what it made while cut off was gone."""
+    for sink_node in ("N2", "M0"):
+        SEEN.pop(sink_node, None)
+        sim = started(app(sink_node, sink_on=sink_node), pair("N1", sink_node))
+        cut(sim, 6.0, sink_node)
+        sim.run_until(sim.now + 6.0)
+        resets = {n for n, c in sim.cores.items() if c.incarnation}
+        assert resets == ({sink_node} if sink_node == "N2" else {"N1"})
+        seen, n = SEEN[sink_node], emitted(sim)
+        assert once_in_order(seen) and seen[0] == 0 and len(seen) == seen[-1] + 1
+        assert seen[-1] >= n - 5 and n >= 20 * 12
+
+
+def test_a_restarted_source_node_numbers_on_from_where_its_consumer_stands() -> None:
+    SEEN.pop("r", None)
+    sim = started(app("r"))
+    sim.run_until(3.0)
+    sim.kill("N1")
+    sim.run_until(sim.now + 2.0)
+    sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
+    sim.revive("N1")
+    sim.run_until(sim.now + 4.0)
+    seen = SEEN["r"]
+    assert once_in_order(seen), "the restored source did not start again at 0"
+    assert seen[-1] > 20 * 4
+
+
+def test_past_the_memory_bound_an_edge_spills_and_delivers_from_the_spill() -> None:
+    SEEN.pop("s", None)
+    sim = Simulation(pair(), window=16)
+    sim.request("N1", m.DeployRequest(app("s", rate=50, size=40_000), "sf.yaml"))
+    sim.run_until(1.0)
+    sim.network.remove_link("N1", "N2")
+    sim.links_changed()
+    sim.run_until(sim.now + 8.0)
+    out = sim.cores["N1"].apps["sf"].out[0]
+    assert out.spilled > 100 and out.spill_bytes > 4_000_000 and out.mem_bytes <= 8 << 20
+    sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
+    sim.links_changed()
+    sim.run_until(sim.now + 8.0)
+    seen = SEEN["s"]
+    assert once_in_order(seen) and len(seen) == seen[-1] + 1 >= emitted(sim) - 5
+    assert out.spilled == 0 and sim.cores["N1"].spill.size(out.key) == 0
+
+
+def run_cut(run: str, seconds: float, **edge: Any) -> tuple[Simulation, list[int]]:
+    SEEN.pop(run, None)
+    sim = started(app(run, rate=20, size=1000, **edge))
+    sim.network.remove_link("N1", "N2")
+    sim.links_changed()
+    sim.run_until(sim.now + seconds)
+    sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
+    sim.links_changed()
+    sim.run_until(sim.now + 5.0)
+    return sim, SEEN[run]
+
+
+def edge_status(sim: Simulation) -> dict[str, Any]:
+    out: dict[str, Any] = sim.cores["N1"].status(sim.now)["apps"]["sf"]["edges"]["src->sink"]
+    return out
+
+
+def test_past_the_bound_each_overflow_policy_is_applied_and_counted() -> None:
+    bound = 100 * 1010  # about 100 events of 1 KB (and their encoding)
+    sim, seen = run_cut("drop", 10.0, buffer_bytes=bound, overflow="drop_oldest")
+    st = edge_status(sim)
+    assert st["dropped"] > 50 and once_in_order(seen)
+    assert len(seen) + st["dropped"] >= emitted(sim) - 5  # every event delivered or counted
+    assert seen[-1] >= emitted(sim) - 5  # the newest arrived
+
+    sim, seen = run_cut("latest", 10.0, buffer_bytes=bound, overflow="keep_latest")
+    st = edge_status(sim)
+    assert st["dropped"] > 50 and once_in_order(seen)
+    assert len(seen) + st["dropped"] >= emitted(sim) - 5
+
+    sim, seen = run_cut("hold", 10.0, buffer_bytes=bound)  # buffer: the source is held
+    st = edge_status(sim)
+    assert st["dropped"] == 0 and once_in_order(seen) and len(seen) == seen[-1] + 1
+    assert emitted(sim) < 20 * 14  # it made fewer events while held ...
+    assert len(seen) >= emitted(sim) - 5  # ... and lost none
+
+
+def test_past_the_age_bound_drop_oldest_keeps_the_recent_ones() -> None:
+    sim, seen = run_cut("age", 10.0, buffer_age_s=2.0, overflow="drop_oldest")
+    st = edge_status(sim)
+    assert st["dropped"] > 100 and once_in_order(seen)
+    assert len(seen) + st["dropped"] >= emitted(sim) - 5
+
+
+def consumer_status(sim: Simulation) -> dict[str, Any]:
+    out: dict[str, Any] = sim.cores["N2"].status(sim.now)["apps"]["sf"]["edges"]["src->sink"]
+    return out
+
+
+def test_qos_lifespan_deadline_and_best_effort_across_an_outage() -> None:
+    sim, seen = run_cut("life", 3.0, lifespan_ms=1000)
+    assert edge_status(sim)["expired"] > 20 and once_in_order(seen)
+    sim = started(app("dead", rate=2, deadline_ms=300))  # every 500 ms: each one is late
+    sim.run_until(5.0)
+    st = consumer_status(sim)
+    assert st["deadline_missed"] >= 6
+    sim = started(app("ok", rate=20, deadline_ms=300))
+    sim.run_until(5.0)
+    assert consumer_status(sim)["deadline_missed"] == 0 and not consumer_status(sim)["late"]
+    sim, seen = run_cut("be", 3.0, qos="best_effort")
+    assert edge_status(sim)["dropped"] > 20 and once_in_order(seen)
+
+
+def test_keep_last_gives_a_slow_consumer_the_newest_and_counts_the_rest() -> None:
+    SEEN.pop("kl", None)
+    text = app("kl", rate=10, keep_last=1).replace("pinned: N2,", "pinned: N2, cost: 400,")
+    sim = Simulation(pair(), model_time=True)
+    sim.request("N1", m.DeployRequest(text, "sf.yaml"))
+    sim.run_until(10.0)
+    st = consumer_status(sim)
+    seen = SEEN["kl"]
+    assert st["superseded"] > 30 and once_in_order(seen)
+    assert seen[-1] >= emitted(sim) - 6  # what it processes is fresh, not seconds old
