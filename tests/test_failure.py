@@ -201,7 +201,7 @@ def test_a_probe_waits_at_a_hop_whose_routes_still_go_through_the_failed_node() 
 
     core = NodeCore("N2")
     core.set_routes({"N1": ("N1", 1), "N3": ("N3", 1), "N6": ("N3", 2), "N5": ("N5", 1)}, 1.0)
-    core.receive("N1", m.NodeDown("N3", "N1"), 1.1)
+    core.receive("N1", m.NodeDown("N3", "N1", 0, "N5"), 1.1)  # N5 did not hear it either
     probe = m.Probe("app", -1, 7, "N1", "N6", ["N1"], [1.0])
     sent = [e for e in core.receive("N1", probe, 1.2) if isinstance(e, Send)]
     assert all(e.dst != "N3" for e in sent) and not any(isinstance(e.msg, m.Probe) for e in sent)

@@ -456,8 +456,8 @@ def test_a_node_that_crashed_for_both_sides_does_not_decide_who_resets() -> None
     n1.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 3)}, now)  # N5 is gone
     n4.set_routes({"N3": ("N3", 1), "N2": ("N3", 2), "N1": ("N3", 3)}, now)
     for core, other in ((n1, "N4"), (n4, "N1")):
-        core.receive("N3", m.NodeDown(other, "N3", 0), now)
-        core.receive("N3", m.NodeDown("N5", "N3", 0), now)
+        core.receive("N3", m.NodeDown(other, "N3", 0, "N2"), now)  # corroborated claims
+        core.receive("N3", m.NodeDown("N5", "N3", 0, "N2"), now)
     beat4 = msgspec.structs.replace(
         n4.membership.beat(), failed={"N1": 0}
     )  # sent before N5 was heard of

@@ -55,6 +55,8 @@ CORE_ORDER = [
     "mso.protocol.procedures.membership.liveness",
     "mso.protocol.procedures.membership.detector",
     "mso.protocol.procedures.membership.status",
+    "mso.protocol.procedures.membership.claims",
+    "mso.protocol.procedures.membership.sync",
     "mso.protocol.procedures.membership.peers",
     "mso.node.device",
     "mso.node.monitor",

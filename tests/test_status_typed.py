@@ -31,6 +31,7 @@ NODE_KEYS = [
     "management",
     "failed_nodes",
     "suspected_nodes",
+    "unreachable_nodes",
     "incarnation",
     "failures",
     "rejoins",

@@ -220,7 +220,7 @@ class NodeCore:
             m.Resume: lambda src, msg, now: res.on_resume(msg, now),
             m.Heartbeat: mem.on_heartbeat,
             m.NodeDown: lambda src, msg, now: mem.on_node_down(
-                msg.node, msg.detector, now, msg.incarnation
+                msg.node, msg.detector, now, msg.incarnation, msg.witness
             ),
             m.NodeUp: lambda src, msg, now: mem.on_node_up(msg, now),
             m.Suspect: mem.on_suspect,
@@ -436,7 +436,7 @@ class NodeCore:
             mon.remaining_j,
             mon.lifetime_s,
             power,
-            self.route_hops(),
+            self.beat_hops(),
         )
 
     def known_nodes(self) -> list[str]:
@@ -445,6 +445,14 @@ class NodeCore:
     def route_hops(self) -> dict[str, int]:
         """Hops to each node this node routes to (itself not included)."""
         return {n: hops for n, (_, hops) in self.routes.items()}
+
+    def beat_hops(self) -> dict[str, int]:
+        """The hops a beat's figures carry: to the nodes within two hops (a neighbour's
+        relays, and the suspect's neighbours a detector asks) and to those of the apps this
+        node runs part of (a move's radio cost at the relays) — never all N, so a beat's
+        size does not grow with the network."""
+        partners = {n for dep in self.apps.values() if dep.instances for n in dep.placed.values()}
+        return {n: h for n, (_, h) in self.routes.items() if h <= 2 or n in partners}
 
     def distances(self) -> dict[str, int]:
         return {**self.route_hops(), self.id: 0}

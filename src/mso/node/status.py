@@ -80,6 +80,7 @@ class NodeStatus(msgspec.Struct, frozen=True, kw_only=True):
     # membership's (MembershipStatus)
     failed_nodes: list[str]
     suspected_nodes: list[str]
+    unreachable_nodes: list[str] = msgspec.field(default_factory=list)  # (older nodes: none)
     incarnation: int
     failures: list[dict[str, Any]]
     rejoins: list[dict[str, Any]]

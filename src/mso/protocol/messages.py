@@ -224,14 +224,21 @@ class Heartbeat(_Msg, tag="heartbeat"):
     leader: str = ""
     hosting: int = 0  # vertex instances the sender runs: a node with none yields first
     figures: Figures | None = None  # None: as on the last beat that carried them
+    # failure claims the sender accepted lately, piggybacked (each on a few beats, then
+    # dropped): dissemination without a message of its own (bounded: MAX_NEWS)
+    news: list[NodeDown] = msgspec.field(default_factory=list)
 
 
 class NodeDown(_Msg, tag="node_down"):
-    """``node`` has failed (fail-stop): its neighbour ``detector`` stopped hearing it."""
+    """``node`` has failed (fail-stop): its neighbour ``detector`` stopped hearing it, and
+    ``witness`` (asked by the detector, '' when there was nobody to ask) did not hear it either.
+    A claim is acted on only when corroborated: a witness, a second detector, or the
+    receiver's own probe (see :mod:`mso.protocol.procedures.membership.peers`)."""
 
     node: str
     detector: str
     incarnation: int = 0  # the incarnation that failed: news of an older one is stale
+    witness: str = ""
 
 
 class Suspect(_Msg, tag="suspect"):
@@ -250,6 +257,9 @@ class Hears(_Msg, tag="hears"):
     node: str
     rid: int
     yes: bool
+    # how long ago the sender last heard ``node`` (ms; -1: never): a yes moves the asker's
+    # silence clock to then, not to now (a dead node is not kept alive by a late answer)
+    ago_ms: int = -1
 
 
 class NodeUp(_Msg, tag="node_up"):

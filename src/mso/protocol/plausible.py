@@ -19,7 +19,7 @@ def implausible(msg: m.Message, wall_ms: int) -> str:
     if isinstance(msg, m.NodeDown | m.NodeUp):
         incarnations = [msg.incarnation]
     elif isinstance(msg, m.Heartbeat):
-        incarnations = [msg.incarnation, *msg.failed.values()]
+        incarnations = [msg.incarnation, *msg.failed.values(), *(n.incarnation for n in msg.news)]
     else:
         return ""
     limit = wall_ms + MAX_AHEAD_MS

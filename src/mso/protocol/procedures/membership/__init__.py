@@ -1,10 +1,13 @@
 """Membership: who is alive, suspected or failed, and how nodes come back.
 
-- :mod:`.liveness` — neighbour liveness: heartbeats in, the silent and the unreachable out.
+- :mod:`.liveness` — liveness of the watched nodes: heartbeats in, the silent (suspected) and
+  the unreachable out; a route withdrawal never restarts the silence clock.
 - :mod:`.detector` — the state machines: each peer's life, and the indirect probe's two waits
-  (:class:`~.detector.Suspicion` at the node that lost a peer, :class:`~.detector.Vouch` at a
-  node asked about it).
+  (:class:`~.detector.Suspicion` at the node that watches a silent peer, :class:`~.detector.Vouch`
+  at a node asked about it).
+- :mod:`.claims` — whom to ask (k members), when another's failure claim is believed
+  (corroboration, incarnation bounds), and how claims spread (piggybacked on beats).
 - :mod:`.status` — its part of a node's status, as typed records.
-- :mod:`.peers` — the component: heartbeats, the one failed set, incarnations, reset, rejoin,
-  app sync.
+- :mod:`.sync` — app sync for a node that rejoins.
+- :mod:`.peers` — the component: heartbeats, the one failed set, incarnations, reset, rejoin.
 """

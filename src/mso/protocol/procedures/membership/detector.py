@@ -1,23 +1,24 @@
 """The failure detector's state machines: each other node as this node holds it (alive,
 suspected or failed, by incarnation), and the two waits of an indirect probe.
 
-Fail-stop failures (paper §3.4, assumption 3) with restarts and partitions: a neighbour silent
-for the liveness window is declared failed by this node (``silent``) or by another detector
-(``reported_down``, a ``NodeDown``); a failed node is heard again only to rejoin — as a higher
-incarnation after a restart, or, after a partition heals, once one side has reset — and is
-then ALIVE again (``rejoined``). A node that learns it was declared failed by a side that
-outranks it *resets*: it drops its apps, forgets whom it held failed (``reset``) and comes back
-as its next incarnation; the others restore what it hosted and send it the apps (``AppSync``).
+Fail-stop failures (paper §3.4, assumption 3) with restarts and partitions, SWIM-style: a node
+this node watches (a neighbour, or a former neighbour now out of reach) that has been silent
+for the liveness window is *suspected* (``silent``); the :class:`Suspicion` asks a few members
+(at most ``K_ASKED``: the suspect's other neighbours first, as its last figures named them,
+then this node's own) whether they hear it, never every member. One that heard it recently
+enough keeps it alive (``vouched``; the answer says *when* it heard it, and the silence clock
+runs from then, not from the answer); it is declared failed (``confirmed``) when every node
+asked said no, or none said yes by the deadline, and the first that said no is the claim's
+witness. A node asked that has not heard the suspect itself but reaches it asks it in turn (a
+:class:`Vouch`, SWIM's ping-req).
 
-A node this node's routing view stopped reaching altogether is only *suspected*
-(``unreachable``): one node's missing route is no evidence that the node died while others
-still hear it (babeld once left one node of a mesh with no route to a live node for 12 s, and
-its word reset that node every 4 s). The :class:`Suspicion` asks the nodes this node still
-reaches whether they hear it (SWIM's indirect probe, adapted to routes): one yes keeps it alive
-(``vouched``; asked again a liveness window later if still out of reach), and it is declared
-failed (``confirmed``) only when every node asked said no, or none said yes by the deadline. A
-node asked that has not heard the suspect itself but reaches it asks it in turn (a
-:class:`Vouch`, SWIM's ping-req): a node's neighbours are not always among those still reached.
+Another detector's claim (``reported_down``, a ``NodeDown`` sent to the nodes that host the
+apps, or piggybacked on heartbeats) is acted on only when corroborated (membership checks it);
+a failed node is heard again only to rejoin — as a higher incarnation after a restart, or,
+after a partition heals, once one side has reset — and is then ALIVE again (``rejoined``). A
+node that learns it was declared failed by a side that outranks it *resets*: it drops its
+apps, forgets whom it held failed (``reset``) and comes back as its next incarnation; the
+others restore what it hosted and send it the apps (``AppSync``).
 
 The waits have deadlines: silence is judged against the liveness window (``dead_after_s``), a
 suspicion's answers too; a failed node that is reachable again is sent a heartbeat every
@@ -44,7 +45,6 @@ class PeerEvent(enum.Enum):
 
     SILENT = "silent"
     REPORTED_DOWN = "reported_down"
-    UNREACHABLE = "unreachable"
     VOUCHED = "vouched"
     REACHABLE = "reachable"
     CONFIRMED = "confirmed"
@@ -59,9 +59,9 @@ class PeerLife(StateMachine):
     INITIAL = P.ALIVE
     TRANSITIONS: ClassVar[Table] = {
         P.ALIVE: {
-            PeerEvent.SILENT: P.FAILED,
+            PeerEvent.SILENT: P.SUSPECT,
+            PeerEvent.CONFIRMED: P.FAILED,
             PeerEvent.REPORTED_DOWN: P.FAILED,
-            PeerEvent.UNREACHABLE: P.SUSPECT,
         },
         P.SUSPECT: {
             PeerEvent.VOUCHED: P.ALIVE,
@@ -97,9 +97,10 @@ class SuspicionEvent(enum.Enum):
 
 
 class Suspicion(Procedure):
-    """This node lost every route to ``node``: before declaring it failed, it asks the nodes it
-    still reaches (``asked``) whether they hear it. The outcome (``vouched``, ``confirmed`` or,
-    when the wait ended for another reason, ``ended``) is for the node to act on."""
+    """``node``, which this node watches, has been silent for the window: before declaring it
+    failed, this node asks a few others (``asked``) whether they hear it. The outcome
+    (``vouched``, ``confirmed`` or, when the wait ended for another reason, ``ended``) is for
+    the node to act on; ``witness`` is the first that said no."""
 
     NAME = "suspicion"
     INITIAL = Q.ASKING
@@ -121,6 +122,7 @@ class Suspicion(Procedure):
         self.node = node
         self.missing = set(asked)
         self.outcome = ""
+        self.witness = ""
 
     @property
     def name(self) -> str:
@@ -134,6 +136,8 @@ class Suspicion(Procedure):
         """One asked node's answer (an answer from a node not asked, or twice, is refused
         by the caller)."""
         self.missing.discard(src)
+        if not yes and not self.witness:
+            self.witness = src
         if yes:
             self.on(SuspicionEvent.VOUCHED)
             self.outcome = "vouched"
@@ -202,7 +206,7 @@ class Vouch(Procedure):
 
     def _tell(self, ctx: Messenger, yes: bool) -> None:
         for asker, rid in sorted(self.askers.items()):
-            ctx.send(asker, m.Hears(self.node, rid, yes))
+            ctx.send(asker, m.Hears(self.node, rid, yes, 0 if yes else -1))
 
     def answered(self, ctx: Messenger) -> None:
         """``node`` answered: it lives."""

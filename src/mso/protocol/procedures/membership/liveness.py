@@ -1,15 +1,17 @@
-"""Neighbour liveness: heartbeats in, suspicions out (fail-stop detection, paper §3.4). Sans-IO.
+"""Neighbour liveness: heartbeats in, the silent out (fail-stop detection, paper §3.4). Sans-IO.
 
 Every node sends a heartbeat to each current neighbour every ``period_s`` and notes when it
-last heard from each. A neighbour that the routing view still lists as a neighbour but that has
-been silent for ``dead_after_s`` has failed: under the fail-stop assumption a live node keeps
-talking, and a broken link (rather than a dead node) shows up in the routing view as a lost
-neighbour, which is not a failure. The clock starts when a node becomes a neighbour, so a new
-link is not suspected before its first heartbeat could arrive. A node the routing view stops
-reaching at all (it drops every route to it, as a routing protocol does for a node that fell
-silent) is *suspected* once it has stayed unreachable for ``dead_after_s``: one node's missing
-route is not evidence of a failure while others still hear the node, so membership asks them
-before declaring it (:class:`mso.protocol.procedures.membership.Suspicion`).
+last heard from each. It *watches* its neighbours: a watched node silent for ``dead_after_s``
+is suspected, and membership asks a few others before declaring it
+(:class:`mso.protocol.procedures.membership.Suspicion`). The silence clock runs from the last
+time the node was heard (or from when it became a neighbour), whatever the routing view does
+meanwhile: a neighbour whose routes are withdrawn stays watched while it is out of reach, so a
+withdrawal never restarts the clock (babeld withdrawing a dead relay's routes once made
+detection take 4.2 s instead of 0.5 s), and a view that keeps a dead node's routes does not
+keep it alive either. A watched node that moves out of this node's range but stays reachable
+through others is left to its new neighbours to watch. A node out of reach that nobody has
+declared failed is only *unreachable* (``gone``): held with its incarnation, its instances
+presumed running.
 
 Heartbeats also carry the sender's monitored figures; the table of what neighbours last said
 (``heard``) is what the management rules weigh a move toward a neighbour with.
@@ -105,6 +107,9 @@ class Liveness:
     period_s: float = HEARTBEAT_S
     dead_after_s: float = DEAD_AFTER_S
     neighbours: dict[str, float] = field(default_factory=dict)  # neighbour -> since
+    # nodes whose silence this node judges: its neighbours, and those of its former
+    # neighbours now out of reach (node -> since it was first watched)
+    watched: dict[str, float] = field(default_factory=dict)
     last_heard: dict[str, float] = field(default_factory=dict)
     # each neighbour's figures as its last beat that carried them said (and when)
     heard: dict[str, tuple[float, m.Figures]] = field(default_factory=dict)
@@ -113,13 +118,18 @@ class Liveness:
     gaps: dict[str, Gaps] = field(default_factory=dict)  # neighbour -> heartbeat inter-arrivals
 
     def set_routes(self, now: float, reachable: set[str], neighbours: set[str]) -> None:
-        """The routing view changed: who is a neighbour, who is reachable at all."""
+        """The routing view changed: who is a neighbour, who is reachable at all. A watched
+        node that became unreachable stays watched (its silence clock runs on); one still
+        reachable through others is no longer this node's to watch."""
         for n in self.reachable - reachable:
             self.gone.setdefault(n, now)
         for n in reachable:
             self.gone.pop(n, None)
         self.reachable = set(reachable)
         self.set_neighbours(now, neighbours)
+        for n in list(self.watched):
+            if n not in neighbours and n in reachable:
+                del self.watched[n]
 
     def set_neighbours(self, now: float, neighbours: set[str]) -> None:
         for n in list(self.neighbours):
@@ -128,6 +138,7 @@ class Liveness:
                 self.gaps.pop(n, None)  # a gap across a lost link is not a late beat
         for n in neighbours:
             self.neighbours.setdefault(n, now)
+            self.watched.setdefault(n, now)
 
     def heard_from(self, node: str, now: float, beat: m.Heartbeat | None = None) -> None:
         self.last_heard[node] = now
@@ -137,32 +148,40 @@ class Liveness:
             self.gaps.setdefault(node, Gaps()).beat(now)
 
     def silent(self, now: float, dead: set[str]) -> list[str]:
-        """Neighbours silent for longer than ``dead_after_s`` (sorted, deterministic): failed."""
+        """Watched nodes silent for longer than ``dead_after_s`` (sorted, deterministic):
+        suspected. The clock runs from the last beat, or from when the node was first
+        watched, and no route change restarts it."""
         out = []
-        for n, since in sorted(self.neighbours.items()):
+        for n, since in sorted(self.watched.items()):
             if n in dead:
                 continue
-            last = max(since, self.last_heard.get(n, since))
-            if now - last > self.dead_after_s:
+            if now - self.last_seen(n, since) > self.dead_after_s:
                 out.append(n)
         return out
 
-    def unreachable(self, now: float, dead: set[str]) -> list[str]:
-        """Nodes out of reach for longer than ``dead_after_s`` (sorted): suspected only."""
-        late = self.dead_after_s
-        return sorted(n for n, t in self.gone.items() if n not in dead and now - t > late)
+    def last_seen(self, node: str, since: float) -> float:
+        return max(since, self.last_heard.get(node, since))
 
-    def hears(self, node: str, now: float) -> bool:
-        """Heard from ``node`` within the liveness window: it was alive then (fail-stop), the
-        answer a suspecting node asks for."""
+    def unreachable(self, dead: set[str]) -> list[str]:
+        """Nodes out of reach that nobody declared failed (sorted): unreachable, not failed."""
+        return sorted(n for n in self.gone if n not in dead)
+
+    def hears(self, node: str, now: float, within: float | None = None) -> bool:
+        """Heard from ``node`` within the liveness window (or ``within``): it was alive then
+        (fail-stop), the answer a suspecting node asks for."""
         last = self.last_heard.get(node)
-        return last is not None and now - last <= self.dead_after_s
+        return last is not None and now - last <= (self.dead_after_s if within is None else within)
 
-    def vouched(self, node: str, now: float) -> None:
-        """Someone hears ``node``, still out of this node's reach: judge it again from now
-        (one liveness window later it is suspected, and others asked, again)."""
-        if node in self.gone:
-            self.gone[node] = now
+    def ago_ms(self, node: str, now: float) -> int:
+        """How long ago ``node`` was last heard, in ms (-1: never)."""
+        last = self.last_heard.get(node)
+        return -1 if last is None else max(0, round((now - last) * 1e3))
+
+    def vouched(self, node: str, at: float) -> None:
+        """Someone heard ``node`` at ``at``: its silence clock runs from then (never later
+        than that: a late answer does not restart it)."""
+        if at > self.last_heard.get(node, float("-inf")):
+            self.last_heard[node] = at
 
     def rejoin(self, node: str, now: float, reachable: bool, route: tuple[str, int] | None) -> None:
         """A node declared failed is back: watch it again from now."""
@@ -171,16 +190,18 @@ class Liveness:
         if reachable:
             self.reachable.add(node)
             self.gone.pop(node, None)
-        else:  # out of reach right now: failed again unless a route appears in time
+        else:  # out of reach right now: failed again unless heard or a route appears in time
             self.gone.setdefault(node, now)
+            self.watched[node] = now
         if route is not None and route[0] == node:
             self.neighbours[node] = now
+            self.watched[node] = now
 
     def forget(self, node: str) -> None:
         self.neighbours.pop(node, None)
+        self.watched.pop(node, None)
         self.last_heard.pop(node, None)
         self.heard.pop(node, None)
-        self.gone.pop(node, None)
         self.reachable.discard(node)
         self.gaps.pop(node, None)
 

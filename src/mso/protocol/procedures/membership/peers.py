@@ -20,29 +20,32 @@ from typing import Any
 
 import msgspec
 
-from mso.errors import MsoError
-from mso.planning.placement import Layout
 from mso.protocol import messages as m
-from mso.protocol.authority import generation
 from mso.protocol.context import NodeContext
-from mso.protocol.dataplane import RETRANSMIT_S, DataPlane
-from mso.protocol.effects import Send, SetTimer
+from mso.protocol.dataplane import DataPlane
+from mso.protocol.effects import Send
 from mso.protocol.events import (
-    AppMissing,
     Happened,
     HeartbeatTick,
     NodeReset,
     PeerFailed,
     RecoveryDue,
-    Retransmit,
     RoutesChanged,
 )
 from mso.protocol.procedures.deploy import Deployer
+from mso.protocol.procedures.membership.claims import (
+    INCARNATION_MARGIN,
+    MAX_NEWS,
+    Claims,
+    Gossip,
+    ask_whom,
+    rounds,
+)
 from mso.protocol.procedures.membership.detector import P, PeerEvent, PeerLife, Suspicion, Vouch
 from mso.protocol.procedures.membership.liveness import Liveness
 from mso.protocol.procedures.membership.status import Heard, MembershipStatus
+from mso.protocol.procedures.membership.sync import AppSyncing
 from mso.protocol.procedures.remap import Remapper
-from mso.protocol.state import AppState
 
 REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
 MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own: its figures ride on one beat
@@ -56,7 +59,7 @@ MIN_KNOWN = 256
 KNOWN_PER_ROUTE = 4
 
 
-class Membership:
+class Membership(AppSyncing):
     """This node's view of the others, and its part in keeping it (module docstring)."""
 
     def __init__(
@@ -94,6 +97,9 @@ class Membership:
         # nodes that rejoined while this node's own view was in dispute (it holds a reachable
         # node failed: a healed partition whose losing side has not reset yet): synced after
         self._sync_pending: set[str] = set()
+        self._gossip = Gossip()  # accepted failure claims, piggybacked on the next beats
+        self._claims = Claims()  # others' claims waiting for this node's own probe
+        self._told: dict[str, float] = {}  # failed node heard directly -> when told so
 
     def start(self, now: float) -> None:
         self.ctx.set_timer(HeartbeatTick(), now + self.liveness.period_s)
@@ -129,6 +135,7 @@ class Membership:
         return MembershipStatus(
             failed_nodes=sorted(self.failed),
             suspected_nodes=sorted(self._suspicions),
+            unreachable_nodes=self.liveness.unreachable(self.failed),
             incarnation=self.incarnation,
             failures=list(self.failures),
             rejoins=list(self.rejoins),
@@ -163,7 +170,7 @@ class Membership:
         return sum(len(dep.instances) for dep in self.ctx.apps.values())
 
     # -- the detector: beats out, silence and unreachability judged, suspicion asked -----------
-    def beat(self) -> m.Heartbeat:
+    def beat(self, news: list[m.NodeDown] | None = None) -> m.Heartbeat:
         """This node's beat with its monitor's figures (see Heartbeat)."""
         return m.Heartbeat(
             self.ctx.id,
@@ -172,6 +179,7 @@ class Membership:
             self._leader(),
             self._hosting(),
             self.ctx.figures(),
+            news or [],
         )
 
     def heartbeat(self, now: float) -> None:
@@ -179,7 +187,7 @@ class Membership:
         beat per monitor period, and on the first beat to a neighbour since its link came up
         (``_briefed``: the time the link came up, when it was given them)."""
         every = max(1, round(MONITOR_PERIOD_S / self.liveness.period_s))
-        full = self.beat()
+        full = self.beat(self._gossip.next_beat())
         slim = full if self._beats % every == 0 else msgspec.structs.replace(full, figures=None)
         for n, since in sorted(self.liveness.neighbours.items()):
             if n not in self.failed:
@@ -194,9 +202,14 @@ class Membership:
                 if n in self.ctx.routes:
                     self.ctx.emit(Send(n, full))
         for n in self.liveness.silent(now, self.failed):
-            self.on_node_down(n, self.ctx.id, now)
-        for n in self.liveness.unreachable(now, self.failed):
             self._suspect(n, now)
+        for n in self._blocking(now):  # unreachable, and it runs part of an app we run:
+            self._suspect(n, now)  # asked about like a silent neighbour
+        for claim, at in self._claims.due(now, self.liveness.dead_after_s / 2):
+            if self.liveness.hears(claim.node, now, within=now - at):
+                self.ctx.refusal("node_down_refuted")  # it answered our probe: it lives
+            elif claim.node not in self.failed:
+                self._declare(claim, now)  # our own probe agrees
         self._flush_syncs()
         # this node may have become an app's recovery coordinator (it runs part of it now)
         self.ctx.publish(RecoveryDue())
@@ -224,7 +237,6 @@ class Membership:
         now, routes = self.ctx.now, self.ctx.routes
         neighbours = {d for d, (hop, _) in routes.items() if hop == d}
         self.liveness.set_routes(now, set(routes) - self.failed, neighbours)
-        self.back_in_reach(now)
         if ev.appeared:
             beat = self.beat()
             undeploys = list(self.ctx.authority.revoked.values())[-REVOCATIONS_TOLD:]
@@ -233,22 +245,18 @@ class Membership:
                 for stop in undeploys:
                     self.ctx.send(d, stop)
 
-    def back_in_reach(self, now: float) -> None:
-        """The routes changed: a suspected node this node reaches again is not suspected."""
-        for node in sorted(self._suspicions):
-            if node in self.ctx.routes:
-                self._unsuspect(node, PeerEvent.REACHABLE)
-
     def _suspect(self, node: str, now: float) -> None:
-        """``node`` has been out of this node's reach for the liveness window. A routing
-        protocol drops a dead node's routes, but it may also leave one node without a route
-        to a live one for seconds while the others still hear it: so ask the nodes this node
-        still reaches, and declare it only if none does (:class:`Suspicion`)."""
+        """``node``, which this node watches, has been silent for the liveness window. One
+        node's silence is not evidence enough (a routing daemon may leave it without a route
+        to a live node for seconds while the others still hear it): ask a few members
+        (:func:`~.claims.ask_whom`), and declare it only if none hears it (:class:`Suspicion`)."""
         if node in self._suspicions or node in self.failed or node == self.ctx.id:
             return
-        self._move(node, PeerEvent.UNREACHABLE)
-        asked = sorted(n for n in self.ctx.routes if n not in self.failed and n != node)
-        if not asked:  # nobody left to ask: this node is cut off from everyone
+        if self._peer(node).state is P.ALIVE:
+            self._move(node, PeerEvent.SILENT)
+        said = self.liveness.heard.get(node)
+        asked = ask_whom(node, self.ctx.id, said[1] if said else None, self.ctx.routes, self.failed)
+        if not asked:  # nobody left to ask: this node is cut off (its own probes agree)
             self.on_node_down(node, self.ctx.id, now)
             return
         proc = Suspicion(self.ctx.new_pid(), now, node, asked, self.liveness.dead_after_s)
@@ -256,26 +264,52 @@ class Membership:
         self._suspicions[node] = proc.pid
         proc.start(self.ctx)
 
+    def _blocking(self, now: float) -> list[str]:
+        """Nodes out of reach for the liveness window, not heard in it, that host part of an
+        app this node runs part of: the app may not progress until they are heard of, so they
+        are suspected like a silent neighbour (a few asked); if nobody hears them they are
+        declared, their vertices re-placed, and the incarnation rules take them back exactly
+        once when they are heard again. Any other node out of reach stays unreachable."""
+        out = []
+        window = self.liveness.dead_after_s
+        for n in self.liveness.unreachable(self.failed):
+            if now - self.liveness.gone[n] <= window or self.liveness.hears(n, now):
+                continue
+            for dep in self.ctx.apps.values():
+                if not dep.instances:
+                    continue
+                if n in dep.placed.values():
+                    out.append(n)
+                    break
+        return out
+
     def on_suspect(self, src: str, msg: m.Suspect, now: float) -> None:
         """Another node lost ``msg.node``: say whether we hear it (we heard it within our
         liveness window, and do not hold it failed; asked about ourselves, we live). If we do
         not but reach it, we ask it and answer when it does or our :class:`Vouch` expires."""
         node = msg.node
-        if node == self.ctx.id or node in self.failed or self.liveness.hears(node, now):
-            self.ctx.send(src, m.Hears(node, msg.rid, node not in self.failed))
+        if node == self.ctx.id:
+            self.ctx.send(src, m.Hears(node, msg.rid, True, 0))
             return
-        if node not in self.ctx.routes or node == src:
-            self.ctx.send(src, m.Hears(node, msg.rid, False))
+        ago = self.liveness.ago_ms(node, now)
+        if node in self.failed or self.liveness.hears(node, now, self.liveness.dead_after_s / 2):
+            self.ctx.send(src, m.Hears(node, msg.rid, node not in self.failed, ago))
             return
+        if node not in self.ctx.routes or node == src or node in self.liveness.neighbours:
+            self.ctx.send(src, m.Hears(node, msg.rid, False, ago))  # (a neighbour we watch
+            return  # and have not heard: our own beats are the probe)
         proc = self.ctx.procedure(self._vouching.get(node, -1))
         if not isinstance(proc, Vouch):
-            proc = Vouch(self.ctx.new_pid(), now, node, self.liveness.dead_after_s / 2)
+            wait = min(self.liveness.dead_after_s / 2, 2 * self.liveness.period_s)
+            proc = Vouch(self.ctx.new_pid(), now, node, wait)
             self.ctx.begin(proc)
             self._vouching[node] = proc.pid  # (bounded by the nodes this node reaches)
             proc.start(self.ctx)
         proc.ask(src, msg.rid)
 
     def on_hears(self, src: str, msg: m.Hears, now: float) -> None:
+        if msg.rid == 0 and src == msg.node:
+            return  # the answer to our own probe of a claim: hearing it was the point
         proc = self.ctx.procedure(msg.rid)
         if isinstance(proc, Vouch) and src == proc.node == msg.node and msg.yes:
             self._vouching.pop(proc.node, None)
@@ -286,7 +320,12 @@ class Membership:
             if not self.ctx.ours(msg.rid):  # (ours: a late answer to a suspicion that ended)
                 self.ctx.refusal("hears_unasked")  # no such suspicion, or not asked (or twice)
             return
-        proc.answer(src, msg.yes)
+        yes = msg.yes
+        if yes and msg.ago_ms >= 0:  # heard then: the silence clock runs from there
+            at = now - msg.ago_ms / 1e3
+            self.liveness.vouched(msg.node, at)
+            yes = now - at <= self.liveness.dead_after_s / 2
+        proc.answer(src, yes)
         if proc.done:
             self.suspected(proc, now)
 
@@ -305,13 +344,12 @@ class Membership:
         """A suspicion ended with its answers or at its deadline: act on its outcome."""
         self.ctx.end(proc.pid)
         self._suspicions.pop(proc.node, None)
-        if proc.outcome == "vouched":  # someone hears it: ask again a window from now
+        if proc.outcome == "vouched":  # someone heard it lately: judged again from then
             self._move(proc.node, PeerEvent.VOUCHED)
-            self.liveness.vouched(proc.node, now)
-        elif proc.node in self.ctx.routes:  # (back in reach since: nothing to confirm)
-            self._move(proc.node, PeerEvent.REACHABLE)
         else:
-            self.on_node_down(proc.node, self.ctx.id, now)
+            self.on_node_down(proc.node, self.ctx.id, now, witness=proc.witness)
+            if self._peer(proc.node).state is P.SUSPECT:  # (not declared after all)
+                self._move(proc.node, PeerEvent.VOUCHED)
 
     def _unsuspect(self, node: str, event: PeerEvent | None) -> None:
         """End ``node``'s open suspicion, if any (``event``: why, by the peer's table; None
@@ -328,34 +366,72 @@ class Membership:
 
     # -- declaring a peer failed: one place ----------------------------------------------------
     def on_node_down(
-        self, node: str, detector: str, now: float, incarnation: int | None = None
+        self,
+        node: str,
+        detector: str,
+        now: float,
+        incarnation: int | None = None,
+        witness: str = "",
     ) -> None:
+        """A claim that ``node`` failed: this node's own (its detector's word), or another's,
+        acted on only when plausible and corroborated (:mod:`.claims`)."""
         if node in self.failed or node == self.ctx.id:
             return
         if not self.heard_of_node(node) or not self.admits(node, self._failed_incarnation):
             self.ctx.refusal("node_down_unknown")  # nobody it ever heard of: no such node
             return
-        known = self._incarnations.get(node, 0)
+        seen = self._incarnations.get(node)
+        known = 0 if seen is None else seen
         if incarnation is not None and incarnation < known:
             return  # that incarnation failed, and a newer one is already back
+        if seen is not None and incarnation is not None and incarnation > seen + INCARNATION_MARGIN:
+            self.ctx.refusal("node_down_implausible_incarnation")  # never seen: not believed
+            return
+        inc = known if incarnation is None else incarnation
+        claim = m.NodeDown(node, detector, inc, witness)
+        if detector != self.ctx.id and not self._believe(claim, now):
+            return
+        self._declare(claim, now)
+
+    def _believe(self, claim: m.NodeDown, now: float) -> bool:
+        """Another node's claim: refused if this node hears the victim itself; acted on when
+        it names a witness, a second detector agrees, or this node's own probe does (no route
+        to the victim, or no answer to a ``Suspect`` within half the window: then
+        ``heartbeat`` declares it)."""
+        node = claim.node
+        if self.liveness.hears(node, now, within=self.liveness.dead_after_s / 2):
+            self.ctx.refusal("node_down_heard")  # we hear it: it lives
+            return False
+        if self._claims.corroborated(claim) or node not in self.ctx.routes:
+            return True
+        if self._claims.hold(claim, now):
+            self.ctx.send(node, m.Suspect(node, 0))  # our own probe: does it answer?
+        return False
+
+    def _declare(self, claim: m.NodeDown, now: float) -> None:
+        """``claim.node`` failed, by this node's detector or a claim it believes: the one
+        place a peer is declared."""
+        node, detector = claim.node, claim.detector
+        self._claims.drop(node)
         self._unsuspect(node, None)
         if detector != self.ctx.id:
             self._move(node, PeerEvent.REPORTED_DOWN)
-        else:  # our own word: confirmed by the nodes we asked, or a neighbour's silence
-            suspected = self._peer(node).state is P.SUSPECT
-            self._move(node, PeerEvent.CONFIRMED if suspected else PeerEvent.SILENT)
-        self._failed_incarnation[node] = known if incarnation is None else incarnation
+        else:  # our own word: confirmed by the nodes we asked (or nobody left to ask), or
+            # a node cut off that holds most of those we reach failed (``_cut_off``)
+            self._move(node, PeerEvent.CONFIRMED)
+        self._failed_incarnation[node] = claim.incarnation
         self.liveness.forget(node)
         self.failures.append({"node": node, "detector": detector, "at": now})
         del self.failures[:-50]
         self.ctx.note_event(now, f"node {node} failed (detected by {detector})")
         self.ctx.publish(Happened("peer_failed", subject=node, by=detector))
-        if (
-            detector == self.ctx.id
-        ):  # tell everyone; the others learn it from us or another detector
-            for n in self.ctx.known_nodes():
-                if n != self.ctx.id and n not in self.failed:
-                    self.ctx.send(n, m.NodeDown(node, self.ctx.id, self._failed_incarnation[node]))
+        # it spreads on our next beats; the nodes that host the apps (one of them coordinates
+        # the recovery) are told at once
+        self._gossip.add(claim, rounds(len(self.ctx.routes) + 1))
+        if detector == self.ctx.id:
+            hosts = {n for dep in self.ctx.apps.values() for n in dep.placed.values()}
+            for n in sorted(hosts - self.failed - {self.ctx.id}):
+                self.ctx.send(n, claim)
         # moves that needed it fail or become restores; the chains it touched are recovered
         self.ctx.publish(PeerFailed(node))
 
@@ -381,6 +457,9 @@ class Membership:
                 # restart, whose instances are gone
         if self.ctx.routes.get(src, ("", 0))[0] == src:  # a neighbour's beat, not a hello
             self.liveness.heard_from(src, now, msg)
+        for claim in msg.news[:MAX_NEWS]:  # claims it accepted, piggybacked: weighed as ours
+            if claim.node not in (src, self.ctx.id):  # would be weighed by a NodeDown
+                self.on_node_down(claim.node, claim.detector, now, claim.incarnation, claim.witness)
         if msg.failed.get(self.ctx.id) == self.incarnation:
             if self._outranked_by(msg) and self._cut_off(msg):  # a healed partition we did
                 self.on_node_down(src, self.ctx.id, now)  # not see: hold it failed too, and the
@@ -441,6 +520,18 @@ class Membership:
             # run nothing, so we yield (it does not reset for us: see _outranked_by)
         else:
             self._answer_stale_claim(src, msg)
+            self._tell_held_failed(src, now)
+
+    def _tell_held_failed(self, src: str, now: float) -> None:
+        """``src``, held failed in the incarnation it still runs, is heard directly: tell it at
+        once (our beat lists it failed), so that it resets and rejoins now rather than at the
+        next ``REJOIN_EVERY`` round. At most once a heartbeat period per node."""
+        if now - self._told.get(src, float("-inf")) < self.liveness.period_s:
+            return
+        if len(self._told) >= self.known_bound():
+            self._told.clear()
+        self._told[src] = now
+        self.ctx.send(src, self.beat())
 
     def _restarted_across(self, src: str, incarnation: int) -> None:
         """``src`` restarted on the other side of a partition, which has since given it
@@ -497,6 +588,8 @@ class Membership:
         self._suspicions.clear()
         self._vouching.clear()
         self._failed_incarnation.clear()
+        self._gossip.clear()
+        self._claims.clear()
         self.incarnation += 1
         self.ctx.note_event(
             now,
@@ -520,6 +613,8 @@ class Membership:
         if node in self.failed:
             self._move(node, PeerEvent.REJOINED)
         self._failed_incarnation.pop(node, None)
+        self._gossip.drop(node)
+        self._claims.drop(node)
         self._incarnations[node] = incarnation
         self.liveness.rejoin(node, now, node in self.ctx.routes, self.ctx.routes.get(node))
         self.rejoins.append({"node": node, "incarnation": incarnation, "at": now})
@@ -560,121 +655,3 @@ class Membership:
         elif msg.incarnation > self._incarnations.get(msg.node, msg.incarnation):
             self.on_node_down(msg.node, msg.node, now)  # restarted unnoticed by us
             self._rejoin(msg.node, msg.incarnation, now, announce=False)
-
-    # -- app sync: a node that rejoins (or missed an app) is told it ---------------------------
-    def _claim(self, dep: AppState) -> None:
-        """Tell everyone where the instances this node runs are (a node that rejoins may
-        have spread, or been told, a view in which they run elsewhere: a node of a partition's
-        losing side claims the vertices it ran until it resets, and its reset tells nobody).
-        An instance being handed over is left out: its Moved follows."""
-        for vid, h in sorted(dep.instances.items()):
-            if h.handing_over is None and vid not in dep.markers:
-                self.ctx.broadcast(m.Moved(dep.app.name, vid, self.ctx.id, self.incarnation))
-
-    def _disputed(self) -> bool:
-        """This node holds a node it can reach failed: a partition healed and one side is
-        about to reset. Until then its view of the apps may be the losing side's, so it syncs
-        no node that rejoins (its sync would spread that view; nothing would correct it)."""
-        return any(n in self.ctx.routes for n in self.failed)
-
-    def _merge_sync(self, src: str, held: AppState, msg: m.AppSync) -> None:
-        """Take from a sync what is better than our view of an app we already hold. Ours may
-        come from a side of a partition that has since reset (a restarted node synced by a
-        node that lost the tie-break) or miss moves made while we were away, and no Moved will
-        ever correct it. But a sync is a snapshot and may be older than a Moved we have had
-        since. So we take the sender's word where it is first-hand (a vertex it runs itself
-        and does not hold vanished, or one we place on it that it says it handed over, and
-        to whom: a node held failed when the old host broadcast the move missed its Moved),
-        and its hearsay only where our own entry is known bad
-        (on a node we hold failed, vanished, or placed here where it does not run) — never
-        where we run an instance ourselves, and never a vertex it places here (it holds
-        that one vanished with our old incarnation)."""
-        ours = set(held.instances) | set(held.awaiting) | set(held.restoring)
-        gone = set(msg.vanished)
-
-        def better(v: str, n: str) -> bool:
-            if v not in held.placed or v in ours or n == self.ctx.id:
-                return False
-            if n == src and v not in gone:
-                return True
-            mine = held.placed[v]
-            if mine == src and msg.handed.get(v) == n:  # it ran it and handed it over to n
-                return True
-            if n == mine and v in held.vanished:  # names the node whose old incarnation took
-                return False  # it: no news (a claim from that node would be)
-            bad = mine in self.failed or v in held.vanished or mine == self.ctx.id
-            return bad and (v not in gone or v in held.vanished)
-
-        taken = {v for v, n in msg.placed.items() if better(v, n)}
-        for v in taken:
-            held.placed[v] = msg.placed[v]
-        held.vanished = (held.vanished - taken) | (taken & gone)
-
-    def _app_sync(self, dep: AppState) -> m.AppSync:
-        placed = dict(dep.placed)
-        handed = {v: n for v, n in dep.handed.items() if v not in dep.instances}
-        return m.AppSync(
-            dep.app.name, dep.origin, dep.document, dep.epoch, placed, sorted(dep.vanished), handed
-        )
-
-    def on_app_missing(self, ev: AppMissing) -> None:
-        """A live node asked to host a vertex does not hold the app: its sync was lost (the
-        node that owed it failed before it could send it; nobody else would). Sync it now,
-        or once this node's own view is not in dispute."""
-        dep, node = self.ctx.apps.get(ev.app), ev.node
-        if dep is None or node in self.failed or node == self.ctx.id or not dep.running:
-            return
-        if self._disputed():
-            self._sync_pending.add(node)
-        else:
-            self.ctx.send(node, self._app_sync(dep))
-
-    def _flush_syncs(self) -> None:
-        """Sync the nodes that rejoined while this node's view was in dispute, once it is not."""
-        if not self._sync_pending or self._disputed():
-            return
-        pending, self._sync_pending = sorted(self._sync_pending), set()
-        for node in pending:
-            if node in self.failed:
-                continue
-            for dep in self.ctx.apps.values():
-                if dep.running:
-                    self.ctx.send(node, self._app_sync(dep))
-
-    def on_app_sync(self, src: str, msg: m.AppSync, now: float) -> None:
-        held = self.ctx.apps.get(msg.app)
-        if self.deployer.revoked(src, msg.app, msg.document):
-            return
-        signed = self.ctx.authority.signed
-        if signed and held is not None and generation(msg.document) != generation(held.document):
-            self.ctx.refusal("app_sync_other_deployment")  # (an operator deployed it again since)
-            return
-        if held is not None:
-            self._merge_sync(src, held, msg)
-            self.recovery.unpark(held)
-            self.recovery.park(held)
-            self.recovery.maybe_recover(held, now)
-            return
-        try:
-            app = self.deployer.load_app(msg.app, msg.document)
-        except MsoError as exc:
-            self.ctx.note_event(now, f"cannot rejoin app {msg.app}: {exc}")
-            return
-        if not self.deployer.named(app, msg.app):
-            return
-        layout = Layout(app, msg.origin)
-        placed = dict(layout.initial_placement()) | {
-            v: n for v, n in msg.placed.items() if v in app.vertices
-        }
-        dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
-        dep.vanished = {v for v in msg.vanished if v in app.vertices}
-        dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
-        dep.running, dep.started_at = True, now
-        dep.placed_at = dict.fromkeys(range(len(layout.chains)), now)
-        for i, e in enumerate(app.edges):
-            dep.out_edges.setdefault(e.src, []).append(i)
-        self.ctx.apps[msg.app] = dep
-        # (re)arm go-back-N for the app: a timer left from before a reset may have lapsed
-        self.ctx.emit(SetTimer(Retransmit(msg.app), now + RETRANSMIT_S))
-        self.recovery.park(dep)
-        self.recovery.maybe_recover(dep, now)

@@ -24,6 +24,9 @@ class MembershipStatus(msgspec.Struct, frozen=True, kw_only=True):
 
     failed_nodes: list[str]
     suspected_nodes: list[str]
+    # out of reach, declared failed by nobody: held with their incarnation, their instances
+    # presumed running (nothing is re-placed for them)
+    unreachable_nodes: list[str]
     incarnation: int
     failures: list[dict[str, Any]]  # who, when, detected by whom (recent)
     rejoins: list[dict[str, Any]]  # who, as which incarnation, when (recent)

@@ -1,0 +1,147 @@
+"""App sync, membership's part in bringing a node that rejoins (or missed an app) up to date:
+it is told the app and where its vertices run (``AppSync``), and what it says is merged with
+care (a sync is a snapshot). A mixin of :class:`~.peers.Membership`, kept apart so that each
+module does one thing."""
+
+from __future__ import annotations
+
+from mso.errors import MsoError
+from mso.planning.placement import Layout
+from mso.protocol import messages as m
+from mso.protocol.authority import generation
+from mso.protocol.context import NodeContext
+from mso.protocol.dataplane import RETRANSMIT_S
+from mso.protocol.effects import SetTimer
+from mso.protocol.events import AppMissing, Retransmit
+from mso.protocol.procedures.deploy import Deployer
+from mso.protocol.procedures.remap import Remapper
+from mso.protocol.state import AppState
+
+
+class AppSyncing:
+    """What :class:`~.peers.Membership` does to sync apps (it provides these attributes)."""
+
+    ctx: NodeContext
+    failed: set[str]
+    deployer: Deployer
+    recovery: Remapper
+    incarnation: int
+    _sync_pending: set[str]
+
+    # -- app sync: a node that rejoins (or missed an app) is told it ---------------------------
+    def _claim(self, dep: AppState) -> None:
+        """Tell everyone where the instances this node runs are (a node that rejoins may
+        have spread, or been told, a view in which they run elsewhere: a node of a partition's
+        losing side claims the vertices it ran until it resets, and its reset tells nobody).
+        An instance being handed over is left out: its Moved follows."""
+        for vid, h in sorted(dep.instances.items()):
+            if h.handing_over is None and vid not in dep.markers:
+                self.ctx.broadcast(m.Moved(dep.app.name, vid, self.ctx.id, self.incarnation))
+
+    def _disputed(self) -> bool:
+        """This node holds a node it can reach failed: a partition healed and one side is
+        about to reset. Until then its view of the apps may be the losing side's, so it syncs
+        no node that rejoins (its sync would spread that view; nothing would correct it)."""
+        return any(n in self.ctx.routes for n in self.failed)
+
+    def _merge_sync(self, src: str, held: AppState, msg: m.AppSync) -> None:
+        """Take from a sync what is better than our view of an app we already hold. Ours may
+        come from a side of a partition that has since reset (a restarted node synced by a
+        node that lost the tie-break) or miss moves made while we were away, and no Moved will
+        ever correct it. But a sync is a snapshot and may be older than a Moved we have had
+        since. So we take the sender's word where it is first-hand (a vertex it runs itself
+        and does not hold vanished, or one we place on it that it says it handed over, and
+        to whom: a node held failed when the old host broadcast the move missed its Moved),
+        and its hearsay only where our own entry is known bad
+        (on a node we hold failed, vanished, or placed here where it does not run) — never
+        where we run an instance ourselves, and never a vertex it places here (it holds
+        that one vanished with our old incarnation)."""
+        ours = set(held.instances) | set(held.awaiting) | set(held.restoring)
+        gone = set(msg.vanished)
+
+        def better(v: str, n: str) -> bool:
+            if v not in held.placed or v in ours or n == self.ctx.id:
+                return False
+            if n == src and v not in gone:
+                return True
+            mine = held.placed[v]
+            if mine == src and msg.handed.get(v) == n:  # it ran it and handed it over to n
+                return True
+            if n == mine and v in held.vanished:  # names the node whose old incarnation took
+                return False  # it: no news (a claim from that node would be)
+            bad = mine in self.failed or v in held.vanished or mine == self.ctx.id
+            return bad and (v not in gone or v in held.vanished)
+
+        taken = {v for v, n in msg.placed.items() if better(v, n)}
+        for v in taken:
+            held.placed[v] = msg.placed[v]
+        held.vanished = (held.vanished - taken) | (taken & gone)
+
+    def _app_sync(self, dep: AppState) -> m.AppSync:
+        placed = dict(dep.placed)
+        handed = {v: n for v, n in dep.handed.items() if v not in dep.instances}
+        return m.AppSync(
+            dep.app.name, dep.origin, dep.document, dep.epoch, placed, sorted(dep.vanished), handed
+        )
+
+    def on_app_missing(self, ev: AppMissing) -> None:
+        """A live node asked to host a vertex does not hold the app: its sync was lost (the
+        node that owed it failed before it could send it; nobody else would). Sync it now,
+        or once this node's own view is not in dispute."""
+        dep, node = self.ctx.apps.get(ev.app), ev.node
+        if dep is None or node in self.failed or node == self.ctx.id or not dep.running:
+            return
+        if self._disputed():
+            self._sync_pending.add(node)
+        else:
+            self.ctx.send(node, self._app_sync(dep))
+
+    def _flush_syncs(self) -> None:
+        """Sync the nodes that rejoined while this node's view was in dispute, once it is not."""
+        if not self._sync_pending or self._disputed():
+            return
+        pending, self._sync_pending = sorted(self._sync_pending), set()
+        for node in pending:
+            if node in self.failed:
+                continue
+            for dep in self.ctx.apps.values():
+                if dep.running:
+                    self.ctx.send(node, self._app_sync(dep))
+
+    def on_app_sync(self, src: str, msg: m.AppSync, now: float) -> None:
+        held = self.ctx.apps.get(msg.app)
+        if self.deployer.revoked(src, msg.app, msg.document):
+            return
+        signed = self.ctx.authority.signed
+        if signed and held is not None and generation(msg.document) != generation(held.document):
+            self.ctx.refusal("app_sync_other_deployment")  # (an operator deployed it again since)
+            return
+        if held is not None:
+            self._merge_sync(src, held, msg)
+            self.recovery.unpark(held)
+            self.recovery.park(held)
+            self.recovery.maybe_recover(held, now)
+            return
+        try:
+            app = self.deployer.load_app(msg.app, msg.document)
+        except MsoError as exc:
+            self.ctx.note_event(now, f"cannot rejoin app {msg.app}: {exc}")
+            return
+        if not self.deployer.named(app, msg.app):
+            return
+        layout = Layout(app, msg.origin)
+        placed = dict(layout.initial_placement()) | {
+            v: n for v, n in msg.placed.items() if v in app.vertices
+        }
+        dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
+        dep.vanished = {v for v in msg.vanished if v in app.vertices}
+        dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
+        dep.running, dep.started_at = True, now
+        dep.placed_at = dict.fromkeys(range(len(layout.chains)), now)
+        for i, e in enumerate(app.edges):
+            dep.out_edges.setdefault(e.src, []).append(i)
+        self.ctx.apps[msg.app] = dep
+        # (re)arm go-back-N for the app: a timer left from before a reset may have lapsed
+        self.ctx.emit(SetTimer(Retransmit(msg.app), now + RETRANSMIT_S))
+        self.recovery.park(dep)
+        self.recovery.maybe_recover(dep, now)

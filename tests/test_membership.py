@@ -1,0 +1,123 @@
+"""Membership that is local, fast and honest: liveness from mso's own beats whatever the routing
+view does, unreachable apart from failed, O(N) messages per failure, beats whose size does not
+grow with N, and failure claims that need corroboration. Simulator, virtual clock."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from mso.node.core import NodeCore
+from mso.protocol import messages as m
+from mso.protocol.events import HeartbeatTick
+from test_failure import PIPE, emitted, started, stats, where
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
+import membership as bench
+
+
+def test_a_dead_relay_whose_routes_are_withdrawn_is_declared_from_its_last_beat() -> None:
+    """The routing view withdraws the dead node's routes 0.3 s after it died: the silence
+    clock keeps running from its last beat (it once restarted at the withdrawal: 0.9 s)."""
+    sim = started(PIPE)
+    victim = where(sim, "pipe", "mid")
+    t0 = sim.now
+    sim.kill(victim, convergence_s=0.3)
+    sim.run_until(t0 + 2.0)
+    first = min(
+        f["at"]
+        for n, c in sim.cores.items()
+        if n != victim
+        for f in c.failures
+        if f["node"] == victim
+    )
+    assert 0.5 <= first - t0 <= 0.65, first - t0
+    assert where(sim, "pipe", "mid") != victim
+
+
+def test_a_live_node_whose_route_is_withdrawn_is_unreachable_then_alive_nothing_lost() -> None:
+    """N1 (the source) loses its route to N6 (the sink) while both run and the others hear
+    N6: N1 holds it unreachable, asks N6's neighbours, who hear it; on heal it is simply
+    reachable again — no reset, the same sink instance, nothing lost or repeated."""
+    sim = started(PIPE)
+    n6 = sim.cores["N6"]
+    incarnation, instance = n6.incarnation, n6.instances("pipe")["sink"].instance
+    sim.lose_route("N1", "N6")
+    sim.lose_route("N6", "N1")
+    sim.run_until(sim.now + 2.0)
+    st = sim.cores["N1"].status(sim.now)
+    assert st["unreachable_nodes"] == ["N6"] and st["failed_nodes"] == []
+    sim.lose_route("N1", "N6", lost=False)
+    sim.lose_route("N6", "N1", lost=False)
+    sim.run_until(sim.now + 2.0)
+    assert all(not c.failed for c in sim.cores.values())
+    assert sim.cores["N1"].status(sim.now)["unreachable_nodes"] == []
+    assert n6.incarnation == incarnation
+    assert n6.instances("pipe")["sink"].instance == instance
+    got, sent = stats(sim, "pipe", "sink"), emitted(sim, "pipe", "src")
+    assert got["repeats"] == 0 and got["out_of_order"] == 0 and sent - 5 <= got["count"] <= sent
+
+
+def test_control_messages_for_one_failure_grow_no_faster_than_the_nodes() -> None:
+    """One interior node killed on a 5x5 and a 10x10 grid: the control messages from the kill
+    to quiescence (not data, acks or beats) grow at most linearly (4x the nodes), no node
+    handles more than O(N), and detection and recovery stay near the window."""
+    small, large = bench.failure(5, 0.0), bench.failure(10, 0.0)
+    assert small["control_messages"] > 0
+    ratio = large["control_messages"] / small["control_messages"]
+    assert ratio <= 4.0 * 1.25, (small, large)
+    assert large["control_messages"] <= 10 * large["nodes"], large
+    assert "Suspect" not in large["by_type"] or large["by_type"]["Suspect"] <= 3 * 8, large
+    for r in (small, large):
+        assert r["detection_s"] is not None and r["detection_s"] <= 0.65, r
+        assert r["recovery_s"] is not None and r["lost"] == 0, r
+
+
+def test_a_beats_size_does_not_grow_with_the_network() -> None:
+    small, large = bench.failure(5, 0.0), bench.failure(10, 0.0)
+    per_beat = [r["heartbeat_bytes_per_node_s"] for r in (small, large)]
+    assert per_beat[1] <= per_beat[0] * 1.2, per_beat
+
+
+def core_with_victim() -> NodeCore:
+    """N1 reaches N2 (a neighbour) and N3 through it; it has heard N3's incarnation 5."""
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2)}, 0.0)
+    core.receive("N3", m.Heartbeat("N3", 5), 0.5)
+    core.receive("N2", m.Heartbeat("N2", 0), 0.9)
+    return core
+
+
+def test_a_claim_with_an_implausible_incarnation_does_not_fail_its_victim() -> None:
+    core = core_with_victim()
+    core.receive("N2", m.NodeDown("N3", "N2", 5 + 86_000_000, "N4"), 1.0)
+    assert core.failed == set() and core.refusals["node_down_implausible_incarnation"] == 1
+
+
+def test_an_uncorroborated_claim_waits_for_our_own_probe_and_a_live_victim_refutes_it() -> None:
+    core = core_with_victim()
+    out = core.receive("N2", m.NodeDown("N3", "N2", 5), 1.0)  # no witness, one detector
+    assert core.failed == set()
+    probes = [e for e in out if getattr(e, "dst", "") == "N3" and isinstance(e.msg, m.Suspect)]
+    assert probes, out  # we ask the victim itself
+    core.receive("N3", m.Hears("N3", 0, True, 0), 1.05)  # it answers: it lives
+    core.on_timer(HeartbeatTick(), 1.3)
+    assert core.failed == set() and core.refusals["node_down_refuted"] == 1
+    core.receive("N2", m.NodeDown("N3", "N2", 5), 2.0)  # unanswered, it is believed
+    core.on_timer(HeartbeatTick(), 2.3)
+    assert core.failed == {"N3"}
+
+
+def test_two_detectors_corroborate_each_other() -> None:
+    core = core_with_victim()
+    core.receive("N2", m.NodeDown("N3", "N2", 5), 1.0)
+    assert core.failed == set()
+    core.receive("N4", m.NodeDown("N3", "N4", 5), 1.01)
+    assert core.failed == {"N3"}
+
+
+def test_a_node_that_hears_the_victim_refuses_the_claim() -> None:
+    core = core_with_victim()
+    core.receive("N3", m.Heartbeat("N3", 5), 1.0)
+    core.receive("N2", m.NodeDown("N3", "N2", 5, "N4"), 1.05)
+    assert core.failed == set() and core.refusals["node_down_heard"] == 1
