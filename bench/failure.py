@@ -1,57 +1,66 @@
-"""Fail-stop failure of a relaying node: detection time, recovery time, events lost.
+"""Faults under a running app: a relay killed, its mso node crashed on a live router, a node
+partitioned then healed, a route the routing daemon starves -- on the user-space backend and on
+netns with babeld or batmand. Detection time, recovery time, recoveries failing within 12 s,
+events lost and duplicated.
 
 The app ``src -> mid -> sink`` (``vertices.failure``: a counting source at 200 events/s pinned to
 the first node, a stateless pass-through ``mid`` left unpinned, a gap-timing sink pinned to the
-last node) runs on two emulated topologies, one ``mso node`` process per node:
+last node) runs on an emulated topology, one ``mso node`` process per node:
 
-* ``line``: a convoy of 5 robots R1..R5 100 m apart with ``radio_range: 250`` (each robot hears
-  the robots up to two positions away; 54 Mbit/s, 0.5 ms links). The route R1 -> R5 is
-  R1-R3-R5 and Algorithm 1 puts ``mid`` on R3 with no tuning (equal costs); killing R3 leaves
-  R1-R2-R4-R5, so the line is never partitioned.
-* ``mesh``: the 6-node mesh of tests/test_emulator.py (0.5 ms links); ``mid`` lands on N3, an
-  interior node of the route N1-N2-N3-N6; N1-N2-N5-N6 and N1-N4-N5-N6 survive it.
+* ``mesh``: 6 nodes, links N1-N2, N2-N3, N3-N6, N1-N4, N4-N5, N5-N6, N2-N5, N3-N5; ``mid`` lands
+  on an interior node (N3 or N5) and the others survive it;
+* ``line``: a convoy of 5 robots R1..R5 100 m apart with ``radio_range: 250``; ``mid`` on R3,
+  and killing R3 leaves R1-R2-R4-R5.
 
-Each run starts a fresh emulator (management rules off, so only the failure moves ``mid``),
-deploys the app via the first node, lets it flow for 1.5 s, then SIGKILLs the node hosting
-``mid`` (read from the placement just before the kill; it must be an interior node) with
-``Emulator.kill``, and polls the sink's node (its own status: an ``everywhere`` status would wait
-up to 1 s for the dead node) until the sink has received a good half second of events after the
-kill (at most 8 s). It then reads the source's ``emitted`` and waits (at most 3 s) until the sink
-has everything up to it. Figures per run:
+Each run starts a fresh emulator (management rules off, so only the fault moves ``mid``),
+deploys the app via the first node, lets it flow for 1.5 s, then injects the fault on the node
+hosting ``mid`` (the *victim*, read from the placement just before):
 
-* detection_ms: the earliest ``failures[*].at`` for the killed node over the survivors minus
-  the kill time (node loop times and the controller's are the same CLOCK_MONOTONIC);
-* recovery_ms: first arrival at the sink after the outage minus the last arrival before it, the
-  outage being the largest inter-arrival gap that ends after the kill (the sink keeps its five
-  largest gaps); ``straddles`` says whether it starts before the kill (events already past the
-  victim may still arrive just after it);
-* resume_ms: first arrival after the outage minus the kill time;
-* remap_started_ms: the coordinator's recovery record ``at`` minus the kill time (it starts once
-  its routes avoid the victim); remap_ms: that record's ``took_ms`` (probe, place, restore);
-* lost: events the source emitted (read after recovery) that the sink never got -- holes the
-  sink still has plus what lies beyond its highest seq (target 0); duplicated: events the sink
-  got twice (target 0).
+* ``kill``: the device dies (``Emulator.kill``: SIGKILL to the node process and, on netns, its
+  routing daemon);
+* ``crash``: only the ``mso node`` process dies; its links stay, and on netns its routing daemon
+  keeps routing (a daemon that never drops the node: only mso's own heartbeats can tell);
+* ``partition``: every link of the victim goes down for ``--hold`` seconds (default twice the
+  failure timeout, at least 2 s), then comes back; lost and duplicated are counted after the
+  heal, once the victim is back;
+* ``starve`` (netns): the kernel of the victim loses its route to the sink's node for
+  ``--starve-s`` seconds (60) while the routing daemon keeps its own: a policy rule sends the
+  address to a table that says ``unreachable``, what babeld's starvation looks like to mso. In
+  even runs both ends lose the route, in odd runs only the victim (no return route). mso should
+  relay at the overlay (through a node whose kernel still reaches the sink) and lose nothing;
+  nobody should be declared failed.
 
-``--heartbeat S`` and ``--dead-after S`` set every node's failure detection (default 0.1 s and
-0.5 s; ``failure-hb0.05-dead0.15.json`` etc. for other settings); a survivor that declares a
-live node failed (a false detection) fails its run.
+It polls the sink's node (its own status) until the sink has received a good half second of
+events after the fault (at most 12 s), reads the source's ``emitted`` and waits (at most 3 s)
+until the sink has everything up to it. Figures per run:
 
-``--convergence S`` is the emulator's routing convergence delay (routes follow a link change
-after S seconds; 0 = at once, 2.0 = babeld-like). Each setting is its own invocation with its
-own files: ``bench/results/failure.json``/``.md`` for 0, ``failure-conv2.json``/``.md`` for 2.0
-(``-quick`` appended with ``--quick``).
+* detection_ms: the earliest ``failures[*].at`` for the victim over the survivors minus the fault
+  time (node loop times and the controller's are the same CLOCK_MONOTONIC);
+* recovery_ms: the largest inter-arrival gap at the sink that ends after the fault (for
+  ``starve``: during the starvation); a run whose flow did not resume within 12 s counts in
+  ``unrecovered`` (and fails);
+* lost: events the source emitted that the sink never got (target 0); duplicated: events the
+  sink got twice (target 0); relayed: bytes the nodes forwarded at the overlay (the kernel
+  forwards otherwise).
 
-Usage: .venv/bin/python bench/failure.py [--runs 10] [--quick] [--convergence 0.0]
-                                         [--topology line,mesh] [--manage] [--json FILE]
-                                         [--heartbeat 0.1] [--dead-after 0.5]
+Results go to ``bench/results/failure.json`` / ``.md``, one cell per (setup, fault, topology),
+merged with the cells already there (so the cells can be measured one invocation at a time);
+``--json FILE`` writes elsewhere. ``--heartbeat``/``--dead-after``/``--convergence`` set the
+detection and the user-space routing delay (netns defaults: heartbeat 0.2 s, 3 s).
+
+Usage: .venv/bin/python bench/failure.py [--backend user|netns] [--routing babeld|batmand]
+          [--case kill,crash,partition,starve] [--topology mesh,line] [--runs 20] [--quick]
+          [--starve-s 60] [--hold S] [--convergence 0] [--heartbeat S] [--dead-after S]
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import shutil
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -61,6 +70,7 @@ from typing import Any
 from mso.benchmarks.common import percentile, provenance, write_results
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
+from mso.model.network import LinkSpec
 from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
@@ -69,11 +79,15 @@ VERTICES = "mso.benchmarks.vertices.failure"  # the vertex code the nodes import
 APP = "fail"
 RATE = 200.0
 STEADY_S = 1.5  # flow before the kill
-RECOVER_S = 8.0  # bound on waiting for the flow to resume
+RECOVER_S = 12.0  # bound on waiting for the flow to resume: a longer outage is a failure
 DRAIN_S = 3.0  # bound on waiting for in-flight events after it resumed
+REJOIN_S = 3.0  # after a partition heals: time for the victim to rejoin before counting
 POLL_S = 0.05
-RUN_TIMEOUT_S = 45.0  # a whole run (start, deploy, kill, recover, drain, stop)
-RUN_BUDGET_S = 15.0  # per planned run: no run starts once runs x this has passed (~3-5 s used)
+RUN_TIMEOUT_S = 60.0  # a whole run (start, deploy, fault, recover, drain, stop) ...
+RUN_BUDGET_S = 25.0  # per planned run: no run starts once runs x this has passed
+CASES = ("kill", "crash", "partition", "starve")
+STARVE_TABLE = 199  # the policy table a starved route is sent to (holds "unreachable")
+STARVE_PREF = 100  # ahead of main (32766) and batmand's rules (6600)
 
 TOPOLOGIES: dict[str, tuple[str, str, str]] = {  # name -> (scenario, first node, last node)
     "line": (
@@ -169,38 +183,143 @@ def log_lines(emu: Emulator, limit: int = 12) -> dict[str, list[str]]:
     return out
 
 
-async def one_run(
-    topology: str,
-    k: int,
-    convergence: float,
-    rate: float,
-    manage: bool,
-    logs: Path,
-    detection: tuple[float | None, float | None] = (None, None),
-    backend: str = "user",
-) -> dict[str, Any]:
-    """One fresh emulator: deploy, flow, kill the relay hosting ``mid``, measure."""
-    scenario_text, first, last = TOPOLOGIES[topology]
-    row: dict[str, Any] = {"topology": topology, "run": k, "error": None}
-    log_dir = logs / f"{topology}-{k}"
-    log_dir.mkdir()
-    kind: type[Emulator] = Emulator
-    if backend == "netns":  # a namespace per node, babeld, the kernel view
-        from mso.emu.netns.emulator import NetnsEmulator
+class Setup:
+    """What a cell runs on: the backend, its routing daemon, detection and convergence."""
 
-        kind = NetnsEmulator
-    emu = kind(
-        loads_scenario(scenario_text),
-        convergence_s=convergence,
-        log_dir=log_dir,
-        manage=manage,
-        heartbeat_s=detection[0],
-        dead_after_s=detection[1],
-    )
+    def __init__(
+        self,
+        backend: str,
+        routing: str,
+        convergence: float,
+        rate: float,
+        detection: tuple[float, float],
+        hold_s: float,
+        starve_s: float,
+    ) -> None:
+        self.backend, self.routing = backend, routing
+        self.convergence, self.rate = convergence, rate
+        self.detection = detection
+        self.hold_s, self.starve_s = hold_s, starve_s
+
+    @property
+    def label(self) -> str:
+        return "user" if self.backend == "user" else f"netns-{self.routing}"
+
+    def emulator(self, topology: str, log_dir: Path) -> Emulator:
+        scenario = loads_scenario(TOPOLOGIES[topology][0])
+        kw: dict[str, Any] = {
+            "convergence_s": self.convergence,
+            "log_dir": log_dir,
+            "manage": False,
+            "heartbeat_s": self.detection[0],
+            "dead_after_s": self.detection[1],
+        }
+        if self.backend == "netns":  # a namespace per node, the daemon, the kernel view
+            from mso.emu.netns.emulator import NetnsEmulator
+
+            return NetnsEmulator(scenario, routing=self.routing, **kw)
+        return Emulator(scenario, **kw)
+
+
+def crash(emu: Emulator, victim: str) -> tuple[float, Any]:
+    """Kill only the node process; its links (and its routing daemon) stay. The emulator's
+    watcher must not see it die (it would take the links away), so the process is hidden from
+    it until the run ends; returns the time and the process."""
+    node = emu.nodes[victim]
+    proc, node.process = node.process, None
+    assert proc is not None
+    proc.kill()
+    proc.wait(timeout=5)
+    return asyncio.get_running_loop().time(), proc
+
+
+async def cut(emu: Emulator, victim: str) -> list[LinkSpec]:
+    """Take every link of ``victim`` down at once; returns them, to heal with."""
+    net = emu.scenario.network
+    links = [spec for (a, b), spec in net.links.items() if victim in (a, b)]
+    for spec in links:
+        net.remove_link(spec.a, spec.b)
+    await emu._links_changed()
+    return links
+
+
+async def heal(emu: Emulator, links: list[LinkSpec]) -> None:
+    for spec in links:
+        emu.scenario.network.add_link(spec)
+    await emu._links_changed()
+
+
+def starve(emu: Emulator, node: str, dst: str, on: bool) -> None:
+    """On ``node``'s kernel, send ``dst``'s address to a table saying unreachable (or stop)."""
+    from mso.emu.netns.emulator import NetnsEmulator
+
+    assert isinstance(emu, NetnsEmulator) and emu.testbed is not None
+    ns, addr = emu.testbed.netns(node), emu.testbed.address(dst)
+    ip = ["ip", "-n", ns]
+    if on:
+        cmds = [
+            [*ip, "route", "replace", "unreachable", f"{addr}/32", "table", str(STARVE_TABLE)],
+            [*ip, "rule", "add", "to", f"{addr}/32", "lookup", str(STARVE_TABLE), "pref",
+             str(STARVE_PREF)],
+        ]  # fmt: skip
+    else:
+        cmds = [
+            [*ip, "rule", "del", "pref", str(STARVE_PREF)],
+            [*ip, "route", "flush", "table", str(STARVE_TABLE)],
+        ]
+    for cmd in cmds:
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0 and on:
+            raise MsoError(f"{' '.join(cmd)}: {proc.stderr.strip()}")
+
+
+async def sink_stats(emu: Emulator, last: str) -> dict[str, Any]:
+    stats: dict[str, Any] = vertex(await node_status(emu, last), "sink").get("stats", {})
+    return stats
+
+
+async def wait_resumed(
+    emu: Emulator, last: str, since: float, want: int, bound: float
+) -> dict[str, Any] | None:
+    """Poll the sink until it has ``want`` events and a gap after ``since`` it has left behind;
+    None if that did not happen within ``bound`` seconds of ``since``."""
     loop = asyncio.get_running_loop()
+    while loop.time() < since + bound:
+        await asyncio.sleep(POLL_S)
+        stats = await sink_stats(emu, last)
+        gap = outage(stats, since)
+        if stats.get("count", 0) >= want and gap is not None and stats["last"] > gap[1]:
+            return stats
+    return None
+
+
+async def drain(emu: Emulator, first: str, last: str) -> tuple[int, dict[str, Any]]:
+    """Everything the source has emitted so far reaches the sink (at most DRAIN_S)."""
+    loop = asyncio.get_running_loop()
+    emitted = int(vertex(await node_status(emu, first), "src").get("emitted", 0))
+    deadline = loop.time() + DRAIN_S
+    stats: dict[str, Any] = {}
+    while loop.time() < deadline:
+        stats = await sink_stats(emu, last)
+        if stats.get("next", 0) >= emitted and not stats.get("missing", 0):
+            break
+        await asyncio.sleep(POLL_S)
+    return emitted, stats
+
+
+async def one_run(setup: Setup, case: str, topology: str, k: int, logs: Path) -> dict[str, Any]:
+    """One fresh emulator: deploy, flow, inject ``case`` on the node hosting ``mid``, measure."""
+    _, first, last = TOPOLOGIES[topology]
+    row: dict[str, Any] = {"case": case, "topology": topology, "run": k, "error": None}
+    log_dir = logs / f"{case}-{topology}-{k}"
+    log_dir.mkdir()
+    emu = setup.emulator(topology, log_dir)
+    loop = asyncio.get_running_loop()
+    hidden: tuple[str, Any] | None = None
     try:
         await emu.start()
-        reply = await emu.deploy(app_yaml(first, last, rate), "failure.yaml", first, check=True)
+        app = app_yaml(first, last, setup.rate)
+        reply = await emu.deploy(app, "failure.yaml", first, check=True)
         row["placed"] = reply.placement["mid"]
         await asyncio.sleep(STEADY_S)
         before = await node_status(emu, first)
@@ -208,94 +327,95 @@ async def one_run(
         row["victim"] = victim
         if victim in (first, last):
             raise MsoError(f"mid is on an end node ({victim}), not on a relay")
-        pre = vertex(await node_status(emu, last), "sink").get("stats", {})
-        row["count_before"] = pre.get("count", 0)
-        kill_t = emu.kill(victim)
-
-        # the flow resumes: the sink has a good half second of events after the kill
-        want = row["count_before"] + int(rate * 0.5) + int(rate * 0.05)
-        stats: dict[str, Any] = {}
-        deadline = kill_t + RECOVER_S
-        while loop.time() < deadline:
-            await asyncio.sleep(POLL_S)
-            stats = vertex(await node_status(emu, last), "sink").get("stats", {})
-            gap = outage(stats, kill_t)
-            if stats.get("count", 0) >= want and gap is not None and stats["last"] > gap[1]:
-                break
+        row["count_before"] = (await sink_stats(emu, last)).get("count", 0)
+        want = row["count_before"] + int(setup.rate * 0.55)
+        healed_at = None
+        if case == "kill":
+            fault_t = emu.kill(victim)
+        elif case == "crash":
+            fault_t, proc = crash(emu, victim)
+            hidden = (victim, proc)
+        elif case == "partition":
+            fault_t = loop.time()
+            links = await cut(emu, victim)
+        elif case == "starve":
+            ends = [victim, last] if k % 2 == 0 else [victim]
+            row["starved"] = ends
+            fault_t = loop.time()
+            for node in ends:
+                starve(emu, node, last if node == victim else victim, True)
         else:
-            row["error"] = f"no recovery within {RECOVER_S:g} s"
-        row["resumed_wait_s"] = loop.time() - kill_t
+            raise MsoError(f"unknown case {case!r}")
 
-        # everything the source has emitted so far reaches the sink
-        emitted = int(vertex(await node_status(emu, first), "src").get("emitted", 0))
-        deadline = loop.time() + DRAIN_S
-        while loop.time() < deadline:
-            stats = vertex(await node_status(emu, last), "sink").get("stats", {})
-            if stats.get("next", 0) >= emitted and not stats.get("missing", 0):
-                break
-            await asyncio.sleep(POLL_S)
+        if case == "starve":
+            await asyncio.sleep(setup.starve_s)
+            stats = await sink_stats(emu, last)
+            for node in row["starved"]:
+                starve(emu, node, last if node == victim else victim, False)
+            row["resumed"] = stats.get("count", 0) >= want
+        else:
+            stats = await wait_resumed(emu, last, fault_t, want, RECOVER_S) or {}
+            row["resumed"] = bool(stats)
+            if not stats:
+                row["error"] = f"no recovery within {RECOVER_S:g} s"
+        row["resumed_wait_s"] = loop.time() - fault_t
+        if case == "partition":
+            await asyncio.sleep(max(0.0, fault_t + setup.hold_s - loop.time()))
+            await heal(emu, links)
+            healed_at = loop.time()
+            await asyncio.sleep(REJOIN_S)
+        emitted, stats = await drain(emu, first, last)
         everywhere = await emu.status(first)
 
         row["emitted"] = emitted
-        row["sink_count"] = stats.get("count", 0)  # by now: includes events after ``emitted``
+        row["sink_count"] = stats.get("count", 0)
         row["lost"] = int(stats.get("missing", 0)) + max(0, emitted - int(stats.get("next", 0)))
         row["duplicated"] = int(stats.get("repeats", 0))
         row["out_of_order"] = int(stats.get("out_of_order", 0))
-        row["late"] = int(stats.get("late", 0))
-
+        row["relayed_bytes"] = sum(
+            int(st.get("traffic", {}).get("bytes_forwarded", 0)) for st in everywhere.values()
+        )
         ats = [
-            (f["at"], f["detector"])
+            f["at"]
             for n, st in everywhere.items()
             if n != victim
             for f in st.get("failures", [])
             if f["node"] == victim
         ]
-        if ats:
-            at, detector = min(ats)
-            row["detection_ms"] = (at - kill_t) * 1e3
-            row["detector"] = detector
-        else:
-            row["detection_ms"] = None
-            row["error"] = row["error"] or "no survivor recorded the failure"
-        if victim in emu.dead:
-            row["noticed_ms"] = (emu.dead[victim] - kill_t) * 1e3  # by the controller
-        gap = outage(stats, kill_t)
-        if gap is not None:
-            row["recovery_ms"] = (gap[1] - gap[0]) * 1e3
-            row["resume_ms"] = (gap[1] - kill_t) * 1e3
-            row["straddles"] = gap[0] <= kill_t < gap[1]
-            row["outage_starts_ms"] = (gap[0] - kill_t) * 1e3
-        else:
-            row["recovery_ms"] = row["resume_ms"] = None
-            row["straddles"] = False
-        records = [
-            r
-            for n, st in everywhere.items()
-            for r in st.get("apps", {}).get(APP, {}).get("recoveries", [])
-        ]
-        row["recoveries"] = records
-        row["remap_ms"] = records[0].get("took_ms") if len(records) == 1 else None
-        if records:  # when the coordinator started (it waits for routes around the victim)
-            row["remap_started_ms"] = (records[0]["at"] - kill_t) * 1e3
-        if len(records) != 1 or not records[0].get("ok"):
-            row["error"] = row["error"] or f"recovery records: {records}"
+        row["detection_ms"] = (min(ats) - fault_t) * 1e3 if ats else None
+        gap = outage(stats, fault_t)
+        if case == "starve":  # the largest gap during the starvation, if any event waited
+            gaps = [(b, a) for b, a in stats.get("gaps", []) if a > fault_t]
+            gap = max(gaps, key=lambda g: g[1] - g[0]) if gaps else None
+        row["recovery_ms"] = (gap[1] - gap[0]) * 1e3 if gap is not None else None
+        row["healed_at_ms"] = (healed_at - fault_t) * 1e3 if healed_at is not None else None
         hosts = [n for n, st in everywhere.items() if vertex(st, "mid")]
         row["mid_after"] = hosts[0] if len(hosts) == 1 else hosts
-        row["failed_nodes"] = {n: st.get("failed_nodes") for n, st in everywhere.items()}
-        false = sorted({f["node"] for st in everywhere.values() for f in st.get("failures", [])})
-        if false != [victim]:  # a live node declared failed: detection too eager
-            row["error"] = row["error"] or f"nodes declared failed: {false} (victim {victim})"
-        row["unroutable"] = {  # frames a node had no route (or no live next hop) for
-            n: st["traffic"]["frames_unroutable"]
-            for n, st in everywhere.items()
-            if st.get("traffic", {}).get("frames_unroutable")
-        }
-        row["dropped_messages"] = {
-            n: st["dropped_messages"] for n, st in everywhere.items() if st.get("dropped_messages")
-        }
+        declared = sorted(  # by the survivors (a partitioned victim declares the others)
+            {
+                f["node"]
+                for st in everywhere.values()
+                for f in st.get("failures", [])
+                if f.get("detector") != victim or case == "starve"
+            }
+        )
+        row["declarations"] = sorted(
+            {(f["node"], f.get("detector")) for st in everywhere.values()
+             for f in st.get("failures", [])}
+        )  # fmt: skip
+        row["declared_failed"] = declared
+        if case == "starve":
+            if declared:
+                row["error"] = row["error"] or f"nodes declared failed: {declared}"
+        elif row["detection_ms"] is None:
+            row["error"] = row["error"] or "no survivor recorded the failure"
+        elif set(declared) - {victim}:
+            row["error"] = row["error"] or f"live nodes declared failed: {declared}"
     except Exception as exc:  # a failed run is reported, the others still run
         row["error"] = f"{type(exc).__name__}: {exc}"
     finally:
+        if hidden is not None:  # give the stopped process back to the emulator
+            emu.nodes[hidden[0]].process = hidden[1]
         if row["error"] or row.get("lost") or row.get("duplicated"):
             row["logs"] = log_lines(emu)
         await emu.stop()
@@ -303,8 +423,8 @@ async def one_run(
     return row
 
 
-def topology_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Summary figures of one topology's runs (failed runs count only in ``failed``)."""
+def cell_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Summary figures of one cell's runs (failed runs count in ``failed`` and in the losses)."""
 
     def col(key: str) -> list[float]:
         return [float(r[key]) for r in rows if r.get(key) is not None and not r["error"]]
@@ -318,151 +438,148 @@ def topology_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "runs": len(rows),
         "ok": len(good),
         "failed": len(rows) - len(good),
+        "unrecovered": sum(1 for r in rows if r.get("resumed") is False),
         "detection_ms": summary(col("detection_ms")),
         "recovery_ms": summary(col("recovery_ms")),
-        "resume_ms": summary(col("resume_ms")),
-        "remap_ms": summary(col("remap_ms")),
-        "remap_started_ms": summary(col("remap_started_ms")),
-        "retried": sum(any(x.get("retried") for x in r.get("recoveries") or []) for r in good),
-        "retried_steps": sorted(
-            {s for r in good for x in r.get("recoveries") or [] for s in x.get("retried") or []}
-        ),
         "lost_total": sum(int(r.get("lost") or 0) for r in rows),
         "duplicated_total": sum(int(r.get("duplicated") or 0) for r in rows),
         "emitted_total": sum(int(r.get("emitted") or 0) for r in rows),
-        "straddling": sum(bool(r.get("straddles")) for r in good),
+        "relayed_bytes_p50": summary(col("relayed_bytes"))["p50"],
         "mid_moves": moves,
+        "errors": sorted({str(r["error"]) for r in rows if r["error"]}),
     }
 
 
 async def run(
-    runs: int,
-    convergence: float,
-    rate: float,
-    topologies: list[str],
-    manage: bool,
-    detection: tuple[float | None, float | None] = (None, None),
-    backend: str = "user",
+    setup: Setup, cases: list[str], topologies: list[str], runs: int, tmp: Path
 ) -> dict[str, Any]:
-    """``runs`` fresh-emulator runs per topology, within the time budget."""
-    t0 = time.monotonic()
-    budget = RUN_BUDGET_S * runs * len(topologies)
-    result: dict[str, Any] = {"topologies": {}, "rows": [], "notes": []}
-    with tempfile.TemporaryDirectory(prefix="mso-bench-failure-") as tmp:
+    """``runs`` fresh-emulator runs per (case, topology), each cell within its time budget."""
+    cells: dict[str, Any] = {}
+    for case in cases:
         for topology in topologies:
-            rows = []
+            t0 = time.monotonic()
+            per_run = RUN_BUDGET_S + (setup.starve_s if case == "starve" else setup.hold_s)
+            rows: list[dict[str, Any]] = []
+            notes = []
             for k in range(runs):
-                if time.monotonic() - t0 > budget:
-                    result["notes"].append(f"{topology}: budget spent after {k} runs")
+                if time.monotonic() - t0 > per_run * runs:
+                    notes.append(f"budget spent after {k} runs")
                     break
                 try:
                     row = await asyncio.wait_for(
-                        one_run(
-                            topology,
-                            k,
-                            convergence,
-                            rate,
-                            manage,
-                            Path(tmp),
-                            detection,
-                            backend,
-                        ),
-                        RUN_TIMEOUT_S,
+                        one_run(setup, case, topology, k, tmp), RUN_TIMEOUT_S + per_run
                     )
                 except TimeoutError:
-                    row = {"topology": topology, "run": k, "error": "run timed out"}
+                    row = {"case": case, "topology": topology, "run": k, "error": "timed out"}
                 rows.append(row)
                 status = "ok" if not row["error"] else f"FAILED: {row['error']}"
                 print(
-                    f"{topology} run {k}: victim {row.get('victim')} -> "
+                    f"{setup.label} {case} {topology} run {k}: {row.get('victim')} -> "
                     f"{row.get('mid_after')}, detection {_f(row.get('detection_ms'))} ms, "
-                    f"recovery {_f(row.get('recovery_ms'))} ms, "
-                    f"lost {row.get('lost')}, dup {row.get('duplicated')} ({status})",
+                    f"recovery {_f(row.get('recovery_ms'))} ms, lost {row.get('lost')}, "
+                    f"dup {row.get('duplicated')}, relayed {row.get('relayed_bytes')} ({status})",
                     file=sys.stderr,
+                    flush=True,
                 )
-            result["topologies"][topology] = topology_summary(rows)
-            result["rows"] += rows
-    result["seconds"] = time.monotonic() - t0
-    return result
+            key = f"{setup.label}/{case}/{topology}"
+            cells[key] = {
+                "setup": setup.label,
+                "case": case,
+                "topology": topology,
+                "heartbeat_s": setup.detection[0],
+                "dead_after_s": setup.detection[1],
+                "convergence_s": setup.convergence,
+                "rate": setup.rate,
+                "hold_s": setup.hold_s if case == "partition" else None,
+                "starve_s": setup.starve_s if case == "starve" else None,
+                "seconds": time.monotonic() - t0,
+                "notes": notes,
+                **provenance(),
+                "summary": cell_summary(rows),
+                "rows": rows,
+            }
+    return cells
 
 
-def _f(x: float | None, digits: int = 1) -> str:
+def _f(x: float | None, digits: int = 0) -> str:
     return "-" if x is None else f"{x:,.{digits}f}"
 
 
+CASE_TITLES = {
+    "kill": "relay killed",
+    "crash": "mso node crashed, router alive",
+    "partition": "relay partitioned, healed",
+    "starve": "route starved",
+}
+
+
 def render(result: dict[str, Any]) -> str:
-    """The Markdown table (and what went wrong, if anything)."""
-    conv = result["convergence_s"]
+    """The Markdown table of every cell (and what went wrong, if anything)."""
     lines = [
-        f"### Fail-stop failure of the relay hosting `mid` (convergence {conv:g} s, "
-        f"{result['rate']:g} events/s, {result['runs']} runs per topology, heartbeat "
-        f"{result.get('heartbeat_s', 0.1):g} s, failed after {result.get('dead_after_s', 0.5):g} "
-        "s of silence)",
+        f"### Faults under `src -> mid -> sink` at {result.get('rate', RATE):g} events/s "
+        "(`bench/failure.py`)",
         "",
-        "| topology | runs ok | detection ms mean / p50 / p99 / max "
-        "| recovery ms mean / p50 / p99 / max | remap starts after kill ms p50 "
-        "| remap ms p50 / max | lost | duplicated | mid moved |",
-        "|---|---:|---|---|---:|---|---:|---:|---|",
+        "| setup | fault | topology | runs ok | detection ms p50 / max "
+        "| recovery ms p50 / p99 / max | not recovered in 12 s | lost | duplicated "
+        "| relayed B p50 | mid moved |",
+        "|---|---|---|---:|---|---|---:|---:|---:|---:|---|",
     ]
-    for name, s in result["topologies"].items():
+    order = {c: i for i, c in enumerate(CASES)}
+    cells = sorted(
+        result["cells"].values(), key=lambda c: (c["setup"], order.get(c["case"], 9), c["topology"])
+    )
+    for c in cells:
+        s = c["summary"]
         d, r = s["detection_ms"], s["recovery_ms"]
         moves = ", ".join(f"{k} ({v})" for k, v in sorted(s["mid_moves"].items()))
+        what = CASE_TITLES.get(c["case"], c["case"])
+        if c.get("starve_s"):
+            what += f" {c['starve_s']:g} s"
+        if c.get("hold_s"):
+            what += f" ({c['hold_s']:g} s)"
         lines.append(
-            f"| {name} | {s['ok']}/{s['runs']} "
-            f"| {_f(d['mean'])} / {_f(d['p50'])} / {_f(d['p99'])} / {_f(d['max'])} "
-            f"| {_f(r['mean'])} / {_f(r['p50'])} / {_f(r['p99'])} / {_f(r['max'])} "
-            f"| {_f(s['remap_started_ms']['p50'])} "
-            f"| {_f(s['remap_ms']['p50'], 2)} / {_f(s['remap_ms']['max'], 2)} "
-            f"| {s['lost_total']} of {s['emitted_total']:,} | {s['duplicated_total']} | {moves} |"
+            f"| {c['setup']} (hb {c['heartbeat_s']:g} s, dead {c['dead_after_s']:g} s) | {what} "
+            f"| {c['topology']} | {s['ok']}/{s['runs']} | {_f(d['p50'])} / {_f(d['max'])} "
+            f"| {_f(r['p50'])} / {_f(r['p99'])} / {_f(r['max'])} | {s['unrecovered']} "
+            f"| {s['lost_total']:,} of {s['emitted_total']:,} | {s['duplicated_total']:,} "
+            f"| {_f(s['relayed_bytes_p50'])} | {moves} |"
         )
     lines += [
         "",
-        "- detection: earliest survivor's failure record minus the kill (SIGKILL) time; "
-        "recovery: first sink arrival after the outage minus the last before it (nominal "
-        f"inter-arrival {1e3 / result['rate']:g} ms); remap starts: the coordinator's recovery "
-        "record minus the kill (it waits for routes around the victim); remap: its `took_ms`; "
-        "lost/duplicated: over all runs (target 0)",
+        "- detection: the earliest survivor's failure record minus the fault time; recovery: "
+        "the largest gap between sink arrivals that ends after the fault (for a starved route: "
+        "during the starvation); lost/duplicated: over all runs, counted after the drain (and "
+        "after the heal for a partition); relayed: bytes the nodes forwarded at the overlay "
+        "(on netns the kernel forwards, so anything here went through the overlay relay)",
     ]
-    for name, s in result["topologies"].items():
-        if s["ok"] and s["straddling"] < s["ok"]:
-            lines.append(
-                f"- {name}: in {s['ok'] - s['straddling']} run(s) a few events already past "
-                "the victim arrived after the kill; the outage was timed from the last of them"
-            )
-    for name, s in result["topologies"].items():
-        if s["retried"]:
-            lines.append(
-                f"- {name}: in {s['retried']} run(s) the remap took about 1 s more: a step was "
-                f"re-sent after the 1 s step timeout ({', '.join(s['retried_steps'])})"
-            )
-    for note in result["notes"]:
-        lines.append(f"- note: {note}")
-    for row in result["rows"]:
-        if row["error"]:
-            lines.append(f"- FAILED {row['topology']} run {row['run']}: {row['error']}")
+    for c in cells:
+        for note in c.get("notes", []):
+            lines.append(f"- {c['setup']}/{c['case']}/{c['topology']}: {note}")
+        for err in c["summary"]["errors"]:
+            n = sum(1 for r in c["rows"] if r["error"] == err)
+            lines.append(f"- {c['setup']}/{c['case']}/{c['topology']}: {n} run(s) failed: {err}")
     return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
-    ap.add_argument("--runs", type=int, default=10, help="runs per topology (default 10)")
-    ap.add_argument("--quick", action="store_true", help="3 runs per topology")
+    ap.add_argument("--runs", type=int, default=20, help="runs per cell (default 20)")
+    ap.add_argument("--quick", action="store_true", help="3 runs per cell")
+    ap.add_argument("--backend", choices=("user", "netns"), default="user")
+    ap.add_argument("--routing", choices=("babeld", "batmand"), default="babeld",
+                    help="the routing daemon on netns")  # fmt: skip
+    ap.add_argument("--case", default="kill,crash,partition", help=f"of {','.join(CASES)}")
+    ap.add_argument("--topology", default="mesh", help="comma-separated: mesh,line")
     ap.add_argument("--convergence", type=float, default=0.0, help="routing convergence, s")
     ap.add_argument("--rate", type=float, default=RATE, help="source events/s (default 200)")
-    ap.add_argument("--topology", default="line,mesh", help="comma-separated: line,mesh")
-    ap.add_argument("--manage", action="store_true", help="run the management rules too")
-    ap.add_argument("--heartbeat", type=float, help="every node's heartbeat period, s (0.1)")
-    ap.add_argument("--dead-after", type=float, help="every node's failure timeout, s (0.5)")
-    ap.add_argument("--json", type=Path, help="where to write the JSON (a .md goes beside it)")
-    ap.add_argument(
-        "--backend",
-        choices=("user", "netns"),
-        default="user",
-        help="netns: a namespace per node, babeld routing (heartbeat 0.2 s, dead-after 3 s "
-        "unless given), the kernel forwarding",
-    )
+    ap.add_argument("--heartbeat", type=float, help="heartbeat period, s (0.1; netns 0.2)")
+    ap.add_argument("--dead-after", type=float, help="failure timeout, s (0.5; netns 3)")
+    ap.add_argument("--hold", type=float, help="partition length, s (2 x dead-after, >= 2)")
+    ap.add_argument("--starve-s", type=float, default=60.0, help="starvation length, s (60)")
+    ap.add_argument("--json", type=Path, help="where to write (default bench/results/failure)")
     args = ap.parse_args(argv)
     runs = 3 if args.quick else args.runs
+    cases = [c for c in args.case.split(",") if c]
     topologies = [t for t in args.topology.split(",") if t]
     if not 1 <= runs <= 100:
         ap.error("--runs: 1..100")
@@ -470,42 +587,45 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--convergence: 0..10 s")
     if not 1.0 <= args.rate <= 5000.0:
         ap.error("--rate: 1..5000 events/s")
+    if not 1.0 <= args.starve_s <= 300.0:
+        ap.error("--starve-s: 1..300 s")
     if unknown := [t for t in topologies if t not in TOPOLOGIES]:
         ap.error(f"unknown topology {unknown}; known: {', '.join(TOPOLOGIES)}")
-    name = "failure" + (f"-conv{args.convergence:g}" if args.convergence else "")
+    if unknown := [c for c in cases if c not in CASES]:
+        ap.error(f"unknown case {unknown}; known: {', '.join(CASES)}")
+    if "starve" in cases and args.backend != "netns":
+        ap.error("--case starve needs --backend netns (the kernel's routes)")
+    hb, dead = 0.1, 0.5
     if args.backend == "netns":
-        name += "-netns"
-    if args.heartbeat is not None:
-        name += f"-hb{args.heartbeat:g}"
-    if args.dead_after is not None:
-        name += f"-dead{args.dead_after:g}"
-    name += "-quick" if args.quick else ""
-    out: Path = args.json or RESULTS / f"{name}.json"
-
-    detection = (args.heartbeat, args.dead_after)
-    netns = args.backend == "netns"
-    if netns and args.heartbeat is None and args.dead_after is None:
         from mso.emu.netns.emulator import DEAD_AFTER_NETNS_S, HEARTBEAT_NETNS_S
 
-        detection = (HEARTBEAT_NETNS_S, DEAD_AFTER_NETNS_S)
-    result = asyncio.run(
-        run(runs, args.convergence, args.rate, topologies, args.manage, detection, args.backend)
-    )
+        hb, dead = HEARTBEAT_NETNS_S, DEAD_AFTER_NETNS_S
+    detection = (args.heartbeat or hb, args.dead_after or dead)
+    hold = args.hold if args.hold is not None else max(2.0, 2 * detection[1])
+    if not 0.5 <= hold <= 60.0:
+        ap.error("--hold: 0.5..60 s")
+    setup = Setup(args.backend, args.routing, args.convergence, args.rate, detection, hold,
+                  args.starve_s)  # fmt: skip
+    out: Path = args.json or RESULTS / "failure.json"
+    t0 = time.monotonic()
+    with tempfile.TemporaryDirectory(prefix="mso-bench-failure-") as tmp:
+        cells = asyncio.run(run(setup, cases, topologies, runs, Path(tmp)))
+    old: dict[str, Any] = {}
+    if out.exists():
+        try:
+            old = json.loads(out.read_text())
+        except ValueError:
+            old = {}
+    merged = dict(old.get("cells", {})) | cells
     result = {
         "benchmark": "failure",
-        "convergence_s": args.convergence,
         "rate": args.rate,
-        "runs": runs,
-        "quick": args.quick,
-        "manage": args.manage,
         "steady_s": STEADY_S,
-        "backend": args.backend,
-        "heartbeat_s": detection[0] if detection[0] is not None else 0.1,
-        "dead_after_s": detection[1] if detection[1] is not None else 0.5,
-    } | result
-    result |= provenance()
-    table = render(result)
-    write_results(out, result, table)
+        "recover_s": RECOVER_S,
+        "cells": merged,
+        "seconds": time.monotonic() - t0,
+    } | provenance()
+    write_results(out, result, render(result))
     return 0
 
 

@@ -39,7 +39,7 @@ def test_control_frames_wait_for_a_route_and_data_frames_do_not() -> None:
         # the routes change: the probe leaves toward N1 through N4
         driver.apply_links(links(2, {"N1": ["N4", 2]}))
         assert not driver.transport.waiting
-        held = [m.decode(m.unwrap(f).body) for f, _ in driver.transport.held["N4"]]
+        held = [m.decode(m.unwrap(f).body) for f, *_ in driver.transport.held["N4"]]
         assert [x for x in held if not isinstance(x, m.Heartbeat)] == [probe()]
         assert driver.counters.frames_unroutable == 1
 
@@ -54,7 +54,7 @@ def test_a_frame_waits_for_a_route_only_so_long(monkeypatch: pytest.MonkeyPatch)
         await asyncio.sleep(0.06)
         driver.apply_links(links(1, {"N1": ["N4", 2]}))  # too late
         assert not driver.transport.waiting
-        held = [m.decode(m.unwrap(f).body) for f, _ in driver.transport.held.get("N4", [])]
+        held = [m.decode(m.unwrap(f).body) for f, *_ in driver.transport.held.get("N4", [])]
         assert not [x for x in held if isinstance(x, m.Probe)]
         assert driver.counters.frames_unroutable == 1
 

@@ -165,3 +165,41 @@ def test_frames_to_a_node_without_a_kernel_route_go_through_a_relay_then_direct(
                 await nets[n].close()
 
     asyncio.run(run())
+
+
+def test_an_asymmetric_route_detours_through_a_neighbour_that_reaches_the_node() -> None:
+    """X's kernel routes to A but A's has no route back (babeld's "no return route"): X sees
+    A as a neighbour whose connection never comes, so after a moment what X holds for A goes
+    through R, which reaches A; A reaches X through R as well (the relay)."""
+    key = overlay_key("detour")
+
+    async def run() -> None:
+        names = {"A": "127.0.0.1", "R": "127.0.0.2", "X": "127.0.0.3"}
+        views = {n: KernelRoutes(n, 0, key) for n in names}
+        nets = {n: TcpTransport(n, ip, 0, key, views[n]) for n, ip in names.items()}
+        got: dict[str, asyncio.Queue[tuple[str, m.Message]]] = {n: asyncio.Queue() for n in names}
+        for n in names:
+            nets[n].set_receiver(lambda src, msg, n=n: got[n].put_nowait((src, msg)))
+            await nets[n].start()
+        try:
+            book = {n: (ip, nets[n].port) for n, ip in names.items()}
+            hosts = {n: KernelRoute(_net(f"{ip}/32")) for n, ip in names.items()}
+            reach = {"A": ["R"], "R": ["A", "X"], "X": ["A", "R"]}  # X -> A, not A -> X
+            for n, v in views.items():
+                v.book = dict(book)
+                v.table = [hosts[o] for o in reach[n]]
+                v.announced_hops = {"R": {"A": 1, "X": 1}, "X": {"A": 1, "R": 1}}
+                v._recompute()
+            assert views["X"].next_hop("A") == "A" and views["X"].detour("A") == "R"
+            probe = m.Probe("app", 0, 0, "X", "A", ["X"], [1.0])
+            nets["X"].send("A", *encode("X", "A", probe))  # held, then sent through R
+            assert await asyncio.wait_for(got["A"].get(), 10) == ("X", probe)
+            assert views["R"].counters.bytes_forwarded > 0
+            back = m.Probe("app", 0, 1, "A", "X", ["A"], [1.0])
+            nets["A"].send("X", *encode("A", "X", back))
+            assert await asyncio.wait_for(got["X"].get(), 10) == ("A", back)
+        finally:
+            for n in names:
+                await nets[n].close()
+
+    asyncio.run(run())

@@ -123,6 +123,12 @@ class RoutingView(Protocol):
         function. The view does not call it for the state it had when subscribed."""
         ...
 
+    def detour(self, dst: str) -> str | None:
+        """Another neighbour that reaches ``dst`` on its own, for when the direct way does not
+        work (a neighbour whose connection cannot be made: an asymmetric route); None when
+        there is none or the view cannot tell (:mod:`mso.net.routes_kernel` can)."""
+        ...
+
 
 @runtime_checkable
 class Transport(Protocol):

@@ -33,6 +33,10 @@ class TableRoutes:
         route = self._routes.get(dst)
         return None if route is None else route[0]
 
+    def detour(self, dst: str) -> str | None:
+        """A table says nothing about what other nodes reach."""
+        return None
+
     def subscribe(self, callback: Callable[[RoutesChanged], None]) -> Callable[[], None]:
         self._subscribers.append(callback)
 

@@ -237,6 +237,17 @@ class KernelRoutes(TableRoutes):
         route = self._routes.get(dst)
         return None if route is None else route[0]
 
+    def detour(self, dst: str) -> str | None:
+        """The node that would relay for ``dst`` if the kernel had no route to it: for a
+        neighbour whose connection cannot be made (its kernel routes to this node, this one's
+        replies have no way back)."""
+        book = self.book.get(dst)
+        if book is None:
+            return None
+        direct = {n: r for n, r in self._routes.items() if n in self._neighbours and n != dst}
+        route = relays(self.node_id, direct, {dst: book}, self.announced_hops).get(dst)
+        return None if route is None else route[0]
+
     async def start(self) -> None:
         from pyroute2 import AsyncIPRoute  # netlink only here
 

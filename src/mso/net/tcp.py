@@ -10,7 +10,11 @@ frames in the sender (:mod:`mso.net.shaping`).
 Two kinds of waiting, both bounded:
 
 - a frame whose next hop is a neighbour still connecting is *held* for that neighbour and
-  sent once the connection is up (after a link appears the connection takes a moment);
+  sent once the connection is up (after a link appears the connection takes a moment); when
+  the connection has not come for :data:`DETOUR_AFTER_S` and the view names another neighbour
+  that reaches the node (:meth:`~mso.net.base.RoutingView.detour`: an asymmetric route, where
+  this node's kernel routes to the neighbour but the neighbour's replies have no way back),
+  the held frames and the next ones go through that neighbour instead, until it connects;
 - a control or marker frame with no next hop at all waits for the routes to change
   (:class:`~mso.net.forwarding.RouteWait`).
 """
@@ -41,6 +45,9 @@ log = logging.getLogger("mso.node")
 HIGH_WATER = 1 << 20  # a connection's write buffer limit: beyond it the link stops pumping
 MAX_HELD = 10_000  # frames kept per neighbour while its connection is being set up
 CONNECT_ATTEMPTS = 20
+CONNECT_TIMEOUT_S = 5.0  # a SYN nobody answers (no return route) would wait two minutes
+DETOUR_AFTER_S = 0.5
+"""How long a neighbour may stay unconnected before its frames go through a detour."""
 
 ClientHandler = Callable[[int, m.Message], None]
 """Called with ``(client connection id, message)`` for every request from a client."""
@@ -187,7 +194,10 @@ class TcpTransport:
         self.loop = asyncio.get_running_loop()
         self.peers: dict[str, Connection] = {}
         self.clients: dict[int, Connection] = {}
-        self.held: dict[str, deque[tuple[bytes, Kind]]] = {}
+        # frames per neighbour still connecting: (payload, kind, this node's own frame)
+        self.held: dict[str, deque[tuple[bytes, Kind, bool]]] = {}
+        self._unconnected: dict[str, float] = {}  # neighbour -> since when it has no link
+        self._detour_timers: dict[str, asyncio.TimerHandle] = {}
         self._held_bytes: dict[str, int] = {}
         # frames waiting for a route: (payload, size to count as forwarded once sent)
         self.waiting: RouteWait[tuple[bytes, int]] = RouteWait(
@@ -298,6 +308,8 @@ class TcpTransport:
         self._closed = True
         if self._sweeper is not None:
             self._sweeper.cancel()
+        for timer in self._detour_timers.values():
+            timer.cancel()
         for conn in [*self.peers.values(), *self.clients.values()]:
             conn.close()
         if self.server is not None:
@@ -319,8 +331,10 @@ class TcpTransport:
     def _unroutable(self, _: object = None) -> None:
         self.counters.frames_unroutable += 1
 
-    def _send_toward(self, dst: str, payload: bytes, kind: Kind) -> bool:
-        """Hand a frame to the next hop toward dst; False when there is no usable next hop."""
+    def _send_toward(self, dst: str, payload: bytes, kind: Kind, own: bool = True) -> bool:
+        """Hand a frame to the next hop toward dst; False when there is no usable next hop.
+        Only this node's ``own`` frames take a detour: a relay that detoured what it relays
+        could hand it back to the node that detoured it (both routing to a dead node)."""
         hop = self.view.next_hop(dst)
         if hop is None:
             return False
@@ -328,10 +342,38 @@ class TcpTransport:
         if conn is not None and conn.link is not None:
             conn.link.send(payload, kind)
         elif hop in self.view.neighbours():
-            self._hold(hop, payload, kind)
+            link = self._detour(dst, hop) if own else None
+            if link is not None:
+                link.send(payload, kind)
+            else:
+                self._hold(hop, payload, kind, own)
         else:
             return False
         return True
+
+    def _detour(self, dst: str, hop: str, waited: bool = False) -> Link | None:
+        """The link to another neighbour that reaches ``dst``, once ``hop`` has been without a
+        connection for :data:`DETOUR_AFTER_S` (or ``waited``); what was held for ``hop`` goes
+        first."""
+        now = self.loop.time()
+        if now - self._unconnected.setdefault(hop, now) < DETOUR_AFTER_S and not waited:
+            return None
+        relay = self.view.detour(dst)
+        conn = self.peers.get(relay) if relay is not None else None
+        if conn is None or conn.link is None:
+            return None
+        link = conn.link
+        held = self.held.get(hop)
+        if hop == dst and held:  # own frames held before it go first; relayed ones stay
+            keep: deque[tuple[bytes, Kind, bool]] = deque()
+            for item in held:
+                if item[2]:
+                    link.send(item[0], item[1])
+                    self._held_bytes[hop] -= len(item[0])
+                else:
+                    keep.append(item)
+            self.held[hop] = keep
+        return link
 
     def _bad_kind(self, kind: int, size: int) -> bool:
         """A frame's kind is unknown, or it is a heartbeat too large to be one (it would
@@ -351,27 +393,45 @@ class TcpTransport:
             self._unroutable()
             return
         payload = m.rewrap(env)
-        if self._send_toward(env.dst, payload, env.kind):
+        if self._send_toward(env.dst, payload, env.kind, own=False):
             self.counters.bytes_forwarded += size
         else:
             self.waiting.hold(env.dst, (payload, size), env.kind, self.loop.time())
 
     def _release(self, dst: str, item: tuple[bytes, int], kind: Kind) -> bool:
         payload, forwarded = item
-        if not self._send_toward(dst, payload, kind):
+        if not self._send_toward(dst, payload, kind, own=not forwarded):
             return False
         self.counters.bytes_forwarded += forwarded
         return True
 
-    def _hold(self, node: str, payload: bytes, kind: Kind) -> None:
+    def _hold(self, node: str, payload: bytes, kind: Kind, own: bool = True) -> None:
         """Keep frames for a neighbour whose connection is still being set up (bounded)."""
         held = self.held.setdefault(node, deque())
         size = self._held_bytes.get(node, 0) + len(payload)
         if len(held) >= MAX_HELD or size > self.limits.max_held_bytes:
             self._unroutable()
             return
-        held.append((payload, kind))
+        held.append((payload, kind, own))
         self._held_bytes[node] = size
+        if own and node not in self._detour_timers and not self._closed:
+            self._detour_timers[node] = self.loop.call_later(
+                DETOUR_AFTER_S, self._detour_held, node
+            )
+
+    def _detour_held(self, node: str) -> None:
+        """Frames still held for a neighbour that has not connected: through a detour if the
+        view has one, else look again later (while it is a neighbour and frames wait)."""
+        del self._detour_timers[node]
+        held = self.held.get(node, ())
+        if not any(own for *_, own in held) or node not in self.view.neighbours():
+            return
+        if self._closed:
+            return
+        if self._detour(node, node, waited=True) is None:
+            self._detour_timers[node] = self.loop.call_later(
+                DETOUR_AFTER_S, self._detour_held, node
+            )
 
     # -- inbound ----------------------------------------------------------------------------
     def on_envelope(self, conn: Connection, env: m.Envelope, size: int) -> None:
@@ -426,6 +486,7 @@ class TcpTransport:
         self._held_total -= self._held.pop(conn, 0)
         if conn.peer is not None and self.peers.get(conn.peer) is conn:
             del self.peers[conn.peer]
+            self._unconnected.setdefault(conn.peer, self.loop.time())
             if conn.link is not None:
                 conn.link.close()
             spec = self.view.neighbours().get(conn.peer)
@@ -445,6 +506,9 @@ class TcpTransport:
         for node in list(self.peers):
             if node not in neighbours:
                 self.peers.pop(node).close()
+        for node in list(self._unconnected):
+            if node not in neighbours:
+                del self._unconnected[node]
         for node, spec in neighbours.items():
             if node in self.peers:
                 self._attach_link(node)
@@ -457,10 +521,11 @@ class TcpTransport:
             if node not in self.view.neighbours() or node in self.peers or self._closed:
                 return
             try:
-                _, conn = await self.loop.create_connection(
-                    lambda: Connection(self, peer=node), host, port
+                _, conn = await asyncio.wait_for(
+                    self.loop.create_connection(lambda: Connection(self, peer=node), host, port),
+                    CONNECT_TIMEOUT_S,
                 )
-            except OSError as exc:
+            except (OSError, TimeoutError) as exc:
                 log.info("connecting to %s at %s:%s: %s", node, host, port, exc)
                 await asyncio.sleep(0.05 * (attempt + 1))  # back off (not a synchronisation)
                 continue
@@ -475,6 +540,7 @@ class TcpTransport:
         spec = self.view.neighbours().get(node)
         if conn is None or spec is None:
             return
+        self._unconnected.pop(node, None)
         held = self.held.pop(node, None)
         self._held_bytes.pop(node, None)
         if conn.link is None or conn.link.shape != spec.shape:
@@ -482,7 +548,7 @@ class TcpTransport:
             conn.link = Link(
                 conn, spec.shape, seed, self.loop, self._lost, self.limits.queues, self._full
             )
-        for payload, kind in held or ():
+        for payload, kind, _ in held or ():
             conn.link.send(payload, kind)
 
     def _lost(self) -> None:
