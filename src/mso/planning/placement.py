@@ -571,6 +571,65 @@ class Layout:
             self._flow[target] = flow
         return flow
 
+    def walk_energy(
+        self, chain: int, assign: Mapping[str, str], walk: Sequence[Hop]
+    ) -> float | None:
+        """µJ per event of one chain placed as ``assign`` along ``walk`` (its probed routes,
+        end to end): each vertex's CPU energy on its node, each edge's bytes times the tx+rx
+        µJ per byte between its ends along the walk (the bytes planner's own objective).
+        None if a vertex's node is not on the walk (it cannot be judged from these probes)."""
+        at: dict[str, int] = {}
+        acc = [0.0]
+        for x, y in itertools.pairwise(walk):
+            acc.append(acc[-1] + x.tx_uj_per_byte + y.rx_uj_per_byte)
+        for p, h in enumerate(walk):
+            at.setdefault(h.node, p)
+        verts = self.chains[chain].vertices
+        if any(assign.get(v) not in at for v in verts):
+            return None
+        total = 0.0
+        for v in verts[1:]:  # the head is not this chain's to place
+            total += _compute_uj(self.cost[v], walk[at[assign[v]]])
+        for a, b in itertools.pairwise(verts):
+            size = self.edge_bytes.get((a, b), 0.0)
+            total += size * abs(acc[at[assign[a]]] - acc[at[assign[b]]])
+        return total
+
+    def keep_current(
+        self,
+        chain: int,
+        new: Mapping[str, str],
+        current: Mapping[str, str],
+        walk: Sequence[Hop],
+        *,
+        alive: Callable[[str], bool],
+        others: Mapping[str, str],
+        margin: float,
+    ) -> tuple[dict[str, str], str]:
+        """A remap starts from the current placement: the chain keeps its vertices where they
+        run (a move the rules made included) and takes ``new``'s node only for a vertex whose
+        node is gone, unless a node it keeps would be over capacity (with ``others``, the rest
+        of the app as placed), or ``new`` costs less than ``1 - margin`` of the energy the
+        kept placement would. Returns (placement, why)."""
+        verts = self.chains[chain].vertices
+        kept = {v: current[v] if alive(current.get(v, "")) else new[v] for v in verts}
+        if kept == dict(new):
+            return dict(new), "unchanged" if all(new[v] == current.get(v) for v in verts) else (
+                "only what was lost moves"
+            )
+        caps = {h.node: h.capacity for h in walk}
+        load: dict[str, float] = {}
+        for v, n in [*((u, m) for u, m in others.items() if u not in kept), *kept.items()]:
+            load[n] = load.get(n, 0.0) + self.load[v]
+        if any(n in caps and load[n] > 1000.0 * caps[n] + 1e-9 for n in set(kept.values())):
+            return dict(new), "a node it runs on would be over capacity"
+        e_new, e_now = self.walk_energy(chain, new, walk), self.walk_energy(chain, kept, walk)
+        if e_new is None or e_now is None:
+            return dict(new), "its current nodes are off the probed route"
+        if e_new < e_now * (1.0 - margin):
+            return dict(new), f"the new plan saves {1 - e_new / max(e_now, 1e-12):.0%}"
+        return kept, "kept: the new plan does not beat the current one by the margin"
+
     def last_anchor_node(self, chain: int, placed: Mapping[str, str]) -> str:
         verts = self.chains[chain].vertices
         return placed[max((v for v in verts if v in placed), key=verts.index)]

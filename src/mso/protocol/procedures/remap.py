@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from mso.errors import MsoError
+from mso.management.guard import RuleSettings
 from mso.model.app import App
 from mso.planning.placement import Hop, Layout, probed_hops
 from mso.protocol import messages as m
@@ -46,6 +47,9 @@ from mso.protocol.procedures.relocation import Relocation, Relocator
 from mso.protocol.state import AppState
 
 PROBE_ATTEMPTS = 5
+# a remap takes a chain's new placement over its current one only if it saves this share of the
+# chain's energy: the rules' own margin (RuleSettings.margin), so it never undoes their moves
+KEEP_MARGIN = RuleSettings().margin
 
 
 class S(enum.Enum):
@@ -100,13 +104,20 @@ class Remap(Procedure):
         self.expected = 0
         self.probe_attempts = 0
         self.weights: dict[str, float] = {}  # node -> factor on its probed capacity
+        # start from the current placement (not for an energy remap: the rules chose its moves)
+        self.keep = True
+        self.kept: dict[int, str] = {}  # chain -> why it kept its placement or took the new one
 
     @property
     def name(self) -> str:
         return "recovery" if self.recovery is not None else self.NAME
 
     def describe(self) -> dict[str, Any]:
-        return super().describe() | {"app": self.app, "chains_left": list(self.chains)}
+        return super().describe() | {
+            "app": self.app,
+            "chains_left": list(self.chains),
+            "kept": {str(c): why for c, why in self.kept.items()},
+        }
 
 
 class Remapper:
@@ -208,6 +219,7 @@ class Remapper:
         placed |= {v: n for v, n in (place or {}).items() if v in movable}
         remap = Remap(self.ctx.new_pid(), now, msg.app, order, client, placed, movable)
         remap.weights = dict(weights or {})
+        remap.keep = not place
         self.ctx.begin(remap)
         self._next_chain(remap.pid, now)
 
@@ -314,8 +326,37 @@ class Remapper:
         except MsoError as exc:
             self._finish(rid, now, str(exc))
             return
+        if remap.keep:
+            assigned = self._keep_current(remap, dep, ci, assigned, by_pair)
         remap.placed.update(assigned)
         self._next_chain(rid, now)
+
+    def _keep_current(
+        self,
+        remap: Remap,
+        dep: AppState,
+        ci: int,
+        assigned: dict[str, str],
+        by_pair: dict[tuple[str, str], list[Hop]],
+    ) -> dict[str, str]:
+        """The chain stays where it runs unless there is a reason to move it
+        (:meth:`~mso.planning.placement.Layout.keep_current`): a remap never undoes a move the
+        rules made for a reason that still holds."""
+        walk: list[Hop] = []
+        for hops in by_pair.values():
+            walk.extend(hops[1:] if walk and hops and walk[-1].node == hops[0].node else hops)
+        failed = self.ctx.failed
+        kept, why = dep.layout.keep_current(
+            ci,
+            assigned,
+            dep.placed,
+            walk,
+            alive=lambda n: n not in failed,
+            others=remap.placed,
+            margin=KEEP_MARGIN,
+        )
+        remap.kept[ci] = why
+        return kept
 
     def _step(self, rid: int, now: float, moved: tuple[str, str] | None = None) -> None:
         """Relocate (or, if its node failed, restore) the next vertex whose node changed;
