@@ -27,6 +27,19 @@ NodeCore.strict = True
 
 
 @pytest.fixture(scope="session", autouse=True)
+def _overlays_of_this_session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Running emulators are found under /tmp/mso-UID whatever $TMPDIR says: the suite keeps
+    its own (another user's emulator, or another suite running beside, stays out of sight)."""
+    old = os.environ.get("MSO_RUN_DIR")
+    os.environ["MSO_RUN_DIR"] = str(tmp_path_factory.mktemp("run"))
+    yield
+    if old is None:
+        os.environ.pop("MSO_RUN_DIR", None)
+    else:
+        os.environ["MSO_RUN_DIR"] = old
+
+
+@pytest.fixture(scope="session", autouse=True)
 def _convoy_log_in_pytests_tmp(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     """The convoy's storage vertex writes $MSO_CONVOY_DB, else mso-convoy.sqlite in the
     system's temp dir: a test that deploys the convoy without saying where would leave that

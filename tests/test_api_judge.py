@@ -44,7 +44,7 @@ def test_chains_are_named_by_index_or_head_to_tail() -> None:
 def test_an_address_is_taken_as_given_and_an_unknown_node_id_is_an_error(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setenv("TMPDIR", str(tmp_path))  # no emulator runs there
+    monkeypatch.setenv("MSO_RUN_DIR", str(tmp_path))  # no emulator runs there
     assert resolve_address("127.0.0.1:7000") == "127.0.0.1:7000"
     with pytest.raises(MsoError, match="unknown node 'N9'"):
         resolve_address("N9")

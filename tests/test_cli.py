@@ -188,7 +188,7 @@ def test_help_explains_the_concepts_and_completion_is_there() -> None:
 def test_every_reporting_command_has_json() -> None:
     import click
 
-    shows = {"node", "dashboard", "completion", "demo", "bench"}  # serve, or print for a person
+    shows = {"node", "dashboard", "completion", "demo", "bench", "emulator"}  # serve, print, act
     for name, cmd in main.commands.items():  # type: ignore[attr-defined]
         if name in shows:
             continue

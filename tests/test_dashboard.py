@@ -288,3 +288,20 @@ def test_dashboard_in_a_real_browser(live: LiveDashboard) -> None:
             browser.close()
     assert not errors, errors
     assert (ARTEFACTS / "dashboard.png").stat().st_size > 10_000
+
+
+def test_tracker_tells_who_asked_for_a_move_from_the_nodes_records() -> None:
+    tr = Tracker(t0=0.0)
+    tr.update(status({"src": "N1", "mid": "N1", "sink": "N2"}, 0), 1.0)
+    nodes = status({"src": "N1", "mid": "N2", "sink": "N2"}, 0)
+    nodes["N1"]["moves"] = [
+        {"seq": 1, "what": "relocation", "app": "pipe", "vertex": "mid", "detail": "N1 -> N2",
+         "by": "operator", "asked": "an operator (mso relocate)", "took_ms": 3.5, "error": "",
+         "ago_s": 0.4},
+    ]  # fmt: skip
+    (entry,) = tr.update(nodes, 2.0)["timeline"]
+    assert (entry["what"], entry["why"], entry["took_ms"]) == (
+        "mid: N1 → N2",
+        "an operator (mso relocate)",
+        3.5,
+    )

@@ -30,7 +30,8 @@ PAIR = "name: pair\nnodes: {N1: {}, N2: {}}\nlinks: [[N1, N2]]\n"
 @pytest.fixture(autouse=True)
 def private_tmp(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    monkeypatch.setenv("TMPDIR", str(tmp_path))  # where overlays_dir() looks
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setenv("MSO_RUN_DIR", str(tmp_path))  # where overlays_dir() looks
     monkeypatch.delenv("MSO_KEY", raising=False)
 
 

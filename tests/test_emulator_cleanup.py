@@ -37,7 +37,7 @@ def _running(pid: int) -> bool:
 def test_nodes_stop_when_their_emulator_is_killed(tmp_path: Path) -> None:
     scenario = tmp_path / "line.yaml"
     scenario.write_text(LINE)
-    env = dict(os.environ, TMPDIR=str(tmp_path))
+    env = dict(os.environ, TMPDIR=str(tmp_path), MSO_RUN_DIR=str(tmp_path))
     emu = subprocess.Popen(
         [sys.executable, "-m", "mso", "emulate", str(scenario), "--duration", "120"],
         env=env,

@@ -61,6 +61,7 @@ CORE_ORDER = [
     "mso.node.device",
     "mso.node.monitor",
     "mso.node.manager",
+    "mso.node.moves",
     "mso.node.status",
     "mso.node.core",
 ]

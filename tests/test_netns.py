@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from mso.emu.netns.testbed import namespaces
+from mso.emu.netns.testbed import namespaces, prefix
 from mso.scenario import loads_scenario
 from runtime_vertices import pipe_app
 
@@ -63,7 +63,7 @@ def node_pythonpath(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     path = os.environ.get("PYTHONPATH", "")
     monkeypatch.setenv("PYTHONPATH", f"{TESTS}{os.pathsep}{path}" if path else str(TESTS))
     yield
-    mine = [ns for ns in namespaces() if ns.startswith(f"mso-{os.getpid()}-")]
+    mine = [ns for ns in namespaces() if ns.startswith(prefix(os.getpid()))]
     assert mine == [], f"namespaces left behind: {mine}"
 
 
@@ -255,6 +255,38 @@ def test_mesh_recovers_from_a_killed_relay() -> None:
     asyncio.run(run())
 
 
+def test_a_restarted_device_gets_a_fresh_babeld_and_its_routes_back() -> None:
+    """A device killed (node and babeld, by SIGKILL: babeld's pid file stays) and restarted
+    runs a new babeld and learns every route again (issue 23: it used to stay routeless)."""
+    from mso.emu.netns.emulator import NetnsEmulator
+
+    async def run() -> None:
+        emu = NetnsEmulator(loads_scenario(MESH))
+        await emu.start()
+        try:
+            old = emu.babeld["N3"].pid
+            emu.kill("N3")
+            await until(
+                lambda: emu.status("N1"),
+                lambda s: "N3" not in s.get("N1", {}).get("routes", {"N3": 0}),
+                20,
+                "babeld withdraws the routes to N3",
+            )
+            said = await emu.restart("N3")
+            assert said.startswith("N3 restarted") and emu.babeld["N3"].pid != old
+            others = {n for n in emu.nodes if n != "N3"}
+            await until(
+                lambda: emu.status("N3"),
+                lambda s: others <= set(s.get("N3", {}).get("routes", {})),
+                30,
+                "the restarted N3 learns a route to every other node",
+            )
+        finally:
+            await emu.stop()
+
+    asyncio.run(run())
+
+
 def test_cleanup_removes_what_a_killed_controller_left(tmp_path: Path) -> None:
     """A controller that dies by SIGKILL leaves namespaces and processes; the next
     ``mso emulate --cleanup`` removes them (and kills, by PID, what ran inside)."""
@@ -276,14 +308,14 @@ def test_cleanup_removes_what_a_killed_controller_left(tmp_path: Path) -> None:
         timeout=60,
     )
     owner, child = (int(x) for x in proc.stdout.split())
-    left = [ns for ns in namespaces() if ns.startswith(f"mso-{owner}-")]
+    left = [ns for ns in namespaces() if ns.startswith(prefix(owner))]
     assert len(left) == 3  # medium and two nodes
     out = subprocess.run(
         [sys.executable, "-m", "mso", "emulate", "--cleanup"], capture_output=True, timeout=60
     )
     assert out.returncode == 0, out.stderr
     assert all(ns in out.stdout.decode() for ns in left)
-    assert not [ns for ns in namespaces() if ns.startswith(f"mso-{owner}-")]
+    assert not [ns for ns in namespaces() if ns.startswith(prefix(owner))]
     for _ in range(100):  # killed at once; gone once its new parent has reaped it
         if not Path(f"/proc/{child}").exists() or "Z" in _state(child):
             break
@@ -296,6 +328,28 @@ def _state(pid: int) -> str:
         return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][:1]
     except (OSError, IndexError):
         return "Z"
+
+
+def test_cleanup_never_touches_another_users_namespaces() -> None:
+    """Start-up and --cleanup remove this user's leftovers only: another user's namespace
+    (or one of an older mso, named without a user) whose builder is gone stays."""
+    import sys
+
+    from mso.emu.netns.testbed import cleanup, user
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    theirs = [f"mso-u{user() + 1}-{dead.pid}-m", f"mso-{dead.pid}-n1"]
+    mine = f"{prefix(dead.pid)}m"
+    try:
+        for ns in [*theirs, mine]:
+            subprocess.run(["ip", "netns", "add", ns], check=True, capture_output=True)
+        removed = cleanup()
+        assert mine in removed and not set(theirs) & set(removed)
+        assert set(theirs) <= set(namespaces())
+    finally:
+        for ns in [*theirs, mine]:
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
 
 
 def test_the_medium_lets_through_only_the_links_and_drops_their_loss() -> None:

@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -37,7 +38,8 @@ links: [[N1, N2]]
 def private_tmp(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Overlays of other tests (and of a user's own emulator) stay out of sight."""
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    monkeypatch.setenv("TMPDIR", str(tmp_path))  # where overlays_dir() looks
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setenv("MSO_RUN_DIR", str(tmp_path))  # where overlays_dir() looks
 
 
 def cli(*args: str) -> tuple[int, str, str]:
@@ -115,3 +117,31 @@ def test_two_emulators_side_by_side() -> None:
         assert code == 2 and "no emulator running" in err
 
     asyncio.run(run())
+
+
+def test_log_folders_of_dead_emulators_are_cleaned_and_kept_ones_after_a_day(
+    tmp_path: Path,
+) -> None:
+    from mso.emu.overlays import KEPT_FILE, OWNER_FILE, clean_stale_logs, make_log_dir
+
+    def folder(name: str, pid: int | None, kept_s_ago: float | None = None) -> Path:
+        d = tmp_path / name
+        d.mkdir()
+        if pid is not None:
+            (d / OWNER_FILE).write_text(f"{pid}\n")
+        if kept_s_ago is not None:
+            (d / KEPT_FILE).write_text("a node crashed\n")
+            t = time.time() - kept_s_ago
+            os.utime(d / KEPT_FILE, (t, t))
+        return d
+
+    dead = dead_pid()
+    gone = folder("mso-emu-gone", dead)
+    running = folder("mso-emu-running", os.getpid())
+    fresh = folder("mso-emu-kept", dead, kept_s_ago=60)
+    old = folder("mso-netns-old", dead, kept_s_ago=2 * 86400)
+    other = folder("mso-emu-other", None)  # no owner file: not known to be an emulator's
+    assert sorted(clean_stale_logs(tmp_path)) == sorted([gone, old])
+    assert running.exists() and fresh.exists() and other.exists()
+    made = make_log_dir("mso-emu-")  # under $TMPDIR (this test's), marked as this process's
+    assert made.parent == tmp_path and (made / OWNER_FILE).read_text().strip() == str(os.getpid())

@@ -306,3 +306,27 @@ def test_a_start_up_burst_is_not_taken_for_draining() -> None:
             assert "relocate burst/tail -> N3" in done["N4"][0] and placed["tail"] == "N3"
         got = sink(sim, "burst", "N4")
         assert got["repeats"] == 0 and got["out_of_order"] == 0
+
+
+def test_a_rule_move_says_which_rule_on_which_node_asked_and_why_in_words() -> None:
+    sim = deployed(robots(leader_wh=0.5), WORK)
+    sim.cores["N1"].drain_happened()
+    sim.run_until(15.0)
+    (move,) = [h for h in sim.cores["N1"].drain_happened() if h.what == "relocation"]
+    assert move.by == "rule" and move.took_ms is not None
+    assert move.asked.startswith("the relocation rule on N1: lifetime policy, downstream to N2: ")
+    assert "shortest battery life" in move.asked and "score" not in move.asked
+    (rec,) = sim.cores["N1"].status(sim.now)["moves"]
+    assert rec["asked"] == move.asked and rec["vertex"] == "work" and rec["detail"] == "N1 -> N2"
+    assert 0 < rec["ago_s"] < 15.0
+
+
+def test_a_route_remap_says_how_long_ago_the_route_changed_not_a_clock_reading() -> None:
+    sim = deployed(square(), pipe_app(100))
+    mid = sim.cores["N1"].placement("pipe")["mid"]
+    sim.network.remove_link(mid, "N4")
+    sim.update_routes()
+    sim.run_until(12.0)
+    moves = [rec for n in sim.cores for rec in sim.cores[n].status(sim.now)["moves"]]
+    (remap,) = [r for r in moves if r["what"] == "remap"]
+    assert remap["asked"].startswith("the route rule on N1: its route changed 3.0 s ago")

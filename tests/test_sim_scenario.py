@@ -143,3 +143,18 @@ def test_a_control_frame_with_no_route_waits_for_one_and_data_does_not() -> None
     sim.run_until(sim.now + 0.1)
     assert [k for _, _, _, k in sim.trace].count("StatusRequest") == 1
     assert sim.waiting["A"].dropped == 2
+
+
+def test_a_robot_whose_battery_empties_stops_and_the_report_says_so(tmp_path: Path) -> None:
+    sc, app = files(tmp_path, "")
+    Path(sc).write_text(MESH.replace("N2: {}", "N2: {battery_wh: 0.0005}"))  # about 2 s
+    code, out = run_cli(sc, "--app", app, "--duration", "8", "--json")
+    assert code == 0, out
+    r: dict[str, Any] = json.loads(out)
+    ((at, what),) = r["timeline"]
+    assert what == "fail N2 (battery empty: fail-stop)" and 0.5 < at < 6.0
+    assert r["energy"]["N2"]["battery_empty"] and not r["energy"]["N2"]["alive"]
+    assert "N2" not in r["alive"] and {f["node"] for f in r["failures"]} == {"N2"}
+    assert r["events"]["delivered"]["sink"] > 0.8 * r["events"]["emitted"]["src"]
+    code, text = run_cli(sc, "--app", app, "--duration", "8")
+    assert code == 0 and " empty │" in text and "battery empty: fail-stop" in text

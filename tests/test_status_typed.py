@@ -37,6 +37,8 @@ NODE_KEYS = [
     "rejoins",
     "liveness",
     "heard",
+    "moves",
+    "clock",
 ]
 LINK_KEYS = ["traffic", "connections", "connected", "tasks", "timers", "authority"]
 MONITOR_KEYS = [

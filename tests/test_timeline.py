@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import textwrap
 
+import pytest
+
 from mso.model.mobility import WaypointTracks
 from mso.scenario import loads_scenario
-from mso.scenario.timeline import Crash, LinksChanged, Restart, Timeline
+from mso.scenario.format import NodeFailure, NodeRestart
+from mso.scenario.timeline import Crash, Cut, LinksChanged, Move, Restart, Timeline
 
 SQUARE = """
 nodes: {A: {}, B: {}, C: {}, D: {}}
@@ -134,3 +137,36 @@ def test_the_timeline_can_play_only_the_changes_or_only_mobility() -> None:
     only_mobility = Timeline(loads_scenario(MOVING), changes=False)
     assert only_mobility.next_at() == 0.5
     assert all(not isinstance(a, Crash) for a in only_mobility.advance(5.0))
+
+
+def test_an_operator_cut_holds_until_healed_and_a_node_found_dead_loses_its_links() -> None:
+    tl = timeline("""
+    - {at: 5, up: [A, B]}
+    - {at: 6, restart: B}
+    """)
+    (cut,) = tl.apply(Cut(1.0, "B", "A"))
+    assert isinstance(cut, LinksChanged) and cut.removed == (("A", "B"),)
+    tl.advance(5.0)  # a scripted `up` does not undo an operator's cut
+    assert ("A", "B") not in links(tl)
+    # a node killed by hand (no script said so): its links go, a scripted restart brings it back
+    crash = tl.apply(NodeFailure(5.5, "C"))
+    assert crash[0] == Crash(5.5, "C") and links(tl) == {("A", "D")}
+    assert tl.advance(6.0) == []  # B never failed: its restart is nothing to do
+    back = tl.apply(NodeRestart(7.0, "C"))
+    assert back[-1] == Restart(7.0, "C") and links(tl) == {("B", "C"), ("C", "D"), ("A", "D")}
+    tl.apply(Cut(8.0, "A", "B", cut=False))
+    assert links(tl) == {("A", "B"), ("B", "C"), ("C", "D"), ("A", "D")}
+    with pytest.raises(ValueError, match="unknown node 'Z'"):
+        tl.apply(Cut(9.0, "A", "Z"))
+
+
+def test_a_node_moved_by_hand_relinks_by_range_and_stays_there() -> None:
+    sc = loads_scenario(MOVING)
+    tl = Timeline(sc, changes=False)
+    tl.apply(Move(0.1, "R3", (0.0, 50.0)))  # next to R1
+    assert ("R1", "R3") in links(tl)
+    for _ in range(6):  # mobility moves R2, never R3 again
+        at = tl.next_at()
+        assert at is not None
+        tl.advance(at)
+        assert tl.positions["R3"] == (0.0, 50.0) and ("R1", "R3") in links(tl)

@@ -17,6 +17,9 @@ answered and did not do it). ``AsyncOverlay`` is the same for asyncio code; it c
 one connection open (:meth:`AsyncOverlay.open`, or a connected client given), so that repeated
 timed calls do not each pay a connect and a key check. Its every call takes a ``timeout``.
 
+A running emulator takes commands too (:class:`EmulatorControl`, by overlay name): fail or
+restart a node, cut or heal a link, move a node, stop the run with its summary.
+
 Light to import: ``mso status`` comes through here and imports neither asyncio nor the model.
 """
 
@@ -334,3 +337,76 @@ class Overlay:
 
     def apps(self) -> list[str]:
         return running(self.status(everywhere=False))
+
+
+class EmulatorControl:
+    """Commands to a running emulator, found by its overlay's name (None: the one running, or
+    $MSO_OVERLAY's): what its console takes, over the Unix socket beside its state file.
+
+        control = EmulatorControl("convoy-line")
+        control.fail("N3"); control.restart("N3"); control.cut("N1", "N2")
+
+    Each returns what the emulator did, in words; a refusal raises :class:`CommandFailed`."""
+
+    def __init__(self, overlay: str | None = None, *, timeout: float = 60.0) -> None:
+        self.overlay = overlay if overlay is not None else os.environ.get("MSO_OVERLAY")
+        self.timeout = timeout  # a restart waits for its node to answer (up to 20 s)
+
+    def command(self, line: str) -> str:
+        """Send one command line; the emulator's answer."""
+        import json
+        import socket
+
+        from mso.emu.overlays import find_overlay, folder_of
+
+        if "\n" in line or len(line.encode()) > 1000:
+            raise MsoError("a command is one line of at most 1000 bytes")
+        name, _ = find_overlay(self.overlay)
+        path = folder_of(name) / f"{name}.sock"
+        with socket.socket(socket.AF_UNIX) as s:
+            s.settimeout(self.timeout)
+            folder = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+            try:  # through the folder: sun_path is short
+                s.connect(f"/proc/self/fd/{folder}/{path.name}")
+            except OSError as exc:
+                raise MsoError(f"cannot reach the emulator of {name!r} at {path}: {exc}") from None
+            finally:
+                os.close(folder)
+            s.sendall(line.encode() + b"\n")
+            data = b""
+            try:
+                while not data.endswith(b"\n") and len(data) < 1 << 16:
+                    chunk = s.recv(4096)
+                    if not chunk:
+                        break
+                    data += chunk
+            except TimeoutError:
+                raise MsoError(f"the emulator of {name!r} did not answer within "
+                               f"{self.timeout:g} s") from None  # fmt: skip
+        try:
+            answer = json.loads(data)
+        except ValueError:
+            raise MsoError(f"the emulator of {name!r} gave no answer") from None
+        if not isinstance(answer, dict) or not answer.get("ok"):
+            error = answer.get("error") if isinstance(answer, dict) else None
+            raise CommandFailed(line.split()[0] if line.split() else "command", str(error))
+        return str(answer.get("said", ""))
+
+    def fail(self, node: str) -> str:
+        return self.command(f"fail {node}")
+
+    def restart(self, node: str) -> str:
+        return self.command(f"restart {node}")
+
+    def cut(self, a: str, b: str) -> str:
+        return self.command(f"cut {a} {b}")
+
+    def heal(self, a: str, b: str) -> str:
+        return self.command(f"heal {a} {b}")
+
+    def move(self, node: str, x: float, y: float) -> str:
+        return self.command(f"move {node} {x!r} {y!r}")
+
+    def stop(self) -> str:
+        """End the run: the emulator prints its summary and stops every node."""
+        return self.command("stop")

@@ -93,6 +93,31 @@ def _stats_cell(stats: Any) -> str:
     return _clip(str(stats), 48)
 
 
+def _aged(line: str, clock: Any) -> str:
+    """A rule's "time action" line with its time as an age ("12.3 s ago"): the node's clock
+    reads nothing a person knows (seconds since the host booted)."""
+    head, _, rest = line.partition(" ")
+    try:
+        at = float(head)
+    except ValueError:
+        return line
+    if not isinstance(clock, int | float) or clock <= 0:
+        return rest
+    return f"{max(0.0, clock - at):.1f} s ago, {rest}"
+
+
+def move_line(rec: dict[str, Any]) -> str:
+    """One move a node coordinated (its status' ``moves``), with who asked and how long."""
+    what, app = rec.get("what", "move"), rec.get("app", "")
+    where = rec.get("detail", "")
+    head = f"{app}: {rec['vertex']} {where}" if rec.get("vertex") else f"{app}: {what} {where}"
+    kind = f" ({what})" if rec.get("vertex") and what != "relocation" else ""
+    took = rec.get("took_ms")
+    line = f"{head}{kind}" + (f" in {took:.0f} ms" if isinstance(took, int | float) else "")
+    line += f", asked by {rec.get('asked') or rec.get('by') or 'nobody said'}"
+    return line + (f": failed: {rec['error']}" if rec.get("error") else "")
+
+
 def status_text(nodes: dict[str, Any]) -> str:
     """Nodes with their traffic; per app, vertices (where, events, CPU) and edges."""
     out: list[str] = []
@@ -119,12 +144,18 @@ def status_text(nodes: dict[str, Any]) -> str:
     failed: set[str] = set()
     rejoined: dict[str, int] = {}  # node -> latest incarnation it came back as
     decisions: list[str] = []
+    moves: list[str] = []
     for nid in sorted(nodes):
         st = nodes[nid]
         failed.update(st.get("failed_nodes", []))
         for r in st.get("rejoins", []):
             rejoined[r["node"]] = max(rejoined.get(r["node"], 0), int(r["incarnation"]))
-        decisions += [f"{nid}: {d}" for d in st.get("management", {}).get("done", [])[-3:]]
+        clock = st.get("clock")
+        done = st.get("management", {}).get("done", [])[-3:]
+        decisions += [f"{nid}: {_aged(d, clock)}" for d in done]
+        moves += [
+            f"{nid}: {rec['ago_s']:.1f} s ago, {move_line(rec)}" for rec in st.get("moves", [])[-5:]
+        ]
         traffic = st.get("traffic", {})
         table.add_row(
             nid,
@@ -172,6 +203,8 @@ def status_text(nodes: dict[str, Any]) -> str:
         )
     for line in decisions:
         out.append(f"rule: {line}")
+    for line in moves:
+        out.append(f"move: {line}")
     for name, app in apps.items():
         if app.get("chains"):
             out.append(

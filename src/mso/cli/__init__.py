@@ -2,18 +2,17 @@
 
 Every user error (bad app or scenario file, impossible request) prints one line on stderr and
 exits with code 2; a traceback means a bug in mso. The commands live in modules by what they
-work on: :mod:`.app` (an app file), :mod:`.overlay` (a running overlay, through
-:mod:`mso.api`), :mod:`.node` (the daemon's options; :mod:`mso.daemon` runs it),
-:mod:`.emulate`, :mod:`.simulate`, :mod:`.dashboard`, :mod:`.demo`, :mod:`.bench`; what they
-print in common is in :mod:`.render`. Each imports its heavy modules where used: ``mso status``
-needs neither numpy, the planner, rich nor asyncio.
-"""
+work on: :mod:`.app` (an app file), :mod:`.overlay` (a running overlay, through :mod:`mso.api`),
+:mod:`.node` (the daemon's options; :mod:`mso.daemon` runs it), :mod:`.emulate` (and
+:mod:`.control`, commands to a running one), :mod:`.simulate`, :mod:`.dashboard`, :mod:`.demo`,
+:mod:`.bench`; what they print in common is in :mod:`.render`. Each imports its heavy modules
+where used: ``mso status`` needs neither numpy, the planner, rich nor asyncio."""
 
 from __future__ import annotations
 
 import click
 
-from mso.cli import app, bench, dashboard, demo, emulate, node, overlay, simulate
+from mso.cli import app, bench, control, dashboard, demo, emulate, node, overlay, simulate
 from mso.cliargs import OneLineGroup
 
 
@@ -54,6 +53,7 @@ for _command in (
     app.validate, app.profile, app.chains, app.plan_cmd, app.compare,
     overlay.keygen, overlay.deploy, overlay.relocate, overlay.remap, overlay.undeploy,
     overlay.status, overlay.overlays,
-    node.node, emulate.emulate, simulate.simulate, dashboard.dashboard, demo.demo, bench.bench,
+    node.node, emulate.emulate, control.emulator, simulate.simulate, dashboard.dashboard,
+    demo.demo, bench.bench,
 ):  # fmt: skip
     main.add_command(_command)

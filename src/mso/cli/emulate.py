@@ -3,6 +3,7 @@ testbed with babeld; prints what it does and a summary at the end."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -238,9 +239,14 @@ def _emulate(
 
     from rich.markup import escape
 
+    from mso.cli.story import MoveWatch, console_input, read_commands
+    from mso.emu.commands import HELP, Commands, ControlSocket
     from mso.statusview import error_alarms
 
-    async def run() -> dict[str, Any]:
+    def tell(at: float, text: str) -> None:
+        out.print(f"t={at:5.1f}s  {escape(text)}")
+
+    async def run() -> tuple[dict[str, Any] | None, Emulator, bool]:
         emu = kind(
             scenario,
             key=key,
@@ -257,73 +263,123 @@ def _emulate(
             emu.routing = routing
         loop = asyncio.get_running_loop()
         task = asyncio.current_task()
-        if task is not None:  # SIGTERM stops like Ctrl-C: the finally below tears down
+        if task is not None:  # SIGTERM stops like Ctrl-C: the summary, then the teardown
             loop.add_signal_handler(signal.SIGTERM, task.cancel)
         with progress(f"starting {len(scenario.network.nodes)} node processes…"):
             await emu.start()
+        emu.tell = tell
+        commands = Commands(emu)
+        control = ControlSocket(commands, str(emu.name))
         board = None
+        interrupted = False
+        tasks: list[asyncio.Task[Any]] = []
+        final: dict[str, Any] | None = None
         try:
-            where = f"namespaces ({routing})" if isinstance(emu, NetnsEmulator) else "processes"
-            out.print(
-                f"emulating {scenario.name} as overlay {emu.name}: {len(emu.nodes)} node {where} "
-                + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)
-            )
-            if dashboard is not None:
-                from mso.dashboard.server import start_dashboard
-
-                board = await start_dashboard(
-                    [emu.address(n) for n in emu.nodes], emu.key, str(emu.name), dashboard,
-                    1.0, emu.node_positions, list(emu.nodes),
-                )  # fmt: skip
-                emu.dashboard = board.url
-                emu.write_state()
-                out.print(f"dashboard: {board.url}")
-            if emu.metrics_port is not None:
+            try:
+                await control.start()
+                where = f"namespaces ({routing})" if isinstance(emu, NetnsEmulator) else "processes"
                 out.print(
-                    "metrics: "
-                    + ", ".join(
-                        f"http://{n.host}:{emu.metrics_port}/metrics" for n in emu.nodes.values()
-                    )
+                    f"emulating {scenario.name} as overlay {emu.name}: {len(emu.nodes)} node "
+                    f"{where} " + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)
                 )
-            t0 = loop.time()
-            changes = asyncio.create_task(emu.play_changes(t0))
-            moving = asyncio.create_task(emu.play_mobility(t0))
-            if app is not None and app_file is not None:
-                origin = via or next(iter(emu.nodes))
-                reply = await emu.overlay(origin).deploy(app_file, planner=planner)
-                out.print(f"deployed {reply.app} from {origin} in {reply.elapsed_ms:.1f} ms")
-                mapping = Table(title="vertex → node")
-                mapping.add_column("vertex")
-                mapping.add_column("node")
-                for v, n in reply.placement.items():
-                    mapping.add_row(v, n)
-                out.print(mapping)
-            end = None if duration is None else t0 + duration
-            errors: dict[str, int] = {}
-            while end is None or loop.time() < end:
-                await asyncio.sleep(min(2.0, max(0.0, (end or 1e18) - loop.time())))
-                if app is not None:
-                    nodes = await emu.status()
-                    out.print(f"t={loop.time() - t0:5.1f}s  " + sink_line(nodes, app.name))
+                if dashboard is not None:
+                    from mso.dashboard.server import start_dashboard
+
+                    board = await start_dashboard(
+                        [emu.address(n) for n in emu.nodes], emu.key, str(emu.name), dashboard,
+                        1.0, emu.node_positions, list(emu.nodes),
+                    )  # fmt: skip
+                    emu.dashboard = board.url
+                    emu.write_state()
+                    out.print(f"dashboard: {board.url}")
+                if emu.metrics_port is not None:
+                    out.print(
+                        "metrics: "
+                        + ", ".join(
+                            f"http://{n.host}:{emu.metrics_port}/metrics"
+                            for n in emu.nodes.values()
+                        )
+                    )
+                tasks.append(asyncio.create_task(emu.play()))
+                lines = console_input(loop)
+                if lines is not None:
+                    tasks.append(asyncio.create_task(read_commands(lines, commands, tell)))
+                    out.print(f"{HELP} (or mso emulator ... --overlay {emu.name})")
+                watch = MoveWatch()
+                if app is not None and app_file is not None:
+                    origin = via or next(iter(emu.nodes))
+                    reply = await emu.overlay(origin).deploy(app_file, planner=planner)
+                    out.print(f"deployed {reply.app} from {origin} in {reply.elapsed_ms:.1f} ms")
+                    mapping = Table(title="vertex → node")
+                    mapping.add_column("vertex")
+                    mapping.add_column("node")
+                    for v, n in reply.placement.items():
+                        mapping.add_row(v, n)
+                    out.print(mapping)
+                    watch.placed(app.name, reply.placement)
+                end = None if duration is None else emu.t0 + duration
+                errors: dict[str, int] = {}
+                while end is None or loop.time() < end:
+                    wait = min(2.0, max(0.0, (end or 1e18) - loop.time()))
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(commands.done.wait(), wait)
+                    if commands.done.is_set():
+                        break
+                    if app is None:
+                        continue
+                    try:
+                        nodes = await emu.status()
+                    except MsoError as exc:
+                        emu.say(f"status: {exc}")
+                        continue
+                    for at, line in watch.moves(nodes, app.name, emu.now()):
+                        tell(at, line)
+                    out.print(f"t={emu.now():5.1f}s  " + sink_line(nodes, app.name))
                     for alarm in error_alarms(errors, nodes, app.name):
                         out.print(f"[red]errors:[/red] {escape(alarm)}")
-            changes.cancel()
-            moving.cancel()
-            return await emu.status()
+            except asyncio.CancelledError:  # Ctrl-C or SIGTERM: the summary all the same
+                if task is not None:
+                    task.uncancel()
+                interrupted = True
+            for t in tasks:
+                t.cancel()
+            try:
+                final = await emu.status()
+            except MsoError as exc:
+                emu.say(f"summary: {exc}")
+            return final, emu, interrupted
         finally:
+            for t in tasks:
+                t.cancel()
+            await control.stop()
             if board is not None:
                 await board.stop()
             await emu.stop()
 
     try:
-        final = asyncio.run(run())
+        final, emu, interrupted = asyncio.run(run())
     except (KeyboardInterrupt, asyncio.CancelledError):
         out.print("interrupted: every node process was stopped")
         return
     if as_json:
-        click.echo(json.dumps(final, sort_keys=True))
+        click.echo(json.dumps(final or {}, sort_keys=True))
         return
     from mso.statusview import status_text
 
-    out.print("\n[bold]summary[/bold]")
+    out.print(
+        "\n[bold]summary[/bold]" + (" (stopped early: Ctrl-C or SIGTERM)" if interrupted else "")
+    )
+    told = [(at, text) for at, text in emu.story if not text.startswith("status: ")]
+    if told:
+        out.print("what happened (seconds after the start):")
+        for at, text in told:
+            out.print(f"  t={at:6.1f}s  {escape(text)}")
+    down = [n for n in emu.nodes if n in emu.dead]
+    if down:
+        out.print(f"nodes down at the end: {', '.join(down)}")
+    if emu.emptied:
+        out.print(f"stopped by an empty battery (fail-stop): {', '.join(sorted(emu.emptied))}")
+    if final is None:
+        out.print("[red]no node answered the last status request: no figures to show[/red]")
+        return
     click.echo(status_text(final))

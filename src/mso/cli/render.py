@@ -121,7 +121,8 @@ def render_simulation(console: Console, r: dict[str, Any]) -> None:
         frac = e["battery_fraction"]
         nt.add_row(
             n, "yes" if e["alive"] else "no", str(e["incarnation"]), f"{e['energy_j']:.2f}",
-            f"{e['drain_w']:.2f}", "wall" if frac is None else f"{frac * 100:.1f}%",
+            f"{e['drain_w']:.2f}",
+            "empty" if e.get("battery_empty") else "wall" if frac is None else f"{frac:.1%}",
             str(e["bytes_sent"]), str(e["bytes_received"]),
         )  # fmt: skip
     console.print(nt)

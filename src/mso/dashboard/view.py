@@ -277,7 +277,10 @@ class Tracker:
                 old = self._placement.get((name, v))
                 self._placement[(name, v)] = n
                 if old is not None and old != n:
-                    kind, why, took = "move", "a recovery, or a rule on another node", None
+                    kind, why, took = "move", "no node said who asked", None
+                    told = _told(nodes, name, v)  # the coordinating node's record of it
+                    if told is not None:
+                        why, took = told
                     asked = self._requested.pop((name, v), None)
                     if asked is not None and asked[0] == n and now - asked[4] < PENDING_S:
                         _, kind, why, took, _ = asked
@@ -355,3 +358,23 @@ def _delivered(nodes: dict[str, Any], app: str) -> dict[str, int]:
         for e, c in (a or {}).get("edges", {}).items():
             out[e] = max(out.get(e, 0), c.get("delivered", 0))
     return out
+
+
+def _told(nodes: dict[str, Any], app: str, vertex: str) -> tuple[str, float | None] | None:
+    """Who asked for the latest move of ``vertex`` (in words) and how long it took, from the
+    nodes' records of the moves they coordinated (a remap's record names every vertex)."""
+    best: tuple[float, str, float | None] | None = None
+    for st in nodes.values():
+        for rec in st.get("moves", []):
+            if rec.get("app") != app:
+                continue
+            moved = rec.get("vertex") == vertex or any(
+                part.split("->")[0] == vertex for part in str(rec.get("detail", "")).split()
+            )
+            if moved and (best is None or rec.get("ago_s", 0.0) < best[0]):
+                best = (
+                    rec.get("ago_s", 0.0),
+                    rec.get("asked") or rec.get("by", ""),
+                    rec.get("took_ms"),
+                )
+    return None if best is None else (best[1], best[2])

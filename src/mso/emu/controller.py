@@ -7,6 +7,11 @@ each link's bandwidth, delay and loss, applied in the sender's link layer) and i
 converge), plays the scenario's timeline (``mso.scenario.timeline``, shared with the
 simulator), and stops every process it started —
 by PID, on Ctrl-C, at the end of ``duration``, or if it fails.
+
+It never gives up on a node: an operator's commands (:meth:`Emulator.fail`, ``restart``,
+``cut``, ``heal``, ``move``; the console and ``mso emulator`` send them) change the same
+timeline the script plays, a node that dies unscripted loses its links as a failed one does and
+can be restarted, and a node that does not answer is told (``tell``), never fatal.
 """
 
 from __future__ import annotations
@@ -21,22 +26,35 @@ import shutil
 import socket
 import subprocess
 import sys
-import tempfile
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from mso.api import AsyncOverlay
 from mso.client import Client, NodeUnreachable, overlay_key
-from mso.emu.overlays import _claim, remove_key, state_file, write_key
+from mso.daemon.logs import RUN_START_ENV
+from mso.emu.overlays import (
+    _claim,
+    give,
+    keep_logs,
+    make_log_dir,
+    remove_key,
+    state_file,
+    write_key,
+)
 from mso.errors import MsoError
 from mso.model.network import LinkSpec
-from mso.node.driver import PARENT_ENV
+from mso.node.driver import BATTERY_EMPTY_EXIT, PARENT_ENV
 from mso.protocol import messages as m
 from mso.protocol.authority import Signer
 from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 from mso.scenario import Scenario
-from mso.scenario.timeline import Crash, Restart, Timeline
+from mso.scenario.format import LinkChange, NodeFailure, NodeRestart
+from mso.scenario.timeline import Action, Crash, Cut, Move, OperatorChange, Restart, Timeline
+
+TELL = Callable[[float, str], None]
 
 
 def _free_port(hosts: list[str]) -> int:
@@ -100,6 +118,12 @@ class Emulator:
     encrypt: bool = False  # ChaCha20-Poly1305 frames between every node and with the emulator
     # this emulator's own key: its nodes take LinkStates and Shutdowns signed with it only
     signer: Signer = field(default_factory=Signer)
+    timeline: Timeline | None = None  # the one player of scripted and operator changes
+    t0: float = 0.0  # loop time of the run's start: every time told is seconds after it
+    wall0: float = 0.0  # the same moment on the wall clock, for the nodes' log lines
+    tell: TELL | None = None  # told (run time, a sentence) of every fault and command
+    story: list[tuple[float, str]] = field(default_factory=list)  # what was told, in order
+    emptied: set[str] = field(default_factory=set)  # stopped by an empty battery (fail-stop)
 
     async def start(self, timeout: float = 20.0) -> None:
         names = list(self.scenario.network.nodes)
@@ -112,6 +136,7 @@ class Emulator:
             )
             if why:
                 raise MsoError(why)
+        self._begin()
         hosts = [f"127.0.1.{i + 1}" for i in range(len(names))]
         port = self.port or _free_port(hosts)
         if self.metrics_port == 0:
@@ -120,7 +145,7 @@ class Emulator:
             self.metrics_port = mp
         self.name = _claim(self.name, self.scenario.name)
         if self.log_dir is None:  # ours to remove after a clean stop
-            self.log_dir = Path(tempfile.mkdtemp(prefix="mso-emu-"))
+            self.log_dir = make_log_dir("mso-emu-")
             self._own_logs = True
         env = self._env()
         for name, host in zip(names, hosts, strict=True):
@@ -133,8 +158,32 @@ class Emulator:
         except BaseException:
             await self.stop()
             raise
+        self._started()
+
+    def _begin(self) -> None:
+        """The run's clock starts: the console's times, the scripted changes' and every node's
+        log lines (``MSO_RUN_START``) count seconds from here."""
+        self.t0 = asyncio.get_running_loop().time()
+        self.wall0 = time.time()
+
+    def _started(self) -> None:
+        """The nodes are up: the timeline and the watch start."""
+        if self.timeline is None:
+            self.timeline = Timeline(self.scenario)
         self._watch_task = asyncio.create_task(self._watch())
         self.write_state()
+
+    def now(self) -> float:
+        """Seconds since the run started (the clock of everything told)."""
+        return asyncio.get_running_loop().time() - self.t0
+
+    def say(self, text: str) -> None:
+        """Tell what happened (a fault, a command's outcome, a node that does not answer)."""
+        at = self.now()
+        self.story.append((at, text))
+        del self.story[:-500]
+        if self.tell is not None:
+            self.tell(at, text)
 
     def __post_init__(self) -> None:
         if self.key == "":  # never a silent fall-back to the development key
@@ -158,6 +207,7 @@ class Emulator:
             env.pop("MSO_ENCRYPT", None)
         self.key = env["MSO_KEY"]
         env[PARENT_ENV] = str(os.getpid())  # a node outlives no emulator, even one killed
+        env[RUN_START_ENV] = repr(self.wall0)  # its log lines on the run's clock
         return env
 
     def _spawn(self, name: str, env: dict[str, str]) -> None:
@@ -202,48 +252,147 @@ class Emulator:
             cmd += ["--operator-key", pub]
         return cmd
 
-    async def restart(self, node: str, timeout: float = 20.0) -> None:
-        """Start a killed (or crashed) ``node`` again: a new process, so a new incarnation;
-        add its links back first. The others restore what it hosted."""
+    # -- faults and commands ------------------------------------------------------------------
+    def _node(self, node: str) -> EmulatedNode:
         n = self.nodes.get(node)
         if n is None:
             raise MsoError(f"unknown node {node!r} (nodes: {', '.join(self.nodes)})")
-        if n.process is not None and n.process.poll() is None:
-            raise MsoError(f"node {node} is still running")
-        if n.process is not None:
-            n.process.wait(timeout=5)
+        return n
+
+    def running(self, node: str) -> bool:
+        proc = self._node(node).process
+        return proc is not None and proc.poll() is None
+
+    async def change(self, change: OperatorChange) -> None:
+        """Apply one change now (on the timeline the script plays) and carry it out."""
+        assert self.timeline is not None, "start() first"
+        try:
+            actions = self.timeline.apply(change)
+        except ValueError as exc:
+            raise MsoError(str(exc)) from None
+        await self.carry_out(actions)
+
+    async def carry_out(self, actions: list[Action]) -> None:
+        """Do what the timeline says: kill, restart, push the links that changed. A node that
+        does not come back is told, not raised: the run goes on."""
+        for action in actions:
+            if isinstance(action, Crash):
+                if self.running(action.node):
+                    self.kill(action.node)
+            elif isinstance(action, Restart):
+                try:
+                    await self._start_again(action.node)
+                except MsoError as exc:
+                    self.say(f"{action.node} did not come back: {exc}")
+            else:
+                await self._links_changed()
+
+    async def fail(self, node: str) -> str:
+        """Fail-stop ``node`` now (SIGKILL by PID); its links go."""
+        if not self.running(node):
+            raise MsoError(f"node {node} is not running ('restart {node}' starts it)")
+        await self.change(NodeFailure(self.now(), node))
+        return f"{node} failed (killed); its links are down"
+
+    async def restart(self, node: str, timeout: float = 20.0) -> str:
+        """Start a failed, killed or crashed ``node`` again: a new process, so a new
+        incarnation; its links come back first. The others restore what it hosted."""
+        if self.running(node):
+            raise MsoError(f"node {node} is still running ('fail {node}' stops it)")
+        assert self.timeline is not None, "start() first"
+        if node not in self.timeline.dead:  # died before the watch saw it
+            await self.change(NodeFailure(self.now(), node))
+        await self.change(NodeRestart(self.now(), node))
+        if not self.running(node) or self._node(node).client is None:
+            raise MsoError(f"node {node} did not come back; see {self._node(node).log}")
+        fresh = " with a full battery" if node in self.emptied else ""
+        self.emptied.discard(node)
+        return f"{node} restarted{fresh} (a new incarnation); its links are back"
+
+    async def cut(self, a: str, b: str) -> str:
+        """Cut the link ``a``-``b`` until :meth:`heal` (whatever the radio or script says)."""
+        assert self.timeline is not None, "start() first"
+        if (min(a, b), max(a, b)) in self.timeline.cuts:
+            raise MsoError(f"{a}-{b} is already cut")
+        await self.change(Cut(self.now(), a, b))
+        return f"cut {a}-{b}"
+
+    async def heal(self, a: str, b: str) -> str:
+        """Undo a :meth:`cut` (the link is back if the radio still gives it)."""
+        assert self.timeline is not None, "start() first"
+        if (min(a, b), max(a, b)) not in self.timeline.cuts:
+            cuts = ", ".join("-".join(k) for k in sorted(self.timeline.cuts)) or "none"
+            raise MsoError(f"{a}-{b} is not cut (cut: {cuts})")
+        await self.change(Cut(self.now(), a, b, cut=False))
+        up = self.scenario.network.link(a, b) is not None
+        return f"healed {a}-{b}" + ("" if up else " (the radio gives no link there now)")
+
+    async def move(self, node: str, x: float, y: float) -> str:
+        """Put ``node`` at (x, y) metres and keep it there; links follow positions if the
+        scenario has a radio range."""
+        await self.change(Move(self.now(), node, (x, y)))
+        if self.timeline is not None and self.timeline.positions != self.positions:
+            self.positions = dict(self.timeline.positions)
+            self.write_state()
+        if self.scenario.radio_range is None:
+            return f"{node} is at ({x:g}, {y:g}); links do not follow (no radio_range)"
+        near = ", ".join(self.scenario.network.neighbours(node)) or "none"
+        return f"{node} is at ({x:g}, {y:g}); in range of {near}"
+
+    async def _start_again(self, node: str, timeout: float = 20.0) -> None:
+        n = self._node(node)
+        if n.process is not None and n.process.poll() is None and node not in self.killed:
+            return  # never killed (the timeline only thought so)
+        if n.process is not None:  # killed a moment ago, maybe not reaped yet
+            await asyncio.to_thread(n.process.wait, 5)
+        if n.client is not None:
+            with contextlib.suppress(Exception):
+                await n.client.close()
+            n.client = None
         self._spawn(node, self._env())
-        await self._connect(n, timeout)
         self.dead.pop(node, None)
         self.killed.discard(node)
+        await self._connect(n, timeout)
         await self._links_changed()
 
     async def _watch(self, period: float = 0.05) -> None:
         """Notice node processes that die: their links vanish, as a routing protocol would
-        notice (routes follow after the convergence delay)."""
+        notice (routes follow after the convergence delay). One that died unscripted is told
+        and stays down until restarted."""
         loop = asyncio.get_running_loop()
         while True:
             await asyncio.sleep(period)
-            for name, node in self.nodes.items():
+            for name, node in list(self.nodes.items()):
                 if name in self.dead or node.process is None or node.process.poll() is None:
                     continue
                 self.dead[name] = loop.time()
-                if name not in self.killed:
-                    self.failed = True  # a crash, not a scripted failure: keep the logs
+                code = node.process.returncode
+                if code == BATTERY_EMPTY_EXIT:
+                    self.emptied.add(name)
+                    self.say(f"{name}'s battery is empty: it stopped (fail-stop)")
+                elif name not in self.killed:
+                    if code != -9:  # a crash, not a kill -9 by hand: keep the logs
+                        self.failed = True
+                    self.say(self.died(name, code))
                 if node.client is not None:
                     with contextlib.suppress(Exception):
                         await node.client.close()
                     node.client = None
-                net = self.scenario.network
-                for n in list(net.neighbours(name)):
-                    net.remove_link(name, n)
-                await self._links_changed()
+                assert self.timeline is not None
+                if name not in self.timeline.dead:
+                    with contextlib.suppress(MsoError):
+                        await self.change(NodeFailure(self.now(), name))
+
+    def died(self, node: str, code: int | None) -> str:
+        """Why a node process ended that no one asked to stop, in words."""
+        how = "killed by hand" if code == -9 else f"exited with code {code}"
+        return f"{node} died ({how}, not scripted): its links are down; 'restart {node}' again"
 
     def kill(self, node: str) -> float:
         """Fail-stop ``node`` now (SIGKILL to its process, by PID); returns the loop time."""
-        n = self.nodes.get(node)
-        if n is None or n.process is None:
-            raise MsoError(f"unknown node {node!r} (nodes: {', '.join(self.nodes)})")
+        n = self._node(node)
+        if n.process is None:
+            raise MsoError(f"node {node} has no process")
         self.killed.add(node)
         n.process.kill()
         return asyncio.get_running_loop().time()
@@ -294,9 +443,9 @@ class Emulator:
     async def push_links(self, routes: bool) -> None:
         """Send every node its neighbours, and its routes if they have converged."""
         self.version += 1
-        for name, node in self.nodes.items():
+        for name, node in list(self.nodes.items()):
             if node.client is not None and name not in self.killed:
-                with contextlib.suppress(NodeUnreachable, ConnectionError):
+                with contextlib.suppress(MsoError, OSError):
                     await node.client.send(self._link_state(name, routes))
 
     async def wait_links(self, timeout: float = 10.0) -> None:
@@ -316,33 +465,30 @@ class Emulator:
 
     async def set_link(self, a: str, b: str, up: bool, link: LinkSpec | None = None) -> None:
         """A link appears or disappears now; routes follow after the convergence delay."""
-        net = self.scenario.network
-        if up:
-            net.add_link(link or LinkSpec(a, b))
-        else:
-            net.remove_link(a, b)
-        await self._links_changed()
+        await self.change(LinkChange(self.now(), a, b, up, link or LinkSpec(a, b)))
 
     async def _converge(self) -> None:
         await asyncio.sleep(self.convergence_s)
         await self.push_links(routes=True)
 
-    async def play(self, t0: float, timeline: Timeline | None = None) -> None:
+    async def play(self, t0: float | None = None, timeline: Timeline | None = None) -> None:
         """Play the scenario's timeline (scripted changes and mobility, the same player the
-        simulator uses) at its times, seconds after ``t0``, until it ends or is cancelled."""
-        tl = timeline or Timeline(self.scenario)
+        simulator uses) at its times, seconds after ``t0`` (the run's start), until it ends or
+        is cancelled. A step that fails is told and the play goes on."""
+        tl = timeline or self.timeline or Timeline(self.scenario)
+        self.timeline = tl
+        start = self.t0 if t0 is None else t0
         loop = asyncio.get_running_loop()
         self._playing = True
         try:
             while (at := tl.next_at()) is not None:
-                await asyncio.sleep(max(0.0, t0 + at - loop.time()))
+                await asyncio.sleep(max(0.0, start + at - loop.time()))
                 for action in tl.advance(at):
                     if isinstance(action, Crash):
-                        self.kill(action.node)
+                        self.say(f"{action.node} fails (scripted)")
                     elif isinstance(action, Restart):
-                        await self.restart(action.node)
-                    else:
-                        await self._links_changed()
+                        self.say(f"{action.node} restarts (scripted)")
+                    await self.carry_out([action])
                 if tl.positions and tl.positions != self.positions:
                     self.positions = dict(tl.positions)
                     if self.name is not None and self.nodes:
@@ -350,12 +496,12 @@ class Emulator:
         finally:
             self._playing = False
 
-    async def play_changes(self, t0: float) -> None:
+    async def play_changes(self, t0: float | None = None) -> None:
         """Play the whole timeline (changes and mobility) unless it is already playing."""
         if not self._playing:
             await self.play(t0)
 
-    async def play_mobility(self, t0: float) -> None:
+    async def play_mobility(self, t0: float | None = None) -> None:
         """Kept for callers that start both: the timeline plays mobility with the changes."""
         await self.play_changes(t0)
 
@@ -415,8 +561,22 @@ class Emulator:
         """Stop an app on every node (its stones are freed)."""
         await self.overlay(via or self.live()[0]).undeploy(app, check=False)
 
-    async def status(self, via: str | None = None) -> dict[str, Any]:
-        return await self.overlay(via or self.live()[0]).status(timeout=5.0)
+    async def status(self, via: str | None = None, timeout: float = 5.0) -> dict[str, Any]:
+        """Every reachable node's status, asked through ``via`` or else through each live
+        node in turn until one answers (one that does not is told, not fatal)."""
+        if via is not None:
+            return await self.overlay(via).status(timeout=timeout)
+        silent = []
+        for name in self.live():
+            if self.nodes[name].client is None:
+                continue
+            try:
+                return await self.overlay(name).status(timeout=timeout)
+            except (MsoError, OSError) as exc:
+                silent.append(f"{name} ({exc})")
+        raise NodeUnreachable(
+            "no node answered a status request: " + ("; ".join(silent) or "none is running")
+        )
 
     def node_positions(self) -> dict[str, tuple[float, float]]:
         """Where the nodes are now: moved by the timeline, else as the scenario placed them."""
@@ -430,6 +590,7 @@ class Emulator:
         state = {
             "name": self.name,
             "pid": os.getpid(),
+            "uid": os.geteuid(),
             "scenario": self.scenario.name,
             "nodes": {n: self.address(n) for n in self.nodes},
             "dashboard": self.dashboard,
@@ -437,6 +598,7 @@ class Emulator:
         }
         tmp = state_file(self.name).with_suffix(".tmp")
         tmp.write_text(json.dumps(state))
+        give(tmp)
         tmp.replace(state_file(self.name))
 
     async def stop(self, grace: float = 3.0) -> None:
@@ -469,7 +631,12 @@ class Emulator:
                     path.unlink()
                     remove_key(self.name)
         clean = all(
-            n.process is None or n.process.returncode in (0, -9) for n in self.nodes.values()
+            n.process is None or n.process.returncode in (0, -9, BATTERY_EMPTY_EXIT)
+            for n in self.nodes.values()
         )
-        if self._own_logs and self.log_dir is not None and clean and not self.failed:
-            shutil.rmtree(self.log_dir, ignore_errors=True)
+        if self._own_logs and self.log_dir is not None:
+            if clean and not self.failed:
+                shutil.rmtree(self.log_dir, ignore_errors=True)
+            else:
+                keep_logs(self.log_dir, "a node crashed or exited with an error")
+                self.say(f"node logs kept for a look in {self.log_dir} (removed in a day)")

@@ -21,7 +21,7 @@ from mso.management.rules import (
     lifetime_ratio,
     warming_until,
 )
-from mso.management.views import Action, Relocate, RemapChain, RemapChains, Snapshot
+from mso.management.views import Action, ActionKey, Relocate, RemapChain, RemapChains, Snapshot
 
 LogEntry = tuple[float, str, str]
 
@@ -70,6 +70,8 @@ class RuleEngine:
         self.draining: frozenset[str] = frozenset()  # this node, while its battery is draining
         self.warming: float | None = None  # until when this node warms up (warming_until)
         self._last: dict[tuple[Any, ...], str] = {}
+        # which rule proposed each action the last evaluation allowed (a move says who asked)
+        self.rule_of: dict[ActionKey, str] = {}
 
     def set_app_policy(self, app: str, policy: Policy | None) -> None:
         """Manage ``app`` by ``policy`` (None: by the node's policy again)."""
@@ -88,6 +90,7 @@ class RuleEngine:
 
     def evaluate(self, snap: Snapshot) -> list[Action]:
         self.evaluations += 1
+        self.rule_of = {}
         seen: dict[tuple[Any, ...], str] = {}
         proposals = self.route_rule.propose(snap)
         was = self.draining
@@ -104,8 +107,8 @@ class RuleEngine:
                 (
                     snap.now,
                     f"{snap.here} warming up",
-                    f"a vertex started at {snap.last_start:.1f}: its drain is judged "
-                    f"from {self.warming:.1f}",
+                    f"a vertex started {snap.now - (snap.last_start or snap.now):.1f} s ago: "
+                    f"its drain is judged {self.warming - snap.now:.1f} s from now",
                 )
             )
         for app in snap.apps():
@@ -138,6 +141,7 @@ class RuleEngine:
             a = p.action
             if why is None:
                 allowed.append(a)
+                self.rule_of[a.key] = p.rule
                 indices: tuple[int, ...] = (a.chain,) if isinstance(a, RemapChain) else ()
                 indices = a.chains if isinstance(a, RemapChains) else indices
                 for index in indices:

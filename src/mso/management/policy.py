@@ -244,6 +244,63 @@ def balance_score(est: Mapping[str, NodeEstimate]) -> float:
     return max((e.load for e in est.values()), default=0.0)
 
 
+def duration_words(seconds: float) -> str:
+    """A lifetime as a person reads it: 45 s, 12 min, 3.2 h, 4 days."""
+    if seconds >= LIFETIME_CAP_S:
+        return "unlimited"
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 172800:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.0f} days"
+
+
+def _differs(a: Score, b: Score) -> int | None:
+    """The first level at which two scores differ (None: they do not)."""
+    xs = a if isinstance(a, tuple) else (a,)
+    ys = b if isinstance(b, tuple) else (b,)
+    for i, (x, y) in enumerate(zip(xs, ys, strict=False)):
+        if not math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-12):
+            return i
+    return None
+
+
+def explain_lifetime(before: Score, after: Score) -> str:
+    """A lifetime score's change in words: the level that decides (the shortest battery
+    life, the next one, ...; or the total drain), before and after."""
+    level = _differs(before, after)
+    if not isinstance(before, tuple) or not isinstance(after, tuple):
+        return explain_drain(before, after)
+    if level is None:
+        return "no change in battery lives"
+    if level >= min(len(before), len(after)) - 1:
+        return f"total drain {before[-1]:.2f} W -> {after[-1]:.2f} W (battery lives unchanged)"
+    which = "shortest" if level == 0 else f"{_ordinal(level + 1)} shortest"
+    return (
+        f"{which} battery life {duration_words(-before[level])} -> {duration_words(-after[level])}"
+    )
+
+
+def explain_drain(before: Score, after: Score) -> str:
+    b, a = _first(before), _first(after)
+    return f"total drain {b:.2f} W -> {a:.2f} W"
+
+
+def explain_load(before: Score, after: Score) -> str:
+    b, a = _first(before), _first(after)
+    return f"highest CPU load {b:.0%} -> {a:.0%}"
+
+
+def _first(score: Score) -> float:
+    return score[0] if isinstance(score, tuple) else score
+
+
+def _ordinal(n: int) -> str:
+    return {2: "2nd", 3: "3rd"}.get(n, f"{n}th")
+
+
 def slo_violations(snap: Snapshot) -> list[Action]:
     """A remap for every chain this node coordinates whose measured delay exceeds its SLO."""
     out: list[Action] = []
@@ -303,6 +360,13 @@ class Policy:
     def actions(self, snap: Snapshot) -> list[Action]:
         return []
 
+    def explain(self, before: Score, after: Score) -> str:
+        """What a move changes, in this objective's words, for the move's log line (a
+        subclass with its own score says what its score means; the default shows it)."""
+        if type(self).score is Policy.score:  # the lifetime objective
+            return explain_lifetime(before, after)
+        return f"score {_shown(before)} -> {_shown(after)}"
+
     def capacity_weight(self, snap: Snapshot, node: str) -> float:
         """The factor (0..1) on ``node``'s probed capacity when an energy remap re-places
         chains (:class:`~mso.management.rules.EnergyRemapRule`): 0 keeps work off it. The
@@ -327,6 +391,9 @@ class EnergyPolicy(Policy):
     def score(self, snap: Snapshot, moves: Mapping[str, str]) -> float:
         return energy_score(estimate(snap, moves))
 
+    def explain(self, before: Score, after: Score) -> str:
+        return explain_drain(before, after)
+
 
 class BalancePolicy(Policy):
     """Lowest maximum load among the nodes involved."""
@@ -335,6 +402,9 @@ class BalancePolicy(Policy):
 
     def score(self, snap: Snapshot, moves: Mapping[str, str]) -> float:
         return balance_score(estimate(snap, moves))
+
+    def explain(self, before: Score, after: Score) -> str:
+        return explain_load(before, after)
 
 
 class DelayPolicy(Policy):
@@ -352,8 +422,20 @@ class DelayPolicy(Policy):
     def score(self, snap: Snapshot, moves: Mapping[str, str]) -> Score:
         return self.fallback.score(snap, moves)
 
+    def explain(self, before: Score, after: Score) -> str:
+        return self.fallback.explain(before, after)
+
     def actions(self, snap: Snapshot) -> list[Action]:
         return slo_violations(snap)
+
+
+def _shown(score: Score) -> str:
+    """A raw score, short: a tuple's first two levels."""
+    if isinstance(score, tuple):
+        return (
+            "(" + ", ".join(f"{x:.4g}" for x in score[:2]) + (", ...)" if len(score) > 2 else ")")
+        )
+    return f"{score:.4g}"
 
 
 POLICIES: dict[str, type[Policy]] = {

@@ -132,9 +132,9 @@ class RelocationRule(_PolicyRule):
                 continue
             shown = "inf" if math.isinf(gain) else f"{gain:.2g}" if gain < 0.01 else f"{gain:.0%}"
             reason = (
-                f"{self.policy.name}, {best.direction}: score {_show(stay.score)} -> "
-                f"{_show(best.score)} ({shown} better, move {best.move_cost_j:.3g} J"
-                + (f"; {v.node} draining)" if draining else ")")
+                f"{self.policy.name} policy, {best.direction} to {best.target}: "
+                f"{self.policy.explain(stay.score, best.score)} ({shown} better; the move "
+                f"costs {best.move_cost_j:.3g} J" + (f"; {v.node} draining)" if draining else ")")
             )
             action = Relocate(v.app, v.id, best.target, reason)
             out.append(Proposal(action, self.settings.confirm, gain, self.name))
@@ -386,7 +386,7 @@ class ChainRouteRule:
             stable = snap.now - changed
             if stable < self.settings.route_settle_s:
                 continue
-            reason = f"route changed at {changed:.1f}, stable for {stable:.1f}s"
+            reason = f"its route changed {stable:.1f} s ago and has held since"
             out.append(Proposal(RemapChain(c.app, c.index, reason), 1, 0.0, self.name))
         return out
 
@@ -402,10 +402,3 @@ class ChainRouteRule:
 
 def _nan(score: Score) -> bool:
     return any(math.isnan(x) for x in (score if isinstance(score, tuple) else (score,)))
-
-
-def _show(score: Score) -> str:
-    """A score for the log: a tuple's first two levels are enough to see why."""
-    if isinstance(score, tuple):
-        return "(" + ", ".join(f"{x:.4g}" for x in score[:2]) + (", …)" if len(score) > 2 else ")")
-    return f"{score:.4g}"

@@ -34,6 +34,7 @@ from mso.model.network import PowerModel
 from mso.node.early import EarlyLimits, EarlyMessages
 from mso.node.manager import Manager
 from mso.node.monitor import Monitor
+from mso.node.moves import MoveLog
 from mso.node.status import LinkStatus, node_status, to_wire
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
@@ -181,7 +182,10 @@ class NodeCore:
         self._subscribe(NodeReset, lambda ev: self.relocator.on_reset())
         self._subscribe(NodeReset, lambda ev: self.early.clear())
         self._subscribe(PeerFailed, self._drop_early_of)
-        self._subscribe(Happened, self._happened.append)
+        self.movelog = MoveLog()
+        self._subscribe(
+            Happened, lambda h: self._happened.append(self.movelog.happened(h, self._now))
+        )
 
         # the router: message type -> the role of the procedure it belongs to
         dep, rel, res, rem, mem = (
@@ -628,7 +632,12 @@ class NodeCore:
         self._effects.append(SetTimer(MonitorTick(), now + MONITOR_PERIOD_S))
 
     def _carry_out(self, action: Action, now: float) -> None:
-        """A management action, by the same procedures a user's request starts."""
+        """A management action, by the same procedures a user's request starts (the move log
+        hears which rule asked, and why)."""
+        asked = self.manager.asked(action)
+        self.movelog.asking(
+            action.app, action.vertex if isinstance(action, Relocate) else "", asked
+        )
         if isinstance(action, Relocate):
             req = m.RelocateRequest(action.app, action.vertex, target=action.target)
             self.relocator.request(None, req, now)

@@ -15,6 +15,7 @@ import logging
 import os
 import threading
 from collections.abc import Callable, Hashable
+from typing import NoReturn
 
 from mso.management import load_policy
 from mso.model.appfile import loads_app
@@ -215,7 +216,7 @@ class NodeDriver:
                 kv["vertex" if h.app else "peer"] = h.subject
             if h.detail:
                 kv["move" if h.app else "detail"] = h.detail
-            kv |= {"by": h.by, "took_ms": h.took_ms, "error": h.error}
+            kv |= {"by": h.by, "took_ms": h.took_ms, "error": h.error, "asked": h.asked}
             log.log(level, "%s", h.what, extra={"kv": kv})
 
     def _vertex_result(self, result: fx.VertexResult) -> None:
@@ -238,7 +239,18 @@ class NodeDriver:
         self._timers.pop(key, None)
         if isinstance(key, MonitorTick):  # the monitor samples the byte counters
             self._observe()
+            if self.device is not None and not self.device.battery and self.core.monitor.empty:
+                self._battery_empty()
         self._apply(self.core.on_timer(key, self.loop.time()))
+
+    def _battery_empty(self) -> NoReturn:
+        """An emulated device (its battery modelled, not read from the OS) whose battery is
+        spent stops at once, as a robot does: no goodbye, nothing handed over (fail-stop)."""
+        kv = {"event": "battery_empty", "detail": "the modelled battery is spent: fail-stop"}
+        log.error("battery empty", extra={"kv": kv})
+        for handler in logging.getLogger().handlers:
+            handler.flush()
+        os._exit(BATTERY_EMPTY_EXIT)
 
     # -- links ------------------------------------------------------------------------------
     def apply_links(self, state: m.LinkState) -> None:
@@ -262,6 +274,7 @@ async def run_node(core: NodeCore, host: str, port: int, psk: bytes) -> None:
 
 
 MAX_WARMED = 256
+BATTERY_EMPTY_EXIT = 3  # the exit code of a node whose modelled battery emptied
 PARENT_ENV = "MSO_PARENT_PID"  # set by an emulator for the node processes it starts
 PARENT_CHECK_S = 0.5
 

@@ -271,6 +271,15 @@ class Manager:
         del self.done[:-50]
         return True
 
+    def asked(self, action: Action) -> str:
+        """Who asks for ``action``, in words: which rule, on this node, and why."""
+        rule = self.engine.rule_of.get(action.key, "")
+        if rule.startswith("policy "):
+            who = f"the {rule.removeprefix('policy ')} policy on {self.core.id}"
+        else:
+            who = f"the {rule or 'management'} rule on {self.core.id}"
+        return f"{who}: {action.reason}" if action.reason else who
+
     def status(self) -> ManagementStatus:
         """The engine's record with the loop's own fields (the wire shows them side by side)."""
         engine = msgspec.structs.asdict(self.engine.status())

@@ -123,6 +123,13 @@ class Monitor:
         return None if cap is None else max(0.0, cap - self.energy_j)
 
     @property
+    def empty(self) -> bool:
+        """The modelled battery is spent (an OS-measured one is the device's own business):
+        an emulated or simulated robot stops here, fail-stop."""
+        rem = self.remaining_j
+        return self.battery is None and rem is not None and rem <= 0
+
+    @property
     def lifetime_s(self) -> float | None:
         """Expected lifetime at the recent drain; None when wall-powered, charging or not yet
         known. A measured drain is preferred to the model's."""

@@ -24,6 +24,7 @@ from msgspec import UNSET, UnsetType
 
 from mso.node.manager import ManagementStatus, Manager
 from mso.node.monitor import Monitor, MonitorStatus
+from mso.node.moves import MoveLog, MoveRecord
 from mso.protocol.authority import AuthorityStatus
 from mso.protocol.procedures.membership.liveness import LivenessStatus
 from mso.protocol.procedures.membership.peers import Membership
@@ -86,6 +87,11 @@ class NodeStatus(msgspec.Struct, frozen=True, kw_only=True):
     rejoins: list[dict[str, Any]]
     liveness: LivenessStatus
     heard: dict[str, Heard]
+    # the moves this node coordinated, who asked in words (mso.node.moves), and the node's
+    # clock at this status: every time in it (failures, decisions) is on that clock, so a
+    # reader places it on its own by its age
+    moves: list[MoveRecord] = msgspec.field(default_factory=list)
+    clock: float = 0.0
 
 
 class StatusSource(Protocol):
@@ -98,6 +104,7 @@ class StatusSource(Protocol):
     dataplane: DataPlane
     membership: Membership
     manager: Manager
+    movelog: MoveLog
     dropped_messages: int
     refusals: dict[str, int]
     illegal_transitions: int
@@ -129,6 +136,8 @@ def node_status(core: StatusSource, now: float) -> NodeStatus:
         procedures=core.open_procedures(now),
         management=core.manager.status(),
         **msgspec.structs.asdict(core.membership.status()),
+        moves=core.movelog.status(now),
+        clock=round(now, 3),
     )
 
 

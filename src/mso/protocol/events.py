@@ -189,6 +189,7 @@ class Happened:
     by: str = ""  # who asked: operator, rule, remap, recovery, crash, a node's id
     took_ms: float | None = None
     error: str = ""
+    asked: str = ""  # who asked, in words (the core's move log fills it: mso.node.moves)
 
 
 InternalEvent = (

@@ -11,6 +11,12 @@ The links in force are derived, never patched: the *radio* links (the scenario's
 ``up``/``down``/``loss`` and recomputed from positions at every mobility step) minus those of
 failed nodes minus those a partition cuts. A restart or a heal therefore brings back exactly
 the links the radio gives at that moment.
+
+An operator (the emulator's console, ``mso emulator``) changes the same timeline now, through
+:meth:`Timeline.apply`: a fail or restart, a link ``Cut`` (held whatever the radio does, until
+healed) or a ``Move`` of a node (held: the node's mobility no longer moves it). A node that dies
+outside the script (killed by hand, its battery empty) is a ``NodeFailure`` applied the same way,
+so a later restart or heal never brings back links to a node that is gone.
 """
 
 from __future__ import annotations
@@ -63,8 +69,41 @@ class Restart:
 Action = LinksChanged | Crash | Restart
 
 
+@dataclass(frozen=True)
+class Cut:
+    """An operator cuts the link ``a``-``b`` (``cut``) or heals it: a cut holds through mobility
+    and scripted ``up`` changes until it is healed."""
+
+    at: float
+    a: str
+    b: str
+    cut: bool = True
+
+
+@dataclass(frozen=True)
+class Move:
+    """An operator puts ``node`` at ``pos`` (metres): links follow if the scenario derives them
+    from positions (``radio_range``); the node stays there (its mobility no longer moves it)."""
+
+    at: float
+    node: str
+    pos: tuple[float, float]
+
+
+OperatorChange = Change | Cut | Move
+
+
 def _key(a: str, b: str) -> tuple[str, str]:
     return (a, b) if a <= b else (b, a)
+
+
+def _nodes_of(change: object) -> tuple[str, ...]:
+    """The nodes a change names (checked before it is applied)."""
+    if isinstance(change, NodeFailure | NodeRestart | Move):
+        return (change.node,)
+    if isinstance(change, Cut | LinkChange):
+        return (change.a, change.b)
+    return ()
 
 
 class Timeline:
@@ -86,6 +125,8 @@ class Timeline:
         self.template = scenario.link_template or LinkSpec("", "")
         self.dead: set[str] = set()
         self.groups: tuple[frozenset[str], ...] | None = None
+        self.cuts: set[tuple[str, str]] = set()  # links an operator cut, until healed
+        self.moved: dict[str, tuple[float, float]] = {}  # nodes an operator put somewhere
         self.loss: dict[tuple[str, str], float] = {}  # per-link loss set by the script
         self.played: list[tuple[float, str]] = []  # (time, what): a log of what was applied
         self._heap: list[tuple[float, int, Change]] = []
@@ -103,6 +144,42 @@ class Timeline:
                 self._moves_until = sc.mobility.end
             self._next_move = sc.mobility_step_s
         self.positions: dict[str, tuple[float, float]] = {}
+
+    def apply(self, change: OperatorChange, why: str = "") -> list[Action]:
+        """Apply one change now, at ``change.at`` (an operator's command, a node found dead,
+        ``why`` noted in :attr:`played`): what the driver must carry out, as :meth:`advance`
+        returns it."""
+        played = len(self.played)
+        actions = self._apply_now(change)
+        if why and len(self.played) > played:
+            at, what = self.played[-1]
+            self.played[-1] = (at, f"{what} ({why})")
+        return actions
+
+    def _apply_now(self, change: OperatorChange) -> list[Action]:
+        nodes = self.network.nodes
+        for node in _nodes_of(change):
+            if node not in nodes:
+                raise ValueError(f"unknown node {node!r} (nodes: {', '.join(nodes)})")
+        if isinstance(change, Cut):
+            k = _key(change.a, change.b)
+            if change.cut:
+                self.cuts.add(k)
+            else:
+                self.cuts.discard(k)
+            return self._sync(change.at, f"{'cut' if change.cut else 'heal'} {k[0]}-{k[1]}")
+        if isinstance(change, Move):
+            self.moved[change.node] = change.pos
+            self.positions = {**self.positions, change.node: change.pos}
+            if self.scenario.radio_range is not None:
+                self._relink(self._all_positions(), self.scenario.radio_range)
+            return self._sync(change.at, f"move {change.node}")
+        return self._apply(change.at, change)
+
+    def _all_positions(self) -> dict[str, tuple[float, float]]:
+        """Every node's position now: the scenario's, moved by mobility, then by hand."""
+        static = {n: s.pos for n, s in self.network.nodes.items() if s.pos is not None}
+        return static | self.positions | self.moved
 
     def add(self, change: Change) -> None:
         """Schedule one more change (a fault schedule adds its own)."""
@@ -127,7 +204,7 @@ class Timeline:
                 out += self._apply(at, change)
             elif move is not None and move <= t and self._tracks is not None:
                 assert self.scenario.radio_range is not None
-                self.positions = self._tracks.positions(move)
+                self.positions = self._tracks.positions(move) | self.moved
                 self._relink(self.positions, self.scenario.radio_range)
                 self._next_move = move + self.scenario.mobility_step_s
                 if self._moves_until is not None and move >= self._moves_until:
@@ -211,7 +288,8 @@ class Timeline:
         return {
             k: spec
             for k, spec in self.radio.items()
-            if k[0] not in self.dead
+            if k not in self.cuts
+            and k[0] not in self.dead
             and k[1] not in self.dead
             and side.get(k[0], rest) == side.get(k[1], rest)
         }

@@ -20,7 +20,7 @@ from mso.errors import MsoError
 from mso.model.appfile import loads_app
 from mso.node.monitor import MonitorStatus
 from mso.protocol import messages as m
-from mso.scenario.format import Scenario
+from mso.scenario.format import NodeFailure, Scenario
 from mso.scenario.timeline import Action, Crash, Restart, Timeline
 from mso.sim.runner import Simulation
 
@@ -97,7 +97,12 @@ def simulate(
     last: dict[str, str] = {}
 
     def sample(s: Simulation) -> None:
-        """Note every vertex whose node changed since the last sample (moves of any kind)."""
+        """Note every vertex whose node changed since the last sample (moves of any kind);
+        stop a robot whose battery is empty (fail-stop), as the emulator's node does."""
+        for n in sorted(s.cores):
+            if n not in s.killed and s.cores[n].monitor.empty:
+                failed = timeline.apply(NodeFailure(s.now, n), why="battery empty: fail-stop")
+                apply(s, failed, convergence_s)
         placed = _placement(s, app.name)
         for v, n in placed.items():
             if v in last and last[v] != n:
@@ -190,6 +195,7 @@ def _report(
             "battery_fraction": mon.battery_fraction,
             "bytes_sent": sim.bytes[n][0],
             "bytes_received": sim.bytes[n][1],
+            "battery_empty": sim.cores[n].monitor.empty,
         }
     requests = [r for _, _, r in sim.replies if isinstance(r, m.RelocateReply | m.RemapReply)]
     failed = sorted(failures.values(), key=lambda f: f["at"])

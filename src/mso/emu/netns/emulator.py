@@ -23,16 +23,14 @@ import atexit
 import contextlib
 import shutil
 import subprocess
-import tempfile
 from collections import deque
 from dataclasses import dataclass, field
-from pathlib import Path
 
 from mso.client import Client
 from mso.emu.controller import EmulatedNode, Emulator
 from mso.emu.netns.daemons import DAEMONS, missing
 from mso.emu.netns.testbed import Testbed, unavailable
-from mso.emu.overlays import _claim
+from mso.emu.overlays import _claim, make_log_dir
 from mso.errors import MsoError
 from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S, check_timing
 
@@ -74,6 +72,7 @@ class NetnsEmulator(Emulator):
 
     async def start(self, timeout: float = 30.0) -> None:
         check_available(self.routing)
+        self._begin()
         names = list(self.scenario.network.nodes)
         if self.heartbeat_s is None and self.dead_after_s is None:
             self.heartbeat_s, self.dead_after_s = HEARTBEAT_NETNS_S, DEAD_AFTER_NETNS_S
@@ -86,7 +85,7 @@ class NetnsEmulator(Emulator):
             if why:
                 raise MsoError(why)
         if self.log_dir is None:
-            self.log_dir = Path(tempfile.mkdtemp(prefix="mso-netns-"))
+            self.log_dir = make_log_dir("mso-netns-")
             self._own_logs = True
         self.testbed = tb = Testbed(names)
         atexit.register(tb.teardown)  # an interpreter exit the finally below did not see
@@ -104,8 +103,7 @@ class NetnsEmulator(Emulator):
         except BaseException:
             await self.stop()
             raise
-        self._watch_task = asyncio.create_task(self._watch())
-        self.write_state()
+        self._started()
 
     # -- processes ------------------------------------------------------------------------
     def _node_command(self, name: str) -> list[str]:
@@ -145,10 +143,10 @@ class NetnsEmulator(Emulator):
             proc.wait(timeout=5)
         return at
 
-    async def restart(self, node: str, timeout: float = 30.0) -> None:
-        if node in self.nodes:
-            self._start_router(node)
-        await super().restart(node, timeout)
+    async def _start_again(self, node: str, timeout: float = 30.0) -> None:
+        """The device comes back: its routing daemon first (a fresh one), then its node."""
+        self._start_router(node)
+        await super()._start_again(node, timeout)
 
     # -- links ----------------------------------------------------------------------------
     def _shape(self) -> None:

@@ -1,18 +1,21 @@
 """The namespace testbed: one network namespace per node on one Linux bridge.
 
 Layout (measured in the project's testbed notes): the bridge lives in a namespace of its own
-(``mso-<pid>-m``; STP and multicast snooping off); node *i* lives in ``mso-<pid>-n<i>`` with one
-interface ``eth0`` (MAC ``02:00:00:00:hh:ll``, address ``10.77.hh.ll/16``) whose veth peer is the
-bridge port ``p<i>``. Who hears whom is one nftables bridge table in the medium namespace: a set
-of allowed (sender port . receiver port) pairs, everything else dropped, broadcast and multicast
-too — so a link is one set element per direction, changed in-process. Every node has permanent
-neighbour entries for every other (after an outage the first packet is not lost to ARP),
-``ip_forward=1``, no redirects, no reverse-path filter; its egress is shaped with ``tbf``. Loss is
-nft ``numgen`` (the kernel here has no ``netem``, so there is no delay either).
+(``mso-u<uid>-<pid>-m``; STP and multicast snooping off); node *i* lives in
+``mso-u<uid>-<pid>-n<i>`` with one interface ``eth0`` (MAC ``02:00:00:00:hh:ll``, address
+``10.77.hh.ll/16``) whose veth peer is the bridge port ``p<i>``. Who hears whom is one nftables
+bridge table in the medium namespace: a set of allowed (sender port . receiver port) pairs,
+everything else dropped, broadcast and multicast too — so a link is one set element per
+direction, changed in-process. Every node has permanent neighbour entries for every other (after
+an outage the first packet is not lost to ARP), ``ip_forward=1``, no redirects, no reverse-path
+filter; its egress is shaped with ``tbf``. Loss is nft ``numgen`` (the kernel here has no
+``netem``, so there is no delay either).
 
-Only addresses inside these namespaces are ever used. Every namespace name carries the pid of
-the process that built it: :func:`cleanup` removes those whose builder is gone (after a crash,
-or ``mso emulate --cleanup``), killing by PID the processes still inside them.
+Only addresses inside these namespaces are ever used. Every namespace name carries the user who
+asked (``mso-u<uid>-…``; under sudo, the user sudo was run by) and the pid of the process that
+built it: :func:`cleanup` removes only that user's whose builder is gone (after a crash, or
+``mso emulate --cleanup``), killing by PID the processes still inside them; another user's
+namespaces never match.
 """
 
 from __future__ import annotations
@@ -31,7 +34,6 @@ from mso.emu.netns.nft import Nft
 from mso.errors import MsoError
 
 PREFIX = "mso-"
-_OURS = re.compile(r"^mso-(\d+)-(m|n\d+)$")
 TABLE = "mso"
 MAX_NODES = 4000
 BABELD_CONF = """\
@@ -58,13 +60,28 @@ def _batch(netns: str | None, lines: Iterable[str]) -> None:
         raise MsoError(f"ip -batch in {netns}: {proc.stderr.decode().strip()}")
 
 
+def user() -> int:
+    """Whose namespaces these are: the user sudo was run by, else this process's user."""
+    sudo = os.environ.get("SUDO_UID", "")
+    return int(sudo) if os.geteuid() == 0 and sudo.isdigit() else os.getuid()
+
+
+def prefix(owner: int) -> str:
+    """The start of every namespace name the process ``owner`` builds for this user."""
+    return f"{PREFIX}u{user()}-{owner}-"
+
+
+def _ours() -> re.Pattern[str]:
+    return re.compile(rf"^{PREFIX}u{user()}-(\d+)-(m|n\d+)$")
+
+
 def unavailable() -> str | None:
     """Why namespaces cannot be made here (None: they can)."""
     if shutil.which("ip") is None:
         return "iproute2's 'ip' command is not installed"
     if os.geteuid() != 0:
         return "creating network namespaces needs root (or a user namespace: unshare -Urnm)"
-    name = f"{PREFIX}{os.getpid()}-probe"
+    name = f"{prefix(os.getpid())}probe"
     proc = subprocess.run(["ip", "netns", "add", name], capture_output=True)
     if proc.returncode != 0:
         return f"network namespaces unavailable: {proc.stderr.decode().strip()}"
@@ -91,8 +108,9 @@ def cleanup(*, owner: int | None = None) -> list[str]:
     """Remove the testbed namespaces of ``owner`` (None: of every builder no longer alive),
     killing by PID what still runs inside them; returns the namespaces removed."""
     removed = []
+    ours = _ours()
     for ns in namespaces():
-        m = _OURS.match(ns)
+        m = ours.match(ns)
         if m is None:
             continue
         pid = int(m[1])
@@ -127,10 +145,10 @@ class Testbed:
     # -- names and addresses --------------------------------------------------------------
     @property
     def medium(self) -> str:
-        return f"{PREFIX}{self.owner}-m"
+        return f"{prefix(self.owner)}m"
 
     def netns(self, node: str) -> str:
-        return f"{PREFIX}{self.owner}-n{self.index[node]}"
+        return f"{prefix(self.owner)}n{self.index[node]}"
 
     def address(self, node: str) -> str:
         i = self.index[node]
@@ -300,6 +318,10 @@ class Testbed:
         if not conf.exists():
             conf.write_text(BABELD_CONF)
         i = self.index[node]
+        # a restart after a SIGKILL: the dead daemon's pid file would stop the new one, and
+        # its routes would linger until the new one learns better
+        (workdir / f"babeld-{i}.pid").unlink(missing_ok=True)
+        _ip("route", "flush", "proto", "babel", netns=self.netns(node), check=False)
         cmd = [exe, "-c", str(conf), "-C", f"router-id {self.mac(node)}",
                "-I", str(workdir / f"babeld-{i}.pid"),
                "-S", str(workdir / f"babeld-{i}.state"), "eth0"]  # fmt: skip
