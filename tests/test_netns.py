@@ -264,7 +264,7 @@ def test_a_restarted_device_gets_a_fresh_babeld_and_its_routes_back() -> None:
         emu = NetnsEmulator(loads_scenario(MESH))
         await emu.start()
         try:
-            old = emu.babeld["N3"].pid
+            old = emu.routers["N3"].pid
             emu.kill("N3")
             await until(
                 lambda: emu.status("N1"),
@@ -273,7 +273,7 @@ def test_a_restarted_device_gets_a_fresh_babeld_and_its_routes_back() -> None:
                 "babeld withdraws the routes to N3",
             )
             said = await emu.restart("N3")
-            assert said.startswith("N3 restarted") and emu.babeld["N3"].pid != old
+            assert said.startswith("N3 restarted") and emu.routers["N3"].pid != old
             others = {n for n in emu.nodes if n != "N3"}
             await until(
                 lambda: emu.status("N3"),

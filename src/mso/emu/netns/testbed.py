@@ -318,9 +318,8 @@ class Testbed:
         if not conf.exists():
             conf.write_text(BABELD_CONF)
         i = self.index[node]
-        # a restart after a SIGKILL: the dead daemon's pid file would stop the new one, and
-        # its routes would linger until the new one learns better
-        (workdir / f"babeld-{i}.pid").unlink(missing_ok=True)
+        # a restart after a SIGKILL: the dead daemon's routes would linger until the new one
+        # learns better (its stale pid file: mso.emu.netns.daemons.babeld)
         _ip("route", "flush", "proto", "babel", netns=self.netns(node), check=False)
         cmd = [exe, "-c", str(conf), "-C", f"router-id {self.mac(node)}",
                "-I", str(workdir / f"babeld-{i}.pid"),
