@@ -248,3 +248,36 @@ def test_a_move_is_told_once_with_who_asked_and_how_long_it_took() -> None:
     ((_, line),) = first
     assert "pipe: mid " in line and " ms, asked by an operator (mso relocate)" in line, line
     assert again == []  # told once
+
+
+def test_ctrl_c_prints_the_summary_and_stops_every_node(tmp_path: Path) -> None:
+    """`mso emulate` with no --duration: Ctrl-C (SIGINT) ends the run with its summary (what
+    happened, then every node's figures), as the README says; a piped console command is
+    carried out first."""
+    import subprocess
+    import sys
+
+    scenario = tmp_path / "mesh.yaml"
+    scenario.write_text(MESH)
+    env = dict(os.environ, TMPDIR=str(tmp_path))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mso", "emulate", str(scenario), "--name", "ctrlc"],
+        env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        text=True,
+    )  # fmt: skip
+    assert proc.stdin is not None and proc.stdout is not None
+    try:
+        proc.stdin.write("cut N1 N2\n")
+        proc.stdin.flush()
+        for line in proc.stdout:  # bounded: the emulator says so, or exits
+            if "cut N1-N2" in line:
+                break
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert proc.returncode == 0, out
+    assert "summary (stopped early: Ctrl-C or SIGTERM)" in out, out
+    assert "command 'cut N1 N2': cut N1-N2" in out and "N4 " in out.split("nodes\n", 1)[1], out
