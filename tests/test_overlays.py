@@ -145,3 +145,22 @@ def test_log_folders_of_dead_emulators_are_cleaned_and_kept_ones_after_a_day(
     assert running.exists() and fresh.exists() and other.exists()
     made = make_log_dir("mso-emu-")  # under $TMPDIR (this test's), marked as this process's
     assert made.parent == tmp_path and (made / OWNER_FILE).read_text().strip() == str(os.getpid())
+
+
+def test_overlays_are_found_whatever_the_tmpdir_and_in_other_users_folders_one_may_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from mso.emu.overlays import folder_of
+
+    write("mine", os.getpid(), {"N1": "127.0.1.1:1"})
+    theirs = tmp_path / "mso-54321" / "overlays"  # another user's (this test may read it)
+    theirs.mkdir(parents=True)
+    (theirs / "theirs.json").write_text(json.dumps({"pid": os.getpid(), "nodes": {"A": "x:1"}}))
+    (theirs / "gone.json").write_text(json.dumps({"pid": dead_pid(), "nodes": {"B": "x:2"}}))
+    monkeypatch.setenv("TMPDIR", str(tmp_path / "elsewhere"))  # another shell's TMPDIR
+    assert sorted(running_overlays(everyone=True)) == ["mine", "theirs"]
+    assert sorted(running_overlays()) == ["mine"]  # this user's own, by default
+    assert find_overlay("theirs")[1]["nodes"] == {"A": "x:1"} and folder_of("theirs") == theirs
+    assert (theirs / "gone.json").exists()  # another user's leftovers are theirs to clean
+    code, out, _ = cli("overlays")
+    assert code == 0 and "mine:" in out and "theirs:" in out

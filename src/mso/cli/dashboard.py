@@ -66,7 +66,7 @@ def dashboard(
 def _overlay_of(address: str) -> tuple[str, dict[str, Any]]:
     from mso.emu.overlays import running_overlays
 
-    for name, state in running_overlays().items():
+    for name, state in running_overlays(everyone=True).items():
         if address in state["nodes"].values():
             return name, state
     return "", {}

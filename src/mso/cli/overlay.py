@@ -243,10 +243,11 @@ def status(
 @click.command()
 @click.option("--json", "as_json", is_flag=True, help='Print {name: {"pid", "nodes", ...}}.')
 def overlays(as_json: bool) -> None:
-    """The emulators running on this machine for this user, by name (for --overlay)."""
+    """The emulators running on this machine that this user may reach (root: every user's),
+    by name (for --overlay)."""
     from mso.emu.overlays import running_overlays
 
-    found = running_overlays()
+    found = running_overlays(everyone=True)
     if as_json:
         click.echo(json.dumps(found, sort_keys=True))
         return
