@@ -281,3 +281,20 @@ def test_ctrl_c_prints_the_summary_and_stops_every_node(tmp_path: Path) -> None:
     assert proc.returncode == 0, out
     assert "summary (stopped early: Ctrl-C or SIGTERM)" in out, out
     assert "command 'cut N1 N2': cut N1-N2" in out and "N4 " in out.split("nodes\n", 1)[1], out
+
+
+def test_a_node_that_does_not_answer_is_passed_over_not_fatal() -> None:
+    async def run() -> dict[str, Any]:
+        emu = Emulator(loads_scenario(MESH))
+        await emu.start()
+        proc = emu.nodes["N1"].process
+        assert proc is not None
+        try:
+            os.kill(proc.pid, signal.SIGSTOP)  # alive, silent: every request to it times out
+            return await emu.status(timeout=2.0)  # asked through N2 instead
+        finally:
+            os.kill(proc.pid, signal.SIGCONT)
+            await emu.stop()
+
+    nodes = asyncio.run(run())
+    assert "N2" in nodes and "N1" not in nodes  # the next live node answered for the overlay
