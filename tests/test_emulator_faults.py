@@ -108,7 +108,7 @@ def test_a_node_killed_by_hand_is_told_and_comes_back_by_command() -> None:
 def test_a_scripted_restart_brings_back_a_node_killed_by_hand() -> None:
     """The repro of issue 23: a scripted fail and restart of one node and a kill -9 of
     another; the run goes on and its status has every node it should."""
-    changes = "changes:\n  - {at: 1.0, fail: N3}\n  - {at: 2.0, restart: N3}\n"
+    changes = "changes:\n  - {at: 1.0, fail: N3}\n  - {at: 3.0, restart: N3}\n"
     scenario = loads_scenario(MESH + changes)
 
     async def run() -> dict[str, Any]:
@@ -117,7 +117,8 @@ def test_a_scripted_restart_brings_back_a_node_killed_by_hand() -> None:
         emu.tell = told
         await emu.start()
         try:
-            playing = asyncio.create_task(emu.play())
+            # the script's times from now, not from the start (a loaded machine starts slowly)
+            playing = asyncio.create_task(emu.play(asyncio.get_running_loop().time()))
             proc = emu.nodes["N2"].process
             assert proc is not None
             os.kill(proc.pid, signal.SIGKILL)
@@ -126,7 +127,7 @@ def test_a_scripted_restart_brings_back_a_node_killed_by_hand() -> None:
             await asyncio.wait_for(playing, 30.0)
             assert emu.running("N3") and not emu.running("N2")
             await emu.restart("N2")
-            return await answering(emu)
+            return await answering(emu, 40.0)
         finally:
             await emu.stop()
 
