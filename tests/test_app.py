@@ -540,7 +540,10 @@ def test_unknown_attribute_vertex_level() -> None:
         """
     )
     assert_at(err, 5, "vertices.A.costs", "unknown attribute 'costs'")
-    expected = "cost, get_state, input, isolation, output, params, pinned, rate, set_state"
+    expected = (
+        "apart_from, code, cost, get_state, input, isolation, near, output, params, pinned, "
+        "rate, requires, set_state"
+    )
     assert expected in err.message
 
 

@@ -73,6 +73,7 @@ APP_KEYS = [
     "chains",
     "vertices",
     "edges",
+    "capable",
 ]
 VERTEX_KEYS = [
     "kind",

@@ -30,11 +30,22 @@ def validate(app_file: Path, no_import: bool, as_json: bool) -> None:
         from mso.management import load_policy
 
         load_policy(app.policy, where=f"{app_file}: policy")
+    from mso.cli.render import constraint_json, constraint_text
+
+    needs = app.needs()
     if as_json:
-        doc = {"app": app.name, "vertices": len(app.vertices), "edges": len(app.edges)}
+        doc: dict[str, Any] = {
+            "app": app.name,
+            "vertices": len(app.vertices),
+            "edges": len(app.edges),
+        }
+        if needs:
+            doc["constraints"] = {n.vertex: constraint_json(n) for n in needs}
         click.echo(json.dumps(doc))
         return
     click.echo(f"{app_file}: ok ({len(app.vertices)} vertices, {len(app.edges)} edges)")
+    for n in needs:
+        click.echo(f"  {n.vertex}: placed by capability, {constraint_text(n)}")
 
 
 @click.command()
@@ -166,7 +177,7 @@ def plan_cmd(
     from mso.model.appfile import load_app
     from mso.planning.baselines import BASELINES
     from mso.planning.objectives import evaluate
-    from mso.planning.placement import Plan, plan
+    from mso.planning.placement import Plan, plan, with_pins
     from mso.scenario import load_scenario
 
     app = load_app(app_file, resolve_code=not no_import)
@@ -174,8 +185,9 @@ def plan_cmd(
     split = planner if planner in ("paper", "bytes") else None
     result = plan(app, scenario.network, origin=origin, planner=split)
     if planner not in ("algorithm1", "paper", "bytes"):
-        placement = BASELINES[planner](app, scenario.network, seed=seed, objective=objective)
-        result = Plan(placement, result.chains, result.order, {})
+        pinned = with_pins(app, {v: ns[0] for v, ns in result.capable.items()})
+        placement = BASELINES[planner](pinned, scenario.network, seed=seed, objective=objective)
+        result = Plan(placement, result.chains, result.order, {}, capable=result.capable)
     if as_json:
         doc = result.to_json()
         doc["planner"] = planner
@@ -211,20 +223,21 @@ def compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool)
     from mso.model.appfile import load_app
     from mso.planning.baselines import BASELINES
     from mso.planning.objectives import evaluate
-    from mso.planning.placement import plan
+    from mso.planning.placement import plan, with_pins
     from mso.scenario import load_scenario
 
     app = load_app(app_file, resolve_code=not no_import)
     net = load_scenario(scenario_file).network
     first = plan(app, net)
+    pinned = with_pins(app, {v: ns[0] for v, ns in first.capable.items()})
     rows: dict[str, Any] = {"algorithm1": evaluate(app, net, first.placement)}
     for split in ("paper", "bytes"):
         rows[f"algorithm1:{split}"] = evaluate(app, net, plan(app, net, planner=split).placement)
     for name in ("source", "random", "greedy"):
-        rows[name] = evaluate(app, net, BASELINES[name](app, net, seed=0, objective="energy"))
+        rows[name] = evaluate(app, net, BASELINES[name](pinned, net, seed=0, objective="energy"))
     for objective in ("energy", "max_load", "hops"):
         try:
-            placement = BASELINES["optimal"](app, net, seed=0, objective=objective)
+            placement = BASELINES["optimal"](pinned, net, seed=0, objective=objective)
             rows[f"optimal:{objective}"] = evaluate(app, net, placement)
         except PlanningError as exc:
             rows[f"optimal:{objective}"] = {"error": str(exc)}

@@ -28,6 +28,13 @@ if TYPE_CHECKING:
 @click.option("--cpu", type=POSITIVE, help="Relative CPU speed (default 1.0).")
 @click.option("--battery-wh", type=POSITIVE, help="Battery capacity in Wh (default: wall power).")
 @click.option(
+    "--capability",
+    "capabilities",
+    multiple=True,
+    help="What this node offers, NAME or NAME=AMOUNT (repeat): camera, gpu, mem_mb=4096; "
+    "vertices that say requires: are placed by it (docs/app-format.md).",
+)
+@click.option(
     "--power",
     help="Power model IDLE_W,CPU_W,TX_UJ_PER_BYTE,RX_UJ_PER_BYTE[,modelled|measured] (the last:"
     " charge CPU energy for the vertices' declared costs or their measured CPU time).",
@@ -117,6 +124,7 @@ def node(
     listen: str | None,
     cpu: float | None,
     battery_wh: float | None,
+    capabilities: tuple[str, ...],
     power: str | None,
     peers: tuple[str, ...],
     energy: str | None,
@@ -141,8 +149,9 @@ def node(
 
     flags = NodeFlags(
         config_file=config_file, node_id=node_id, listen=listen, cpu=cpu, battery_wh=battery_wh,
-        power=_power(power), peers=peers, energy=energy, routes_from=routes_from, policy=policy,
-        manage=manage, heartbeat_s=heartbeat_s, dead_after_s=dead_after_s, metrics=metrics,
+        capabilities=capabilities, power=_power(power), peers=peers, energy=energy,
+        routes_from=routes_from, policy=policy, manage=manage, heartbeat_s=heartbeat_s,
+        dead_after_s=dead_after_s, metrics=metrics,
         allow_code=allow_code, operator_keys=operator_keys, key_file=key_file, encrypt=encrypt,
         insecure=insecure, key=key, verbose=verbose, rules=rules,
     )  # fmt: skip

@@ -9,8 +9,29 @@ if TYPE_CHECKING:
     from rich.console import Console
 
     from mso.model.app import App
+    from mso.model.capabilities import Needs
     from mso.planning.placement import Plan
     from mso.scenario import Scenario
+
+
+def constraint_json(n: Needs) -> dict[str, Any]:
+    out: dict[str, Any] = {"requires": dict(n.requires)}
+    if n.near is not None:
+        out["near"] = n.near
+    if n.apart_from is not None:
+        out["apart_from"] = n.apart_from
+    return out
+
+
+def constraint_text(n: Needs) -> str:
+    from mso.model.capabilities import describe
+
+    parts = [f"requires {describe(n.requires)}" if n.requires else "any node"]
+    if n.near is not None:
+        parts.append(f"near {n.near}")
+    if n.apart_from is not None:
+        parts.append(f"apart from {n.apart_from}")
+    return ", ".join(parts)
 
 
 def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) -> None:
@@ -27,6 +48,12 @@ def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) ->
         placed = " → ".join(f"{v}@{result.placement[v]}" for v in c.vertices)
         table.add_row(str(step), placed, "-".join(result.routes.get(ci, [])))
     console.print(table)
+    for v, capable in result.capable.items():
+        n = next(x for x in app.needs() if x.vertex == v)
+        console.print(
+            f"{v}: placed by capability on {result.placement[v]} ({constraint_text(n)}; "
+            f"capable, best first: {', '.join(capable)})"
+        )
     nodes = Table(title="nodes")
     nodes.add_column("node")
     nodes.add_column("cpu", justify="right")

@@ -46,6 +46,7 @@ def build_core(s: NodeSettings) -> NodeCore:
         capacity=s.cpu,
         power=s.power,
         battery_wh=s.battery_wh,
+        capabilities=s.capabilities,
         policy=s.policy,
         manage=s.manage,
         rules=s.rules,

@@ -43,6 +43,7 @@ NODE_CONFIG_KEYS = {
     "insecure",
     "verbose",
     "rules",
+    "capabilities",
 }
 
 
@@ -56,6 +57,8 @@ class NodeFlags:
     listen: str | None = None
     cpu: float | None = None
     battery_wh: float | None = None
+    # NAME or NAME=AMOUNT, each --capability (§3.3: camera, gpu, mem_mb=4096)
+    capabilities: tuple[str, ...] = ()
     power: PowerModel | None = None  # parsed by the front end (its own error message)
     peers: tuple[str, ...] = ()
     energy: str | None = None
@@ -93,6 +96,7 @@ class NodeSettings:
     encrypt: bool = False
     authority: Authority | None = None
     battery_wh: float | None = None
+    capabilities: dict[str, float] = field(default_factory=dict)
     policy: str | None = None
     manage: bool = True
     peers: dict[str, Neighbour] = field(default_factory=dict)
@@ -135,6 +139,7 @@ def settle(flags: NodeFlags) -> NodeSettings:
     if battery is not None and battery <= 0:
         raise MsoError(f"--battery-wh: expected a number > 0, got {battery:g}")
     cpu = float(flags.cpu if flags.cpu is not None else cfg.get("cpu", 1.0))
+    capabilities = node_capabilities(flags.capabilities, cfg.get("capabilities"))
     host, port = parse_address(listen)
     metrics_at = None
     metrics = flags.metrics if flags.metrics is not None else cfg.get("metrics")
@@ -163,6 +168,7 @@ def settle(flags: NodeFlags) -> NodeSettings:
         encrypt=encrypt,
         authority=authority,
         battery_wh=battery,
+        capabilities=capabilities,
         policy=flags.policy if flags.policy is not None else cfg.get("policy"),
         manage=flags.manage if flags.manage is not None else cfg.get("manage", True),
         peers=peers,
@@ -267,6 +273,29 @@ def node_config(path: Path) -> dict[str, Any]:
         if why := _config_value_problem(k, v):
             raise SpecError(why, file=doc.file, line=line, field=k)
     return data
+
+
+def node_capabilities(flags: tuple[str, ...], configured: Any) -> dict[str, float]:
+    """What a node offers (§3.3): ``--capability NAME[=AMOUNT]`` options, else the config
+    file's ``capabilities:`` (a list of names or a mapping of name to amount)."""
+    from mso.errors import AppError
+    from mso.model.capabilities import parse_capabilities
+
+    spec: Any = configured
+    if flags:
+        spec = {}
+        for item in flags:
+            name, _, amount = item.partition("=")
+            try:
+                spec[name] = float(amount) if amount else 1.0
+            except ValueError:
+                raise MsoError(
+                    f"--capability: expected NAME or NAME=AMOUNT, got {item!r}"
+                ) from None
+    try:
+        return parse_capabilities(spec, "capabilities")
+    except AppError as exc:
+        raise MsoError(f"{'--capability' if flags else 'capabilities'}: {exc.message}") from None
 
 
 def _config_value_problem(k: str, v: Any) -> str | None:

@@ -249,8 +249,9 @@ class Tracker:
                 agg = merged.setdefault(
                     name,
                     {"chains": app["chains"], "placement": {}, "vertices": {}, "delay": {},
-                     "parked": {}, "dropped": 0, "delivered": {}},
+                     "parked": {}, "dropped": 0, "delivered": {}, "capable": {}},
                 )  # fmt: skip
+                agg["capable"].update(app.get("capable", {}))  # placed by capability (§3.3)
                 agg["delay"].update(app.get("chain_delay_ms", {}))
                 agg["parked"].update(app.get("parked", {}))
                 agg["dropped"] += sum(app.get("given_up", {}).values())
@@ -312,6 +313,7 @@ class Tracker:
                     "placement": agg["placement"],
                     "vertices": agg["vertices"],
                     "given_up": dropped,
+                    "capable": agg["capable"],
                 }
             )
         return out

@@ -236,6 +236,8 @@ class Emulator:
         cmd += ["--energy", "model"]  # the scenario's device, not the host's battery
         if spec.battery_wh is not None:
             cmd += ["--battery-wh", str(spec.battery_wh)]
+        for name, amount in spec.capabilities.items():
+            cmd += ["--capability", f"{name}={amount!r}"]
         if self.policy is not None:
             cmd += ["--policy", self.policy]
         if not self.manage:

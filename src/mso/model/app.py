@@ -16,6 +16,7 @@ from typing import Any
 import msgspec
 
 from mso.errors import AppError, with_code_hint
+from mso.model.capabilities import Needs, parse_capabilities
 from mso.model.graph import topological_order
 from mso.model.imports import ImportPathError, resolve
 from mso.model.qos import DEFAULT_BUFFER_AGE_S, DEFAULT_BUFFER_BYTES, QOS_KEYS, check_edge_qos
@@ -41,6 +42,16 @@ class Vertex:
     # where its code runs on a node: a thread of the node's process, or a process of its own
     # (a CPU-bound pure-Python vertex gets a core and a GIL to itself; import paths only)
     isolation: str = "thread"
+    # instead of ``pinned``: what its node must offer, and where it must (not) be relative to
+    # another vertex (mso.model.capabilities); resolved to one node before chains are placed
+    requires: dict[str, float] = field(default_factory=dict)
+    near: str | None = None
+    apart_from: str | None = None
+
+    @property
+    def constrained(self) -> bool:
+        """Its node is chosen by capability (it is not pinned and says what it needs)."""
+        return self.pinned is None and bool(self.requires or self.near or self.apart_from)
 
 
 ISOLATIONS = ("thread", "process")
@@ -105,6 +116,9 @@ class App:
         get_state: Code | None = None,
         set_state: Code | None = None,
         isolation: str = "thread",
+        requires: Any = None,
+        near: str | None = None,
+        apart_from: str | None = None,
     ) -> Vertex:
         """Add a vertex; a duplicate id or a bad value is an AppError at once."""
         if not isinstance(id, str) or not id:
@@ -129,7 +143,14 @@ class App:
             get_state=get_state,
             set_state=set_state,
             isolation=isolation,
+            near=near,
+            apart_from=apart_from,
         )
+        try:
+            v.requires = parse_capabilities(requires, f"vertices.{id}.requires")
+        except AppError as exc:
+            where = f"vertices.{id}.requires"
+            raise self._error(exc.message, where, ("vertices", id, "requires")) from None
         _check_vertex_values(v, self._error)
         self.vertices[id] = v
         return v
@@ -294,7 +315,52 @@ class App:
             raise self._error(f"the graph has a cycle: {' -> '.join(cycle)}", "edges", ("edges",))
         for i, e in enumerate(self.edges):
             self._check_formats(i, e)
+        self.needs()
         return self
+
+    def needs(self) -> list[Needs]:
+        """The vertices whose node is chosen by capability, in the order they are resolved (a
+        ``near``/``apart_from`` vertex before those that name it). AppError if one names an
+        unknown vertex, itself, or one placed only later by Algorithm 1 (neither pinned nor
+        constrained), or if they name each other in a cycle."""
+        todo: dict[str, Vertex] = {v.id: v for v in self.vertices.values() if v.constrained}
+        for v in todo.values():
+            for attr in ("near", "apart_from"):
+                other = getattr(v, attr)
+                if other is None:
+                    continue
+                where, loc = f"vertices.{v.id}.{attr}", ("vertices", v.id, attr)
+                if other not in self.vertices or other == v.id:
+                    raise self._error(
+                        f"expected another vertex of the app, got {other!r}", where, loc
+                    )
+                if self.vertices[other].pinned is None and other not in todo:
+                    raise self._error(
+                        f"{other!r} is placed by Algorithm 1 after the constrained vertices are "
+                        f"chosen: pin it, or give it requires:",
+                        where,
+                        loc,
+                    )
+        out: list[Needs] = []
+        done: set[str] = set()
+        while todo:
+            ready = [
+                v
+                for v in todo.values()
+                if all(o is None or o not in todo for o in (v.near, v.apart_from))
+            ]
+            if not ready:
+                names = ", ".join(sorted(todo))
+                raise self._error(
+                    f"near/apart_from name each other in a cycle ({names})",
+                    f"vertices.{min(todo)}",
+                    ("vertices", min(todo)),
+                )
+            for v in ready:
+                out.append(Needs(v.id, dict(v.requires), v.near, v.apart_from))
+                done.add(v.id)
+                del todo[v.id]
+        return out
 
     def _resolve_vertex(self, v: Vertex) -> None:
         base = ("vertices", v.id)
@@ -404,6 +470,21 @@ def _check_vertex_values(v: Vertex, error: Callable[..., AppError]) -> None:
             f"expected a positive number of events per second up to {MAX_RATE:g}, got {v.rate!r}",
             f"vertices.{v.id}.rate",
             (*base, "rate"),
+        )
+    if v.pinned is not None and (v.requires or v.near or v.apart_from):
+        raise error(
+            "give pinned: or requires/near/apart_from, not both: a pinned vertex's node is set",
+            f"vertices.{v.id}.pinned",
+            (*base, "pinned"),
+        )
+    for attr in ("near", "apart_from"):
+        other = getattr(v, attr)
+        if other is not None and (not isinstance(other, str) or not other):
+            raise error(f"expected a vertex id, got {other!r}", f"vertices.{v.id}.{attr}",
+                        (*base, attr))  # fmt: skip
+    if v.near is not None and v.near == v.apart_from:
+        raise error(
+            f"near and apart_from both name {v.near!r}", f"vertices.{v.id}.near", (*base, "near")
         )
     if v.isolation not in ISOLATIONS:
         raise error(

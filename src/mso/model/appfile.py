@@ -23,6 +23,9 @@ VERTEX_KEYS = {
     "get_state",
     "set_state",
     "isolation",
+    "requires",
+    "near",
+    "apart_from",
 }
 EDGE_KEYS = {"from", "to", "format", "size", *QOS_KEYS}
 # an app document travels to every node, which loads and places it on its control plane: a

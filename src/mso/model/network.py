@@ -39,6 +39,8 @@ class NodeSpec:
     battery_wh: float | None = None
     power: PowerModel = field(default_factory=PowerModel)
     pos: tuple[float, float] | None = None
+    # labels and amounts it offers (mso.model.capabilities): camera, gpu, mem_mb, ...
+    capabilities: dict[str, float] = field(default_factory=dict, hash=False)
 
 
 @dataclass(frozen=True)

@@ -108,8 +108,10 @@ class NodeCore:
         clock: Callable[[], float] | None = None,
         early: EarlyLimits | None = None,
         spill: SpillStore | None = None,
+        capabilities: dict[str, float] | None = None,
     ) -> None:
         self.id = node_id
+        self.capabilities = dict(capabilities or {})  # what it offers besides CPU (§3.3)
         # where edges spill what they cannot deliver yet, and positions kept across restarts
         # (the driver's: a file under the daemon's state directory; in memory otherwise)
         self.spill: SpillStore = spill if spill is not None else MemorySpill()
@@ -201,6 +203,8 @@ class NodeCore:
             m.ChainDelay: lambda src, msg, now: dp.on_chain_delay(msg, now),
             m.Marker: lambda src, msg, now: dp.on_marker_msg(msg, now),
             m.AppAnnounce: self._on_announce,
+            m.CapabilityQuery: dep.on_capability_query,
+            m.CapabilityReply: lambda src, msg, now: dep.on_capability_reply(src, msg),
             m.Probe: lambda src, msg, now: dep.on_probe(msg),
             m.ProbeReply: lambda src, msg, now: (
                 rem.on_probe_reply(msg) if msg.chain < 0 else dep.on_probe_reply(msg)
@@ -257,6 +261,7 @@ class NodeCore:
         self._retries: dict[type, Callable[[Retry, float], None]] = {
             Relocation: rel.on_retry,
             Remap: rem.on_retry,
+            Deploy: dep.on_retry,  # the capability answers are all in
         }
         # a procedure whose deadline passed: its defined failure, told to whoever waits
         self._expiries: dict[type, Callable[[Any, float], None]] = {

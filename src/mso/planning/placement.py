@@ -30,8 +30,11 @@ from typing import Any
 
 from mso.errors import PlanningError
 from mso.model.app import PLANNERS, App
+from mso.model.capabilities import Candidate, offered, resolve
 from mso.model.chains import Chain, chain_dependencies, chain_order, form_chains
-from mso.model.network import Network, NodeSpec, PowerModel
+from mso.model.network import Network, NodeSpec
+from mso.planning.bytesplit import Hop as Hop  # re-exported: what a probe collects
+from mso.planning.bytesplit import Traffic, assign_bytes, compute_uj
 from mso.planning.objectives import edge_bytes
 
 Capacity = Callable[[NodeSpec], float]
@@ -42,25 +45,7 @@ def cpu_capacity(node: NodeSpec) -> float:
     return node.cpu
 
 
-_POWER = PowerModel()
-
 DEFAULT_PLANNER = "paper"
-
-
-@dataclass(frozen=True)
-class Hop:
-    """What a probe collects at one node of its route: its capacity and, for the ``bytes``
-    planner, its power figures (a node that does not report them is taken at the defaults)."""
-
-    node: str
-    capacity: float
-    cpu_w: float = _POWER.cpu_w
-    tx_uj_per_byte: float = _POWER.tx_uj_per_byte
-    rx_uj_per_byte: float = _POWER.rx_uj_per_byte
-
-    def weighted(self, factor: float) -> Hop:
-        """The same hop with its capacity scaled (a remap's lifetime weight)."""
-        return replace(self, capacity=self.capacity * factor)
 
 
 # probe(from_node, to_node) -> the hops of the route, both ends included.
@@ -76,10 +61,13 @@ class Plan:
     order: list[int]
     routes: dict[int, list[str]] = field(default_factory=dict)
     planner: str = DEFAULT_PLANNER  # how chains were split along their routes
+    # each vertex placed by capability: the nodes that qualify, best first (it is on the first)
+    capable: dict[str, list[str]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {
             "placement": dict(self.placement),
+            "capable": {v: list(ns) for v, ns in self.capable.items()},
             "chains": [list(c.vertices) for c in self.chains],
             "order": list(self.order),
             "routes": [self.routes.get(c.index, []) for c in self.chains],
@@ -125,119 +113,6 @@ def assign_along(
         mid = pos + w / 2
         out.append(min(bisect.bisect_right(bounds, mid), len(caps) - 1))
         pos += w
-    return out
-
-
-@dataclass(frozen=True)
-class Traffic:
-    """What the ``bytes`` planner knows of an app besides costs: bytes per event of each edge
-    (parallel edges summed), each vertex's CPU load in ms per second at ``cpu: 1.0`` (cost times
-    its event rate), and the load already placed on each node."""
-
-    edge_bytes: Mapping[tuple[str, str], float]
-    load: Mapping[str, float]
-    used: Mapping[str, float] = field(default_factory=dict)
-    tail_bytes: float = 0.0  # what the chain's tail sends on toward the probe's target
-    # what the tail sends to vertices already placed: (their node, bytes per event)
-    tail_placed: tuple[tuple[str, float], ...] = ()
-
-
-def _compute_uj(cost: float, hop: Hop) -> float:
-    """µJ of CPU one event of a vertex of ``cost`` takes on ``hop`` (the energy objective's)."""
-    if cost == 0:
-        return 0.0
-    if hop.capacity <= 0:
-        return math.inf
-    return cost / hop.capacity * hop.cpu_w * 1e3
-
-
-def assign_bytes(
-    costs: Sequence[float],
-    loads: Sequence[float],
-    sizes: Sequence[float],
-    hops: Sequence[Hop],
-    used: Sequence[float] | None = None,
-    *,
-    to_end: bool,
-    pulls: Sequence[tuple[int, float]] = (),
-) -> list[int]:
-    """Route position of each vertex of a chain segment, the cheapest in energy per event.
-
-    The segment's vertices follow an anchor at position 0; ``sizes[i]`` is the bytes per event
-    into vertex ``i`` and ``sizes[-1]`` those out of the last one, which travel to the route's
-    end when ``to_end`` (an anchor or the probe's target lies there); ``pulls`` are further
-    (position, bytes) the last vertex sends to vertices already placed. Computing vertex ``i`` at
-    ``p`` costs its CPU energy there; an edge from ``q`` to ``p`` costs its bytes times the
-    tx+rx µJ per byte of hops ``q..p``, so the chain is cut at its small edges. Positions never
-    decrease (a chain never goes back along its route). A node takes vertices only while their
-    load (``loads``, ms/s at cpu 1.0) fits what its capacity leaves (``capacity * 1000 - used``).
-
-    A dynamic programme over (vertex, position) with a running minimum over earlier positions:
-    O(len(costs) * len(hops)). Each state keeps the load of its cheapest path only, so capacity
-    is respected by every answer though the answer may miss a costlier-to-reach feasible
-    optimum; with no feasible split at all, capacity is ignored (the paper's split ignores it
-    always).
-    """
-    k, r = len(costs), len(hops)
-    if r == 0:
-        raise ValueError("a route has at least one node")
-    if k == 0:
-        return []
-    acc = [0.0]  # acc[p]: µJ per byte from position 0 to p
-    for a, b in itertools.pairwise(hops):
-        acc.append(acc[-1] + a.tx_uj_per_byte + b.rx_uj_per_byte)
-    left = [h.capacity * 1e3 - (used[p] if used else 0.0) for p, h in enumerate(hops)]
-    for limited in (True, False):
-        out = _bytes_dp(costs, loads, sizes, hops, acc, left if limited else None, to_end, pulls)
-        if out is not None:
-            return out
-    return [0] * k  # every split costs infinite energy (no CPU anywhere): stay on the anchor
-
-
-def _bytes_dp(
-    costs: Sequence[float],
-    loads: Sequence[float],
-    sizes: Sequence[float],
-    hops: Sequence[Hop],
-    acc: Sequence[float],
-    left: Sequence[float] | None,
-    to_end: bool,
-    pulls: Sequence[tuple[int, float]],
-) -> list[int] | None:
-    k, r, inf = len(costs), len(hops), math.inf
-    prev_val = [inf] * r
-    prev_load = [0.0] * r
-    parent: list[list[int]] = []
-    for i in range(k):
-        val, load, par = [inf] * r, [0.0] * r, [-1] * r
-        best, best_q = (0.0, 0) if i == 0 else (inf, -1)  # the anchor sits at position 0
-        for p in range(r):
-            compute = _compute_uj(costs[i], hops[p])
-            if not math.isinf(compute):
-                if best_q >= 0 and (left is None or loads[i] <= left[p] + 1e-9):
-                    val[p] = best + sizes[i] * acc[p] + compute  # arrive from q < p
-                    load[p], par[p] = loads[i], best_q
-                stay = prev_load[p] + loads[i]  # after vertex i-1 on the same node
-                fits = left is None or stay <= left[p] + 1e-9
-                if i > 0 and fits and prev_val[p] + compute <= val[p]:
-                    val[p], load[p], par[p] = prev_val[p] + compute, stay, p
-            if i > 0 and prev_val[p] - sizes[i] * acc[p] < best:
-                best, best_q = prev_val[p] - sizes[i] * acc[p], p
-        prev_val, prev_load = val, load
-        parent.append(par)
-    end = [
-        v
-        + (sizes[k] * (acc[r - 1] - acc[p]) if to_end else 0.0)
-        + sum(b * abs(acc[p] - acc[q]) for q, b in pulls)
-        for p, v in enumerate(prev_val)
-    ]
-    p = min(range(r), key=lambda q: (end[q], q))
-    if math.isinf(end[p]):
-        return None
-    out = [0] * k
-    for i in range(k - 1, -1, -1):
-        out[i] = p
-        p = parent[i][p]
     return out
 
 
@@ -418,7 +293,15 @@ class Layout:
     placement as the central :func:`plan`.
     """
 
-    def __init__(self, app: App, origin: str, planner: str | None = None) -> None:
+    def __init__(
+        self,
+        app: App,
+        origin: str,
+        planner: str | None = None,
+        resolved: Mapping[str, str] | None = None,
+    ) -> None:
+        """``resolved``: the node chosen for each vertex placed by capability (every one of
+        them, :mod:`mso.model.capabilities`); they are placed as if pinned there."""
         self.app = app
         self.origin = origin
         self.planner = planner or app.planner or DEFAULT_PLANNER
@@ -429,6 +312,14 @@ class Layout:
         self.graph = _Graph(app)
         self.cost = {v.id: float(v.cost) for v in app.vertices.values()}
         self.pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
+        self.resolved = dict(resolved or {})
+        unresolved = [v.id for v in app.vertices.values() if v.constrained]
+        unresolved = [v for v in unresolved if v not in self.resolved]
+        if unresolved:
+            raise PlanningError(
+                f"vertex {unresolved[0]!r}: its node is chosen by capability, and was not"
+            )
+        self.pinned.update(self.resolved)
         self.kinds = app.kinds()  # once: the node looks them up per hosted vertex
         self.edge_bytes: dict[tuple[str, str], float] = {}
         for e in app.edges:
@@ -589,7 +480,7 @@ class Layout:
             return None
         total = 0.0
         for v in verts[1:]:  # the head is not this chain's to place
-            total += _compute_uj(self.cost[v], walk[at[assign[v]]])
+            total += compute_uj(self.cost[v], walk[at[assign[v]]])
         for a, b in itertools.pairwise(verts):
             size = self.edge_bytes.get((a, b), 0.0)
             total += size * abs(acc[at[assign[a]]] - acc[at[assign[b]]])
@@ -675,6 +566,47 @@ class Layout:
         return full, route
 
 
+def candidates(network: Network, anchors: Sequence[str] = ()) -> list[Candidate]:
+    """Every node of a known network as a capability candidate, with its hops to ``anchors``
+    (what the nodes' answers to a deployment's query carry)."""
+    hops = {a: network.distances(a) for a in anchors if a in network.nodes}
+    return [
+        Candidate(
+            n.id,
+            offered(n.capabilities, n.cpu),
+            n.battery_wh,
+            {a: d[n.id] for a, d in hops.items() if n.id in d},
+        )
+        for n in network.nodes.values()
+    ]
+
+
+def resolve_capabilities(app: App, network: Network) -> tuple[dict[str, str], dict[str, list[str]]]:
+    """The node of each vertex placed by capability on a known network, and its ranked
+    candidates (:func:`mso.model.capabilities.resolve`); PlanningError if one cannot be met."""
+    needs = app.needs()
+    if not needs:
+        return {}, {}
+    pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
+    anchors = list(network.nodes) if any(n.near for n in needs) else []
+    return resolve(needs, pinned, candidates(network, anchors))
+
+
+def with_pins(app: App, resolved: Mapping[str, str]) -> App:
+    """A copy of ``app`` with each vertex placed by capability pinned where it was resolved:
+    what the baselines (which know only ``pinned``) place."""
+    if not resolved:
+        return app
+    out = App(app.name, slo_ms=app.slo_ms, policy=app.policy, planner=app.planner)
+    out.edges = list(app.edges)
+    for v in app.vertices.values():
+        node = resolved.get(v.id)
+        out.vertices[v.id] = (
+            v if node is None else replace(v, pinned=node, requires={}, near=None, apart_from=None)
+        )
+    return out
+
+
 def plan(
     app: App,
     network: Network,
@@ -701,7 +633,8 @@ def plan(
                 f"(nodes: {', '.join(network.nodes)})"
             )
     probe = probe or network_probe(network, capacity)
-    layout = Layout(app, origin, planner)
+    resolved, capable = resolve_capabilities(app, network)
+    layout = Layout(app, origin, planner, resolved)
     placed = layout.initial_placement()
     routes: dict[int, list[str]] = {}
     distances: dict[str, dict[str, int]] = {}  # chains often start at one node
@@ -719,4 +652,5 @@ def plan(
         order=layout.order,
         routes=routes,
         planner=layout.planner,
+        capable=capable,
     )

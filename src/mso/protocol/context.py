@@ -55,6 +55,11 @@ class NodeContext(Protocol):
     def capacity(self) -> float: ...
 
     @property
+    def capabilities(self) -> dict[str, float]:
+        """What this node offers besides its CPU (``mso node --capability``; §3.3)."""
+        ...
+
+    @property
     def power(self) -> PowerModel:
         """This node's power model: its figures travel in probes for the bytes planner."""
         ...

@@ -100,6 +100,34 @@ class AppAnnounce(_Msg, tag="announce"):
     origin: str
     document: str
     epoch: int = 0  # this deployment's incarnation: data of an earlier one is not accepted
+    # each vertex placed by capability: the node chosen, and the nodes that qualify, best first
+    # (after a failure the next live one takes it)
+    resolved: dict[str, str] = msgspec.field(default_factory=dict)
+    capable: dict[str, list[str]] = msgspec.field(default_factory=dict)
+
+
+class CapabilityQuery(_Msg, tag="capability_query"):
+    """From the deploying node to every node (§3.3): which of you offers what these vertices
+    require? ``needs``: vertex -> what it requires; ``anchors``: the nodes an answer reports its
+    hops to (those a ``near`` constraint may name). Only nodes that offer some of what a
+    vertex requires answer (so a refusal can say what no node has)."""
+
+    app: str
+    qid: int
+    needs: dict[str, dict[str, float]]
+    anchors: list[str] = msgspec.field(default_factory=list)
+
+
+class CapabilityReply(_Msg, tag="capability_reply"):
+    """A node with some of what a :class:`CapabilityQuery` asks for: what it offers
+    (its ``cpu`` included), its remaining energy (None: wall power), its hops to the anchors."""
+
+    app: str
+    qid: int
+    node: str
+    offers: dict[str, float]
+    energy_j: float | None = None
+    hops: dict[str, int] = msgspec.field(default_factory=dict)
 
 
 class Probe(_Msg, tag="probe"):
@@ -484,6 +512,8 @@ Message = (
     | Data
     | Ack
     | AppAnnounce
+    | CapabilityQuery
+    | CapabilityReply
     | Probe
     | ProbeReply
     | ChainPlaced

@@ -103,6 +103,8 @@ class AppStatus(msgspec.Struct, frozen=True, kw_only=True):
     chains: list[list[str]]
     vertices: dict[str, VertexStatus]
     edges: dict[str, EdgeStatus]
+    # each vertex placed by capability: the nodes that qualify, best first (§3.3)
+    capable: dict[str, list[str]] = msgspec.field(default_factory=dict)
 
 
 @dataclass
@@ -234,6 +236,8 @@ class AppState:
     client: int | None = None
     requested_at: float = 0.0
     out_edges: dict[str, list[int]] = field(default_factory=dict)
+    # each vertex placed by capability: the nodes that qualify, best first (§3.3)
+    capable: dict[str, list[str]] = field(default_factory=dict)
 
     def status(self, now: float) -> AppStatus:
         """This app as this node holds and runs it: placement, chains, parked chains and
@@ -287,6 +291,7 @@ class AppState:
                 for vid, h in (self.crashed | self.instances).items()
             },
             edges=edges,
+            capable={v: list(ns) for v, ns in self.capable.items()},
         )
 
     def lost(self, failed: set[str]) -> set[str]:

@@ -12,7 +12,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from mso.errors import ScenarioError
+from mso.errors import AppError, ScenarioError
+from mso.model.capabilities import parse_capabilities
 from mso.model.mobility import Mobility, RandomWaypoint, Trace
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
 from mso.model.propagation import MODELS, Propagation
@@ -40,7 +41,7 @@ MOBILITY_MODELS = ("random_waypoint", *FORMATS)
 CHANGE_KEYS = {"at", "down", "up", "fail", "restart", "partition", "heal", "loss", "between"}
 CHANGE_KINDS = ("up", "down", "fail", "restart", "partition", "heal", "loss")
 MAX_NUMBER = 1e12  # capacities, powers, delays: larger ones only overflow the objectives
-NODE_KEYS = {"cpu", "battery_wh", "power", "pos"}
+NODE_KEYS = {"cpu", "battery_wh", "power", "pos", "capabilities"}
 POWER_KEYS = {"idle_w", "cpu_w", "tx_uj_per_byte", "rx_uj_per_byte", "cpu_energy"}
 CPU_ENERGY = ("modelled", "measured")
 LINK_KEYS = {"between", "bandwidth_mbps", "delay_ms", "loss"}
@@ -495,7 +496,11 @@ def _node(r: _Reader, nid: Any, attrs: dict[str, Any], path: tuple[str | int, ..
             r.number(pos[0], (*path, "pos"), low=-math.inf),
             r.number(pos[1], (*path, "pos"), low=-math.inf),
         )
-    return NodeSpec(id=nid, cpu=cpu, battery_wh=battery, power=power, pos=pos)
+    try:
+        caps = parse_capabilities(attrs.get("capabilities"), "capabilities")
+    except AppError as exc:
+        raise r.err(exc.message, (*path, "capabilities")) from None
+    return NodeSpec(id=nid, cpu=cpu, battery_wh=battery, power=power, pos=pos, capabilities=caps)
 
 
 def _link_attrs(

@@ -75,6 +75,7 @@ class Simulation:
                 policy=policy,
                 manage=manage,
                 rules=rules,
+                capabilities=spec.capabilities,
             )
             for n, spec in network.nodes.items()
         }
@@ -251,6 +252,7 @@ class Simulation:
             manage=old.manager.enabled,
             rules=self._rules,
             incarnation=old.incarnation + 1,
+            capabilities=spec.capabilities,
         )
         self.executors[node] = self._executor(node)  # the old instances went with the process
         self.killed.discard(node)

@@ -191,7 +191,9 @@ function drawControls(v) {
   setOptions(document.getElementById("remap-chain"), app.chains.map((c) => [String(c.index), `[${c.index}] ${c.name}`]));
   // the current node of the chosen vertex, beside the choice
   const vx = document.getElementById("relocate-vertex").value;
-  document.getElementById("relocate-vertex").title = vx ? `now on ${app.placement[vx]}` : "";
+  const capable = (app.capable || {})[vx];
+  const by = capable ? ` (placed by capability; capable, best first: ${capable.join(", ")})` : "";
+  document.getElementById("relocate-vertex").title = vx ? `now on ${app.placement[vx]}${by}` : "";
 }
 
 function render(v) {

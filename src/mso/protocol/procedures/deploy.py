@@ -24,34 +24,53 @@ from __future__ import annotations
 
 import enum
 import zlib
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol
 
-from mso.errors import MsoError
+from mso.errors import MsoError, PlanningError
 from mso.management import load_policy
 from mso.model.app import App
-from mso.model.appfile import loads_app
+from mso.model.appfile import MAX_VERTICES, loads_app
+from mso.model.capabilities import Candidate, Needs, missing, offered, parse_capabilities, resolve
 from mso.planning.placement import Hop, Layout, probed_hops
 from mso.protocol import messages as m
 from mso.protocol.authority import generation
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import RETRANSMIT_S, DataPlane
 from mso.protocol.effects import Reply, Send, SetTimer
-from mso.protocol.events import InstanceFailed, InstanceReady, Retransmit, RoutesChanged
+from mso.protocol.events import InstanceFailed, InstanceReady, Retransmit, Retry, RoutesChanged
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
 from mso.protocol.state import AppState
 
 MAX_WAITING_PROBES = 256  # probes held at a hop whose route still goes through a failed node
 
 
+CHOOSE_S = 1.0  # how long the deploying node collects capability answers (§3.3)
+
+
 class S(enum.Enum):
+    CHOOSING = "choosing"
     BUILDING = "building"
 
 
 class DeployEvent(enum.Enum):
     """What moves a Deploy along its table."""
 
+    ANSWER = "answer"
+    CHOSEN = "chosen"
     BUILT = "built"
     ALL_BUILT = "all_built"
+
+
+@dataclass
+class Choosing:
+    """An app with vertices placed by capability, while the deploying node collects answers."""
+
+    document: str
+    needs: list[Needs]
+    pinned: dict[str, str]
+    asked: set[str]  # the nodes the query went to
+    answers: dict[str, Candidate] = field(default_factory=dict)
 
 
 class Deploy(Procedure):
@@ -59,15 +78,22 @@ class Deploy(Procedure):
     INITIAL = S.BUILDING
     DEADLINE_S = 30.0
     TRANSITIONS: ClassVar[Table] = {
+        S.CHOOSING: {DeployEvent.ANSWER: S.CHOOSING, DeployEvent.CHOSEN: S.BUILDING},
         S.BUILDING: {DeployEvent.BUILT: S.BUILDING, DeployEvent.ALL_BUILT: Phase.FINISHED},
     }
 
-    def __init__(self, pid: int, now: float, app: str) -> None:
+    def __init__(self, pid: int, now: float, app: str, choosing: Choosing | None = None) -> None:
         super().__init__(pid, now)
         self.app = app
+        self.choosing = choosing
+        if choosing is not None:
+            self.state = S.CHOOSING
 
     def describe(self) -> dict[str, Any]:
-        return super().describe() | {"app": self.app}
+        out = super().describe() | {"app": self.app}
+        if self.choosing is not None:
+            out["answers"] = sorted(self.choosing.answers)
+        return out
 
 
 class AppPolicies(Protocol):
@@ -150,11 +176,96 @@ class Deployer:
                 self.ctx.emit(Reply(client, _failed_reply(app.name, reason)))
                 return
         self._clients[app.name] = (client, now)
-        self.ctx.begin(Deploy(self.ctx.new_pid(), now, app.name))
+        needs = app.needs()
+        if not needs:
+            self.ctx.begin(Deploy(self.ctx.new_pid(), now, app.name))
+            self._announce(app.name, req.document, {}, {})
+            return
+        # §3.3: the nodes with the capabilities answer; the choice is made when all have, or
+        # at the deadline, from the answers in
+        pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
+        choosing = Choosing(req.document, needs, pinned, known)
+        proc = Deploy(self.ctx.new_pid(), now, app.name, choosing)
+        self.ctx.begin(proc)
+        anchors = sorted(known) if any(n.near for n in needs) else []
+        wanted = {n.vertex: dict(n.requires) for n in needs}
+        self.ctx.broadcast(m.CapabilityQuery(app.name, proc.pid, wanted, anchors))
+        self.ctx.emit(SetTimer(Retry(proc.pid, 0), now + CHOOSE_S))
+
+    def _announce(
+        self, app: str, document: str, resolved: dict[str, str], capable: dict[str, list[str]]
+    ) -> None:
         epoch = self._epochs = (self._epochs + 1) & 0x7FFFFFFF
         self.ctx.broadcast(
-            m.AppAnnounce(app=app.name, origin=self.ctx.id, document=req.document, epoch=epoch)
+            m.AppAnnounce(app, self.ctx.id, document, epoch, dict(resolved), dict(capable))
         )
+
+    # -- every node: answers a capability query if it qualifies for a vertex -------------------
+    def on_capability_query(self, src: str, msg: m.CapabilityQuery, now: float) -> None:
+        offers = offered(self.ctx.capabilities, self.ctx.capacity)
+        needs: list[dict[str, float]] = []
+        for requires in list(msg.needs.values())[:MAX_VERTICES]:
+            try:
+                needs.append(parse_capabilities(requires, "needs"))
+            except MsoError:
+                self.ctx.refusal("capability_query_malformed")
+                return
+        if not any(not missing(r, offers) or set(r) & set(offers) for r in needs):
+            return  # only nodes with something a vertex requires answer (or with nothing to ask)
+        dist = self.ctx.distances()
+        hops = {a: dist[a] for a in msg.anchors[:MAX_VERTICES] if a in dist}
+        energy = self.ctx.figures().remaining_j
+        self.ctx.send(src, m.CapabilityReply(msg.app, msg.qid, self.ctx.id, offers, energy, hops))
+
+    # -- the origin: collects the answers, chooses, announces ----------------------------------
+    def _choosing(self, pid: int) -> Deploy | None:
+        proc = self.ctx.procedure(pid)
+        if isinstance(proc, Deploy) and proc.choosing is not None and proc.state is S.CHOOSING:
+            return proc
+        return None
+
+    def on_capability_reply(self, src: str, msg: m.CapabilityReply) -> None:
+        proc = self._choosing(msg.qid)
+        if proc is None or proc.app != msg.app or msg.node != src:
+            self.ctx.refusal("capability_reply_unexpected")
+            return
+        assert proc.choosing is not None
+        try:
+            offers = parse_capabilities(msg.offers, "offers")
+        except MsoError:
+            self.ctx.refusal("capability_reply_malformed")
+            return
+        energy = msg.energy_j if msg.energy_j is None or msg.energy_j >= 0 else None
+        hops = {a: h for a, h in msg.hops.items() if a in proc.choosing.asked}
+        proc.choosing.answers[src] = Candidate(src, offers, energy, hops)
+        proc.on(DeployEvent.ANSWER)
+        if set(proc.choosing.answers) >= proc.choosing.asked:
+            self._choose(proc)
+
+    def on_retry(self, key: Retry, now: float) -> None:
+        """The time for capability answers is up: choose from those in."""
+        proc = self._choosing(key.pid)
+        if proc is not None:
+            self._choose(proc)
+
+    def _choose(self, proc: Deploy) -> None:
+        """Each constrained vertex's node, deterministically from the answers
+        (:func:`mso.model.capabilities.resolve`); refused, naming the vertex and what no node
+        offers, if one cannot be met."""
+        ch = proc.choosing
+        assert ch is not None
+        answers = [ch.answers[n] for n in sorted(ch.answers)]
+        try:
+            resolved, capable = resolve(ch.needs, ch.pinned, answers)
+        except PlanningError as exc:
+            proc.fail(self.ctx, str(exc))
+            self.ctx.end(proc.pid)
+            client = self._clients.pop(proc.app, None)
+            if client is not None:
+                self.ctx.emit(Reply(client[0], _failed_reply(proc.app, str(exc))))
+            return
+        proc.on(DeployEvent.CHOSEN)
+        self._announce(proc.app, ch.document, resolved, capable)
 
     def on_built(self, msg: m.ChainBuilt, now: float) -> None:
         dep = self.ctx.apps.get(msg.app)
@@ -212,7 +323,11 @@ class Deployer:
             return
         if not self.named(app, msg.app):
             return
-        layout = Layout(app, msg.origin)
+        try:
+            layout = Layout(app, msg.origin, resolved=self._resolved(app, msg))
+        except MsoError as exc:
+            self.ctx.send(msg.origin, m.DeployFailed(app=msg.app, reason=f"{self.ctx.id}: {exc}"))
+            return
         dep = AppState(
             app=app,
             layout=layout,
@@ -220,6 +335,7 @@ class Deployer:
             placed=layout.initial_placement(),
             epoch=msg.epoch,
             document=msg.document,
+            capable={v: list(ns) for v, ns in msg.capable.items() if v in msg.resolved},
         )
         for i, e in enumerate(app.edges):
             dep.out_edges.setdefault(e.src, []).append(i)
@@ -227,6 +343,19 @@ class Deployer:
             dep.client, dep.requested_at = self._clients.pop(msg.app)
         self.ctx.apps[msg.app] = dep
         self._start_ready_chains(dep)
+
+    @staticmethod
+    def _resolved(app: App, msg: m.AppAnnounce) -> dict[str, str]:
+        """The announcement's choice of node for each vertex placed by capability: exactly
+        those vertices, each on a node id (the ranked candidates, if any, include it)."""
+        wanted = {n.vertex for n in app.needs()}
+        if set(msg.resolved) != wanted or not all(isinstance(n, str) and n for n in
+                                                  msg.resolved.values()):  # fmt: skip
+            raise PlanningError(
+                f"the announcement chooses nodes for {sorted(msg.resolved)}, "
+                f"the app places {sorted(wanted)} by capability"
+            )
+        return dict(msg.resolved)
 
     def _start_ready_chains(self, dep: AppState) -> None:
         lay = dep.layout

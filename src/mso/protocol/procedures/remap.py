@@ -22,7 +22,7 @@ recovery goes on from there, in one direction: membership → remap → restore.
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from mso.errors import MsoError
@@ -148,8 +148,21 @@ class Remapper:
 
     def on_peer_failed(self, ev: PeerFailed) -> None:
         for dep in list(self.ctx.apps.values()):
+            self.repin(dep)
             self.park(dep)
             self.maybe_recover(dep, self.ctx.now)
+
+    def repin(self, dep: AppState) -> None:
+        """A vertex placed by capability whose node failed goes to the next live node that
+        qualified (§3.3: the choice is redone like any other placement). Every node does this
+        from the same ranked list and failure set, so all agree on its new node."""
+        failed = self.ctx.failed
+        for v, node in list(dep.layout.resolved.items()):
+            if node not in failed:
+                continue
+            alt = next((n for n in dep.capable.get(v, []) if n not in failed), None)
+            if alt is not None:
+                dep.layout.resolved[v] = dep.layout.pinned[v] = alt
 
     def on_recovery_due(self, ev: RecoveryDue) -> None:
         for dep in list(self.ctx.apps.values()):
@@ -465,7 +478,8 @@ class Remapper:
         dep.recoveries.append(record)
         del dep.recoveries[:-20]
         pid = self.ctx.new_pid()
-        remap = Remap(pid, now, dep.app.name, plan.chains, None, plan.stays, plan.movable, record)
+        placed = plan.stays | plan.place
+        remap = Remap(pid, now, dep.app.name, plan.chains, None, placed, plan.movable, record)
         self.ctx.begin(remap)
         dep.recovering = pid
         self._next_chain(pid, now)
@@ -477,11 +491,19 @@ class Remapper:
         return."""
         for ci, why in pinned_to_failed(dep.app, dep.layout, self.ctx.failed).items():
             dep.parked.setdefault(ci, why)
+        for v, node in dep.layout.resolved.items():
+            if node in self.ctx.failed:  # no live node qualifies (repin found none)
+                for c in dep.layout.chains:
+                    if v in c.vertices:
+                        why = f"{v!r}: no live node has what it requires"
+                        dep.parked.setdefault(c.index, why)
 
     def unpark(self, dep: AppState) -> None:
         """Chains parked for a pinned node that is back run again (after their restore)."""
         for ci in list(dep.parked):
-            pins = {dep.app.vertices[v].pinned for v in dep.layout.chains[ci].vertices}
+            verts = dep.layout.chains[ci].vertices
+            pins = {dep.app.vertices[v].pinned for v in verts}
+            pins |= {dep.layout.resolved[v] for v in verts if v in dep.layout.resolved}
             if not pins & self.ctx.failed:
                 del dep.parked[ci]
 
@@ -496,6 +518,8 @@ class RecoveryPlan:
     stays: dict[str, str]
     movable: set[str]
     kind: str
+    # lost vertices placed by capability: re-placed, on the next node that qualified
+    place: dict[str, str] = field(default_factory=dict)
 
 
 def recovery_coordinator(placed: dict[str, str], lost: set[str], alive: set[str]) -> str:
@@ -531,13 +555,16 @@ def recovery_plan(
     chains = [layout.chains[c] for c in touched]
     in_set = {v for c in chains for v in c.vertices}
     ends = {v for c in chains for v in (c.head, c.tail)}
-    stays = {v for v in placed if v not in in_set or v in layout.pinned}
+    # a lost vertex placed by capability moves to its new node (Remapper.repin), as an anchor
+    place = {v: layout.resolved[v] for v in lost & set(layout.resolved) if v in in_set}
+    stays = {v for v in placed if v not in in_set or v in layout.pinned} - set(place)
     stays |= {v for v in ends if v not in lost}
     return RecoveryPlan(
         chains=[c for c in layout.order if c in touched],
         stays={v: placed[v] for v in stays},
         movable=in_set - stays,
         kind="global" if any(v in lost for v in ends) else "chain",
+        place=place,
     )
 
 

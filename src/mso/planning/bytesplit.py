@@ -1,0 +1,143 @@
+"""The ``bytes`` planner's split of one chain segment along its probed route (issue 25): the
+cheapest in energy per event, computing weighed against carrying each edge's bytes over each
+hop, within each node's CPU. Pure: no I/O, no clock. :mod:`.placement` calls it per segment."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+from mso.model.network import PowerModel
+
+_POWER = PowerModel()
+
+
+@dataclass(frozen=True)
+class Hop:
+    """What a probe collects at one node of its route: its capacity and, for the ``bytes``
+    planner, its power figures (a node that does not report them is taken at the defaults)."""
+
+    node: str
+    capacity: float
+    cpu_w: float = _POWER.cpu_w
+    tx_uj_per_byte: float = _POWER.tx_uj_per_byte
+    rx_uj_per_byte: float = _POWER.rx_uj_per_byte
+
+    def weighted(self, factor: float) -> Hop:
+        """The same hop with its capacity scaled (a remap's lifetime weight)."""
+        return replace(self, capacity=self.capacity * factor)
+
+
+@dataclass(frozen=True)
+class Traffic:
+    """What the ``bytes`` planner knows of an app besides costs: bytes per event of each edge
+    (parallel edges summed), each vertex's CPU load in ms per second at ``cpu: 1.0`` (cost times
+    its event rate), and the load already placed on each node."""
+
+    edge_bytes: Mapping[tuple[str, str], float]
+    load: Mapping[str, float]
+    used: Mapping[str, float] = field(default_factory=dict)
+    tail_bytes: float = 0.0  # what the chain's tail sends on toward the probe's target
+    # what the tail sends to vertices already placed: (their node, bytes per event)
+    tail_placed: tuple[tuple[str, float], ...] = ()
+
+
+def compute_uj(cost: float, hop: Hop) -> float:
+    """µJ of CPU one event of a vertex of ``cost`` takes on ``hop`` (the energy objective's)."""
+    if cost == 0:
+        return 0.0
+    if hop.capacity <= 0:
+        return math.inf
+    return cost / hop.capacity * hop.cpu_w * 1e3
+
+
+def assign_bytes(
+    costs: Sequence[float],
+    loads: Sequence[float],
+    sizes: Sequence[float],
+    hops: Sequence[Hop],
+    used: Sequence[float] | None = None,
+    *,
+    to_end: bool,
+    pulls: Sequence[tuple[int, float]] = (),
+) -> list[int]:
+    """Route position of each vertex of a chain segment, the cheapest in energy per event.
+
+    The segment's vertices follow an anchor at position 0; ``sizes[i]`` is the bytes per event
+    into vertex ``i`` and ``sizes[-1]`` those out of the last one, which travel to the route's
+    end when ``to_end`` (an anchor or the probe's target lies there); ``pulls`` are further
+    (position, bytes) the last vertex sends to vertices already placed. Computing vertex ``i`` at
+    ``p`` costs its CPU energy there; an edge from ``q`` to ``p`` costs its bytes times the
+    tx+rx µJ per byte of hops ``q..p``, so the chain is cut at its small edges. Positions never
+    decrease (a chain never goes back along its route). A node takes vertices only while their
+    load (``loads``, ms/s at cpu 1.0) fits what its capacity leaves (``capacity * 1000 - used``).
+
+    A dynamic programme over (vertex, position) with a running minimum over earlier positions:
+    O(len(costs) * len(hops)). Each state keeps the load of its cheapest path only, so capacity
+    is respected by every answer though the answer may miss a costlier-to-reach feasible
+    optimum; with no feasible split at all, capacity is ignored (the paper's split ignores it
+    always).
+    """
+    k, r = len(costs), len(hops)
+    if r == 0:
+        raise ValueError("a route has at least one node")
+    if k == 0:
+        return []
+    acc = [0.0]  # acc[p]: µJ per byte from position 0 to p
+    for a, b in itertools.pairwise(hops):
+        acc.append(acc[-1] + a.tx_uj_per_byte + b.rx_uj_per_byte)
+    left = [h.capacity * 1e3 - (used[p] if used else 0.0) for p, h in enumerate(hops)]
+    for limited in (True, False):
+        out = _bytes_dp(costs, loads, sizes, hops, acc, left if limited else None, to_end, pulls)
+        if out is not None:
+            return out
+    return [0] * k  # every split costs infinite energy (no CPU anywhere): stay on the anchor
+
+
+def _bytes_dp(
+    costs: Sequence[float],
+    loads: Sequence[float],
+    sizes: Sequence[float],
+    hops: Sequence[Hop],
+    acc: Sequence[float],
+    left: Sequence[float] | None,
+    to_end: bool,
+    pulls: Sequence[tuple[int, float]],
+) -> list[int] | None:
+    k, r, inf = len(costs), len(hops), math.inf
+    prev_val = [inf] * r
+    prev_load = [0.0] * r
+    parent: list[list[int]] = []
+    for i in range(k):
+        val, load, par = [inf] * r, [0.0] * r, [-1] * r
+        best, best_q = (0.0, 0) if i == 0 else (inf, -1)  # the anchor sits at position 0
+        for p in range(r):
+            compute = compute_uj(costs[i], hops[p])
+            if not math.isinf(compute):
+                if best_q >= 0 and (left is None or loads[i] <= left[p] + 1e-9):
+                    val[p] = best + sizes[i] * acc[p] + compute  # arrive from q < p
+                    load[p], par[p] = loads[i], best_q
+                stay = prev_load[p] + loads[i]  # after vertex i-1 on the same node
+                fits = left is None or stay <= left[p] + 1e-9
+                if i > 0 and fits and prev_val[p] + compute <= val[p]:
+                    val[p], load[p], par[p] = prev_val[p] + compute, stay, p
+            if i > 0 and prev_val[p] - sizes[i] * acc[p] < best:
+                best, best_q = prev_val[p] - sizes[i] * acc[p], p
+        prev_val, prev_load = val, load
+        parent.append(par)
+    end = [
+        v
+        + (sizes[k] * (acc[r - 1] - acc[p]) if to_end else 0.0)
+        + sum(b * abs(acc[p] - acc[q]) for q, b in pulls)
+        for p, v in enumerate(prev_val)
+    ]
+    p = min(range(r), key=lambda q: (end[q], q))
+    if math.isinf(end[p]):
+        return None
+    out = [0] * k
+    for i in range(k - 1, -1, -1):
+        out[i] = p
+        p = parent[i][p]
+    return out
