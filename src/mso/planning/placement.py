@@ -274,11 +274,19 @@ def probed_hops(
 def network_probe(network: Network, capacity: Capacity = cpu_capacity) -> Probe:
     """A probe over a known network: the shortest route and each node's capacity."""
 
+    hops: dict[str, Hop] = {}  # each node's, made once
+
+    def at(n: str) -> Hop:
+        h = hops.get(n)
+        if h is None:
+            h = hops[n] = hop_of(network.nodes[n], capacity(network.nodes[n]))
+        return h
+
     def probe(a: str, b: str) -> list[Hop]:
         route = network.route(a, b)
         if route is None:
             return []
-        return [hop_of(network.nodes[n], capacity(network.nodes[n])) for n in route]
+        return [at(n) for n in route]
 
     return probe
 
@@ -416,18 +424,20 @@ class Layout:
         chain: int,
         placed: Mapping[str, str],
         target: str | None,
+        used: Mapping[str, float] | None = None,
     ) -> Traffic:
         """The bytes planner's view of one chain: edge sizes, loads, the load this app already
         put on each node (and the load reserved for :attr:`forced` vertices), and what its tail
         exchanges: with vertices already placed (their nodes pull it), and toward ``target``
         (the bytes that must still get to vertices pinned there, :meth:`bottleneck`). Every
-        earlier chain is in ``placed``: with this planner chains are placed one at a time."""
-        used: dict[str, float] = {}
-        for v, n in placed.items():
-            used[n] = used.get(n, 0.0) + self.load[v]
+        earlier chain is in ``placed``: with this planner chains are placed one at a time.
+        ``used``: the load ``placed`` puts on each node, if the caller keeps it (``plan``)."""
+        if used is None:
+            used = self.loads(placed)
+        busy = dict(used)
         for v, n in self.forced.items():
             if v not in placed:
-                used[n] = used.get(n, 0.0) + self.load[v]
+                busy[n] = busy.get(n, 0.0) + self.load[v]
         verts = self.chains[chain].vertices
         tail = verts[-1]
         tail_bytes = 0.0
@@ -444,7 +454,14 @@ class Layout:
                     tail_placed.append((node, size))
                 else:
                     tail_bytes += min(size, flow.get(w, 0.0))
-        return Traffic(self.edge_bytes, self.load, used, tail_bytes, tuple(tail_placed))
+        return Traffic(self.edge_bytes, self.load, busy, tail_bytes, tuple(tail_placed))
+
+    def loads(self, placed: Mapping[str, str]) -> dict[str, float]:
+        """The load (ms/s at cpu 1.0) the vertices in ``placed`` put on each node."""
+        used: dict[str, float] = {}
+        for v, n in placed.items():
+            used[n] = used.get(n, 0.0) + self.load[v]
+        return used
 
     def bottleneck(self, target: str) -> dict[str, float]:
         """For every vertex: the bytes per event that must still travel from it to the
@@ -546,12 +563,14 @@ class Layout:
         placed: Mapping[str, str],
         probe: Probe,
         distances: Mapping[str, int],
+        used: Mapping[str, float] | None = None,
     ) -> tuple[dict[str, str], list[str]]:
-        """Place one chain whose dependencies are met: (assignments incl. anchors, route)."""
+        """Place one chain whose dependencies are met: (assignments incl. anchors, route).
+        ``used``: :meth:`loads` of ``placed``, if the caller keeps it as it goes."""
         target, downstream = self.target(chain, placed, distances)
         traffic = None
         if self.planner == "bytes":
-            traffic = self.traffic(chain, placed, target)
+            traffic = self.traffic(chain, placed, target, used)
         assigned, route = place_chain(
             self.chains[chain],
             self.cost,
@@ -638,11 +657,15 @@ def plan(
     placed = layout.initial_placement()
     routes: dict[int, list[str]] = {}
     distances: dict[str, dict[str, int]] = {}  # chains often start at one node
+    used = layout.loads(placed)  # kept as chains are placed, not summed again for each
     for ci in layout.order:
         start = layout.last_anchor_node(ci, placed)
         if start not in distances:
             distances[start] = network.distances(start)
-        assigned, route = layout.place(ci, placed, probe, distances[start])
+        assigned, route = layout.place(ci, placed, probe, distances[start], used)
+        for u, n in assigned.items():
+            if u not in placed:
+                used[n] = used.get(n, 0.0) + layout.load[u]
         placed.update(assigned)
         routes[ci] = route
     placement = {v: placed[v] for v in app.vertices}
