@@ -254,28 +254,20 @@ class Timeline:
         return spec if loss is None or loss == spec.loss else replace(spec, loss=loss)
 
     def _relink(self, positions: dict[str, tuple[float, float]], radio_range: float) -> None:
-        ids = list(self.network.nodes)
         radio: dict[tuple[str, str], LinkSpec] = {}
-        for i, a in enumerate(ids):
-            pa = positions.get(a)
-            for b in ids[i + 1 :]:
-                pb = positions.get(b)
-                if pa is None or pb is None:
-                    continue
-                if (pa[0] - pb[0]) ** 2 + (pa[1] - pb[1]) ** 2 <= radio_range**2:
-                    k = _key(a, b)
-                    model = self.scenario.propagation
-                    if model is not None:  # the link's loss and delay follow its length
-                        shaped = model.link(a, b, math.dist(pa, pb), self.template)
-                        if shaped is not None:
-                            radio[k] = self._with_loss(k, shaped)
-                        continue
-                    old = self.radio.get(k)
-                    spec = old or LinkSpec(
-                        a, b, self.template.bandwidth_mbps, self.template.delay_ms,
-                        self.template.loss,
-                    )  # fmt: skip
-                    radio[k] = self._with_loss(k, spec)
+        model = self.scenario.propagation
+        for a, b in self.network.pairs_within(positions, radio_range):  # O(N x degree)
+            k = _key(a, b)
+            if model is not None:  # the link's loss and delay follow its length
+                shaped = model.link(a, b, math.dist(positions[a], positions[b]), self.template)
+                if shaped is not None:
+                    radio[k] = self._with_loss(k, shaped)
+                continue
+            old = self.radio.get(k)
+            spec = old or LinkSpec(
+                a, b, self.template.bandwidth_mbps, self.template.delay_ms, self.template.loss
+            )
+            radio[k] = self._with_loss(k, spec)
         self.radio = radio
 
     def wanted(self) -> dict[tuple[str, str], LinkSpec]:

@@ -30,7 +30,7 @@ from typing import Any, ClassVar, Protocol
 from mso.errors import MsoError, PlanningError
 from mso.management import load_policy
 from mso.model.app import App
-from mso.model.appfile import MAX_VERTICES, loads_app
+from mso.model.appfile import MAX_VERTICES, loads_app, loads_app_shared
 from mso.model.capabilities import Candidate, Needs, missing, offered, parse_capabilities, resolve
 from mso.planning.placement import Hop, Layout, probed_hops
 from mso.protocol import messages as m
@@ -127,7 +127,7 @@ class Deployer:
 
     def load_app(self, name: str, document: str) -> App:
         """An app announced (or synced) by another node, with its policy checked and loaded."""
-        app = loads_app(document, file=f"<{name}>")
+        app = loads_app_shared(document, f"<{name}>")  # one parse per process, not per node
         self.policies.app_policy(app.name, app.policy, where=f"{self.ctx.id}: {app.name}: policy")
         return app
 
