@@ -53,12 +53,33 @@ def test_relink_follows_positions() -> None:
         ),
         (
             "radio_range: 10\nnodes: {A: {pos: [0, 0]}}\nmobility: {model: brownian}\n",
-            "s.yaml:3: mobility.model: expected model: one of random_waypoint, ns2, bonnmotion",
+            "s.yaml:3: mobility.model: expected model: one of random_waypoint, gauss_markov, "
+            "group, ns2, bonnmotion",
         ),
         (
             "radio_range: 10\nnodes: {A: {pos: [0, 0]}}\n"
             "mobility: {model: random_waypoint, area: [1, 1], speed: [3, 1]}\n",
             "mobility.speed: expected [min, max] speeds",
+        ),
+        (
+            "radio_range: 10\nnodes: {A: {pos: [0, 0]}}\n"
+            "mobility: {model: gauss_markov, area: [1, 1], speed: [1, 3], alpha: 2}\n",
+            "mobility.alpha: expected alpha in [0, 1], got 2.0",
+        ),
+        (
+            "radio_range: 10\nnodes: {A: {pos: [0, 0]}}\n"
+            "mobility: {model: gauss_markov, area: [1, 1], speed: [1, 3], pause_s: 1}\n",
+            "mobility.pause_s: unknown attribute 'pause_s'",
+        ),
+        (
+            "radio_range: 10\nnodes: {A: {pos: [0, 0]}, B: {pos: [1, 1]}}\n"
+            "mobility: {model: group, area: [1, 1], speed: [1, 3], groups: [[A, B], [B]]}\n",
+            "mobility.groups[1]: node 'B' is in two groups",
+        ),
+        (
+            "radio_range: 10\nnodes: {A: {pos: [0, 0]}}\n"
+            "mobility: {model: group, area: [1, 1], speed: [1, 3], groups: [[A, Z]]}\n",
+            "mobility.groups[0]: unknown node 'Z'",
         ),
         (
             "nodes: {A: {}, B: {}}\nchanges:\n  - {at: 1, down: [A, C]}\n",

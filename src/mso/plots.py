@@ -148,3 +148,88 @@ BENCHMARKS = {
     "cli_startup": cli_startup,
     "rates": rates,
 }  # the energy study (mso bench lifetime) draws its own plots
+
+
+def _finish(fig: Any, ax: Any, out: Path, **labels: str) -> Path:
+    """Label the axes, add a legend if anything is labelled, save."""
+    ax.set(**labels)
+    if ax.get_legend_handles_labels()[0]:  # (an empty legend only warns)
+        ax.legend(fontsize=8)
+    return _save(fig, out)
+
+
+def sweep(rows: list[dict[str, Any]], out_dir: Path) -> list[Path]:
+    """A study's four figures: energy spent over time and reconfigurations over time (one
+    line per scenario and policy, the mean over seeds), the CDF of chain delays, and the
+    control messages per reconfiguration against the number of nodes."""
+    plt = _pyplot()
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(f"{r['scenario']} / {r['policy']}", []).append(r)
+    paths = []
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for label, rs in groups.items():
+        ts = min((r["series"]["t"] for r in rs), key=len)
+        mean = [sum(r["series"]["energy_j"][i] for r in rs) / len(rs) for i in range(len(ts))]
+        ax.plot(ts, mean, label=label)
+    paths.append(
+        _finish(
+            fig,
+            ax,
+            out_dir / "energy.png",
+            xlabel="virtual time (s)",
+            ylabel="energy spent, all nodes (J)",
+            title="energy over time (mean over seeds)",
+        )
+    )
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for label, rs in groups.items():
+        times = sorted(t for r in rs for t in r["series"]["reconfigurations_at"])
+        ax.step([0.0, *times], [k / len(rs) for k in range(len(times) + 1)], where="post",
+                label=label)  # fmt: skip
+    paths.append(
+        _finish(
+            fig,
+            ax,
+            out_dir / "reconfigurations.png",
+            xlabel="virtual time (s)",
+            ylabel="reconfigurations (cumulative, per run)",
+            title="reconfigurations over time (mean over seeds)",
+        )
+    )
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for label, rs in groups.items():
+        delays = sorted(d for r in rs for d in r["series"]["delay_ms"])
+        if delays:
+            ax.step(delays, [(i + 1) / len(delays) for i in range(len(delays))], where="post",
+                    label=label)  # fmt: skip
+    paths.append(
+        _finish(
+            fig,
+            ax,
+            out_dir / "delay_cdf.png",
+            xlabel="chain delay, as each chain's tail measures it (ms)",
+            ylabel="fraction",
+            title="delay CDF (samples once a simulated second)",
+        )
+    )
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    by_policy: dict[str, dict[int, list[float]]] = {}
+    for r in rows:
+        if r["control_per_reconfiguration"] is not None:
+            per_n = by_policy.setdefault(r["policy"], {})
+            per_n.setdefault(r["nodes"], []).append(r["control_per_reconfiguration"])
+    for policy, per_n in sorted(by_policy.items()):
+        ns = sorted(per_n)
+        ax.plot(ns, [sum(per_n[n]) / len(per_n[n]) for n in ns], marker="o", label=policy)
+    paths.append(
+        _finish(
+            fig,
+            ax,
+            out_dir / "control_vs_n.png",
+            xlabel="nodes",
+            ylabel="control messages per reconfiguration",
+            title="control messages per reconfiguration against N (mean over runs)",
+        )
+    )
+    return paths

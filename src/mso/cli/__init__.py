@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import click
 
-from mso.cli import app, bench, control, dashboard, demo, emulate, node, overlay, simulate
+from mso.cli import (
+    app, bench, control, dashboard, demo, emulate, node, overlay, scenario, simulate, sweep,
+)  # fmt: skip
 from mso.cliargs import OneLineGroup
 
 
@@ -54,6 +56,6 @@ for _command in (
     overlay.keygen, overlay.deploy, overlay.relocate, overlay.remap, overlay.undeploy,
     overlay.status, overlay.overlays,
     node.node, emulate.emulate, control.emulator, simulate.simulate, dashboard.dashboard,
-    demo.demo, bench.bench,
+    demo.demo, bench.bench, scenario.scenario, sweep.sweep,
 ):  # fmt: skip
     main.add_command(_command)

@@ -14,7 +14,7 @@ from typing import Any
 
 from mso.errors import AppError, ScenarioError
 from mso.model.capabilities import parse_capabilities
-from mso.model.mobility import Mobility, RandomWaypoint, Trace
+from mso.model.mobility import GaussMarkov, GroupMobility, Mobility, RandomWaypoint, Trace
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
 from mso.model.propagation import MODELS, Propagation
 from mso.model.yamlfile import Located, load_yaml, load_yaml_file
@@ -35,9 +35,15 @@ PROPAGATION_KEYS = {
     "model", "tx_dbm", "ref_loss_db", "ref_distance_m", "exponent", "sensitivity_dbm",
     "width_db", "shadowing_db", "seed", "max_loss", "retry_delay_ms", "curve",
 }  # fmt: skip
-MOBILITY_KEYS = {"model", "area", "speed", "pause_s", "seed", "fixed", "step_s"}
+MOBILITY_KEYS = {  # per model
+    "random_waypoint": {"model", "area", "speed", "pause_s", "seed", "fixed", "step_s"},
+    "gauss_markov": {"model", "area", "speed", "alpha", "interval_s", "seed", "fixed", "step_s"},
+    "group": {
+        "model", "area", "speed", "pause_s", "groups", "radius", "interval_s", "seed", "step_s",
+    },
+}  # fmt: skip
 TRACE_KEYS = {"model", "file", "nodes", "dim", "step_s"}
-MOBILITY_MODELS = ("random_waypoint", *FORMATS)
+MOBILITY_MODELS = (*MOBILITY_KEYS, *FORMATS)
 CHANGE_KEYS = {"at", "down", "up", "fail", "restart", "partition", "heal", "loss", "between"}
 CHANGE_KINDS = ("up", "down", "fail", "restart", "partition", "heal", "loss")
 MAX_NUMBER = 1e12  # capacities, powers, delays: larger ones only overflow the objectives
@@ -350,20 +356,24 @@ def _trace(r: _Reader, raw: Any, ids: list[str]) -> Trace | None:
     return load_trace(base / file, attrs["model"], list(order), dim=dim)
 
 
-def _mobility(r: _Reader, raw: Any, network: Network) -> tuple[RandomWaypoint, float]:
+def _mobility(r: _Reader, raw: Any, network: Network) -> tuple[Mobility, float]:
     path: tuple[str | int, ...] = ("mobility",)
-    attrs = r.mapping(raw, MOBILITY_KEYS, path)
-    if attrs.get("model") != "random_waypoint":
+    model = raw.get("model") if isinstance(raw, dict) else None
+    if model not in MOBILITY_KEYS:
         raise r.err(
-            f"expected model: one of {', '.join(MOBILITY_MODELS)}, got {attrs.get('model')!r}",
+            f"expected model: one of {', '.join(MOBILITY_MODELS)}, got {model!r}",
             (*path, "model"),
         )
+    attrs = r.mapping(raw, MOBILITY_KEYS[model], path)
 
     def pair(key: str) -> tuple[float, float]:
         v = attrs.get(key)
         if not (isinstance(v, list) and len(v) == 2):
             raise r.err(f"expected two numbers [a, b], got {v!r}", (*path, key))
         return (r.number(v[0], (*path, key)), r.number(v[1], (*path, key)))
+
+    def positive(key: str, default: float) -> float:
+        return r.number(attrs.get(key, default), (*path, key), strict=True)
 
     area, speed = pair("area"), pair("speed")
     if speed[1] < speed[0] or speed[1] <= 0:
@@ -374,14 +384,38 @@ def _mobility(r: _Reader, raw: Any, network: Network) -> tuple[RandomWaypoint, f
     seed = attrs.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise r.err(f"expected an integer seed, got {seed!r}", (*path, "seed"))
-    model = RandomWaypoint(
-        area=area,
-        speed=speed,
-        pause_s=r.number(attrs.get("pause_s", 0.0), (*path, "pause_s")),
-        seed=seed,
-        fixed=frozenset(fixed),
-    )
-    return model, r.number(attrs.get("step_s", 0.5), (*path, "step_s"), strict=True)
+    pause = r.number(attrs.get("pause_s", 0.0), (*path, "pause_s"))
+    step = positive("step_s", 0.5)
+    if model == "gauss_markov":
+        alpha = r.number(attrs.get("alpha", 0.75), (*path, "alpha"))
+        if alpha > 1:
+            raise r.err(f"expected alpha in [0, 1], got {alpha!r}", (*path, "alpha"))
+        interval = positive("interval_s", 1.0)
+        return GaussMarkov(area, speed, alpha, interval, seed, frozenset(fixed)), step
+    if model == "group":
+        groups = _node_groups(r, attrs.get("groups"), network, (*path, "groups"))
+        radius = r.number(attrs.get("radius", 10.0), (*path, "radius"))
+        interval = positive("interval_s", 1.0)
+        return GroupMobility(area, speed, groups, radius, pause, interval, seed), step
+    return RandomWaypoint(area, speed, pause, seed, frozenset(fixed)), step
+
+
+def _node_groups(
+    r: _Reader, raw: Any, network: Network, path: tuple[str | int, ...]
+) -> tuple[tuple[str, ...], ...]:
+    """Groups of nodes (a partition's, group mobility's): lists of known node ids, each node
+    in one group at most."""
+    if not (isinstance(raw, list) and raw and all(isinstance(g, list) and g for g in raw)):
+        raise r.err(f"expected a list of node groups like [[N1, N2], [N3]], got {raw!r}", path)
+    seen: set[str] = set()
+    for j, group in enumerate(raw):
+        for n in group:
+            if not isinstance(n, str) or n not in network.nodes:
+                raise r.err(f"unknown node {n!r} (known: {', '.join(network.nodes)})", (*path, j))
+            if n in seen:
+                raise r.err(f"node {n!r} is in two groups", (*path, j))
+            seen.add(n)
+    return tuple(tuple(g) for g in raw)
 
 
 def _changes(r: _Reader, raw: Any, network: Network, template: LinkSpec) -> list[Change]:
@@ -453,22 +487,10 @@ def _pair(r: _Reader, ends: Any, network: Network, path: tuple[str | int, ...]) 
 def _groups(
     r: _Reader, raw: Any, network: Network, path: tuple[str | int, ...]
 ) -> tuple[frozenset[str], ...]:
-    shape = "expected a list of node groups like [[N1, N2], [N3]]"
-    if not (isinstance(raw, list) and raw and all(isinstance(g, list) and g for g in raw)):
-        raise r.err(f"{shape}, got {raw!r}", path)
-    seen: set[str] = set()
-    groups = []
-    for j, group in enumerate(raw):
-        for n in group:
-            if not isinstance(n, str) or n not in network.nodes:
-                raise r.err(f"unknown node {n!r} (known: {', '.join(network.nodes)})", (*path, j))
-            if n in seen:
-                raise r.err(f"node {n!r} is in two groups", (*path, j))
-            seen.add(n)
-        groups.append(frozenset(group))
-    if len(groups) < 2 and seen == set(network.nodes):
+    groups = _node_groups(r, raw, network, path)
+    if len(groups) < 2 and sum(map(len, groups)) == len(network.nodes):
         raise r.err("a partition needs at least two groups", path)
-    return tuple(groups)
+    return tuple(frozenset(g) for g in groups)
 
 
 def _node(r: _Reader, nid: Any, attrs: dict[str, Any], path: tuple[str | int, ...]) -> NodeSpec:

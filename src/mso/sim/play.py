@@ -80,9 +80,14 @@ def simulate(
     convergence_s: float = 0.0,
     via: str | None = None,
     manage: bool = True,
+    policy: Any = None,
+    series: bool = False,
 ) -> dict[str, Any]:
     """Deploy the app at t=0 on ``scenario`` in virtual time, play the scenario's timeline for
-    ``duration`` seconds and report events, reconfigurations, energy and failures."""
+    ``duration`` seconds and report events, reconfigurations, energy and failures. ``policy``
+    is the nodes' management policy (an app's own ``policy`` still wins); ``series`` adds, once
+    a simulated second, the energy spent so far over all nodes and each chain's delay as its
+    tail measures it (what a sweep plots)."""
     if duration <= 0:
         raise MsoError(f"--duration: expected a number of seconds > 0, got {duration:g}")
     app = loads_app(app_doc, file=str(app_file))  # errors name the file and line, exit 2
@@ -90,7 +95,7 @@ def simulate(
     if origin not in scenario.network.nodes:
         known = ", ".join(scenario.network.nodes)
         raise MsoError(f"--via: unknown node {origin!r} (nodes: {known})")
-    sim = Simulation(scenario.network, seed=seed, manage=manage)
+    sim = Simulation(scenario.network, seed=seed, manage=manage, policy=policy)
     timeline = Timeline(scenario, network=sim.network)
     sim.request(origin, m.DeployRequest(app_doc, str(app_file)))
     moves: list[tuple[float, str, str, str]] = []  # (time, vertex, from, to)
@@ -111,8 +116,25 @@ def simulate(
 
     step = 0.05
     samples: list[Call] = [(k * step, sample) for k in range(1, int(duration / step) + 1)]
+    seen: dict[str, list[float]] = {"t": [], "energy_j": [], "delay_ms": []}
+    if series:
+        samples += [(float(k), lambda s: _sample_series(s, seen)) for k in range(int(duration) + 1)]
+        samples.sort(key=lambda c: c[0])
     drive(sim, timeline, duration, convergence_s=convergence_s, calls=samples)
-    return _report(sim, timeline, scenario, app.name, seed, duration, convergence_s, moves)
+    report = _report(sim, timeline, scenario, app.name, seed, duration, convergence_s, moves)
+    if series:
+        report["series"] = seen
+    return report
+
+
+def _sample_series(sim: Simulation, seen: dict[str, list[float]]) -> None:
+    """The energy spent so far over every node, and the chains' delays measured now."""
+    seen["t"].append(round(sim.now, 6))
+    seen["energy_j"].append(round(sum(c.monitor.energy_j for c in sim.cores.values()), 6))
+    for n, core in sim.cores.items():
+        if n not in sim.killed:
+            for dep in core.apps.values():
+                seen["delay_ms"] += [round(ms, 3) for ms in dep.delays.values()]
 
 
 def _placement(sim: Simulation, app: str) -> dict[str, str]:
