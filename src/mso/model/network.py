@@ -263,7 +263,9 @@ class Network:
             t = template or LinkSpec(a, b)
             if propagation is None:
                 self.add_link(LinkSpec(a, b, t.bandwidth_mbps, t.delay_ms, t.loss))
-            elif (spec := propagation.link(a, b, math.dist(positions[a], positions[b]), t)) is not None:
+                continue
+            spec = propagation.link(a, b, math.dist(positions[a], positions[b]), t)
+            if spec is not None:
                 self.add_link(spec)
 
     def pairs_within(
@@ -277,7 +279,6 @@ class Network:
         return pairs_within(
             {order[n]: p for n, p in positions.items() if n in order}, radio_range, self._ids
         )
-
 
 
 class LinkModel(Protocol):
