@@ -4,6 +4,7 @@ bounds, and played by the timeline; bad arguments refused in one line with exit 
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -117,12 +118,19 @@ def test_mso_scenario_generate_writes_a_file_that_loads(tmp_path: Path) -> None:
         "scenario", "generate", "geometric", "-n", "60", "--seed", "2",
         "--mobility", "gauss_markov", "-o", str(out),
     )  # fmt: skip
-    assert code == 0 and "60 nodes, mean degree at start: 6" in stdout
+    assert code == 0 and stdout.startswith(f"wrote {out}: 60 nodes, ") and "mean degree 6" in stdout
     sc = load_scenario(out)
     assert len(sc.network.nodes) == 60 and isinstance(sc.mobility, GaussMarkov)
     code, printed, _ = run("scenario", "generate", "geometric", "-n", "60", "--seed", "2",
                            "--mobility", "gauss_markov")  # fmt: skip
     assert code == 0 and printed == out.read_text()
+    code, said, _ = run("scenario", "generate", "grid", "-n", "30", "--degree", "4", "--json",
+                        "-o", str(tmp_path / "g.yaml"))  # fmt: skip
+    assert code == 0
+    assert json.loads(said) == {
+        "file": str(tmp_path / "g.yaml"), "name": "grid-30-s0", "nodes": 30, "links": 49,
+        "mean_degree": 3.27, "radio_range": 101.0, "mobility": "none",
+    }  # fmt: skip
 
 
 @pytest.mark.parametrize(

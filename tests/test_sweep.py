@@ -80,6 +80,14 @@ def test_a_tiny_study_on_local_processes(study: list[str], tmp_path: Path) -> No
     keys = ("delivered", "messages", "energy_j", "moves")
     assert [[r[k] for k in keys] for r in rows] == [[r[k] for k in keys] for r in same]
     assert not (again / "energy.png").exists()
+    code, said, _ = run(*study, "--backend", "processes", "--workers", "1", "--no-plots",
+                        "--json", "--out", str(again))  # fmt: skip
+    summary = json.loads(said)
+    assert code == 0 and summary["runs"] == 4 and summary["plots"] == []
+    assert [(s["policy"], s["runs"], s["deployed"]) for s in summary["summary"]] == [
+        ("lifetime", 2, 2),
+        ("energy", 2, 2),
+    ]
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="Ray is not installed")

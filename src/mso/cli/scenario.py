@@ -3,6 +3,7 @@ as ordinary scenario files."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import click
@@ -46,6 +47,7 @@ def scenario() -> None:
     help="Seconds between two recomputations of the links from positions.",
 )  # fmt: skip
 @click.option("--name", help="The scenario's name (default: TOPOLOGY-N-sSEED).")
+@click.option("--json", "as_json", is_flag=True, help="With -o: say what was written as JSON.")
 @click.option(
     "--output", "-o", type=click.Path(dir_okay=False, path_type=Path),
     help="Write the file here (default: print it).",
@@ -63,6 +65,7 @@ def generate(
     pause: float,
     step: float,
     name: str | None,
+    as_json: bool,
     output: Path | None,
 ) -> None:
     """Generate a scenario: TOPOLOGY grid, geometric (random geometric) or platoon (a convoy
@@ -82,7 +85,7 @@ def generate(
         mobility=mobility, speed=speed, pause_s=pause, step_s=step, name=name,
     )  # fmt: skip
     text = dumps(make(spec), spec)
-    loads_scenario(text, file=str(output or "<generated>"))  # it loads as written, or a bug
+    sc = loads_scenario(text, file=str(output or "<generated>"))  # it loads as written
     if output is None:
         click.echo(text, nl=False)
         return
@@ -90,4 +93,12 @@ def generate(
         output.write_text(text)
     except OSError as exc:
         raise MsoError(f"--output: cannot write {output}: {exc.strerror}") from None
-    click.echo(f"wrote {output}: {nodes} nodes, {text.splitlines()[1].lstrip('# ')}")
+    links = len(sc.network.links)
+    if as_json:
+        click.echo(json.dumps({
+            "file": str(output), "name": sc.name, "nodes": nodes, "links": links,
+            "mean_degree": round(2 * links / nodes, 2), "radio_range": sc.radio_range,
+            "mobility": mobility,
+        }))  # fmt: skip
+        return
+    click.echo(f"wrote {output}: {nodes} nodes, {links} links, mean degree {2 * links / nodes:.2f}")

@@ -39,6 +39,7 @@ from mso.errors import MsoError
     show_default=True, help="Directory for runs.csv, runs.json, summary.md and the plots.",
 )  # fmt: skip
 @click.option("--no-plots", is_flag=True, help="Write the tables only.")
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @user_errors
 def sweep(
     scenario_files: tuple[Path, ...],
@@ -51,6 +52,7 @@ def sweep(
     address: str | None,
     out_dir: Path,
     no_plots: bool,
+    as_json: bool,
 ) -> None:
     """Run a study: every scenario × policy × seed simulated (the app deployed at t=0), then one
     table of the runs, a summary (mean ± sd over seeds) and plots.
@@ -106,10 +108,16 @@ def sweep(
         (out_dir / "summary.md").write_text(table)
     except OSError as exc:
         raise MsoError(f"--out: cannot write {out_dir}: {exc.strerror}") from None
-    click.echo(table, nl=False)
+    plots = []
     if not no_plots and rows:
         from mso.plots import sweep as plot
 
-        for path in plot(rows, out_dir):
-            click.echo(f"plot: {path}")
+        plots = [str(p) for p in plot(rows, out_dir)]
+    if as_json:
+        click.echo(json.dumps({"backend": chosen, "runs": len(rows), "summary": lines,
+                               "out": str(out_dir), "plots": plots}))  # fmt: skip
+        return
+    click.echo(table, nl=False)
+    for path in plots:
+        click.echo(f"plot: {path}")
     click.echo(f"{len(rows)} runs on {chosen}: {out_dir}/runs.csv, runs.json, summary.md")

@@ -259,4 +259,34 @@ def _mobility(spec: Spec, ids: list[str], pos: Points) -> dict[str, Any]:
     return out
 
 
-__all__ = ["MOBILITY", "TOPOLOGIES", "GenerateError", "Spec", "dumps", "generate"]
+# -- apps for studies ---------------------------------------------------------------------------
+PIPELINE = """\
+name: {name}
+vertices:
+  src: {{code: mso.sim.vertices:Source, params: {{name: src}}, rate: {rate:g}, pinned: {src},
+        output: mso.sim.vertices:Ev}}
+  p1: {{code: mso.sim.vertices:Pass, cost: 1, output: mso.sim.vertices:Ev}}
+  p2: {{code: mso.sim.vertices:Pass, cost: 1, output: mso.sim.vertices:Ev}}
+  sink: {{code: mso.sim.vertices:Sink, params: {{run: {run}, name: sink}}, pinned: {sink}}}
+edges: [[src, p1], [p1, p2], [p2, sink]]
+"""
+
+
+def pipelines(
+    nodes: list[str], count: int, *, seed: int = 0, rate: float = 5.0, run: str = "study"
+) -> list[tuple[str, str]]:
+    """``count`` apps of 4 vertices (a numbering source, two pass-throughs, a recording sink:
+    :mod:`mso.sim.vertices`), each source and sink pinned to two nodes drawn from ``seed``;
+    returns (source node, app document) pairs, to deploy from the source's node."""
+    rng = random.Random(seed)
+    out = []
+    for i in range(count):
+        src, sink = rng.sample(nodes, 2)
+        doc = PIPELINE.format(name=f"app{i}", rate=rate, src=src, sink=sink, run=run)
+        out.append((src, doc))
+    return out
+
+
+__all__ = [
+    "MOBILITY", "TOPOLOGIES", "GenerateError", "Spec", "dumps", "generate", "pipelines",
+]  # fmt: skip

@@ -12,7 +12,6 @@ writes files: :mod:`mso.cli.sweep` does.
 
 from __future__ import annotations
 
-import math
 import os
 import statistics
 import time
@@ -229,9 +228,11 @@ def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         }  # fmt: skip
         for col in SUMMED:
             vals = [float(r[col]) for r in rs if r.get(col) is not None]
-            mean = statistics.fmean(vals) if vals else math.nan
+            if not vals:
+                line[col] = None  # (no run had it: no reconfiguration, say)
+                continue
             sd = statistics.stdev(vals) if len(vals) > 1 else 0.0
-            line[col] = (round(mean, 3), round(sd, 3))
+            line[col] = (round(statistics.fmean(vals), 3), round(sd, 3))
         out.append(line)
     return out
 
@@ -249,8 +250,7 @@ def markdown(lines: list[dict[str, Any]]) -> str:
             str(ln["deployed"]),
         ]
         for col in SUMMED:
-            mean, sd = ln[col]
-            cells.append("—" if math.isnan(mean) else f"{mean:g} ± {sd:g}")
+            cells.append("—" if ln[col] is None else f"{ln[col][0]:g} ± {ln[col][1]:g}")
         out.append("| " + " | ".join(cells) + " |")
     return "\n".join(out) + "\n"
 
