@@ -96,6 +96,7 @@ class Network:
         self._nbrs: list[list[int]] = [[] for _ in self.nodes]  # by index, in node order
         self._trees: dict[int, _Tree] = {}
         self._changed: set[str] = set()  # destinations whose trees went since take_changed
+        self.version = 0  # counts link changes (attributes too): what a cache of paths keys on
         for link in links or []:
             self.add_link(link)
 
@@ -107,6 +108,7 @@ class Network:
         if link.a == link.b:
             raise ValueError(f"link {link.a}-{link.b} joins a node to itself")
         k = _key(link.a, link.b)
+        self.version += 1
         if k not in self.links:
             a, b = self._order[link.a], self._order[link.b]
             self._invalidate(a, b, added=True)
@@ -120,6 +122,7 @@ class Network:
 
     def remove_link(self, a: str, b: str) -> None:
         if self.links.pop(_key(a, b), None) is not None:
+            self.version += 1
             self._adj[a].remove(b)
             self._adj[b].remove(a)
             i, j = self._order[a], self._order[b]

@@ -25,6 +25,8 @@ from mso.sim.executor import SimExecutor
 # a heap entry: (at, n, kind, node, payload); ``n`` is unique, so tuples never compare beyond
 # it (a dataclass with order=True cost 12-15% of a 400-node run in comparisons alone)
 _Item = tuple[float, int, str, str, Any]
+_Path = tuple[list[str], float, tuple[tuple[int, float], ...]]  # route, delay, lossy hops
+MAX_PATHS = 200_000  # paths kept between two link changes, at most
 
 
 class Simulation:
@@ -58,6 +60,8 @@ class Simulation:
         self._policy, self._rules = policy, rules
         self.wire = wire  # pass every message through the real encoding, as the wire does
         self._last_decoded: tuple[m.Message, m.Message] | None = None  # (sent, as received)
+        self._paths: dict[tuple[str, str], _Path | None] = {}
+        self._paths_version = -1
         self.hop_latency_s = hop_latency_s
         self.now = 0.0
         self.cores = {
@@ -179,26 +183,49 @@ class Simulation:
         else:
             self._push(self.now + convergence_s, "routes", "", None)
 
+    def _path(self, node: str, dst: str) -> _Path | None:
+        """The route from ``node`` to ``dst``, its delay, and its hops that lose data frames
+        (the index of the hop's end, the loss): kept until the links change, so a beat to a
+        neighbour does not walk the network's tables every time."""
+        net = self.network
+        if net.version != self._paths_version or len(self._paths) > MAX_PATHS:
+            self._paths.clear()
+            self._paths_version = net.version
+        key = (node, dst)
+        if key in self._paths:
+            return self._paths[key]
+        route = net.route(node, dst)
+        path = None
+        if route is not None:
+            delay = 0.0
+            lossy = []
+            for i, (a, b) in enumerate(itertools.pairwise(route)):
+                link = net.link(a, b)
+                delay += self.hop_latency_s + (link.delay_ms / 1e3 if link else 0.0)
+                if link is not None and link.loss > 0:
+                    lossy.append((i + 1, link.loss))
+            path = (route, delay, tuple(lossy))
+        self._paths[key] = path
+        return path
+
     def _send(self, node: str, dst: str, msg: m.Message) -> bool:
         """Put ``msg`` on the in-memory network; False when there is no route to ``dst``."""
-        route = self.network.route(node, dst)
-        if route is None or (node, dst) in self.lost_routes:
+        path = self._path(node, dst)
+        if path is None or (node, dst) in self.lost_routes:
             return False
+        route, delay, lossy = path
         self.census.note(self.now, node, dst, msg, route)
         for tap in self.taps:
             tap(node, dst, msg)
         if self.drop is not None and self.drop(node, dst, msg):
             return True  # lost on the way
-        delay = 0.0
-        lossy = m.kind_of(msg) == m.DATA
-        for a, b in itertools.pairwise(route):
-            link = self.network.link(a, b)
-            delay += self.hop_latency_s + (link.delay_ms / 1e3 if link else 0.0)
-            if lossy and link is not None and link.loss > 0 and self.rng.random() < link.loss:
-                self.lost += 1  # dropped at this hop: retransmission recovers it
-                route = route[: route.index(b) + 1]
-                delay = -1.0
-                break
+        if lossy and m.kind_of(msg) == m.DATA:
+            for end, loss in lossy:
+                if self.rng.random() < loss:
+                    self.lost += 1  # dropped at this hop: retransmission recovers it
+                    route = route[: end + 1]
+                    delay = -1.0
+                    break
         if self.wire:  # what a real node would receive: encoded, then decoded
             frame = m.wrap(node, dst, msg)
             last = self._last_decoded
