@@ -143,10 +143,34 @@ def rates(result: dict[str, Any], out: Path) -> Path:
     return _save(fig, out)
 
 
+def scale(result: dict[str, Any], out: Path) -> Path:
+    """bench/scale.py: start-up CPU and CPU per simulated second against N, per topology."""
+    plt = _pyplot()
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    by_topology: dict[str, list[dict[str, Any]]] = {}
+    for r in result["sizes"]:
+        if "error" not in r:
+            by_topology.setdefault(r["topology"], []).append(r)
+    for topology, rs in by_topology.items():
+        ns = [r["nodes"] for r in rs]
+        left.plot(ns, [r["startup_cpu_s"] for r in rs], marker="o", label=topology)
+        right.plot(ns, [r["cpu_ms_per_node_per_sim_s"] for r in rs], marker="o", label=topology)
+    left.set(xscale="log", yscale="log", xlabel="nodes", ylabel="start-up CPU (s)",
+             title="start-up: build, deploy N/20 apps")  # fmt: skip
+    right.axhline(1.0, color="grey", linestyle="--", linewidth=1)
+    right.set(xscale="log", xlabel="nodes", ylabel="CPU ms per node per simulated s",
+              title="steady state (target: 1 ms, dashed)")  # fmt: skip
+    for ax in (left, right):
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
+    return _save(fig, out)
+
+
 BENCHMARKS = {
     "dashboard": dashboard,
     "cli_startup": cli_startup,
     "rates": rates,
+    "scale": scale,
 }  # the energy study (mso bench lifetime) draws its own plots
 
 
