@@ -3,6 +3,8 @@ something unacknowledged, and a link change reaches only the nodes whose routes 
 
 from __future__ import annotations
 
+import itertools
+
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.protocol import messages as m
 from mso.protocol.events import Retransmit
@@ -12,7 +14,7 @@ from mso.sim.runner import Simulation
 
 def _line(n: int) -> Network:
     ids = [f"N{i}" for i in range(1, n + 1)]
-    return Network([NodeSpec(i) for i in ids], [LinkSpec(a, b) for a, b in zip(ids, ids[1:])])
+    return Network([NodeSpec(i) for i in ids], [LinkSpec(a, b) for a, b in itertools.pairwise(ids)])
 
 
 def _armed(sim: Simulation) -> set[str]:
