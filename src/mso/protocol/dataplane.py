@@ -476,6 +476,7 @@ class DataPlane:
 
     def _input_done(self, dep: AppState, vid: str, edge: int, ch: InChannel) -> None:
         """Events of ``edge`` are processed (or given up by its QoS): acknowledge them."""
+        self.touched.add(dep.app.name)  # (a sink's ack goes at the flush)
         out_edges = dep.out_edges.get(vid, [])
         if out_edges:  # chained acks: the inputs are acked once the outputs are
             if ch.released is None:
