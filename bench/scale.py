@@ -18,8 +18,12 @@ a sweep on 1 and 2 workers.
 3. **Sweep.** 100 runs (a 25-node grid, one app, 5 s each: ``mso.sim.sweep``) on 1 and then 2
    workers (Ray when installed, else local processes): wall time of each, and their ratio.
 
+``--only sizes|rwp|sweep`` measures one part and puts it into the kept results (the other
+parts stay as they were measured).
+
 Usage: .venv/bin/python bench/scale.py [--sizes 25,50,...] [--topologies grid,geometric]
        [--duration 10] [--rwp-duration 300] [--sweep-runs 100] [--limit 1200] [--quick]
+       [--only sizes|rwp|sweep]
 """
 
 from __future__ import annotations
@@ -260,6 +264,9 @@ def main() -> None:
     ap.add_argument("--sweep-runs", type=int, default=100)
     ap.add_argument("--limit", type=float, default=1200.0, help="Wall seconds per measurement.")
     ap.add_argument("--quick", action="store_true", help="Sizes up to 100, short runs.")
+    ap.add_argument(
+        "--only", choices=("sizes", "rwp", "sweep"), help="One part, kept with the rest."
+    )
     args = ap.parse_args()
     if args.one:
         print(json.dumps(one(args.one[0], int(args.one[1]), float(args.one[2]))))
@@ -273,7 +280,18 @@ def main() -> None:
         sizes, rwp_s, runs = [n for n in sizes if n <= 100], min(rwp_s, 20.0), min(runs, 8)
     say = Progress("scale")
     t0 = time.perf_counter()
+    name = "scale-quick.json" if args.quick else "scale.json"
     result: dict[str, Any] = {"duration_s": args.duration, "sizes": []}
+    if args.only:
+        kept = RESULTS / name
+        if kept.exists():
+            result = json.loads(kept.read_text())
+        if args.only != "sizes":
+            sizes = []
+        rwp_s = rwp_s if args.only == "rwp" else 0
+        runs = runs if args.only == "sweep" else 0
+        if args.only == "sizes":
+            result |= {"duration_s": args.duration, "sizes": []}
     for topology in args.topologies.split(","):
         for n in sizes:
             say(f"{topology} {n}")
@@ -290,7 +308,6 @@ def main() -> None:
             result["sweep"] = {"error": f"{type(exc).__name__}: {exc}"}
     result |= provenance()
     result["seconds"] = time.perf_counter() - t0
-    name = "scale-quick.json" if args.quick else "scale.json"
     write_results(RESULTS / name, result, table(result))
 
 
