@@ -36,6 +36,10 @@ def test_benchmark_plots(tmp_path: Path) -> None:
                         "commands": {"mso status": {"p50_ms": 90.0, "p90_ms": 110.0}}} | machine,
         "rates": {"rows": [{"asked": 1.0, "got": 1.0, "error_pct": 0.0},
                            {"asked": 10.0, "got": 9.99, "error_pct": -0.1}]},
+        "scale": {"sizes": [
+            {"topology": "grid", "nodes": n, "startup_cpu_s": n / 100,
+             "cpu_ms_per_node_per_sim_s": 2.0} for n in (25, 100)
+        ] + [{"topology": "grid", "nodes": 1000, "error": "over the 10 s limit"}]},
     }  # fmt: skip
     assert set(results) == set(plots.BENCHMARKS)
     for name, draw in plots.BENCHMARKS.items():
