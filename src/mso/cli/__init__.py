@@ -13,7 +13,17 @@ from __future__ import annotations
 import click
 
 from mso.cli import (
-    app, bench, control, dashboard, demo, emulate, node, overlay, scenario, simulate, sweep,
+    app,
+    bench,
+    control,
+    dashboard,
+    demo,
+    emulate,
+    node,
+    overlay,
+    scenario,
+    simulate,
+    sweep,
 )  # fmt: skip
 from mso.cliargs import OneLineGroup
 
