@@ -214,3 +214,18 @@ def test_a_malformed_answer_is_refused() -> None:
     assert core.refusals.get("capability_reply_unexpected") == 1
     core.receive("A", m.CapabilityQuery("watch", 1, {"cam": {"camera": -5}}), sim.now)
     assert core.refusals.get("capability_query_malformed") == 1
+
+
+def test_near_picks_the_capable_node_closest_to_that_vertex_in_a_deployment() -> None:
+    # A has the more CPU, but C is one hop from the log on D: near: log puts the camera there,
+    # from the hops the answering nodes report, as the central plan does from the network
+    text = STANDIN.replace(
+        "requires: [camera], rate: 10", "requires: [camera], near: log, rate: 10"
+    )
+    sim = Simulation(camera_net())
+    sim.request("D", m.DeployRequest(text, "watch.yaml"))
+    sim.run_until(3.0)
+    reply = sim.replies[-1][2]
+    assert isinstance(reply, m.DeployReply) and reply.ok, reply
+    assert reply.placement["cam"] == "C"
+    assert plan(loads_app(text), camera_net(), origin="D").placement == reply.placement
