@@ -229,3 +229,20 @@ def test_near_picks_the_capable_node_closest_to_that_vertex_in_a_deployment() ->
     assert isinstance(reply, m.DeployReply) and reply.ok, reply
     assert reply.placement["cam"] == "C"
     assert plan(loads_app(text), camera_net(), origin="D").placement == reply.placement
+
+
+def test_a_node_that_rejoins_learns_the_nodes_chosen_by_capability() -> None:
+    sim = Simulation(camera_net())
+    sim.request("D", m.DeployRequest(STANDIN, "watch.yaml"))
+    sim.run_until(3.0)
+    sim.kill("B", convergence_s=0.3)  # the GPU node: detect goes to E, the next that qualified
+    sim.run_until(sim.now + 7.0)
+    assert sim.cores["D"].placement("watch")["detect"] == "E"
+    for a, b in [("A", "B"), ("B", "C")]:
+        sim.network.add_link(LinkSpec(a, b, delay_ms=1.0))
+    sim.revive("B")
+    sim.run_until(sim.now + 5.0)
+    back = sim.cores["B"].apps["watch"]
+    assert back.layout.resolved == {"cam": "A", "detect": "E"}
+    assert back.capable == {"cam": ["A", "C"], "detect": ["B", "E"]}
+    assert back.placed["detect"] == "E"

@@ -320,7 +320,11 @@ class Layout:
         self.graph = _Graph(app)
         self.cost = {v.id: float(v.cost) for v in app.vertices.values()}
         self.pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
-        self.resolved = dict(resolved or {})
+        self.resolved = {  # only vertices placed by capability (the input is a message's)
+            v: n
+            for v, n in (resolved or {}).items()
+            if v in app.vertices and app.vertices[v].constrained
+        }
         unresolved = [v.id for v in app.vertices.values() if v.constrained]
         unresolved = [v for v in unresolved if v not in self.resolved]
         if unresolved:

@@ -310,6 +310,9 @@ class AppSync(_Msg, tag="app_sync"):
     # vertices the sender ran and handed over, and to whom: its first-hand word on where they
     # went (a node that missed the move's Moved, held failed then, learns it from this)
     handed: dict[str, str] = msgspec.field(default_factory=dict)
+    # the nodes chosen for vertices placed by capability, and their ranked candidates (§3.3)
+    resolved: dict[str, str] = msgspec.field(default_factory=dict)
+    capable: dict[str, list[str]] = msgspec.field(default_factory=dict)
 
 
 class Rewire(_Msg, tag="rewire"):

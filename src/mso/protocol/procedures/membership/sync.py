@@ -81,7 +81,15 @@ class AppSyncing:
         placed = dict(dep.placed)
         handed = {v: n for v, n in dep.handed.items() if v not in dep.instances}
         return m.AppSync(
-            dep.app.name, dep.origin, dep.document, dep.epoch, placed, sorted(dep.vanished), handed
+            dep.app.name,
+            dep.origin,
+            dep.document,
+            dep.epoch,
+            placed,
+            sorted(dep.vanished),
+            handed,
+            dict(dep.layout.resolved),
+            {v: list(ns) for v, ns in dep.capable.items()},
         )
 
     def on_app_missing(self, ev: AppMissing) -> None:
@@ -129,12 +137,17 @@ class AppSyncing:
             return
         if not self.deployer.named(app, msg.app):
             return
-        layout = Layout(app, msg.origin)
+        try:  # the nodes chosen by capability come with the sync (§3.3)
+            layout = Layout(app, msg.origin, resolved=msg.resolved)
+        except MsoError as exc:
+            self.ctx.note_event(now, f"cannot rejoin app {msg.app}: {exc}")
+            return
         placed = dict(layout.initial_placement()) | {
             v: n for v, n in msg.placed.items() if v in app.vertices
         }
         dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
         dep.vanished = {v for v in msg.vanished if v in app.vertices}
+        dep.capable = {v: list(ns) for v, ns in msg.capable.items() if v in layout.resolved}
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
         dep.running, dep.started_at = True, now
         dep.placed_at = dict.fromkeys(range(len(layout.chains)), now)
