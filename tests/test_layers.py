@@ -46,6 +46,7 @@ CORE_ORDER = [
     "mso.protocol.state",
     "mso.protocol.events",
     "mso.protocol.context",
+    "mso.protocol.forward",
     "mso.protocol.dataplane",
     "mso.protocol.procedures.status",
     "mso.protocol.procedures.deploy",

@@ -252,7 +252,7 @@ class NodeCore:
             Deadline: self._on_deadline,
             Retry: self._on_retry,
             SourceTick: lambda key, now: dp.source_tick(key.app, key.vertex, now),
-            Retransmit: lambda key, now: dp.retransmit(key.app, now),
+            Retransmit: lambda key, now: dp.sf.retransmit(key.app, now),
             MonitorTick: self._on_monitor_tick,
             HeartbeatTick: lambda key, now: mem.heartbeat(now),
             RecoverTick: rem.on_recover_tick,

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from mso.protocol import delivery
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.channel import AckGate, InChannel, OutChannel
@@ -34,6 +33,8 @@ from mso.protocol.events import (
     Snapshotted,
     SourceTick,
 )
+from mso.protocol.forward import MAX_BATCH_BYTES, StoreAndForward
+from mso.protocol.forward import RETRANSMIT_S as RETRANSMIT_S  # (where procedures read it)
 from mso.protocol.procedures.instance import InstanceEvent
 from mso.protocol.state import AppState, Crashes, HostedInstance
 
@@ -41,8 +42,6 @@ QUEUE_EVENTS = 1024  # events fed to an instance's worker and not processed yet,
 FEED_BATCH = 256  # events per feed at most, so markers and stops are not held behind a batch
 SOURCE_RUN = 4096  # calls of a rated source per run at most
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
-RETRANSMIT_S = 0.25
-MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
 DELAY_SMOOTHING = 0.2  # weight of the newest batch in a chain's delay average
 
 
@@ -56,9 +55,6 @@ class DataPlane:
         self._next_instance = 0
         # per edge: (first seq, events, when the oldest entered its chain)
         self.outbox: dict[tuple[str, int], tuple[int, list[bytes], float]] = {}
-        # (app, epoch, edge) -> a source's channel kept across this node's reset, until the
-        # source is restored here (bounded: one per edge of the apps it ran)
-        self.carried: dict[tuple[str, int, int], OutChannel] = {}
         self.work_ms = 0.0  # modelled CPU work of every event processed here (cost units)
         # apps whose channels may have changed since the last flush: only theirs are looked
         # at for acks due and retransmissions to arm (all apps' after every event was 23-26%
@@ -66,6 +62,7 @@ class DataPlane:
         self.touched: set[str] = set()
         self.armed: set[str] = set()  # apps whose retransmit timer is set
         self.cpu_ms = 0.0  # measured CPU time of the vertex code that ran here
+        self.sf = StoreAndForward(ctx, self)  # the producer's side of an outage
 
     def host(self, dep: AppState, vid: str) -> HostedInstance:
         """Ask the executor for a new instance of ``vid``."""
@@ -100,24 +97,9 @@ class DataPlane:
 
     def stop_all(self, reason: str) -> None:
         for dep in self.ctx.apps.values():
-            if reason == "reset":  # its sources' edges outlive the reset (see ``carried``)
-                for vid, h in dep.instances.items():
-                    if h.kind == "source":
-                        for e in dep.out_edges.get(vid, []):
-                            if e in dep.out:
-                                self.carried[(dep.app.name, dep.epoch, e)] = dep.out[e]
+            if reason == "reset":  # its sources' edges outlive the reset
+                self.sf.carry(dep)
             self.stop_app(dep, reason)
-
-    def carry_over(self, dep: AppState, edge: int, start: int) -> OutChannel | None:
-        """A source restored here after this node reset: the channel its edge had before the
-        reset, if it still holds ``start`` (where the consumer stands): what the source made
-        while cut off is still delivered, and it numbers on from there, never from 0."""
-        ch = self.carried.pop((dep.app.name, dep.epoch, edge), None)
-        if ch is None or not ch.acked <= start <= ch.next_seq:
-            return None
-        ch.on_ack(start, self.ctx.now)
-        ch.sent = start  # the rest goes (again), a window at a time
-        return ch
 
     def on_vertex(self, res: fx.VertexResult, now: float) -> None:
         """A result from the executor: account for it, then act on what it says."""
@@ -195,22 +177,8 @@ class DataPlane:
     def out(self, dep: AppState, edge: int) -> OutChannel:
         ch = dep.out.get(edge)
         if ch is None:
-            ch = dep.out[edge] = self.channel(dep, edge)
+            ch = dep.out[edge] = self.sf.channel(dep, edge)
         return ch
-
-    def channel(self, dep: AppState, edge: int, start: int = 0) -> OutChannel:
-        """A new producer end of ``edge`` numbering from ``start``; past its window and memory
-        bound it spills to the node's store (what an earlier end here left there is gone)."""
-        key = f"{dep.app.name}/{dep.epoch}/{edge}"
-        self.ctx.spill.drop(key)
-        now = self.ctx.now
-        return OutChannel(self.ctx.window, start, start, now, store=self.ctx.spill, key=key)
-
-    def held(self, dep: AppState, edge: int) -> bool:
-        """The consumer of ``edge`` is out of reach (failed, or no route to it): its events
-        wait here until it is back or restored elsewhere (store and forward)."""
-        dst = dep.placed[dep.app.edges[edge].dst]
-        return dst != self.ctx.id and (dst in self.ctx.failed or dst not in self.ctx.routes)
 
     def start_source(self, dep: AppState, vid: str, now: float) -> None:
         h = dep.instances[vid]
@@ -223,12 +191,8 @@ class DataPlane:
         self.ctx.emit(SetTimer(SourceTick(dep.app.name, vid), now))
 
     def _room(self, dep: AppState, vid: str) -> int:
-        return min((self.edge_room(dep, e) for e in dep.out_edges.get(vid, [])), default=SOURCE_RUN)
-
-    def edge_room(self, dep: AppState, edge: int) -> int:
-        """Events the producer of ``edge`` may make now (the window, or the store's bound)."""
-        held = self.held(dep, edge)
-        return delivery.room(self.out(dep, edge), dep.app.edges[edge], held)
+        rooms = (self.sf.edge_room(dep, e) for e in dep.out_edges.get(vid, []))
+        return min(rooms, default=SOURCE_RUN)
 
     def source_tick(self, app: str, vid: str, now: float) -> None:
         """A rated source keeps its schedule: event k is due at t0 + k / rate; a late tick
@@ -290,8 +254,8 @@ class DataPlane:
             out = self.out(dep, e)
             seq = out.push_many(payloads, self.ctx.now)
             self.touched.add(dep.app.name)
-            if out.sent != seq or self.held(dep, e):  # out of reach, or a backlog to send first
-                self.hold(dep, e, out)
+            if out.sent != seq or self.sf.held(dep, e):  # out of reach, or a backlog to send first
+                self.sf.hold(dep, e, out)
                 continue
             out.sent = out.next_seq
             dst_node = dep.placed[dep.app.edges[e].dst]
@@ -310,51 +274,6 @@ class DataPlane:
                     data = m.Data(dep.app.name, e, dep.epoch, *batch, floor=out.acked)
                     self.ctx.emit(Send(dst_node, data))
         return sum(map(len, payloads))
-
-    # -- store and forward ---------------------------------------------------------------------
-    def hold(self, dep: AppState, edge: int, out: OutChannel) -> None:
-        """Events wait on ``edge``: apply its bound, history and lifespan, then send what a
-        reachable consumer's window admits."""
-        if delivery.enforce(out, dep.app.edges[edge], self.held(dep, edge), self.ctx.now):
-            self.gave_up(dep, edge)
-        self.drain(dep, edge)
-
-    def gave_up(self, dep: AppState, edge: int) -> None:
-        """Events of ``edge`` were given up as if acknowledged: pass that on upstream (chained
-        acks) and wake a producer held by the bound."""
-        producer = dep.app.edges[edge].src
-        if producer in dep.instances:
-            self.release(dep, producer)
-        self.unblock(dep, edge)
-
-    def drain(self, dep: AppState, edge: int) -> None:
-        """Send what ``edge`` holds unsent, as far as its window admits, in frames of about
-        ``MAX_BATCH_BYTES`` (after an outage, or events handed over unsent)."""
-        out = dep.out.get(edge)
-        if out is None or out.sent >= out.next_seq or self.held(dep, edge):
-            return
-        app, dst = dep.app.name, dep.placed[dep.app.edges[edge].dst]
-        batch = self.outbox.pop((app, edge), None)  # what was sent before goes first
-        if batch is not None:
-            self.ctx.emit(Send(dst, m.Data(app, edge, dep.epoch, *batch, floor=out.acked)))
-        per_frame = max(1, MAX_BATCH_BYTES // max(1, out.kept_bytes // max(1, out.kept)))
-        ts = out.stamp(out.sent)
-        while True:
-            first, events = out.unsent(per_frame)
-            if not events:
-                return
-            self.transmit(dep, edge, first, events, ts, out.acked)
-
-    def transmit(
-        self, dep: AppState, edge: int, first: int, events: list[bytes], ts: float, floor: int
-    ) -> None:
-        """Events ``first``... of ``edge`` to its consumer, now (here: delivered at once)."""
-        dst = dep.placed[dep.app.edges[edge].dst]
-        if dst == self.ctx.id:
-            self.deliver(dep, edge, first, events, ts, floor)
-        else:
-            data = m.Data(dep.app.name, edge, dep.epoch, first, events, ts, floor)
-            self.ctx.emit(Send(dst, data))
 
     def deliver(
         self,
@@ -569,7 +488,7 @@ class DataPlane:
                 return
             out.on_ack(upto, self.ctx.now)
             out.note_positions(upto, dict(ch.positions))
-            self.drain(dep, edge)
+            self.sf.drain(dep, edge)
             self.unblock(dep, edge)
             self.release(dep, producer)
         elif src_node not in self.ctx.failed:
@@ -589,7 +508,7 @@ class DataPlane:
             self.ctx.dropped()
             return
         out.note_positions(msg.upto, msg.positions)
-        self.drain(dep, msg.edge)
+        self.sf.drain(dep, msg.edge)
         self.unblock(dep, msg.edge)
         self.release(dep, dep.app.edges[msg.edge].src)
 
@@ -649,43 +568,6 @@ class DataPlane:
         """Whether ``app``'s retransmit timer has work: events unacknowledged (sent, held or
         stored) or a source held back."""
         return bool(dep.blocked_sources) or any(ch.in_flight > 0 for ch in dep.out.values())
-
-    def retransmit(self, app: str, now: float) -> None:
-        """Go-back-N: resend what has waited a whole period without any ack progress (a
-        window at most; a best-effort edge gives it up instead). Then the periodic part of
-        store and forward: bounds and lifespans applied, backlogs drained to consumers back
-        in reach, producers the bound held woken."""
-        dep = self.ctx.apps.get(app)
-        if dep is None or not dep.running:
-            self.armed.discard(app)
-            return
-        for edge, ch in list(dep.out.items()):
-            e = dep.app.edges[edge]
-            held = self.held(dep, edge)
-            if delivery.enforce(ch, e, held, now):
-                self.gave_up(dep, edge)
-            if held:  # kept until the consumer is back or restored elsewhere
-                self.unblock(dep, edge)  # (it may make events into the store now)
-                continue
-            if ch.overdue(now, RETRANSMIT_S) and ch.sent > ch.acked:
-                if e.qos == "best_effort":
-                    ch.given_up += ch.drop_front(ch.sent, now)
-                    self.gave_up(dep, edge)
-                else:  # ``first`` is the acked position: nothing below it will come again
-                    first, events = ch.events_from(ch.acked, min(ch.sent - ch.acked, ch.window))
-                    per_frame = max(1, MAX_BATCH_BYTES // max(1, ch.kept_bytes // ch.kept))
-                    for i in range(0, len(events), per_frame):
-                        chunk = events[i : i + per_frame]
-                        self.transmit(dep, edge, first + i, chunk, ch.stamp(first), first)
-                ch.waiting_since = now
-            self.drain(dep, edge)
-            if dep.app.edges[edge].src in dep.blocked_sources:
-                self.unblock(dep, edge)
-        if self.unacked(dep):  # armed only while something waits for an ack (or a source
-            self.armed.add(app)  # for room)
-            self.ctx.emit(SetTimer(Retransmit(app), now + RETRANSMIT_S))
-        else:
-            self.armed.discard(app)
 
     def report_delays(self, now: float) -> None:
         """Tell each chain's head node the delay measured at its tail (here)."""

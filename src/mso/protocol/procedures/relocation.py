@@ -503,7 +503,7 @@ class Relocator:
                 released=acked if gated else None,
             )
         for i, (next_seq, acked, events, positions) in msg.outputs.items():
-            ch = self.dp.channel(dep, i, acked)
+            ch = self.dp.sf.channel(dep, i, acked)
             ch.push_many(events, now)
             ch.next_seq = next_seq
             ch.positions = {int(k): int(v) for k, v in positions.items()}

@@ -74,7 +74,7 @@ class Restorer:
                         self.ctx.id, m.Data(msg.app, msg.edge, dep.epoch, first, events, now)
                     )
             else:
-                self.dp.drain(dep, msg.edge)
+                self.dp.sf.drain(dep, msg.edge)
             out.waiting_since = now
         else:  # we consume: say which event we expect next
             dep.placed[edge.src] = msg.to
@@ -132,8 +132,8 @@ class Restorer:
         outs = dep.out_edges.get(vertex, [])
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
-            carried = self.dp.carry_over(dep, o, base) if h.kind == "source" else None
-            dep.out[o] = carried or self.dp.channel(dep, o, base)
+            carried = self.dp.sf.carry_over(dep, o, base) if h.kind == "source" else None
+            dep.out[o] = carried or self.dp.sf.channel(dep, o, base)
             # a source numbers on from its edges' positions: its sequence never restarts
             h.asked = max(h.asked, dep.out[o].next_seq) if h.kind == "source" else h.asked
             # positions further down, for a restore of its consumer (replayed from here)

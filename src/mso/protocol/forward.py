@@ -1,0 +1,179 @@
+"""Store and forward at a producer: what its edges do while their consumer is out of reach.
+
+A component of the data plane (:mod:`mso.protocol.dataplane`). An edge whose consumer's node
+is held failed or has no route keeps numbering and keeping its events (within the bounds and
+policies of :mod:`mso.protocol.delivery`, spilling to the node's store past memory), sends
+nothing there, and drains its backlog a window at a time once the consumer is back or restored
+elsewhere. Also here: go-back-N retransmission, and a source's edge channels across this node's
+reset. Sans-IO.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from mso.protocol import delivery
+from mso.protocol import messages as m
+from mso.protocol.channel import OutChannel
+from mso.protocol.context import NodeContext
+from mso.protocol.effects import Send, SetTimer
+from mso.protocol.events import Retransmit
+from mso.protocol.state import AppState
+
+RETRANSMIT_S = 0.25
+MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
+
+
+class Plane(Protocol):
+    """What store and forward uses of the data plane."""
+
+    outbox: dict[tuple[str, int], tuple[int, list[bytes], float]]
+    armed: set[str]  # apps whose retransmit timer is set
+
+    def unacked(self, dep: AppState) -> bool: ...
+
+    def out(self, dep: AppState, edge: int) -> OutChannel: ...
+
+    def deliver(
+        self,
+        dep: AppState,
+        edge: int,
+        seq: int,
+        events: list[bytes],
+        ts: float = 0.0,
+        floor: int = 0,
+    ) -> None: ...
+
+    def release(self, dep: AppState, vid: str) -> None: ...
+
+    def unblock(self, dep: AppState, edge: int) -> None: ...
+
+
+class StoreAndForward:
+    """The producer's side of an outage (see the module docstring)."""
+
+    def __init__(self, ctx: NodeContext, dp: Plane) -> None:
+        self.ctx = ctx
+        self.dp = dp
+        # (app, epoch, edge) -> a source's channel kept across this node's reset, until the
+        # source is restored here (bounded: one per edge of the apps it ran)
+        self.carried: dict[tuple[str, int, int], OutChannel] = {}
+
+    def carry(self, dep: AppState) -> None:
+        """This node resets: its sources' edge channels outlive it (see ``carry_over``)."""
+        for vid, h in dep.instances.items():
+            if h.kind == "source":
+                for e in dep.out_edges.get(vid, []):
+                    if e in dep.out:
+                        self.carried[(dep.app.name, dep.epoch, e)] = dep.out[e]
+
+    def carry_over(self, dep: AppState, edge: int, start: int) -> OutChannel | None:
+        """A source restored here after this node reset: the channel its edge had before the
+        reset, if it still holds ``start`` (where the consumer stands): what the source made
+        while cut off is still delivered, and it numbers on from there, never from 0."""
+        ch = self.carried.pop((dep.app.name, dep.epoch, edge), None)
+        if ch is None or not ch.acked <= start <= ch.next_seq:
+            return None
+        ch.on_ack(start, self.ctx.now)
+        ch.sent = start  # the rest goes (again), a window at a time
+        return ch
+
+    def channel(self, dep: AppState, edge: int, start: int = 0) -> OutChannel:
+        """A new producer end of ``edge`` numbering from ``start``; past its window and memory
+        bound it spills to the node's store (what an earlier end here left there is gone)."""
+        key = f"{dep.app.name}/{dep.epoch}/{edge}"
+        self.ctx.spill.drop(key)
+        now = self.ctx.now
+        return OutChannel(self.ctx.window, start, start, now, store=self.ctx.spill, key=key)
+
+    def held(self, dep: AppState, edge: int) -> bool:
+        """The consumer of ``edge`` is out of reach (failed, or no route to it): its events
+        wait here until it is back or restored elsewhere (store and forward)."""
+        dst = dep.placed[dep.app.edges[edge].dst]
+        return dst != self.ctx.id and (dst in self.ctx.failed or dst not in self.ctx.routes)
+
+    def edge_room(self, dep: AppState, edge: int) -> int:
+        """Events the producer of ``edge`` may make now (the window, or the store's bound)."""
+        held = self.held(dep, edge)
+        return delivery.room(self.dp.out(dep, edge), dep.app.edges[edge], held)
+
+    def hold(self, dep: AppState, edge: int, out: OutChannel) -> None:
+        """Events wait on ``edge``: apply its bound, history and lifespan, then send what a
+        reachable consumer's window admits."""
+        if delivery.enforce(out, dep.app.edges[edge], self.held(dep, edge), self.ctx.now):
+            self.gave_up(dep, edge)
+        self.drain(dep, edge)
+
+    def gave_up(self, dep: AppState, edge: int) -> None:
+        """Events of ``edge`` were given up as if acknowledged: pass that on upstream (chained
+        acks) and wake a producer held by the bound."""
+        producer = dep.app.edges[edge].src
+        if producer in dep.instances:
+            self.dp.release(dep, producer)
+        self.dp.unblock(dep, edge)
+
+    def drain(self, dep: AppState, edge: int) -> None:
+        """Send what ``edge`` holds unsent, as far as its window admits, in frames of about
+        ``MAX_BATCH_BYTES`` (after an outage, or events handed over unsent)."""
+        out = dep.out.get(edge)
+        if out is None or out.sent >= out.next_seq or self.held(dep, edge):
+            return
+        app, dst = dep.app.name, dep.placed[dep.app.edges[edge].dst]
+        batch = self.dp.outbox.pop((app, edge), None)  # what was sent before goes first
+        if batch is not None:
+            self.ctx.emit(Send(dst, m.Data(app, edge, dep.epoch, *batch, floor=out.acked)))
+        per_frame = max(1, MAX_BATCH_BYTES // max(1, out.kept_bytes // max(1, out.kept)))
+        ts = out.stamp(out.sent)
+        while True:
+            first, events = out.unsent(per_frame)
+            if not events:
+                return
+            self.transmit(dep, edge, first, events, ts, out.acked)
+
+    def transmit(
+        self, dep: AppState, edge: int, first: int, events: list[bytes], ts: float, floor: int
+    ) -> None:
+        """Events ``first``... of ``edge`` to its consumer, now (here: delivered at once)."""
+        dst = dep.placed[dep.app.edges[edge].dst]
+        if dst == self.ctx.id:
+            self.dp.deliver(dep, edge, first, events, ts, floor)
+        else:
+            data = m.Data(dep.app.name, edge, dep.epoch, first, events, ts, floor)
+            self.ctx.emit(Send(dst, data))
+
+    def retransmit(self, app: str, now: float) -> None:
+        """Go-back-N: resend what has waited a whole period without any ack progress (a
+        window at most; a best-effort edge gives it up instead). Then the periodic part of
+        store and forward: bounds and lifespans applied, backlogs drained to consumers back
+        in reach, producers the bound held woken."""
+        dep = self.ctx.apps.get(app)
+        if dep is None or not dep.running:
+            self.dp.armed.discard(app)
+            return
+        for edge, ch in list(dep.out.items()):
+            e = dep.app.edges[edge]
+            held = self.held(dep, edge)
+            if delivery.enforce(ch, e, held, now):
+                self.gave_up(dep, edge)
+            if held:  # kept until the consumer is back or restored elsewhere
+                self.dp.unblock(dep, edge)  # (it may make events into the store now)
+                continue
+            if ch.overdue(now, RETRANSMIT_S) and ch.sent > ch.acked:
+                if e.qos == "best_effort":
+                    ch.given_up += ch.drop_front(ch.sent, now)
+                    self.gave_up(dep, edge)
+                else:  # ``first`` is the acked position: nothing below it will come again
+                    first, events = ch.events_from(ch.acked, min(ch.sent - ch.acked, ch.window))
+                    per_frame = max(1, MAX_BATCH_BYTES // max(1, ch.kept_bytes // ch.kept))
+                    for i in range(0, len(events), per_frame):
+                        chunk = events[i : i + per_frame]
+                        self.transmit(dep, edge, first + i, chunk, ch.stamp(first), first)
+                ch.waiting_since = now
+            self.drain(dep, edge)
+            if dep.app.edges[edge].src in dep.blocked_sources:
+                self.dp.unblock(dep, edge)
+        if self.dp.unacked(dep):  # armed only while something waits for an ack (or a source
+            self.dp.armed.add(app)  # for room)
+            self.ctx.emit(SetTimer(Retransmit(app), now + RETRANSMIT_S))
+        else:
+            self.dp.armed.discard(app)
