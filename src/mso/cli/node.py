@@ -92,6 +92,12 @@ if TYPE_CHECKING:
     "--metrics",
     help="HOST:PORT to serve Prometheus metrics on at /metrics (default: off).",
 )
+@click.option(
+    "--state-dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Directory for what must outlive this process: events held for unreachable "
+    "consumers (spill.sqlite3) and sources' sequence positions (default: none, kept in memory).",
+)
 @allow_code_option
 @operator_key_option
 @click.option(
@@ -135,6 +141,7 @@ def node(
     dead_after_s: float | None,
     rules: tuple[str, ...],
     metrics: str | None,
+    state_dir: Path | None,
     allow_code: tuple[str, ...],
     operator_keys: tuple[str, ...],
     key_file: Path | None,
@@ -153,7 +160,7 @@ def node(
         routes_from=routes_from, policy=policy, manage=manage, heartbeat_s=heartbeat_s,
         dead_after_s=dead_after_s, metrics=metrics,
         allow_code=allow_code, operator_keys=operator_keys, key_file=key_file, encrypt=encrypt,
-        insecure=insecure, key=key, verbose=verbose, rules=rules,
+        insecure=insecure, key=key, verbose=verbose, rules=rules, state_dir=state_dir,
     )  # fmt: skip
     run_daemon(flags)
 

@@ -39,8 +39,11 @@ def run_daemon(flags: NodeFlags) -> None:
 
 
 def build_core(s: NodeSettings) -> NodeCore:
+    from mso.daemon.spill import SqliteSpill
     from mso.node.core import NodeCore
 
+    # what a source's edges held and their positions, from before a restart (--state-dir)
+    spill = SqliteSpill(s.state_dir) if s.state_dir is not None else None
     return NodeCore(
         s.node_id,
         capacity=s.cpu,
@@ -55,6 +58,7 @@ def build_core(s: NodeSettings) -> NodeCore:
         # a restarted daemon is a new incarnation: the others restore what it hosted before
         incarnation=time.time_ns() // 1_000_000,
         clock=time.monotonic,  # the asyncio loop's clock: what a reply's elapsed time is read on
+        spill=spill,
     )
 
 

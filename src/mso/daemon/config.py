@@ -44,6 +44,7 @@ NODE_CONFIG_KEYS = {
     "verbose",
     "rules",
     "capabilities",
+    "state_dir",
 }
 
 
@@ -76,6 +77,7 @@ class NodeFlags:
     key: str | None = None
     verbose: bool = False
     rules: tuple[str, ...] = ()  # NAME=VALUE, each a RuleSettings field
+    state_dir: Path | None = None
 
 
 @dataclass
@@ -105,6 +107,7 @@ class NodeSettings:
     energy: str = "auto"
     verbose: bool = False
     rules: RuleSettings | None = None  # None: the defaults (docs/policies.md)
+    state_dir: Path | None = None  # the durable spill store's (None: in memory)
 
 
 def settle(flags: NodeFlags) -> NodeSettings:
@@ -177,6 +180,7 @@ def settle(flags: NodeFlags) -> NodeSettings:
         energy=energy,
         verbose=flags.verbose or bool(cfg.get("verbose", False)),
         rules=rule_settings(cfg.get("rules", {}), flags.rules),
+        state_dir=flags.state_dir or (Path(cfg["state_dir"]) if "state_dir" in cfg else None),
     )
 
 
@@ -327,7 +331,7 @@ def _config_value_problem(k: str, v: Any) -> str | None:
         isinstance(v, list) and all(isinstance(x, str) and x for x in v)
     ):
         return "expected a list of strings"
-    if k in ("id", "listen", "key", "key_file", "metrics") and not isinstance(v, str):
+    if k in ("id", "listen", "key", "key_file", "metrics", "state_dir") and not isinstance(v, str):
         return f"expected a string, got {v!r}"
     return None
 

@@ -234,6 +234,8 @@ class Emulator:
                                                  spec.power.cpu_energy)),
         ]  # fmt: skip
         cmd += ["--energy", "model"]  # the scenario's device, not the host's battery
+        assert self.log_dir is not None  # each node's own state, kept across its restarts
+        cmd += ["--state-dir", str(self.log_dir / "state" / name)]
         if spec.battery_wh is not None:
             cmd += ["--battery-wh", str(spec.battery_wh)]
         for name, amount in spec.capabilities.items():

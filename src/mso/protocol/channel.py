@@ -48,6 +48,7 @@ class OutChannel:
     store: SpillStore | None = None  # where events past the window and mem_limit spill
     key: str = ""  # this edge instance's name in the store
     mem_limit: int = 8 << 20  # bytes in memory past the window before events spill
+    persist: bool = False  # a source's edge: its next seq is saved in the store on every push
 
     HISTORY = 64  # acks whose positions are kept, to look one up at an exact position
 
@@ -110,7 +111,48 @@ class OutChannel:
         if not self.stamps or now > self.stamps[-1][1] + 1e-3:
             self.stamps.append((seq, now))
         self.next_seq += len(payloads)
+        if self.persist and self.store is not None:
+            self.store.save_position(self.key, self.next_seq)
         return seq
+
+    def make_durable(self) -> None:
+        """Move what is kept in memory into the store, and keep new events there too, so
+        everything held survives a restart of this node's daemon (a held edge: its consumer
+        is out of reach)."""
+        if self.store is None or not self._unacked:
+            return
+        self.store.append(self.key, self.base, list(self._unacked))
+        self.spilled += len(self._unacked)
+        self._unacked.clear()
+        self.mem_bytes = 0
+
+    @classmethod
+    def recover(
+        cls, store: SpillStore, key: str, start: int, window: int, now: float
+    ) -> OutChannel | None:
+        """A source's edge after this node's daemon restarted: numbering on from the saved
+        position, holding what the store kept of the events from ``start`` (where the
+        consumer stands) on. Events the store does not have (in memory when the old process
+        died) are skipped: the consumer moves past them by the frame's floor, counted. None
+        if nothing was saved under ``key``."""
+        position = store.position(key)
+        if position is None:
+            return None
+        span = store.span(key)
+        top = max(position, start)
+        if span is not None and span[1] == position and span[0] <= position:
+            first = max(start, span[0])
+        else:  # nothing held (or not up to the saved position): nothing to replay
+            store.drop(key)
+            first = top
+        ch = cls(window, first, first, now, store=store, key=key, persist=True)
+        store.trim(key, first)
+        ch.next_seq = top
+        ch.spilled = top - first
+        ch.sent = first
+        ch.stamps.append((first, now))
+        store.save_position(key, top)
+        return ch
 
     def on_ack(self, upto: int, now: float = 0.0) -> int:
         """Release events below ``upto``; returns how many were released (0 for a stale ack)."""
@@ -137,7 +179,7 @@ class OutChannel:
         self.sent = max(self.sent, keep)
         while len(self.stamps) > 1 and self.stamps[1][0] <= keep:
             self.stamps.popleft()
-        if self.spilled and self.store is not None:
+        if self.store is not None and (self.spilled or n > in_memory):
             self.store.trim(self.key, keep + len(self._unacked))
             self._refill()
 

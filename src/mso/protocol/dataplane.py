@@ -94,6 +94,8 @@ class DataPlane:
     def stop_app(self, dep: AppState, reason: str) -> None:
         for h in [*dep.instances.values(), *dep.awaiting.values()]:
             self.stop(h, reason)
+        if reason == "undeploy":
+            self.sf.forget(dep)
 
     def stop_all(self, reason: str) -> None:
         for dep in self.ctx.apps.values():

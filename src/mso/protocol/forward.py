@@ -81,10 +81,29 @@ class StoreAndForward:
     def channel(self, dep: AppState, edge: int, start: int = 0) -> OutChannel:
         """A new producer end of ``edge`` numbering from ``start``; past its window and memory
         bound it spills to the node's store (what an earlier end here left there is gone)."""
-        key = f"{dep.app.name}/{dep.epoch}/{edge}"
+        key = self.key(dep, edge)
         self.ctx.spill.drop(key)
-        now = self.ctx.now
-        return OutChannel(self.ctx.window, start, start, now, store=self.ctx.spill, key=key)
+        ch = OutChannel(self.ctx.window, start, start, self.ctx.now, store=self.ctx.spill, key=key)
+        ch.persist = dep.layout.kinds[dep.app.edges[edge].src] == "source"
+        if ch.persist:
+            self.ctx.spill.save_position(key, start)
+        return ch
+
+    def key(self, dep: AppState, edge: int) -> str:
+        """The name of ``edge``'s events and position in the node's spill store."""
+        return f"{dep.app.name}/{dep.epoch}/{edge}"
+
+    def recover(self, dep: AppState, edge: int, start: int) -> OutChannel | None:
+        """A source restored here after this node's daemon restarted: its edge numbers on from
+        the position the old process saved, and what it held for an unreachable consumer (in
+        the store) is delivered; None if nothing was saved (another node's source before)."""
+        store, key = self.ctx.spill, self.key(dep, edge)
+        return OutChannel.recover(store, key, start, self.ctx.window, self.ctx.now)
+
+    def forget(self, dep: AppState) -> None:
+        """The app is gone from this node: its edges' events and positions too."""
+        for edge in range(len(dep.app.edges)):
+            self.ctx.spill.drop(self.key(dep, edge))
 
     def held(self, dep: AppState, edge: int) -> bool:
         """The consumer of ``edge`` is out of reach (failed, or no route to it): its events
@@ -100,7 +119,10 @@ class StoreAndForward:
     def hold(self, dep: AppState, edge: int, out: OutChannel) -> None:
         """Events wait on ``edge``: apply its bound, history and lifespan, then send what a
         reachable consumer's window admits."""
-        if delivery.enforce(out, dep.app.edges[edge], self.held(dep, edge), self.ctx.now):
+        held = self.held(dep, edge)
+        if held and out.persist:  # what a source's edge holds survives a restart
+            out.make_durable()
+        if delivery.enforce(out, dep.app.edges[edge], held, self.ctx.now):
             self.gave_up(dep, edge)
         self.drain(dep, edge)
 
@@ -156,6 +178,8 @@ class StoreAndForward:
             if delivery.enforce(ch, e, held, now):
                 self.gave_up(dep, edge)
             if held:  # kept until the consumer is back or restored elsewhere
+                if ch.persist:
+                    ch.make_durable()
                 self.dp.unblock(dep, edge)  # (it may make events into the store now)
                 continue
             if ch.overdue(now, RETRANSMIT_S) and ch.sent > ch.acked:

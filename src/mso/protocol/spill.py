@@ -3,9 +3,10 @@
 Sans-IO: the protocol only sees this interface; the driver provides it. The simulator gives
 each node a :class:`MemorySpill` that outlives the node's restarts (as a file would); the daemon
 a SQLite file under its state directory (:mod:`mso.daemon.spill`). Keys name an edge instance
-(``app/epoch/edge``); events are kept by sequence number, contiguous per key, appended at the
-end and trimmed at the front. Positions are small integers that must survive a restart (the
-next sequence number of a source), saved on change.
+(``app/epoch/edge``); events are kept by sequence number, contiguous per key: appended at the
+end (or, when a held edge moves what it had in memory into the store, just before the first)
+and trimmed at the front. Positions are small integers that must survive a restart (the next
+sequence number of a source's edge), saved on change; dropping a key forgets both.
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ class SpillStore(Protocol):
     """A durable log of events per edge, and positions that survive a restart."""
 
     def append(self, key: str, seq: int, events: list[bytes]) -> None:
-        """Keep ``events`` as ``seq``, ``seq + 1``, ... (after what ``key`` holds)."""
+        """Keep ``events`` as ``seq``, ``seq + 1``, ... (after what ``key`` holds, or right
+        before it)."""
 
     def read(self, key: str, start: int, count: int) -> list[bytes]:
         """Up to ``count`` events of ``key`` from ``start`` on, in order."""
@@ -33,6 +35,10 @@ class SpillStore(Protocol):
 
     def size(self, key: str) -> int:
         """Bytes of the events ``key`` holds."""
+        ...
+
+    def span(self, key: str) -> tuple[int, int] | None:
+        """``(first, last + 1)`` of the events ``key`` holds, or None."""
         ...
 
     def save_position(self, key: str, value: int) -> None: ...
@@ -50,7 +56,11 @@ class MemorySpill:
 
     def append(self, key: str, seq: int, events: list[bytes]) -> None:
         log = self._logs.setdefault(key, deque())
-        log.extend((seq + i, e) for i, e in enumerate(events))
+        numbered = [(seq + i, e) for i, e in enumerate(events)]
+        if log and seq < log[0][0]:
+            log.extendleft(reversed(numbered))
+        else:
+            log.extend(numbered)
         self._bytes[key] = self._bytes.get(key, 0) + sum(map(len, events))
 
     def read(self, key: str, start: int, count: int) -> list[bytes]:
@@ -68,9 +78,17 @@ class MemorySpill:
     def drop(self, key: str) -> None:
         self._logs.pop(key, None)
         self._bytes.pop(key, None)
+        self._positions.pop(key, None)
 
     def size(self, key: str) -> int:
         return self._bytes.get(key, 0)
+
+    def span(self, key: str) -> tuple[int, int] | None:
+        log = self._logs.get(key)
+        return (log[0][0], log[-1][0] + 1) if log else None
+
+    def held_bytes(self) -> int:
+        return sum(self._bytes.values())
 
     def save_position(self, key: str, value: int) -> None:
         self._positions[key] = value

@@ -19,6 +19,7 @@ from mso.net.forwarding import RouteWait
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.protocol.spill import MemorySpill
 from mso.sim.census import Census
 from mso.sim.executor import SimExecutor
 
@@ -64,6 +65,8 @@ class Simulation:
         self._paths_version = -1
         self.hop_latency_s = hop_latency_s
         self.now = 0.0
+        # each node's spill store outlives its restarts, as the daemon's file does
+        self.spills = {n: MemorySpill() for n in network.nodes}
         self.cores = {
             n: NodeCore(
                 n,
@@ -75,6 +78,7 @@ class Simulation:
                 manage=manage,
                 rules=rules,
                 capabilities=spec.capabilities,
+                spill=self.spills[n],
             )
             for n, spec in network.nodes.items()
         }
@@ -293,6 +297,7 @@ class Simulation:
             rules=self._rules,
             incarnation=old.incarnation + 1,
             capabilities=spec.capabilities,
+            spill=self.spills[node],
         )
         self.executors[node] = self._executor(node)  # the old instances went with the process
         self.killed.discard(node)

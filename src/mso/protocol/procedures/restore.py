@@ -132,7 +132,9 @@ class Restorer:
         outs = dep.out_edges.get(vertex, [])
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
-            carried = self.dp.sf.carry_over(dep, o, base) if h.kind == "source" else None
+            carried = None
+            if h.kind == "source":  # after this node's reset, or its daemon's restart
+                carried = self.dp.sf.carry_over(dep, o, base) or self.dp.sf.recover(dep, o, base)
             dep.out[o] = carried or self.dp.sf.channel(dep, o, base)
             # a source numbers on from its edges' positions: its sequence never restarts
             h.asked = max(h.asked, dep.out[o].next_seq) if h.kind == "source" else h.asked
