@@ -236,3 +236,15 @@ class SeenSink:
 
     def __call__(self, event: Num) -> None:
         self.seen.append(event.seq)
+
+
+class FileSeen:
+    """A sink that appends each event's seq to the file it is given, one a line, flushed:
+    a test reads loss, duplicates and order over every instance (a restored one appends)."""
+
+    def __init__(self, path: str) -> None:
+        self.out = open(path, "a")  # noqa: SIM115 (open for the instance's life)
+
+    def __call__(self, event: Num) -> None:
+        self.out.write(f"{event.seq}\n")
+        self.out.flush()

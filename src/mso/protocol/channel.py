@@ -103,6 +103,8 @@ class OutChannel:
             self.spilled
             or (seq - self.base >= self.window and self.mem_bytes + size > self.mem_limit)
         ):
+            if self.persist:  # a source's edge: all in memory, or all in the store
+                self.make_durable()
             self.store.append(self.key, seq, payloads)
             self.spilled += len(payloads)
         else:
@@ -121,7 +123,7 @@ class OutChannel:
         is out of reach)."""
         if self.store is None or not self._unacked:
             return
-        self.store.append(self.key, self.base, list(self._unacked))
+        self.store.append(self.key, self.base, list(self._unacked))  # (before what it holds)
         self.spilled += len(self._unacked)
         self._unacked.clear()
         self.mem_bytes = 0
@@ -181,7 +183,8 @@ class OutChannel:
             self.stamps.popleft()
         if self.store is not None and (self.spilled or n > in_memory):
             self.store.trim(self.key, keep + len(self._unacked))
-            self._refill()
+            if not self.persist:  # (a source's edge reads what it spilled from the store
+                self._refill()  # until it has drained: a restart loses no event in between)
 
     def _refill(self) -> None:
         """Bring the oldest spilled events back into memory while there is room."""

@@ -288,7 +288,7 @@ class DataPlane:
     ) -> None:
         dst = dep.app.edges[edge].dst
         if dst in dep.awaiting:  # moving here: keep until the handover
-            dep.stash.setdefault(edge, []).append((seq, list(events)))
+            dep.stash.setdefault(edge, []).append((seq, list(events), ts))
             return
         ch = dep.inc.get(edge)
         if ch is None:
@@ -332,8 +332,9 @@ class DataPlane:
             if qos.keep_last is not None or qos.lifespan_ms is not None:
                 if not h.queued and self._give_up_input(dep, vid, h):
                     continue
-                if qos.keep_last is not None and h.queued >= qos.keep_last:
-                    return  # the newest N wait here, where newer ones can supersede them
+                if qos.keep_last is not None and h.queued:
+                    return  # the newest N wait here, where newer ones can supersede them,
+                    # and go to the worker together once it is idle (it then has at most N)
             edge, events, ts = item
             if len(events) > FEED_BATCH:
                 feed = events[:FEED_BATCH]
@@ -359,7 +360,7 @@ class DataPlane:
             events = msg.events if i == 0 else list(msg.events)  # each edge its own list
             dst = dep.app.edges[edge].dst
             if dst in dep.awaiting:  # a relocated instance before its handover: keep for later
-                dep.stash.setdefault(edge, []).append((seq, events))
+                dep.stash.setdefault(edge, []).append((seq, events, msg.ts))
             elif dst not in dep.instances:
                 self.ctx.dropped()
             else:

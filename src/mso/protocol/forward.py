@@ -58,6 +58,10 @@ class StoreAndForward:
         # (app, epoch, edge) -> a source's channel kept across this node's reset, until the
         # source is restored here (bounded: one per edge of the apps it ran)
         self.carried: dict[tuple[str, int, int], OutChannel] = {}
+        # (app, epoch, edge) -> how far a sink here had processed it before this node's reset:
+        # its replacement here skips the replay below (its effects, a file, a database, are
+        # already done), so the sink gets each event once (bounded like ``carried``)
+        self.processed: dict[tuple[str, int, int], int] = {}
 
     def carry(self, dep: AppState) -> None:
         """This node resets: its sources' edge channels outlive it (see ``carry_over``)."""
@@ -66,6 +70,15 @@ class StoreAndForward:
                 for e in dep.out_edges.get(vid, []):
                     if e in dep.out:
                         self.carried[(dep.app.name, dep.epoch, e)] = dep.out[e]
+            elif h.kind == "sink":
+                for e, ch in dep.inc.items():
+                    if dep.app.edges[e].dst == vid:
+                        self.processed[(dep.app.name, dep.epoch, e)] = ch.processed
+
+    def sink_position(self, dep: AppState, edge: int, start: int) -> int:
+        """Where a sink restored here after this node's reset starts ``edge``: past what the
+        sink before the reset processed (``start``: the producer's acknowledged position)."""
+        return max(start, self.processed.pop((dep.app.name, dep.epoch, edge), start))
 
     def carry_over(self, dep: AppState, edge: int, start: int) -> OutChannel | None:
         """A source restored here after this node reset: the channel its edge had before the

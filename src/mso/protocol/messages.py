@@ -395,7 +395,8 @@ class Handover(_Msg, tag="handover"):
     vertex: str
     rid: int
     state: bytes  # msgpack of get_state()
-    inputs: dict[int, list[int]]  # edge -> [next expected seq, acknowledged up to]
+    # edge -> [next expected seq, acknowledged up to, superseded, expired, deadline missed]
+    inputs: dict[int, list[int]]
     outputs: dict[int, list[Any]]  # edge -> [next_seq, acked, [unacked events...], positions]
     processed: int
     emitted: int

@@ -211,7 +211,8 @@ class AppState:
     # vertices still starting)
     preparing: dict[str, tuple[int, str, bool]] = field(default_factory=dict)  # vertex -> (rid,
     # coordinator, restore) until its instance has started
-    stash: dict[int, list[tuple[int, list[bytes]]]] = field(default_factory=dict)
+    # edge -> (seq, events, when they entered their chain): kept until the handover
+    stash: dict[int, list[tuple[int, list[bytes], float]]] = field(default_factory=dict)
     markers: dict[str, set[int]] = field(default_factory=dict)  # vertex -> edges marked
     blocked_sources: set[str] = field(default_factory=set)
     started_at: float = 0.0

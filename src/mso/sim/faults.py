@@ -45,7 +45,7 @@ from mso.sim.play import Call, drive
 from mso.sim.runner import Simulation
 from mso.sim.schedule import Schedule, Settings
 
-KINDS = ("crash", "partition", "flap", "loss", "relocate", "remap")
+KINDS = ("crash", "partition", "flap", "loss", "relocate", "remap", "restart")
 
 
 @dataclass
@@ -182,6 +182,8 @@ def generate(seed: int, settings: Settings | None = None) -> Schedule:
                 Partition(at, (side, frozenset(ids) - side)),
                 Heal(round(min(t1, at + rng.uniform(0.3, 2.5)), 3)),
             ]
+        elif what == "restart":
+            changes += _restart(rng, ids, at, t1)
         elif what == "flap":
             a, b = rng.choice(sorted(net.links))
             link = net.links[(a, b)]
@@ -210,6 +212,26 @@ def generate(seed: int, settings: Settings | None = None) -> Schedule:
     changes += [LinkChange(t1, a, b, True, spec) for (a, b), spec in sorted(net.links.items())]
     changes.sort(key=lambda c: c.at)
     return Schedule(seed, kind, net, doc, changes, requests, faults, cfg, pinned)
+
+
+def _restart(rng: random.Random, ids: list[str], at: float, t1: float) -> list[Change]:
+    """A node's daemon restarts (a new process, its spill store kept): quickly, before the
+    others notice, or after a while; half the time while it is cut off from the rest (its
+    sources' edges hold what they make, durably, across the restart), healed after."""
+    node = rng.choice(ids)
+    down = round(rng.uniform(0.05, 1.5), 3)
+    cut_off = rng.random() < 0.5
+    if not cut_off or at > t1 - 0.5:  # (each change strictly before the final heal)
+        return [NodeFailure(at, node), NodeRestart(round(min(t1 - 0.01, at + down), 3), node)]
+    cut = round(min(at + rng.uniform(0.3, 1.5), t1 - 0.3), 3)  # fails while cut off
+    back = round(min(t1 - 0.2, cut + down), 3)
+    others = frozenset(ids) - {node}
+    return [
+        Partition(at, (frozenset({node}), others)),
+        NodeFailure(cut, node),
+        NodeRestart(back, node),
+        Heal(round(min(t1 - 0.1, back + rng.uniform(0.2, 2.0)), 3)),
+    ]
 
 
 def run(seed: int, settings: Settings | None = None) -> Result:

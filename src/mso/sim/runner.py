@@ -19,7 +19,7 @@ from mso.net.forwarding import RouteWait
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
-from mso.protocol.spill import MemorySpill
+from mso.protocol.spill import MemorySpill, SpillStore
 from mso.sim.census import Census
 from mso.sim.executor import SimExecutor
 
@@ -45,6 +45,7 @@ class Simulation:
         rules: RuleSettings | None = None,
         model_time: bool = False,
         seed: int = 0,
+        spill: Callable[[str], SpillStore] | None = None,
     ) -> None:
         self.network = network
         self.rng = random.Random(seed)  # emulated loss of data frames (a link's ``loss``)
@@ -66,7 +67,10 @@ class Simulation:
         self.hop_latency_s = hop_latency_s
         self.now = 0.0
         # each node's spill store outlives its restarts, as the daemon's file does
-        self.spills = {n: MemorySpill() for n in network.nodes}
+        # (``spill``: each node's own, e.g. a file, for a benchmark that measures the disk)
+        self.spills: dict[str, SpillStore] = {
+            n: spill(n) if spill is not None else MemorySpill() for n in network.nodes
+        }
         self.cores = {
             n: NodeCore(
                 n,

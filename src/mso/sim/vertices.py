@@ -19,6 +19,7 @@ class Ev(msgspec.Struct, frozen=True):
     src: str
     born: float
     seq: int
+    pad: bytes = b""  # (a benchmark's event size)
 
 
 @dataclass
@@ -49,15 +50,16 @@ RUNS: dict[str, list[SinkRecord]] = {}
 class Source:
     """Numbers its events 0, 1, 2, ... within this instance."""
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, size: int = 0) -> None:
         self.name = name
         self.born: float | None = None
         self.n = 0
+        self.pad = bytes(size)
 
     def __call__(self, seq: int, now: float) -> Ev:
         if self.born is None:
             self.born = round(now, 9)
-        ev = Ev(self.name, self.born, self.n)
+        ev = Ev(self.name, self.born, self.n, self.pad)
         self.n += 1
         return ev
 

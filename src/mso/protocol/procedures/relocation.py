@@ -495,12 +495,16 @@ class Relocator:
         dep.placed[msg.vertex] = self.ctx.id
         dep.handed.pop(msg.vertex, None)
         gated = bool(dep.out_edges.get(msg.vertex))
-        for i, (expected, acked) in msg.inputs.items():
+        for i, (expected, acked, *counts) in msg.inputs.items():
+            superseded, expired, missed = (*counts, 0, 0, 0)[:3]  # (absent from older nodes)
             dep.inc[i] = InChannel(
                 expected=expected,
                 processed=expected,
                 _acked=acked,
                 released=acked if gated else None,
+                superseded=superseded,  # the edge's QoS counts move with its consumer
+                expired=expired,
+                deadline_missed=missed,
             )
         for i, (next_seq, acked, events, positions) in msg.outputs.items():
             ch = self.dp.sf.channel(dep, i, acked)
@@ -511,8 +515,8 @@ class Relocator:
         if msg.gate:
             dep.gates[msg.vertex] = AckGate.from_wire(msg.gate)
         for i in msg.inputs:  # what arrived early, in order, now that positions are known
-            for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
-                self.dp.deliver(dep, i, seq, events)
+            for seq, events, ts in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
+                self.dp.deliver(dep, i, seq, events, ts)
         coordinator = self._handover_to.pop(msg.rid, None)
         if coordinator is not None:
             self.ctx.send(coordinator, m.HandoverDone(msg.app, msg.vertex, msg.rid))
@@ -599,7 +603,10 @@ class Relocator:
         for i in ins:  # acknowledge what the old instance processed, then forget the inputs
             self.dp.ack(dep, i)
         inputs = {
-            i: [ch.expected, ch._acked] if (ch := dep.inc.pop(i, None)) else [0, 0] for i in ins
+            i: [ch.expected, ch._acked, ch.superseded, ch.expired, ch.deadline_missed]
+            if (ch := dep.inc.pop(i, None))
+            else [0, 0]
+            for i in ins
         }
         outputs: dict[int, list[Any]] = {}
         for i in dep.out_edges.get(vid, []):

@@ -96,9 +96,12 @@ class Restorer:
             return
         if msg.producer:
             gated = bool(dep.out_edges.get(vertex))
+            start = msg.start
+            if dep.layout.kinds[vertex] == "sink":  # what it did before a reset here is done
+                start = self.dp.sf.sink_position(dep, msg.edge, start)
             dep.inc[msg.edge] = InChannel(
-                expected=msg.start,
-                processed=msg.start,
+                expected=start,
+                processed=start,
                 _acked=msg.start,
                 released=msg.start if gated else None,
             )
@@ -142,8 +145,8 @@ class Restorer:
             dep.out[o].positions = {e: p for e, p in restoring.positions.items() if e not in outs}
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
             if e.dst == vertex:
-                for seq, events in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
-                    self.dp.deliver(dep, i, seq, events)
+                for seq, events, ts in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
+                    self.dp.deliver(dep, i, seq, events, ts)
         self.ctx.broadcast(m.Moved(dep.app.name, vertex, self.ctx.id, self.ctx.incarnation))
         self.relocator.forget(restoring.rid)
         self.ctx.send(restoring.coordinator, m.HandoverDone(dep.app.name, vertex, restoring.rid))
