@@ -9,7 +9,9 @@ failure explains, every node answering status, the flow following the sources. A
 replays exactly: ``.venv/bin/python -c "from mso.sim import faults; print(faults.run(SEED))"``.
 
 Usage: .venv/bin/python bench/faults.py [--seeds 5000] [--first 0] [--jobs N]
-                                        [--faults-s 3] [--quiet-s 4] [--json FILE]
+                                        [--faults-s 3] [--quiet-s 4] [--json FILE] [--restarts]
+(``--restarts``: daemon restarts too, alone or while cut off; off by default, see
+docs/benchmarks.md.)
 Writes bench/results/faults.json and faults.md.
 """
 
@@ -32,9 +34,11 @@ RESULTS = HERE / "results"
 CHUNK = 50
 
 
-def run_chunk(args: tuple[int, int, float, float]) -> list[dict[str, Any]]:
-    first, count, faults_s, quiet_s = args
-    cfg = faults.Settings(start_s=1.0, faults_s=faults_s, quiet_s=quiet_s, rate=10.0)
+def run_chunk(args: tuple[int, int, float, float, bool]) -> list[dict[str, Any]]:
+    first, count, faults_s, quiet_s, restarts = args
+    cfg = faults.Settings(
+        start_s=1.0, faults_s=faults_s, quiet_s=quiet_s, rate=10.0, restarts=restarts
+    )
     rows = []
     for seed in range(first, first + count):
         try:
@@ -101,13 +105,20 @@ def main() -> int:
     ap.add_argument("--faults-s", type=float, default=3.0)
     ap.add_argument("--quiet-s", type=float, default=4.0)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--restarts", action="store_true", help="daemon restarts too (kind restart)")
     args = ap.parse_args()
     if args.seeds < 1 or args.jobs < 1 or args.faults_s <= 0 or args.quiet_s <= 0:
         ap.error("--seeds, --jobs, --faults-s and --quiet-s must be positive")
     out: Path = args.json or RESULTS / "faults.json"
     started = time.monotonic()
     chunks = [
-        (first, min(CHUNK, args.first + args.seeds - first), args.faults_s, args.quiet_s)
+        (
+            first,
+            min(CHUNK, args.first + args.seeds - first),
+            args.faults_s,
+            args.quiet_s,
+            args.restarts,
+        )
         for first in range(args.first, args.first + args.seeds, CHUNK)
     ]
     rows: list[dict[str, Any]] = []
@@ -132,6 +143,7 @@ def main() -> int:
         "jobs": args.jobs,
         "faults_s": args.faults_s,
         "quiet_s": args.quiet_s,
+        "restarts": args.restarts,
         "summary": {
             "seeds": len(rows),
             "faults": dict(sorted(injected.items())),

@@ -89,6 +89,17 @@ def test_invariants_hold_after_a_seeded_fault_schedule(seed: int) -> None:
     assert not result.violations, "\n".join(map(str, result.violations))
 
 
+RESTARTS = faults.Settings(start_s=1.0, faults_s=3.0, quiet_s=4.0, rate=10.0, restarts=True)
+
+
+@pytest.mark.parametrize("seed", range(24))
+def test_invariants_hold_with_daemon_restarts(seed: int) -> None:
+    """Schedules with daemon restarts too (alone, or while cut off: the spill store and the
+    sources' positions outlive the process), and every event delivered once."""
+    result = faults.run(seed, RESTARTS)
+    assert not result.violations, "\n".join(map(str, result.violations))
+
+
 # seeds of the benchmark's phases (bench/faults.py) that once broke an invariant, with what
 # broke them; each cause also has its own scenario below where one could be built small
 BENCH = faults.Settings(start_s=1.0, faults_s=3.0, quiet_s=4.0, rate=10.0)

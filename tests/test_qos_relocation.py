@@ -10,6 +10,7 @@ from typing import Any
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.protocol import messages as m
 from mso.sim.runner import Simulation
+from runtime_vertices import SEEN
 
 
 def line4() -> Network:
@@ -83,3 +84,43 @@ def test_lifespan_edge_around_a_moving_stateful_vertex_delivers_all_in_time() ->
     assert edge(sim, "src->counter", "expired") == 0
     assert stats["repeats"] == 0 and stats["out_of_order"] == 0
     assert stats["count"] == stats["next"] and made - 5 <= stats["count"] <= made
+
+
+def test_a_backlog_past_one_frame_is_handed_over_in_parts() -> None:
+    """The counter's consumer is out of reach, so its output edge holds a window of 40 KB
+    events (20 MB, past the 16 MiB frame limit); the counter is moved meanwhile. Its handover
+    sends that backlog ahead in parts of about a megabyte (before: one frame of all of it),
+    and after the heal the sink gets every output once, in order, its count unbroken."""
+    from mso.protocol.framing import MAX_FRAME
+
+    text = app(200, 0.1, "size: 40000").replace(
+        "pinned: N1, rate: 200,", "pinned: N1, rate: 200, params: {size: 40000},"
+    )
+    text = text.replace("{from: src, to: counter, size: 40000}", "[src, counter]")
+    text = text.replace(
+        "runtime_vertices:Recorder,", "runtime_vertices:SeenSink, params: {run: hand},"
+    )
+    SEEN.pop("hand", None)
+    sim = Simulation(line4(), window=512)
+    sim.request("N1", m.DeployRequest(text, "q.yaml"))
+    sim.run_until(1.0)
+    sim.network.remove_link("N3", "N4")
+    sim.links_changed()
+    sim.run_until(5.0)
+    host = next(n for n, c in sim.cores.items() if "counter" in c.instances("q"))
+    backlog = sim.cores[host].apps["q"].out[1]
+    assert backlog.kept_bytes > MAX_FRAME, "a backlog past one frame"
+    largest = [0]
+    sim.taps.append(lambda a, b, msg: largest.__setitem__(0, max(largest[0], len(m.encode(msg)))))
+    n = len(sim.replies)
+    sim.request("N1", m.RelocateRequest("q", "counter", "", "N2" if host != "N2" else "N1"))
+    sim.run_until(sim.now + 2.0)
+    (reply,) = [r for _, _, r in sim.replies[n:] if isinstance(r, m.RelocateReply)]
+    assert reply.ok, reply.error
+    assert largest[0] < MAX_FRAME, f"a frame of {largest[0]:,} bytes"
+    sim.network.add_link(LinkSpec("N3", "N4", delay_ms=1.0))
+    sim.links_changed()
+    sim.run_until(sim.now + 10.0)
+    seen, made = SEEN["hand"], edge(sim, "src->counter", "sent")
+    assert seen == list(range(len(seen))), "once, in order, the counter's state unbroken"
+    assert len(seen) >= made - 200, (len(seen), made)

@@ -222,10 +222,11 @@ class NodeCore:
             m.Unprepare: lambda src, msg, now: rel.on_unprepare(msg, now),
             m.Switch: lambda src, msg, now: rel.on_switch(msg),
             m.Handover: lambda src, msg, now: rel.on_handover(src, msg, now),
+            m.HandoverEvents: lambda src, msg, now: rel.on_handover_events(src, msg, now),
             m.HandoverDone: lambda src, msg, now: rel.on_handover_done(msg, now),
             m.Moved: lambda src, msg, now: rel.on_moved(msg, now),
             m.Rewire: lambda src, msg, now: res.on_rewire(msg, now),
-            m.Resume: lambda src, msg, now: res.on_resume(msg, now),
+            m.Resume: lambda src, msg, now: res.on_resume(msg, now, src),
             m.Heartbeat: mem.on_heartbeat,
             m.NodeDown: lambda src, msg, now: mem.on_node_down(
                 msg.node, msg.detector, now, msg.incarnation, msg.witness

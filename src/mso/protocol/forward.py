@@ -21,6 +21,7 @@ from mso.protocol.events import Retransmit
 from mso.protocol.state import AppState
 
 RETRANSMIT_S = 0.25
+HANDOVER_PART_BYTES = 1 << 20  # events a move's Handover carries itself, and each part ahead
 MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
 
 
@@ -58,10 +59,11 @@ class StoreAndForward:
         # (app, epoch, edge) -> a source's channel kept across this node's reset, until the
         # source is restored here (bounded: one per edge of the apps it ran)
         self.carried: dict[tuple[str, int, int], OutChannel] = {}
-        # (app, epoch, edge) -> how far a sink here had processed it before this node's reset:
-        # its replacement here skips the replay below (its effects, a file, a database, are
-        # already done), so the sink gets each event once (bounded like ``carried``)
-        self.processed: dict[tuple[str, int, int], int] = {}
+        # (app, epoch, edge) -> how far a sink here had processed it before this node's reset,
+        # and the producer's node then: its replacement here skips the replay below (its
+        # effects, a file, a database, are done), so the sink gets each event once (bounded
+        # like ``carried``)
+        self.processed: dict[tuple[str, int, int], tuple[int, str]] = {}
 
     def carry(self, dep: AppState) -> None:
         """This node resets: its sources' edge channels outlive it (see ``carry_over``)."""
@@ -73,12 +75,16 @@ class StoreAndForward:
             elif h.kind == "sink":
                 for e, ch in dep.inc.items():
                     if dep.app.edges[e].dst == vid:
-                        self.processed[(dep.app.name, dep.epoch, e)] = ch.processed
+                        producer = dep.placed[dep.app.edges[e].src]
+                        self.processed[(dep.app.name, dep.epoch, e)] = (ch.processed, producer)
 
-    def sink_position(self, dep: AppState, edge: int, start: int) -> int:
+    def sink_position(self, dep: AppState, edge: int, start: int, producer: str) -> int:
         """Where a sink restored here after this node's reset starts ``edge``: past what the
-        sink before the reset processed (``start``: the producer's acknowledged position)."""
-        return max(start, self.processed.pop((dep.app.name, dep.epoch, edge), start))
+        sink before the reset processed, if its producer (resuming it from ``start``, its
+        acknowledged position) is the one it had then, on another node, so the same numbers
+        name the same events; else at ``start`` (a producer restored with it numbers anew)."""
+        done, before = self.processed.pop((dep.app.name, dep.epoch, edge), (start, ""))
+        return max(start, done) if before == producer != self.ctx.id else start
 
     def carry_over(self, dep: AppState, edge: int, start: int) -> OutChannel | None:
         """A source restored here after this node reset: the channel its edge had before the
@@ -101,6 +107,23 @@ class StoreAndForward:
         if ch.persist:
             self.ctx.spill.save_position(key, start)
         return ch
+
+    def handover_events(self, out: OutChannel) -> tuple[list[bytes], list[tuple[int, list[bytes]]]]:
+        """An output's unacknowledged events for a move's handover: all in the handover when
+        they fit ``HANDOVER_PART_BYTES``, else none there and ``(first seq, events)`` parts of
+        about that size to send ahead of it (a backlog kept for a consumer out of reach may be
+        far beyond one frame)."""
+        per_event = max(1, out.kept_bytes // max(1, out.kept))
+        if out.in_flight * per_event <= HANDOVER_PART_BYTES:
+            return out.unacked()[1], []
+        step, pos, parts = max(1, HANDOVER_PART_BYTES // per_event), out.acked, []
+        while pos < out.next_seq:
+            first, events = out.events_from(pos, min(step, out.next_seq - pos))
+            if not events:
+                break
+            parts.append((first, events))
+            pos = first + len(events)
+        return [], parts
 
     def key(self, dep: AppState, edge: int) -> str:
         """The name of ``edge``'s events and position in the node's spill store."""

@@ -401,6 +401,20 @@ class Handover(_Msg, tag="handover"):
     processed: int
     emitted: int
     gate: list[Any] = msgspec.field(default_factory=list)  # pending chained-ack checkpoints
+    parts: int = 0  # HandoverEvents sent ahead of it (the outputs' events past one frame)
+
+
+class HandoverEvents(_Msg, tag="handover_events"):
+    """Unacknowledged output events of a move, sent ahead of its :class:`Handover` in parts
+    of about a megabyte when they would not fit one frame (a backlog that store and forward
+    kept for a consumer out of reach)."""
+
+    app: str
+    vertex: str
+    rid: int
+    edge: int
+    first: int  # the first event's sequence number
+    events: list[bytes]
 
 
 class Moved(_Msg, tag="moved"):
@@ -541,6 +555,7 @@ Message = (
     | Prepared
     | Switch
     | Handover
+    | HandoverEvents
     | Moved
     | HandoverDone
     | RelocateRequest

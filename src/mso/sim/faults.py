@@ -45,7 +45,8 @@ from mso.sim.play import Call, drive
 from mso.sim.runner import Simulation
 from mso.sim.schedule import Schedule, Settings
 
-KINDS = ("crash", "partition", "flap", "loss", "relocate", "remap", "restart")
+KINDS = ("crash", "partition", "flap", "loss", "relocate", "remap")
+RESTART = "restart"  # a daemon restart, drawn with ``Settings.restarts``
 
 
 @dataclass
@@ -171,7 +172,7 @@ def generate(seed: int, settings: Settings | None = None) -> Schedule:
     t0, t1 = cfg.start_s, cfg.start_s + cfg.faults_s
     for _ in range(rng.randint(1, cfg.max_faults)):
         at = round(rng.uniform(t0, t1), 3)
-        what = rng.choice(KINDS)
+        what = rng.choice((*KINDS, RESTART) if cfg.restarts else KINDS)
         if what == "crash":
             node = rng.choice(ids)  # overlapping crashes of one node are fine: a failed
             back = round(min(t1, at + rng.uniform(0.2, 3.0)), 3)  # node does not fail again

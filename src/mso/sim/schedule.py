@@ -20,6 +20,9 @@ class Settings:
     quiet_s: float = 6.0  # after everything heals: recovery, rejoins, catch-up
     rate: float = 20.0  # events per second per source
     max_faults: int = 6
+    # daemon restarts too (the kind ``restart``): off by default until the seeds they break
+    # are fixed (docs/benchmarks.md, "Store and forward's invariant and daemon restarts")
+    restarts: bool = False
 
 
 @dataclass

@@ -155,6 +155,10 @@ class Relocator:
         self.ctx = ctx
         self.dp = dp
         self._handover_to: dict[int, str] = {}  # rid -> coordinator, at a move's new host
+        # at a move's new host: output events sent ahead of the handover, and a handover that
+        # came before all of them (rid -> edge -> [(first, events)]; rid -> (from, handover))
+        self._parts: dict[int, dict[int, list[tuple[int, list[bytes]]]]] = {}
+        self._early: dict[int, tuple[str, m.Handover]] = {}
 
     def _reloc(self, pid: int) -> Relocation | None:
         proc = self.ctx.procedure(pid)
@@ -166,9 +170,13 @@ class Relocator:
     def forget(self, rid: int) -> None:
         """A restore's replacement ran or was dropped: no handover will be reported for it."""
         self._handover_to.pop(rid, None)
+        self._parts.pop(rid, None)
+        self._early.pop(rid, None)
 
     def on_reset(self) -> None:
         self._handover_to.clear()
+        self._parts.clear()
+        self._early.clear()
 
     # -- the coordinator: asks, switches the producers, ends (a restore: retries) --------------
     def request(self, client: int | None, msg: m.RelocateRequest, now: float) -> bool:
@@ -475,17 +483,37 @@ class Relocator:
         del dep.awaiting[msg.vertex]
         dep.preparing.pop(msg.vertex, None)
         dep.restoring.pop(msg.vertex, None)
-        self._handover_to.pop(msg.rid, None)
+        self.forget(msg.rid)
         for i, e in enumerate(dep.app.edges):
             if e.dst == msg.vertex:
                 dep.stash.pop(i, None)
         self.ctx.note_event(now, f"dropped {msg.vertex}, prepared for a move that failed")
+
+    def on_handover_events(self, src: str, msg: m.HandoverEvents, now: float) -> None:
+        """Output events of a move, ahead of its handover: kept until it comes."""
+        dep = self.ctx.apps.get(msg.app)
+        ok = dep is not None and msg.vertex in dep.awaiting and 0 <= msg.edge < len(dep.app.edges)
+        if not ok or dep is None or dep.app.edges[msg.edge].src != msg.vertex:
+            self.ctx.refusal("handover_unexpected")
+            return
+        self._parts.setdefault(msg.rid, {}).setdefault(msg.edge, []).append((msg.first, msg.events))
+        early = self._early.get(msg.rid)
+        if early is not None and self._complete(early[1]):
+            del self._early[msg.rid]
+            self.on_handover(early[0], early[1], now)
+
+    def _complete(self, msg: m.Handover) -> bool:
+        return sum(map(len, self._parts.get(msg.rid, {}).values())) >= msg.parts
 
     def on_handover(self, src: str, msg: m.Handover, now: float) -> None:
         dep = self.ctx.apps.get(msg.app)
         if dep is None or msg.vertex not in dep.awaiting:
             self.ctx.refusal("handover_unexpected")
             return
+        if not self._complete(msg):  # (parts overtaken on the way: wait for them)
+            self._early[msg.rid] = (src, msg)
+            return
+        parts = self._parts.pop(msg.rid, {})
         dep.moved[msg.vertex] = (now, src)
         h = dep.awaiting.pop(msg.vertex)
         h.life.on(InstanceEvent.HANDOVER)
@@ -508,6 +536,8 @@ class Relocator:
             )
         for i, (next_seq, acked, events, positions) in msg.outputs.items():
             ch = self.dp.sf.channel(dep, i, acked)
+            for _, ahead in sorted(parts.get(i, []), key=lambda p: p[0]):
+                ch.push_many(ahead, now)
             ch.push_many(events, now)
             ch.next_seq = next_seq
             ch.positions = {int(k): int(v) for k, v in positions.items()}
@@ -609,10 +639,15 @@ class Relocator:
             for i in ins
         }
         outputs: dict[int, list[Any]] = {}
+        parts = 0
         for i in dep.out_edges.get(vid, []):
             out = dep.out.pop(i, None)
             if out is not None:
-                _, events = out.unacked()
+                events, ahead = self.dp.sf.handover_events(out)
+                for first, part in ahead:  # (a backlog past one frame goes ahead in parts)
+                    part_msg = m.HandoverEvents(dep.app.name, vid, msg.rid, i, first, part)
+                    self.ctx.send(msg.to, part_msg)
+                parts += len(ahead)
                 outputs[i] = [out.next_seq, out.acked, events, out.positions]
         gate = dep.gates.pop(vid, None)
         key_batches = [k for k in self.dp.outbox if k[0] == dep.app.name and k[1] in outputs]
@@ -635,6 +670,7 @@ class Relocator:
             h.processed,
             h.emitted,
             gate.to_wire() if gate is not None else [],
+            parts,
         )
         self.ctx.send(msg.to, handover)
         self.ctx.broadcast(m.Moved(dep.app.name, vid, msg.to))

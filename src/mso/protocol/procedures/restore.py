@@ -83,7 +83,7 @@ class Restorer:
             self.ctx.send(msg.to, m.Resume(msg.app, msg.edge, msg.rid, False, start))
 
     # -- the replacement: runs once every surviving end has resumed it -------------------------
-    def on_resume(self, msg: m.Resume, now: float) -> None:
+    def on_resume(self, msg: m.Resume, now: float, src: str = "") -> None:
         dep = self.ctx.apps.get(msg.app)
         if dep is None or not 0 <= msg.edge < len(dep.app.edges):
             self.ctx.refusal("resume_unexpected")
@@ -98,7 +98,7 @@ class Restorer:
             gated = bool(dep.out_edges.get(vertex))
             start = msg.start
             if dep.layout.kinds[vertex] == "sink":  # what it did before a reset here is done
-                start = self.dp.sf.sink_position(dep, msg.edge, start)
+                start = self.dp.sf.sink_position(dep, msg.edge, start, src)
             dep.inc[msg.edge] = InChannel(
                 expected=start,
                 processed=start,
