@@ -502,15 +502,15 @@ def store_forward_app(log: Path) -> str:
     return f"""
 name: sf
 vertices:
-  src: {{code: runtime_vertices:CountingSource, pinned: N1, rate: 50,
+  src: {{code: runtime_vertices:CountingSource, pinned: N3, rate: 50,
         params: {{size: 1000}}, output: runtime_vertices:Num}}
   mid: {{code: runtime_vertices:Double, output: runtime_vertices:Num, pinned: N2}}
-  sink: {{code: runtime_vertices:FileSeen, pinned: N3, params: {{path: '{log}'}}}}
+  sink: {{code: runtime_vertices:FileSeen, pinned: N1, params: {{path: '{log}'}}}}
 edges: [[src, mid], [mid, sink]]
 """
 
 
-def test_a_cut_off_sink_gets_every_event_once_in_order_after_the_heal(tmp_path: Path) -> None:
+def test_a_cut_off_sink_gets_every_event_in_order_after_the_heal(tmp_path: Path) -> None:
     log = tmp_path / "seen.txt"
     scenario = loads_scenario(LINE3)
 
@@ -518,18 +518,18 @@ def test_a_cut_off_sink_gets_every_event_once_in_order_after_the_heal(tmp_path: 
         emu = Emulator(scenario, log_dir=tmp_path, manage=False)
         await emu.start()
         try:
-            assert (await emu.deploy(store_forward_app(log), "sf.yaml", "N1")).ok
+            assert (await emu.deploy(store_forward_app(log), "sf.yaml", "N3")).ok
             await asyncio.sleep(1.5)
-            link = scenario.network.link("N2", "N3") or LinkSpec("N2", "N3")
-            await emu.set_link("N2", "N3", False)  # N3 out of reach: held, not delivered
+            link = scenario.network.link("N1", "N2") or LinkSpec("N1", "N2")
+            await emu.set_link("N1", "N2", False)  # N1 out of reach: held, not delivered
             await asyncio.sleep(3.0)
             during = await emu.status("N2")
-            await emu.set_link("N2", "N3", True, link)
+            await emu.set_link("N1", "N2", True, link)
             status: dict[str, Any] = {}
             for _ in range(150):  # until the sink has caught up (bounded: 30 s)
                 await asyncio.sleep(0.2)
-                status = await emu.status("N1")
-                made = status["N1"]["apps"]["sf"]["edges"]["src->mid"]["sent"]
+                status = await emu.status("N3")
+                made = status["N3"]["apps"]["sf"]["edges"]["src->mid"]["sent"]
                 if made and len(log.read_text().split()) >= made:
                     break
             return {"during": during, "after": status}
@@ -540,6 +540,11 @@ def test_a_cut_off_sink_gets_every_event_once_in_order_after_the_heal(tmp_path: 
     held = result["during"]["N2"]["apps"]["sf"]["edges"]["mid->sink"]
     assert held["sent"] - held["delivered"] >= 50 * 2, f"held while cut off: {held}"
     seen = [int(x) for x in log.read_text().split()]
-    made = result["after"]["N1"]["apps"]["sf"]["edges"]["src->mid"]["sent"]
-    assert seen == list(range(len(seen))), "once, in order, none missing"
-    assert len(seen) >= made >= 50 * 4
+    made = result["after"]["N3"]["apps"]["sf"]["edges"]["src->mid"]["sent"]
+    distinct = sorted(set(seen))
+    assert distinct == list(range(len(distinct))), "none missing"
+    assert list(dict.fromkeys(seen)) == distinct, "in order"
+    # the one exception, documented: the sink's node may reset at the heal (it held the others
+    # failed), and its replacement gets again what it had processed but not yet acknowledged
+    assert len(seen) - len(distinct) <= 5, "at most the last unacknowledged events again"
+    assert len(distinct) >= made >= 50 * 4

@@ -226,7 +226,7 @@ class NodeCore:
             m.HandoverDone: lambda src, msg, now: rel.on_handover_done(msg, now),
             m.Moved: lambda src, msg, now: rel.on_moved(msg, now),
             m.Rewire: lambda src, msg, now: res.on_rewire(msg, now),
-            m.Resume: lambda src, msg, now: res.on_resume(msg, now, src),
+            m.Resume: lambda src, msg, now: res.on_resume(msg, now),
             m.Heartbeat: mem.on_heartbeat,
             m.NodeDown: lambda src, msg, now: mem.on_node_down(
                 msg.node, msg.detector, now, msg.incarnation, msg.witness

@@ -59,11 +59,6 @@ class StoreAndForward:
         # (app, epoch, edge) -> a source's channel kept across this node's reset, until the
         # source is restored here (bounded: one per edge of the apps it ran)
         self.carried: dict[tuple[str, int, int], OutChannel] = {}
-        # (app, epoch, edge) -> how far a sink here had processed it before this node's reset,
-        # and the producer's node then: its replacement here skips the replay below (its
-        # effects, a file, a database, are done), so the sink gets each event once (bounded
-        # like ``carried``)
-        self.processed: dict[tuple[str, int, int], tuple[int, str]] = {}
 
     def carry(self, dep: AppState) -> None:
         """This node resets: its sources' edge channels outlive it (see ``carry_over``)."""
@@ -72,19 +67,6 @@ class StoreAndForward:
                 for e in dep.out_edges.get(vid, []):
                     if e in dep.out:
                         self.carried[(dep.app.name, dep.epoch, e)] = dep.out[e]
-            elif h.kind == "sink":
-                for e, ch in dep.inc.items():
-                    if dep.app.edges[e].dst == vid:
-                        producer = dep.placed[dep.app.edges[e].src]
-                        self.processed[(dep.app.name, dep.epoch, e)] = (ch.processed, producer)
-
-    def sink_position(self, dep: AppState, edge: int, start: int, producer: str) -> int:
-        """Where a sink restored here after this node's reset starts ``edge``: past what the
-        sink before the reset processed, if its producer (resuming it from ``start``, its
-        acknowledged position) is the one it had then, on another node, so the same numbers
-        name the same events; else at ``start`` (a producer restored with it numbers anew)."""
-        done, before = self.processed.pop((dep.app.name, dep.epoch, edge), (start, ""))
-        return max(start, done) if before == producer != self.ctx.id else start
 
     def carry_over(self, dep: AppState, edge: int, start: int) -> OutChannel | None:
         """A source restored here after this node reset: the channel its edge had before the

@@ -83,7 +83,7 @@ class Restorer:
             self.ctx.send(msg.to, m.Resume(msg.app, msg.edge, msg.rid, False, start))
 
     # -- the replacement: runs once every surviving end has resumed it -------------------------
-    def on_resume(self, msg: m.Resume, now: float, src: str = "") -> None:
+    def on_resume(self, msg: m.Resume, now: float) -> None:
         dep = self.ctx.apps.get(msg.app)
         if dep is None or not 0 <= msg.edge < len(dep.app.edges):
             self.ctx.refusal("resume_unexpected")
@@ -96,12 +96,9 @@ class Restorer:
             return
         if msg.producer:
             gated = bool(dep.out_edges.get(vertex))
-            start = msg.start
-            if dep.layout.kinds[vertex] == "sink":  # what it did before a reset here is done
-                start = self.dp.sf.sink_position(dep, msg.edge, start, src)
             dep.inc[msg.edge] = InChannel(
-                expected=start,
-                processed=start,
+                expected=msg.start,
+                processed=msg.start,
                 _acked=msg.start,
                 released=msg.start if gated else None,
             )
