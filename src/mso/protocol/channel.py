@@ -19,6 +19,11 @@ from typing import Any
 
 from mso.protocol.spill import SpillStore
 
+# a source's edge saves a bound on its numbers this far ahead, not every number: a restart
+# numbers on from the bound (the consumer skips the unused ones by the floor), and the store
+# is written once per POSITION_LEASE events instead of on every push
+POSITION_LEASE = 1024
+
 
 @dataclass
 class OutChannel:
@@ -48,7 +53,7 @@ class OutChannel:
     store: SpillStore | None = None  # where events past the window and mem_limit spill
     key: str = ""  # this edge instance's name in the store
     mem_limit: int = 8 << 20  # bytes in memory past the window before events spill
-    persist: bool = False  # a source's edge: its next seq is saved in the store on every push
+    persist: bool = False  # a source's edge: a bound on its numbers is kept in the store
 
     HISTORY = 64  # acks whose positions are kept, to look one up at an exact position
 
@@ -57,6 +62,7 @@ class OutChannel:
         self.base = self.acked
         self.sent = self.next_seq  # events from here on have not been sent yet
         self.mem_bytes = 0
+        self.leased = 0  # the bound saved in the store (``persist``): no number reaches it
         self.spilled = 0  # the newest events, in the store
         self.stamps: deque[tuple[int, float]] = deque()  # (first seq, when it was numbered)
         self.retentions: dict[Hashable, int] = {}  # owner -> first seq it retains
@@ -113,8 +119,9 @@ class OutChannel:
         if not self.stamps or now > self.stamps[-1][1] + 1e-3:
             self.stamps.append((seq, now))
         self.next_seq += len(payloads)
-        if self.persist and self.store is not None:
-            self.store.save_position(self.key, self.next_seq)
+        if self.persist and self.store is not None and self.next_seq > self.leased:
+            self.leased = self.next_seq + POSITION_LEASE
+            self.store.save_position(self.key, self.leased)
         return seq
 
     def make_durable(self) -> None:
@@ -132,28 +139,28 @@ class OutChannel:
     def recover(
         cls, store: SpillStore, key: str, start: int, window: int, now: float
     ) -> OutChannel | None:
-        """A source's edge after this node's daemon restarted: numbering on from the saved
-        position, holding what the store kept of the events from ``start`` (where the
-        consumer stands) on. Events the store does not have (in memory when the old process
-        died) are skipped: the consumer moves past them by the frame's floor, counted. None
-        if nothing was saved under ``key``."""
-        position = store.position(key)
-        if position is None:
+        """A source's edge after this node's daemon restarted, numbering on. If it held its
+        events in the store (its consumer was out of reach), they are all there, up to its
+        last number: it keeps those from ``start`` (where the consumer stands) on. Else it
+        numbers on from the saved bound, and the consumer skips by the frame's floor what
+        it never got (the events in memory then, gone with the process; numbers never used).
+        None if nothing was saved under ``key``."""
+        bound = store.position(key)
+        if bound is None:
             return None
         span = store.span(key)
-        top = max(position, start)
-        if span is not None and span[1] == position and span[0] <= position:
-            first = max(start, span[0])
-        else:  # nothing held (or not up to the saved position): nothing to replay
-            store.drop(key)
-            first = top
+        if span is not None:  # held: everything it had, from ``span[0]`` on
+            first, top = max(start, span[0]), max(start, span[1])
+        else:
+            first = top = max(start, bound)
         ch = cls(window, first, first, now, store=store, key=key, persist=True)
         store.trim(key, first)
         ch.next_seq = top
         ch.spilled = top - first
         ch.sent = first
         ch.stamps.append((first, now))
-        store.save_position(key, top)
+        ch.leased = max(top, bound)
+        store.save_position(key, ch.leased)
         return ch
 
     def on_ack(self, upto: int, now: float = 0.0) -> int:
