@@ -308,6 +308,12 @@ def main() -> None:
             result["sweep"] = {"error": f"{type(exc).__name__}: {exc}"}
     result |= provenance()
     result["seconds"] = time.perf_counter() - t0
+    kept = RESULTS / name
+    if args.only and kept.exists():  # another part may have been written meanwhile: keep it
+        part = {"sizes": ("sizes", "duration_s"), "rwp": ("rwp",), "sweep": ("sweep",)}
+        latest = json.loads(kept.read_text())
+        result = latest | {k: result[k] for k in part[args.only] if k in result} | provenance()
+        result["seconds"] = time.perf_counter() - t0
     write_results(RESULTS / name, result, table(result))
 
 
