@@ -54,6 +54,7 @@ from mso.protocol.events import (
     MonitorTick,
     NodeReset,
     PeerFailed,
+    PlacementStale,
     RecoverTick,
     RecoveryDue,
     RelocationEnded,
@@ -64,8 +65,10 @@ from mso.protocol.events import (
     Snapshotted,
     SourceTick,
 )
+from mso.protocol.procedures import placement
 from mso.protocol.procedures.base import IllegalTransition, Procedure
 from mso.protocol.procedures.deploy import Deploy, Deployer
+from mso.protocol.procedures.lookup import Lookup, Lookups
 from mso.protocol.procedures.membership.detector import Suspicion, Vouch
 from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_S, Liveness
 from mso.protocol.procedures.membership.peers import MONITOR_PERIOD_S, Membership
@@ -159,6 +162,7 @@ class NodeCore:
         self.relocator = Relocator(self, dp)
         self.restorer = Restorer(self, dp, self.relocator)
         self.remapper = Remapper(self, dp, self.relocator)
+        self.lookups = Lookups(self, self.relocator, self.remapper)
         liveness = Liveness(heartbeat_s, dead_after_s)
         self.membership = Membership(self, dp, self.deployer, self.remapper, liveness, incarnation)
 
@@ -179,6 +183,7 @@ class NodeCore:
         self._subscribe(RoutesChanged, self.deployer.on_routes_changed)
         self._subscribe(RoutesChanged, self.remapper.on_routes_changed)
         self._subscribe(RecoveryDue, self.remapper.on_recovery_due)
+        self._subscribe(PlacementStale, lambda ev: self.lookups.on_stale(ev.app))
         self._subscribe(AppMissing, self.membership.on_app_missing)
         self._subscribe(NodeReset, lambda ev: self.deployer.on_reset())
         self._subscribe(NodeReset, lambda ev: self.relocator.on_reset())
@@ -217,6 +222,8 @@ class NodeCore:
             m.StopApp: self._on_stop_app,
             m.DeployFailed: lambda src, msg, now: dep.on_deploy_failed(msg, now),
             m.RelocateRequest: lambda src, msg, now: rel.on_relocate_request(msg, now),
+            m.PlacementQuery: lambda src, msg, now: placement.reply(self, src, msg),
+            m.PlacementReply: self.lookups.on_reply,
             m.Prepare: lambda src, msg, now: rel.on_prepare(src, msg),
             m.Prepared: lambda src, msg, now: rel.on_prepared(msg, now),
             m.Unprepare: lambda src, msg, now: rel.on_unprepare(msg, now),
@@ -224,7 +231,7 @@ class NodeCore:
             m.Handover: lambda src, msg, now: rel.on_handover(src, msg, now),
             m.HandoverEvents: lambda src, msg, now: rel.on_handover_events(src, msg, now),
             m.HandoverDone: lambda src, msg, now: rel.on_handover_done(msg, now),
-            m.Moved: lambda src, msg, now: rel.on_moved(msg, now),
+            m.Moved: lambda src, msg, now: placement.on_moved(self, msg, now),
             m.Rewire: lambda src, msg, now: res.on_rewire(msg, now),
             m.Resume: lambda src, msg, now: res.on_resume(msg, now),
             m.Heartbeat: mem.on_heartbeat,
@@ -245,7 +252,7 @@ class NodeCore:
             m.DeployRequest: dep.deploy_request,
             m.StopApp: self._undeploy_request,
             m.RelocateRequest: self._relocate_request,
-            m.RemapRequest: lambda client, msg, now: rem.request(client, msg, now),
+            m.RemapRequest: lambda client, msg, now: self.lookups.remap(client, msg, now),
             m.StatusRequest: self._status_request,
         }
         # timer keys
@@ -269,6 +276,7 @@ class NodeCore:
             Relocation: rel.expire,
             Remap: rem.expire,
             Deploy: dep.expire,
+            Lookup: self.lookups.expire,
             Suspicion: mem.suspicion_expired,
             Vouch: lambda proc, now: mem.vouch_expired(proc),
         }
@@ -621,7 +629,7 @@ class NodeCore:
             self.publish(Happened("undeploy", msg.app, by=src))
 
     def _relocate_request(self, client: int, msg: m.RelocateRequest, now: float) -> None:
-        self.relocator.request(client, msg, now)  # (a refusal is told to the client)
+        self.lookups.relocate(client, msg, now)  # (a refusal is told to the client)
 
     def _undeploy_request(self, client: int, msg: m.StopApp, now: float) -> None:
         why = self.deployer.undeploy_refused(msg)

@@ -96,6 +96,14 @@ class RecoveryDue:
 
 
 @dataclass(frozen=True)
+class PlacementStale:
+    """A recovery of ``app`` this node would coordinate rests on a view it was not kept up to
+    date on (it hosts no part of the app): look the placement up first."""
+
+    app: str
+
+
+@dataclass(frozen=True)
 class InstanceReady:
     """An instance's code was constructed (``open()`` ran): a build or a move goes on."""
 
@@ -196,6 +204,7 @@ InternalEvent = (
     PeerFailed
     | RoutesChanged
     | RecoveryDue
+    | PlacementStale
     | InstanceReady
     | InstanceFailed
     | InstanceCrashed

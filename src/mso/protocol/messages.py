@@ -356,6 +356,11 @@ class Prepare(_Msg, tag="prepare"):
     # a replacement after a failure, with the edges it must hear a Resume on before it runs
     restore: bool = False
     resumes: list[list[Any]] = msgspec.field(default_factory=list)  # [edge, producer?]
+    # the coordinator's placement of the app and its versions: a node that hosted no part of
+    # the app is not told of moves, so it learns the placement it will exchange events in here
+    placed: dict[str, str] = msgspec.field(default_factory=dict)
+    versions: dict[str, int] = msgspec.field(default_factory=dict)
+    vanished: list[str] = msgspec.field(default_factory=list)
 
 
 class Unprepare(_Msg, tag="unprepare"):
@@ -402,6 +407,7 @@ class Handover(_Msg, tag="handover"):
     emitted: int
     gate: list[Any] = msgspec.field(default_factory=list)  # pending chained-ack checkpoints
     parts: int = 0  # HandoverEvents sent ahead of it (the outputs' events past one frame)
+    version: int = 0  # the move's version (the old host counted it)
 
 
 class HandoverEvents(_Msg, tag="handover_events"):
@@ -418,19 +424,45 @@ class HandoverEvents(_Msg, tag="handover_events"):
 
 
 class Moved(_Msg, tag="moved"):
-    """Broadcast: ``vertex`` now runs on ``node``. Sent by ``node`` itself, it carries its
-    incarnation, so news from an incarnation that has since restarted or reset is ignored."""
+    """``vertex`` now runs on ``node``: told to the nodes that host part of the app (not to
+    every node: :mod:`mso.protocol.procedures.placement`). Sent by ``node`` itself, it carries
+    its incarnation, so news from an incarnation that has since restarted or reset is ignored;
+    ``version`` counts the vertex's moves, so older news loses."""
 
     app: str
     vertex: str
     node: str
     incarnation: int = -1  # -1: sent by another node (an old host after its handover)
+    version: int = 0  # 0: not counted (taken as today: the last word wins)
 
 
 class HandoverDone(_Msg, tag="handover_done"):
+    """To a move's coordinator: the vertex runs on ``node`` now, as its ``version``-th move."""
+
     app: str
     vertex: str
     rid: int
+    node: str = ""
+    version: int = 0
+
+
+class PlacementQuery(_Msg, tag="where"):
+    """Where do the vertices of ``app`` run, as you know it? From a node about to act on an
+    app it hosts no part of (its view is not kept up to date: it asks first)."""
+
+    app: str
+    qid: int
+
+
+class PlacementReply(_Msg, tag="where_reply"):
+    """The answer to :class:`PlacementQuery`: the sender's placement of ``app`` with each
+    vertex's version (the asker keeps, per vertex, the highest)."""
+
+    app: str
+    qid: int
+    placed: dict[str, str]
+    versions: dict[str, int] = msgspec.field(default_factory=dict)
+    vanished: list[str] = msgspec.field(default_factory=list)  # its instance went (a restart)
 
 
 # -- requests from clients -------------------------------------------------------------------
@@ -545,6 +577,8 @@ Message = (
     | DeployReply
     | StatusRequest
     | StatusReply
+    | PlacementQuery
+    | PlacementReply
     | LinkState
     | Shutdown
     | Authorized

@@ -194,6 +194,13 @@ class AppState:
     layout: Layout
     origin: str
     placed: dict[str, str]
+    # vertex -> how many moves of it this node knows of: news of an older move loses
+    # (:mod:`mso.protocol.procedures.placement`)
+    versions: dict[str, int] = field(default_factory=dict)
+    # the failed nodes this node last looked the placement up for (it hosts no part of the
+    # app, so its view is not kept up to date): a recovery it would coordinate may act on the
+    # answers until the failures change, and no new lookup is started before
+    looked_up: frozenset[str] | None = None
     placed_chains: set[int] = field(default_factory=set)
     started_chains: set[int] = field(default_factory=set)
     probes: dict[int, dict[int, list[Hop]]] = field(default_factory=dict)
@@ -294,6 +301,11 @@ class AppState:
             edges=edges,
             capable={v: list(ns) for v, ns in self.capable.items()},
         )
+
+    def hosts_part(self) -> bool:
+        """This node runs (or is starting, or restoring) an instance of the app: it is told
+        of every move of the app's vertices."""
+        return bool(self.instances or self.awaiting or self.restoring or self.crashed)
 
     def lost(self, failed: set[str]) -> set[str]:
         """Vertices with no running instance: on a failed node, or gone with a node's old

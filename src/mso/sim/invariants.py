@@ -8,8 +8,9 @@ names its invariant, so a benchmark can count them by kind and a failing seed sa
 - ``status``: every live node answers status, locally and through one everywhere-request;
 - ``membership``: no live node still holds another failed once all are back and linked;
 - ``hosted-once``: every vertex runs exactly once over the live nodes;
-- ``placement``: every live node knows the app, all agree on its placement, and each vertex is
-  placed on a live node that hosts it (unless every node was down at one moment: an app lives
+- ``placement``: every live node knows the app, the ones that host part of it (who are told of
+  its moves; the others ask before they act on it) all agree on its placement, and each vertex
+  is placed on a live node that hosts it (unless every node was down at one moment: an app lives
   in its nodes' memory only, so then it is gone from all of them, and no node may know it);
 - ``dangling-edge``: both ends of every edge have its channel where the placement says;
 - ``parked``: no chain is still parked;
@@ -114,10 +115,11 @@ def check(sim: Simulation, sched: Schedule, records: list[SinkRecord]) -> list[V
         out.append(Violation("placement", f"{missing_app} do not know the app"))
     if not known:
         return out
-    placements = {tuple(sorted(a["placement"].items())) for a in known.values()}
+    members = {n: a for n, a in known.items() if a["vertices"]} or known
+    placements = {tuple(sorted(a["placement"].items())) for a in members.values()}
     if len(placements) > 1:
         out.append(Violation("placement", f"nodes disagree: {sorted(placements)}"))
-    ref_node = min(known)
+    ref_node = min(members)
     placed: dict[str, str] = known[ref_node]["placement"]
     hosts: dict[str, list[str]] = {}
     for n, a in known.items():

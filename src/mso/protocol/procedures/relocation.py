@@ -50,6 +50,7 @@ from mso.protocol.events import (
     Retry,
     Snapshotted,
 )
+from mso.protocol.procedures import placement
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
 from mso.protocol.procedures.instance import InstanceEvent
 from mso.protocol.state import AppState, Restoring
@@ -208,7 +209,7 @@ class Relocator:
             return False
         pid = self.ctx.new_pid()
         self.ctx.begin(Relocation(pid, now, msg.app, msg.vertex, source, target, client))
-        self.ctx.send(target, m.Prepare(msg.app, msg.vertex, pid))
+        self.ctx.send(target, placement.prepare(dep, msg.vertex, pid))
         return True
 
     def on_relocate_request(self, msg: m.RelocateRequest, now: float) -> None:
@@ -295,10 +296,14 @@ class Relocator:
             return
         reloc.on(RelocationEvent.HANDED_OVER)
         self.ctx.end(reloc.pid)
-        if reloc.restore:
-            dep = self.ctx.apps.get(reloc.app)
-            if dep is not None:
-                dep.placed[reloc.vertex] = reloc.target
+        dep = self.ctx.apps.get(reloc.app)
+        # first-hand, from the new host: a coordinator that hosts no part of the app is not
+        # told of the move otherwise
+        taken = dep is not None and placement.learn(
+            dep, reloc.vertex, reloc.target, msg.version, now, running=False
+        )
+        if dep is not None and not taken:
+            self.ctx.dropped()
         self._ended(reloc, "")
 
     def fail(self, reloc: Relocation, why: str, now: float) -> None:
@@ -367,7 +372,7 @@ class Relocator:
             [i, True] for i, e in enumerate(edges) if e.dst == reloc.vertex and e.src not in lost
         ] + [[i, False] for i, e in enumerate(edges) if e.src == reloc.vertex and e.dst not in lost]
         reloc.attempts += 1
-        prepare = m.Prepare(dep.app.name, reloc.vertex, rid, True, reloc.resumes)
+        prepare = placement.prepare(dep, reloc.vertex, rid, True, reloc.resumes)
         self.ctx.send(reloc.target, prepare)
         self.ctx.emit(SetTimer(Retry(rid, reloc.attempts), now + STEP_TIMEOUT_S))
 
@@ -418,6 +423,7 @@ class Relocator:
             error = f"{self.ctx.id} does not run app {msg.app!r}"
             self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, error, no_app=True))
             return
+        placement.merge(dep, src, msg.placed, msg.versions, msg.vanished, self.ctx.now)
         if vid not in dep.app.vertices:
             error = f"{self.ctx.id}: unknown vertex {vid!r}"
         elif vid not in dep.instances and vid not in dep.awaiting:
@@ -429,8 +435,10 @@ class Relocator:
             return
         elif msg.restore and vid in dep.instances:  # it never went: nothing to restore
             self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, error))
-            self.ctx.send(src, m.HandoverDone(dep.app.name, vid, msg.rid))
-            self.ctx.broadcast(m.Moved(dep.app.name, vid, self.ctx.id, self.ctx.incarnation))
+            version = dep.versions.get(vid, 0)
+            self.ctx.send(src, m.HandoverDone(dep.app.name, vid, msg.rid, self.ctx.id, version))
+            inc = self.ctx.incarnation
+            placement.announce(self.ctx, dep, vid, self.ctx.id, incarnation=inc, also=[src])
             return
         elif msg.restore and vid in dep.awaiting:  # asked again, maybe by a new
             old = dep.restoring.get(vid)  # coordinator after the first one failed
@@ -520,7 +528,8 @@ class Relocator:
         self.ctx.emit(fx.RestoreVertex(h.instance, msg.state))  # before any feed
         h.processed, h.emitted = msg.processed, msg.emitted
         dep.instances[msg.vertex] = h
-        dep.placed[msg.vertex] = self.ctx.id
+        placement.learn(dep, msg.vertex, self.ctx.id, msg.version, now)
+        dep.placed[msg.vertex] = self.ctx.id  # (first-hand, whatever news came first)
         dep.handed.pop(msg.vertex, None)
         gated = bool(dep.out_edges.get(msg.vertex))
         for i, (expected, acked, *counts) in msg.inputs.items():
@@ -549,7 +558,8 @@ class Relocator:
                 self.dp.deliver(dep, i, seq, events, ts)
         coordinator = self._handover_to.pop(msg.rid, None)
         if coordinator is not None:
-            self.ctx.send(coordinator, m.HandoverDone(msg.app, msg.vertex, msg.rid))
+            done = m.HandoverDone(msg.app, msg.vertex, msg.rid, self.ctx.id, msg.version)
+            self.ctx.send(coordinator, done)
         self.ctx.publish(Happened("hosted", msg.app, msg.vertex, f"{src} -> {self.ctx.id}"))
 
     # -- a producer: switches its edge, sends a marker the old way -----------------------------
@@ -660,6 +670,7 @@ class Relocator:
         del dep.instances[vid]
         dep.placed[vid] = msg.to
         dep.handed[vid] = msg.to
+        version = placement.bump(dep, vid)
         handover = m.Handover(
             dep.app.name,
             vid,
@@ -671,41 +682,10 @@ class Relocator:
             h.emitted,
             gate.to_wire() if gate is not None else [],
             parts,
+            version,
         )
         self.ctx.send(msg.to, handover)
-        self.ctx.broadcast(m.Moved(dep.app.name, vid, msg.to))
-
-    # -- every node: where the vertex runs now -------------------------------------------------
-    def on_moved(self, msg: m.Moved, now: float) -> None:
-        dep = self.ctx.apps.get(msg.app)
-        if 0 <= msg.incarnation < self.ctx.incarnation_of(msg.node, msg.incarnation):
-            return  # its instance went with that incarnation (a claim overtaken by a reset)
-        why = self._moved_refused(dep, msg) if dep is not None else "moved_unknown_app"
-        if why:
-            self.ctx.refusal(why)
-            return
-        if dep is not None and msg.vertex in dep.placed:
-            dep.placed[msg.vertex] = msg.node
-            dep.vanished.discard(msg.vertex)
-            for c in dep.layout.chains:
-                if msg.vertex in c.vertices:
-                    dep.placed_at[c.index] = now
-
-    def _moved_refused(self, dep: AppState, msg: m.Moved) -> str:
-        """Why news that ``msg.vertex`` runs on ``msg.node`` is not taken ('' if it is): a
-        vertex not in the app; a pinned vertex anywhere but on its node. With operator keys
-        also a vertex this node runs itself (and is not handing over): its own view is
-        first-hand."""
-        if msg.vertex not in dep.app.vertices:
-            return "moved_unknown_vertex"
-        pin = dep.app.vertices[msg.vertex].pinned
-        if pin is not None and msg.node != pin:
-            return "moved_a_pinned_vertex"
-        h = dep.instances.get(msg.vertex)
-        here = h is not None and h.handing_over is None and msg.vertex not in dep.markers
-        if self.ctx.authority.signed and msg.node != self.ctx.id and here:
-            return "moved_a_vertex_running_here"
-        return ""
+        placement.announce(self.ctx, dep, vid, msg.to)  # to the app's members, not everyone
 
 
 def _resumes(dep: AppState, vid: str, resumes: list[list[Any]]) -> set[tuple[int, bool]] | None:

@@ -36,12 +36,14 @@ from mso.protocol.effects import Reply, SetTimer
 from mso.protocol.events import (
     Happened,
     PeerFailed,
+    PlacementStale,
     RecoverTick,
     RecoveryDue,
     RelocationEnded,
     Retry,
     RoutesChanged,
 )
+from mso.protocol.procedures import placement
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
 from mso.protocol.procedures.relocation import Relocation, Relocator
 from mso.protocol.state import AppState
@@ -399,7 +401,7 @@ class Remapper:
             if lost:
                 self.relocator.start_restore(dep, reloc, pid, now)
             else:
-                self.ctx.send(node, m.Prepare(remap.app, vertex, pid))
+                self.ctx.send(node, placement.prepare(dep, vertex, pid))
             return
         remap.on(RemapEvent.ALL_MOVED)
         self._finish(rid, now, "")
@@ -460,6 +462,9 @@ class Remapper:
         alive = {self.ctx.id, *(n for n in routes if n not in failed)}
         if recovery_coordinator(dep.placed, lost, alive) != self.ctx.id:
             return
+        if not dep.hosts_part() and dep.looked_up != frozenset(failed):  # this view is not
+            self.ctx.publish(PlacementStale(dep.app.name))  # kept up to date: the app may run
+            return  # elsewhere now; asked once per set of failures
         if not routes_settled(routes, failed):
             return  # wait for the routing view to route around the failure (set_routes)
         plan = recovery_plan(dep.layout, dep.placed, lost, set(dep.parked))

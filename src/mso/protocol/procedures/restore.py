@@ -32,6 +32,7 @@ from mso.protocol.channel import InChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
 from mso.protocol.events import InstanceCrashed, RelocationEnded, ReplacementPrepared
+from mso.protocol.procedures import placement
 from mso.protocol.procedures.instance import MAX_RESTARTS, RESTART_WINDOW_S, H, InstanceEvent
 from mso.protocol.procedures.relocation import Relocation, Relocator
 from mso.protocol.state import AppState
@@ -144,9 +145,12 @@ class Restorer:
             if e.dst == vertex:
                 for seq, events, ts in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
                     self.dp.deliver(dep, i, seq, events, ts)
-        self.ctx.broadcast(m.Moved(dep.app.name, vertex, self.ctx.id, self.ctx.incarnation))
+        version = placement.bump(dep, vertex)
+        inc, coordinator = self.ctx.incarnation, restoring.coordinator
+        placement.announce(self.ctx, dep, vertex, self.ctx.id, incarnation=inc, also=[coordinator])
         self.relocator.forget(restoring.rid)
-        self.ctx.send(restoring.coordinator, m.HandoverDone(dep.app.name, vertex, restoring.rid))
+        done = m.HandoverDone(dep.app.name, vertex, restoring.rid, self.ctx.id, version)
+        self.ctx.send(coordinator, done)
         if h.kind == "source":
             self.dp.start_source(dep, vertex, self.ctx.now)
 

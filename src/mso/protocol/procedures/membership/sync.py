@@ -13,6 +13,7 @@ from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import RETRANSMIT_S
 from mso.protocol.effects import SetTimer
 from mso.protocol.events import AppMissing, Retransmit
+from mso.protocol.procedures import placement
 from mso.protocol.procedures.deploy import Deployer
 from mso.protocol.procedures.remap import Remapper
 from mso.protocol.state import AppState
@@ -30,13 +31,13 @@ class AppSyncing:
 
     # -- app sync: a node that rejoins (or missed an app) is told it ---------------------------
     def _claim(self, dep: AppState) -> None:
-        """Tell everyone where the instances this node runs are (a node that rejoins may
-        have spread, or been told, a view in which they run elsewhere: a node of a partition's
-        losing side claims the vertices it ran until it resets, and its reset tells nobody).
-        An instance being handed over is left out: its Moved follows."""
+        """Tell the app's nodes where the instances this node runs are (a node that rejoins
+        may have spread, or been told, a view in which they run elsewhere: a node of a
+        partition's losing side claims the vertices it ran until it resets, and its reset
+        tells nobody). An instance being handed over is left out: its Moved follows."""
         for vid, h in sorted(dep.instances.items()):
             if h.handing_over is None and vid not in dep.markers:
-                self.ctx.broadcast(m.Moved(dep.app.name, vid, self.ctx.id, self.incarnation))
+                placement.announce(self.ctx, dep, vid, self.ctx.id, incarnation=self.incarnation)
 
     def _disputed(self) -> bool:
         """This node holds a node it can reach failed: a partition healed and one side is

@@ -1,0 +1,164 @@
+"""Placement lookup: a node that hosts no part of an app asks where its vertices run before it
+acts on it (issue 24.1; why such a node's view may be old: :mod:`.placement`).
+
+A :class:`Lookup` asks the nodes its view names (they host part of the app, or did and know
+where they handed it; with ``wide``, every node it reaches: a recovery that sees every instance
+lost), keeps per vertex the answer with the highest version, and asks again the nodes the
+answers name that it has not asked yet — at most :data:`ROUNDS` times. It ends when every asked
+node has answered or at its deadline, and then does what waited: a client's relocation or
+remap, or a recovery check. No coordinator: any node may look up, and a late answer is dropped.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import ClassVar
+
+from mso.protocol import messages as m
+from mso.protocol.context import NodeContext
+from mso.protocol.events import RecoveryDue
+from mso.protocol.procedures import placement
+from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
+from mso.protocol.procedures.relocation import Relocator
+from mso.protocol.procedures.remap import Remapper
+
+ROUNDS = 3  # rounds of asking the nodes answers name
+
+
+class S(enum.Enum):
+    ASKING = "asking"
+
+
+class LookupEvent(enum.Enum):
+    """What moves a Lookup along its table."""
+
+    ANSWER = "answer"
+    ASKED_MORE = "asked_more"
+    ALL_ANSWERED = "all_answered"
+    DEADLINE = "deadline"
+
+
+Then = m.RelocateRequest | m.RemapRequest | None  # what waits on the lookup (None: recovery)
+
+
+class Lookup(Procedure):
+    NAME = "lookup"
+    INITIAL = S.ASKING
+    DEADLINE_S = 2 * STEP_TIMEOUT_S
+    TRANSITIONS: ClassVar[Table] = {
+        S.ASKING: {
+            LookupEvent.ANSWER: S.ASKING,
+            LookupEvent.ASKED_MORE: S.ASKING,
+            LookupEvent.ALL_ANSWERED: Phase.FINISHED,
+            LookupEvent.DEADLINE: Phase.FINISHED,
+        }
+    }
+
+    def __init__(self, pid: int, now: float, app: str, client: int | None, then: Then) -> None:
+        super().__init__(pid, now)
+        self.app = app
+        self.client = client
+        self.then = then
+        self.asked: set[str] = set()
+        self.waiting: set[str] = set()
+        self.rounds = 0
+
+
+class Lookups:
+    """This node's lookups, and what each one lets go on when it ends."""
+
+    def __init__(self, ctx: NodeContext, relocator: Relocator, remapper: Remapper) -> None:
+        self.ctx = ctx
+        self.relocator = relocator
+        self.remapper = remapper
+
+    def _lookup(self, pid: int) -> Lookup | None:
+        proc = self.ctx.procedure(pid)
+        return proc if isinstance(proc, Lookup) else None
+
+    # -- what may have to wait for one ---------------------------------------------------------
+    def relocate(self, client: int | None, msg: m.RelocateRequest, now: float) -> bool:
+        """A relocation asked of this node: at once if it hosts part of the app (its view is
+        kept whole), else after a lookup. False if refused at once."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or dep.hosts_part() or not dep.running:
+            return self.relocator.request(client, msg, now)
+        self._start(msg.app, client, msg, now, wide=False)
+        return True
+
+    def remap(self, client: int | None, msg: m.RemapRequest, now: float) -> None:
+        """A remap asked of this node: as :meth:`relocate`."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or dep.hosts_part() or not dep.running:
+            self.remapper.request(client, msg, now)
+            return
+        self._start(msg.app, client, msg, now, wide=False)
+
+    def on_stale(self, app: str) -> None:
+        """A recovery this node would coordinate on a view it was not kept up to date on (it
+        sees every instance of the app lost): look the placement up first, widely."""
+        if not any(isinstance(p, Lookup) and p.app == app for p in self.ctx.open()):
+            self._start(app, None, None, self.ctx.now, wide=True)
+
+    # -- the lookup ------------------------------------------------------------------------------
+    def _start(self, app: str, client: int | None, then: Then, now: float, wide: bool) -> None:
+        look = Lookup(self.ctx.new_pid(), now, app, client, then)
+        self.ctx.begin(look)
+        dep = self.ctx.apps[app]
+        first = set(self.ctx.known_nodes()) if wide else placement.members(dep)
+        self._ask(look, first | set(dep.handed.values()))
+        if not look.waiting:
+            self._end(look, now)
+
+    def _ask(self, look: Lookup, nodes: set[str]) -> None:
+        new = {
+            n
+            for n in nodes - look.asked
+            if n != self.ctx.id and n not in self.ctx.failed and n in self.ctx.routes
+        }
+        look.asked |= new
+        look.waiting |= new
+        for n in sorted(new):
+            self.ctx.send(n, m.PlacementQuery(look.app, look.pid))
+
+    def on_reply(self, src: str, msg: m.PlacementReply, now: float) -> None:
+        look = self._lookup(msg.qid)
+        dep = self.ctx.apps.get(msg.app)
+        if look is None or dep is None or msg.app != look.app or src not in look.waiting:
+            self.ctx.refusal("placement_reply_unexpected")
+            return
+        look.on(LookupEvent.ANSWER)
+        look.waiting.discard(src)
+        placement.merge(dep, src, msg.placed, msg.versions, msg.vanished, now)
+        if look.rounds < ROUNDS:  # nodes the answers name that were not asked yet
+            named = set(msg.placed.values()) - look.asked
+            if named:
+                look.rounds += 1
+                look.on(LookupEvent.ASKED_MORE)
+                self._ask(look, named)
+        if not look.waiting:
+            look.on(LookupEvent.ALL_ANSWERED)
+            self._end(look, now)
+
+    def expire(self, look: Lookup, now: float) -> None:
+        """Some node did not answer (it failed, or its answer was lost): go on with what the
+        others said, the defined outcome of a lookup."""
+        look.on(LookupEvent.DEADLINE)
+        self._end(look, now)
+
+    def _end(self, look: Lookup, now: float) -> None:
+        if not look.done:
+            look.state = Phase.FINISHED  # (nobody to ask: it ends as it starts)
+        self.ctx.end(look.pid)
+        dep = self.ctx.apps.get(look.app)
+        if isinstance(look.then, m.RelocateRequest):
+            if not self.relocator.request(look.client, look.then, now) and look.client is None:
+                self.ctx.refusal("relocate_refused")
+        elif isinstance(look.then, m.RemapRequest):
+            self.remapper.request(look.client, look.then, now)
+        elif dep is not None:
+            dep.looked_up = frozenset(self.ctx.failed)
+            self.ctx.publish(RecoveryDue(look.app))
+
+
+__all__ = ["ROUNDS", "Lookup", "LookupEvent", "Lookups"]

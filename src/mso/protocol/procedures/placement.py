@@ -1,0 +1,170 @@
+"""Placement knowledge (issue 24.1): who is told where a vertex runs, and what a node that is not
+told does before it acts.
+
+The paper's claim is that a reconfiguration is local: nodes away from the change are "neither
+involved in nor aware of" it. So a move is not broadcast. A :class:`~mso.protocol.messages.Moved`
+goes to the nodes that host part of the app (its *members*, as the sender knows them: the
+moved vertex's producers and consumers and the chains around it among them) and to the new host
+— a number that depends on the app, not on the size of the network. Every member's view stays
+whole, so the recovery rule (the lowest surviving member coordinates) still needs no
+coordinator. A node that hosts no part of an app keeps the view it last had; before it acts on
+one (a client's relocation or remap, the recovery of an app whose every instance it sees lost)
+it asks (:mod:`.lookup`), and a node that becomes a member learns the placement from the
+coordinator's ``Prepare``.
+
+Each vertex carries a *version*, the number of its moves: the node that hands a vertex over
+counts it and every message about the move carries it, so of two answers the older loses.
+Version 0 is the deployment's placement (or a view rebuilt from a sync): news about it is taken
+as before, the last word winning.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+from mso.protocol import messages as m
+from mso.protocol.context import NodeContext
+from mso.protocol.state import AppState
+
+
+def members(dep: AppState) -> set[str]:
+    """The nodes this node's view says host part of the app."""
+    return set(dep.placed.values())
+
+
+def learn(
+    dep: AppState, vertex: str, node: str, version: int, now: float, running: bool = True
+) -> bool:
+    """Take ``vertex`` runs on ``node`` as its ``version``-th move, unless we know of a later
+    one; True if taken. ``running``: the word of a node that runs it (a Moved), so it has not
+    vanished with a node's old incarnation; a view passed on (a snapshot, a coordinator's
+    record) says nothing about that."""
+    if version and version < dep.versions.get(vertex, 0):
+        return False
+    dep.placed[vertex] = node
+    dep.versions[vertex] = max(version, dep.versions.get(vertex, 0))
+    if running:
+        dep.vanished.discard(vertex)
+    for c in dep.layout.chains:
+        if vertex in c.vertices:
+            dep.placed_at[c.index] = now
+    return True
+
+
+def bump(dep: AppState, vertex: str) -> int:
+    """Count a move of ``vertex`` made here: its new version."""
+    dep.versions[vertex] = version = dep.versions.get(vertex, 0) + 1
+    return version
+
+
+def merge(
+    dep: AppState,
+    src: str,
+    placed: dict[str, str],
+    versions: dict[str, int],
+    vanished: list[str],
+    now: float,
+) -> None:
+    """Take from ``src``'s view (placement, versions, vanished instances) what is strictly newer
+    than ours, or as new and first-hand (``src`` says where it runs it itself) — except for the
+    vertices this node runs or is taking over (its own word on them is first-hand)."""
+    ours = set(dep.instances) | set(dep.awaiting) | set(dep.restoring)
+    gone = set(vanished)
+    for v, n in placed.items():
+        version, mine = versions.get(v, 0), dep.versions.get(v, 0)
+        if v not in dep.app.vertices or v in ours:
+            continue
+        if version > mine or (version == mine and n == src):
+            learn(dep, v, n, version, now, running=False)
+            if v in gone:
+                dep.vanished.add(v)
+            else:
+                dep.vanished.discard(v)
+
+
+def prepare(
+    dep: AppState,
+    vertex: str,
+    rid: int,
+    restore: bool = False,
+    resumes: list[list[Any]] | None = None,
+) -> m.Prepare:
+    """A move's (or restore's) Prepare, with the coordinator's view of the app for a target
+    that hosts no part of it yet and so was not told of its moves."""
+    snapshot = dict(dep.placed), versions(dep), sorted(dep.vanished)
+    return m.Prepare(dep.app.name, vertex, rid, restore, resumes or [], *snapshot)
+
+
+def versions(dep: AppState) -> dict[str, int]:
+    return {v: k for v, k in dep.versions.items() if k}
+
+
+def announce(
+    ctx: NodeContext,
+    dep: AppState,
+    vertex: str,
+    node: str,
+    *,
+    incarnation: int = -1,
+    also: Iterable[str] = (),
+) -> None:
+    """Tell the app's members (and ``also``: a coordinator that may host no part of it) that
+    ``vertex`` runs on ``node``, at its current version; this node too, after the current
+    input, as every receiver takes it."""
+    msg = m.Moved(dep.app.name, vertex, node, incarnation, dep.versions.get(vertex, 0))
+    for n in sorted((members(dep) | {node, ctx.id, *also}) - ctx.failed):
+        ctx.send(n, msg)
+
+
+def on_moved(ctx: NodeContext, msg: m.Moved, now: float) -> None:
+    """News that a vertex runs elsewhere now."""
+    dep = ctx.apps.get(msg.app)
+    if 0 <= msg.incarnation < ctx.incarnation_of(msg.node, msg.incarnation):
+        return  # its instance went with that incarnation (a claim overtaken by a reset)
+    why = _moved_refused(ctx, dep, msg) if dep is not None else "moved_unknown_app"
+    if why:
+        ctx.refusal(why)
+        return
+    known = dep is not None and msg.vertex in dep.placed
+    if known and dep is not None and not learn(dep, msg.vertex, msg.node, msg.version, now):
+        ctx.dropped()  # an older move's news, overtaken
+
+
+def _moved_refused(ctx: NodeContext, dep: AppState, msg: m.Moved) -> str:
+    """Why news that ``msg.vertex`` runs on ``msg.node`` is not taken ('' if it is): a vertex
+    not in the app; a pinned vertex anywhere but on its node. With operator keys also a vertex
+    this node runs itself (and is not handing over): its own view is first-hand."""
+    if msg.vertex not in dep.app.vertices:
+        return "moved_unknown_vertex"
+    pin = dep.app.vertices[msg.vertex].pinned
+    if pin is not None and msg.node != pin:
+        return "moved_a_pinned_vertex"
+    h = dep.instances.get(msg.vertex)
+    here = h is not None and h.handing_over is None and msg.vertex not in dep.markers
+    if ctx.authority.signed and msg.node != ctx.id and here:
+        return "moved_a_vertex_running_here"
+    return ""
+
+
+def reply(ctx: NodeContext, src: str, msg: m.PlacementQuery) -> None:
+    """Answer a lookup with this node's view of the app (nothing if it does not hold it)."""
+    dep = ctx.apps.get(msg.app)
+    if dep is None:  # an empty answer: the asker need not wait for it
+        ctx.send(src, m.PlacementReply(msg.app, msg.qid, {}))
+        return
+    snapshot = dict(dep.placed), versions(dep), sorted(dep.vanished)
+    ctx.send(src, m.PlacementReply(msg.app, msg.qid, *snapshot))
+
+
+__all__ = [
+    "announce",
+    "bump",
+    "learn",
+    "members",
+    "merge",
+    "on_moved",
+    "prepare",
+    "reply",
+    "versions",
+]
