@@ -8,6 +8,7 @@ from mso.protocol import messages as m
 from mso.protocol.procedures.base import IllegalTransition, Phase, table_rows
 from mso.protocol.procedures.deploy import Deploy
 from mso.protocol.procedures.instance import H, InstanceEvent
+from mso.protocol.procedures.lookup import Lookup
 from mso.protocol.procedures.relocation import Relocation, RelocationEvent
 from mso.protocol.procedures.remap import Remap, RemapEvent
 from mso.protocol.procedures.status import StatusFanout
@@ -30,7 +31,7 @@ def test_an_event_the_table_does_not_allow_raises() -> None:
 
 
 def test_every_procedure_table_reaches_an_end() -> None:
-    for cls in (Relocation, Remap, StatusFanout, Deploy):
+    for cls in (Relocation, Remap, StatusFanout, Deploy, Lookup):
         ends = {nxt for _, _, nxt in table_rows(cls)}
         assert "FINISHED" in ends, cls.NAME
 

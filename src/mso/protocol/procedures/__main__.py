@@ -6,12 +6,21 @@ from __future__ import annotations
 from mso.protocol.procedures.base import Procedure, StateMachine, table_rows
 from mso.protocol.procedures.deploy import Deploy
 from mso.protocol.procedures.instance import AWAIT_NOTE, InstanceLife
+from mso.protocol.procedures.lookup import Lookup
 from mso.protocol.procedures.membership.detector import PeerLife, Suspicion, Vouch
 from mso.protocol.procedures.relocation import Relocation
 from mso.protocol.procedures.remap import Remap
 from mso.protocol.procedures.status import StatusFanout
 
-PROCEDURES: list[type[Procedure]] = [Deploy, Relocation, Remap, StatusFanout, Suspicion, Vouch]
+PROCEDURES: list[type[Procedure]] = [
+    Deploy,
+    Relocation,
+    Remap,
+    Lookup,
+    StatusFanout,
+    Suspicion,
+    Vouch,
+]
 # the other ends: a vertex instance at its host, and each other node as one node holds it
 PARTICIPANTS: list[tuple[type[StateMachine], str]] = [
     (InstanceLife, AWAIT_NOTE),
