@@ -6,8 +6,9 @@ chain's nodes, its event neighbours and the relays between them. :func:`measure`
 k x k grid (1 ms links), one measured app with three chains (two sources feeding a junction,
 then a sink: ``s1-a-j``, ``s2-b-j``, ``j-c-sink``) near the grid's centre, plus N/20 background
 apps of 4 vertices spread over the grid, with management rules off (nothing moves unasked).
-Then, one at a time and each to quiescence, it relocates ``a`` downstream, remaps ``a``'s chain
-and remaps the whole app, and reads each one's episode from the simulator's census
+Then, one at a time and each to quiescence, it relocates ``a`` downstream, moves it off the
+chain's route (unmeasured: a remap keeps a chain where it runs unless its nodes are off the
+probed route or the new plan saves enough), remaps ``a``'s chain and remaps the whole app, and reads each one's episode from the simulator's census
 (:mod:`mso.sim.census`). The test suite and ``bench/locality.py`` share it.
 """
 
@@ -150,8 +151,12 @@ def measure(k: int, *, seed: int = 0, background: bool = True) -> list[Step]:
         raise RuntimeError(f"deployment failed: {failed[0].error}")
     via = _placement(sim)["s1"]  # a client asks a node of the app
     chain = _chain_of(sim, via, "a")
+    mid = k // 2
+    off = f"G{mid - 2}_{mid - 2}"  # a neighbour of s1's node away from the chain's route
+    relocation = _step(sim, "relocation", via, m.RelocateRequest(APP, "a", "downstream"))
+    _step(sim, "detour", via, m.RelocateRequest(APP, "a", target=off))  # (not measured)
     return [
-        _step(sim, "relocation", via, m.RelocateRequest(APP, "a", "downstream")),
+        relocation,
         _step(sim, "chain remap", via, m.RemapRequest(APP, [chain])),
         _step(sim, "global remap", via, m.RemapRequest(APP, [], everything=True)),
     ]
