@@ -8,8 +8,9 @@ then a sink: ``s1-a-j``, ``s2-b-j``, ``j-c-sink``) near the grid's centre, plus 
 apps of 4 vertices spread over the grid, with management rules off (nothing moves unasked).
 Then, one at a time and each to quiescence, it relocates ``a`` downstream, moves it off the
 chain's route (unmeasured: a remap keeps a chain where it runs unless its nodes are off the
-probed route or the new plan saves enough), remaps ``a``'s chain and remaps the whole app, and reads each one's episode from the simulator's census
-(:mod:`mso.sim.census`). The test suite and ``bench/locality.py`` share it.
+probed route or the new plan saves enough), remaps ``a``'s chain and remaps the whole app,
+and reads each one's episode from the simulator's census (:mod:`mso.sim.census`). The test
+suite and ``bench/locality.py`` share it.
 """
 
 from __future__ import annotations
