@@ -19,6 +19,7 @@ from mso.dashboard.server import Dashboard
 from mso.emu.controller import Emulator
 from mso.emu.overlays import state_file
 from mso.scenario import loads_scenario
+from waits import patience
 
 EXAMPLES = Path(mso.examples.__file__).parent  # the bundled app and scenario files
 KEY = "dashboard-test-overlay-key-4f1c"
@@ -46,7 +47,7 @@ class LiveDashboard:
         self, check: Callable[[dict[str, Any]], bool], timeout: float = 15.0
     ) -> dict[str, Any]:
         """The first view (polled each update) for which ``check`` holds."""
-        deadline = time.monotonic() + timeout
+        deadline = time.monotonic() + patience(timeout)
         while True:
             view = self.view()
             if view.get("apps") and check(view):

@@ -17,6 +17,8 @@ from typing import Any
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
+from waits import patience
+
 STORE = get_typestore(Stores.ROS2_JAZZY)
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
 
@@ -66,7 +68,7 @@ def tokens(session: Any, prefix: str = "@ros2_lv/0/**") -> list[str]:
 
 
 def wait_for(check: Callable[[], bool], timeout: float = 10.0) -> bool:
-    end = time.monotonic() + timeout
+    end = time.monotonic() + patience(timeout)
     while time.monotonic() < end:
         if check():
             return True

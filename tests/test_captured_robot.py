@@ -24,6 +24,7 @@ from mso.protocol.effects import Send
 from mso.protocol.framing import FrameCodec
 from mso.sim.runner import Simulation
 from runtime_vertices import pipe_app
+from waits import patience
 
 OPERATOR = Signer()
 ROGUE = Signer()  # a key of the robot's own: no node knows it
@@ -198,7 +199,7 @@ async def status(port: int, node: str) -> dict[str, Any]:
 
 async def until(check: Any, what: str, timeout: float = 20.0) -> None:
     loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
+    deadline = loop.time() + patience(timeout)
     while not await check():
         assert loop.time() < deadline, f"timed out waiting for {what}"
         await asyncio.sleep(0.05)

@@ -14,6 +14,7 @@ from click.testing import CliRunner
 
 from mso.cli import main
 from mso.emu.overlays import running_overlays, state_file
+from waits import patience
 
 TESTS = Path(__file__).resolve().parent
 
@@ -67,7 +68,7 @@ def test_emulate_then_drive_it_from_another_terminal(tmp_path: Path) -> None:
     )
     try:
         assert emu.stdout is not None
-        deadline = time.monotonic() + 20
+        deadline = time.monotonic() + patience(20)
         seen = ""
         while "deployed pipe" not in seen and time.monotonic() < deadline:
             seen += emu.stdout.readline()

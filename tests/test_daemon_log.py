@@ -24,6 +24,7 @@ from mso.protocol import messages as m
 from mso.protocol.events import Happened
 from mso.sim.runner import Simulation
 from test_runtime_sim import PIPE, deploy, line
+from waits import patience
 
 
 def test_the_core_reports_deploys_moves_and_failures_for_its_driver_to_log() -> None:
@@ -126,7 +127,7 @@ def test_mso_node_logs_start_deploy_a_move_and_its_stop_on_sigterm(tmp_path: Pat
     app.write_text(PIPE.replace("pinned: N4", "pinned: N2"))
     try:
         overlay = Overlay(f"127.0.0.1:{ports[0]}", timeout=30.0)
-        deadline = time.monotonic() + 60.0
+        deadline = time.monotonic() + patience(60.0)
         while True:  # until both listen and N1 has its peer (a loaded machine: seconds)
             try:
                 if "N2" in overlay.status(everywhere=True):

@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+from waits import patience
+
 LINE = "name: orphans\nnodes: {N1: {}, N2: {}, N3: {}}\nlinks: [[N1, N2], [N2, N3]]\n"
 
 
@@ -55,7 +57,7 @@ def test_nodes_stop_when_their_emulator_is_killed(tmp_path: Path) -> None:
         assert len(nodes) == 3, nodes
         emu.send_signal(signal.SIGKILL)
         emu.wait(10)
-        deadline = time.monotonic() + 15.0
+        deadline = time.monotonic() + patience(15.0)
         while any(map(_running, nodes)) and time.monotonic() < deadline:
             time.sleep(0.1)  # polling processes: there is no event to wait on
         assert not [p for p in nodes if _running(p)]

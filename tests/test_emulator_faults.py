@@ -23,6 +23,7 @@ from mso.emu.faultplay import random_sequence
 from mso.errors import MsoError
 from mso.scenario import loads_scenario
 from runtime_vertices import pipe_app
+from waits import patience
 
 TESTS = Path(__file__).resolve().parent
 
@@ -63,13 +64,13 @@ class Told:
                 self._changed.clear()
                 await self._changed.wait()
 
-        return await asyncio.wait_for(seen(), timeout)
+        return await asyncio.wait_for(seen(), patience(timeout))
 
 
 async def answering(emu: Emulator, timeout: float = 20.0) -> dict[str, Any]:
     """The status once every node answers it (nodes that restarted rejoin in a moment)."""
     loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
+    deadline = loop.time() + patience(timeout)
     while True:
         nodes = await emu.status()
         if sorted(nodes) == sorted(emu.nodes) or loop.time() > deadline:

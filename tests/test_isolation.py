@@ -13,6 +13,7 @@ import pytest
 
 from mso.errors import AppError
 from mso.model.appfile import loads_app
+from waits import patience
 
 TESTS = Path(__file__).resolve().parent
 LINE3 = "name: l3\nnodes: {N1: {}, N2: {}, N3: {}}\nlinks: [[N1, N2], [N2, N3]]\n"
@@ -34,9 +35,9 @@ def _vertices_importable(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 async def _wait_for(emu: Any, check: Any, period: float = 0.1) -> dict[str, Any]:
-    """The overlay's status once ``check`` holds (or after 20 s: the asserts then say why)."""
+    """The overlay's status once ``check`` holds (or at the deadline: asserts say why)."""
     loop = asyncio.get_running_loop()
-    deadline = loop.time() + 20.0
+    deadline = loop.time() + patience(20.0)
     while True:  # bounded poll of the overlay's status
         st: dict[str, Any] = await emu.status()
         if check(st) or loop.time() > deadline:

@@ -18,6 +18,7 @@ from mso.cli import main
 from mso.emu.controller import Emulator
 from mso.node.metrics import render
 from mso.scenario import loads_scenario
+from waits import patience
 
 TESTS = Path(__file__).resolve().parent
 
@@ -107,7 +108,7 @@ def test_every_node_serves_its_metrics(node_pythonpath: None) -> None:
         try:
             reply = await emu.deploy(APP, "duo.yaml", "N1")
             assert reply.ok, reply.error
-            deadline = time.monotonic() + 20
+            deadline = time.monotonic() + patience(20)
             while True:  # until the sink has something to count
                 got = {
                     n: parse(await asyncio.to_thread(

@@ -20,6 +20,7 @@ import pytest
 from mso.emu.netns.testbed import namespaces, prefix
 from mso.scenario import loads_scenario
 from runtime_vertices import pipe_app
+from waits import patience
 
 TESTS = Path(__file__).resolve().parent
 APP = pipe_app(100)  # mid declares its output: the sink gets Num events and checks their order
@@ -106,7 +107,7 @@ async def until(
     from mso.client import NodeUnreachable
 
     loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
+    deadline = loop.time() + patience(timeout)
     got: dict[str, Any] = {}
     while True:
         try:

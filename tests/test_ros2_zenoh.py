@@ -26,6 +26,7 @@ from ros2_helpers import (
     tokens,
     wait_for,
 )
+from waits import patience
 
 String = struct_for("std_msgs/msg/String")
 
@@ -45,7 +46,7 @@ def net() -> Iterator[tuple[str, Any]]:
 
 def drain(sub: Subscriber, want: int, timeout: float = 10.0) -> list[Any]:
     out: list[Any] = []
-    end = time.monotonic() + timeout
+    end = time.monotonic() + patience(timeout)
     while len(out) < want and time.monotonic() < end:
         ev = next(sub)
         if ev is not None:

@@ -10,6 +10,8 @@ from typing import Any
 
 import pytest
 
+from waits import patience
+
 TESTS = Path(__file__).resolve().parent
 LINE3 = "name: l3\nnodes: {N1: {}, N2: {}, N3: {}}\nlinks: [[N1, N2], [N2, N3]]\n"
 APP = """
@@ -38,7 +40,7 @@ def test_a_slow_import_does_not_get_a_node_declared_failed(
             reply = await emu.deploy(APP, "slow.yaml", "N1")
             assert reply.ok, reply.error
             loop = asyncio.get_running_loop()
-            deadline = loop.time() + 20.0
+            deadline = loop.time() + patience(20.0)
             status: dict[str, Any] = {}
             while loop.time() < deadline:  # bounded poll until events reach the sink
                 status = await emu.status()
