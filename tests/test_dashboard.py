@@ -110,7 +110,7 @@ def test_tracker_failed_and_silent_nodes() -> None:
     nodes = status({"src": "N1", "mid": "N1", "sink": "N2"}, 0, failed=["N3"])
     view = tr.update(nodes, 1.0, positions={"N1": (0.0, 0.0)}, expected=["N1", "N2", "N3"])
     n3 = next(n for n in view["nodes"] if n["id"] == "N3")
-    assert n3 == {"id": "N3", "answered": False, "failed": True, "pos": None}
+    assert n3 == {"id": "N3", "answered": False, "failed": True, "unreachable": False, "pos": None}
     assert view["nodes"][0]["pos"] == [0.0, 0.0]
     assert view["failed"] == ["N3"]
     assert [e["what"] for e in view["timeline"]] == ["N3 failed"]

@@ -121,3 +121,49 @@ def test_a_node_that_hears_the_victim_refuses_the_claim() -> None:
     core.receive("N3", m.Heartbeat("N3", 5), 1.0)
     core.receive("N2", m.NodeDown("N3", "N2", 5, "N4"), 1.05)
     assert core.failed == set() and core.refusals["node_down_heard"] == 1
+
+
+def test_status_and_the_dashboard_show_an_unreachable_node_apart_from_the_failed() -> None:
+    """N6 out of N1's reach (and N1 of N6's) while both run: `mso status` and the dashboard
+    say unreachable, from whom, and never failed; once the routes are back, neither says it."""
+    from mso.dashboard.view import Tracker
+    from mso.statusview import status_text
+
+    sim = started(PIPE)
+    sim.lose_route("N1", "N6")
+    sim.lose_route("N6", "N1")
+    sim.run_until(sim.now + 2.0)
+    nodes = {n: c.status(sim.now) for n, c in sim.cores.items()}
+    text = status_text(nodes)
+    assert "failed nodes" not in text
+    (line,) = [ln for ln in text.splitlines() if ln.startswith("unreachable nodes")]
+    assert line.endswith(": N1 (from N6), N6 (from N1)"), line
+    view = Tracker(t0=0.0).update(nodes, 1.0)
+    assert view["failed"] == [] and view["unreachable"] == ["N1", "N6"]
+    assert [n["id"] for n in view["nodes"] if n["unreachable"]] == ["N1", "N6"]
+    sim.lose_route("N1", "N6", lost=False)
+    sim.lose_route("N6", "N1", lost=False)
+    sim.run_until(sim.now + 1.0)
+    text = status_text({n: c.status(sim.now) for n, c in sim.cores.items()})
+    assert "unreachable" not in text and "failed nodes" not in text
+
+
+def test_the_checker_catches_a_node_held_failed_while_it_is_heard() -> None:
+    """The fault runs' invariant "no node held failed while it is heard": N1 made to hold N6
+    failed, with N6's beats to N1 lost so that nothing corrects it, is caught once the two
+    have reached each other for longer than the grace; a node out of reach is not."""
+    from mso.protocol.procedures.membership.detector import PeerEvent
+    from mso.sim.invariants import HEARD_GRACE_S, HeldFailed
+
+    sim = started(PIPE)
+    held = HeldFailed()
+    sim.drop = lambda src, dst, msg: src == "N6" and dst == "N1"
+    sim.cores["N1"].membership._move("N6", PeerEvent.CONFIRMED)  # a hand-broken table
+    assert held.check(sim) == []
+    sim.run_until(sim.now + HEARD_GRACE_S / 2)
+    assert held.check(sim) == []
+    sim.run_until(sim.now + HEARD_GRACE_S)
+    (v,) = held.check(sim)
+    assert v.invariant == "held-failed" and v.detail.startswith("N1 holds N6 failed"), v
+    sim.lose_route("N1", "N6")  # out of reach: unreachable may be held failed (not heard)
+    assert held.check(sim) == []

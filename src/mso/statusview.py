@@ -142,12 +142,16 @@ def status_text(nodes: dict[str, Any]) -> str:
         table.add_column(col, justify="left" if col in ("node", "neighbours") else "right")
     apps: dict[str, dict[str, Any]] = {}
     failed: set[str] = set()
+    # out of some node's reach, declared failed by nobody: its instances presumed running
+    unreachable: dict[str, list[str]] = {}  # node -> the nodes that cannot reach it
     rejoined: dict[str, int] = {}  # node -> latest incarnation it came back as
     decisions: list[str] = []
     moves: list[str] = []
     for nid in sorted(nodes):
         st = nodes[nid]
         failed.update(st.get("failed_nodes", []))
+        for n in st.get("unreachable_nodes", []):
+            unreachable.setdefault(n, []).append(nid)
         for r in st.get("rejoins", []):
             rejoined[r["node"]] = max(rejoined.get(r["node"], 0), int(r["incarnation"]))
         clock = st.get("clock")
@@ -196,6 +200,12 @@ def status_text(nodes: dict[str, Any]) -> str:
     out.append(str(table))
     if failed:
         out.append(f"failed nodes: {', '.join(sorted(failed))}")
+    if cut := {n: by for n, by in unreachable.items() if n not in failed}:
+        held = ", ".join(f"{n} (from {', '.join(by)})" for n, by in sorted(cut.items()))
+        out.append(
+            "unreachable nodes (out of reach, not failed: instances presumed running, edges "
+            f"buffering): {held}"
+        )
     if rejoined:
         out.append(
             "rejoined (restarted or back from a partition, as a new incarnation): "

@@ -139,9 +139,11 @@ class Tracker:
         prev_at, prev = self._history[0] if self._history else (now, {})
         dt = now - prev_at
         failed: set[str] = set()
+        unreachable: set[str] = set()  # out of some node's reach, failed by nobody
         rejoined: dict[str, int] = {}
         for nid, st in sorted(nodes.items()):
             failed.update(st.get("failed_nodes", []))
+            unreachable.update(st.get("unreachable_nodes", []))
             for f in st.get("failures", []):
                 self._once(("failure", f["node"]), now, "failure", f"{f['node']} failed",
                            f"detected by {f['detector']}")  # fmt: skip
@@ -163,7 +165,8 @@ class Tracker:
                                    "relocation", f"rule on {nid}: {why}", None)  # fmt: skip
                 else:
                     self._once(("rule", nid, d), now, "rule", f"{nid}: {what}", why)
-        nodes_out = self._nodes(nodes, prev, dt, failed, rejoined, positions, expected)
+        unreachable -= failed
+        nodes_out = self._nodes(nodes, prev, dt, failed, unreachable, rejoined, positions, expected)
         apps = self._apps(nodes, prev, dt, now)
         links = sorted(
             {tuple(sorted((nid, n))) for nid, st in nodes.items() for n in st.get("neighbours", [])}
@@ -176,6 +179,7 @@ class Tracker:
             "routes": {nid: st.get("routes", {}) for nid, st in sorted(nodes.items())},
             "apps": apps,
             "failed": sorted(failed),
+            "unreachable": sorted(unreachable),
             "rejoined": rejoined,
             "timeline": [e.as_dict() for e in reversed(self.timeline)],
         }
@@ -193,6 +197,7 @@ class Tracker:
         prev: dict[str, Any],
         dt: float,
         failed: set[str],
+        unreachable: set[str],
         rejoined: dict[str, int],
         positions: dict[str, tuple[float, float]] | None,
         expected: list[str] | None,
@@ -208,6 +213,7 @@ class Tracker:
             pos = (positions or {}).get(nid)
             if st is None:
                 out.append({"id": nid, "answered": False, "failed": nid in failed,
+                            "unreachable": nid in unreachable,
                             "pos": list(pos) if pos else None})  # fmt: skip
                 continue
             mon = st.get("monitor", {})
@@ -223,6 +229,7 @@ class Tracker:
                     "id": nid,
                     "answered": True,
                     "failed": nid in failed,
+                    "unreachable": nid in unreachable,
                     "rejoined": rejoined.get(nid),
                     "parked": nid in parked_on,
                     "pos": list(pos) if pos else None,

@@ -40,7 +40,13 @@ from mso.scenario.format import (
 )
 from mso.scenario.timeline import Timeline
 from mso.sim import vertices
-from mso.sim.invariants import STATUS_CLIENT, Violation, check, check_procedures
+from mso.sim.invariants import (
+    STATUS_CLIENT,
+    HeldFailed,
+    Violation,
+    check,
+    check_procedures,
+)
 from mso.sim.play import Call, drive
 from mso.sim.runner import Simulation
 from mso.sim.schedule import Schedule, Settings
@@ -268,8 +274,11 @@ def run(seed: int, settings: Settings | None = None) -> Result:
     for at, node, msg in sched.requests:
         calls.append(request(at, node, msg))
 
+    held = HeldFailed()
+
     def deadlines(s: Simulation) -> None:
         violations.extend(check_procedures(s))
+        violations.extend(held.check(s))
 
     calls += [(k * 0.5, deadlines) for k in range(1, int(sched.end / 0.5))]
     sim.request("N1", m.DeployRequest(sched.app, f"faults-{seed}.yaml"))

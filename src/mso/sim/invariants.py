@@ -30,6 +30,10 @@ names its invariant, so a benchmark can count them by kind and a failing seed sa
   moved, since its replay may interleave its inputs otherwise than the lost instance did while
   its output is numbered from the acknowledged positions, so its consumer can drop a new event
   as a duplicate (seed 30 of the extended schedules: one event of 80);
+- ``held-failed``: a live node held failed by another while the two have routes to each other
+  (it is heard) for longer than ``HEARD_GRACE_S`` — unreachable is not failed, and a node
+  declared failed that is heard again rejoins or resets within a few beats (checked
+  periodically during the run by :class:`HeldFailed`);
 - ``deadline`` / ``illegal-transition``: a procedure outlived its deadline, or the core counted
   an illegal state transition (when the core reports these);
 - ``exception``: a node core raised (the run stops there; recorded by ``mso.sim.faults``).
@@ -38,7 +42,7 @@ names its invariant, so a benchmark can count them by kind and a failing seed sa
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from mso.protocol import messages as m
@@ -50,6 +54,9 @@ from mso.sim.vertices import SinkRecord
 APP = "faults"
 STATUS_CLIENT = 3  # the client id the fault run asks status with
 DEADLINE_SLACK_S = 1e-3  # a procedure's own expiry timer fires at its deadline
+# how long a node may hold a live node it has routes with failed: a heal's rejoin beat comes
+# every REJOIN_EVERY heartbeat periods (1 s), then a reset and a sync
+HEARD_GRACE_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -80,6 +87,43 @@ def check_procedures(sim: Simulation) -> list[Violation]:
         if illegal:
             out.append(Violation("illegal-transition", f"{n} counted {illegal}"))
     return out
+
+
+@dataclass
+class HeldFailed:
+    """ "No node held failed while it is heard", checked at moments of the run: each pair
+    (holder, held) with the held node live and routes both ways, since when it was seen so."""
+
+    since: dict[tuple[str, str], float] = field(default_factory=dict)
+
+    def check(self, sim: Simulation) -> list[Violation]:
+        out: list[Violation] = []
+        seen: dict[tuple[str, str], float] = {}
+        for a, core in sorted(sim.cores.items()):
+            if a in sim.killed:
+                continue
+            for b in sorted(core.failed):
+                if b in sim.killed or not _joined(sim, a, b):
+                    continue
+                at = seen[(a, b)] = self.since.get((a, b), sim.now)
+                if sim.now - at > HEARD_GRACE_S:
+                    out.append(
+                        Violation("held-failed", f"{a} holds {b} failed since {at:.3f} though "
+                                  f"they reach each other (at {sim.now:.3f})")
+                    )  # fmt: skip
+        self.since = seen
+        return out
+
+
+def _joined(sim: Simulation, a: str, b: str) -> bool:
+    """``a`` and ``b`` have routes to each other (what they send arrives: b is heard)."""
+    lost = sim.lost_routes
+    return (
+        (a, b) not in lost
+        and (b, a) not in lost
+        and sim.network.route(a, b) is not None
+        and sim.network.route(b, a) is not None
+    )
 
 
 def check(sim: Simulation, sched: Schedule, records: list[SinkRecord]) -> list[Violation]:

@@ -104,10 +104,10 @@ function drawTopology(v) {
     const p = pos[n.id];
     if (!p) continue;
     const g = el("svg:g", { "data-node": n.id, cls: "node" });
-    const stroke = n.failed ? "#c62828" : n.parked ? "#b26a00" : "#374151";
-    g.append(el("svg:circle", { cx: p[0], cy: p[1], r: 24, fill: n.answered ? batteryColour(n.battery) : "#e5e7eb", stroke, "stroke-width": n.failed ? 4 : 2, "stroke-dasharray": n.answered ? null : "4 3" }));
+    const stroke = n.failed ? "#c62828" : n.unreachable ? "#6b7280" : n.parked ? "#b26a00" : "#374151";
+    g.append(el("svg:circle", { cx: p[0], cy: p[1], r: 24, fill: n.answered ? batteryColour(n.battery) : "#e5e7eb", stroke, "stroke-width": n.failed ? 4 : 2, "stroke-dasharray": n.answered && !n.unreachable ? null : "4 3" }));
     g.append(el("svg:text", { x: p[0], y: p[1] + 5, "text-anchor": "middle", cls: "node-label", text: n.id }));
-    const sub = !n.answered ? (n.failed ? "failed" : "silent")
+    const sub = !n.answered ? (n.failed ? "failed" : n.unreachable ? "unreachable" : "silent")
       : `${n.battery === null ? "wall" : Math.round(n.battery * 100) + "%"} · ${fmt(n.drain_w, 2)} W`;
     g.append(el("svg:text", { x: p[0], y: p[1] - 32, "text-anchor": "middle", cls: "node-sub", text: sub }));
     (n.vertices || []).forEach((vx, i) => {
@@ -126,6 +126,7 @@ function drawNodes(v) {
   const rows = v.nodes.map((n) => {
     let state = "up", cls = "";
     if (n.failed) { state = "failed"; cls = "state-failed"; }
+    else if (n.unreachable) { state = "unreachable (presumed running)"; cls = "state-silent"; }
     else if (!n.answered) { state = "silent"; cls = "state-silent"; }
     else if (n.parked) { state = "parked chain"; cls = "state-parked"; }
     if (n.rejoined) { state += ` (rejoined, incarnation ${n.rejoined})`; cls = cls || "state-rejoined"; }
