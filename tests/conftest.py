@@ -50,3 +50,35 @@ def _convoy_log_in_pytests_tmp(tmp_path_factory: pytest.TempPathFactory) -> Iter
     yield
     if old is None:
         os.environ.pop("MSO_CONVOY_DB", None)
+
+
+# Modules whose tests start node processes (an emulator), a netns testbed, Ray or a browser:
+# seconds each, most of the suite's time. `pytest -m "not slow"` leaves them out while working;
+# `make test` and CI run them. A test elsewhere that starts processes takes @pytest.mark.slow.
+SLOW_MODULES = frozenset(
+    {
+        "test_cli_live",
+        "test_convoy_emulated",
+        "test_daemon_log",
+        "test_emulate_keys",
+        "test_emulator",
+        "test_emulator_cleanup",
+        "test_emulator_faults",
+        "test_heavy_vertex",
+        "test_isolation",
+        "test_lifetime_study",
+        "test_metrics",
+        "test_netns",
+        "test_overlays",
+        "test_ros2_emulated",
+        "test_slow_import",
+        "test_sweep",
+    }
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark the end-to-end modules' tests ``slow`` (see SLOW_MODULES)."""
+    for item in items:
+        if item.path.stem in SLOW_MODULES:
+            item.add_marker(pytest.mark.slow)

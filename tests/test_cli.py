@@ -62,6 +62,7 @@ def test_minimal_yaml_is_enough_for_planning(tmp_path: Path) -> None:
     assert json.loads(out)["placement"] == {"A": "N1", "B": "N1"}
 
 
+@pytest.mark.slow
 def test_demo_prints_chains_and_placement_and_runs_the_app() -> None:
     code, out, _ = run("demo", "--duration", "6")
     assert code == 0

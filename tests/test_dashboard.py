@@ -221,6 +221,7 @@ def system_chromium() -> Path:
     return CHROMIUM
 
 
+@pytest.mark.slow
 def test_dashboard_in_a_real_browser(live: LiveDashboard) -> None:
     """Headless Chromium loads the page, sees every node and chain, relocates a vertex with
     the controls and sees its mapping change; the screenshot is kept as a test artefact."""
