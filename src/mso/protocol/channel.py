@@ -290,6 +290,14 @@ class OutChannel:
             self.retentions[owner] = max(self.retentions[owner], min(upto, self.next_seq))
         self._trim()
 
+    def rewind(self, to: int) -> None:
+        """Count the events from ``to`` on as unacknowledged again (they must still be kept):
+        a replacement that starts from a replica's snapshot gets them resent until it
+        acknowledges them itself."""
+        if not self.base <= to <= self.acked:
+            raise ValueError(f"cannot rewind to {to}: events {self.base}..{self.acked} are kept")
+        self.acked = to
+
     def retained(self, owner: Hashable) -> tuple[int, list[bytes]] | None:
         """``(first seq, events)`` that ``owner`` retains (to replay them), or None."""
         start = self.retentions.get(owner)
