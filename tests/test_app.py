@@ -542,7 +542,7 @@ def test_unknown_attribute_vertex_level() -> None:
     assert_at(err, 5, "vertices.A.costs", "unknown attribute 'costs'")
     expected = (
         "apart_from, code, cost, get_state, input, isolation, near, output, params, pinned, "
-        "rate, requires, set_state"
+        "rate, replicas, requires, set_state, snapshot_events, snapshot_s"
     )
     assert expected in err.message
 

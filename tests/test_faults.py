@@ -120,6 +120,10 @@ FIXED: dict[int, str] = {
     4751: "a node restarted across a partition, given instances there, was taken as empty",
     1665: "a partition healed while some of the larger side still asked about the cut-off "
     "node: those that had not declared it reset for it, and the app was gone everywhere",
+    283: "a restore rewound its producer's ack, and a later restore took that ack with the "
+    "old positions: events twice",
+    497: "a replacement started from a snapshot behind what its consumer, replaced too, had "
+    "passed on: events twice",
 }
 
 

@@ -74,6 +74,7 @@ APP_KEYS = [
     "vertices",
     "edges",
     "capable",
+    "replication",
 ]
 VERTEX_KEYS = [
     "kind",

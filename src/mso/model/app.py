@@ -47,6 +47,12 @@ class Vertex:
     requires: dict[str, float] = field(default_factory=dict)
     near: str | None = None
     apart_from: str | None = None
+    # chain replication of its state (docs/architecture.md): how many other nodes hold a
+    # snapshot of it (None: 1 if the vertex has state, else 0), taken every ``snapshot_events``
+    # events processed or ``snapshot_s`` seconds, whichever comes first
+    replicas: int | None = None
+    snapshot_events: int = 100
+    snapshot_s: float = 5.0
 
     @property
     def constrained(self) -> bool:
@@ -55,6 +61,9 @@ class Vertex:
 
 
 ISOLATIONS = ("thread", "process")
+MAX_REPLICAS = 2
+MAX_SNAPSHOT_EVENTS = 1_000_000
+MAX_SNAPSHOT_S = 3600.0
 
 PLANNERS = ("paper", "bytes")
 """How Algorithm 1 splits a chain along its probed route (``mso.planning.placement``):
@@ -119,6 +128,9 @@ class App:
         requires: Any = None,
         near: str | None = None,
         apart_from: str | None = None,
+        replicas: int | None = None,
+        snapshot_events: int = 100,
+        snapshot_s: float = 5.0,
     ) -> Vertex:
         """Add a vertex; a duplicate id or a bad value is an AppError at once."""
         if not isinstance(id, str) or not id:
@@ -145,6 +157,9 @@ class App:
             isolation=isolation,
             near=near,
             apart_from=apart_from,
+            replicas=replicas,
+            snapshot_events=snapshot_events,
+            snapshot_s=snapshot_s,
         )
         try:
             v.requires = parse_capabilities(requires, f"vertices.{id}.requires")
@@ -199,6 +214,18 @@ class App:
         has_in, has_out = {e.dst for e in self.edges}, {e.src for e in self.edges}
         names = {(False, True): "source", (True, False): "sink", (True, True): "operator"}
         return {v: names.get((v in has_in, v in has_out), "isolated") for v in self.vertices}
+
+    def replicas(self, vertex: str, kind: str | None = None) -> int:
+        """How many replicas of ``vertex``'s state are kept: its ``replicas``, or by default 1
+        for a vertex with state (state hooks, or a class with ``get_state``) and 0 otherwise.
+        A source keeps none (it has no input to replay after a snapshot). ``kind``: the
+        vertex's, if known (saves a pass over the edges)."""
+        v = self.vertices[vertex]
+        if (kind or self.kind(vertex)) == "source":
+            return 0
+        if v.replicas is not None:
+            return v.replicas
+        return 1 if has_state(v) else 0
 
     def kind(self, vertex: str) -> str:
         return self.kinds()[vertex]
@@ -313,6 +340,15 @@ class App:
         cycle = self.find_cycle()
         if cycle:
             raise self._error(f"the graph has a cycle: {' -> '.join(cycle)}", "edges", ("edges",))
+        kinds = self.kinds()
+        for v in self.vertices.values():
+            if v.replicas and kinds[v.id] == "source":
+                raise self._error(
+                    "a source keeps no replica (there is no input to replay after its "
+                    "snapshot); give replicas to the stateful vertices it feeds",
+                    f"vertices.{v.id}.replicas",
+                    ("vertices", v.id, "replicas"),
+                )
         for i, e in enumerate(self.edges):
             self._check_formats(i, e)
         self.needs()
@@ -507,6 +543,7 @@ def _check_vertex_values(v: Vertex, error: Callable[..., AppError]) -> None:
                 f"vertices.{v.id}.{attr}",
                 (*base, attr),
             )
+    _check_replication(v, error)
     for attr in ("code", "get_state", "set_state"):
         value = getattr(v, attr)
         if value is not None and not (isinstance(value, str) or callable(value)):
@@ -515,6 +552,48 @@ def _check_vertex_values(v: Vertex, error: Callable[..., AppError]) -> None:
                 f"vertices.{v.id}.{attr}",
                 (*base, attr),
             )
+
+
+def _check_replication(v: Vertex, error: Callable[..., AppError]) -> None:
+    base = ("vertices", v.id)
+    r = v.replicas
+    if r is not None and (
+        isinstance(r, bool) or not isinstance(r, int) or not 0 <= r <= MAX_REPLICAS
+    ):
+        raise error(
+            f"expected 0, 1 or {MAX_REPLICAS} replicas, got {r!r}",
+            f"vertices.{v.id}.replicas",
+            (*base, "replicas"),
+        )
+    n = v.snapshot_events
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_SNAPSHOT_EVENTS:
+        raise error(
+            f"expected a whole number of events from 1 to {MAX_SNAPSHOT_EVENTS}, got {n!r}",
+            f"vertices.{v.id}.snapshot_events",
+            (*base, "snapshot_events"),
+        )
+    t = v.snapshot_s
+    if not _is_number(t) or not 0.01 <= t <= MAX_SNAPSHOT_S:
+        raise error(
+            f"expected a number of seconds from 0.01 to {MAX_SNAPSHOT_S:g}, got {t!r}",
+            f"vertices.{v.id}.snapshot_s",
+            (*base, "snapshot_s"),
+        )
+
+
+def has_state(v: Vertex) -> bool:
+    """The vertex keeps state across events: it names state hooks, or its code is a class
+    with a ``get_state`` method (an import path is looked up; one that does not resolve
+    has no state here: validation reports it)."""
+    if v.get_state is not None:
+        return True
+    code: Any = v.code
+    if isinstance(code, str):
+        try:
+            code = resolve(code)
+        except ImportPathError:
+            return False
+    return isinstance(code, type) and callable(getattr(code, "get_state", None))
 
 
 def _kahn(vertices: Iterable[str], edges: list[Edge]) -> list[str]:

@@ -27,6 +27,9 @@ VERTEX_KEYS = {
     "requires",
     "near",
     "apart_from",
+    "replicas",
+    "snapshot_events",
+    "snapshot_s",
 }
 EDGE_KEYS = {"from", "to", "format", "size", *QOS_KEYS}
 # an app document travels to every node, which loads and places it on its control plane: a

@@ -59,9 +59,11 @@ from mso.protocol.events import (
     RecoveryDue,
     RelocationEnded,
     ReplacementPrepared,
+    ReplicationTick,
     Retransmit,
     Retry,
     RoutesChanged,
+    SnapshotAligned,
     Snapshotted,
     SourceTick,
 )
@@ -74,6 +76,7 @@ from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S, HEARTBEAT_
 from mso.protocol.procedures.membership.peers import MONITOR_PERIOD_S, Membership
 from mso.protocol.procedures.relocation import Relocation, Relocator
 from mso.protocol.procedures.remap import Remap, Remapper
+from mso.protocol.procedures.replication import Replicator
 from mso.protocol.procedures.restore import Restorer
 from mso.protocol.procedures.status import StatusFanout
 from mso.protocol.spill import MemorySpill, SpillStore
@@ -161,6 +164,7 @@ class NodeCore:
         self.deployer = Deployer(self, dp, self.manager)
         self.relocator = Relocator(self, dp)
         self.restorer = Restorer(self, dp, self.relocator)
+        self.replicator = Replicator(self, dp)
         self.remapper = Remapper(self, dp, self.relocator)
         self.lookups = Lookups(self, self.relocator, self.remapper)
         liveness = Liveness(heartbeat_s, dead_after_s)
@@ -172,9 +176,16 @@ class NodeCore:
         self._subscribe(InstanceFailed, self.relocator.on_instance_failed)
         self._subscribe(InstanceFailed, self.deployer.on_instance_failed)
         self._subscribe(InstanceCrashed, self.restorer.on_instance_crashed)
+        self._subscribe(InstanceReady, self.replicator.on_instance_ready)
+        # (the replacement's state is asked for before it is judged ready to run)
+        self._subscribe(ReplacementPrepared, self.replicator.on_replacement_prepared)
         self._subscribe(ReplacementPrepared, self.restorer.on_replacement_prepared)
         self._subscribe(MarkerReached, self.relocator.on_marker_reached)
         self._subscribe(Snapshotted, self.relocator.on_snapshotted)
+        self._subscribe(Snapshotted, self.replicator.on_snapshotted)
+        self._subscribe(SnapshotAligned, self.replicator.on_aligned)
+        self._subscribe(PeerFailed, self.replicator.on_peer_failed)
+        self._subscribe(NodeReset, lambda ev: self.replicator.on_reset())
         self._subscribe(RelocationEnded, self.restorer.on_relocation_ended)
         self._subscribe(RelocationEnded, self.remapper.on_relocation_ended)
         self._subscribe(PeerFailed, self.relocator.on_peer_failed)
@@ -234,6 +245,12 @@ class NodeCore:
             m.Moved: lambda src, msg, now: placement.on_moved(self, msg, now),
             m.Rewire: lambda src, msg, now: res.on_rewire(msg, now),
             m.Resume: lambda src, msg, now: res.on_resume(msg, now),
+            m.Replicate: lambda src, msg, now: self.replicator.on_replicate(src, msg),
+            m.ReplicaAck: lambda src, msg, now: self.replicator.on_replica_ack(src, msg),
+            m.Release: lambda src, msg, now: self.replicator.on_release(msg),
+            m.Replay: lambda src, msg, now: self.replicator.on_replay(msg),
+            m.ReplicaSet: lambda src, msg, now: self.replicator.on_replica_set(src, msg),
+            m.FetchReplica: lambda src, msg, now: self.replicator.on_fetch(src, msg),
             m.Heartbeat: mem.on_heartbeat,
             m.NodeDown: lambda src, msg, now: mem.on_node_down(
                 msg.node, msg.detector, now, msg.incarnation, msg.witness
@@ -264,6 +281,7 @@ class NodeCore:
             MonitorTick: self._on_monitor_tick,
             HeartbeatTick: lambda key, now: mem.heartbeat(now),
             RecoverTick: rem.on_recover_tick,
+            ReplicationTick: self.replicator.tick,
         }
         # a procedure's step not answered in time: asked again (or given up)
         self._retries: dict[type, Callable[[Retry, float], None]] = {
@@ -567,6 +585,11 @@ class NodeCore:
         out = list(self._happened)
         self._happened.clear()
         return out
+
+    def subscribe(self, kind: type[E], handle: Callable[[E], None]) -> None:
+        """Hear internal events of ``kind`` too (a simulator keeping what happened, a test);
+        called as the components' handlers are, after them."""
+        self._subscribe(kind, handle)
 
     def _subscribe(self, kind: type[E], handle: Callable[[E], None]) -> None:
         self._subscribers.setdefault(kind, []).append(handle)

@@ -30,19 +30,23 @@ from mso.protocol.events import (
     InstanceReady,
     MarkerReached,
     Retransmit,
+    SnapshotAligned,
     Snapshotted,
     SourceTick,
 )
 from mso.protocol.forward import MAX_BATCH_BYTES, StoreAndForward
 from mso.protocol.forward import RETRANSMIT_S as RETRANSMIT_S  # (where procedures read it)
 from mso.protocol.procedures.instance import InstanceEvent
-from mso.protocol.state import AppState, Crashes, HostedInstance
+from mso.protocol.state import SNAPSHOT_MARK, AppState, Crashes, HostedInstance, SnapshotMark
 
 QUEUE_EVENTS = 1024  # events fed to an instance's worker and not processed yet, at most
 FEED_BATCH = 256  # events per feed at most, so markers and stops are not held behind a batch
 SOURCE_RUN = 4096  # calls of a rated source per run at most
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
 DELAY_SMOOTHING = 0.2  # weight of the newest batch in a chain's delay average
+# the retention a replicated consumer's producer keeps: the events after the consumer's newest
+# replicated snapshot (mso.protocol.procedures.replication)
+REPLICA_OWNER = "replica"
 
 
 class DataPlane:
@@ -179,7 +183,14 @@ class DataPlane:
     def out(self, dep: AppState, edge: int) -> OutChannel:
         ch = dep.out.get(edge)
         if ch is None:
-            ch = dep.out[edge] = self.sf.channel(dep, edge)
+            ch = dep.out[edge] = self.channel(dep, edge)
+        return ch
+
+    def channel(self, dep: AppState, edge: int, start: int = 0) -> OutChannel:
+        """A new producer end of ``edge`` numbering from ``start`` (store and forward's), which
+        retains its events for a replicated consumer."""
+        ch = self.sf.channel(dep, edge, start)
+        retain_for_replica(dep, edge, ch)
         return ch
 
     def start_source(self, dep: AppState, vid: str, now: float) -> None:
@@ -320,6 +331,12 @@ class DataPlane:
         h = dep.instances.get(vid)
         while h is not None and h.pending and h.handing_over is None and not h.crashed:
             item = h.pending[0]
+            if isinstance(item, SnapshotMark):  # aligned once everything fed is processed
+                if h.jobs:
+                    return
+                h.pending.popleft()
+                self.ctx.publish(SnapshotAligned(dep.app.name, vid))
+                continue
             if isinstance(item, m.Marker):
                 if h.jobs:
                     return
@@ -374,6 +391,9 @@ class DataPlane:
         h.queued -= res.count
         h.processed += res.count - res.ends
         h.ended = h.ended or res.ended
+        if h.snapshot_at and h.processed >= h.snapshot_at:  # a replication snapshot is due
+            h.snapshot_at = 0
+            h.pending.appendleft(SNAPSHOT_MARK)
         self.work_ms += h.vertex.cost * res.count
         ch = dep.inc.get(edge)
         if ch is None:
@@ -416,7 +436,7 @@ class DataPlane:
         expired ones (lifespan) and all but the newest ``keep_last`` (superseded) are counted
         and acknowledged unfed. True if any were."""
         item = h.pending[0]
-        assert not isinstance(item, m.Marker)
+        assert isinstance(item, tuple)
         edge, events, ts = item
         e, ch = dep.app.edges[edge], dep.inc.get(edge)
         if ch is None:
@@ -431,18 +451,18 @@ class DataPlane:
             return False
         waiting = 0
         for it in h.pending:
-            if isinstance(it, m.Marker):
-                break  # (what follows a marker is the next instance's)
+            if not isinstance(it, tuple):
+                break  # (what follows a marker is the next instance's; a snapshot's, after it)
             if it[0] == edge:
                 waiting += len(it[1])
         extra = waiting - e.keep_last
         if extra <= 0:
             return False
-        kept: list[tuple[int, list[bytes], float] | m.Marker] = []
+        kept: list[tuple[int, list[bytes], float] | m.Marker | SnapshotMark] = []
         left = extra
         while h.pending and left:
             it = h.pending.popleft()
-            if isinstance(it, m.Marker) or it[0] != edge:
+            if not isinstance(it, tuple) or it[0] != edge:
                 kept.append(it)
                 continue
             n = min(left, len(it[1]))
@@ -601,3 +621,10 @@ class DataPlane:
             self.ctx.refusal("marker_of_no_relocation")  # (its state would go nowhere)
             return
         self.enqueue(dep, dst, msg)
+
+
+def retain_for_replica(dep: AppState, edge: int, ch: OutChannel) -> None:
+    """A new channel into a replicated vertex keeps its events from its start until the
+    consumer's replicas hold a snapshot past them (``m.Release``)."""
+    if dep.replicas.get(dep.app.edges[edge].dst):
+        ch.retain(REPLICA_OWNER, ch.next_seq)

@@ -67,7 +67,24 @@ class RecoverTick:
     app: str
 
 
-TimerKey = Deadline | Retry | SourceTick | Retransmit | MonitorTick | HeartbeatTick | RecoverTick
+@dataclass(frozen=True)
+class ReplicationTick:
+    """Chain replication of ``app``'s vertices hosted here: snapshots due by time, replicas
+    that did not acknowledge in time."""
+
+    app: str
+
+
+TimerKey = (
+    Deadline
+    | Retry
+    | SourceTick
+    | Retransmit
+    | MonitorTick
+    | HeartbeatTick
+    | RecoverTick
+    | ReplicationTick
+)
 
 
 # -- internal events -------------------------------------------------------------------------
@@ -147,6 +164,15 @@ class Snapshotted:
 
 
 @dataclass(frozen=True)
+class SnapshotAligned:
+    """A replicated instance has processed everything fed to it before a snapshot was asked
+    for and nothing after: its state and its channel positions agree, take them now."""
+
+    app: str
+    vertex: str
+
+
+@dataclass(frozen=True)
 class RelocationEnded:
     """A relocation or restore this node coordinated ended (``error`` empty: it succeeded,
     ``vertex`` runs on ``target``); whoever started it (a remap, a crash restore) goes on."""
@@ -210,6 +236,7 @@ InternalEvent = (
     | InstanceCrashed
     | MarkerReached
     | Snapshotted
+    | SnapshotAligned
     | RelocationEnded
     | ReplacementPrepared
     | AppMissing

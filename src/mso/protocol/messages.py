@@ -337,6 +337,72 @@ class Resume(_Msg, tag="resume"):
     producer: bool
     start: int
     positions: dict[int, int] = msgspec.field(default_factory=dict)
+    # from a producer that retains the edge's events for a replica (chain replication): the
+    # first one it replays (-1: none retained, it replays from ``start``)
+    retained: int = -1
+
+
+# -- chain replication (mso.protocol.procedures.replication) ----------------------------------
+class Replicate(_Msg, tag="replicate"):
+    """A snapshot of ``vertex``'s state, aligned: taken when it had processed exactly
+    ``inputs`` (edge -> events) and produced ``outputs`` (edge -> [acked, the events not yet
+    acknowledged]). From its host to a replica (``rid`` 0, answered by ``ReplicaAck``), or from
+    a replica to the replacement of a failed host that fetched it (``rid``: the restore)."""
+
+    app: str
+    vertex: str
+    k: int  # the snapshot's number: a replica keeps the newest
+    state: bytes
+    inputs: dict[int, int]
+    outputs: dict[int, tuple[int, list[bytes]]]
+    processed: int = 0
+    emitted: int = 0
+    rid: int = 0
+
+
+class ReplicaAck(_Msg, tag="replica_ack"):
+    """From a replica to the host: snapshot ``k`` of ``vertex`` is held."""
+
+    app: str
+    vertex: str
+    k: int
+
+
+class Release(_Msg, tag="release"):
+    """To an edge's producer, from its consumer's host: a replica holds the consumer's state
+    as of event ``upto``; the events before it need not be retained any more."""
+
+    app: str
+    edge: int
+    upto: int
+
+
+class Replay(_Msg, tag="replay"):
+    """To an edge's producer, from a replacement that starts from a replica's snapshot:
+    send again from ``start`` (the snapshot's position, still retained) as if acknowledged
+    only so far, with ``positions`` (the snapshot's output positions) as that ack's."""
+
+    app: str
+    edge: int
+    start: int
+    positions: dict[int, int] = msgspec.field(default_factory=dict)
+
+
+class ReplicaSet(_Msg, tag="replica_set"):
+    """Broadcast by a replicated vertex's host: the nodes that hold its replicas."""
+
+    app: str
+    vertex: str
+    nodes: list[str]
+
+
+class FetchReplica(_Msg, tag="fetch_replica"):
+    """From a restore's replacement to a replica: send the newest snapshot you hold (a
+    ``Replicate`` with ``rid``; ``k`` -1 and no state if none)."""
+
+    app: str
+    vertex: str
+    rid: int
 
 
 class ChainDelay(_Msg, tag="chain_delay"):
@@ -600,6 +666,12 @@ Message = (
     | NodeDown
     | Rewire
     | Resume
+    | Replicate
+    | ReplicaAck
+    | Release
+    | Replay
+    | ReplicaSet
+    | FetchReplica
     | ChainDelay
     | NodeUp
     | AppSync

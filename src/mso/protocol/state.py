@@ -24,14 +24,64 @@ HUNG_AFTER_S = 10.0  # ... and this long, hung (status only: it never takes the 
 
 
 @dataclass
+class Snapshot:
+    """A replicated vertex's state, aligned with its channels: taken when it had processed
+    exactly ``inputs`` (edge -> events) and produced ``outputs`` (edge -> (acked, the events
+    not yet acknowledged)). Held by its replicas; a replacement starts from it."""
+
+    k: int
+    state: bytes
+    inputs: dict[int, int]
+    outputs: dict[int, tuple[int, list[bytes]]]
+    processed: int = 0
+    emitted: int = 0
+    src: str = ""  # the host it came from
+
+    @property
+    def size(self) -> int:
+        """Bytes it takes on the wire, roughly: the state and the unacknowledged output."""
+        return len(self.state) + sum(len(e) for _, evs in self.outputs.values() for e in evs)
+
+
+class SnapshotMark:
+    """In an instance's pending queue: take a replication snapshot once everything fed
+    before it has been processed (aligned, as a relocation's marker is)."""
+
+
+SNAPSHOT_MARK = SnapshotMark()
+
+
+@dataclass
+class ReplicationCost:
+    """What replicating one vertex hosted here costs and how far its replicas lag (status)."""
+
+    replicas: list[str] = field(default_factory=list)
+    snapshots: int = 0  # acknowledged by every replica
+    bytes_sent: int = 0  # snapshot bytes sent, to every replica
+    last_bytes: int = 0  # of the newest snapshot
+    interval_s: float = 0.0  # between the last two snapshots taken
+    since: float = 0.0  # when this host started replicating it
+    acked_at: float | None = None  # when the newest snapshot was taken (acknowledged since)
+    acked_processed: int = 0  # events it had processed then
+    resent: int = 0  # snapshots sent again (a replica did not acknowledge in time)
+    rereplicated: int = 0  # replicas replaced (failed or silent)
+
+
+@dataclass
 class Restoring:
-    """A replacement instance waiting to hear where each of its surviving edges stands."""
+    """A replacement instance waiting to hear where each of its surviving edges stands (and,
+    for a replicated vertex, for its state from a replica)."""
 
     rid: int
     coordinator: str
     pending: set[tuple[int, bool]]
     positions: dict[int, int] = field(default_factory=dict)  # output -> from producers' acks
     consumer_start: dict[int, int] = field(default_factory=dict)  # output -> consumer expects
+    retained: dict[int, int] = field(default_factory=dict)  # input -> first event replayed
+    resumed: set[int] = field(default_factory=set)  # inputs whose producer survived
+    replica: Snapshot | None = None  # the state it starts from (None: from its constructor)
+    fetching: set[str] = field(default_factory=set)  # replicas asked, none answered yet
+    fetched: bool = False  # the replicas were asked (or there are none)
 
 
 @dataclass
@@ -89,6 +139,21 @@ class VertexStatus(msgspec.Struct, frozen=True, kw_only=True):
     not_restarted: str
 
 
+class ReplicationStatus(msgspec.Struct, frozen=True, kw_only=True):
+    """A replicated vertex at its host: where its replicas are, what it costs, how far they
+    lag (events processed since, and age of, the newest snapshot every replica holds)."""
+
+    replicas: list[str]
+    snapshots: int
+    bytes_per_snapshot: int
+    bytes_per_s: float
+    interval_s: float
+    lag_events: int
+    lag_s: float | None
+    resent: int
+    rereplicated: int
+
+
 class AppStatus(msgspec.Struct, frozen=True, kw_only=True):
     """One app as this node holds and runs it (chains and edges by name)."""
 
@@ -105,6 +170,7 @@ class AppStatus(msgspec.Struct, frozen=True, kw_only=True):
     edges: dict[str, EdgeStatus]
     # each vertex placed by capability: the nodes that qualify, best first (§3.3)
     capable: dict[str, list[str]] = msgspec.field(default_factory=dict)
+    replication: dict[str, ReplicationStatus] = {}
 
 
 @dataclass
@@ -132,7 +198,10 @@ class HostedInstance:
     queued: int = 0
     busy_since: float | None = None
     # delivered, not yet fed: (edge, events, when they entered their chain) or a marker
-    pending: deque[tuple[int, list[bytes], float] | m.Marker] = field(default_factory=deque)
+    pending: deque[tuple[int, list[bytes], float] | m.Marker | SnapshotMark] = field(
+        default_factory=deque
+    )
+    snapshot_at: int = 0  # a replicated vertex: snapshot once ``processed`` reaches it (0: no)
     # a rated source: schedule origin and calls asked for; a loop source: credit granted
     t0: float = 0.0
     asked: int = 0
@@ -168,8 +237,7 @@ class HostedInstance:
             kind=self.kind,
             state=self.state(now),
             busy_s=round(now - self.busy_since, 3) if self.busy_since else 0.0,
-            queued=self.queued
-            + sum(len(p[1]) for p in self.pending if not isinstance(p, m.Marker)),
+            queued=self.queued + sum(len(p[1]) for p in self.pending if isinstance(p, tuple)),
             processed=self.processed,
             emitted=self.emitted,
             calls=self.calls,
@@ -246,6 +314,23 @@ class AppState:
     out_edges: dict[str, list[int]] = field(default_factory=dict)
     # each vertex placed by capability: the nodes that qualify, best first (§3.3)
     capable: dict[str, list[str]] = field(default_factory=dict)
+    # chain replication: vertex -> replicas kept; at its host, what it costs; at a replica,
+    # the snapshot held; everywhere, where its replicas are (the host's broadcast)
+    replicas: dict[str, int] = field(init=False)
+    replication: dict[str, ReplicationCost] = field(default_factory=dict)
+    held: dict[str, Snapshot] = field(default_factory=dict)
+    replica_nodes: dict[str, list[str]] = field(default_factory=dict)
+    # at a producer's node: edge -> the first event that is new, made by a producer restored
+    # without its predecessor's history (a source, a state restarted, or one fed by such):
+    # the events a replica of its consumer counted are not among them, so they cannot replay
+    # them; forgotten once the consumer's replicas hold a snapshot past it (``m.Release``)
+    fresh_from: dict[int, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        kinds = self.layout.kinds
+        self.replicas = {
+            v: n for v in self.app.vertices if (n := self.app.replicas(v, kinds[v])) > 0
+        }
 
     def status(self, now: float) -> AppStatus:
         """This app as this node holds and runs it: placement, chains, parked chains and
@@ -300,6 +385,26 @@ class AppState:
             },
             edges=edges,
             capable={v: list(ns) for v, ns in self.capable.items()},
+            replication={
+                vid: self._replication(vid, cost, now)
+                for vid, cost in self.replication.items()
+                if vid in self.instances
+            },
+        )
+
+    def _replication(self, vid: str, cost: ReplicationCost, now: float) -> ReplicationStatus:
+        h = self.instances[vid]
+        up = max(now - cost.since, 1e-9)
+        return ReplicationStatus(
+            replicas=list(cost.replicas),
+            snapshots=cost.snapshots,
+            bytes_per_snapshot=cost.last_bytes,
+            bytes_per_s=round(cost.bytes_sent / up, 1),
+            interval_s=round(cost.interval_s, 3),
+            lag_events=h.processed - cost.acked_processed,
+            lag_s=None if cost.acked_at is None else round(now - cost.acked_at, 3),
+            resent=cost.resent,
+            rereplicated=cost.rereplicated,
         )
 
     def hosts_part(self) -> bool:

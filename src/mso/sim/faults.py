@@ -117,6 +117,9 @@ def _app(rng: random.Random, nodes: list[str], rate: float, run: str) -> tuple[s
     src = "{code: mso.sim.vertices:Source, params: {name: %s}, rate: %g, pinned: %s, " + ev + "}"
     snk = "{code: mso.sim.vertices:Sink, params: {run: '%s', name: %s}, pinned: %s}"
     op = "{code: mso.sim.vertices:Pass, cost: %g, " + ev + "}"
+    # a stateful vertex (replicas: 1 by default) where it has one input, so its replay is
+    # exact: its count must survive every failure the replication covers ("state")
+    counter = "{code: mso.sim.vertices:Count, cost: %g, " + ev + "}"
 
     def pick() -> str:
         return rng.choice(nodes)
@@ -132,27 +135,28 @@ def _app(rng: random.Random, nodes: list[str], rate: float, run: str) -> tuple[s
         pinned[v] = pick()
         lines.append(f"  {v}: " + snk % (run, v, pinned[v]))
 
-    def ops(*vs: str) -> None:
+    def ops(*vs: str, count: str = "") -> None:
         for v in vs:
-            lines.append(f"  {v}: " + op % round(rng.uniform(0.5, 10), 1))
+            code = counter if v == count else op
+            lines.append(f"  {v}: " + code % round(rng.uniform(0.5, 10), 1))
 
     if shape == "pipeline":
         k = rng.randint(1, 3)
         mids = [f"p{i}" for i in range(1, k + 1)]
         source("src")
-        ops(*mids)
+        ops(*mids, count="p1")
         sink("sink")
         path = ["src", *mids, "sink"]
         edges = list(itertools.pairwise(path))
     elif shape == "merge":
         source("s1")
         source("s2")
-        ops("a", "b", "m", "c")
+        ops("a", "b", "m", "c", count="c")
         sink("sink")
         edges = [("s1", "a"), ("a", "m"), ("s2", "b"), ("b", "m"), ("m", "c"), ("c", "sink")]
     else:
         source("src")
-        ops("a", "j", "b", "c")
+        ops("a", "j", "b", "c", count="a")
         sink("k1")
         sink("k2")
         edges = [("src", "a"), ("a", "j"), ("j", "b"), ("b", "k1"), ("j", "c"), ("c", "k2")]

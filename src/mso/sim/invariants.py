@@ -34,6 +34,9 @@ names its invariant, so a benchmark can count them by kind and a failing seed sa
   (it is heard) for longer than ``HEARD_GRACE_S`` — unreachable is not failed, and a node
   declared failed that is heard again rejoins or resets within a few beats (checked
   periodically during the run by :class:`HeldFailed`);
+- ``state``: the count a stateful vertex (``Count``, replicated) stamps on each event went back
+  at a sink more often than the nodes declared its state restarted (``state_restarted``: no
+  usable replica, e.g. a producer died with it), or skipped numbers with no fault to blame;
 - ``deadline`` / ``illegal-transition``: a procedure outlived its deadline, or the core counted
   an illegal state transition (when the core reports these);
 - ``exception``: a node core raised (the run stops there; recorded by ``mso.sim.faults``).
@@ -261,6 +264,18 @@ def _events(
                 out.append(Violation("reorder", f"{what}: {s.reordered} events out of order"))
             if s.missing and not blamed:
                 out.append(Violation("lost", f"{what}: {s.missing} missing in {s.first}..{s.last}"))
+    declared = sum(1 for _, _, h in sim.happened if h.what == "state_restarted")
+    for rec in records:
+        if rec.regressions > declared:
+            out.append(
+                Violation(
+                    "state",
+                    f"{rec.vertex}: the count went back {rec.regressions} times, "
+                    f"{declared} state restarts declared",
+                )
+            )
+        if rec.skips and not blamed:
+            out.append(Violation("state", f"{rec.vertex}: {rec.skips} counts skipped"))
     # liveness: the newest instance of each sink follows every source's current stream
     sources: dict[str, tuple[float, int]] = {}
     for a in known.values():

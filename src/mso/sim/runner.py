@@ -10,6 +10,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import random
+from collections import deque
 from collections.abc import Callable, Hashable
 from typing import Any
 
@@ -19,6 +20,7 @@ from mso.net.forwarding import RouteWait
 from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.protocol.events import Happened
 from mso.protocol.spill import MemorySpill, SpillStore
 from mso.sim.census import Census
 from mso.sim.executor import SimExecutor
@@ -28,6 +30,7 @@ from mso.sim.executor import SimExecutor
 _Item = tuple[float, int, str, str, Any]
 _Path = tuple[list[str], float, tuple[tuple[int, float], ...]]  # route, delay, lossy hops
 MAX_PATHS = 200_000  # paths kept between two link changes, at most
+HAPPENED_KEPT = 4096
 
 
 class Simulation:
@@ -102,9 +105,14 @@ class Simulation:
         self.drop: Callable[[str, str, m.Message], bool] | None = None
         # every message counted by type, and the control messages kept for locality tallies
         self.census = Census()
+        # what each core said happened (as a daemon logs it): (time, node, event), the newest
+        # few thousand
+        self.happened: deque[tuple[float, str, Happened]] = deque(maxlen=HAPPENED_KEPT)
         self.executors = {n: self._executor(n) for n in network.nodes}
         self._order = {n: i for i, n in enumerate(network.nodes)}
         self._recheck = set(network.nodes)  # nodes whose whole tables to compare, once
+        for n, core in self.cores.items():
+            self._watch(n, core)
         self.update_routes()
         for n, core in self.cores.items():
             self.apply(n, core.start(self.now))
@@ -285,6 +293,10 @@ class Simulation:
             self.network.remove_link(node, n)
         self._push(self.now + convergence_s, "routes", node, None)
 
+    def _watch(self, node: str, core: NodeCore) -> None:
+        """Keep what ``core`` says happened (its driver drains and logs the same)."""
+        core.subscribe(Happened, lambda h: self.happened.append((self.now, node, h)))
+
     def revive(self, node: str) -> None:
         """Restart a killed ``node`` as a new process: a fresh core with a higher incarnation
         and no apps (add its links back first). The others restore what it hosted."""
@@ -304,6 +316,7 @@ class Simulation:
             spill=self.spills[node],
         )
         self.executors[node] = self._executor(node)  # the old instances went with the process
+        self._watch(node, core)
         self.killed.discard(node)
         self._timers = {k: v for k, v in self._timers.items() if k[0] != node}
         self.apply(node, core.start(self.now))

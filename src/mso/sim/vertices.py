@@ -20,6 +20,27 @@ class Ev(msgspec.Struct, frozen=True):
     born: float
     seq: int
     pad: bytes = b""  # (a benchmark's event size)
+    n: int = -1  # set by a Count on the way: how many events it had counted before
+
+
+class Count:
+    """Stateful: stamps each event with the number of events it counted before. Its output's
+    ``n`` runs 0, 1, 2, ... as long as its state is never lost (chain replication), whatever
+    order its input comes in; a state that restarts shows as ``n`` going back."""
+
+    def __init__(self) -> None:
+        self.n = 0
+
+    def __call__(self, event: Ev) -> Ev:
+        out = Ev(event.src, event.born, event.seq, event.pad, self.n)
+        self.n += 1
+        return out
+
+    def get_state(self) -> int:
+        return self.n
+
+    def set_state(self, state: int) -> None:
+        self.n = int(state)
 
 
 @dataclass
@@ -38,10 +59,14 @@ class Stream:
 
 @dataclass
 class SinkRecord:
-    """What one sink instance received: per stream (source, born), the checks' raw material."""
+    """What one sink instance received: per stream (source, born), the checks' raw material;
+    and of the counts a ``Count`` stamped on them, how often they went back or skipped."""
 
     vertex: str
     streams: dict[tuple[str, float], Stream] = field(default_factory=dict)
+    last_n: int = -1
+    regressions: int = 0  # a count at or below one already seen: a state went back
+    skips: int = 0  # counts never seen between two that were
 
 
 RUNS: dict[str, list[SinkRecord]] = {}
@@ -93,6 +118,13 @@ class Sink:
             s.reordered += 1
         s.seen.add(event.seq)
         s.first, s.last = min(s.first, event.seq), max(s.last, event.seq)
+        rec = self.record
+        if event.n >= 0:
+            if rec.last_n >= 0 and event.n <= rec.last_n:
+                rec.regressions += 1
+            elif rec.last_n >= 0 and event.n > rec.last_n + 1:
+                rec.skips += event.n - rec.last_n - 1
+            rec.last_n = event.n
 
     def stats(self) -> dict[str, int]:
         return {"streams": len(self.record.streams)}

@@ -10,6 +10,7 @@ from mso.protocol.procedures.lookup import Lookup
 from mso.protocol.procedures.membership.detector import PeerLife, Suspicion, Vouch
 from mso.protocol.procedures.relocation import Relocation
 from mso.protocol.procedures.remap import Remap
+from mso.protocol.procedures.replication import ACK_ATTEMPTS, ACK_TIMEOUT_S, Replication
 from mso.protocol.procedures.status import StatusFanout
 
 PROCEDURES: list[type[Procedure]] = [
@@ -25,6 +26,11 @@ PROCEDURES: list[type[Procedure]] = [
 PARTICIPANTS: list[tuple[type[StateMachine], str]] = [
     (InstanceLife, AWAIT_NOTE),
     (PeerLife, "silence judged against the liveness window; out of reach, asked about"),
+    (
+        Replication,
+        f"a replicated vertex at its host; a replica silent {ACK_TIMEOUT_S:g} s is sent the "
+        f"snapshot again, replaced after {ACK_ATTEMPTS} sends",
+    ),
 ]
 
 

@@ -544,7 +544,7 @@ class Relocator:
                 deadline_missed=missed,
             )
         for i, (next_seq, acked, events, positions) in msg.outputs.items():
-            ch = self.dp.sf.channel(dep, i, acked)
+            ch = self.dp.channel(dep, i, acked)
             for _, ahead in sorted(parts.get(i, []), key=lambda p: p[0]):
                 ch.push_many(ahead, now)
             ch.push_many(events, now)
@@ -637,7 +637,7 @@ class Relocator:
         dep, vid, res = self.ctx.apps.get(ev.app), ev.vertex, ev.result
         h = dep.instances.get(vid) if dep is not None else None
         msg = h.handing_over if h is not None and h.instance == res.instance else None
-        if dep is None or h is None or msg is None:
+        if dep is None or h is None or msg is None or res.token < 0:  # (<0: a replication's)
             return
         ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vid]
         for i in ins:  # acknowledge what the old instance processed, then forget the inputs

@@ -27,15 +27,23 @@ stay held (unacknowledged) upstream.
 
 from __future__ import annotations
 
+from mso.model.app import has_state
+from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.channel import InChannel
 from mso.protocol.context import NodeContext
-from mso.protocol.dataplane import DataPlane
-from mso.protocol.events import InstanceCrashed, RelocationEnded, ReplacementPrepared
+from mso.protocol.dataplane import REPLICA_OWNER, DataPlane
+from mso.protocol.events import (
+    Happened,
+    InstanceCrashed,
+    RelocationEnded,
+    ReplacementPrepared,
+)
 from mso.protocol.procedures import placement
 from mso.protocol.procedures.instance import MAX_RESTARTS, RESTART_WINDOW_S, H, InstanceEvent
 from mso.protocol.procedures.relocation import Relocation, Relocator
-from mso.protocol.state import AppState
+from mso.protocol.procedures.replication import usable
+from mso.protocol.state import AppState, Restoring
 
 
 class Restorer:
@@ -63,9 +71,16 @@ class Restorer:
             dep.placed[edge.dst] = msg.to
             self.dp.outbox.pop((msg.app, msg.edge), None)  # those events are in the replay
             out = self.dp.out(dep, msg.edge)
+            kept = out.retained(REPLICA_OWNER)  # a replicated consumer: replay from its
+            # newest replicated snapshot on (or from the ack, if that is earlier)
+            start = min(kept[0], out.acked) if kept is not None else -1
+            # (events made anew since the consumer's snapshot: not the ones it counted)
+            retained = -1 if msg.edge in dep.fresh_from else start
             self.ctx.send(
                 msg.to,
-                m.Resume(msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions)),
+                m.Resume(
+                    msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions), retained
+                ),
             )
             out.sent = out.acked  # everything unacknowledged goes again, a window at a time
             if msg.to == self.ctx.id:
@@ -105,18 +120,21 @@ class Restorer:
             )
             for o, pos in msg.positions.items():
                 restoring.positions[o] = max(restoring.positions.get(o, 0), pos)
+            if msg.retained >= 0:
+                restoring.retained[msg.edge] = msg.retained
+            restoring.resumed.add(msg.edge)
         else:
             restoring.consumer_start[msg.edge] = msg.start
         restoring.pending.discard((msg.edge, msg.producer))
-        if not restoring.pending:
+        if _ready(dep, vertex, restoring):
             self.activate(dep, vertex)
 
     def on_replacement_prepared(self, ev: ReplacementPrepared) -> None:
-        """The replacement started here: with no surviving end to wait for (a lone vertex),
-        it runs now."""
+        """The replacement started here (or its state arrived from a replica): with no
+        surviving end left to wait for, it runs now."""
         dep = self.ctx.apps.get(ev.app)
         restoring = dep.restoring.get(ev.vertex) if dep is not None else None
-        if dep is not None and restoring is not None and not restoring.pending:
+        if dep is not None and restoring is not None and _ready(dep, ev.vertex, restoring):
             self.activate(dep, ev.vertex)
 
     def activate(self, dep: AppState, vertex: str) -> None:
@@ -131,14 +149,36 @@ class Restorer:
         dep.placed[vertex] = self.ctx.id
         dep.handed.pop(vertex, None)
         outs = dep.out_edges.get(vertex, [])
+        snap = usable(dep, vertex, restoring)
+        if snap is not None:  # chain replication: from a replica's state, at its positions
+            self.ctx.emit(fx.RestoreVertex(h.instance, snap.state))  # before any feed
+            h.processed, h.emitted = snap.processed, snap.emitted
+            at = {o: acked + len(events) for o, (acked, events) in snap.outputs.items()}
+            for i, pos in snap.inputs.items():
+                dep.inc[i] = InChannel(
+                    expected=pos, processed=pos, _acked=pos, released=pos if outs else None
+                )  # its producer sends again from there (it retains them)
+                producer = dep.placed[dep.app.edges[i].src]
+                self.ctx.send(producer, m.Replay(dep.app.name, i, pos, at))
+        elif dep.replicas.get(vertex):  # replicated, yet no usable snapshot: said so
+            why = "no replica answered" if restoring.replica is None else "replica not usable"
+            self.ctx.note_event(self.ctx.now, f"{vertex}: {why}, its state restarts")
+            self.ctx.publish(Happened("state_restarted", dep.app.name, vertex, why))
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
             carried = None
             if h.kind == "source":  # after this node's reset, or its daemon's restart
                 carried = self.dp.sf.carry_over(dep, o, base) or self.dp.sf.recover(dep, o, base)
-            dep.out[o] = carried or self.dp.sf.channel(dep, o, base)
+            if snap is not None:  # numbered as the lost instance did after the snapshot; what
+                base, unacked = snap.outputs.get(o, (base, []))  # it had not got acked goes again
+                dep.out[o] = self.dp.channel(dep, o, base)
+                dep.out[o].push_many(list(unacked), self.ctx.now)
+            else:
+                dep.out[o] = carried or self.dp.channel(dep, o, base)
             # a source numbers on from its edges' positions: its sequence never restarts
             h.asked = max(h.asked, dep.out[o].next_seq) if h.kind == "source" else h.asked
+            if _fresh(dep, vertex, h.kind, snap is not None, restoring):
+                dep.fresh_from[o] = dep.out[o].next_seq
             # positions further down, for a restore of its consumer (replayed from here)
             dep.out[o].positions = {e: p for e, p in restoring.positions.items() if e not in outs}
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
@@ -220,3 +260,23 @@ class Restorer:
                         dep.parked.setdefault(c.index, rec.gave_up)
             else:
                 dep.crashed.pop(ev.vertex, None)
+
+
+def _ready(dep: AppState, vertex: str, restoring: Restoring) -> bool:
+    """A replacement runs once every surviving end has resumed it and, for a replicated
+    vertex, its replicas were asked for its state and one answered (or none is left)."""
+    if restoring.pending or restoring.fetching:
+        return False
+    return restoring.fetched or not dep.replicas.get(vertex)
+
+
+def _fresh(dep: AppState, vertex: str, kind: str, from_replica: bool, r: Restoring) -> bool:
+    """What the replacement makes is new, not what the lost instance made again: a source's
+    next events, the output of a state restarted from the constructor, or of a vertex fed by
+    a producer that was lost with it (what that one makes is new in turn)."""
+    if kind == "source":
+        return True
+    if not from_replica and has_state(dep.app.vertices[vertex]):
+        return True
+    ins = {i for i, e in enumerate(dep.app.edges) if e.dst == vertex}
+    return not ins <= r.resumed

@@ -1,0 +1,533 @@
+"""Chain replication of a stateful vertex's state (the paper's future work, §3.4/§5), every
+role in one place: the host, its replicas, the producers of its inputs and a replacement.
+
+A vertex with state (``replicas: 1`` by default, see docs/app-format.md) survives the death of
+its node with no event lost or repeated in its output::
+
+    producer(s)              host                       replica(s)
+      retain events  ──▶   every N events / T s:
+      from the last        snapshot, aligned: drain
+      replicated           what was fed, then take the
+      snapshot             state and the positions
+                             Replicate(k) ─────────────▶  keep the newest
+                                          ◀─────────────  ReplicaAck(k)
+             ◀──────────  Release(upto = position of k) (once every replica holds k)
+
+The snapshot is *aligned* as an asynchronous barrier snapshot's is: a mark in the instance's
+queue waits until everything fed before it is processed (:class:`~.state.SnapshotMark`), so
+the state, the input positions (events processed per edge) and the output positions (events
+produced, with those not yet acknowledged downstream) agree. Each producer keeps, past their
+ack, the events after the newest snapshot every replica holds (``OutChannel.retain``); a
+``Release`` moves that retention on.
+
+When the host dies, the restore (:mod:`.restore`) prepares a replacement; the replacement
+fetches the newest snapshot from a replica (``FetchReplica``; local if it holds one itself),
+its producers replay from their retention, and it starts from the snapshot's state and
+positions: inputs from the snapshot's positions (earlier replayed events are duplicates),
+outputs numbered from the snapshot's and its unacknowledged output sent again, so its
+consumers drop what they already had. The output equals a failure-free run's for a vertex
+that is deterministic in the order of its inputs. With no usable snapshot (no replica left,
+or a producer that cannot replay from its position: it died too), the replacement starts from
+its constructor, as a vertex with ``replicas: 0`` does.
+
+A host's :class:`Replication` is IDLE between snapshots, ALIGNING while the mark waits,
+TAKING while the executor encodes the state, REPLICATING until every replica acknowledged.
+A replica that does not acknowledge within ``ACK_TIMEOUT_S`` is sent the snapshot again; after
+``ACK_ATTEMPTS`` it is replaced, as a failed one is at once (re-replication: the next node is
+chosen and sent the snapshot). A new replica set is broadcast (``ReplicaSet``) once it holds a
+snapshot, so a replacement never asks a replica that has nothing yet.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import ClassVar
+
+from mso.protocol import effects as fx
+from mso.protocol import messages as m
+from mso.protocol.context import NodeContext
+from mso.protocol.dataplane import REPLICA_OWNER, DataPlane
+from mso.protocol.events import (
+    InstanceReady,
+    PeerFailed,
+    ReplacementPrepared,
+    ReplicationTick,
+    SnapshotAligned,
+    Snapshotted,
+)
+from mso.protocol.procedures.base import STEP_TIMEOUT_S, StateMachine, Table
+from mso.protocol.state import (
+    SNAPSHOT_MARK,
+    AppState,
+    HostedInstance,
+    ReplicationCost,
+    Restoring,
+    Snapshot,
+)
+
+ACK_TIMEOUT_S = STEP_TIMEOUT_S  # a replica silent this long is sent the snapshot again ...
+ACK_ATTEMPTS = 3  # ... and after this many sends, replaced
+MIN_TICK_S = 0.05
+
+
+class S(enum.Enum):
+    IDLE = "idle"
+    ALIGNING = "aligning"
+    TAKING = "taking"
+    REPLICATING = "replicating"
+
+
+class ReplicationEvent(enum.Enum):
+    """What moves a host's Replication along its table."""
+
+    DUE = "due"  # a snapshot is due (events, time, a new or replaced replica)
+    ALIGNED = "aligned"  # the instance processed everything fed before the mark
+    TAKEN = "taken"  # the executor encoded the state
+    ACKED = "acked"  # one replica holds it
+    ALL_ACKED = "all_acked"  # every replica holds it: producers release
+    RESEND = "resend"  # a replica did not acknowledge in time
+    REPLICA_LOST = "replica_lost"  # a replica failed or stayed silent: another is chosen
+
+
+class Replication(StateMachine):
+    """The host's part: one replicated vertex instance's snapshots and replicas."""
+
+    NAME = "replication"
+    INITIAL = S.IDLE
+    TRANSITIONS: ClassVar[Table] = {
+        S.IDLE: {ReplicationEvent.DUE: S.ALIGNING, ReplicationEvent.REPLICA_LOST: S.IDLE},
+        S.ALIGNING: {
+            ReplicationEvent.ALIGNED: S.TAKING,
+            ReplicationEvent.REPLICA_LOST: S.ALIGNING,
+        },
+        S.TAKING: {ReplicationEvent.TAKEN: S.REPLICATING, ReplicationEvent.REPLICA_LOST: S.TAKING},
+        S.REPLICATING: {
+            ReplicationEvent.ACKED: S.REPLICATING,
+            ReplicationEvent.ALL_ACKED: S.IDLE,
+            ReplicationEvent.RESEND: S.REPLICATING,
+            ReplicationEvent.REPLICA_LOST: S.REPLICATING,
+        },
+    }
+
+    def __init__(self, app: str, vertex: str, instance: int, now: float) -> None:
+        super().__init__()
+        self.app = app
+        self.vertex = vertex
+        self.instance = instance
+        self.k = 0
+        self.replicas: list[str] = []
+        self.announced: list[str] = []  # the set broadcast last
+        self.acked: set[str] = set()
+        self.attempts: dict[str, int] = {}  # replica -> sends of the current snapshot
+        self.snapshot: Snapshot | None = None  # being replicated (the newest taken)
+        self.inputs: dict[int, int] = {}  # positions captured at the mark
+        self.outputs: dict[int, tuple[int, list[bytes]]] = {}
+        self.counts = (0, 0)  # processed, emitted at the mark
+        self.aligned_at = now
+        self.taken_at = -1e9
+        self.sent_at = now
+
+    @property
+    def name(self) -> str:
+        return f"replication of {self.vertex}"
+
+
+@dataclass
+class _Held:
+    """Counts of the replica side at this node (status of the procedure's other roles)."""
+
+    stored: int = 0
+    stale: int = 0
+    served: int = 0
+
+
+class Replicator:
+    """This node's part in chain replication, in every role (module docstring)."""
+
+    def __init__(self, ctx: NodeContext, dp: DataPlane) -> None:
+        self.ctx = ctx
+        self.dp = dp
+        self.hosting: dict[tuple[str, str], Replication] = {}
+        self._armed: set[str] = set()  # apps whose tick is set
+        self.held = _Held()
+
+    def on_reset(self) -> None:
+        self.hosting.clear()
+        self._armed.clear()
+
+    # -- the host: snapshots at marks, sends them, releases the producers ----------------------
+    def on_instance_ready(self, ev: InstanceReady) -> None:
+        """A replicated vertex's instance started here (a deployment, a move, a replacement):
+        its replication begins at the next tick, once it runs."""
+        dep = self.ctx.apps.get(ev.app)
+        if dep is not None and dep.replicas.get(ev.vertex):
+            self._arm(ev.app, self.ctx.now)
+
+    def _arm(self, app: str, at: float) -> None:
+        if app not in self._armed:
+            self._armed.add(app)
+            self.ctx.set_timer(ReplicationTick(app), at)
+
+    def tick(self, key: ReplicationTick, now: float) -> None:
+        """Start replicating new instances, take the snapshots due by time, send again what
+        was not acknowledged; set the next tick while a replicated vertex is here."""
+        app = key.app
+        self._armed.discard(app)
+        dep = self.ctx.apps.get(app)
+        period: float | None = None
+        for vid, n in (dep.replicas if dep is not None else {}).items():
+            assert dep is not None
+            h = dep.instances.get(vid)
+            rep = self.hosting.get((app, vid))
+            if h is None or not h.started or h.crashed:
+                if rep is not None:
+                    del self.hosting[(app, vid)]
+                    dep.replication.pop(vid, None)
+                if vid in dep.awaiting:
+                    period = ACK_TIMEOUT_S if period is None else min(period, ACK_TIMEOUT_S)
+                continue
+            v = dep.app.vertices[vid]
+            period = min(period or v.snapshot_s, v.snapshot_s, ACK_TIMEOUT_S)
+            if rep is None or rep.instance != h.instance:
+                rep = self.hosting[(app, vid)] = Replication(app, vid, h.instance, now)
+                dep.replication[vid] = ReplicationCost(since=now)
+                rep.replicas = self._choose(dep, vid, n, [])
+                self._due(dep, h, rep)
+            elif rep.state is S.IDLE and now - rep.taken_at >= v.snapshot_s - 1e-9:
+                if len(rep.replicas) < n:  # too few nodes were reachable: try again
+                    rep.replicas = self._choose(dep, vid, n, rep.replicas)
+                if h.processed != rep.counts[0] or rep.replicas != rep.announced:
+                    self._due(dep, h, rep)
+            elif rep.state is S.REPLICATING and now - rep.sent_at >= ACK_TIMEOUT_S - 1e-9:
+                self._resend(dep, rep, now)
+        if self.hosting and dep is None:
+            for k in [k for k in self.hosting if k[0] == app]:
+                del self.hosting[k]
+        if period is not None:
+            self._arm(app, now + max(period, MIN_TICK_S))
+
+    def _choose(self, dep: AppState, vid: str, n: int, keep: list[str]) -> list[str]:
+        """``n`` replica nodes for ``vid``: those kept, then its successors' nodes (its chain
+        successor first), then the nearest other nodes; never this node nor a failed one."""
+        failed, me = self.ctx.failed, self.ctx.id
+        reach = self.ctx.distances()
+        out = [r for r in keep if r not in failed and r != me and r in reach][:n]
+        succ = [dep.placed[s] for s in dep.app.successors()[vid] if s in dep.placed]
+        order = sorted(reach, key=lambda node: (node not in succ, reach[node], node))
+        for node in order:
+            if len(out) >= n:
+                break
+            if node not in out and node != me and node not in failed:
+                out.append(node)
+        return out
+
+    def _due(self, dep: AppState, h: HostedInstance, rep: Replication) -> None:
+        """Ask for an aligned snapshot: a mark ahead of what waits to be fed."""
+        rep.on(ReplicationEvent.DUE)
+        h.snapshot_at = 0
+        if SNAPSHOT_MARK not in h.pending:  # (the data plane may have queued one: events)
+            h.pending.appendleft(SNAPSHOT_MARK)
+        self.dp.pump(dep, rep.vertex)
+
+    def on_aligned(self, ev: SnapshotAligned) -> None:
+        """Everything fed before the mark is processed: take the positions, then the state."""
+        dep = self.ctx.apps.get(ev.app)
+        rep = self.hosting.get((ev.app, ev.vertex))
+        h = dep.instances.get(ev.vertex) if dep is not None else None
+        if dep is None or rep is None or h is None or h.instance != rep.instance:
+            return
+        if rep.state is S.IDLE:  # the data plane's mark: due by the events processed
+            rep.on(ReplicationEvent.DUE)
+        elif rep.state is not S.ALIGNING:
+            return  # (a mark queued before a re-replication's own: one snapshot is enough)
+        rep.on(ReplicationEvent.ALIGNED)
+        edges = dep.app.edges
+        rep.inputs = {
+            i: (ch.processed if (ch := dep.inc.get(i)) is not None else 0)
+            for i, e in enumerate(edges)
+            if e.dst == ev.vertex
+        }
+        rep.outputs = {}
+        for o in dep.out_edges.get(ev.vertex, []):
+            out = self.dp.out(dep, o)
+            rep.outputs[o] = out.unacked()
+        rep.counts = (h.processed, h.emitted)
+        rep.aligned_at = self.ctx.now
+        rep.k += 1
+        self.dp.submit(h, fx.SnapshotVertex(h.instance, -rep.k))  # (relocations' are >= 0)
+
+    def on_snapshotted(self, ev: Snapshotted) -> None:
+        """The state is taken: send it to every replica."""
+        res = ev.result
+        rep = self.hosting.get((ev.app, ev.vertex))
+        dep = self.ctx.apps.get(ev.app)
+        if res.token >= 0 or rep is None or dep is None or res.instance != rep.instance:
+            return
+        if -res.token != rep.k or rep.state is not S.TAKING:
+            return
+        rep.on(ReplicationEvent.TAKEN)
+        snap = Snapshot(rep.k, res.state, rep.inputs, rep.outputs, *rep.counts, src=self.ctx.id)
+        cost = dep.replication.setdefault(ev.vertex, ReplicationCost(since=self.ctx.now))
+        if rep.taken_at > 0:
+            cost.interval_s = rep.aligned_at - rep.taken_at
+        rep.taken_at = rep.aligned_at
+        rep.snapshot = snap
+        rep.acked = set()
+        rep.attempts = {}
+        cost.last_bytes = snap.size
+        if not rep.replicas:  # no other node to hold it (yet): its state is not kept, and
+            rep.on(ReplicationEvent.ALL_ACKED)  # its producers need not keep events for it
+            self._all_acked(dep, rep)
+            return
+        for r in rep.replicas:
+            self._send(dep, rep, r)
+
+    def _send(self, dep: AppState, rep: Replication, node: str) -> None:
+        snap = rep.snapshot
+        if snap is None:
+            return
+        rep.attempts[node] = rep.attempts.get(node, 0) + 1
+        rep.sent_at = self.ctx.now
+        msg = m.Replicate(
+            rep.app, rep.vertex, snap.k, snap.state, snap.inputs, snap.outputs,
+            snap.processed, snap.emitted,
+        )  # fmt: skip
+        self.ctx.send(node, msg)
+        cost = dep.replication.get(rep.vertex)
+        if cost is not None:
+            cost.bytes_sent += snap.size
+
+    def _resend(self, dep: AppState, rep: Replication, now: float) -> None:
+        """Replicas silent since the snapshot was sent: again, or replaced after a few."""
+        cost = dep.replication.get(rep.vertex)
+        for node in [r for r in rep.replicas if r not in rep.acked]:
+            if rep.attempts.get(node, 0) >= ACK_ATTEMPTS:
+                self._replace(dep, rep, node)
+                continue
+            rep.on(ReplicationEvent.RESEND)
+            if cost is not None:
+                cost.resent += 1
+            self._send(dep, rep, node)
+
+    def on_replica_ack(self, src: str, msg: m.ReplicaAck) -> None:
+        rep = self.hosting.get((msg.app, msg.vertex))
+        dep = self.ctx.apps.get(msg.app)
+        if rep is None or dep is None or rep.state is not S.REPLICATING or msg.k != rep.k:
+            self.ctx.dropped()  # (a late ack of an earlier snapshot, or of a gone instance)
+            return
+        if src not in rep.replicas:
+            self.ctx.refusal("replica_ack_not_a_replica")
+            return
+        rep.acked.add(src)
+        if not set(rep.replicas) <= rep.acked:
+            rep.on(ReplicationEvent.ACKED)
+            return
+        rep.on(ReplicationEvent.ALL_ACKED)
+        self._all_acked(dep, rep)
+
+    def _all_acked(self, dep: AppState, rep: Replication) -> None:
+        """Every replica holds the snapshot: its producers may forget what came before it;
+        the next one is due after ``snapshot_events`` more events (or by time)."""
+        snap = rep.snapshot
+        assert snap is not None
+        edges = dep.app.edges
+        for i, pos in snap.inputs.items():
+            producer = dep.placed.get(edges[i].src)
+            if producer is not None and producer not in self.ctx.failed:
+                self.ctx.send(producer, m.Release(rep.app, i, pos))
+        cost = dep.replication.get(rep.vertex)
+        if cost is not None:
+            cost.snapshots += 1
+            cost.acked_at = rep.aligned_at
+            cost.acked_processed = snap.processed
+            cost.replicas = list(rep.replicas)
+        if rep.replicas != rep.announced and rep.replicas:
+            rep.announced = list(rep.replicas)
+            self.ctx.broadcast(m.ReplicaSet(rep.app, rep.vertex, rep.announced))
+            dep.replica_nodes[rep.vertex] = list(rep.announced)
+        h = dep.instances.get(rep.vertex)
+        if h is not None and h.instance == rep.instance:
+            h.snapshot_at = h.processed + dep.app.vertices[rep.vertex].snapshot_events
+
+    def _replace(self, dep: AppState, rep: Replication, node: str) -> None:
+        """A replica failed or stays silent: choose another; it gets the snapshot under way,
+        or, between snapshots, a new one at once (re-replication)."""
+        n = dep.replicas.get(rep.vertex, 0)
+        keep = [r for r in rep.replicas if r != node]
+        rep.replicas = self._choose(dep, rep.vertex, n, keep)
+        rep.on(ReplicationEvent.REPLICA_LOST)
+        rep.acked &= set(rep.replicas)
+        cost = dep.replication.get(rep.vertex)
+        if cost is not None:
+            cost.rereplicated += 1
+        if rep.state is S.REPLICATING:
+            for r in rep.replicas:
+                if r not in rep.acked and r not in rep.attempts:
+                    self._send(dep, rep, r)
+            if set(rep.replicas) <= rep.acked:
+                rep.on(ReplicationEvent.ALL_ACKED)
+                self._all_acked(dep, rep)
+        elif rep.state is S.IDLE:
+            h = dep.instances.get(rep.vertex)
+            if h is not None and h.instance == rep.instance:
+                self._due(dep, h, rep)
+
+    def on_peer_failed(self, ev: PeerFailed) -> None:
+        """A replica's node failed: replaced. A replacement fetching from it stops waiting
+        for it (with no replica left, it starts from its constructor)."""
+        for rep in list(self.hosting.values()):
+            dep = self.ctx.apps.get(rep.app)
+            if dep is not None and ev.node in rep.replicas:
+                self._replace(dep, rep, ev.node)
+        for dep in self.ctx.apps.values():
+            for vid, restoring in dep.restoring.items():
+                if ev.node in restoring.fetching:
+                    restoring.fetching.discard(ev.node)
+                    if not restoring.fetching:
+                        self.ctx.publish(ReplacementPrepared(dep.app.name, vid))
+
+    # -- a replica: keeps the newest snapshot, acknowledges, serves a replacement --------------
+    def on_replicate(self, src: str, msg: m.Replicate) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not dep.replicas.get(msg.vertex) or not _valid(dep, msg):
+            self.ctx.refusal("replicate_invalid")
+            return
+        snap = Snapshot(
+            msg.k, msg.state, dict(msg.inputs), dict(msg.outputs), msg.processed, msg.emitted,
+            src=src,
+        )  # fmt: skip
+        if msg.rid:  # an answer to a replacement's fetch
+            self._fetched(dep, src, msg, snap)
+            return
+        old = dep.held.get(msg.vertex)
+        if old is None or old.src != src or msg.k > old.k:
+            dep.held[msg.vertex] = snap
+            self.held.stored += 1
+        else:
+            self.held.stale += 1
+        self.ctx.send(src, m.ReplicaAck(msg.app, msg.vertex, msg.k))
+
+    def on_fetch(self, src: str, msg: m.FetchReplica) -> None:
+        """A replacement asks for the snapshot held here."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or msg.vertex not in dep.replicas:
+            self.ctx.refusal("fetch_replica_unknown")
+            return
+        snap = dep.held.get(msg.vertex)
+        self.held.served += 1
+        if snap is None:
+            reply = m.Replicate(msg.app, msg.vertex, -1, b"", {}, {}, rid=msg.rid)
+        else:
+            reply = m.Replicate(
+                msg.app, msg.vertex, snap.k, snap.state, snap.inputs, snap.outputs,
+                snap.processed, snap.emitted, rid=msg.rid,
+            )  # fmt: skip
+        self.ctx.send(src, reply)
+
+    def on_replica_set(self, src: str, msg: m.ReplicaSet) -> None:
+        """Where a vertex's replicas are now; a node no longer among them forgets its copy."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or msg.vertex not in dep.replicas or len(msg.nodes) > 2:
+            self.ctx.refusal("replica_set_invalid")
+            return
+        dep.replica_nodes[msg.vertex] = list(msg.nodes)
+        if self.ctx.id not in msg.nodes and src != self.ctx.id:
+            dep.held.pop(msg.vertex, None)
+
+    # -- a producer: forgets what a replica no longer needs ------------------------------------
+    def on_release(self, msg: m.Release) -> None:
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges) or msg.upto < 0:
+            self.ctx.refusal("release_unknown_edge")
+            return
+        out = dep.out.get(msg.edge)
+        if out is not None:
+            out.release(REPLICA_OWNER, msg.upto)
+        fresh = dep.fresh_from.get(msg.edge)
+        if fresh is not None and msg.upto > fresh:  # the replicas counted new events
+            del dep.fresh_from[msg.edge]
+
+    def on_replay(self, msg: m.Replay) -> None:
+        """A replacement starts from a replica's snapshot: what it counted ends at ``start``;
+        send again from there (acknowledged only so far, with the snapshot's positions)."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            self.ctx.refusal("replay_unknown_edge")
+            return
+        out = dep.out.get(msg.edge)
+        if out is None or not out.base <= msg.start <= out.acked:
+            self.ctx.refusal("replay_not_retained")  # (the replacement waits for what comes)
+            return
+        if msg.start < out.acked:
+            out.rewind(msg.start)
+            out.positions = dict(msg.positions)
+        out.sent = out.acked  # what it holds goes (again), a window at a time
+        out.waiting_since = self.ctx.now
+        self.dp.sf.drain(dep, msg.edge)
+
+    # -- a replacement: fetches the newest snapshot before it runs ------------------------------
+    def on_replacement_prepared(self, ev: ReplacementPrepared) -> None:
+        """A replacement of a replicated vertex started here: ask its replicas for its state
+        (or take the copy held here); it runs once one answered, or none is left to ask."""
+        dep = self.ctx.apps.get(ev.app)
+        restoring = dep.restoring.get(ev.vertex) if dep is not None else None
+        if dep is None or restoring is None or not dep.replicas.get(ev.vertex):
+            return
+        if restoring.fetched and not restoring.fetching:
+            return
+        if not restoring.fetched:
+            restoring.fetched = True
+            held = dep.held.get(ev.vertex)
+            if held is not None:
+                restoring.replica = held
+                return
+            me, failed = self.ctx.id, self.ctx.failed
+            nodes = dep.replica_nodes.get(ev.vertex, [])
+            restoring.fetching = {n for n in nodes if n != me and n not in failed}
+        for node in sorted(restoring.fetching):  # (asked again on a restore's retry)
+            self.ctx.send(node, m.FetchReplica(ev.app, ev.vertex, restoring.rid))
+
+    def _fetched(self, dep: AppState, src: str, msg: m.Replicate, snap: Snapshot) -> None:
+        restoring = dep.restoring.get(msg.vertex)
+        if restoring is None or restoring.rid != msg.rid or src not in restoring.fetching:
+            self.ctx.dropped()  # (answered after another replica did)
+            return
+        restoring.fetching.discard(src)
+        if msg.k >= 0:
+            restoring.replica = snap
+            restoring.fetching.clear()
+        if not restoring.fetching:  # it may run now (once every end has resumed it)
+            self.ctx.publish(ReplacementPrepared(dep.app.name, msg.vertex))
+
+
+def _valid(dep: AppState, msg: m.Replicate) -> bool:
+    """A snapshot's positions name the vertex's own input and output edges."""
+    edges = dep.app.edges
+    n = len(edges)
+    ins = all(0 <= i < n and edges[i].dst == msg.vertex and p >= 0 for i, p in msg.inputs.items())
+    outs = all(0 <= o < n and edges[o].src == msg.vertex for o in msg.outputs)
+    return ins and outs
+
+
+def usable(dep: AppState, vertex: str, restoring: Restoring) -> Snapshot | None:
+    """The snapshot a replacement starts from, if it can: every input's producer resumed it
+    and still retains the events from the snapshot's position on (a producer that died too,
+    or lost its retention, cannot replay them), and no output went further down than the
+    snapshot's position to a consumer that is being replaced too (nothing would drop what it
+    makes again). Otherwise its constructor's state, as without replicas."""
+    snap = restoring.replica
+    if snap is None:
+        return None
+    for i, e in enumerate(dep.app.edges):
+        if e.dst == vertex:
+            start = restoring.retained.get(i)
+            if start is None or start > snap.inputs.get(i, 0):
+                return None
+        elif e.src == vertex and i not in restoring.consumer_start:
+            # its consumer is being replaced too: what the snapshot's output position is
+            # behind what went further down would reach it as new (no end left to drop it)
+            acked = snap.outputs.get(i, (0, []))[0]
+            if restoring.positions.get(i, acked) > acked:
+                return None
+    return snap

@@ -1,0 +1,186 @@
+"""Chain replication in virtual time: a stateful vertex's state survives its node's death
+(the output equals a failure-free run's), a replica's death re-replicates, replicas: 0 keeps
+the old behaviour (state restarts), and the app file's replication attributes are checked."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from mso.errors import AppError
+from mso.model.appfile import loads_app
+from mso.model.network import LinkSpec, Network, NodeSpec
+from mso.sim.runner import Simulation
+from test_failure import emitted, recoveries, started, stats, where
+
+COUNTER = """
+name: pipe
+vertices:
+  src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 100,
+        output: runtime_vertices:Num}
+  mid: {code: runtime_vertices:Counter, output: runtime_vertices:Num REPLICAS}
+  sink: {code: runtime_vertices:Recorder, pinned: N6}
+edges: [[src, mid], [mid, sink]]
+"""
+
+
+def counter_app(replicas: int | None = None) -> str:
+    return COUNTER.replace("REPLICAS", "" if replicas is None else f", replicas: {replicas}")
+
+
+def replication(sim: Simulation, vertex: str = "mid") -> dict[str, Any]:
+    node = where(sim, "pipe", vertex)
+    out: dict[str, Any] = sim.cores[node].status(sim.now)["apps"]["pipe"]["replication"][vertex]
+    return out
+
+
+def kill_host(sim: Simulation, run_s: float = 4.0) -> str:
+    victim = where(sim, "pipe", "mid")
+    assert victim not in ("N1", "N6"), victim
+    sim.kill(victim, convergence_s=0.3)
+    sim.run_until(sim.now + run_s)
+    return victim
+
+
+def assert_continuous(sim: Simulation) -> None:
+    """The counter's output at the sink is 0, 1, 2, ... with one number per source event:
+    what a run without failure gives (no reset to 0, no repeat, none lost)."""
+    got = stats(sim, "pipe", "sink")
+    sent = emitted(sim, "pipe", "src")
+    assert got["repeats"] == 0 and got["out_of_order"] == 0, got
+    assert got["next"] == got["count"], got  # the counter never went back
+    assert sent - 5 <= got["count"] <= sent, (got, sent)
+
+
+def test_counter_survives_the_death_of_its_host() -> None:
+    sim = started(counter_app())  # replicas: 1 by default (Counter has get_state)
+    sim.run_until(sim.now + 1.5)
+    rep = replication(sim)
+    assert len(rep["replicas"]) == 1 and rep["snapshots"] >= 1, rep
+    assert rep["bytes_per_snapshot"] > 0 and rep["interval_s"] > 0, rep
+    victim = kill_host(sim)
+    assert where(sim, "pipe", "mid") != victim
+    (rec,) = recoveries(sim, "pipe")
+    assert rec["ok"], rec
+    before = stats(sim, "pipe", "sink")["count"]
+    assert before > 400
+    assert_continuous(sim)
+
+
+def test_replicas_zero_restarts_the_state_as_before() -> None:
+    sim = started(counter_app(0))
+    sim.run_until(sim.now + 1.5)
+    kill_host(sim)
+    got = stats(sim, "pipe", "sink")
+    assert got["repeats"] > 50, got  # the counter started again from 0
+    assert sim.cores["N1"].apps["pipe"].replicas == {}
+
+
+def ladder() -> Network:
+    """N1 and N6 joined by four two-hop paths: any two middle nodes may die."""
+    nodes = [NodeSpec(f"N{i}") for i in range(1, 7)]
+    mids = ["N2", "N3", "N4", "N5"]
+    links = [LinkSpec(a, b, delay_ms=1.0) for m in mids for a, b in (("N1", m), (m, "N6"))]
+    return Network(nodes, links)
+
+
+def test_two_replicas_survive_two_deaths_in_turn() -> None:
+    sim = started(counter_app(2), ladder())
+    sim.run_until(sim.now + 1.5)
+    assert len(replication(sim)["replicas"]) == 2
+    first = kill_host(sim, run_s=4.0)
+    assert_continuous(sim)
+    assert len(replication(sim)["replicas"]) == 2  # the replacement replicates anew
+    second = kill_host(sim, run_s=4.0)
+    assert second != first
+    assert_continuous(sim)
+
+
+def test_a_replica_dying_is_replaced_and_the_state_still_survives() -> None:
+    sim = started(counter_app(2))
+    sim.run_until(sim.now + 1.5)
+    host = where(sim, "pipe", "mid")
+    replicas = replication(sim)["replicas"]
+    # the chain successor's node first (the sink's), then the nearest other node
+    assert replicas[0] == "N6" and replicas[1] not in ("N1", host), replicas
+    sim.kill(replicas[1], convergence_s=0.3)
+    sim.run_until(sim.now + 3.0)
+    assert where(sim, "pipe", "mid") == host
+    rep = replication(sim)
+    assert rep["rereplicated"] >= 1 and replicas[1] not in rep["replicas"], rep
+    assert len(rep["replicas"]) == 2 and rep["lag_s"] < 1.5, rep
+    kill_host(sim)
+    assert_continuous(sim)
+
+
+def test_replication_attributes_are_validated_and_defaulted() -> None:
+    app = loads_app(counter_app())
+    assert app.replicas("mid") == 1 and app.replicas("src") == 0 and app.replicas("sink") == 0
+    assert loads_app(counter_app(2)).replicas("mid") == 2
+    stateless = COUNTER.replace("runtime_vertices:Counter", "runtime_vertices:Double")
+    assert loads_app(stateless.replace("REPLICAS", "")).replicas("mid") == 0
+    bad = {
+        "replicas: 3": "expected 0, 1 or 2 replicas",
+        "replicas: yes": "expected 0, 1 or 2 replicas",
+        "snapshot_events: 0": "expected a whole number of events",
+        "snapshot_s: -1": "expected a number of seconds",
+    }
+    for attr, why in bad.items():
+        with pytest.raises(AppError, match=why) as exc:
+            loads_app(COUNTER.replace("REPLICAS", f", {attr}"), file="app.yaml")
+        assert "vertices.mid." in str(exc.value) and "app.yaml:" in str(exc.value)
+    src = COUNTER.replace("rate: 100,", "rate: 100, replicas: 1,").replace("REPLICAS", "")
+    with pytest.raises(AppError, match="a source keeps no replica"):
+        loads_app(src)
+
+
+def test_kill_9_of_the_host_on_the_emulator_keeps_the_count(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Real node processes: SIGKILL the node hosting the counter; the replacement starts from
+    its replica and the sink's numbers go on with no repeat and no gap."""
+    import asyncio
+    import os
+    from pathlib import Path
+
+    from mso.emu.controller import Emulator
+    from mso.scenario import loads_scenario
+    from test_emulator import MESH
+
+    tests = str(Path(__file__).resolve().parent)  # node processes import the test vertices
+    path = os.environ.get("PYTHONPATH", "")
+    monkeypatch.setenv("PYTHONPATH", f"{tests}{os.pathsep}{path}" if path else tests)
+
+    async def run() -> tuple[str, int, dict[str, Any]]:
+        emu = Emulator(loads_scenario(MESH), convergence_s=0.2)
+        await emu.start()
+        try:
+            reply = await emu.deploy(counter_app(), "pipe.yaml", "N1")
+            assert reply.ok, reply.error
+            victim = reply.placement["mid"]
+            assert victim not in ("N1", "N6")
+            await asyncio.sleep(2.0)  # snapshots every 100 events: two or so replicated
+            status = await emu.status(victim)
+            rep = status[victim]["apps"]["pipe"]["replication"]["mid"]
+            assert rep["snapshots"] >= 1, rep
+            emu.kill(victim)
+            await asyncio.sleep(3.0)
+            status = await emu.status("N1")
+            emitted = int(status["N1"]["apps"]["pipe"]["vertices"]["src"]["emitted"])
+            for _ in range(30):  # what is still in flight arrives
+                got = status["N6"]["apps"]["pipe"]["vertices"]["sink"]["stats"]
+                if got["count"] >= emitted:
+                    break
+                await asyncio.sleep(0.1)
+                status = await emu.status("N1")
+            return victim, emitted, status
+        finally:
+            await emu.stop()
+
+    victim, emitted, status = asyncio.run(run())
+    hosts = [n for n, st in status.items() if "mid" in st["apps"]["pipe"]["vertices"]]
+    assert len(hosts) == 1 and hosts[0] != victim
+    got = status["N6"]["apps"]["pipe"]["vertices"]["sink"]["stats"]
+    assert got["repeats"] == 0 and got["out_of_order"] == 0, got
+    assert got["next"] == got["count"] >= emitted, (got, emitted)  # the count never went back
