@@ -124,6 +124,8 @@ FIXED: dict[int, str] = {
     "old positions: events twice",
     497: "a replacement started from a snapshot behind what its consumer, replaced too, had "
     "passed on: events twice",
+    259: "a replacement without a usable replica numbered its output from its consumer while "
+    "its source, restarted, replayed what it retained from before: events twice",
 }
 
 

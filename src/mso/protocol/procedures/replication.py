@@ -69,6 +69,10 @@ from mso.protocol.state import (
 ACK_TIMEOUT_S = STEP_TIMEOUT_S  # a replica silent this long is sent the snapshot again ...
 ACK_ATTEMPTS = 3  # ... and after this many sends, replaced
 MIN_TICK_S = 0.05
+# a snapshot carries the output not yet acknowledged downstream; past this (a consumer out of
+# reach, its backlog held here) it waits for the backlog to drain rather than make one frame
+# of it: the producers retain a little longer meanwhile
+MAX_SNAPSHOT_BYTES = 4 << 20
 
 
 class S(enum.Enum):
@@ -86,6 +90,7 @@ class ReplicationEvent(enum.Enum):
     TAKEN = "taken"  # the executor encoded the state
     ACKED = "acked"  # one replica holds it
     ALL_ACKED = "all_acked"  # every replica holds it: producers release
+    DEFERRED = "deferred"  # too much output unacknowledged to send with it: later
     RESEND = "resend"  # a replica did not acknowledge in time
     REPLICA_LOST = "replica_lost"  # a replica failed or stayed silent: another is chosen
 
@@ -99,6 +104,7 @@ class Replication(StateMachine):
         S.IDLE: {ReplicationEvent.DUE: S.ALIGNING, ReplicationEvent.REPLICA_LOST: S.IDLE},
         S.ALIGNING: {
             ReplicationEvent.ALIGNED: S.TAKING,
+            ReplicationEvent.DEFERRED: S.IDLE,
             ReplicationEvent.REPLICA_LOST: S.ALIGNING,
         },
         S.TAKING: {ReplicationEvent.TAKEN: S.REPLICATING, ReplicationEvent.REPLICA_LOST: S.TAKING},
@@ -241,7 +247,6 @@ class Replicator:
             rep.on(ReplicationEvent.DUE)
         elif rep.state is not S.ALIGNING:
             return  # (a mark queued before a re-replication's own: one snapshot is enough)
-        rep.on(ReplicationEvent.ALIGNED)
         edges = dep.app.edges
         rep.inputs = {
             i: (ch.processed if (ch := dep.inc.get(i)) is not None else 0)
@@ -251,7 +256,12 @@ class Replicator:
         rep.outputs = {}
         for o in dep.out_edges.get(ev.vertex, []):
             out = self.dp.out(dep, o)
+            if out.kept_bytes > MAX_SNAPSHOT_BYTES:
+                rep.on(ReplicationEvent.DEFERRED)
+                rep.taken_at = self.ctx.now  # (tried again by time)
+                return
             rep.outputs[o] = out.unacked()
+        rep.on(ReplicationEvent.ALIGNED)
         rep.counts = (h.processed, h.emitted)
         rep.aligned_at = self.ctx.now
         rep.k += 1

@@ -164,8 +164,13 @@ class Restorer:
             why = "no replica answered" if restoring.replica is None else "replica not usable"
             self.ctx.note_event(self.ctx.now, f"{vertex}: {why}, its state restarts")
             self.ctx.publish(Happened("state_restarted", dep.app.name, vertex, why))
+        starts = [c.expected for i, c in dep.inc.items() if dep.app.edges[i].dst == vertex]
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
+            if snap is None and dep.replicas.get(vertex) and o not in restoring.positions:
+                # no ack said where its output stood: a producer that replays what it retains
+                # may start before the consumer's position; number from the input's start
+                base = min([base, *starts])
             carried = None
             if h.kind == "source":  # after this node's reset, or its daemon's restart
                 carried = self.dp.sf.carry_over(dep, o, base) or self.dp.sf.recover(dep, o, base)
