@@ -119,7 +119,7 @@ async def until(
         if ok(got):
             return got
         if loop.time() > deadline:
-            raise AssertionError(f"{what} within {timeout:g} s; last: {got}")
+            raise AssertionError(f"{what} within {patience(timeout):g} s; last: {got}")
         await asyncio.sleep(0.1)
 
 
