@@ -46,7 +46,7 @@ def test_an_address_is_taken_as_given_and_an_unknown_node_id_is_an_error(
 ) -> None:
     monkeypatch.setenv("MSO_RUN_DIR", str(tmp_path))  # no emulator runs there
     assert resolve_address("127.0.0.1:7000") == "127.0.0.1:7000"
-    with pytest.raises(MsoError, match="unknown node 'N9'"):
+    with pytest.raises(MsoError, match="unknown node or overlay 'N9'"):
         resolve_address("N9")
     with pytest.raises(MsoError, match="no --via given and no emulator running"):
         resolve_address(None)

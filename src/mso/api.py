@@ -10,8 +10,10 @@ the emulator controller ask their nodes through it, so a reply is judged in one 
     print(overlay.status()["N1"]["apps"])
     print(typed_status(overlay.status())["N1"].monitor.drain_w)   # typed: mso.node.status
 
-The address is any node of the overlay (``HOST:PORT``), a node id of a running emulator, or
-None: the node of the one emulator running (or of ``overlay=NAME``). Refusals raise
+The address is any node of the overlay (``HOST:PORT``), the name of a running emulator's
+overlay (``Overlay("convoy-line")``), a node id of a running emulator, or None: the node of the
+one emulator running (or of ``overlay=NAME``). ``deploy`` takes an :class:`mso.App` built in
+Python, an app file's path, or its text. Refusals raise
 :class:`mso.errors.MsoError` with the node's reason (:class:`CommandFailed` when the node
 answered and did not do it). ``AsyncOverlay`` is the same for asyncio code; it can also keep
 one connection open (:meth:`AsyncOverlay.open`, or a connected client given), so that repeated
@@ -80,33 +82,53 @@ def key_for(key: str | None, address: str) -> str | None:
 
 
 def resolve_address(via: str | None, overlay: str | None = None) -> str:
-    """``HOST:PORT`` as given; a node id of a running emulator (in ``overlay``, if named); or,
-    given nothing, the first node of the one running emulator (or of ``overlay``)."""
-    from mso.emu.overlays import emulator_address, find_overlay
+    """``HOST:PORT`` as given; the name of a running overlay (its first node); a node id of a
+    running emulator (in ``overlay``, if named); or, given nothing, the first node of the one
+    running emulator (or of ``overlay``)."""
+    from mso.emu.overlays import emulator_address, find_overlay, running_overlays
 
     if via is None:
         _, state = find_overlay(overlay)
         return str(next(iter(state["nodes"].values())))
     if ":" in via:
         return via
+    if overlay is None and via in (named := running_overlays(everyone=True)):
+        nodes = named[via]["nodes"]
+        if nodes:
+            return str(next(iter(nodes.values())))
     addr = emulator_address(via, overlay)
     if addr is None:
-        raise MsoError(f"unknown node {via!r}: no running emulator knows it; use HOST:PORT")
+        raise MsoError(
+            f"unknown node or overlay {via!r}: no running emulator knows it; use HOST:PORT"
+        )
     return addr
 
 
-def deploy_request(app_file: str | Path, planner: str | None = None) -> m.DeployRequest:
-    """An app file as a deploy request, validated here first so errors point at its lines;
-    ``planner`` overrides the app's ``planner:`` (written into the document every node reads)."""
-    from mso.model.appfile import load_app, with_planner
+def deploy_request(app: App | str | Path, planner: str | None = None) -> m.DeployRequest:
+    """An app as a deploy request: an :class:`App` built in Python, the path of an app file, or
+    an app file's text (a string of more than one line); validated here first, so errors point
+    at its lines. ``planner`` overrides the app's ``planner:`` (written into the document every
+    node reads)."""
+    from mso.model.app import App
+    from mso.model.appfile import load_app, loads_app, with_planner
     from mso.model.yamlfile import read_text_file
 
-    path = Path(app_file)
-    load_app(path)
-    text = read_text_file(path)
+    if isinstance(app, App):
+        from mso.model.appdoc import app_document
+
+        app.validate()
+        text, file = app_document(app), f"<app {app.name}>"
+        loads_app(text, file=file)  # what every node will load: code that does not import here
+    elif isinstance(app, str) and "\n" in app:
+        text, file = app, "<app text>"
+        loads_app(text, file=file)
+    else:
+        path = Path(app)
+        load_app(path)
+        text, file = read_text_file(path), str(path)
     if planner is not None:
-        text = with_planner(text, planner, file=str(path))
-    return m.DeployRequest(text, str(path))
+        text = with_planner(text, planner, file=file)
+    return m.DeployRequest(text, file)
 
 
 def asked_node(nodes: dict[str, Any]) -> dict[str, Any]:
@@ -205,15 +227,15 @@ class AsyncOverlay:
 
     async def deploy(
         self,
-        app_file: str | Path,
+        app: App | str | Path,
         *,
         check: bool = True,
         timeout: float = DEPLOY_S,
         planner: str | None = None,
     ) -> m.DeployReply:
-        """Deploy an app file (validated here first, so errors point at its lines);
-        ``planner`` overrides the app's."""
-        req = deploy_request(app_file, planner)
+        """Deploy an app: an :class:`App`, an app file's path or its text (validated here
+        first, so errors point at its lines); ``planner`` overrides the app's."""
+        req = deploy_request(app, planner)
         return await self.deploy_request(req, check=check, timeout=timeout)
 
     async def deploy_request(
@@ -300,10 +322,11 @@ class Overlay:
     def address(self) -> str:
         return self._async.address
 
-    def deploy(self, app_file: str | Path, *, planner: str | None = None) -> m.DeployReply:
+    def deploy(self, app: App | str | Path, *, planner: str | None = None) -> m.DeployReply:
+        """Deploy an :class:`App`, an app file's path or its text."""
         import asyncio
 
-        req = deploy_request(app_file, planner)  # before the address: file errors first
+        req = deploy_request(app, planner)  # before the address: file errors first
         return asyncio.run(self._async.deploy_request(req))
 
     def undeploy(self, app: str | App) -> None:
