@@ -10,6 +10,7 @@ import pytest
 
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.node.core import NodeCore
+from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.events import HeartbeatTick
 from mso.sim import faults, vertices
@@ -118,6 +119,14 @@ FIXED: dict[int, str] = {
     2257: "adjacent vertices restored together numbered their output from scratch",
     2784: "a restore retried after another coordinator's restore made a second instance",
     4751: "a node restarted across a partition, given instances there, was taken as empty",
+    577: "a restore whose target failed stayed open; its prepare, held, reached the target "
+    "when it restarted and a second instance ran beside the recovery's",
+    3303: "two coordinators whose views disagreed restored one vertex on two nodes",
+    3466: "two coordinators whose views disagreed restored one vertex on two nodes",
+    1171: "a restore's new host told only the app's members, not the twin it superseded",
+    4566: "a handover held across a partition made a twin of a vertex recovered meanwhile; "
+    "the stale host never heard of the later move",
+    1086: "a restore waiting for an end lost since took its own replacement as done elsewhere",
     1665: "a partition healed while some of the larger side still asked about the cut-off "
     "node: those that had not declared it reset for it, and the app was gone everywhere",
     283: "a restore rewound its producer's ack, and a later restore took that ack with the "
@@ -678,3 +687,33 @@ def test_adjacent_vertices_restored_together_repeat_nothing() -> None:
     assert {"a", "b"} <= set(sim.cores["N1"].instances("pipe"))
     sink = sim.instance("N1", "pipe", "sink")
     assert sink.repeats == 0 and sink.out_of_order == 0 and sink.count > 700, vars(sink)
+
+
+def test_an_instance_superseded_by_a_later_move_elsewhere_yields() -> None:
+    """Two coordinators restored mid where each saw it lost (a partition, views that
+    disagreed): the ends of its edges follow the later restore, so the instance that hears
+    of a later move of the vertex it runs is a twin and stops (seeds 3303, 3466, 1171)."""
+    sim = line3()
+    n3 = sim.cores["N3"]
+    version = n3.apps["pipe"].versions.get("mid", 0)
+    sim.apply("N3", n3.receive("N2", m.Moved("pipe", "mid", "N2", 0, version + 1), sim.now))
+    assert "mid" not in n3.instances("pipe")
+    assert n3.placement("pipe")["mid"] == "N2"
+    # news of the same move, or an older one, leaves a running instance alone
+    sim2 = line3()
+    n3 = sim2.cores["N3"]
+    sim2.apply("N3", n3.receive("N2", m.Moved("pipe", "mid", "N2", 0, version), sim2.now))
+    assert "mid" in n3.instances("pipe")
+
+
+def test_news_of_an_older_move_is_answered_with_the_later_one() -> None:
+    """A node that ran a vertex while cut off announces it after the heal; a node that knows
+    of a later move tells it so, and it yields rather than run a twin (seed 4566)."""
+    sim = line3()
+    n1 = sim.cores["N1"]
+    dep = n1.apps["pipe"]
+    dep.versions["mid"] = 3  # N1 heard of a later move of mid, to N3
+    effects = n1.receive("N2", m.Moved("pipe", "mid", "N2", 0, 1), sim.now)
+    sent = [e for e in effects if isinstance(e, fx.Send) and isinstance(e.msg, m.Moved)]
+    assert [(e.dst, e.msg.node, e.msg.version) for e in sent] == [("N2", "N3", 3)]
+    assert n1.placement("pipe")["mid"] == "N3"

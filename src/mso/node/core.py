@@ -66,6 +66,7 @@ from mso.protocol.events import (
     SnapshotAligned,
     Snapshotted,
     SourceTick,
+    Superseded,
 )
 from mso.protocol.procedures import placement
 from mso.protocol.procedures.base import IllegalTransition, Procedure
@@ -176,6 +177,7 @@ class NodeCore:
         self._subscribe(InstanceFailed, self.relocator.on_instance_failed)
         self._subscribe(InstanceFailed, self.deployer.on_instance_failed)
         self._subscribe(InstanceCrashed, self.restorer.on_instance_crashed)
+        self._subscribe(Superseded, self.restorer.on_superseded)
         self._subscribe(InstanceReady, self.replicator.on_instance_ready)
         # (the replacement's state is asked for before it is judged ready to run)
         self._subscribe(ReplacementPrepared, self.replicator.on_replacement_prepared)

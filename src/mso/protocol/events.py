@@ -121,6 +121,18 @@ class PlacementStale:
 
 
 @dataclass(frozen=True)
+class Superseded:
+    """News that ``vertex``, which runs here, runs on ``node`` as a later move (``version``):
+    two coordinators restored it where each saw it lost (a partition, a reset, views that
+    disagreed), and the ends of its edges follow the later one. This instance is a twin."""
+
+    app: str
+    vertex: str
+    node: str
+    version: int
+
+
+@dataclass(frozen=True)
 class InstanceReady:
     """An instance's code was constructed (``open()`` ran): a build or a move goes on."""
 
@@ -231,6 +243,7 @@ InternalEvent = (
     | RoutesChanged
     | RecoveryDue
     | PlacementStale
+    | Superseded
     | InstanceReady
     | InstanceFailed
     | InstanceCrashed

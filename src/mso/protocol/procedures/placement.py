@@ -25,6 +25,7 @@ from typing import Any
 
 from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
+from mso.protocol.events import Superseded
 from mso.protocol.state import AppState
 
 
@@ -127,8 +128,29 @@ def on_moved(ctx: NodeContext, msg: m.Moved, now: float) -> None:
         ctx.refusal(why)
         return
     known = dep is not None and msg.vertex in dep.placed
+    twin = (
+        dep is not None
+        and msg.node != ctx.id
+        and msg.version > dep.versions.get(msg.vertex, 0)
+        and _runs_here(dep, msg.vertex)
+    )
     if known and dep is not None and not learn(dep, msg.vertex, msg.node, msg.version, now):
         ctx.dropped()  # an older move's news, overtaken
+        newer = dep.placed[msg.vertex]
+        if newer != msg.node and msg.node != ctx.id and msg.node not in ctx.failed:
+            # the node it names may still run it (a move it missed while cut off): tell it
+            # the later one, so that it yields rather than run a twin
+            inc = ctx.incarnation if newer == ctx.id else -1
+            version = dep.versions.get(msg.vertex, 0)
+            ctx.send(msg.node, m.Moved(msg.app, msg.vertex, newer, inc, version))
+    elif twin:  # a later move placed it elsewhere while it ran on here: this one yields
+        ctx.publish(Superseded(msg.app, msg.vertex, msg.node, msg.version))
+
+
+def _runs_here(dep: AppState, vertex: str) -> bool:
+    """An instance of ``vertex`` runs here and is not being handed over."""
+    h = dep.instances.get(vertex)
+    return h is not None and h.handing_over is None and vertex not in dep.markers
 
 
 def _moved_refused(ctx: NodeContext, dep: AppState, msg: m.Moved) -> str:
@@ -140,9 +162,7 @@ def _moved_refused(ctx: NodeContext, dep: AppState, msg: m.Moved) -> str:
     pin = dep.app.vertices[msg.vertex].pinned
     if pin is not None and msg.node != pin:
         return "moved_a_pinned_vertex"
-    h = dep.instances.get(msg.vertex)
-    here = h is not None and h.handing_over is None and msg.vertex not in dep.markers
-    if ctx.authority.signed and msg.node != ctx.id and here:
+    if ctx.authority.signed and msg.node != ctx.id and _runs_here(dep, msg.vertex):
         return "moved_a_vertex_running_here"
     return ""
 

@@ -267,6 +267,11 @@ class Relocator:
         dep = self.ctx.apps.get(msg.app)
         if reloc is None or dep is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
             self.ctx.refusal("prepared_unexpected")
+            if reloc is None and not msg.error and self.ctx.id != msg.node:
+                # a move that ended here (its target was held failed) prepared anyway: a
+                # prepare held while the node was down reaches it when it is back. Nothing
+                # will resume that instance; drop it rather than leave a twin.
+                self.ctx.send(msg.node, m.Unprepare(msg.app, msg.vertex, msg.rid))
             return
         if msg.error:
             if msg.no_app:  # a node that missed the app's sync: the retry will find it
@@ -349,6 +354,12 @@ class Relocator:
         whose old host failed becomes a restore at its target."""
         node, now = ev.node, self.ctx.now
         for reloc in self._open():
+            if reloc.restore and node == reloc.target:
+                # the replacement died with its host (or never started there): this restore
+                # is over, so that the recovery this failure starts may place the vertex
+                # anew; a prepare still on its way to the node is refused when answered
+                self.fail(reloc, f"node {node} failed while {reloc.vertex!r} was restored", now)
+                continue
             if reloc.restore or node not in (reloc.source, reloc.target):
                 continue
             dep = self.ctx.apps.get(reloc.app)
@@ -389,15 +400,14 @@ class Relocator:
             why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
             self.fail(reloc, why, now)
             return
-        if reloc.vertex not in dep.lost(
-            self.ctx.failed
-        ):  # restored meanwhile by another coordinator
-            # (its target tells only the newest one) and maybe moved since: asked again, the
-            # target would start a second instance. Done; an instance prepared for this
-            # restore and never resumed is dropped.
-            where = dep.placed[reloc.vertex]
-            if where != reloc.target:
-                self.ctx.send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
+        where = dep.placed[reloc.vertex]
+        if where != reloc.target and reloc.vertex not in dep.lost(self.ctx.failed):
+            # restored meanwhile by another coordinator (its target tells only the newest
+            # one) and maybe moved since: asked again, the target would start a second
+            # instance. Done; an instance prepared for this restore and never resumed is
+            # dropped. (Placed on our target, it is still ours: a replacement waiting for an
+            # end that was lost since is asked again, without that end.)
+            self.ctx.send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
             reloc.on(RelocationEvent.HANDED_OVER)
             self.ctx.end(reloc.pid)
             reloc.target = where

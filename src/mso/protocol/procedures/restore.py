@@ -38,6 +38,7 @@ from mso.protocol.events import (
     InstanceCrashed,
     RelocationEnded,
     ReplacementPrepared,
+    Superseded,
 )
 from mso.protocol.procedures import placement
 from mso.protocol.procedures.instance import MAX_RESTARTS, RESTART_WINDOW_S, H, InstanceEvent
@@ -192,12 +193,40 @@ class Restorer:
                     self.dp.deliver(dep, i, seq, events, ts)
         version = placement.bump(dep, vertex)
         inc, coordinator = self.ctx.incarnation, restoring.coordinator
-        placement.announce(self.ctx, dep, vertex, self.ctx.id, incarnation=inc, also=[coordinator])
+        # and where it ran as far as this node heard: a twin there, restored by another
+        # coordinator, hears that this one is the later move and yields (on_superseded)
+        also = [coordinator, dep.moved[vertex][1]]
+        placement.announce(self.ctx, dep, vertex, self.ctx.id, incarnation=inc, also=also)
         self.relocator.forget(restoring.rid)
         done = m.HandoverDone(dep.app.name, vertex, restoring.rid, self.ctx.id, version)
         self.ctx.send(coordinator, done)
         if h.kind == "source":
             self.dp.start_source(dep, vertex, self.ctx.now)
+
+    # -- a twin: a later restore placed the vertex elsewhere ------------------------------------
+    def on_superseded(self, ev: Superseded) -> None:
+        """Retire this instance: the ends of its edges were rewired to the later one, whose
+        producers replay to it what this one had not passed on; what this one still holds
+        unacknowledged is made again there, with the same numbers, so dropping it loses
+        nothing and keeps every event once."""
+        dep = self.ctx.apps.get(ev.app)
+        h = dep.instances.get(ev.vertex) if dep is not None else None
+        if dep is None or h is None or h.handing_over is not None or ev.vertex in dep.markers:
+            return
+        vid = ev.vertex
+        self.dp.stop(h, "superseded")
+        del dep.instances[vid]
+        for i, e in enumerate(dep.app.edges):
+            if e.dst == vid:
+                dep.inc.pop(i, None)
+                dep.stash.pop(i, None)
+        for i in dep.out_edges.get(vid, []):
+            dep.out.pop(i, None)
+            self.dp.outbox.pop((dep.app.name, i), None)
+        dep.gates.pop(vid, None)
+        self.ctx.note_event(
+            self.ctx.now, f"retired {vid}: it runs on {ev.node} as move {ev.version}"
+        )
 
     # -- a crashed instance: restored in place, within its restart budget ----------------------
     def on_instance_crashed(self, ev: InstanceCrashed) -> None:
