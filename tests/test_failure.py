@@ -231,3 +231,50 @@ def test_a_recovery_that_cannot_complete_is_retried_later_not_at_once() -> None:
     assert (
         "pinned to failed node N6" in core.status(sim.now)["apps"]["pipe"]["parked"]["src-mid-sink"]
     )
+
+
+def test_a_daemon_crashed_on_a_live_router_is_recovered_without_routes_around_it() -> None:
+    """mid's node loses its daemon but its machine routes on (babeld keeps its routes, the
+    kernel forwards), so no routing view ever goes around it. The recovery waits for routes
+    to settle only ``ROUTES_SETTLE_S``, and probes skip the hop with no daemon; mid runs
+    elsewhere and nothing from the source is lost or repeated."""
+    from mso.protocol.procedures.remap import ROUTES_SETTLE_S
+
+    sim = started(PIPE)
+    victim = where(sim, "pipe", "mid")
+    assert victim not in ("N1", "N6")
+    sim.crash(victim)
+    sim.run_until(sim.now + 1.0)
+    survivors = [n for n in sim.cores if n != victim]
+    assert all(victim in sim.cores[n].routes for n in survivors)  # routed to, for ever
+    assert all(sim.cores[n].failed == {victim} for n in survivors)
+    sim.run_until(sim.now + ROUTES_SETTLE_S + 3.0)
+    assert where(sim, "pipe", "mid") != victim
+    (rec,) = recoveries(sim, "pipe")
+    assert rec["ok"] and rec["lost"] == ["mid"], rec
+    got = stats(sim, "pipe", "sink")
+    sent = emitted(sim, "pipe", "src")
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
+    assert sent - 5 <= got["count"] <= sent
+
+
+def test_a_probe_held_for_routes_that_never_change_skips_the_failed_hop() -> None:
+    """N3's daemon crashed but its router lives on: N2's route to N6 goes through N3 for
+    ever. The held probe waits ``PROBE_HOLD_S`` for routes around it, then goes straight to
+    its target (the transport gets it there through N3's router); N3, with no daemon, is
+    not on its path of candidate hosts."""
+    from mso.node.core import NodeCore, Send, SetTimer
+    from mso.protocol.events import HeldProbesDue
+    from mso.protocol.procedures.deploy import PROBE_HOLD_S
+
+    core = NodeCore("N2")
+    core.set_routes({"N1": ("N1", 1), "N3": ("N3", 1), "N6": ("N3", 2)}, 1.0)
+    core.receive("N1", m.NodeDown("N3", "N1", 0, "N5"), 1.1)
+    probe = m.Probe("app", -1, 7, "N1", "N6", ["N1"], [1.0])
+    effects = core.receive("N1", probe, 1.2)
+    assert not any(isinstance(e, Send) and isinstance(e.msg, m.Probe) for e in effects)
+    (timer,) = [e for e in effects if isinstance(e, SetTimer) and isinstance(e.key, HeldProbesDue)]
+    assert timer.at == 1.2 + PROBE_HOLD_S
+    effects = core.on_timer(timer.key, timer.at)
+    (sent,) = [e for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Probe)]
+    assert sent.dst == "N6" and sent.msg.nodes == ["N1", "N2"]

@@ -46,6 +46,7 @@ from mso.protocol.events import (
     Deadline,
     Happened,
     HeartbeatTick,
+    HeldProbesDue,
     InstanceCrashed,
     InstanceFailed,
     InstanceReady,
@@ -283,6 +284,7 @@ class NodeCore:
             MonitorTick: self._on_monitor_tick,
             HeartbeatTick: lambda key, now: mem.heartbeat(now),
             RecoverTick: rem.on_recover_tick,
+            HeldProbesDue: lambda key, now: dep.on_held_probes_due(now),
             ReplicationTick: self.replicator.tick,
         }
         # a procedure's step not answered in time: asked again (or given up)

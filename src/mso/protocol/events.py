@@ -68,6 +68,13 @@ class RecoverTick:
 
 
 @dataclass(frozen=True)
+class HeldProbesDue:
+    """Probes held at this hop for routes around a failed next hop have waited long enough:
+    they skip it (its daemon is gone; its machine may still route, as a router whose mso
+    crashed does, and then the routes never change)."""
+
+
+@dataclass(frozen=True)
 class ReplicationTick:
     """Chain replication of ``app``'s vertices hosted here: snapshots due by time, replicas
     that did not acknowledge in time."""
@@ -83,6 +90,7 @@ TimerKey = (
     | MonitorTick
     | HeartbeatTick
     | RecoverTick
+    | HeldProbesDue
     | ReplicationTick
 )
 

@@ -293,6 +293,13 @@ class Simulation:
             self.network.remove_link(node, n)
         self._push(self.now + convergence_s, "routes", node, None)
 
+    def crash(self, node: str) -> None:
+        """Crash ``node``'s daemon only: its machine and its router live on, so its links
+        stay and every routing view keeps routes to it and through it (the kernel forwards),
+        while it answers nothing. :meth:`revive` restarts the daemon."""
+        self.killed.add(node)
+        self.waiting[node] = RouteWait()  # what it held died with it
+
     def _watch(self, node: str, core: NodeCore) -> None:
         """Keep what ``core`` says happened (its driver drains and logs the same)."""
         core.subscribe(Happened, lambda h: self.happened.append((self.now, node, h)))

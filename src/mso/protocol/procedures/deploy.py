@@ -38,11 +38,19 @@ from mso.protocol.authority import generation
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import RETRANSMIT_S, DataPlane
 from mso.protocol.effects import Reply, Send, SetTimer
-from mso.protocol.events import InstanceFailed, InstanceReady, Retransmit, Retry, RoutesChanged
+from mso.protocol.events import (
+    HeldProbesDue,
+    InstanceFailed,
+    InstanceReady,
+    Retransmit,
+    Retry,
+    RoutesChanged,
+)
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
 from mso.protocol.state import AppState
 
 MAX_WAITING_PROBES = 256  # probes held at a hop whose route still goes through a failed node
+PROBE_HOLD_S = STEP_TIMEOUT_S / 2  # how long they wait for routes around it (then skip it)
 
 
 CHOOSE_S = 1.0  # how long the deploying node collects capability answers (§3.3)
@@ -472,11 +480,14 @@ class Deployer:
 
     def _forward_probe(self, msg: m.Probe, now: float) -> None:
         nxt = self.ctx.routes.get(msg.target)
-        if nxt is not None and nxt[0] in self.ctx.failed:
+        if nxt is not None and nxt[0] in self.ctx.failed and msg.target not in self.ctx.failed:
             # our routes do not go around a failure yet (the coordinator's already do): wait
-            # for them rather than lose the probe and the coordinator's STEP_TIMEOUT_S
+            # for them rather than lose the probe and the coordinator's STEP_TIMEOUT_S; if
+            # they do not change by PROBE_HOLD_S, the probe skips the hop (on_held_probes_due)
             if len(self._waiting_probes) < MAX_WAITING_PROBES:
-                self._waiting_probes.append((now + STEP_TIMEOUT_S, msg))
+                if not self._waiting_probes:
+                    self.ctx.emit(SetTimer(HeldProbesDue(), now + PROBE_HOLD_S))
+                self._waiting_probes.append((now + PROBE_HOLD_S, msg))
             return
         if nxt is None:
             reply = m.ProbeReply(msg.app, msg.chain, msg.segment, [], [])
@@ -491,6 +502,22 @@ class Deployer:
         for deadline, probe in waiting:
             if deadline >= now:
                 self._forward_probe(probe, now)
+        if self._waiting_probes:  # held again: their own deadlines stand
+            first = min(d for d, _ in self._waiting_probes)
+            self.ctx.emit(SetTimer(HeldProbesDue(), first))
+
+    def on_held_probes_due(self, now: float) -> None:
+        """The routes still go through a failed next hop: a daemon that crashed on a machine
+        whose router lives on is never routed around. Those probes go straight to their
+        target, which the transport reaches through that router; the hops they skip have
+        no daemon to host anything."""
+        due = [p for d, p in self._waiting_probes if d <= now]
+        self._waiting_probes = [(d, p) for d, p in self._waiting_probes if d > now]
+        for probe in due:
+            self.ctx.emit(Send(probe.target, probe))
+        if self._waiting_probes:
+            first = min(d for d, _ in self._waiting_probes)
+            self.ctx.emit(SetTimer(HeldProbesDue(), first))
 
     # -- a builder: hosts its part, says when it is ready --------------------------------------
     def on_build(self, src: str, msg: m.BuildChain) -> None:

@@ -49,6 +49,11 @@ from mso.protocol.procedures.relocation import Relocation, Relocator
 from mso.protocol.state import AppState
 
 PROBE_ATTEMPTS = 5
+# how long a recovery waits for the routing view to go around a failed node. A node whose
+# machine died is routed around within the routing protocol's convergence; one whose daemon
+# crashed while its router lives on never is (babeld keeps its routes, the kernel forwards).
+# After this the recovery goes ahead with the view as it is: the failed node only relays.
+ROUTES_SETTLE_S = 2.0
 # a remap takes a chain's new placement over its current one only if it saves this share of the
 # chain's energy: the rules' own margin (RuleSettings.margin), so it never undoes their moves
 KEEP_MARGIN = RuleSettings().margin
@@ -129,6 +134,7 @@ class Remapper:
         self.ctx = ctx
         self.dp = dp
         self.relocator = relocator
+        self._failed_at: dict[str, float] = {}  # when each failed node was declared
 
     def _remap(self, pid: int | None) -> Remap | None:
         proc = self.ctx.procedure(pid)
@@ -149,6 +155,8 @@ class Remapper:
             self._step(ev.remap, self.ctx.now, moved=(ev.vertex, ev.target))
 
     def on_peer_failed(self, ev: PeerFailed) -> None:
+        self._failed_at = {n: t for n, t in self._failed_at.items() if n in self.ctx.failed}
+        self._failed_at[ev.node] = self.ctx.now
         for dep in list(self.ctx.apps.values()):
             self.repin(dep)
             self.park(dep)
@@ -466,7 +474,12 @@ class Remapper:
             self.ctx.publish(PlacementStale(dep.app.name))  # kept up to date: the app may run
             return  # elsewhere now; asked once per set of failures
         if not routes_settled(routes, failed):
-            return  # wait for the routing view to route around the failure (set_routes)
+            # wait for the routing view to route around the failure (set_routes), but not
+            # for ever: a crashed daemon on a live router is never routed around
+            since = max((self._failed_at.get(n, -ROUTES_SETTLE_S) for n in failed), default=0.0)
+            if now < since + ROUTES_SETTLE_S:
+                self.ctx.emit(SetTimer(RecoverTick(dep.app.name), since + ROUTES_SETTLE_S))
+                return
         plan = recovery_plan(dep.layout, dep.placed, lost, set(dep.parked))
         if plan is None:
             return
