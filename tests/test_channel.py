@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from mso.protocol.channel import OutChannel
+from mso.protocol.channel import InChannel, OutChannel
 
 
 def ev(i: int) -> bytes:
@@ -49,3 +49,30 @@ def test_the_oldest_retention_holds_and_an_unknown_owner_is_ignored() -> None:
     out.push(ev(6))
     out.release("b", upto=100)  # past the end: to the end only
     assert out.retentions["b"] == 7 and out.base == 6 and out.unacked() == (6, [ev(6)])
+
+
+def test_an_ack_with_no_positions_keeps_those_known_at_its_position() -> None:
+    """A replacement acking again what a replay repeated knows no output positions yet: the
+    ones the lost instance's ack brought stay, for a later restore of the consumer to number
+    its output from (seed 1998 of the fault schedules: one event twice at the sink)."""
+    out = OutChannel(window=100)
+    out.push_many([ev(i) for i in range(10)])
+    out.on_ack(4)
+    out.note_positions(4, {1: 7})
+    out.on_ack(4)
+    out.note_positions(4, {})
+    assert out.positions == {1: 7} and out.history[4] == {1: 7}
+    out.on_ack(6)
+    out.note_positions(6, {})  # past them: they no longer say where the output stands
+    assert out.positions == {}
+
+
+def test_a_consumer_awaiting_a_replay_does_not_skip_ahead_on_an_earlier_frame() -> None:
+    """A replacement starts from a replica's snapshot at 3 while its producer, acked to 8,
+    has frames on the way from before it got the Replay: their floor (8) would skip what the
+    replay brings (seed 2748: 18 events never delivered). They wait; the replay comes first."""
+    inc = InChannel(expected=3, processed=3, _acked=3, awaiting_replay=True)
+    assert inc.accept(8, [ev(8), ev(9)], floor=8) == []
+    assert inc.expected == 3 and inc.skipped == 0
+    assert inc.accept(3, [ev(i) for i in range(3, 10)], floor=3) == [ev(i) for i in range(3, 10)]
+    assert inc.accept(10, [ev(10)], floor=9) == [ev(10)] and not inc.awaiting_replay

@@ -135,6 +135,24 @@ FIXED: dict[int, str] = {
     "passed on: events twice",
     259: "a replacement without a usable replica numbered its output from its consumer while "
     "its source, restarted, replayed what it retained from before: events twice",
+    1998: "a source's edge kept across its node's reset lost the positions of its last ack "
+    "(a re-ack without any, a restore's reset of them, or the channel refused when the "
+    "consumer was being restored too), and its consumer's replacement numbered from its own "
+    "consumer: events twice",
+    982: "as 1998",
+    2267: "as 1998",
+    4130: "as 1998",
+    4255: "as 1998",
+    4387: "as 1998",
+    4548: "as 1998",
+    4640: "as 1998",
+    80: "a consumer restored while its producer was out of reach numbered its output from its "
+    "own consumers; the producer's replacement replayed what the lost one had passed on: "
+    "events twice (and, before 1998's fix, the events the source made while cut off lost)",
+    2748: "a replacement started from a replica's snapshot behind its producer's ack took a "
+    "frame sent before the Replay for a skip to that ack: the replay's events lost",
+    861: "as 2748",
+    3312: "as 2748",
 }
 
 

@@ -74,12 +74,17 @@ class OutChannel:
         # ack position -> the positions that came with it: a vertex releasing a checkpoint
         # at exactly such a position passes them on upstream (transitive, see AckGate)
         self.history: dict[int, dict[int, int]] = {}
+        self.positions_at = self.acked  # the ack ``positions`` came with
 
     def note_positions(self, upto: int, positions: dict[int, int]) -> None:
-        """An ack up to ``upto`` came with the consumer's ``positions``."""
-        if upto >= self.acked:
-            self.positions = positions
-        self.history[upto] = positions
+        """An ack up to ``upto`` came with the consumer's ``positions``. An ack with none (a
+        consumer that does not know them yet, e.g. a replacement acking again what its
+        producer's replay repeated) leaves those known at that position: a later restore of
+        the consumer numbers its output from them (seed 1998)."""
+        if upto >= self.acked and (positions or upto > self.positions_at):
+            self.positions, self.positions_at = positions, upto
+        if positions or upto not in self.history:
+            self.history[upto] = positions
         while len(self.history) > self.HISTORY:
             del self.history[next(iter(self.history))]
 
@@ -328,6 +333,10 @@ class InChannel:
     expired: int = 0  # lifespan: too old when their turn came
     deadline_missed: int = 0  # arrivals later than deadline_ms after the one before
     last_at: float | None = None  # when the last new event arrived
+    # a replay from ``expected`` was asked for (a replacement started from a replica's
+    # snapshot behind its producer's ack): frames sent before it (further on, with a floor
+    # at that ack) are not a reason to skip ahead, and wait for the replay to come first
+    awaiting_replay: bool = False
 
     def __post_init__(self) -> None:
         # (position, count): once ``processed`` reaches position, count events were skipped
@@ -350,6 +359,11 @@ class InChannel:
     def accept(self, seq: int, events: list[bytes], floor: int = 0) -> list[bytes]:
         """The events of a batch starting at ``seq`` that are new and in order; ``floor`` is
         the producer's lowest position it can still send (see :meth:`skip_to`)."""
+        if self.awaiting_replay:
+            if seq > self.expected:  # sent before the producer went back (seed 2748)
+                self.gaps += 1
+                return []
+            self.awaiting_replay = False
         self.skip_to(floor)
         end = seq + len(events)
         if end <= self.expected:

@@ -70,11 +70,14 @@ class StoreAndForward:
 
     def carry_over(self, dep: AppState, edge: int, start: int) -> OutChannel | None:
         """A source restored here after this node reset: the channel its edge had before the
-        reset, if it still holds ``start`` (where the consumer stands): what the source made
-        while cut off is still delivered, and it numbers on from there, never from 0."""
+        reset, if it still holds ``start`` (where the consumer stands; below its ack when the
+        consumer is being restored too and said nothing: acks are chained, so what it acked is
+        safe downstream): what the source made while cut off is still delivered, and it
+        numbers on from there, never from 0 (seed 1998: its positions with it)."""
         ch = self.carried.pop((dep.app.name, dep.epoch, edge), None)
-        if ch is None or not ch.acked <= start <= ch.next_seq:
+        if ch is None or start > ch.next_seq:
             return None
+        start = max(start, ch.acked)
         ch.on_ack(start, self.ctx.now)
         ch.sent = start  # the rest goes (again), a window at a time
         return ch

@@ -17,7 +17,10 @@ side, and the new host's prepare, are in :mod:`.relocation`)::
 Producers replay what they hold unacknowledged (acks are chained, so that is everything the
 lost instance had not passed on); the replacement numbers its output from the positions its
 producers' acks carried, so what it regenerates by replay carries the numbers it had and
-consumers drop it as duplicates: every event reaches them once, in order.
+consumers drop it as duplicates: every event reaches them once, in order. A replacement whose
+consumer has nothing of its edge (restored while this one was out of reach) sends it a
+``Resume`` too, outside any restore: the positions it knows, for the consumer to number its
+output from (:meth:`Restorer.anchor`).
 
 A crashed instance (``isolation: process``) is restored in place the same way, at most
 ``MAX_RESTARTS`` times in ``RESTART_WINDOW_S``: a vertex that crashes on an event would crash
@@ -108,6 +111,9 @@ class Restorer:
         edge = dep.app.edges[msg.edge]
         vertex = edge.dst if msg.producer else edge.src
         restoring = dep.restoring.get(vertex)
+        if restoring is None and msg.producer and vertex in dep.instances:
+            self.anchor(dep, vertex, msg)  # (a running consumer: see there)
+            return
         if restoring is None or restoring.rid != msg.rid:
             self.ctx.refusal("resume_unexpected")
             return
@@ -129,6 +135,35 @@ class Restorer:
         restoring.pending.discard((msg.edge, msg.producer))
         if _ready(dep, vertex, restoring):
             self.activate(dep, vertex)
+
+    def anchor(self, dep: AppState, vertex: str, msg: m.Resume) -> None:
+        """A running consumer restored while this edge's producer was out of reach numbered its
+        output from where its own consumers stood: a guess, since no ack said what its lost
+        instance had made of the producer's events. The producer's replacement says where
+        the edge starts and, from the last ack it knows of, the consumer's output positions
+        then. A consumer that has had nothing on this edge and made nothing since it was
+        restored numbers its output from those: what it makes of the replay carries the
+        numbers the lost instance gave it, and its consumers drop what they have (seed 80).
+        Otherwise (a merge fed meanwhile) it keeps its guess."""
+        outs = dep.out_edges.get(vertex, [])
+        if msg.edge in dep.inc or not outs or not all(o in msg.positions for o in outs):
+            return
+        for o in outs:
+            out = dep.out.get(o)
+            if out is None or dep.fresh_from.get(o) != out.next_seq:
+                return
+            if not 0 <= msg.positions[o] <= out.next_seq:
+                return
+        dep.inc[msg.edge] = InChannel(
+            expected=msg.start, processed=msg.start, _acked=msg.start, released=msg.start
+        )
+        further = {e: p for e, p in msg.positions.items() if e not in outs}
+        for o in outs:
+            self.dp.outbox.pop((dep.app.name, o), None)
+            dep.out[o] = self.dp.channel(dep, o, msg.positions[o])
+            dep.out[o].positions = further
+            dep.fresh_from.pop(o, None)
+        self.dp.touch(dep.app.name)
 
     def on_replacement_prepared(self, ev: ReplacementPrepared) -> None:
         """The replacement started here (or its state arrived from a replica): with no
@@ -156,9 +191,12 @@ class Restorer:
             h.processed, h.emitted = snap.processed, snap.emitted
             at = {o: acked + len(events) for o, (acked, events) in snap.outputs.items()}
             for i, pos in snap.inputs.items():
+                resumed = dep.inc.get(i)
                 dep.inc[i] = InChannel(
                     expected=pos, processed=pos, _acked=pos, released=pos if outs else None
-                )  # its producer sends again from there (it retains them)
+                )  # its producer sends again from there (it retains them); what it sent
+                # before it gets the Replay is further on, not a reason to skip ahead
+                dep.inc[i].awaiting_replay = resumed is not None and pos < resumed.expected
                 producer = dep.placed[dep.app.edges[i].src]
                 self.ctx.send(producer, m.Replay(dep.app.name, i, pos, at))
         elif dep.replicas.get(vertex):  # replicated, yet no usable snapshot: said so
@@ -185,8 +223,18 @@ class Restorer:
             h.asked = max(h.asked, dep.out[o].next_seq) if h.kind == "source" else h.asked
             if _fresh(dep, vertex, h.kind, snap is not None, restoring):
                 dep.fresh_from[o] = dep.out[o].next_seq
-            # positions further down, for a restore of its consumer (replayed from here)
-            dep.out[o].positions = {e: p for e, p in restoring.positions.items() if e not in outs}
+            consumer = dep.app.edges[o].dst
+            if o in restoring.positions and restoring.consumer_start.get(o, 0) < base:
+                # its consumer has nothing of this edge: a replacement too, restored while
+                # this one was out of reach; tell it where the lost one's numbering stood
+                where = dict(restoring.positions)
+                resume = m.Resume(dep.app.name, o, restoring.rid, True, base, where)
+                self.ctx.send(dep.placed[consumer], resume)
+            # positions further down, for a restore of its consumer (replayed from here); a
+            # source's carried channel keeps those its last ack brought (seed 1998)
+            further = {e: p for e, p in restoring.positions.items() if e not in outs}
+            if further or carried is None:
+                dep.out[o].positions = further
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
             if e.dst == vertex:
                 for seq, events, ts in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
