@@ -153,6 +153,10 @@ FIXED: dict[int, str] = {
     "frame sent before the Replay for a skip to that ack: the replay's events lost",
     861: "as 2748",
     3312: "as 2748",
+    3040: "a chain restored before its source numbered from 0 and from its sink: the source's "
+    "replacement's positions reached only its own consumer: events twice",
+    1088: "a source's edge restarted from the store came back with what it retained for a "
+    "replica as unacknowledged and no positions: events twice",
 }
 
 

@@ -156,3 +156,34 @@ def test_a_source_edge_holding_draining_and_holding_again_keeps_its_events_in_or
         first, events = ch.events_from(ch.acked)
         assert first == ch.acked and events == pushed[ch.acked :], step
         assert not pushed or store.position("k") >= ch.next_seq
+
+
+def test_a_held_source_edge_comes_back_acknowledged_where_its_last_ack_was(
+    tmp_path: Path,
+) -> None:
+    """A source's edge into a replicated consumer keeps what it holds in the store, acked or
+    retained: after a restart it comes back acknowledged up to its last ack, with the output
+    positions that ack brought (a replacement numbers its replay from them; before, the
+    retained events came back unacknowledged and positionless: seed 1088, 14 events twice),
+    the acknowledged ones retained again only for a replica."""
+    s = SqliteSpill(tmp_path)
+    ch = OutChannel(window=64, store=s, key="app/0/0", persist=True)
+    ch.retain("replica", 0)
+    ch.push_many([b"%d" % i for i in range(10)])
+    ch.make_durable()
+    ch.on_ack(6)
+    ch.note_positions(6, {1: 6, 2: 5})
+    s.close()
+    s = SqliteSpill(tmp_path)
+    assert s.saved_positions("app/0/0") == (6, {1: 6, 2: 5})
+    back = OutChannel.recover(s, "app/0/0", 0, 64, 0.0, retain="replica")
+    assert back is not None and (back.acked, back.next_seq) == (6, 10)
+    assert back.positions == {1: 6, 2: 5} and back.retained("replica") == (
+        0,
+        [b"%d" % i for i in range(10)],
+    )
+    plain = OutChannel.recover(s, "app/0/0", 0, 64, 0.0)
+    assert plain is not None and plain.base == plain.acked == 6 and plain.kept == 4
+    s.drop("app/0/0")
+    assert s.saved_positions("app/0/0") is None and s.position("app/0/0") is None
+    s.close()

@@ -24,6 +24,10 @@ from mso.errors import MsoError
 FILE = "spill.sqlite3"
 FORMAT = "mso-spill"
 VERSION = "1"
+# the positions table also holds, under ``key + ACKED`` (and ``+ edge``), the output positions
+# the last ack of a held source edge brought (``save_positions``)
+ACKED = "@"
+_DELETE_ACK_POSITIONS = "DELETE FROM positions WHERE substr(key, 1, ?) = ?"
 
 
 class SqliteSpill:
@@ -145,6 +149,7 @@ class SqliteSpill:
             self._db.execute("BEGIN")
             self._db.execute("DELETE FROM events WHERE key = ?", (key,))
             self._db.execute("DELETE FROM positions WHERE key = ?", (key,))
+            self._db.execute(_DELETE_ACK_POSITIONS, (len(key) + 1, key + ACKED))
         if self._bytes.pop(key, 0):
             self._vacuum()
 
@@ -163,6 +168,27 @@ class SqliteSpill:
     def position(self, key: str) -> int | None:
         row = self._db.execute("SELECT value FROM positions WHERE key = ?", (key,)).fetchone()
         return None if row is None else int(row[0])
+
+    def save_positions(self, key: str, at: int, positions: dict[int, int]) -> None:
+        rows = [(key + ACKED, at), *((f"{key}{ACKED}{e}", p) for e, p in positions.items())]
+        with self._db:
+            self._db.execute("BEGIN")
+            self._db.execute(_DELETE_ACK_POSITIONS, (len(key) + 1, key + ACKED))
+            self._db.executemany("INSERT OR REPLACE INTO positions VALUES (?, ?)", rows)
+
+    def saved_positions(self, key: str) -> tuple[int, dict[int, int]] | None:
+        rows = self._db.execute(
+            "SELECT key, value FROM positions WHERE substr(key, 1, ?) = ?",
+            (len(key) + 1, key + ACKED),
+        ).fetchall()
+        at, positions = None, {}
+        for name, value in rows:
+            rest = name[len(key) + 1 :]
+            if rest == "":
+                at = int(value)
+            elif rest.isdigit():
+                positions[int(rest)] = int(value)
+        return None if at is None else (at, positions)
 
     # -- what it costs ---------------------------------------------------------------------
     def held_bytes(self) -> int:

@@ -23,6 +23,9 @@ from mso.protocol.spill import SpillStore
 # numbers on from the bound (the consumer skips the unused ones by the floor), and the store
 # is written once per POSITION_LEASE events instead of on every push
 POSITION_LEASE = 1024
+# the retention a replicated consumer's producer keeps: the events after the consumer's newest
+# replicated snapshot (mso.protocol.procedures.replication)
+REPLICA_OWNER = "replica"
 
 
 @dataclass
@@ -83,10 +86,18 @@ class OutChannel:
         the consumer numbers its output from them (seed 1998)."""
         if upto >= self.acked and (positions or upto > self.positions_at):
             self.positions, self.positions_at = positions, upto
+            self._save_positions()
         if positions or upto not in self.history:
             self.history[upto] = positions
         while len(self.history) > self.HISTORY:
             del self.history[next(iter(self.history))]
+
+    def _save_positions(self) -> None:
+        """A source's edge holding its events in the store keeps the positions of its last
+        ack there too: after a restart of this node's daemon, its consumer's replacement
+        numbers what the replay makes as the lost one did (seed 1088)."""
+        if self.persist and self.store is not None and self.spilled:
+            self.store.save_positions(self.key, self.positions_at, self.positions)
 
     @property
     def in_flight(self) -> int:
@@ -139,17 +150,26 @@ class OutChannel:
         self.spilled += len(self._unacked)
         self._unacked.clear()
         self.mem_bytes = 0
+        self._save_positions()
 
     @classmethod
     def recover(
-        cls, store: SpillStore, key: str, start: int, window: int, now: float
+        cls,
+        store: SpillStore,
+        key: str,
+        start: int,
+        window: int,
+        now: float,
+        retain: Hashable | None = None,
     ) -> OutChannel | None:
         """A source's edge after this node's daemon restarted, numbering on. If it held its
         events in the store (its consumer was out of reach), they are all there, up to its
         last number: it keeps those from ``start`` (where the consumer stands) on. Else it
         numbers on from the saved bound, and the consumer skips by the frame's floor what
         it never got (the events in memory then, gone with the process; numbers never used).
-        None if nothing was saved under ``key``."""
+        Held events its consumer had acknowledged (kept for a retention: ``retain`` names
+        it again, else they are forgotten) come back acknowledged, with the output positions
+        that ack brought. None if nothing was saved under ``key``."""
         bound = store.position(key)
         if bound is None:
             return None
@@ -166,6 +186,14 @@ class OutChannel:
         ch.stamps.append((first, now))
         ch.leased = max(top, bound)
         store.save_position(key, ch.leased)
+        saved = store.saved_positions(key)
+        if saved is not None and first <= saved[0] <= top:  # its last ack, if it is kept
+            at, ch.positions = saved
+            ch.acked = ch.sent = ch.positions_at = at  # (what is kept before: retained)
+            if retain is not None:
+                ch.retentions[retain] = first
+            else:
+                ch._trim()
         return ch
 
     def on_ack(self, upto: int, now: float = 0.0) -> int:

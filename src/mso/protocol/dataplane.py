@@ -21,6 +21,7 @@ from collections.abc import Iterable
 
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.protocol.channel import REPLICA_OWNER as REPLICA_OWNER  # (where procedures read it)
 from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.effects import Send, SetTimer
@@ -44,9 +45,6 @@ FEED_BATCH = 256  # events per feed at most, so markers and stops are not held b
 SOURCE_RUN = 4096  # calls of a rated source per run at most
 ACK_EVERY = 256  # events processed before an ack is sent without waiting for the flush
 DELAY_SMOOTHING = 0.2  # weight of the newest batch in a chain's delay average
-# the retention a replicated consumer's producer keeps: the events after the consumer's newest
-# replicated snapshot (mso.protocol.procedures.replication)
-REPLICA_OWNER = "replica"
 
 
 class DataPlane:

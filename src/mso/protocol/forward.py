@@ -14,7 +14,7 @@ from typing import Protocol
 
 from mso.protocol import delivery
 from mso.protocol import messages as m
-from mso.protocol.channel import OutChannel
+from mso.protocol.channel import REPLICA_OWNER, OutChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.effects import Send, SetTimer
 from mso.protocol.events import Retransmit
@@ -119,7 +119,8 @@ class StoreAndForward:
         the position the old process saved, and what it held for an unreachable consumer (in
         the store) is delivered; None if nothing was saved (another node's source before)."""
         store, key = self.ctx.spill, self.key(dep, edge)
-        return OutChannel.recover(store, key, start, self.ctx.window, self.ctx.now)
+        retain = REPLICA_OWNER if dep.replicas.get(dep.app.edges[edge].dst) else None
+        return OutChannel.recover(store, key, start, self.ctx.window, self.ctx.now, retain)
 
     def forget(self, dep: AppState) -> None:
         """The app is gone from this node: its edges' events and positions too."""

@@ -6,7 +6,9 @@ a SQLite file under its state directory (:mod:`mso.daemon.spill`). Keys name an 
 (``app/epoch/edge``); events are kept by sequence number, contiguous per key: appended at the
 end (or, when a held edge moves what it had in memory into the store, just before the first)
 and trimmed at the front. Positions are small integers that must survive a restart (the next
-sequence number of a source's edge), saved on change; dropping a key forgets both.
+sequence number of a source's edge), saved on change, and, while a source's edge holds events
+here, the output positions its consumer's last ack brought (a restore after a restart numbers
+the replay as the lost instances did); dropping a key forgets all of them.
 """
 
 from __future__ import annotations
@@ -45,6 +47,14 @@ class SpillStore(Protocol):
 
     def position(self, key: str) -> int | None: ...
 
+    def save_positions(self, key: str, at: int, positions: dict[int, int]) -> None:
+        """The consumer's output positions that came with the ack of ``key`` up to ``at``
+        (replacing those saved before)."""
+
+    def saved_positions(self, key: str) -> tuple[int, dict[int, int]] | None:
+        """``(at, positions)`` saved for ``key``, or None."""
+        ...
+
 
 class MemorySpill:
     """The simulator's spill store: in memory, per node, kept across the node's restarts."""
@@ -53,6 +63,7 @@ class MemorySpill:
         self._logs: dict[str, deque[tuple[int, bytes]]] = {}
         self._bytes: dict[str, int] = {}
         self._positions: dict[str, int] = {}
+        self._ack_positions: dict[str, tuple[int, dict[int, int]]] = {}
 
     def append(self, key: str, seq: int, events: list[bytes]) -> None:
         log = self._logs.setdefault(key, deque())
@@ -79,6 +90,7 @@ class MemorySpill:
         self._logs.pop(key, None)
         self._bytes.pop(key, None)
         self._positions.pop(key, None)
+        self._ack_positions.pop(key, None)
 
     def size(self, key: str) -> int:
         return self._bytes.get(key, 0)
@@ -95,3 +107,10 @@ class MemorySpill:
 
     def position(self, key: str) -> int | None:
         return self._positions.get(key)
+
+    def save_positions(self, key: str, at: int, positions: dict[int, int]) -> None:
+        self._ack_positions[key] = (at, dict(positions))
+
+    def saved_positions(self, key: str) -> tuple[int, dict[int, int]] | None:
+        saved = self._ack_positions.get(key)
+        return None if saved is None else (saved[0], dict(saved[1]))

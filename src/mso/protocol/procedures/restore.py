@@ -137,32 +137,39 @@ class Restorer:
             self.activate(dep, vertex)
 
     def anchor(self, dep: AppState, vertex: str, msg: m.Resume) -> None:
-        """A running consumer restored while this edge's producer was out of reach numbered its
-        output from where its own consumers stood: a guess, since no ack said what its lost
-        instance had made of the producer's events. The producer's replacement says where
-        the edge starts and, from the last ack it knows of, the consumer's output positions
-        then. A consumer that has had nothing on this edge and made nothing since it was
-        restored numbers its output from those: what it makes of the replay carries the
-        numbers the lost instance gave it, and its consumers drop what they have (seed 80).
-        Otherwise (a merge fed meanwhile) it keeps its guess."""
-        outs = dep.out_edges.get(vertex, [])
-        if msg.edge in dep.inc or not outs or not all(o in msg.positions for o in outs):
+        """A consumer restored while this edge's producer was out of reach (or before it) has
+        numbered its output from where its own consumers stood, or from 0: a guess, since no
+        ack said what its lost instance had made of the producer's events. The producer's
+        replacement says where the edge starts and, from the last ack it knows of, the
+        consumer's output positions then. A consumer that has processed nothing yet numbers
+        its output from those, and tells its own consumers in turn: what it makes of the
+        replay carries the numbers the lost instance gave it, and downstream drops what it
+        has (seeds 80, 3040). One that has processed something keeps its guess (a merge fed
+        by its other input meanwhile)."""
+        h = dep.instances[vertex]
+        inc = dep.inc.get(msg.edge)
+        if h.processed or h.queued or h.pending or (inc is not None and inc.expected > 0):
             return
-        for o in outs:
-            out = dep.out.get(o)
-            if out is None or dep.fresh_from.get(o) != out.next_seq:
-                return
-            if not 0 <= msg.positions[o] <= out.next_seq:
-                return
+        outs = dep.out_edges.get(vertex, [])
+        if not all(o in msg.positions and msg.positions[o] >= 0 for o in outs):
+            return
+        released = msg.start if outs else None
         dep.inc[msg.edge] = InChannel(
-            expected=msg.start, processed=msg.start, _acked=msg.start, released=msg.start
+            expected=msg.start, processed=msg.start, _acked=msg.start, released=released
         )
         further = {e: p for e, p in msg.positions.items() if e not in outs}
         for o in outs:
+            pos = msg.positions[o]
             self.dp.outbox.pop((dep.app.name, o), None)
-            dep.out[o] = self.dp.channel(dep, o, msg.positions[o])
+            dep.out[o] = self.dp.channel(dep, o, pos)
             dep.out[o].positions = further
-            dep.fresh_from.pop(o, None)
+            if o in dep.fresh_from:  # a state restarted still makes new events
+                if has_state(dep.app.vertices[vertex]):
+                    dep.fresh_from[o] = pos
+                else:
+                    del dep.fresh_from[o]
+            consumer = dep.placed[dep.app.edges[o].dst]
+            self.ctx.send(consumer, m.Resume(dep.app.name, o, msg.rid, True, pos, further))
         self.dp.touch(dep.app.name)
 
     def on_replacement_prepared(self, ev: ReplacementPrepared) -> None:
@@ -223,18 +230,17 @@ class Restorer:
             h.asked = max(h.asked, dep.out[o].next_seq) if h.kind == "source" else h.asked
             if _fresh(dep, vertex, h.kind, snap is not None, restoring):
                 dep.fresh_from[o] = dep.out[o].next_seq
-            consumer = dep.app.edges[o].dst
-            if o in restoring.positions and restoring.consumer_start.get(o, 0) < base:
-                # its consumer has nothing of this edge: a replacement too, restored while
-                # this one was out of reach; tell it where the lost one's numbering stood
-                where = dict(restoring.positions)
-                resume = m.Resume(dep.app.name, o, restoring.rid, True, base, where)
-                self.ctx.send(dep.placed[consumer], resume)
             # positions further down, for a restore of its consumer (replayed from here); a
             # source's carried channel keeps those its last ack brought (seed 1998)
             further = {e: p for e, p in restoring.positions.items() if e not in outs}
+            out = dep.out[o]
             if further or carried is None:
-                dep.out[o].positions = further
+                out.positions = further
+            if out.positions and restoring.consumer_start.get(o, 0) < out.acked:
+                # its consumer has nothing of this edge: a replacement too, restored while
+                # this one was out of reach or before it; say where its numbering stood
+                resume = m.Resume(dep.app.name, o, restoring.rid, True, out.acked, out.positions)
+                self.ctx.send(dep.placed[dep.app.edges[o].dst], resume)
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
             if e.dst == vertex:
                 for seq, events, ts in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
