@@ -58,23 +58,29 @@ class MoveLog:
     """What the core tells of rule actions, and the moves that ended, bounded."""
 
     def __init__(self) -> None:
-        self._asked: dict[tuple[str, str], str] = {}
+        # in the order asked: two remaps of one app asked in one evaluation (chains whose route
+        # changed) are carried out one after the other, and each keeps its own words
+        self._asked: dict[tuple[str, str], deque[str]] = {}
         self._moves: deque[tuple[float, MoveRecord]] = deque(maxlen=MAX_MOVES)
         self._seq = 0
 
     def asking(self, app: str, vertex: str, words: str) -> None:
         """A rule's action is being carried out: the move of ``vertex`` of ``app`` (``""``:
         a remap of it) is asked for by ``words``."""
-        if len(self._asked) >= MAX_ASKED:
+        if (app, vertex) not in self._asked and len(self._asked) >= MAX_ASKED:
             self._asked.pop(next(iter(self._asked)))
-        self._asked[(app, vertex)] = words
+        self._asked.setdefault((app, vertex), deque(maxlen=MAX_ASKED)).append(words)
 
     def happened(self, h: Happened, now: float) -> Happened:
         """``h`` with who asked in words; a move is kept for status (a remap's own steps are
         told by the remap's record)."""
         if h.what not in MOVES:
             return h
-        asked = self._asked.pop((h.app, h.subject), "") if h.by == "rule" else ""
+        asked = ""
+        if h.by == "rule" and (queue := self._asked.get((h.app, h.subject))):
+            asked = queue.popleft()
+            if not queue:
+                del self._asked[(h.app, h.subject)]
         h = replace(h, asked=asked or asked_words(h))
         if h.by != "remap":
             self._seq += 1

@@ -1,18 +1,22 @@
-"""``mso demo``: the convoy on the emulated 4-robot line, then its log read back from SQLite.
+"""``mso demo``: the convoy on the emulated 4-robot line, each of the paper's three
+reconfigurations happening for a reason the viewer sees, then its log read back from SQLite.
 
-Deploys examples/convoy.yaml on examples/convoy-demo.yaml (robot boards, a leader whose battery
-is scaled down so its drain shows within the demo, CPU energy charged from measured CPU time),
-prints the placement, then every few seconds each robot's battery and the relocations the
-rules made; at the end it waits (bounded) for what is in flight to land and prints the summary
-read back from the trailing robot's database: rows stored against events emitted, localization
-error, survivors found against planted, end-to-end delay. Every node process is stopped.
+Deploys examples/convoy.yaml on examples/convoy-demo.yaml (robot boards; a leader whose battery
+is scaled down so that it drains within the demo; a link that appears 8 s in and changes a
+chain's route; a robot whose nearly empty battery stops it about 40 s in), plays the scenario's
+changes, prints every few seconds each robot's battery and drain (with what its vertex code's
+CPU takes) and, as they happen, each move with who asked and how long it took: the rules'
+relocations off draining robots, the chain remap after the route change, the recovery after the
+robot stopped. At the end it waits (bounded) for what is in flight to land and prints the
+summary read back from the trailing robot's database (rows stored against events emitted:
+nothing lost, the reconfigurations included; localization error; survivors; delay) and the
+reconfigurations by kind. Every node process is stopped.
 """
 
 from __future__ import annotations
 
 import asyncio
 import os
-import re
 import sqlite3
 import tempfile
 from pathlib import Path
@@ -21,6 +25,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
+from mso.errors import MsoError
 from mso.examples.convoy.storage import DB_ENV, summary
 
 EXAMPLES = Path(__file__).resolve().parent.parent
@@ -30,6 +35,11 @@ LEADER = "N1"
 
 
 ROWS_OF = {"laser": "trajectory", "visible_camera": "targets"}  # source -> its table
+KINDS = {  # the paper's three reconfigurations, as the summary counts them
+    "relocation": "relocations (§3.4.1)",
+    "remap": "chain remaps (§3.4.2)",
+    "recovery": "recoveries: global remaps after a failure (§3.4.3)",
+}
 
 
 def rows_below(db: Path, emitted: dict[str, int]) -> dict[str, int]:
@@ -56,34 +66,94 @@ def rows_below(db: Path, emitted: dict[str, int]) -> dict[str, int]:
     return out
 
 
-def _battery_line(status: dict[str, Any], t: float) -> str:
+def _battery_line(status: dict[str, Any], t: float, cpu_w: dict[str, float]) -> str:
+    """Each robot's battery and drain, and of that drain what its vertex code's CPU takes."""
     parts = []
     for node in sorted(status):
         mon = status[node]["monitor"]
         frac = mon.get("battery_fraction")
         level = "mains" if frac is None else f"{100 * frac:5.1f}%"
-        parts.append(f"{node} {level} {mon['drain_w']:.3f} W")
+        cpu = f" (CPU {1000 * cpu_w[node]:.0f} mW)" if node in cpu_w else ""
+        parts.append(f"{node} {level} {mon['drain_w']:.3f} W{cpu}")
     return f"t={t:5.1f}s  " + "  ".join(parts)
 
 
-def _relocations(status: dict[str, Any]) -> list[str]:
-    return [f"{n}: {d}" for n, st in sorted(status.items()) for d in st["management"]["done"]]
+class CpuWatts:
+    """Each robot's vertex CPU power between two status samples (its monitor counts the energy
+    the vertex code's CPU time cost; the rest of the drain is the board's idle and the radio)."""
+
+    def __init__(self) -> None:
+        self._last: dict[str, tuple[float, float]] = {}
+
+    def sample(self, status: dict[str, Any], t: float) -> dict[str, float]:
+        out = {}
+        for node, st in status.items():
+            joules = float(st["monitor"].get("cpu_energy_j", 0.0))
+            last = self._last.get(node)
+            if last is not None and t > last[0] and joules >= last[1]:
+                out[node] = (joules - last[1]) / (t - last[0])
+            self._last[node] = (t, joules)
+        return out
 
 
-def _readable(done: str) -> str:
-    """A rule's action as the demo prints it: without the node's clock reading and the policy's
-    raw score vectors (the dashboard and `mso status --json` keep them)."""
-    node, _, rest = done.partition(": ")
-    rest = rest.split(" ", 1)[1] if rest[:1].isdigit() else rest  # "19490.0 relocate ..."
-    return f"{node}: " + re.sub(r"score \([^)]*\) -> \([^)]*\) \(([^)]*)\)", r"\1", rest)
+def kind_of(line: str) -> str:
+    """Which of the paper's reconfigurations a told move is (its status record's words)."""
+    if "(recovery)" in line or ": recovery " in line or "recovery after" in line:
+        return "recovery"
+    if ": remap " in line or "(remap)" in line:
+        return "remap"
+    return "relocation"
+
+
+def _story(scenario: Any) -> list[str]:
+    """What the viewer should watch for, from the scenario itself."""
+    from mso.scenario.format import LinkChange
+
+    net = scenario.network
+    out = []
+    leader = net.nodes[LEADER]
+    if leader.battery_wh is not None:
+        out.append(
+            f"{LEADER}, the leader, runs on {leader.battery_wh:g} Wh: it drains far sooner than "
+            "its neighbour, so the rules relocate work off it (a relocation, §3.4.1)"
+        )
+    for c in scenario.changes:
+        if isinstance(c, LinkChange) and c.up:
+            out.append(
+                f"t={c.at:g} s: a link {c.a}-{c.b} appears, routes between them change, and a "
+                "chain whose route changed is remapped onto its new one (a chain remap, §3.4.2)"
+            )
+    for n, spec in net.nodes.items():
+        if n != LEADER and spec.battery_wh is not None and spec.battery_wh < 0.1:
+            out.append(
+                f"{n} runs on a nearly empty battery ({spec.battery_wh:g} Wh): when it "
+                "empties, it stops (fail-stop); its neighbours detect it and the chains it "
+                "touched are remapped onto the others (a recovery: the global remap, §3.4.3)"
+            )
+    return out
 
 
 async def _run(console: Console, duration: float, db: Path, dashboard: bool) -> dict[str, Any]:
+    from rich.markup import escape
+
+    from mso.cli.story import MoveWatch
     from mso.emu.controller import Emulator
     from mso.scenario import load_scenario
+    from mso.scenario.format import LinkChange
 
-    emu = Emulator(load_scenario(SCENARIO_FILE))
+    scenario = load_scenario(SCENARIO_FILE)
+    told: list[tuple[float, str]] = []
+
+    def tell(at: float, text: str) -> None:
+        told.append((at, text))
+        console.print(f"t={at:5.1f}s  {escape(text)}", soft_wrap=True)
+
+    for line in _story(scenario):
+        console.print(f"  - {line}", soft_wrap=True)
+    emu = Emulator(scenario)
     await emu.start()
+    emu.tell = tell
+    player = asyncio.create_task(emu.play())  # the scripted route change
     loop = asyncio.get_running_loop()
     board: Any = None
     try:
@@ -100,8 +170,7 @@ async def _run(console: Console, duration: float, db: Path, dashboard: bool) -> 
             console.print(
                 f"dashboard: [bold]{board.url}[/bold] (open it now; it stops with the demo)"
             )
-        reply = await emu.overlay("N1").deploy(APP_FILE)  # a refusal: one line, exit 2
-        t0 = loop.time()
+        reply = await emu.overlay(LEADER).deploy(APP_FILE)  # a refusal: one line, exit 2
         table = Table(title=f"deployed in {reply.elapsed_ms:.0f} ms: vertex → robot")
         nodes = list(emu.nodes)
         for node in nodes:
@@ -110,27 +179,37 @@ async def _run(console: Console, duration: float, db: Path, dashboard: bool) -> 
         for i in range(max(len(v) for v in by_node.values())):
             table.add_row(*(by_node[n][i] if i < len(by_node[n]) else "" for n in nodes))
         console.print(table)
-        seen: list[str] = []
+        watch, cpu = MoveWatch(), CpuWatts()
+        watch.placed("convoy", reply.placement)
+        changes = [c for c in scenario.changes if isinstance(c, LinkChange)]
         draining: set[str] = set()
         status: dict[str, Any] = {}
-        while loop.time() - t0 < duration:
-            await asyncio.sleep(min(3.0, max(0.1, duration - (loop.time() - t0))))
-            status = await emu.status()
-            console.print(_battery_line(status, loop.time() - t0), soft_wrap=True)
+        end = emu.t0 + duration
+        polls = 0
+        while loop.time() < end:  # moves told within a second; batteries every 3 s
+            await asyncio.sleep(min(1.0, max(0.1, end - loop.time())))
+            while changes and changes[0].at <= emu.now():
+                c = changes.pop(0)
+                tell(c.at, f"link {c.a}-{c.b} {'up' if c.up else 'down'} (scripted)")
+            try:
+                status = await emu.status()
+            except MsoError as exc:
+                tell(emu.now(), f"status: {exc}")
+                continue
+            now = emu.now()
+            for at, line in watch.moves(status, "convoy", now):
+                tell(at, line)
             for node in sorted(status):
                 now_draining = node in status[node]["management"].get("draining", [])
                 if now_draining != (node in draining):
                     draining ^= {node}
                     what = "its battery will die far sooner than its neighbours'"
-                    console.print(
-                        f"  {node} {'draining: ' + what if now_draining else 'no longer draining'}"
-                    )
-            for r in _relocations(status):
-                if r not in seen:
-                    seen.append(r)
-                    console.print(
-                        f"  [bold]relocation by the rules[/bold] {_readable(r)}", soft_wrap=True
-                    )
+                    said = "draining: " + what if now_draining else "no longer draining"
+                    tell(now, f"{node} {said}")
+            polls += 1
+            if polls % 3 == 0 or loop.time() >= end:
+                line = _battery_line(status, now, cpu.sample(status, now))
+                console.print(line, soft_wrap=True)
         sources = {
             v: st["emitted"]
             for n in status.values()
@@ -143,8 +222,22 @@ async def _run(console: Console, duration: float, db: Path, dashboard: bool) -> 
                 break
             await asyncio.sleep(0.1)
             stored = rows_below(db, sources)
-        return {"status": status, "emitted": sources, "stored": stored, "relocations": seen}
+        # the moves (a remap that kept every vertex where it ran moved nothing: told, not counted)
+        moves = [
+            (at, text)
+            for at, text in told
+            if text.startswith("convoy: ") and not text.startswith("convoy: remap unchanged")
+        ]
+        return {
+            "status": status,
+            "emitted": sources,
+            "stored": stored,
+            "moves": moves,
+            "emptied": sorted(emu.emptied),
+            "told": told,
+        }
     finally:
+        player.cancel()
         if board is not None:
             await board.stop()
         await emu.stop()
@@ -186,15 +279,24 @@ def run_demo(console: Console, duration: float, dashboard: bool = False) -> dict
     )
     p50, p99 = s["delay_ms_p50"], s["delay_ms_p99"]
     table.add_row("end-to-end delay p50 / p99", f"{p50 or 0:.1f} / {p99 or 0:.1f} ms")
-    off = [r for r in out["relocations"] if r.startswith(f"{LEADER}: ")]
-    table.add_row(
-        "relocations by the rules (off the leader)", f"{len(out['relocations'])} ({len(off)})"
-    )
+    lost = sum(max(0, n - stored.get(v, 0)) for v, n in emitted.items())
+    table.add_row("events lost, the reconfigurations included", str(lost))
+    kinds = {k: [m for m in out["moves"] if kind_of(m[1]) == k] for k in KINDS}
+    for k, label in KINDS.items():
+        table.add_row(label, str(len(kinds[k])))
+    if out["emptied"]:
+        table.add_row("stopped by an empty battery (fail-stop)", ", ".join(out["emptied"]))
     console.print(table)
+    if out["moves"]:
+        console.print("the reconfigurations, who asked and how long each took:")
+        for at, text in out["moves"]:
+            console.print(f"  t={at:5.1f}s  {text}", soft_wrap=True, markup=False)
     return {
         "summary": s,
         "emitted": emitted,
         "stored": stored,
-        "relocations": out["relocations"],
-        "off_leader": off,
+        "moves": out["moves"],
+        "kinds": {k: [text for _, text in v] for k, v in kinds.items()},
+        "emptied": out["emptied"],
+        "lost": lost,
     }
