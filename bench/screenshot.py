@@ -1,9 +1,10 @@
-"""The dashboard screenshot in docs/: the convoy on the line with a battery-bound leader
-(``convoy-energy.yaml``), the management rules on, after ``--wait`` seconds of running, so the
-timeline shows the rules moving work off the leader; then one relocation asked from the page.
-Drawn by Debian's headless chromium (``apt-get install chromium``) through Playwright.
+"""The dashboard screenshots in docs/img: `mso demo`'s run (the convoy on ``convoy-demo.yaml``,
+its scripted route change and the robot whose battery empties), the rules on, shot at 1280×800
+and 1920×1080 once the recovery has happened (``--at`` seconds into the run), as a viewer sees
+the page without scrolling; then the page after the run ended. Drawn by Debian's headless
+chromium (``apt-get install chromium``) through Playwright.
 
-Usage: .venv/bin/python bench/screenshot.py [--wait 30] [--out docs/img/dashboard.png]
+Usage: .venv/bin/python bench/screenshot.py [--at 46] [--out docs/img]
 """
 
 from __future__ import annotations
@@ -22,11 +23,13 @@ from mso.scenario import load_scenario
 
 HERE = Path(__file__).resolve().parent
 EXAMPLES = Path(mso.examples.__file__).parent
+SIZES = ((1280, 800), (1920, 1080))
 
 
-async def shoot(wait: float, out: Path) -> None:
-    emu = Emulator(load_scenario(EXAMPLES / "convoy-energy.yaml"))
+async def shoot(at: float, out: Path) -> None:
+    emu = Emulator(load_scenario(EXAMPLES / "convoy-demo.yaml"))
     await emu.start()
+    player = asyncio.create_task(emu.play())  # the route change; N3's battery empties by itself
     board = None
     try:
         await emu.deploy((EXAMPLES / "convoy.yaml").read_text(), "convoy.yaml", "N1", check=True)
@@ -37,20 +40,29 @@ async def shoot(wait: float, out: Path) -> None:
             browser = await pw.chromium.launch(
                 executable_path="/usr/bin/chromium", headless=True, args=["--no-sandbox"]
             )
-            page = await browser.new_page(viewport={"width": 1400, "height": 1000})
-            await page.goto(url)
-            await expect(page.locator("#conn")).to_have_text("live")
-            await asyncio.sleep(wait)
-            await page.select_option("#relocate-vertex", "path_planning")
-            await page.select_option("#relocate-target", "upstream")
-            await page.click("#relocate-go")
-            await expect(page.locator("#control-result")).to_contain_text("now runs on")
+            pages = []
+            for w, h in SIZES:
+                page = await browser.new_page(viewport={"width": w, "height": h})
+                await page.goto(url)
+                await expect(page.locator("#conn")).to_have_text("live")
+                pages.append(page)
+            await asyncio.sleep(max(0.0, emu.t0 + at - asyncio.get_running_loop().time()))
             await board.wait_update(5.0)
             await board.wait_update(5.0)
-            await page.screenshot(path=str(out), full_page=True)
+            for (w, h), page in zip(SIZES, pages, strict=True):
+                path = out / f"dashboard-{w}x{h}.png"
+                await page.screenshot(path=str(path))
+                print(f"written: {path}")
+            await board.stop()
+            board = None
+            page = pages[0]
+            await expect(page.locator("#conn")).to_have_text("ended")
+            path = out / "dashboard-ended.png"
+            await page.screenshot(path=str(path))
+            print(f"written: {path}")
             await browser.close()
-        print(f"written: {out}")
     finally:
+        player.cancel()
         if board is not None:
             await board.stop()
         await emu.stop()
@@ -58,10 +70,10 @@ async def shoot(wait: float, out: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--wait", type=float, default=30.0)
-    ap.add_argument("--out", type=Path, default=HERE.parent / "docs" / "img" / "dashboard.png")
+    ap.add_argument("--at", type=float, default=46.0, help="seconds into the run")
+    ap.add_argument("--out", type=Path, default=HERE.parent / "docs" / "img")
     a = ap.parse_args(argv)
-    asyncio.run(shoot(a.wait, a.out))
+    asyncio.run(shoot(a.at, a.out))
     return 0
 
 

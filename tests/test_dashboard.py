@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from dashboard_live import EXAMPLES, KEY, POSITIONS, LiveDashboard, start_live
-from mso.dashboard.view import Tracker
+from mso.dashboard.view import MOVED_S, Tracker, movable
 from mso.model.appfile import loads_app
 from mso.model.chains import form_chains
 
@@ -105,12 +105,44 @@ def test_tracker_names_the_rule_that_moved_a_vertex() -> None:
     assert view["timeline"][0]["kind"] == "move"
 
 
+def test_a_node_that_stops_answering_keeps_its_last_battery() -> None:
+    tr = Tracker(t0=0.0)
+    tr.update(status({"src": "N1", "mid": "N1", "sink": "N2"}, 0), 1.0, expected=["N1", "N2"])
+    nodes = status({"src": "N1", "mid": "N1", "sink": "N2"}, 0, failed=["N2"])
+    del nodes["N2"]
+    view = tr.update(nodes, 2.0, expected=["N1", "N2"])
+    n2 = next(n for n in view["nodes"] if n["id"] == "N2")
+    assert not n2["answered"] and n2["failed"] and n2["last_battery"] == 0.5
+
+
+def test_only_a_chains_interior_is_offered_with_the_ways_it_can_go() -> None:
+    chains = [["cam", "scale", "edges", "track"], ["track", "log"], ["imu", "track"]]
+    placement = {"cam": "R1", "scale": "R1", "edges": "R2", "track": "R2", "log": "R3",
+                 "imu": "R1"}  # fmt: skip
+    # heads, tails and the join (track) never; scale can go downstream only (cam is beside it)
+    assert movable(chains, placement) == {"edges": ["upstream"], "scale": ["downstream"]}
+
+
+def test_a_moved_vertex_is_flagged_for_a_while_and_chains_keep_a_history() -> None:
+    tr = Tracker(t0=0.0)
+    tr.update(status({"src": "N1", "mid": "N1", "sink": "N2"}, 0), 1.0)
+    view = tr.update(status({"src": "N1", "mid": "N2", "sink": "N2"}, 100), 2.0)
+    assert view["apps"][0]["moved"] == {"mid": 0.0}
+    later = tr.update(status({"src": "N1", "mid": "N2", "sink": "N2"}, 200), 2.0 + MOVED_S)
+    assert later["apps"][0]["moved"] == {}
+    history = later["apps"][0]["chains"][0]["history"]
+    assert [h[0] for h in history] == [1.0, 2.0, 2.0 + MOVED_S]  # t, events/s, delay ms
+    assert history[0][1] is None and history[1][1] == pytest.approx(100.0)
+    assert all(h[2] == 1.5 for h in history)
+
+
 def test_tracker_failed_and_silent_nodes() -> None:
     tr = Tracker(t0=0.0)
     nodes = status({"src": "N1", "mid": "N1", "sink": "N2"}, 0, failed=["N3"])
     view = tr.update(nodes, 1.0, positions={"N1": (0.0, 0.0)}, expected=["N1", "N2", "N3"])
     n3 = next(n for n in view["nodes"] if n["id"] == "N3")
-    assert n3 == {"id": "N3", "answered": False, "failed": True, "unreachable": False, "pos": None}
+    assert n3 == {"id": "N3", "answered": False, "failed": True, "unreachable": False,
+                  "last_battery": None, "pos": None}  # fmt: skip
     assert view["nodes"][0]["pos"] == [0.0, 0.0]
     assert view["failed"] == ["N3"]
     assert [e["what"] for e in view["timeline"]] == ["N3 failed"]
@@ -248,8 +280,16 @@ def test_dashboard_in_a_real_browser(live: LiveDashboard) -> None:
             # laid out from the scenario's positions: left to right, N2 and N4 off N1's row
             centres = {
                 n: (
-                    float(page.locator(f'#topology g[data-node="{n}"] circle').get_attribute("cx")),
-                    float(page.locator(f'#topology g[data-node="{n}"] circle').get_attribute("cy")),
+                    float(
+                        page.locator(f'#topology g[data-node="{n}"] circle.robot').get_attribute(
+                            "cx"
+                        )
+                    ),
+                    float(
+                        page.locator(f'#topology g[data-node="{n}"] circle.robot').get_attribute(
+                            "cy"
+                        )
+                    ),
                 )
                 for n in POSITIONS
             }
@@ -266,7 +306,7 @@ def test_dashboard_in_a_real_browser(live: LiveDashboard) -> None:
                     for p in (lines.nth(i).get_attribute("points") or "").split()
                 ]
                 at = [
-                    next(n for n, c in centres.items() if abs(c[0] - x) + abs(c[1] - y) < 15)
+                    next(n for n, c in centres.items() if abs(c[0] - x) + abs(c[1] - y) < 40)
                     for x, y in points
                 ]
                 assert all(tuple(sorted(p)) in links for p in itertools.pairwise(at)), at
@@ -306,3 +346,29 @@ def test_tracker_tells_who_asked_for_a_move_from_the_nodes_records() -> None:
         "an operator (mso relocate)",
         3.5,
     )
+
+
+def test_a_page_is_told_when_the_run_ends() -> None:
+    """Stopping the dashboard sends each open page a last view that says the run ended (the
+    page then shows "ended" and stops reconnecting), then closes the stream."""
+    import asyncio
+
+    from mso.dashboard.server import Dashboard
+
+    async def run() -> bytes:
+        board = Dashboard(["127.0.0.1:9"], "k", name="gone", interval=0.2)  # nothing listens
+        url = await board.start()
+        reader, writer = await asyncio.open_connection(board.host, board.port)
+        writer.write(f"GET /events HTTP/1.1\r\nHost: {url.split('/')[2]}\r\n\r\n".encode())
+        await writer.drain()
+        await reader.readuntil(b"retry: 2000\n\n")
+        await board.wait_update(10.0)
+        await board.stop()
+        got = await asyncio.wait_for(reader.read(), 10.0)  # to the end of the stream
+        writer.close()
+        return got
+
+    events = [e for e in asyncio.run(run()).split(b"\n\n") if e.startswith(b"data: ")]
+    last = json.loads(events[-1].removeprefix(b"data: "))
+    assert last["ended"] is True and last["overlay"] == "gone"
+    assert not any(json.loads(e.removeprefix(b"data: "))["ended"] for e in events[:-1])

@@ -77,6 +77,7 @@ class Dashboard:
         self.updates = 0  # views made (the benchmark counts them)
         self.poll_s: deque[float] = deque(maxlen=1000)  # how long each status round took
         self.error = ""  # why the last poll failed, shown on the page
+        self.ended = False  # stopped: the run is over (the page's last view says so)
         self._streams: set[asyncio.Queue[bytes]] = set()
         self._server: asyncio.Server | None = None
         self._poller: asyncio.Task[None] | None = None
@@ -106,9 +107,13 @@ class Dashboard:
             self._poller.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._poller
+        self.ended = True  # the page says the run is over, and stops reconnecting
+        final = b"data: " + self._document() + b"\n\n"
         for q in self._streams:
-            with contextlib.suppress(asyncio.QueueFull):
-                q.put_nowait(b"")  # ends the stream
+            while not q.empty():  # a slow page gets the end, not a backlog
+                q.get_nowait()
+            q.put_nowait(final)
+            q.put_nowait(b"")  # ends the stream
         if self._server is not None:
             self._server.close()
             with contextlib.suppress(Exception):
@@ -176,6 +181,7 @@ class Dashboard:
             via=self.addresses[self._via],
             interval=self.interval,
             error=self.error,
+            ended=self.ended,
         )
         return json.dumps(doc, separators=(",", ":")).encode()
 

@@ -35,6 +35,8 @@ RATE_WINDOW_S = 5.0  # rates are means over this long: a 1 Hz camera does not fl
 _DECISION = re.compile(r"^(?P<at>-?\d+(?:\.\d+)?) (?P<what>.*?)(?: \((?P<why>.*)\))?$")
 _RELOCATE = re.compile(r"^relocate (?P<app>[^/ ]+)/(?P<vertex>\S+) -> (?P<node>\S+)$")
 PENDING_S = 30.0  # a move asked for and not seen by then is not waited for any more
+MOVED_S = 6.0  # a vertex that moved is highlighted on the topology this long
+HISTORY_LEN = 90  # points of each chain's rate and delay kept for its sparklines
 
 
 def chain_colour(index: int) -> str:
@@ -81,6 +83,12 @@ class Tracker:
     )
     # latest move seen of each vertex: its entry and the node it went to
     _moves: dict[tuple[str, str], tuple[Entry, str]] = field(default_factory=dict)
+    # each node's last battery reported: a failed or silent node is drawn with it
+    _battery: dict[str, float | None] = field(default_factory=dict)
+    # (app, chain index) -> its recent (t, events/s, delay ms), for the sparklines
+    _series: dict[tuple[str, int], deque[tuple[float, float | None, float | None]]] = field(
+        default_factory=dict
+    )
 
     def note(
         self,
@@ -214,9 +222,11 @@ class Tracker:
             if st is None:
                 out.append({"id": nid, "answered": False, "failed": nid in failed,
                             "unreachable": nid in unreachable,
+                            "last_battery": self._battery.get(nid),
                             "pos": list(pos) if pos else None})  # fmt: skip
                 continue
             mon = st.get("monitor", {})
+            self._battery[nid] = mon.get("battery_fraction")
             traffic = st.get("traffic", {})
             before = prev.get(nid, {})
             rate = {
@@ -291,7 +301,8 @@ class Tracker:
                         why, took = told
                     asked = self._requested.pop((name, v), None)
                     if asked is not None and asked[0] == n and now - asked[4] < PENDING_S:
-                        _, kind, why, took, _ = asked
+                        _, kind, why, asked_took, _ = asked
+                        took = took if asked_took is None else asked_took  # a rule's: its record
                     entry = Entry(now - self.t0, kind, f"{v}: {old} → {n}", why, took, lost)
                     self._moves[(name, v)] = (entry, n)
                     self._add(entry)
@@ -301,6 +312,9 @@ class Tracker:
                 last = f"{c[-2]}->{c[-1]}" if len(c) > 1 else ""
                 delivered = agg["delivered"].get(last, 0)
                 prior = before[name].get(last)
+                rate = _rate(delivered, prior, dt) if prior is not None else None
+                series = self._series.setdefault((name, i), deque(maxlen=HISTORY_LEN))
+                series.append((round(now - self.t0, 2), rate, agg["delay"].get(cname)))
                 chains.append(
                     {
                         "index": i,
@@ -308,9 +322,10 @@ class Tracker:
                         "vertices": c,
                         "colour": chain_colour(i),
                         "nodes": [agg["placement"].get(v) for v in c],
-                        "events_per_s": _rate(delivered, prior, dt) if prior is not None else None,
+                        "events_per_s": rate,
                         "delay_ms": agg["delay"].get(cname),
                         "parked": agg["parked"].get(cname),
+                        "history": [list(point) for point in series],
                     }
                 )
             out.append(
@@ -321,6 +336,12 @@ class Tracker:
                     "vertices": agg["vertices"],
                     "given_up": dropped,
                     "capable": agg["capable"],
+                    "movable": movable(agg["chains"], agg["placement"]),
+                    "moved": {
+                        v: round(now - self.t0 - entry.t, 2)
+                        for (a, v), (entry, _) in self._moves.items()
+                        if a == name and now - self.t0 - entry.t < MOVED_S
+                    },
                 }
             )
         return out
@@ -342,6 +363,28 @@ class Tracker:
                 ok=bool(rec.get("ok")),
             )
         )
+
+
+def movable(chains: list[list[str]], placement: dict[str, str]) -> dict[str, list[str]]:
+    """The vertices a relocation can move (§3.4.1: a chain's interior, never its head or tail,
+    which pinned sources and sinks always are), each with the ways it can go: ``upstream`` or
+    ``downstream`` while the vertex before or after it in its chain runs on another node, and
+    every node the app does not already run it on."""
+    ends = {c[0] for c in chains if c} | {c[-1] for c in chains if c}
+    out: dict[str, list[str]] = {}
+    for c in chains:
+        for i in range(1, len(c) - 1):
+            v = c[i]
+            if v in ends or v in out:
+                continue
+            here = placement.get(v)
+            ways = []
+            if placement.get(c[i - 1]) not in (None, here):
+                ways.append("upstream")
+            if placement.get(c[i + 1]) not in (None, here):
+                ways.append("downstream")
+            out[v] = ways
+    return dict(sorted(out.items()))
 
 
 def _rate(value: float, before: float | None, dt: float) -> float:

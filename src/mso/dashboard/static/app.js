@@ -64,6 +64,31 @@ function layout(nodes, links) {
   return pos;
 }
 
+// robots closer than their labels need are pushed apart (a few rounds of pairwise repulsion,
+// deterministic): close robots keep their arrangement and never overlap
+const MIN_GAP = 130;
+function spread(pos) {
+  const ids = Object.keys(pos).sort();
+  for (let round = 0; round < 60; round++) {
+    let moved = false;
+    for (let i = 0; i < ids.length; i++) for (let j = i + 1; j < ids.length; j++) {
+      const a = pos[ids[i]], b = pos[ids[j]];
+      let dx = b[0] - a[0], dy = b[1] - a[1];
+      let d = Math.hypot(dx, dy);
+      if (d >= MIN_GAP) continue;
+      if (d < 1e-6) { dx = 1; dy = 0.3; d = Math.hypot(dx, dy); }
+      const push = (MIN_GAP - d) / 2 + 0.5;
+      a[0] -= (dx / d) * push; a[1] -= (dy / d) * push;
+      b[0] += (dx / d) * push; b[1] += (dy / d) * push;
+      moved = true;
+    }
+    if (!moved) break;
+  }
+  return pos;
+}
+
+const MAX_LABELS = 4;  // vertex names under a robot; the rest as "+N more" (all in its title)
+
 // the path events take from node a to node b: a's next hop toward b, then that node's, ...
 // (the relays a chain's events cross); a straight line when the routes do not say
 function route(routes, a, b, pos) {
@@ -81,40 +106,64 @@ function route(routes, a, b, pos) {
 function drawTopology(v) {
   const svg = document.getElementById("topology");
   svg.replaceChildren();
-  const pos = layout(v.nodes, v.links);
+  const pos = spread(layout(v.nodes, v.links));
+  const moved = new Set(v.apps.flatMap((app) => Object.keys(app.moved || {})));
   for (const [a, b] of v.links) {
     if (!pos[a] || !pos[b]) continue;
     svg.append(el("svg:line", { x1: pos[a][0], y1: pos[a][1], x2: pos[b][0], y2: pos[b][1], stroke: "#c3c8d0", "stroke-width": 2, "data-link": `${a}-${b}` }));
   }
   const vertexColour = {};
+  const all = v.apps.reduce((n, app) => n + app.chains.length, 0);
   let k = 0;
   for (const app of v.apps) for (const c of app.chains) {
     const hosts = [];
     for (const n of c.nodes) if (n && pos[n] && hosts[hosts.length - 1] !== n) hosts.push(n);
     const hops = hosts.length ? [hosts[0]] : [];
     for (let i = 1; i < hosts.length; i++) hops.push(...route(v.routes, hosts[i - 1], hosts[i], pos).slice(1));
-    const off = ((k++ % 5) - 2) * 3;
+    // the chains side by side, centred on the links, 5 px apart (a bundle, not one thick line)
+    const off = (k++ - (all - 1) / 2) * Math.min(5, 60 / Math.max(all, 1));
     if (hops.length > 1) {
       const pts = hops.map((n) => `${pos[n][0] + off},${pos[n][1] + off}`).join(" ");
-      svg.append(el("svg:polyline", { points: pts, fill: "none", stroke: c.colour, "stroke-width": 3, "stroke-opacity": 0.75, "data-chain": `${app.name}/${c.index}` }));
+      svg.append(el("svg:polyline", { points: pts, fill: "none", stroke: c.colour, "stroke-width": 3, "stroke-opacity": 0.8, "stroke-linejoin": "round", "data-chain": `${app.name}/${c.index}` }, el("svg:title", { text: `${app.name} [${c.index}] ${c.name}: ${hops.join(" → ")}` })));
     }
     for (const vx of c.vertices) if (!(vx in vertexColour)) vertexColour[vx] = c.colour;
   }
+  let x0 = Infinity, x1 = -Infinity, y0 = Infinity, y1 = -Infinity;
   for (const n of v.nodes) {
     const p = pos[n.id];
     if (!p) continue;
-    const g = el("svg:g", { "data-node": n.id, cls: "node" });
+    const g = el("svg:g", { "data-node": n.id, cls: "node" + (n.answered ? "" : " gone") });
     const stroke = n.failed ? "#c62828" : n.unreachable ? "#6b7280" : n.parked ? "#b26a00" : "#374151";
-    g.append(el("svg:circle", { cx: p[0], cy: p[1], r: 24, fill: n.answered ? batteryColour(n.battery) : "#e5e7eb", stroke, "stroke-width": n.failed ? 4 : 2, "stroke-dasharray": n.answered && !n.unreachable ? null : "4 3" }));
+    g.append(el("svg:circle", { cls: "robot", cx: p[0], cy: p[1], r: 24, fill: n.answered ? batteryColour(n.battery) : "#e5e7eb", stroke, "stroke-width": n.failed ? 4 : 2, "stroke-dasharray": n.answered && !n.unreachable ? null : "4 3" }));
+    if (n.failed) {  // a cross through a failed robot: never mistaken for a live one
+      g.append(el("svg:line", { x1: p[0] - 14, y1: p[1] - 14, x2: p[0] + 14, y2: p[1] + 14, stroke: "#c62828", "stroke-width": 3 }));
+    }
     g.append(el("svg:text", { x: p[0], y: p[1] + 5, "text-anchor": "middle", cls: "node-label", text: n.id }));
-    const sub = !n.answered ? (n.failed ? "failed" : n.unreachable ? "unreachable" : "silent")
+    const last = n.last_battery === null || n.last_battery === undefined ? "" : ` · last ${Math.round(n.last_battery * 100)}%`;
+    const sub = !n.answered ? (n.failed ? "failed" : n.unreachable ? "unreachable" : "silent") + last
       : `${n.battery === null ? "wall" : Math.round(n.battery * 100) + "%"} · ${fmt(n.drain_w, 2)} W`;
     g.append(el("svg:text", { x: p[0], y: p[1] - 32, "text-anchor": "middle", cls: "node-sub", text: sub }));
-    (n.vertices || []).forEach((vx, i) => {
-      g.append(el("svg:text", { x: p[0], y: p[1] + 44 + i * 13, "text-anchor": "middle", cls: "vertex-label", fill: vertexColour[vx] || "#374151", "data-vertex": vx, text: vx }));
+    const names = n.vertices || [];
+    const shown = names.length > MAX_LABELS ? names.slice(0, MAX_LABELS - 1) : names;
+    shown.forEach((vx, i) => {
+      const hot = moved.has(vx);
+      g.append(el("svg:text", { x: p[0], y: p[1] + 44 + i * 13, "text-anchor": "middle", cls: "vertex-label" + (hot ? " moved" : ""), fill: hot ? null : vertexColour[vx] || "#374151", "data-vertex": vx, text: hot ? `${vx} ←` : vx }));
     });
+    if (shown.length < names.length) {
+      const more = names.slice(shown.length);
+      const hot = more.some((vx) => moved.has(vx));
+      g.append(el("svg:text", { x: p[0], y: p[1] + 44 + shown.length * 13, "text-anchor": "middle", cls: "vertex-label more" + (hot ? " moved" : ""), text: `+${more.length} more` }, el("svg:title", { text: more.join(", ") })));
+    }
+    if (names.some((vx) => moved.has(vx))) {  // a vertex just moved here: a ring for a few s
+      g.append(el("svg:circle", { cx: p[0], cy: p[1], r: 31, fill: "none", cls: "moved-ring" }));
+    }
+    g.append(el("svg:title", { text: `${n.id}: ${names.join(", ") || "no vertex"}` }));
     svg.append(g);
+    x0 = Math.min(x0, p[0] - 70); x1 = Math.max(x1, p[0] + 70);
+    y0 = Math.min(y0, p[1] - 48); y1 = Math.max(y1, p[1] + 52 + Math.min(names.length, MAX_LABELS) * 13);
   }
+  // the drawing's own extent: no empty band above and below a line of robots
+  if (x1 > x0) svg.setAttribute("viewBox", `${x0} ${y0} ${x1 - x0} ${Math.max(y1 - y0, 160)}`);
   const legend = document.getElementById("legend");
   legend.replaceChildren(...v.apps.flatMap((app) => app.chains.map((c) => {
     const sw = el("span", { cls: "swatch" }); sw.style.background = c.colour;
@@ -130,13 +179,17 @@ function drawNodes(v) {
     else if (!n.answered) { state = "silent"; cls = "state-silent"; }
     else if (n.parked) { state = "parked chain"; cls = "state-parked"; }
     if (n.rejoined) { state += ` (rejoined, incarnation ${n.rejoined})`; cls = cls || "state-rejoined"; }
-    const bar = el("span", { cls: "bar" + (n.battery !== null && n.battery < 0.1 ? " empty" : n.battery !== null && n.battery < 0.3 ? " low" : "") });
-    const fill = el("span"); fill.style.width = `${n.battery === null || n.battery === undefined ? 100 : Math.round(n.battery * 100)}%`;
+    // a robot that does not answer keeps its last battery, greyed: never a full green bar
+    const b = n.answered ? n.battery : n.last_battery;
+    const known = b !== null && b !== undefined;
+    const bar = el("span", { cls: "bar" + (!n.answered ? " gone" : known && b < 0.1 ? " empty" : known && b < 0.3 ? " low" : "") });
+    const fill = el("span"); fill.style.width = `${known ? Math.round(b * 100) : n.answered ? 100 : 0}%`;
     bar.append(fill);
+    const level = known ? `${(b * 100).toFixed(1)}%` + (n.answered ? "" : " (last)") : n.answered ? "wall" : "-";
     const t = n.traffic || {};
     return el("tr", { "data-node": n.id },
       el("td", { text: n.id }), el("td", { cls, text: state }),
-      el("td", {}, bar, n.battery === null || n.battery === undefined ? "wall" : `${(n.battery * 100).toFixed(1)}%`),
+      el("td", {}, bar, level),
       el("td", { cls: "num", text: fmt(n.drain_w, 2) }), el("td", { cls: "num", text: life(n.lifetime_s) }),
       el("td", { cls: "num", text: n.answered ? `${Math.round((n.load || 0) * 100)}%` : "-" }),
       el("td", { cls: "num", text: n.answered ? `${((n.cpu || 0) * 100).toFixed(1)}%` : "-" }),
@@ -145,6 +198,18 @@ function drawNodes(v) {
       el("td", { cls: "wrap", text: (n.vertices || []).join(", ") }));
   });
   document.querySelector("#nodes tbody").replaceChildren(...rows);
+}
+
+// a chain's recent events/s (field 1) or delay (field 2) as a small line, its peak in the title
+function spark(history, field, colour) {
+  const pts = (history || []).filter((h) => h[field] !== null && h[field] !== undefined);
+  const svg = el("svg:svg", { cls: "spark", viewBox: "0 0 90 18", width: 90, height: 18, "aria-hidden": "true" });
+  if (pts.length < 2) return svg;
+  const t0 = pts[0][0], t1 = pts[pts.length - 1][0], top = Math.max(...pts.map((h) => h[field]), 1e-9);
+  const xy = pts.map((h) => `${(88 * (h[0] - t0) / Math.max(t1 - t0, 1e-9) + 1).toFixed(1)},${(17 - 16 * h[field] / top).toFixed(1)}`);
+  svg.append(el("svg:polyline", { points: xy.join(" "), fill: "none", stroke: colour, "stroke-width": 1.5 }));
+  svg.append(el("svg:title", { text: `last ${Math.round(t1 - t0)} s; peak ${top.toFixed(field === 1 ? 1 : 2)}` }));
+  return svg;
 }
 
 function drawChains(v) {
@@ -157,7 +222,8 @@ function drawChains(v) {
     });
     return el("tr", { "data-app": app.name, "data-chain": String(c.index) },
       el("td", {}, sw), el("td", { text: app.name }), el("td", { text: `[${c.index}] ${c.name}` }), mapping,
-      el("td", { cls: "num", text: fmt(c.events_per_s, 1) }), el("td", { cls: "num", text: fmt(c.delay_ms, 2) }),
+      el("td", { cls: "num" }, fmt(c.events_per_s, 1), spark(c.history, 1, c.colour)),
+      el("td", { cls: "num" }, fmt(c.delay_ms, 2), spark(c.history, 2, c.colour)),
       el("td", { cls: c.parked ? "state-parked" : "", text: c.parked ? `parked: ${c.parked}` : "flowing" }));
   }));
   document.querySelector("#chains tbody").replaceChildren(...rows);
@@ -185,10 +251,16 @@ function drawControls(v) {
   setOptions(appSel, v.apps.map((a) => [a.name, a.name]));
   const app = v.apps.find((a) => a.name === appSel.value) || v.apps[0];
   if (!app) return;
-  setOptions(document.getElementById("relocate-vertex"), Object.keys(app.vertices).sort().map((vx) => [vx, vx]));
-  const targets = [["upstream", "upstream"], ["downstream", "downstream"]];
-  for (const n of v.nodes) if (n.answered && !n.failed) targets.push([`node:${n.id}`, n.id]);
+  // only what a relocation can move (a chain's interior: never its pinned head or tail), and
+  // for it only where it can go (upstream/downstream while a neighbour runs elsewhere; a live
+  // node other than its own)
+  const movable = app.movable || {};
+  setOptions(document.getElementById("relocate-vertex"), Object.keys(movable).map((vx) => [vx, `${vx} (on ${app.placement[vx]})`]));
+  const chosen = document.getElementById("relocate-vertex").value;
+  const targets = (movable[chosen] || []).map((w) => [w, w]);
+  for (const n of v.nodes) if (n.answered && !n.failed && !n.unreachable && n.id !== app.placement[chosen]) targets.push([`node:${n.id}`, n.id]);
   setOptions(document.getElementById("relocate-target"), targets);
+  document.getElementById("relocate-go").disabled = !chosen || !targets.length || Boolean(v.ended);
   setOptions(document.getElementById("remap-chain"), app.chains.map((c) => [String(c.index), `[${c.index}] ${c.name}`]));
   // the current node of the chosen vertex, beside the choice
   const vx = document.getElementById("relocate-vertex").value;
@@ -202,6 +274,12 @@ function render(v) {
   document.getElementById("overlay").textContent = v.overlay ? `· ${v.overlay}` : "";
   document.getElementById("clock").textContent = `t = ${fmt(v.t, 0)} s · via ${v.via} · every ${v.interval} s`;
   document.getElementById("error").textContent = v.error ? `status: ${v.error}` : "";
+  if (v.ended) {  // the run is over: the last view stays, nothing reconnects
+    source.close();
+    conn.textContent = "ended"; conn.className = "conn ended";
+    document.body.dataset.ended = "true";
+    for (const b of document.querySelectorAll("#controls-panel button, #controls-panel select")) b.disabled = true;
+  }
   if (!v.nodes) return;
   drawTopology(v); drawNodes(v); drawChains(v); drawTimeline(v); drawControls(v);
   document.body.dataset.updated = String(v.t);
@@ -237,5 +315,5 @@ document.getElementById("remap-all").addEventListener("click", () => post("/api/
 const conn = document.getElementById("conn");
 const source = new EventSource("/events");
 source.onopen = () => { conn.textContent = "live"; conn.className = "conn up"; };
-source.onerror = () => { conn.textContent = "reconnecting…"; conn.className = "conn down"; };
+source.onerror = () => { if (!document.body.dataset.ended) { conn.textContent = "reconnecting…"; conn.className = "conn down"; } };
 source.onmessage = (ev) => render(JSON.parse(ev.data));
