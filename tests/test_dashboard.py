@@ -372,3 +372,20 @@ def test_a_page_is_told_when_the_run_ends() -> None:
     last = json.loads(events[-1].removeprefix(b"data: "))
     assert last["ended"] is True and last["overlay"] == "gone"
     assert not any(json.loads(e.removeprefix(b"data: "))["ended"] for e in events[:-1])
+
+
+def test_a_vertex_failing_on_every_event_is_flagged() -> None:
+    tr = Tracker(t0=0.0)
+    placement = {"src": "N1", "mid": "N1", "sink": "N2"}
+
+    def failing(errors: int) -> dict[str, Any]:
+        nodes = status(placement, 0)
+        mid = nodes["N1"]["apps"]["pipe"]["vertices"]["mid"]
+        mid.update(errors=errors, last_error="mid: returned dict, expected Num")
+        return nodes
+
+    assert tr.update(failing(0), 1.0)["apps"][0]["alarms"] == []
+    (alarm,) = tr.update(failing(20), 3.0)["apps"][0]["alarms"]  # 10 a second
+    assert alarm == {"vertex": "mid", "node": "N1", "errors": 20, "per_s": 10.0,
+                     "last_error": "mid: returned dict, expected Num"}  # fmt: skip
+    assert tr.update(failing(20), 9.0)["apps"][0]["alarms"] == []  # it stopped failing

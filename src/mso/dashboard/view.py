@@ -37,6 +37,7 @@ _RELOCATE = re.compile(r"^relocate (?P<app>[^/ ]+)/(?P<vertex>\S+) -> (?P<node>\
 PENDING_S = 30.0  # a move asked for and not seen by then is not waited for any more
 MOVED_S = 6.0  # a vertex that moved is highlighted on the topology this long
 HISTORY_LEN = 90  # points of each chain's rate and delay kept for its sparklines
+ERRORS_PER_S = 1.0  # a vertex failing this often (over the rate window) is flagged on the page
 
 
 def chain_colour(index: int) -> str:
@@ -279,6 +280,8 @@ class Tracker:
                         "kind": vs["kind"],
                         "events": vs["emitted"] if vs["kind"] == "source" else vs["processed"],
                         "state": vs.get("state", ""),
+                        "errors": int(vs.get("errors", 0)),
+                        "last_error": str(vs.get("last_error", ""))[:300],
                     }
                 for e, c in app["edges"].items():
                     got = agg["delivered"].get(e, 0)
@@ -337,6 +340,7 @@ class Tracker:
                     "given_up": dropped,
                     "capable": agg["capable"],
                     "movable": movable(agg["chains"], agg["placement"]),
+                    "alarms": _alarms(agg["vertices"], _errors(prev, name), dt),
                     "moved": {
                         v: round(now - self.t0 - entry.t, 2)
                         for (a, v), (entry, _) in self._moves.items()
@@ -385,6 +389,29 @@ def movable(chains: list[list[str]], placement: dict[str, str]) -> dict[str, lis
                 ways.append("downstream")
             out[v] = ways
     return dict(sorted(out.items()))
+
+
+def _errors(nodes: dict[str, Any], app: str) -> dict[str, int]:
+    """Each vertex's error count in an earlier reply."""
+    return {
+        v: int(vs.get("errors", 0))
+        for st in nodes.values()
+        for v, vs in st.get("apps", {}).get(app, {}).get("vertices", {}).items()
+    }
+
+
+def _alarms(
+    vertices: dict[str, dict[str, Any]], before: dict[str, int], dt: float
+) -> list[dict[str, Any]]:
+    """The vertices failing at ``ERRORS_PER_S`` or more since the earlier reply: a vertex that
+    fails on every event is flagged, not buried in a column (its last error says why)."""
+    out = []
+    for v, vs in sorted(vertices.items()):
+        rate = _rate(vs["errors"], before.get(v), dt)
+        if rate >= ERRORS_PER_S:
+            out.append({"vertex": v, "node": vs["node"], "errors": vs["errors"],
+                        "per_s": round(rate, 1), "last_error": vs["last_error"]})  # fmt: skip
+    return out
 
 
 def _rate(value: float, before: float | None, dt: float) -> float:

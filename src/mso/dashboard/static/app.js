@@ -269,6 +269,13 @@ function drawControls(v) {
   document.getElementById("relocate-vertex").title = vx ? `now on ${app.placement[vx]}${by}` : "";
 }
 
+// vertices failing at a rate past the threshold: one red line each, with their last error
+function drawAlarms(v) {
+  const lines = v.apps.flatMap((app) => (app.alarms || []).map((a) => el("p", { "data-vertex": a.vertex,
+    text: `${app.name}: vertex ${a.vertex} on ${a.node} fails ${a.per_s} times a second (${a.errors} errors in all): ${a.last_error || "no error text"}` })));
+  document.getElementById("alarms").replaceChildren(...lines);
+}
+
 function render(v) {
   view = v;
   document.getElementById("overlay").textContent = v.overlay ? `· ${v.overlay}` : "";
@@ -281,7 +288,7 @@ function render(v) {
     for (const b of document.querySelectorAll("#controls-panel button, #controls-panel select")) b.disabled = true;
   }
   if (!v.nodes) return;
-  drawTopology(v); drawNodes(v); drawChains(v); drawTimeline(v); drawControls(v);
+  drawTopology(v); drawNodes(v); drawChains(v); drawTimeline(v); drawControls(v); drawAlarms(v);
   document.body.dataset.updated = String(v.t);
 }
 
