@@ -50,6 +50,8 @@ def test_validate_reports_what_deploy_would(
     )  # fmt: skip
     assert r.returncode == 2 and r.stdout == "", r
     assert r.stderr.count("\n") == 1 and expected in r.stderr, r.stderr
+    if policy:  # file:line: field, as every other problem
+        assert f"{app}:2: policy: " in r.stderr
 
 
 def test_a_good_policy_validates(tmp_path: Path) -> None:

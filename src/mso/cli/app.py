@@ -29,7 +29,10 @@ def validate(app_file: Path, no_import: bool, as_json: bool) -> None:
     if not no_import:  # as deploy would: a policy that does not load fails here, not there
         from mso.management import load_policy
 
-        load_policy(app.policy, where=f"{app_file}: policy")
+        line = app.located.line(("policy",)) if app.located is not None else None
+        load_policy(
+            app.policy, where=f"{app_file}:{line}: policy" if line else f"{app_file}: policy"
+        )
     from mso.cli.render import constraint_json, constraint_text
 
     needs = app.needs()
