@@ -157,6 +157,10 @@ FIXED: dict[int, str] = {
     "replacement's positions reached only its own consumer: events twice",
     1088: "a source's edge restarted from the store came back with what it retained for a "
     "replica as unacknowledged and no positions: events twice",
+    1465: "a replacement from a replica's snapshot acknowledged its input at the snapshot's "
+    "position at once, before what it had made and not got acknowledged was: events lost "
+    "with its node",
+    2079: "as 3040",
 }
 
 
