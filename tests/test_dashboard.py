@@ -324,6 +324,19 @@ def test_dashboard_in_a_real_browser(live: LiveDashboard) -> None:
             row = page.locator('#timeline tr[data-kind="relocation"]').first
             expect(row).to_contain_text(f"scan_matcher: {before} → {target}")
             expect(row).to_contain_text("none")  # events lost
+            # only what a relocation can move is offered: never a chain's pinned head or tail
+            offered = page.locator("#relocate-vertex option").evaluate_all(
+                "os => os.map(o => o.value)"
+            )
+            assert "scan_matcher" in offered and not {"laser", "storage", "localization"} & set(
+                offered
+            ), offered
+            # the reconfigurations are in view beside the topology at both sizes shot for docs
+            for w, h in ((1280, 800), (1920, 1080)):
+                page.set_viewport_size({"width": w, "height": h})
+                for panel in ("#topology-panel", "#timeline-panel", "#controls-panel"):
+                    box = page.locator(panel).bounding_box()
+                    assert box is not None and box["y"] + 60 < h and box["x"] < w, (w, panel, box)
             page.screenshot(path=str(ARTEFACTS / "dashboard.png"), full_page=True)
         finally:
             browser.close()
