@@ -239,3 +239,12 @@ def test_plan_and_compare_name_the_planner() -> None:
     assert rows["optimal:energy"]["energy"] <= rows["algorithm1:bytes"]["energy"] + 1e-12
     code, out, err = run("deploy", app, "--planner", "fastest")
     assert code != 0 and "fastest" in out + err
+
+
+def test_the_progress_line_says_when_the_app_runs_nowhere() -> None:
+    from mso.cli.render import sink_line
+
+    sink = {"kind": "sink", "processed": 7}
+    nodes = {"N4": {"node": "N4", "apps": {"pipe": {"vertices": {"sink": sink}}}}}
+    assert sink_line(nodes, "pipe") == "sink@N4: 7 events"
+    assert sink_line(nodes, "convoy") == "convoy runs nowhere (undeployed?); running: pipe"

@@ -67,14 +67,20 @@ def render_plan(console: Console, app: App, scenario: Scenario, result: Plan) ->
 
 
 def sink_line(nodes: dict[str, Any], app: str) -> str:
+    """The sinks' progress, one line; or why there is none (the app stopped, undeployed)."""
     parts = []
+    held = False
     for st in nodes.values():
         a = st.get("apps", {}).get(app)
         if a is None:
             continue
+        held = True
         for v, s in a["vertices"].items():
             if s["kind"] == "sink":
                 parts.append(f"{v}@{st['node']}: {s['processed']} events")
+    if not held:
+        running = sorted({a for st in nodes.values() for a in st.get("apps", {})})
+        return f"{app} runs nowhere (undeployed?); running: {', '.join(running) or 'none'}"
     return ", ".join(parts) or "no sink yet"
 
 
