@@ -47,6 +47,7 @@ CORE_ORDER = [
     "mso.protocol.state",
     "mso.protocol.events",
     "mso.protocol.context",
+    "mso.protocol.taps",
     "mso.protocol.forward",
     "mso.protocol.dataplane",
     "mso.protocol.procedures.status",

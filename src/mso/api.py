@@ -28,7 +28,7 @@ Light to import: ``mso status`` comes through here and imports neither asyncio n
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import AsyncIterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -46,6 +46,16 @@ R = TypeVar("R")
 
 DEPLOY_S = 30.0  # a deployment probes routes and starts every vertex: it may take a while
 COMMAND_S = 10.0  # any other command's reply
+TAP_LEASE_S = 3.0  # a tap ends this long after its client stops asking (it asks 3 times as often)
+
+
+class TapEnded(MsoError):
+    """A tap ended on the node's side (the app stopped, the edge is unknown, too many taps);
+    ``reason`` is the node's word."""
+
+    def __init__(self, what: str, reason: str) -> None:
+        super().__init__(f"{what}: {reason}")
+        self.reason = reason
 
 
 class CommandFailed(MsoError):
@@ -102,6 +112,17 @@ def resolve_address(via: str | None, overlay: str | None = None) -> str:
             f"unknown node or overlay {via!r}: no running emulator knows it; use HOST:PORT"
         )
     return addr
+
+
+def decode_event(payload: bytes, fields: Sequence[str] = ()) -> Any:
+    """An event as a tap copies it (msgpack, as on the edge), decoded without importing its
+    format: a mapping, a list, a value; a positional format's ``fields`` name its items."""
+    import msgspec
+
+    value = msgspec.msgpack.decode(payload)
+    if fields and isinstance(value, list) and len(value) == len(fields):
+        return dict(zip(fields, value, strict=True))
+    return value
 
 
 def deploy_request(app: App | str | Path, planner: str | None = None) -> m.DeployRequest:
@@ -300,6 +321,40 @@ class AsyncOverlay:
     async def apps(self) -> list[str]:
         """The apps running, by name."""
         return running(await self.status(everywhere=False))
+
+    async def tap(
+        self, app: str, edge: str, *, rate: float = 10.0, lease_s: float = TAP_LEASE_S
+    ) -> AsyncIterator[m.TapEvents]:
+        """What a running edge carries (``src->dst``, ``src:dst`` or a vertex with one output),
+        as the node hosting its consumer sees it: every message counts the events since the
+        tap opened and brings copies of at most ``rate`` a second (0: counts and delays only;
+        :func:`decode_event` reads them). Its own connection, asked again every third of
+        ``lease_s``; the tap ends on the nodes within ``lease_s`` of the caller's stopping.
+        Raises :class:`TapEnded` when the node ends it."""
+        import asyncio
+
+        client = await connect(self.address, key=key_for(self.key, self.address), name="tap")
+        try:
+            loop = asyncio.get_running_loop()
+            ask = m.Tap(app, edge, rate, lease_s)
+            await client.send(ask)
+            renew = heard = loop.time()
+            renew += lease_s / 3
+            while True:
+                msg = await client.poll(max(0.01, renew - loop.time()))
+                now = loop.time()
+                if isinstance(msg, m.TapEvents):
+                    heard = now
+                    if msg.ended:
+                        raise TapEnded(f"tap of {app} {edge} (at {msg.node})", msg.ended)
+                    yield msg
+                elif now - heard > lease_s + COMMAND_S:
+                    raise MsoError(f"tap of {app} {edge}: no word from {self.address}")
+                if now >= renew:
+                    await client.send(ask)
+                    renew = now + lease_s / 3
+        finally:
+            await client.close()
 
 
 class Overlay:

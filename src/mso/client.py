@@ -235,6 +235,16 @@ class Client:
                 self._writer.write(flush)
         return self._x.next_message()
 
+    async def poll(self, timeout: float) -> m.Message | None:
+        """The next message the node sends, or None if none came within ``timeout`` (a stream
+        of replies, as a tap's: the connection stays usable)."""
+        try:
+            return await self.receive(timeout)
+        except NodeUnreachable:
+            if self._x.inbox or self._reader is None or self._reader.at_eof():
+                raise
+            return None
+
     async def call(self, msg: m.Message, timeout: float = 10.0) -> m.Message:
         """Send ``msg`` and wait for the node's answer to it."""
         if self._stale:

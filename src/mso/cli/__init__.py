@@ -19,6 +19,8 @@ from mso.cli import (
     dashboard,
     demo,
     emulate,
+    logs,
+    look,
     node,
     overlay,
     scenario,
@@ -64,7 +66,7 @@ def completion(shell: str) -> None:
 for _command in (
     app.validate, app.profile, app.chains, app.plan_cmd, app.compare,
     overlay.keygen, overlay.deploy, overlay.relocate, overlay.remap, overlay.undeploy,
-    overlay.status, overlay.overlays,
+    overlay.status, overlay.overlays, look.echo, look.hz, look.record, logs.logs,
     node.node, emulate.emulate, control.emulator, simulate.simulate, dashboard.dashboard,
     demo.demo, bench.bench, scenario.scenario, sweep.sweep,
 ):  # fmt: skip

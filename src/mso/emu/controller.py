@@ -599,6 +599,7 @@ class Emulator:
             "nodes": {n: self.address(n) for n in self.nodes},
             "dashboard": self.dashboard,
             "positions": {n: list(p) for n, p in self.node_positions().items()},
+            "logs": {n: str(node.log) for n, node in self.nodes.items() if node.log},  # mso logs
         }
         tmp = state_file(self.name).with_suffix(".tmp")
         tmp.write_text(json.dumps(state))

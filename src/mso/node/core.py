@@ -83,6 +83,7 @@ from mso.protocol.procedures.restore import Restorer
 from mso.protocol.procedures.status import StatusFanout
 from mso.protocol.spill import MemorySpill, SpillStore
 from mso.protocol.state import AppState, HostedInstance
+from mso.protocol.taps import TapTick
 
 __all__ = ["AppState", "Effect", "HostedInstance", "NodeCore", "Reply", "Send", "SetTimer"]
 
@@ -266,6 +267,8 @@ class NodeCore:
                 src, m.StatusReply(req=msg.req, nodes={self.id: self.status(now)})
             ),
             m.StatusReply: lambda src, msg, now: self._on_status_reply(msg),
+            m.Tap: dp.taps.on_peer,
+            m.TapEvents: dp.taps.on_events,
         }
         # client requests (CLI, API, emulator controller)
         self._requests: dict[type, Callable[[int, Any, float], None]] = {
@@ -274,6 +277,7 @@ class NodeCore:
             m.RelocateRequest: self._relocate_request,
             m.RemapRequest: lambda client, msg, now: self.lookups.remap(client, msg, now),
             m.StatusRequest: self._status_request,
+            m.Tap: dp.taps.on_client,
         }
         # timer keys
         self._timers: dict[type, Callable[[Any, float], None]] = {
@@ -286,6 +290,7 @@ class NodeCore:
             RecoverTick: rem.on_recover_tick,
             HeldProbesDue: lambda key, now: dep.on_held_probes_due(now),
             ReplicationTick: self.replicator.tick,
+            TapTick: dp.taps.tick,
         }
         # a procedure's step not answered in time: asked again (or given up)
         self._retries: dict[type, Callable[[Retry, float], None]] = {

@@ -39,6 +39,7 @@ from mso.protocol.forward import MAX_BATCH_BYTES, StoreAndForward
 from mso.protocol.forward import RETRANSMIT_S as RETRANSMIT_S  # (where procedures read it)
 from mso.protocol.procedures.instance import InstanceEvent
 from mso.protocol.state import SNAPSHOT_MARK, AppState, Crashes, HostedInstance, SnapshotMark
+from mso.protocol.taps import Taps
 
 QUEUE_EVENTS = 1024  # events fed to an instance's worker and not processed yet, at most
 FEED_BATCH = 256  # events per feed at most, so markers and stops are not held behind a batch
@@ -65,6 +66,7 @@ class DataPlane:
         self.armed: set[str] = set()  # apps whose retransmit timer is set
         self.cpu_ms = 0.0  # measured CPU time of the vertex code that ran here
         self.sf = StoreAndForward(ctx, self)  # the producer's side of an outage
+        self.taps = Taps(ctx)  # copies of edges for clients looking at them (mso echo)
 
     def host(self, dep: AppState, vid: str) -> HostedInstance:
         """Ask the executor for a new instance of ``vid``."""
@@ -305,6 +307,8 @@ class DataPlane:
         fresh = ch.accept(seq, events, floor)
         self.touched.add(dep.app.name)
         if fresh:
+            if self.taps.watched:
+                self.taps.saw(dep.app.name, edge, ch.expected - len(fresh), fresh, ts)
             deadline = dep.app.edges[edge].deadline_ms
             now = self.ctx.now
             late = ch.last_at is not None and (now - ch.last_at) * 1e3 > (deadline or 0)

@@ -13,6 +13,9 @@ from typing import Annotated, Any
 
 import msgspec
 
+from mso.protocol.tapwire import Tap as Tap
+from mso.protocol.tapwire import TapEvents as TapEvents
+
 CONTROL, DATA, MARKER, HEARTBEAT = 0, 1, 2, 3  # Envelope.kind
 KINDS = frozenset({CONTROL, DATA, MARKER, HEARTBEAT})
 
@@ -31,7 +34,7 @@ class Envelope(msgspec.Struct, array_like=True):
 
 
 def kind_of(msg: Message) -> int:
-    if isinstance(msg, Data | Ack):
+    if isinstance(msg, Data | Ack | TapEvents):  # a tap's copies never overtake control
         return DATA
     if isinstance(msg, Heartbeat):
         return HEARTBEAT
@@ -677,6 +680,8 @@ Message = (
     | AppSync
     | Suspect
     | Hears
+    | Tap
+    | TapEvents
 )
 
 _ENVELOPE_DECODER = msgspec.msgpack.Decoder(Envelope)
