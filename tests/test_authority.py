@@ -16,7 +16,7 @@ from mso.node.core import NodeCore
 from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority, Signer, strip_grant
-from mso.protocol.framing import FrameCodec
+from mso.protocol.framing import HELLO_BYTES, FrameCodec
 
 HOST = "127.0.0.1"
 KEY = overlay_key("members")
@@ -156,7 +156,7 @@ def test_an_announced_app_without_a_grant_is_never_loaded() -> None:
             reader, writer = await asyncio.open_connection(HOST, port)
             codec = FrameCodec(KEY)
             writer.write(codec.hello())
-            _, confirm = codec.feed(await reader.readexactly(20))
+            _, confirm = codec.feed(await reader.readexactly(HELLO_BYTES))
             writer.write(confirm)
             for msg in [
                 m.PeerHello("N2"),

@@ -21,7 +21,7 @@ from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority, Signer
 from mso.protocol.effects import Send
-from mso.protocol.framing import FrameCodec
+from mso.protocol.framing import HELLO_BYTES, FrameCodec
 from mso.sim.runner import Simulation
 from runtime_vertices import pipe_app
 from waits import patience
@@ -215,7 +215,7 @@ class Robot:
     async def connect(cls, port: int) -> Robot:
         r = cls(*await asyncio.open_connection(HOST, port))
         r.writer.write(r.codec.hello())
-        _, confirm = r.codec.feed(await r.reader.readexactly(20))
+        _, confirm = r.codec.feed(await r.reader.readexactly(HELLO_BYTES))
         r.writer.write(confirm)
         r.writer.write(r.codec.seal(m.wrap("N7", "N2", m.PeerHello("N7"))))
         return r

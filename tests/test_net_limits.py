@@ -13,7 +13,7 @@ from mso.net.routes_emulator import MAX_VERSION_STEP, EmulatorRoutes
 from mso.node.core import NodeCore
 from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
-from mso.protocol.framing import MAGIC, FrameCodec
+from mso.protocol.framing import HELLO_BYTES, MAGIC, FrameCodec
 
 HOST = "127.0.0.1"
 LIMITS = Limits(handshake_s=0.3, sweep_s=0.05, max_connections=8, max_per_address=4)
@@ -34,19 +34,20 @@ def test_connections_are_limited_timed_out_and_cut_off_before_authentication() -
         try:
             # 1. a hello, then a frame announcing 16 MiB: cut off at its length, nothing buffered
             r, w = await asyncio.open_connection(HOST, port)
-            w.write(MAGIC + b"\x00" * 16 + struct.pack(">I", 16 << 20) + b"x" * 1000)
-            assert len(await read_all(r)) == 20  # the node's hello, then it closed
+            hello = FrameCodec(overlay_key("k")).hello()
+            w.write(hello + struct.pack(">I", 16 << 20) + b"x" * 1000)
+            assert len(await read_all(r)) == HELLO_BYTES  # the node's hello, then it closed
             w.close()
             # 2. four silent connections from one address fill its share; more are refused
             idle = [await asyncio.open_connection(HOST, port) for _ in range(6)]
             ends = await asyncio.gather(*(read_all(r) for r, _ in idle))
-            assert sorted(len(e) for e in ends) == [0, 0, 20, 20, 20, 20]
+            assert sorted(len(e) for e in ends) == [0, 0, *[HELLO_BYTES] * 4]
             for _, w in idle:
                 w.close()
             # 3. a slow-loris sender trickling its hello is closed by the handshake timeout
             r, w = await asyncio.open_connection(HOST, port)
             w.write(MAGIC[:2])
-            assert len(await read_all(r)) == 20
+            assert len(await read_all(r)) == HELLO_BYTES
             w.close()
             # the node still serves a client with the key
             client = await Client(HOST, port, overlay_key("k")).connect()

@@ -9,7 +9,7 @@ from mso.client import Client, NodeUnreachable, overlay_key
 from mso.node.core import NodeCore
 from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
-from mso.protocol.framing import FrameCodec, psk_from_text
+from mso.protocol.framing import HELLO_BYTES, FrameCodec, psk_from_text
 
 HOST, PORT = "127.0.0.1", 0
 
@@ -38,7 +38,7 @@ async def raw_session(port: int, key: bytes, payloads: list[bytes]) -> bytes:
     codec = FrameCodec(key)
     sent = codec.hello()
     writer.write(sent)
-    _, confirm = codec.feed(await reader.readexactly(20))
+    _, confirm = codec.feed(await reader.readexactly(HELLO_BYTES))
     sent += confirm
     writer.write(confirm)
     for p in payloads:
@@ -62,15 +62,15 @@ def test_bad_frames_are_dropped_counted_and_the_node_lives_on() -> None:
             w.write(b"GET / HTTP/1.1\r\n\r\n" + b"\x00" * 64)
             await w.drain()
             rest = await asyncio.wait_for(r.read(), 2.0)  # the node's hello, then EOF
-            assert len(rest) == 20
+            assert len(rest) == HELLO_BYTES
             w.close()
             # 2. the wrong overlay key: every frame rejected, nothing deployed
             await raw_session(port, psk_from_text("wrong"), [hello, request])
             # 3. a replay of an authentic session on a new connection
             first = await raw_session(port, overlay_key("secret"), [hello])
             r, w = await asyncio.open_connection(HOST, port)
-            await r.readexactly(20)
-            w.write(first + first[20:])
+            await r.readexactly(HELLO_BYTES)
+            w.write(first + first[HELLO_BYTES:])
             await w.drain()
             await asyncio.sleep(0.1)
             w.close()
@@ -148,7 +148,7 @@ def test_a_body_nested_100000_deep_is_refused_and_counted() -> None:
             reader, writer = await asyncio.open_connection(HOST, port)
             codec = FrameCodec(overlay_key("secret"))
             writer.write(codec.hello())
-            _, confirm = codec.feed(await reader.readexactly(20))
+            _, confirm = codec.feed(await reader.readexactly(HELLO_BYTES))
             writer.write(confirm)
             frames = [m.wrap("client", "N1", m.ClientHello("x")), in_envelope, in_message]
             for p in [*frames, m.wrap("client", "N1", m.StatusRequest(req=7))]:

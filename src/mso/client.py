@@ -87,8 +87,8 @@ class Exchange:
         """Bytes read while the key is being checked -> bytes to send back."""
         if not data and self.codec.greeted:  # it hung up on our key confirmation
             raise MsoError(
-                f"node at {self.where} closed the connection during the key check: wrong "
-                "overlay key? (give --key or set $MSO_KEY; or the node is at its connection limit)"
+                f"wrong overlay key: the node at {self.where} closed the connection at our key "
+                "confirmation, so it holds another key (give --key or set $MSO_KEY)"
             )
         if not data:
             raise NodeUnreachable(f"node at {self.where} closed the connection")

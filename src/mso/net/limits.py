@@ -57,6 +57,7 @@ class ConnectionCounters:
     def __init__(self) -> None:
         self.connections_refused = 0  # over the node's or one address's limit
         self.handshake_timeouts = 0  # no key confirmation and hello in time
+        self.wrong_key = 0  # a key confirmation that failed: closed without a word
         self.idle_timeouts = 0
         self.over_buffer = 0  # closed for holding too much (partial frames, unread replies)
 

@@ -124,8 +124,8 @@ class Connection(asyncio.Protocol):
             counters.frames_rejected += 1
             log.warning("closing connection: %s", exc)
             assert self.transport is not None
-            if isinstance(exc, WrongKey):
-                self.transport.write(self.codec.refusal())  # the peer learns why
+            if isinstance(exc, WrongKey):  # a plain close: nothing to test guesses against
+                self.net.connection_counters.wrong_key += 1
             self.transport.close()
             return
         counters.frames_rejected += self.codec.rejected - rejected

@@ -1,8 +1,8 @@
 """Authenticated, length-prefixed frames on one stream connection. Sans-IO: bytes in, bytes out.
 
-A connection starts with each side sending a 20-byte hello: ``b"MSO1"`` and a fresh random
-16-byte nonce. Each direction then has its own key, ``blake2b(key=psk, data=b"mso1" + sender
-nonce + receiver nonce)``, and every frame is::
+A connection starts with each side sending a 52-byte hello: ``b"MSO2"``, a fresh random 16-byte
+nonce and a fresh X25519 public key. Each direction then has its own key, ``blake2b(key=psk,
+data=b"mso2" + sender hello + receiver hello + X25519 shared secret)``, and every frame is::
 
     u32 length (big endian, of what follows) | 16-byte tag | payload
 
@@ -15,22 +15,31 @@ must be closed (``FramingError``).
 
 Key confirmation: the first frame each side sends is an empty one (its tag proves the key).
 Until the peer's has been verified nothing longer is accepted, so a stranger without the key
-can make a node buffer at most one 20-byte frame, and a peer with the wrong key is told at once
-(``WrongKey``) instead of every later frame being dropped in silence.
+can make a node buffer at most one 20-byte frame. The side that accepted the connection (the
+*responder*) proves it holds the key only after the connecting side (the *initiator*) has
+proved it: a wrong key gets no confirmation, only a close (``WrongKey``), so an outsider who
+connects learns nothing to test guesses of the key against offline (a node used to answer a
+wrong key with its own confirmation: 182,000 guesses a second, a passphrase key fell in 0.8 s).
+An eavesdropper learns nothing either: the direction keys depend on the X25519 secret of
+the two ephemeral keys, which it cannot compute. What is left is the initiator's confirmation,
+sent to whoever it connected to (an impostor at a neighbour's or a node's address could test
+guesses against it); keys given as text are stretched with scrypt (:func:`psk_from_text`,
+about 16 MiB and tens of ms a guess), so a passphrase costs that much per guess there.
 
 Key rotation: a codec holds a list of keys, the first the one it seals with, the others still
-accepted. The side that accepted the connection (the *responder*) waits for the connecting
-side's key confirmation, finds which of its keys that is, and answers with the same one; so a
-client or neighbour still on the old key is served while the overlay moves to the next, and
-connections already open are never touched (apps keep running).
+accepted. The responder waits for the initiator's key confirmation, finds which of its keys
+that is, and answers with the same one; so a client or neighbour still on the old key is
+served while the overlay moves to the next, and connections already open are never touched
+(apps keep running).
 
-Encryption (optional, ``encrypt=True``, hello ``MSE1``): each frame is
+Encryption (optional, ``encrypt=True``, hello ``MSE2``): each frame is
 ``u32 length | ChaCha20-Poly1305(direction key, nonce = counter) of the payload``, the 16-byte
 Poly1305 tag in place of the blake2b one. Both ends must agree; a mismatch is told at the hello.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import hmac
 import os
@@ -38,13 +47,18 @@ import struct
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
+from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey, X25519PublicKey
+
 if TYPE_CHECKING:  # imported when a codec encrypts: the CLI's start stays quick
     from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 
-MAGIC = b"MSO1"
-MAGIC_ENCRYPTED = b"MSE1"
+MAGIC = b"MSO2"
+MAGIC_ENCRYPTED = b"MSE2"
 NONCE_BYTES = 16
-HELLO_BYTES = len(MAGIC) + NONCE_BYTES
+DH_BYTES = 32
+HELLO_BYTES = len(MAGIC) + NONCE_BYTES + DH_BYTES
+# scrypt's cost for keys given as text: 16 MiB and tens of ms per guess
+SCRYPT_N, SCRYPT_R = 1 << 14, 8
 TAG_BYTES = 16
 MAX_FRAME = 16 * 1024 * 1024
 # a frame sealed by the peer but altered on the way leaves the counters apart for good: after
@@ -62,15 +76,27 @@ class WrongKey(FramingError):
     """The peer's key confirmation failed: it holds another overlay key."""
 
 
-def derive_key(psk: bytes, sender_nonce: bytes, receiver_nonce: bytes) -> bytes:
+def derive_key(psk: bytes, sender_hello: bytes, receiver_hello: bytes, shared: bytes) -> bytes:
+    """One direction's key: the overlay key, both hellos and the ephemeral keys' secret."""
     return hashlib.blake2b(
-        b"mso1" + sender_nonce + receiver_nonce, key=psk[:64], digest_size=32
+        b"mso2" + sender_hello + receiver_hello + shared, key=psk[:64], digest_size=32
     ).digest()
 
 
+@functools.lru_cache(maxsize=64)
 def psk_from_text(text: str) -> bytes:
-    """Overlay keys are given as text (flag, file); hash to a fixed-size secret."""
-    return hashlib.blake2b(text.encode(), person=b"mso-overlay-key", digest_size=32).digest()
+    """Overlay keys are given as text (flag, file): stretched to a fixed-size secret with
+    scrypt, so that each guess at a passphrase costs an offline guesser as much (once per
+    process and key here)."""
+    return hashlib.scrypt(
+        text.encode(),
+        salt=b"mso-overlay-key",
+        n=SCRYPT_N,
+        r=SCRYPT_R,
+        p=1,
+        maxmem=64 * 1024 * 1024,
+        dklen=32,
+    )
 
 
 class FrameCodec:
@@ -98,6 +124,10 @@ class FrameCodec:
         self._magic = MAGIC_ENCRYPTED if encrypt else MAGIC
         self._max = max_frame
         self._nonce = nonce if nonce is not None else os.urandom(NONCE_BYTES)
+        self._dh = X25519PrivateKey.generate()  # this connection's ephemeral key
+        self._hello = self._magic + self._nonce + self._dh.public_key().public_bytes_raw()
+        self._peer_hello = b""
+        self._shared = b""  # the X25519 secret, once the peer's hello is in
         self._tx_key: bytes | None = None
         self._rx_key: bytes | None = None
         self._rx_candidates: list[bytes] = []  # one per accepted key until the peer confirms
@@ -143,7 +173,7 @@ class FrameCodec:
         return self._peer_nonce is not None
 
     def hello(self) -> bytes:
-        return self._magic + self._nonce
+        return self._hello
 
     def seal(self, payload: bytes) -> bytes:
         """One frame for ``payload``; before the peer's hello it is queued (returns b"")."""
@@ -180,30 +210,33 @@ class FrameCodec:
         ok = hmac.compare_digest(bytes(tag), mac.digest())
         return bytes(body) if ok else None
 
-    def _hello_received(self) -> bytes:
+    def _check_magic(self) -> None:
+        """The hello's first bytes, checked as soon as they are in (not a whole hello later)."""
         magic = bytes(self._buf[: len(MAGIC)])
         if magic != self._magic:
             if magic in (MAGIC, MAGIC_ENCRYPTED):
                 theirs = "encrypts" if magic == MAGIC_ENCRYPTED else "does not encrypt"
                 raise FramingError(f"the peer {theirs} its frames and this side does not agree")
             raise FramingError("peer did not send an mso hello")
-        peer_nonce = self._peer_nonce = bytes(self._buf[len(MAGIC) : HELLO_BYTES])
-        del self._buf[:HELLO_BYTES]
-        self._rx_candidates = [derive_key(k, peer_nonce, self._nonce) for k in self._psks]
-        return b"" if self._responder else self._start_sending(0)
 
-    def refusal(self) -> bytes:
-        """A responder that refused the peer's key still confirms its own (with its current
-        key) before it closes, so the peer can tell a wrong key from a lost connection."""
-        if self._tx_key is not None or self._peer_nonce is None:
-            return b""
-        self._pending.clear()
-        return self._start_sending(0)
+    def _hello_received(self) -> bytes:
+        hello = self._peer_hello = bytes(self._buf[:HELLO_BYTES])
+        try:  # (a low-order public key gives an all-zero secret: refused)
+            peer_key = X25519PublicKey.from_public_bytes(hello[-DH_BYTES:])
+            self._shared = self._dh.exchange(peer_key)
+        except ValueError:
+            raise FramingError("the peer's hello holds no usable key") from None
+        self._peer_nonce = hello[len(MAGIC) : len(MAGIC) + NONCE_BYTES]
+        del self._buf[:HELLO_BYTES]
+        self._rx_candidates = [derive_key(k, hello, self._hello, self._shared) for k in self._psks]
+        return b"" if self._responder else self._start_sending(0)
 
     def _start_sending(self, key_index: int) -> bytes:
         """Seal with key ``key_index`` from now on: the key confirmation, then what waited."""
         assert self._peer_nonce is not None
-        self._tx_key = derive_key(self._psks[key_index], self._nonce, self._peer_nonce)
+        self._tx_key = derive_key(
+            self._psks[key_index], self._hello, self._peer_hello, self._shared
+        )
         if self._encrypt:
             self._tx_aead = _aead(self._tx_key)
         flush = b"".join([self._seal(b""), *(self._seal(p) for p in self._pending)])
@@ -219,6 +252,8 @@ class FrameCodec:
         out: list[bytes] = []
         flush = b""
         if self._peer_nonce is None:
+            if len(self._buf) >= len(MAGIC):
+                self._check_magic()
             if len(self._buf) < HELLO_BYTES:
                 return out, flush
             flush = self._hello_received()
@@ -262,7 +297,8 @@ class FrameCodec:
 
     def _confirm(self, frame: memoryview) -> bytes:
         """The peer's first frame: which of our keys it seals with, or WrongKey. A responder
-        answers now, with that key."""
+        answers now, with that key, and never before (a wrong key gets nothing to test
+        guesses against)."""
         for i, key in enumerate(self._rx_candidates):
             if self._open(key, 0, frame) is not None:
                 self._rx_key = key
