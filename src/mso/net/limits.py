@@ -4,13 +4,15 @@ A MANET is open air: anyone in range can open connections. A connection that has
 the overlay key (hello + key confirmation, :mod:`mso.protocol.framing`) and said who it is
 within ``handshake_s`` is closed; so is one silent for ``idle_s`` (peers send heartbeats every
 0.1 s; a client such as the emulator controller may sit idle much longer). A node serves at most
-``max_connections`` at once and ``max_per_address`` from one address. Before authentication a
-connection can make the node buffer at most one 20-byte frame; after it at most one frame of
-``max_frame`` bytes, and all connections together at most ``max_buffered`` of partial frames;
-a client that does not read its replies is closed past ``max_client_backlog``, or past
-``max_partial_share`` while all clients together hold more than ``max_clients_backlog``. Each link's
-queues are bounded per class (``queues``, :mod:`mso.net.shaping`), and a heartbeat, which
-overtakes every other frame, may be at most ``max_beat_frame`` bytes, relayed or not.
+``max_connections`` introduced clients at once and ``max_per_address`` from one address; a
+connection still proving the key takes a slot of a pending pool (:mod:`mso.net.admission`).
+Before authentication a connection can make the node buffer at most one 20-byte frame; after
+it at most one frame of ``max_frame`` bytes, and all connections together at most
+``max_buffered`` of partial frames; a client that does not read its replies is closed past
+``max_client_backlog``, or past ``max_partial_share`` while all clients together hold more than
+``max_clients_backlog``. Each link's queues are bounded per class (``queues``,
+:mod:`mso.net.shaping`), and a heartbeat, which overtakes every other frame, may be at most
+``max_beat_frame`` bytes, relayed or not.
 """
 
 from __future__ import annotations
@@ -24,6 +26,12 @@ from mso.protocol.framing import MAX_FRAME
 @dataclass(frozen=True)
 class Limits:
     handshake_s: float = 5.0
+    # the pool of connections still proving the key (:mod:`mso.net.admission`)
+    max_pending: int = 64
+    max_pending_per_address: int = 16
+    handshake_min_s: float = 0.5  # a source's deadline after its strikes, at the least
+    strike_half_life_s: float = 10.0
+    known_for_s: float = 600.0  # a source a connection proved the key from, preferred as long
     peer_idle_s: float = 60.0
     client_idle_s: float = 3600.0  # the emulator controller may sit idle between link changes
     max_connections: int = 256
@@ -56,6 +64,7 @@ class ConnectionCounters:
 
     def __init__(self) -> None:
         self.connections_refused = 0  # over the node's or one address's limit
+        self.evicted = 0  # a pending connection closed to make room for a new one
         self.handshake_timeouts = 0  # no key confirmation and hello in time
         self.wrong_key = 0  # a key confirmation that failed: closed without a word
         self.idle_timeouts = 0

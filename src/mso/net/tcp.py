@@ -31,6 +31,7 @@ from collections.abc import Callable
 
 import msgspec
 
+from mso.net.admission import Admission
 from mso.net.base import HEARTBEAT, Counters, Kind, Receiver, RoutesChanged, RoutingView
 from mso.net.forwarding import RouteWait
 from mso.net.limits import DEFAULT_LIMITS, ConnectionCounters, Limits
@@ -89,6 +90,11 @@ class Connection(asyncio.Protocol):
         if self.peer is not None:
             self.send_message(self.peer, m.PeerHello(self.net.node_id))
 
+    def abort(self) -> None:
+        """Close at once, dropping what is unsent (a connection that is refused or evicted)."""
+        if self.transport is not None:
+            self.transport.abort()
+
     def send_message(self, dst: str, msg: m.Message) -> None:
         """Write ``msg`` on this connection now, unshaped (hellos and client replies)."""
         self.write_frame(m.wrap(self.net.node_id, dst, msg))
@@ -126,6 +132,8 @@ class Connection(asyncio.Protocol):
             assert self.transport is not None
             if isinstance(exc, WrongKey):  # a plain close: nothing to test guesses against
                 self.net.connection_counters.wrong_key += 1
+            if not self.outbound:
+                self.net.admission.failed(self, self.net.loop.time())
             self.transport.close()
             return
         counters.frames_rejected += self.codec.rejected - rejected
@@ -185,6 +193,7 @@ class TcpTransport:
         self.authority = authority or Authority()
         self.connection_counters = ConnectionCounters()
         self.accepted: set[Connection] = set()  # connections others opened to this node
+        self.admission = Admission(limits, self.connection_counters)
         self.host = host
         self.port = port
         # the overlay keys: the first seals new connections, all are accepted (key rotation)
@@ -245,15 +254,32 @@ class TcpTransport:
 
     # -- limits -----------------------------------------------------------------------------
     def admit(self, conn: Connection) -> bool:
-        """Take an accepted connection unless the node or its address has too many."""
-        lim = self.limits
-        same = sum(1 for c in self.accepted if c.address == conn.address)
-        if len(self.accepted) >= lim.max_connections or same >= lim.max_per_address:
-            self.connection_counters.connections_refused += 1
-            log.warning("refusing a connection from %s: too many connections", conn.address)
-            return False
+        """Take an accepted connection into the pending pool, closing the pending ones
+        admission picks to make room (:mod:`mso.net.admission`): never refused for the pool."""
+        for victim in self.admission.admit(conn, self.loop.time()):
+            log.info("closing a connection from %s still proving the key", victim.address)
+            victim.abort()
         self.accepted.add(conn)
         return True
+
+    def _introduced(self, conn: Connection, node: str | None) -> bool:
+        """A connection proved the key and said who it is (``node`` for a neighbour's hello):
+        it leaves the pending pool. A neighbour the view names is always taken; other
+        connections are bounded in number, from the node and from one address."""
+        if conn.outbound:
+            return True
+        self.admission.introduced(conn, self.loop.time())
+        if node is not None and node in self.view.neighbours():
+            return True
+        lim = self.limits
+        others = [c for c in self.accepted if c.introduced and c is not conn]
+        same = sum(1 for c in others if c.address == conn.address)
+        if len(others) < lim.max_connections and same < lim.max_per_address:
+            return True
+        self.connection_counters.connections_refused += 1
+        log.warning("refusing a connection from %s: too many connections", conn.address)
+        conn.abort()
+        return False
 
     def hold(self, conn: Connection, held: int) -> bool:
         """Note the partial frame ``conn`` holds; False when it must be closed because every
@@ -289,11 +315,15 @@ class TcpTransport:
         """Close connections that did not authenticate in time, or fell silent."""
         now = self.loop.time()
         lim, counters = self.limits, self.connection_counters
+        for late in self.admission.overdue(now):
+            counters.handshake_timeouts += 1
+            self.admission.failed(late, now)
+            late.abort()
         for conn in [*self.accepted, *self.peers.values()]:
             if conn.transport is None or conn.transport.is_closing():
                 continue
-            if not conn.introduced:
-                if now - conn.opened > lim.handshake_s:
+            if not conn.introduced:  # (a pending one has its own deadline, above)
+                if not self.admission.is_pending(conn) and now - conn.opened > lim.handshake_s:
                     counters.handshake_timeouts += 1
                     conn.transport.abort()
                 continue
@@ -444,11 +474,15 @@ class TcpTransport:
             self.counters.frames_malformed += 1
             return
         if isinstance(msg, m.PeerHello):
+            if not self._introduced(conn, msg.node):
+                return
             conn.peer = msg.node
             self.peers[msg.node] = conn
             self._attach_link(msg.node)
             return
         if isinstance(msg, m.ClientHello):
+            if not self._introduced(conn, None):
+                return
             self._client_ids += 1
             conn.client = self._client_ids
             self.clients[conn.client] = conn
@@ -483,6 +517,7 @@ class TcpTransport:
 
     def on_connection_lost(self, conn: Connection) -> None:
         self.accepted.discard(conn)
+        self.admission.gone(conn)
         self._held_total -= self._held.pop(conn, 0)
         if conn.peer is not None and self.peers.get(conn.peer) is conn:
             del self.peers[conn.peer]
