@@ -95,6 +95,8 @@ class Counters:
         # a frame to relay or take whose kind is unknown, not its message's, or whose size
         # its kind does not allow (a bulk frame claiming to be a heartbeat)
         self.frames_bad_kind = 0
+        # a frame to relay past the budget of frames its neighbour may have relayed
+        self.frames_dropped_rate = 0
 
     def as_dict(self) -> dict[str, int]:
         return dict(vars(self))

@@ -52,6 +52,9 @@ class Limits:
     # bounded by membership: about 20 bytes a node)
     queues: QueueBounds = field(default_factory=QueueBounds)
     max_beat_frame: int = 256 * 1024
+    # frames a relay passes on for one neighbour per second, by class (:mod:`mso.net.relaying`)
+    relay_control_per_s: float = 2000.0
+    relay_beats_per_s: float = 100.0
     # frames held for a neighbour whose connection is being set up, per neighbour
     max_held_bytes: int = 64 * 1024 * 1024
 

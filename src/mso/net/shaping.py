@@ -7,7 +7,9 @@ every frame it forwarded in one unbounded control queue, ahead of its own heartb
 MiB control frames through it had three nodes declared failed. Now a beat waits for at most
 the one frame already on its way, and a class whose queue is full drops what comes next
 (counted, ``frames_dropped_queue``), leaving the other classes alone. A frame always fits an
-empty queue, so no frame the wire allows is refused for its size alone.
+empty queue, so no frame the wire allows is refused for its size alone. The frames relayed for
+one neighbour may take only a share of each queue (``relayed_share``): a member streaming
+frames through a relay no longer fills the queue the others' frames wait in.
 
 Shaping happens in the sender, as the user-space emulator's links have no kernel queue of their
 own: frames are serialised at the link's bandwidth (a token-bucket-like ``next free`` time),
@@ -42,26 +44,42 @@ class QueueBounds:
     # markers go past a full data queue by up to this much: a data frame dropped is resent
     # (go-back-N), a marker is not, and without it a relocation would wait for its deadline
     marker_slack: int = 1 << 20
+    # a neighbour's frames this node relays may take at most this share of a class's queue
+    # (its first always fits), so one member cannot fill a link it relays through
+    relayed_share: float = 0.5
 
 
 class _Queue:
-    """One class's frames, with their bytes."""
+    """One class's frames, with their bytes, and the bytes each relayed neighbour's take."""
 
-    def __init__(self, bound: int) -> None:
+    def __init__(self, bound: int, share: int) -> None:
         self.bound = bound
-        self.frames: deque[bytes] = deque()
+        self.share = share  # bytes one relayed neighbour's frames may take
+        self.frames: deque[tuple[bytes, str | None]] = deque()
         self.bytes = 0
+        self.relayed: dict[str, int] = {}
 
-    def put(self, payload: bytes, slack: int = 0) -> bool:
+    def put(self, payload: bytes, slack: int = 0, via: str | None = None) -> bool:
         if self.frames and self.bytes + len(payload) > self.bound + slack:
             return False
-        self.frames.append(payload)
+        if via is not None:
+            held = self.relayed.get(via, 0)
+            if held and held + len(payload) > self.share:
+                return False
+            self.relayed[via] = held + len(payload)
+        self.frames.append((payload, via))
         self.bytes += len(payload)
         return True
 
     def take(self) -> bytes:
-        payload = self.frames.popleft()
+        payload, via = self.frames.popleft()
         self.bytes -= len(payload)
+        if via is not None:
+            left = self.relayed[via] - len(payload)
+            if left:
+                self.relayed[via] = left
+            else:
+                del self.relayed[via]
         return payload
 
 
@@ -100,14 +118,17 @@ class Link:
         self.on_full = on_full
         b = bounds or QueueBounds()
         self._marker_slack = b.marker_slack
-        self._beats, self._control = _Queue(b.heartbeat), _Queue(b.control)
-        self._data = _Queue(b.data)  # data and markers, in order
+        share = b.relayed_share
+        self._beats = _Queue(b.heartbeat, int(b.heartbeat * share))
+        self._control = _Queue(b.control, int(b.control * share))
+        self._data = _Queue(b.data, int(b.data * share))  # data and markers, in order
         self._queues = (self._beats, self._control, self._data)  # the order they leave in
         self._next_free = 0.0
         self._in_air: deque[tuple[float, bytes]] = deque()
         self._timer: asyncio.TimerHandle | None = None
 
-    def send(self, payload: bytes, kind: Kind) -> None:
+    def send(self, payload: bytes, kind: Kind, via: str | None = None) -> None:
+        """Queue a frame (``via``: the neighbour it is relayed for, bounded to its share)."""
         if kind == DATA and self.shape.loss and self._rng.random() < self.shape.loss:
             self.on_loss()
             return
@@ -118,7 +139,7 @@ class Link:
             if kind in (DATA, MARKER)
             else self._control
         )
-        if not queue.put(payload, self._marker_slack if kind == MARKER else 0):
+        if not queue.put(payload, self._marker_slack if kind == MARKER else 0, via):
             self.on_full()
             return
         self.pump()

@@ -35,6 +35,7 @@ from mso.net.admission import Admission
 from mso.net.base import HEARTBEAT, Counters, Kind, Receiver, RoutesChanged, RoutingView
 from mso.net.forwarding import RouteWait
 from mso.net.limits import DEFAULT_LIMITS, ConnectionCounters, Limits
+from mso.net.relaying import RelayBudget
 from mso.net.shaping import Link
 from mso.protocol import messages as m
 from mso.protocol.authority import DOCUMENT_MESSAGES, Authority
@@ -194,6 +195,7 @@ class TcpTransport:
         self.connection_counters = ConnectionCounters()
         self.accepted: set[Connection] = set()  # connections others opened to this node
         self.admission = Admission(limits, self.connection_counters)
+        self.relay_budget = RelayBudget(limits.relay_control_per_s, limits.relay_beats_per_s)
         self.host = host
         self.port = port
         # the overlay keys: the first seals new connections, all are accepted (key rotation)
@@ -361,7 +363,9 @@ class TcpTransport:
     def _unroutable(self, _: object = None) -> None:
         self.counters.frames_unroutable += 1
 
-    def _send_toward(self, dst: str, payload: bytes, kind: Kind, own: bool = True) -> bool:
+    def _send_toward(
+        self, dst: str, payload: bytes, kind: Kind, own: bool = True, via: str | None = None
+    ) -> bool:
         """Hand a frame to the next hop toward dst; False when there is no usable next hop.
         Only this node's ``own`` frames take a detour: a relay that detoured what it relays
         could hand it back to the node that detoured it (both routing to a dead node)."""
@@ -370,7 +374,7 @@ class TcpTransport:
             return False
         conn = self.peers.get(hop)
         if conn is not None and conn.link is not None:
-            conn.link.send(payload, kind)
+            conn.link.send(payload, kind, via)
         elif hop in self.view.neighbours():
             link = self._detour(dst, hop) if own else None
             if link is not None:
@@ -413,17 +417,22 @@ class TcpTransport:
         self.counters.frames_bad_kind += 1
         return True
 
-    def _forward(self, env: m.Envelope, size: int) -> None:
+    def _forward(self, via: str, env: m.Envelope, size: int) -> None:
         """Relay a frame for another node, checked like one of this node's own (its kind, a
-        beat's size) and queued by its class on the next link, whose queues are bounded."""
+        beat's size), within the budget of frames ``via`` (the neighbour that handed it over)
+        may have relayed (:mod:`mso.net.relaying`), and queued by its class on the next link,
+        where ``via``'s frames take at most a share of each bounded queue."""
         if self._bad_kind(env.kind, size):
+            return
+        if not self.relay_budget.allow(via, env.kind, self.loop.time()):
+            self.counters.frames_dropped_rate += 1
             return
         env.ttl -= 1
         if env.ttl <= 0:
             self._unroutable()
             return
         payload = m.rewrap(env)
-        if self._send_toward(env.dst, payload, env.kind, own=False):
+        if self._send_toward(env.dst, payload, env.kind, own=False, via=via):
             self.counters.bytes_forwarded += size
         else:
             self.waiting.hold(env.dst, (payload, size), env.kind, self.loop.time())
@@ -466,7 +475,7 @@ class TcpTransport:
     # -- inbound ----------------------------------------------------------------------------
     def on_envelope(self, conn: Connection, env: m.Envelope, size: int) -> None:
         if env.dst != self._node_id and conn.client is None and conn.peer is not None:
-            self._forward(env, size)
+            self._forward(conn.peer, env, size)
             return
         try:
             msg = m.decode(env.body)
@@ -521,6 +530,7 @@ class TcpTransport:
         self._held_total -= self._held.pop(conn, 0)
         if conn.peer is not None and self.peers.get(conn.peer) is conn:
             del self.peers[conn.peer]
+            self.relay_budget.forget(conn.peer)
             self._unconnected.setdefault(conn.peer, self.loop.time())
             if conn.link is not None:
                 conn.link.close()

@@ -1,0 +1,118 @@
+"""Frames a node relays are checked like its own: kind and size (tests/test_link_queues.py),
+and now a share of each link queue and a frame rate per neighbour (issue 27, Build 4).
+
+One member streaming frames through a relay used to take the whole control queue of the next
+link (64 MiB), delaying or dropping every other neighbour's control frames behind it, and a
+member could have a relay pass on any number of small control frames (50,000 invented
+``NodeDown``\\s once froze an overlay).
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+from mso.client import overlay_key
+from mso.net.base import CONTROL, DATA, HEARTBEAT, LinkShape, encode
+from mso.net.limits import Limits
+from mso.net.relaying import RelayBudget
+from mso.net.routes_emulator import EmulatorRoutes
+from mso.net.shaping import Link, QueueBounds
+from mso.net.tcp import TcpTransport
+from mso.protocol import messages as m
+
+HOST = "127.0.0.1"
+KEY = overlay_key("k")
+
+
+class Stuck:
+    paused = True  # the connection pushes back: nothing leaves the queues
+
+    def write_frame(self, payload: bytes) -> None:
+        raise AssertionError("nothing should be written")
+
+
+def test_one_neighbours_relayed_frames_take_only_their_share_of_a_queue() -> None:
+    full: list[int] = []
+    loop = asyncio.new_event_loop()
+    try:
+        bounds = QueueBounds(control=1000, relayed_share=0.25)
+        link = Link(Stuck(), LinkShape(), 1, loop, bounds=bounds, on_full=lambda: full.append(1))
+        for _ in range(10):  # a member streams through this relay: 250 bytes of it queue
+            link.send(b"a" * 50, CONTROL, via="A")
+        assert link.queued[1] == 250 and len(full) == 5
+        link.send(b"c" * 50, CONTROL, via="C")  # another neighbour's frame still has room
+        link.send(b"o" * 600, CONTROL)  # and so does this node's own, up to the bound
+        assert link.queued[1] == 900 and len(full) == 5
+        link.send(b"big" * 200, CONTROL, via="D")  # a neighbour's first frame always fits ...
+        assert link.queued[1] == 900 and len(full) == 6  # ... a queue with room for it
+        link._control.take()  # one of A's leaves: A has room for one more
+        link.send(b"a" * 50, CONTROL, via="A")
+        assert link.queued[1] == 900 and len(full) == 6
+    finally:
+        loop.close()
+
+
+def test_a_neighbours_relayed_control_frames_have_a_rate_budget() -> None:
+    budget = RelayBudget(control_per_s=100.0, beats_per_s=10.0, burst_s=2.0)
+    assert sum(budget.allow("A", CONTROL, 0.0) for _ in range(1000)) == 200  # the burst
+    assert budget.allow("C", CONTROL, 0.0)  # another neighbour has its own
+    assert sum(budget.allow("A", CONTROL, 0.5) for _ in range(1000)) == 50  # refilled at rate
+    assert sum(budget.allow("A", HEARTBEAT, 0.5) for _ in range(100)) == 20
+    assert all(budget.allow("A", DATA, 0.5) for _ in range(10_000))  # data: windows bound it
+    budget.forget("A")
+    assert budget.allow("A", CONTROL, 0.5)
+
+
+def test_a_relay_passes_on_a_members_flood_of_control_frames_only_within_its_budget() -> None:
+    limits = Limits(relay_control_per_s=500.0)
+    flood = 5000
+
+    async def run() -> tuple[int, int, int]:
+        names = ["A", "R", "B"]  # A (the member flooding) - R (the relay) - B
+        views = {n: EmulatorRoutes(n) for n in names}
+        nets = {n: TcpTransport(n, HOST, 0, KEY, views[n], limits) for n in names}
+        got: list[str] = []
+        own = asyncio.Event()
+
+        def at_b(src: str, msg: m.Message) -> None:
+            got.append(src)
+            if src == "R":
+                own.set()
+
+        nets["B"].set_receiver(at_b)
+        for n in names:
+            await nets[n].start()
+        try:
+
+            def spec(n: str) -> list[object]:
+                return [HOST, nets[n].port, None, 0.0, 0.0]
+
+            views["A"].apply(m.LinkState(1, {"R": spec("R")}, {"R": ["R", 1], "B": ["R", 2]}))
+            views["B"].apply(m.LinkState(1, {"R": spec("R")}, {"R": ["R", 1], "A": ["R", 2]}))
+            views["R"].apply(
+                m.LinkState(1, {"A": spec("A"), "B": spec("B")}, {"A": ["A", 1], "B": ["B", 1]})
+            )
+            while "A" not in nets["R"].peers or "B" not in nets["R"].peers:
+                await asyncio.sleep(0.01)
+            start = asyncio.get_running_loop().time()
+            for i in range(flood):  # invented failures, addressed to B through R
+                nets["A"].send("B", *encode("A", "B", m.NodeDown(f"X{i}", "A", 1)))
+            relay = views["R"].counters
+
+            async def all_handled() -> None:  # each of the flood dropped at R or got at B
+                while relay.frames_dropped_rate + len(got) < flood:
+                    await asyncio.sleep(0.01)
+
+            await asyncio.wait_for(all_handled(), 30.0)
+            elapsed = asyncio.get_running_loop().time() - start
+            nets["R"].send("B", *encode("R", "B", m.NodeUp("R", 1)))  # R's own still goes
+            await asyncio.wait_for(own.wait(), 5.0)
+            return relay.frames_dropped_rate, len(got) - 1, int(elapsed * 500) + 1000
+        finally:
+            for n in names:
+                await nets[n].close()
+
+    dropped, passed, budget = asyncio.run(run())
+    assert dropped + passed == flood
+    assert passed <= budget  # the burst (2 s at 500/s) and what refilled while it came
+    assert dropped >= flood - budget
