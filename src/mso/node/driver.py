@@ -71,11 +71,13 @@ class NodeDriver:
         self.transport.set_client_handler(self._request)
         self.view.subscribe(self._routes_changed)
         self._timers: dict[Hashable, asyncio.TimerHandle] = {}
-        # vertex code runs in the executor's threads; their results queue here and wake the
-        # loop once per burst, not once per result
-        self.executor = Executor(self._vertex_result)
+        # vertex code runs in the executor's threads, whose results queue here and wake the
+        # loop once per burst, or (a cheap instance) inline on this thread, in turns scheduled
+        # with call_soon and drained right after: no wake-up at all
+        self.executor = Executor(self._vertex_result, self._schedule_inline)
         self._results: list[fx.VertexResult] = []
         self._results_lock = threading.Lock()
+        self._loop_thread = threading.get_ident()
         self.stopped = asyncio.Event()
         self._warmed: set[int] = set()  # app documents whose imports are done
         self.seen: dict[str, int] = {}  # what happened, by kind: the stop line's summary
@@ -220,14 +222,24 @@ class NodeDriver:
             log.log(level, "%s", h.what, extra={"kv": kv})
 
     def _vertex_result(self, result: fx.VertexResult) -> None:
-        """Called from a worker thread."""
+        """Called from a worker thread, or from an inline turn (drained when it ends)."""
         with self._results_lock:
             wake = not self._results
             self._results.append(result)
-        if wake:
+        if wake and threading.get_ident() != self._loop_thread:
             # RuntimeError: the loop closed while the node stopped, nothing to tell
             with contextlib.suppress(RuntimeError):
                 self.loop.call_soon_threadsafe(self._drain_results)
+
+    def _schedule_inline(self) -> None:
+        self.loop.call_soon(self._run_inline)
+
+    def _run_inline(self) -> None:
+        """A turn of the cheap instances' jobs on this thread, then their results."""
+        if self.stopped.is_set():
+            return
+        self.executor.run_inline()
+        self._drain_results()
 
     def _drain_results(self) -> None:
         with self._results_lock:

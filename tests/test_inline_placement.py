@@ -1,0 +1,166 @@
+"""Adaptive placement (mso.runtime.executor): a cheap instance runs on the loop's thread, one that
+turns slow moves back to its worker thread (the loop stays responsive), one that turns cheap again
+returns, and across every move each event is processed exactly once and in order."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from typing import Any
+
+import msgspec
+
+from mso.model.app import Vertex
+from mso.protocol import effects as fx
+from mso.runtime import executor as ex_mod
+from mso.runtime.executor import ThreadExecutor
+
+SLOW_S = 0.2  # CPU per slow call: a loop blocked by it would be this late at least
+
+
+class Phased:
+    """Passes each event on; the events named in ``slow`` cost ``SLOW_S`` of busy CPU each."""
+
+    def __init__(self, slow: set[int]) -> None:
+        self.slow = slow
+        self.on_loop: list[int] = []  # the events it saw on the loop's thread
+        self.loop_thread = threading.get_ident()
+
+    def __call__(self, ev: int) -> int:
+        if threading.get_ident() == self.loop_thread:
+            self.on_loop.append(ev)
+        if ev in self.slow:
+            end = time.thread_time() + SLOW_S
+            while time.thread_time() < end:
+                pass
+        return ev
+
+
+class Harness:
+    """What the asyncio driver does with the executor, reduced to its results."""
+
+    def __init__(self, fn: Phased) -> None:
+        self.loop = asyncio.get_running_loop()
+        self.results: list[fx.VertexResult] = []
+        self.ex = ThreadExecutor(
+            self.results.append, lambda: self.loop.call_soon(self.ex.run_inline)
+        )
+        self.ex.submit(fx.StartVertex(1, "app", Vertex("v", fn), "operator", {0: None}))
+        self.late: list[float] = []  # how late a 10 ms ticker on the loop ran, each tick
+        self.fed = 0
+
+    def tick(self, due: float) -> None:
+        now = self.loop.time()
+        self.late.append(now - due)
+        self.loop.call_at(now + 0.01, self.tick, now + 0.01)
+
+    def feed(self, n: int, each: int = 1) -> None:
+        """``n`` feeds of ``each`` events, all at once (they queue behind each other)."""
+        for _ in range(n):
+            events = [msgspec.msgpack.encode(self.fed + k) for k in range(each)]
+            self.ex.submit(fx.FeedVertex(1, 0, events, 0.0))
+            self.fed += each
+
+    async def settle(self) -> None:
+        """Until every event fed has come back (bounded: a lost one fails, it does not hang)."""
+        deadline = self.loop.time() + 30.0
+        while self.processed() < self.fed:
+            assert self.loop.time() < deadline, f"{self.processed()} of {self.fed} came back"
+            await asyncio.sleep(0.001)
+
+    def processed(self) -> int:
+        return sum(r.count for r in self.results if isinstance(r, fx.VertexProcessed))
+
+    def outputs(self) -> list[int]:
+        return [
+            msgspec.msgpack.decode(p)
+            for r in self.results
+            if isinstance(r, fx.VertexProcessed)
+            for p in r.outputs
+        ]
+
+
+async def _one_by_one(h: Harness, n: int) -> None:
+    for _ in range(n):
+        h.feed(1)
+        await h.settle()
+
+
+def test_a_cheap_vertex_moves_to_the_loop_a_slow_one_off_it_and_back() -> None:
+    async def main() -> dict[str, Any]:
+        fn = Phased(slow=set())
+        h = Harness(fn)
+        await _one_by_one(h, ex_mod.CHEAP_JOBS + 4)
+        on_loop_first = h.ex.placement(1)
+        # turns slow: the first slow call runs on the loop (and costs it once), the rest on the
+        # thread, while a ticker shows whether the loop stays responsive
+        fn.slow = set(range(h.fed, h.fed + 5))
+        h.feed(5)
+        await asyncio.sleep(0)  # the inline turn: the first slow event, then the move
+        off = h.ex.placement(1)
+        h.loop.call_soon(h.tick, h.loop.time())
+        await h.settle()
+        late_while_slow = max(h.late)
+        # cheap again: back to the loop once twice as many cheap jobs ran on the thread
+        await _one_by_one(h, 2 * ex_mod.CHEAP_JOBS + 4)
+        back = h.ex.placement(1)
+        moves = h.ex.moves(1)
+        h.ex.shutdown(5.0)
+        return {
+            "first": on_loop_first,
+            "off": off,
+            "back": back,
+            "moves": moves,
+            "late": late_while_slow,
+            "out": h.outputs(),
+            "fed": h.fed,
+            "on_loop": fn.on_loop,
+            "slow": sorted(fn.slow),
+        }
+
+    r = asyncio.run(main())
+    assert r["first"] == "loop"
+    assert r["off"] == "thread"
+    assert r["back"] == "loop"
+    assert r["moves"] == 3
+    assert r["late"] < SLOW_S / 2  # four 0.2 s calls ran meanwhile, none on the loop
+    assert set(r["on_loop"]) & set(r["slow"]) == {r["slow"][0]}  # only the first, which moved it
+    assert r["out"] == list(range(r["fed"]))  # exactly once, in order
+
+
+def test_jobs_in_flight_keep_their_order_across_moves() -> None:
+    """Bursts of feeds queued at once, with slow events among them: the moves happen with jobs
+    waiting on either side, and nothing is lost, repeated or reordered."""
+
+    async def main() -> tuple[list[int], int, int]:
+        fn = Phased(slow=set())
+        h = Harness(fn)
+        await _one_by_one(h, ex_mod.CHEAP_JOBS)
+        for burst in range(6):
+            if burst % 2 == 0:
+                fn.slow = {h.fed + 3}  # a slow event inside the burst
+            h.feed(40, each=3)
+            await h.settle()
+            await _one_by_one(h, 2 * ex_mod.CHEAP_JOBS << burst)  # back to the loop
+        moves = h.ex.moves(1)
+        h.ex.shutdown(5.0)
+        return h.outputs(), h.fed, moves
+
+    out, fed, moves = asyncio.run(main())
+    assert out == list(range(fed))
+    assert moves >= 6
+
+
+def test_without_a_loop_every_instance_stays_on_its_thread() -> None:
+    async def main() -> tuple[str | None, list[int]]:
+        fn = Phased(slow=set())
+        h = Harness(fn)
+        h.ex.schedule = None  # as bench/heavy.py uses it: threads only
+        await _one_by_one(h, ex_mod.CHEAP_JOBS * 2)
+        where = h.ex.placement(1)
+        h.ex.shutdown(5.0)
+        return where, fn.on_loop
+
+    where, on_loop = asyncio.run(main())
+    assert where == "thread" and on_loop == []
