@@ -15,15 +15,18 @@ from mso.model.app import Vertex
 from mso.protocol import effects as fx
 from mso.runtime import executor as ex_mod
 from mso.runtime.executor import ThreadExecutor
+from waits import patience
 
-SLOW_S = 0.2  # CPU per slow call: a loop blocked by it would be this late at least
+SLOW_S = 0.02  # CPU per slow call: over a job's budget on the loop, under HEAVY_S
+HEAVY_S = 0.2  # CPU per heavy call: a loop blocked by it would be this late at least
 
 
 class Phased:
-    """Passes each event on; the events named in ``slow`` cost ``SLOW_S`` of busy CPU each."""
+    """Passes each event on; the events named in ``slow`` cost ``cost_s`` of busy CPU each."""
 
-    def __init__(self, slow: set[int]) -> None:
+    def __init__(self, slow: set[int], cost_s: float = SLOW_S) -> None:
         self.slow = slow
+        self.cost_s = cost_s
         self.on_loop: list[int] = []  # the events it saw on the loop's thread
         self.loop_thread = threading.get_ident()
 
@@ -31,7 +34,7 @@ class Phased:
         if threading.get_ident() == self.loop_thread:
             self.on_loop.append(ev)
         if ev in self.slow:
-            end = time.thread_time() + SLOW_S
+            end = time.thread_time() + self.cost_s
             while time.thread_time() < end:
                 pass
         return ev
@@ -40,13 +43,15 @@ class Phased:
 class Harness:
     """What the asyncio driver does with the executor, reduced to its results."""
 
-    def __init__(self, fn: Phased) -> None:
+    def __init__(self, fn: Phased, isolation: str = "auto") -> None:
         self.loop = asyncio.get_running_loop()
         self.results: list[fx.VertexResult] = []
         self.ex = ThreadExecutor(
             self.results.append, lambda: self.loop.call_soon(self.ex.run_inline)
         )
-        self.ex.submit(fx.StartVertex(1, "app", Vertex("v", fn), "operator", {0: None}))
+        self.ex.submit(
+            fx.StartVertex(1, "app", Vertex("v", fn, isolation=isolation), "operator", {0: None})
+        )
         self.late: list[float] = []  # how late a 10 ms ticker on the loop ran, each tick
         self.fed = 0
 
@@ -64,7 +69,7 @@ class Harness:
 
     async def settle(self) -> None:
         """Until every event fed has come back (bounded: a lost one fails, it does not hang)."""
-        deadline = self.loop.time() + 30.0
+        deadline = self.loop.time() + patience(10.0)
         while self.processed() < self.fed:
             assert self.loop.time() < deadline, f"{self.processed()} of {self.fed} came back"
             await asyncio.sleep(0.001)
@@ -87,46 +92,55 @@ async def _one_by_one(h: Harness, n: int) -> None:
         await h.settle()
 
 
-def test_a_cheap_vertex_moves_to_the_loop_a_slow_one_off_it_and_back() -> None:
-    async def main() -> dict[str, Any]:
-        fn = Phased(slow=set())
-        h = Harness(fn)
-        await _one_by_one(h, ex_mod.CHEAP_JOBS + 4)
-        on_loop_first = h.ex.placement(1)
-        # turns slow: the first slow call runs on the loop (and costs it once), the rest on the
-        # thread, while a ticker shows whether the loop stays responsive
-        fn.slow = set(range(h.fed, h.fed + 5))
-        h.feed(5)
-        await asyncio.sleep(0)  # the inline turn: the first slow event, then the move
-        off = h.ex.placement(1)
-        h.loop.call_soon(h.tick, h.loop.time())
-        await h.settle()
-        late_while_slow = max(h.late)
-        # cheap again: back to the loop once twice as many cheap jobs ran on the thread
-        await _one_by_one(h, 2 * ex_mod.CHEAP_JOBS + 4)
-        back = h.ex.placement(1)
-        moves = h.ex.moves(1)
-        h.ex.shutdown(5.0)
-        return {
-            "first": on_loop_first,
-            "off": off,
-            "back": back,
-            "moves": moves,
-            "late": late_while_slow,
-            "out": h.outputs(),
-            "fed": h.fed,
-            "on_loop": fn.on_loop,
-            "slow": sorted(fn.slow),
-        }
+async def _turns_slow(cost_s: float, cheap_after: int) -> dict[str, Any]:
+    """Cheap until it is on the loop, then five calls of ``cost_s`` fed at once (the first runs
+    on the loop and moves it; a ticker shows how late the loop ran meanwhile), then
+    ``cheap_after`` cheap calls one by one."""
+    fn = Phased(slow=set(), cost_s=cost_s)
+    h = Harness(fn)
+    await _one_by_one(h, ex_mod.CHEAP_JOBS + 4)
+    first = h.ex.placement(1)
+    fn.slow = set(range(h.fed, h.fed + 5))
+    h.feed(5)
+    await asyncio.sleep(0)  # the inline turn: the first slow event, then the move
+    off = h.ex.placement(1)
+    h.loop.call_soon(h.tick, h.loop.time())
+    await h.settle()
+    late = max(h.late)
+    await _one_by_one(h, cheap_after)
+    after = h.ex.placement(1)
+    moves = h.ex.moves(1)
+    h.ex.shutdown(5.0)
+    return {
+        "where": (first, off, after),
+        "moves": moves,
+        "late": late,
+        "out": h.outputs(),
+        "fed": h.fed,
+        "on_loop": fn.on_loop,
+        "slow": sorted(fn.slow),
+    }
 
-    r = asyncio.run(main())
-    assert r["first"] == "loop"
-    assert r["off"] == "thread"
-    assert r["back"] == "loop"
+
+def test_a_cheap_vertex_moves_to_the_loop_a_slow_one_off_it_and_back() -> None:
+    # cheap again: back to the loop once twice as many cheap jobs ran on the thread
+    r = asyncio.run(_turns_slow(SLOW_S, 2 * ex_mod.CHEAP_JOBS + 4))
+    assert r["where"] == ("loop", "thread", "loop")
     assert r["moves"] == 3
-    assert r["late"] < SLOW_S / 2  # four 0.2 s calls ran meanwhile, none on the loop
     assert set(r["on_loop"]) & set(r["slow"]) == {r["slow"][0]}  # only the first, which moved it
     assert r["out"] == list(range(r["fed"]))  # exactly once, in order
+
+
+def test_a_heavy_call_on_the_loop_keeps_the_instance_on_its_thread() -> None:
+    """A call of HEAVY_S or more sends it back for good: however cheap it is afterwards, it
+    never stalls the loop again."""
+    assert ex_mod.HEAVY_S <= HEAVY_S
+    r = asyncio.run(_turns_slow(HEAVY_S, 4 * ex_mod.CHEAP_JOBS))
+    assert r["where"] == ("loop", "thread", "thread")
+    assert r["moves"] == 2
+    assert r["late"] < HEAVY_S / 2  # four 0.2 s calls ran meanwhile, none on the loop
+    assert set(r["on_loop"]) & set(r["slow"]) == {r["slow"][0]}
+    assert r["out"] == list(range(r["fed"]))
 
 
 def test_jobs_in_flight_keep_their_order_across_moves() -> None:
@@ -154,15 +168,22 @@ def test_jobs_in_flight_keep_their_order_across_moves() -> None:
     assert moves >= 2
 
 
-def test_without_a_loop_every_instance_stays_on_its_thread() -> None:
-    async def main() -> tuple[str | None, list[int]]:
-        fn = Phased(slow=set())
-        h = Harness(fn)
+async def _cheap_throughout(isolation: str, schedule: bool) -> tuple[str | None, list[int]]:
+    fn = Phased(slow=set())
+    h = Harness(fn, isolation)
+    if not schedule:
         h.ex.schedule = None  # as bench/heavy.py uses it: threads only
-        await _one_by_one(h, ex_mod.CHEAP_JOBS * 2)
-        where = h.ex.placement(1)
-        h.ex.shutdown(5.0)
-        return where, fn.on_loop
+    await _one_by_one(h, ex_mod.CHEAP_JOBS * 2)
+    where = h.ex.placement(1)
+    h.ex.shutdown(5.0)
+    return where, fn.on_loop
 
-    where, on_loop = asyncio.run(main())
+
+def test_without_a_loop_every_instance_stays_on_its_thread() -> None:
+    where, on_loop = asyncio.run(_cheap_throughout("auto", schedule=False))
+    assert where == "thread" and on_loop == []
+
+
+def test_isolation_thread_never_runs_on_the_loop() -> None:
+    where, on_loop = asyncio.run(_cheap_throughout("thread", schedule=True))
     assert where == "thread" and on_loop == []

@@ -39,9 +39,10 @@ class Vertex:
     params: dict[str, Any] = field(default_factory=dict)
     get_state: Code | None = None
     set_state: Code | None = None
-    # where its code runs on a node: a thread of the node's process, or a process of its own
-    # (a CPU-bound pure-Python vertex gets a core and a GIL to itself; import paths only)
-    isolation: str = "thread"
+    # where its code runs on a node: ``auto`` (its thread, or the node's loop while its calls
+    # take microseconds), always a thread of the node's process, or a process of its own (a
+    # CPU-bound pure-Python vertex gets a core and a GIL to itself; import paths only)
+    isolation: str = "auto"
     # instead of ``pinned``: what its node must offer, and where it must (not) be relative to
     # another vertex (mso.model.capabilities); resolved to one node before chains are placed
     requires: dict[str, float] = field(default_factory=dict)
@@ -60,7 +61,7 @@ class Vertex:
         return self.pinned is None and bool(self.requires or self.near or self.apart_from)
 
 
-ISOLATIONS = ("thread", "process")
+ISOLATIONS = ("auto", "thread", "process")
 MAX_REPLICAS = 2
 MAX_SNAPSHOT_EVENTS = 1_000_000
 MAX_SNAPSHOT_S = 3600.0
@@ -124,7 +125,7 @@ class App:
         params: dict[str, Any] | None = None,
         get_state: Code | None = None,
         set_state: Code | None = None,
-        isolation: str = "thread",
+        isolation: str = "auto",
         requires: Any = None,
         near: str | None = None,
         apart_from: str | None = None,

@@ -18,8 +18,11 @@ to its thread, each time needing twice as many cheap jobs to return. Order and s
 an instance moves to the loop only when its thread has finished every job it was given (its
 results are already queued ahead), and moves back with its unrun jobs, in order, onto its
 thread's queue; the worker is only ever used by one thread at a time. A free-running source (a
-read loop that may block) and an ``isolation: process`` instance never run on the loop. What a
-move costs the loop is the one job that went over budget.
+read loop that may block), an ``isolation: process`` instance and one that asked for
+``isolation: thread`` never run on the loop. What a move costs the loop is the one job that went
+over budget; a job that took ``HEAVY_S`` keeps its instance on its thread for good, so a vertex
+that turns slow stalls the loop once at most (code that may block for longer than the liveness
+window at once, e.g. on I/O, says ``isolation: thread``).
 
 Why threads at all: a worker thread per instance keeps state handover exact (the instance lives
 in one place) and costs no serialisation; CPython switches the GIL every few milliseconds, so
@@ -50,6 +53,9 @@ JOB_BUDGET_S = 5e-3  # ... or one taking longer in all (a feed is up to 256 even
 GIL_SLACK_S = 5e-3  # a job on a thread may wait this long for the GIL and still count as cheap
 FORGIVE_JOBS = 1024  # jobs within budget on the loop that halve what a return costs again
 BATCH_S = 2e-3  # one turn of inline jobs runs about this long, then I/O and timers get theirs
+HEAVY_S = 0.05  # a job on the loop this long keeps its instance on its thread for good (a
+# tenth of the default liveness window: a vertex that can turn this slow must not get a second
+# chance to stall heartbeats)
 
 
 class _Lane:
@@ -72,6 +78,9 @@ class _Lane:
         self.need = CHEAP_JOBS  # cheap jobs in a row that move it to the loop
         self.within = 0  # jobs in a row within budget on the loop
         self.moves = 0  # moves either way (tests and status read it)
+        # never on the loop: it asked for its thread (code that may block or turn slow at once),
+        # or one of its jobs on the loop took HEAVY_S
+        self.stays = start.vertex.isolation == "thread"
 
     def _run(self) -> None:
         worker = self.worker
@@ -116,7 +125,12 @@ class _Lane:
 
     def may_move_inline(self) -> bool:
         """Cheap enough for long enough, and its thread idle (every job it got is done)."""
-        return self.cheap >= self.need and self.put == self.done and not self.loop_source
+        return (
+            self.cheap >= self.need
+            and self.put == self.done
+            and not self.loop_source
+            and not self.stays
+        )
 
     def to_thread(self) -> None:
         """Back to its thread, with the jobs not run yet, in order."""
@@ -200,6 +214,7 @@ class ThreadExecutor:
                 t1 = perf()
                 if t1 - t0 > min(JOB_BUDGET_S, CALL_BUDGET_S * calls(job)):
                     lane.need = min(2 * lane.need, MAX_CHEAP_JOBS)
+                    lane.stays = lane.stays or t1 - t0 >= HEAVY_S
                     lane.to_thread()
                 else:
                     lane.within += 1
