@@ -27,7 +27,7 @@ def _cpu_time_decides(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(ex_mod, "GIL_SLACK_S", 3600.0)
 
 
-SLOW_S = 0.02  # CPU per slow call: over a job's budget on the loop, under HEAVY_S
+SLOW_S = 0.02  # CPU per slow call: over a job's budget on the loop
 HEAVY_S = 0.2  # CPU per heavy call: enough to keep an instance off the loop for good
 
 
@@ -135,7 +135,11 @@ async def _turns_slow(cost_s: float) -> dict[str, Any]:
     }
 
 
-def test_a_cheap_vertex_moves_to_the_loop_a_slow_one_off_it_and_back() -> None:
+def test_a_cheap_vertex_moves_to_the_loop_a_slow_one_off_it_and_back(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a loaded machine can stretch a 20 ms call past HEAVY_S of wall time: not this test's case
+    monkeypatch.setattr(ex_mod, "HEAVY_S", 3600.0)
     r = asyncio.run(_turns_slow(SLOW_S))
     assert r["where"] == ("loop", "thread", "loop")
     # it needs CHEAP_JOBS cheap jobs in a row first, then twice as many to come back
@@ -158,9 +162,10 @@ def test_a_heavy_call_on_the_loop_keeps_the_instance_on_its_thread() -> None:
     assert r["out"] == list(range(r["fed"]))
 
 
-def test_jobs_in_flight_keep_their_order_across_moves() -> None:
+def test_jobs_in_flight_keep_their_order_across_moves(monkeypatch: pytest.MonkeyPatch) -> None:
     """Bursts of feeds queued at once, with slow events among them: the moves happen with jobs
     waiting on either side, and nothing is lost, repeated or reordered."""
+    monkeypatch.setattr(ex_mod, "HEAVY_S", 3600.0)  # every slow event may move it back
 
     async def main() -> tuple[list[int], int, int]:
         fn = Phased(slow=set())

@@ -12,17 +12,17 @@ concurrently.
 microseconds runs *on the loop's thread*: the same :class:`VertexWorker`, called by
 :meth:`ThreadExecutor.run_inline` in batches the driver schedules with ``call_soon``. Every
 instance starts on its thread (a constructor may import or load for seconds); after
-``CHEAP_JOBS`` jobs in a row that were cheap there it moves to the loop, and the first job on the
-loop that goes over budget (``CALL_BUDGET_S`` per call, ``JOB_BUDGET_S`` per job) sends it back
-to its thread, each time needing twice as many cheap jobs to return. Order and state are exact:
-an instance moves to the loop only when its thread has finished every job it was given (its
-results are already queued ahead), and moves back with its unrun jobs, in order, onto its
-thread's queue; the worker is only ever used by one thread at a time. A free-running source (a
-read loop that may block), an ``isolation: process`` instance and one that asked for
-``isolation: thread`` never run on the loop. What a move costs the loop is the one job that went
-over budget; a job that took ``HEAVY_S`` keeps its instance on its thread for good, so a vertex
-that turns slow stalls the loop once at most (code that may block for longer than the liveness
-window at once, e.g. on I/O, says ``isolation: thread``).
+``CHEAP_JOBS`` jobs in a row that were cheap there it moves to the loop, and the first job on
+the loop that goes over budget (``CALL_BUDGET_S`` of CPU per call, ``JOB_BUDGET_S`` per job, or
+a wall time only blocking explains) sends it back to its thread, each time needing twice as many
+cheap jobs to return. Order and state are exact: an instance moves to the loop only when its
+thread has finished every job it was given (its results are already queued ahead), and moves
+back with its unrun jobs, in order, onto its thread's queue; the worker is only ever used by one
+thread at a time. A free-running source (a read loop that may block), an ``isolation: process``
+instance and one that asked for ``isolation: thread`` never run on the loop. What a move costs
+the loop is the one job that went over budget; a job that took ``HEAVY_S`` keeps its instance on
+its thread for good, so a vertex that turns slow stalls the loop once at most (code that may
+block for longer than the liveness window at once, e.g. on I/O, says ``isolation: thread``).
 
 Why threads at all: a worker thread per instance keeps state handover exact (the instance lives
 in one place) and costs no serialisation; CPython switches the GIL every few milliseconds, so
@@ -48,9 +48,11 @@ PULL_BUDGET_S = 0.005  # ... or wall time, so its events leave in timely batches
 CHEAP_CALL_S = 100e-6  # CPU time per call (event) on its thread for a job to count as cheap
 CHEAP_JOBS = 16  # cheap jobs in a row before an instance moves to the loop
 MAX_CHEAP_JOBS = 4096  # ... at most, however often it was sent back
-CALL_BUDGET_S = 1e-3  # on the loop, a job taking longer per call sends the instance back ...
-JOB_BUDGET_S = 5e-3  # ... or one taking longer in all (a feed is up to 256 events)
-GIL_SLACK_S = 5e-3  # a job on a thread may wait this long for the GIL and still count as cheap
+CALL_BUDGET_S = 1e-3  # on the loop, a job using more CPU per call sends the instance back ...
+JOB_BUDGET_S = 5e-3  # ... or more in all (a feed is up to 256 events)
+# a job may wait this long (wall time) beyond JOB_BUDGET_S for the GIL or a CPU and still count
+# as cheap on its thread, or within budget on the loop (longer: it blocked)
+GIL_SLACK_S = 5e-3
 FORGIVE_JOBS = 1024  # jobs within budget on the loop that halve what a return costs again
 BATCH_S = 2e-3  # one turn of inline jobs runs about this long, then I/O and timers get theirs
 HEAVY_S = 0.05  # a job on the loop this long keeps its instance on its thread for good (a
@@ -202,17 +204,23 @@ class ThreadExecutor:
         """Run the inline jobs waiting, on the calling (the loop's) thread, for about
         ``BATCH_S``; what is left is scheduled again so I/O and timers get their turn."""
         self._scheduled = False
-        perf = time.perf_counter
+        perf, cpu = time.perf_counter, time.thread_time
         deadline = perf() + BATCH_S
         ready = self._ready
         while ready:
             lane = ready.popleft()
             while lane.inline and lane.pending:
                 job = lane.pending.popleft()
-                t0 = perf()
+                t0, c0 = perf(), cpu()
                 lane.run(job)
                 t1 = perf()
-                if t1 - t0 > min(JOB_BUDGET_S, CALL_BUDGET_S * calls(job)):
+                # over budget: its CPU time, or a wall time that only blocking explains (a
+                # loaded machine's preemption alone does not send a cheap call back)
+                used = cpu() - c0
+                if (
+                    used > min(JOB_BUDGET_S, CALL_BUDGET_S * calls(job))
+                    or t1 - t0 > JOB_BUDGET_S + GIL_SLACK_S
+                ):
                     lane.need = min(2 * lane.need, MAX_CHEAP_JOBS)
                     lane.stays = lane.stays or t1 - t0 >= HEAVY_S
                     lane.to_thread()
