@@ -56,3 +56,31 @@ def test_every_taken_table_is_news_in_subscription_order() -> None:
     unsubscribe()
     view.apply(links(3, {"N4": ["N3", 2]}))
     assert order[-1] == "transport" and len(order) == 5
+
+
+def test_the_emulator_view_relays_nothing_through_a_node_held_failed() -> None:
+    """N1's neighbours are N2 and N3; N4 is behind both (N2 is the emulator's choice) and N5
+    only behind N2. Once N1 holds N2's daemon failed, N4 is reached through N3; N5 still
+    through N2 (there is no other way), N2 itself directly; held alive again, the emulator's routes
+    come back."""
+    view = EmulatorRoutes("N1")
+    seen: list[RoutesChanged] = []
+    view.subscribe(seen.append)
+    routes = {"N2": ["N2", 1], "N3": ["N3", 1], "N4": ["N2", 2], "N5": ["N2", 2]}
+    state = links(1, routes)
+    state.links = [["N1", "N2"], ["N1", "N3"], ["N2", "N4"], ["N3", "N4"], ["N2", "N5"]]
+    assert view.apply(state)
+    assert view.next_hop("N4") == "N2"
+    view.avoid(frozenset({"N2"}))
+    # (N5 only behind N2: kept, as the node held failed may be alive after all)
+    assert dict(view.routes()) == {
+        "N2": ("N2", 1),
+        "N3": ("N3", 1),
+        "N4": ("N3", 2),
+        "N5": ("N2", 2),
+    }
+    assert len(seen) == 2
+    view.avoid(frozenset({"N2"}))  # no change, no event
+    assert len(seen) == 2
+    view.avoid(frozenset())
+    assert view.next_hop("N4") == "N2" and view.next_hop("N5") == "N2"

@@ -440,8 +440,12 @@ class Emulator:
                 if r is not None and dst != node:
                     table[dst] = [r[1], len(r) - 1]
             self.routes[node] = table
+        links = [[a, b] for a, b in sorted(net.links)] if routes else []
         return m.LinkState(
-            version=self.version, neighbours=neighbours, routes=self.routes.get(node, {})
+            version=self.version,
+            neighbours=neighbours,
+            routes=self.routes.get(node, {}),
+            links=links,
         )
 
     async def push_links(self, routes: bool) -> None:

@@ -205,6 +205,9 @@ class NodeDriver:
                 self.executor.submit(eff)
         for h in self.core.drain_happened():
             self._log_happened(h)
+        view, failed = self.view, self.core.failed
+        if isinstance(view, EmulatorRoutes) and failed != view.avoided:  # (no copy per event)
+            view.avoid(frozenset(failed))  # relay nothing through a daemon held failed
 
     def _log_happened(self, h: Happened) -> None:
         """One line for what the core reported: a deployment, a move, a peer failed or back."""

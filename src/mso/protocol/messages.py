@@ -603,6 +603,9 @@ class LinkState(_Msg, tag="links"):
     version: int
     neighbours: dict[str, list[Any]]  # node -> [host, port, bandwidth_mbps|None, delay_ms, loss]
     routes: dict[str, list[Any]]  # destination -> [next hop, hops]
+    # the links the routes were computed on ([a, b] pairs), so that the node can route around
+    # a relay whose daemon it holds failed: in user space the daemon is the relay
+    links: list[list[str]] = msgspec.field(default_factory=list)
 
 
 class Shutdown(_Msg, tag="shutdown"):
