@@ -46,7 +46,7 @@ from typing import Any
 
 import msgspec
 
-from mso.benchmarks.common import src_digest
+from mso.benchmarks.common import cpu_seconds, src_digest
 from mso.benchmarks.vertices.dataplane import LatencySink, Stamped, pad_len
 
 HERE = Path(__file__).resolve().parent
@@ -61,7 +61,6 @@ TARGET_RATIO = 0.5
 TARGET_38B_EPS = 200_000
 HIGH_WATER = 1 << 20  # the baseline's transport write buffer limit: mso.node.driver's
 _LEN = struct.Struct(">I")
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 SCENARIO = """\
 name: dataplane-pair
@@ -94,15 +93,6 @@ def pin(pid: int, cpu: int) -> None:
     for tid in tids:
         with contextlib.suppress(ProcessLookupError):
             os.sched_setaffinity(tid, {cpu})
-
-
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process so far (0 if it is gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
 def kill_tree(procs: list[asyncio.subprocess.Process]) -> None:
