@@ -64,7 +64,7 @@ def test_minimal_yaml_is_enough_for_planning(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_demo_prints_chains_and_placement_and_runs_the_app() -> None:
-    code, out, _ = run("demo", "--duration", "6")
+    code, out, _ = run("demo", "--duration", "12")  # on the run's clock: the start included
     assert code == 0
     assert "laser@N1" in out and "storage@N4" in out
     assert re.search(r"deployed in \d+ ms", out)
