@@ -8,6 +8,7 @@ from typing import Any
 
 from mso.errors import AppError, SpecError
 from mso.model.app import PLANNERS, App
+from mso.model.gcpause import paused_gc
 from mso.model.qos import QOS_KEYS
 from mso.model.yamlfile import Located, load_yaml, load_yaml_file
 
@@ -57,6 +58,7 @@ def _unknown(
             )
 
 
+@paused_gc()
 def app_from_document(doc: Located, *, resolve_code: bool = True) -> App:
     """Build and validate an App from a parsed YAML document."""
     data = doc.data

@@ -17,6 +17,7 @@ from typing import Any
 import yaml
 
 from mso.errors import SpecError
+from mso.model.gcpause import paused_gc
 
 # libyaml's composer when PyYAML was built with it (10x faster); the same node tree either way.
 _COMPOSER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
@@ -25,6 +26,11 @@ MAX_BYTES = 4 * 1024 * 1024  # a document larger than this is refused before par
 MAX_DEPTH = 64  # nested mappings and sequences
 MAX_ALIASES = 256  # alias references (``*name``)
 MAX_EXPANDED = 20_000  # nodes an alias may add to the document when it is expanded
+# keys, values and items: a 4 MiB document of tiny scalars (two million of them) took 21 s and
+# 1 GB; this many is the largest app the limits allow (5,000 vertices, 20,000 edges) and more
+MAX_NODES = 200_000
+
+_STR = "tag:yaml.org,2002:str"
 
 # A path into the document: ("vertices", "B", "cost") or ("edges", 3).
 Path_ = tuple[str | int, ...]
@@ -57,6 +63,8 @@ class _Walker:
         self.budget = budget  # nodes left to walk: aliases cannot expand beyond it
 
     def construct(self, node: yaml.Node) -> Any:
+        if node.tag == _STR:  # most scalars: the parser already gave the text
+            return node.value
         return self._loader.construct_object(node, deep=True)
 
 
@@ -115,6 +123,9 @@ def _check_limits(text: str, file: str | None) -> int:
             depth -= 1
         elif isinstance(ev, yaml.ScalarEvent):
             nodes += 1
+            if nodes > MAX_NODES:  # counted as they come: the rest is never parsed
+                line = ev.start_mark.line + 1 if ev.start_mark else None
+                raise SpecError(f"more than {MAX_NODES:,} nodes", file=file, line=line)
         elif isinstance(ev, yaml.AliasEvent):
             aliases += 1
             if aliases > MAX_ALIASES:
@@ -123,6 +134,7 @@ def _check_limits(text: str, file: str | None) -> int:
     return nodes
 
 
+@paused_gc()
 def load_yaml(text: str, file: str | None = None) -> Located:
     """Parse one YAML document within the limits; malformed YAML becomes a SpecError with its
     line."""

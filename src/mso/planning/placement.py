@@ -32,10 +32,12 @@ from mso.errors import PlanningError
 from mso.model.app import PLANNERS, App
 from mso.model.capabilities import Candidate, offered, resolve
 from mso.model.chains import Chain, chain_dependencies, chain_order, form_chains
+from mso.model.gcpause import paused_gc
 from mso.model.network import Network, NodeSpec
 from mso.planning.bytesplit import Hop as Hop  # re-exported: what a probe collects
 from mso.planning.bytesplit import Traffic, assign_bytes, compute_uj
 from mso.planning.objectives import edge_bytes
+from mso.planning.reach import Downstream
 
 Capacity = Callable[[NodeSpec], float]
 
@@ -128,29 +130,12 @@ def vertex_loads(app: App) -> dict[str, float]:
 
 
 class _Graph:
-    """Reachability helpers over an app, computed once per plan."""
+    """The app's adjacency and vertex order, computed once per plan."""
 
     def __init__(self, app: App) -> None:
         self.succ = app.successors()
         self.pred = app.predecessors()
         self.order = {v: i for i, v in enumerate(app.vertices)}
-        self._last: dict[bool, tuple[str, set[str]]] = {}  # per direction
-
-    def reach(self, start: str, forward: bool) -> set[str]:
-        """The vertices reachable from ``start`` (itself included); the last answer is kept,
-        as placing a chain asks for its tail's (downstream) twice."""
-        last = self._last.get(forward)
-        if last is not None and last[0] == start:
-            return last[1]
-        nbrs = self.succ if forward else self.pred
-        seen, stack = {start}, [start]
-        while stack:
-            for w in nbrs[stack.pop()]:
-                if w not in seen:
-                    seen.add(w)
-                    stack.append(w)
-        self._last[forward] = (start, seen)
-        return seen
 
 
 def place_chain(
@@ -301,6 +286,7 @@ class Layout:
     placement as the central :func:`plan`.
     """
 
+    @paused_gc()
     def __init__(
         self,
         app: App,
@@ -344,6 +330,15 @@ class Layout:
             self.out_bytes[a].append((b, size))
             self.in_bytes[b].append((a, size))
         self.topo = app.topological_order()
+        self.downstream = Downstream(
+            self.topo,
+            self.graph.succ,
+            self.graph.pred,
+            self.pinned,
+            self.graph.order,
+            self.chains,
+            self.cost,
+        )
         self._flow: dict[str, dict[str, float]] = {}  # target -> bottleneck()
         # the chain each edge lies in (every edge lies in exactly one, §3.2)
         index = {(e.src, e.dst): i for i, e in enumerate(app.edges)}
@@ -402,26 +397,12 @@ class Layout:
         last = max(i for i, v in enumerate(verts) if v in placed)
         if last == len(verts) - 1:
             return None, 0.0
-        downstream = self.graph.reach(c.tail, forward=True)
-        best: tuple[int, int, str] | None = None
-        for v in downstream:
-            node = self.pinned.get(v)
-            if node is None or node not in distances or v in verts[: last + 1]:
-                continue
-            key = (distances[node], -self.graph.order[v], v)
-            if best is None or key > best:
-                best = key
+        best = self.downstream.furthest_pinned(c.tail, distances, verts[: last + 1])
         if best is None:
             return None, 0.0
         if self.planner != "paper":
-            return self.pinned[best[2]], 0.0  # the cost fraction is the paper split's only
-        to_target = self.graph.reach(best[2], forward=False)
-        down_cost = sum(
-            sum(self.cost[v] for v in o.vertices)
-            for o in self.chains
-            if o.index != chain and o.head in downstream and o.tail in to_target and len(o) > 1
-        )
-        return self.pinned[best[2]], down_cost
+            return self.pinned[best], 0.0  # the cost fraction is the paper split's only
+        return self.pinned[best], self.downstream.cost_between(c.tail, best, chain)
 
     def traffic(
         self,
@@ -630,6 +611,7 @@ def with_pins(app: App, resolved: Mapping[str, str]) -> App:
     return out
 
 
+@paused_gc()
 def plan(
     app: App,
     network: Network,
