@@ -112,7 +112,8 @@ class Restorer:
         vertex = edge.dst if msg.producer else edge.src
         restoring = dep.restoring.get(vertex)
         if restoring is None and msg.producer and vertex in dep.instances:
-            self.anchor(dep, vertex, msg)  # (a running consumer: see there)
+            if not self.anchor(dep, vertex, msg):  # (a running consumer: see there)
+                self.ctx.refusal("resume_unexpected")
             return
         if restoring is None or restoring.rid != msg.rid:
             self.ctx.refusal("resume_unexpected")
@@ -136,7 +137,7 @@ class Restorer:
         if _ready(dep, vertex, restoring):
             self.activate(dep, vertex)
 
-    def anchor(self, dep: AppState, vertex: str, msg: m.Resume) -> None:
+    def anchor(self, dep: AppState, vertex: str, msg: m.Resume) -> bool:
         """A consumer restored while this edge's producer was out of reach (or before it) has
         numbered its output from where its own consumers stood, or from 0: a guess, since no
         ack said what its lost instance had made of the producer's events. The producer's
@@ -145,14 +146,14 @@ class Restorer:
         its output from those, and tells its own consumers in turn: what it makes of the
         replay carries the numbers the lost instance gave it, and downstream drops what it
         has (seeds 80, 3040). One that has processed something keeps its guess (a merge fed
-        by its other input meanwhile)."""
+        by its other input meanwhile: counted refused)."""
         h = dep.instances[vertex]
         inc = dep.inc.get(msg.edge)
         if h.processed or h.queued or h.pending or (inc is not None and inc.expected > 0):
-            return
+            return False
         outs = dep.out_edges.get(vertex, [])
         if not all(o in msg.positions and msg.positions[o] >= 0 for o in outs):
-            return
+            return False
         released = msg.start if outs else None
         dep.inc[msg.edge] = InChannel(
             expected=msg.start, processed=msg.start, _acked=msg.start, released=released
@@ -171,6 +172,7 @@ class Restorer:
             consumer = dep.placed[dep.app.edges[o].dst]
             self.ctx.send(consumer, m.Resume(dep.app.name, o, msg.rid, True, pos, further))
         self.dp.touch(dep.app.name)
+        return True
 
     def on_replacement_prepared(self, ev: ReplacementPrepared) -> None:
         """The replacement started here (or its state arrived from a replica): with no
