@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 LINTED := $(wildcard src tests bench)
 
-.PHONY: demo test lint typecheck unit bench clean chromium netns-deps
+.PHONY: demo test quick lint typecheck unit bench clean chromium netns-deps
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -36,6 +36,10 @@ unit: $(STAMP) chromium
 	$(BIN)/pytest
 
 test: lint typecheck unit
+
+# while working: the same without the end-to-end tests (node processes, netns, a browser)
+quick: lint typecheck
+	$(BIN)/pytest -m "not slow"
 
 bench: $(STAMP)
 	$(BIN)/python bench/chains.py
