@@ -20,7 +20,8 @@ one connection open (:meth:`AsyncOverlay.open`, or a connected client given), so
 timed calls do not each pay a connect and a key check. Its every call takes a ``timeout``.
 
 A running emulator takes commands too (:class:`EmulatorControl`, by overlay name): fail or
-restart a node, cut or heal a link, move a node, stop the run with its summary.
+restart a node, cut or heal a link, move a node, stop the run with its summary. To start an
+emulator or a simulation from Python: :mod:`mso.emu.session` (``Emulation``, ``simulate``).
 
 Light to import: ``mso status`` comes through here and imports neither asyncio nor the model.
 """
