@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 import mso.examples
 from mso.node.driver import BATTERY_EMPTY_EXIT
 
@@ -29,3 +31,21 @@ def test_the_unit_matches_the_daemon() -> None:
     assert unit["KillSignal"] == "SIGTERM" and "-HUP" in unit["ExecReload"]
     fleet = (Path(__file__).resolve().parents[1] / "docs" / "fleet.md").read_text()
     assert "state_dir: /var/lib/mso" in fleet  # the directory the unit makes writable
+
+
+def test_a_node_started_without_peers_or_kernel_routes_says_it_finds_none(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from types import SimpleNamespace
+    from typing import Any
+
+    from mso.daemon.assembly import describe_routes
+    from mso.node.driver import PARENT_ENV
+
+    by_hand: Any = SimpleNamespace(routes_from="auto", peers={})
+    monkeypatch.delenv(PARENT_ENV, raising=False)
+    assert describe_routes(by_hand, None) == "none"  # and the no_neighbours warning follows
+    monkeypatch.setenv(PARENT_ENV, "1")
+    assert describe_routes(by_hand, None) == "emulator"
+    kernel: Any = SimpleNamespace(routes_from="kernel", peers={})
+    assert describe_routes(kernel, None) == "kernel"

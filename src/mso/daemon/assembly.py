@@ -137,7 +137,12 @@ async def serve(s: NodeSettings, core: NodeCore) -> None:
     if parent := os.environ.get(PARENT_ENV):  # started by an emulator: end with it
         watch = asyncio.create_task(stop_with_parent(driver, int(parent)))
     started = time.monotonic()
-    log.info("start", extra={KV: start_fields(s, driver, view)})
+    fields = start_fields(s, driver, view)
+    log.info("start", extra={KV: fields})
+    if fields["routes"] == "none":
+        log.warning(
+            "no neighbours", extra={KV: {"event": "no_neighbours", "detail": NO_NEIGHBOURS}}
+        )
     why = stop_on_signals(driver)
     try:
         await driver.stopped.wait()
@@ -151,13 +156,23 @@ async def serve(s: NodeSettings, core: NodeCore) -> None:
             await kernel.close()
 
 
+NO_NEIGHBOURS = (
+    "neither --peer nor --routes kernel given: this node finds no neighbour by itself "
+    "(only an emulator tells it its links); give --peer ID=HOST:PORT or --routes kernel"
+)
+
+
 def describe_routes(s: NodeSettings, view: RoutingView | None) -> str:
     """Where this node's routes come from, for its start line."""
     if s.routes_from == "kernel":
         return "kernel"
     if view is not None:
         return "static:" + ",".join(sorted(s.peers))
-    return "emulator"
+    from mso.node.driver import PARENT_ENV
+
+    if os.environ.get(PARENT_ENV):
+        return "emulator"
+    return "none"  # by hand, neither --peer nor --routes kernel: told at start (NO_NEIGHBOURS)
 
 
 def start_fields(
