@@ -20,13 +20,16 @@ import os
 import sqlite3
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 from rich.table import Table
 
 from mso.errors import MsoError
 from mso.examples.convoy.storage import DB_ENV, summary
+
+if TYPE_CHECKING:
+    from mso.scenario import Scenario
 
 EXAMPLES = Path(__file__).resolve().parent.parent
 APP_FILE = EXAMPLES / "convoy.yaml"
@@ -105,7 +108,7 @@ def kind_of(line: str) -> str:
     return "relocation"
 
 
-def _story(scenario: Any) -> list[str]:
+def _story(scenario: Scenario) -> list[str]:
     """What the viewer should watch for, from the scenario itself."""
     from mso.scenario.format import LinkChange
 
