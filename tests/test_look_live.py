@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -109,6 +110,35 @@ def test_logs_prints_a_nodes_structured_lines(emulator: Path) -> None:
     assert records and all(r.get("node") == "N4" for r in records if "level" in r), records
     code, _, err = cli("logs", "N9")
     assert code == 2 and "no running emulator has a node 'N9'" in err, err
+
+
+def test_logs_follow_prints_lines_as_the_node_writes_them(emulator: Path) -> None:
+    """``mso logs N2 --follow`` in a second terminal, while an app is deployed and stopped."""
+    (emulator / "chat2.yaml").write_text(CHATTER.replace("name: chat", "name: chat2"))
+    env = dict(os.environ, MSO_OVERLAY=NAME)
+    follower = subprocess.Popen(
+        [sys.executable, "-m", "mso", "logs", "N2", "--follow", "-n", "1"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        assert follower.stdout is not None
+        seen: list[str] = []
+        reader = threading.Thread(target=lambda: seen.extend(follower.stdout or ()), daemon=True)
+        reader.start()
+        deadline = time.monotonic() + patience(20)
+        while not seen and time.monotonic() < deadline:  # its last line: it has the log open
+            time.sleep(0.05)
+        assert seen, "mso logs printed nothing"
+        assert cli("deploy", str(emulator / "chat2.yaml"))[0] == 0
+        assert cli("undeploy", "chat2")[0] == 0
+        deadline = time.monotonic() + patience(20)
+        while time.monotonic() < deadline and not any("app=chat2" in ln for ln in list(seen)):
+            time.sleep(0.1)  # polls what the reader thread collected; bounded by the deadline
+        assert any("event=deploy" in ln and "app=chat2" in ln for ln in seen), seen
+        assert all("node=N2" in ln for ln in seen if "level=" in ln), seen
+    finally:
+        follower.terminate()
+        follower.wait(timeout=patience(10))
 
 
 def test_record_to_a_bag_that_bagsource_replays(emulator: Path, tmp_path: Path) -> None:

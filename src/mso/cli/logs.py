@@ -126,8 +126,11 @@ def logs(node: str, lines: int, follow: bool, overlay: str | None, as_json: bool
     except OSError as exc:
         raise MsoError(f"cannot read {node}'s log {path}: {exc.strerror}") from None
     with f:
-        for line in _tail(f, lines) if lines else ():
-            _show(line, as_json)
+        if lines:
+            for line in _tail(f, lines):
+                _show(line, as_json)
+        else:  # (a follow goes on from what the tail read: nothing written meanwhile is lost)
+            f.seek(0, 2)
         if not follow:
             return
         with contextlib.suppress(KeyboardInterrupt):
@@ -136,7 +139,6 @@ def logs(node: str, lines: int, follow: bool, overlay: str | None, as_json: bool
 
 def _follow(f: IO[str], path: Path, node: str, overlay: str | None, as_json: bool) -> None:
     """Print lines as they come; stop when the emulator is gone."""
-    f.seek(0, 2)
     partial = ""
     checked = time.monotonic()
     while True:
