@@ -118,6 +118,19 @@ if TYPE_CHECKING:
     is_flag=True,
     help="Allow listening beyond loopback with the built-in development key (never on robots).",
 )
+@click.option(
+    "--identity",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="This node's own key (made by `mso keygen --node ID`; its certificate beside it, "
+    ".cert): with --operator-key, neighbours must prove their names too.",
+)
+@click.option(
+    "--revoke-node",
+    "revoked_nodes",
+    multiple=True,
+    metavar="KEY_ID",
+    help="A node key the operator withdrew (its id, as `mso keygen --node` says): refused.",
+)
 @key_option
 @click.option(
     "-v", "--verbose", is_flag=True,
@@ -147,6 +160,8 @@ def node(
     key_file: Path | None,
     encrypt: bool | None,
     insecure: bool,
+    identity: Path | None,
+    revoked_nodes: tuple[str, ...],
     key: str | None,
     verbose: bool,
 ) -> None:
@@ -161,6 +176,7 @@ def node(
         dead_after_s=dead_after_s, metrics=metrics,
         allow_code=allow_code, operator_keys=operator_keys, key_file=key_file, encrypt=encrypt,
         insecure=insecure, key=key, verbose=verbose, rules=rules, state_dir=state_dir,
+        identity=identity, revoked_nodes=revoked_nodes,
     )  # fmt: skip
     run_daemon(flags)
 

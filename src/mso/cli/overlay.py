@@ -264,22 +264,55 @@ def overlays(as_json: bool) -> None:
 @click.command()
 @click.argument("out", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help='Print {"private", "public", "key"}.')
+@click.option(
+    "--node",
+    "node_id",
+    help="Make node NODE's own key instead, and OUT.cert, its certificate signed with --sign "
+    "(for `mso node --identity OUT`).",
+)
+@click.option(
+    "--sign",
+    "sign",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="With --node: the operator key that certifies it.",
+)
 @user_errors
-def keygen(out: Path, as_json: bool) -> None:
-    """Make an operator key: OUT (private, mode 0600) and OUT.pub (give it to every node)."""
+def keygen(out: Path, as_json: bool, node_id: str | None, sign: Path | None) -> None:
+    """Make an operator key: OUT (private, mode 0600) and OUT.pub (give it to every node); or,
+    with --node, a node's own key and its certificate."""
     import os
 
     from mso.protocol.authority import Signer
 
     signer = Signer()
-    pub = out.with_name(out.name + ".pub")
+    if node_id is not None:
+        from mso.protocol.identity import certify
+
+        if sign is None:
+            raise MsoError("--node: give the operator key that certifies it: --sign OP.KEY")
+        from mso.client import load_signer
+
+        operator = load_signer(str(sign))
+        assert operator is not None
+        cert = certify(operator, node_id, signer.public, time.time_ns() // 1_000_000)
+        pub = out.with_name(out.name + ".cert")
+        public = cert.text()
+    else:
+        pub = out.with_name(out.name + ".pub")
+        public = signer.public_text()
     try:
         fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
         with os.fdopen(fd, "w") as f:
             f.write(signer.private_text() + "\n")
-        pub.write_text(signer.public_text() + "\n")
+        pub.write_text(public + "\n")
     except OSError as exc:
         raise MsoError(f"{exc.filename}: {exc.strerror}") from None
+    if node_id is not None:
+        click.echo(f"wrote {out} (keep it on {node_id}) and {pub}: mso node --identity {out}")
+        click.echo(
+            f"node key id {cert.key_id} (to revoke it: mso node --revoke-node {cert.key_id})"
+        )
+        return
     if as_json:
         doc = {"private": str(out), "public": str(pub), "key": signer.public_text()}
         click.echo(json.dumps(doc))

@@ -119,8 +119,9 @@ async def serve(s: NodeSettings, core: NodeCore) -> None:
     view, kernel = await routing_view(s, keys[0])  # announcements are sealed with the first
     device = DeviceProbe(battery=s.energy == "auto", interfaces=s.energy != "model")
     driver = NodeDriver(  # no view: the emulator's
-        core, s.host, s.port, keys, view, device=device, authority=s.authority, encrypt=s.encrypt
-    )
+        core, s.host, s.port, keys, view, device=device, authority=s.authority,
+        encrypt=s.encrypt, identity=s.identity,
+    )  # fmt: skip
     rotate_keys_on_hangup(s, driver)
     try:
         await driver.start()

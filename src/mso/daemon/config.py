@@ -15,6 +15,7 @@ if TYPE_CHECKING:
     from mso.model.network import PowerModel
     from mso.net.base import Neighbour
     from mso.protocol.authority import Authority
+    from mso.protocol.identity import Identity
 
 DEFAULT_LISTEN = "127.0.0.1:7000"
 DEV_KEY_WARNING = (
@@ -45,6 +46,8 @@ NODE_CONFIG_KEYS = {
     "rules",
     "capabilities",
     "state_dir",
+    "identity",
+    "revoked_nodes",
 }
 
 
@@ -78,6 +81,8 @@ class NodeFlags:
     verbose: bool = False
     rules: tuple[str, ...] = ()  # NAME=VALUE, each a RuleSettings field
     state_dir: Path | None = None
+    identity: Path | None = None  # this node's key file (its certificate beside it, .cert)
+    revoked_nodes: tuple[str, ...] = ()  # node key ids the operator withdrew
 
 
 @dataclass
@@ -108,6 +113,7 @@ class NodeSettings:
     verbose: bool = False
     rules: RuleSettings | None = None  # None: the defaults (docs/policies.md)
     state_dir: Path | None = None  # the durable spill store's (None: in memory)
+    identity: Identity | None = None  # this node's own key and certificate
 
 
 def settle(flags: NodeFlags) -> NodeSettings:
@@ -136,6 +142,9 @@ def settle(flags: NodeFlags) -> NodeSettings:
         key = read_keys(key_file)[0]  # checked now; re-read on SIGHUP
     encrypt = bool(cfg.get("encrypt", False)) if flags.encrypt is None else flags.encrypt
     authority = node_authority(flags.operator_keys or tuple(cfg.get("operator_keys", ())))
+    revoked = flags.revoked_nodes or tuple(cfg.get("revoked_nodes", ()))
+    authority.revoked_nodes = frozenset(revoked)
+    identity = node_identity(flags.identity or cfg.get("identity"), node_id, authority)
     listen = flags.listen or cfg.get("listen", DEFAULT_LISTEN)
     dev_key = check_key(key, listen, flags.insecure or bool(cfg.get("insecure", False)))
     battery = flags.battery_wh if flags.battery_wh is not None else cfg.get("battery_wh")
@@ -181,6 +190,7 @@ def settle(flags: NodeFlags) -> NodeSettings:
         verbose=flags.verbose or bool(cfg.get("verbose", False)),
         rules=rule_settings(cfg.get("rules", {}), flags.rules),
         state_dir=flags.state_dir or (Path(cfg["state_dir"]) if "state_dir" in cfg else None),
+        identity=identity,
     )
 
 
@@ -327,11 +337,13 @@ def _config_value_problem(k: str, v: Any) -> str | None:
         return "expected a mapping of rule setting to value (docs/policies.md), e.g. warmup_s: 5"
     if k in ("manage", "encrypt", "insecure", "verbose") and not isinstance(v, bool):
         return f"expected true or false, got {v!r}"
-    if k in ("allow_code", "operator_keys") and not (
+    if k in ("allow_code", "operator_keys", "revoked_nodes") and not (
         isinstance(v, list) and all(isinstance(x, str) and x for x in v)
     ):
         return "expected a list of strings"
-    if k in ("id", "listen", "key", "key_file", "metrics", "state_dir") and not isinstance(v, str):
+    if k in ("id", "listen", "key", "key_file", "metrics", "state_dir", "identity") and not (
+        isinstance(v, str)
+    ):
         return f"expected a string, got {v!r}"
     return None
 
@@ -359,6 +371,25 @@ def node_authority(keys: tuple[str, ...]) -> Authority:
         return Authority.from_env(list(keys))
     except KeyError_ as exc:
         raise MsoError(f"--operator-key: {exc}") from None
+
+
+def node_identity(path: str | Path | None, node_id: str, authority: Authority) -> Identity | None:
+    """This node's identity from its key file (``--identity``): its certificate must name this
+    node and be signed by an operator key it was given."""
+    if path is None:
+        return None
+    from mso.protocol.authority import KeyError_
+    from mso.protocol.identity import Identity
+
+    try:
+        identity = Identity.load(path)
+    except KeyError_ as exc:
+        raise MsoError(f"--identity: {exc}") from None
+    if identity.node != node_id:
+        raise MsoError(f"--identity: {path} certifies {identity.node!r}, not {node_id!r}")
+    if identity.cert.operator not in authority.operators:
+        raise MsoError(f"--identity: {path}.cert is signed by a key not given to --operator-key")
+    return identity
 
 
 def check_key(key: str | None, listen: str, insecure: bool) -> bool:

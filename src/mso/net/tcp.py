@@ -40,6 +40,7 @@ from mso.net.shaping import Link
 from mso.protocol import messages as m
 from mso.protocol.authority import DOCUMENT_MESSAGES, Authority
 from mso.protocol.framing import FrameCodec, FramingError, WrongKey
+from mso.protocol.identity import Identity, check
 from mso.protocol.plausible import implausible
 
 log = logging.getLogger("mso.node")
@@ -71,6 +72,8 @@ class Connection(asyncio.Protocol):
         self.address = ""  # the remote host of an accepted connection
         self.opened = self.last_rx = net.loop.time()
         self.outbound = peer is not None
+        self.said_hello = False
+        self.verified = False  # the peer proved its node identity (when they are required)
 
     @property
     def introduced(self) -> bool:
@@ -88,8 +91,19 @@ class Connection(asyncio.Protocol):
                 return
         transport.set_write_buffer_limits(high=HIGH_WATER)
         transport.write(self.codec.hello())
-        if self.peer is not None:
-            self.send_message(self.peer, m.PeerHello(self.net.node_id))
+        if self.peer is not None and self.net.identity is None:
+            self.say_hello()  # (with an identity: once the peer's hello is in, to sign it)
+
+    def say_hello(self) -> None:
+        """Tell the peer who this node is, with its identity's proof if it has one."""
+        self.said_hello = True
+        me, identity = self.net.node_id, self.net.identity
+        if identity is None:
+            self.send_message(self.peer or "", m.PeerHello(me))
+            return
+        sig = identity.prove(self.codec.hello(), self.codec.peer_hello)
+        cert = msgspec.msgpack.encode(identity.cert)
+        self.send_message(self.peer or "", m.PeerHello(me, cert, sig))
 
     def abort(self) -> None:
         """Close at once, dropping what is unsent (a connection that is refused or evicted)."""
@@ -140,6 +154,8 @@ class Connection(asyncio.Protocol):
         counters.frames_rejected += self.codec.rejected - rejected
         if flush and self.transport is not None:
             self.transport.write(flush)
+        if self.outbound and not self.said_hello and self.codec.ready:
+            self.say_hello()
         if not self.net.hold(self, self.codec.buffered):
             assert self.transport is not None
             self.transport.abort()
@@ -187,8 +203,10 @@ class TcpTransport:
         limits: Limits = DEFAULT_LIMITS,
         authority: Authority | None = None,
         encrypt: bool = False,
+        identity: Identity | None = None,
     ) -> None:
         self._node_id = node_id
+        self.identity = identity  # this node's own key and certificate, if it has one
         self.encrypt = encrypt  # ChaCha20-Poly1305 frames (every member must agree)
         self.limits = limits
         self.authority = authority or Authority()
@@ -473,8 +491,16 @@ class TcpTransport:
             )
 
     # -- inbound ----------------------------------------------------------------------------
+    @property
+    def requires_identity(self) -> bool:
+        """Neighbours must prove their names: this node has an identity and operator keys."""
+        return self.identity is not None and self.authority.signed
+
     def on_envelope(self, conn: Connection, env: m.Envelope, size: int) -> None:
-        if env.dst != self._node_id and conn.client is None and conn.peer is not None:
+        unproved = self.requires_identity and conn.client is None and not conn.verified
+        relayed = env.dst != self._node_id and conn.client is None and conn.peer is not None
+        if relayed and not unproved:
+            assert conn.peer is not None
             self._forward(conn.peer, env, size)
             return
         try:
@@ -482,12 +508,11 @@ class TcpTransport:
         except (msgspec.DecodeError, msgspec.ValidationError):
             self.counters.frames_malformed += 1
             return
+        if unproved and not isinstance(msg, m.PeerHello | m.ClientHello):
+            self.counters.frames_malformed += 1  # a neighbour must prove its name first
+            return
         if isinstance(msg, m.PeerHello):
-            if not self._introduced(conn, msg.node):
-                return
-            conn.peer = msg.node
-            self.peers[msg.node] = conn
-            self._attach_link(msg.node)
+            self._peer_hello(conn, msg)
             return
         if isinstance(msg, m.ClientHello):
             if not self._introduced(conn, None):
@@ -523,6 +548,37 @@ class TcpTransport:
                 log.info("from %s: %s %s: %s", env.src, type(msg).__name__, msg.app, why)
                 return
         self._receiver(env.src, msg)
+
+    def _peer_hello(self, conn: Connection, msg: m.PeerHello) -> None:
+        """A neighbour says who it is (with its proof, when identities are required): take
+        the link, and answer with this node's own proof on a connection it accepted."""
+        if self.requires_identity:
+            why = check(
+                msg.node,
+                msg.cert,
+                msg.sig,
+                conn.codec.peer_hello,
+                conn.codec.hello(),
+                self.authority.operators,
+                self.authority.revoked_nodes,
+            )
+            if why is None and conn.outbound and msg.node != conn.peer:
+                why = f"it says it is {msg.node}, and {conn.peer} was called"
+            if why is not None:
+                self.connection_counters.identity_refused += 1
+                log.warning("refusing %s from %s: %s", msg.node, conn.address or "?", why)
+                conn.abort()
+                return
+            conn.verified = True
+            if conn.outbound:
+                return  # (the called node proved it is the one this node called)
+        if not self._introduced(conn, msg.node):
+            return
+        conn.peer = msg.node
+        self.peers[msg.node] = conn
+        if self.requires_identity and not conn.said_hello:
+            conn.say_hello()  # before anything the link sends: the peer drops frames till then
+        self._attach_link(msg.node)
 
     def on_connection_lost(self, conn: Connection) -> None:
         self.accepted.discard(conn)

@@ -30,6 +30,7 @@ from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority
 from mso.protocol.events import Happened, MonitorTick
+from mso.protocol.identity import Identity
 from mso.runtime.executor import Executor
 
 log = logging.getLogger("mso.node")
@@ -50,6 +51,7 @@ class NodeDriver:
         authority: Authority | None = None,
         encrypt: bool = False,
         device: DeviceProbe | None = None,
+        identity: Identity | None = None,
     ) -> None:
         self.core = core
         # what the OS measures (battery, CPU time, interface bytes), read every second and on
@@ -65,7 +67,7 @@ class NodeDriver:
         self.authority = authority or Authority()
         core.authority = self.authority  # the core checks undeploys and revoked grants with it
         self.transport = TcpTransport(
-            core.id, host, port, psk, self.view, limits, self.authority, encrypt
+            core.id, host, port, psk, self.view, limits, self.authority, encrypt, identity
         )
         self.transport.set_receiver(self._receive)
         self.transport.set_client_handler(self._request)

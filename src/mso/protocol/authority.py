@@ -187,6 +187,8 @@ class Authority:
     refused: int = 0  # commands and documents refused for want of authority
     # app -> the operator's newest undeploy of it: grants made before it are revoked
     revoked: dict[str, m.StopApp] = field(default_factory=dict)
+    # node keys (their ids, mso.protocol.identity) the operator withdrew
+    revoked_nodes: frozenset[str] = frozenset()
 
     @classmethod
     def configure(cls, operators: list[str], emulator: str | None = None) -> Authority:

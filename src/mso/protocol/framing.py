@@ -168,6 +168,11 @@ class FrameCodec:
         return self._peer_nonce
 
     @property
+    def peer_hello(self) -> bytes:
+        """The peer's whole hello (b"" until it arrived): what a node identity's proof signs."""
+        return self._peer_hello
+
+    @property
     def greeted(self) -> bool:
         """The peer's hello has arrived (the key check is under way or done)."""
         return self._peer_nonce is not None

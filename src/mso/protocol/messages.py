@@ -47,9 +47,12 @@ class _Msg(msgspec.Struct, tag_field="t", array_like=True):
 
 # -- link level (neighbour to neighbour) -----------------------------------------------------
 class PeerHello(_Msg, tag="hello"):
-    """First message on a node-to-node connection: who is speaking."""
+    """First message on a node-to-node connection: who is speaking; with node identities,
+    its certificate and its signature over both hellos (:mod:`mso.protocol.identity`)."""
 
     node: str
+    cert: bytes = b""
+    sig: bytes = b""
 
 
 class ClientHello(_Msg, tag="client"):
