@@ -26,7 +26,11 @@ status and never reading), ``early-messages`` (messages of never-announced apps,
 ``deep-bodies`` (bodies nested 100,000 deep), ``big-documents`` (4 MiB deploy documents of
 tiny scalars).
 
-Usage: .venv/bin/python bench/abuse.py [--attack 5] [--only slots,guesser] [--json FILE]
+``--mix S``: instead, one overlay under every attack in turn, ``--attack`` seconds each, for
+``S`` seconds (the issue's soak under a mix of them: ``--mix 600``).
+
+Usage: .venv/bin/python bench/abuse.py [--attack 5] [--only slots,guesser] [--mix 600]
+                                      [--json FILE]
 """
 
 from __future__ import annotations
@@ -270,6 +274,23 @@ ATTACKS: dict[str, Attack] = {
 }
 
 
+async def mix(t: Target, stop: asyncio.Event, each_s: float) -> dict[str, Any]:
+    """Every attack in turn, ``each_s`` seconds each, over and over until ``stop``."""
+    rounds: dict[str, int] = {}
+    while not stop.is_set():
+        for name, attack in ATTACKS.items():
+            if stop.is_set():
+                break
+            turn = asyncio.Event()
+            task = asyncio.ensure_future(attack(t, turn))
+            await until(stop, each_s)
+            turn.set()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(task, 30.0)
+            rounds[name] = rounds.get(name, 0) + 1
+    return rounds
+
+
 # -- one run ---------------------------------------------------------------------------------
 def _vertex(nodes: dict[str, Any], vertex: str) -> dict[str, Any]:
     for st in nodes.values():
@@ -310,9 +331,13 @@ async def one(name: str, args: argparse.Namespace) -> dict[str, Any]:
         row["rss_before_mb"] = {n: rss_kb(p) // 1024 for n, p in pids.items()}
         peak = dict(row["rss_before_mb"])
         stop, tally = asyncio.Event(), {"asked": 0, "answered": 0}
-        attack = asyncio.ensure_future(ATTACKS[name](target, stop))
+        if name == "mix":
+            attack = asyncio.ensure_future(mix(target, stop, args.attack))
+            t_end = loop.time() + args.mix
+        else:
+            attack = asyncio.ensure_future(ATTACKS[name](target, stop))
+            t_end = loop.time() + args.attack
         operator = asyncio.ensure_future(legit(target, stop, tally))
-        t_end = loop.time() + args.attack
         while loop.time() < t_end and not attack.done():
             for n, p in pids.items():
                 peak[n] = max(peak[n], rss_kb(p) // 1024)
@@ -373,7 +398,12 @@ async def one(name: str, args: argparse.Namespace) -> dict[str, Any]:
 
 def table(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
     lines = [
-        f"Attack {args.attack:g} s against N2 (the relay of a 100 events/s stream N1 -> N2 -> "
+        (
+            f"Every attack in turn, {args.attack:g} s each, for {args.mix:g} s"
+            if args.mix
+            else f"Attack {args.attack:g} s"
+        )
+        + " against N2 (the relay of a 100 events/s stream N1 -> N2 -> "
         "N3); RSS in MB (N1/N2/N3); legit = status requests to N2 answered during the attack; "
         "recovery from the attack's end to a status answered and a newer event at the sink; "
         "lost/dup/reord over the whole run (the last second's events in flight not counted).",
@@ -407,7 +437,7 @@ async def main_async(args: argparse.Namespace) -> list[dict[str, Any]]:
     for name in args.only:
         t = time.monotonic()
         try:
-            row = await asyncio.wait_for(one(name, args), args.attack + 120)
+            row = await asyncio.wait_for(one(name, args), max(args.attack, args.mix) + 120)
         except Exception as exc:  # one attack's failure is reported, the others still run
             row = {"attack": name, "error": f"{type(exc).__name__}: {exc}"}
         row["seconds"] = round(time.monotonic() - t, 1)
@@ -422,12 +452,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steady", type=float, default=2.0)
     ap.add_argument("--after", type=float, default=3.0)
     ap.add_argument("--only", default=",".join(ATTACKS))
+    ap.add_argument(
+        "--mix",
+        type=float,
+        default=0.0,
+        help="instead: one overlay under every attack in turn (--attack s each) for this long",
+    )
     ap.add_argument("--json", type=Path, default=RESULTS / "abuse.json")
     args = ap.parse_args(argv)
     args.only = [a for a in args.only.split(",") if a]
     unknown = [a for a in args.only if a not in ATTACKS]
-    if unknown or not 0.5 <= args.attack <= 600:
-        ap.error(f"--only: one of {', '.join(ATTACKS)}; --attack: 0.5..600 s")
+    if unknown or not 0.5 <= args.attack <= 600 or not 0 <= args.mix <= 3600:
+        ap.error(f"--only: one of {', '.join(ATTACKS)}; --attack: 0.5..600 s; --mix: 0..3600 s")
+    if args.mix:
+        args.only = ["mix"]
     t0 = time.monotonic()
     rows = asyncio.run(main_async(args))
     result = {"benchmark": "abuse", "attacks": rows, "seconds": time.monotonic() - t0}
