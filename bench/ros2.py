@@ -543,6 +543,10 @@ async def _through(emu: Emulator, endpoint: str, peer: Any, duration: float) -> 
             "delivered": listeners[k].count(),
             "latency_ms": lat(listeners[k].lat),
             "subscriber_cpu_ms_per_msg": round(vin["cpu_s"] * 1e3 / max(1, vin["emitted"]), 3),
+            # its decoding, on Zenoh's threads (not in the vertex's CPU)
+            "subscriber_decode_ms_per_msg": round(
+                vin["stats"].get("decode_ms", 0.0) / max(1, vin["emitted"]), 3
+            ),
             "publisher_cpu_ms_per_msg": round(vout["cpu_s"] * 1e3 / max(1, vout["processed"]), 3),
             "subscriber_stats": vin["stats"],
         }
