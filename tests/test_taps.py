@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import msgspec
 
+from mso.api import TapCounts
 from mso.model.appfile import loads_app
 from mso.protocol import messages as m
 from mso.protocol.taps import FLUSH_S, MAX_SERVED, find_edge
@@ -120,4 +121,9 @@ def test_a_tap_follows_its_consumer_when_it_moves() -> None:
     assert {r.node for r in got} == {mid_at, target}, {r.node for r in got}
     after = [s for r in got if r.node == target for s in r.seqs]
     assert after and min(after) > max(s for r in got if r.node == mid_at for s in r.seqs)
+    counts = TapCounts()  # what a client shows: counts since the tap opened, across the move
+    seen = [counts.carry(r).seen for r in got]
+    assert seen == sorted(seen), seen
+    before = max(r.seen for r in got if r.node == mid_at)
+    assert seen[-1] > before + 100, (before, seen[-1])  # the new host's on top of the old's
     assert FLUSH_S < 1.0

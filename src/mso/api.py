@@ -115,6 +115,31 @@ def resolve_address(via: str | None, overlay: str | None = None) -> str:
     return addr
 
 
+class TapCounts:
+    """A tap's counts carried on across its consumer's moves: each host counts from when it
+    serves the tap, and a relay that followed the consumer passes on the old host's last word
+    (``host`` set)."""
+
+    def __init__(self) -> None:
+        self.node = ""
+        self.base = (0, 0)  # (seen, dropped) before the host serving now
+        self.last = (0, 0)  # the host serving now's
+
+    def carry(self, msg: m.TapEvents) -> m.TapEvents:
+        """``msg`` with ``seen`` and ``dropped`` counted since the tap opened."""
+        import msgspec
+
+        if msg.host:  # the old host's final counts; the new one starts from 0
+            self.base = (self.base[0] + msg.seen, self.base[1] + msg.dropped)
+            self.node, self.last = msg.node, (0, 0)
+            return msgspec.structs.replace(msg, seen=self.base[0], dropped=self.base[1])
+        if self.node and msg.node != self.node:  # served elsewhere now: counted anew there
+            self.base = (self.base[0] + self.last[0], self.base[1] + self.last[1])
+        self.node, self.last = msg.node, (msg.seen, msg.dropped)
+        seen, dropped = self.base[0] + msg.seen, self.base[1] + msg.dropped
+        return msgspec.structs.replace(msg, seen=seen, dropped=dropped)
+
+
 def decode_event(payload: bytes, fields: Sequence[str] = ()) -> Any:
     """An event as a tap copies it (msgpack, as on the edge), decoded without importing its
     format: a mapping, a list, a value; a positional format's ``fields`` name its items."""
@@ -331,7 +356,8 @@ class AsyncOverlay:
         tap opened and brings copies of at most ``rate`` a second (0: counts and delays only;
         :func:`decode_event` reads them). Its own connection, asked again every third of
         ``lease_s``; the tap ends on the nodes within ``lease_s`` of the caller's stopping.
-        Raises :class:`TapEnded` when the node ends it."""
+        Raises :class:`TapEnded` when the node ends it. The counts go on across the
+        consumer's moves (:class:`TapCounts`)."""
         import asyncio
 
         client = await connect(self.address, key=key_for(self.key, self.address), name="tap")
@@ -341,6 +367,7 @@ class AsyncOverlay:
             await client.send(ask)
             renew = heard = loop.time()
             renew += lease_s / 3
+            counts = TapCounts()
             while True:
                 msg = await client.poll(max(0.01, renew - loop.time()))
                 now = loop.time()
@@ -348,7 +375,7 @@ class AsyncOverlay:
                     heard = now
                     if msg.ended:
                         raise TapEnded(f"tap of {app} {edge} (at {msg.node})", msg.ended)
-                    yield msg
+                    yield counts.carry(msg)
                 elif now - heard > lease_s + COMMAND_S:
                     raise MsoError(f"tap of {app} {edge}: no word from {self.address}")
                 if now >= renew:
