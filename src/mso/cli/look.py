@@ -177,8 +177,16 @@ def hz(
         seen: deque[tuple[float, int]] = deque()  # (node clock, events seen)
         delays: deque[tuple[float, float]] = deque()
         due = time.monotonic() + every
+        node = ""
         ov = _overlay(via, overlay, key)
         async for msg in ov.tap(app, edge, rate=0.0):
+            if msg.host:  # the old host's last word (its clock), as the relay follows a move
+                node = ""
+                continue
+            if msg.node != node:  # the consumer moved: another node's clock, a fresh window
+                node = msg.node
+                seen.clear()
+                delays.clear()
             seen.append((msg.at, msg.seen))
             delays.extend((msg.at, d) for d in msg.delays_ms)
             while seen and seen[0][0] < msg.at - window:
