@@ -99,8 +99,11 @@ def test_the_demo_leader_drains_and_the_rules_move_work_off_it(tmp_path: Path) -
         until_leader_dies=False, step_s=1.0,
     )  # fmt: skip
     assert r["complete"]
-    assert r["relocations"], "no relocation in 15 s"
-    t, what = r["relocations"][0]
-    assert t < 15.0 and f"{study.LEADER} draining" in what
-    vertex = what.split(" ")[1].split("/")[1]  # "relocate convoy/odom_filter -> N2 (...)"
+    # the leader's (N3, nearly empty, sheds its own too)
+    off = [(t, w) for t, w in r["relocations"] if f"{study.LEADER} draining" in w]
+    assert off, f"no relocation off the leader in 15 s: {r['relocations']}"
+    t, what = off[0]
+    assert t < 15.0
+    vertex = what.split(" ")[1].split("/")[1]  # "relocate convoy/scan_filter -> N2 (...)"
+    assert vertex == "scan_filter"  # its laser pipeline, whose CPU shows in its drain
     assert r["placement_deployed"][vertex] == study.LEADER != r["placement_final"][vertex]
