@@ -58,6 +58,7 @@ from mso.protocol.state import AppState, Restoring
 # once producers have switched, the move is committed: the old instance hands over after it has
 # processed everything before the markers, which a slow vertex may take a while to do
 SWITCH_DEADLINE_S = 60.0
+MAX_FAILED_RESTORES = 64  # remembered to unprepare what a held prepare made after all
 STEP_ATTEMPTS = 5
 
 
@@ -160,6 +161,9 @@ class Relocator:
         # came before all of them (rid -> edge -> [(first, events)]; rid -> (from, handover))
         self._parts: dict[int, dict[int, list[tuple[int, list[bytes]]]]] = {}
         self._early: dict[int, tuple[str, m.Handover]] = {}
+        # restores that failed here (rid -> (app, vertex)), the last few: a prepare held while
+        # the target was down may still reach it, and its answer gets an Unprepare
+        self._failed_restores: dict[int, tuple[str, str]] = {}
 
     def _reloc(self, pid: int) -> Relocation | None:
         proc = self.ctx.procedure(pid)
@@ -267,8 +271,8 @@ class Relocator:
         dep = self.ctx.apps.get(msg.app)
         if reloc is None or dep is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
             self.ctx.refusal("prepared_unexpected")
-            if reloc is None and not msg.error and self.ctx.id != msg.node:
-                # a move that ended here (its target was held failed) prepared anyway: a
+            if not msg.error and self._failed_restores.get(msg.rid) == (msg.app, msg.vertex):
+                # a restore that failed here (its target was held failed) prepared anyway: a
                 # prepare held while the node was down reaches it when it is back. Nothing
                 # will resume that instance; drop it rather than leave a twin.
                 self.ctx.send(msg.node, m.Unprepare(msg.app, msg.vertex, msg.rid))
@@ -316,6 +320,10 @@ class Relocator:
         producer had switched yet, the target drops the instance it prepared."""
         if reloc.state is S.PREPARING and reloc.target not in self.ctx.failed:
             self.ctx.send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
+        if reloc.restore:
+            self._failed_restores[reloc.pid] = (reloc.app, reloc.vertex)
+            while len(self._failed_restores) > MAX_FAILED_RESTORES:
+                del self._failed_restores[next(iter(self._failed_restores))]
         reloc.fail(self.ctx, why)
         self.ctx.end(reloc.pid)
         self._ended(reloc, why)
