@@ -171,3 +171,43 @@ def test_mso_nodes_link_with_their_identities_and_refuse_a_revoked_one(tmp_path:
             p.terminate()
         for p in nodes:
             p.wait(20)
+
+
+def test_a_node_sends_nothing_but_its_hello_to_an_impostor_it_called() -> None:
+    """N1 calls N2, but a member with the overlay key and no certificate of N2's answers at
+    N2's address: it gets N1's proof and nothing N1 meant for N2, and is refused."""
+
+    async def run() -> tuple[list[str], int]:
+        got: list[str] = []
+        done = asyncio.Event()
+
+        async def impostor(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+            codec = FrameCodec(KEY, responder=True)
+            w.write(codec.hello())
+            said = False
+            while data := await r.read(1 << 16):
+                payloads, flush = codec.feed(data)
+                w.write(flush)
+                got.extend(type(m.decode(m.unwrap(p).body)).__name__ for p in payloads)
+                if codec.ready and not said:  # its own hello, with no proof
+                    w.write(codec.seal(m.wrap("N2", "N1", m.PeerHello("N2"))))
+                    said = True
+            done.set()
+
+        server = await asyncio.start_server(impostor, HOST, 0)
+        port = server.sockets[0].getsockname()[1]
+        view = EmulatorRoutes("N1")
+        auth = Authority.configure([OPERATOR.public_text()])
+        net = TcpTransport("N1", HOST, 0, KEY, view, Limits(), auth, identity=identity("N1"))
+        await net.start()
+        try:
+            view.apply(m.LinkState(1, {"N2": [HOST, port, None, 0.0, 0.0]}, {"N2": ["N2", 1]}))
+            net.send("N2", m.wrap("N1", "N2", m.NodeUp("N1", 1)), m.CONTROL)
+            await asyncio.wait_for(done.wait(), 10.0)  # until N1 closed on it
+            return got, net.connection_counters.identity_refused
+        finally:
+            await net.close()
+            server.close()
+
+    got, refused = asyncio.run(run())
+    assert set(got) == {"PeerHello"} and refused >= 1  # (N1 calls again: the same each time)

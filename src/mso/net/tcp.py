@@ -570,8 +570,9 @@ class TcpTransport:
                 conn.abort()
                 return
             conn.verified = True
-            if conn.outbound:
-                return  # (the called node proved it is the one this node called)
+            if conn.outbound:  # the called node proved it is the one this node called
+                self._attach_link(msg.node)
+                return
         if not self._introduced(conn, msg.node):
             return
         conn.peer = msg.node
@@ -636,10 +637,11 @@ class TcpTransport:
         log.warning("could not reach neighbour %s at %s:%s", node, host, port)
 
     def _attach_link(self, node: str) -> None:
-        """Give a connected neighbour a link of the current shape and send what it held."""
+        """Give a connected neighbour a link of the current shape and send what it held; with
+        identities required, only once it has proved its name (its frames wait till then)."""
         conn = self.peers.get(node)
         spec = self.view.neighbours().get(node)
-        if conn is None or spec is None:
+        if conn is None or spec is None or (self.requires_identity and not conn.verified):
             return
         self._unconnected.pop(node, None)
         held = self.held.pop(node, None)
