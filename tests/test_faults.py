@@ -127,6 +127,8 @@ FIXED: dict[int, str] = {
     4566: "a handover held across a partition made a twin of a vertex recovered meanwhile; "
     "the stale host never heard of the later move",
     1086: "a restore waiting for an end lost since took its own replacement as done elsewhere",
+    2379: "a coordinator with an old view restored a vertex restored since on a live node: the "
+    "second instance numbered from scratch and its consumer dropped its events as repeats",
     1665: "a partition healed while some of the larger side still asked about the cut-off "
     "node: those that had not declared it reset for it, and the app was gone everywhere",
     283: "a restore rewound its producer's ack, and a later restore took that ack with the "

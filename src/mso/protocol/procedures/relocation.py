@@ -442,6 +442,8 @@ class Relocator:
             self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, error, no_app=True))
             return
         placement.merge(dep, src, msg.placed, msg.versions, msg.vanished, self.ctx.now)
+        if vid in dep.app.vertices and msg.restore and self._restored_since(dep, vid, src, msg):
+            return
         if vid not in dep.app.vertices:
             error = f"{self.ctx.id}: unknown vertex {vid!r}"
         elif vid not in dep.instances and vid not in dep.awaiting:
@@ -471,6 +473,27 @@ class Relocator:
         self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, error))
         if not error and msg.restore:  # the replacement may have no end to wait for
             self.ctx.publish(ReplacementPrepared(msg.app, vid))
+
+    def _restored_since(self, dep: AppState, vid: str, src: str, msg: m.Prepare) -> bool:
+        """A restore asked on a view older than ours: we know ``vid`` runs on a live node at
+        a later move than the coordinator does (restored there since, by a coordinator it
+        did not hear of). A second instance here would start without the positions the
+        running one has and make its consumers drop what it sends as repeats: refused, and
+        the coordinator told where it runs (its recovery is tried again on that view)."""
+        where, version = dep.placed.get(vid), dep.versions.get(vid, 0)
+        if (
+            where is None
+            or where == self.ctx.id
+            or where in self.ctx.failed
+            or vid in dep.vanished
+            or version <= msg.versions.get(vid, 0)
+        ):
+            return False
+        self.ctx.refusal("restore_of_a_vertex_restored_since")
+        self.ctx.send(src, m.Moved(dep.app.name, vid, where, -1, version))
+        why = f"{vid!r} runs on {where} since (move {version}); not restored on {self.ctx.id}"
+        self.ctx.send(src, m.Prepared(dep.app.name, vid, msg.rid, self.ctx.id, why))
+        return True
 
     def on_instance_ready(self, ev: InstanceReady) -> None:
         """A move's new instance started: the coordinator hears it is prepared."""
