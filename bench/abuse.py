@@ -274,9 +274,13 @@ ATTACKS: dict[str, Attack] = {
 }
 
 
-async def mix(t: Target, stop: asyncio.Event, each_s: float) -> dict[str, Any]:
-    """Every attack in turn, ``each_s`` seconds each, over and over until ``stop``."""
+async def mix(
+    t: Target, stop: asyncio.Event, each_s: float, rss: Callable[[], int]
+) -> dict[str, Any]:
+    """Every attack in turn, ``each_s`` seconds each, over and over until ``stop``; the
+    attacked node's RSS (MB) after each turn is kept (``rss_after_turn``)."""
     rounds: dict[str, int] = {}
+    after: list[tuple[str, int]] = []
     while not stop.is_set():
         for name, attack in ATTACKS.items():
             if stop.is_set():
@@ -288,7 +292,8 @@ async def mix(t: Target, stop: asyncio.Event, each_s: float) -> dict[str, Any]:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(task, 30.0)
             rounds[name] = rounds.get(name, 0) + 1
-    return rounds
+            after.append((name, rss()))
+    return {**rounds, "rss_after_turn": after}
 
 
 # -- one run ---------------------------------------------------------------------------------
@@ -332,7 +337,10 @@ async def one(name: str, args: argparse.Namespace) -> dict[str, Any]:
         peak = dict(row["rss_before_mb"])
         stop, tally = asyncio.Event(), {"asked": 0, "answered": 0}
         if name == "mix":
-            attack = asyncio.ensure_future(mix(target, stop, args.attack))
+            pid = pids["N2"]
+            attack = asyncio.ensure_future(
+                mix(target, stop, args.attack, lambda: rss_kb(pid) // 1024)
+            )
             t_end = loop.time() + args.mix
         else:
             attack = asyncio.ensure_future(ATTACKS[name](target, stop))
@@ -422,7 +430,7 @@ def table(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
 
         legit = r["legit"]
         share = 100 * legit["answered"] / max(1, legit["asked"])
-        attacker = ", ".join(f"{k} {v}" for k, v in r["attacker"].items())
+        attacker = ", ".join(f"{k} {v}" for k, v in r["attacker"].items() if k != "rss_after_turn")
         lines.append(
             f"| {r['attack']} | {mb(r['rss_before_mb'])} | {mb(r['rss_peak_mb'])} "
             f"| {mb(r['rss_after_mb'])} | {r['lost']} | {r['duplicated']} | {r['reordered']} "
