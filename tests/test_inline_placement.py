@@ -34,16 +34,19 @@ HEAVY_S = 0.2  # CPU per heavy call: enough to keep an instance off the loop for
 class Phased:
     """Passes each event on; the events named in ``slow`` cost ``cost_s`` of busy CPU each."""
 
-    def __init__(self, slow: set[int], cost_s: float = SLOW_S) -> None:
+    def __init__(self, slow: set[int], cost_s: float = SLOW_S, sleeps: bool = False) -> None:
         self.slow = slow
         self.cost_s = cost_s
+        self.sleeps = sleeps  # the slow events block (off the CPU) instead of computing
         self.on_loop: list[int] = []  # the events it saw on the loop's thread
         self.loop_thread = threading.get_ident()
 
     def __call__(self, ev: int) -> int:
         if threading.get_ident() == self.loop_thread:
             self.on_loop.append(ev)
-        if ev in self.slow:
+        if ev in self.slow and self.sleeps:
+            time.sleep(self.cost_s)
+        elif ev in self.slow:
             end = time.thread_time() + self.cost_s
             while time.thread_time() < end:
                 pass
@@ -107,11 +110,11 @@ async def _until_on_loop(h: Harness, limit: int) -> int:
     return limit
 
 
-async def _turns_slow(cost_s: float) -> dict[str, Any]:
+async def _turns_slow(cost_s: float, sleeps: bool = False) -> dict[str, Any]:
     """Cheap until it is on the loop, then five calls of ``cost_s`` fed at once (the first runs
     on the loop and moves it), then cheap calls one by one until it is back on the loop (at
     most 8 x ``CHEAP_JOBS``)."""
-    fn = Phased(slow=set(), cost_s=cost_s)
+    fn = Phased(slow=set(), cost_s=cost_s, sleeps=sleeps)
     h = Harness(fn)
     to_loop = await _until_on_loop(h, 8 * ex_mod.CHEAP_JOBS)
     first = h.ex.placement(1)
@@ -147,6 +150,16 @@ def test_a_cheap_vertex_moves_to_the_loop_a_slow_one_off_it_and_back(
     assert r["moves"] >= 3
     assert set(r["on_loop"]) & set(r["slow"]) == {r["slow"][0]}  # only the first, which moved it
     assert r["out"] == list(range(r["fed"]))  # exactly once, in order
+
+
+def test_a_call_that_blocks_on_the_loop_sends_it_back(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Blocking (I/O, a sleep) costs no CPU but holds the loop: 3 ms of it is over budget."""
+    monkeypatch.setattr(ex_mod, "HEAVY_S", 3600.0)
+    assert ex_mod.BLOCK_S < 0.003
+    r = asyncio.run(_turns_slow(0.003, sleeps=True))
+    assert r["where"][:2] == ("loop", "thread")
+    assert set(r["on_loop"]) & set(r["slow"]) == {r["slow"][0]}  # only the first, which moved it
+    assert r["out"] == list(range(r["fed"]))
 
 
 def test_a_heavy_call_on_the_loop_keeps_the_instance_on_its_thread() -> None:

@@ -14,7 +14,7 @@ microseconds runs *on the loop's thread*: the same :class:`VertexWorker`, called
 instance starts on its thread (a constructor may import or load for seconds); after
 ``CHEAP_JOBS`` jobs in a row that were cheap there it moves to the loop, and the first job on
 the loop that goes over budget (``CALL_BUDGET_S`` of CPU per call, ``JOB_BUDGET_S`` per job, or
-a wall time only blocking explains) sends it back to its thread, each time needing twice as many
+``BLOCK_S`` off the CPU: it blocked) sends it back to its thread, each time needing twice as many
 cheap jobs to return. Order and state are exact: an instance moves to the loop only when its
 thread has finished every job it was given (its results are already queued ahead), and moves
 back with its unrun jobs, in order, onto its thread's queue; the worker is only ever used by one
@@ -53,8 +53,9 @@ MAX_CHEAP_JOBS = 4096  # ... at most, however often it was sent back
 CALL_BUDGET_S = 1e-3  # on the loop, a job using more CPU per call sends the instance back ...
 JOB_BUDGET_S = 5e-3  # ... or more in all (a feed is up to 256 events)
 # a job may wait this long (wall time) beyond JOB_BUDGET_S for the GIL or a CPU and still count
-# as cheap on its thread, or within budget on the loop (longer: it blocked)
+# as cheap on its thread
 GIL_SLACK_S = 5e-3
+BLOCK_S = 1e-3  # on the loop, a job this long off the CPU (blocked) sends the instance back
 FORGIVE_JOBS = 1024  # jobs within budget on the loop that halve what a return costs again
 BATCH_S = 2e-3  # one turn of inline jobs runs about this long, then I/O and timers get theirs
 HEAVY_S = 0.05  # a job on the loop this long keeps its instance on its thread for good (a
@@ -220,15 +221,12 @@ class ThreadExecutor:
                 t0, c0 = perf(), cpu()
                 res = lane.run(job)
                 t1 = perf()
-                # over budget: its CPU time, or a wall time that only blocking explains (a
-                # loaded machine's preemption alone does not send a cheap call back)
+                # over budget: its CPU time, or time off the CPU (it blocked, on I/O or a
+                # sleep: the loop must not wait for that; a preemption counts too, rarely)
                 used = cpu() - c0
                 if res is not None:
                     lane.deliver(res)
-                if (
-                    used > min(JOB_BUDGET_S, CALL_BUDGET_S * calls(job))
-                    or t1 - t0 > JOB_BUDGET_S + GIL_SLACK_S
-                ):
+                if used > min(JOB_BUDGET_S, CALL_BUDGET_S * calls(job)) or t1 - t0 - used > BLOCK_S:
                     lane.need = min(2 * lane.need, MAX_CHEAP_JOBS)
                     lane.stays = lane.stays or t1 - t0 >= HEAVY_S
                     lane.to_thread()
