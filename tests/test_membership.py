@@ -167,3 +167,32 @@ def test_the_checker_catches_a_node_held_failed_while_it_is_heard() -> None:
     assert v.invariant == "held-failed" and v.detail.startswith("N1 holds N6 failed"), v
     sim.lose_route("N1", "N6")  # out of reach: unreachable may be held failed (not heard)
     assert held.check(sim) == []
+
+
+def test_a_rejoin_is_announced_to_the_apps_hosts_and_neighbours_not_to_every_node() -> None:
+    """The end of a 10-node line restarts: its neighbour announces it to its own neighbours
+    and the app's hosts, not to all ten (under mobility every node told every node was half of
+    all membership traffic); the others learn from their rejoin rounds, and all hold it alive."""
+    import itertools
+
+    from mso.model.network import LinkSpec, Network, NodeSpec
+    from mso.sim.runner import Simulation
+
+    ids = [f"N{i}" for i in range(1, 11)]
+    net = Network([NodeSpec(i) for i in ids], [LinkSpec(a, b) for a, b in itertools.pairwise(ids)])
+    sim = Simulation(net)
+    sim.run_until(1.0)
+    sim.kill("N10", convergence_s=0.3)
+    sim.run_until(2.5)
+    assert all("N10" in sim.cores[n].failed for n in ids[:-1])
+    ups: list[tuple[str, str]] = []
+    sim.taps.append(
+        lambda src, dst, msg: ups.append((src, dst)) if isinstance(msg, m.NodeUp) else None
+    )
+    sim.network.add_link(LinkSpec("N9", "N10"))
+    sim.revive("N10")
+    sim.update_routes()
+    sim.run_until(sim.now + 3.0)
+    assert all("N10" not in sim.cores[n].failed for n in ids[:-1])
+    assert ups and len(ups) <= 2 * len(ids), ups  # was one per node per announcing node
+    assert ("N9", "N1") not in ups  # not to the far end of the line

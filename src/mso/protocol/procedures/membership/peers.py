@@ -623,8 +623,12 @@ class Membership(AppSyncing):
         self.ctx.publish(
             Happened("peer_rejoined", subject=node, detail=f"incarnation {incarnation}")
         )
-        if announce:
-            for n in self.ctx.known_nodes():
+        if announce:  # to the nodes that host the apps (one of them restores what it hosted)
+            # and our neighbours, as a claim goes; the others hear it back from its own beats
+            # or at their next REJOIN_EVERY round (told every known node, a mobile network of
+            # 200 spent half its membership messages on NodeUp)
+            hosts = {n for dep in self.ctx.apps.values() for n in dep.placed.values()}
+            for n in sorted(hosts | set(self.liveness.neighbours)):
                 if n not in (self.ctx.id, node) and n not in self.failed:
                     self.ctx.send(n, m.NodeUp(node, incarnation))
         disputed = self._disputed()
