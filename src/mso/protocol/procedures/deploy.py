@@ -485,9 +485,8 @@ class Deployer:
             # for them rather than lose the probe and the coordinator's STEP_TIMEOUT_S; if
             # they do not change by PROBE_HOLD_S, the probe skips the hop (on_held_probes_due)
             if len(self._waiting_probes) < MAX_WAITING_PROBES:
-                if not self._waiting_probes:
-                    self.ctx.emit(SetTimer(HeldProbesDue(), now + PROBE_HOLD_S))
                 self._waiting_probes.append((now + PROBE_HOLD_S, msg))
+                self._arm_held_probes()
             return
         if nxt is None:
             reply = m.ProbeReply(msg.app, msg.chain, msg.segment, [], [])
@@ -502,9 +501,6 @@ class Deployer:
         for deadline, probe in waiting:
             if deadline >= now:
                 self._forward_probe(probe, now)
-        if self._waiting_probes:  # held again: their own deadlines stand
-            first = min(d for d, _ in self._waiting_probes)
-            self.ctx.emit(SetTimer(HeldProbesDue(), first))
 
     def on_held_probes_due(self, now: float) -> None:
         """The routes still go through a failed next hop: a daemon that crashed on a machine
@@ -515,6 +511,10 @@ class Deployer:
         self._waiting_probes = [(d, p) for d, p in self._waiting_probes if d > now]
         for probe in due:
             self.ctx.emit(Send(probe.target, probe))
+        self._arm_held_probes()
+
+    def _arm_held_probes(self) -> None:
+        """The one ``HeldProbesDue`` timer, at the first held probe's deadline."""
         if self._waiting_probes:
             first = min(d for d, _ in self._waiting_probes)
             self.ctx.emit(SetTimer(HeldProbesDue(), first))

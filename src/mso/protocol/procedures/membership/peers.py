@@ -166,6 +166,11 @@ class Membership(AppSyncing):
     def _leader(self) -> str:
         return min({self.ctx.id, *(n for n in self.ctx.routes if n not in self.failed)})
 
+    def _hosts(self) -> set[str]:
+        """The nodes this node's views say host part of an app (one of them coordinates a
+        recovery): told of failures and rejoins at once, the others by beats."""
+        return {n for dep in self.ctx.apps.values() for n in dep.placed.values()}
+
     def _hosting(self) -> int:
         return sum(len(dep.instances) for dep in self.ctx.apps.values())
 
@@ -429,8 +434,7 @@ class Membership(AppSyncing):
         # the recovery) are told at once
         self._gossip.add(claim, rounds(len(self.ctx.routes) + 1))
         if detector == self.ctx.id:
-            hosts = {n for dep in self.ctx.apps.values() for n in dep.placed.values()}
-            for n in sorted(hosts - self.failed - {self.ctx.id}):
+            for n in sorted(self._hosts() - self.failed - {self.ctx.id}):
                 self.ctx.send(n, claim)
         # moves that needed it fail or become restores; the chains it touched are recovered
         self.ctx.publish(PeerFailed(node))
@@ -627,8 +631,7 @@ class Membership(AppSyncing):
             # and our neighbours, as a claim goes; the others hear it back from its own beats
             # or at their next REJOIN_EVERY round (told every known node, a mobile network of
             # 200 spent half its membership messages on NodeUp)
-            hosts = {n for dep in self.ctx.apps.values() for n in dep.placed.values()}
-            for n in sorted(hosts | set(self.liveness.neighbours)):
+            for n in sorted(self._hosts() | set(self.liveness.neighbours)):
                 if n not in (self.ctx.id, node) and n not in self.failed:
                     self.ctx.send(n, m.NodeUp(node, incarnation))
         disputed = self._disputed()
