@@ -135,7 +135,7 @@ def test_a_body_nested_100000_deep_is_refused_and_counted() -> None:
     enc = msgspec.msgpack.Encoder()
 
     def envelope(body: bytes) -> bytes:  # an envelope whose raw body is ``body``
-        head = enc.encode(m.Envelope("client", "N1", 32, 0, msgspec.Raw(b"\xc0")))
+        head = enc.encode(["client", "N1", 32, 0, msgspec.Raw(b"\xc0")])  # a bare envelope
         return head[:-1] + body
 
     in_envelope = envelope(deep)  # skipped as the envelope's raw body

@@ -301,6 +301,14 @@ class AsyncOverlay:
             raise MsoError(f"no running app named {name!r} (running: {', '.join(apps) or 'none'})")
         await self.ask(m.StopApp(name))
 
+    async def revoke_node(self, node_key: str) -> None:
+        """Have every node refuse the node key ``node_key`` (its id from ``mso keygen
+        --node``): the node asked passes the operator's signed word on to every node."""
+        reply = await self.ask(m.RevokeNode(node_key))
+        if isinstance(reply, m.Refused):
+            raise CommandFailed("revocation refused", reply.reason)
+        expect(reply, m.RevokeNode)
+
     async def relocate(
         self,
         app: str,
@@ -416,6 +424,11 @@ class Overlay:
         import asyncio
 
         asyncio.run(self._async.undeploy(app))
+
+    def revoke_node(self, node_key: str) -> None:
+        import asyncio
+
+        asyncio.run(self._async.revoke_node(node_key))
 
     def relocate(
         self, app: str, vertex: str, *, direction: str = "", target: str = ""

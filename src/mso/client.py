@@ -114,6 +114,8 @@ class Exchange:
                 msg = m.DeployRequest(self.signer.grant(msg.document, now_ms), msg.file)
             elif isinstance(msg, m.StopApp) and not msg.sig:  # verified by every node
                 msg = self.signer.undeploy(msg.app, now_ms)
+            elif isinstance(msg, m.RevokeNode) and not msg.sig:  # verified by every node too
+                msg = self.signer.revoke_node(msg.node_key, now_ms)
             nonce = self.codec.peer_nonce
             assert nonce is not None
             msg = self.signer.command(nonce, msg)

@@ -66,7 +66,8 @@ def completion(shell: str) -> None:
 for _command in (
     app.validate, app.profile, app.chains, app.plan_cmd, app.compare,
     overlay.keygen, overlay.deploy, overlay.relocate, overlay.remap, overlay.undeploy,
-    overlay.status, overlay.overlays, look.echo, look.hz, look.record, logs.logs,
+    overlay.revoke_node, overlay.status, overlay.overlays,
+    look.echo, look.hz, look.record, logs.logs,
     node.node, emulate.emulate, control.emulator, simulate.simulate, dashboard.dashboard,
     demo.demo, bench.bench, scenario.scenario, sweep.sweep,
 ):  # fmt: skip

@@ -185,6 +185,30 @@ def undeploy(
     click.echo(json.dumps({"stopped": app_name}) if as_json else f"stopped {app_name}")
 
 
+@click.command("revoke-node")
+@click.argument("node_key")
+@via_option
+@sign_option
+@overlay_option
+@key_option
+@click.option("--json", "as_json", is_flag=True, help='Print {"revoked": KEY_ID}.')
+@user_errors
+def revoke_node(
+    node_key: str,
+    via: str | None,
+    overlay: str | None,
+    sign: str | None,
+    key: str | None,
+    as_json: bool,
+) -> None:
+    """Have every node refuse a node key (its id, as `mso keygen --node` said it): signed
+    with the operator key, passed from node to node, told to nodes that come back."""
+    from mso.api import Overlay
+
+    Overlay(via, overlay=overlay, key=key, sign=sign).revoke_node(node_key)
+    click.echo(json.dumps({"revoked": node_key}) if as_json else f"revoked node key {node_key}")
+
+
 @click.command()
 @via_option
 @overlay_option

@@ -97,6 +97,10 @@ class Counters:
         self.frames_bad_kind = 0
         # a frame to relay past the budget of frames its neighbour may have relayed
         self.frames_dropped_rate = 0
+        # with node identities: a frame relayed in another node's name without that node's
+        # signature, or a message in which its sender speaks for a third node
+        # (mso.protocol.origin)
+        self.frames_origin_refused = 0
 
     def as_dict(self) -> dict[str, int]:
         return dict(vars(self))

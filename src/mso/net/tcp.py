@@ -37,10 +37,12 @@ from mso.net.forwarding import RouteWait
 from mso.net.limits import DEFAULT_LIMITS, ConnectionCounters, Limits
 from mso.net.relaying import RelayBudget
 from mso.net.shaping import Link
+from mso.net.trust import Trust
 from mso.protocol import messages as m
+from mso.protocol import origin
 from mso.protocol.authority import DOCUMENT_MESSAGES, Authority
 from mso.protocol.framing import FrameCodec, FramingError, WrongKey
-from mso.protocol.identity import Identity, check
+from mso.protocol.identity import Identity
 from mso.protocol.plausible import implausible
 
 log = logging.getLogger("mso.node")
@@ -50,6 +52,7 @@ MAX_HELD = 10_000  # frames kept per neighbour while its connection is being set
 CONNECT_ATTEMPTS = 20
 CONNECT_TIMEOUT_S = 5.0  # a SYN nobody answers (no return route) would wait two minutes
 DETOUR_AFTER_S = 0.5
+TELL_REVOCATIONS = 256  # the newest revocations told to a neighbour whose link is proven
 """How long a neighbour may stay unconnected before its frames go through a detour."""
 
 ClientHandler = Callable[[int, m.Message], None]
@@ -74,6 +77,7 @@ class Connection(asyncio.Protocol):
         self.outbound = peer is not None
         self.said_hello = False
         self.verified = False  # the peer proved its node identity (when they are required)
+        self.key_id = ""  # the id of the node key it proved it with
 
     @property
     def introduced(self) -> bool:
@@ -214,6 +218,9 @@ class TcpTransport:
         self.accepted: set[Connection] = set()  # connections others opened to this node
         self.admission = Admission(limits, self.connection_counters)
         self.relay_budget = RelayBudget(limits.relay_control_per_s, limits.relay_beats_per_s)
+        self.trust = Trust(
+            identity, self.authority, view.counters, self.connection_counters, self.relay_budget
+        )
         self.host = host
         self.port = port
         # the overlay keys: the first seals new connections, all are accepted (key rotation)
@@ -369,8 +376,18 @@ class TcpTransport:
 
     # -- outbound ---------------------------------------------------------------------------
     def send(self, dst: str, payload: bytes, kind: Kind) -> None:
+        if self.identity is not None and self._signs(dst, kind):
+            payload = origin.sign(self.identity, payload, time.time_ns() // 1_000_000)
         if not self._send_toward(dst, payload, kind):
             self.waiting.hold(dst, (payload, 0), kind, self.loop.time())
+
+    def _signs(self, dst: str, kind: Kind) -> bool:
+        """This node's control and marker frames carry its origin wherever they go (a frame
+        for a neighbour may still be detoured), its heartbeats only to a non-neighbour (a
+        hello; a neighbour's link proves the rest); data frames never."""
+        if kind == HEARTBEAT:
+            return dst not in self.view.neighbours()
+        return kind in origin.SIGNED_KINDS
 
     def reply(self, client: int, msg: m.Message) -> None:
         """Answer a client connection (gone clients are ignored)."""
@@ -494,7 +511,7 @@ class TcpTransport:
     @property
     def requires_identity(self) -> bool:
         """Neighbours must prove their names: this node has an identity and operator keys."""
-        return self.identity is not None and self.authority.signed
+        return self.trust.required
 
     def on_envelope(self, conn: Connection, env: m.Envelope, size: int) -> None:
         unproved = self.requires_identity and conn.client is None and not conn.verified
@@ -530,6 +547,10 @@ class TcpTransport:
                     conn.send_message("client", m.Refused(verdict))
                     return
                 msg = verdict
+            if isinstance(msg, m.RevokeNode):
+                why = self._revoke(msg, None)
+                conn.send_message("client", m.Refused(why) if why else m.RevokeNode(msg.node_key))
+                return
             self._on_client(conn.client, msg)
             return
         if conn.peer is None:
@@ -542,6 +563,14 @@ class TcpTransport:
             self.counters.frames_implausible += 1
             log.info("from %s: %s: %s", env.src, type(msg).__name__, why)
             return
+        if self.requires_identity:
+            said = self.trust.origin(conn.peer, env, msg, self.loop.time())
+            if said is None:
+                return
+            msg = said
+        if isinstance(msg, m.RevokeNode):
+            self._revoke(msg, conn.peer)
+            return
         if isinstance(msg, DOCUMENT_MESSAGES) and self.authority.operators:
             why = self.authority.document(msg.document, msg.app)
             if why:  # an app no operator granted (or one undeployed since): never loaded here
@@ -549,28 +578,40 @@ class TcpTransport:
                 return
         self._receiver(env.src, msg)
 
+    def _revoke(self, msg: m.RevokeNode, via: str | None) -> str:
+        """An operator's revocation (from a client, or a neighbour ``via``): once verified and
+        new, links proven with that key are closed and it goes on to every other proven
+        neighbour (:mod:`mso.protocol.revocation`). '' or why it was refused."""
+        why = self.trust.revoke(msg, via)
+        if why is None:
+            for node, conn in list(self.peers.items()):
+                if conn.key_id == msg.node_key:
+                    self.connection_counters.identity_refused += 1
+                    conn.abort()
+                elif node != via and conn.verified:
+                    conn.send_message(node, msg)
+        return why or ""
+
+    def _tell_revocations(self, conn: Connection, node: str) -> None:
+        """A newly proven neighbour hears the revocations this node holds: it may have been
+        away when they were announced."""
+        for revoke in self.trust.revocations.latest(TELL_REVOCATIONS):
+            conn.send_message(node, revoke)
+
     def _peer_hello(self, conn: Connection, msg: m.PeerHello) -> None:
         """A neighbour says who it is (with its proof, when identities are required): take
         the link, and answer with this node's own proof on a connection it accepted."""
         if self.requires_identity:
-            why = check(
-                msg.node,
-                msg.cert,
-                msg.sig,
-                conn.codec.peer_hello,
-                conn.codec.hello(),
-                self.authority.operators,
-                self.authority.revoked_nodes,
+            called = conn.peer if conn.outbound else None
+            key_id = self.trust.hello(
+                msg, conn.codec.peer_hello, conn.codec.hello(), called, conn.address
             )
-            if why is None and conn.outbound and msg.node != conn.peer:
-                why = f"it says it is {msg.node}, and {conn.peer} was called"
-            if why is not None:
-                self.connection_counters.identity_refused += 1
-                log.warning("refusing %s from %s: %s", msg.node, conn.address or "?", why)
+            if key_id is None:
                 conn.abort()
                 return
-            conn.verified = True
+            conn.verified, conn.key_id = True, key_id
             if conn.outbound:  # the called node proved it is the one this node called
+                self._tell_revocations(conn, msg.node)
                 self._attach_link(msg.node)
                 return
         if not self._introduced(conn, msg.node):
@@ -579,6 +620,7 @@ class TcpTransport:
         self.peers[msg.node] = conn
         if self.requires_identity and not conn.said_hello:
             conn.say_hello()  # before anything the link sends: the peer drops frames till then
+            self._tell_revocations(conn, msg.node)
         self._attach_link(msg.node)
 
     def on_connection_lost(self, conn: Connection) -> None:

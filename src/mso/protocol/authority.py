@@ -51,10 +51,18 @@ GRANT = "\n# mso-grant: "
 _CMD = b"mso-command-1"
 _DOC = b"mso-document-2"
 _UNDEPLOY = b"mso-undeploy-1"
+_REVOKE_NODE = b"mso-revoke-node-1"
 MAX_REVOKED = 4096  # apps whose undeploy a node remembers (the oldest is forgotten first)
 
 # client commands that change an overlay: an operator's (or the node's emulator's) signature
-OPERATOR_COMMANDS = (m.DeployRequest, m.StopApp, m.RelocateRequest, m.RemapRequest, m.Shutdown)
+OPERATOR_COMMANDS = (
+    m.DeployRequest,
+    m.StopApp,
+    m.RelocateRequest,
+    m.RemapRequest,
+    m.Shutdown,
+    m.RevokeNode,
+)
 # the emulator's own: only it (or an operator) may set a node's links and routes
 EMULATOR_COMMANDS = (m.LinkState, m.Shutdown)
 # peer messages that carry an app document (code to import): its grant is checked
@@ -146,6 +154,17 @@ class Signer:
         ``at_ms``."""
         sig = self.private.sign(_undeploy_bytes(app, at_ms))
         return m.StopApp(app, at=at_ms, key=self.id, sig=sig)
+
+    def revoke_node(self, node_key: str, at_ms: int) -> m.RevokeNode:
+        """A revocation of the node key ``node_key`` that every node verifies."""
+        return m.RevokeNode(
+            node_key, at_ms, self.id, self.private.sign(revoke_bytes(node_key, at_ms))
+        )
+
+
+def revoke_bytes(node_key: str, at_ms: int) -> bytes:
+    """What an operator signs to revoke a node key."""
+    return _REVOKE_NODE + str(at_ms).encode() + b"\n" + node_key.encode()
 
 
 def _grant_bytes(at_ms: int, text: str) -> bytes:

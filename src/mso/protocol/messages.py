@@ -24,7 +24,21 @@ class Envelope(msgspec.Struct, array_like=True):
     """Routing header. ``kind``: CONTROL overtakes queued data; DATA (events, acks) is what an
     emulated lossy link may drop, recovered by retransmission; MARKER travels in order with the
     data it follows and is never dropped by emulated loss; HEARTBEAT overtakes everything, so
-    bulk control never delays liveness (and is refused beyond a small size)."""
+    bulk control never delays liveness (and is refused beyond a small size). ``origin``: with
+    node identities, the originator's signature (:mod:`mso.protocol.origin`); empty (and not
+    on the wire) without them."""
+
+    src: str
+    dst: str
+    ttl: int
+    kind: int
+    body: msgspec.Raw
+    origin: bytes = b""
+
+
+class _Bare(msgspec.Struct, array_like=True):
+    """An envelope without an origin, as it goes on the wire: the five fields alone (msgspec
+    writes a trailing default of an array-like struct too)."""
 
     src: str
     dst: str
@@ -616,6 +630,19 @@ class Shutdown(_Msg, tag="shutdown"):
 
 
 # -- authority (mso.protocol.authority) -------------------------------------------------------
+class RevokeNode(_Msg, tag="revoke_node"):
+    """An operator withdraws a node key (its id: :mod:`mso.protocol.identity`): every node that
+    hears it refuses that key on links and in origins from then on. The operator's signature
+    covers the key id and its time (``at``/``key``/``sig``) and nothing of a connection, so
+    every node it is passed on to verifies it itself (:mod:`mso.protocol.revocation`). Its
+    echo, unsigned, answers the client."""
+
+    node_key: str
+    at: int = 0
+    key: str = ""
+    sig: bytes = b""
+
+
 class Authorized(_Msg, tag="auth"):
     """A client command (``body``, an encoded message) signed with the Ed25519 key ``key``
     (its id) over the node's hello nonce of this connection and ``body``."""
@@ -656,6 +683,7 @@ Message = (
     | PlacementReply
     | LinkState
     | Shutdown
+    | RevokeNode
     | Authorized
     | Refused
     | Marker
@@ -718,7 +746,7 @@ def decode(data: bytes | msgspec.Raw) -> Message:
 
 def wrap(src: str, dst: str, msg: Message, ttl: int = 32) -> bytes:
     body = msgspec.Raw(_ENCODER.encode(msg))
-    return _ENCODER.encode(Envelope(src, dst, ttl, kind_of(msg), body))
+    return _ENCODER.encode(_Bare(src, dst, ttl, kind_of(msg), body))
 
 
 def unwrap(data: bytes) -> Envelope:
@@ -732,4 +760,6 @@ def unwrap(data: bytes) -> Envelope:
 
 def rewrap(env: Envelope) -> bytes:
     """Re-encode an envelope for the next hop (ttl already decremented); the body stays raw."""
-    return _ENCODER.encode(env)
+    if env.origin:
+        return _ENCODER.encode(env)
+    return _ENCODER.encode(_Bare(env.src, env.dst, env.ttl, env.kind, env.body))

@@ -1,0 +1,99 @@
+"""Whom a transport trusts, with node identities: a neighbour's proof of its name, the origin
+of what it hands over, and the node keys an operator revoked.
+
+The transport (:mod:`mso.net.tcp`) asks; this holds the keys and the verdicts and counts what
+it refuses. The checks themselves are sans-IO: :mod:`mso.protocol.identity` (links),
+:mod:`mso.protocol.origin` (end to end) and :mod:`mso.protocol.revocation`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from mso.net.base import Counters
+from mso.net.limits import ConnectionCounters
+from mso.net.relaying import RelayBudget
+from mso.protocol import messages as m
+from mso.protocol.authority import Authority
+from mso.protocol.identity import Identity, check, parse_cert
+from mso.protocol.origin import Verifier
+from mso.protocol.revocation import Revocations
+
+log = logging.getLogger("mso.net")
+
+
+class Trust:
+    """A node's identity, the operator keys and revocations it holds, and its verdicts."""
+
+    def __init__(
+        self,
+        identity: Identity | None,
+        authority: Authority,
+        counters: Counters,
+        connection_counters: ConnectionCounters,
+        relay_budget: RelayBudget,
+    ) -> None:
+        self.identity = identity
+        self.authority = authority
+        self.counters = counters
+        self.connection_counters = connection_counters
+        self.relay_budget = relay_budget
+        self.origins = Verifier()  # other nodes' signatures on what they originate
+        self.revocations = Revocations()  # node keys an operator revoked through the overlay
+
+    @property
+    def required(self) -> bool:
+        """Neighbours must prove their names: this node has an identity and operator keys."""
+        return self.identity is not None and self.authority.signed
+
+    def revoked(self) -> frozenset[str]:
+        """Node keys refused: by this node's configuration, or by an operator's word."""
+        return self.authority.revoked_nodes | self.revocations.keys()
+
+    def hello(
+        self, msg: m.PeerHello, theirs: bytes, mine: bytes, called: str | None, address: str
+    ) -> str | None:
+        """The id of the key a neighbour proved its name with on the connection whose hellos
+        are ``theirs`` and ``mine`` (``called``: the node this one called, if it did), or
+        None when the proof does not hold (counted)."""
+        why = check(
+            msg.node, msg.cert, msg.sig, theirs, mine, self.authority.operators, self.revoked()
+        )
+        if why is None and called is not None and msg.node != called:
+            why = f"it says it is {msg.node}, and {called} was called"
+        if why is not None:
+            self.connection_counters.identity_refused += 1
+            log.warning("refusing %s from %s: %s", msg.node, address or "?", why)
+            return None
+        return parse_cert(msg.cert).key_id
+
+    def origin(self, peer: str, env: m.Envelope, msg: m.Message, now: float) -> m.Message | None:
+        """``msg`` as the word of its proven originator alone, or None when it is not proven
+        (counted): :meth:`mso.protocol.origin.Verifier.admit`. A frame relayed to this node
+        is within ``peer``'s budget of relayed frames, as one relayed on is (a marker within
+        its control budget): a check costs a signature's verification."""
+        budget = m.CONTROL if env.kind == m.MARKER else env.kind
+        if env.src != peer and not self.relay_budget.allow(peer, budget, now):
+            self.counters.frames_dropped_rate += 1
+            return None
+        wall_ms = time.time_ns() // 1_000_000
+        said = self.origins.admit(peer, env, msg, wall_ms, self.authority.operators, self.revoked())
+        if isinstance(said, str):
+            self.counters.frames_origin_refused += 1
+            log.info("from %s via %s: %s: %s", env.src, peer, type(msg).__name__, said)
+            return None
+        return said
+
+    def revoke(self, msg: m.RevokeNode, via: str | None) -> str | None:
+        """None when ``msg`` is a new revocation an operator signed (now held: the caller
+        closes links proven with that key and passes it on); '' when held already; else why
+        it is refused (counted)."""
+        why = self.revocations.take(msg, self.authority.operators)
+        if why:
+            self.authority.refused += 1
+            log.info("from %s: %s", via or "a client", why)
+            return f"refused: {why}"
+        if why is None:
+            log.warning("node key %s revoked by operator %s", msg.node_key, msg.key)
+        return why
