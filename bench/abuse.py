@@ -234,7 +234,7 @@ async def early_messages(t: Target, stop: asyncio.Event) -> dict[str, Any]:
 async def deep_bodies(t: Target, stop: asyncio.Event) -> dict[str, Any]:
     _, w, codec = await t.member("X6")
     enc = msgspec.msgpack.Encoder()
-    head = enc.encode(m.Envelope("client", t.node, 32, 0, msgspec.Raw(b"\xc0")))
+    head = enc.encode(["client", t.node, 32, 0, msgspec.Raw(b"\xc0")])  # a bare envelope
     frame = head[:-1] + b"\x91" * 100_000 + b"\xc0"
     sent = 0
     while not stop.is_set():
@@ -275,14 +275,15 @@ ATTACKS: dict[str, Attack] = {
 
 
 async def mix(
-    t: Target, stop: asyncio.Event, each_s: float, rss: Callable[[], int]
+    t: Target, stop: asyncio.Event, each_s: float, rss: Callable[[], int], only: list[str]
 ) -> dict[str, Any]:
     """Every attack in turn, ``each_s`` seconds each, over and over until ``stop``; the
     attacked node's RSS (MB) after each turn is kept (``rss_after_turn``)."""
     rounds: dict[str, int] = {}
     after: list[tuple[str, int]] = []
     while not stop.is_set():
-        for name, attack in ATTACKS.items():
+        for name in only:
+            attack = ATTACKS[name]
             if stop.is_set():
                 break
             turn = asyncio.Event()
@@ -293,6 +294,7 @@ async def mix(
                 await asyncio.wait_for(task, 30.0)
             rounds[name] = rounds.get(name, 0) + 1
             after.append((name, rss()))
+            print(f"turn {name}: N2 at {after[-1][1]} MB ({time.time():.1f})", flush=True)
     return {**rounds, "rss_after_turn": after}
 
 
@@ -339,7 +341,7 @@ async def one(name: str, args: argparse.Namespace) -> dict[str, Any]:
         if name == "mix":
             pid = pids["N2"]
             attack = asyncio.ensure_future(
-                mix(target, stop, args.attack, lambda: rss_kb(pid) // 1024)
+                mix(target, stop, args.attack, lambda: rss_kb(pid) // 1024, args.turns)
             )
             t_end = loop.time() + args.mix
         else:
@@ -472,8 +474,8 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [a for a in args.only if a not in ATTACKS]
     if unknown or not 0.5 <= args.attack <= 600 or not 0 <= args.mix <= 3600:
         ap.error(f"--only: one of {', '.join(ATTACKS)}; --attack: 0.5..600 s; --mix: 0..3600 s")
-    if args.mix:
-        args.only = ["mix"]
+    if args.mix:  # the attacks --only names, in turn
+        args.turns, args.only = args.only, ["mix"]
     t0 = time.monotonic()
     rows = asyncio.run(main_async(args))
     result = {"benchmark": "abuse", "attacks": rows, "seconds": time.monotonic() - t0}

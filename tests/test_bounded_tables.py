@@ -80,3 +80,32 @@ def test_invented_failures_cannot_grow_the_failure_maps_or_the_heartbeats() -> N
     sim.run_until(sim.now + 2.0)
     for n, c in sim.cores.items():
         assert not (c.failed & set(sim.cores)), (n, c.failed)
+
+
+def test_status_requests_share_one_fan_out_however_many_come() -> None:
+    """20 clients asking for everyone's status 20 times a second while the others were slow
+    kept 1,200 fan-outs in flight, each with this node's whole status (171 MB, never given
+    back). Now one fan-out gathers at a time, the requests meanwhile join it (up to 256;
+    past them a client gets this node's status alone) and each is answered once."""
+    from mso.node.core import NodeCore
+    from mso.protocol.effects import Reply, SetTimer
+    from mso.protocol.procedures.status import MAX_WAITERS, StatusFanout
+
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2)}, 0.0)
+    asks, timers, alone = [], [], []
+    for client in range(1, 1001):
+        effects = core.request(client, m.StatusRequest(everywhere=True), 0.001 * client)
+        timers += [e for e in effects if isinstance(e, SetTimer)]
+        alone += [e.client for e in effects if isinstance(e, Reply)]
+        asks += [e for e in effects if not isinstance(e, Reply | SetTimer)]
+    assert alone == list(range(MAX_WAITERS + 1, 1001))  # answered at once, with N1 alone
+    fanouts = [p for p in core.procedures.values() if isinstance(p, StatusFanout)]
+    assert len(fanouts) == 1 and len(fanouts[0].clients) == MAX_WAITERS
+    assert len(asks) == 2  # N2 and N3 asked once, not a thousand times
+    deadline = next(t for t in timers if t.key.pid == fanouts[0].pid)
+    replies = [e for e in core.on_timer(deadline.key, deadline.at) if isinstance(e, Reply)]
+    assert sorted(r.client for r in replies) == list(range(1, MAX_WAITERS + 1))
+    assert not [p for p in core.procedures.values() if isinstance(p, StatusFanout)]
+    core.request(2000, m.StatusRequest(everywhere=True), deadline.at)
+    assert [p for p in core.procedures.values() if isinstance(p, StatusFanout)]  # a new one

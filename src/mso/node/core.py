@@ -140,6 +140,7 @@ class NodeCore:
         self.routes: dict[str, tuple[str, int]] = {}  # destination -> (next hop, hops)
         self.apps: dict[str, AppState] = {}
         self.procedures: dict[int, Procedure] = {}  # the procedures this node coordinates
+        self._status_pid = -1  # the status fan-out gathering now, if any (one at a time)
         self.dropped_messages = 0
         # well-typed messages refused for their meaning (a vertex, edge or procedure that is
         # not there; a member's command that needs an operator), by reason; each is also one
@@ -727,12 +728,16 @@ class NodeCore:
         self.monitor.sample(now, self.dataplane.work_ms, out, inc, self.dataplane.cpu_ms)
 
     def _status_request(self, client: int, req: m.StatusRequest, now: float) -> None:
+        gathering = self.procedures.get(self._status_pid)
+        if req.everywhere and isinstance(gathering, StatusFanout) and gathering.join(client):
+            return  # one fan-out at a time: it answers this client too
         mine = {self.id: self.status(now)}
         others = [n for n in self.known_nodes() if n != self.id]
-        if not req.everywhere or not others:
+        if not req.everywhere or not others or gathering is not None:
             self._effects.append(Reply(client, m.StatusReply(req.req, mine)))
             return
         fanout = StatusFanout(self.new_pid(), now, client, mine, others)
+        self._status_pid = fanout.pid
         self.begin(fanout)
         fanout.start(self)
 
