@@ -32,14 +32,20 @@ chromium:
 	    { apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null; }; } ; } || \
 	  echo "note: no chromium (apt-get install chromium): the browser test will be skipped"
 
+# the suite in parallel (pytest-xdist): one worker per core (TEST_JOBS=1 for one process); a
+# worker that finishes its share takes tests from the other's (worksteal: the long end-to-end
+# tests do not leave one core idle at the end)
+TEST_JOBS ?= auto
+XDIST = -n $(TEST_JOBS) --dist worksteal
+
 unit: $(STAMP) chromium
-	$(BIN)/pytest
+	$(BIN)/pytest $(XDIST)
 
 test: lint typecheck unit
 
 # while working: the same without the end-to-end tests (node processes, netns, a browser)
 quick: lint typecheck
-	$(BIN)/pytest -m "not slow"
+	$(BIN)/pytest $(XDIST) -m "not slow"
 
 bench: $(STAMP)
 	$(BIN)/python bench/chains.py

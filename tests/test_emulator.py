@@ -16,6 +16,7 @@ from mso.emu.controller import Emulator
 from mso.model.network import LinkSpec
 from mso.scenario import loads_scenario
 from runtime_vertices import pipe_app
+from waits import patience, until
 
 TESTS = Path(__file__).resolve().parent
 
@@ -148,13 +149,15 @@ def test_python_api_against_running_daemons(tmp_path: Path) -> None:
     )
     try:
         overlay = Overlay(f"127.0.1.2:{port}", key="k1")
-        for _ in range(100):  # until both daemons listen and see each other
+        deadline = time.monotonic() + patience(20.0)
+        while True:  # until both daemons listen and see each other
             try:
                 if overlay.status()["N4"].get("connected") == ["N1"]:
                     break
             except MsoError:
                 pass
-            time.sleep(0.05)
+            assert time.monotonic() < deadline, "the two daemons did not link"
+            time.sleep(0.05)  # poll period
         placement = overlay.deploy(app_file).placement
         moved = overlay.relocate("pipe", "mid", target="N4" if placement["mid"] == "N1" else "N1")
         assert moved.ok and moved.node != placement["mid"]
@@ -214,14 +217,15 @@ def test_static_peers_from_config_files(tmp_path: Path) -> None:
 
     async def run() -> dict[str, Any]:
         addr = f"127.0.1.1:{port}"
-        for _ in range(100):  # wait for both daemons to listen and connect
-            try:
-                st = await request(addr, m.StatusRequest(), key="k1", timeout=2)
-                if st.nodes["N1"].get("connected") == ["N4"]:
-                    break
-            except Exception:
-                pass
-            await asyncio.sleep(0.05)
+
+        async def read() -> dict[str, Any]:
+            st = await request(addr, m.StatusRequest(), key="k1", timeout=2)
+            assert isinstance(st, m.StatusReply)
+            return st.nodes
+
+        await until(  # both daemons listen and are connected
+            read, lambda st: st["N1"].get("connected") == ["N4"], 20, "the two daemons linked"
+        )
         reply = await request(addr, m.DeployRequest(app, "pipe.yaml"), key="k1")
         assert reply.ok, reply.error
         await asyncio.sleep(1.0)
@@ -368,16 +372,23 @@ def test_a_killed_relay_is_detected_and_its_chain_recovered() -> None:
             assert reply.ok, reply.error
             victim = reply.placement["mid"]
             assert victim not in ("N1", "N6")
-            await asyncio.sleep(1.0)
+
+            def read() -> Any:
+                return emu.status("N1")
+
+            await until(read, lambda st: sink_at(st, "N6")["count"] >= 100, 10, "a flow")
             emu.kill(victim)
-            await asyncio.sleep(2.5)
-            status = await emu.status("N1")
+
+            def recovered(st: dict[str, Any]) -> bool:
+                records = [r for s in st.values() for r in s["apps"]["pipe"]["recoveries"]]
+                told = all(s["failed_nodes"] == [victim] for s in st.values())
+                return victim not in st and told and any(r["ok"] for r in records)
+
+            status = await until(read, recovered, 10, f"{victim} declared failed, recovered")
             emitted = int(status["N1"]["apps"]["pipe"]["vertices"]["src"]["emitted"])
-            for _ in range(20):  # what is still in flight arrives
-                if sink_at(status, "N6")["count"] >= emitted:
-                    break
-                await asyncio.sleep(0.1)
-                status = await emu.status("N1")
+            status = await until(  # what is still in flight arrives
+                read, lambda st: sink_at(st, "N6")["count"] >= emitted, 5, "the replay"
+            )
             return victim, emitted, status
         finally:
             await emu.stop()
@@ -398,8 +409,10 @@ def test_a_killed_relay_is_detected_and_its_chain_recovered() -> None:
 
 
 def sink_at(status: dict[str, Any], node: str) -> dict[str, int]:
-    stats: dict[str, int] = status[node]["apps"]["pipe"]["vertices"]["sink"]["stats"]
-    return stats
+    """The sink's counters; zeros while it is not (yet) running there."""
+    vertex = status.get(node, {}).get("apps", {}).get("pipe", {}).get("vertices", {})
+    stats: dict[str, int] | None = vertex.get("sink", {}).get("stats")
+    return stats or {"count": 0, "repeats": 0, "out_of_order": 0}
 
 
 ROBOTS = """
@@ -434,11 +447,12 @@ def test_the_energy_rule_moves_work_between_node_processes() -> None:
         try:
             reply = await emu.deploy(WORK, "work.yaml", "N1")
             assert reply.ok and reply.placement["work"] == "N1", reply
-            for _ in range(120):  # bounded: about 30 s (a loaded machine)
-                await asyncio.sleep(0.25)
-                status = await emu.status("N1")
-                if "work" in status["N2"]["apps"]["work"]["vertices"]:
-                    break
+            await until(
+                lambda: emu.status("N1"),
+                lambda st: "work" in st["N2"]["apps"]["work"]["vertices"],
+                30,
+                "the rules' relocation of work to N2",
+            )
             await asyncio.sleep(0.5)
             return await emu.status("N1")
         finally:
@@ -458,22 +472,34 @@ def test_a_cut_off_sink_node_rejoins_when_its_link_comes_back() -> None:
     """The sink's node is out of reach long enough to be declared failed, then its link
     comes back: it rejoins as a new incarnation (real start-time incarnations, across
     processes), its chain is unparked and the flow resumes with no repeat."""
-    cut = LINE + "changes:\n  - {at: 1.0, down: [N3, N4]}\n  - {at: 2.5, up: [N3, N4]}\n"
     app = APP.replace("rate: 200", "rate: 100")
 
+    def parked(st: dict[str, Any], node: str) -> dict[str, str] | None:
+        got: dict[str, str] | None = st.get(node, {}).get("apps", {}).get("pipe", {}).get("parked")
+        return got
+
+    def cut_off(st: dict[str, Any]) -> bool:
+        return st["N1"]["failed_nodes"] == ["N4"] and "src-mid-sink" in (parked(st, "N1") or {})
+
+    def back(st: dict[str, Any]) -> bool:
+        healed = all(s["failed_nodes"] == [] and parked(st, n) == {} for n, s in st.items())
+        return healed and "N4" in st and sink_at(st, "N4")["count"] > 100
+
     async def run() -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
-        emu = Emulator(loads_scenario(cut))
+        emu = Emulator(loads_scenario(LINE))
         await emu.start()
         try:
             assert (await emu.deploy(app, "pipe.yaml", "N1")).ok
-            loop = asyncio.get_running_loop()
-            changes = asyncio.create_task(emu.play_changes(loop.time()))
-            before = await emu.status("N1")
-            await asyncio.sleep(2.3)
-            during = await emu.status("N1")  # N4 is unreachable: only N1..N3 answer
-            await asyncio.sleep(3.0)
-            after = await emu.status("N1")
-            changes.cancel()
+
+            def read() -> Any:
+                return emu.status("N1")
+
+            before = await until(read, lambda st: sink_at(st, "N4")["count"] > 0, 10, "a flow")
+            await emu.cut("N3", "N4")
+            # N4 is unreachable: only N1..N3 answer
+            during = await until(read, cut_off, 10, "N4 declared failed, its chain parked")
+            await emu.heal("N3", "N4")
+            after = await until(read, back, 15, "N4 rejoined, its chain unparked, a flow")
             return before, during, after
         finally:
             await emu.stop()

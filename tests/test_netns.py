@@ -11,7 +11,7 @@ import os
 import shutil
 import subprocess
 import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +20,7 @@ import pytest
 from mso.emu.netns.testbed import namespaces, prefix
 from mso.scenario import loads_scenario
 from runtime_vertices import pipe_app
-from waits import patience
+from waits import until
 
 TESTS = Path(__file__).resolve().parent
 APP = pipe_app(100)  # mid declares its output: the sink gets Num events and checks their order
@@ -94,33 +94,6 @@ def sink_at(status: dict[str, Any], node: str) -> dict[str, int]:
     vertex = status.get(node, {}).get("apps", {}).get("pipe", {}).get("vertices", {})
     stats: dict[str, int] | None = vertex.get("sink", {}).get("stats")
     return stats or {"count": 0, "repeats": 0, "out_of_order": 0}
-
-
-async def until(
-    read: Callable[[], Awaitable[dict[str, Any]]],
-    ok: Callable[[dict[str, Any]], bool],
-    timeout: float,
-    what: str,
-) -> dict[str, Any]:
-    """Poll ``read()`` until ``ok`` holds, or fail saying what did not happen. A status call
-    that gets no answer in time (seen, rarely, right after a link break) is polled again."""
-    from mso.client import NodeUnreachable
-
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + patience(timeout)
-    got: dict[str, Any] = {}
-    while True:
-        try:
-            got = await read()
-        except NodeUnreachable:
-            if loop.time() > deadline:
-                raise
-            continue
-        if ok(got):
-            return got
-        if loop.time() > deadline:
-            raise AssertionError(f"{what} within {patience(timeout):g} s; last: {got}")
-        await asyncio.sleep(0.1)
 
 
 def test_line_routes_and_overlay_follow_links_that_move() -> None:

@@ -5,7 +5,10 @@ suites beside) makes seconds into tens of seconds, so every deadline on a wait g
 
 from __future__ import annotations
 
+import asyncio
 import os
+from collections.abc import Awaitable, Callable
+from typing import Any
 
 _DEFAULT_SCALE = 3.0
 
@@ -27,3 +30,32 @@ def scale() -> float:
 def patience(seconds: float) -> float:
     """The deadline for a wait that takes ``seconds`` on a quiet machine, scaled."""
     return seconds * scale()
+
+
+async def until(
+    read: Callable[[], Awaitable[dict[str, Any]]],
+    ok: Callable[[dict[str, Any]], bool],
+    timeout: float,
+    what: str,
+) -> dict[str, Any]:
+    """Poll ``read()`` (a status) until ``ok`` holds, or fail saying what did not happen by
+    the scaled deadline. A status call that gets no answer in time (a node just killed, a link
+    just broken, a loaded machine) is polled again until that deadline."""
+    from mso.client import NodeUnreachable
+
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + patience(timeout)
+    got: dict[str, Any] = {}
+    while True:
+        try:
+            got = await read()
+        except NodeUnreachable:
+            if loop.time() > deadline:
+                raise
+            await asyncio.sleep(0.1)
+            continue
+        if ok(got):
+            return got
+        if loop.time() > deadline:
+            raise AssertionError(f"{what} within {patience(timeout):g} s; last: {got}")
+        await asyncio.sleep(0.1)  # poll period, not synchronisation
