@@ -19,6 +19,7 @@ from mso.model.imports import DEFAULT_ALLOWED, ImportPathError, allow_code, allo
 from mso.node.core import NodeCore
 from mso.protocol import messages as m
 from mso.protocol.effects import Send
+from waits import answered
 
 TESTS = Path(__file__).resolve().parent
 
@@ -107,12 +108,10 @@ def _deploy_to_node_process(docs: list[str], env: dict[str, str]) -> list[m.Mess
     )
 
     async def deploy_all() -> list[m.Message]:
-        for _ in range(200):  # until the node listens
-            try:
-                await (await Client("127.0.0.1", port, overlay_key("k")).connect(1.0)).close()
-                break
-            except Exception:
-                await asyncio.sleep(0.05)
+        async def listening() -> None:
+            await (await Client("127.0.0.1", port, overlay_key("k")).connect(1.0)).close()
+
+        await answered(listening, 10, "the node listening")
         replies = []
         for doc in docs:
             client = await Client("127.0.0.1", port, overlay_key("k")).connect(2.0)

@@ -13,7 +13,7 @@ import pytest
 
 from mso.errors import AppError
 from mso.model.appfile import loads_app
-from waits import patience
+from waits import until
 
 TESTS = Path(__file__).resolve().parent
 LINE3 = "name: l3\nnodes: {N1: {}, N2: {}, N3: {}}\nlinks: [[N1, N2], [N2, N3]]\n"
@@ -34,15 +34,9 @@ def _vertices_importable(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("PYTHONPATH", f"{TESTS}{os.pathsep}{path}" if path else str(TESTS))
 
 
-async def _wait_for(emu: Any, check: Any, period: float = 0.1) -> dict[str, Any]:
-    """The overlay's status once ``check`` holds (or at the deadline: asserts say why)."""
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + patience(20.0)
-    while True:  # bounded poll of the overlay's status
-        st: dict[str, Any] = await emu.status()
-        if check(st) or loop.time() > deadline:
-            return st
-        await asyncio.sleep(period)  # poll period, not synchronisation
+async def _wait_for(emu: Any, check: Any) -> dict[str, Any]:
+    """The overlay's status once ``check`` holds (see waits.until)."""
+    return await until(emu.status, check, 20.0, "the status the test waits for")
 
 
 def test_isolation_is_validated_with_its_place() -> None:
@@ -135,7 +129,7 @@ def test_a_crashed_process_vertex_is_restored_in_place_and_loses_nothing(
                 assert reply.ok, reply.error
 
             async def wait_for(check: Any) -> dict[str, Any]:
-                return await _wait_for(emu, check, 0.05)
+                return await _wait_for(emu, check)
 
             def v(st: dict[str, Any], app: str, vid: str) -> dict[str, Any]:
                 got: dict[str, Any] = st["N2"]["apps"][app]["vertices"].get(vid, {})
@@ -154,9 +148,10 @@ def test_a_crashed_process_vertex_is_restored_in_place_and_loses_nothing(
             )
             seen.append(
                 await wait_for(
-                    lambda st: (
+                    lambda st: (  # and what it sent before its last crash has arrived
                         v(st, "poison", "mid").get("not_restarted", "")
                         and st["N2"]["apps"]["poison"]["parked"]
+                        and sunk(st, "poison") >= 300
                     )
                 )
             )

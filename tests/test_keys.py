@@ -18,6 +18,7 @@ from mso.node.core import NodeCore
 from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
 from mso.protocol.framing import FrameCodec, FramingError, WrongKey, psk_from_text
+from waits import answered
 
 OLD, NEW, OTHER = psk_from_text("old"), psk_from_text("new"), psk_from_text("other")
 
@@ -100,20 +101,10 @@ def test_mso_node_rereads_its_key_file_on_sighup(tmp_path: Path) -> None:
             await c.close()
 
     async def run() -> None:
-        for _ in range(200):  # until the node listens
-            try:
-                await status(overlay_key("old"))
-                break
-            except MsoError:
-                await asyncio.sleep(0.05)
+        await answered(lambda: status(overlay_key("old")), 10, "the node listening")
         keys.write_text("new\nold\n")
         node.send_signal(signal.SIGHUP)
-        for _ in range(200):  # until the node took the new file
-            try:
-                await status(overlay_key("new"))
-                break
-            except MsoError:
-                await asyncio.sleep(0.05)
+        await answered(lambda: status(overlay_key("new")), 10, "the node taking the new file")
         assert isinstance(await status(overlay_key("new")), m.StatusReply)
         assert isinstance(await status(overlay_key("old")), m.StatusReply)  # still accepted
 

@@ -147,6 +147,7 @@ def test_kill_9_of_the_host_on_the_emulator_keeps_the_count(
     from mso.emu.controller import Emulator
     from mso.scenario import loads_scenario
     from test_emulator import MESH
+    from waits import until
 
     tests = str(Path(__file__).resolve().parent)  # node processes import the test vertices
     path = os.environ.get("PYTHONPATH", "")
@@ -160,20 +161,29 @@ def test_kill_9_of_the_host_on_the_emulator_keeps_the_count(
             assert reply.ok, reply.error
             victim = reply.placement["mid"]
             assert victim not in ("N1", "N6")
-            await asyncio.sleep(2.0)  # snapshots every 100 events: two or so replicated
-            status = await emu.status(victim)
-            rep = status[victim]["apps"]["pipe"]["replication"]["mid"]
-            assert rep["snapshots"] >= 1, rep
+
+            def replicated(st: dict[str, Any]) -> bool:  # snapshots every 100 events
+                return bool(st[victim]["apps"]["pipe"]["replication"]["mid"]["snapshots"] >= 1)
+
+            await until(lambda: emu.status(victim), replicated, 10, "a replicated snapshot")
             emu.kill(victim)
-            await asyncio.sleep(3.0)
-            status = await emu.status("N1")
+
+            def read() -> Any:
+                return emu.status("N1")
+
+            def moved(st: dict[str, Any]) -> bool:  # a live node runs mid again
+                hosts = [n for n, s in st.items() if "mid" in s["apps"]["pipe"]["vertices"]]
+                return victim not in st and bool(hosts)
+
+            status = await until(read, moved, 10, f"mid restored off {victim}")
             emitted = int(status["N1"]["apps"]["pipe"]["vertices"]["src"]["emitted"])
-            for _ in range(30):  # what is still in flight arrives
-                got = status["N6"]["apps"]["pipe"]["vertices"]["sink"]["stats"]
-                if got["count"] >= emitted:
-                    break
-                await asyncio.sleep(0.1)
-                status = await emu.status("N1")
+
+            def arrived(st: dict[str, Any]) -> bool:  # what was in flight
+                return bool(
+                    st["N6"]["apps"]["pipe"]["vertices"]["sink"]["stats"]["count"] >= emitted
+                )
+
+            status = await until(read, arrived, 5, f"the sink's count at {emitted}")
             return victim, emitted, status
         finally:
             await emu.stop()

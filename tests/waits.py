@@ -8,7 +8,9 @@ from __future__ import annotations
 import asyncio
 import os
 from collections.abc import Awaitable, Callable
-from typing import Any
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 _DEFAULT_SCALE = 3.0
 
@@ -40,7 +42,8 @@ async def until(
 ) -> dict[str, Any]:
     """Poll ``read()`` (a status) until ``ok`` holds, or fail saying what did not happen by
     the scaled deadline. A status call that gets no answer in time (a node just killed, a link
-    just broken, a loaded machine) is polled again until that deadline."""
+    just broken, a loaded machine) is polled again until that deadline, and so is a status that
+    lacks what ``ok`` reads (a ``KeyError``: the node or app is not there yet)."""
     from mso.client import NodeUnreachable
 
     loop = asyncio.get_running_loop()
@@ -54,8 +57,28 @@ async def until(
                 raise
             await asyncio.sleep(0.1)
             continue
-        if ok(got):
-            return got
+        try:
+            if ok(got):
+                return got
+        except KeyError:  # a node, app or vertex not in the status yet: not yet
+            pass
         if loop.time() > deadline:
             raise AssertionError(f"{what} within {patience(timeout):g} s; last: {got}")
         await asyncio.sleep(0.1)  # poll period, not synchronisation
+
+
+async def answered(call: Callable[[], Awaitable[T]], timeout: float, what: str) -> T:
+    """``call()``'s result once it stops raising :class:`MsoError` (a node still starting, a key
+    not taken yet), asked again every 50 ms until the scaled deadline, where the last error is
+    raised with what did not happen."""
+    from mso.errors import MsoError
+
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + patience(timeout)
+    while True:
+        try:
+            return await call()
+        except MsoError as exc:
+            if loop.time() > deadline:
+                raise AssertionError(f"{what} within {patience(timeout):g} s: {exc}") from exc
+        await asyncio.sleep(0.05)  # poll period, not synchronisation
