@@ -18,6 +18,7 @@ from mso.model.capabilities import Candidate, Needs, missing, parse_capabilities
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.planning.placement import plan
 from mso.protocol import messages as m
+from mso.protocol.procedures.deploy import CHOOSE_S
 from mso.scenario import loads_scenario
 from mso.sim.runner import Simulation
 
@@ -194,6 +195,46 @@ def test_a_deployment_asks_the_capable_nodes_and_the_choice_is_redone_on_failure
     before = sim.cores["D"].instances("watch")["log"].processed
     sim.run_until(sim.now + 2.0)
     assert sim.cores["D"].instances("watch")["log"].processed >= before + 15  # it flows again
+
+
+def test_a_deployment_whose_nodes_have_all_answered_does_not_wait_for_the_deadline() -> None:
+    # D offers nothing asked for and declines; A, B, C, E answer: the choice is made as soon as
+    # the last of them is in (a few ms of links), not at CHOOSE_S, on the virtual clock
+    sim = Simulation(camera_net())
+    sim.request("D", m.DeployRequest(STANDIN, "watch.yaml"))
+    sim.run_until(CHOOSE_S / 2)
+    assert sim.replies, "no reply before half the capability deadline"
+    at, _, reply = sim.replies[-1]
+    assert isinstance(reply, m.DeployReply) and reply.ok, reply
+    assert at < CHOOSE_S / 10
+    assert reply.placement["cam"] == "A" and reply.placement["detect"] == "B"
+
+
+def test_a_node_that_stays_silent_is_waited_for_until_the_deadline() -> None:
+    # E's answer is lost (E is alive: membership holds it up): the choice waits for CHOOSE_S,
+    # then is made from the answers in
+    sim = Simulation(camera_net())
+    sim.drop = lambda src, dst, msg: isinstance(msg, m.CapabilityReply) and msg.node == "E"
+    sim.request("D", m.DeployRequest(STANDIN, "watch.yaml"))
+    sim.run_until(3.0)
+    at, _, reply = sim.replies[-1]
+    assert isinstance(reply, m.DeployReply) and reply.ok, reply
+    assert at >= CHOOSE_S
+    assert reply.placement["detect"] == "B"
+
+
+def test_a_node_that_fails_while_asked_is_not_waited_for() -> None:
+    # E crashes as the query goes out: once membership declares it failed, nobody else is awaited
+    sim = Simulation(camera_net())
+    sim.drop = lambda src, dst, msg: isinstance(msg, m.CapabilityReply) and msg.node == "E"
+    sim.request("D", m.DeployRequest(STANDIN, "watch.yaml"))
+    sim.run_until(0.002)
+    sim.crash("E")
+    sim.run_until(3.0)
+    at, _, reply = sim.replies[-1]
+    assert isinstance(reply, m.DeployReply) and reply.ok, reply
+    assert at < CHOOSE_S
+    assert "E" in sim.cores["D"].failed
 
 
 def test_a_deployment_no_node_can_serve_is_refused() -> None:

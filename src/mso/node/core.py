@@ -195,6 +195,7 @@ class NodeCore:
         self._subscribe(RelocationEnded, self.remapper.on_relocation_ended)
         self._subscribe(PeerFailed, self.relocator.on_peer_failed)
         self._subscribe(PeerFailed, self.remapper.on_peer_failed)
+        self._subscribe(PeerFailed, self.deployer.on_peer_failed)
         self._subscribe(RoutesChanged, self.membership.on_routes_changed)
         self._subscribe(RoutesChanged, self.deployer.on_routes_changed)
         self._subscribe(RoutesChanged, self.remapper.on_routes_changed)

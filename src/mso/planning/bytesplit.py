@@ -107,32 +107,33 @@ def _bytes_dp(
     pulls: Sequence[tuple[int, float]],
 ) -> list[int] | None:
     k, r, inf = len(costs), len(hops), math.inf
+    # µJ per unit of cost on each hop (compute_uj's, hoisted out of the loop)
+    per_cost = [h.cpu_w * 1e3 / h.capacity if h.capacity > 0 else inf for h in hops]
     prev_val = [inf] * r
     prev_load = [0.0] * r
     parent: list[list[int]] = []
     for i in range(k):
         val, load, par = [inf] * r, [0.0] * r, [-1] * r
         best, best_q = (0.0, 0) if i == 0 else (inf, -1)  # the anchor sits at position 0
+        cost_i, load_i, size_i = costs[i], loads[i], sizes[i]
         for p in range(r):
-            compute = compute_uj(costs[i], hops[p])
-            if not math.isinf(compute):
-                if best_q >= 0 and (left is None or loads[i] <= left[p] + 1e-9):
-                    val[p] = best + sizes[i] * acc[p] + compute  # arrive from q < p
-                    load[p], par[p] = loads[i], best_q
-                stay = prev_load[p] + loads[i]  # after vertex i-1 on the same node
+            compute = cost_i * per_cost[p] if cost_i else 0.0
+            if compute != inf:
+                if best_q >= 0 and (left is None or load_i <= left[p] + 1e-9):
+                    val[p] = best + size_i * acc[p] + compute  # arrive from q < p
+                    load[p], par[p] = load_i, best_q
+                stay = prev_load[p] + load_i  # after vertex i-1 on the same node
                 fits = left is None or stay <= left[p] + 1e-9
                 if i > 0 and fits and prev_val[p] + compute <= val[p]:
                     val[p], load[p], par[p] = prev_val[p] + compute, stay, p
-            if i > 0 and prev_val[p] - sizes[i] * acc[p] < best:
-                best, best_q = prev_val[p] - sizes[i] * acc[p], p
+            if i > 0 and prev_val[p] - size_i * acc[p] < best:
+                best, best_q = prev_val[p] - size_i * acc[p], p
         prev_val, prev_load = val, load
         parent.append(par)
-    end = [
-        v
-        + (sizes[k] * (acc[r - 1] - acc[p]) if to_end else 0.0)
-        + sum(b * abs(acc[p] - acc[q]) for q, b in pulls)
-        for p, v in enumerate(prev_val)
-    ]
+    out_size, last = sizes[k], acc[r - 1]
+    end = [v + out_size * (last - acc[p]) for p, v in enumerate(prev_val)] if to_end else prev_val
+    if pulls:
+        end = [v + sum(b * abs(acc[p] - acc[q]) for q, b in pulls) for p, v in enumerate(end)]
     p = min(range(r), key=lambda q: (end[q], q))
     if math.isinf(end[p]):
         return None

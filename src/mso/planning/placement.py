@@ -118,12 +118,17 @@ def assign_along(
     return out
 
 
-def vertex_loads(app: App) -> dict[str, float]:
+def vertex_loads(
+    app: App,
+    topo: Sequence[str] | None = None,
+    pred: Mapping[str, Sequence[str]] | None = None,
+) -> dict[str, float]:
     """Each vertex's CPU load in ms per second at ``cpu: 1.0``: its cost times its event rate
-    (a source's ``rate``, 1/s if not given; any other vertex's the sum of its inputs')."""
-    pred = app.predecessors()
+    (a source's ``rate``, 1/s if not given; any other vertex's the sum of its inputs').
+    ``topo``/``pred``: the app's topological order and predecessors, if the caller has them."""
+    pred = pred if pred is not None else app.predecessors()
     rate: dict[str, float] = {}
-    for v in app.topological_order():
+    for v in topo if topo is not None else app.topological_order():
         vert = app.vertices[v]
         rate[v] = sum(rate[u] for u in pred[v]) if pred[v] else float(vert.rate or 1.0)
     return {v: rate[v] * float(app.vertices[v].cost) for v in app.vertices}
@@ -166,8 +171,10 @@ def place_chain(
         seg: Sequence[str], hops: Sequence[Hop], to_end: bool, out_bytes: float, tail: bool
     ) -> list[int]:
         assert traffic is not None
-        at = {h.node: p for p, h in enumerate(hops)}
-        pulls = [(at.get(n, 0), b) for n, b in traffic.tail_placed] if tail else []
+        pulls: list[tuple[int, float]] = []
+        if tail and traffic.tail_placed:
+            at = {h.node: p for p, h in enumerate(hops)}
+            pulls = [(at.get(n, 0), b) for n, b in traffic.tail_placed]
         sizes = [traffic.edge_bytes.get(ab, 0.0) for ab in itertools.pairwise(seg)]
         return assign_bytes(
             [cost[v] for v in seg[1:]],
@@ -323,13 +330,13 @@ class Layout:
         for e in app.edges:
             k = (e.src, e.dst)
             self.edge_bytes[k] = self.edge_bytes.get(k, 0.0) + edge_bytes(e)
-        self.load = vertex_loads(app)
+        self.topo = app.topological_order()
+        self.load = vertex_loads(app, self.topo, self.graph.pred)
         self.out_bytes: dict[str, list[tuple[str, float]]] = {v: [] for v in app.vertices}
         self.in_bytes: dict[str, list[tuple[str, float]]] = {v: [] for v in app.vertices}
         for (a, b), size in self.edge_bytes.items():
             self.out_bytes[a].append((b, size))
             self.in_bytes[b].append((a, size))
-        self.topo = app.topological_order()
         self.downstream = Downstream(
             self.topo,
             self.graph.succ,
@@ -419,10 +426,12 @@ class Layout:
         ``used``: the load ``placed`` puts on each node, if the caller keeps it (``plan``)."""
         if used is None:
             used = self.loads(placed)
-        busy = dict(used)
-        for v, n in self.forced.items():
-            if v not in placed:
-                busy[n] = busy.get(n, 0.0) + self.load[v]
+        busy = used
+        if self.forced:
+            busy = dict(used)
+            for v, n in self.forced.items():
+                if v not in placed:
+                    busy[n] = busy.get(n, 0.0) + self.load[v]
         verts = self.chains[chain].vertices
         tail = verts[-1]
         tail_bytes = 0.0
@@ -432,8 +441,9 @@ class Layout:
                 node = placed.get(u)
                 if u != verts[-2] and node is not None:
                     tail_placed.append((node, size))  # a merge's other inputs pull it too
-            flow = self.bottleneck(target) if target is not None else {}
-            for w, size in self.out_bytes[tail]:
+            outs = self.out_bytes[tail]
+            flow = self.bottleneck(target, [w for w, _ in outs]) if target is not None else {}
+            for w, size in outs:
                 node = placed.get(w)
                 if node is not None:
                     tail_placed.append((node, size))
@@ -448,20 +458,32 @@ class Layout:
             used[n] = used.get(n, 0.0) + self.load[v]
         return used
 
-    def bottleneck(self, target: str) -> dict[str, float]:
-        """For every vertex: the bytes per event that must still travel from it to the
+    def bottleneck(self, target: str, vertices: Sequence[str]) -> dict[str, float]:
+        """For each of ``vertices``: the bytes per event that must still travel from it to the
         vertices pinned to ``target`` when every later vertex may sit anywhere on the way. A
         path can be cut at its smallest edge, so an edge carries at most what lies beyond it;
-        0 with no path there, infinite at such a vertex. One pass per target, kept."""
-        flow = self._flow.get(target)
-        if flow is None:
-            flow = {}
-            for v in reversed(self.topo):
-                if self.pinned.get(v) == target:
+        0 with no path there, infinite at such a vertex. Worked out only below the vertices
+        asked for (a chain's tail is near the end), each vertex once per target, kept."""
+        flow = self._flow.setdefault(target, {})
+        out_bytes, pinned = self.out_bytes, self.pinned
+        for start in vertices:
+            if start in flow:
+                continue
+            stack = [start]
+            while stack:  # post-order: a vertex once every successor has its figure
+                v = stack[-1]
+                if v in flow:
+                    stack.pop()
+                    continue
+                todo = [w for w, _ in out_bytes[v] if w not in flow]
+                if todo:
+                    stack.extend(todo)
+                    continue
+                stack.pop()
+                if pinned.get(v) == target:
                     flow[v] = math.inf
                 else:
-                    flow[v] = sum(min(size, flow[w]) for w, size in self.out_bytes[v])
-            self._flow[target] = flow
+                    flow[v] = sum(min(size, flow[w]) for w, size in out_bytes[v])
         return flow
 
     def walk_energy(

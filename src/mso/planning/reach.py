@@ -16,6 +16,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from mso.model.chains import Chain
 
@@ -40,30 +41,46 @@ class Downstream:
         self._on: dict[str, int] = {}  # node -> its pinned vertices' bits
         for v, node in pinned.items():
             self._on[node] = self._on.get(node, 0) | bit[v]
+        self._pinned_below: dict[str, int] = {}
+        for v in reversed(topo):
+            p = bit.get(v, 0)
+            for w in succ[v]:
+                p |= self._pinned_below[w]
+            self._pinned_below[v] = p
+        self._topo, self._succ, self._pred = topo, succ, pred
+        self._chains, self._costs = chains, cost
+        # the chains' sets (the paper's split only): _chain_sets
+        self._cost: npt.NDArray[np.float64] | None = None
+
+    def _chain_sets(self) -> npt.NDArray[np.float64]:
+        """Which chains lie below and above each vertex, and each chain's cost, made when the
+        paper's split first asks (the bytes split never does)."""
+        if self._cost is not None:
+            return self._cost
+        chains, topo = self._chains, self._topo
         heads: dict[str, int] = {}
         tails: dict[str, int] = {}
         for c in chains:
             if len(c) > 1:  # (one-vertex chains carry no cost between)
                 heads[c.head] = heads.get(c.head, 0) | 1 << c.index
                 tails[c.tail] = tails.get(c.tail, 0) | 1 << c.index
-        self._pinned_below: dict[str, int] = {}
         self._chains_below: dict[str, int] = {}  # chains whose head is reachable from v
         for v in reversed(topo):
-            p, h = bit.get(v, 0), heads.get(v, 0)
-            for w in succ[v]:
-                p |= self._pinned_below[w]
+            h = heads.get(v, 0)
+            for w in self._succ[v]:
                 h |= self._chains_below[w]
-            self._pinned_below[v], self._chains_below[v] = p, h
+            self._chains_below[v] = h
         self._chains_above: dict[str, int] = {}  # chains whose tail reaches v
         for v in topo:
             t = tails.get(v, 0)
-            for u in pred[v]:
+            for u in self._pred[v]:
                 t |= self._chains_above[u]
             self._chains_above[v] = t
-        self._n = len(chains)
-        self._cost = np.zeros(max(8, -(-len(chains) // 8) * 8))
+        cost = np.zeros(max(8, -(-len(chains) // 8) * 8))
         for c in chains:
-            self._cost[c.index] = sum(cost[v] for v in c.vertices)
+            cost[c.index] = sum(self._costs[v] for v in c.vertices)
+        self._cost = cost
+        return cost
 
     def furthest_pinned(
         self, v: str, distances: Mapping[str, int], leave_out: Sequence[str] = ()
@@ -87,9 +104,10 @@ class Downstream:
     def cost_between(self, start: str, target: str, leave_out: int) -> float:
         """The cost of the chains (of two or more vertices) whose head ``start`` reaches and
         whose tail reaches ``target``, but chain ``leave_out``."""
+        costs = self._chain_sets()
         bits = self._chains_below[start] & self._chains_above[target] & ~(1 << leave_out)
         if not bits:
             return 0.0
-        raw = np.frombuffer(bits.to_bytes(len(self._cost) // 8, "little"), dtype=np.uint8)
+        raw = np.frombuffer(bits.to_bytes(len(costs) // 8, "little"), dtype=np.uint8)
         mask = np.unpackbits(raw, bitorder="little").astype(bool)
-        return float(self._cost[mask].sum())
+        return float(costs[mask].sum())

@@ -129,8 +129,9 @@ class AppAnnounce(_Msg, tag="announce"):
 class CapabilityQuery(_Msg, tag="capability_query"):
     """From the deploying node to every node (§3.3): which of you offers what these vertices
     require? ``needs``: vertex -> what it requires; ``anchors``: the nodes an answer reports its
-    hops to (those a ``near`` constraint may name). Only nodes that offer some of what a
-    vertex requires answer (so a refusal can say what no node has)."""
+    hops to (those a ``near`` constraint may name). Nodes that offer some of what a vertex
+    requires answer with their offers (so a refusal can say what no node has), the others
+    decline, so the deploying node chooses as soon as every node has spoken."""
 
     app: str
     qid: int
@@ -140,7 +141,8 @@ class CapabilityQuery(_Msg, tag="capability_query"):
 
 class CapabilityReply(_Msg, tag="capability_reply"):
     """A node with some of what a :class:`CapabilityQuery` asks for: what it offers
-    (its ``cpu`` included), its remaining energy (None: wall power), its hops to the anchors."""
+    (its ``cpu`` included), its remaining energy (None: wall power), its hops to the anchors.
+    ``declined``: it has none of it (no offers; not a candidate, but no need to wait for it)."""
 
     app: str
     qid: int
@@ -148,6 +150,7 @@ class CapabilityReply(_Msg, tag="capability_reply"):
     offers: dict[str, float]
     energy_j: float | None = None
     hops: dict[str, int] = msgspec.field(default_factory=dict)
+    declined: bool = False
 
 
 class Probe(_Msg, tag="probe"):

@@ -42,6 +42,7 @@ from mso.protocol.events import (
     HeldProbesDue,
     InstanceFailed,
     InstanceReady,
+    PeerFailed,
     Retransmit,
     Retry,
     RoutesChanged,
@@ -53,7 +54,9 @@ MAX_WAITING_PROBES = 256  # probes held at a hop whose route still goes through 
 PROBE_HOLD_S = STEP_TIMEOUT_S / 2  # how long they wait for routes around it (then skip it)
 
 
-CHOOSE_S = 1.0  # how long the deploying node collects capability answers (§3.3)
+# how long the deploying node waits for capability answers (§3.3) from nodes that stay silent:
+# it chooses as soon as every live node asked has answered or declined
+CHOOSE_S = 1.0
 
 
 class S(enum.Enum):
@@ -79,6 +82,11 @@ class Choosing:
     pinned: dict[str, str]
     asked: set[str]  # the nodes the query went to
     answers: dict[str, Candidate] = field(default_factory=dict)
+    declined: set[str] = field(default_factory=set)  # nodes with none of what is required
+
+    def all_in(self, failed: set[str]) -> bool:
+        """Every node asked that is not held failed has answered or declined."""
+        return self.asked - failed <= self.answers.keys() | self.declined
 
 
 class Deploy(Procedure):
@@ -189,8 +197,8 @@ class Deployer:
             self.ctx.begin(Deploy(self.ctx.new_pid(), now, app.name))
             self._announce(app.name, req.document, {}, {})
             return
-        # §3.3: the nodes with the capabilities answer; the choice is made when all have, or
-        # at the deadline, from the answers in
+        # §3.3: the nodes with the capabilities answer, the others decline; the choice is made
+        # when every live node asked has spoken, or at the deadline from the answers in
         pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
         choosing = Choosing(req.document, needs, pinned, known)
         proc = Deploy(self.ctx.new_pid(), now, app.name, choosing)
@@ -219,7 +227,9 @@ class Deployer:
                 self.ctx.refusal("capability_query_malformed")
                 return
         if not any(not missing(r, offers) or set(r) & set(offers) for r in needs):
-            return  # only nodes with something a vertex requires answer (or with nothing to ask)
+            # nothing a vertex requires: declined, so the origin need not wait for this node
+            self.ctx.send(src, m.CapabilityReply(msg.app, msg.qid, self.ctx.id, {}, declined=True))
+            return
         dist = self.ctx.distances()
         hops = {a: dist[a] for a in msg.anchors[:MAX_VERTICES] if a in dist}
         energy = self.ctx.figures().remaining_j
@@ -237,18 +247,33 @@ class Deployer:
         if proc is None or proc.app != msg.app or msg.node != src:
             self.ctx.refusal("capability_reply_unexpected")
             return
-        assert proc.choosing is not None
-        try:
-            offers = parse_capabilities(msg.offers, "offers")
-        except MsoError:
-            self.ctx.refusal("capability_reply_malformed")
-            return
-        energy = msg.energy_j if msg.energy_j is None or msg.energy_j >= 0 else None
-        hops = {a: h for a, h in msg.hops.items() if a in proc.choosing.asked}
-        proc.choosing.answers[src] = Candidate(src, offers, energy, hops)
+        ch = proc.choosing
+        assert ch is not None
+        if msg.declined:
+            if src not in ch.answers:  # an answer with offers is not taken back
+                ch.declined.add(src)
+        else:
+            try:
+                offers = parse_capabilities(msg.offers, "offers")
+            except MsoError:
+                self.ctx.refusal("capability_reply_malformed")
+                return
+            energy = msg.energy_j if msg.energy_j is None or msg.energy_j >= 0 else None
+            hops = {a: h for a, h in msg.hops.items() if a in ch.asked}
+            ch.answers[src] = Candidate(src, offers, energy, hops)
+            ch.declined.discard(src)
         proc.on(DeployEvent.ANSWER)
-        if set(proc.choosing.answers) >= proc.choosing.asked:
+        if ch.all_in(self.ctx.failed):
             self._choose(proc)
+
+    def on_peer_failed(self, ev: PeerFailed) -> None:
+        """A node asked that fails will not answer: choose now if it was the last awaited."""
+        for proc in self.ctx.open():
+            if not isinstance(proc, Deploy) or proc.state is not S.CHOOSING:
+                continue
+            ch = proc.choosing
+            if ch is not None and ev.node in ch.asked and ch.all_in(self.ctx.failed):
+                self._choose(proc)
 
     def on_retry(self, key: Retry, now: float) -> None:
         """The time for capability answers is up: choose from those in."""
