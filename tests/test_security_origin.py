@@ -243,3 +243,28 @@ def test_over_tcp_an_operator_revocation_reaches_every_node_and_cuts_the_revoked
     assert len(n1) == 1 and n1 == n2 == n4  # N3's key, everywhere; N1's never
     assert refused >= 1 and not linked  # N2 cut N3 and refuses it since
     assert n3_refused >= 1  # the member's unsigned revocation, refused at N3
+
+
+def test_what_a_neighbour_can_make_a_node_check_is_budgeted() -> None:
+    """Each check is a signature's verification (about 120 us): a neighbour handing over
+    frames in others' names gets at most CHECKS_PER_S of them checked a second (a second's
+    burst), so its flood cannot hold the loop past a neighbour's liveness window; its own
+    frames, proved by the link, are not checked and not budgeted."""
+    from mso.net.base import Counters
+    from mso.net.limits import ConnectionCounters
+    from mso.net.trust import CHECKS_PER_S, Trust
+
+    counters = Counters()
+    trust = Trust(identity("N1"), Authority.configure([OPERATOR.public_text()]), counters,
+                  ConnectionCounters())  # fmt: skip
+    forged = m.unwrap(m.wrap("N5", "N1", m.NodeDown("N4", "N5")))
+    own = m.unwrap(m.wrap("N2", "N1", m.NodeDown("N4", "N2")))
+    for _ in range(2000):
+        assert trust.origin("N2", forged, m.NodeDown("N4", "N5"), 0.0) is None
+    assert counters.frames_origin_refused == CHECKS_PER_S  # checked: the burst
+    assert counters.frames_dropped_rate == 2000 - CHECKS_PER_S  # past it: dropped unchecked
+    assert trust.origin("N2", own, m.NodeDown("N4", "N2"), 0.0) == m.NodeDown("N4", "N2")
+    trust.origin("N3", forged, m.NodeDown("N4", "N5"), 0.0)  # another neighbour: its own
+    assert counters.frames_origin_refused == CHECKS_PER_S + 1
+    trust.origin("N2", forged, m.NodeDown("N4", "N5"), 0.1)  # refilled at CHECKS_PER_S
+    assert counters.frames_origin_refused == CHECKS_PER_S + 2

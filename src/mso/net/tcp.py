@@ -218,9 +218,7 @@ class TcpTransport:
         self.accepted: set[Connection] = set()  # connections others opened to this node
         self.admission = Admission(limits, self.connection_counters)
         self.relay_budget = RelayBudget(limits.relay_control_per_s, limits.relay_beats_per_s)
-        self.trust = Trust(
-            identity, self.authority, view.counters, self.connection_counters, self.relay_budget
-        )
+        self.trust = Trust(identity, self.authority, view.counters, self.connection_counters)
         self.host = host
         self.port = port
         # the overlay keys: the first seals new connections, all are accepted (key rotation)

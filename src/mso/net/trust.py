@@ -21,6 +21,13 @@ from mso.protocol.origin import Verifier
 from mso.protocol.revocation import Revocations
 
 log = logging.getLogger("mso.net")
+# origins a neighbour may make this node check a second, per class (heartbeats: hellos to a
+# non-neighbour), with a second's burst: a check is a signature's verification (about 120 us),
+# so a neighbour's flood of frames in others' names costs this node at most about 6% of a
+# core and 60 ms at a time, not its heartbeats (a burst of the relay budget's 4,000 frames
+# would hold the loop half a second, as long as a neighbour's liveness window)
+CHECKS_PER_S = 500.0
+BEAT_CHECKS_PER_S = 50.0
 
 
 class Trust:
@@ -32,13 +39,13 @@ class Trust:
         authority: Authority,
         counters: Counters,
         connection_counters: ConnectionCounters,
-        relay_budget: RelayBudget,
+        checks: RelayBudget | None = None,
     ) -> None:
         self.identity = identity
         self.authority = authority
         self.counters = counters
         self.connection_counters = connection_counters
-        self.relay_budget = relay_budget
+        self.checks = checks or RelayBudget(CHECKS_PER_S, BEAT_CHECKS_PER_S, burst_s=1.0)
         self.origins = Verifier()  # other nodes' signatures on what they originate
         self.revocations = Revocations()  # node keys an operator revoked through the overlay
 
@@ -70,11 +77,11 @@ class Trust:
 
     def origin(self, peer: str, env: m.Envelope, msg: m.Message, now: float) -> m.Message | None:
         """``msg`` as the word of its proven originator alone, or None when it is not proven
-        (counted): :meth:`mso.protocol.origin.Verifier.admit`. A frame relayed to this node
-        is within ``peer``'s budget of relayed frames, as one relayed on is (a marker within
-        its control budget): a check costs a signature's verification."""
+        (counted): :meth:`mso.protocol.origin.Verifier.admit`. What ``peer`` hands over in
+        others' names is checked within its budget of checks (``CHECKS_PER_S``; markers with
+        control frames), past which it is dropped (``frames_dropped_rate``)."""
         budget = m.CONTROL if env.kind == m.MARKER else env.kind
-        if env.src != peer and not self.relay_budget.allow(peer, budget, now):
+        if env.src != peer and not self.checks.allow(peer, budget, now):
             self.counters.frames_dropped_rate += 1
             return None
         wall_ms = time.time_ns() // 1_000_000
