@@ -26,8 +26,9 @@ status and never reading), ``early-messages`` (messages of never-announced apps,
 ``deep-bodies`` (bodies nested 100,000 deep), ``big-documents`` (4 MiB deploy documents of
 tiny scalars).
 
-``--mix S``: instead, one overlay under every attack in turn, ``--attack`` seconds each, for
-``S`` seconds (the issue's soak under a mix of them: ``--mix 600``).
+``--mix S``: instead, one overlay under every attack (or those ``--only`` names) in turn,
+``--attack`` seconds each, for ``S`` seconds (the issue's soak under a mix of them:
+``--mix 600``); the attacked node's RSS after each turn is printed as it goes.
 
 Usage: .venv/bin/python bench/abuse.py [--attack 5] [--only slots,guesser] [--mix 600]
                                       [--json FILE]
