@@ -16,7 +16,8 @@ from __future__ import annotations
 
 from mso.net.base import CONTROL, HEARTBEAT
 
-MAX_NEIGHBOURS = 4096  # budgets kept (a neighbour's goes with its connection)
+MAX_NEIGHBOURS = 4096  # budgets kept (the oldest forgotten first; a neighbour's outlives its
+# connection, so that reconnecting does not refill it)
 
 
 class RelayBudget:
@@ -42,7 +43,3 @@ class RelayBudget:
             del self._buckets[next(iter(self._buckets))]
         self._buckets[(neighbour, kind)] = (tokens - 1.0, now)
         return True
-
-    def forget(self, neighbour: str) -> None:
-        for kind in self.rates:
-            self._buckets.pop((neighbour, kind), None)

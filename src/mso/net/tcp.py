@@ -626,8 +626,8 @@ class TcpTransport:
         self.admission.gone(conn)
         self._held_total -= self._held.pop(conn, 0)
         if conn.peer is not None and self.peers.get(conn.peer) is conn:
-            del self.peers[conn.peer]
-            self.relay_budget.forget(conn.peer)
+            del self.peers[conn.peer]  # (its relay budget stays: a reconnection refills
+            # nothing, or a member reconnecting every moment would relay a burst each time)
             self._unconnected.setdefault(conn.peer, self.loop.time())
             if conn.link is not None:
                 conn.link.close()
