@@ -50,3 +50,16 @@ def test_an_address_is_taken_as_given_and_an_unknown_node_id_is_an_error(
         resolve_address("N9")
     with pytest.raises(MsoError, match="no --via given and no emulator running"):
         resolve_address(None)
+
+
+def test_a_relocation_is_awaited_as_long_as_its_coordinator_may_take() -> None:
+    """A busy vertex hands over after its call and the events before the markers: the client
+    must not give up (and report the node unreachable) before the coordinator's deadline."""
+    import inspect
+
+    from mso.api import RELOCATE_S, AsyncOverlay
+    from mso.protocol.procedures.relocation import SWITCH_DEADLINE_S, Relocation
+
+    assert RELOCATE_S > Relocation.DEADLINE_S + SWITCH_DEADLINE_S
+    default = inspect.signature(AsyncOverlay.relocate).parameters["timeout"].default
+    assert default == RELOCATE_S

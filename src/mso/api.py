@@ -47,6 +47,10 @@ R = TypeVar("R")
 
 DEPLOY_S = 30.0  # a deployment probes routes and starts every vertex: it may take a while
 COMMAND_S = 10.0  # any other command's reply
+# a relocation is answered at its handover: once producers have switched, the old instance first
+# finishes its call and the events before the markers (a 2 s/event vertex takes seconds); the
+# coordinator allows 5 s to prepare and 60 s to hand over (``mso.protocol.procedures.relocation``)
+RELOCATE_S = 70.0
 TAP_LEASE_S = 3.0  # a tap ends this long after its client stops asking (it asks 3 times as often)
 
 
@@ -317,7 +321,7 @@ class AsyncOverlay:
         direction: str = "",
         target: str = "",
         check: bool = True,
-        timeout: float = COMMAND_S,
+        timeout: float = RELOCATE_S,
     ) -> m.RelocateReply:
         """Move one interior vertex upstream, downstream, or to ``target`` (§3.4.1)."""
         reply = await self.ask(m.RelocateRequest(app, vertex, direction, target), timeout)

@@ -135,6 +135,9 @@ class DataPlane:
             self._emitted(dep, vid, h, res, now)
         else:
             self.ctx.publish(Snapshotted(dep.app.name, vid, res))
+            # what waited for the snapshot (a relocation's marker behind a replication's
+            # snapshot: its producers have switched, no event comes to pump it) goes on now
+            self.pump(dep, vid)
 
     def _crashed(
         self, dep: AppState, vid: str, h: HostedInstance, res: fx.VertexCrashed, now: float
