@@ -177,6 +177,8 @@ class Connection(asyncio.Protocol):
                 log.error(
                     "handling a frame from %s raised %s: %s", env.src, type(exc).__name__, exc
                 )
+        if payloads:
+            self.net.read_done()
 
     def close(self) -> None:
         if self.link is not None:
@@ -240,6 +242,9 @@ class TcpTransport:
         self.server: asyncio.Server | None = None
         self._client_ids = 0
         self._receiver: Receiver = lambda src, msg: None
+        # after the frames of one read are handed over: a driver carries out in the same turn
+        # what they made (a cheap vertex's calls), not in a turn of the loop of its own
+        self.read_done: Callable[[], None] = lambda: None
         self._on_client: ClientHandler = lambda client, msg: None
         self._closed = False
         self._sweeper: asyncio.TimerHandle | None = None
@@ -251,8 +256,10 @@ class TcpTransport:
     def node_id(self) -> str:
         return self._node_id
 
-    def set_receiver(self, receiver: Receiver) -> None:
+    def set_receiver(self, receiver: Receiver, read_done: Callable[[], None] | None = None) -> None:
         self._receiver = receiver
+        if read_done is not None:
+            self.read_done = read_done
 
     def set_client_handler(self, handler: ClientHandler) -> None:
         self._on_client = handler

@@ -69,7 +69,7 @@ class NodeDriver:
         self.transport = TcpTransport(
             core.id, host, port, psk, self.view, limits, self.authority, encrypt, identity
         )
-        self.transport.set_receiver(self._receive)
+        self.transport.set_receiver(self._receive, self._read_done)
         self.transport.set_client_handler(self._request)
         self.view.subscribe(self._routes_changed)
         self._timers: dict[Hashable, asyncio.TimerHandle] = {}
@@ -78,6 +78,11 @@ class NodeDriver:
         # with call_soon and drained right after: no wake-up at all
         self.executor = Executor(self._vertex_result, self._schedule_inline)
         self._results: list[fx.VertexResult] = []
+        # while a read's frames or a timer are handled, the inline jobs they make wait for
+        # its end and run in the same turn (a turn of the loop saved per hop: no epoll_wait,
+        # no handle); otherwise (a client's request, a worker's result) in a turn of their own
+        self._in_turn = False
+        self._inline_due = False
         self._results_lock = threading.Lock()
         self._loop_thread = threading.get_ident()
         self.stopped = asyncio.Event()
@@ -130,6 +135,7 @@ class NodeDriver:
 
     # -- inbound ----------------------------------------------------------------------------
     def _receive(self, src: str, msg: m.Message) -> None:
+        self._in_turn = True  # (until the read's end: ``_read_done``)
         if isinstance(msg, m.AppAnnounce | m.AppSync) and msg.app not in self.core.apps:
             self._warm(msg.document, lambda: self._receive_now(src, msg))
             return
@@ -237,7 +243,17 @@ class NodeDriver:
                 self.loop.call_soon_threadsafe(self._drain_results)
 
     def _schedule_inline(self) -> None:
-        self.loop.call_soon(self._run_inline)
+        if self._in_turn:
+            self._inline_due = True
+        else:
+            self.loop.call_soon(self._run_inline)
+
+    def _read_done(self) -> None:
+        """The frames of one read are handled: run the inline jobs they made now."""
+        self._in_turn = False
+        if self._inline_due:
+            self._inline_due = False
+            self._run_inline()
 
     def _run_inline(self) -> None:
         """A turn of the cheap instances' jobs on this thread, then their results."""
@@ -258,7 +274,11 @@ class NodeDriver:
             self._observe()
             if self.device is not None and not self.device.battery and self.core.monitor.empty:
                 self._battery_empty()
-        self._apply(self.core.on_timer(key, self.loop.time()))
+        self._in_turn = True  # a rated source's tick runs its call in this turn
+        try:
+            self._apply(self.core.on_timer(key, self.loop.time()))
+        finally:
+            self._read_done()
 
     def _battery_empty(self) -> NoReturn:
         """An emulated device (its battery modelled, not read from the OS) whose battery is
