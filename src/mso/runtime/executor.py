@@ -12,17 +12,21 @@ concurrently.
 microseconds runs *on the loop's thread*: the same :class:`VertexWorker`, called by
 :meth:`ThreadExecutor.run_inline` in batches the driver schedules with ``call_soon``. Every
 instance starts on its thread (a constructor may import or load for seconds); after
-``CHEAP_JOBS`` jobs in a row that were cheap there it moves to the loop, and the first job on
-the loop that goes over budget (``CALL_BUDGET_S`` of CPU per call, ``JOB_BUDGET_S`` per job, or
-``BLOCK_S`` off the CPU: it blocked) sends it back to its thread, each time needing twice as many
-cheap jobs to return. Order and state are exact: an instance moves to the loop only when its
-thread has finished every job it was given (its results are already queued ahead), and moves
-back with its unrun jobs, in order, onto its thread's queue; the worker is only ever used by one
-thread at a time. A free-running source (a read loop that may block), an ``isolation: process``
-instance and one that asked for ``isolation: thread`` never run on the loop. What a move costs
-the loop is the one job that went over budget; a job that took ``HEAVY_S`` keeps its instance on
-its thread for good, so a vertex that turns slow stalls the loop once at most (code that may
-block for longer than the liveness window at once, e.g. on I/O, says ``isolation: thread``).
+``CHEAP_JOBS`` jobs in a row that were cheap there (by CPU time alone: its wall time there is
+mostly waiting for the GIL or a CPU) it moves to the loop, and the first job on the loop that
+goes over budget (``CALL_BUDGET_S`` of CPU per call, ``JOB_BUDGET_S`` per job), or
+``BLOCKED_JOBS`` in a row ``BLOCK_S`` off the CPU having given it up themselves (it blocks; the
+kernel preempting the loop's thread on a loaded machine is not the vertex's doing, and one wait
+may be for the GIL its thread still held), sends it back to its thread, each time needing twice
+as many cheap jobs to return. Order and state are exact: an instance moves to the loop only when
+its thread has finished every job it was given (its results are already queued ahead), and
+moves back with its unrun jobs, in order, onto its thread's queue; the worker is only ever used
+by one thread at a time. A free-running source (a read loop that may block), an ``isolation:
+process`` instance and one that asked for ``isolation: thread`` never run on the loop. What a
+move costs the loop is the jobs that went over budget; a job that took ``HEAVY_S`` keeps its
+instance on its thread for good, so a vertex that turns slow stalls the loop once at most (code
+that may block for longer than the liveness window at once, e.g. on I/O, says ``isolation:
+thread``).
 
 Why threads at all: a worker thread per instance keeps state handover exact (the instance lives
 in one place) and costs no serialisation; CPython switches the GIL every few milliseconds, so
@@ -33,6 +37,7 @@ the thread-versus-process measurements). A hung vertex holds only its own thread
 from __future__ import annotations
 
 import queue
+import resource
 import threading
 import time
 from collections import deque
@@ -46,21 +51,30 @@ PULL_BATCH = 256  # calls a free-running source makes per result at most
 PULL_BUDGET_S = 0.005  # ... or wall time, so its events leave in timely batches
 
 # CPU time per call (event) on its thread for a job to count as cheap: a pass-through's job
-# (decode, call, encode) takes 30-100 us there at 100 events/s, cold caches and all
-CHEAP_CALL_S = 200e-6
+# (decode, call, encode) takes 30-100 us there at 100 events/s, cold caches and all, and over
+# 200 us on a loaded VM (a CPU shared by 5 or 6 busy threads): half the loop's budget
+CHEAP_CALL_S = 500e-6
 CHEAP_JOBS = 16  # cheap jobs in a row before an instance moves to the loop
 MAX_CHEAP_JOBS = 4096  # ... at most, however often it was sent back
 CALL_BUDGET_S = 1e-3  # on the loop, a job using more CPU per call sends the instance back ...
 JOB_BUDGET_S = 5e-3  # ... or more in all (a feed is up to 256 events)
-# a job may wait this long (wall time) beyond JOB_BUDGET_S for the GIL or a CPU and still count
-# as cheap on its thread
-GIL_SLACK_S = 5e-3
-BLOCK_S = 1e-3  # on the loop, a job this long off the CPU (blocked) sends the instance back
+# on the loop, a job this long off the CPU that gave the CPU up itself (it blocked: I/O, a
+# sleep, a lock) sends the instance back; one preempted by the kernel for as long (another
+# process's turn on a loaded machine) did not: the loop stalls as much whatever it runs
+BLOCK_S = 1e-3
+# ... in this many jobs in a row: the first job after a move may wait for the GIL, which the
+# instance's thread needs once more to park (5 ms at load 20); a vertex that blocks, blocks again
+BLOCKED_JOBS = 2
 FORGIVE_JOBS = 1024  # jobs within budget on the loop that halve what a return costs again
 BATCH_S = 2e-3  # one turn of inline jobs runs about this long, then I/O and timers get theirs
 HEAVY_S = 0.05  # a job on the loop this long keeps its instance on its thread for good (a
 # tenth of the default liveness window: a vertex that can turn this slow must not get a second
 # chance to stall heartbeats)
+
+
+def voluntary_switches() -> int:
+    """Context switches this thread asked for (it waited: I/O, a sleep, a lock, the GIL)."""
+    return resource.getrusage(resource.RUSAGE_THREAD).ru_nvcsw
 
 
 class _Lane:
@@ -82,6 +96,7 @@ class _Lane:
         self.cheap = 0  # cheap jobs in a row on the thread
         self.need = CHEAP_JOBS  # cheap jobs in a row that move it to the loop
         self.within = 0  # jobs in a row within budget on the loop
+        self.blocked = 0  # ... and that blocked, in a row
         self.moves = 0  # moves either way (tests and status read it)
         # never on the loop: it asked for its thread (code that may block or turn slow at once),
         # or one of its jobs on the loop took HEAVY_S
@@ -89,7 +104,7 @@ class _Lane:
 
     def _run(self) -> None:
         worker = self.worker
-        perf, cpu = time.perf_counter, time.thread_time
+        cpu = time.thread_time
         while True:
             if self.loop_source and self.credit > 0 and not worker.ended and self.jobs.empty():
                 pulled = worker.pull(min(self.credit, PULL_BATCH), PULL_BUDGET_S)
@@ -107,14 +122,20 @@ class _Lane:
                 worker.close()
                 return
             else:
-                t0, c0 = perf(), cpu()
+                c0 = cpu()
                 res = self.run(job)
-                wall, used = perf() - t0, cpu() - c0
+                used = cpu() - c0
                 if res is not None:
                     self.deliver(res)
                 n = calls(job)
-                cheap = used <= CHEAP_CALL_S * n and used <= JOB_BUDGET_S / 2
-                self.cheap = self.cheap + 1 if cheap and wall <= JOB_BUDGET_S + GIL_SLACK_S else 0
+                # by CPU time alone: here wall time says little of the vertex (a job waits for
+                # the GIL while the loop runs, for a CPU on a loaded machine: a pass-through's
+                # 100 us job took 2-16 ms of wall time at load 20, and every wait is a futex,
+                # so it looks blocked); one that blocks is sent back by its first job on the
+                # loop (below), each time needing twice as many cheap jobs to return
+                self.cheap = (
+                    self.cheap + 1 if used <= CHEAP_CALL_S * n and used <= JOB_BUDGET_S / 2 else 0
+                )
             self.done += 1  # after its result: a move to the loop finds it queued ahead
 
     def run(self, job: fx.VertexEffect) -> fx.VertexResult | None:
@@ -144,7 +165,7 @@ class _Lane:
     def to_thread(self) -> None:
         """Back to its thread, with the jobs not run yet, in order."""
         self.inline = False
-        self.cheap = self.within = 0
+        self.cheap = self.within = self.blocked = 0
         self.moves += 1
         while self.pending:
             self.put += 1
@@ -214,6 +235,7 @@ class ThreadExecutor:
         perf, cpu = time.perf_counter, time.thread_time
         deadline = perf() + BATCH_S
         ready = self._ready
+        v0 = voluntary_switches()  # read again only when a job was off the CPU for long
         while ready:
             lane = ready.popleft()
             while lane.inline and lane.pending:
@@ -221,12 +243,19 @@ class ThreadExecutor:
                 t0, c0 = perf(), cpu()
                 res = lane.run(job)
                 t1 = perf()
-                # over budget: its CPU time, or time off the CPU (it blocked, on I/O or a
-                # sleep: the loop must not wait for that; a preemption counts too, rarely)
+                # over budget: its CPU time, or time off the CPU that it gave up itself (it
+                # blocked, on I/O or a sleep: the loop must not wait for that; a preemption
+                # by the kernel is not the vertex's doing and stalls the loop as much anyway)
                 used = cpu() - c0
+                blocked = False
+                if t1 - t0 - used > BLOCK_S:
+                    v1 = voluntary_switches()
+                    blocked, v0 = v1 != v0, v1
                 if res is not None:
                     lane.deliver(res)
-                if used > min(JOB_BUDGET_S, CALL_BUDGET_S * calls(job)) or t1 - t0 - used > BLOCK_S:
+                lane.blocked = lane.blocked + 1 if blocked else 0
+                over = used > min(JOB_BUDGET_S, CALL_BUDGET_S * calls(job))
+                if over or lane.blocked >= BLOCKED_JOBS or (blocked and t1 - t0 >= HEAVY_S):
                     lane.need = min(2 * lane.need, MAX_CHEAP_JOBS)
                     lane.stays = lane.stays or t1 - t0 >= HEAVY_S
                     lane.to_thread()
