@@ -34,10 +34,13 @@ Figures, per size and system (median of ``--runs``, alternating the systems' ord
   respawns (``restart_policy: always``). The gap is the largest inter-arrival at the sink that
   ended after the action; lost, the holes in the sink's numbering.
 
+``--floor`` adds a fourth system to each run, the same pipeline in bare asyncio over TCP
+(``bench/bare_pipeline.py``): what Python and the loopback cost, mso's floor.
+
 Results: ``bench/results/peer_dora.json`` and ``.md``.
 
 Usage: .venv/bin/python bench/peer_dora.py [--quick] [--runs 3] [--sizes 38,967,3000]
-          [--rate 100] [--warmup 1] [--window 10] [--gaps] [--no-dora] [--cache DIR]
+          [--rate 100] [--warmup 1] [--window 10] [--gaps] [--no-dora] [--floor] [--cache DIR]
 """
 
 from __future__ import annotations
@@ -58,6 +61,9 @@ from typing import Any
 
 from mso.benchmarks.common import Progress, cpu_seconds, provenance, write_results
 from mso.benchmarks.vertices.peer import probe_pad
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bare_pipeline import run_bare, wait_file
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
@@ -238,16 +244,6 @@ def cmdline(pid: int) -> str:
         return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
     except OSError:
         return ""
-
-
-async def wait_file(path: Path, timeout: float) -> dict[str, Any] | None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        with contextlib.suppress(OSError, ValueError):
-            doc: dict[str, Any] = json.loads(path.read_text())
-            return doc
-        await asyncio.sleep(0.005)
-    return None
 
 
 def dora_files(tmp: Path, name: str, size: int, policy: str, restart: bool, warmup: float,
@@ -628,11 +624,14 @@ async def main_async(args: argparse.Namespace, progress: Progress) -> dict[str, 
             try:
                 for size in args.sizes:
                     order = ["mso", "default", "backpressure"] if bin_dir else ["mso"]
+                    order += ["bare"] if args.floor else []
                     k = run % len(order)
                     for system in order[k:] + order[:k]:
                         progress(f"run {run + 1}/{args.runs}, {size} B, {system}")
                         if system == "mso":
                             row = await run_mso(emu, tmp, size, args.rate, args.warmup, args.window)
+                        elif system == "bare":
+                            row = await run_bare(size, args.rate, args.warmup, args.window, tmp)
                         else:
                             assert bin_dir is not None
                             policy = "" if system == "default" else "backpressure"
@@ -668,6 +667,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gaps", action="store_true", help="also move and kill the relay")
     ap.add_argument("--gap-after", type=float, default=2.0, help="s of flow before and after")
     ap.add_argument("--no-dora", action="store_true", help="the mso half only")
+    ap.add_argument("--floor", action="store_true", help="also bench/bare_pipeline.py (asyncio)")
     ap.add_argument("--cache", default="~/.cache/mso-bench", help="where dora-rs's venv lives")
     ap.add_argument("--json", type=Path, default=None, help="write elsewhere")
     args = ap.parse_args(argv)
