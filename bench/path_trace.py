@@ -38,6 +38,7 @@ import argparse
 import asyncio
 import json
 import os
+import pstats
 import shutil
 import signal
 import statistics
@@ -239,6 +240,24 @@ def chain(traces: dict[str, list[tuple[float, str, Any]]]) -> list[dict[str, flo
     return out
 
 
+def constructed(paths: list[Path], events: int) -> dict[str, float]:
+    """Objects built in Python per event, from cProfile's call counts (which, unlike its times,
+    the load does not change): every ``__init__``/``__new__`` written in Python (dataclasses,
+    the protocol's classes; msgspec Structs and builtins are built in C and not counted), the
+    most frequent first, and their sum. A process's whole life, start-up included."""
+    calls: dict[str, int] = {}
+    for path in paths:
+        raw: dict[Any, Any] = pstats.Stats(str(path)).stats  # type: ignore[attr-defined]
+        for (file, line, name), (_, ncalls, *_rest) in raw.items():
+            if name in ("__init__", "__new__") and file != "~":
+                key = f"{Path(file).parent.name}/{Path(file).name}:{line}"
+                calls[key] = calls.get(key, 0) + ncalls
+    top = sorted(calls.items(), key=lambda kv: -kv[1])[:8]
+    out = {k: round(v / max(1, events), 2) for k, v in top}
+    out["all"] = round(sum(calls.values()) / max(1, events), 2)
+    return out
+
+
 def counts(recs: list[tuple[float, str, Any]], events: int) -> dict[str, float]:
     """Per event: loop turns, reads, timers, inline turns, frames handed to links by kind."""
     c: dict[str, int] = {}
@@ -339,9 +358,11 @@ async def run(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
     if args.profile:  # the whole life of each process, over every event its source emitted
         result["profile_events"] = emitted
         result["profile_us_per_event"] = {}
+        result["objects_per_event"] = {}
         for n, p in pids.items():
             paths = [tmp / f"profile-{p}.prof", *sorted(tmp.glob(f"profile-{p}-t*.prof"))]
             stages = stage_breakdown([x for x in paths if x.exists()])
+            result["objects_per_event"][n] = constructed([x for x in paths if x.exists()], emitted)
             result["profile_us_per_event"][n] = {
                 k: round(v / max(1, emitted) * 1e6, 1)
                 for k, v in sorted(stages.items(), key=lambda kv: -kv[1])
@@ -405,6 +426,17 @@ def table(r: dict[str, Any]) -> str:
             "stage",
             rows,
             "{:.0f}",
+        )
+        objs = r.get("objects_per_event") or {}
+        names = list(dict.fromkeys(k for n in NODES for k in objs.get(n, {}) if k != "all"))
+        rows = {k: {n: objs.get(n, {}).get(k, 0) for n in NODES} for k in names}
+        rows["**all**"] = {n: objs.get(n, {}).get("all", 0) for n in NODES}
+        lines += per_node(
+            "Objects built in Python per event (`__init__`/`__new__` calls counted by cProfile, "
+            "the most frequent; msgspec and builtin objects are built in C, not counted):",
+            "constructor",
+            rows,
+            "{:.2f}",
         )
     return "\n".join(lines) + "\n"
 
