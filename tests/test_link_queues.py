@@ -21,7 +21,10 @@ from mso.protocol.procedures.membership.liveness import DEAD_AFTER_S
 HOST = "127.0.0.1"
 KEY = overlay_key("k")
 # the whole control queue for the one member streaming (its share of it: test_security_relay)
-LIMITS = Limits(queues=QueueBounds(control=2 << 20, relayed_share=1.0), max_beat_frame=16 * 1024)
+LIMITS = Limits(
+    queues=QueueBounds(control=2 << 20, relayed_share=1.0, relayed_total=1.0),  # A may fill it
+    max_beat_frame=16 * 1024,
+)
 BULK = 256 * 1024  # one control frame of the stream
 SEEN = 8  # control frames the neighbour must receive while the beats are timed
 

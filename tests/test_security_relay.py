@@ -133,3 +133,31 @@ def test_a_relay_passes_on_a_members_flood_of_control_frames_only_within_its_bud
     assert passed <= budget  # the burst (2 s at 500/s) and what refilled while it came
     assert dropped >= flood - budget
     assert passed_again <= refill  # what refilled since, not a new burst of 1,000
+
+
+def test_neighbours_relaying_together_share_the_relayed_part_of_a_queue_fairly() -> None:
+    """Two captured neighbours streaming through one relay once filled its queue between
+    them (each within its half). Now all relayed frames take at most three quarters of it,
+    split among the neighbours whose frames wait: an honest neighbour's frames get their
+    share as the others' drain, and this node's own frames always have the rest."""
+    full: list[int] = []
+    loop = asyncio.new_event_loop()
+    try:
+        link = Link(Stuck(), LinkShape(), 1, loop, bounds=QueueBounds(control=1000),
+                    on_full=lambda: full.append(1))  # fmt: skip
+        for via in ("A", "B"):  # two captured neighbours stream 50-byte frames
+            for _ in range(20):
+                link.send(b"x" * 50, CONTROL, via=via)
+        queue = link._control
+        assert queue.relayed == {"A": 500, "B": 250}  # A its half; B the rest of the 750
+        link.send(b"o" * 250, CONTROL)  # this node's own frames have the last quarter
+        assert link.queued[1] == 1000
+        for _ in range(6):  # six of A's leave
+            queue.take()
+        link.send(b"c" * 50, CONTROL, via="C")  # an honest neighbour's first frame fits
+        for _ in range(10):  # and it gets its share: each of the three 750 / 3, no more
+            for via in ("A", "B", "C"):
+                link.send(b"x" * 50, CONTROL, via=via)
+        assert queue.relayed == {"A": 250, "B": 250, "C": 250} and link.queued[1] == 1000
+    finally:
+        loop.close()

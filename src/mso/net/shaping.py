@@ -9,7 +9,11 @@ the one frame already on its way, and a class whose queue is full drops what com
 (counted, ``frames_dropped_queue``), leaving the other classes alone. A frame always fits an
 empty queue, so no frame the wire allows is refused for its size alone. The frames relayed for
 one neighbour may take only a share of each queue (``relayed_share``): a member streaming
-frames through a relay no longer fills the queue the others' frames wait in.
+frames through a relay no longer fills the queue the others' frames wait in. And the frames
+relayed for all neighbours together take at most ``relayed_total`` of it, shared fairly
+among the neighbours whose frames wait (each at most that over their number; a neighbour's
+first frame always fits): two captured neighbours once filled a queue between them, and
+still the node's own frames have the rest.
 
 Shaping happens in the sender, as the user-space emulator's links have no kernel queue of their
 own: frames are serialised at the link's bandwidth (a token-bucket-like ``next free`` time),
@@ -47,26 +51,35 @@ class QueueBounds:
     # a neighbour's frames this node relays may take at most this share of a class's queue
     # (its first always fits), so one member cannot fill a link it relays through
     relayed_share: float = 0.5
+    # all neighbours' relayed frames together, split evenly among those with frames queued
+    relayed_total: float = 0.75
 
 
 class _Queue:
     """One class's frames, with their bytes, and the bytes each relayed neighbour's take."""
 
-    def __init__(self, bound: int, share: int) -> None:
+    def __init__(self, bound: int, share: int, total: int | None = None) -> None:
         self.bound = bound
         self.share = share  # bytes one relayed neighbour's frames may take
+        self.total = bound if total is None else total  # bytes all relayed frames may take
         self.frames: deque[tuple[bytes, str | None]] = deque()
         self.bytes = 0
         self.relayed: dict[str, int] = {}
+        self.relayed_bytes = 0
 
     def put(self, payload: bytes, slack: int = 0, via: str | None = None) -> bool:
         if self.frames and self.bytes + len(payload) > self.bound + slack:
             return False
         if via is not None:
             held = self.relayed.get(via, 0)
-            if held and held + len(payload) > self.share:
-                return False
+            if held:  # (a neighbour's first frame always fits)
+                fair = self.total // (len(self.relayed) or 1)  # among those with frames here
+                if held + len(payload) > min(self.share, fair):
+                    return False
+                if self.relayed_bytes + len(payload) > self.total:
+                    return False
             self.relayed[via] = held + len(payload)
+            self.relayed_bytes += len(payload)
         self.frames.append((payload, via))
         self.bytes += len(payload)
         return True
@@ -75,6 +88,7 @@ class _Queue:
         payload, via = self.frames.popleft()
         self.bytes -= len(payload)
         if via is not None:
+            self.relayed_bytes -= len(payload)
             left = self.relayed[via] - len(payload)
             if left:
                 self.relayed[via] = left
@@ -118,10 +132,10 @@ class Link:
         self.on_full = on_full
         b = bounds or QueueBounds()
         self._marker_slack = b.marker_slack
-        share = b.relayed_share
-        self._beats = _Queue(b.heartbeat, int(b.heartbeat * share))
-        self._control = _Queue(b.control, int(b.control * share))
-        self._data = _Queue(b.data, int(b.data * share))  # data and markers, in order
+        share, total = b.relayed_share, b.relayed_total
+        self._beats = _Queue(b.heartbeat, int(b.heartbeat * share), int(b.heartbeat * total))
+        self._control = _Queue(b.control, int(b.control * share), int(b.control * total))
+        self._data = _Queue(b.data, int(b.data * share), int(b.data * total))  # data, markers
         self._queues = (self._beats, self._control, self._data)  # the order they leave in
         self._next_free = 0.0
         self._in_air: deque[tuple[float, bytes]] = deque()
