@@ -52,8 +52,8 @@ MAX_HELD = 10_000  # frames kept per neighbour while its connection is being set
 CONNECT_ATTEMPTS = 20
 CONNECT_TIMEOUT_S = 5.0  # a SYN nobody answers (no return route) would wait two minutes
 DETOUR_AFTER_S = 0.5
-TELL_REVOCATIONS = 256  # the newest revocations told to a neighbour whose link is proven
 """How long a neighbour may stay unconnected before its frames go through a detour."""
+TELL_REVOCATIONS = 256  # the newest revocations told to a neighbour whose link is proven
 
 ClientHandler = Callable[[int, m.Message], None]
 """Called with ``(client connection id, message)`` for every request from a client."""
