@@ -15,6 +15,7 @@ import pytest
 from mso.emu.controller import Emulator
 from mso.examples.convoy.storage import DB_ENV, summary
 from mso.scenario import load_scenario
+from waits import patience
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples"
 
@@ -53,14 +54,15 @@ def test_convoy_rows_in_sqlite_equal_events_emitted(
             status = await emu.status()
             sources = status["N1"]["apps"]["convoy"]["vertices"]
             emitted = {v: sources[v]["emitted"] for v in ("laser", "visible_camera")}
-            for _ in range(100):  # bounded: 10 s for what was in flight to land
+            deadline = asyncio.get_running_loop().time() + patience(10.0)
+            while asyncio.get_running_loop().time() < deadline:  # what was in flight lands
                 traj, tgt = seqs(db, "trajectory"), seqs(db, "targets")
                 if (
                     len(set(traj)) >= emitted["laser"]
                     and len(set(tgt)) >= emitted["visible_camera"]
                 ):
                     break
-                await asyncio.sleep(0.1)
+                await asyncio.sleep(0.1)  # poll period
             return status, emitted, target
         finally:
             await emu.stop()
