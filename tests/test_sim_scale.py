@@ -5,9 +5,13 @@ from __future__ import annotations
 
 import itertools
 
+import pytest
+
 from mso.model.network import LinkSpec, Network, NodeSpec
+from mso.node.core import NodeCore
 from mso.protocol import messages as m
 from mso.protocol.events import Retransmit
+from mso.protocol.procedures.membership.peers import Membership
 from mso.scenario.generate import pipelines
 from mso.sim.runner import Simulation
 
@@ -58,3 +62,61 @@ def test_a_link_change_reaches_only_the_nodes_whose_routes_it_changes() -> None:
     sim.links_changed()
     assert sorted(called) == ["N1", "N2", "N3", "N4", "N6"]  # N5's routes stay as they were
     assert sim.cores["N1"].routes["N6"] == ("N2", 4)
+
+
+def _grid_run(quiet: bool, monkeypatch: pytest.MonkeyPatch) -> tuple[Simulation, int]:
+    """A 4x4 grid, one app; its interior host killed at 3 s and revived at 6 s: with beats
+    that carry no news taken by the quiet path (``quiet``) or weighed whole."""
+    monkeypatch.setattr(NodeCore, "quiet_beats", quiet)
+    taken = [0]
+    original = Membership.quiet_beat
+
+    def counted(self: Membership, src: str, msg: m.Heartbeat, now: float) -> bool:
+        ok = original(self, src, msg, now)
+        taken[0] += ok
+        return ok
+
+    monkeypatch.setattr(Membership, "quiet_beat", counted)
+    ids = [f"N{i}" for i in range(1, 17)]
+    links = [LinkSpec(ids[i], ids[i + 1]) for i in range(16) if i % 4 != 3]
+    links += [LinkSpec(ids[i], ids[i + 4]) for i in range(12)]
+    sim = Simulation(Network([NodeSpec(i) for i in ids], links), manage=False)
+    sim.trace = []
+    (src, doc), = pipelines(["N1", "N16"], 1, seed=0, rate=20.0)  # fmt: skip
+    sim.request(src, m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(3.0)
+    victim = sim.placement("N1", "app0")["p1"]
+    assert victim not in ("N1", "N16")
+    sim.kill(victim, convergence_s=0.2)
+    sim.run_until(6.0)
+    for n in sim.network.nodes:  # its links back, then the daemon restarts
+        if n != victim and ids.index(n) in _grid_neighbours(ids.index(victim)):
+            sim.network.add_link(LinkSpec(victim, n))
+    sim.revive(victim)
+    sim.run_until(10.0)
+    return sim, taken[0]
+
+
+def _grid_neighbours(i: int) -> set[int]:
+    out = {i - 4, i + 4} | ({i - 1} if i % 4 else set()) | ({i + 1} if i % 4 != 3 else set())
+    return {j for j in out if 0 <= j < 16}
+
+
+def test_a_beat_with_no_news_taken_quietly_changes_nothing(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The quiet path for beats (Membership.quiet_beat) is an optimisation only: a run with
+    a failure and a restart goes message for message as when every beat is weighed whole."""
+    whole, none_taken = _grid_run(False, monkeypatch)
+    quiet, taken = _grid_run(True, monkeypatch)
+    assert none_taken == 0 and taken > 0.8 * quiet.census.by_type["Heartbeat"]
+    assert quiet.trace == whole.trace
+    assert quiet.census.by_type == whole.census.by_type
+    assert quiet.replies == whole.replies
+    assert quiet.delivered == whole.delivered
+    for n, core in quiet.cores.items():
+        other = whole.cores[n]
+        assert core.failed == other.failed
+        assert core.placement("app0") == other.placement("app0")
+        assert core.membership.liveness.last_heard == other.membership.liveness.last_heard
+        assert core.failures == other.failures and core.rejoins == other.rejoins

@@ -97,6 +97,9 @@ class NodeCore:
 
     # an illegal transition raises (tests set this) instead of only being counted
     strict = False
+    # a beat with no news only refreshes its sender's liveness clock (Membership.quiet_beat);
+    # off, every beat goes the whole way (a test compares the two)
+    quiet_beats = True
     # messages that may overtake the announcement of their app: held until it arrives
     EARLY = (m.ChainPlaced, m.BuildChain, m.ChainPartReady, m.ChainBuilt, m.StartApp)
 
@@ -138,6 +141,9 @@ class NodeCore:
         # its own (``mso node --operator-key``), which the transport checks frames with too
         self.authority = Authority()
         self.routes: dict[str, tuple[str, int]] = {}  # destination -> (next hop, hops)
+        # the hops the last figures carried: of which routing table, for which app partners
+        self._beat_hops: tuple[dict[str, tuple[str, int]], frozenset[str], dict[str, int]] | None
+        self._beat_hops = None
         self.apps: dict[str, AppState] = {}
         self.procedures: dict[int, Procedure] = {}  # the procedures this node coordinates
         self._status_pid = -1  # the status fan-out gathering now, if any (one at a time)
@@ -387,6 +393,16 @@ class NodeCore:
                 self.dropped_messages += 1
                 return []
             self._guarded("heard", self.membership.on_failed_heartbeat, src, msg, now)
+        elif (
+            self.quiet_beats
+            and isinstance(msg, m.Heartbeat)
+            and not self._work
+            and not self._effects
+            and not self.dataplane.outbox
+            and not self.dataplane.touched
+            and self.membership.quiet_beat(src, msg, now)
+        ):
+            return []  # a beat with no news: the sender's liveness clock, nothing else
         else:
             self._guarded("heard", self.membership.heard, src, now)
             self._work.append((src, msg))
@@ -525,7 +541,12 @@ class NodeCore:
         node runs part of (a move's radio cost at the relays) — never all N, so a beat's
         size does not grow with the network."""
         partners = {n for dep in self.apps.values() if dep.instances for n in dep.placed.values()}
-        return {n: h for n, (_, h) in self.routes.items() if h <= 2 or n in partners}
+        kept = self._beat_hops
+        if kept is not None and kept[0] is self.routes and kept[1] == partners:
+            return kept[2]  # the same routing table (a new one on every change): the same hops
+        hops = {n: h for n, (_, h) in self.routes.items() if h <= 2 or n in partners}
+        self._beat_hops = (self.routes, frozenset(partners), hops)
+        return hops
 
     def distances(self) -> dict[str, int]:
         return {**self.route_hops(), self.id: 0}

@@ -100,6 +100,8 @@ class Membership(AppSyncing):
         self._gossip = Gossip()  # accepted failure claims, piggybacked on the next beats
         self._claims = Claims()  # others' claims waiting for this node's own probe
         self._told: dict[str, float] = {}  # failed node heard directly -> when told so
+        # the leader, and the routing table (a new one on every change) and failed set it is of
+        self._leader_of: tuple[Mapping[str, object], frozenset[str], str] | None = None
 
     def start(self, now: float) -> None:
         self.ctx.set_timer(HeartbeatTick(), now + self.liveness.period_s)
@@ -164,7 +166,14 @@ class Membership(AppSyncing):
         return peer
 
     def _leader(self) -> str:
-        return min({self.ctx.id, *(n for n in self.ctx.routes if n not in self.failed)})
+        """The lowest node this node counts alive (itself too): kept until the routing view
+        or the failed set changes, not taken over every route on every beat."""
+        routes, kept = self.ctx.routes, self._leader_of
+        if kept is not None and kept[0] is routes and kept[1] == self.failed:
+            return kept[2]
+        leader = min({self.ctx.id, *(n for n in routes if n not in self.failed)})
+        self._leader_of = (routes, frozenset(self.failed), leader)
+        return leader
 
     def _hosts(self) -> set[str]:
         """The nodes this node's views say host part of an app (one of them coordinates a
@@ -175,15 +184,16 @@ class Membership(AppSyncing):
         return sum(len(dep.instances) for dep in self.ctx.apps.values())
 
     # -- the detector: beats out, silence and unreachability judged, suspicion asked -----------
-    def beat(self, news: list[m.NodeDown] | None = None) -> m.Heartbeat:
-        """This node's beat with its monitor's figures (see Heartbeat)."""
+    def beat(self, news: list[m.NodeDown] | None = None, figures: bool = True) -> m.Heartbeat:
+        """This node's beat, with its monitor's figures unless ``figures`` is False (see
+        Heartbeat)."""
         return m.Heartbeat(
             self.ctx.id,
             self.incarnation,
             dict(self._failed_incarnation),
             self._leader(),
             self._hosting(),
-            self.ctx.figures(),
+            self.ctx.figures() if figures else None,
             news or [],
         )
 
@@ -192,19 +202,25 @@ class Membership(AppSyncing):
         beat per monitor period, and on the first beat to a neighbour since its link came up
         (``_briefed``: the time the link came up, when it was given them)."""
         every = max(1, round(MONITOR_PERIOD_S / self.liveness.period_s))
-        full = self.beat(self._gossip.next_beat())
-        slim = full if self._beats % every == 0 else msgspec.structs.replace(full, figures=None)
+        slim = self.beat(self._gossip.next_beat(), figures=self._beats % every == 0)
+        # the figures (hops to the nodes within two hops) are made only for a beat that
+        # carries them, not on every beat
+        full = slim if slim.figures is not None else None
         for n, since in sorted(self.liveness.neighbours.items()):
             if n not in self.failed:
                 briefed = self._briefed.get(n) == since
                 self._briefed[n] = since
-                self.ctx.emit(Send(n, slim if briefed else full))
+                if not briefed and full is None:
+                    full = msgspec.structs.replace(slim, figures=self.ctx.figures())
+                self.ctx.emit(Send(n, full if not briefed and full is not None else slim))
         for n in set(self._briefed) - set(self.liveness.neighbours):
             del self._briefed[n]  # bounded by the neighbours
         self._beats += 1
         if self._beats % REJOIN_EVERY == 0:  # a failed node we can reach again: a healed
             for n in sorted(self.failed):  # partition; tell it, so one side rejoins the other
                 if n in self.ctx.routes:
+                    if full is None:
+                        full = msgspec.structs.replace(slim, figures=self.ctx.figures())
                     self.ctx.emit(Send(n, full))
         for n in self.liveness.silent(now, self.failed):
             self._suspect(n, now)
@@ -216,8 +232,10 @@ class Membership(AppSyncing):
             elif claim.node not in self.failed:
                 self._declare(claim, now)  # our own probe agrees
         self._flush_syncs()
-        # this node may have become an app's recovery coordinator (it runs part of it now)
-        self.ctx.publish(RecoveryDue())
+        # this node may have become an app's recovery coordinator (it runs part of it now);
+        # with nothing failed and nothing vanished no app has a vertex to recover
+        if self.failed or any(dep.vanished for dep in self.ctx.apps.values()):
+            self.ctx.publish(RecoveryDue())
         self.ctx.set_timer(HeartbeatTick(), now + self.liveness.period_s)
 
     def heard(self, src: str, now: float) -> None:
@@ -226,6 +244,35 @@ class Membership(AppSyncing):
         if self.admits(src, self.liveness.last_heard):
             self.liveness.heard_from(src, now)
         self.heard_directly(src, now)
+
+    def quiet_beat(self, src: str, msg: m.Heartbeat, now: float) -> bool:
+        """Take a beat that carries no news, if it is one: from a node heard before, not
+        suspected, in the incarnation this node knows, without figures or claims, holding
+        failed only nodes this node has heard of (and not this node). All :meth:`heard` and
+        :meth:`on_heartbeat` would do with it is refresh the sender's liveness clock, so that
+        is all that is done: the ten beats a second to each neighbour cost O(1) each, outside
+        the core's effect machinery. False (nothing done): not such a beat, weigh it whole.
+        Keep it in step with :meth:`on_heartbeat` (tests/test_sim_scale.py runs the two ways
+        side by side)."""
+        if (
+            msg.figures is not None
+            or msg.news
+            or self._incarnations.get(src) != msg.incarnation
+            or src in self._suspicions
+            or src not in self.liveness.last_heard
+        ):
+            return False
+        held = msg.failed
+        if held and (
+            self.ctx.id in held
+            or len(held) > KNOWN_PER_ROUTE * self.known_bound()
+            or not all(n in self._incarnations for n in held)
+        ):
+            return False
+        self.liveness.heard_from(src, now)
+        if self.ctx.routes.get(src, ("", 0))[0] == src:  # a neighbour's beat, not a hello
+            self.liveness.heard_from(src, now, msg)
+        return True
 
     def heard_directly(self, src: str, now: float) -> None:
         """A message from a suspected node (it reaches us though we do not reach it): it
