@@ -6,7 +6,8 @@ control message (not data, not an ack, not a heartbeat) from the kill until the 
 quiet: in total, the most any one node sent or received, and by type. Detection time is the
 first survivor's declaration after the kill, recovery time the coordinator's restore done, lost
 the events the sink missed. Heartbeat bytes are the encoded size of the beats a node sent per
-second (they must not grow with N).
+second (they must not grow with N), also split into beats per node per second (10 to each
+neighbour: the mean degree, which a grid's border lowers at small N) and bytes per beat.
 
 Then 200 nodes in random waypoint (mean degree ~5, links by radio range) run for ``--mobile-s``
 simulated seconds: membership messages (heartbeats and the detector's own) per node per second,
@@ -19,6 +20,7 @@ Writes bench/results/membership.json and membership.md.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import random
 import sys
@@ -84,11 +86,12 @@ def failure(side: int, convergence_s: float) -> dict[str, Any]:
     assert victim not in (src, sink), victim
     counts: Counter[str] = Counter()
     per_node: Counter[str] = Counter()
-    beat_bytes = [0]
+    beat_bytes = [0, 0]  # bytes, beats
 
     def tap(a: str, b: str, msg: m.Message) -> None:
         if isinstance(msg, m.Heartbeat):
             beat_bytes[0] += len(m.encode(msg))
+            beat_bytes[1] += 1
         if isinstance(msg, NOT_CONTROL):
             return
         counts[type(msg).__name__] += 1
@@ -99,6 +102,8 @@ def failure(side: int, convergence_s: float) -> dict[str, Any]:
     sim.taps.append(tap)
     sim.run_until(sim.now + 1.0)  # a quiet second: heartbeat bytes at rest, no control
     beats_per_node_s = beat_bytes[0] / n / (sim.now - t_beats)
+    beats = beat_bytes[1] / n / (sim.now - t_beats)
+    per_beat = beat_bytes[0] / max(1, beat_bytes[1])
     quiet = sum(counts.values())
     counts.clear()
     per_node.clear()
@@ -125,6 +130,8 @@ def failure(side: int, convergence_s: float) -> dict[str, Any]:
         "recoveries": len(recs),
         "lost": missing,
         "heartbeat_bytes_per_node_s": round(beats_per_node_s, 1),
+        "heartbeats_per_node_s": round(beats, 1),
+        "heartbeat_bytes_per_beat": round(per_beat, 1),
         "wall_s": round(time.perf_counter() - wall, 1),
     }
 
@@ -211,14 +218,15 @@ def table(rows: list[dict[str, Any]], mob: dict[str, Any] | None) -> str:
         "in the given time)",
         "",
         "| N | convergence s | control msgs | per node max | nodes involved | detection s "
-        "| recovery s | lost | heartbeat B/node/s |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| recovery s | lost | heartbeat B/node/s | beats/node/s | B/beat |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         out.append(
             f"| {r['nodes']} | {r['convergence_s']:g} | {r['control_messages']:,} "
             f"| {r['per_node_max']} | {r['nodes_involved']} | {r['detection_s']} "
-            f"| {r['recovery_s']} | {r['lost']} | {r['heartbeat_bytes_per_node_s']:,} |"
+            f"| {r['recovery_s']} | {r['lost']} | {r['heartbeat_bytes_per_node_s']:,} "
+            f"| {r.get('heartbeats_per_node_s', '')} | {r.get('heartbeat_bytes_per_beat', '')} |"
         )
     if mob:
         out += [
@@ -236,7 +244,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", default="25,100,400", help="grid sizes (square numbers)")
     ap.add_argument("--convergence", default="0.3,0", help="route convergence times (s)")
     ap.add_argument("--mobile-n", type=int, default=200)
-    ap.add_argument("--mobile-s", type=float, default=60.0, help="0: skip the mobility run")
+    ap.add_argument(
+        "--mobile-s",
+        type=float,
+        default=60.0,
+        help="0: skip the mobility run (the kept results' run stays)",
+    )
     ap.add_argument("--json", type=Path, default=RESULTS / "membership.json")
     args = ap.parse_args(argv)
     try:
@@ -255,6 +268,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(failure(side, conv))
             print(rows[-1], flush=True)
     mob = mobile(args.mobile_n, args.mobile_s) if args.mobile_s > 0 else None
+    if mob is None and args.json.exists():  # a longer run measured before stays
+        mob = json.loads(args.json.read_text()).get("mobility")
     result = {
         "provenance": provenance(),
         "failures": rows,

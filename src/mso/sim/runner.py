@@ -67,6 +67,7 @@ class Simulation:
         self._last_decoded: tuple[m.Message, m.Message] | None = None  # (sent, as received)
         self._paths: dict[tuple[str, str], _Path | None] = {}
         self._paths_version = -1
+        self._hops: dict[tuple[str, str], tuple[float, float]] = {}  # (a, b) -> delay, loss
         self.hop_latency_s = hop_latency_s
         self.now = 0.0
         # each node's spill store outlives its restarts, as the daemon's file does
@@ -207,6 +208,7 @@ class Simulation:
         if net.version != self._paths_version or len(self._paths) > MAX_PATHS:
             self._paths.clear()
             self._paths_version = net.version
+            self._hops.clear()
         key = (node, dst)
         if key in self._paths:
             return self._paths[key]
@@ -215,14 +217,25 @@ class Simulation:
         if route is not None:
             delay = 0.0
             lossy = []
-            for i, (a, b) in enumerate(itertools.pairwise(route)):
-                link = net.link(a, b)
-                delay += self.hop_latency_s + (link.delay_ms / 1e3 if link else 0.0)
-                if link is not None and link.loss > 0:
-                    lossy.append((i + 1, link.loss))
+            hops = self._hops
+            for i, ab in enumerate(itertools.pairwise(route)):
+                hop = hops.get(ab)
+                if hop is None:
+                    hop = hops[ab] = self._hop(*ab)
+                delay += hop[0]
+                if hop[1] > 0:
+                    lossy.append((i + 1, hop[1]))
             path = (route, delay, tuple(lossy))
         self._paths[key] = path
         return path
+
+    def _hop(self, a: str, b: str) -> tuple[float, float]:
+        """One hop's delay (its link's and ``hop_latency_s``) and loss: kept with the paths,
+        so that a path of h hops costs h lookups, not h link searches."""
+        link = self.network.link(a, b)
+        return (self.hop_latency_s + (link.delay_ms / 1e3 if link else 0.0)), (
+            link.loss if link is not None else 0.0
+        )
 
     def _send(self, node: str, dst: str, msg: m.Message) -> bool:
         """Put ``msg`` on the in-memory network; False when there is no route to ``dst``."""
