@@ -1,16 +1,16 @@
 """ROS 2 through mso: the bridge's cost and what per-edge QoS does for a camera (issue 26).
 
 Everything goes through a Zenoh router in this process on 127.0.0.1 (``rmw_zenohd``'s role;
-a fresh one for each phase of part 1: one that other sessions had come and gone through made
-the next phase's figures worse);
-talkers and listeners are rmw_zenoh-style sessions (peers of the router) publishing CDR with
-the 33-byte attachment on the keys rmw_zenoh uses (:mod:`mso.ros2.wire`). Each talker stamps
-``header.stamp`` with the wall clock at publication; listeners read it back from the CDR bytes
-without decoding the rest. Parts:
+one of its own for each phase of part 1 and each throughput run); talkers and listeners are
+rmw_zenoh-style sessions (:mod:`mso.benchmarks.rmwpeers`: peers of the router) publishing CDR
+with the 33-byte attachment on the keys rmw_zenoh uses. Each talker stamps ``header.stamp``
+with the wall clock at publication; listeners read it back from the CDR bytes without
+decoding the rest. Parts:
 
 1. **The bridge in one process** (no mso node): a ``sensor_msgs/LaserScan`` (1,081 beams,
    intensities too: 8.7 KB) at 40 Hz and a ``sensor_msgs/Image`` (640x480 rgb8: 900 KiB) at
-   30 Hz, (a) talker -> raw listener (Zenoh alone: the baseline), (b) talker ->
+   30 Hz, (a) talker -> raw listener (Zenoh alone, the baseline: a plain zenoh-python
+   subscriber in a client session of the router, where the Subscriber sits), (b) talker ->
    ``mso.ros2:Subscriber`` -> the vertex's ``next()`` (a worker thread, as mso's executor
    calls it), (c) ``mso.ros2:Publisher`` -> raw listener. The latency each hop adds over the
    baseline (p50, p99) and the CPU it adds per message (this process's CPU time over the phase,
@@ -36,8 +36,6 @@ import asyncio
 import json
 import multiprocessing
 import shutil
-import socket
-import struct
 import tempfile
 import threading
 import time
@@ -49,7 +47,9 @@ import numpy as np
 import zenoh
 from rosbags.rosbag2 import StoragePlugin, Writer
 
+from mso.benchmarks import rmwpeers
 from mso.benchmarks.common import provenance, write_results
+from mso.benchmarks.rmwpeers import config, stamp_of, wait_until
 from mso.emu.controller import Emulator
 from mso.ros2 import Publisher, Subscriber, wire
 from mso.ros2.types import type_map
@@ -70,23 +70,6 @@ links: [[N1, N2]]
 
 
 # -- Zenoh, as rmw_zenoh uses it -------------------------------------------------------------
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def zconf(mode: str, listen: str | None = None, connect: str | None = None) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps(mode))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    if listen:
-        conf.insert_json5("listen/endpoints", json.dumps([listen]))
-    if connect:
-        conf.insert_json5("connect/endpoints", json.dumps([connect]))
-    return conf
-
-
 def key(topic: str, ros_type: str) -> str:
     return wire.topic_key(0, topic, ros_type, TYPES.rihs01(ros_type))
 
@@ -132,13 +115,6 @@ def make(ros_type: str) -> Callable[[int], Any]:
     return scan
 
 
-def stamp_of(cdr: bytes) -> int:
-    """``header.stamp`` in ns from a message's CDR bytes (its first field, after the 4-byte
-    encapsulation header): no decoding of the rest."""
-    sec, nsec = struct.unpack_from("<iI", cdr, 4)
-    return int(sec) * 10**9 + int(nsec)
-
-
 class Talker:
     """Publishes ``ros_type`` on ``topic`` as an rmw_zenoh publisher does."""
 
@@ -158,7 +134,7 @@ class Talker:
         ns = time.time_ns()
         if payload is None:
             payload = bytes(STORE.serialize_cdr(self.make(ns), self.ros_type))
-        self.pub.put(payload, attachment=wire.Attachment(self.seq, ns, self.gid).encode())
+        self.pub.put(payload, attachment=rmwpeers.attachment(self.seq, ns, self.gid))
 
     def run(self, hz: float, n: int) -> None:
         t0 = time.monotonic()
@@ -192,15 +168,6 @@ class Listener:
 
     def close(self) -> None:
         self.sub.undeclare()
-
-
-def wait_until(check: Callable[[], bool], timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if check():
-            return True
-        time.sleep(0.02)
-    return check()
 
 
 def q(values: list[float], p: float) -> float:
@@ -237,10 +204,11 @@ def bridge_phases(ros_type: str, hz: float, n: int) -> dict[str, Any]:
     (with a peer session of its own for the talker and the listener)."""
     name = ros_type.rsplit("/", 1)[1].lower()
     out: dict[str, Any] = {"type": ros_type, "hz": hz, "messages": n}
-    # (a) Zenoh alone
-    router, endpoint = fresh_router()
-    peer: Any = zenoh.open(zconf("peer", connect=endpoint))
-    listener = Listener(peer, f"/{name}_a", ros_type)
+    # (a) Zenoh alone: a raw listener where the Subscriber will be, a client of the router
+    router, endpoint = rmwpeers.router()
+    peer: Any = zenoh.open(config("peer", connect=endpoint))
+    client: Any = zenoh.open(config("client", connect=endpoint))
+    listener = Listener(client, f"/{name}_a", ros_type)
     talker = Talker(peer, f"/{name}_a", ros_type)
     time.sleep(0.5)
     cpu = time.process_time()
@@ -254,11 +222,12 @@ def bridge_phases(ros_type: str, hz: float, n: int) -> dict[str, Any]:
     }
     talker.close()
     listener.close()
+    client.close()
     peer.close()
     router.close()
     # (b) talker -> Subscriber -> next()
-    router, endpoint = fresh_router()
-    peer = zenoh.open(zconf("peer", connect=endpoint))
+    router, endpoint = rmwpeers.router()
+    peer = zenoh.open(config("peer", connect=endpoint))
     sub = Subscriber(f"/{name}_b", ros_type, router=endpoint, qos={"history": "keep_all"})
     sub.open()
     talker = Talker(peer, f"/{name}_b", ros_type)
@@ -286,8 +255,8 @@ def bridge_phases(ros_type: str, hz: float, n: int) -> dict[str, Any]:
     peer.close()
     router.close()
     # (c) Publisher -> listener
-    router, endpoint = fresh_router()
-    peer = zenoh.open(zconf("peer", connect=endpoint))
+    router, endpoint = rmwpeers.router()
+    peer = zenoh.open(config("peer", connect=endpoint))
     pub = Publisher(f"/{name}_c", ros_type, router=endpoint)
     pub.open()
     listener = Listener(peer, f"/{name}_c", ros_type)
@@ -325,7 +294,7 @@ def bridge_phases(ros_type: str, hz: float, n: int) -> dict[str, Any]:
 
 def talk_images(endpoint: str, n: int, done: Any) -> None:
     """A talker process: ``n`` Images (one payload, made once) as fast as Zenoh takes them."""
-    session: Any = zenoh.open(zconf("peer", connect=endpoint))
+    session: Any = zenoh.open(config("peer", connect=endpoint))
     talker = Talker(session, "/image_t", IMAGE)
     time.sleep(1.0)  # (its declarations reach the router and the Subscriber)
     payload = bytes(STORE.serialize_cdr(make(IMAGE)(time.time_ns()), IMAGE))
@@ -340,7 +309,7 @@ def talk_images(endpoint: str, n: int, done: Any) -> None:
 
 def listen_images(endpoint: str, n: int, ready: Any, counted: Any) -> None:
     """A listener process: counts Images on /image_o until ``n`` or 60 s of none."""
-    session: Any = zenoh.open(zconf("peer", connect=endpoint))
+    session: Any = zenoh.open(config("peer", connect=endpoint))
     times: list[float] = []
     sub = session.declare_subscriber(
         key("/image_o", IMAGE), lambda s: times.append(time.monotonic())
@@ -357,18 +326,11 @@ def listen_images(endpoint: str, n: int, ready: Any, counted: Any) -> None:
     session.close()
 
 
-def fresh_router() -> tuple[Any, str]:
-    """A router of its own on a free port: after other sessions came and went through one,
-    Images out of a Publisher went 2-5 times slower through it (not understood; Zenoh's)."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    return zenoh.open(zconf("router", listen=endpoint)), endpoint
-
-
 def throughput(n: int) -> dict[str, Any]:
     """Images as fast as they go, into a Subscriber (reliable, keep_all; the talker in another
     process) and out of a Publisher (the listener in another process), each through a router
     of its own."""
-    router, endpoint = fresh_router()
+    router, endpoint = rmwpeers.router()
     sub = Subscriber("/image_t", IMAGE, router=endpoint, qos={"history": "keep_all"})
     sub.open()
     time.sleep(0.5)
@@ -392,7 +354,7 @@ def throughput(n: int) -> dict[str, Any]:
         "talker_put_per_s": put_per_s,
         "per_s": round((len(when) - 1) / (when[-1] - when[0]), 1) if len(when) > 1 else 0.0,
     }
-    router, endpoint = fresh_router()
+    router, endpoint = rmwpeers.router()
     ready, counted = ctx.Queue(), ctx.Queue()
     child = ctx.Process(target=listen_images, args=(endpoint, n, ready, counted))
     child.start()
@@ -504,10 +466,7 @@ async def emulated(
 
 async def _ready(peer: Any, n: int) -> None:
     def tokens() -> int:
-        found = [
-            str(r.ok.key_expr) for r in peer.liveliness().get("@ros2_lv/0/**", timeout=2.0) if r.ok
-        ]
-        return sum("/MS/" in t or "/MP/" in t for t in found)
+        return sum("/MS/" in t or "/MP/" in t for t in rmwpeers.tokens(peer))
 
     if not await asyncio.to_thread(wait_until, lambda: tokens() >= n, 30):
         raise RuntimeError("the mso ROS vertices did not show up on the router")
@@ -628,8 +587,9 @@ def table(r: dict[str, Any]) -> str:
         "",
         f"Machine: {r['machine']['cpus']} vCPUs, load average at the end "
         f"{', '.join(f'{x:.1f}' for x in r['machine']['load_average'])} (shared). Zenoh "
-        "routers in the benchmark's process on 127.0.0.1 (a fresh one for each phase of part 1 "
-        "and each throughput run); talkers and listeners rmw_zenoh-style peers of them.",
+        "routers in the benchmark's process on 127.0.0.1 (one of its own for each phase of "
+        "part 1 and each throughput run); talkers and listeners rmw_zenoh-style peers of them; "
+        "Zenoh alone is a plain subscriber in a client session, where the Subscriber sits.",
         "",
     ]
     for b in r.get("bridge", []):
@@ -724,10 +684,8 @@ def main() -> None:
     duration = 6.0 if args.quick else args.duration
     bag_n = 1000 if args.quick else 10_000
     started = time.monotonic()
-    port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    router: Any = zenoh.open(zconf("router", listen=endpoint))
-    peer: Any = zenoh.open(zconf("peer", connect=endpoint))
+    router, endpoint = rmwpeers.router()
+    peer: Any = rmwpeers.ros_peer(endpoint)
     result: dict[str, Any] = {"quick": args.quick, "duration": duration}
     try:
         if 1 in parts:

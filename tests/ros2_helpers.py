@@ -6,48 +6,31 @@ mso.ros2 is used here, so the round trips test mso against the document, not aga
 
 from __future__ import annotations
 
-import json
-import socket
 import struct
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
-import zenoh
 from rosbags.typesys import Stores, get_typestore
 
+from mso.benchmarks import rmwpeers
+from mso.benchmarks.rmwpeers import free_port as free_port
+from mso.benchmarks.rmwpeers import tokens as tokens
 from waits import patience
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _config(mode: str, listen: str | None = None, connect: str | None = None) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps(mode))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    if listen:
-        conf.insert_json5("listen/endpoints", json.dumps([listen]))
-    if connect:
-        conf.insert_json5("connect/endpoints", json.dumps([connect]))
-    return conf
-
-
 def router(port: int) -> Any:
     """A Zenoh router listening on 127.0.0.1:port only (rmw_zenohd's role)."""
-    return zenoh.open(_config("router", listen=f"tcp/127.0.0.1:{port}"))
+    return rmwpeers.router(port)[0]
 
 
 def ros_peer(port: int) -> Any:
     """A session as rmw_zenoh opens one: a peer connected to the router, no multicast."""
-    return zenoh.open(_config("peer", connect=f"tcp/127.0.0.1:{port}"))
+    return rmwpeers.ros_peer(f"tcp/127.0.0.1:{port}")
 
 
 def chatter_key(domain: int = 0, hash_: str = STRING_HASH, topic: str = "chatter") -> str:
@@ -60,20 +43,11 @@ def cdr_string(text: str) -> bytes:
 
 
 def attachment(seq: int, gid: bytes) -> bytes:
-    return struct.pack("<qq", seq, time.time_ns()) + bytes([16]) + gid
-
-
-def tokens(session: Any, prefix: str = "@ros2_lv/0/**") -> list[str]:
-    return [str(r.ok.key_expr) for r in session.liveliness().get(prefix, timeout=2.0) if r.ok]
+    return rmwpeers.attachment(seq, time.time_ns(), gid)
 
 
 def wait_for(check: Callable[[], bool], timeout: float = 10.0) -> bool:
-    end = time.monotonic() + patience(timeout)
-    while time.monotonic() < end:
-        if check():
-            return True
-        time.sleep(0.02)
-    return check()
+    return rmwpeers.wait_until(check, patience(timeout))
 
 
 class Listener:

@@ -12,6 +12,7 @@ import msgspec
 import pytest
 
 from mso.ros2 import wire
+from mso.ros2.bridge import CdrBuffer
 from mso.ros2.types import struct_for, type_map
 
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
@@ -99,6 +100,24 @@ def test_cdr_of_a_string_is_what_rmw_zenoh_puts_on_the_wire() -> None:
     assert bytes(tm.store.serialize_cdr(msg, "std_msgs/msg/String")) == (
         b"\x00\x01\x00\x00" + struct.pack("<I", 3) + b"hi\x00"
     )
+
+
+def test_a_publishers_reused_buffer_gives_each_message_its_own_exact_cdr() -> None:
+    """The Publisher serializes into one buffer kept between calls: a message of the same
+    size with its padding and NULs elsewhere must not inherit the last one's bytes."""
+    tm = type_map()
+    kv = "diagnostic_msgs/msg/KeyValue"
+    buffer = CdrBuffer(tm, kv)
+    # 22 bytes each; the 2 bytes of padding after the first string fall elsewhere each time
+    for key, value in [("xxxxx", "y"), ("x", "yyyyy"), ("ab", "cdef"), ("", "z" * 7)]:
+        msg = tm.store.types[kv](key=key, value=value)
+        assert bytes(buffer.encode(msg)) == bytes(tm.store.serialize_cdr(msg, kv)), (key, value)
+    image = "sensor_msgs/msg/Image"
+    buffer = CdrBuffer(tm, image)
+    for fill in (255, 7):
+        event = msgspec.convert({**_sample(image), "data": bytes([fill]) * 6}, struct_for(image))
+        msg = tm.to_ros(image, event)
+        assert bytes(buffer.encode(msg)) == bytes(tm.store.serialize_cdr(msg, image))
 
 
 @pytest.mark.parametrize(

@@ -6,6 +6,7 @@ nobody renews ends."""
 from __future__ import annotations
 
 import msgspec
+import pytest
 
 from mso.api import TapCounts
 from mso.model.appfile import loads_app
@@ -127,3 +128,39 @@ def test_a_tap_follows_its_consumer_when_it_moves() -> None:
     before = max(r.seen for r in got if r.node == mid_at)
     assert seen[-1] > before + 100, (before, seen[-1])  # the new host's on top of the old's
     assert FLUSH_S < 1.0
+
+
+@pytest.mark.parametrize(
+    ("edge", "asked"),
+    [
+        ("src->mid", "elsewhere"),
+        ("src->mid", "old host"),
+        ("src->mid", "new host"),
+        ("mid->sink", "elsewhere"),  # its producer moves
+    ],
+)
+def test_a_tap_misses_no_event_when_the_edge_moves(edge: str, asked: str) -> None:
+    """Every copy at a rate above the edge's: the copies go on across the move of the
+    edge's consumer (or producer) with no seq left out and none twice, whichever node the
+    client asks (a relay, the consumer's old host, its new host)."""
+    sim = Simulation(line(4))
+    assert deploy(sim, pipe_app(100)).ok
+    mid_at = next(n for n, c in sim.cores.items() if "mid" in c.instances("pipe"))
+    target = "N3" if mid_at != "N3" else "N2"
+    node = {"elsewhere": "N1", "old host": mid_at, "new host": target}[asked]
+    n = len(sim.replies)
+    tap = m.Tap("pipe", edge, 1000.0, 3.0)
+    keep(sim, node, tap, 1.5)
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target=target), client=5)
+    keep(sim, node, tap, 2.5)
+    assert "mid" in sim.cores[target].instances("pipe")
+    got = taps(sim, n)
+    assert not any(r.ended for r in got), [r.ended for r in got if r.ended]
+    hosts = {mid_at, target} if edge == "src->mid" else {"N4"}
+    assert {r.node for r in got} == hosts, {r.node for r in got}
+    seqs = copies(got)
+    assert len(seqs) > 300, len(seqs)
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "a gap or a repeat at the move"
+    counts = TapCounts()
+    last = [counts.carry(r) for r in got][-1]
+    assert (last.seen, last.dropped) == (len(seqs), 0)

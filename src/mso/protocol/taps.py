@@ -11,8 +11,9 @@ counted for the tap alone: the edge's own events are never held, delayed or lost
 
 Any other node asked *relays*: it asks the consumer's host with its own tap id, forwards what
 comes back to its client, and follows the consumer when it moves (the host answers
-``ended: moved`` with where to). Copies that cross the overlay travel as data (control
-overtakes them) and at most :data:`RELAYED_BYTES_S` a second.
+``ended: moved`` with where to; a relocation hands the tap over before the consumer's state,
+so the new host serves it from its first event). Copies that cross the overlay travel as data
+(control overtakes them) and at most :data:`RELAYED_BYTES_S` a second.
 
 Every tap has a lease (``lease_s``): the client asks again to keep it, the relay renews the
 host's lease only then, so a client that goes away ends its tap everywhere within the lease.
@@ -21,6 +22,8 @@ States, per served tap and per relay (keyed by typed inputs)::
 
     (none)  --Tap-->            serving / relaying    (renewed by each Tap)
     serving --TapTick, lease over-->            gone (silently: nobody listens)
+    serving --consumer handed over (hand_over)-->   gone; the new host asked first, so it
+                                                 serves from the first event it takes
     serving --TapTick, app stopped or consumer moved--> gone, ended told
     relaying --TapEvents ended=moved, host-->   relaying to the new host (or serving here)
     relaying --TapEvents ended / lease over-->  gone
@@ -205,34 +208,53 @@ class Taps:
         if not host:
             self._end_client(client, msg, f"no node runs {dst!r} now")
             return
-        tid = self.relayed.get((client, dep.app.name, edge))
-        relay = self.relays.get(tid) if tid is not None else None
-        if relay is None:
-            if len(self.relays) >= MAX_RELAYS:
-                self._end_client(client, msg, f"{self.ctx.id} relays {MAX_RELAYS} taps already")
-                return
-            self._next_tap += 1
-            tid = self._next_tap
-            relay = Relay(client, dep.app.name, edge, msg.edge, rate, lease, host, now + lease)
-            self.relays[tid] = relay
-            self.relayed[(client, dep.app.name, edge)] = tid
-        assert tid is not None
+        tid = self._relay(client, dep.app.name, edge, msg.edge, host)
+        if tid is None:
+            self._end_client(client, msg, f"{self.ctx.id} relays {MAX_RELAYS} taps already")
+            return
+        relay = self.relays[tid]
         relay.rate, relay.lease_s, relay.expires = rate, lease, now + lease
         self.ctx.send(relay.host, Tap(relay.app, relay.name, rate, lease, tid))
         self._arm(now)
 
     def on_peer(self, src: str, msg: Tap, now: float) -> None:
-        """A relay asks (or asks again) this node to serve a tap."""
+        """A relay asks (or asks again) this node to serve a tap; or the consumer's old host
+        hands one over with the consumer, for the relay named in ``to``."""
+        origin = msg.to or src
         found = self._resolve(msg)
         if isinstance(found, str):
-            self._tell(src, msg.tap, msg, found)
+            self._tell(origin, msg.tap, msg, found)
             return
         dep, edge, rate = found
         dst = dep.app.edges[edge].dst
         if dst not in dep.instances and dst not in dep.awaiting:
-            self._tell(src, msg.tap, msg, MOVED, host=dep.placed.get(dst, ""))
+            self._tell(origin, msg.tap, msg, MOVED, host=dep.placed.get(dst, ""))
             return
-        self._serve(src, msg.tap, dep.app, edge, rate, now + _lease(msg.lease_s), now)
+        self._serve(origin, msg.tap, dep.app, edge, rate, now + _lease(msg.lease_s), now)
+
+    def hand_over(self, app: str, vertex: str, to: str, now: float) -> None:
+        """``vertex`` leaves for ``to`` (its state goes next): the taps of its input edges are
+        asked of ``to`` first, so it serves them from the first event its instance takes there
+        (those that wait for the handover included) and no copy falls between the two hosts.
+        What was kept here goes out now, with ``host``; a client here is relayed to ``to``
+        from now on, a relay elsewhere is told (``moved``) and served by ``to`` already."""
+        for key, tap in list(self.served.items()):
+            dep = self.ctx.apps.get(tap.app)
+            if tap.app != app or dep is None or dep.app.edges[tap.edge].dst != vertex:
+                continue
+            self._flush(tap, now, ended=MOVED if tap.origin else "", host=to)
+            self._unserve(key)
+            lease = max(MIN_LEASE_S, tap.expires - now)
+            if not tap.origin:  # a client of this node: relayed from here from now on
+                tid = self._relay(tap.client, app, tap.edge, tap.name, to)
+                if tid is None:  # (no room: the client's next ask relays it, with a gap)
+                    continue
+                relay = self.relays[tid]
+                relay.rate, relay.lease_s, relay.expires = tap.rate, lease, tap.expires
+                self.ctx.send(to, Tap(app, tap.name, tap.rate, lease, tid))
+            elif tap.origin != to:  # (a relay on ``to`` itself serves it when told moved)
+                self.ctx.send(to, Tap(app, tap.name, tap.rate, lease, tap.client, to=tap.origin))
+        self._arm(now)
 
     def on_events(self, src: str, msg: TapEvents, now: float) -> None:
         """What a host sent for a tap relayed here: on to the client (following a move)."""
@@ -242,6 +264,8 @@ class Taps:
             return
         if msg.ended == MOVED and msg.host and msg.host != src:
             relay.host = msg.host
+            # the old host's last word goes to the client before anything of the new host's
+            self.ctx.reply(relay.client, msgspec.structs.replace(msg, tap=0, ended=""))
             if msg.host == self.ctx.id:  # moved here: served here from now on
                 self._drop_relay(msg.tap)
                 dep = self.ctx.apps.get(relay.app)
@@ -252,8 +276,8 @@ class Taps:
             else:
                 tap = Tap(relay.app, relay.name, relay.rate, relay.lease_s, msg.tap)
                 self.ctx.send(msg.host, tap)
-            msg = msgspec.structs.replace(msg, ended="", node=msg.host)
-        elif msg.ended:
+            return
+        if msg.ended:
             self._drop_relay(msg.tap)
         self.ctx.reply(relay.client, msgspec.structs.replace(msg, tap=0))
 
@@ -336,6 +360,20 @@ class Taps:
             taps.remove(tap)
         if not taps:
             self.watched.pop((tap.app, tap.edge), None)
+
+    def _relay(self, client: int, app: str, edge: int, name: str, host: str) -> int | None:
+        """The id of the relay of ``client``'s tap of ``edge`` (made now, to ``host``), or
+        None when this node relays MAX_RELAYS taps already."""
+        tid = self.relayed.get((client, app, edge))
+        if tid is not None:
+            return tid
+        if len(self.relays) >= MAX_RELAYS:
+            return None
+        self._next_tap += 1
+        tid = self._next_tap
+        self.relays[tid] = Relay(client, app, edge, name, 0.0, MIN_LEASE_S, host, -math.inf)
+        self.relayed[(client, app, edge)] = tid
+        return tid
 
     def _drop_relay(self, tid: int) -> None:
         relay = self.relays.pop(tid, None)

@@ -18,13 +18,15 @@ class Tap(_Msg, tag="tap"):
     output edge) as they reach the edge's consumer, at most ``rate`` a second (0: counts and
     delays only), for ``lease_s``: asked again before then to keep the tap, so a client that
     goes away ends it. From a client to any node (``tap`` 0); that node asks the consumer's
-    host with its own ``tap`` id and relays what comes back."""
+    host with its own ``tap`` id and relays what comes back. A consumer's old host hands the
+    tap to its new one with ``to``: the relay to send the copies to."""
 
     app: str
     edge: str
     rate: float
     lease_s: float
     tap: int = 0
+    to: str = ""
 
 
 class TapEvents(_Msg, tag="tap_events"):
