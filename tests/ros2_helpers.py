@@ -42,6 +42,12 @@ def cdr_string(text: str) -> bytes:
     return bytes(STORE.serialize_cdr(msg, "std_msgs/msg/String"))
 
 
+def decode_string(sample: Any) -> str:
+    """A ``std_msgs/String`` sample's text."""
+    msg = STORE.deserialize_cdr(sample.payload.to_bytes(), "std_msgs/msg/String")
+    return str(msg.data)
+
+
 def attachment(seq: int, gid: bytes) -> bytes:
     return rmwpeers.attachment(seq, time.time_ns(), gid)
 

@@ -10,6 +10,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from zenoh import ext as zenoh_ext
 
 from mso.ros2 import Publisher, Subscriber
 from mso.ros2.bridge import CLOSE_S
@@ -20,6 +21,7 @@ from ros2_helpers import (
     attachment,
     cdr_string,
     chatter_key,
+    decode_string,
     free_port,
     ros_peer,
     router,
@@ -160,6 +162,57 @@ def test_a_full_reliable_keep_all_queue_waits_and_close_never_hangs(net: tuple[s
         t0 = time.monotonic()
         sub.close()
         assert time.monotonic() - t0 < CLOSE_S + 1.0
+
+
+def test_transient_local_gives_a_late_joiner_the_last_samples(net: tuple[str, Any]) -> None:
+    """transient_local as rmw_zenoh serves it (Zenoh's advanced publisher with a cache of
+    ``depth`` and publisher detection; a late subscription asks it for its history): an mso
+    Publisher's last 3 reach a listener that joins after them; an mso Subscriber that joins
+    after a ROS talker's 5 gets its last 3, then what comes next; a volatile one nothing old."""
+    endpoint, peer = net
+    durable = {"durability": "transient_local", "depth": 3}
+    pub = Publisher("chatter", "std_msgs/msg/String", router=endpoint, qos=durable)
+    pub.open()
+    on_time = Listener(peer, chatter_key())
+    try:
+        time.sleep(0.2)  # the route to the listener on time settles
+        for i in range(5):
+            pub(String(data=f"mso {i}"))
+        assert wait_for(lambda: len(on_time.texts()) == 5)  # (they are past the router)
+        got: list[str] = []
+        history = zenoh_ext.HistoryConfig(detect_late_publishers=True, max_samples=3)
+        late = zenoh_ext.declare_advanced_subscriber(
+            peer, chatter_key(), lambda s: got.append(decode_string(s)), history=history
+        )
+        assert wait_for(lambda: len(got) >= 3)
+        time.sleep(0.2)  # (nothing more comes)
+        assert got == ["mso 2", "mso 3", "mso 4"]
+        late.undeclare()
+    finally:
+        pub.close()
+    cache = zenoh_ext.CacheConfig(3)
+    talker = zenoh_ext.declare_advanced_publisher(
+        peer, chatter_key(), cache=cache, publisher_detection=True
+    )
+    for i in range(5):
+        talker.put(cdr_string(f"ros {i}"), attachment=attachment(i + 1, bytes(16)))
+    assert wait_for(lambda: len(on_time.texts()) == 10)
+    sub = Subscriber("chatter", "std_msgs/msg/String", router=endpoint, qos=durable)
+    volatile = Subscriber("chatter", "std_msgs/msg/String", router=endpoint, node="plain")
+    sub.open()
+    volatile.open()
+    try:
+        assert drain(sub, 3) == [String(data=f"ros {i}") for i in (2, 3, 4)]
+        assert wait_for(lambda: sum("/MS/" in t for t in tokens(peer)) == 2)
+        time.sleep(0.2)  # the routes to both settle
+        talker.put(cdr_string("ros 5"), attachment=attachment(6, bytes(16)))
+        assert drain(sub, 1) == [String(data="ros 5")]
+        assert drain(volatile, 1) == [String(data="ros 5")]  # and nothing before it
+        assert volatile.stats()["received"] == 1
+    finally:
+        sub.close()
+        volatile.close()
+        talker.undeclare()
 
 
 def test_an_unreachable_router_fails_open_in_bounded_time() -> None:

@@ -14,6 +14,7 @@ from mso.protocol import messages as m
 from mso.protocol.taps import FLUSH_S, MAX_SERVED, find_edge
 from mso.sim.runner import Simulation
 from runtime_vertices import pipe_app
+from test_failure import PIPE, started, where
 from test_runtime_sim import deploy, line, sink_stats
 
 CLIENT = 7
@@ -164,3 +165,20 @@ def test_a_tap_misses_no_event_when_the_edge_moves(edge: str, asked: str) -> Non
     counts = TapCounts()
     last = [counts.carry(r) for r in got][-1]
     assert (last.seen, last.dropped) == (len(seqs), 0)
+
+
+def test_a_tap_goes_on_after_its_consumers_node_fails() -> None:
+    """The consumer's host dies and the vertex is restored elsewhere: the node relaying the
+    tap learns where from the restore and asks there at the client's next renewal."""
+    sim = started(PIPE)
+    victim = where(sim, "pipe", "mid")
+    n = len(sim.replies)
+    tap = m.Tap("pipe", "src->mid", 20.0, 3.0)
+    keep(sim, "N1", tap, 1.5)
+    sim.kill(victim, convergence_s=0.3)
+    keep(sim, "N1", tap, 5.0)
+    now_at = where(sim, "pipe", "mid")
+    got = taps(sim, n)
+    assert not any(r.ended for r in got), [r.ended for r in got if r.ended]
+    assert now_at != victim and got[-1].node == now_at, (now_at, [r.node for r in got][-3:])
+    assert copies([r for r in got if r.node == now_at]), "no copies from the new host"

@@ -28,10 +28,12 @@ def free_port() -> int:
 
 
 def config(mode: str, listen: str | None = None, connect: str | None = None) -> zenoh.Config:
-    """A Zenoh config: ``mode`` (router, peer, client), multicast scouting off."""
+    """A Zenoh config: ``mode`` (router, peer, client), multicast scouting off, timestamps on
+    (as rmw_zenoh's: its transient_local publishers need them)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("timestamping/enabled", "true")
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps([listen]))
     if connect:

@@ -202,7 +202,10 @@ class Taps:
         dst = dep.app.edges[edge].dst
         host = dep.placed.get(dst, "")
         lease = _lease(msg.lease_s)
+        known = self.relayed.get((client, dep.app.name, edge))
         if host == self.ctx.id:
+            if known is not None:  # (restored here: the relay has nobody to ask)
+                self._drop_relay(known)
             self._serve("", client, dep.app, edge, rate, now + lease, now)
             return
         if not host:
@@ -213,6 +216,7 @@ class Taps:
             self._end_client(client, msg, f"{self.ctx.id} relays {MAX_RELAYS} taps already")
             return
         relay = self.relays[tid]
+        relay.host = host  # where the consumer runs now, as this node knows (a restore moves it)
         relay.rate, relay.lease_s, relay.expires = rate, lease, now + lease
         self.ctx.send(relay.host, Tap(relay.app, relay.name, rate, lease, tid))
         self._arm(now)

@@ -47,6 +47,7 @@ def _session(router: str) -> Any:
     conf.insert_json5("connect/timeout_ms", str(CONNECT_MS))
     conf.insert_json5("connect/exit_on_failure", "true")
     conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("timestamping/enabled", "true")  # as rmw_zenoh's (transient_local needs it)
     return zenoh.open(conf)
 
 
@@ -127,6 +128,9 @@ class _Endpoint:
         self.distro = distro
         self.router = router
         self.qos = wire.qos_from(qos)
+        # samples kept for a late joiner (transient_local): rmw_zenoh's 42 for a depth of 0
+        keep_last = self.qos.history == "keep_last"
+        self.history = (self.qos.depth or wire.RMW_DEFAULT_DEPTH) if keep_last else KEEP_ALL_BOUND
         role = "sub" if self.kind == "MS" else "pub"
         self.node = node or f"mso_{role}_{self.topic.strip('/').replace('/', '_')}"
         self.namespace = namespace
@@ -183,7 +187,15 @@ class Subscriber(_Endpoint):
 
     def open(self) -> None:
         self._announce()
-        self.subscriber = self.session.declare_subscriber(self.key, self._on_sample)
+        if self.qos.durability == "transient_local":  # a late joiner: the last samples first
+            from zenoh import ext
+
+            history = ext.HistoryConfig(detect_late_publishers=True, max_samples=self.history)
+            self.subscriber = ext.declare_advanced_subscriber(
+                self.session, self.key, self._on_sample, history=history
+            )
+        else:
+            self.subscriber = self.session.declare_subscriber(self.key, self._on_sample)
 
     def _on_sample(self, sample: Any) -> None:
         """On a Zenoh thread: decode, then queue (drop the oldest, or wait, when full). The
@@ -263,13 +275,20 @@ class Publisher(_Endpoint):
 
         self._announce()
         reliable = self.qos.reliability == "reliable"
-        self.publisher = self.session.declare_publisher(
-            self.key,
-            reliability=zenoh.Reliability.RELIABLE if reliable else zenoh.Reliability.BEST_EFFORT,
-            congestion_control=(
-                zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
-            ),
-        )
+        Rel, Cc = zenoh.Reliability, zenoh.CongestionControl
+        options: dict[str, Any] = {
+            "reliability": Rel.RELIABLE if reliable else Rel.BEST_EFFORT,
+            "congestion_control": Cc.BLOCK if reliable else Cc.DROP,
+        }
+        if self.qos.durability == "transient_local":  # keeps its last samples for late joiners
+            from zenoh import ext
+
+            self.publisher = ext.declare_advanced_publisher(
+                self.session, self.key, cache=ext.CacheConfig(self.history),
+                publisher_detection=True, **options,
+            )  # fmt: skip
+        else:
+            self.publisher = self.session.declare_publisher(self.key, **options)
 
     def __call__(self, event: Any) -> None:
         if self.publisher is None:

@@ -31,7 +31,7 @@ DISTROS = ("humble", "iron", "jazzy", "kilted", "rolling")
 
 # rmw_zenoh leaves out of the QoS key whatever equals its own defaults (qos.cpp): reliable,
 # volatile, keep_last with depth 42; deadline, lifespan and liveliness are never set here.
-_RMW_DEFAULT_DEPTH = 42
+RMW_DEFAULT_DEPTH = 42
 _RELIABILITY = {"reliable": 1, "best_effort": 2}
 _DURABILITY = {"transient_local": 1, "volatile": 2}
 _HISTORY = {"keep_last": 1, "keep_all": 2}
@@ -61,7 +61,7 @@ class QoS(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         rel = "" if self.reliability == "reliable" else str(_RELIABILITY[self.reliability])
         dur = "" if self.durability == "volatile" else str(_DURABILITY[self.durability])
         hist = "" if self.history == "keep_last" else str(_HISTORY[self.history])
-        depth = "" if self.depth == _RMW_DEFAULT_DEPTH else str(self.depth)
+        depth = "" if self.depth == RMW_DEFAULT_DEPTH else str(self.depth)
         return f"{rel}:{dur}:{hist},{depth}:,:,:,,"
 
 
