@@ -48,13 +48,14 @@ class EmulatorRoutes(TableRoutes):
         try:
             routes: dict[str, Route] = {d: (str(r[0]), int(r[1])) for d, r in state.routes.items()}
             neighbours = {n: neighbour_of(s) for n, s in state.neighbours.items()}
+            links = {(str(a), str(b)) for a, b, *_ in state.links}
         except (ValueError, TypeError, IndexError, OverflowError):  # (int(inf) overflows)
             self.malformed += 1  # not what the emulator sends: the table stays as it was
             return False
         self.version = state.version
         self._given = routes
-        if state.links:
-            self._links = {(str(a), str(b)) for a, b, *_ in state.links}
+        if links:
+            self._links = links
         self.update(neighbours, self._around(routes))
         return True
 

@@ -10,8 +10,10 @@ callback only decodes the sample and puts it in a bounded queue; the vertex is a
 source that mso's executor iterates in the vertex's worker thread, never on the control plane.
 With ``history: keep_last`` a full queue drops its oldest message (``superseded``, counted);
 with ``keep_all`` and ``reliable`` the callback waits for room (``waited``), which pushes back
-through Zenoh's reliable transport. ``close()`` wakes any waiting callback and undeclares on a
-helper thread it waits for at most :data:`CLOSE_S`, so a stuck Zenoh never holds the node.
+through Zenoh's reliable transport. ``durability: transient_local`` uses Zenoh's advanced
+publisher (a cache of the last ``depth``) and subscriber (history asked of late publishers), as
+rmw_zenoh does. ``close()`` wakes any waiting callback and undeclares on a helper thread it
+waits for at most :data:`CLOSE_S`, so a stuck Zenoh never holds the node.
 """
 
 from __future__ import annotations

@@ -559,6 +559,11 @@ class Relocator:
         if dep is None or msg.vertex not in dep.awaiting:
             self.ctx.refusal("handover_unexpected")
             return
+        shapes = [len(v) >= 2 for v in msg.inputs.values()]
+        shapes += [len(v) == 4 for v in msg.outputs.values()]
+        if not all(shapes):  # (no genuine node sends one: a frame fuzzed or forged)
+            self.ctx.refusal("handover_malformed")
+            return
         if not self._complete(msg):  # (parts overtaken on the way: wait for them)
             self._early[msg.rid] = (src, msg)
             return
