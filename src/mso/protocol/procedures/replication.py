@@ -390,9 +390,10 @@ class Replicator:
             dep = self.ctx.apps.get(rep.app)
             if dep is not None and ev.node in rep.replicas:
                 self._replace(dep, rep, ev.node)
-        for dep in self.ctx.apps.values():
-            for vid, restoring in dep.restoring.items():
-                if ev.node in restoring.fetching:
+        for dep in list(self.ctx.apps.values()):
+            # a replacement prepared here may end restores (the handlers change the table)
+            for vid, restoring in list(dep.restoring.items()):
+                if dep.restoring.get(vid) is restoring and ev.node in restoring.fetching:
                     restoring.fetching.discard(ev.node)
                     if not restoring.fetching:
                         self.ctx.publish(ReplacementPrepared(dep.app.name, vid))
