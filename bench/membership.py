@@ -59,9 +59,12 @@ def grid(side: int) -> Network:
 
 
 def app(src: str, sink: str) -> str:
+    """src -> a -> b -> sink; ``planner: paper`` puts a and b on interior nodes, one of which
+    the failure study kills (the bytes split would keep them on the source's node)."""
     ev = "output: mso.sim.vertices:Ev"
     return f"""
 name: bench
+planner: paper
 vertices:
   src: {{code: mso.sim.vertices:Source, params: {{name: src}}, rate: {RATE}, pinned: {src}, {ev}}}
   a: {{code: mso.sim.vertices:Pass, cost: 2, {ev}}}

@@ -15,9 +15,12 @@ from mso.benchmarks.common import SequenceCheck
 def pipe_app(rate: int) -> str:
     """src (N1) -> mid -> sink (N4), the app most runtime tests deploy. ``mid`` declares its
     output format, so the sink decodes ``Num`` events and really checks their order (without
-    it the sink got plain dicts and counted every event as an error)."""
+    it the sink got plain dicts and counted every event as an error). ``planner: paper``: the
+    tests kill, cut or move the relay ``mid`` runs on, and the paper's split puts it on one
+    (the default ``bytes`` split keeps a 64-byte pipe whole on the source's node)."""
     return f"""
 name: pipe
+planner: paper
 vertices:
   src: {{code: runtime_vertices:CountingSource, pinned: N1, rate: {rate},
         output: runtime_vertices:Num}}

@@ -39,6 +39,8 @@ def test_plan_json_section33() -> None:
         str(EXAMPLES / "section33.yaml"),
         "--scenario",
         str(EXAMPLES / "line4.yaml"),
+        "--planner",
+        "paper",
         "--json",
     )
     assert code == 0
@@ -229,11 +231,13 @@ def test_plan_and_compare_name_the_planner() -> None:
     doc = json.loads(out)
     assert doc["split"] == "bytes" and doc["placement"]["downscale"] == "R1"
     code, out, _ = run("plan", app, "--scenario", scen, "--json")
-    assert json.loads(out)["split"] == "paper"
+    assert json.loads(out)["split"] == "bytes"  # the default
+    code, out, _ = run("plan", app, "--scenario", scen, "--planner", "paper", "--json")
+    assert json.loads(out)["split"] == "paper" and json.loads(out)["placement"]["downscale"] == "R2"
     code, out, _ = run("compare", app, "--scenario", scen, "--json")
     assert code == 0
     rows = json.loads(out)
-    assert rows["algorithm1"] == rows["algorithm1:paper"]
+    assert rows["algorithm1"] == rows["algorithm1:bytes"]
     assert rows["algorithm1:bytes"]["energy"] < rows["algorithm1:paper"]["energy"] / 2
     # the optimum respects capacity: the camera robot is not loaded beyond its CPU
     assert rows["optimal:energy"]["energy"] <= rows["algorithm1:bytes"]["energy"] + 1e-12

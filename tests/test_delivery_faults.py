@@ -15,10 +15,11 @@ from mso.sim.runner import Simulation
 
 
 def chain_app(run: str, src: str, sink: str) -> str:
-    """src -> p -> sink, p free to be placed and restored."""
+    """src -> p -> sink, p free to be placed and restored: on the relay between them by the
+    paper's split (``planner: paper``; the bytes split keeps a 64-byte pipe on the source)."""
     ev = "output: mso.sim.vertices:Ev"
     return (
-        "name: t\nvertices:\n"
+        "name: t\nplanner: paper\nvertices:\n"
         f"  src: {{code: mso.sim.vertices:Source, params: {{name: src}}, rate: 10, pinned: {src},"
         f" {ev}}}\n"
         f"  p: {{code: mso.sim.vertices:Pass, cost: 1, {ev}}}\n"

@@ -9,7 +9,15 @@ from typing import Any
 
 import pytest
 
-from mso.examples.convoy.demo import APP_FILE, SCENARIO_FILE, CpuWatts, _story, kind_of
+from mso.examples.convoy.demo import (
+    APP_FILE,
+    PLANNER,
+    SCENARIO_FILE,
+    CpuWatts,
+    _story,
+    kind_of,
+)
+from mso.model.appfile import with_planner
 from mso.model.network import Network
 from mso.node.moves import MoveLog
 from mso.protocol.events import Happened
@@ -26,7 +34,8 @@ def report() -> dict[str, Any]:
         for n in net.nodes.values()
     ]
     scenario = dataclasses.replace(scenario, network=Network(nodes, list(net.links.values())))
-    return simulate(scenario, APP_FILE.read_text(), str(APP_FILE), duration=56.0)
+    document = with_planner(APP_FILE.read_text(), PLANNER, file=str(APP_FILE))  # as the demo
+    return simulate(scenario, document, str(APP_FILE), duration=56.0)
 
 
 def test_the_demo_line_relocates_remaps_and_recovers_losing_nothing(

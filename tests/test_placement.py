@@ -44,11 +44,11 @@ def section33(cost: float = 1.0) -> App:
     return app.validate()
 
 
-# -- the paper's example --------------------------------------------------------------------
+# -- the paper's example: the paper's split (planner: paper; the default is bytes) ---------
 
 
 def test_section33_example() -> None:
-    p = plan(section33(), line())
+    p = plan(section33(), line(), planner="paper")
     assert [c.name for c in p.chains] == ["A-B-C-D", "D-F", "E-D"]
     pl = p.placement
     assert pl["A"] == "N1" and pl["F"] == "N4"
@@ -69,8 +69,8 @@ def test_section33_example() -> None:
 def test_section33_from_example_files() -> None:
     app = load_app(EXAMPLES / "section33.yaml")
     net = load_scenario(EXAMPLES / "line4.yaml").network
-    assert plan(app, net) == plan(section33(), line())
-    doc = plan(app, net).to_json()
+    assert plan(app, net, planner="paper") == plan(section33(), line(), planner="paper")
+    doc = plan(app, net, planner="paper").to_json()
     assert doc["chains"] == [["A", "B", "C", "D"], ["D", "F"], ["E", "D"]]
     assert doc["order"] == [0, 2, 1]
     assert doc["placement"]["D"] == "N3"
@@ -80,19 +80,19 @@ def test_section33_from_example_files() -> None:
 def test_section33_fast_node_takes_more() -> None:
     # N2 three times as fast: N1-N2 already hold 4/6 of the capacity, so A-B-C-D gets
     # N1-N2 only, and N2 (capacity 3 of 4 in that prefix) takes everything after A.
-    p = plan(section33(), line((1, 3, 1, 1)))
+    p = plan(section33(), line((1, 3, 1, 1)), planner="paper")
     assert [p.placement[v] for v in "ABCDEF"] == ["N1", "N2", "N2", "N2", "N1", "N4"]
     # Cheaper downstream work leaves more of the route to the chain.
     app = section33()
     app.vertices["F"].cost = 0.0
-    p = plan(app.validate(), line())
+    p = plan(app.validate(), line(), planner="paper")
     # fraction 4/5 -> 4 nodes; 4 units over 4 nodes: B, C, D at 1.5, 2.5, 3.5.
     assert [p.placement[v] for v in "BCD"] == ["N2", "N3", "N4"]
 
 
 def test_fig2_on_line4() -> None:
     app = load_app(EXAMPLES / "fig2.yaml")
-    p = plan(app, line())
+    p = plan(app, line(), planner="paper")
     # A-B-C-D as in §3.3 (target E on N4, D-E after it); F-G has 2 of 6 units on the way to
     # E (D-E and G-D after it): 2 nodes, G on N2; G-H-I runs N2 -> N4 with H in the middle.
     assert p.placement == {

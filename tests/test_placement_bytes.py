@@ -235,7 +235,7 @@ def test_a_fork_is_not_pulled_by_bytes_a_later_vertex_reduces() -> None:
     # stays by its 100-byte input and x carries the 10 bytes instead.
     app = fork_app(5000)
     lay = Layout(app, "N1", "bytes")
-    flow = lay.bottleneck("N4", ["f", "x", "y", "t1"])
+    flow = lay.bottleneck("N4")
     assert flow["x"] == 10 and flow["f"] == 10 and flow["y"] == 0 and flow["t1"] == math.inf
     p = plan(app, line(), planner="bytes").placement
     assert p["f"] == "N1" and p["x"] == "N1" and p["y"] == "N1"

@@ -10,8 +10,11 @@ from mso.protocol import messages as m
 from mso.sim.runner import Simulation
 from test_runtime_sim import data_frames
 
+# planner: paper: the scenario needs its vertices spread over N2 and N3 (they are moved from
+# there); the default bytes split keeps these 64-byte edges on the sources' node
 APP = """
 name: pipe
+planner: paper
 vertices:
   src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 500,
         output: runtime_vertices:Num}
@@ -104,8 +107,10 @@ def test_refusals_leave_the_overlay_as_it_was(kw: dict[str, str], error: str) ->
     assert {n: dict(c.placement("pipe")) for n, c in sim.cores.items()} == before
 
 
+# planner: paper: the moves below start from the paper's split (left and right apart)
 FORK = """
 name: pipe
+planner: paper
 vertices:
   src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 500,
         output: runtime_vertices:Num}

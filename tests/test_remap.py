@@ -6,8 +6,11 @@ from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.protocol import messages as m
 from mso.sim.runner import Simulation
 
+# planner: paper: the scenario needs the chains spread over the route (it remaps and moves them);
+# the default bytes split keeps the 64-byte edges on the sources' node
 MERGE = """
 name: merge
+planner: paper
 vertices:
   s1: {code: runtime_vertices:CountingSource, pinned: N1, rate: 200, output: runtime_vertices:Num}
   s2: {code: runtime_vertices:CountingSource, pinned: N1, rate: 100, output: runtime_vertices:Num}

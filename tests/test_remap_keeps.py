@@ -11,10 +11,12 @@ from mso.planning.placement import Hop, Layout
 from mso.protocol import messages as m
 from mso.sim.runner import Simulation
 
-# issue 25's camera pipeline, on stand-in code: the paper's split puts downscale on R2, so every
-# 50 KB frame crosses the radio; the rules move it to R1.
+# issue 25's camera pipeline, on stand-in code, with the paper's split (planner: paper): it puts
+# downscale on R2, so every 50 KB frame crosses the radio; the rules move it to R1 (the default
+# bytes split puts it there from the start).
 CAMERA = """
 name: camera
+planner: paper
 vertices:
   camera: {code: runtime_vertices:CountingSource, pinned: R1, rate: 30, cost: 5,
            output: runtime_vertices:Num}

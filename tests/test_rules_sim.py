@@ -178,8 +178,10 @@ def test_a_met_delay_slo_changes_nothing() -> None:
     assert 2.0 < delay < 50.0
 
 
+# planner: paper: the join starts on the relay the paper's split gives it, which the rules shed
 JOINED = """
 name: joined
+planner: paper
 vertices:
   s1: {code: runtime_vertices:CountingSource, pinned: N1, rate: 20, cost: 0.1,
        output: runtime_vertices:Num}
@@ -238,8 +240,10 @@ def test_an_energy_remap_keeps_the_join_off_the_robot_with_the_sensors() -> None
         assert sim.cores["N1"].placement("joined")["join"] == where
 
 
+# planner: paper: work and tail start on the relays, as the paper's split spreads them
 BURST = """
 name: burst
+planner: paper
 vertices:
   src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 50, cost: 0.1,
         output: runtime_vertices:Num}

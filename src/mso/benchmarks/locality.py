@@ -42,11 +42,13 @@ def grid(k: int) -> Network:
 
 def measured_app(k: int) -> str:
     """The measured app: sources two rows apart west of the centre, the sink east of it (code-
-    less vertices: stand-ins that pass events on, all the study needs)."""
+    less vertices: stand-ins that pass events on, all the study needs). ``planner: paper``
+    spreads them over the nodes between, as the committed figures were measured."""
     mid = k // 2
     s1, s2, sink = f"G{mid - 1}_{mid - 2}", f"G{mid + 1}_{mid - 2}", f"G{mid}_{mid + 2}"
     return f"""
 name: {APP}
+planner: paper
 vertices:
   s1: {{pinned: {s1}, rate: 20}}
   s2: {{pinned: {s2}, rate: 20}}
@@ -62,6 +64,7 @@ edges: [[s1, a], [a, j], [s2, b], [b, j], [j, c], [c, sink]]
 def background_app(i: int, src: str, sink: str) -> str:
     return f"""
 name: bg{i}
+planner: paper
 vertices:
   src: {{pinned: {src}, rate: 5}}
   p: {{}}

@@ -12,7 +12,7 @@ import click
 from mso.cli.common import console, no_import, user_errors
 from mso.cliargs import POSITIVE
 
-# algorithm1: the app's planner: key (default paper); paper/bytes: Algorithm 1 with that split
+# algorithm1: the app's planner: key (default bytes); paper/bytes: Algorithm 1 with that split
 PLANNERS = ["algorithm1", "paper", "bytes", "source", "random", "greedy", "optimal"]
 
 

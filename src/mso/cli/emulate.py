@@ -58,7 +58,8 @@ from mso.errors import MsoError
 @click.option(
     "--planner",
     type=click.Choice(["paper", "bytes"]),  # mso.model.app.PLANNERS (not imported: startup)
-    help="How chains are split along their routes (overrides the app's planner:).",
+    help="How chains are split along their routes: bytes (default) or paper (overrides the "
+    "app's planner:).",
 )
 @click.option(
     "--convergence", type=NON_NEGATIVE, default=0.0, show_default=True,

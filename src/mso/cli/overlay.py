@@ -46,7 +46,8 @@ def _app_or_only(overlay: Overlay, app_name: str | None) -> str:
 @click.option(
     "--planner",
     type=click.Choice(["paper", "bytes"]),  # mso.model.app.PLANNERS (not imported: startup)
-    help="How chains are split along their routes (overrides the app's planner:).",
+    help="How chains are split along their routes: bytes (default) or paper (overrides the "
+    "app's planner:).",
 )
 @sign_option
 @overlay_option

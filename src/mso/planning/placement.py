@@ -47,7 +47,7 @@ def cpu_capacity(node: NodeSpec) -> float:
     return node.cpu
 
 
-DEFAULT_PLANNER = "paper"
+DEFAULT_PLANNER = "bytes"
 
 
 # probe(from_node, to_node) -> the hops of the route, both ends included.
@@ -441,9 +441,8 @@ class Layout:
                 node = placed.get(u)
                 if u != verts[-2] and node is not None:
                     tail_placed.append((node, size))  # a merge's other inputs pull it too
-            outs = self.out_bytes[tail]
-            flow = self.bottleneck(target, [w for w, _ in outs]) if target is not None else {}
-            for w, size in outs:
+            flow = self.bottleneck(target) if target is not None else {}
+            for w, size in self.out_bytes[tail]:
                 node = placed.get(w)
                 if node is not None:
                     tail_placed.append((node, size))
@@ -458,32 +457,25 @@ class Layout:
             used[n] = used.get(n, 0.0) + self.load[v]
         return used
 
-    def bottleneck(self, target: str, vertices: Sequence[str]) -> dict[str, float]:
-        """For each of ``vertices``: the bytes per event that must still travel from it to the
+    def bottleneck(self, target: str) -> dict[str, float]:
+        """For every vertex: the bytes per event that must still travel from it to the
         vertices pinned to ``target`` when every later vertex may sit anywhere on the way. A
         path can be cut at its smallest edge, so an edge carries at most what lies beyond it;
-        0 with no path there, infinite at such a vertex. Worked out only below the vertices
-        asked for (a chain's tail is near the end), each vertex once per target, kept."""
-        flow = self._flow.setdefault(target, {})
-        out_bytes, pinned = self.out_bytes, self.pinned
-        for start in vertices:
-            if start in flow:
-                continue
-            stack = [start]
-            while stack:  # post-order: a vertex once every successor has its figure
-                v = stack[-1]
-                if v in flow:
-                    stack.pop()
-                    continue
-                todo = [w for w, _ in out_bytes[v] if w not in flow]
-                if todo:
-                    stack.extend(todo)
-                    continue
-                stack.pop()
+        0 with no path there, infinite at such a vertex. One pass per target, kept (plain
+        loops: twice as fast as generators or a walk from the vertices asked for)."""
+        flow = self._flow.get(target)
+        if flow is None:
+            flow = self._flow[target] = {}
+            out_bytes, pinned, inf = self.out_bytes, self.pinned, math.inf
+            for v in reversed(self.topo):
                 if pinned.get(v) == target:
-                    flow[v] = math.inf
-                else:
-                    flow[v] = sum(min(size, flow[w]) for w, size in out_bytes[v])
+                    flow[v] = inf
+                    continue
+                carried = 0.0
+                for w, size in out_bytes[v]:
+                    beyond = flow[w]
+                    carried += size if size < beyond else beyond
+                flow[v] = carried
         return flow
 
     def walk_energy(
