@@ -111,7 +111,9 @@ def _connected(ids: list[str], pairs: set[tuple[str, str]]) -> bool:
     return len(seen) == len(ids)
 
 
-def _app(rng: random.Random, nodes: list[str], rate: float, run: str) -> tuple[str, dict[str, str]]:
+def _app(
+    rng: random.Random, nodes: list[str], rate: float, run: str, planner: str
+) -> tuple[str, dict[str, str]]:
     shape = rng.choice(("pipeline", "merge", "fork"))
     ev = "output: mso.sim.vertices:Ev"  # typed events: they decode as Ev, not as a mapping
     src = "{code: mso.sim.vertices:Source, params: {name: %s}, rate: %g, pinned: %s, " + ev + "}"
@@ -125,7 +127,7 @@ def _app(rng: random.Random, nodes: list[str], rate: float, run: str) -> tuple[s
         return rng.choice(nodes)
 
     pinned: dict[str, str] = {}
-    lines = ["name: faults", "vertices:"]
+    lines = ["name: faults", f"planner: {planner}", "vertices:"]
 
     def source(v: str) -> None:
         pinned[v] = pick()
@@ -170,7 +172,7 @@ def generate(seed: int, settings: Settings | None = None) -> Schedule:
     rng = random.Random(seed)
     kind, net = _topology(rng)
     ids = list(net.nodes)
-    doc, pinned = _app(rng, ids, cfg.rate, str(seed))
+    doc, pinned = _app(rng, ids, cfg.rate, str(seed), cfg.planner)
     app = loads_app(doc, file=f"faults-{seed}.yaml")
     chains = form_chains(app)
     movable = sorted(
