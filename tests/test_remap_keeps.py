@@ -129,3 +129,27 @@ def test_keep_current_by_hand() -> None:
         c.index, paper, now, short, alive=lambda n: True, others=now, margin=0.1
     )
     assert got == paper and "off the probed route" in why
+
+
+def test_under_the_default_bytes_split_a_global_remap_keeps_a_move_its_plan_barely_beats() -> None:
+    # bytes puts the three camera stages on R1 (23 ms x 30/s fits its CPU) and the tracker on
+    # R2; an operator's move of the tracker to R3 costs its 1.6 KB input one more hop (about
+    # 3 % of the chain's energy, under the rules' margin): "remap the app" leaves it there
+    sim = Simulation(line())
+    sim.request("R1", m.DeployRequest(CAMERA.replace("planner: paper\n", ""), "camera.yaml"))
+    sim.run_until(1.0)
+    reply = sim.replies[-1][2]
+    assert isinstance(reply, m.DeployReply) and reply.ok, reply
+    assert reply.placement == {
+        "camera": "R1", "downscale": "R1", "edges": "R1", "tracker": "R2", "logger": "R5"
+    }  # fmt: skip
+    moved = ask(sim, "R2", m.RelocateRequest("camera", "tracker", target="R3"))
+    assert isinstance(moved, m.RelocateReply) and moved.ok, moved
+    remap = ask(sim, "R3", m.RemapRequest("camera", [], everything=True))
+    assert isinstance(remap, m.RemapReply) and remap.ok, remap.error
+    assert remap.moved == {}
+    # every node running part of the app knows it there (the others look it up when they need
+    # it: placement knowledge is local)
+    members = [c for c in sim.cores.values() if c.instances("camera")]
+    assert members and all(c.placement("camera")["tracker"] == "R3" for c in members)
+    assert "tracker" in sim.cores["R3"].instances("camera")
