@@ -19,12 +19,15 @@ from mso.net.limits import ConnectionCounters, Limits
 from mso.node.core import NodeCore
 from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
+from waits import patience
 
 HOST = "127.0.0.1"
 KEY = overlay_key("k")
-# small pools, so a few dozen attacking connections are many times what the node keeps
+# small pools, so a few dozen attacking connections are many times what the node keeps; the
+# handshake deadline is the machine's: the node, 40 attackers and the client share one loop
+# here, and on a loaded machine a client's handshake took over the second (reset, counted)
 LIMITS = Limits(
-    handshake_s=1.0,
+    handshake_s=patience(1.0),
     sweep_s=0.05,
     max_connections=8,
     max_per_address=4,
