@@ -125,6 +125,7 @@ def app_yaml(first: str, last: str, rate: float) -> str:
     fmt = f"{VERTICES}:Seq"
     return f"""\
 name: {APP}
+planner: paper  # mid on an interior node, the victim (bytes: on the source's node)
 vertices:
   src:  {{code: {VERTICES}:CountingSource, pinned: {first}, rate: {rate:g},
          output: {fmt}}}

@@ -69,6 +69,7 @@ def app_yaml(cpu_s: float, rate: float, limit: int) -> str:
     fmt = f"{VERTICES}:Seq"
     return f"""\
 name: {APP}
+planner: paper  # heavy on N2 (bytes: on the source's node)
 vertices:
   src:   {{code: {VERTICES}:Counting, pinned: N1, rate: {rate:g},
           params: {{limit: {limit}}}, output: {fmt}}}

@@ -410,6 +410,7 @@ def mso_app(name: str, size: int, rate: float, warmup: float, window: float, sin
     fmt = f"{VERTICES}:Probe"
     return f"""\
 name: {name}
+planner: paper  # the relay on N2: two hops, as dora's (bytes: on the source's node)
 vertices:
   src:   {{code: {VERTICES}:ProbeSource, pinned: N1, rate: {rate:g}, params: {{size: {size}}},
           output: {fmt}}}

@@ -59,6 +59,7 @@ MESH_LINKS = [
 V = "mso.benchmarks.vertices.replication"
 COUNTER = f"""
 name: pipe
+planner: paper  # the counter's host (killed) interior (bytes: on the source's node)
 vertices:
   src: {{code: {V}:Source, pinned: N1, rate: RATE, cost: 0.05, output: {V}:Num}}
   counter: {{code: {V}:Counter, cost: 0.5, output: {V}:Num, replicas: REPLICAS}}
