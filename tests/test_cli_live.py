@@ -14,6 +14,7 @@ from click.testing import CliRunner
 
 from mso.cli import main
 from mso.emu.overlays import running_overlays, state_file
+from terminal import ctrl_c_as_in_a_terminal
 from waits import patience
 
 TESTS = Path(__file__).resolve().parent
@@ -65,6 +66,7 @@ def test_emulate_then_drive_it_from_another_terminal(tmp_path: Path) -> None:
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
+        preexec_fn=ctrl_c_as_in_a_terminal,
     )
     try:
         assert emu.stdout is not None

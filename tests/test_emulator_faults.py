@@ -23,6 +23,7 @@ from mso.emu.faultplay import random_sequence
 from mso.errors import MsoError
 from mso.scenario import loads_scenario
 from runtime_vertices import pipe_app
+from terminal import ctrl_c_as_in_a_terminal
 from waits import patience
 
 TESTS = Path(__file__).resolve().parent
@@ -265,7 +266,7 @@ def test_ctrl_c_prints_the_summary_and_stops_every_node(tmp_path: Path) -> None:
     proc = subprocess.Popen(
         [sys.executable, "-m", "mso", "emulate", str(scenario), "--name", "ctrlc"],
         env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        text=True,
+        text=True, preexec_fn=ctrl_c_as_in_a_terminal,
     )  # fmt: skip
     assert proc.stdin is not None and proc.stdout is not None
     try:

@@ -15,6 +15,9 @@ from mso.model.network import Network
 from mso.scenario import load_scenario
 
 SECONDS = 30.0  # virtual, per run: enough for the rules' confirmation and many results
+# the module's fixture runs eight such simulations (about 15 s of CPU): on a 2-core machine
+# at load 20 that took more than the suite's 300 s a test; its own limit is the hang guard
+pytestmark = pytest.mark.timeout(900)
 
 
 @pytest.fixture(scope="module")
