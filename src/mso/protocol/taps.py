@@ -216,7 +216,8 @@ class Taps:
             self._end_client(client, msg, f"{self.ctx.id} relays {MAX_RELAYS} taps already")
             return
         relay = self.relays[tid]
-        relay.host = host  # where the consumer runs now, as this node knows (a restore moves it)
+        if relay.host in self.ctx.failed:  # its node failed: ask where it was restored
+            relay.host = host
         relay.rate, relay.lease_s, relay.expires = rate, lease, now + lease
         self.ctx.send(relay.host, Tap(relay.app, relay.name, rate, lease, tid))
         self._arm(now)
