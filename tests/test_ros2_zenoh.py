@@ -109,6 +109,27 @@ def test_an_mso_publisher_reaches_a_ros_listener(net: tuple[str, Any]) -> None:
     assert {g[3] for g in listener.got} == {pub.gid} and len(pub.gid) == 16
 
 
+def test_a_forwarding_publisher_is_an_operator_that_publishes_and_passes_on(
+    net: tuple[str, Any],
+) -> None:
+    endpoint, peer = net
+    listener = Listener(peer, chatter_key())
+    tee = Publisher("chatter", "std_msgs/msg/String", router=endpoint, forward=True)
+    sink = Publisher("chatter", "std_msgs/msg/String", router=endpoint, node="mso_sink")
+    tee.open()
+    sink.open()
+    try:
+        time.sleep(0.2)  # the routes to the listener settle
+        event = String(data="tee")
+        assert tee(event) is event and sink(event) is None
+        assert wait_for(lambda: listener.texts() == ["tee", "tee"])
+    finally:
+        tee.close()
+        sink.close()
+    with pytest.raises(ValueError, match="forward"):
+        Publisher("chatter", "std_msgs/msg/String", forward="yes")
+
+
 def test_humble_keys_and_another_domain(net: tuple[str, Any]) -> None:
     endpoint, peer = net
     listener = Listener(peer, chatter_key(domain=3, hash_="TypeHashNotSupported"))

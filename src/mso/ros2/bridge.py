@@ -262,12 +262,16 @@ class Subscriber(_Endpoint):
 class Publisher(_Endpoint):
     """A sink: every event it consumes (the type's Struct, or a mapping of its fields) is
     published on a ROS 2 topic as CDR with rmw_zenoh's attachment. Params as
-    :class:`Subscriber`'s."""
+    :class:`Subscriber`'s, and ``forward``: an operator that also passes each event on (a
+    tee into ROS mid-chain; off by default, so a sink does not encode what nobody reads)."""
 
     kind = "MP"
 
-    def __init__(self, topic: str, type: str, **params: Any) -> None:
+    def __init__(self, topic: str, type: str, forward: bool = False, **params: Any) -> None:
         super().__init__(topic, type, **params)
+        if not isinstance(forward, bool):
+            raise ValueError(f"forward: expected true or false, got {forward!r}")
+        self.forward = forward
         self.publisher: Any = None
         self.encoder = CdrBuffer(self.types, type)
         self.seq = 0
@@ -292,13 +296,14 @@ class Publisher(_Endpoint):
         else:
             self.publisher = self.session.declare_publisher(self.key, **options)
 
-    def __call__(self, event: Any) -> None:
+    def __call__(self, event: Any) -> Any:
         if self.publisher is None:
             raise RuntimeError("the publisher is not open")
         payload = self.encoder.encode(self.types.to_ros(self.ros_type, event))
         self.seq += 1
         attachment = wire.Attachment(self.seq, time.time_ns(), self.gid).encode()
         self.publisher.put(payload, attachment=attachment)
+        return event if self.forward else None
 
     def stats(self) -> dict[str, Any]:
         return {"published": self.seq, "key": self.key}
