@@ -13,7 +13,7 @@ Usage: .venv/bin/python bench/faults.py [--seeds 5000] [--first 0] [--jobs N]
                                         [--planner paper|bytes]
 (``--restarts``: daemon restarts too, alone or while cut off; off by default, see
 docs/benchmarks.md. ``--planner``: how the apps' chains are split, the paper's by default as the
-committed runs were; under ``bytes`` seeds 47 and 226 of 300 break, docs/benchmarks.md.)
+committed runs were; under ``bytes`` 4 of seeds 0-1,199 break, docs/benchmarks.md.)
 Writes bench/results/faults.json and faults.md.
 """
 

@@ -182,6 +182,9 @@ BYTES_FIXED = {
 BYTES_KNOWN = {
     47: "an event of s2 (b beside it on N1, m on N5, a line) delivered twice after two partitions",
     226: "four events of s1 delivered twice after a partition, a crash and a relocation",
+    990: "N4, mid-line, crashed and back within 0.54 s amid relocations of a and b to N7: the "
+    "nodes disagree where a runs (N2 or N7) and it runs on neither",
+    1143: "an event of s2 delivered twice after flaps, a partition and a relocation",
 }
 
 

@@ -24,8 +24,8 @@ class Settings:
     # are fixed (docs/benchmarks.md, "Store and forward's invariant and daemon restarts")
     restarts: bool = False
     # how the app's chains are split (``planner:``): the paper's split, as the committed
-    # 5,000-seed runs were; under the default bytes split seeds 47 and 226 deliver an event
-    # twice at the merge after partitions (docs/benchmarks.md, issue 25), not yet fixed
+    # 5,000-seed runs were; under the default bytes split 4 of seeds 0-1,199 break (events
+    # twice at the merge after partitions, a vertex run nowhere: docs/benchmarks.md), not fixed
     planner: str = "paper"
 
 
