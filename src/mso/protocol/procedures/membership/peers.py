@@ -48,6 +48,9 @@ from mso.protocol.procedures.membership.sync import AppSyncing
 from mso.protocol.procedures.remap import Remapper
 
 REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
+# how long a node that runs nothing waits for a node cut off from most of the others to reset
+# (it hears one of them within a REJOIN_EVERY round) before yielding to it
+YIELD_WAIT_S = 1.5
 MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own: its figures ride on one beat
 # of each period (they change no faster)
 REVOCATIONS_TOLD = 16  # the operator's latest undeploys told to each newly reachable node
@@ -102,6 +105,8 @@ class Membership(AppSyncing):
         self._told: dict[str, float] = {}  # failed node heard directly -> when told so
         # the leader, and the routing table (a new one on every change) and failed set it is of
         self._leader_of: tuple[Mapping[str, object], frozenset[str], str] | None = None
+        # cut-off nodes this node (running nothing) waits to see reset: node -> since when
+        self._awaiting: dict[str, float] = {}
 
     def start(self, now: float) -> None:
         self.ctx.set_timer(HeartbeatTick(), now + self.liveness.period_s)
@@ -538,13 +543,46 @@ class Membership(AppSyncing):
         would make the larger side reset for the smaller one; a node that only we missed
         (it stalled, or it alone lost our routes) holds failed just us and a few, and we
         yield to it as before."""
-        if msg.node in self.failed:
+        return msg.node not in self.failed and self._holds_most_failed(msg)
+
+    def _holds_most_failed(self, msg: m.Heartbeat) -> bool:
+        """``msg.node`` holds failed, in the incarnation they run, most of the nodes we reach
+        and hold alive (us among them): it is the one that was cut off, not they."""
+        seen = {n for n in self.ctx.routes if n not in self.failed and n != msg.node}
+        current = self._incarnations
+        held = sum(1 for n in seen if n in msg.failed and msg.failed[n] == current.get(n))
+        held += msg.failed.get(self.ctx.id) == self.incarnation
+        return held > len(seen) + 1 - held
+
+    def _holds_more_failed(self, msg: m.Heartbeat) -> bool:
+        """``msg.node`` holds more of the nodes we reach failed (in the incarnations they run)
+        than we do: it is on the smaller side of a partition that healed."""
+        current = self._incarnations
+        theirs = sum(
+            1
+            for n, inc in msg.failed.items()
+            if (n == self.ctx.id and inc == self.incarnation)
+            or (n in self.ctx.routes and inc == current.get(n))
+        )
+        return theirs > sum(1 for n in self.failed if n in self.ctx.routes)
+
+    def _awaits_its_reset(self, msg: m.Heartbeat, now: float) -> bool:
+        """Whether this node, which runs nothing, should not yield to ``msg.node`` (held
+        failed here, running something) although the tie-break says so: it is on the smaller
+        side of a healed partition and will reset when it hears a node of ours that runs
+        something (our views place work on one), and we take its new incarnation back.
+        Yielding, we would reset, be declared failed by everyone who holds us alive, and drop
+        the replicas we keep, for nothing. At most ``YIELD_WAIT_S``: where no node of ours
+        outranks it, we yield as before."""
+        src = msg.node
+        ours = self._hosts() - self.failed - {src}  # a node of our side our views place work on
+        if self._hosting() > 0 or msg.hosting == 0 or not ours or not self._holds_more_failed(msg):
+            self._awaiting.pop(src, None)
             return False
-        seen = {n for n in self.ctx.routes if n not in self.failed and n != msg.node} | {
-            self.ctx.id
-        }
-        held = sum(1 for n in seen if n in msg.failed)
-        return held > len(seen) - held
+        if len(self._awaiting) >= self.known_bound():
+            self._awaiting.clear()
+        since = self._awaiting.setdefault(src, now)
+        return now - since < YIELD_WAIT_S
 
     def _answer_stale_claim(self, src: str, msg: m.Heartbeat) -> None:
         """``src`` holds an older incarnation of ours failed: our beat tells it we are back."""
@@ -564,6 +602,8 @@ class Membership(AppSyncing):
                 self._restarted_across(src, msg.incarnation)
                 return
             self._rejoin(src, msg.incarnation, now, announce=True)
+        elif self._awaits_its_reset(msg, now):
+            self._tell_held_failed(src, now)
         elif msg.failed.get(self.ctx.id) == self.incarnation and self._outranked_by(msg):
             self._reset(now, src)
         elif self.ctx.id not in msg.failed and msg.hosting > 0 and self._hosting() == 0:
@@ -639,6 +679,7 @@ class Membership(AppSyncing):
         self._suspicions.clear()
         self._vouching.clear()
         self._failed_incarnation.clear()
+        self._awaiting.clear()
         self._gossip.clear()
         self._claims.clear()
         self.incarnation += 1
@@ -664,6 +705,7 @@ class Membership(AppSyncing):
         if node in self.failed:
             self._move(node, PeerEvent.REJOINED)
         self._failed_incarnation.pop(node, None)
+        self._awaiting.pop(node, None)
         self._gossip.drop(node)
         self._claims.drop(node)
         self._incarnations[node] = incarnation
