@@ -7,6 +7,7 @@ import itertools
 
 import pytest
 
+from mso.model.appfile import with_planner
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.node.core import NodeCore
 from mso.protocol import messages as m
@@ -83,7 +84,8 @@ def _grid_run(quiet: bool, monkeypatch: pytest.MonkeyPatch) -> tuple[Simulation,
     sim = Simulation(Network([NodeSpec(i) for i in ids], links), manage=False)
     sim.trace = []
     (src, doc), = pipelines(["N1", "N16"], 1, seed=0, rate=20.0)  # fmt: skip
-    sim.request(src, m.DeployRequest(doc, "app.yaml"))
+    # the paper's split puts p1 on an interior node, the victim (bytes: beside a pinned end)
+    sim.request(src, m.DeployRequest(with_planner(doc, "paper"), "app.yaml"))
     sim.run_until(3.0)
     victim = sim.placement("N1", "app0")["p1"]
     assert victim not in ("N1", "N16")
