@@ -15,7 +15,7 @@ pinned vertices restored.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from typing import Any
 
 import msgspec
@@ -33,6 +33,7 @@ from mso.protocol.events import (
     RoutesChanged,
 )
 from mso.protocol.procedures.deploy import Deployer
+from mso.protocol.procedures.membership import ranks
 from mso.protocol.procedures.membership.claims import (
     INCARNATION_MARGIN,
     MAX_NEWS,
@@ -48,8 +49,9 @@ from mso.protocol.procedures.membership.sync import AppSyncing
 from mso.protocol.procedures.remap import Remapper
 
 REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
-# how long a node that runs nothing waits for a node cut off from most of the others to reset
-# (it hears one of them within a REJOIN_EVERY round) before yielding to it
+# how long a node that runs nothing waits for a node on the smaller side of a healed partition
+# to reset (it hears a node of ours that runs something within a REJOIN_EVERY round) before
+# yielding to it
 YIELD_WAIT_S = 1.5
 MONITOR_PERIOD_S = 1.0  # how often the monitor samples on its own: its figures ride on one beat
 # of each period (they change no faster)
@@ -474,7 +476,7 @@ class Membership(AppSyncing):
         if detector != self.ctx.id:
             self._move(node, PeerEvent.REPORTED_DOWN)
         else:  # our own word: confirmed by the nodes we asked (or nobody left to ask), or
-            # a node cut off that holds most of those we reach failed (``_cut_off``)
+            # a node cut off that holds most of those we reach failed (``ranks.cut_off``)
             self._move(node, PeerEvent.CONFIRMED)
         self._failed_incarnation[node] = claim.incarnation
         self.liveness.forget(node)
@@ -517,10 +519,12 @@ class Membership(AppSyncing):
             if claim.node not in (src, self.ctx.id):  # would be weighed by a NodeDown
                 self.on_node_down(claim.node, claim.detector, now, claim.incarnation, claim.witness)
         if msg.failed.get(self.ctx.id) == self.incarnation:
-            if self._outranked_by(msg) and self._cut_off(msg):  # a healed partition we did
-                self.on_node_down(src, self.ctx.id, now)  # not see: hold it failed too, and the
-                self.ctx.send(src, self.beat())  # rank settles it (it is the smaller side)
-            elif self._outranked_by(msg):
+            view = self._view()
+            if ranks.outranked_by(view, msg) and ranks.cut_off(view, msg):  # a healed
+                self.on_node_down(src, self.ctx.id, now)  # partition we did not see: hold it
+                self.ctx.send(src, self.beat())  # failed too, and the rank settles it (it
+                # is the smaller side)
+            elif ranks.outranked_by(view, msg):
                 self._reset(now, src)
             else:  # it runs nothing and holds us failed: our beat (we run something, and
                 self.ctx.send(src, self.beat())  # hold it alive) makes it yield
@@ -535,36 +539,17 @@ class Membership(AppSyncing):
         self.ctx.refusal("heartbeat_failed_map_over_bound")
         return True
 
-    def _cut_off(self, msg: m.Heartbeat) -> bool:
-        """``msg.node``, which we hold alive, holds us failed, and with us most of the nodes
-        we reach and hold alive: it was cut off from them (a partition that just healed),
-        and we did not declare it because our suspicion of it had not ended yet when it came
-        back into reach (others had: a confirmation takes a round trip). Resetting for it
-        would make the larger side reset for the smaller one; a node that only we missed
-        (it stalled, or it alone lost our routes) holds failed just us and a few, and we
-        yield to it as before."""
-        return msg.node not in self.failed and self._holds_most_failed(msg)
-
-    def _holds_most_failed(self, msg: m.Heartbeat) -> bool:
-        """``msg.node`` holds failed, in the incarnation they run, most of the nodes we reach
-        and hold alive (us among them): it is the one that was cut off, not they."""
-        seen = {n for n in self.ctx.routes if n not in self.failed and n != msg.node}
-        current = self._incarnations
-        held = sum(1 for n in seen if n in msg.failed and msg.failed[n] == current.get(n))
-        held += msg.failed.get(self.ctx.id) == self.incarnation
-        return held > len(seen) + 1 - held
-
-    def _holds_more_failed(self, msg: m.Heartbeat) -> bool:
-        """``msg.node`` holds more of the nodes we reach failed (in the incarnations they run)
-        than we do: it is on the smaller side of a partition that healed."""
-        current = self._incarnations
-        theirs = sum(
-            1
-            for n, inc in msg.failed.items()
-            if (n == self.ctx.id and inc == self.incarnation)
-            or (n in self.ctx.routes and inc == current.get(n))
+    def _view(self) -> ranks.View:
+        """What the tie-break reads of this node (:mod:`.ranks`)."""
+        return ranks.View(
+            self.ctx.id,
+            self.incarnation,
+            self.ctx.routes,
+            frozenset(self.failed),
+            self._incarnations,
+            self._hosting(),
+            self._leader(),
         )
-        return theirs > sum(1 for n in self.failed if n in self.ctx.routes)
 
     def _awaits_its_reset(self, msg: m.Heartbeat, now: float) -> bool:
         """Whether this node, which runs nothing, should not yield to ``msg.node`` (held
@@ -576,7 +561,12 @@ class Membership(AppSyncing):
         outranks it, we yield as before."""
         src = msg.node
         ours = self._hosts() - self.failed - {src}  # a node of our side our views place work on
-        if self._hosting() > 0 or msg.hosting == 0 or not ours or not self._holds_more_failed(msg):
+        if (
+            self._hosting() > 0
+            or msg.hosting == 0
+            or not ours
+            or not ranks.holds_more_failed(self._view(), msg)
+        ):
             self._awaiting.pop(src, None)
             return False
         if len(self._awaiting) >= self.known_bound():
@@ -604,11 +594,13 @@ class Membership(AppSyncing):
             self._rejoin(src, msg.incarnation, now, announce=True)
         elif self._awaits_its_reset(msg, now):
             self._tell_held_failed(src, now)
-        elif msg.failed.get(self.ctx.id) == self.incarnation and self._outranked_by(msg):
+        elif msg.failed.get(self.ctx.id) == self.incarnation and ranks.outranked_by(
+            self._view(), msg
+        ):
             self._reset(now, src)
         elif self.ctx.id not in msg.failed and msg.hosting > 0 and self._hosting() == 0:
             self._reset(now, src)  # it holds us alive and runs something we hold failed: we
-            # run nothing, so we yield (it does not reset for us: see _outranked_by)
+            # run nothing, so we yield (it does not reset for us: see ranks.outranked_by)
         else:
             self._answer_stale_claim(src, msg)
             self._tell_held_failed(src, now)
@@ -632,32 +624,6 @@ class Membership(AppSyncing):
         self._incarnations[src] = incarnation
         self._failed_incarnation[src] = incarnation
         self.ctx.send(src, self.beat())
-
-    def _outranked_by(self, msg: m.Heartbeat) -> bool:
-        """After a partition both sides may hold the other failed. A node that runs nothing
-        yields to one that runs something (it loses nothing by resetting); otherwise the side
-        that counts fewer failed nodes (the larger one), then the one with the lower leader,
-        then the lower-named node, stays and the other resets (two nodes of one side that
-        hold each other failed — not neighbours, each cut off by other failures — would
-        otherwise tie for ever). One-sided (we hold the sender alive), we reset, unless the
-        sender runs nothing and we run something: it yields instead (``_on_failed_heartbeat``;
-        a restarted node that held everyone failed once reset every node it met).
-
-        Only failed nodes this node can reach count (the other side of the partition): a node
-        that really crashed is out of everyone's reach, and the two sides learn of it at
-        different moments; counted, it once made both nodes of a tie reset, and the app was
-        gone from every node."""
-        if msg.node not in self.failed:
-            return not (msg.hosting == 0 and self._hosting() > 0)
-
-        def rank(hosting: int, dead: int, leader: str, node: str) -> tuple[bool, int, str, str]:
-            return (hosting == 0, dead, leader, node)  # the node's own name breaks a tie
-
-        def disputed(dead: Iterable[str]) -> int:
-            return sum(1 for n in dead if n == self.ctx.id or n in self.ctx.routes)
-
-        theirs = rank(msg.hosting, disputed(msg.failed), msg.leader or msg.node, msg.node)
-        return theirs < rank(self._hosting(), disputed(self.failed), self._leader(), self.ctx.id)
 
     def _reset(self, now: float, by: str) -> None:
         """Rejoin as a new incarnation: the others have recovered without this node's

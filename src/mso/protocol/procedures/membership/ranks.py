@@ -1,0 +1,82 @@
+"""Who resets after a partition heals: the tie-break between two nodes that hold each other
+(or one holds the other) failed, read from this node's view and the other's beat alone.
+
+Pure functions of :class:`View` and a :class:`~mso.protocol.messages.Heartbeat`, so the rule
+is whole in one place and each reading can be tested by itself; :mod:`.peers` acts on them
+(reset, wait, tell the other its view).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+from mso.protocol import messages as m
+
+
+@dataclass(frozen=True)
+class View:
+    """What this node's membership holds when it weighs a beat."""
+
+    id: str
+    incarnation: int
+    routes: Mapping[str, object]  # the nodes it reaches
+    failed: frozenset[str]
+    incarnations: Mapping[str, int]  # last incarnation heard of, per node
+    hosting: int  # instances it runs
+    leader: str
+
+
+def outranked_by(view: View, msg: m.Heartbeat) -> bool:
+    """After a partition both sides may hold the other failed. A node that runs nothing
+    yields to one that runs something (it loses nothing by resetting); otherwise the side
+    that counts fewer failed nodes (the larger one), then the one with the lower leader,
+    then the lower-named node, stays and the other resets (two nodes of one side that
+    hold each other failed — not neighbours, each cut off by other failures — would
+    otherwise tie for ever). One-sided (we hold the sender alive), we reset, unless the
+    sender runs nothing and we run something: it yields instead (``on_failed_heartbeat``;
+    a restarted node that held everyone failed once reset every node it met).
+
+    Only failed nodes this node can reach count (the other side of the partition): a node
+    that really crashed is out of everyone's reach, and the two sides learn of it at
+    different moments; counted, it once made both nodes of a tie reset, and the app was
+    gone from every node."""
+    if msg.node not in view.failed:
+        return not (msg.hosting == 0 and view.hosting > 0)
+
+    def rank(hosting: int, dead: int, leader: str, node: str) -> tuple[bool, int, str, str]:
+        return (hosting == 0, dead, leader, node)  # the node's own name breaks a tie
+
+    def disputed(dead: Iterable[str]) -> int:
+        return sum(1 for n in dead if n == view.id or n in view.routes)
+
+    theirs = rank(msg.hosting, disputed(msg.failed), msg.leader or msg.node, msg.node)
+    return theirs < rank(view.hosting, disputed(view.failed), view.leader, view.id)
+
+
+def cut_off(view: View, msg: m.Heartbeat) -> bool:
+    """``msg.node``, which we hold alive, holds us failed, and with us most of the nodes
+    we reach and hold alive: it was cut off from them (a partition that just healed),
+    and we did not declare it because our suspicion of it had not ended yet when it came
+    back into reach (others had: a confirmation takes a round trip). Resetting for it
+    would make the larger side reset for the smaller one; a node that only we missed
+    (it stalled, or it alone lost our routes) holds failed just us and a few, and we
+    yield to it as before. Only entries for the incarnations the nodes run count."""
+    if msg.node in view.failed:
+        return False
+    seen = {n for n in view.routes if n not in view.failed and n != msg.node}
+    held = sum(1 for n in seen if n in msg.failed and msg.failed[n] == view.incarnations.get(n))
+    held += msg.failed.get(view.id) == view.incarnation
+    return held > len(seen) + 1 - held
+
+
+def holds_more_failed(view: View, msg: m.Heartbeat) -> bool:
+    """``msg.node`` holds more of the nodes we reach failed (in the incarnations they run)
+    than we do: it is on the smaller side of a partition that healed."""
+    theirs = sum(
+        1
+        for n, inc in msg.failed.items()
+        if (n == view.id and inc == view.incarnation)
+        or (n in view.routes and inc == view.incarnations.get(n))
+    )
+    return theirs > sum(1 for n in view.failed if n in view.routes)

@@ -1,0 +1,51 @@
+"""The tie-break after a healed partition, read from one node's view and another's beat
+(:mod:`mso.protocol.procedures.membership.ranks`): pure functions, each reading by itself."""
+
+from __future__ import annotations
+
+from mso.protocol import messages as m
+from mso.protocol.procedures.membership.ranks import (
+    View,
+    cut_off,
+    holds_more_failed,
+    outranked_by,
+)
+
+
+def view(failed: set[str], hosting: int = 0, **incs: int) -> View:
+    """N2 on a line N1 - N2 - N3 - N4 - N5, every node reachable."""
+    routes = {n: (n, 1) for n in ("N1", "N3", "N4", "N5")}
+    known = {n: 0 for n in routes} | incs
+    return View("N2", 0, routes, frozenset(failed), known, hosting, "N1")
+
+
+def beat(node: str, failed: dict[str, int], hosting: int = 1) -> m.Heartbeat:
+    return m.Heartbeat(node, 0, failed, node, hosting, None, [])
+
+
+def test_the_node_cut_off_holds_more_failed_than_the_larger_side() -> None:
+    cut = beat("N5", {"N1": 0, "N2": 0, "N3": 0, "N4": 0})
+    assert holds_more_failed(view({"N5"}), cut)
+    assert not holds_more_failed(view({"N5", "N1", "N3"}), beat("N5", {"N2": 0, "N4": 0}))
+
+
+def test_an_older_incarnation_held_failed_is_no_dispute() -> None:
+    """N5 holds N3 and N4 failed in incarnation 0, but both restarted since (1): only its
+    claim on us counts, one against our one, so it is not the smaller side."""
+    stale = beat("N5", {"N2": 0, "N3": 0, "N4": 0})
+    assert not holds_more_failed(view({"N5"}, N3=1, N4=1), stale)
+    assert holds_more_failed(view({"N5"}), stale)
+
+
+def test_a_node_we_hold_alive_that_holds_most_of_ours_failed_was_cut_off() -> None:
+    assert cut_off(view(set()), beat("N5", {"N1": 0, "N2": 0, "N3": 0}))
+    assert not cut_off(view(set()), beat("N5", {"N2": 0}))  # only we missed it: we yield
+    assert not cut_off(view({"N5"}), beat("N5", {"N1": 0, "N2": 0, "N3": 0}))  # two-sided
+
+
+def test_the_larger_side_stays_and_an_empty_node_yields_to_a_busy_one() -> None:
+    small = beat("N5", {"N1": 0, "N2": 0, "N3": 0, "N4": 0})
+    assert not outranked_by(view({"N5"}, hosting=1), small)  # we count one failed, it four
+    assert outranked_by(view({"N5"}, hosting=0), small)  # we run nothing: we would yield
+    assert outranked_by(view(set(), hosting=1), beat("N5", {"N2": 0}))  # one-sided: we reset
+    assert not outranked_by(view(set(), hosting=1), beat("N5", {"N2": 0}, hosting=0))
