@@ -7,6 +7,8 @@
   at a node asked about it).
 - :mod:`.claims` — whom to ask (k members), when another's failure claim is believed
   (corroboration, incarnation bounds), and how claims spread (piggybacked on beats).
+- :mod:`.ranks` — after a partition heals, who resets: the tie-break, read from this node's
+  view and the other's beat.
 - :mod:`.status` — its part of a node's status, as typed records.
 - :mod:`.sync` — app sync for a node that rejoins.
 - :mod:`.peers` — the component: heartbeats, the one failed set, incarnations, reset, rejoin.
