@@ -560,11 +560,10 @@ class Membership(AppSyncing):
         the replicas we keep, for nothing. At most ``YIELD_WAIT_S``: where no node of ours
         outranks it, we yield as before."""
         src = msg.node
-        ours = self._hosts() - self.failed - {src}  # a node of our side our views place work on
         if (
             self._hosting() > 0
             or msg.hosting == 0
-            or not ours
+            or not self._hosts() - self.failed - {src}  # no node of ours our views place work on
             or not ranks.holds_more_failed(self._view(), msg)
         ):
             self._awaiting.pop(src, None)
