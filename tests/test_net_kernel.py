@@ -9,6 +9,7 @@ import os
 import shutil
 import subprocess
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
 
@@ -73,6 +74,80 @@ def test_view_learns_members_from_announcements() -> None:
     view.on_announce(seal_announce(PSK, msg), "10.0.0.2")  # nothing new: no event
     view.on_announce(b"\x00" * 40, "10.0.0.9")
     assert len(seen) == 1 and view.rejected == 1
+
+
+class _Dumps(KernelRoutes):
+    """A view whose table dumps the test hands out one by one (no netlink)."""
+
+    def __init__(self) -> None:
+        super().__init__("A", 7000, PSK)
+        self.dumps: list[asyncio.Future[list[KernelRoute]]] = []
+        self.started = asyncio.Event()
+
+    async def reread(self) -> None:
+        fut: asyncio.Future[list[KernelRoute]] = asyncio.get_running_loop().create_future()
+        self.dumps.append(fut)
+        self.started.set()
+        self.table = await fut
+        self._recompute()
+
+
+def test_a_dump_begun_before_a_withdrawal_never_lands_after_a_later_one() -> None:
+    """Re-reads run one at a time: an event during a dump reads again after it, so the last
+    table the view holds is one read after the last event (else a route babeld withdrew could
+    come back for good: under load a netns test waited 45 s for it)."""
+
+    async def main() -> None:
+        view = _Dumps()
+        view._loop = asyncio.get_running_loop()
+        old = [_r("10.0.0.2/32", "10.0.0.2")]
+        view.book = {"B": ("10.0.0.2", 7000)}
+        view._do_reread()
+        await asyncio.wait_for(view.started.wait(), 5)
+        view.started.clear()
+        view._do_reread()  # the route is withdrawn while the first dump is under way
+        assert len(view.dumps) == 1
+        view.dumps[0].set_result(old)  # the first dump ends, with the old route
+        await asyncio.wait_for(view.started.wait(), 5)  # and the view reads again
+        assert len(view.dumps) == 2 and "B" in view.routes()
+        view.dumps[1].set_result([])
+        await asyncio.wait_for(view.wait_for(lambda v: "B" not in v.routes()), 5)
+        assert view._reading is None and view._reread is None and len(view.dumps) == 2
+
+    asyncio.run(main())
+
+
+def test_lost_route_events_make_the_view_read_the_tables_anew() -> None:
+    """A netlink socket that overflowed (ENOBUFS) raises from ``get``: the view counts it,
+    re-reads the tables, and keeps following events (it used to stop following for good)."""
+    import errno
+
+    from pyroute2.netlink.exceptions import NetlinkError
+
+    async def main() -> None:
+        view = _Dumps()
+        view._loop = asyncio.get_running_loop()
+        calls: list[int] = []
+        idle = asyncio.Event()
+
+        class Events:
+            async def get(self) -> Any:
+                calls.append(1)
+                if len(calls) == 1:
+                    raise NetlinkError(errno.ENOBUFS)
+                idle.set()
+                await asyncio.Event().wait()  # no more events
+                yield None
+
+        view._events = Events()
+        follow = asyncio.create_task(view._follow())
+        await asyncio.wait_for(view.started.wait(), 5)
+        await asyncio.wait_for(idle.wait(), 5)
+        assert view.events_lost == 1 and len(calls) == 2 and len(view.dumps) == 1
+        follow.cancel()
+        view.dumps[0].set_result([])
+
+    asyncio.run(main())
 
 
 def _root_netns_reason() -> str | None:

@@ -212,6 +212,7 @@ def test_mesh_recovers_from_a_killed_relay() -> None:
                 lambda s: all(victim not in s[n]["routes"] for n in survivors if n in s),
                 15,
                 f"babeld withdraws the routes to {victim}",
+                show=lambda s: {n: s[n]["routes"].get(victim) for n in survivors if n in s},
             )
             emitted = status["N1"]["apps"]["pipe"]["vertices"]["src"]["emitted"]
             status = await until(

@@ -39,11 +39,13 @@ async def until(
     ok: Callable[[dict[str, Any]], bool],
     timeout: float,
     what: str,
+    show: Callable[[dict[str, Any]], object] | None = None,
 ) -> dict[str, Any]:
     """Poll ``read()`` (a status) until ``ok`` holds, or fail saying what did not happen by
     the scaled deadline. A status call that gets no answer in time (a node just killed, a link
     just broken, a loaded machine) is polled again until that deadline, and so is a status that
-    lacks what ``ok`` reads (a ``KeyError``: the node or app is not there yet)."""
+    lacks what ``ok`` reads (a ``KeyError``: the node or app is not there yet). A failure prints
+    ``show(last status)`` when given, else the whole status."""
     from mso.client import NodeUnreachable
 
     loop = asyncio.get_running_loop()
@@ -63,7 +65,8 @@ async def until(
         except KeyError:  # a node, app or vertex not in the status yet: not yet
             pass
         if loop.time() > deadline:
-            raise AssertionError(f"{what} within {patience(timeout):g} s; last: {got}")
+            last = got if show is None else _shown(show, got)
+            raise AssertionError(f"{what} within {patience(timeout):g} s; last: {last}")
         await asyncio.sleep(0.1)  # poll period, not synchronisation
 
 
@@ -82,3 +85,12 @@ async def answered(call: Callable[[], Awaitable[T]], timeout: float, what: str) 
             if loop.time() > deadline:
                 raise AssertionError(f"{what} within {patience(timeout):g} s: {exc}") from exc
         await asyncio.sleep(0.05)  # poll period, not synchronisation
+
+
+def _shown(show: Callable[[dict[str, Any]], object], got: dict[str, Any]) -> object:
+    """What a failed wait prints of the last status: the part that tells why (a whole status
+    is cut off in CI's log)."""
+    try:
+        return show(got)
+    except Exception as exc:  # a status without what ``show`` reads: say so, and print it all
+        return f"({exc!r}) {got}"

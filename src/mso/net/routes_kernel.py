@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import hashlib
 import hmac
 import ipaddress
@@ -69,6 +70,12 @@ ANNOUNCE_S = 1.0
 """How often a node announces itself to every address it has a route to."""
 DEBOUNCE_S = 0.02
 """A burst of netlink route events (a daemon installs many routes at once) is one re-read."""
+RETRY_S = 0.5
+"""A dump that failed is tried again this much later."""
+RESYNC_S = 5.0
+"""The tables are re-read at least this often whatever the events say: a burst of route events
+that overflowed the netlink socket's buffer (ENOBUFS: the events are gone) or a dump that failed
+leaves the view stale this long at most, not until the next route change."""
 MAX_DATAGRAM = 60_000
 TAG_BYTES = 16
 MAX_HOPS = 64
@@ -226,6 +233,9 @@ class KernelRoutes(TableRoutes):
         self._ipr: Any = None
         self._events: Any = None
         self._reread: asyncio.TimerHandle | None = None
+        self._reading: asyncio.Future[None] | None = None  # the dump under way
+        self._stale = False  # an event came during that dump: read again after it
+        self.events_lost = 0  # times the netlink socket overflowed (ENOBUFS)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._announce_soon = False
 
@@ -267,6 +277,7 @@ class KernelRoutes(TableRoutes):
         self._tasks = [
             asyncio.create_task(self._follow(), name=f"kernel-routes-{self.node_id}"),
             asyncio.create_task(self._announce_loop(), name=f"announce-{self.node_id}"),
+            asyncio.create_task(self._resync_loop(), name=f"kernel-resync-{self.node_id}"),
         ]
 
     async def close(self) -> None:
@@ -277,6 +288,8 @@ class KernelRoutes(TableRoutes):
                 await t
         if self._reread is not None:
             self._reread.cancel()
+        if self._reading is not None:
+            self._reading.cancel()
         if self._udp is not None:
             self._udp.close()
         for ipr in (self._ipr, self._events):
@@ -300,22 +313,56 @@ class KernelRoutes(TableRoutes):
             self.announce()  # a new destination hears of us at once
 
     async def _follow(self) -> None:
+        """Re-read after every route or rule event. A burst the socket's buffer could not hold
+        (a loaded machine, a daemon re-routing many destinations) makes ``get`` raise ENOBUFS:
+        events were lost, so the tables are read anew and the events followed on."""
         while True:
-            got = False
-            async for _msg in self._events.get():
-                got = True
+            try:
+                got = False
+                async for _msg in self._events.get():
+                    got = True
+                    self._schedule_reread()
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # pyroute2's NetlinkError carries the errno as ``code``
                 self._schedule_reread()
+                if getattr(exc, "code", None) != errno.ENOBUFS:
+                    log.warning("route events stopped (%s): re-reading every %g s", exc, RESYNC_S)
+                    return
+                self.events_lost += 1
+                log.info("route events lost (ENOBUFS): the tables are read anew")
+                continue
             if not got:  # the socket closed under us: nothing more will come
                 return
 
-    def _schedule_reread(self) -> None:
+    async def _resync_loop(self) -> None:
+        while True:
+            await asyncio.sleep(RESYNC_S)  # a period, not a synchronisation
+            self._schedule_reread()
+
+    def _schedule_reread(self, delay: float = DEBOUNCE_S) -> None:
         if self._reread is None and self._loop is not None:
-            self._reread = self._loop.call_later(DEBOUNCE_S, self._do_reread)
+            self._reread = self._loop.call_later(delay, self._do_reread)
 
     def _do_reread(self) -> None:
+        """One dump at a time: two under way could end in either order, and a dump begun
+        before a route was withdrawn that ended last would put the route back for good."""
         self._reread = None
-        task = asyncio.ensure_future(self.reread())
-        task.add_done_callback(_log_failure)
+        if self._reading is not None:
+            self._stale = True
+            return
+        self._reading = asyncio.ensure_future(self.reread())
+        self._reading.add_done_callback(self._read_done)
+
+    def _read_done(self, task: asyncio.Future[None]) -> None:
+        self._reading = None
+        if task.cancelled():
+            return
+        failed = task.exception() is not None
+        _log_failure(task)
+        if self._stale or failed:  # events came meanwhile, or the dump failed: read again
+            self._stale = False
+            self._schedule_reread(RETRY_S if failed else DEBOUNCE_S)
 
     # -- membership -----------------------------------------------------------------------
     def targets(self) -> set[str]:
