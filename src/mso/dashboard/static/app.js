@@ -4,7 +4,8 @@
 "use strict";
 
 const SVG = "http://www.w3.org/2000/svg";
-const W = 800, H = 420, PAD = 60;
+const W = 800, PAD = 60;
+let H = 420;  // the drawing's height in the width's units: the panel's own shape (drawTopology)
 let view = null;
 
 function el(tag, attrs, ...children) {
@@ -87,7 +88,9 @@ function spread(pos) {
   return pos;
 }
 
-const MAX_LABELS = 4;  // vertex names under a robot; the rest as "+N more" (all in its title)
+// vertex names under a robot, as many as the panel's height gives room for (at least 4); the
+// rest as "+N more" (all in its title)
+let MAX_LABELS = 4;
 
 // the path events take from node a to node b: a's next hop toward b, then that node's, ...
 // (the relays a chain's events cross); a straight line when the routes do not say
@@ -106,6 +109,12 @@ function route(routes, a, b, pos) {
 function drawTopology(v) {
   const svg = document.getElementById("topology");
   svg.replaceChildren();
+  // the panel's shape decides the drawing's: a line of robots in a tall panel gets its chains
+  // spread apart and every vertex named, not a thin strip above an empty box
+  const box = svg.getBoundingClientRect();
+  const aspect = box.width > 0 && box.height > 0 ? Math.min(1.2, Math.max(0.25, box.height / box.width)) : 0.4;
+  H = W * aspect;
+  MAX_LABELS = Math.max(4, Math.floor((H / 2 - 60) / 13));
   const pos = spread(layout(v.nodes, v.links));
   const moved = new Set(v.apps.flatMap((app) => Object.keys(app.moved || {})));
   for (const [a, b] of v.links) {
@@ -120,8 +129,9 @@ function drawTopology(v) {
     for (const n of c.nodes) if (n && pos[n] && hosts[hosts.length - 1] !== n) hosts.push(n);
     const hops = hosts.length ? [hosts[0]] : [];
     for (let i = 1; i < hosts.length; i++) hops.push(...route(v.routes, hosts[i - 1], hosts[i], pos).slice(1));
-    // the chains side by side, centred on the links, 5 px apart (a bundle, not one thick line)
-    const off = (k++ - (all - 1) / 2) * Math.min(5, 60 / Math.max(all, 1));
+    // the chains side by side, centred on the links, 4-10 px apart as the height allows (apart
+    // enough to tell one from another; within half the robots' least gap of their robots)
+    const off = (k++ - (all - 1) / 2) * Math.max(4, Math.min(10, (H * 0.3) / Math.max(all, 1)));
     if (hops.length > 1) {
       const pts = hops.map((n) => `${pos[n][0] + off},${pos[n][1] + off}`).join(" ");
       svg.append(el("svg:polyline", { points: pts, fill: "none", stroke: c.colour, "stroke-width": 3, "stroke-opacity": 0.8, "stroke-linejoin": "round", "data-chain": `${app.name}/${c.index}` }, el("svg:title", { text: `${app.name} [${c.index}] ${c.name}: ${hops.join(" → ")}` })));
@@ -162,8 +172,11 @@ function drawTopology(v) {
     x0 = Math.min(x0, p[0] - 70); x1 = Math.max(x1, p[0] + 70);
     y0 = Math.min(y0, p[1] - 48); y1 = Math.max(y1, p[1] + 52 + Math.min(names.length, MAX_LABELS) * 13);
   }
-  // the drawing's own extent: no empty band above and below a line of robots
-  if (x1 > x0) svg.setAttribute("viewBox", `${x0} ${y0} ${x1 - x0} ${Math.max(y1 - y0, 160)}`);
+  // the drawing's own extent, in the panel's shape (a line of robots is centred in it)
+  if (x1 > x0) {
+    const bw = x1 - x0, bh = Math.max(y1 - y0, bw * aspect, 160);
+    svg.setAttribute("viewBox", `${x0} ${(y0 + y1 - bh) / 2} ${bw} ${bh}`);
+  }
   const legend = document.getElementById("legend");
   legend.replaceChildren(...v.apps.flatMap((app) => app.chains.map((c) => {
     const sw = el("span", { cls: "swatch" }); sw.style.background = c.colour;
@@ -304,6 +317,7 @@ async function post(path, body) {
   } catch (e) { out.textContent = `failed: ${e}`; out.className = "bad"; }
 }
 
+window.addEventListener("resize", () => view && drawTopology(view));  // the drawing follows the panel's shape
 document.getElementById("app").addEventListener("change", () => view && drawControls(view));
 document.getElementById("relocate-vertex").addEventListener("change", () => view && drawControls(view));
 document.getElementById("relocate-form").addEventListener("submit", (ev) => {
