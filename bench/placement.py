@@ -40,8 +40,14 @@ from mso.model.app import App
 from mso.model.appfile import load_app
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
 from mso.planning import baselines
-from mso.planning.objectives import end_to_end_hops, energy_per_event, route_tables
-from mso.planning.placement import plan, vertex_loads, vertex_rates
+from mso.planning.objectives import (
+    busiest_cpu,
+    busiest_link,
+    end_to_end_hops,
+    energy_per_event,
+    route_tables,
+)
+from mso.planning.placement import plan
 from mso.scenario import load_scenario
 
 HERE = Path(__file__).resolve().parent
@@ -105,14 +111,6 @@ def random_app(rng: random.Random, net: Network, n_ops: int | None = None) -> Ap
     return app.validate(resolve_code=False)
 
 
-def peak_load(app: App, net: Network, placement: dict[str, str]) -> float:
-    """The busiest node's load as a share of its CPU (events at their rates; 1 is full)."""
-    loads, used = vertex_loads(app), dict.fromkeys(net.nodes, 0.0)
-    for v, n in placement.items():
-        used[n] += loads[v]
-    return max(used[n] / (1000.0 * net.nodes[n].cpu) for n in used)
-
-
 def score(app: App, net: Network) -> dict[str, Any]:
     t = route_tables(net)
     out: dict[str, Any] = {}
@@ -121,7 +119,7 @@ def score(app: App, net: Network) -> dict[str, Any]:
         out[name] = {
             "energy_mj": energy_per_event(app, net, pl, tables=t) * 1e3,
             "hops": end_to_end_hops(app, net, pl, tables=t),
-            "peak_load": peak_load(app, net, pl),
+            "peak_load": busiest_cpu(app, net, pl),
         }
     try:
         opt = baselines.optimal(app, net, "energy", time_limit=60.0)
@@ -146,7 +144,6 @@ def slow_link_case() -> dict[str, Any]:
         list(shaped.nodes.values()),
         [dataclasses.replace(lk, bandwidth_mbps=None) for lk in shaped.links.values()],
     )
-    rates = vertex_rates(app)
     placements = {
         "paper": plan(app, shaped, planner="paper").placement,
         "bytes, energy alone (no rates probed)": plan(app, unshaped, planner="bytes").placement,
@@ -155,20 +152,17 @@ def slow_link_case() -> dict[str, Any]:
     }
     out: dict[str, Any] = {}
     for name, pl in placements.items():
-        load: dict[tuple[str, str], float] = {}
         air_ms = 0.0
         for e in app.edges:
             route = shaped.route(pl[e.src], pl[e.dst]) or []
             for a, b in itertools.pairwise(route):
                 bw = shaped.link(a, b).bandwidth_mbps  # type: ignore[union-attr]
                 if bw:
-                    key = (a, b)
-                    load[key] = load.get(key, 0.0) + (e.size or 0) * rates[e.src] * 8 / (bw * 1e6)
                     air_ms += (e.size or 0) * 8 / (bw * 1e6) * 1e3
         out[name] = {
             "downscale": pl["downscale"],
             "energy_mj": energy_per_event(app, shaped, pl) * 1e3,
-            "slow_link_load": max(load.values(), default=0.0),
+            "slow_link_load": busiest_link(app, shaped, pl),
             "air_ms_per_event": air_ms,
         }
     return out

@@ -4,6 +4,7 @@ in the central plan."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -18,7 +19,6 @@ from mso.planning.placement import network_probe, plan, probed_hops
 from mso.protocol import messages as m
 from mso.scenario import load_scenario
 from mso.sim.runner import Simulation
-
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples"
 
@@ -122,3 +122,31 @@ def test_a_deployment_probes_the_rates_and_reaches_the_plan() -> None:
         assert replies[-1].placement["downscale"] == downscale
         probes = [r for r in seen if isinstance(r, m.ProbeReply)]
         assert any(r.rates == [rate or 0.0, 0.0] for r in probes)
+
+
+def test_compare_says_which_placements_cannot_run() -> None:
+    # the busiest CPU and, where links have rates, the busiest link: a share over 1 cannot run
+    from click.testing import CliRunner
+
+    from mso.cli import main
+
+    def rows(app: str, scenario: str) -> dict[str, dict[str, float]]:
+        args = ["compare", str(EXAMPLES / app), "--scenario", str(EXAMPLES / scenario), "--json"]
+        r = CliRunner().invoke(main, args)
+        assert r.exit_code == 0, r.output
+        out: dict[str, dict[str, float]] = json.loads(r.output)
+        return out
+
+    slow = rows("camera-slow.yaml", "slow-link.yaml")
+    assert slow["algorithm1"]["link_share"] == pytest.approx(0.04)  # 80 kb/s of 2 Mb/s
+    assert slow["optimal:energy"]["link_share"] == pytest.approx(2.0)  # 4 Mb/s of 2
+    assert slow["optimal:energy"]["energy"] < slow["algorithm1"]["energy"]
+    camera = rows("camera.yaml", "camera-line.yaml")
+    assert camera["source"]["cpu_share"] == pytest.approx(1.14)  # 38 ms at 30 Hz on one CPU
+    assert camera["optimal:energy"]["cpu_share"] <= 1.0
+    assert camera["algorithm1"]["link_share"] == 0.0  # no link has a rate
+    r = CliRunner().invoke(
+        main, ["compare", str(EXAMPLES / "camera-slow.yaml"), "--scenario",
+               str(EXAMPLES / "slow-link.yaml")],
+    )  # fmt: skip
+    assert "busiest link" in r.output and "200% over" in r.output

@@ -37,6 +37,7 @@ from mso.model.network import Network
 from mso.planning.bytesplit import Hop as Hop  # re-exported: what a probe collects
 from mso.planning.bytesplit import Traffic, assign_bytes, compute_uj
 from mso.planning.objectives import edge_bytes
+from mso.planning.objectives import vertex_rates as vertex_rates
 from mso.planning.probes import Capacity as Capacity
 from mso.planning.probes import Probe as Probe
 from mso.planning.probes import cpu_capacity as cpu_capacity
@@ -121,20 +122,6 @@ def vertex_loads(
     ``topo``/``pred``: the app's topological order and predecessors, if the caller has them."""
     rate = vertex_rates(app, topo, pred)
     return {v: rate[v] * float(app.vertices[v].cost) for v in app.vertices}
-
-
-def vertex_rates(
-    app: App,
-    topo: Sequence[str] | None = None,
-    pred: Mapping[str, Sequence[str]] | None = None,
-) -> dict[str, float]:
-    """Each vertex's events per second, as :func:`vertex_loads` counts them."""
-    pred = pred if pred is not None else app.predecessors()
-    rate: dict[str, float] = {}
-    for v in topo if topo is not None else app.topological_order():
-        vert = app.vertices[v]
-        rate[v] = sum(rate[u] for u in pred[v]) if pred[v] else float(vert.rate or 1.0)
-    return rate
 
 
 class _Graph:
