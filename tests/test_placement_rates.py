@@ -4,6 +4,7 @@ in the central plan."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -147,6 +148,30 @@ def test_compare_says_which_placements_cannot_run() -> None:
     assert camera["algorithm1"]["link_share"] == 0.0  # no link has a rate
     r = CliRunner().invoke(
         main, ["compare", str(EXAMPLES / "camera-slow.yaml"), "--scenario",
-               str(EXAMPLES / "slow-link.yaml")],
+               str(EXAMPLES / "slow-link.yaml")], env={"COLUMNS": "120"},
     )  # fmt: skip
     assert "busiest link" in r.output and "200% over" in r.output
+
+
+def test_a_remap_does_not_keep_an_edge_on_a_link_too_slow_for_it() -> None:
+    # issue 25's camera at 30 Hz: downscale's 12,500 B out are 3 Mb/s; over a 2 Mb/s R1-R2 link
+    # the current placement (edges on R2) cannot be kept, however little the new plan saves
+    from mso.model.appfile import loads_app
+    from mso.planning.placement import Layout
+    from test_remap_keeps import CAMERA, walk
+
+    lay = Layout(loads_app(CAMERA, resolve_code=False), "R1", "paper")
+    (c,) = lay.chains
+    now = {"camera": "R1", "downscale": "R1", "edges": "R2", "tracker": "R3", "logger": "R5"}
+    new = {**now, "edges": "R1", "tracker": "R2"}  # 1,600 B at 30/s: 384 kb/s over R1-R2
+
+    def keep(route: list[Hop]) -> tuple[dict[str, str], str]:
+        return lay.keep_current(
+            c.index, new, now, route, alive=lambda n: True, others=now, margin=0.5
+        )
+
+    fast = walk([f"R{i}" for i in range(1, 6)])
+    assert keep(fast)[0] == now  # saves 20%, under the margin: kept
+    slow = [fast[0], dataclasses.replace(fast[1], rate_mbps=2.0), *fast[2:]]
+    assert lay.overloads_link(c.index, now, slow) and not lay.overloads_link(c.index, new, slow)
+    assert keep(slow) == (new, "a link it uses cannot carry its edge at the link's rate")

@@ -80,7 +80,7 @@ def carry_prefix(hops: Sequence[Hop]) -> list[float]:
     return acc
 
 
-def _carries(hop: Hop, bits_per_s: float) -> bool:
+def carries(hop: Hop, bits_per_s: float) -> bool:
     """Whether the link into ``hop`` can carry an edge of ``bits_per_s`` (unknown rate: yes)."""
     return not hop.rate_mbps or bits_per_s <= hop.rate_mbps * 1e6 * LINK_SHARE + 1e-9
 
@@ -129,7 +129,7 @@ def assign_bytes(
     # slow[i][p]: the link into position p cannot carry the edge into vertex i (i == k: out)
     slow = (
         [
-            [p > 0 and not _carries(h, s * e * 8) for p, h in enumerate(hops)]
+            [p > 0 and not carries(h, s * e * 8) for p, h in enumerate(hops)]
             for s, e in zip(sizes, ev, strict=True)
         ]
         if any(h.rate_mbps for h in hops)

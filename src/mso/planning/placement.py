@@ -35,7 +35,7 @@ from mso.model.chains import Chain, chain_dependencies, chain_order, form_chains
 from mso.model.gcpause import paused_gc
 from mso.model.network import Network
 from mso.planning.bytesplit import Hop as Hop  # re-exported: what a probe collects
-from mso.planning.bytesplit import Traffic, assign_bytes, compute_uj
+from mso.planning.bytesplit import Traffic, assign_bytes, carries, carry_prefix, compute_uj
 from mso.planning.objectives import edge_bytes
 from mso.planning.objectives import vertex_rates as vertex_rates
 from mso.planning.probes import Capacity as Capacity
@@ -434,12 +434,11 @@ class Layout:
     ) -> float | None:
         """µJ per event of one chain placed as ``assign`` along ``walk`` (its probed routes,
         end to end): each vertex's CPU energy on its node, each edge's bytes times the tx+rx
-        µJ per byte between its ends along the walk (the bytes planner's own objective).
-        None if a vertex's node is not on the walk (it cannot be judged from these probes)."""
+        µJ per byte between its ends along the walk, and its time on the air at the links'
+        rates (the bytes planner's own objective, :func:`carry_prefix`). None if a vertex's
+        node is not on the walk (it cannot be judged from these probes)."""
         at: dict[str, int] = {}
-        acc = [0.0]
-        for x, y in itertools.pairwise(walk):
-            acc.append(acc[-1] + x.tx_uj_per_byte + y.rx_uj_per_byte)
+        acc = carry_prefix(walk)
         for p, h in enumerate(walk):
             at.setdefault(h.node, p)
         verts = self.chains[chain].vertices
@@ -452,6 +451,22 @@ class Layout:
             size = self.edge_bytes.get((a, b), 0.0)
             total += size * abs(acc[at[assign[a]]] - acc[at[assign[b]]])
         return total
+
+    def overloads_link(self, chain: int, assign: Mapping[str, str], walk: Sequence[Hop]) -> bool:
+        """Whether an edge of the chain placed as ``assign`` crosses a link of ``walk`` whose
+        rate cannot carry it (:data:`LINK_SHARE` of it), as the bytes split never plans."""
+        at: dict[str, int] = {}
+        for p, h in enumerate(walk):
+            at.setdefault(h.node, p)
+        for a, b in itertools.pairwise(self.chains[chain].vertices):
+            pa, pb = at.get(assign.get(a, "")), at.get(assign.get(b, ""))
+            if pa is None or pb is None:
+                continue
+            bits = self.edge_bytes.get((a, b), 0.0) * self.rates[a] * 8
+            lo, hi = min(pa, pb), max(pa, pb)
+            if any(not carries(walk[p], bits) for p in range(lo + 1, hi + 1)):
+                return True
+        return False
 
     def keep_current(
         self,
@@ -481,6 +496,8 @@ class Layout:
             load[n] = load.get(n, 0.0) + self.load[v]
         if any(n in caps and load[n] > 1000.0 * caps[n] + 1e-9 for n in set(kept.values())):
             return dict(new), "a node it runs on would be over capacity"
+        if self.overloads_link(chain, kept, walk):
+            return dict(new), "a link it uses cannot carry its edge at the link's rate"
         e_new, e_now = self.walk_energy(chain, new, walk), self.walk_energy(chain, kept, walk)
         if e_new is None or e_now is None:
             return dict(new), "its current nodes are off the probed route"
