@@ -122,4 +122,5 @@ def test_a_beat_with_no_news_taken_quietly_changes_nothing(
         assert core.failed == other.failed
         assert core.placement("app0") == other.placement("app0")
         assert core.membership.liveness.last_heard == other.membership.liveness.last_heard
+        assert core.membership.heard_of() == other.membership.heard_of()  # hellos taken quietly
         assert core.failures == other.failures and core.rejoins == other.rejoins

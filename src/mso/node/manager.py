@@ -229,7 +229,9 @@ class Manager:
 
     def _chains(self, dep: AppState) -> list[ChainView]:
         core = self.core
-        out = []
+        out: list[ChainView] = []
+        if core.id not in dep.placed.values():  # (every node holds every app: most run none
+            return out  # of it, and a chain scan per app per tick was 4% at 1,000 nodes)
         for c in dep.layout.chains:
             nodes = tuple(dep.placed[v] for v in c.vertices)
             if core.id not in nodes:

@@ -27,6 +27,7 @@ QUIET_S = 1.5  # a gap this long without control messages ends an episode
 # bound on the control messages kept for tallies (a few tens of MB): beyond it the oldest go,
 # and ``forgotten`` says how many, so a tally over them is known to be short
 MAX_KEPT = 2_000_000
+_KINDS: dict[type, tuple[str, bool]] = {}  # message type -> (its name, a control message)
 
 
 @dataclass(frozen=True)
@@ -64,10 +65,15 @@ class Census:
     forgotten: int = 0  # control messages dropped from ``control`` past MAX_KEPT
 
     def note(self, at: float, src: str, dst: str, msg: m.Message, route: list[str]) -> None:
-        name = type(msg).__name__
+        kind = _KINDS.get(type(msg))
+        if kind is None:  # a message's kind is its type's: looked up once per type
+            name = type(msg).__name__
+            control = m.kind_of(msg) in (m.CONTROL, m.MARKER) and name not in PERIODIC
+            kind = _KINDS[type(msg)] = (name, control)
+        name, control = kind
         self.by_type[name] += 1
         self.hops_by_type[name] += len(route) - 1
-        if m.kind_of(msg) in (m.CONTROL, m.MARKER) and name not in PERIODIC:
+        if control:
             if len(self.control) >= MAX_KEPT:
                 drop = MAX_KEPT // 4
                 del self.control[:drop]

@@ -28,7 +28,8 @@ from mso.sim.executor import SimExecutor
 # a heap entry: (at, n, kind, node, payload); ``n`` is unique, so tuples never compare beyond
 # it (a dataclass with order=True cost 12-15% of a 400-node run in comparisons alone)
 _Item = tuple[float, int, str, str, Any]
-_Path = tuple[list[str], float, tuple[tuple[int, float], ...]]  # route, delay, lossy hops
+# route, delay, lossy hops, and the byte counters of each hop's sender and receiver
+_Path = tuple[list[str], float, tuple[tuple[int, float], ...], list[list[int]], list[list[int]]]
 MAX_PATHS = 200_000  # paths kept between two link changes, at most
 HAPPENED_KEPT = 4096
 
@@ -64,7 +65,8 @@ class Simulation:
         self.model_time = model_time
         self._policy, self._rules = policy, rules
         self.wire = wire  # pass every message through the real encoding, as the wire does
-        self._last_decoded: tuple[m.Message, m.Message] | None = None  # (sent, as received)
+        # (sent, its envelope as received, its body as received)
+        self._last_decoded: tuple[m.Message, m.Envelope, m.Message] | None = None
         self._paths: dict[tuple[str, str], _Path | None] = {}
         self._paths_version = -1
         self._hops: dict[tuple[str, str], tuple[float, float]] = {}  # (a, b) -> delay, loss
@@ -87,7 +89,6 @@ class Simulation:
                 rules=rules,
                 capabilities=spec.capabilities,
                 spill=self.spills[n],
-                link_rates=self._link_rates(n),
             )
             for n, spec in network.nodes.items()
         }
@@ -118,15 +119,6 @@ class Simulation:
         self.update_routes()
         for n, core in self.cores.items():
             self.apply(n, core.start(self.now))
-
-    def _link_rates(self, node: str) -> Callable[[str], float | None]:
-        """What ``node`` knows of its links' rates: the scenario's ``bandwidth_mbps`` now."""
-
-        def rate(peer: str) -> float | None:
-            link = self.network.link(node, peer)
-            return None if link is None else link.bandwidth_mbps
-
-        return rate
 
     def _executor(self, node: str) -> SimExecutor:
         ex: SimExecutor
@@ -228,14 +220,19 @@ class Simulation:
             delay = 0.0
             lossy = []
             hops = self._hops
-            for i, ab in enumerate(itertools.pairwise(route)):
-                hop = hops.get(ab)
+            a = route[0]
+            for i in range(1, len(route)):
+                b = route[i]
+                hop = hops.get((a, b))
                 if hop is None:
-                    hop = hops[ab] = self._hop(*ab)
+                    hop = hops[(a, b)] = self._hop(a, b)
                 delay += hop[0]
                 if hop[1] > 0:
-                    lossy.append((i + 1, hop[1]))
-            path = (route, delay, tuple(lossy))
+                    lossy.append((i, hop[1]))
+                a = b
+            count = self.bytes  # each hop's counters, looked up once per path, not per send
+            senders = [count[x] for x in route[:-1]]
+            path = (route, delay, tuple(lossy), senders, [count[x] for x in route[1:]])
         self._paths[key] = path
         return path
 
@@ -252,7 +249,7 @@ class Simulation:
         path = self._path(node, dst)
         if path is None or (node, dst) in self.lost_routes:
             return False
-        route, delay, lossy = path
+        route, delay, lossy, senders, receivers = path
         self.census.note(self.now, node, dst, msg, route)
         for tap in self.taps:
             tap(node, dst, msg)
@@ -263,19 +260,27 @@ class Simulation:
                 if self.rng.random() < loss:
                     self.lost += 1  # dropped at this hop: retransmission recovers it
                     route = route[: end + 1]
+                    senders, receivers = senders[:end], receivers[:end]
                     delay = -1.0
                     break
         if self.wire:  # what a real node would receive: encoded, then decoded
-            frame = m.wrap(node, dst, msg)
             last = self._last_decoded
             if last is not None and last[0] is msg:  # one message to many (a beat to every
-                msg = last[1]  # neighbour): decoded once, its receivers share it as without
-            else:  # the wire; decoding it per receiver held N² copies of N-entry beats
-                decoded = m.decode(m.unwrap(frame).body)
-                self._last_decoded, msg = (msg, decoded), decoded
-            for a, b in itertools.pairwise(route):  # every hop sends and receives it
-                self.bytes[a][0] += len(frame)
-                self.bytes[b][1] += len(frame)
+                # neighbour): encoded and decoded once, its receivers share it as without
+                # the wire (decoding it per receiver held N² copies of N-entry beats); each
+                # frame is its own envelope around the one body
+                _, env, msg = last
+                frame = m.rewrap(m.Envelope(node, dst, env.ttl, env.kind, env.body))
+            else:
+                frame = m.wrap(node, dst, msg)
+                env = m.unwrap(frame)
+                decoded = m.decode(env.body)
+                self._last_decoded, msg = (msg, env, decoded), decoded
+            size = len(frame)
+            for c in senders:  # every hop sends and receives it
+                c[0] += size
+            for c in receivers:
+                c[1] += size
         if delay >= 0:
             self._push(self.now + delay, "msg", dst, (node, msg))
         return True
@@ -344,7 +349,6 @@ class Simulation:
             incarnation=old.incarnation + 1,
             capabilities=spec.capabilities,
             spill=self.spills[node],
-            link_rates=self._link_rates(node),
         )
         self.executors[node] = self._executor(node)  # the old instances went with the process
         self._watch(node, core)
