@@ -15,12 +15,18 @@ failing, in the simulator, with remaps that start from the current placement and
 that replan (the old way): which vertices moved against the placement before, and the energy
 per event after.
 
+A slow link: a camera's 4 Mb/s frames, a slow CPU beside them and a 2 Mb/s first link, planned
+with and without the probed link rates: where ``downscale`` goes, the energy, the slow link's
+load and the time an event spends on the air.
+
 Usage: .venv/bin/python bench/placement.py [--random 50] [--seed 1]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import itertools
 import json
 import math
 import random
@@ -34,8 +40,14 @@ from mso.model.app import App
 from mso.model.appfile import load_app
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
 from mso.planning import baselines
-from mso.planning.objectives import end_to_end_hops, energy_per_event, route_tables
-from mso.planning.placement import plan, vertex_loads
+from mso.planning.objectives import (
+    busiest_cpu,
+    busiest_link,
+    end_to_end_hops,
+    energy_per_event,
+    route_tables,
+)
+from mso.planning.placement import plan
 from mso.scenario import load_scenario
 
 HERE = Path(__file__).resolve().parent
@@ -99,14 +111,6 @@ def random_app(rng: random.Random, net: Network, n_ops: int | None = None) -> Ap
     return app.validate(resolve_code=False)
 
 
-def peak_load(app: App, net: Network, placement: dict[str, str]) -> float:
-    """The busiest node's load as a share of its CPU (events at their rates; 1 is full)."""
-    loads, used = vertex_loads(app), dict.fromkeys(net.nodes, 0.0)
-    for v, n in placement.items():
-        used[n] += loads[v]
-    return max(used[n] / (1000.0 * net.nodes[n].cpu) for n in used)
-
-
 def score(app: App, net: Network) -> dict[str, Any]:
     t = route_tables(net)
     out: dict[str, Any] = {}
@@ -115,7 +119,7 @@ def score(app: App, net: Network) -> dict[str, Any]:
         out[name] = {
             "energy_mj": energy_per_event(app, net, pl, tables=t) * 1e3,
             "hops": end_to_end_hops(app, net, pl, tables=t),
-            "peak_load": peak_load(app, net, pl),
+            "peak_load": busiest_cpu(app, net, pl),
         }
     try:
         opt = baselines.optimal(app, net, "energy", time_limit=60.0)
@@ -125,6 +129,42 @@ def score(app: App, net: Network) -> dict[str, Any]:
         }
     except Exception as exc:
         out["ilp"] = {"error": str(exc)}
+    return out
+
+
+def slow_link_case() -> dict[str, Any]:
+    """A link too slow for an edge energy alone would put on it: a 10 Hz camera's 50 KB frames
+    (4 Mb/s) on R1, whose CPU is slow (cpu 0.1: downscaling there costs 200 mJ per event
+    against 170 mJ for carrying the frame to R2 and downscaling there), and a 2 Mb/s R1-R2
+    link. The bytes planner with the probed rates, the same planner with no rates known
+    (energy alone), the paper's split and the ILP optimum of energy (which knows no rates)."""
+    app = load_app(EXAMPLES / "camera-slow.yaml", resolve_code=False)
+    shaped = load_scenario(EXAMPLES / "slow-link.yaml").network
+    unshaped = Network(
+        list(shaped.nodes.values()),
+        [dataclasses.replace(lk, bandwidth_mbps=None) for lk in shaped.links.values()],
+    )
+    placements = {
+        "paper": plan(app, shaped, planner="paper").placement,
+        "bytes, energy alone (no rates probed)": plan(app, unshaped, planner="bytes").placement,
+        "bytes, energy and link rates": plan(app, shaped, planner="bytes").placement,
+        "ILP optimum of energy (no rates)": baselines.optimal(app, shaped, "energy"),
+    }
+    out: dict[str, Any] = {}
+    for name, pl in placements.items():
+        air_ms = 0.0
+        for e in app.edges:
+            route = shaped.route(pl[e.src], pl[e.dst]) or []
+            for a, b in itertools.pairwise(route):
+                bw = shaped.link(a, b).bandwidth_mbps  # type: ignore[union-attr]
+                if bw:
+                    air_ms += (e.size or 0) * 8 / (bw * 1e6) * 1e3
+        out[name] = {
+            "downscale": pl["downscale"],
+            "energy_mj": energy_per_event(app, shaped, pl) * 1e3,
+            "slow_link_load": busiest_link(app, shaped, pl),
+            "air_ms_per_event": air_ms,
+        }
     return out
 
 
@@ -273,6 +313,7 @@ def main() -> None:
     }
     timing = planning_time(args.seed)
     remaps = after_remaps()
+    slow = slow_link_case()
     result = {
         "src": src_digest(),
         "seed": args.seed,
@@ -281,6 +322,7 @@ def main() -> None:
         "summary": summary,
         "planning_time": timing,
         "after_remaps": remaps,
+        "slow_link": slow,
     }
     out_dir = HERE / "results"
     out_dir.mkdir(exist_ok=True)
@@ -339,6 +381,17 @@ def main() -> None:
                 f"| {name}{lost}, remap {label} | {', '.join(x['changed']) or 'none'} "
                 f"| {x['energy_mj_after']:.1f} |"
             )
+    lines += [
+        "",
+        "| slow link: 10 Hz 50 KB frames, R1 cpu 0.1, R1-R2 at 2 Mb/s | downscale on "
+        "| mJ/event | R1-R2 load (of its rate) | ms on the air per event |",
+        "|---|---|---|---|---|",
+    ]
+    for name, r in slow.items():
+        lines.append(
+            f"| {name} | {r['downscale']} | {r['energy_mj']:.1f} | {r['slow_link_load']:.0%} "
+            f"| {r['air_ms_per_event']:.1f} |"
+        )
     md = "\n".join(lines) + "\n"
     (out_dir / "placement.md").write_text(md)
     print(md)

@@ -38,10 +38,18 @@ class Num(msgspec.Struct, frozen=True):
 
 
 class CountingSource:
-    def __init__(self, size: int = 0) -> None:
+    """Numbers its events. ``stall_at``: the call for that event takes ``stall_s`` (a slow
+    camera frame), so the events that came due meanwhile leave in one batch after it."""
+
+    def __init__(self, size: int = 0, stall_at: int = -1, stall_s: float = 0.0) -> None:
         self.pad = b"x" * size
+        self.stall_at, self.stall_s = stall_at, stall_s
 
     def __call__(self, seq: int, now: float) -> Num:
+        if seq == self.stall_at:
+            import time
+
+            time.sleep(self.stall_s)  # the vertex's own work, not the test waiting
         return Num(seq=seq, pad=self.pad)
 
 

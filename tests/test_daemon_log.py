@@ -5,6 +5,7 @@ file that holds every option, the rule settings included."""
 from __future__ import annotations
 
 import logging
+import math
 import os
 import signal
 import socket
@@ -13,6 +14,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -157,3 +159,26 @@ def test_mso_node_logs_start_deploy_a_move_and_its_stop_on_sigterm(tmp_path: Pat
     assert [ln for ln in lines if " event=" in ln][-1] == stop, text
     assert "event=stop reason=SIGTERM" in stop and "relocation:1" in stop, text
     assert codes == [0, 0]
+
+
+@pytest.mark.usefixtures("keep_allowlist")
+def test_a_device_says_its_link_rate_in_its_config(tmp_path: Path) -> None:
+    # configured, not measured: the routing view's shape of a link (the emulator's) wins
+    from mso.net.base import LinkShape, Neighbour
+    from mso.node.core import NodeCore
+    from mso.node.driver import NodeDriver
+
+    cfg = tmp_path / "n1.yaml"
+    cfg.write_text("id: N1\nlink_mbps: 6.5\n")
+    assert settle(NodeFlags(config_file=cfg)).link_mbps == 6.5
+    assert settle(NodeFlags(config_file=cfg, link_mbps=2.0)).link_mbps == 2.0  # the flag wins
+    assert settle(NodeFlags(node_id="N1")).link_mbps is None
+    cfg.write_text("id: N1\nlink_mbps: fast\n")
+    with pytest.raises(MsoError, match="link_mbps: expected a number > 0"):
+        settle(NodeFlags(config_file=cfg))
+    shaped = {"N2": Neighbour("h", 1, LinkShape(11.0)), "N3": Neighbour("h", 2)}
+    driver = SimpleNamespace(view=SimpleNamespace(neighbours=lambda: shaped), link_mbps=6.5)
+    rate = NodeDriver._link_rate
+    assert [rate(driver, n) for n in ("N2", "N3", "N9")] == [11.0, 6.5, 6.5]  # type: ignore[arg-type]
+    core = NodeCore("N1", link_rates=lambda n: {"N2": 11.0, "N3": math.nan}.get(n))
+    assert [core.link_rate(n) for n in ("N2", "N3", "N4")] == [11.0, None, None]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -253,6 +254,18 @@ def system_chromium() -> Path:
     return CHROMIUM
 
 
+# heights on the page: the topology panel, its svg, and what is drawn in it (robots with their
+# labels, chains), as laid out
+FILL_JS = """() => {
+  const svg = document.getElementById("topology");
+  const drawn = [...svg.querySelectorAll("g.node, polyline")].map((e) => e.getBoundingClientRect());
+  const top = Math.min(...drawn.map((r) => r.top));
+  const bottom = Math.max(...drawn.map((r) => r.bottom));
+  return { panel: document.getElementById("topology-panel").getBoundingClientRect().height,
+           svg: svg.getBoundingClientRect().height, drawn: bottom - top };
+}"""
+
+
 @pytest.mark.slow
 def test_dashboard_in_a_real_browser(live: LiveDashboard) -> None:
     """Headless Chromium loads the page, sees every node and chain, relocates a vertex with
@@ -305,8 +318,8 @@ def test_dashboard_in_a_real_browser(live: LiveDashboard) -> None:
                     tuple(map(float, p.split(",")))
                     for p in (lines.nth(i).get_attribute("points") or "").split()
                 ]
-                at = [
-                    next(n for n, c in centres.items() if abs(c[0] - x) + abs(c[1] - y) < 40)
+                at = [  # robots are at least 130 apart: the one within 65 of a point is its
+                    next(n for n, c in centres.items() if math.dist(c, (x, y)) < 65)
                     for x, y in points
                 ]
                 assert all(tuple(sorted(p)) in links for p in itertools.pairwise(at)), at
@@ -337,6 +350,11 @@ def test_dashboard_in_a_real_browser(live: LiveDashboard) -> None:
                 for panel in ("#topology-panel", "#timeline-panel", "#controls-panel"):
                     box = page.locator(panel).bounding_box()
                     assert box is not None and box["y"] + 60 < h and box["x"] < w, (w, panel, box)
+                # and the drawing fills its panel: the svg most of the panel's height, the
+                # robots, labels and chains most of the svg's (it was a strip over an empty box)
+                fill = page.evaluate(FILL_JS)
+                assert fill["svg"] > 0.6 * fill["panel"], (w, fill)
+                assert fill["drawn"] > 0.45 * fill["svg"], (w, fill)
             page.screenshot(path=str(ARTEFACTS / "dashboard.png"), full_page=True)
         finally:
             browser.close()

@@ -95,7 +95,7 @@ CRASHY = """
 name: {name}
 vertices:
   src: {{code: runtime_vertices:CountingSource, pinned: N1, rate: 400,
-        output: runtime_vertices:Num}}
+        params: {{stall_at: {stall}, stall_s: 0.1}}, output: runtime_vertices:Num}}
   mid: {{code: runtime_vertices:ExitOn, isolation: process, pinned: N2,
         params: {{seq: {seq}, once: "{once}"}}, output: runtime_vertices:Num}}
   sink: {{code: runtime_vertices:Recorder, pinned: N2}}
@@ -111,7 +111,10 @@ def test_a_crashed_process_vertex_is_restored_in_place_and_loses_nothing(
     failed) and a fresh child takes over: the sink gets every event once, in order.
     ``poison`` exits on event 300 every time, so each replay crashes it again: after
     MAX_RESTARTS restores it stays crashed, its chain is reported parked with the reason,
-    and the sink has had exactly the events before it (the rest is held upstream)."""
+    and the sink has had exactly the events before it (the rest is held upstream). The
+    source stalls 0.1 s just before each fatal event, so that event reaches ``mid`` in one
+    batch with those before it (as a loaded machine batches them): they still reach the sink,
+    because a replay after a crash is fed one event at a time."""
     from mso.emu.controller import Emulator
     from mso.protocol.procedures.instance import MAX_RESTARTS
     from mso.scenario import loads_scenario
@@ -124,7 +127,7 @@ def test_a_crashed_process_vertex_is_restored_in_place_and_loses_nothing(
         await emu.start()
         try:
             for name, seq, flag in (("ok", 800, str(once)), ("poison", 300, "")):
-                app = CRASHY.format(name=name, seq=seq, once=flag)
+                app = CRASHY.format(name=name, seq=seq, once=flag, stall=seq - 4)
                 reply = await emu.deploy(app, f"{name}.yaml", "N1")
                 assert reply.ok, reply.error
 

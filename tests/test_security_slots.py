@@ -10,6 +10,9 @@ handshakes) makes room (:mod:`mso.net.admission`).
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import sys
+from pathlib import Path
 from typing import Any
 
 from mso.client import Client, overlay_key
@@ -21,11 +24,12 @@ from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
 from waits import patience
 
+TESTS = Path(__file__).resolve().parent
 HOST = "127.0.0.1"
 KEY = overlay_key("k")
 # small pools, so a few dozen attacking connections are many times what the node keeps; the
-# handshake deadline is the machine's: the node, 40 attackers and the client share one loop
-# here, and on a loaded machine a client's handshake took over the second (reset, counted)
+# handshake deadline is the machine's: on a loaded machine a client's handshake took over the
+# second (reset, counted)
 LIMITS = Limits(
     handshake_s=patience(1.0),
     sweep_s=0.05,
@@ -54,33 +58,60 @@ async def hold_a_slot(port: int, source: str, stop: asyncio.Event, opened: list[
             w.close()
 
 
+async def attack(port: int, bound_s: float) -> None:
+    """The outsider, in a process of its own (as it would be on another machine: its 40
+    reconnecting clients in the node's own loop took the node's time, and a member's handshake
+    passed its deadline at load 19): says "open" once each connection was opened once, stops
+    when its standard input closes (or after ``bound_s``), then prints how many it opened."""
+    stop, opened = asyncio.Event(), [0]
+    tasks = [
+        asyncio.ensure_future(hold_a_slot(port, SOURCES[i % len(SOURCES)], stop, opened))
+        for i in range(40)  # five times the pool
+    ]
+    while opened[0] < 40:
+        await asyncio.sleep(0.01)  # the attacker's own pace, not a test's wait
+    print("open", flush=True)
+    loop = asyncio.get_running_loop()
+    stdin = asyncio.StreamReader()
+    await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(stdin), sys.stdin)
+    with contextlib.suppress(TimeoutError):
+        await asyncio.wait_for(stdin.read(), bound_s)
+    stop.set()
+    await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 30.0)
+    print(opened[0], flush=True)
+
+
 def test_31_status_requests_are_answered_while_an_outsider_reopens_every_slot() -> None:
     async def run() -> tuple[int, dict[str, Any], int]:
         driver = NodeDriver(NodeCore("N1"), HOST, 0, KEY, limits=LIMITS)
         await driver.start()
         port = driver.transport.port
-        stop, opened = asyncio.Event(), [0]
-        attack = [
-            asyncio.ensure_future(hold_a_slot(port, SOURCES[i % len(SOURCES)], stop, opened))
-            for i in range(40)  # five times the pool
-        ]
-        try:
-            while opened[0] < 40:  # every attacking connection is open once
-                await asyncio.sleep(0.01)
+        code = f"import asyncio, test_security_slots as t; asyncio.run(t.attack({port}, 300.0))"
+        attacker = await asyncio.create_subprocess_exec(
+            sys.executable, "-c", code, cwd=TESTS,
+            stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        assert attacker.stdin is not None and attacker.stdout is not None
+        try:  # every attacking connection is open once
+            said = await asyncio.wait_for(attacker.stdout.readline(), patience(20.0))
+            assert said == b"open\n", said
             answered = 0
             for _ in range(31):
-                client = await Client(HOST, port, KEY).connect(5.0)
+                client = await Client(HOST, port, KEY).connect(patience(5.0))
                 try:
-                    reply = await client.call(m.StatusRequest(), 5.0)
+                    reply = await client.call(m.StatusRequest(), patience(5.0))
                     answered += isinstance(reply, m.StatusReply)
                 finally:
                     await client.close()
+            attacker.stdin.close()
+            opened = int(await asyncio.wait_for(attacker.stdout.readline(), patience(20.0)))
             reply = await (await Client(HOST, port, KEY).connect()).call(m.StatusRequest())
             assert isinstance(reply, m.StatusReply)
-            return answered, reply.nodes["N1"]["connections"], opened[0]
+            return answered, reply.nodes["N1"]["connections"], opened
         finally:
-            stop.set()
-            await asyncio.wait_for(asyncio.gather(*attack, return_exceptions=True), 10.0)
+            if attacker.returncode is None:
+                attacker.kill()
+            await attacker.wait()
             await driver.stop()
 
     answered, connections, opened = asyncio.run(run())

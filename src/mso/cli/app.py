@@ -219,29 +219,38 @@ def plan_cmd(
 @no_import
 @user_errors
 def compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool) -> None:
-    """Algorithm 1 beside the baselines on energy per event, max node load and hops."""
+    """Algorithm 1 beside the baselines on energy per event, max node load and hops, and
+    whether each can run: its busiest CPU and (with link rates) its busiest link."""
     from rich.table import Table
 
     from mso.errors import PlanningError
     from mso.model.appfile import load_app
     from mso.planning.baselines import BASELINES
-    from mso.planning.objectives import evaluate
+    from mso.planning.objectives import busiest_cpu, busiest_link, evaluate
     from mso.planning.placement import plan, with_pins
     from mso.scenario import load_scenario
 
     app = load_app(app_file, resolve_code=not no_import)
     net = load_scenario(scenario_file).network
+    rated = any(lk.bandwidth_mbps for lk in net.links.values())
+
+    def scored(placement: dict[str, str]) -> dict[str, float]:
+        row = evaluate(app, net, placement)
+        row["cpu_share"] = busiest_cpu(app, net, placement)
+        row["link_share"] = busiest_link(app, net, placement)
+        return row
+
     first = plan(app, net)
     pinned = with_pins(app, {v: ns[0] for v, ns in first.capable.items()})
-    rows: dict[str, Any] = {"algorithm1": evaluate(app, net, first.placement)}
+    rows: dict[str, Any] = {"algorithm1": scored(first.placement)}
     for split in ("paper", "bytes"):
-        rows[f"algorithm1:{split}"] = evaluate(app, net, plan(app, net, planner=split).placement)
+        rows[f"algorithm1:{split}"] = scored(plan(app, net, planner=split).placement)
     for name in ("source", "random", "greedy"):
-        rows[name] = evaluate(app, net, BASELINES[name](pinned, net, seed=0, objective="energy"))
+        rows[name] = scored(BASELINES[name](pinned, net, seed=0, objective="energy"))
     for objective in ("energy", "max_load", "hops"):
         try:
             placement = BASELINES["optimal"](pinned, net, seed=0, objective=objective)
-            rows[f"optimal:{objective}"] = evaluate(app, net, placement)
+            rows[f"optimal:{objective}"] = scored(placement)
         except PlanningError as exc:
             rows[f"optimal:{objective}"] = {"error": str(exc)}
     if as_json:
@@ -249,15 +258,24 @@ def compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool)
         return
     table = Table(
         title=f"{app.name}: Algorithm 1 (planner: {first.planner}) beside the baselines; "
-        "optimal within each node's capacity"
+        "optimal within each node's capacity (and knowing no link rates); a share over 100% "
+        "cannot run at the app's rates"
     )
-    for col in ("planner", "energy per event (mJ)", "max node load (ms)", "end-to-end hops"):
-        table.add_column(col, justify="left" if col == "planner" else "right")
+    cols = ["planner", "energy mJ/event", "max load ms/event", "hops"]
+    cols += ["busiest CPU", *(["busiest link"] if rated else [])]
+    for col in cols:
+        left = col == "planner"
+        table.add_column(col, justify="left" if left else "right", no_wrap=left)
     for name, r in rows.items():
         if "error" in r:
-            table.add_row(name, r["error"], "", "")
-        else:
-            table.add_row(
-                name, f"{r['energy'] * 1e3:.3f}", f"{r['max_load']:.2f}", f"{r['hops']:g}"
-            )
+            table.add_row(name, r["error"], *[""] * (len(cols) - 2))
+            continue
+        shares = [r["cpu_share"], *([r["link_share"]] if rated else [])]
+        table.add_row(
+            name,
+            f"{r['energy'] * 1e3:.3f}",
+            f"{r['max_load']:.2f}",
+            f"{r['hops']:g}",
+            *(f"{x:.0%}" + (" over" if x > 1 + 1e-9 else "") for x in shares),
+        )
     console().print(table)

@@ -28,6 +28,12 @@ if TYPE_CHECKING:
 @click.option("--cpu", type=POSITIVE, help="Relative CPU speed (default 1.0).")
 @click.option("--battery-wh", type=POSITIVE, help="Battery capacity in Wh (default: wall power).")
 @click.option(
+    "--link-mbps",
+    type=POSITIVE,
+    help="The rate of this node's radio links in Mb/s, as configured (not measured): probes "
+    "carry it to the planner where the routing view does not know a link's rate.",
+)
+@click.option(
     "--capability",
     "capabilities",
     multiple=True,
@@ -143,6 +149,7 @@ def node(
     listen: str | None,
     cpu: float | None,
     battery_wh: float | None,
+    link_mbps: float | None,
     capabilities: tuple[str, ...],
     power: str | None,
     peers: tuple[str, ...],
@@ -171,9 +178,9 @@ def node(
 
     flags = NodeFlags(
         config_file=config_file, node_id=node_id, listen=listen, cpu=cpu, battery_wh=battery_wh,
-        capabilities=capabilities, power=_power(power), peers=peers, energy=energy,
-        routes_from=routes_from, policy=policy, manage=manage, heartbeat_s=heartbeat_s,
-        dead_after_s=dead_after_s, metrics=metrics,
+        link_mbps=link_mbps, capabilities=capabilities, power=_power(power), peers=peers,
+        energy=energy, routes_from=routes_from, policy=policy, manage=manage,
+        heartbeat_s=heartbeat_s, dead_after_s=dead_after_s, metrics=metrics,
         allow_code=allow_code, operator_keys=operator_keys, key_file=key_file, encrypt=encrypt,
         insecure=insecure, key=key, verbose=verbose, rules=rules, state_dir=state_dir,
         identity=identity, revoked_nodes=revoked_nodes,

@@ -120,7 +120,7 @@ async def serve(s: NodeSettings, core: NodeCore) -> None:
     device = DeviceProbe(battery=s.energy == "auto", interfaces=s.energy != "model")
     driver = NodeDriver(  # no view: the emulator's
         core, s.host, s.port, keys, view, device=device, authority=s.authority,
-        encrypt=s.encrypt, identity=s.identity,
+        encrypt=s.encrypt, identity=s.identity, link_mbps=s.link_mbps,
     )  # fmt: skip
     rotate_keys_on_hangup(s, driver)
     try:

@@ -29,6 +29,7 @@ NODE_CONFIG_KEYS = {
     "key",
     "peers",
     "battery_wh",
+    "link_mbps",
     "power",
     "policy",
     "manage",
@@ -61,6 +62,7 @@ class NodeFlags:
     listen: str | None = None
     cpu: float | None = None
     battery_wh: float | None = None
+    link_mbps: float | None = None
     # NAME or NAME=AMOUNT, each --capability (§3.3: camera, gpu, mem_mb=4096)
     capabilities: tuple[str, ...] = ()
     power: PowerModel | None = None  # parsed by the front end (its own error message)
@@ -103,6 +105,8 @@ class NodeSettings:
     encrypt: bool = False
     authority: Authority | None = None
     battery_wh: float | None = None
+    # the configured rate of its links (Mb/s) where the routing view knows none: probes carry it
+    link_mbps: float | None = None
     capabilities: dict[str, float] = field(default_factory=dict)
     policy: str | None = None
     manage: bool = True
@@ -151,6 +155,7 @@ def settle(flags: NodeFlags) -> NodeSettings:
     if battery is not None and battery <= 0:
         raise MsoError(f"--battery-wh: expected a number > 0, got {battery:g}")
     cpu = float(flags.cpu if flags.cpu is not None else cfg.get("cpu", 1.0))
+    link_mbps = flags.link_mbps if flags.link_mbps is not None else cfg.get("link_mbps")
     capabilities = node_capabilities(flags.capabilities, cfg.get("capabilities"))
     host, port = parse_address(listen)
     metrics_at = None
@@ -180,6 +185,7 @@ def settle(flags: NodeFlags) -> NodeSettings:
         encrypt=encrypt,
         authority=authority,
         battery_wh=battery,
+        link_mbps=None if link_mbps is None else float(link_mbps),
         capabilities=capabilities,
         policy=flags.policy if flags.policy is not None else cfg.get("policy"),
         manage=flags.manage if flags.manage is not None else cfg.get("manage", True),
@@ -325,7 +331,7 @@ def _config_value_problem(k: str, v: Any) -> str | None:
         )
     ):
         return "expected {idle_w, cpu_w, tx_uj_per_byte, rx_uj_per_byte} as numbers >= 0"
-    if k in ("cpu", "battery_wh") and not (
+    if k in ("cpu", "battery_wh", "link_mbps") and not (
         isinstance(v, int | float) and not isinstance(v, bool) and 0 < v < 1e12
     ):
         return f"expected a number > 0, got {v!r}"

@@ -278,9 +278,16 @@ def explain_lifetime(before: Score, after: Score) -> str:
     if level >= min(len(before), len(after)) - 1:
         return f"total drain {before[-1]:.2f} W -> {after[-1]:.2f} W (battery lives unchanged)"
     which = "shortest" if level == 0 else f"{_ordinal(level + 1)} shortest"
-    return (
-        f"{which} battery life {duration_words(-before[level])} -> {duration_words(-after[level])}"
-    )
+    was, will = duration_words(-before[level]), duration_words(-after[level])
+    if was == will:  # a gain smaller than the words round to: say it in seconds
+        return f"{which} battery life {was}, {_gain_words(-before[level], -after[level])}"
+    return f"{which} battery life {was} -> {will}"
+
+
+def _gain_words(before_s: float, after_s: float) -> str:
+    """A small change of a lifetime in words: "0.4 s longer" (or shorter)."""
+    d = after_s - before_s
+    return f"{abs(d):.2g} s {'longer' if d >= 0 else 'shorter'}"
 
 
 def explain_drain(before: Score, after: Score) -> str:

@@ -30,6 +30,13 @@ from mso.management.views import (
 )
 
 
+def joules(j: float) -> str:
+    """An energy as a person reads it: 67 µJ, 4.2 mJ, 1.3 J."""
+    if j < 1e-3:
+        return f"{j * 1e6:.2g} µJ"
+    return f"{j * 1e3:.2g} mJ" if j < 1 else f"{j:.2g} J"
+
+
 def improvement(base: Score, new: Score) -> float:
     """How much better ``new`` is than ``base``, relative to ``|base|`` (0 if not better). For
     tuple scores, at the first level where they differ (a worse level there means 0)."""
@@ -130,11 +137,17 @@ class RelocationRule(_PolicyRule):
             margin = 0.0 if draining else self.settings.margin
             if best.target is None or gain <= margin:
                 continue
-            shown = "inf" if math.isinf(gain) else f"{gain:.2g}" if gain < 0.01 else f"{gain:.0%}"
+            shown = (
+                "inf"
+                if math.isinf(gain)
+                else f"{gain * 100:.2g}%"
+                if gain < 0.01
+                else f"{gain:.0%}"
+            )
             reason = (
                 f"{self.policy.name} policy, {best.direction} to {best.target}: "
                 f"{self.policy.explain(stay.score, best.score)} ({shown} better; the move "
-                f"costs {best.move_cost_j:.3g} J" + (f"; {v.node} draining)" if draining else ")")
+                f"costs {joules(best.move_cost_j)}" + (f"; {v.node} draining)" if draining else ")")
             )
             action = Relocate(v.app, v.id, best.target, reason)
             out.append(Proposal(action, self.settings.confirm, gain, self.name))

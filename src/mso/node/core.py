@@ -23,6 +23,7 @@ subscribed to their type. Components never call each other through the core.
 
 from __future__ import annotations
 
+import math
 import zlib
 from collections import deque
 from collections.abc import Callable, Hashable, Mapping
@@ -121,9 +122,13 @@ class NodeCore:
         early: EarlyLimits | None = None,
         spill: SpillStore | None = None,
         capabilities: dict[str, float] | None = None,
+        link_rates: Callable[[str], float | None] | None = None,
     ) -> None:
         self.id = node_id
         self.capabilities = dict(capabilities or {})  # what it offers besides CPU (§3.3)
+        # the rate (Mb/s) of the link to a neighbour, as the driver knows it (a lookup into
+        # the driver's view, like ``clock``; the driver may set it once its view exists)
+        self.link_rates: Callable[[str], float | None] = link_rates or (lambda _: None)
         # where edges spill what they cannot deliver yet, and positions kept across restarts
         # (the driver's: a file under the daemon's state directory; in memory otherwise)
         self.spill: SpillStore = spill if spill is not None else MemorySpill()
@@ -603,6 +608,11 @@ class NodeCore:
     def heard(self) -> dict[str, tuple[float, m.Figures]]:
         """What each neighbour's last beat said of its figures, and when."""
         return self.membership.liveness.heard
+
+    def link_rate(self, neighbour: str) -> float | None:
+        """The rate of the link to ``neighbour`` (Mb/s; None: not known): a probe carries it."""
+        rate = self.link_rates(neighbour)
+        return rate if rate is not None and math.isfinite(rate) and rate > 0 else None
 
     @property
     def links(self) -> LinkStatus | None:

@@ -52,8 +52,11 @@ class NodeDriver:
         encrypt: bool = False,
         device: DeviceProbe | None = None,
         identity: Identity | None = None,
+        link_mbps: float | None = None,
     ) -> None:
         self.core = core
+        self.link_mbps = link_mbps  # configured; a link's shape in the view (emulator) wins
+        core.link_rates = self._link_rate
         # what the OS measures (battery, CPU time, interface bytes), read every second and on
         # every status request; None keeps the energy model alone (emulation)
         self.device = device
@@ -183,6 +186,13 @@ class NodeDriver:
         if isinstance(msg, m.StatusRequest):
             self._observe(status=True)
         self._apply(self.core.request(client, msg, self.loop.time()))
+
+    def _link_rate(self, peer: str) -> float | None:
+        """The rate of the link to ``peer``: the emulator's shape of it (the scenario's
+        ``bandwidth_mbps``), else the configured ``link_mbps``; nothing here measures it."""
+        n = self.view.neighbours().get(peer)
+        rate = n.shape.bandwidth_mbps if n is not None else None
+        return rate if rate is not None else self.link_mbps
 
     def _routes_changed(self, _: RoutesChanged | None) -> None:
         self._apply(self.core.set_routes(dict(self.view.routes()), self.loop.time()))

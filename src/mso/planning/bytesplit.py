@@ -1,6 +1,7 @@
 """The ``bytes`` planner's split of one chain segment along its probed route (issue 25): the
 cheapest in energy per event, computing weighed against carrying each edge's bytes over each
-hop, within each node's CPU. Pure: no I/O, no clock. :mod:`.placement` calls it per segment."""
+hop (its energy, and its time at the link's rate), within each node's CPU and each link's rate.
+Pure: no I/O, no clock. :mod:`.placement` calls it per segment."""
 
 from __future__ import annotations
 
@@ -13,17 +14,31 @@ from mso.model.network import PowerModel
 
 _POWER = PowerModel()
 
+LINK_SHARE = 0.8
+"""The share of a link's rate one edge may fill: an edge whose bytes per second (size times
+its events per second) need more is not carried over that link (radios lose the rest to
+contention and framing; a queue that grows without end is never the cheapest)."""
+
+CARRY_UJ_PER_MS = 1.0
+"""How the time of carrying an edge is weighed against energy: 1 µJ per ms an event spends on
+the air at the links' rates. Energy stays the objective: the time decides between splits whose
+energy differs by less than that, and what a slow link cannot carry at all is refused by
+:data:`LINK_SHARE`, not weighed."""
+
 
 @dataclass(frozen=True)
 class Hop:
     """What a probe collects at one node of its route: its capacity and, for the ``bytes``
-    planner, its power figures (a node that does not report them is taken at the defaults)."""
+    planner, its power figures (a node that does not report them is taken at the defaults)
+    and the rate of the link it was reached over from the hop before (Mb/s; None: not known,
+    or the route's first node), as the node before it knew it."""
 
     node: str
     capacity: float
     cpu_w: float = _POWER.cpu_w
     tx_uj_per_byte: float = _POWER.tx_uj_per_byte
     rx_uj_per_byte: float = _POWER.rx_uj_per_byte
+    rate_mbps: float | None = None
 
     def weighted(self, factor: float) -> Hop:
         """The same hop with its capacity scaled (a remap's lifetime weight)."""
@@ -42,6 +57,8 @@ class Traffic:
     tail_bytes: float = 0.0  # what the chain's tail sends on toward the probe's target
     # what the tail sends to vertices already placed: (their node, bytes per event)
     tail_placed: tuple[tuple[str, float], ...] = ()
+    # events per second each vertex sends on (a source's rate; 1/s when not known)
+    rates: Mapping[str, float] = field(default_factory=dict)
 
 
 def compute_uj(cost: float, hop: Hop) -> float:
@@ -53,6 +70,21 @@ def compute_uj(cost: float, hop: Hop) -> float:
     return cost / hop.capacity * hop.cpu_w * 1e3
 
 
+def carry_prefix(hops: Sequence[Hop]) -> list[float]:
+    """µJ-equivalent per byte from position 0 to each position of a route: each hop's tx+rx
+    energy plus the time a byte takes at the link's rate, weighed by :data:`CARRY_UJ_PER_MS`."""
+    acc = [0.0]
+    for a, b in itertools.pairwise(hops):
+        t_ms = 8e-3 / b.rate_mbps if b.rate_mbps else 0.0  # ms per byte at rate Mb/s
+        acc.append(acc[-1] + a.tx_uj_per_byte + b.rx_uj_per_byte + CARRY_UJ_PER_MS * t_ms)
+    return acc
+
+
+def carries(hop: Hop, bits_per_s: float) -> bool:
+    """Whether the link into ``hop`` can carry an edge of ``bits_per_s`` (unknown rate: yes)."""
+    return not hop.rate_mbps or bits_per_s <= hop.rate_mbps * 1e6 * LINK_SHARE + 1e-9
+
+
 def assign_bytes(
     costs: Sequence[float],
     loads: Sequence[float],
@@ -62,6 +94,7 @@ def assign_bytes(
     *,
     to_end: bool,
     pulls: Sequence[tuple[int, float]] = (),
+    events: Sequence[float] = (),
 ) -> list[int]:
     """Route position of each vertex of a chain segment, the cheapest in energy per event.
 
@@ -70,27 +103,50 @@ def assign_bytes(
     end when ``to_end`` (an anchor or the probe's target lies there); ``pulls`` are further
     (position, bytes) the last vertex sends to vertices already placed. Computing vertex ``i`` at
     ``p`` costs its CPU energy there; an edge from ``q`` to ``p`` costs its bytes times the
-    tx+rx µJ per byte of hops ``q..p``, so the chain is cut at its small edges. Positions never
-    decrease (a chain never goes back along its route). A node takes vertices only while their
-    load (``loads``, ms/s at cpu 1.0) fits what its capacity leaves (``capacity * 1000 - used``).
+    tx+rx µJ per byte of hops ``q..p``, plus the time it takes at each link's rate
+    (:func:`carry_prefix`), so the chain is cut at its small edges. Positions never decrease (a
+    chain never goes back along its route). A node takes vertices only while their load
+    (``loads``, ms/s at cpu 1.0) fits what its capacity leaves (``capacity * 1000 - used``),
+    and a link carries an edge only if its bytes per second (``sizes[i] * events[i]``, the
+    events per second into vertex ``i``, ``events[-1]`` out of the last; 1/s when not given)
+    fit :data:`LINK_SHARE` of the link's rate. Within a segment no two edges share a link
+    (positions never decrease); edges of other chains over the same link are not counted.
 
     A dynamic programme over (vertex, position) with a running minimum over earlier positions:
     O(len(costs) * len(hops)). Each state keeps the load of its cheapest path only, so capacity
     is respected by every answer though the answer may miss a costlier-to-reach feasible
-    optimum; with no feasible split at all, capacity is ignored (the paper's split ignores it
-    always).
+    optimum; with no feasible split at all, capacity and link rates are ignored (the paper's
+    split ignores both always).
     """
     k, r = len(costs), len(hops)
     if r == 0:
         raise ValueError("a route has at least one node")
     if k == 0:
         return []
-    acc = [0.0]  # acc[p]: µJ per byte from position 0 to p
-    for a, b in itertools.pairwise(hops):
-        acc.append(acc[-1] + a.tx_uj_per_byte + b.rx_uj_per_byte)
+    acc = carry_prefix(hops)  # acc[p]: µJ per byte from position 0 to p
     left = [h.capacity * 1e3 - (used[p] if used else 0.0) for p, h in enumerate(hops)]
+    ev = list(events) if len(events) == k + 1 else [1.0] * (k + 1)
+    # slow[i][p]: the link into position p cannot carry the edge into vertex i (i == k: out)
+    slow = (
+        [
+            [p > 0 and not carries(h, s * e * 8) for p, h in enumerate(hops)]
+            for s, e in zip(sizes, ev, strict=True)
+        ]
+        if any(h.rate_mbps for h in hops)
+        else None
+    )
     for limited in (True, False):
-        out = _bytes_dp(costs, loads, sizes, hops, acc, left if limited else None, to_end, pulls)
+        out = _bytes_dp(
+            costs,
+            loads,
+            sizes,
+            hops,
+            acc,
+            left if limited else None,
+            to_end,
+            pulls,
+            slow if limited else None,
+        )
         if out is not None:
             return out
     return [0] * k  # every split costs infinite energy (no CPU anywhere): stay on the anchor
@@ -105,6 +161,7 @@ def _bytes_dp(
     left: Sequence[float] | None,
     to_end: bool,
     pulls: Sequence[tuple[int, float]],
+    slow: Sequence[Sequence[bool]] | None,
 ) -> list[int] | None:
     k, r, inf = len(costs), len(hops), math.inf
     # µJ per unit of cost on each hop (compute_uj's, hoisted out of the loop)
@@ -116,7 +173,10 @@ def _bytes_dp(
         val, load, par = [inf] * r, [0.0] * r, [-1] * r
         best, best_q = (0.0, 0) if i == 0 else (inf, -1)  # the anchor sits at position 0
         cost_i, load_i, size_i = costs[i], loads[i], sizes[i]
+        slow_i = slow[i] if slow is not None else None
         for p in range(r):
+            if slow_i is not None and slow_i[p]:
+                best, best_q = inf, -1  # edge i cannot come over the link into p from before
             compute = cost_i * per_cost[p] if cost_i else 0.0
             if compute != inf:
                 if best_q >= 0 and (left is None or load_i <= left[p] + 1e-9):
@@ -132,6 +192,12 @@ def _bytes_dp(
         parent.append(par)
     out_size, last = sizes[k], acc[r - 1]
     end = [v + out_size * (last - acc[p]) for p, v in enumerate(prev_val)] if to_end else prev_val
+    if to_end and slow is not None and out_size:
+        blocked = False  # a link after p cannot carry the tail's output to the route's end
+        end = list(end)
+        for p in range(r - 1, -1, -1):
+            end[p] = inf if blocked else end[p]
+            blocked = blocked or slow[k][p]
     if pulls:
         end = [v + sum(b * abs(acc[p] - acc[q]) for q, b in pulls) for p, v in enumerate(end)]
     p = min(range(r), key=lambda q: (end[q], q))

@@ -13,7 +13,7 @@ Units: a vertex's ``cost`` is ms of CPU per event on a node of ``cpu: 1.0``; an 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
 from typing import Protocol
@@ -156,6 +156,51 @@ def end_to_end_hops(
             best = max(best, d[u] + h)
         d[v] = best
     return max(d.values(), default=0.0)
+
+
+def vertex_rates(
+    app: App,
+    topo: Sequence[str] | None = None,
+    pred: Mapping[str, Sequence[str]] | None = None,
+) -> dict[str, float]:
+    """Each vertex's events per second: a source's ``rate`` (1/s if not given), any other
+    vertex's the sum of its inputs'. ``topo``/``pred``: the app's topological order and
+    predecessors, if the caller has them."""
+    pred = pred if pred is not None else app.predecessors()
+    rate: dict[str, float] = {}
+    for v in topo if topo is not None else app.topological_order():
+        vert = app.vertices[v]
+        rate[v] = sum(rate[u] for u in pred[v]) if pred[v] else float(vert.rate or 1.0)
+    return rate
+
+
+def busiest_cpu(app: App, network: Network, placement: Placement) -> float:
+    """The busiest node's CPU share with events at their rates (1.0: full): whether a
+    placement can run at all, which the per-event objectives do not say."""
+    _check(app, network, placement)
+    rates = vertex_rates(app)
+    used = dict.fromkeys(network.nodes, 0.0)
+    for v in app.vertices.values():
+        used[placement[v.id]] += rates[v.id] * float(v.cost)
+    return max((cpu_ms(ms, network.nodes[n].cpu) / 1e3 for n, ms in used.items()), default=0.0)
+
+
+def busiest_link(app: App, network: Network, placement: Placement) -> float:
+    """The busiest link's share of its rate (``bandwidth_mbps``; 1.0: full) with the edges'
+    bytes at their events per second, both directions summed (one radio channel); 0 when no
+    link has a rate. Routes as :func:`route_tables` takes them."""
+    _check(app, network, placement)
+    rates = vertex_rates(app)
+    share: dict[tuple[str, str], float] = {}
+    for e in app.edges:
+        route = network.route(placement[e.src], placement[e.dst]) or []
+        for a, b in pairwise(route):
+            link = network.link(a, b)
+            if link is not None and link.bandwidth_mbps:
+                key = (a, b) if a <= b else (b, a)
+                bits = edge_bytes(e) * rates[e.src] * 8
+                share[key] = share.get(key, 0.0) + bits / (link.bandwidth_mbps * 1e6)
+    return max(share.values(), default=0.0)
 
 
 class Objective(Protocol):

@@ -33,25 +33,19 @@ from mso.model.app import PLANNERS, App
 from mso.model.capabilities import Candidate, offered, resolve
 from mso.model.chains import Chain, chain_dependencies, chain_order, form_chains
 from mso.model.gcpause import paused_gc
-from mso.model.network import Network, NodeSpec
+from mso.model.network import Network
 from mso.planning.bytesplit import Hop as Hop  # re-exported: what a probe collects
-from mso.planning.bytesplit import Traffic, assign_bytes, compute_uj
+from mso.planning.bytesplit import Traffic, assign_bytes, carries, carry_prefix, compute_uj
 from mso.planning.objectives import edge_bytes
+from mso.planning.objectives import vertex_rates as vertex_rates
+from mso.planning.probes import Capacity as Capacity
+from mso.planning.probes import Probe as Probe
+from mso.planning.probes import cpu_capacity as cpu_capacity
+from mso.planning.probes import network_probe as network_probe
+from mso.planning.probes import probed_hops as probed_hops
 from mso.planning.reach import Downstream
 
-Capacity = Callable[[NodeSpec], float]
-
-
-def cpu_capacity(node: NodeSpec) -> float:
-    """The default capacity a probe reports: relative processing speed."""
-    return node.cpu
-
-
 DEFAULT_PLANNER = "bytes"
-
-
-# probe(from_node, to_node) -> the hops of the route, both ends included.
-Probe = Callable[[str, str], Sequence[Hop]]
 
 
 @dataclass
@@ -126,11 +120,7 @@ def vertex_loads(
     """Each vertex's CPU load in ms per second at ``cpu: 1.0``: its cost times its event rate
     (a source's ``rate``, 1/s if not given; any other vertex's the sum of its inputs').
     ``topo``/``pred``: the app's topological order and predecessors, if the caller has them."""
-    pred = pred if pred is not None else app.predecessors()
-    rate: dict[str, float] = {}
-    for v in topo if topo is not None else app.topological_order():
-        vert = app.vertices[v]
-        rate[v] = sum(rate[u] for u in pred[v]) if pred[v] else float(vert.rate or 1.0)
+    rate = vertex_rates(app, topo, pred)
     return {v: rate[v] * float(app.vertices[v].cost) for v in app.vertices}
 
 
@@ -176,6 +166,7 @@ def place_chain(
             at = {h.node: p for p, h in enumerate(hops)}
             pulls = [(at.get(n, 0), b) for n, b in traffic.tail_placed]
         sizes = [traffic.edge_bytes.get(ab, 0.0) for ab in itertools.pairwise(seg)]
+        rates = traffic.rates
         return assign_bytes(
             [cost[v] for v in seg[1:]],
             [traffic.load.get(v, 0.0) for v in seg[1:]],
@@ -184,6 +175,7 @@ def place_chain(
             [traffic.used.get(h.node, 0.0) for h in hops],
             to_end=to_end,
             pulls=pulls,
+            events=[rates.get(v, 1.0) for v in seg] if rates else (),
         )
 
     verts = chain.vertices
@@ -241,48 +233,6 @@ def _probe(probe: Probe, a: str, b: str, chain: Chain) -> Sequence[Hop]:
     return hops
 
 
-def hop_of(node: NodeSpec, capacity: float) -> Hop:
-    """The hop a probe collects at ``node``: ``capacity`` and the node's power model."""
-    pw = node.power
-    return Hop(node.id, capacity, pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte)
-
-
-def probed_hops(
-    nodes: Sequence[str], capacities: Sequence[float], power: Sequence[Sequence[float]] = ()
-) -> list[Hop]:
-    """The hops a probe reply carries. Power figures are taken only when there is one valid
-    ``[cpu_w, tx, rx]`` (finite, non-negative) per hop; otherwise each hop gets the defaults,
-    so a reply from a node that predates them, or a malformed one, still places the chain."""
-    n = min(len(nodes), len(capacities))
-    ok = len(power) == len(nodes) and all(
-        len(f) == 3 and all(isinstance(x, int | float) and math.isfinite(x) and x >= 0 for x in f)
-        for f in power
-    )
-    if not ok:
-        return [Hop(nodes[i], capacities[i]) for i in range(n)]
-    return [Hop(nodes[i], capacities[i], *map(float, power[i])) for i in range(n)]
-
-
-def network_probe(network: Network, capacity: Capacity = cpu_capacity) -> Probe:
-    """A probe over a known network: the shortest route and each node's capacity."""
-
-    hops: dict[str, Hop] = {}  # each node's, made once
-
-    def at(n: str) -> Hop:
-        h = hops.get(n)
-        if h is None:
-            h = hops[n] = hop_of(network.nodes[n], capacity(network.nodes[n]))
-        return h
-
-    def probe(a: str, b: str) -> list[Hop]:
-        route = network.route(a, b)
-        if route is None:
-            return []
-        return [at(n) for n in route]
-
-    return probe
-
-
 class Layout:
     """What every node derives from the app document alone, identically: the chains, their
     order and deployment dependencies, costs and pinned vertices.
@@ -331,7 +281,8 @@ class Layout:
             k = (e.src, e.dst)
             self.edge_bytes[k] = self.edge_bytes.get(k, 0.0) + edge_bytes(e)
         self.topo = app.topological_order()
-        self.load = vertex_loads(app, self.topo, self.graph.pred)
+        self.rates = vertex_rates(app, self.topo, self.graph.pred)
+        self.load = {v: self.rates[v] * self.cost[v] for v in app.vertices}
         self.out_bytes: dict[str, list[tuple[str, float]]] = {v: [] for v in app.vertices}
         self.in_bytes: dict[str, list[tuple[str, float]]] = {v: [] for v in app.vertices}
         for (a, b), size in self.edge_bytes.items():
@@ -448,7 +399,7 @@ class Layout:
                     tail_placed.append((node, size))
                 else:
                     tail_bytes += min(size, flow.get(w, 0.0))
-        return Traffic(self.edge_bytes, self.load, busy, tail_bytes, tuple(tail_placed))
+        return Traffic(self.edge_bytes, self.load, busy, tail_bytes, tuple(tail_placed), self.rates)
 
     def loads(self, placed: Mapping[str, str]) -> dict[str, float]:
         """The load (ms/s at cpu 1.0) the vertices in ``placed`` put on each node."""
@@ -483,12 +434,11 @@ class Layout:
     ) -> float | None:
         """µJ per event of one chain placed as ``assign`` along ``walk`` (its probed routes,
         end to end): each vertex's CPU energy on its node, each edge's bytes times the tx+rx
-        µJ per byte between its ends along the walk (the bytes planner's own objective).
-        None if a vertex's node is not on the walk (it cannot be judged from these probes)."""
+        µJ per byte between its ends along the walk, and its time on the air at the links'
+        rates (the bytes planner's own objective, :func:`carry_prefix`). None if a vertex's
+        node is not on the walk (it cannot be judged from these probes)."""
         at: dict[str, int] = {}
-        acc = [0.0]
-        for x, y in itertools.pairwise(walk):
-            acc.append(acc[-1] + x.tx_uj_per_byte + y.rx_uj_per_byte)
+        acc = carry_prefix(walk)
         for p, h in enumerate(walk):
             at.setdefault(h.node, p)
         verts = self.chains[chain].vertices
@@ -501,6 +451,22 @@ class Layout:
             size = self.edge_bytes.get((a, b), 0.0)
             total += size * abs(acc[at[assign[a]]] - acc[at[assign[b]]])
         return total
+
+    def overloads_link(self, chain: int, assign: Mapping[str, str], walk: Sequence[Hop]) -> bool:
+        """Whether an edge of the chain placed as ``assign`` crosses a link of ``walk`` whose
+        rate cannot carry it (:data:`LINK_SHARE` of it), as the bytes split never plans."""
+        at: dict[str, int] = {}
+        for p, h in enumerate(walk):
+            at.setdefault(h.node, p)
+        for a, b in itertools.pairwise(self.chains[chain].vertices):
+            pa, pb = at.get(assign.get(a, "")), at.get(assign.get(b, ""))
+            if pa is None or pb is None:
+                continue
+            bits = self.edge_bytes.get((a, b), 0.0) * self.rates[a] * 8
+            lo, hi = min(pa, pb), max(pa, pb)
+            if any(not carries(walk[p], bits) for p in range(lo + 1, hi + 1)):
+                return True
+        return False
 
     def keep_current(
         self,
@@ -530,6 +496,8 @@ class Layout:
             load[n] = load.get(n, 0.0) + self.load[v]
         if any(n in caps and load[n] > 1000.0 * caps[n] + 1e-9 for n in set(kept.values())):
             return dict(new), "a node it runs on would be over capacity"
+        if self.overloads_link(chain, kept, walk):
+            return dict(new), "a link it uses cannot carry its edge at the link's rate"
         e_new, e_now = self.walk_energy(chain, new, walk), self.walk_energy(chain, kept, walk)
         if e_new is None or e_now is None:
             return dict(new), "its current nodes are off the probed route"

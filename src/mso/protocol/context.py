@@ -64,6 +64,12 @@ class NodeContext(Protocol):
         """This node's power model: its figures travel in probes for the bytes planner."""
         ...
 
+    def link_rate(self, neighbour: str) -> float | None:
+        """The rate (Mb/s) of this node's link to ``neighbour`` as its driver knows it (the
+        scenario's in a simulation or emulation, the configured ``link_mbps`` on a device;
+        None: not known): probes carry it to the bytes planner."""
+        ...
+
     @property
     def authority(self) -> Authority: ...
 

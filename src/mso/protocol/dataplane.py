@@ -78,6 +78,9 @@ class DataPlane:
         outputs = {i: dep.app.edge_format(e) for i, e in enumerate(edges) if e.src == vid}
         names = {i: f"{e.src} -> {e.dst}" for i, e in enumerate(edges) if vid in (e.src, e.dst)}
         h = HostedInstance(iid, dep.app.vertices[vid], dep.layout.kinds[vid])
+        rec = dep.crashes.get(vid)
+        if rec is not None and rec.restoring is not None:  # replaces a crashed instance:
+            h.one_by_one = self.ctx.window * len(inputs)  # its replay is at most a window
         start = fx.StartVertex(iid, dep.app.name, h.vertex, h.kind, inputs, None, outputs, names)
         self.submit(h, start)
         return h
@@ -358,12 +361,14 @@ class DataPlane:
                     return  # the newest N wait here, where newer ones can supersede them,
                     # and go to the worker together once it is idle (it then has at most N)
             edge, events, ts = item
-            if len(events) > FEED_BATCH:
-                feed = events[:FEED_BATCH]
-                h.pending[0] = (edge, events[FEED_BATCH:], ts)
+            most = 1 if h.one_by_one > 0 else FEED_BATCH
+            if len(events) > most:
+                feed = events[:most]
+                h.pending[0] = (edge, events[most:], ts)
             else:
                 h.pending.popleft()
                 feed = events
+            h.one_by_one -= len(feed) if h.one_by_one > 0 else 0
             h.bytes_in += sum(map(len, feed))
             self.submit(h, fx.FeedVertex(h.instance, edge, feed, ts), len(feed))
 

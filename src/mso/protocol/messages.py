@@ -156,7 +156,8 @@ class CapabilityReply(_Msg, tag="capability_reply"):
 class Probe(_Msg, tag="probe"):
     """Travels hop by hop toward ``target``; each hop appends its capacity and its power
     figures ``[cpu_w, tx_uj_per_byte, rx_uj_per_byte]`` (for the bytes planner; a peer that
-    predates them sends none, and the planner takes the defaults for every hop)."""
+    predates them sends none, and the planner takes the defaults for every hop), and each hop
+    that forwards it the rate of the link it forwards over (``rates``, Mb/s, 0: not known)."""
 
     app: str
     chain: int
@@ -166,6 +167,7 @@ class Probe(_Msg, tag="probe"):
     nodes: list[str]
     capacities: list[float]
     power: list[list[float]] = []
+    rates: list[float] = []
 
 
 class ProbeReply(_Msg, tag="probe_reply"):
@@ -175,6 +177,7 @@ class ProbeReply(_Msg, tag="probe_reply"):
     nodes: list[str]
     capacities: list[float]
     power: list[list[float]] = []
+    rates: list[float] = []
 
 
 class ChainPlaced(_Msg, tag="placed"):

@@ -209,6 +209,9 @@ class HostedInstance:
     ended: bool = False
     handing_over: m.Marker | None = None  # snapshot asked for this relocation
     crashed: str = ""  # its child process died unasked: how (no results come any more)
+    # the replacement of a crashed instance: events still to feed one at a time (the replay),
+    # so a crash on one event does not take the results of those before it in its batch along
+    one_by_one: int = 0
     life: InstanceLife = field(init=False)  # its state at this host, by the table
 
     def __post_init__(self) -> None:

@@ -89,6 +89,7 @@ class Simulation:
                 rules=rules,
                 capabilities=spec.capabilities,
                 spill=self.spills[n],
+                link_rates=self._link_rates(n),
             )
             for n, spec in network.nodes.items()
         }
@@ -119,6 +120,15 @@ class Simulation:
         self.update_routes()
         for n, core in self.cores.items():
             self.apply(n, core.start(self.now))
+
+    def _link_rates(self, node: str) -> Callable[[str], float | None]:
+        """What ``node`` knows of its links' rates: the scenario's ``bandwidth_mbps`` now."""
+
+        def rate(peer: str) -> float | None:
+            link = self.network.link(node, peer)
+            return None if link is None else link.bandwidth_mbps
+
+        return rate
 
     def _executor(self, node: str) -> SimExecutor:
         ex: SimExecutor
@@ -349,6 +359,7 @@ class Simulation:
             incarnation=old.incarnation + 1,
             capabilities=spec.capabilities,
             spill=self.spills[node],
+            link_rates=self._link_rates(node),
         )
         self.executors[node] = self._executor(node)  # the old instances went with the process
         self._watch(node, core)

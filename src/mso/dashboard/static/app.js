@@ -4,14 +4,17 @@
 "use strict";
 
 const SVG = "http://www.w3.org/2000/svg";
-const W = 800, H = 420, PAD = 60;
+const W = 800, PAD = 60;
+let H = 420;  // the drawing's height in the width's units: the panel's own shape (drawTopology)
 let view = null;
 
 function el(tag, attrs, ...children) {
   const e = tag.startsWith("svg:") ? document.createElementNS(SVG, tag.slice(4)) : document.createElement(tag);
   for (const [k, v] of Object.entries(attrs || {})) {
     if (v === null || v === undefined) continue;
-    if (k === "text") e.textContent = v; else if (k === "cls") e.setAttribute("class", v); else e.setAttribute(k, v);
+    if (k === "text") e.textContent = v; else if (k === "cls") e.setAttribute("class", v);
+    else if (k === "fontSize") e.style.fontSize = v;  // (a style attribute: refused by the page's CSP)
+    else e.setAttribute(k, v);
   }
   for (const c of children) if (c !== null && c !== undefined) e.append(c);
   return e;
@@ -87,7 +90,9 @@ function spread(pos) {
   return pos;
 }
 
-const MAX_LABELS = 4;  // vertex names under a robot; the rest as "+N more" (all in its title)
+// vertex names under a robot, as many as the panel's height gives room for (at least 4); the
+// rest as "+N more" (all in its title)
+let MAX_LABELS = 4;
 
 // the path events take from node a to node b: a's next hop toward b, then that node's, ...
 // (the relays a chain's events cross); a straight line when the routes do not say
@@ -106,7 +111,23 @@ function route(routes, a, b, pos) {
 function drawTopology(v) {
   const svg = document.getElementById("topology");
   svg.replaceChildren();
+  // the panel's shape decides the drawing's: a line of robots in a tall panel gets its chains
+  // spread apart and every vertex named, not a thin strip above an empty box
+  const box = svg.getBoundingClientRect();
+  const aspect = box.width > 0 && box.height > 0 ? Math.min(1.2, Math.max(0.25, box.height / box.width)) : 0.4;
+  H = W * aspect;
+  MAX_LABELS = Math.max(4, Math.floor((H / 2 - 60) / 13));
   const pos = spread(layout(v.nodes, v.links));
+  // robots, names and bundles drawn u times their least size: as large as the panel's height
+  // allows, never so large that the names of neighbouring robots run into each other
+  const ps = Object.values(pos);
+  let dmin = Infinity;
+  for (let i = 0; i < ps.length; i++) for (let j = i + 1; j < ps.length; j++) dmin = Math.min(dmin, Math.hypot(ps[i][0] - ps[j][0], ps[i][1] - ps[j][1]));
+  const xspan = ps.length ? Math.max(...ps.map((p) => p[0])) - Math.min(...ps.map((p) => p[0])) : 0;
+  const yspan = ps.length ? Math.max(...ps.map((p) => p[1])) - Math.min(...ps.map((p) => p[1])) : 0;
+  const labels = Math.min(MAX_LABELS, Math.max(0, ...v.nodes.map((n) => (n.vertices || []).length)));
+  const u = Math.max(1, Math.min(2, dmin / MIN_GAP, (0.85 * aspect * (xspan + 140) - yspan) / (100 + 13 * labels)));
+  const flat = xspan >= yspan;  // bundles spread across the line the robots make
   const moved = new Set(v.apps.flatMap((app) => Object.keys(app.moved || {})));
   for (const [a, b] of v.links) {
     if (!pos[a] || !pos[b]) continue;
@@ -120,10 +141,14 @@ function drawTopology(v) {
     for (const n of c.nodes) if (n && pos[n] && hosts[hosts.length - 1] !== n) hosts.push(n);
     const hops = hosts.length ? [hosts[0]] : [];
     for (let i = 1; i < hosts.length; i++) hops.push(...route(v.routes, hosts[i - 1], hosts[i], pos).slice(1));
-    // the chains side by side, centred on the links, 5 px apart (a bundle, not one thick line)
-    const off = (k++ - (all - 1) / 2) * Math.min(5, 60 / Math.max(all, 1));
+    // the chains side by side across the line, centred on the links, 4-10 (times u) apart as
+    // the height allows: apart enough to tell one from another, the bundle within the robots'
+    // circles (clear of the names above and below them)
+    const gap = Math.min(u * Math.max(4, Math.min(10, (H * 0.3) / Math.max(all, 1))), Math.min(20 * u, 60) / Math.max((all - 1) / 2, 1));
+    const off = (k++ - (all - 1) / 2) * gap;
+    const [ox, oy] = flat ? [0, off] : [off, 0];
     if (hops.length > 1) {
-      const pts = hops.map((n) => `${pos[n][0] + off},${pos[n][1] + off}`).join(" ");
+      const pts = hops.map((n) => `${pos[n][0] + ox},${pos[n][1] + oy}`).join(" ");
       svg.append(el("svg:polyline", { points: pts, fill: "none", stroke: c.colour, "stroke-width": 3, "stroke-opacity": 0.8, "stroke-linejoin": "round", "data-chain": `${app.name}/${c.index}` }, el("svg:title", { text: `${app.name} [${c.index}] ${c.name}: ${hops.join(" → ")}` })));
     }
     for (const vx of c.vertices) if (!(vx in vertexColour)) vertexColour[vx] = c.colour;
@@ -134,36 +159,39 @@ function drawTopology(v) {
     if (!p) continue;
     const g = el("svg:g", { "data-node": n.id, cls: "node" + (n.answered ? "" : " gone") });
     const stroke = n.failed ? "#c62828" : n.unreachable ? "#6b7280" : n.parked ? "#b26a00" : "#374151";
-    g.append(el("svg:circle", { cls: "robot", cx: p[0], cy: p[1], r: 24, fill: n.answered ? batteryColour(n.battery) : "#e5e7eb", stroke, "stroke-width": n.failed ? 4 : 2, "stroke-dasharray": n.answered && !n.unreachable ? null : "4 3" }));
+    g.append(el("svg:circle", { cls: "robot", cx: p[0], cy: p[1], r: 24 * u, fill: n.answered ? batteryColour(n.battery) : "#e5e7eb", stroke, "stroke-width": n.failed ? 4 : 2, "stroke-dasharray": n.answered && !n.unreachable ? null : "4 3" }));
     if (n.failed) {  // a cross through a failed robot: never mistaken for a live one
-      g.append(el("svg:line", { x1: p[0] - 14, y1: p[1] - 14, x2: p[0] + 14, y2: p[1] + 14, stroke: "#c62828", "stroke-width": 3 }));
+      g.append(el("svg:line", { x1: p[0] - 14 * u, y1: p[1] - 14 * u, x2: p[0] + 14 * u, y2: p[1] + 14 * u, stroke: "#c62828", "stroke-width": 3 }));
     }
-    g.append(el("svg:text", { x: p[0], y: p[1] + 5, "text-anchor": "middle", cls: "node-label", text: n.id }));
+    g.append(el("svg:text", { x: p[0], y: p[1] + 5 * u, "text-anchor": "middle", cls: "node-label", fontSize: `${14 * u}px`, text: n.id }));
     const last = n.last_battery === null || n.last_battery === undefined ? "" : ` · last ${Math.round(n.last_battery * 100)}%`;
     const sub = !n.answered ? (n.failed ? "failed" : n.unreachable ? "unreachable" : "silent") + last
       : `${n.battery === null ? "wall" : Math.round(n.battery * 100) + "%"} · ${fmt(n.drain_w, 2)} W`;
-    g.append(el("svg:text", { x: p[0], y: p[1] - 32, "text-anchor": "middle", cls: "node-sub", text: sub }));
+    g.append(el("svg:text", { x: p[0], y: p[1] - 32 * u, "text-anchor": "middle", cls: "node-sub", fontSize: `${11 * u}px`, text: sub }));
     const names = n.vertices || [];
     const shown = names.length > MAX_LABELS ? names.slice(0, MAX_LABELS - 1) : names;
     shown.forEach((vx, i) => {
       const hot = moved.has(vx);
-      g.append(el("svg:text", { x: p[0], y: p[1] + 44 + i * 13, "text-anchor": "middle", cls: "vertex-label" + (hot ? " moved" : ""), fill: hot ? null : vertexColour[vx] || "#374151", "data-vertex": vx, text: hot ? `${vx} ←` : vx }));
+      g.append(el("svg:text", { x: p[0], y: p[1] + (44 + i * 13) * u, "text-anchor": "middle", cls: "vertex-label" + (hot ? " moved" : ""), fontSize: `${11 * u}px`, fill: hot ? null : vertexColour[vx] || "#374151", "data-vertex": vx, text: hot ? `${vx} ←` : vx }));
     });
     if (shown.length < names.length) {
       const more = names.slice(shown.length);
       const hot = more.some((vx) => moved.has(vx));
-      g.append(el("svg:text", { x: p[0], y: p[1] + 44 + shown.length * 13, "text-anchor": "middle", cls: "vertex-label more" + (hot ? " moved" : ""), text: `+${more.length} more` }, el("svg:title", { text: more.join(", ") })));
+      g.append(el("svg:text", { x: p[0], y: p[1] + (44 + shown.length * 13) * u, "text-anchor": "middle", cls: "vertex-label more" + (hot ? " moved" : ""), fontSize: `${11 * u}px`, text: `+${more.length} more` }, el("svg:title", { text: more.join(", ") })));
     }
     if (names.some((vx) => moved.has(vx))) {  // a vertex just moved here: a ring for a few s
-      g.append(el("svg:circle", { cx: p[0], cy: p[1], r: 31, fill: "none", cls: "moved-ring" }));
+      g.append(el("svg:circle", { cx: p[0], cy: p[1], r: 31 * u, fill: "none", cls: "moved-ring" }));
     }
     g.append(el("svg:title", { text: `${n.id}: ${names.join(", ") || "no vertex"}` }));
     svg.append(g);
-    x0 = Math.min(x0, p[0] - 70); x1 = Math.max(x1, p[0] + 70);
-    y0 = Math.min(y0, p[1] - 48); y1 = Math.max(y1, p[1] + 52 + Math.min(names.length, MAX_LABELS) * 13);
+    x0 = Math.min(x0, p[0] - 70 * u); x1 = Math.max(x1, p[0] + 70 * u);
+    y0 = Math.min(y0, p[1] - 48 * u); y1 = Math.max(y1, p[1] + (52 + Math.min(names.length, MAX_LABELS) * 13) * u);
   }
-  // the drawing's own extent: no empty band above and below a line of robots
-  if (x1 > x0) svg.setAttribute("viewBox", `${x0} ${y0} ${x1 - x0} ${Math.max(y1 - y0, 160)}`);
+  // the drawing's own extent, in the panel's shape (a line of robots is centred in it)
+  if (x1 > x0) {
+    const bw = x1 - x0, bh = Math.max(y1 - y0, bw * aspect, 160);
+    svg.setAttribute("viewBox", `${x0} ${(y0 + y1 - bh) / 2} ${bw} ${bh}`);
+  }
   const legend = document.getElementById("legend");
   legend.replaceChildren(...v.apps.flatMap((app) => app.chains.map((c) => {
     const sw = el("span", { cls: "swatch" }); sw.style.background = c.colour;
@@ -304,6 +332,7 @@ async function post(path, body) {
   } catch (e) { out.textContent = `failed: ${e}`; out.className = "bad"; }
 }
 
+window.addEventListener("resize", () => view && drawTopology(view));  // the drawing follows the panel's shape
 document.getElementById("app").addEventListener("change", () => view && drawControls(view));
 document.getElementById("relocate-vertex").addEventListener("change", () => view && drawControls(view));
 document.getElementById("relocate-form").addEventListener("submit", (ev) => {

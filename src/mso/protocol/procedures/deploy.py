@@ -424,7 +424,7 @@ class Deployer:
             self.ctx.refusal("probe_reply_unexpected")
             return
         got = dep.probes[msg.chain]
-        got[msg.segment] = probed_hops(msg.nodes, msg.capacities, msg.power)
+        got[msg.segment] = probed_hops(msg.nodes, msg.capacities, msg.power, msg.rates)
         if len(got) == dep.probes_expected.get(msg.chain):
             self._place(dep, msg.chain)
 
@@ -502,7 +502,7 @@ class Deployer:
             msg.power.append([pw.cpu_w, pw.tx_uj_per_byte, pw.rx_uj_per_byte])
         if msg.target == self.ctx.id:
             reply = m.ProbeReply(
-                msg.app, msg.chain, msg.segment, msg.nodes, msg.capacities, msg.power
+                msg.app, msg.chain, msg.segment, msg.nodes, msg.capacities, msg.power, msg.rates
             )
             self.ctx.send(msg.requester, reply)
             return
@@ -522,6 +522,8 @@ class Deployer:
             reply = m.ProbeReply(msg.app, msg.chain, msg.segment, [], [])
             self.ctx.send(msg.requester, reply)
             return
+        if len(msg.rates) == len(msg.nodes) - 1:  # every link so far reported (else: none)
+            msg.rates.append(self.ctx.link_rate(nxt[0]) or 0.0)
         self.ctx.emit(Send(nxt[0], msg))  # the next hop appends itself in turn
 
     def on_routes_changed(self, ev: RoutesChanged) -> None:
@@ -540,6 +542,8 @@ class Deployer:
         due = [p for d, p in self._waiting_probes if d <= now]
         self._waiting_probes = [(d, p) for d, p in self._waiting_probes if d > now]
         for probe in due:
+            if len(probe.rates) == len(probe.nodes) - 1:
+                probe.rates.append(0.0)  # over a relay whose daemon is gone: rate not known
             self.ctx.emit(Send(probe.target, probe))
         self._arm_held_probes()
 

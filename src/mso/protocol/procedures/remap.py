@@ -324,7 +324,7 @@ class Remapper:
         ):
             self.ctx.refusal("probe_reply_unexpected")
             return
-        remap.probes[k] = probed_hops(msg.nodes, msg.capacities, msg.power)
+        remap.probes[k] = probed_hops(msg.nodes, msg.capacities, msg.power, msg.rates)
         if len(remap.probes) == remap.expected:
             self._place(rid, self.ctx.now)
 

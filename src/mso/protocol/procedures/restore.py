@@ -25,7 +25,9 @@ output from (:meth:`Restorer.anchor`).
 A crashed instance (``isolation: process``) is restored in place the same way, at most
 ``MAX_RESTARTS`` times in ``RESTART_WINDOW_S``: a vertex that crashes on an event would crash
 again on its replay; then it stays crashed, its chains are reported parked and their events
-stay held (unacknowledged) upstream.
+stay held (unacknowledged) upstream. The replacement is fed its replay one event at a time (up
+to a window per input): a child that dies on an event has returned the results of every event
+before it, which a batch ending in the fatal one would have taken down with it on each replay.
 """
 
 from __future__ import annotations
