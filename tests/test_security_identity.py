@@ -154,7 +154,10 @@ def test_mso_nodes_link_with_their_identities_and_refuse_a_revoked_one(tmp_path:
         nodes.append(subprocess.Popen(cmd, env=env, cwd=tmp_path, stdout=subprocess.DEVNULL,
                                       stderr=subprocess.DEVNULL))  # fmt: skip
     try:
-        n1, n2 = (Overlay(f"127.0.0.1:{p}", key="identities", timeout=10.0) for p in ports[:2])
+        # a client of nodes with identities holds a certified key: the operator's is one
+        op = str(tmp_path / "op.key")
+        n1, n2 = (Overlay(f"127.0.0.1:{p}", key="identities", timeout=10.0, sign=op)
+                  for p in ports[:2])  # fmt: skip
         deadline = time.monotonic() + patience(60.0)
         while True:  # until N1 hears N2 and N2 has refused N3 (a loaded machine: seconds)
             try:

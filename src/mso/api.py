@@ -33,7 +33,7 @@ from collections.abc import AsyncIterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from mso.client import connect, load_signer, request, request_blocking
+from mso.client import connect, load_client_identity, load_signer, request, request_blocking
 from mso.errors import MsoError
 from mso.protocol import messages as m
 
@@ -42,6 +42,7 @@ if TYPE_CHECKING:
     from mso.model.app import App
     from mso.node.status import NodeStatus
     from mso.protocol.authority import Signer
+    from mso.protocol.clients import ClientIdentity
 
 R = TypeVar("R")
 
@@ -231,6 +232,7 @@ class AsyncOverlay:
         signer: Signer | None = None,
         client: Client | None = None,
         owned: bool = False,
+        client_key: str | None = None,
     ) -> None:
         self._address, self._overlay = address, overlay
         self.key = key
@@ -238,6 +240,9 @@ class AsyncOverlay:
         self.timeout = timeout
         # an operator key (a file, or loaded): commands that change the overlay are signed
         self.signer = signer if signer is not None else load_signer(sign)
+        # this client's own certified key (--client-key, $MSO_CLIENT_KEY): nodes that require
+        # identities serve no other (an operator key stands for one: mso.protocol.clients)
+        self.identity = load_client_identity(client_key)
         self._client = client  # a connection kept open (by the caller, or by open())
         self._owned = owned  # close() closes it: opened here, or handed over with ``owned``
 
@@ -257,6 +262,7 @@ class AsyncOverlay:
                 signer=self.signer,
                 name=name,
                 timeout=timeout,
+                identity=self.identity,
             )
             self._owned = True
         return self
@@ -272,7 +278,12 @@ class AsyncOverlay:
         if self._client is not None:
             return await self._client.call(msg, wait)
         reply: m.Message = await request(
-            self.address, msg, key=key_for(self.key, self.address), timeout=wait, signer=self.signer
+            self.address,
+            msg,
+            key=key_for(self.key, self.address),
+            timeout=wait,
+            signer=self.signer,
+            identity=self.identity,
         )
         return reply
 
@@ -372,7 +383,13 @@ class AsyncOverlay:
         consumer's moves (:class:`TapCounts`)."""
         import asyncio
 
-        client = await connect(self.address, key=key_for(self.key, self.address), name="tap")
+        client = await connect(
+            self.address,
+            key=key_for(self.key, self.address),
+            name="tap",
+            signer=self.signer,
+            identity=self.identity,
+        )
         try:
             loop = asyncio.get_running_loop()
             ask = m.Tap(app, edge, rate, lease_s)
@@ -410,8 +427,11 @@ class Overlay:
         timeout: float | None = None,
         sign: str | None = None,
         overlay: str | None = None,
+        client_key: str | None = None,
     ) -> None:
-        self._async = AsyncOverlay(address, key=key, timeout=timeout, sign=sign, overlay=overlay)
+        self._async = AsyncOverlay(
+            address, key=key, timeout=timeout, sign=sign, overlay=overlay, client_key=client_key
+        )
 
     @property
     def address(self) -> str:
@@ -455,11 +475,20 @@ class Overlay:
             msg,
             key=key_for(self._async.key, self.address),
             timeout=self._async.timeout or COMMAND_S,
+            identity=self._async.identity or self._operator_client(),
         )
         return expect(reply, m.StatusReply).nodes
 
     def apps(self) -> list[str]:
         return running(self.status(everywhere=False))
+
+    def _operator_client(self) -> ClientIdentity | None:
+        """The client an operator key makes of its holder (status is asked unsigned)."""
+        if self._async.signer is None:
+            return None
+        from mso.protocol.clients import operator_client
+
+        return operator_client(self._async.signer)
 
 
 class EmulatorControl:

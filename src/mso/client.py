@@ -18,6 +18,7 @@ if TYPE_CHECKING:  # cryptography is imported only by a client that signs; async
     import asyncio  # the asyncio client (`mso status` asks with a blocking socket: quicker start)
 
     from mso.protocol.authority import Signer
+    from mso.protocol.clients import ClientIdentity
 
 DEFAULT_KEY = "mso-insecure-default-key"
 
@@ -56,6 +57,21 @@ def load_signer(path: str | None) -> Signer | None:
         raise MsoError(f"--sign: {exc}") from None
 
 
+def load_client_identity(path: str | None = None) -> ClientIdentity | None:
+    """This client's own certified key from ``path`` (``--client-key``), else
+    ``$MSO_CLIENT_KEY``, if either is given (nodes that require identities serve no other)."""
+    path = path or os.environ.get("MSO_CLIENT_KEY") or None
+    if not path:
+        return None
+    from mso.protocol.authority import KeyError_
+    from mso.protocol.clients import ClientIdentity
+
+    try:
+        return ClientIdentity.load(path)
+    except KeyError_ as exc:
+        raise MsoError(f"--client-key: {exc}") from None
+
+
 class Exchange:
     """The sans-IO half of a client connection: the key check, framing, signing, decoding.
 
@@ -70,9 +86,16 @@ class Exchange:
         psk: bytes,
         signer: Signer | None = None,
         encrypt: bool | None = None,
+        identity: ClientIdentity | None = None,
     ) -> None:
         self.host, self.port = host, port
         self.signer = signer  # signs the commands that change an overlay
+        # who this client is, to a node that requires identities (an operator key is one)
+        self.identity = identity if identity is not None else load_client_identity()
+        if self.identity is None and signer is not None:
+            from mso.protocol.clients import operator_client
+
+            self.identity = operator_client(signer)
         self.codec = FrameCodec(psk, encrypt=encrypt_default() if encrypt is None else encrypt)
         self.inbox: list[m.Message] = []
 
@@ -106,9 +129,22 @@ class Exchange:
     def no_hello(self, exc: BaseException) -> NodeUnreachable:
         return NodeUnreachable(f"no mso hello from {self.where}: {exc}")
 
+    def hello(self, name: str) -> bytes:
+        """The client's hello as a frame: its name, and its proof when it has an identity."""
+        if self.identity is None:
+            return self.seal(m.ClientHello(name))
+        peer = self.codec.peer_hello
+        return self.seal(self.identity.hello(name, self.codec.hello(), peer))
+
     def seal(self, msg: m.Message) -> bytes:
-        """One message as a frame (signed first when it changes the overlay and we sign)."""
-        if self.signer is not None and isinstance(msg, self.signer.signs):
+        """One message as a frame (signed first when it changes the overlay and we sign:
+        with the operator key, or with a command client's own key what it may sign)."""
+        own = self.identity.signer if self.identity is not None and self.signer is None else None
+        if own is not None and isinstance(msg, own.signs):
+            nonce = self.codec.peer_nonce
+            assert nonce is not None
+            msg = own.command(nonce, msg)
+        elif self.signer is not None and isinstance(msg, self.signer.signs):
             now_ms = time.time_ns() // 1_000_000  # a grant's generation, an undeploy's time
             if isinstance(msg, m.DeployRequest):
                 msg = m.DeployRequest(self.signer.grant(msg.document, now_ms), msg.file)
@@ -160,13 +196,14 @@ class Client:
         signer: Signer | None = None,
         encrypt: bool | None = None,
         netns: str | None = None,
+        identity: ClientIdentity | None = None,
     ) -> None:
         self.host, self.port, self.psk, self.name = host, port, psk, name
         self.netns = netns  # connect from inside this network namespace (the netns testbed)
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
         self._encrypt = encrypt
-        self._x = Exchange(host, port, psk, signer, encrypt)
+        self._x = Exchange(host, port, psk, signer, encrypt, identity)
         self._codec = self._x.codec
         # a call timed out: its reply may still come and would be read as the next call's, so
         # the next call opens the connection anew (replies carry no request id)
@@ -194,7 +231,8 @@ class Client:
             raise
         except TimeoutError as exc:
             raise self._x.no_hello(exc) from None
-        await self.send(m.ClientHello(self.name))
+        self._writer.write(self._x.hello(self.name))
+        await self._writer.drain()
         return self
 
     async def _open(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
@@ -261,7 +299,8 @@ class Client:
     async def _reopen(self, timeout: float) -> None:
         """A fresh connection (and key exchange) in place of one a late reply may arrive on."""
         await self.close()
-        self._x = Exchange(self.host, self.port, self.psk, self._x.signer, self._encrypt)
+        x = self._x
+        self._x = Exchange(self.host, self.port, self.psk, x.signer, self._encrypt, x.identity)
         self._codec = self._x.codec
         self._stale = False
         await self.connect(min(timeout, 5.0))
@@ -316,12 +355,15 @@ async def connect(
     signer: Signer | None = None,
     name: str = "cli",
     timeout: float = 5.0,
+    identity: ClientIdentity | None = None,
 ) -> Client:
     """A connection to the node at ``address``, its key checked. ``NETNS@HOST:PORT`` connects
     from inside network namespace NETNS (a node of the netns testbed)."""
     netns, address = split_netns(address)
     host, port = parse_address(address)
-    client = Client(host, port, overlay_key(key), name, signer=signer, netns=netns)
+    client = Client(
+        host, port, overlay_key(key), name, signer=signer, netns=netns, identity=identity
+    )
     return await client.connect(timeout)
 
 
@@ -332,9 +374,10 @@ async def request(
     key: str | None = None,
     timeout: float = 10.0,
     signer: Signer | None = None,
+    identity: ClientIdentity | None = None,
 ) -> Any:
     """Connect (:func:`connect`), send one request, return the reply."""
-    client = await connect(address, key=key, signer=signer)
+    client = await connect(address, key=key, signer=signer, identity=identity)
     try:
         return await client.call(msg, timeout)
     finally:
@@ -342,13 +385,18 @@ async def request(
 
 
 def request_blocking(
-    address: str, msg: m.Message, *, key: str | None = None, timeout: float = 10.0
+    address: str,
+    msg: m.Message,
+    *,
+    key: str | None = None,
+    timeout: float = 10.0,
+    identity: ClientIdentity | None = None,
 ) -> Any:
     """:func:`request` over a blocking socket, for a CLI command that asks once: it spares the
     ~30 ms of importing asyncio (``mso status`` answers within its start-up budget)."""
     netns, address = split_netns(address)
     host, port = parse_address(address)
-    x = Exchange(host, port, overlay_key(key))
+    x = Exchange(host, port, overlay_key(key), identity=identity)
     deadline = time.monotonic() + timeout
     try:
         if netns is None and not _ip_literal(host):
@@ -373,7 +421,7 @@ def request_blocking(
         except OSError as exc:
             raise x.unreachable(exc) from None
         try:
-            sock.sendall(x.seal(m.ClientHello("cli")) + x.seal(msg))
+            sock.sendall(x.hello("cli") + x.seal(msg))
             while not x.inbox:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:

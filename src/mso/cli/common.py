@@ -88,6 +88,13 @@ key_option = click.option(
     help="Overlay pre-shared key (default: $MSO_KEY; else an emulated overlay's own key file, "
     "else the development key, loopback only).",
 )
+client_key_option = click.option(
+    "--client-key",
+    envvar="MSO_CLIENT_KEY",
+    metavar="KEYFILE",
+    help="This client's own key, certified by an operator (`mso keygen --client NAME`; default: "
+    "$MSO_CLIENT_KEY): nodes that require identities serve no other client.",
+)
 overlay_option = click.option(
     "--overlay",
     envvar="MSO_OVERLAY",

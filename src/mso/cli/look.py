@@ -20,7 +20,14 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from mso.cli.common import json_option, key_option, overlay_option, user_errors, via_option
+from mso.cli.common import (
+    client_key_option,
+    json_option,
+    key_option,
+    overlay_option,
+    user_errors,
+    via_option,
+)
 from mso.errors import MsoError
 
 if TYPE_CHECKING:
@@ -40,10 +47,10 @@ def _run(main: Coroutine[Any, Any, None]) -> None:
         asyncio.run(main)
 
 
-def _overlay(via: str | None, overlay: str | None, key: str | None) -> Any:
+def _overlay(via: str | None, overlay: str | None, key: str | None, client_key: str | None) -> Any:
     from mso.api import AsyncOverlay
 
-    return AsyncOverlay(via, overlay=overlay, key=key)
+    return AsyncOverlay(via, overlay=overlay, key=key, client_key=client_key)
 
 
 def brief(value: Any, full: bool = False) -> Any:
@@ -95,6 +102,7 @@ def _seconds(
 @via_option
 @overlay_option
 @key_option
+@client_key_option
 @json_option
 @user_errors
 def echo(
@@ -106,6 +114,7 @@ def echo(
     via: str | None,
     overlay: str | None,
     key: str | None,
+    client_key: str | None,
     as_json: bool,
 ) -> None:
     """Print the events of a running edge as they reach its consumer (EDGE: SRC:DST, 'SRC->DST'
@@ -117,7 +126,7 @@ def echo(
 
     async def main() -> None:
         nonlocal shown
-        ov = _overlay(via, overlay, key)
+        ov = _overlay(via, overlay, key, client_key)
         async for msg in ov.tap(app, edge, rate=rate):
             last[0] = msg
             for seq, payload in zip(msg.seqs, msg.events, strict=True):
@@ -155,6 +164,7 @@ def _percentile(values: list[float], q: float) -> float:
 @via_option
 @overlay_option
 @key_option
+@client_key_option
 @json_option
 @user_errors
 def hz(
@@ -166,6 +176,7 @@ def hz(
     via: str | None,
     overlay: str | None,
     key: str | None,
+    client_key: str | None,
     as_json: bool,
 ) -> None:
     """Report a running edge's rate (events a second reaching its consumer) and delay (how long
@@ -178,7 +189,7 @@ def hz(
         delays: deque[tuple[float, float]] = deque()
         due = time.monotonic() + every
         node = ""
-        ov = _overlay(via, overlay, key)
+        ov = _overlay(via, overlay, key, client_key)
         async for msg in ov.tap(app, edge, rate=0.0):
             if msg.host:  # the old host's last word (its clock), as the relay follows a move
                 node = ""
@@ -333,6 +344,7 @@ class _Recorder:
 @via_option
 @overlay_option
 @key_option
+@client_key_option
 @json_option
 @user_errors
 def record(
@@ -345,6 +357,7 @@ def record(
     via: str | None,
     overlay: str | None,
     key: str | None,
+    client_key: str | None,
     as_json: bool,
 ) -> None:
     """Record running edges to a ROS 2 bag (one topic each, /APP/SRC/DST), until Ctrl-C,
@@ -361,7 +374,7 @@ def record(
 
     async def one(edge: str, stop: asyncio.Event) -> None:
         nonlocal total
-        ov = _overlay(via, overlay, key)
+        ov = _overlay(via, overlay, key, client_key)
         try:
             async for msg in ov.tap(app, edge, rate=RECORD_RATE):
                 left = None if count is None else count - total

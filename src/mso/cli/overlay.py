@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import click
 
 from mso.cli.common import (
+    client_key_option,
     json_option,
     key_option,
     overlay_option,
@@ -52,6 +53,7 @@ def _app_or_only(overlay: Overlay, app_name: str | None) -> str:
 @sign_option
 @overlay_option
 @key_option
+@client_key_option
 @json_option
 @user_errors
 def deploy(
@@ -61,12 +63,15 @@ def deploy(
     overlay: str | None,
     sign: str | None,
     key: str | None,
+    client_key: str | None,
     as_json: bool,
 ) -> None:
     """Deploy an app from any node (distributed Algorithm 1)."""
     from mso.api import Overlay
 
-    reply = Overlay(via, overlay=overlay, key=key, sign=sign).deploy(app_file, planner=planner)
+    reply = Overlay(via, overlay=overlay, key=key, sign=sign, client_key=client_key).deploy(
+        app_file, planner=planner
+    )
     if as_json:
         click.echo(
             json.dumps(
@@ -91,6 +96,7 @@ def deploy(
 @sign_option
 @overlay_option
 @key_option
+@client_key_option
 @json_option
 @user_errors
 def relocate(
@@ -102,12 +108,15 @@ def relocate(
     sign: str | None,
     overlay: str | None,
     key: str | None,
+    client_key: str | None,
     as_json: bool,
 ) -> None:
     """Move one vertex of a running app, with its state, losing no event (§3.4.1)."""
     from mso.api import Overlay
 
-    ov = Overlay(via, overlay=overlay, key=key, sign=sign)  # a bad key file is reported first
+    ov = Overlay(
+        via, overlay=overlay, key=key, sign=sign, client_key=client_key
+    )  # a bad key file is reported first
     if bool(direction) == bool(target):
         raise MsoError("give exactly one of --upstream, --downstream or --to NODE")
     app = _app_or_only(ov, app_name)
@@ -129,6 +138,7 @@ def relocate(
 @sign_option
 @overlay_option
 @key_option
+@client_key_option
 @json_option
 @user_errors
 def remap(
@@ -140,6 +150,7 @@ def remap(
     sign: str | None,
     overlay: str | None,
     key: str | None,
+    client_key: str | None,
     as_json: bool,
 ) -> None:
     """Re-place one chain (§3.4.2), several or all (§3.4.3) along freshly probed routes.
@@ -148,7 +159,9 @@ def remap(
     its index (`mso chains`) or as head-...-tail."""
     from mso.api import Overlay
 
-    ov = Overlay(via, overlay=overlay, key=key, sign=sign)  # a bad key file is reported first
+    ov = Overlay(
+        via, overlay=overlay, key=key, sign=sign, client_key=client_key
+    )  # a bad key file is reported first
     words = list(chain[1:] if chain[:1] == ("chain",) else chain)
     names = [c for c in words + (chains.split(",") if chains else []) if c]
     if bool(names) == everything:
@@ -169,6 +182,7 @@ def remap(
 @sign_option
 @overlay_option
 @key_option
+@client_key_option
 @click.option("--json", "as_json", is_flag=True, help='Print {"stopped": NAME}.')
 @user_errors
 def undeploy(
@@ -177,12 +191,13 @@ def undeploy(
     overlay: str | None,
     sign: str | None,
     key: str | None,
+    client_key: str | None,
     as_json: bool,
 ) -> None:
     """Stop an app on every node."""
     from mso.api import Overlay
 
-    Overlay(via, overlay=overlay, key=key, sign=sign).undeploy(app_name)
+    Overlay(via, overlay=overlay, key=key, sign=sign, client_key=client_key).undeploy(app_name)
     click.echo(json.dumps({"stopped": app_name}) if as_json else f"stopped {app_name}")
 
 
@@ -192,6 +207,7 @@ def undeploy(
 @sign_option
 @overlay_option
 @key_option
+@client_key_option
 @click.option("--json", "as_json", is_flag=True, help='Print {"revoked": KEY_ID}.')
 @user_errors
 def revoke_node(
@@ -200,13 +216,14 @@ def revoke_node(
     overlay: str | None,
     sign: str | None,
     key: str | None,
+    client_key: str | None,
     as_json: bool,
 ) -> None:
     """Have every node refuse a node key (its id, as `mso keygen --node` said it): signed
     with the operator key, passed from node to node, told to nodes that come back."""
     from mso.api import Overlay
 
-    Overlay(via, overlay=overlay, key=key, sign=sign).revoke_node(node_key)
+    Overlay(via, overlay=overlay, key=key, sign=sign, client_key=client_key).revoke_node(node_key)
     click.echo(json.dumps({"revoked": node_key}) if as_json else f"revoked node key {node_key}")
 
 
@@ -214,6 +231,7 @@ def revoke_node(
 @via_option
 @overlay_option
 @key_option
+@client_key_option
 @click.option("--json", "as_json", is_flag=True, help="Print every node's status as JSON.")
 @click.option(
     "--watch",
@@ -229,6 +247,7 @@ def status(
     via: str | None,
     overlay: str | None,
     key: str | None,
+    client_key: str | None,
     as_json: bool,
     watch: float | None,
     count: int | None,
@@ -240,7 +259,7 @@ def status(
 
     if watch is not None and not watch > 0:
         raise MsoError(f"--watch: expected seconds > 0, got {watch:g}")
-    ov = Overlay(via, overlay=overlay, key=key)
+    ov = Overlay(via, overlay=overlay, key=key, client_key=client_key)
     address = ov.address
     if watch is None:
         nodes = ov.status()
@@ -296,32 +315,65 @@ def overlays(as_json: bool) -> None:
     "(for `mso node --identity OUT`).",
 )
 @click.option(
+    "--client",
+    "client_name",
+    help="Make client NAME's own key instead, and OUT.cert, its certificate signed with --sign "
+    "(for `--client-key OUT` on client commands, the dashboard and the API).",
+)
+@click.option(
+    "--read-only",
+    is_flag=True,
+    help="With --client: a client that may only read (status, taps), never command.",
+)
+@click.option(
     "--sign",
     "sign",
     type=click.Path(dir_okay=False, path_type=Path),
-    help="With --node: the operator key that certifies it.",
+    help="With --node or --client: the operator key that certifies it.",
 )
 @user_errors
-def keygen(out: Path, as_json: bool, node_id: str | None, sign: Path | None) -> None:
+def keygen(
+    out: Path,
+    as_json: bool,
+    node_id: str | None,
+    client_name: str | None,
+    read_only: bool,
+    sign: Path | None,
+) -> None:
     """Make an operator key: OUT (private, mode 0600) and OUT.pub (give it to every node); or,
-    with --node, a node's own key and its certificate."""
+    with --node or --client, a node's or a client's own key and its certificate."""
     import os
 
     from mso.protocol.authority import Signer
 
     signer = Signer()
-    if node_id is not None:
-        from mso.protocol.identity import certify
-
-        if sign is None:
-            raise MsoError("--node: give the operator key that certifies it: --sign OP.KEY")
+    if node_id is not None and client_name is not None:
+        raise MsoError("give one of --node and --client")
+    if read_only and client_name is None:
+        raise MsoError("--read-only is for a client's key: give --client NAME")
+    certified = node_id if node_id is not None else client_name
+    key_id = ""
+    if certified is not None:
         from mso.client import load_signer
 
+        if sign is None:
+            flag = "--node" if node_id is not None else "--client"
+            raise MsoError(f"{flag}: give the operator key that certifies it: --sign OP.KEY")
         operator = load_signer(str(sign))
         assert operator is not None
-        cert = certify(operator, node_id, signer.public, time.time_ns() // 1_000_000)
+        now_ms = time.time_ns() // 1_000_000
+        if node_id is not None:
+            from mso.protocol.identity import certify
+
+            cert = certify(operator, node_id, signer.public, now_ms)
+            public, key_id = cert.text(), cert.key_id
+        else:
+            from mso.protocol import clients
+
+            role = "read" if read_only else "command"
+            ccert = clients.certify(operator, certified, signer.public, now_ms, role)
+            public, key_id = ccert.text(), ccert.key_id
         pub = out.with_name(out.name + ".cert")
-        public = cert.text()
     else:
         pub = out.with_name(out.name + ".pub")
         public = signer.public_text()
@@ -334,9 +386,12 @@ def keygen(out: Path, as_json: bool, node_id: str | None, sign: Path | None) -> 
         raise MsoError(f"{exc.filename}: {exc.strerror}") from None
     if node_id is not None:
         click.echo(f"wrote {out} (keep it on {node_id}) and {pub}: mso node --identity {out}")
-        click.echo(
-            f"node key id {cert.key_id} (to revoke it: mso node --revoke-node {cert.key_id})"
-        )
+        click.echo(f"node key id {key_id} (to revoke it: mso node --revoke-node {key_id})")
+        return
+    if client_name is not None:
+        role = "read-only" if read_only else "command"
+        click.echo(f"wrote {out} and {pub}: a {role} client, --client-key {out}")
+        click.echo(f"client key id {key_id} (to revoke it: mso revoke-node {key_id})")
         return
     if as_json:
         doc = {"private": str(out), "public": str(pub), "key": signer.public_text()}

@@ -71,6 +71,7 @@ class ConnectionCounters:
         self.handshake_timeouts = 0  # no key confirmation and hello in time
         self.wrong_key = 0  # a key confirmation that failed: closed without a word
         self.identity_refused = 0  # a neighbour's proof of its name did not hold
+        self.client_refused = 0  # a client without a certificate that holds (when required)
         self.idle_timeouts = 0
         self.over_buffer = 0  # closed for holding too much (partial frames, unread replies)
 

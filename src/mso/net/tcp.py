@@ -41,6 +41,7 @@ from mso.net.trust import Trust
 from mso.protocol import messages as m
 from mso.protocol import origin
 from mso.protocol.authority import DOCUMENT_MESSAGES, Authority
+from mso.protocol.clients import Admitted
 from mso.protocol.framing import FrameCodec, FramingError, WrongKey
 from mso.protocol.identity import Identity
 from mso.protocol.plausible import implausible
@@ -77,7 +78,9 @@ class Connection(asyncio.Protocol):
         self.outbound = peer is not None
         self.said_hello = False
         self.verified = False  # the peer proved its node identity (when they are required)
-        self.key_id = ""  # the id of the node key it proved it with
+        self.key_id = ""  # the id of the node (or client) key it proved it with
+        # the client it proved to be, or why it did not (when identities are required)
+        self.client_as: Admitted | str | None = None
 
     @property
     def introduced(self) -> bool:
@@ -542,16 +545,20 @@ class TcpTransport:
             self._client_ids += 1
             conn.client = self._client_ids
             self.clients[conn.client] = conn
+            if self.requires_identity:
+                who = self.trust.client(
+                    msg, conn.codec.peer_hello, conn.codec.hello(), conn.address
+                )
+                conn.client_as = who
+                conn.key_id = "" if isinstance(who, str) else who.key_id
             return
         if conn.client is not None:
-            if not self.authority.open or isinstance(msg, m.Authorized):
-                verdict = self.authority.command(conn.codec.nonce, msg)
-                if isinstance(verdict, str):  # counted by the authority, told to the client
-                    # counted in status; at INFO, so a flood of them cannot fill a disk
-                    log.info("client %s: %s", conn.address or "?", verdict)
-                    conn.send_message("client", m.Refused(verdict))
-                    return
-                msg = verdict
+            verdict = self.trust.command(conn.client_as, conn.codec.nonce, msg)
+            if isinstance(verdict, str):  # counted, told to the client; logged at INFO, so a
+                log.info("client %s: %s", conn.address or "?", verdict)  # flood fills no disk
+                conn.send_message("client", m.Refused(verdict))
+                return
+            msg = verdict
             if isinstance(msg, m.RevokeNode):
                 why = self._revoke(msg, None)
                 conn.send_message("client", m.Refused(why) if why else m.RevokeNode(msg.node_key))
@@ -595,6 +602,10 @@ class TcpTransport:
                     conn.abort()
                 elif node != via and conn.verified:
                     conn.send_message(node, msg)
+            for conn in list(self.clients.values()):
+                if conn.key_id == msg.node_key:  # a client key is revoked the same way
+                    self.connection_counters.client_refused += 1
+                    conn.abort()
         return why or ""
 
     def _tell_revocations(self, conn: Connection, node: str) -> None:

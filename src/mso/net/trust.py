@@ -1,5 +1,6 @@
 """Whom a transport trusts, with node identities: a neighbour's proof of its name, the origin
-of what it hands over, and the node keys an operator revoked.
+of what it hands over, a client's certificate, and the node and client keys an operator
+revoked.
 
 The transport (:mod:`mso.net.tcp`) asks; this holds the keys and the verdicts and counts what
 it refuses. The checks themselves are sans-IO: :mod:`mso.protocol.identity` (links),
@@ -14,6 +15,7 @@ import time
 from mso.net.base import Counters
 from mso.net.limits import ConnectionCounters
 from mso.net.relaying import RelayBudget
+from mso.protocol import clients
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority
 from mso.protocol.identity import Identity, check, parse_cert
@@ -74,6 +76,31 @@ class Trust:
             log.warning("refusing %s from %s: %s", msg.node, address or "?", why)
             return None
         return parse_cert(msg.cert).key_id
+
+    def client(
+        self, msg: m.ClientHello, theirs: bytes, mine: bytes, address: str
+    ) -> clients.Admitted | str:
+        """The client a hello proves on the connection whose hellos are ``theirs`` and
+        ``mine``, or why not (counted; the client is then refused each request, told why)."""
+        said = clients.check(msg, theirs, mine, self.authority.certifiers, self.revoked())
+        if isinstance(said, str):
+            self.connection_counters.client_refused += 1
+            log.info("client %r from %s: %s", msg.name, address or "?", said)
+        return said
+
+    def command(
+        self, client: clients.Admitted | str | None, nonce: bytes, msg: m.Message
+    ) -> m.Message | str:
+        """What a client (as it proved itself, None: identities not required) may have this
+        node carry out of ``msg``, or why not (counted): its role, then the authority (a
+        command client may sign what its connection carries with its own key)."""
+        if client is not None and (why := clients.may(client, msg)):
+            self.authority.refused += 1
+            return why
+        if self.authority.open and not isinstance(msg, m.Authorized):
+            return msg
+        own = {client.key_id: client.public} if isinstance(client, clients.Admitted) else None
+        return self.authority.command(nonce, msg, own)
 
     def origin(self, peer: str, env: m.Envelope, msg: m.Message, now: float) -> m.Message | None:
         """``msg`` as the word of its proven originator alone, or None when it is not proven

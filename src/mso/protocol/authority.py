@@ -65,6 +65,9 @@ OPERATOR_COMMANDS = (
 )
 # the emulator's own: only it (or an operator) may set a node's links and routes
 EMULATOR_COMMANDS = (m.LinkState, m.Shutdown)
+# what a command client (mso.protocol.clients) may sign with its own key: carried out by the
+# node it asks on that connection (a deploy's grant, an undeploy, a revocation travel on)
+CONNECTION_COMMANDS = (m.RelocateRequest, m.RemapRequest, m.Shutdown)
 # peer messages that carry an app document (code to import): its grant is checked
 DOCUMENT_MESSAGES = (m.AppAnnounce, m.AppSync)
 
@@ -125,7 +128,8 @@ class Signer:
         self.private = private or Ed25519PrivateKey.generate()
         self.public = self.private.public_key()
         self.id = key_id(self.public)
-        self.signs = OPERATOR_COMMANDS + EMULATOR_COMMANDS  # what a client signs with it
+        # what a client signs with it
+        self.signs: tuple[type[m.Message], ...] = OPERATOR_COMMANDS + EMULATOR_COMMANDS
 
     @classmethod
     def load(cls, text: str) -> Signer:
@@ -239,17 +243,34 @@ class Authority:
             refused=self.refused,
         )
 
-    def _signers(self, msg: m.Message) -> dict[str, Ed25519PublicKey] | None:
-        """Who may sign ``msg``; None when it needs no signature on this node."""
+    def _signers(
+        self, msg: m.Message, client: dict[str, Ed25519PublicKey]
+    ) -> dict[str, Ed25519PublicKey] | None:
+        """Who may sign ``msg`` (``client``: a command client's own key); None when it needs
+        no signature on this node."""
         em = {key_id(self.emulator): self.emulator} if self.emulator is not None else {}
+        own = client if isinstance(msg, CONNECTION_COMMANDS) else {}
         if isinstance(msg, EMULATOR_COMMANDS) and (em or self.operators):
-            return {**self.operators, **em}
+            return {**self.operators, **em, **own}
         if isinstance(msg, OPERATOR_COMMANDS) and self.operators:
-            return {**self.operators, **em}
+            return {**self.operators, **em, **own}
         return None
 
-    def command(self, node_nonce: bytes, msg: m.Message) -> m.Message | str:
-        """The command a client may carry out, or why it is refused."""
+    @property
+    def certifiers(self) -> dict[str, Ed25519PublicKey]:
+        """Keys whose certificate of a client this node takes: an operator's, its emulator's."""
+        em = {key_id(self.emulator): self.emulator} if self.emulator is not None else {}
+        return {**self.operators, **em}
+
+    def command(
+        self,
+        node_nonce: bytes,
+        msg: m.Message,
+        client: dict[str, Ed25519PublicKey] | None = None,
+    ) -> m.Message | str:
+        """The command a client may carry out, or why it is refused (``client``: the key of
+        the command client on this connection, which may sign what the connection carries)."""
+        client = client or {}
         inner = msg
         if isinstance(msg, m.Authorized):
             try:
@@ -258,7 +279,7 @@ class Authority:
                 return self._refuse("a signed command that does not decode")
             if isinstance(inner, m.Authorized):
                 return self._refuse("a signed command inside a signed command")
-            signers = self._signers(inner)
+            signers = self._signers(inner, client)
             if signers is None:  # this node needs no signature for it: the command as it is
                 return inner
             pub = signers.get(msg.key)
@@ -268,7 +289,7 @@ class Authority:
                 pub.verify(msg.sig, _CMD + node_nonce + msg.body)
             except InvalidSignature:
                 return self._refuse("bad signature (not made for this connection)")
-        elif self._signers(msg) is not None:
+        elif self._signers(msg, client) is not None:
             return self._refuse(
                 f"{type(msg).__name__} needs an operator's signature on this node "
                 "(give --sign KEYFILE or set $MSO_SIGN)"

@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import base64
 import hashlib
-from collections.abc import Mapping, Set
+from collections.abc import Callable, Mapping, Set
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol, TypeVar
 
 import msgspec
 from cryptography.exceptions import InvalidSignature
@@ -73,6 +74,28 @@ def parse_cert(data: str | bytes) -> NodeCert:
         raise KeyError_("not an mso node certificate (made by `mso keygen --node`)") from None
 
 
+class _Cert(Protocol):
+    @property
+    def key(self) -> bytes: ...
+
+
+C = TypeVar("C", bound=_Cert)
+
+
+def load_key_and_cert(path: str | Path, parse: Callable[[str], C]) -> tuple[Ed25519PrivateKey, C]:
+    """The private key in the file ``path`` and its certificate beside it (``path.cert``,
+    read by ``parse``), which must certify that key: a node's or a client's."""
+    p = Path(path)
+    try:
+        private = parse_private(p.read_text(encoding="utf-8"))
+        cert = parse(p.with_name(p.name + ".cert").read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise KeyError_(f"{exc.filename}: {exc.strerror}") from None
+    if private.public_key().public_bytes_raw() != cert.key:
+        raise KeyError_(f"{p}.cert certifies another key than {p}'s")
+    return private, cert
+
+
 @dataclass(frozen=True)
 class Identity:
     """This node's key and its certificate."""
@@ -83,15 +106,7 @@ class Identity:
     @classmethod
     def load(cls, path: str | Path) -> Identity:
         """The key file ``path`` and its certificate beside it (``path.cert``)."""
-        p = Path(path)
-        try:
-            private = parse_private(p.read_text(encoding="utf-8"))
-            cert = parse_cert(p.with_name(p.name + ".cert").read_text(encoding="utf-8"))
-        except OSError as exc:
-            raise KeyError_(f"{exc.filename}: {exc.strerror}") from None
-        if private.public_key().public_bytes_raw() != cert.key:
-            raise KeyError_(f"{p}.cert certifies another key than {p}'s")
-        return cls(private, cert)
+        return cls(*load_key_and_cert(path, parse_cert))
 
     @property
     def node(self) -> str:

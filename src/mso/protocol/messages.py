@@ -70,9 +70,12 @@ class PeerHello(_Msg, tag="hello"):
 
 
 class ClientHello(_Msg, tag="client"):
-    """First message from a CLI or API client connection."""
+    """First message from a CLI or API client connection; with a client identity, its
+    certificate and its signature over both hellos (:mod:`mso.protocol.clients`)."""
 
     name: str
+    cert: bytes = b""
+    sig: bytes = b""
 
 
 # -- data plane ------------------------------------------------------------------------------
