@@ -242,7 +242,8 @@ class AsyncOverlay:
         self.signer = signer if signer is not None else load_signer(sign)
         # this client's own certified key (--client-key, $MSO_CLIENT_KEY): nodes that require
         # identities serve no other (an operator key stands for one: mso.protocol.clients)
-        self.identity = load_client_identity(client_key)
+        self._identity = load_client_identity(client_key)
+        self._looked = self._identity is not None  # for an emulated overlay's client key
         self._client = client  # a connection kept open (by the caller, or by open())
         self._owned = owned  # close() closes it: opened here, or handed over with ``owned``
 
@@ -252,6 +253,17 @@ class AsyncOverlay:
         if self._address is None or ":" not in self._address:
             self._address = resolve_address(self._address, self._overlay)
         return self._address
+
+    @property
+    def identity(self) -> ClientIdentity | None:
+        """This client's certified key: given, $MSO_CLIENT_KEY, or the one an emulator run
+        with identities left for its user (found as the overlay key is, :func:`key_for`)."""
+        if self._identity is None and not self._looked:
+            from mso.emu.overlays import client_key_for
+
+            self._looked = True
+            self._identity = load_client_identity(client_key_for(self.address))
+        return self._identity
 
     async def open(self, name: str = "cli", timeout: float = 5.0) -> AsyncOverlay:
         """Keep one connection open for the calls that follow, until :meth:`close`."""

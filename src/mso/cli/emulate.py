@@ -100,6 +100,12 @@ from mso.errors import MsoError
     is_flag=True,
     help="Every node and the emulator encrypt their frames (ChaCha20-Poly1305).",
 )
+@click.option(
+    "--identities",
+    is_flag=True,
+    help="Run the secure configuration: an operator key made for the run, each node's own "
+    "certified key, clients with certified keys only (left for you beside the overlay).",
+)
 @allow_code_option
 @key_option
 @click.option("--json", "as_json", is_flag=True, help="Print the final summary as JSON.")
@@ -121,6 +127,7 @@ def emulate(
     dashboard_listen: str | None,
     metrics_port: int | None,
     encrypt: bool,
+    identities: bool,
     allow_code: tuple[str, ...],
     key: str | None,
     as_json: bool,
@@ -140,7 +147,7 @@ def emulate(
         dead_after_s, allow_code, name=name, manage=manage,
         dashboard=(dashboard_listen or "") if with_dashboard or dashboard_listen else None,
         metrics_port=metrics_port, encrypt=encrypt, backend=backend, planner=planner,
-        routing=routing,
+        routing=routing, identities=identities,
     )  # fmt: skip
 
 
@@ -202,6 +209,7 @@ def _emulate(
     backend: str = "user",
     planner: str | None = None,
     routing: str = "babeld",
+    identities: bool = False,
 ) -> None:
     import asyncio
     import signal
@@ -259,6 +267,7 @@ def _emulate(
             metrics_port=metrics_port,
             allow_code=allow_code or None,
             encrypt=encrypt,
+            identities=identities,
         )
         if isinstance(emu, NetnsEmulator):
             emu.routing = routing
@@ -283,6 +292,13 @@ def _emulate(
                     f"emulating {scenario.name} as overlay {emu.name}: {len(emu.nodes)} node "
                     f"{where} " + ", ".join(f"{n}={emu.address(n)}" for n in emu.nodes)
                 )
+                if emu.user_keys is not None:
+                    op, you = emu.user_keys
+                    out.print(
+                        f"identities: each node proves its own key; clients need a certified "
+                        f"one (yours: {you}, found by mso status --overlay {emu.name}); the "
+                        f"run's operator key: --sign {op}"
+                    )
                 if dashboard is not None:
                     from mso.dashboard.server import start_dashboard
 

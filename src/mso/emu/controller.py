@@ -118,6 +118,10 @@ class Emulator:
     encrypt: bool = False  # ChaCha20-Poly1305 frames between every node and with the emulator
     # this emulator's own key: its nodes take LinkStates and Shutdowns signed with it only
     signer: Signer = field(default_factory=Signer)
+    # node identities (mso.emu.identities): the emulator's key is the run's operator key, each
+    # node has its own certified key, clients need one; where the user's keys were left
+    identities: bool = False
+    user_keys: tuple[Path, Path] | None = None
     timeline: Timeline | None = None  # the one player of scripted and operator changes
     t0: float = 0.0  # loop time of the run's start: every time told is seconds after it
     wall0: float = 0.0  # the same moment on the wall clock, for the nodes' log lines
@@ -147,6 +151,8 @@ class Emulator:
         if self.log_dir is None:  # ours to remove after a clean stop
             self.log_dir = make_log_dir("mso-emu-")
             self._own_logs = True
+        if self.identities:
+            self._make_identities(names)
         env = self._env()
         for name, host in zip(names, hosts, strict=True):
             self.nodes[name] = EmulatedNode(name, host, port)
@@ -159,6 +165,16 @@ class Emulator:
             await self.stop()
             raise
         self._started()
+
+    def _make_identities(self, names: list[str]) -> None:
+        """The secure configuration for this run (:mod:`mso.emu.identities`)."""
+        from mso.emu.identities import leave_for_user, node_identities
+
+        assert self.log_dir is not None and self.name is not None
+        if self.signer.public_text() not in self.operator_keys:
+            self.operator_keys += (self.signer.public_text(),)
+        node_identities(self.signer, names, self.log_dir / "identities")
+        self.user_keys = leave_for_user(self.signer, self.name)
 
     def _begin(self) -> None:
         """The run's clock starts: the console's times, the scripted changes' and every node's
@@ -254,6 +270,8 @@ class Emulator:
             cmd += ["--allow-code", module]
         for pub in self.operator_keys:
             cmd += ["--operator-key", pub]
+        if self.identities:
+            cmd += ["--identity", str(self.log_dir / "identities" / f"{node.id}.key")]
         return cmd
 
     # -- faults and commands ------------------------------------------------------------------
@@ -423,7 +441,12 @@ class Emulator:
     def client_for(self, node: EmulatedNode, psk: bytes, name: str = "emulator") -> Client:
         """A (not yet connected) client of ``node``; it signs LinkStates and Shutdowns with
         this emulator's key, and encrypts when the overlay does."""
-        return Client(node.host, node.port, psk, name, signer=self.signer, encrypt=self.encrypt)
+        from mso.protocol.clients import operator_client
+
+        return Client(
+            node.host, node.port, psk, name, signer=self.signer, encrypt=self.encrypt,
+            identity=operator_client(self.signer),  # (with identities, a client must be one)
+        )  # fmt: skip
 
     def _link_state(self, node: str, routes: bool) -> m.LinkState:
         net = self.scenario.network

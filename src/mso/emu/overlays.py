@@ -104,38 +104,64 @@ def _safe_folder(folder: Path) -> bool:
 def write_key(name: str, key: str) -> None:
     """Leave overlay ``name``'s key for its user's later commands (mode 0600, never followed
     through a link); refused if the directory is not private to this user."""
+    write_private(key_file(name), key, "the overlay key")
+
+
+def write_private(path: Path, text: str, what: str) -> None:
+    """Write ``text`` to ``path`` in the overlays directory, mode 0600, never through a link;
+    refused if the directory is not private to this user."""
     folder = overlays_dir()
     if not _safe_folder(folder):
         raise MsoError(
             f"{folder} is not private to this user (owned by uid {os.getuid()}, mode 0700): "
-            "not writing the overlay key there; give --key or set $MSO_KEY"
+            f"not writing {what} there; give --key or set $MSO_KEY"
         )
-    path = key_file(name)
     with contextlib.suppress(FileNotFoundError):
         path.unlink()
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
     with os.fdopen(fd, "w") as f:
-        f.write(key + "\n")
+        f.write(text + "\n")
     give(path)
 
 
+def identity_files(name: str) -> tuple[Path, Path]:
+    """Where an emulator run with identities leaves its operator key and a command client's
+    key for its user (each with its .pub or .cert beside it)."""
+    return overlays_dir() / f"{name}.operator.key", overlays_dir() / f"{name}.client.key"
+
+
 def remove_key(name: str) -> None:
-    with contextlib.suppress(OSError):
-        key_file(name).unlink()
+    operator, client = identity_files(name)
+    for path in (key_file(name), operator, client):
+        for each in (path, path.with_name(path.name + ".pub"), path.with_name(path.name + ".cert")):
+            with contextlib.suppress(OSError):
+                each.unlink()
 
 
 def key_for(address: str) -> str | None:
     """The key an emulator of this user made up for the overlay that has a node at
     ``address`` (None: no such overlay, or its key was given, not made up)."""
+    path = _own_file(address, "key")
+    try:
+        return path.read_text().strip() or None if path is not None else None
+    except OSError:
+        return None
+
+
+def client_key_for(address: str) -> str | None:
+    """The client key an emulator of this user made for the overlay, run with identities,
+    that has a node at ``address`` (None: no such overlay, or it has no identities)."""
+    path = _own_file(address, "client.key")
+    return str(path) if path is not None else None
+
+
+def _own_file(address: str, suffix: str) -> Path | None:
+    """``NAME.SUFFIX`` of the overlay of this user's that has a node at ``address``, if it
+    is there and private (never a file another local user planted)."""
     for name, state in running_overlays(everyone=True).items():
         if address in state["nodes"].values():
-            path = folder_of(name) / f"{name}.key"
-            if not _private(path):  # absent, or not ours: never use a planted key
-                return None
-            try:
-                return path.read_text().strip() or None
-            except OSError:
-                return None
+            path = folder_of(name) / f"{name}.{suffix}"
+            return path if _private(path) else None
     return None
 
 
