@@ -15,15 +15,13 @@ Usage: .venv/bin/python bench/origin.py [--n 2000] [--json FILE]
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
-from mso.benchmarks.common import provenance, write_results
+from mso.benchmarks.common import per_call_us, provenance, write_results
 from mso.protocol import messages as m
 from mso.protocol import origin
 from mso.protocol.authority import Signer
@@ -31,18 +29,6 @@ from mso.protocol.identity import Identity, certify
 
 HERE = Path(__file__).resolve().parent
 CLAIMS_PER_FAILURE = 45
-
-
-def per_call_us(fn: Any, n: int) -> float:
-    """Median CPU µs of ``fn()`` over 5 batches of ``n // 5``."""
-    batch = max(1, n // 5)
-    out = []
-    for _ in range(5):
-        t = time.process_time()
-        for _ in range(batch):
-            fn()
-        out.append((time.process_time() - t) / batch * 1e6)
-    return statistics.median(out)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -96,3 +96,52 @@ def test_an_overlay_emulated_with_identities_runs_an_app_and_serves_certified_cl
     assert code == 0, err
     assert sorted(json.loads(out)) == ["N1", "N2", "N3", "N4"]
     assert not any(p.exists() for p in seen["files"])  # removed when the emulator stopped
+
+
+def test_a_node_restarted_under_identities_is_taken_back_on_its_own_word() -> None:
+    """A neighbour's NodeUp about another node is not that node's word, so with identities
+    every node takes a restarted node back from its own (signed) beats: N3, in the middle of
+    the line, killed and restarted, is held failed by nobody afterwards, and the stream
+    through it goes on, no event repeated or out of order."""
+
+    def sink(st: dict[str, Any]) -> dict[str, int]:
+        stats: dict[str, int] = st["N4"]["apps"]["pipe"]["vertices"]["sink"]["stats"]
+        return stats
+
+    async def run() -> tuple[int, dict[str, Any]]:
+        emu = Emulator(load_scenario(LINE4), identities=True)
+        await emu.start()
+        try:
+            assert (await emu.deploy(pipe_app(100), "pipe.yaml", "N1")).ok
+            await until(emu.status, lambda st: sink(st)["count"] >= 50, 10, "50 events")
+            await emu.fail("N3")
+            await until(
+                emu.status,
+                lambda st: "N3" in st["N2"]["failed_nodes"],
+                10,
+                "N3 declared failed",
+                show=lambda st: {n: s["failed_nodes"] for n, s in st.items()},
+            )
+            await emu.restart("N3")
+            before = sink(await until(emu.status, lambda st: "N4" in st, 10, "N4 answers"))
+            st = await until(
+                emu.status,
+                lambda st: (
+                    sorted(st) == ["N1", "N2", "N3", "N4"]
+                    and not any(s["failed_nodes"] for s in st.values())
+                    and sink(st)["count"] >= before["count"] + 50
+                ),
+                20,
+                "N3 taken back by every node and 50 more events through it",
+                show=lambda st: {n: s["failed_nodes"] for n, s in st.items()},
+            )
+            return before["count"], st
+        finally:
+            await emu.stop()
+
+    before, st = asyncio.run(asyncio.wait_for(run(), patience(90)))
+    got = sink(st)
+    assert got["count"] >= before + 50
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
+    # N2 announced N3 back to N1 (a host and its neighbour): not N3's word, refused
+    assert st["N1"]["traffic"]["frames_origin_refused"] >= 1

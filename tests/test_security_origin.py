@@ -96,6 +96,14 @@ def test_a_node_speaks_only_for_itself() -> None:
     assert origin.attribute("N2", own) is own
 
 
+def test_only_a_node_itself_says_it_is_back() -> None:
+    """A captured member announcing a dead node back (NodeUp) would have its vertices' hosts
+    treat it as alive; with identities only the node's own word (its signed beat) does."""
+    assert "only 'N4'" in str(origin.attribute("N2", m.NodeUp("N4", 9)))
+    own = m.NodeUp("N2", 9)
+    assert origin.attribute("N2", own) is own
+
+
 def test_over_tcp_a_relay_cannot_forge_or_alter_another_nodes_claims() -> None:
     """N1 - N2 - N3, every link proven. N1's signed claim reaches N3 through N2 as N1's; N2
     (captured) writing N1's name on a claim of its own, unsigned or signed by itself, or

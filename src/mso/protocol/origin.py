@@ -14,7 +14,10 @@ signature verifies. Frames from the neighbour itself are proved by the link.
 A verified source still speaks only for itself (:func:`attribute`): a failure claim counts as
 its sender's own (its ``detector`` is the sender, and the ``witness`` it names, whose word it
 cannot show, is dropped), a heartbeat's piggybacked claims as the sender's own too, and a
-heartbeat or a host's ``Moved`` must name its sender.
+heartbeat or a host's ``Moved`` must name its sender. A ``NodeUp`` (a node held failed is
+back) is taken only from that node itself: a neighbour's announcement of it is not its word,
+and its own beats, signed to every node it is not a neighbour of, bring it back (at a host
+that is not its neighbour, within a rejoin round of the beats, ``REJOIN_EVERY``).
 
 Data frames (events and acks) are not signed: members are trusted with the data plane of the
 apps they take part in, and a signature per event would cost more than the event.
@@ -161,4 +164,6 @@ def attribute(src: str, msg: m.Message) -> m.Message | str:
             msg.news = [m.NodeDown(c.node, src, c.incarnation) for c in msg.news]
     elif isinstance(msg, m.Moved) and msg.incarnation >= 0 and msg.node != src:
         return f"a host's Moved of {msg.vertex!r} to {msg.node!r} from {src!r}"
+    elif isinstance(msg, m.NodeUp) and msg.node != src:  # its own signed beats say it is back
+        return f"a NodeUp of {msg.node!r} from {src!r}: only {msg.node!r}'s own word"
     return msg
