@@ -18,6 +18,10 @@ Python, an app file's path, or its text. Refusals raise
 answered and did not do it). ``AsyncOverlay`` is the same for asyncio code; it can also keep
 one connection open (:meth:`AsyncOverlay.open`, or a connected client given), so that repeated
 timed calls do not each pay a connect and a key check. Its every call takes a ``timeout``.
+On an overlay with node identities a client is served only with its own certified key,
+``Overlay(..., client_key="me.key")`` (``mso keygen --client``; default ``$MSO_CLIENT_KEY``,
+else the one an emulator run with ``--identities`` left for its user), or the operator key
+(``sign=``): :mod:`mso.protocol.clients`.
 
 A running emulator takes commands too (:class:`EmulatorControl`, by overlay name): fail or
 restart a node, cut or heal a link, move a node, stop the run with its summary. To start an
