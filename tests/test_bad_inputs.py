@@ -200,6 +200,11 @@ CASES = [
     Case(
         "sign-key-bad", ["undeploy", "x", "--via", "127.0.0.1:1", "--sign", "/dev/null"], "--sign"
     ),
+    Case(
+        "client-key-bad",
+        ["status", "--via", "127.0.0.1:1", "--client-key", "/dev/null"],
+        "--client-key",
+    ),
     Case("allow-code-shape", ["node", "--id", "N1", "--allow-code", "os; rm"], "module name"),
     Case("emulate-duration-nan", ["emulate", SCEN, "--duration", "nan"], "--duration': expected"),
     Case("emulate-convergence", ["emulate", SCEN, "--convergence", "-1"], "--convergence'"),
