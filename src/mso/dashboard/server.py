@@ -132,7 +132,10 @@ class Dashboard:
         for _ in range(len(self.addresses)):
             try:
                 if self._session is None:
-                    session = AsyncOverlay(self.addresses[self._via], key=self._key)
+                    # (the operator key, if given, is a client of nodes with identities too)
+                    session = AsyncOverlay(
+                        self.addresses[self._via], key=self._key, signer=self._signer
+                    )
                     self._session = await session.open("dashboard", 2.0)
                 return await self._session.status(timeout=5.0)
             except (MsoError, ConnectionError, OSError) as exc:
