@@ -151,8 +151,6 @@ class Emulator:
         if self.log_dir is None:  # ours to remove after a clean stop
             self.log_dir = make_log_dir("mso-emu-")
             self._own_logs = True
-        if self.identities:
-            self._make_identities(names)
         env = self._env()
         for name, host in zip(names, hosts, strict=True):
             self.nodes[name] = EmulatedNode(name, host, port)
@@ -208,7 +206,8 @@ class Emulator:
     def _env(self) -> dict[str, str]:
         """The nodes' environment. Their overlay key is the one given (``--key``, $MSO_KEY),
         else one made up for this run and left for this user only (:func:`write_key`): with
-        the development key any local user could join a loopback overlay."""
+        the development key any local user could join a loopback overlay. With
+        ``identities``, the run's keys are made here too."""
         env = dict(os.environ)
         key = self.key or env.get("MSO_KEY", "")
         if not key:
@@ -217,6 +216,8 @@ class Emulator:
             write_key(self.name, key)
         env["MSO_KEY"] = key
         env["MSO_EMULATOR_KEY"] = self.signer.public_text()
+        if self.identities and self.user_keys is None:  # (both backends start through here)
+            self._make_identities(list(self.scenario.network.nodes))
         if self.encrypt:
             env["MSO_ENCRYPT"] = "1"
         else:
