@@ -170,15 +170,25 @@ def test_a_device_says_its_link_rate_in_its_config(tmp_path: Path) -> None:
 
     cfg = tmp_path / "n1.yaml"
     cfg.write_text("id: N1\nlink_mbps: 6.5\n")
-    assert settle(NodeFlags(config_file=cfg)).link_mbps == 6.5
-    assert settle(NodeFlags(config_file=cfg, link_mbps=2.0)).link_mbps == 2.0  # the flag wins
-    assert settle(NodeFlags(node_id="N1")).link_mbps is None
-    cfg.write_text("id: N1\nlink_mbps: fast\n")
-    with pytest.raises(MsoError, match="link_mbps: expected a number > 0"):
-        settle(NodeFlags(config_file=cfg))
+    assert settle(NodeFlags(config_file=cfg)).link_mbps == {"*": 6.5}
+    flags = ("2", "N2=54")  # the flags win; one peer's rate beside every other link's
+    assert settle(NodeFlags(config_file=cfg, link_mbps=flags)).link_mbps == {"*": 2, "N2": 54}
+    assert settle(NodeFlags(node_id="N1")).link_mbps == {}
+    cfg.write_text("id: N1\nlink_mbps: {N2: 54, '*': 6.5}\n")
+    assert settle(NodeFlags(config_file=cfg)).link_mbps == {"N2": 54.0, "*": 6.5}
+    for bad in ("fast", "0", "{N2: -1}", "[1]"):
+        cfg.write_text(f"id: N1\nlink_mbps: {bad}\n")
+        with pytest.raises(MsoError, match="link_mbps: expected a rate in Mb/s > 0"):
+            settle(NodeFlags(config_file=cfg))
+    for bad in ("fast", "N2=", "=5", "N2=-1", "N2=nan"):
+        with pytest.raises(MsoError, match="--link-mbps: expected RATE or PEER=RATE"):
+            settle(NodeFlags(node_id="N1", link_mbps=(bad,)))
     shaped = {"N2": Neighbour("h", 1, LinkShape(11.0)), "N3": Neighbour("h", 2)}
-    driver = SimpleNamespace(view=SimpleNamespace(neighbours=lambda: shaped), link_mbps=6.5)
+    view = SimpleNamespace(neighbours=lambda: shaped)
+    driver = SimpleNamespace(view=view, link_mbps={"*": 6.5, "N4": 2.0})
     rate = NodeDriver._link_rate
-    assert [rate(driver, n) for n in ("N2", "N3", "N9")] == [11.0, 6.5, 6.5]  # type: ignore[arg-type]
+    got = [rate(driver, n) for n in ("N2", "N3", "N4", "N9")]  # type: ignore[arg-type]
+    assert got == [11.0, 6.5, 2.0, 6.5]
+    assert rate(SimpleNamespace(view=view, link_mbps={}), "N3") is None  # type: ignore[arg-type]
     core = NodeCore("N1", link_rates=lambda n: {"N2": 11.0, "N3": math.nan}.get(n))
     assert [core.link_rate(n) for n in ("N2", "N3", "N4")] == [11.0, None, None]

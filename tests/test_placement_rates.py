@@ -175,3 +175,17 @@ def test_a_remap_does_not_keep_an_edge_on_a_link_too_slow_for_it() -> None:
     slow = [fast[0], dataclasses.replace(fast[1], rate_mbps=2.0), *fast[2:]]
     assert lay.overloads_link(c.index, now, slow) and not lay.overloads_link(c.index, new, slow)
     assert keep(slow) == (new, "a link it uses cannot carry its edge at the link's rate")
+
+
+def test_a_netns_node_is_configured_with_its_links_rates(tmp_path: Path) -> None:
+    # the kernel's routes say nothing of rates: the netns emulator gives each node its links'
+    from mso.emu.controller import EmulatedNode
+    from mso.emu.netns.emulator import NetnsEmulator
+
+    emu = NetnsEmulator(load_scenario(EXAMPLES / "slow-link.yaml"))
+    emu.log_dir = tmp_path
+    emu.nodes = {n: EmulatedNode(n, "10.0.0.1", 7000) for n in ("R1", "R2", "R3")}
+    r1, r2, r3 = (emu._node_command(n) for n in ("R1", "R2", "R3"))
+    assert r1[r1.index("--link-mbps") + 1] == "R2=2.0" and r1.count("--link-mbps") == 1
+    assert r2.count("--link-mbps") == 1 and "R1=2.0" in r2  # R2-R3 is unshaped
+    assert "--link-mbps" not in r3

@@ -29,9 +29,11 @@ if TYPE_CHECKING:
 @click.option("--battery-wh", type=POSITIVE, help="Battery capacity in Wh (default: wall power).")
 @click.option(
     "--link-mbps",
-    type=POSITIVE,
-    help="The rate of this node's radio links in Mb/s, as configured (not measured): probes "
-    "carry it to the planner where the routing view does not know a link's rate.",
+    multiple=True,
+    metavar="RATE|PEER=RATE",
+    help="The rate of this node's radio links in Mb/s (PEER=RATE: of one, repeat), as "
+    "configured, not measured: probes carry it to the planner where the routing view does not "
+    "know a link's rate.",
 )
 @click.option(
     "--capability",
@@ -149,7 +151,7 @@ def node(
     listen: str | None,
     cpu: float | None,
     battery_wh: float | None,
-    link_mbps: float | None,
+    link_mbps: tuple[str, ...],
     capabilities: tuple[str, ...],
     power: str | None,
     peers: tuple[str, ...],

@@ -3,6 +3,7 @@ in one place so that a mistake is reported in one line before anything listens."
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -62,7 +63,7 @@ class NodeFlags:
     listen: str | None = None
     cpu: float | None = None
     battery_wh: float | None = None
-    link_mbps: float | None = None
+    link_mbps: tuple[str, ...] = ()  # RATE or PEER=RATE, each --link-mbps
     # NAME or NAME=AMOUNT, each --capability (§3.3: camera, gpu, mem_mb=4096)
     capabilities: tuple[str, ...] = ()
     power: PowerModel | None = None  # parsed by the front end (its own error message)
@@ -105,8 +106,9 @@ class NodeSettings:
     encrypt: bool = False
     authority: Authority | None = None
     battery_wh: float | None = None
-    # the configured rate of its links (Mb/s) where the routing view knows none: probes carry it
-    link_mbps: float | None = None
+    # the configured rates of its links (Mb/s) where the routing view knows none, by peer
+    # ("*": every other link): probes carry them
+    link_mbps: dict[str, float] = field(default_factory=dict)
     capabilities: dict[str, float] = field(default_factory=dict)
     policy: str | None = None
     manage: bool = True
@@ -155,7 +157,7 @@ def settle(flags: NodeFlags) -> NodeSettings:
     if battery is not None and battery <= 0:
         raise MsoError(f"--battery-wh: expected a number > 0, got {battery:g}")
     cpu = float(flags.cpu if flags.cpu is not None else cfg.get("cpu", 1.0))
-    link_mbps = flags.link_mbps if flags.link_mbps is not None else cfg.get("link_mbps")
+    link_mbps = link_rates(flags.link_mbps, cfg.get("link_mbps"))
     capabilities = node_capabilities(flags.capabilities, cfg.get("capabilities"))
     host, port = parse_address(listen)
     metrics_at = None
@@ -185,7 +187,7 @@ def settle(flags: NodeFlags) -> NodeSettings:
         encrypt=encrypt,
         authority=authority,
         battery_wh=battery,
-        link_mbps=None if link_mbps is None else float(link_mbps),
+        link_mbps=link_mbps,
         capabilities=capabilities,
         policy=flags.policy if flags.policy is not None else cfg.get("policy"),
         manage=flags.manage if flags.manage is not None else cfg.get("manage", True),
@@ -295,6 +297,34 @@ def node_config(path: Path) -> dict[str, Any]:
     return data
 
 
+def _rate(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and 0 < v < 1e9
+
+
+def link_rates(flags: tuple[str, ...], configured: Any) -> dict[str, float]:
+    """The configured rates (Mb/s) of this node's links, by peer, ``"*"`` for the rest:
+    ``--link-mbps RATE`` / ``--link-mbps PEER=RATE`` options (repeat), else the config file's
+    ``link_mbps:`` (a rate, or a mapping of peer to rate). Configured, not measured: probes
+    carry them to the planner where the routing view knows no rate."""
+    if not flags:
+        if configured is None:
+            return {}
+        if _rate(configured):
+            return {"*": float(configured)}
+        return {str(p): float(x) for p, x in configured.items()}
+    out: dict[str, float] = {}
+    for item in flags:
+        peer, _, rate = item.rpartition("=")
+        try:
+            value = float(rate)
+        except ValueError:
+            value = math.nan
+        if not _rate(value) or (not peer and "=" in item):
+            raise MsoError(f"--link-mbps: expected RATE or PEER=RATE in Mb/s > 0, got {item!r}")
+        out[peer or "*"] = value
+    return out
+
+
 def node_capabilities(flags: tuple[str, ...], configured: Any) -> dict[str, float]:
     """What a node offers (§3.3): ``--capability NAME[=AMOUNT]`` options, else the config
     file's ``capabilities:`` (a list of names or a mapping of name to amount)."""
@@ -331,7 +361,14 @@ def _config_value_problem(k: str, v: Any) -> str | None:
         )
     ):
         return "expected {idle_w, cpu_w, tx_uj_per_byte, rx_uj_per_byte} as numbers >= 0"
-    if k in ("cpu", "battery_wh", "link_mbps") and not (
+    if k == "link_mbps" and not (
+        _rate(v)
+        or (isinstance(v, dict) and all(isinstance(p, str) and _rate(x) for p, x in v.items()))
+    ):
+        return (
+            f"expected a rate in Mb/s > 0, or a mapping of peer ('*': the rest) to one, got {v!r}"
+        )
+    if k in ("cpu", "battery_wh") and not (
         isinstance(v, int | float) and not isinstance(v, bool) and 0 < v < 1e12
     ):
         return f"expected a number > 0, got {v!r}"

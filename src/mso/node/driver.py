@@ -14,7 +14,7 @@ import contextlib
 import logging
 import os
 import threading
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Mapping
 from typing import NoReturn
 
 from mso.management import load_policy
@@ -52,10 +52,11 @@ class NodeDriver:
         encrypt: bool = False,
         device: DeviceProbe | None = None,
         identity: Identity | None = None,
-        link_mbps: float | None = None,
+        link_mbps: Mapping[str, float] | None = None,
     ) -> None:
         self.core = core
-        self.link_mbps = link_mbps  # configured; a link's shape in the view (emulator) wins
+        # configured, by peer ("*": the rest); a link's shape in the view (emulator) wins
+        self.link_mbps = dict(link_mbps or {})
         core.link_rates = self._link_rate
         # what the OS measures (battery, CPU time, interface bytes), read every second and on
         # every status request; None keeps the energy model alone (emulation)
@@ -189,10 +190,13 @@ class NodeDriver:
 
     def _link_rate(self, peer: str) -> float | None:
         """The rate of the link to ``peer``: the emulator's shape of it (the scenario's
-        ``bandwidth_mbps``), else the configured ``link_mbps``; nothing here measures it."""
+        ``bandwidth_mbps``), else the configured ``link_mbps`` for that peer or for every
+        link; nothing here measures it."""
         n = self.view.neighbours().get(peer)
         rate = n.shape.bandwidth_mbps if n is not None else None
-        return rate if rate is not None else self.link_mbps
+        if rate is not None:
+            return rate
+        return self.link_mbps.get(peer, self.link_mbps.get("*"))
 
     def _routes_changed(self, _: RoutesChanged | None) -> None:
         self._apply(self.core.set_routes(dict(self.view.routes()), self.loop.time()))

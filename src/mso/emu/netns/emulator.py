@@ -114,6 +114,13 @@ class NetnsEmulator(Emulator):
         i = cmd.index("--listen")
         cmd[i + 1] = f"0.0.0.0:{NODE_PORT}"
         cmd[cmd.index("--energy") + 1] = "interfaces"  # each node's eth0 is its own radio
+        # the kernel's view knows no link's rate: each node is configured with its links' as
+        # the scenario shapes them now (probes carry them to the bytes planner)
+        net = self.scenario.network
+        for peer in net.neighbours(name):
+            link = net.link(name, peer)
+            if link is not None and link.bandwidth_mbps:
+                cmd += ["--link-mbps", f"{peer}={link.bandwidth_mbps!r}"]
         return [*cmd, "--routes", "kernel"]
 
     def _spawn(self, name: str, env: dict[str, str]) -> None:
