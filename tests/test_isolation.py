@@ -35,8 +35,28 @@ def _vertices_importable(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 async def _wait_for(emu: Any, check: Any) -> dict[str, Any]:
-    """The overlay's status once ``check`` holds (see waits.until)."""
-    return await until(emu.status, check, 20.0, "the status the test waits for")
+    """The overlay's status once ``check`` holds (see waits.until); a failure prints each
+    node's vertices (state, crashes, stats), parked chains and failures, not the whole status."""
+    return await until(emu.status, check, 20.0, "the status the test waits for", show=_apps)
+
+
+def _apps(st: dict[str, Any]) -> dict[str, Any]:
+    keep = ("state", "crashes", "restarts", "last_crash", "not_restarted", "stats", "errors")
+    return {
+        node: {
+            "failed": s.get("failed_nodes"),
+            "apps": {
+                name: {
+                    "parked": app.get("parked"),
+                    "vertices": {
+                        v: {k: x.get(k) for k in keep} for v, x in app["vertices"].items()
+                    },
+                }
+                for name, app in s.get("apps", {}).items()
+            },
+        }
+        for node, s in st.items()
+    }
 
 
 def test_isolation_is_validated_with_its_place() -> None:

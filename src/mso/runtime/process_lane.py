@@ -194,27 +194,57 @@ def _child(conn: Connection) -> None:
 
 # -- the parent --------------------------------------------------------------------------------
 class _ProcLane:
+    """One child and its pipe. The child is started on the lane's own thread, never on the
+    node's event loop: a start waits for the forkserver (the first one starts it, a Python
+    that imports itself), which on a loaded machine took seconds, and a loop that stops for
+    seconds sends no heartbeats: its peers declared the node failed in the middle of the
+    deployment that asked for the vertex. Jobs submitted before the child runs wait, in
+    order, behind its ``Start``."""
+
     def __init__(
         self, start: fx.StartVertex, deliver: Callable[[fx.VertexResult], None], ctx: Any
     ) -> None:
         self.deliver = deliver
         self.enc = msgspec.msgpack.Encoder()
-        self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_child, args=(child,), daemon=True)
-        self.proc.start()
-        child.close()
+        self.conn, self._child_conn = ctx.Pipe()
+        self.proc = ctx.Process(target=_child, args=(self._child_conn,), daemon=True)
         self.instance = start.instance
         self.stopping = False  # told to stop: its pipe closing is no crash
         self.lock = threading.Lock()  # submit is called from the loop; sends stay whole
+        self.waiting: list[Job] | None = []  # jobs before the child runs (None: it runs)
+        self.started = threading.Event()  # the start was tried (the child runs, or failed)
+        self._start = Start(start.instance, start.app, spec_of(start), start.state)
         self.reader = threading.Thread(
-            target=self._read, daemon=True, name=f"mso-p-{start.vertex.id}"
+            target=self._run, daemon=True, name=f"mso-p-{start.vertex.id}"
         )
         self.reader.start()
-        self.send(Start(start.instance, start.app, spec_of(start), start.state))
 
     def send(self, job: Job) -> None:
         with self.lock:
-            self.conn.send_bytes(self.enc.encode(job))
+            if self.waiting is not None:
+                self.waiting.append(job)
+            else:
+                self.conn.send_bytes(self.enc.encode(job))
+
+    def _run(self) -> None:
+        """Start the child, give it its ``Start`` and what waited, then read its results."""
+        try:
+            self.proc.start()
+        except OSError as exc:  # no process could be made (limits, memory): say so
+            self.started.set()
+            self.deliver(fx.VertexCrashed(self.instance, reason=f"could not start: {exc}"))
+            return
+        finally:
+            self._child_conn.close()
+        self.started.set()
+        batch: list[Job] = [self._start]
+        with contextlib.suppress(OSError):  # the child is gone already: the read says how
+            while batch:  # sent outside the lock: the loop never waits for the child here
+                for job in batch:
+                    self.conn.send_bytes(self.enc.encode(job))
+                with self.lock:
+                    batch, self.waiting = self.waiting or [], ([] if self.waiting else None)
+        self._read()
 
     def _read(self) -> None:
         dec = msgspec.msgpack.Decoder(Result)
@@ -309,7 +339,10 @@ class ProcessExecutor:
             with contextlib.suppress(OSError):  # the child is gone already
                 lane.send(Stop())
         for lane in lanes:
-            lane.proc.join(timeout / max(1, len(lanes)))
+            share = timeout / max(1, len(lanes))
+            if not lane.started.wait(share) or lane.proc.pid is None:
+                continue  # never started (or still starting): its daemon thread ends with us
+            lane.proc.join(share)
             if lane.proc.is_alive():
                 lane.proc.kill()
                 lane.proc.join(0.5)
