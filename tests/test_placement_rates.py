@@ -140,8 +140,10 @@ def test_compare_says_which_placements_cannot_run() -> None:
 
     slow = rows("camera-slow.yaml", "slow-link.yaml")
     assert slow["algorithm1"]["link_share"] == pytest.approx(0.04)  # 80 kb/s of 2 Mb/s
-    assert slow["optimal:energy"]["link_share"] == pytest.approx(2.0)  # 4 Mb/s of 2
-    assert slow["optimal:energy"]["energy"] < slow["algorithm1"]["energy"]
+    # the ILP keeps links within their rates too (energy and hops; not max_load, by CPU alone)
+    assert slow["optimal:energy"]["link_share"] <= 0.8
+    assert slow["optimal:energy"]["energy"] == pytest.approx(slow["algorithm1"]["energy"])
+    assert slow["optimal:max_load"]["link_share"] == pytest.approx(2.0)  # 4 Mb/s of 2
     camera = rows("camera.yaml", "camera-line.yaml")
     assert camera["source"]["cpu_share"] == pytest.approx(1.14)  # 38 ms at 30 Hz on one CPU
     assert camera["optimal:energy"]["cpu_share"] <= 1.0
@@ -189,3 +191,28 @@ def test_a_netns_node_is_configured_with_its_links_rates(tmp_path: Path) -> None
     assert r1[r1.index("--link-mbps") + 1] == "R2=2.0" and r1.count("--link-mbps") == 1
     assert r2.count("--link-mbps") == 1 and "R1=2.0" in r2  # R2-R3 is unshaped
     assert "--link-mbps" not in r3
+
+
+def test_the_ilp_yardstick_keeps_every_link_within_its_rate() -> None:
+    from mso.planning.baselines import optimal
+    from mso.planning.objectives import busiest_link
+
+    app, slow, fast = camera_app(), robots(2.0), robots(None)
+    assert optimal(app, fast, "energy")["downscale"] == "R2"  # energy alone
+    within = optimal(app, slow, "energy")
+    assert within["downscale"] == "R1" and busiest_link(app, slow, within) <= LINK_SHARE
+    assert within == plan(app, slow).placement
+    # both edges over one link count together: 2 Mb/s carries 1.6 of them; three 0.6 Mb/s
+    # edges from R1 (15 KB at 5/s each) cannot all cross it, one of three stays on R1
+    trio = App("trio")
+    trio.vertex("s", pinned="R1", cost=0, rate=5)
+    for v in ("x", "y", "z"):
+        trio.vertex(v, cost=5)
+        trio.edge("s", v, size=15_000)
+        trio.edge(v, "t", size=10)
+    trio.vertex("t", pinned="R3", cost=0)
+    trio.validate(resolve_code=False)
+    got = optimal(trio, slow, "energy")
+    # each is 200 mJ on R1 against 65 on R2 (20 of CPU, 45 to carry its input there)
+    assert sum(got[v] == "R1" for v in ("x", "y", "z")) == 1
+    assert busiest_link(trio, slow, got) <= LINK_SHARE

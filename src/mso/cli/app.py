@@ -258,7 +258,7 @@ def compare(app_file: Path, scenario_file: Path, as_json: bool, no_import: bool)
         return
     table = Table(
         title=f"{app.name}: Algorithm 1 (planner: {first.planner}) beside the baselines; "
-        "optimal within each node's capacity (and knowing no link rates); a share over 100% "
+        "optimal within each node's CPU (energy, hops: and each link's rate); a share over 100% "
         "cannot run at the app's rates"
     )
     cols = ["planner", "energy mJ/event", "max load ms/event", "hops"]

@@ -13,6 +13,7 @@ not in the network is a :class:`~mso.errors.PlanningError`.
 
 from __future__ import annotations
 
+import itertools
 import math
 import random
 from typing import Protocol
@@ -24,12 +25,14 @@ from scipy.sparse import coo_array
 from mso.errors import PlanningError
 from mso.model.app import App
 from mso.model.network import Network
+from mso.planning.bytesplit import LINK_SHARE
 from mso.planning.objectives import (
     OBJECTIVES,
     cpu_ms,
     edge_bytes,
     route_tables,
     vertex_energy_j,
+    vertex_rates,
 )
 from mso.planning.placement import vertex_loads
 
@@ -125,6 +128,25 @@ def greedy_capacity(app: App, network: Network) -> dict[str, str]:
     return {vid: out[vid] for vid in app.vertices}
 
 
+def _rated_links(
+    network: Network, nodes: list[str], pairs: list[tuple[int, int]]
+) -> list[tuple[float, list[int]]]:
+    """For each link with a rate: the bits per second edges may put on it (its
+    :data:`~mso.planning.bytesplit.LINK_SHARE`, both directions together) and the node pairs
+    whose routes cross it."""
+    rated = {k: lk.bandwidth_mbps for k, lk in network.links.items() if lk.bandwidth_mbps}
+    if not rated:
+        return []
+    crossing: dict[tuple[str, str], list[int]] = {}
+    for p, (a, b) in enumerate(pairs):
+        route = network.route(nodes[a], nodes[b]) or []
+        for s, t in itertools.pairwise(route):
+            key = (s, t) if s <= t else (t, s)
+            if key in rated:
+                crossing.setdefault(key, []).append(p)
+    return [(rated[k] * 1e6 * LINK_SHARE, ps) for k, ps in sorted(crossing.items())]
+
+
 def optimal(
     app: App,
     network: Network,
@@ -146,7 +168,10 @@ def optimal(
     node's load stays within its CPU: ``sum_v load_v * x[v, n] <= 1000 * cpu_n``, a vertex's
     load being its cost times its event rate in ms per second
     (:func:`~mso.planning.placement.vertex_loads`) -- a yardstick no deployable placement
-    could reach is no yardstick.
+    could reach is no yardstick; and for ``energy`` and ``hops`` every link with a rate
+    (``bandwidth_mbps``) carries at most :data:`~mso.planning.bytesplit.LINK_SHARE` of it:
+    ``sum_e bits_e * y[e, n, m] <= share * rate`` over the pairs whose route crosses it, an
+    edge's bits being its size times its producer's events per second times 8.
 
     Raises PlanningError when the model would exceed :data:`MAX_ILP_VARIABLES`, when no
     placement routes every edge, or when ``time_limit`` seconds pass before optimality is
@@ -164,6 +189,7 @@ def optimal(
     tables = route_tables(network)
     pairs = [(a, b) for a in range(nn) for b in range(nn) if tables.reachable(nodes[a], nodes[b])]
     use_y = objective in ("energy", "hops")
+    rates = vertex_rates(app)
 
     n_x = nv * nn
     n_y = len(app.edges) * len(pairs) if use_y else 0
@@ -255,6 +281,12 @@ def optimal(
             terms = [(x(i, n), loads[t.id]) for i, t in enumerate(verts) if loads[t.id] > 0]
             if terms:
                 row(terms, -np.inf, 1000.0 * max(network.nodes[node].cpu, 0.0))
+    if capacity and use_y:
+        for limit, ps in _rated_links(network, nodes, pairs):
+            bits = [edge_bytes(edge) * rates[edge.src] * 8 for edge in app.edges]
+            terms = [(y(e, p), b) for e, b in enumerate(bits) if b > 0 for p in ps]
+            if terms:
+                row(terms, -np.inf, limit)
 
     if objective == "hops":
         for v in range(nv):
