@@ -14,7 +14,7 @@ from mso.cli import main
 from mso.protocol import messages as m
 from mso.sim.census import Census
 from test_relocation import relocate, started
-from test_sim_scenario import files
+from test_sim_scenario import APP, files
 
 
 def test_census_counts_what_a_tap_sees_and_tallies_a_relocation() -> None:
@@ -56,6 +56,10 @@ def test_episodes_split_at_quiet_gaps_and_at_cuts() -> None:
 
 def test_simulate_json_reports_messages_and_each_episodes_cost(tmp_path: Path) -> None:
     sc, app = files(tmp_path, "changes:\n  - {at: 2, fail: N3}\n  - {at: 4, restart: N3}\n")
+    # mid on N3 but not pinned there: its node is declared failed and mid re-placed (a node
+    # that runs only what cannot move is held unreachable until it is back, not declared)
+    unpinned = APP.replace("name: pipe\n", "name: pipe\nplanner: paper\n")
+    Path(app).write_text(unpinned.replace("Double, pinned: N3}", "Double}"))
     result = CliRunner().invoke(main, ["simulate", sc, "--app", app, "--duration", "6", "--json"])
     assert result.exit_code == 0, result.output
     r: dict[str, Any] = json.loads(result.output)

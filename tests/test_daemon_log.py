@@ -50,8 +50,8 @@ def test_the_core_reports_deploys_moves_and_failures_for_its_driver_to_log() -> 
     assert move.took_ms is not None and move.took_ms > 0 and not move.error
     hosted = [h for h in sim.cores[target].drain_happened() if h.what == "hosted"]
     assert [h.subject for h in hosted] == ["mid"]
-    sim.kill("N4")
-    sim.run_until(sim.now + 3.0)
+    sim.crash("N4")  # its daemon: silent with a route, declared (out of reach only, it would
+    sim.run_until(sim.now + 3.0)  # be held unreachable: the sink pinned there cannot move)
     failed = [h for h in sim.cores["N3"].drain_happened() if h.what == "peer_failed"]
     assert [h.subject for h in failed] == ["N4"]
     assert sim.cores["N3"].drain_happened() == []  # drained: each is logged once

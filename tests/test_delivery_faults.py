@@ -51,14 +51,12 @@ def streams_whole(records: list[vertices.SinkRecord]) -> dict[tuple[str, float],
     }
 
 
-def test_a_source_node_and_its_consumer_reset_together_replay_once(run_token: str) -> None:
+def test_a_source_and_its_consumer_cut_off_after_a_lost_ack_replay_once(run_token: str) -> None:
     """Source on Z, its consumer p on M, the sink on A, each cut off from the others; p's last
     ack to the source was lost, so the sink had one event more than the source knew. After
-    the heal Z and M reset (the tie-break): the source's restore keeps its edge's channel
-    although p said nothing of where it stands (it is being restored too), and with it the
-    output positions of p's last ack, so p's replacement numbers what it replays as the lost
-    p did. Before, the source's edge came back from the store without them and p numbered
-    from the sink's position: the replayed event arrived as new (seed 1998)."""
+    the heal every stream is whole: what the source replays arrives once. (Z and M used to
+    reset here, by the tie-break, and p's replacement numbered its replay from the sink's
+    position: the replayed event arrived as new, seed 1998.)"""
     links = [("Z", "M"), ("M", "A")]
     net = Network([NodeSpec(n) for n in "ZMA"], [LinkSpec(a, b, delay_ms=1.0) for a, b in links])
     sim = Simulation(net)
@@ -80,7 +78,11 @@ def test_a_source_node_and_its_consumer_reset_together_replay_once(run_token: st
         sim.network.add_link(LinkSpec(a, b, delay_ms=1.0))
     sim.links_changed()
     sim.run_until(8.0)
-    assert {n for n, c in sim.cores.items() if c.incarnation} == {"Z", "M"}, "the tie-break"
+    # out of reach is not failed: none of the three can run the app alone, so nobody was
+    # declared and nobody reset (Z and M used to, by the tie-break: the case of seed 1998, where
+    # the replacement of p numbered what it replayed from the sink's position); the replay
+    # after the heal is the plain go-back-N of a lost ack
+    assert not any(c.incarnation or c.membership.failures for c in sim.cores.values())
     first = min(vertices.RUNS[run_token][0].streams)  # the stream the reset source began
     verdict = streams_whole(vertices.RUNS[run_token])
     assert verdict[first] == "" and max(vertices.RUNS[run_token][0].streams[first].seen) >= 25

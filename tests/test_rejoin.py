@@ -35,63 +35,57 @@ def instances(sim: Simulation, app: str) -> Counter[str]:
 
 
 def test_a_cut_off_sink_node_rejoins_and_its_parked_chain_runs_again() -> None:
+    """N5, which runs the sink s2 (pinned there), is cut off for 3 s. Out of reach is not
+    failed: re-placing what N5 runs would let nothing flow, so nobody is declared, nobody
+    resets, the chain to s2 waits parked with its events kept (store and forward), and on the
+    heal s2 gets every one of them, once and in order."""
     sim = started(BRANCH)
     n5 = [(a, b) for a, b in MESH_LINKS if "N5" in (a, b)]
     cut(sim, n5)
     sim.run_until(sim.now + 3.0)
-    for n, core in sim.cores.items():
-        # N5 declares the neighbours it watched, and N1 (beyond them) which runs the source
-        assert core.failed == ({"N5"} if n != "N5" else set(sim.network.nodes) - {"N5"}), n
-    assert "j-c-s2" in sim.cores["N1"].status(sim.now)["apps"]["branch"]["parked"]
+    assert all(not core.failed for core in sim.cores.values())
+    parked = sim.cores["N1"].status(sim.now)["apps"]["branch"]["parked"]
+    assert "out of reach" in parked["j-c-s2"], parked
     s1_before = stats(sim, "branch", "s1")["count"]
-    hosting = {n for n, c in sim.cores.items() if n != "N5" and c.instances("branch")}
 
     heal(sim, n5)
     sim.run_until(sim.now + 5.0)
-    assert all(not core.failed for core in sim.cores.values())
-    # N5 lost the tie-break (it counted everyone else failed) and rejoined as incarnation 1;
-    # every node of the larger side kept its own, those that ran nothing too (they waited for
-    # N5 to reset rather than yield to it), so nobody but N5 was ever declared failed
-    assert sim.cores["N5"].incarnation == 1
-    others = set(sim.cores) - {"N5"}
-    assert hosting and {n: sim.cores[n].incarnation for n in others} == dict.fromkeys(others, 0)
-    declared = {f["node"] for n in others for f in sim.cores[n].membership.failures}
-    assert declared == {"N5"}
+    assert all(not core.failed and core.incarnation == 0 for core in sim.cores.values())
+    assert not any(core.membership.failures for core in sim.cores.values())  # nobody declared
     for n, core in sim.cores.items():
         app = core.status(sim.now)["apps"]["branch"]
         assert app["parked"] == {} and app["placement"]["s2"] == "N5", (n, app)
     assert set(instances(sim, "branch").values()) == {1}  # every vertex runs exactly once
-    # a fresh instance on N5: its first event skips what the parked chain dropped, then
-    # every event follows the one before
+    # the same instance on N5: every event kept while it was away arrives, in order
     s2 = stats(sim, "branch", "s2")
-    assert s2["count"] > 150 and s2["repeats"] == 0 and s2["out_of_order"] == 1, s2
+    assert s2["count"] > 150 and s2["repeats"] == 0 and s2["out_of_order"] == 0, s2
+    assert s2["next"] == s2["count"], s2  # none skipped: 0, 1, 2, ... with no gap
     s1 = stats(sim, "branch", "s1")
     assert s1["count"] > s1_before + 200 and s1["repeats"] == 0, s1
     text = status_text({n: c.status(sim.now) for n, c in sim.cores.items()})
-    (line,) = [ln for ln in text.splitlines() if ln.startswith("rejoined (restarted")]
-    assert "N5 (1)" in line  # (nodes that ran nothing may have yielded too)
-    assert "failed nodes" not in text and "parked" not in text
+    assert "rejoined" not in text and "failed nodes" not in text and "parked" not in text
 
 
-def test_a_healed_even_split_rejoins_the_side_with_the_higher_leader() -> None:
+def test_a_healed_even_split_where_neither_side_can_run_the_app_declares_nobody() -> None:
+    """An even split {N1, N2, N3} | {N4, N5, N6} with src pinned to N1 and the sink to N6:
+    neither side can run the app alone, so neither declares the other (out of reach is not
+    failed), nobody resets, and on the heal the sink gets every event kept meanwhile. (Each
+    side used to hold the other failed and the side with the higher leader stayed.)"""
     sim = started(PIPE)  # src pinned to N1, sink to N6
     across = [("N3", "N6"), ("N1", "N4"), ("N2", "N5"), ("N3", "N5")]
     cut(sim, across)  # {N1, N2, N3} | {N4, N5, N6}
     sim.run_until(sim.now + 3.0)
-    assert sim.cores["N1"].failed == {"N4", "N5", "N6"}
-    assert sim.cores["N6"].failed == {"N1", "N2", "N3"}
+    assert all(not core.failed for core in sim.cores.values())
 
     heal(sim, across)
     sim.run_until(sim.now + 6.0)
-    assert all(not core.failed for core in sim.cores.values())
-    # three failed nodes each side: the side led by N1 stays (N1 runs src), the other
-    # resets and rejoins (N6 ran the sink); nodes that ran nothing may yield either way
-    assert sim.cores["N1"].incarnation == 0 and sim.cores["N6"].incarnation == 1
+    assert all(not core.failed and core.incarnation == 0 for core in sim.cores.values())
     assert instances(sim, "pipe") == Counter({"src": 1, "mid": 1, "sink": 1})
     before = stats(sim, "pipe", "sink")["count"]
     sim.run_until(sim.now + 2.0)
     got = stats(sim, "pipe", "sink")
     assert got["count"] >= before + 150 and got["repeats"] == 0, got
+    assert got["out_of_order"] == 0 and got["next"] == got["count"], got  # none lost
 
 
 def test_a_restarted_node_is_a_new_incarnation_and_gets_its_pinned_vertex_back() -> None:
@@ -99,7 +93,8 @@ def test_a_restarted_node_is_a_new_incarnation_and_gets_its_pinned_vertex_back()
     links = [(a, b) for a, b in MESH_LINKS if "N5" in (a, b)]
     sim.kill("N5", convergence_s=0.3)
     sim.run_until(sim.now + 3.0)
-    assert all(core.failed == {"N5"} for n, core in sim.cores.items() if n != "N5")
+    # out of reach, not failed: s2's sink is pinned to N5, re-placing nothing would help
+    assert all(not core.failed for n, core in sim.cores.items() if n != "N5")
     heal(sim, links)
     sim.revive("N5")  # a new process: incarnation 1, no apps
     sim.run_until(sim.now + 5.0)

@@ -95,11 +95,12 @@ def test_simulate_plays_a_partition_and_its_heal(tmp_path: Path) -> None:
     code, out = run_cli(sc, "--app", app, "--duration", "9", "--json")
     assert code == 0, out
     r = json.loads(out)
-    cut_off = {f["node"] for f in r["failures"] if 2.0 < f["at"] < 4.0}
-    assert cut_off == {f"N{i}" for i in range(1, 7)}  # each side held the other failed
-    assert r["reconfigurations"]["rejoins"]  # one side rejoined as new incarnations
-    before = r["events"]["delivered"]["sink"]
-    assert before > 300, r["events"]  # the flow came back after the heal
+    # src on N1, mid on N3, the sink on N6: neither side can run the app alone, so neither
+    # declares the other (out of reach is not failed; each side used to, and one reset)
+    assert r["failures"] == [] and r["reconfigurations"]["rejoins"] == []
+    ev = r["events"]
+    assert ev["delivered"]["sink"] > 300, ev  # the flow came back after the heal, with
+    assert 0 <= ev["emitted"]["src"] - ev["delivered"]["sink"] <= 20, ev  # what was kept
 
 
 def test_bad_arguments_exit_2_with_a_clear_message(tmp_path: Path) -> None:
@@ -154,7 +155,8 @@ def test_a_robot_whose_battery_empties_stops_and_the_report_says_so(tmp_path: Pa
     ((at, what),) = r["timeline"]
     assert what == "fail N2 (battery empty: fail-stop)" and 0.5 < at < 6.0
     assert r["energy"]["N2"]["battery_empty"] and not r["energy"]["N2"]["alive"]
-    assert "N2" not in r["alive"] and {f["node"] for f in r["failures"]} == {"N2"}
+    # N2 ran nothing: out of reach, held unreachable, never declared (nothing needed it)
+    assert "N2" not in r["alive"] and r["failures"] == []
     assert r["events"]["delivered"]["sink"] > 0.8 * r["events"]["emitted"]["src"]
     code, text = run_cli(sc, "--app", app, "--duration", "8")
     assert code == 0 and " empty │" in text and "battery empty: fail-stop" in text

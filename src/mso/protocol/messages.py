@@ -342,6 +342,10 @@ class AppSync(_Msg, tag="app_sync"):
     # the nodes chosen for vertices placed by capability, and their ranked candidates (§3.3)
     resolved: dict[str, str] = msgspec.field(default_factory=dict)
     capable: dict[str, list[str]] = msgspec.field(default_factory=dict)
+    # the incarnation the sender knows of each node it places a vertex on: a receiver that
+    # never heard of one (it restarted since) learns which incarnation runs them, so a newer
+    # one heard later is a restart whose instances went
+    incarnations: dict[str, int] = msgspec.field(default_factory=dict)
 
 
 class Rewire(_Msg, tag="rewire"):

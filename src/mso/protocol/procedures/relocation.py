@@ -208,6 +208,10 @@ class Relocator:
             why = f"node {source} failed" if source in self.ctx.failed else "its node restarted"
             self._refuse(client, msg, f"{msg.vertex!r} does not run anywhere ({why})")
             return False
+        if source != self.ctx.id and source not in self.ctx.routes:  # held unreachable:
+            why = f"{msg.vertex!r} runs on {source}, out of reach: it cannot hand over its state"
+            self._refuse(client, msg, why)  # its instance drains and hands over, or nothing
+            return False
         if any(r.app == msg.app and r.vertex == msg.vertex for r in self._open()):
             self._refuse(client, msg, f"{msg.vertex!r} is already being relocated")
             return False

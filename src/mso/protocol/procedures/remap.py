@@ -22,6 +22,7 @@ recovery goes on from there, in one direction: membership → remap → restore.
 from __future__ import annotations
 
 import enum
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -193,6 +194,9 @@ class Remapper:
                 if ev.changed & {dep.placed.get(v) for v in c.vertices}:
                     dep.route_changed[c.index] = now
         for dep in list(self.ctx.apps.values()):
+            if dep.running:  # chains wait for a pinned node out of reach, and run on its return
+                self.unpark(dep, reached=True)
+                self.park(dep)
             self.maybe_recover(dep, now)
 
     # -- the remap, at its coordinator: probe and place each chain, then move ------------------
@@ -507,8 +511,10 @@ class Remapper:
         are reported, and not remapped). Their edges keep what they cannot deliver, within
         each edge's bound (store and forward, :mod:`mso.protocol.delivery`), for the node's
         return."""
-        for ci, why in pinned_to_failed(dep.app, dep.layout, self.ctx.failed).items():
-            dep.parked.setdefault(ci, why)
+        away = self.away(dep)
+        for ci, why in pinned_to_failed(dep.app, dep.layout, self.ctx.failed, away).items():
+            if dep.parked.get(ci, OUT_OF_REACH).endswith(OUT_OF_REACH):  # (declared since)
+                dep.parked[ci] = why
         for v, node in dep.layout.resolved.items():
             if node in self.ctx.failed:  # no live node qualifies (repin found none)
                 for c in dep.layout.chains:
@@ -516,14 +522,25 @@ class Remapper:
                         why = f"{v!r}: no live node has what it requires"
                         dep.parked.setdefault(c.index, why)
 
-    def unpark(self, dep: AppState) -> None:
-        """Chains parked for a pinned node that is back run again (after their restore)."""
-        for ci in list(dep.parked):
+    def unpark(self, dep: AppState, reached: bool = False) -> None:
+        """Chains parked for a pinned node that is back run again (after their restore);
+        ``reached``: only those parked for a pinned node (the routes changed)."""
+        away = self.away(dep)
+        for ci, why in list(dep.parked.items()):
+            if reached and PINNED not in why:  # (a restore that gave up: not a pin's)
+                continue
             verts = dep.layout.chains[ci].vertices
             pins = {dep.app.vertices[v].pinned for v in verts}
             pins |= {dep.layout.resolved[v] for v in verts if v in dep.layout.resolved}
-            if not pins & self.ctx.failed:
+            if not pins & (self.ctx.failed | away):
                 del dep.parked[ci]
+
+    def away(self, dep: AppState) -> set[str]:
+        """The nodes ``dep``'s vertices are pinned to that this node has no route to: a chain
+        through one is parked while it is (membership holds such a node *unreachable*, not
+        failed, unless re-placing what it runs would let events flow)."""
+        me, routes = self.ctx.id, self.ctx.routes
+        return {n for n in dep.layout.pinned.values() if n != me and n not in routes}
 
 
 # -- the recovery rule, as pure functions of what every node holds ------------------------------
@@ -586,13 +603,23 @@ def recovery_plan(
     )
 
 
-def pinned_to_failed(app: App, layout: Layout, failed: set[str]) -> dict[int, str]:
-    """The chains with a vertex pinned to a failed node (chain -> why): they cannot run
-    anywhere until that node is back, so they are parked."""
+OUT_OF_REACH = "out of reach"  # the end of a parked chain's reason while its pin is away
+PINNED = " is pinned to "  # in the reason of a chain parked for its pinned node
+
+
+def pinned_to_failed(
+    app: App, layout: Layout, failed: set[str], away: Collection[str] = ()
+) -> dict[int, str]:
+    """The chains with a vertex pinned to a failed node, or to one out of reach (``away``)
+    (chain -> why): they cannot run anywhere until that node is back, so they are parked."""
     out: dict[int, str] = {}
     for ci, chain in enumerate(layout.chains):
         for v in chain.vertices:
             pin = app.vertices[v].pinned
-            if pin in failed and ci not in out:
-                out[ci] = f"{v!r} is pinned to failed node {pin}"
+            if ci in out or pin is None:
+                continue
+            if pin in failed:
+                out[ci] = f"{v!r}{PINNED}failed node {pin}"
+            elif pin in away:
+                out[ci] = f"{v!r}{PINNED}{pin}, {OUT_OF_REACH}"
     return out

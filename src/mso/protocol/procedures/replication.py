@@ -53,6 +53,7 @@ from mso.protocol.events import (
     PeerFailed,
     ReplacementPrepared,
     ReplicationTick,
+    RoutesChanged,
     SnapshotAligned,
     Snapshotted,
 )
@@ -386,15 +387,29 @@ class Replicator:
     def on_peer_failed(self, ev: PeerFailed) -> None:
         """A replica's node failed: replaced. A replacement fetching from it stops waiting
         for it (with no replica left, it starts from its constructor)."""
+        self._lose_replicas({ev.node})
+
+    def on_routes_changed(self, ev: RoutesChanged) -> None:
+        """A replica's node out of reach is not failed (membership may hold it unreachable
+        for as long as it is away), but a snapshot cannot reach it nor a replacement fetch
+        from it: replaced as a failed one is (it keeps what it holds, unused)."""
+        if ev.changed:
+            me, routes = self.ctx.id, self.ctx.routes
+            self._lose_replicas({n for n in ev.changed if n != me and n not in routes})
+
+    def _lose_replicas(self, nodes: set[str]) -> None:
+        if not nodes:
+            return
         for rep in list(self.hosting.values()):
             dep = self.ctx.apps.get(rep.app)
-            if dep is not None and ev.node in rep.replicas:
-                self._replace(dep, rep, ev.node)
+            for node in sorted(nodes & set(rep.replicas)):
+                if dep is not None:
+                    self._replace(dep, rep, node)
         for dep in list(self.ctx.apps.values()):
             # a replacement prepared here may end restores (the handlers change the table)
             for vid, restoring in list(dep.restoring.items()):
-                if dep.restoring.get(vid) is restoring and ev.node in restoring.fetching:
-                    restoring.fetching.discard(ev.node)
+                if dep.restoring.get(vid) is restoring and nodes & restoring.fetching:
+                    restoring.fetching -= nodes
                     if not restoring.fetching:
                         self.ctx.publish(ReplacementPrepared(dep.app.name, vid))
 

@@ -21,6 +21,7 @@ from typing import Any
 
 import msgspec
 
+from mso.model.app import App
 from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
@@ -47,6 +48,7 @@ from mso.protocol.procedures.membership.detector import P, PeerEvent, PeerLife, 
 from mso.protocol.procedures.membership.liveness import Liveness
 from mso.protocol.procedures.membership.status import Heard, MembershipStatus
 from mso.protocol.procedures.membership.sync import AppSyncing
+from mso.protocol.procedures.relocation import Relocation
 from mso.protocol.procedures.remap import Remapper
 
 REJOIN_EVERY = 10  # heartbeat periods between heartbeats to reachable nodes declared failed
@@ -64,6 +66,38 @@ REVOCATIONS_TOLD = 16  # the operator's latest undeploys told to each newly reac
 MIN_KNOWN = 256
 KNOWN_PER_ROUTE = 4
 _INSTANCES, _VANISHED = attrgetter("instances"), attrgetter("vanished")
+
+
+def replacing_helps(app: App, resolved: Mapping[str, str], vertex: str, away: set[str]) -> bool:
+    """Whether re-placing ``vertex`` (its node out of reach) could let events flow again: it
+    is not pinned (one placed by capability may move to another capable node), and some path
+    from a source through it to a sink has every pinned vertex on a node in reach. Otherwise
+    the app waits for the node as it would for a declared one, and the node stays
+    *unreachable*, not failed: taken back as it is when it is heard again, with no reset.
+    Linear in the app's edges."""
+    fixed = {v.id: v.pinned for v in app.vertices.values() if v.pinned and v.id not in resolved}
+    if vertex in fixed:
+        return False
+    ins: dict[str, list[str]] = {}
+    outs: dict[str, list[str]] = {}
+    for e in app.edges:
+        outs.setdefault(e.src, []).append(e.dst)
+        ins.setdefault(e.dst, []).append(e.src)
+
+    def reaches_end(start: str, step: dict[str, list[str]]) -> bool:
+        seen, todo = {start}, [start]
+        while todo:
+            v = todo.pop()
+            nxt = [u for u in step.get(v, []) if fixed.get(u) not in away]
+            if not step.get(v):
+                return True  # a source (upstream) or a sink (downstream) in reach
+            for u in nxt:
+                if u not in seen:
+                    seen.add(u)
+                    todo.append(u)
+        return False
+
+    return reaches_end(vertex, ins) and reaches_end(vertex, outs)
 
 
 class Membership(AppSyncing):
@@ -109,6 +143,8 @@ class Membership(AppSyncing):
         self._told: dict[str, float] = {}  # failed node heard directly -> when told so
         # the leader, and the routing table (a new one on every change) and failed set it is of
         self._leader_of: tuple[Mapping[str, object], frozenset[str], str] | None = None
+        # failed node -> app -> the vertices it ran when declared (bounded by the failed)
+        self._ran: dict[str, dict[str, set[str]]] = {}
         # cut-off nodes this node (running nothing) waits to see reset: node -> since when
         self._awaiting: dict[str, float] = {}
 
@@ -233,9 +269,11 @@ class Membership(AppSyncing):
                     if full is None:
                         full = msgspec.structs.replace(slim, figures=self.ctx.figures())
                     self.ctx.emit(Send(n, full))
-        for n in self.liveness.silent(now, self.failed):
-            self._suspect(n, now)
-        for n in self._blocking(now):  # unreachable, and it runs part of an app we run:
+        away = set(self.liveness.unreachable(self.failed))
+        for n in self.liveness.silent(now, self.failed):  # silent with a route: suspected;
+            if n in self.ctx.routes or self._needed(n, away):  # out of reach, only if the
+                self._suspect(n, now)  # apps cannot progress without re-placing what it runs
+        for n in self._blocking(now, away):  # unreachable, and it runs part of an app we run:
             self._suspect(n, now)  # asked about like a silent neighbour
         for claim, at in self._claims.due(now, self.liveness.dead_after_s / 2):
             if self.liveness.hears(claim.node, now, within=now - at):
@@ -313,6 +351,8 @@ class Membership(AppSyncing):
                 self.ctx.send(d, beat)
                 for stop in undeploys:
                     self.ctx.send(d, stop)
+                if d not in self.failed:  # (a failed one is synced when it rejoins)
+                    self._claim_to(d)
 
     def _suspect(self, node: str, now: float) -> None:
         """``node``, which this node watches, has been silent for the liveness window. One
@@ -333,24 +373,48 @@ class Membership(AppSyncing):
         self._suspicions[node] = proc.pid
         proc.start(self.ctx)
 
-    def _blocking(self, now: float) -> list[str]:
-        """Nodes out of reach for the liveness window, not heard in it, that host part of an
-        app this node runs part of: the app may not progress until they are heard of, so they
-        are suspected like a silent neighbour (a few asked); if nobody hears them they are
-        declared, their vertices re-placed, and the incarnation rules take them back exactly
-        once when they are heard again. Any other node out of reach stays unreachable."""
-        out = []
+    def _blocking(self, now: float, away: set[str]) -> list[str]:
+        """Nodes out of reach for the liveness window, not heard in it, that host a vertex of
+        an app this node runs part of whose re-placing would let events flow again
+        (:func:`replacing_helps`: not pinned, and a source and a sink it connects are in reach):
+        the app cannot progress otherwise, so they are suspected like a silent neighbour (a
+        few asked); if nobody hears them they are declared, their vertices re-placed, and the
+        incarnation rules take them back exactly once when they are heard again. Any other
+        node out of reach stays unreachable (a robot that drove off with its pinned sink, or
+        the node beyond it on a line that broke): taken back as it is, no reset."""
         window = self.liveness.dead_after_s
-        for n in self.liveness.unreachable(self.failed):
-            if now - self.liveness.gone[n] <= window or self.liveness.hears(n, now):
+        return [
+            n
+            for n in sorted(away)
+            if now - self.liveness.gone[n] > window
+            and not self.liveness.hears(n, now)
+            and self._needed(n, away)
+        ]
+
+    def _needed(self, node: str, away: set[str]) -> bool:
+        """``node`` runs a vertex of an app this node runs part of whose re-placing would let
+        events flow again (:func:`replacing_helps`), or one next to a vertex being restored
+        (the replacement waits for every surviving end of its edges to say where it stands,
+        and one out of reach cannot: it is re-placed too), or the old host of a move this node
+        coordinates (its handover cannot come: declared, the move's target restores the
+        vertex)."""
+        for proc in self.ctx.open():
+            if isinstance(proc, Relocation) and proc.source == node and not proc.restore:
+                return True
+        for dep in self.ctx.apps.values():
+            if not dep.instances:
                 continue
-            for dep in self.ctx.apps.values():
-                if not dep.instances:
+            lost = dep.lost(self.failed) | {
+                v for n in self.failed for v in self._ran.get(n, {}).get(dep.app.name, ())
+            }
+            near = {e.src for e in dep.app.edges if e.dst in lost}
+            near |= {e.dst for e in dep.app.edges if e.src in lost}
+            for v, n in dep.placed.items():
+                if n != node:
                     continue
-                if n in dep.placed.values():
-                    out.append(n)
-                    break
-        return out
+                if v in near or replacing_helps(dep.app, dep.layout.resolved, v, away):
+                    return True
+        return False
 
     def on_suspect(self, src: str, msg: m.Suspect, now: float) -> None:
         """Another node lost ``msg.node``: say whether we hear it (we heard it within our
@@ -489,6 +553,10 @@ class Membership(AppSyncing):
             # a node cut off that holds most of those we reach failed (``ranks.cut_off``)
             self._move(node, PeerEvent.CONFIRMED)
         self._failed_incarnation[node] = claim.incarnation
+        self._ran[node] = {  # what it ran, by our views: restored now, next to nodes that
+            a: {v for v, n in dep.placed.items() if n == node}  # may be out of reach
+            for a, dep in self.ctx.apps.items()
+        }
         self.liveness.forget(node)
         self.failures.append({"node": node, "detector": detector, "at": now})
         del self.failures[:-50]
@@ -654,6 +722,7 @@ class Membership(AppSyncing):
         self._suspicions.clear()
         self._vouching.clear()
         self._failed_incarnation.clear()
+        self._ran.clear()
         self._awaiting.clear()
         self._gossip.clear()
         self._claims.clear()
@@ -680,6 +749,7 @@ class Membership(AppSyncing):
         if node in self.failed:
             self._move(node, PeerEvent.REJOINED)
         self._failed_incarnation.pop(node, None)
+        self._ran.pop(node, None)
         self._awaiting.pop(node, None)
         self._gossip.drop(node)
         self._claims.drop(node)

@@ -5,6 +5,8 @@ module does one thing."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from mso.errors import MsoError
 from mso.planning.placement import Layout
 from mso.protocol import messages as m
@@ -28,6 +30,10 @@ class AppSyncing:
     recovery: Remapper
     incarnation: int
     _sync_pending: set[str]
+    _incarnations: dict[str, int]
+
+    def admits(self, node: str, table: Mapping[str, object]) -> bool:
+        raise NotImplementedError  # Membership's: whether ``table`` may hold ``node``
 
     # -- app sync: a node that rejoins (or missed an app) is told it ---------------------------
     def _claim(self, dep: AppState) -> None:
@@ -38,6 +44,20 @@ class AppSyncing:
         for vid, h in sorted(dep.instances.items()):
             if h.handing_over is None and vid not in dep.markers:
                 placement.announce(self.ctx, dep, vid, self.ctx.id, incarnation=self.incarnation)
+
+    def _claim_to(self, node: str) -> None:
+        """Tell ``node``, in reach again, where the instances this node runs are, for every
+        app it takes part in: a move made while it was out of reach -- held *unreachable*, not
+        failed, so no rejoin sync follows -- reached every member but it. First-hand claims at
+        their current version: a receiver that has them already takes nothing."""
+        for dep in self.ctx.apps.values():
+            if node not in placement.members(dep):
+                continue
+            for vid, h in sorted(dep.instances.items()):
+                if h.handing_over is None and vid not in dep.markers:
+                    version = dep.versions.get(vid, 0)
+                    msg = m.Moved(dep.app.name, vid, self.ctx.id, self.incarnation, version)
+                    self.ctx.send(node, msg)
 
     def _disputed(self) -> bool:
         """This node holds a node it can reach failed: a partition healed and one side is
@@ -91,7 +111,31 @@ class AppSyncing:
             handed,
             dict(dep.layout.resolved),
             {v: list(ns) for v, ns in dep.capable.items()},
+            {n: self._incarnations[n] for n in set(placed.values()) if n in self._incarnations}
+            | {self.ctx.id: self.incarnation},
         )
+
+    def _outlived(self, msg: m.AppSync) -> set[str]:
+        """The vertices a sync places on a node in an incarnation older than one we heard
+        from it: they went with that incarnation (the sender had not heard of the restart)."""
+        return {
+            v
+            for v, n in msg.placed.items()
+            if n != self.ctx.id
+            and n in msg.incarnations
+            and msg.incarnations[n] < self._incarnations.get(n, -1)
+        }
+
+    def _learn_incarnations(self, msg: m.AppSync) -> None:
+        """The incarnations of the nodes a sync places vertices on, where we know none (this
+        node restarted since, or never heard of them): else a node that restarted while out
+        of our reach, first heard in its new incarnation, would be taken as running what the
+        sync places on it, and nothing would restore it."""
+        for node, inc in msg.incarnations.items():
+            if node == self.ctx.id or node in self.failed or inc < 0:
+                continue
+            if node not in self._incarnations and self.admits(node, self._incarnations):
+                self._incarnations[node] = inc
 
     def on_app_missing(self, ev: AppMissing) -> None:
         """A live node asked to host a vertex does not hold the app: its sync was lost (the
@@ -125,6 +169,7 @@ class AppSyncing:
         if signed and held is not None and generation(msg.document) != generation(held.document):
             self.ctx.refusal("app_sync_other_deployment")  # (an operator deployed it again since)
             return
+        self._learn_incarnations(msg)
         if held is not None:
             self._merge_sync(src, held, msg)
             self.recovery.unpark(held)
@@ -147,7 +192,7 @@ class AppSyncing:
             v: n for v, n in msg.placed.items() if v in app.vertices
         }
         dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
-        dep.vanished = {v for v in msg.vanished if v in app.vertices}
+        dep.vanished = {v for v in msg.vanished if v in app.vertices} | self._outlived(msg)
         dep.capable = {v: list(ns) for v, ns in msg.capable.items() if v in layout.resolved}
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
         dep.running, dep.started_at = True, now
