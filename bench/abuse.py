@@ -30,8 +30,12 @@ tiny scalars).
 ``--attack`` seconds each, for ``S`` seconds (the issue's soak under a mix of them:
 ``--mix 600``); the attacked node's RSS after each turn is printed as it goes.
 
+``--identities``: the overlay runs with node identities (``mso emulate --identities``); each
+member attacker is then a captured robot holding its own certified node key (it proves its
+name and signs what it sends beyond N2), the legitimate client is the operator.
+
 Usage: .venv/bin/python bench/abuse.py [--attack 5] [--only slots,guesser] [--mix 600]
-                                      [--json FILE]
+                                      [--identities] [--json FILE]
 """
 
 from __future__ import annotations
@@ -48,13 +52,17 @@ from pathlib import Path
 from typing import Any
 
 import msgspec
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 from mso.benchmarks.common import provenance, write_results
 from mso.client import Client, overlay_key
 from mso.emu.controller import Emulator
 from mso.errors import MsoError
 from mso.protocol import messages as m
+from mso.protocol import origin
+from mso.protocol.clients import ClientIdentity, operator_client
 from mso.protocol.framing import HELLO_BYTES, FrameCodec
+from mso.protocol.identity import Identity, certify
 from mso.scenario import loads_scenario
 
 HERE = Path(__file__).resolve().parent
@@ -86,13 +94,30 @@ Attack = Callable[["Target", asyncio.Event], Awaitable[dict[str, Any]]]
 
 
 class Target:
-    """The node attacked: where it listens and the overlay key (for the member attacks)."""
+    """The node attacked: where it listens and the overlay key (for the member attacks); on
+    an overlay with identities (``--identities``) each member attacker is a captured robot
+    holding its own certified node key (certified by the run's operator key), and the
+    legitimate client the operator."""
 
     def __init__(self, emu: Emulator, node: str) -> None:
         self.host, self.port = emu.nodes[node].host, emu.nodes[node].port
         assert emu.key is not None
         self.psk = overlay_key(emu.key)
         self.node = node
+        self.operator = emu.signer if emu.identities else None
+        self.ids: dict[str, Identity] = {}  # the captured robots' own keys, by name
+
+    def frame(self, src: str, dst: str, msg: m.Message) -> bytes:
+        """An envelope from ``src``, signed as its origin when it is a captured robot with a
+        key and goes beyond the node attacked (a relay would otherwise refuse it)."""
+        payload = m.wrap(src, dst, msg)
+        ident = self.ids.get(src)
+        if ident is None or dst == self.node:
+            return payload
+        return origin.sign(ident, payload, time.time_ns() // 1_000_000)
+
+    def client_identity(self) -> ClientIdentity | None:
+        return operator_client(self.operator) if self.operator is not None else None
 
     async def member(self, name: str, peer: bool = False) -> tuple[Any, Any, FrameCodec]:
         """A connection proving the key, introduced as a client (or a peer named ``name``)."""
@@ -104,7 +129,16 @@ class Target:
             if not data:
                 raise ConnectionError("closed in the handshake")
             w.write(codec.feed(data)[1])
-        hello = m.PeerHello(name) if peer else m.ClientHello(name)
+        hello: m.Message = m.PeerHello(name) if peer else m.ClientHello(name)
+        if peer and self.operator is not None:  # a captured robot proves its own name
+            while not codec.ready:
+                w.write(codec.feed(await asyncio.wait_for(r.read(1 << 16), 5.0))[1])
+            private = Ed25519PrivateKey.generate()
+            ident = self.ids[name] = Identity(
+                private, certify(self.operator, name, private.public_key(), 1000)
+            )
+            cert = msgspec.msgpack.encode(ident.cert)
+            hello = m.PeerHello(name, cert, ident.prove(codec.hello(), codec.peer_hello))
         w.write(codec.seal(m.wrap(name, self.node, hello)))
         return r, w, codec
 
@@ -170,11 +204,11 @@ async def relay_flood(t: Target, stop: asyncio.Event) -> dict[str, Any]:
     bulk = m.ChainPlaced("ghost", 0, {"k": "x" * (8 << 20)})
     while not stop.is_set():
         batch = [
-            codec.seal(m.wrap("X9", "N3", m.NodeDown(f"Z{sent + i}", "X9", 1))) for i in range(500)
+            codec.seal(t.frame("X9", "N3", m.NodeDown(f"Z{sent + i}", "X9", 1))) for i in range(500)
         ]
         sent += len(batch)
         if big < 20:
-            batch.append(codec.seal(m.wrap("X9", "N3", bulk)))
+            batch.append(codec.seal(t.frame("X9", "N3", bulk)))
             big += 1
         w.write(b"".join(batch))
         await w.drain()
@@ -311,7 +345,7 @@ def _vertex(nodes: dict[str, Any], vertex: str) -> dict[str, Any]:
 async def legit(t: Target, stop: asyncio.Event, tally: dict[str, int]) -> None:
     """An operator's status request to the node every 0.2 s, each on a fresh connection."""
     while not stop.is_set():
-        client = Client(t.host, t.port, t.psk, "operator")
+        client = Client(t.host, t.port, t.psk, "operator", identity=t.client_identity())
         tally["asked"] += 1
         try:
             await client.connect(2.0)
@@ -326,7 +360,12 @@ async def legit(t: Target, stop: asyncio.Event, tally: dict[str, int]) -> None:
 
 async def one(name: str, args: argparse.Namespace) -> dict[str, Any]:
     logs = tempfile.TemporaryDirectory(prefix="mso-emu-abuse-")
-    emu = Emulator(loads_scenario(SCENARIO), manage=False, log_dir=Path(logs.name))
+    emu = Emulator(
+        loads_scenario(SCENARIO),
+        manage=False,
+        log_dir=Path(logs.name),
+        identities=args.identities,
+    )
     await emu.start()
     loop = asyncio.get_running_loop()
     row: dict[str, Any] = {"attack": name}
@@ -417,7 +456,13 @@ def table(rows: list[dict[str, Any]], args: argparse.Namespace) -> str:
         + " against N2 (the relay of a 100 events/s stream N1 -> N2 -> "
         "N3); RSS in MB (N1/N2/N3); legit = status requests to N2 answered during the attack; "
         "recovery from the attack's end to a status answered and a newer event at the sink; "
-        "lost/dup/reord over the whole run (the last second's events in flight not counted).",
+        "lost/dup/reord over the whole run (the last second's events in flight not counted)."
+        + (
+            " With node identities (--identities): each member attacker a captured robot with "
+            "its own certified key, the legitimate client the operator."
+            if args.identities
+            else ""
+        ),
         "",
         "| attack | RSS before | RSS peak | RSS after | lost | dup | reord | legit answered "
         "| recovery s | failed nodes | attacker |",
@@ -469,8 +514,16 @@ def main(argv: list[str] | None = None) -> int:
         default=0.0,
         help="instead: one overlay under every attack in turn (--attack s each) for this long",
     )
-    ap.add_argument("--json", type=Path, default=RESULTS / "abuse.json")
+    ap.add_argument(
+        "--identities",
+        action="store_true",
+        help="the overlay runs with node identities (mso emulate --identities)",
+    )
+    ap.add_argument("--json", type=Path, default=None, help="(default: results/abuse.json, "
+                    "or results/abuse-identities.json with --identities)")  # fmt: skip
     args = ap.parse_args(argv)
+    if args.json is None:
+        args.json = RESULTS / ("abuse-identities.json" if args.identities else "abuse.json")
     args.only = [a for a in args.only.split(",") if a]
     unknown = [a for a in args.only if a not in ATTACKS]
     if unknown or not 0.5 <= args.attack <= 600 or not 0 <= args.mix <= 3600:

@@ -260,7 +260,7 @@ def test_what_a_neighbour_can_make_a_node_check_is_budgeted() -> None:
     frames, proved by the link, are not checked and not budgeted."""
     from mso.net.base import Counters
     from mso.net.limits import ConnectionCounters
-    from mso.net.trust import CHECKS_PER_S, Trust
+    from mso.net.trust import CHECK_BYTES, CHECKS_PER_S, Trust
 
     counters = Counters()
     trust = Trust(identity("N1"), Authority.configure([OPERATOR.public_text()]), counters,
@@ -276,3 +276,12 @@ def test_what_a_neighbour_can_make_a_node_check_is_budgeted() -> None:
     assert counters.frames_origin_refused == CHECKS_PER_S + 1
     trust.origin("N2", forged, m.NodeDown("N4", "N5"), 0.1)  # refilled at CHECKS_PER_S
     assert counters.frames_origin_refused == CHECKS_PER_S + 2
+    # a check hashes the whole frame: a big one takes a check per CHECK_BYTES it holds, so a
+    # flood of 8 MiB frames (18 ms to check each) gets no more of the loop than small ones
+    big = m.ChainPlaced("ghost", 0, {"k": "x" * (8 << 20)})
+    bulk = m.unwrap(m.wrap("N5", "N1", big))
+    refused = counters.frames_origin_refused
+    for _ in range(20):
+        trust.origin("N4", bulk, big, 0.0)  # a fresh neighbour: a whole burst
+    per_frame = 1 + len(bulk.body) // CHECK_BYTES
+    assert counters.frames_origin_refused - refused == CHECKS_PER_S // per_frame == 3

@@ -28,18 +28,21 @@ class RelayBudget:
         self.burst_s = burst_s
         self._buckets: dict[tuple[str, int], tuple[float, float]] = {}  # -> (tokens, as of)
 
-    def allow(self, neighbour: str, kind: int, now: float) -> bool:
-        """Whether one more frame of ``kind`` from ``neighbour`` may be relayed now."""
+    def allow(self, neighbour: str, kind: int, now: float, cost: float = 1.0) -> bool:
+        """Whether one more frame of ``kind`` from ``neighbour`` may be relayed now (``cost``:
+        how many frames' worth it takes, at most a whole burst, so that any frame passes in
+        time)."""
         rate = self.rates.get(kind)
         if rate is None:
             return True
         burst = rate * self.burst_s
+        cost = min(cost, burst)
         tokens, at = self._buckets.get((neighbour, kind), (burst, now))
         tokens = min(burst, tokens + (now - at) * rate)
-        if tokens < 1.0:
+        if tokens < cost:
             self._buckets[(neighbour, kind)] = (tokens, now)
             return False
         if len(self._buckets) >= MAX_NEIGHBOURS and (neighbour, kind) not in self._buckets:
             del self._buckets[next(iter(self._buckets))]
-        self._buckets[(neighbour, kind)] = (tokens - 1.0, now)
+        self._buckets[(neighbour, kind)] = (tokens - cost, now)
         return True
