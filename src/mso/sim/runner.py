@@ -70,6 +70,8 @@ class Simulation:
         self._paths: dict[tuple[str, str], _Path | None] = {}
         self._paths_version = -1
         self._hops: dict[tuple[str, str], tuple[float, float]] = {}  # (a, b) -> delay, loss
+        self._uniform: tuple[float, float] | None = None  # every hop's, when all are alike
+        self._sums = [0.0]
         self.hop_latency_s = hop_latency_s
         self.now = 0.0
         # each node's spill store outlives its restarts, as the daemon's file does
@@ -219,6 +221,8 @@ class Simulation:
         net = self.network
         if net.version != self._paths_version or len(self._paths) > MAX_PATHS:
             self._paths.clear()
+            if net.version != self._paths_version:
+                self._uniform = self._uniform_hop()
             self._paths_version = net.version
             self._hops.clear()
         key = (node, dst)
@@ -228,23 +232,42 @@ class Simulation:
         path = None
         if route is not None:
             delay = 0.0
-            lossy = []
-            hops = self._hops
-            a = route[0]
-            for i in range(1, len(route)):
-                b = route[i]
-                hop = hops.get((a, b))
-                if hop is None:
-                    hop = hops[(a, b)] = self._hop(a, b)
-                delay += hop[0]
-                if hop[1] > 0:
-                    lossy.append((i, hop[1]))
-                a = b
+            lossy: list[tuple[int, float]] = []
+            if self._uniform is not None:  # every hop alike: the sum of the first h hops'
+                sums, (step, loss) = self._sums, self._uniform  # delays, as the loop adds them
+                while len(sums) < len(route):
+                    sums.append(sums[-1] + step)
+                delay = sums[len(route) - 1]
+                if loss > 0:
+                    lossy = [(i, loss) for i in range(1, len(route))]
+            else:
+                hops = self._hops
+                a = route[0]
+                for i in range(1, len(route)):
+                    b = route[i]
+                    hop = hops.get((a, b))
+                    if hop is None:
+                        hop = hops[(a, b)] = self._hop(a, b)
+                    delay += hop[0]
+                    if hop[1] > 0:
+                        lossy.append((i, hop[1]))
+                    a = b
             count = self.bytes  # each hop's counters, looked up once per path, not per send
             senders = [count[x] for x in route[:-1]]
             path = (route, delay, tuple(lossy), senders, [count[x] for x in route[1:]])
         self._paths[key] = path
         return path
+
+    def _uniform_hop(self) -> tuple[float, float] | None:
+        """The one (delay, loss) of every hop when all links have the same (a generated
+        scenario's do): then a path's delay is looked up by its length, not summed hop by
+        hop (the N² paths of a start-up's hellos, each used once, were a third of it)."""
+        specs = {(link.delay_ms, link.loss) for link in self.network.links.values()}
+        if len(specs) != 1:
+            return None
+        ((delay_ms, loss),) = specs
+        self._sums = [0.0]  # the delays of 0, 1, 2 ... such hops, added as _path adds them
+        return self.hop_latency_s + delay_ms / 1e3, loss
 
     def _hop(self, a: str, b: str) -> tuple[float, float]:
         """One hop's delay (its link's and ``hop_latency_s``) and loss: kept with the paths,
