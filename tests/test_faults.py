@@ -173,6 +173,12 @@ FIXED: dict[int, str] = {
     "re-places its vertices now",
     3049: "as 2494",
     3336: "three partitions within 0.3 s: every node reset and the app was gone from all",
+    1672: "a merge whose node a side of a partition declared (it held one of m's sources and "
+    "the sink) while m's other producer, on the far side, fed the old m: what that producer "
+    "replayed to the new m after the heal was partly passed on by the old one; a vertex with "
+    "a producer on a node out of reach is not re-placed now",
+    3031: "as 1672",
+    4068: "as 1672",
     113: "a node restarted out of reach of a node that restarted too (and learned the app "
     "from a sync) was first heard in its new incarnation: nothing restored what it had run "
     "(the sync now carries the incarnations of the nodes it places vertices on)",

@@ -412,7 +412,15 @@ class Membership(AppSyncing):
             for v, n in dep.placed.items():
                 if n != node:
                     continue
-                if v in near or replacing_helps(dep.app, dep.layout.resolved, v, away):
+                if v in near:
+                    return True
+                # a producer of v on another node out of reach may be feeding v's instance
+                # there: a replacement here would be its twin, and what that producer replays
+                # after the heal would reach the consumers twice (a merge across a partition)
+                feeders = {dep.placed.get(e.src) for e in dep.app.edges if e.dst == v}
+                if feeders & (away - {node}):
+                    continue
+                if replacing_helps(dep.app, dep.layout.resolved, v, away):
                     return True
         return False
 
