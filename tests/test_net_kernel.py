@@ -76,6 +76,37 @@ def test_view_learns_members_from_announcements() -> None:
     assert len(seen) == 1 and view.rejected == 1
 
 
+def test_a_relay_through_a_node_whose_announcements_stopped_is_forgotten() -> None:
+    """B announced it reaches C; A has no kernel route to C, so it relays through B. B's
+    announcements stop (it died, or its datagrams no longer reach A): after 3.5 periods what
+    it said is forgotten, and with it the relay to C (a netns run kept one for 45 s)."""
+
+    class Clock:
+        t = 10.0
+
+        def time(self) -> float:
+            return self.t
+
+        def call_soon(self, callback: Any) -> None:  # the view's "announce now": not here
+            pass
+
+    view = KernelRoutes("A", 7000, PSK, announce_s=1.0)
+    clock = Clock()
+    view._loop = clock  # type: ignore[assignment]
+    view.table = [_r("10.0.0.2/32", "10.0.0.2")]
+    msg = Announce("B", 7000, {"C": 1}, {"C": ("10.0.0.3", 7000)})
+    view.on_announce(seal_announce(PSK, msg), "10.0.0.2")
+    assert view.routes() == {"B": ("B", 1), "C": ("B", 2)}
+    clock.t = 13.0
+    view.expire_announcements(clock.t)  # 3 periods: still held
+    assert "C" in view.routes()
+    clock.t = 14.0
+    view.expire_announcements(clock.t)
+    assert view.routes() == {"B": ("B", 1)}  # B itself: the kernel still routes to it
+    view.on_announce(seal_announce(PSK, msg), "10.0.0.2")  # it speaks again: relayed again
+    assert view.routes()["C"] == ("B", 2)
+
+
 class _Dumps(KernelRoutes):
     """A view whose table dumps the test hands out one by one (no netlink)."""
 

@@ -70,6 +70,8 @@ ANNOUNCE_S = 1.0
 """How often a node announces itself to every address it has a route to."""
 DEBOUNCE_S = 0.02
 """A burst of netlink route events (a daemon installs many routes at once) is one re-read."""
+STALE_ANNOUNCES = 3.5
+"""A node's announced hops are forgotten after this many announcement periods without one."""
 RETRY_S = 0.5
 """A dump that failed is tried again this much later."""
 RESYNC_S = 5.0
@@ -227,6 +229,7 @@ class KernelRoutes(TableRoutes):
         self.book: dict[str, tuple[str, int]] = {}
         self._direct: set[str] = set()  # book entries learned from the node itself
         self.announced_hops: dict[str, dict[str, int]] = {}
+        self.announced_at: dict[str, float] = {}  # node -> when its last announcement came
         self.rejected = 0
         self._udp: asyncio.DatagramTransport | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -394,7 +397,22 @@ class KernelRoutes(TableRoutes):
     async def _announce_loop(self) -> None:
         while True:
             self.announce()
+            self.expire_announcements(asyncio.get_running_loop().time())
             await asyncio.sleep(self.announce_s)  # a period, not a synchronisation
+
+    def expire_announcements(self, now: float) -> None:
+        """Forget the hops a node announced once its announcements stop coming (a node that
+        died, or whose datagrams no longer reach us): what it last said it reaches would
+        otherwise keep an overlay relay through it to a node nobody reaches any more (a dead
+        relay's neighbour kept a route to it through another for 45 s)."""
+        stale = [
+            n for n, at in self.announced_at.items() if now - at > STALE_ANNOUNCES * self.announce_s
+        ]
+        for n in stale:
+            del self.announced_at[n]
+            self.announced_hops.pop(n, None)
+        if stale:
+            self._recompute()
 
     def on_announce(self, datagram: bytes, src_ip: str) -> None:
         msg = open_announce(self.psk, datagram)
@@ -411,6 +429,8 @@ class KernelRoutes(TableRoutes):
                 self.book[node] = (ip, port)
                 changed = True
         hops = {d: h for d, h in msg.hops.items() if isinstance(h, int) and 0 < h <= MAX_HOPS}
+        if self._loop is not None:
+            self.announced_at[msg.node] = self._loop.time()
         if self.announced_hops.get(msg.node) != hops:
             self.announced_hops[msg.node] = hops
             changed = True
