@@ -113,9 +113,14 @@ def announce(
     """Tell the app's members (and ``also``: a coordinator that may host no part of it) that
     ``vertex`` runs on ``node``, at its current version; this node too, after the current
     input, as every receiver takes it."""
-    msg = m.Moved(dep.app.name, vertex, node, incarnation, dep.versions.get(vertex, 0))
+    msg = moved(dep, vertex, node, incarnation)
     for n in sorted((members(dep) | {node, ctx.id, *also}) - ctx.failed):
         ctx.send(n, msg)
+
+
+def moved(dep: AppState, vertex: str, node: str, incarnation: int = -1) -> m.Moved:
+    """The news that ``vertex`` runs on ``node``, at its current version."""
+    return m.Moved(dep.app.name, vertex, node, incarnation, dep.versions.get(vertex, 0))
 
 
 def on_moved(ctx: NodeContext, msg: m.Moved, now: float) -> None:

@@ -7,6 +7,8 @@
   at a node asked about it).
 - :mod:`.claims` — whom to ask (k members), when another's failure claim is believed
   (corroboration, incarnation bounds), and how claims spread (piggybacked on beats).
+- :mod:`.reach` — whether a node out of reach must be declared: re-placing what it runs would
+  let events flow (unreachable is not failed).
 - :mod:`.ranks` — after a partition heals, who resets: the tie-break, read from this node's
   view and the other's beat.
 - :mod:`.status` — its part of a node's status, as typed records.

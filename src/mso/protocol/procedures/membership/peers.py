@@ -21,7 +21,6 @@ from typing import Any
 
 import msgspec
 
-from mso.model.app import App
 from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
@@ -35,7 +34,7 @@ from mso.protocol.events import (
     RoutesChanged,
 )
 from mso.protocol.procedures.deploy import Deployer
-from mso.protocol.procedures.membership import ranks
+from mso.protocol.procedures.membership import ranks, reach
 from mso.protocol.procedures.membership.claims import (
     INCARNATION_MARGIN,
     MAX_NEWS,
@@ -66,38 +65,6 @@ REVOCATIONS_TOLD = 16  # the operator's latest undeploys told to each newly reac
 MIN_KNOWN = 256
 KNOWN_PER_ROUTE = 4
 _INSTANCES, _VANISHED = attrgetter("instances"), attrgetter("vanished")
-
-
-def replacing_helps(app: App, resolved: Mapping[str, str], vertex: str, away: set[str]) -> bool:
-    """Whether re-placing ``vertex`` (its node out of reach) could let events flow again: it
-    is not pinned (one placed by capability may move to another capable node), and some path
-    from a source through it to a sink has every pinned vertex on a node in reach. Otherwise
-    the app waits for the node as it would for a declared one, and the node stays
-    *unreachable*, not failed: taken back as it is when it is heard again, with no reset.
-    Linear in the app's edges."""
-    fixed = {v.id: v.pinned for v in app.vertices.values() if v.pinned and v.id not in resolved}
-    if vertex in fixed:
-        return False
-    ins: dict[str, list[str]] = {}
-    outs: dict[str, list[str]] = {}
-    for e in app.edges:
-        outs.setdefault(e.src, []).append(e.dst)
-        ins.setdefault(e.dst, []).append(e.src)
-
-    def reaches_end(start: str, step: dict[str, list[str]]) -> bool:
-        seen, todo = {start}, [start]
-        while todo:
-            v = todo.pop()
-            nxt = [u for u in step.get(v, []) if fixed.get(u) not in away]
-            if not step.get(v):
-                return True  # a source (upstream) or a sink (downstream) in reach
-            for u in nxt:
-                if u not in seen:
-                    seen.add(u)
-                    todo.append(u)
-        return False
-
-    return reaches_end(vertex, ins) and reaches_end(vertex, outs)
 
 
 class Membership(AppSyncing):
@@ -376,12 +343,12 @@ class Membership(AppSyncing):
     def _blocking(self, now: float, away: set[str]) -> list[str]:
         """Nodes out of reach for the liveness window, not heard in it, that host a vertex of
         an app this node runs part of whose re-placing would let events flow again
-        (:func:`replacing_helps`: not pinned, and a source and a sink it connects are in reach):
-        the app cannot progress otherwise, so they are suspected like a silent neighbour (a
-        few asked); if nobody hears them they are declared, their vertices re-placed, and the
-        incarnation rules take them back exactly once when they are heard again. Any other
-        node out of reach stays unreachable (a robot that drove off with its pinned sink, or
-        the node beyond it on a line that broke): taken back as it is, no reset."""
+        (:func:`.reach.re_placeable`): the app cannot progress otherwise, so they are
+        suspected like a silent neighbour (a few asked); if nobody hears them they are
+        declared, their vertices re-placed, and the incarnation rules take them back exactly
+        once when they are heard again. Any other node out of reach stays unreachable (a
+        robot that drove off with its pinned sink, or the node beyond it on a line that
+        broke): taken back as it is, no reset."""
         window = self.liveness.dead_after_s
         return [
             n
@@ -393,7 +360,7 @@ class Membership(AppSyncing):
 
     def _needed(self, node: str, away: set[str]) -> bool:
         """``node`` runs a vertex of an app this node runs part of whose re-placing would let
-        events flow again (:func:`replacing_helps`), or one next to a vertex being restored
+        events flow again (:func:`.reach.re_placeable`), or one next to a vertex being restored
         (the replacement waits for every surviving end of its edges to say where it stands,
         and one out of reach cannot: it is re-placed too), or the old host of a move this node
         coordinates (its handover cannot come: declared, the move's target restores the
@@ -412,15 +379,9 @@ class Membership(AppSyncing):
             for v, n in dep.placed.items():
                 if n != node:
                     continue
-                if v in near:
-                    return True
-                # a producer of v on another node out of reach may be feeding v's instance
-                # there: a replacement here would be its twin, and what that producer replays
-                # after the heal would reach the consumers twice (a merge across a partition)
-                feeders = {dep.placed.get(e.src) for e in dep.app.edges if e.dst == v}
-                if feeders & (away - {node}):
-                    continue
-                if replacing_helps(dep.app, dep.layout.resolved, v, away):
+                if v in near or reach.re_placeable(
+                    dep.app, dep.placed, dep.layout.resolved, v, away
+                ):
                     return True
         return False
 

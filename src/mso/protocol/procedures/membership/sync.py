@@ -40,10 +40,9 @@ class AppSyncing:
         """Tell the app's nodes where the instances this node runs are (a node that rejoins
         may have spread, or been told, a view in which they run elsewhere: a node of a
         partition's losing side claims the vertices it ran until it resets, and its reset
-        tells nobody). An instance being handed over is left out: its Moved follows."""
-        for vid, h in sorted(dep.instances.items()):
-            if h.handing_over is None and vid not in dep.markers:
-                placement.announce(self.ctx, dep, vid, self.ctx.id, incarnation=self.incarnation)
+        tells nobody)."""
+        for vid in _claimed(dep):
+            placement.announce(self.ctx, dep, vid, self.ctx.id, incarnation=self.incarnation)
 
     def _claim_to(self, node: str) -> None:
         """Tell ``node``, in reach again, where the instances this node runs are, for every
@@ -51,12 +50,9 @@ class AppSyncing:
         failed, so no rejoin sync follows -- reached every member but it. First-hand claims at
         their current version: a receiver that has them already takes nothing."""
         for dep in self.ctx.apps.values():
-            if node not in placement.members(dep):
-                continue
-            for vid, h in sorted(dep.instances.items()):
-                if h.handing_over is None and vid not in dep.markers:
-                    version = dep.versions.get(vid, 0)
-                    msg = m.Moved(dep.app.name, vid, self.ctx.id, self.incarnation, version)
+            if node in placement.members(dep):
+                for vid in _claimed(dep):
+                    msg = placement.moved(dep, vid, self.ctx.id, self.incarnation)
                     self.ctx.send(node, msg)
 
     def _disputed(self) -> bool:
@@ -204,3 +200,13 @@ class AppSyncing:
         self.ctx.emit(SetTimer(Retransmit(msg.app), now + RETRANSMIT_S))
         self.recovery.park(dep)
         self.recovery.maybe_recover(dep, now)
+
+
+def _claimed(dep: AppState) -> list[str]:
+    """The vertices this node runs that it may claim: not one being handed over (its Moved
+    follows) nor one a marker is moving."""
+    return [
+        vid
+        for vid, h in sorted(dep.instances.items())
+        if h.handing_over is None and vid not in dep.markers
+    ]
