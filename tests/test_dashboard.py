@@ -308,7 +308,11 @@ def test_dashboard_in_a_real_browser(live: LiveDashboard) -> None:
             }
             xs = [centres[n][0] for n in sorted(POSITIONS, key=lambda n: POSITIONS[n][0])]
             assert xs == sorted(xs) and len(set(xs)) == 4, centres
-            assert centres["N2"][1] != centres["N1"][1] == centres["N3"][1], centres
+            # N2 and N4 (40 m off the line) drawn below N1 and N3; robots closer than their
+            # labels need are pushed apart, by as much as the panel's size at that moment
+            # makes them close, so N1 and N3 need not share a row exactly
+            ys = {n: c[1] for n, c in centres.items()}
+            assert min(ys["N2"], ys["N4"]) > max(ys["N1"], ys["N3"]), centres
             # each chain is drawn along the route its events take: hop by hop over the line's
             # links, through the relays (no straight stroke from N1 to N3)
             links = {("N1", "N2"), ("N2", "N3"), ("N3", "N4")}
