@@ -16,6 +16,12 @@ accepted claims spread. Sans-IO helpers of :mod:`.peers`.
   node has seen of the victim (plus ``INCARNATION_MARGIN``) is refused: a captured member's
   ``NodeDown`` a day ahead once held its victim failed for a day. A receiver that hears the
   victim itself refuses the claim.
+- **When a member's "I hear it" counts** (:class:`Vouchers`): a ``Hears`` yes keeps a suspect
+  alive when it is not one member's word alone — a second member asked says yes too, or the
+  one that says it is the only member asked (then every path to the suspect runs through it)
+  — or, alone, for at most ``LONE_YES_WINDOWS`` liveness windows until this node hears the
+  suspect itself: a routing view that lags gets that long to converge, while a captured
+  member that answers yes for a dead node no longer keeps it from being declared.
 - **How accepted claims spread** (:class:`Gossip`): the detector sends its ``NodeDown`` only
   to the nodes that host the apps (they recover); everyone else learns it piggybacked on the
   heartbeats already sent, each claim on ``rounds(n)`` beats (O(log N)), at most ``MAX_NEWS``
@@ -36,6 +42,7 @@ MAX_NEWS = 8  # failure claims piggybacked on one beat
 MAX_GOSSIP = 64  # claims waiting to be piggybacked; the oldest go first past this
 MAX_PENDING = 64  # uncorroborated claims waiting for this node's own probe
 INCARNATION_MARGIN = 16  # a claim may be this many incarnations (resets) ahead of what was seen
+LONE_YES_WINDOWS = 4  # liveness windows one member's uncorroborated yes keeps a suspect alive
 
 
 def ask_whom(
@@ -142,3 +149,29 @@ class Claims:
 
     def clear(self) -> None:
         self.pending.clear()
+
+
+@dataclass
+class Vouchers:
+    """When a member's ``Hears`` yes keeps a suspect alive (module docstring): suspect -> when
+    a yes first kept it alive on one member's word alone since this node last heard it
+    itself. Bounded by the suspects (membership drops an entry with its node)."""
+
+    lone: dict[str, float] = field(default_factory=dict)
+
+    def counts(self, node: str, yes: set[str], asked: int, now: float, grace_s: float) -> bool:
+        """Whether the yes just added to ``yes`` (the members that said yes in this suspicion
+        of ``node``, of ``asked`` asked) counts."""
+        if len(yes) > 1:
+            self.lone.pop(node, None)  # two members hear it: alive, whatever came before
+            return True
+        if asked == 1:
+            return True
+        return now - self.lone.setdefault(node, now) <= grace_s
+
+    def heard(self, node: str) -> None:
+        """This node heard ``node`` itself: its own word, not a member's."""
+        self.lone.pop(node, None)
+
+    def clear(self) -> None:
+        self.lone.clear()

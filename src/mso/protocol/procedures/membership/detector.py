@@ -7,10 +7,11 @@ for the liveness window is *suspected* (``silent``); the :class:`Suspicion` asks
 (at most ``K_ASKED``: the suspect's other neighbours first, as its last figures named them,
 then this node's own) whether they hear it, never every member. One that heard it recently
 enough keeps it alive (``vouched``; the answer says *when* it heard it, and the silence clock
-runs from then, not from the answer); it is declared failed (``confirmed``) when every node
-asked said no, or none said yes by the deadline, and the first that said no is the claim's
-witness. A node asked that has not heard the suspect itself but reaches it asks it in turn (a
-:class:`Vouch`, SWIM's ping-req).
+runs from then, not from the answer) — if its yes counts (:class:`.claims.Vouchers`: not one
+member's word alone for long, or a captured member keeps a dead node alive); it is declared
+failed (``confirmed``) when every node asked said no, or none said yes by the deadline, and the
+first that said no is the claim's witness. A node asked that has not heard the suspect itself
+but reaches it asks it in turn (a :class:`Vouch`, SWIM's ping-req).
 
 Another detector's claim (``reported_down``, a ``NodeDown`` sent to the nodes that host the
 apps, or piggybacked on heartbeats) is acted on only when corroborated (membership checks it);
@@ -121,6 +122,8 @@ class Suspicion(Procedure):
         super().__init__(pid, now, deadline_s)
         self.node = node
         self.missing = set(asked)
+        self.asked = len(self.missing)
+        self.heard_by: set[str] = set()  # the asked that said they hear it
         self.outcome = ""
         self.witness = ""
 
@@ -142,6 +145,16 @@ class Suspicion(Procedure):
             self.on(SuspicionEvent.VOUCHED)
             self.outcome = "vouched"
         elif self.missing:
+            self.on(SuspicionEvent.DENIED)
+        else:
+            self.on(SuspicionEvent.ALL_DENIED)
+            self.outcome = "confirmed"
+
+    def set_aside(self, src: str) -> None:
+        """An asked node's yes that does not count on its own (:class:`.claims.Vouchers`):
+        another's yes may still come; with none, it is confirmed."""
+        self.missing.discard(src)
+        if self.missing:
             self.on(SuspicionEvent.DENIED)
         else:
             self.on(SuspicionEvent.ALL_DENIED)

@@ -37,9 +37,11 @@ from mso.protocol.procedures.deploy import Deployer
 from mso.protocol.procedures.membership import ranks, reach
 from mso.protocol.procedures.membership.claims import (
     INCARNATION_MARGIN,
+    LONE_YES_WINDOWS,
     MAX_NEWS,
     Claims,
     Gossip,
+    Vouchers,
     ask_whom,
     rounds,
 )
@@ -107,6 +109,7 @@ class Membership(AppSyncing):
         self._sync_pending: set[str] = set()
         self._gossip = Gossip()  # accepted failure claims, piggybacked on the next beats
         self._claims = Claims()  # others' claims waiting for this node's own probe
+        self._vouchers = Vouchers()  # when a member's "I hear it" keeps a suspect alive
         self._told: dict[str, float] = {}  # failed node heard directly -> when told so
         # the leader, and the routing table (a new one on every change) and failed set it is of
         self._leader_of: tuple[Mapping[str, object], frozenset[str], str] | None = None
@@ -268,7 +271,7 @@ class Membership(AppSyncing):
         :meth:`on_heartbeat` would do is note the incarnation and the sender's liveness clock:
         done here, outside the core's effect machinery. False: weigh it whole. Keep it in step
         with :meth:`on_heartbeat` (tests/test_sim_scale.py runs the two ways side by side)."""
-        if msg.news or src in self._suspicions:
+        if msg.news or src in self._suspicions or src in self._vouchers.lone:
             return False
         neighbour = self.ctx.routes.get(src, ("", 0))[0] == src
         known = self._incarnations.get(src)
@@ -299,6 +302,8 @@ class Membership(AppSyncing):
     def heard_directly(self, src: str, now: float) -> None:
         """A message from a suspected node (it reaches us though we do not reach it): it
         lives, which is what the suspicion asked."""
+        if self._vouchers.lone:
+            self._vouchers.heard(src)
         if src in self._suspicions:
             self._unsuspect(src, PeerEvent.VOUCHED)
             self.liveness.vouched(src, now)
@@ -427,7 +432,13 @@ class Membership(AppSyncing):
             at = now - msg.ago_ms / 1e3
             self.liveness.vouched(msg.node, at)
             yes = now - at <= self.liveness.dead_after_s / 2
-        proc.answer(src, yes)
+        if yes:
+            proc.heard_by.add(src)
+            grace = LONE_YES_WINDOWS * self.liveness.dead_after_s
+            if not self._vouchers.counts(msg.node, proc.heard_by, proc.asked, now, grace):
+                proc.set_aside(src)  # one member's word, for too long: another's, or none
+        if src in proc.missing:
+            proc.answer(src, yes)
         if proc.done:
             self.suspected(proc, now)
 
@@ -449,6 +460,8 @@ class Membership(AppSyncing):
         if proc.outcome == "vouched":  # someone heard it lately: judged again from then
             self._move(proc.node, PeerEvent.VOUCHED)
         else:
+            if proc.heard_by and proc.outcome == "confirmed":
+                self.ctx.refusal("hears_uncorroborated")  # a member's lone yes, set aside
             self.on_node_down(proc.node, self.ctx.id, now, witness=proc.witness)
             if self._peer(proc.node).state is P.SUSPECT:  # (not declared after all)
                 self._move(proc.node, PeerEvent.VOUCHED)
@@ -515,6 +528,7 @@ class Membership(AppSyncing):
         place a peer is declared."""
         node, detector = claim.node, claim.detector
         self._claims.drop(node)
+        self._vouchers.heard(node)
         self._unsuspect(node, None)
         if detector != self.ctx.id:
             self._move(node, PeerEvent.REPORTED_DOWN)
@@ -695,6 +709,7 @@ class Membership(AppSyncing):
         self._awaiting.clear()
         self._gossip.clear()
         self._claims.clear()
+        self._vouchers.clear()
         self.incarnation += 1
         self.ctx.note_event(
             now,
@@ -722,6 +737,7 @@ class Membership(AppSyncing):
         self._awaiting.pop(node, None)
         self._gossip.drop(node)
         self._claims.drop(node)
+        self._vouchers.heard(node)
         self._incarnations[node] = incarnation
         self.liveness.rejoin(node, now, node in self.ctx.routes, self.ctx.routes.get(node))
         self.rejoins.append({"node": node, "incarnation": incarnation, "at": now})
