@@ -6,6 +6,7 @@ import os
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -53,13 +54,15 @@ def _convoy_log_in_pytests_tmp(tmp_path_factory: pytest.TempPathFactory) -> Iter
 
 
 # Modules whose tests start node processes (an emulator), a netns testbed, Ray or a browser:
-# seconds each, most of the suite's time. `pytest -m "not slow"` leaves them out while working;
-# `make test` and CI run them. A test elsewhere that starts processes takes @pytest.mark.slow.
+# seconds each, most of the suite's CPU. `make test` runs the rest (every behaviour is also tested
+# in one process or the simulator); `make test-all`, SLOW=1 and CI (CI=true) run these too. A
+# test elsewhere that starts node processes or namespaces takes @pytest.mark.slow.
 SLOW_MODULES = frozenset(
     {
         "test_cli_live",
         "test_convoy_emulated",
         "test_daemon_log",
+        "test_emulate_identities",
         "test_emulate_keys",
         "test_emulator",
         "test_emulator_cleanup",
@@ -82,3 +85,37 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.path.stem in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)
+
+
+_slow_left_out = 0  # end-to-end tests `-m "not slow"` deselected (each xdist worker counts all)
+
+
+def pytest_deselected(items: list[pytest.Item]) -> None:
+    """Count the end-to-end tests left out (by ``-m "not slow"``: see pytest_unconfigure)."""
+    global _slow_left_out
+    _slow_left_out += sum(1 for item in items if item.get_closest_marker("slow"))
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    output = getattr(session.config, "workeroutput", None)  # an xdist worker: tell the controller
+    if output is not None:
+        output["slow_left_out"] = _slow_left_out
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node: Any, error: object) -> None:
+    """xdist's controller collects nothing itself: it takes the workers' count."""
+    global _slow_left_out
+    _slow_left_out = max(_slow_left_out, getattr(node, "workeroutput", {}).get("slow_left_out", 0))
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """Say last what `-m "not slow"` left out, so a green fast run is not taken for the whole
+    suite (after pytest's own closing line: it is the last line `make test` prints)."""
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    left_out = "slow" in (config.option.markexpr or "") and _slow_left_out
+    if left_out and reporter is not None and not hasattr(config, "workeroutput"):
+        reporter.write_line(
+            f"not run: {_slow_left_out} end-to-end tests (marked slow: node processes, netns, "
+            "a browser); `make test-all` or `SLOW=1 make test` runs them too, as CI does"
+        )

@@ -337,6 +337,7 @@ def test_bad_input_is_one_line_and_exit_2(case: Case, tmp_path: Path) -> None:
     assert rss_kb < RSS_LIMIT_KB, f"peak RSS {rss_kb} KB"
 
 
+@pytest.mark.slow
 def test_live_node_wrong_key_and_unknown_app(tmp_path: Path) -> None:
     """Against a running node: a wrong key fails at once with what is wrong, and undeploying an
     app that is not running is an error, not a success."""

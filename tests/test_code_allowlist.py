@@ -128,6 +128,7 @@ def _deploy_to_node_process(docs: list[str], env: dict[str, str]) -> list[m.Mess
         node.wait(10)
 
 
+@pytest.mark.slow
 def test_a_node_process_refuses_os_system(tmp_path: Path) -> None:
     """``mso node`` with the default allowlist: the deploy fails with the reason, nothing ran."""
     mark = tmp_path / "mark"
@@ -244,6 +245,7 @@ def test_an_announced_trick_is_refused_by_every_node(
     assert not mark.exists()
 
 
+@pytest.mark.slow
 def test_a_node_process_refuses_attribute_path_tricks(tmp_path: Path) -> None:
     """``mso node --allow-code allowed_tricks`` over TCP: a deploy whose policy reaches
     ``os.system`` (or a lambda or partial around it) through the allowed module is refused

@@ -182,6 +182,7 @@ def convoy_chains() -> int:
     return len(form_chains(app))
 
 
+@pytest.mark.slow
 def test_page_stream_and_state_never_show_the_key(live: LiveDashboard) -> None:
     seen = b""
     for path in ("", "static/app.js", "static/style.css", "api/view"):
@@ -200,6 +201,7 @@ def test_page_stream_and_state_never_show_the_key(live: LiveDashboard) -> None:
     assert KEY.encode() not in seen and b"MSO_KEY" not in seen
 
 
+@pytest.mark.slow
 def test_requests_from_elsewhere_are_refused(live: LiveDashboard) -> None:
     assert get(live.url + "api/view", {"Host": "attacker.example:80"})[0] == 403
     assert get(live.url + "nowhere")[0] == 404
@@ -217,6 +219,7 @@ def test_requests_from_elsewhere_are_refused(live: LiveDashboard) -> None:
     assert code == 409 and answer["ok"] is False and answer["error"]
 
 
+@pytest.mark.slow
 def test_relocation_from_the_page_shows_on_the_timeline(live: LiveDashboard) -> None:
     placement = live.view()["apps"][0]["placement"]
     target = "N2" if placement["scan_matcher"] == "N1" else "N1"

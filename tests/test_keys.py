@@ -80,6 +80,7 @@ def test_rotating_a_nodes_keys_leaves_open_connections_alone() -> None:
     asyncio.run(run())
 
 
+@pytest.mark.slow
 def test_mso_node_rereads_its_key_file_on_sighup(tmp_path: Path) -> None:
     keys = tmp_path / "keys"
     keys.write_text("# current first\nold\n")
@@ -115,6 +116,7 @@ def test_mso_node_rereads_its_key_file_on_sighup(tmp_path: Path) -> None:
         node.wait(10)
 
 
+@pytest.mark.slow
 def test_an_encrypted_overlay_with_an_operator_runs_an_app_end_to_end(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:

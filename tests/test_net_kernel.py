@@ -230,6 +230,7 @@ def line3() -> Iterator[list[str]]:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(_REASON is not None, reason=_REASON or "")
 def test_kernel_view_over_netlink_follows_route_changes(line3: list[str]) -> None:
     async def main() -> None:

@@ -16,6 +16,7 @@ from mso.cli import main
 EXAMPLES = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples"
 
 
+@pytest.mark.slow
 def test_netns_backend_falls_back_with_the_reason(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(netns_emulator, "unavailable", lambda: "no namespaces for you (test)")
     monkeypatch.setenv("MSO_NETNS_USERNS", "1")  # as if already re-run in a user namespace

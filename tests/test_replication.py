@@ -138,6 +138,7 @@ def test_replication_attributes_are_validated_and_defaulted() -> None:
         loads_app(src)
 
 
+@pytest.mark.slow
 def test_kill_9_of_the_host_on_the_emulator_keeps_the_count(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

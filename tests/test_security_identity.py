@@ -111,6 +111,7 @@ def test_links_are_taken_only_from_neighbours_that_prove_their_names() -> None:
     assert refused == 3
 
 
+@pytest.mark.slow
 def test_mso_nodes_link_with_their_identities_and_refuse_a_revoked_one(tmp_path: Path) -> None:
     """Three `mso node` processes on a line, each with its own key from `mso keygen --node`;
     N2 was told N3's key is revoked: N1 and N2 link, N3 stays outside, counted at N2."""
