@@ -24,6 +24,7 @@ from __future__ import annotations
 import bisect
 import itertools
 import math
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -276,6 +277,8 @@ class Layout:
             )
         self.pinned.update(self.resolved)
         self.kinds = app.kinds()  # once: the node looks them up per hosted vertex
+        inputs = Counter(e.dst for e in app.edges)  # merges: outputs carry their provenance
+        self.merges = frozenset(v for v, n in inputs.items() if n >= 2)
         self.edge_bytes: dict[tuple[str, str], float] = {}
         for e in app.edges:
             k = (e.src, e.dst)

@@ -365,6 +365,10 @@ class InChannel:
     # snapshot behind its producer's ack): frames sent before it (further on, with a floor
     # at that ack) are not a reason to skip ahead, and wait for the replay to come first
     awaiting_replay: bool = False
+    # of a merge's output: the provenance of the last event it has from each of the merge's
+    # inputs (mso.protocol.provenance); None when it cannot know (the channel was rebuilt
+    # from positions, without them)
+    marks: dict[int, tuple[int, int]] | None = None
 
     def __post_init__(self) -> None:
         # (position, count): once ``processed`` reaches position, count events were skipped

@@ -21,6 +21,7 @@ from collections.abc import Iterable
 
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.protocol import provenance
 from mso.protocol.channel import REPLICA_OWNER as REPLICA_OWNER  # (where procedures read it)
 from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.context import NodeContext
@@ -309,9 +310,11 @@ class DataPlane:
             return
         ch = dep.inc.get(edge)
         if ch is None:
-            ch = dep.inc[edge] = InChannel()
+            ch = dep.inc[edge] = InChannel(marks={})  # the edge's first events here
         fresh = ch.accept(seq, events, floor)
         self.touched.add(dep.app.name)
+        if fresh and dep.app.edges[edge].src in dep.layout.merges:
+            fresh = provenance.strip(fresh, ch.marks)
         if fresh:
             if self.taps.watched:
                 self.taps.saw(dep.app.name, edge, ch.expected - len(fresh), fresh, ts)
@@ -408,6 +411,7 @@ class DataPlane:
         ch = dep.inc.get(edge)
         if ch is None:
             return
+        first = ch.processed  # the batch's first sequence number
         ch.mark_processed(res.count)
         self.touched.add(dep.app.name)
         chain = dep.layout.edge_chain[edge]
@@ -421,8 +425,18 @@ class DataPlane:
         out_edges = dep.out_edges.get(vid, [])
         if res.outputs and out_edges:
             h.emitted += fx.events_in(res.outputs)
-            sent = self.send_events(dep, out_edges, res.outputs, ts, chain)
-            h.bytes_out += sent * len(out_edges)
+            outputs = res.outputs
+            if vid in dep.layout.merges:  # (module docstring of mso.protocol.provenance)
+                outputs = provenance.stamp(outputs, edge, first, res.owners)
+                marks = dep.marks.get(vid)
+                if marks:  # a replacement: only what each consumer lacks
+                    for o in out_edges:
+                        if lacks := provenance.past(outputs, marks.get(o, {})):
+                            h.bytes_out += self.send_events(dep, [o], lacks, ts, chain)
+                    outputs = []
+            if outputs:
+                sent = self.send_events(dep, out_edges, outputs, ts, chain)
+                h.bytes_out += sent * len(out_edges)
         self._input_done(dep, vid, edge, ch)
         self.pump(dep, vid)
 

@@ -169,6 +169,8 @@ class VertexProcessed(Outcome):
     edge: int = 0
     count: int = 0
     outputs: list[bytes] = field(default_factory=list)
+    # ``owners[j]``: the index in the batch of the event ``outputs[j]`` was made from
+    owners: list[int] = field(default_factory=list)
     ts: float = 0.0
     ends: int = 0
     ended: bool = False

@@ -373,6 +373,9 @@ class Resume(_Msg, tag="resume"):
     # from a producer that retains the edge's events for a replica (chain replication): the
     # first one it replays (-1: none retained, it replays from ``start``)
     retained: int = -1
+    # from the consumer of a merge: the provenance of the last event it has from each of the
+    # merge's inputs (mso.protocol.provenance; None: it does not know)
+    marks: dict[int, list[int]] | None = None
 
 
 # -- chain replication (mso.protocol.procedures.replication) ----------------------------------
@@ -460,6 +463,9 @@ class Prepare(_Msg, tag="prepare"):
     placed: dict[str, str] = msgspec.field(default_factory=dict)
     versions: dict[str, int] = msgspec.field(default_factory=dict)
     vanished: list[str] = msgspec.field(default_factory=list)
+    # a restore: the nodes the coordinator knows hold the vertex's replicas (a target that
+    # restarted since was never told, and would start the state afresh: seed 8029)
+    replicas: list[str] = msgspec.field(default_factory=list)
 
 
 class Unprepare(_Msg, tag="unprepare"):
@@ -507,6 +513,8 @@ class Handover(_Msg, tag="handover"):
     gate: list[Any] = msgspec.field(default_factory=list)  # pending chained-ack checkpoints
     parts: int = 0  # HandoverEvents sent ahead of it (the outputs' events past one frame)
     version: int = 0  # the move's version (the old host counted it)
+    # input edge -> the provenance marks its consumer has of a merge's output (absent: unknown)
+    marks: dict[int, dict[int, list[int]]] = msgspec.field(default_factory=dict)
 
 
 class HandoverEvents(_Msg, tag="handover_events"):

@@ -18,6 +18,7 @@ from mso.planning.placement import Hop, Layout
 from mso.protocol import messages as m
 from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.procedures.instance import InstanceLife
+from mso.protocol.provenance import Marks
 
 BUSY_AFTER_S = 1.0  # an instance working on one effect this long is reported busy ...
 HUNG_AFTER_S = 10.0  # ... and this long, hung (status only: it never takes the node down)
@@ -77,6 +78,8 @@ class Restoring:
     pending: set[tuple[int, bool]]
     positions: dict[int, int] = field(default_factory=dict)  # output -> from producers' acks
     consumer_start: dict[int, int] = field(default_factory=dict)  # output -> consumer expects
+    # output -> what its consumer has of a merge's inputs (mso.protocol.provenance)
+    consumer_marks: dict[int, Marks] = field(default_factory=dict)
     retained: dict[int, int] = field(default_factory=dict)  # input -> first event replayed
     resumed: set[int] = field(default_factory=set)  # inputs whose producer survived
     replica: Snapshot | None = None  # the state it starts from (None: from its constructor)
@@ -281,6 +284,8 @@ class AppState:
     out: dict[int, OutChannel] = field(default_factory=dict)
     inc: dict[int, InChannel] = field(default_factory=dict)
     gates: dict[str, AckGate] = field(default_factory=dict)  # vertex -> chained acks
+    # a merge's replacement: vertex -> output -> what that consumer has (sent no more)
+    marks: dict[str, dict[int, Marks]] = field(default_factory=dict)
     decoders: dict[int, msgspec.msgpack.Decoder[Any]] = field(default_factory=dict)
     running: bool = False
     epoch: int = 0

@@ -125,11 +125,14 @@ class VertexWorker:
         t0 = self.cpu_clock()
         inst = self.instance
         outs: list[Any] = []
+        owners: list[int] = []  # the index of the event each output was made from
         ends, ended = 0, False
         decode = self.decoders[eff.edge].decode if eff.edge in self.decoders else None
         if inst is not None and decode is not None:
             fn = inst.fn
-            for payload in eff.events:
+            for i, payload in enumerate(eff.events):
+                # what the event before made (each path below may ``continue``)
+                owners.extend([i - 1] * (len(outs) - len(owners)))
                 if payload == fx.END_OF_STREAM:  # this input's stream is over
                     ends += 1
                     self.ended_inputs.add(eff.edge)
@@ -153,14 +156,17 @@ class VertexWorker:
                         outs.extend(result)
                     else:
                         outs.append(result)
-        payloads = self._encode(outs)
+        owners.extend([len(eff.events) - 1] * (len(outs) - len(owners)))
+        payloads = self._encode(outs, owners)
         if ended:
             payloads.append(fx.END_OF_STREAM)
+            owners.append(len(eff.events) - 1)
         return fx.VertexProcessed(
             **self._outcome(t0),
             edge=eff.edge,
             count=len(eff.events),
             outputs=payloads,
+            owners=owners,
             ts=eff.ts,
             ends=ends,
             ended=ended,
@@ -262,10 +268,13 @@ class VertexWorker:
             except Exception as exc:
                 self._error(f"close: {_why(exc)}")
 
-    def _encode(self, outs: list[Any]) -> list[bytes]:
+    def _encode(self, outs: list[Any], owners: list[int] | None = None) -> list[bytes]:
+        """The outputs encoded; one that cannot be is counted and left out (and so is its
+        entry in ``owners``, kept in step)."""
         encode = msgspec.msgpack.encode
         payloads = []
-        for ev in outs:
+        kept = []
+        for j, ev in enumerate(outs):
             try:
                 payload = encode(ev)
             except (TypeError, ValueError, OverflowError) as exc:
@@ -275,6 +284,9 @@ class VertexWorker:
                 self._error(why)  # here, at the producer that made it: its consumer never sees it
                 continue
             payloads.append(payload)
+            kept.append(j)
+        if owners is not None and len(kept) < len(owners):
+            owners[:] = [owners[j] for j in kept]
         return payloads
 
     def _mismatch(self, ev: Any, payload: bytes) -> str:

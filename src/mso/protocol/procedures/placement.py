@@ -94,7 +94,8 @@ def prepare(
     """A move's (or restore's) Prepare, with the coordinator's view of the app for a target
     that hosts no part of it yet and so was not told of its moves."""
     snapshot = dict(dep.placed), versions(dep), sorted(dep.vanished)
-    return m.Prepare(dep.app.name, vertex, rid, restore, resumes or [], *snapshot)
+    replicas = list(dep.replica_nodes.get(vertex, [])) if restore else []
+    return m.Prepare(dep.app.name, vertex, rid, restore, resumes or [], *snapshot, replicas)
 
 
 def versions(dep: AppState) -> dict[str, int]:

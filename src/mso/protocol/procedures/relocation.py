@@ -31,8 +31,10 @@ import enum
 from typing import Any, ClassVar
 
 from mso.errors import MsoError
+from mso.model.app import MAX_REPLICAS
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.protocol import provenance
 from mso.protocol.channel import AckGate, InChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
@@ -446,6 +448,8 @@ class Relocator:
             self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, error, no_app=True))
             return
         placement.merge(dep, src, msg.placed, msg.versions, msg.vanished, self.ctx.now)
+        if msg.restore and dep.replicas.get(vid) and not dep.replica_nodes.get(vid):
+            dep.replica_nodes[vid] = list(msg.replicas[:MAX_REPLICAS])  # (as a ReplicaSet)
         if vid in dep.app.vertices and msg.restore and self._restored_since(dep, vid, src, msg):
             return
         if vid not in dep.app.vertices:
@@ -592,6 +596,7 @@ class Relocator:
                 superseded=superseded,  # the edge's QoS counts move with its consumer
                 expired=expired,
                 deadline_missed=missed,
+                marks=provenance.from_wire(msg.marks.get(i)),
             )
         for i, (next_seq, acked, events, positions) in msg.outputs.items():
             ch = self.dp.channel(dep, i, acked)
@@ -692,6 +697,11 @@ class Relocator:
         ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vid]
         for i in ins:  # acknowledge what the old instance processed, then forget the inputs
             self.dp.ack(dep, i)
+        marks = {  # what it has of a merge's inputs (mso.protocol.provenance)
+            i: wire
+            for i in ins
+            if (ch := dep.inc.get(i)) and (wire := provenance.to_wire(ch.marks)) is not None
+        }
         inputs = {
             i: [ch.expected, ch._acked, ch.superseded, ch.expired, ch.deadline_missed]
             if (ch := dep.inc.pop(i, None))
@@ -733,7 +743,9 @@ class Relocator:
             gate.to_wire() if gate is not None else [],
             parts,
             version,
+            marks,
         )
+        dep.marks.pop(vid, None)
         self.dp.taps.hand_over(dep.app.name, vid, msg.to, self.ctx.now)  # (asked there first)
         self.ctx.send(msg.to, handover)
         placement.announce(self.ctx, dep, vid, msg.to)  # to the app's members, not everyone

@@ -35,6 +35,7 @@ from __future__ import annotations
 from mso.model.app import has_state
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.protocol import provenance
 from mso.protocol.channel import AckGate, InChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import REPLICA_OWNER, DataPlane
@@ -102,7 +103,10 @@ class Restorer:
             dep.placed[edge.src] = msg.to
             inc = dep.inc.get(msg.edge)
             start = inc.expected if inc is not None else 0
-            self.ctx.send(msg.to, m.Resume(msg.app, msg.edge, msg.rid, False, start))
+            resume = m.Resume(msg.app, msg.edge, msg.rid, False, start)
+            if inc is not None and edge.src in dep.layout.merges:
+                resume.marks = provenance.to_wire(inc.marks)  # what it has of each input
+            self.ctx.send(msg.to, resume)
 
     # -- the replacement: runs once every surviving end has resumed it -------------------------
     def on_resume(self, msg: m.Resume, now: float) -> None:
@@ -135,6 +139,9 @@ class Restorer:
             restoring.resumed.add(msg.edge)
         else:
             restoring.consumer_start[msg.edge] = msg.start
+            marks = provenance.from_wire(msg.marks)
+            if marks is not None and vertex in dep.layout.merges:
+                restoring.consumer_marks[msg.edge] = marks
         restoring.pending.discard((msg.edge, msg.producer))
         if _ready(dep, vertex, restoring):
             self.activate(dep, vertex)
@@ -224,9 +231,14 @@ class Restorer:
             self.ctx.note_event(self.ctx.now, f"{vertex}: {why}, its state restarts")
             self.ctx.publish(Happened("state_restarted", dep.app.name, vertex, why))
         starts = [c.expected for i, c in dep.inc.items() if dep.app.edges[i].dst == vertex]
+        dep.marks.pop(vertex, None)
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
-            if snap is None and dep.replicas.get(vertex) and o not in restoring.positions:
+            marks = restoring.consumer_marks.get(o) if snap is None else None
+            if marks is not None:  # a merge: from where its consumer stands, only what it
+                base = restoring.consumer_start[o]  # lacks (mso.protocol.provenance)
+                dep.marks.setdefault(vertex, {})[o] = marks
+            elif snap is None and dep.replicas.get(vertex) and o not in restoring.positions:
                 # no ack said where its output stood: a producer that replays what it retains
                 # may start before the consumer's position; number from the input's start
                 base = min([base, *starts])
