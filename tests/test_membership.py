@@ -196,3 +196,28 @@ def test_a_rejoin_is_announced_to_the_apps_hosts_and_neighbours_not_to_every_nod
     assert all("N10" not in sim.cores[n].failed for n in ids[:-1])
     assert ups and len(ups) <= 2 * len(ids), ups  # was one per node per announcing node
     assert ("N9", "N1") not in ups  # not to the far end of the line
+
+
+def test_a_vertex_fed_from_a_node_out_of_reach_is_not_moved_until_it_is_back() -> None:
+    """A move waits for a marker from every producer: with the producer's node out of reach
+    (held unreachable, not failed) it would wait past its commit for one that cannot come
+    (fault seeds 5449, 8978: the producers that had switched placed the vertex where no
+    instance ran). Refused, saying why; done once the route is back."""
+    sim = started(PIPE)
+    host = where(sim, "pipe", "mid")
+    target = next(n for n in sorted(sim.cores) if n not in (host, "N1", "N6"))
+    sim.lose_route(host, "N1")
+    sim.request(host, m.RelocateRequest("pipe", "mid", target=target))
+    sim.run_until(sim.now + 0.2)
+    (refused,) = [r for _, _, r in sim.replies if isinstance(r, m.RelocateReply)]
+    assert not refused.ok and "'mid' takes events from 'src' on N1, out of reach" in refused.error
+    assert where(sim, "pipe", "mid") == host
+    sim.lose_route(host, "N1", lost=False)
+    sim.run_until(sim.now + 0.5)
+    sim.request(host, m.RelocateRequest("pipe", "mid", target=target))
+    sim.run_until(sim.now + 1.0)
+    moved = [r for _, _, r in sim.replies if isinstance(r, m.RelocateReply)][-1]
+    assert moved.ok, moved.error
+    assert where(sim, "pipe", "mid") == target
+    got, sent = stats(sim, "pipe", "sink"), emitted(sim, "pipe", "src")
+    assert got["repeats"] == 0 and got["out_of_order"] == 0 and sent - 5 <= got["count"] <= sent

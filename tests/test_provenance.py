@@ -3,10 +3,16 @@ in another interleaving sends its consumer exactly what it lacks (mso.protocol.p
 
 from __future__ import annotations
 
+from typing import Any
+
+import msgspec
 import pytest
 
+from mso.model.app import Vertex
+from mso.protocol import effects as fx
 from mso.protocol import provenance
 from mso.protocol.channel import InChannel
+from mso.runtime.worker import VertexWorker
 from mso.sim import faults
 
 
@@ -59,3 +65,26 @@ def test_a_merge_restored_after_its_node_restarts_delivers_each_event_once(seed:
     happens to, and numbered from the producers' acks the sink got one event twice."""
     result = faults.run(seed, BENCH)
     assert not result.violations, "\n".join(map(str, result.violations))
+
+
+class Num(msgspec.Struct, frozen=True):
+    n: int
+
+
+def fan(e: Num) -> Any:
+    """0: nothing; 1: one output; 2: two; 3: one that cannot be encoded, then a good one."""
+    return [None, Num(e.n), [Num(e.n), Num(e.n)], [object(), Num(e.n)]][e.n % 4]
+
+
+def test_a_merges_worker_says_which_event_of_the_batch_each_output_came_from() -> None:
+    v = Vertex(id="m", code=fan)
+    start = fx.StartVertex(1, "app", v, "operator", inputs={0: Num, 1: Num}, outputs={2: Num})
+    worker = VertexWorker(start)
+    assert worker.open().error == ""
+    batch = [msgspec.msgpack.encode(Num(n)) for n in (0, 1, 2, 3, 5)]
+    res = worker.feed(fx.FeedVertex(1, 0, batch, 0.0))
+    assert [msgspec.msgpack.decode(p, type=Num).n for p in res.outputs] == [1, 2, 2, 3, 5]
+    assert res.owners == [1, 2, 2, 3, 4] and res.errors == 1
+    # a vertex with one input is not a merge: nothing is tracked on its hot path
+    one = VertexWorker(fx.StartVertex(2, "app", v, "operator", inputs={0: Num}))
+    assert one.open().error == "" and one.feed(fx.FeedVertex(2, 0, batch, 0.0)).owners == []

@@ -125,14 +125,15 @@ class VertexWorker:
         t0 = self.cpu_clock()
         inst = self.instance
         outs: list[Any] = []
-        owners: list[int] = []  # the index of the event each output was made from
+        # a merge's outputs say which event they were made from (mso.protocol.provenance)
+        owners: list[int] | None = [] if len(self.start.inputs) >= 2 else None
         ends, ended = 0, False
         decode = self.decoders[eff.edge].decode if eff.edge in self.decoders else None
         if inst is not None and decode is not None:
             fn = inst.fn
             for i, payload in enumerate(eff.events):
-                # what the event before made (each path below may ``continue``)
-                owners.extend([i - 1] * (len(outs) - len(owners)))
+                if owners is not None:  # what the event before made (a path may ``continue``)
+                    owners.extend([i - 1] * (len(outs) - len(owners)))
                 if payload == fx.END_OF_STREAM:  # this input's stream is over
                     ends += 1
                     self.ended_inputs.add(eff.edge)
@@ -156,17 +157,19 @@ class VertexWorker:
                         outs.extend(result)
                     else:
                         outs.append(result)
-        owners.extend([len(eff.events) - 1] * (len(outs) - len(owners)))
+        if owners is not None:
+            owners.extend([len(eff.events) - 1] * (len(outs) - len(owners)))
         payloads = self._encode(outs, owners)
         if ended:
             payloads.append(fx.END_OF_STREAM)
-            owners.append(len(eff.events) - 1)
+            if owners is not None:
+                owners.append(len(eff.events) - 1)
         return fx.VertexProcessed(
             **self._outcome(t0),
             edge=eff.edge,
             count=len(eff.events),
             outputs=payloads,
-            owners=owners,
+            owners=owners or [],
             ts=eff.ts,
             ends=ends,
             ended=ended,
@@ -272,21 +275,23 @@ class VertexWorker:
         """The outputs encoded; one that cannot be is counted and left out (and so is its
         entry in ``owners``, kept in step)."""
         encode = msgspec.msgpack.encode
-        payloads = []
-        kept = []
-        for j, ev in enumerate(outs):
+        payloads: list[bytes] = []
+        dropped: list[int] = []  # (the index in ``outs`` of each output left out)
+        for ev in outs:
             try:
                 payload = encode(ev)
             except (TypeError, ValueError, OverflowError) as exc:
                 self._error(f"cannot encode {type(ev).__name__}: {exc}")
+                dropped.append(len(payloads) + len(dropped))
                 continue
             if self._checks and type(ev) is not self._fits and (why := self._mismatch(ev, payload)):
                 self._error(why)  # here, at the producer that made it: its consumer never sees it
+                dropped.append(len(payloads) + len(dropped))
                 continue
             payloads.append(payload)
-            kept.append(j)
-        if owners is not None and len(kept) < len(owners):
-            owners[:] = [owners[j] for j in kept]
+        if owners is not None and dropped:
+            gone = set(dropped)
+            owners[:] = [o for j, o in enumerate(owners) if j not in gone]
         return payloads
 
     def _mismatch(self, ev: Any, payload: bytes) -> str:

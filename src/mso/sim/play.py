@@ -29,10 +29,15 @@ MAX_STEPS = 10_000_000  # bound on driver turns (each turn moves virtual time or
 
 
 def apply(sim: Simulation, actions: list[Action], convergence_s: float = 0.0) -> None:
-    """Carry out a timeline's actions on the simulation."""
-    for action in actions:
+    """Carry out a timeline's actions on the simulation. A node that fails and restarts at
+    one instant restarts in place: the timeline has already put its links back, and a
+    fail-stop's removing them would leave the new process cut off for good (seed 6086)."""
+    for i, action in enumerate(actions):
         if isinstance(action, Crash):
-            if action.node not in sim.killed:
+            back = any(isinstance(a, Restart) and a.node == action.node for a in actions[i:])
+            if action.node not in sim.killed and back:
+                sim.crash(action.node)
+            elif action.node not in sim.killed:
                 sim.kill(action.node, convergence_s)
         elif isinstance(action, Restart):
             if action.node in sim.killed:

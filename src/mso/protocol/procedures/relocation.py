@@ -210,9 +210,8 @@ class Relocator:
             why = f"node {source} failed" if source in self.ctx.failed else "its node restarted"
             self._refuse(client, msg, f"{msg.vertex!r} does not run anywhere ({why})")
             return False
-        if source != self.ctx.id and source not in self.ctx.routes:  # held unreachable:
-            why = f"{msg.vertex!r} runs on {source}, out of reach: it cannot hand over its state"
-            self._refuse(client, msg, why)  # its instance drains and hands over, or nothing
+        if why := self.cannot_hand_over(dep, msg.vertex):
+            self._refuse(client, msg, why)
             return False
         if any(r.app == msg.app and r.vertex == msg.vertex for r in self._open()):
             self._refuse(client, msg, f"{msg.vertex!r} is already being relocated")
@@ -221,6 +220,21 @@ class Relocator:
         self.ctx.begin(Relocation(pid, now, msg.app, msg.vertex, source, target, client))
         self.ctx.send(target, placement.prepare(dep, msg.vertex, pid))
         return True
+
+    def cannot_hand_over(self, dep: AppState, vertex: str) -> str:
+        """Why a live instance of ``vertex`` cannot be moved now ("" if it can): its node, or
+        the node of a producer whose marker the handover waits for, is out of reach (held
+        unreachable, not failed). Its instance drains and hands over, or nothing: a move
+        started anyway waits on a marker that cannot come, past its commit (seeds 5449, 8978)."""
+        here, routes = self.ctx.id, self.ctx.routes
+        source = dep.placed[vertex]
+        if source != here and source not in routes:
+            return f"{vertex!r} runs on {source}, out of reach: it cannot hand over its state"
+        for e in dep.app.edges:
+            node = dep.placed.get(e.src, here) if e.dst == vertex else here
+            if node != here and node not in routes and node not in self.ctx.failed:
+                return f"{vertex!r} takes events from {e.src!r} on {node}, out of reach"
+        return ""
 
     def on_relocate_request(self, msg: m.RelocateRequest, now: float) -> None:
         """A relocation asked by another node. Where operator keys are configured that is a

@@ -404,6 +404,8 @@ class Remapper:
                 continue
             if lost and remap.recovery is None:  # the failure recovery restores it (one node
                 continue  # coordinates it); restored here too, it would run twice
+            if not lost and self.relocator.cannot_hand_over(dep, vertex):
+                continue  # stays where it runs, as a relocation would be refused
             pid = self.ctx.new_pid()
             source = dep.placed[vertex]
             reloc = Relocation(pid, now, remap.app, vertex, source, node, None, remap=rid)
