@@ -137,6 +137,36 @@ def test_a_moved_vertex_is_flagged_for_a_while_and_chains_keep_a_history() -> No
     assert all(h[2] == 1.5 for h in history)
 
 
+def test_a_recoverys_moves_seen_before_its_record_are_shown_after_it_as_its_own() -> None:
+    """The restored vertex runs at its new host (status shows the move) a poll before the
+    coordinator's record says the recovery is done: the timeline still tells the recovery
+    first, then the move it made, worded as the recovery's."""
+    tr = Tracker(t0=0.0)
+    tr.update(status({"src": "N1", "mid": "N2", "sink": "N2"}, 0), 1.0)
+    nodes = status({"src": "N1", "mid": "N1", "sink": "N2"}, 0, failed=["N2"])
+    record = {"at": 1.5, "failed": ["N2"], "remap": "chain", "chains": ["src-mid-sink"],
+              "lost": ["mid"]}  # fmt: skip
+    nodes["N1"]["apps"]["pipe"]["recoveries"] = [record]  # under way: not done yet
+    timeline = tr.update(nodes, 2.0)["timeline"]
+    assert [(e["kind"], e["what"]) for e in timeline if e["kind"] != "failure"] == [
+        ("move", "mid: N2 → N1")
+    ]
+    nodes["N1"]["apps"]["pipe"]["recoveries"] = [record | {"ok": True, "took_ms": 4.0}]
+    timeline = tr.update(nodes, 3.0)["timeline"]  # newest first
+    newest, oldest = (e for e in timeline if e["kind"] != "failure")
+    assert (oldest["kind"], oldest["what"], oldest["why"]) == (
+        "recovery",
+        "pipe: chain remap of src-mid-sink",
+        "N2 failed",
+    )
+    assert (newest["kind"], newest["what"], newest["why"]) == (
+        "recovery",
+        "mid: N2 → N1",
+        "N2 failed",
+    )
+    assert oldest["t"] == newest["t"] == 2.0  # the recovery shown when its move was seen
+
+
 def test_tracker_failed_and_silent_nodes() -> None:
     tr = Tracker(t0=0.0)
     nodes = status({"src": "N1", "mid": "N1", "sink": "N2"}, 0, failed=["N3"])

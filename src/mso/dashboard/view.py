@@ -35,6 +35,7 @@ RATE_WINDOW_S = 5.0  # rates are means over this long: a 1 Hz camera does not fl
 _DECISION = re.compile(r"^(?P<at>-?\d+(?:\.\d+)?) (?P<what>.*?)(?: \((?P<why>.*)\))?$")
 _RELOCATE = re.compile(r"^relocate (?P<app>[^/ ]+)/(?P<vertex>\S+) -> (?P<node>\S+)$")
 PENDING_S = 30.0  # a move asked for and not seen by then is not waited for any more
+NOBODY_SAID = "no node said who asked"
 MOVED_S = 6.0  # a vertex that moved is highlighted on the topology this long
 HISTORY_LEN = 90  # points of each chain's rate and delay kept for its sparklines
 ERRORS_PER_S = 1.0  # a vertex failing this often (over the rate window) is flagged on the page
@@ -298,7 +299,7 @@ class Tracker:
                 old = self._placement.get((name, v))
                 self._placement[(name, v)] = n
                 if old is not None and old != n:
-                    kind, why, took = "move", "no node said who asked", None
+                    kind, why, took = "move", NOBODY_SAID, None
                     told = _told(nodes, name, v)  # the coordinating node's record of it
                     if told is not None:
                         why, took = told
@@ -357,16 +358,36 @@ class Tracker:
             return
         self._seen.add(key)
         chains = ", ".join(rec.get("chains", [])) or "-"
-        self._add(
-            Entry(
-                now - self.t0,
-                "recovery",
-                f"{app}: {rec.get('remap', '?')} remap of {chains}",
-                f"{', '.join(rec.get('failed', []))} failed",
-                took_ms=rec.get("took_ms"),
-                ok=bool(rec.get("ok")),
-            )
+        failed = f"{', '.join(rec.get('failed', []))} failed"
+        entry = Entry(
+            now - self.t0,
+            "recovery",
+            f"{app}: {rec.get('remap', '?')} remap of {chains}",
+            failed,
+            took_ms=rec.get("took_ms"),
+            ok=bool(rec.get("ok")),
         )
+        # its restored vertices can show in status (running at their new hosts) a poll before
+        # the coordinator's record says the recovery is done: those moves are this recovery's,
+        # and the timeline shows the recovery first, then what it moved
+        lost = set(rec.get("lost", []))
+        since = now - self.t0 - PENDING_S
+        mine = [
+            e
+            for (a, v), (e, _) in self._moves.items()
+            if a == app and v in lost and e.kind == "move" and e.t >= since and e in self.timeline
+        ]
+        for e in mine:
+            e.kind = "recovery"
+            if e.why == NOBODY_SAID:
+                e.why = failed
+        if mine:
+            first = min(self.timeline.index(e) for e in mine)
+            entry.t = self.timeline[first].t
+            self.timeline.insert(first, entry)
+            del self.timeline[:-TIMELINE_LEN]
+        else:
+            self._add(entry)
 
 
 def movable(chains: list[list[str]], placement: dict[str, str]) -> dict[str, list[str]]:
