@@ -241,6 +241,22 @@ def test_a_fork_is_not_pulled_by_bytes_a_later_vertex_reduces() -> None:
     assert p["f"] == "N1" and p["x"] == "N1" and p["y"] == "N1"
 
 
+def test_a_repinned_vertex_moves_what_was_derived_from_its_pin() -> None:
+    # t1 (a capability's choice on N4) goes to N3 when N4 fails: the bytes that must travel
+    # toward N4 are gone, toward N3 they are what they were toward N4 (a kept bottleneck()
+    # once went on saying N4), and so are the pinned vertices below each vertex
+    lay = Layout(fork_app(5000), "N1", "bytes")
+    before = dict(lay.bottleneck("N4"))
+    far = {"N1": 0, "N4": 3}  # (N3 out of these distances)
+    assert lay.downstream.furthest_pinned("s", far) == "t1"
+    lay.repin("t1", "N3")
+    assert lay.pinned["t1"] == "N3" and lay.resolved["t1"] == "N3"
+    assert lay.bottleneck("N4")["t1"] == 0 and lay.bottleneck("N4")["f"] == 0
+    assert lay.bottleneck("N3") == before
+    assert lay.downstream.furthest_pinned("s", far) == "s"  # t1 is no longer on N4
+    assert lay.downstream.furthest_pinned("s", {**far, "N3": 5}) == "t1"
+
+
 def test_a_merge_is_pulled_by_its_placed_inputs() -> None:
     # m merges a (N1 side, 10 bytes) and b (5000 bytes, pinned on N4) and sends 10 bytes to
     # t on N4: the chain that places m comes from N1, and the big input pulls m to N4.

@@ -291,15 +291,7 @@ class Layout:
         for (a, b), size in self.edge_bytes.items():
             self.out_bytes[a].append((b, size))
             self.in_bytes[b].append((a, size))
-        self.downstream = Downstream(
-            self.topo,
-            self.graph.succ,
-            self.graph.pred,
-            self.pinned,
-            self.graph.order,
-            self.chains,
-            self.cost,
-        )
+        self.downstream = self._downstream()
         self._flow: dict[str, dict[str, float]] = {}  # target -> bottleneck()
         # the chain each edge lies in (every edge lies in exactly one, §3.2)
         index = {(e.src, e.dst): i for i, e in enumerate(app.edges)}
@@ -410,6 +402,24 @@ class Layout:
         for v, n in placed.items():
             used[n] = used.get(n, 0.0) + self.load[v]
         return used
+
+    def _downstream(self) -> Downstream:
+        return Downstream(
+            self.topo,
+            self.graph.succ,
+            self.graph.pred,
+            self.pinned,
+            self.graph.order,
+            self.chains,
+            self.cost,
+        )
+
+    def repin(self, vertex: str, node: str) -> None:
+        """A vertex placed by capability goes to ``node`` (its first choice failed): what
+        was derived from the pins is derived again."""
+        self.resolved[vertex] = self.pinned[vertex] = node
+        self._flow.clear()
+        self.downstream = self._downstream()
 
     def bottleneck(self, target: str) -> dict[str, float]:
         """For every vertex: the bytes per event that must still travel from it to the

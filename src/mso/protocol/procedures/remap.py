@@ -173,7 +173,7 @@ class Remapper:
                 continue
             alt = next((n for n in dep.capable.get(v, []) if n not in failed), None)
             if alt is not None:
-                dep.layout.resolved[v] = dep.layout.pinned[v] = alt
+                dep.layout.repin(v, alt)
 
     def on_recovery_due(self, ev: RecoveryDue) -> None:
         for dep in list(self.ctx.apps.values()):
