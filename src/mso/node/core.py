@@ -260,7 +260,7 @@ class NodeCore:
             m.Handover: lambda src, msg, now: rel.on_handover(src, msg, now),
             m.HandoverEvents: lambda src, msg, now: rel.on_handover_events(src, msg, now),
             m.HandoverDone: lambda src, msg, now: rel.on_handover_done(msg, now),
-            m.Moved: lambda src, msg, now: placement.on_moved(self, msg, now),
+            m.Moved: lambda src, msg, now: placement.on_moved(self, src, msg, now),
             m.Rewire: lambda src, msg, now: res.on_rewire(msg, now),
             m.Resume: lambda src, msg, now: res.on_resume(msg, now),
             m.Replicate: lambda src, msg, now: self.replicator.on_replicate(src, msg),

@@ -129,7 +129,8 @@ class Lookups:
             return
         look.on(LookupEvent.ANSWER)
         look.waiting.discard(src)
-        placement.merge(dep, src, msg.placed, msg.versions, msg.vanished, now)
+        signed = self.ctx.failed if self.ctx.authority.signed else None  # (the hosts' word)
+        placement.merge(dep, src, msg.placed, msg.versions, msg.vanished, now, signed)
         if look.rounds < ROUNDS:  # nodes the answers name that were not asked yet
             named = set(msg.placed.values()) - look.asked
             if named:

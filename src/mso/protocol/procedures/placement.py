@@ -16,16 +16,24 @@ Each vertex carries a *version*, the number of its moves: the node that hands a 
 counts it and every message about the move carries it, so of two answers the older loses.
 Version 0 is the deployment's placement (or a view rebuilt from a sync): news about it is taken
 as before, the last word winning.
+
+With operator keys, news that changes where a vertex runs is taken only from the node this
+node's view says hosts it (it handed the vertex over), or, once that node failed or the vertex
+vanished with it, from the node that restored it (:func:`may_tell`): a captured member that
+hosts part of an app once moved any of its vertices — to itself, so that their inputs came to
+it, or to a node that never ran them — with one ``Moved`` to the app's nodes. A refused claim
+is counted (``moved_not_by_its_host``) and the placement looked up (:mod:`.lookup`), whose
+answers are weighed by the same rule: a move this node missed is learnt from the old host.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Set
 from typing import Any
 
 from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
-from mso.protocol.events import Superseded
+from mso.protocol.events import PlacementStale, Superseded
 from mso.protocol.state import AppState
 
 
@@ -59,6 +67,20 @@ def bump(dep: AppState, vertex: str) -> int:
     return version
 
 
+def may_tell(dep: AppState, vertex: str, src: str, failed: Set[str]) -> bool:
+    """Whether ``src`` may tell this node (with operator keys) that ``vertex`` runs elsewhere
+    than its view says: it is the vertex's host in that view (it handed the vertex over), or
+    that host failed or the vertex vanished with its node (a restore, by whoever restored it)."""
+    host = dep.placed.get(vertex)
+    return host is None or host == src or host in failed or vertex in dep.vanished
+
+
+def changes(dep: AppState, vertex: str, node: str, version: int) -> bool:
+    """Whether news that ``vertex`` runs on ``node`` as its ``version``-th move would change
+    this node's view."""
+    return dep.placed.get(vertex) != node or version > dep.versions.get(vertex, 0)
+
+
 def merge(
     dep: AppState,
     src: str,
@@ -66,15 +88,19 @@ def merge(
     versions: dict[str, int],
     vanished: list[str],
     now: float,
+    failed: Set[str] | None = None,
 ) -> None:
     """Take from ``src``'s view (placement, versions, vanished instances) what is strictly newer
     than ours, or as new and first-hand (``src`` says where it runs it itself) — except for the
-    vertices this node runs or is taking over (its own word on them is first-hand)."""
+    vertices this node runs or is taking over (its own word on them is first-hand). Given
+    ``failed`` (with operator keys), a change only where :func:`may_tell` lets ``src``."""
     ours = set(dep.instances) | set(dep.awaiting) | set(dep.restoring)
     gone = set(vanished)
     for v, n in placed.items():
         version, mine = versions.get(v, 0), dep.versions.get(v, 0)
         if v not in dep.app.vertices or v in ours:
+            continue
+        if failed is not None and changes(dep, v, n, version) and not may_tell(dep, v, src, failed):
             continue
         if version > mine or (version == mine and n == src):
             learn(dep, v, n, version, now, running=False)
@@ -124,14 +150,16 @@ def moved(dep: AppState, vertex: str, node: str, incarnation: int = -1) -> m.Mov
     return m.Moved(dep.app.name, vertex, node, incarnation, dep.versions.get(vertex, 0))
 
 
-def on_moved(ctx: NodeContext, msg: m.Moved, now: float) -> None:
+def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
     """News that a vertex runs elsewhere now."""
     dep = ctx.apps.get(msg.app)
     if 0 <= msg.incarnation < ctx.incarnation_of(msg.node, msg.incarnation):
         return  # its instance went with that incarnation (a claim overtaken by a reset)
-    why = _moved_refused(ctx, dep, msg) if dep is not None else "moved_unknown_app"
+    why = _moved_refused(ctx, dep, src, msg) if dep is not None else "moved_unknown_app"
     if why:
         ctx.refusal(why)
+        if why == "moved_not_by_its_host":  # a move we missed, or a lie: its host will say
+            ctx.publish(PlacementStale(msg.app))
         return
     known = dep is not None and msg.vertex in dep.placed
     twin = (
@@ -159,17 +187,23 @@ def _runs_here(dep: AppState, vertex: str) -> bool:
     return h is not None and h.handing_over is None and vertex not in dep.markers
 
 
-def _moved_refused(ctx: NodeContext, dep: AppState, msg: m.Moved) -> str:
+def _moved_refused(ctx: NodeContext, dep: AppState, src: str, msg: m.Moved) -> str:
     """Why news that ``msg.vertex`` runs on ``msg.node`` is not taken ('' if it is): a vertex
     not in the app; a pinned vertex anywhere but on its node. With operator keys also a vertex
-    this node runs itself (and is not handing over): its own view is first-hand."""
+    this node runs itself (and is not handing over): its own view is first-hand; and a change
+    told by a node that may not tell it (:func:`may_tell`)."""
     if msg.vertex not in dep.app.vertices:
         return "moved_unknown_vertex"
     pin = dep.app.vertices[msg.vertex].pinned
     if pin is not None and msg.node != pin:
         return "moved_a_pinned_vertex"
-    if ctx.authority.signed and msg.node != ctx.id and _runs_here(dep, msg.vertex):
-        return "moved_a_vertex_running_here"
+    if ctx.authority.signed:
+        if msg.node != ctx.id and _runs_here(dep, msg.vertex):
+            return "moved_a_vertex_running_here"
+        if changes(dep, msg.vertex, msg.node, msg.version) and not may_tell(
+            dep, msg.vertex, src, ctx.failed
+        ):
+            return "moved_not_by_its_host"
     return ""
 
 
@@ -186,7 +220,9 @@ def reply(ctx: NodeContext, src: str, msg: m.PlacementQuery) -> None:
 __all__ = [
     "announce",
     "bump",
+    "changes",
     "learn",
+    "may_tell",
     "members",
     "merge",
     "on_moved",
