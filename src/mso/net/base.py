@@ -101,6 +101,12 @@ class Counters:
         # signature, or a message in which its sender speaks for a third node
         # (mso.protocol.origin)
         self.frames_origin_refused = 0
+        # with node identities: a data frame relayed to this node whose end-to-end tag is not
+        # its source's (altered or injected on the way, or from a source not known or revoked)
+        # (mso.protocol.dataseal), and data frames this node sent untagged, its destination's
+        # key not known yet (its destination refuses them if relayed; the channel resends)
+        self.frames_data_refused = 0
+        self.data_untagged = 0
 
     def as_dict(self) -> dict[str, int]:
         return dict(vars(self))

@@ -32,7 +32,7 @@ from collections.abc import Callable
 import msgspec
 
 from mso.net.admission import Admission
-from mso.net.base import HEARTBEAT, Counters, Kind, Receiver, RoutesChanged, RoutingView
+from mso.net.base import DATA, HEARTBEAT, Counters, Kind, Receiver, RoutesChanged, RoutingView
 from mso.net.forwarding import RouteWait
 from mso.net.limits import DEFAULT_LIMITS, ConnectionCounters, Limits
 from mso.net.relaying import RelayBudget
@@ -386,8 +386,18 @@ class TcpTransport:
     def send(self, dst: str, payload: bytes, kind: Kind) -> None:
         if self.identity is not None and self._signs(dst, kind):
             payload = origin.sign(self.identity, payload, time.time_ns() // 1_000_000)
+        elif self.identity is not None and kind == DATA and not self._direct(dst):
+            payload = self.trust.seal(dst, payload)  # its end-to-end tag (mso.protocol.dataseal)
         if not self._send_toward(dst, payload, kind):
             self.waiting.hold(dst, (payload, 0), kind, self.loop.time())
+
+    def _direct(self, dst: str) -> bool:
+        """``dst`` is a neighbour this node's route goes to straight, on a link up now: its
+        data frames need no end-to-end tag (the link proves their source). One held or
+        detoured meanwhile arrives untagged through a relay, is refused, and its channel
+        resends it."""
+        conn = self.peers.get(dst)
+        return conn is not None and conn.link is not None and self.view.next_hop(dst) == dst
 
     def _signs(self, dst: str, kind: Kind) -> bool:
         """This node's control and marker frames carry its origin wherever they go (a frame

@@ -18,6 +18,7 @@ from mso.net.relaying import RelayBudget
 from mso.protocol import clients
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority
+from mso.protocol.dataseal import Pairs
 from mso.protocol.identity import Identity, check, parse_cert
 from mso.protocol.origin import Verifier
 from mso.protocol.revocation import Revocations
@@ -53,6 +54,8 @@ class Trust:
         self.connection_counters = connection_counters
         self.checks = checks or RelayBudget(CHECKS_PER_S, BEAT_CHECKS_PER_S, burst_s=1.0)
         self.origins = Verifier()  # other nodes' signatures on what they originate
+        # pair keys for the end-to-end tags of data frames (mso.protocol.dataseal)
+        self.pairs = Pairs(identity.private, identity.node) if identity is not None else None
         self.revocations = Revocations()  # node keys an operator revoked through the overlay
 
     @property
@@ -79,7 +82,33 @@ class Trust:
             self.connection_counters.identity_refused += 1
             log.warning("refusing %s from %s: %s", msg.node, address or "?", why)
             return None
-        return parse_cert(msg.cert).key_id
+        cert = parse_cert(msg.cert)
+        self.origins.learn(cert)
+        return cert.key_id
+
+    def seal(self, dst: str, payload: bytes) -> bytes:
+        """A data frame this node originates, with its end-to-end tag for ``dst`` (untagged,
+        counted, while ``dst``'s certificate is not known here yet)."""
+        cert = self.origins.by_node.get(dst)
+        if self.pairs is None or cert is None:
+            self.counters.data_untagged += 1
+            return payload
+        env = m.unwrap(payload)
+        env.origin = self.pairs.tag(env, cert.key)
+        return m.rewrap(env)
+
+    def _data_refused(self, peer: str, env: m.Envelope) -> str | None:
+        """Why a data frame ``peer`` relayed is not its source's, unaltered (None: it is)."""
+        cert = self.origins.by_node.get(env.src)
+        if self.pairs is None:
+            return "no identity of this node's to check it with"
+        if cert is None:
+            return "its source's certificate is not known here"
+        if cert.key_id in self.revoked():
+            return f"node key {cert.key_id} is revoked"
+        if not self.pairs.holds(env, cert.key):
+            return "an end-to-end tag that does not hold"
+        return None
 
     def client(
         self, msg: m.ClientHello, theirs: bytes, mine: bytes, address: str
@@ -112,6 +141,13 @@ class Trust:
         others' names is checked within its budget of checks (``CHECKS_PER_S``; markers with
         control frames; a frame costs a check per ``CHECK_BYTES`` it holds), past which it
         is dropped (``frames_dropped_rate``)."""
+        if env.kind == m.DATA:
+            why = self._data_refused(peer, env) if env.src != peer else None
+            if why is not None:
+                self.counters.frames_data_refused += 1
+                log.info("from %s via %s: %s: %s", env.src, peer, type(msg).__name__, why)
+                return None
+            return msg
         budget = m.CONTROL if env.kind == m.MARKER else env.kind
         cost = 1 + len(env.body) // CHECK_BYTES
         if env.src != peer and not self.checks.allow(peer, budget, now, cost):

@@ -232,8 +232,12 @@ class NodeCore:
             self.membership,
         )
         self._messages: dict[type, Handler] = {
-            m.Data: lambda src, msg, now: dp.on_data(msg),
-            m.Ack: lambda src, msg, now: dp.on_ack(msg, now),
+            m.Data: lambda src, msg, now: (
+                dp.on_data(msg) if placement.from_member(self, src, msg.app) else None
+            ),
+            m.Ack: lambda src, msg, now: (
+                dp.on_ack(msg, now) if placement.from_member(self, src, msg.app) else None
+            ),
             m.ChainDelay: lambda src, msg, now: dp.on_chain_delay(msg, now),
             m.Marker: lambda src, msg, now: dp.on_marker_msg(msg, now),
             m.AppAnnounce: self._on_announce,

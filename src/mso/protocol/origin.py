@@ -19,8 +19,8 @@ back) is taken only from that node itself: a neighbour's announcement of it is n
 and its own beats, signed to every node it is not a neighbour of, bring it back (at a host
 that is not its neighbour, within a rejoin round of the beats, ``REJOIN_EVERY``).
 
-Data frames (events and acks) are not signed: members are trusted with the data plane of the
-apps they take part in, and a signature per event would cost more than the event.
+Data frames (events and acks) are not signed — a signature per event would cost more than the
+event — but tagged by a key only their two ends hold (:mod:`mso.protocol.dataseal`).
 
 Sans-IO: bytes, keys and the time in; a frame or a verdict out.
 """
@@ -77,6 +77,16 @@ class Verifier:
 
     def __init__(self) -> None:
         self._certs: OrderedDict[bytes, tuple[NodeCert, Ed25519PublicKey]] = OrderedDict()
+        # each node's latest certificate seen to hold (a link's proof, a verified origin): the
+        # key its data frames' tags are checked with (mso.protocol.dataseal)
+        self.by_node: OrderedDict[str, NodeCert] = OrderedDict()
+
+    def learn(self, cert: NodeCert) -> None:
+        """``cert`` held (its operator's signature checked, for the node it names)."""
+        self.by_node[cert.node] = cert
+        self.by_node.move_to_end(cert.node)
+        while len(self.by_node) > MAX_CERTS:
+            self.by_node.popitem(last=False)
 
     def _cert(
         self, raw: bytes, operators: Mapping[str, Ed25519PublicKey]
@@ -130,6 +140,7 @@ class Verifier:
             key.verify(origin.sig, signed_bytes(env, origin.at))
         except InvalidSignature:
             return "an origin signature that does not verify"
+        self.learn(cert)
         return None
 
     def admit(

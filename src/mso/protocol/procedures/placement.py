@@ -207,6 +207,20 @@ def _moved_refused(ctx: NodeContext, dep: AppState, src: str, msg: m.Moved) -> s
     return ""
 
 
+def from_member(ctx: NodeContext, src: str, app: str) -> bool:
+    """With operator keys, whether an app's events or acks from ``src`` are taken: it hosts
+    part of the app in this node's view (or is this node). Any node used to be able to send
+    any edge events, or ack them, in its own name — a relay that hosts nothing of the app
+    among them; its frames in others' names are stopped by their end-to-end tags
+    (:mod:`mso.protocol.dataseal`). One from a new host this node has not heard of yet is
+    dropped and resent by its channel."""
+    dep = ctx.apps.get(app)
+    if not ctx.authority.signed or dep is None or src == ctx.id or src in dep.placed.values():
+        return True
+    ctx.refusal("data_not_from_a_member")
+    return False
+
+
 def reply(ctx: NodeContext, src: str, msg: m.PlacementQuery) -> None:
     """Answer a lookup with this node's view of the app (nothing if it does not hold it)."""
     dep = ctx.apps.get(msg.app)
@@ -221,6 +235,7 @@ __all__ = [
     "announce",
     "bump",
     "changes",
+    "from_member",
     "learn",
     "may_tell",
     "members",
