@@ -13,7 +13,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from mso.protocol import dataseal
 from mso.protocol import messages as m
 from test_captured_robot import overlay, robot, sunk
-from test_security_origin import HOST, proven_nodes
+from test_security_origin import link_line, proven_nodes
 from waits import patience
 
 
@@ -57,21 +57,7 @@ def test_over_tcp_a_relay_cannot_alter_or_inject_another_nodes_data() -> None:
         for n in names:
             await nets[n].start()
         try:
-
-            def spec(n: str) -> list[object]:
-                return [HOST, nets[n].port, None, 0.0, 0.0]
-
-            views["N1"].apply(
-                m.LinkState(1, {"N2": spec("N2")}, {"N2": ["N2", 1], "N3": ["N2", 2]})
-            )
-            views["N2"].apply(
-                m.LinkState(
-                    1, {"N1": spec("N1"), "N3": spec("N3")}, {"N1": ["N1", 1], "N3": ["N3", 1]}
-                )
-            )
-            views["N3"].apply(
-                m.LinkState(1, {"N2": spec("N2")}, {"N2": ["N2", 1], "N1": ["N2", 2]})
-            )
+            link_line(views, nets)
             # the ends learn each other's certificates from a signed control frame each
             nets["N3"].send("N1", m.wrap("N3", "N1", m.PlacementQuery("pipe", 1)), m.CONTROL)
             nets["N1"].send("N3", m.wrap("N1", "N3", m.PlacementQuery("pipe", 2)), m.CONTROL)

@@ -47,6 +47,18 @@ def proven_nodes(
     return ids, views, nets
 
 
+def link_line(views: dict[str, EmulatorRoutes], nets: dict[str, TcpTransport]) -> None:
+    """N1 - N2 - N3 in the transports' views (started: their ports are known)."""
+
+    def spec(n: str) -> list[object]:
+        return [HOST, nets[n].port, None, 0.0, 0.0]
+
+    views["N1"].apply(m.LinkState(1, {"N2": spec("N2")}, {"N2": ["N2", 1], "N3": ["N2", 2]}))
+    links = {"N1": spec("N1"), "N3": spec("N3")}
+    views["N2"].apply(m.LinkState(1, links, {"N1": ["N1", 1], "N3": ["N3", 1]}))
+    views["N3"].apply(m.LinkState(1, {"N2": spec("N2")}, {"N2": ["N2", 1], "N1": ["N2", 2]}))
+
+
 def now_ms() -> int:
     return time.time_ns() // 1_000_000
 
@@ -124,21 +136,7 @@ def test_over_tcp_a_relay_cannot_forge_or_alter_another_nodes_claims() -> None:
         for n in names:
             await nets[n].start()
         try:
-
-            def spec(n: str) -> list[object]:
-                return [HOST, nets[n].port, None, 0.0, 0.0]
-
-            views["N1"].apply(
-                m.LinkState(1, {"N2": spec("N2")}, {"N2": ["N2", 1], "N3": ["N2", 2]})
-            )
-            views["N2"].apply(
-                m.LinkState(
-                    1, {"N1": spec("N1"), "N3": spec("N3")}, {"N1": ["N1", 1], "N3": ["N3", 1]}
-                )
-            )
-            views["N3"].apply(
-                m.LinkState(1, {"N2": spec("N2")}, {"N2": ["N2", 1], "N1": ["N2", 2]})
-            )
+            link_line(views, nets)
             # the genuine claim: N1 originates it, N2 relays it
             nets["N1"].send("N3", m.wrap("N1", "N3", m.NodeDown("N4", "N1", 1)), m.CONTROL)
             await asyncio.wait_for(arrived.wait(), patience(10.0))
