@@ -124,3 +124,26 @@ def test_a_beat_with_no_news_taken_quietly_changes_nothing(
         assert core.membership.liveness.last_heard == other.membership.liveness.last_heard
         assert core.membership.heard_of() == other.membership.heard_of()  # hellos taken quietly
         assert core.failures == other.failures and core.rejoins == other.rejoins
+
+
+def test_a_first_start_says_hello_to_neighbours_and_a_deployment_carries_incarnations() -> None:
+    # N² hellos at t=0 were most of a 1,000-node start-up: a node in its first incarnation
+    # tells only its neighbours; the nodes of an app learn each other's incarnations from
+    # its start (StartApp), so a restart of a host far away is still known as one
+    sim = Simulation(_line(8), manage=False)
+    assert sim.census.by_type["Heartbeat"] == 2 * 7  # each way over each link (was 8 x 7)
+    app = pipelines(["N1", "N7"], 1, seed=0, rate=20.0)[0][1]
+    sim.request("N1", m.DeployRequest(app, "app.yaml"))
+    sim.run_until(3.0)
+    hosts = set(sim.placement("N1", "app0").values())
+    assert {"N1", "N7"} <= hosts
+    for n in hosts:
+        known = sim.cores[n].membership
+        assert all(known.incarnation_of(h, -1) == 0 for h in hosts - {n}), (n, hosts)
+    ran = {v for v, n in sim.placement("N1", "app0").items() if n == "N7"}
+    sim.crash("N7")  # its daemon alone: routes stay, the sink pinned to it is restored
+    sim.run_until(3.2)
+    sim.revive("N7")  # a new incarnation: N1 never had a beat from it, yet knows a restart
+    sim.run_until(6.0)
+    assert [j["node"] for j in sim.cores["N1"].membership.rejoins] == ["N7"]
+    assert ran and ran <= set(sim.cores["N7"].instances("app0"))

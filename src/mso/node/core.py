@@ -524,6 +524,9 @@ class NodeCore:
     def incarnation_of(self, node: str, default: int) -> int:
         return self.membership.incarnation_of(node, default)
 
+    def learn_incarnations(self, incarnations: Mapping[str, int]) -> None:
+        self.membership.learn_incarnations(incarnations)
+
     def figures(self) -> m.Figures:
         """This node's monitored figures, as its heartbeats carry them."""
         mon, pw = self.monitor, self.power

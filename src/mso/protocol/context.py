@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Protocol
 
 if TYPE_CHECKING:
-    from collections.abc import Hashable
+    from collections.abc import Hashable, Mapping
 
     from mso.model.network import PowerModel
     from mso.protocol import messages as m
@@ -138,6 +138,11 @@ class NodeContext(Protocol):
 
     def incarnation_of(self, node: str, default: int) -> int:
         """The last incarnation of ``node`` this node heard of (``default`` if none)."""
+        ...
+
+    def learn_incarnations(self, incarnations: Mapping[str, int]) -> None:
+        """Incarnations another node found (a chain's probe, a sync), taken only for nodes
+        this node knows none of."""
         ...
 
     # -- the routing view ---------------------------------------------------------------------

@@ -200,22 +200,31 @@ class BuildChain(_Msg, tag="build"):
 
 
 class ChainPartReady(_Msg, tag="part_ready"):
+    """A builder's part of a chain is up, in the builder's ``incarnation`` (-1: not said)."""
+
     app: str
     chain: int
     node: str
+    incarnation: int = -1
 
 
 class ChainBuilt(_Msg, tag="built"):
-    """From a chain head's node to the origin: the chain's overlay exists."""
+    """From a chain head's node to the origin: the chain's overlay exists, on nodes in these
+    ``incarnations`` (as their builders said)."""
 
     app: str
     chain: int
+    incarnations: dict[str, int] = {}
 
 
 class StartApp(_Msg, tag="start"):
-    """The overlay is complete: sources may emit."""
+    """The overlay is complete: sources may emit. ``incarnations``: of each node it runs on,
+    as its builders said, so that every node that holds the app knows a restart of one of
+    them as a restart, though that node never sent it a beat (nobody says hello to every
+    node at a first start: :meth:`~.membership.peers.Membership.on_routes_changed`)."""
 
     app: str
+    incarnations: dict[str, int] = {}
 
 
 class StopApp(_Msg, tag="stop"):

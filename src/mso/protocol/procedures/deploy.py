@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import enum
 import zlib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol
 
@@ -313,16 +314,26 @@ class Deployer:
             self.ctx.refusal("chain_built_unexpected")
             return
         dep.built.add(msg.chain)
+        self.ctx.learn_incarnations(_hosts_only(dep, msg.incarnations))
         proc.on(DeployEvent.BUILT)
         if len(dep.built) == len(dep.layout.chains):
             proc.on(DeployEvent.ALL_BUILT)
             self.ctx.end(proc.pid)
-            self.ctx.broadcast(m.StartApp(msg.app))
+            self.ctx.broadcast(m.StartApp(msg.app, self._incarnations(dep, dep.placed.values())))
             if dep.client is not None:
                 elapsed = self.ctx.elapsed_ms(dep.requested_at)
                 reply = m.DeployReply(msg.app, True, dict(dep.placed), elapsed)
                 self.ctx.emit(Reply(dep.client, reply))
                 dep.client = None
+
+    def _incarnations(self, dep: AppState, nodes: Iterable[str]) -> dict[str, int]:
+        """The incarnations this node knows of ``nodes`` (itself included), for the app's
+        other nodes: its builders said them (``ChainPartReady``)."""
+        named = set(nodes)
+        out = {n: self.ctx.incarnation_of(n, -1) for n in named - {self.ctx.id}}
+        if self.ctx.id in named:
+            out[self.ctx.id] = self.ctx.incarnation
+        return {n: i for n, i in sorted(out.items()) if i >= 0}
 
     def on_deploy_failed(self, msg: m.DeployFailed, now: float) -> None:
         dep = self.ctx.apps.get(msg.app)
@@ -476,9 +487,12 @@ class Deployer:
             return
         pending = dep.parts_pending[msg.chain]
         pending.discard(msg.node)
+        self.ctx.learn_incarnations({msg.node: msg.incarnation})
         if not pending:
             del dep.parts_pending[msg.chain]
-            self.ctx.send(dep.origin, m.ChainBuilt(msg.app, msg.chain))
+            hosts = dep.layout.chains[msg.chain].vertices
+            incarnations = self._incarnations(dep, (dep.placed[v] for v in hosts))
+            self.ctx.send(dep.origin, m.ChainBuilt(msg.app, msg.chain, incarnations))
 
     def on_start(self, msg: m.StartApp, now: float) -> None:
         dep = self.ctx.apps.get(msg.app)
@@ -486,6 +500,7 @@ class Deployer:
             self.ctx.refusal("start_app_running")
             return
         dep.running = True
+        self.ctx.learn_incarnations(_hosts_only(dep, msg.incarnations))
         dep.started_at = now
         dep.placed_at = dict.fromkeys(range(len(dep.layout.chains)), now)
         for vid, h in dep.instances.items():
@@ -573,7 +588,8 @@ class Deployer:
         if starting:
             dep.building[msg.chain] = (src, starting)
         else:
-            self.ctx.send(src, m.ChainPartReady(msg.app, msg.chain, self.ctx.id))
+            ready = m.ChainPartReady(msg.app, msg.chain, self.ctx.id, self.ctx.incarnation)
+            self.ctx.send(src, ready)
 
     def on_instance_ready(self, ev: InstanceReady) -> None:
         """A builder's instance started: its part of the chain may be ready."""
@@ -585,7 +601,8 @@ class Deployer:
             starting.discard(vid)
             if not starting:
                 del dep.building[ci]
-                self.ctx.send(asker, m.ChainPartReady(dep.app.name, ci, self.ctx.id))
+                ready = m.ChainPartReady(dep.app.name, ci, self.ctx.id, self.ctx.incarnation)
+                self.ctx.send(asker, ready)
 
     def on_instance_failed(self, ev: InstanceFailed) -> None:
         """A builder's instance failed to start: the deployment fails (at its origin)."""
@@ -649,6 +666,12 @@ def _layout(app: App, origin: str, document: str) -> Layout:
         _LAYOUTS.clear()
     _LAYOUTS[(document, origin)] = (app, layout)
     return layout
+
+
+def _hosts_only(dep: AppState, incarnations: dict[str, int]) -> dict[str, int]:
+    """Of a message's incarnations, those of nodes the app runs on (it names no others)."""
+    hosts = set(dep.placed.values())
+    return {n: i for n, i in incarnations.items() if n in hosts}
 
 
 def _failed_reply(app: str, reason: str) -> m.DeployReply:

@@ -117,6 +117,7 @@ class Membership(AppSyncing):
         self._ran: dict[str, dict[str, set[str]]] = {}
         # cut-off nodes this node (running nothing) waits to see reset: node -> since when
         self._awaiting: dict[str, float] = {}
+        self._routed = False  # given routes before: a node that appears now gets our hello
 
     def start(self, now: float) -> None:
         self.ctx.set_timer(HeartbeatTick(), now + self.liveness.period_s)
@@ -276,7 +277,7 @@ class Membership(AppSyncing):
         neighbour = self.ctx.routes.get(src, ("", 0))[0] == src
         known = self._incarnations.get(src)
         if known is None:
-            if neighbour or not self.admits(src, self._incarnations):
+            if neighbour or not self.admits(src, self._incarnations) or self._newcomer(msg):
                 return False
         elif (
             known != msg.incarnation
@@ -312,15 +313,28 @@ class Membership(AppSyncing):
         """Who is a neighbour and who is reachable; a suspected node in reach again is not
         suspected; newly reachable nodes learn our incarnation (and whom we hold failed, if a
         partition just healed) and the operator's latest undeploys (a node that restarted or
-        was cut off has not heard them)."""
+        was cut off has not heard them).
+
+        At a first start (incarnation 0: the simulator's nodes at t=0) only the neighbours
+        are told, not every node: N² hellos on routes of many hops were most of a 1,000-node
+        start-up. The nodes that need that incarnation learn it otherwise -- the neighbours
+        from our beats, the nodes of an app we host part of from its placement
+        (``ChainPlaced`` carries the incarnations its probe found) or a sync -- and the others
+        know our routes, which is all a claim about us needs (:meth:`heard_of_node`). A node
+        that may have run before (a daemon's incarnation is its start time; the simulator's
+        revived nodes count up) tells every node, as its neighbours may not know its old
+        incarnation: a node that held it out of reach learns of the restart from its hello."""
         now, routes = self.ctx.now, self.ctx.routes
         neighbours = {d for d, (hop, _) in routes.items() if hop == d}
         self.liveness.set_routes(now, set(routes) - self.failed, neighbours)
+        everyone = self._routed or self.incarnation > 0
+        self._routed = self._routed or bool(routes)
         if ev.appeared:
             beat = self.beat()
             undeploys = list(self.ctx.authority.revoked.values())[-REVOCATIONS_TOLD:]
             for d in sorted(ev.appeared):
-                self.ctx.send(d, beat)
+                if everyone or d in neighbours:
+                    self.ctx.send(d, beat)
                 for stop in undeploys:
                     self.ctx.send(d, stop)
                 if d not in self.failed:  # (a failed one is synced when it rejoins)
@@ -570,6 +584,9 @@ class Membership(AppSyncing):
             return  # sent before it reset or restarted (it overtook nothing): what it holds
             # failed and whom it outranks are gone with that incarnation
         self._incarnations[src] = msg.incarnation
+        if known is None and self._newcomer(msg):
+            self._sync_pending.add(src)  # (bounded: its incarnation was admitted)
+            self._flush_syncs()
         for node, inc in msg.failed.items():  # a node we never heard of (we restarted since)
             if node != self.ctx.id and self.admits(node, self._incarnations):  # failed in that
                 self._incarnations.setdefault(node, inc)  # incarnation: a newer one will be a
@@ -591,6 +608,18 @@ class Membership(AppSyncing):
                 self.ctx.send(src, self.beat())  # hold it alive) makes it yield
         else:
             self._answer_stale_claim(src, msg)
+
+    def _newcomer(self, msg: m.Heartbeat) -> bool:
+        """A node never heard of before (the caller knows) that may have run before
+        (incarnation > 0: a daemon's start time, a revived simulated node), runs nothing, and
+        meets this node running apps: a restart whose neighbours may never have known it
+        either (at a first start nobody says hello to every node), so nobody would take it for
+        one and sync it the apps -- this node does."""
+        return (
+            msg.incarnation > 0
+            and msg.hosting == 0
+            and any(dep.running for dep in self.ctx.apps.values())
+        )
 
     def _oversized(self, msg: m.Heartbeat) -> bool:
         """A beat holding far more nodes failed than this node could know of: refused, as

@@ -65,7 +65,7 @@ def cut_off(view: View, msg: m.Heartbeat) -> bool:
     if msg.node in view.failed:
         return False
     seen = {n for n in view.routes if n not in view.failed and n != msg.node}
-    held = sum(1 for n in seen if n in msg.failed and msg.failed[n] == view.incarnations.get(n))
+    held = sum(1 for n in seen if n in msg.failed and _runs(view, n, msg.failed[n]))
     held += msg.failed.get(view.id) == view.incarnation
     return held > len(seen) + 1 - held
 
@@ -76,7 +76,13 @@ def holds_more_failed(view: View, msg: m.Heartbeat) -> bool:
     theirs = sum(
         1
         for n, inc in msg.failed.items()
-        if (n == view.id and inc == view.incarnation)
-        or (n in view.routes and inc == view.incarnations.get(n))
+        if (n == view.id and inc == view.incarnation) or (n in view.routes and _runs(view, n, inc))
     )
     return theirs > sum(1 for n in view.failed if n in view.routes)
+
+
+def _runs(view: View, node: str, incarnation: int) -> bool:
+    """Whether ``node`` runs ``incarnation``, as far as this node knows: one whose incarnation
+    it never heard (a node far away that shares no app with it: nobody says hello to every
+    node at start) is taken to run the one the beat names."""
+    return view.incarnations.get(node, incarnation) == incarnation

@@ -122,12 +122,13 @@ class AppSyncing:
             and msg.incarnations[n] < self._incarnations.get(n, -1)
         }
 
-    def _learn_incarnations(self, msg: m.AppSync) -> None:
-        """The incarnations of the nodes a sync places vertices on, where we know none (this
-        node restarted since, or never heard of them): else a node that restarted while out
-        of our reach, first heard in its new incarnation, would be taken as running what the
-        sync places on it, and nothing would restore it."""
-        for node, inc in msg.incarnations.items():
+    def learn_incarnations(self, incarnations: Mapping[str, int]) -> None:
+        """The incarnations of the nodes a sync or a chain's placement puts vertices on, where
+        we know none (this node restarted since, or never heard of them: no node says hello
+        to every node at its start): else a node that restarted while out of our reach, first
+        heard in its new incarnation, would be taken as running what was placed on it, and
+        nothing would restore it."""
+        for node, inc in incarnations.items():
             if node == self.ctx.id or node in self.failed or inc < 0:
                 continue
             if node not in self._incarnations and self.admits(node, self._incarnations):
@@ -165,7 +166,7 @@ class AppSyncing:
         if signed and held is not None and generation(msg.document) != generation(held.document):
             self.ctx.refusal("app_sync_other_deployment")  # (an operator deployed it again since)
             return
-        self._learn_incarnations(msg)
+        self.learn_incarnations(msg.incarnations)
         if held is not None:
             self._merge_sync(src, held, msg)
             self.recovery.unpark(held)
