@@ -11,8 +11,9 @@ import pytest
 from mso.errors import AppError
 from mso.model.appfile import loads_app
 from mso.model.network import LinkSpec, Network, NodeSpec
+from mso.protocol import messages as m
 from mso.sim.runner import Simulation
-from test_failure import emitted, recoveries, started, stats, where
+from test_failure import emitted, mesh, recoveries, started, stats, where
 
 # planner: paper: the scenario needs the counter on an interior node (it kills it); the default
 # bytes split keeps the 64-byte pipe on the sources' node
@@ -114,6 +115,45 @@ def test_a_replica_dying_is_replaced_and_the_state_still_survives() -> None:
     assert rep["rereplicated"] >= 1 and replicas[1] not in rep["replicas"], rep
     assert len(rep["replicas"]) == 2 and rep["lag_s"] < 1.5, rep
     kill_host(sim)
+    assert_continuous(sim)
+
+
+def test_a_restore_asked_again_after_its_replacement_ran_keeps_the_count() -> None:
+    """The host dies 0.3 s in, while its replica holds only the snapshot taken at the start
+    (position 0) and its producer's last ack said the output stood at about 30. The replica's
+    first answer to the replacement's fetch is lost, so the coordinator's restore times out and
+    asks again: the replacement runs from the snapshot, and then the producer's second Resume
+    (the Rewire sent again) reaches it. It is numbered from its snapshot: that Resume must not
+    renumber its output from the producer's positions (the counter said 0 at position 31: the
+    sink got 31 numbers twice; the emulator's kill -9 test under load, 4 and 10)."""
+    sim = Simulation(mesh())
+    sim.request("N1", m.DeployRequest(counter_app(), "app.yaml"))
+    while not any(isinstance(r, m.DeployReply) for _, _, r in sim.replies):
+        sim.run_until(sim.now + 0.01)
+    sim.run_until(sim.now + 0.3)
+    assert replication(sim)["snapshots"] == 1  # the one at position 0
+    assert sim.cores["N1"].apps["pipe"].out[0].positions[1] > 10
+    lost: list[str] = []
+
+    def drop(src: str, dst: str, msg: m.Message) -> bool:
+        if isinstance(msg, m.Replicate) and msg.rid and not lost:
+            lost.append(dst)  # the first answer to a replacement's fetch
+            return True
+        return False
+
+    resumes: list[tuple[float, str]] = []
+
+    def tap(src: str, dst: str, msg: m.Message) -> None:
+        if isinstance(msg, m.Resume) and msg.producer and msg.edge == 0:
+            resumes.append((sim.now, dst))
+
+    sim.drop = drop
+    sim.taps.append(tap)
+    victim = kill_host(sim)
+    replacement = where(sim, "pipe", "mid")
+    assert lost == [replacement] and replacement != victim
+    ran = sim.cores[replacement].apps["pipe"].moved["mid"][0]
+    assert [t for t, dst in resumes if dst == replacement and t >= ran], resumes  # asked again
     assert_continuous(sim)
 
 

@@ -215,6 +215,10 @@ class HostedInstance:
     # the replacement of a crashed instance: events still to feed one at a time (the replay),
     # so a crash on one event does not take the results of those before it in its batch along
     one_by_one: int = 0
+    # a replacement started from a replica's snapshot: its output is numbered from the
+    # snapshot's positions, the lost instance's own, never a guess to correct by a producer's
+    # Resume (``Restorer.anchor``)
+    from_snapshot: bool = False
     life: InstanceLife = field(init=False)  # its state at this host, by the table
 
     def __post_init__(self) -> None:

@@ -160,6 +160,8 @@ class Restorer:
         inc = dep.inc.get(msg.edge)
         if h.processed or h.queued or h.pending or (inc is not None and inc.expected > 0):
             return False
+        if h.from_snapshot:  # numbered from its snapshot (a restore's Rewire sent again,
+            return False  # answered after it ran: renumbered, its count repeated at the sink)
         outs = dep.out_edges.get(vertex, [])
         if not all(o in msg.positions and msg.positions[o] >= 0 for o in outs):
             return False
@@ -207,6 +209,7 @@ class Restorer:
         if snap is not None:  # chain replication: from a replica's state, at its positions
             self.ctx.emit(fx.RestoreVertex(h.instance, snap.state))  # before any feed
             h.processed, h.emitted = snap.processed, snap.emitted
+            h.from_snapshot = True
             at = {o: acked + len(events) for o, (acked, events) in snap.outputs.items()}
             # what it had made and not got acknowledged goes again below: its inputs are
             # acknowledged past their producers' acks only once that is (chained acks; an
