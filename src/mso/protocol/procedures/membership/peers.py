@@ -384,14 +384,21 @@ class Membership(AppSyncing):
         and one out of reach cannot: it is re-placed too), or the old host of a move this node
         coordinates (its handover cannot come: declared, the move's target restores the
         vertex)."""
+        restoring: set[tuple[str, str]] = set()
         for proc in self.ctx.open():
             if isinstance(proc, Relocation) and proc.source == node and not proc.restore:
                 return True
+            if isinstance(proc, Relocation) and proc.restore:
+                restoring.add((proc.app, proc.vertex))
         for dep in self.ctx.apps.values():
             if not dep.instances:
                 continue
-            lost = dep.lost(self.failed) | {
-                v for n in self.failed for v in self._ran.get(n, {}).get(dep.app.name, ())
+            app, placed = dep.app.name, dep.placed
+            lost = dep.lost(self.failed) | {  # what a failed node ran and is not running
+                v  # again elsewhere (restored, a node next to it is no longer needed: 5040)
+                for n in self.failed
+                for v in self._ran.get(n, {}).get(app, ())
+                if placed.get(v) == n or (app, v) in restoring
             }
             near = {e.src for e in dep.app.edges if e.dst in lost}
             near |= {e.dst for e in dep.app.edges if e.src in lost}
