@@ -97,6 +97,7 @@ BROKE = {
     5449: "a remap moved a vertex whose node was out of reach: the move waited on its marker",
     8978: "a rule moved a vertex fed from a node out of reach: it waited on that producer",
     6086: "a node failed and restarted at one instant came back with no links (the player)",
+    3238: "a node next to a vertex restored long ago was needed for its restore, so declared",
 }
 
 
