@@ -283,3 +283,44 @@ def test_what_a_neighbour_can_make_a_node_check_is_budgeted() -> None:
         trust.origin("N4", bulk, big, 0.0)  # a fresh neighbour: a whole burst
     per_frame = 1 + len(bulk.body) // CHECK_BYTES
     assert counters.frames_origin_refused - refused == CHECKS_PER_S // per_frame == 3
+
+
+def test_over_tcp_a_neighbour_cannot_have_a_relay_speak_in_the_relays_name() -> None:
+    """N1 - N2 - N3, every link proven. N1 (captured) hands N2 frames written in N2's name for
+    N3: relayed, N3 would take them as N2's own word, proven by N2's link (a claim, a host's
+    Moved, an event). N2 refuses its own name from a neighbour, counted; N1's frames in its
+    own name still pass."""
+
+    async def run() -> tuple[list[tuple[str, m.Message]], int]:
+        names = ("N1", "N2", "N3")
+        _, views, nets = proven_nodes(names)
+        got: list[tuple[str, m.Message]] = []
+        first, arrived = asyncio.Event(), asyncio.Event()
+
+        def receive(src: str, msg: m.Message) -> None:
+            got.append((src, msg))
+            if isinstance(msg, m.NodeDown):
+                (arrived if msg.node == "N9" else first).set()
+
+        nets["N3"].set_receiver(receive)
+        for n in names:
+            await nets[n].start()
+        try:
+            link_line(views, nets)
+            nets["N1"].send("N3", m.wrap("N1", "N3", m.NodeDown("N8", "N1", 1)), m.CONTROL)
+            await asyncio.wait_for(first.wait(), patience(10.0))  # the links are up
+            relay = nets["N1"].peers["N2"]
+            assert relay.link is not None
+            for msg in (m.NodeDown("N4", "N2", 1), m.Moved("pipe", "mid", "N2", 1, 9)):
+                relay.link.send(m.wrap("N2", "N3", msg), m.CONTROL)
+            relay.link.send(m.wrap("N2", "N3", m.Data("pipe", 1, 1, 0, [b"x"])), m.DATA)
+            nets["N1"].send("N3", m.wrap("N1", "N3", m.NodeDown("N9", "N1", 1)), m.CONTROL)
+            await asyncio.wait_for(arrived.wait(), patience(10.0))
+            return got, nets["N2"].counters.frames_origin_refused
+        finally:
+            for n in names:
+                await nets[n].close()
+
+    got, refused = asyncio.run(run())
+    assert got == [("N1", m.NodeDown("N8", "N1", 1)), ("N1", m.NodeDown("N9", "N1", 1))]
+    assert refused == 3

@@ -534,6 +534,11 @@ class TcpTransport:
     def on_envelope(self, conn: Connection, env: m.Envelope, size: int) -> None:
         unproved = self.requires_identity and conn.client is None and not conn.verified
         relayed = env.dst != self._node_id and conn.client is None and conn.peer is not None
+        if self.requires_identity and env.src == self._node_id and conn.client is None:
+            # this node's name on a frame a neighbour handed over: the next node would take
+            # it as this node's own word, proven by our link (a captured neighbour's forgery)
+            self.counters.frames_origin_refused += 1
+            return
         if relayed and not unproved:
             assert conn.peer is not None
             self._forward(conn.peer, env, size)
