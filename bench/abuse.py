@@ -24,7 +24,11 @@ invented ``NodeDown``s and 8 MiB control frames to N3 through N2), ``invented-fa
 (50,000 ``NodeDown``s about invented nodes to N2), ``slow-clients`` (20 members asking for
 status and never reading), ``early-messages`` (messages of never-announced apps, 64 KiB each),
 ``deep-bodies`` (bodies nested 100,000 deep), ``big-documents`` (4 MiB deploy documents of
-tiny scalars).
+tiny scalars); with ``--identities`` also ``forged-words`` (a captured robot that hosts nothing
+of the stream: events for N3 written in N2's name handed to N2, events of the stream's first
+edge and acks of its second sent to N2 in its own name, numbered around where the stream is —
+each would cost the sink events if taken; on an overlay without identities and operator keys
+a member is trusted with the data plane, so it runs only when asked for by ``--only``).
 
 ``--mix S``: instead, one overlay under every attack (or those ``--only`` names) in turn,
 ``--attack`` seconds each, for ``S`` seconds (the issue's soak under a mix of them:
@@ -47,6 +51,7 @@ import os
 import sys
 import tempfile
 import time
+import zlib
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -106,6 +111,7 @@ class Target:
         self.node = node
         self.operator = emu.signer if emu.identities else None
         self.ids: dict[str, Identity] = {}  # the captured robots' own keys, by name
+        self.next_seq = 0  # where the stream's sink stands when the attack starts
 
     def frame(self, src: str, dst: str, msg: m.Message) -> bytes:
         """An envelope from ``src``, signed as its origin when it is a captured robot with a
@@ -297,6 +303,29 @@ async def big_documents(t: Target, stop: asyncio.Event) -> dict[str, Any]:
     return {"documents_sent": sent}
 
 
+async def forged_words(t: Target, stop: asyncio.Event) -> dict[str, Any]:
+    _, w, codec = await t.member("X4", peer=True)
+    epoch = (zlib.crc32(b"N1") & 0xFFFF) + 1  # the stream's: the first app N1 deployed
+    sent, seq, t0 = 0, t.next_seq, time.monotonic()
+    junk = [b"\x00"]
+    while not stop.is_set():
+        seq = t.next_seq + int((time.monotonic() - t0) * 100)  # the stream's 100 events/s
+        frames = []
+        for s in range(seq - 5, seq + 15):
+            frames += [
+                m.wrap("N2", "N3", m.Data("stream", 1, epoch, s, junk)),  # in N2's name
+                m.wrap("X4", t.node, m.Data("stream", 0, epoch, s, junk)),  # its own
+                m.wrap("X4", t.node, m.Ack("stream", 1, epoch, s)),
+            ]
+        w.write(b"".join(codec.seal(f) for f in frames))
+        sent += len(frames)
+        await w.drain()
+        if await until(stop, 0.05):
+            break
+    w.close()
+    return {"frames_sent": sent}
+
+
 ATTACKS: dict[str, Attack] = {
     "guesser": guesser,
     "slots": slots,
@@ -306,7 +335,9 @@ ATTACKS: dict[str, Attack] = {
     "early-messages": early_messages,
     "deep-bodies": deep_bodies,
     "big-documents": big_documents,
+    "forged-words": forged_words,
 }
+IDENTITIES_ONLY = {"forged-words"}  # by default only against an overlay with identities
 
 
 async def mix(
@@ -374,6 +405,7 @@ async def one(name: str, args: argparse.Namespace) -> dict[str, Any]:
         assert reply.ok, reply.error
         await asyncio.sleep(args.steady)  # the stream flows
         target = Target(emu, "N2")
+        target.next_seq = int(_vertex(await emu.status(timeout=5.0), "sink").get("next", 0))
         pids = {n: node.process.pid for n, node in emu.nodes.items() if node.process}
         row["rss_before_mb"] = {n: rss_kb(p) // 1024 for n, p in pids.items()}
         peak = dict(row["rss_before_mb"])
@@ -507,7 +539,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--attack", type=float, default=5.0, help="seconds each attack lasts")
     ap.add_argument("--steady", type=float, default=2.0)
     ap.add_argument("--after", type=float, default=3.0)
-    ap.add_argument("--only", default=",".join(ATTACKS))
+    ap.add_argument("--only", default="")
     ap.add_argument(
         "--mix",
         type=float,
@@ -524,7 +556,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.json is None:
         args.json = RESULTS / ("abuse-identities.json" if args.identities else "abuse.json")
-    args.only = [a for a in args.only.split(",") if a]
+    args.only = [a for a in args.only.split(",") if a] or [
+        a for a in ATTACKS if args.identities or a not in IDENTITIES_ONLY
+    ]
     unknown = [a for a in args.only if a not in ATTACKS]
     if unknown or not 0.5 <= args.attack <= 600 or not 0 <= args.mix <= 3600:
         ap.error(f"--only: one of {', '.join(ATTACKS)}; --attack: 0.5..600 s; --mix: 0..3600 s")
