@@ -8,10 +8,15 @@ LINTED := $(wildcard src tests bench)
 
 .PHONY: demo test test-all quick lint typecheck unit bench clean chromium netns-deps
 
+# pip is upgraded only when older than 23 (asking the index costs 20-30 s on a loaded machine);
+# --no-compile: a package's modules are compiled when first imported, not all of them at install
+# (a quarter of the install's CPU)
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check --upgrade "pip>=23"
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e '.[dev,ros2]'
+	$(BIN)/python -c 'import sys, pip; sys.exit(int(pip.__version__.split(".")[0]) < 23)' || \
+	  $(BIN)/python -m pip install --quiet --disable-pip-version-check --upgrade "pip>=23"
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-compile \
+	  -c constraints.txt -e '.[dev,ros2]'
 	touch $(STAMP)
 
 demo: $(STAMP)
