@@ -122,12 +122,23 @@ class Manager:
         """One evaluation: the actions the rules and the guard allow, for the core to carry
         out with the same procedures a user triggers."""
         self._measure(now)
-        if not self.enabled:
+        if not self.enabled or not self._runs_any():
             return []
         snap = self.snapshot(now)
         if not snap.vertices and not snap.chains:
             return []
         return [a for a in self.engine.evaluate(snap) if self._taken(a, now)]
+
+    def _runs_any(self) -> bool:
+        """Whether the rules have anything to see here: a running app, not being recovered,
+        that this node runs part of (the snapshot's vertices and chains come from those
+        alone). Every node holds every app and most run none: the snapshot, with a hop
+        count to every node and a pass over every app, was 12% of a 1,000-node second."""
+        me = self.core.id
+        return any(
+            dep.running and dep.recovering is None and (dep.instances or me in dep.placed.values())
+            for dep in self.core.apps.values()
+        )
 
     def _measure(self, now: float) -> None:
         for dep in self.core.apps.values():
