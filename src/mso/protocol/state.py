@@ -339,10 +339,7 @@ class AppState:
     fresh_from: dict[int, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        kinds = self.layout.kinds
-        self.replicas = {
-            v: n for v in self.app.vertices if (n := self.app.replicas(v, kinds[v])) > 0
-        }
+        self.replicas = self.layout.replicas()
 
     def status(self, now: float) -> AppStatus:
         """This app as this node holds and runs it: placement, chains, parked chains and
