@@ -15,12 +15,16 @@ source (samples not taken, none lost). Figures per outage:
   before the heal, to the 0.1 s step (the simulator models each hop's latency, not its
   bandwidth: this is the rejoin and the drain's round trips, not the transfer time);
 * held MB: the most the edge held (memory and store); disk MB: the store file's largest size,
-  and its size once drained.
+  and its size once drained;
+* sent again: events (and MB) the source's node sent more than once on the edge (go-back-N
+  after the heal): the radio the heal cost beyond the backlog itself.
 
 ``--emulated`` also runs the 10 s case on the user-space emulator (real ``mso node``
-processes, a ``--state-dir`` each, the link N1-N2 down and up via ``Emulator.set_link``).
+processes, a ``--state-dir`` each, the link N1-N2 down and up via ``Emulator.set_link``),
+``--emulated-runs`` times (3: the load of the machine moves its figures).
 
-Usage: .venv/bin/python bench/partition.py [--outage S ...] [--emulated] [--json FILE]
+Usage: .venv/bin/python bench/partition.py [--outage S ...] [--emulated] [--emulated-runs N]
+                                           [--json FILE]
 Writes bench/results/partition.json and partition.md.
 """
 
@@ -121,6 +125,7 @@ def sim_run(outage: float, tmp: Path) -> dict[str, Any]:
         c.apps["part"].out[0].next_seq for c in sim.cores.values() if 0 in c.apps["part"].out
     )
     n, dups, lost, reordered = delivered(run)
+    out = sim.cores["N1"].apps["part"].out[0]
     given_up = sum(
         sum(c.status(sim.now)["apps"]["part"]["given_up"].values())
         for c in sim.cores.values()
@@ -139,6 +144,8 @@ def sim_run(outage: float, tmp: Path) -> dict[str, Any]:
         "held_mb": held / 1e6,
         "disk_mb": disk / 1e6,
         "disk_after_mb": stores["N1"].disk_bytes() / 1e6,
+        "resent": out.resent,
+        "resent_mb": out.resent_bytes / 1e6,
         "wall_s": time.monotonic() - wall,
     }
     for s in stores.values():
@@ -196,6 +203,8 @@ async def emulated_run(outage: float, tmp: Path) -> dict[str, Any]:
             "delivered": inc.get("delivered"),
             "duplicates": inc.get("duplicates"),
             "dropped": out["dropped"],
+            "resent": out["resent"],
+            "resent_mb": out["resent_bytes"] / 1e6,
         }
     except Exception as exc:  # reported, never a traceback in the table
         row["error"] = f"{type(exc).__name__}: {exc}"
@@ -210,15 +219,16 @@ def render(result: dict[str, Any]) -> str:
         "simulator, the daemon's SQLite spill store)",
         "",
         "| outage | emitted | delivered | duplicates | lost | out of order | catch-up after "
-        "heal s | held MB (max) | disk MB (max / drained) |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "heal s | held MB (max) | disk MB (max / drained) | sent again (MB) |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in result["rows"]:
         up = "-" if r["catch_up_s"] is None else f"{r['catch_up_s']:.1f}"
         lines.append(
             f"| {r['outage_s']:g} s | {r['emitted']:,} | {r['delivered']:,} | {r['duplicates']} "
             f"| {r['lost']} | {r['out_of_order']} | {up} | {r['held_mb']:,.1f} "
-            f"| {r['disk_mb']:,.1f} / {r['disk_after_mb']:,.2f} |"
+            f"| {r['disk_mb']:,.1f} / {r['disk_after_mb']:,.2f} "
+            f"| {r['resent']} ({r['resent_mb']:,.1f}) |"
         )
     for r in result.get("emulated", []):
         lines.append("")
@@ -229,8 +239,9 @@ def render(result: dict[str, Any]) -> str:
                 if r["error"]
                 else f"sent {r.get('sent')}, delivered {r.get('delivered')} (the newest in "
                 f"flight), duplicates dropped at the sink {r.get('duplicates')}, given up "
-                f"{r.get('dropped')}, catch-up {r.get('catch_up_s', float('nan')):.1f} s "
-                "(wall clock, polled every 0.2 s)"
+                f"{r.get('dropped')}, sent again {r.get('resent')} events "
+                f"({r.get('resent_mb', 0.0):,.1f} MB), catch-up "
+                f"{r.get('catch_up_s', float('nan')):.1f} s (wall clock, polled every 0.2 s)"
             )
         )
     return "\n".join(lines) + "\n"
@@ -240,8 +251,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--outage", type=float, action="append", help="seconds (repeat)")
     ap.add_argument("--emulated", action="store_true", help="also the 10 s case, emulated")
+    ap.add_argument("--emulated-runs", type=int, default=3, help="how many (1..10)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
+    if not 1 <= args.emulated_runs <= 10:
+        ap.error("--emulated-runs: 1..10")
     outages = tuple(args.outage or OUTAGES)
     if any(o <= 0 or o > 3600 for o in outages):
         ap.error("--outage: seconds in (0, 3600]")
@@ -253,7 +267,10 @@ def main() -> int:
             row = sim_run(outage, Path(tmp))
             print(row, file=sys.stderr)
             rows.append(row)
-        emulated = [asyncio.run(emulated_run(10.0, Path(tmp)))] if args.emulated else []
+        emulated = [
+            asyncio.run(emulated_run(10.0, Path(tmp)))
+            for _ in range(args.emulated_runs if args.emulated else 0)
+        ]
     result: dict[str, Any] = {
         "benchmark": "partition",
         "rate": RATE,

@@ -107,6 +107,8 @@ EDGE_KEYS = [
     "superseded",
     "expired",
     "lost",
+    "resent",
+    "resent_bytes",
     "deadline_missed",
     "late",
 ]

@@ -219,3 +219,33 @@ def test_a_source_node_restarted_while_cut_off_delivers_what_it_held_and_numbers
     seen = SEEN["h"]
     assert once_in_order(seen) and seen == list(range(len(seen))), "none lost, none twice"
     assert len(seen) >= made + 10, "the held events were delivered, then new ones"
+
+
+def test_after_a_heal_the_backlog_goes_once_not_again_at_the_next_retransmission() -> None:
+    """A sink out of reach for 5 s over a link of 60 ms each way (an ack takes longer than
+    a retransmission period): after the heal the backlog goes once, in order from the last
+    ack, and is not sent again. The retransmission clock stood still while the sink was out
+    of reach; it used to run on, so the first tick after the heal found the backlog just
+    drained overdue and sent it again whole (on the emulator, again at every tick while the
+    link still carried the first copies: 469 events of 50 KB sent again after a 10 s cut)."""
+    SEEN.pop("heal", None)
+    far = {"delay_ms": 60.0}
+    sim = Simulation(Network([NodeSpec("N1"), NodeSpec("N2")], [LinkSpec("N1", "N2", **far)]))
+    sim.request("N1", m.DeployRequest(app("heal"), "sf.yaml"))
+    sim.run_until(2.0)
+    out = sim.cores["N1"].apps["sf"].out[0]
+    in_flight = out.sent - out.acked  # at the cut: these may go again (their acks are lost)
+    sim.network.remove_link("N1", "N2")
+    sim.links_changed()
+    sim.run_until(sim.now + 5.0)
+    backlog = out.next_seq - out.sent
+    assert backlog >= 90
+    sim.network.add_link(LinkSpec("N1", "N2", **far))
+    sim.links_changed()
+    sim.run_until(sim.now + 3.0)
+    seen = SEEN["heal"]
+    assert once_in_order(seen) and len(seen) == seen[-1] + 1 >= emitted(sim) - 5, "once, all"
+    in_flight += 2  # (and an event or two numbered as the routes came back)
+    assert out.resent <= in_flight, (out.resent, in_flight, backlog)
+    status = sim.cores["N1"].status(sim.now)["apps"]["sf"]["edges"]["src->sink"]
+    assert status["resent"] == out.resent and status["resent_bytes"] >= out.resent

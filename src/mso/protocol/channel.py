@@ -63,6 +63,7 @@ class OutChannel:
     def __post_init__(self) -> None:
         self._unacked: deque[bytes] = deque()  # events from ``base`` on, in memory
         self.base = self.acked
+        self.top = self.next_seq  # every event below this has been sent at least once
         self.sent = self.next_seq  # events from here on have not been sent yet
         self.mem_bytes = 0
         self.leased = 0  # the bound saved in the store (``persist``): no number reaches it
@@ -74,10 +75,27 @@ class OutChannel:
         self.superseded = 0  # keep_last: older events replaced by newer ones
         self.expired = 0  # lifespan: too old to deliver
         self.given_up = 0  # best effort: lost on the way, not sent again
+        # events sent more than once (go-back-N, a replay into a replacement), and their
+        # bytes: the radio a loss, an outage or a restore cost on this edge
+        self.resent = 0
+        self.resent_bytes = 0
+        # its consumer was out of reach since the last send: what went out before may be
+        # lost with the link (see StoreAndForward.back_in_reach)
+        self.out_of_reach = False
         # ack position -> the positions that came with it: a vertex releasing a checkpoint
         # at exactly such a position passes them on upstream (transitive, see AckGate)
         self.history: dict[int, dict[int, int]] = {}
         self.positions_at = self.acked  # the ack ``positions`` came with
+
+    @property
+    def sent(self) -> int:
+        """Events from here on have not been sent yet (or are to be sent again: go-back)."""
+        return self._sent
+
+    @sent.setter
+    def sent(self, value: int) -> None:
+        self._sent = value
+        self.top = max(self.top, value)
 
     def note_positions(self, upto: int, positions: dict[int, int]) -> None:
         """An ack up to ``upto`` came with the consumer's ``positions``. An ack with none (a
@@ -297,8 +315,14 @@ class OutChannel:
         sent from now on."""
         end = min(self.next_seq, self.acked + self.window, self.sent + limit)
         first, events = self.events_from(self.sent, max(0, end - self.sent))
+        self.sent_again(events[: max(0, self.top - first)])
         self.sent = max(self.sent, first + len(events))
         return first, events
+
+    def sent_again(self, events: list[bytes]) -> None:
+        """Count ``events`` as sent once more (see ``resent``)."""
+        self.resent += len(events)
+        self.resent_bytes += sum(map(len, events))
 
     # -- retention: keep events past their ack until released ---------------------------------
     def retain(self, owner: Hashable, start: int) -> None:

@@ -116,6 +116,8 @@ class EdgeStatus(msgspec.Struct, frozen=True, kw_only=True):
     superseded: int = 0  # keep_last: replaced by newer ones (not lost)
     expired: int = 0  # lifespan
     lost: int = 0  # best effort: lost on the way, not sent again
+    resent: int = 0  # events sent more than once (go-back-N, an outage, a replay)
+    resent_bytes: int = 0
     deadline_missed: int = 0
     late: bool = False  # nothing arrived within deadline_ms
 
@@ -366,6 +368,8 @@ class AppState:
                     superseded=(out.superseded if out else 0) + (inc.superseded if inc else 0),
                     expired=(out.expired if out else 0) + (inc.expired if inc else 0),
                     lost=out.given_up if out else 0,
+                    resent=out.resent if out else 0,
+                    resent_bytes=out.resent_bytes if out else 0,
                     deadline_missed=inc.deadline_missed if inc else 0,
                     late=bool(
                         inc is not None
