@@ -172,20 +172,23 @@ class PidCounter(Counter):
 
 class ExitOn:
     """Passes events on; its process ends with ``os._exit(3)`` (no cleanup, as a crashing C
-    extension would) on event ``seq``: every time, or with ``once`` (a file path) only the
-    first time (the file says it happened)."""
+    extension would) on event ``seq``, every time. With ``armed`` (a file path) it ends
+    instead on the first event from ``seq`` on that it sees while that file exists, and
+    removes the file: a test arms it when it is ready for the crash, whatever the stream has
+    reached by then (an exit at a fixed event could come before the test's own SIGKILL)."""
 
-    def __init__(self, seq: int, once: str = "") -> None:
+    def __init__(self, seq: int, armed: str = "") -> None:
         self.seq = seq
-        self.once = once
+        self.armed = armed
 
     def __call__(self, event: Num) -> Num:
         import os
 
-        if event.seq == self.seq and not (self.once and os.path.exists(self.once)):
-            if self.once:
-                with open(self.once, "w"):
-                    pass
+        if not self.armed:
+            if event.seq == self.seq:
+                os._exit(3)
+        elif event.seq >= self.seq and os.path.exists(self.armed):
+            os.remove(self.armed)
             os._exit(3)
         return event
 

@@ -117,7 +117,7 @@ vertices:
   src: {{code: runtime_vertices:CountingSource, pinned: N1, rate: 400,
         params: {{stall_at: {stall}, stall_s: 0.1}}, output: runtime_vertices:Num}}
   mid: {{code: runtime_vertices:ExitOn, isolation: process, pinned: N2,
-        params: {{seq: {seq}, once: "{once}"}}, output: runtime_vertices:Num}}
+        params: {params}, output: runtime_vertices:Num}}
   sink: {{code: runtime_vertices:Recorder, pinned: N2}}
 edges: [[src, mid], [mid, sink]]
 """
@@ -126,28 +126,31 @@ edges: [[src, mid], [mid, sink]]
 def test_a_crashed_process_vertex_is_restored_in_place_and_loses_nothing(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    """``ok``'s child is SIGKILLed mid-stream, then exits with code 3 on event 800 (once):
-    each time status counts the crash with its reason, the node stays up (nobody is declared
-    failed) and a fresh child takes over: the sink gets every event once, in order.
-    ``poison`` exits on event 300 every time, so each replay crashes it again: after
-    MAX_RESTARTS restores it stays crashed, its chain is reported parked with the reason,
-    and the sink has had exactly the events before it (the rest is held upstream). The
-    source stalls 0.1 s just before each fatal event, so that event reaches ``mid`` in one
-    batch with those before it (as a loaded machine batches them): they still reach the sink,
-    because a replay after a crash is fed one event at a time."""
+    """``ok``'s child is SIGKILLed mid-stream, then (armed by the test once that crash shows)
+    exits with code 3 on its next event: each time status counts the crash with its reason,
+    the node stays up (nobody is declared failed) and a fresh child takes over: the sink gets
+    every event once, in order. ``poison`` exits on event 300 every time, so each replay
+    crashes it again: after MAX_RESTARTS restores it stays crashed, its chain is reported
+    parked with the reason, and the sink has had exactly the events before it (the rest is
+    held upstream). Its source stalls 0.1 s just before the fatal event, so that event reaches
+    ``mid`` in one batch with those before it (as a loaded machine batches them): they still
+    reach the sink, because a replay after a crash is fed one event at a time."""
     from mso.emu.controller import Emulator
     from mso.protocol.procedures.instance import MAX_RESTARTS
     from mso.scenario import loads_scenario
 
     _vertices_importable(monkeypatch)
-    once = tmp_path / "exited-once"
+    armed = tmp_path / "armed"  # ok's mid exits on its next event while this file exists
 
     async def run() -> tuple[list[dict[str, Any]], dict[str, Any]]:
         emu = Emulator(loads_scenario(LINE2), manage=False)
         await emu.start()
         try:
-            for name, seq, flag in (("ok", 800, str(once)), ("poison", 300, "")):
-                app = CRASHY.format(name=name, seq=seq, once=flag, stall=seq - 4)
+            for name, params, stall in (
+                ("ok", f'{{seq: 0, armed: "{armed}"}}', -1),
+                ("poison", "{seq: 300}", 296),
+            ):
+                app = CRASHY.format(name=name, params=params, stall=stall)
                 reply = await emu.deploy(app, f"{name}.yaml", "N1")
                 assert reply.ok, reply.error
 
@@ -164,9 +167,15 @@ def test_a_crashed_process_vertex_is_restored_in_place_and_loses_nothing(
             st = await wait_for(lambda st: sunk(st, "ok") >= 100)
             os.kill(v(st, "ok", "mid")["stats"]["pid"], signal.SIGKILL)
             seen = [await wait_for(lambda st: v(st, "ok", "mid").get("crashes", 0) >= 1)]
+            armed.touch()  # the SIGKILL's crash is seen: now the exit, on the next event
+            after = max(1200, sunk(seen[0], "ok") + 400)  # events that pass the exit's restore
             seen.append(
                 await wait_for(
-                    lambda st: v(st, "ok", "mid").get("crashes", 0) >= 2 and sunk(st, "ok") >= 1200
+                    lambda st: (
+                        v(st, "ok", "mid").get("crashes", 0) >= 2
+                        and v(st, "ok", "mid").get("state") == "running"
+                        and sunk(st, "ok") >= after
+                    )
                 )
             )
             seen.append(
