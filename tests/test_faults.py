@@ -98,6 +98,8 @@ BROKE = {
     8978: "a rule moved a vertex fed from a node out of reach: it waited on that producer",
     6086: "a node failed and restarted at one instant came back with no links (the player)",
     3238: "a node next to a vertex restored long ago was needed for its restore, so declared",
+    14459: "a restore's coordinator died: its replacement waited, prepared, for ever",
+    11242: "a merge lost with its producer: the consumer's marks hid the producer's new numbers",
 }
 
 

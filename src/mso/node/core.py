@@ -205,6 +205,7 @@ class NodeCore:
         self._subscribe(RelocationEnded, self.restorer.on_relocation_ended)
         self._subscribe(RelocationEnded, self.remapper.on_relocation_ended)
         self._subscribe(PeerFailed, self.relocator.on_peer_failed)
+        self._subscribe(PeerFailed, self.restorer.on_peer_failed)
         self._subscribe(PeerFailed, self.remapper.on_peer_failed)
         self._subscribe(PeerFailed, self.deployer.on_peer_failed)
         self._subscribe(RoutesChanged, self.membership.on_routes_changed)

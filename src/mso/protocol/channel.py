@@ -57,6 +57,9 @@ class OutChannel:
     key: str = ""  # this edge instance's name in the store
     mem_limit: int = 8 << 20  # bytes in memory past the window before events spill
     persist: bool = False  # a source's edge: a bound on its numbers is kept in the store
+    # numbered from a guess: a replacement whose consumer was lost too and no ack said where
+    # the edge stood; its numbers are not the lost consumer's (until a consumer acks one)
+    guessed: bool = False
 
     HISTORY = 64  # acks whose positions are kept, to look one up at an exact position
 
@@ -222,6 +225,7 @@ class OutChannel:
         self.acked += released
         if released:
             self.waiting_since = now
+            self.guessed = False
             self._trim()
         return released
 

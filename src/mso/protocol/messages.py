@@ -385,6 +385,9 @@ class Resume(_Msg, tag="resume"):
     # from the consumer of a merge: the provenance of the last event it has from each of the
     # merge's inputs (mso.protocol.provenance; None: it does not know)
     marks: dict[int, list[int]] | None = None
+    # from a producer restored with its consumer: it numbers the edge anew, not as the marks
+    # of the lost consumer's consumers knew it
+    fresh: bool = False
 
 
 # -- chain replication (mso.protocol.procedures.replication) ----------------------------------

@@ -80,6 +80,7 @@ class Restoring:
     consumer_start: dict[int, int] = field(default_factory=dict)  # output -> consumer expects
     # output -> what its consumer has of a merge's inputs (mso.protocol.provenance)
     consumer_marks: dict[int, Marks] = field(default_factory=dict)
+    fresh: set[int] = field(default_factory=set)  # inputs their producer numbers anew
     retained: dict[int, int] = field(default_factory=dict)  # input -> first event replayed
     resumed: set[int] = field(default_factory=set)  # inputs whose producer survived
     replica: Snapshot | None = None  # the state it starts from (None: from its constructor)

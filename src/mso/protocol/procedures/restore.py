@@ -42,6 +42,7 @@ from mso.protocol.dataplane import REPLICA_OWNER, DataPlane
 from mso.protocol.events import (
     Happened,
     InstanceCrashed,
+    PeerFailed,
     RelocationEnded,
     ReplacementPrepared,
     Superseded,
@@ -83,12 +84,11 @@ class Restorer:
             start = min(kept[0], out.acked) if kept is not None else -1
             # (events made anew since the consumer's snapshot: not the ones it counted)
             retained = -1 if msg.edge in dep.fresh_from else start
-            self.ctx.send(
-                msg.to,
-                m.Resume(
-                    msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions), retained
-                ),
+            resume = m.Resume(
+                msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions), retained
             )
+            resume.fresh = out.guessed
+            self.ctx.send(msg.to, resume)
             out.sent = out.acked  # everything unacknowledged goes again, a window at a time
             if msg.to == self.ctx.id:
                 first, events = out.unsent(out.window)
@@ -136,6 +136,8 @@ class Restorer:
                 restoring.positions[o] = max(restoring.positions.get(o, 0), pos)
             if msg.retained >= 0:
                 restoring.retained[msg.edge] = msg.retained
+            if msg.fresh:
+                restoring.fresh.add(msg.edge)
             restoring.resumed.add(msg.edge)
         else:
             restoring.consumer_start[msg.edge] = msg.start
@@ -239,7 +241,9 @@ class Restorer:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
             marks = restoring.consumer_marks.get(o) if snap is None else None
             if marks is not None:  # a merge: from where its consumer stands, only what it
-                base = restoring.consumer_start[o]  # lacks (mso.protocol.provenance)
+                base = restoring.consumer_start[o]  # lacks (mso.protocol.provenance); not
+                # by an input numbered anew (its producer lost with the merge: seed 11242)
+                marks = {i: mk for i, mk in marks.items() if i not in restoring.fresh}
                 dep.marks.setdefault(vertex, {})[o] = marks
             elif snap is None and dep.replicas.get(vertex) and o not in restoring.positions:
                 # no ack said where its output stood: a producer that replays what it retains
@@ -254,6 +258,8 @@ class Restorer:
                 dep.out[o].push_many(list(unacked), self.ctx.now)
             else:
                 dep.out[o] = carried or self.dp.channel(dep, o, base)
+                known = o in restoring.positions or o in restoring.consumer_start
+                dep.out[o].guessed = carried is None and not known
             # a source numbers on from its edges' positions: its sequence never restarts
             h.asked = max(h.asked, dep.out[o].next_seq) if h.kind == "source" else h.asked
             if _fresh(dep, vertex, h.kind, snap is not None, restoring):
@@ -362,6 +368,22 @@ class Restorer:
         reloc = Relocation(pid, now, app, vid, self.ctx.id, self.ctx.id, None)
         self.ctx.begin(reloc)
         self.relocator.start_restore(dep, reloc, pid, now)
+
+    def on_peer_failed(self, ev: PeerFailed) -> None:
+        """A replacement waiting here for its surviving ends whose coordinator failed: this
+        node coordinates its restore from here on. The others placed the vertex here at the
+        coordinator's ``Rewire``, so none of them holds it lost and no recovery would ask
+        again; it waited for ever, prepared and never run (fault seed 14459)."""
+        node, now = ev.node, self.ctx.now
+        for dep in list(self.ctx.apps.values()):
+            for vid, restoring in sorted(dep.restoring.items()):
+                if restoring.coordinator != node or vid not in dep.awaiting:
+                    continue
+                pid = self.ctx.new_pid()
+                reloc = Relocation(pid, now, dep.app.name, vid, node, self.ctx.id, None)
+                self.ctx.begin(reloc)
+                self.ctx.note_event(now, f"{vid}: its restore's coordinator {node} failed")
+                self.relocator.start_restore(dep, reloc, pid, now)
 
     def on_relocation_ended(self, ev: RelocationEnded) -> None:
         """A restore in place after a crash ended: the vertex runs again, or stays crashed."""
