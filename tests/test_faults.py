@@ -100,6 +100,7 @@ BROKE = {
     3238: "a node next to a vertex restored long ago was needed for its restore, so declared",
     14459: "a restore's coordinator died: its replacement waited, prepared, for ever",
     11242: "a merge lost with its producer: the consumer's marks hid the producer's new numbers",
+    10630: "a node restarted that nobody had heard a beat from: its moved-in vertex presumed run",
 }
 
 

@@ -592,8 +592,14 @@ class Membership(AppSyncing):
             # failed and whom it outranks are gone with that incarnation
         self._incarnations[src] = msg.incarnation
         if known is None and self._newcomer(msg):
-            self._sync_pending.add(src)  # (bounded: its incarnation was admitted)
-            self._flush_syncs()
+            if any(src in dep.placed.values() for dep in self.ctx.apps.values()):
+                # it runs nothing, yet we place vertices there: a restart of a node we never
+                # heard a beat from (it joined an app by a move after its start): what it ran
+                # is gone (fault seed 10630: a move's marker went to a node that had no c)
+                self._rejoin(src, msg.incarnation, now, announce=True)
+            else:
+                self._sync_pending.add(src)  # (bounded: its incarnation was admitted)
+                self._flush_syncs()
         for node, inc in msg.failed.items():  # a node we never heard of (we restarted since)
             if node != self.ctx.id and self.admits(node, self._incarnations):  # failed in that
                 self._incarnations.setdefault(node, inc)  # incarnation: a newer one will be a
