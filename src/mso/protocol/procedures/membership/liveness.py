@@ -124,7 +124,12 @@ class Liveness:
         for n in self.reachable - reachable:
             self.gone.setdefault(n, now)
         for n in reachable:
-            self.gone.pop(n, None)
+            if self.gone.pop(n, None) is not None and n in self.watched:
+                # back in reach: silent only from now on, as its beats could not come before
+                # (held silent since it left, it was suspected the instant its route came
+                # back, before its first beat crossed a 100 ms link: both ends of a healed
+                # pair declared each other and one reset)
+                self.watched[n] = now
         self.reachable = set(reachable)
         self.set_neighbours(now, neighbours)
         for n in list(self.watched):
@@ -150,7 +155,7 @@ class Liveness:
     def silent(self, now: float, dead: set[str]) -> list[str]:
         """Watched nodes silent for longer than ``dead_after_s`` (sorted, deterministic):
         suspected. The clock runs from the last beat, or from when the node was first
-        watched, and no route change restarts it."""
+        watched; losing a route does not restart it, a route back after an outage does."""
         out = []
         for n, since in sorted(self.watched.items()):
             if n in dead:
