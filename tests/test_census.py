@@ -75,6 +75,8 @@ def test_simulate_json_reports_messages_and_each_episodes_cost(tmp_path: Path) -
         assert ep["control_messages"] == sum(ep["by_type"].values()) > 0
         assert ep["nodes_involved"] == len(ep["nodes"])
     assert "N3" not in failure["nodes"]  # the failed node is sent nothing
+    assert [f["node"] for f in r["failures"]] == ["N3"]  # one failure, one record (each
+    # node records when it learned of it: one per gossip round once)
     for f in r["failures"]:
         assert f["control_messages"] == failure["control_messages"]
         assert f["nodes_involved"] == failure["nodes_involved"]

@@ -150,6 +150,27 @@ def _placement(sim: Simulation, app: str) -> dict[str, str]:
     return {}
 
 
+def _failures(sim: Simulation, rejoins: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One record per failure: the first declaration of a node, then none until it rejoins
+    (every node records when it learned of a failure, and keyed by that time one failure of
+    a 1,000-node run showed as 42, one per gossip round)."""
+    back: dict[str, list[float]] = {}
+    for r in rejoins:
+        back.setdefault(r["node"], []).append(r["at"])
+    records = sorted(
+        (dict(f) for core in sim.cores.values() for f in core.failures), key=lambda f: f["at"]
+    )
+    kept: dict[str, float] = {}  # node -> when its current failure was first declared
+    out = []
+    for f in records:
+        node, at = f["node"], f["at"]
+        since = kept.get(node)
+        if since is None or any(since < t <= at for t in back.get(node, [])):
+            kept[node] = at
+            out.append(f)
+    return out
+
+
 def _report(
     sim: Simulation,
     timeline: Timeline,
@@ -196,17 +217,15 @@ def _report(
         "given_up": sum(dropped.values()),
         "frames_lost_on_links": sim.lost,
     }  # fmt: skip
-    failures: dict[tuple[str, float], dict[str, Any]] = {}
     rejoins: dict[tuple[str, int], dict[str, Any]] = {}
     decisions: list[str] = []
     for n in sorted(sim.cores):
         core = sim.cores[n]
-        for f in core.failures:  # one record per failed node and time, whoever detected it
-            failures.setdefault((f["node"], round(f["at"], 6)), dict(f))
         for r in core.rejoins:
             rejoins.setdefault((r["node"], r["incarnation"]), dict(r))
         if n in status:
             decisions += [f"{n}: {d}" for d in status[n]["management"]["done"]]
+    failed = _failures(sim, list(rejoins.values()))
     energy = {}
     for n in sim.cores:
         mon = (  # a killed node answers no status: its monitor is read in place
@@ -225,7 +244,6 @@ def _report(
             "battery_empty": sim.cores[n].monitor.empty,
         }
     requests = [r for _, _, r in sim.replies if isinstance(r, m.RelocateReply | m.RemapReply)]
-    failed = sorted(failures.values(), key=lambda f: f["at"])
     episodes = _episodes(sim, timeline, moves, failed)
     return {
         "scenario": scenario.name,
