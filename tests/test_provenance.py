@@ -10,10 +10,12 @@ import pytest
 
 from mso.model.app import Vertex
 from mso.protocol import effects as fx
+from mso.protocol import messages as m
 from mso.protocol import provenance
 from mso.protocol.channel import InChannel
 from mso.runtime.worker import VertexWorker
-from mso.sim import faults
+from mso.sim import faults, vertices
+from test_failure import started, where
 
 
 def test_stamps_name_the_input_event_and_strip_learns_the_last_per_input() -> None:
@@ -88,3 +90,42 @@ def test_a_merges_worker_says_which_event_of_the_batch_each_output_came_from() -
     # a vertex with one input is not a merge: nothing is tracked on its hot path
     one = VertexWorker(fx.StartVertex(2, "app", v, "operator", inputs={0: Num}))
     assert one.open().error == "" and one.feed(fx.FeedVertex(2, 0, batch, 0.0)).owners == []
+
+
+MERGE = """
+name: merge
+planner: paper
+vertices:
+  s1: {code: mso.sim.vertices:Source, params: {name: s1}, rate: 20, pinned: N1,
+       output: mso.sim.vertices:Ev}
+  s2: {code: mso.sim.vertices:Source, params: {name: s2}, rate: 20, pinned: N2,
+       output: mso.sim.vertices:Ev}
+  m: {code: mso.sim.vertices:Pass, pinned: N3, output: mso.sim.vertices:Ev}
+  c: {code: mso.sim.vertices:Pass, output: mso.sim.vertices:Ev}
+  sink: {code: mso.sim.vertices:Sink, params: {run: provenance-moved, name: sink}, pinned: N6}
+edges: [[s1, m], [s2, m], [m, c], [c, sink]]
+"""
+
+
+def test_a_moved_consumer_keeps_its_marks_for_the_merges_restore() -> None:
+    """The merge's consumer moves (its marks go in the handover), then the merge's daemon
+    crashes and restarts with its router up: the merge is restored in place from its
+    producers' replays, in whatever interleaving, and the sink gets each event once."""
+    vertices.RUNS.pop("provenance-moved", None)
+    sim = started(MERGE)
+    before = where(sim, "merge", "c")
+    target = next(n for n in ("N4", "N5", "N6") if n != before)
+    sim.request("N1", m.RelocateRequest("merge", "c", target=target))
+    sim.run_until(sim.now + 1.0)
+    assert where(sim, "merge", "c") == target
+    marks = sim.cores[target].apps["merge"].inc[2].marks
+    assert marks is not None and set(marks) == {0, 1}, marks  # (moved with c)
+    sim.crash("N3")
+    sim.run_until(sim.now + 0.3)
+    sim.revive("N3")
+    sim.run_until(sim.now + 4.0)
+    (record,) = vertices.RUNS["provenance-moved"]
+    assert {src for src, _ in record.streams} == {"s1", "s2"}
+    for s in record.streams.values():
+        assert s.duplicates == 0 and s.reordered == 0 and s.last - s.first + 1 == len(s.seen)
+        assert s.last >= 80  # it went on after the restore
