@@ -101,6 +101,8 @@ BROKE = {
     14459: "a restore's coordinator died: its replacement waited, prepared, for ever",
     11242: "a merge lost with its producer: the consumer's marks hid the producer's new numbers",
     10630: "a node restarted that nobody had heard a beat from: its moved-in vertex presumed run",
+    6828: "a reset node first known by a NodeUp was never told the apps (its beat looked known)",
+    8554: "the same: the origin, which hosts nothing, reset and was never synced the app",
 }
 
 

@@ -822,10 +822,15 @@ class Membership(AppSyncing):
         if msg.node == self.ctx.id:
             return
         if msg.node not in self.failed and msg.node not in self._incarnations:
-            if self.admits(msg.node, self._incarnations):
-                self._incarnations[msg.node] = msg.incarnation
-            else:
+            if not self.admits(msg.node, self._incarnations):
                 self.ctx.refusal("unknown_node_over_bound")
+            elif msg.incarnation > 0 and any(d.running for d in self.ctx.apps.values()):
+                # back with no instances, from a start whose hellos went to its neighbours
+                # only: its first beat will not look new any more, so it is told the apps
+                # (and what we placed there restored) now (fault seeds 6828, 8554)
+                self._rejoin(msg.node, msg.incarnation, now, announce=False)
+            else:
+                self._incarnations[msg.node] = msg.incarnation
             return
         if msg.node in self.failed:
             if msg.incarnation > self._failed_incarnation.get(msg.node, 0):
