@@ -5,6 +5,7 @@ both sides see each other's liveliness tokens, and closing never hangs."""
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -237,11 +238,22 @@ def test_transient_local_gives_a_late_joiner_the_last_samples(net: tuple[str, An
 
 
 def test_an_unreachable_router_fails_open_in_bounded_time() -> None:
+    """The open fails (it does not hang waiting for a router that never comes): a deadline
+    far past the connect timeout bounds the wait, not a speed the machine must make."""
     sub = Subscriber("chatter", "std_msgs/msg/String", router=f"tcp/127.0.0.1:{free_port()}")
-    t0 = time.monotonic()
-    with pytest.raises(Exception, match="connect"):
-        sub.open()
-    assert time.monotonic() - t0 < 10.0
+    failed: list[BaseException] = []
+
+    def open_it() -> None:
+        try:
+            sub.open()
+        except Exception as exc:  # what a vertex's open() raises to its node
+            failed.append(exc)
+
+    opener = threading.Thread(target=open_it, daemon=True)
+    opener.start()
+    opener.join(60.0)
+    assert not opener.is_alive(), "open() still waiting for the router"
+    assert failed and "connect" in str(failed[0]).lower(), failed
     sub.close()
 
 
