@@ -13,7 +13,7 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from mso.protocol import dataseal
 from mso.protocol import messages as m
 from test_captured_robot import overlay, robot, sunk
-from test_security_origin import link_line, proven_nodes
+from test_security_origin import Received, link_line, proven_nodes
 from waits import patience
 
 
@@ -44,12 +44,8 @@ def test_over_tcp_a_relay_cannot_alter_or_inject_another_nodes_data() -> None:
     async def run() -> tuple[list[tuple[str, m.Message]], int, int]:
         names = ("N1", "N2", "N3")
         _, views, nets = proven_nodes(names)
-        got: list[tuple[str, m.Message]] = []
-        arrived = asyncio.Event()
-
-        def receive(src: str, msg: m.Message) -> None:
-            got.append((src, msg))
-            arrived.set()
+        receive = Received()
+        got, arrived = receive.got, receive.arrived
 
         heard = asyncio.Event()
         nets["N3"].set_receiver(receive)

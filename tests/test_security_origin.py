@@ -47,6 +47,18 @@ def proven_nodes(
     return ids, views, nets
 
 
+class Received:
+    """A transport's receiver for a test: what arrived, in order, and an event set on each."""
+
+    def __init__(self) -> None:
+        self.got: list[tuple[str, m.Message]] = []
+        self.arrived = asyncio.Event()
+
+    def __call__(self, src: str, msg: m.Message) -> None:
+        self.got.append((src, msg))
+        self.arrived.set()
+
+
 def link_line(views: dict[str, EmulatorRoutes], nets: dict[str, TcpTransport]) -> None:
     """N1 - N2 - N3 in the transports' views (started: their ports are known)."""
 
@@ -125,12 +137,8 @@ def test_over_tcp_a_relay_cannot_forge_or_alter_another_nodes_claims() -> None:
     async def run() -> tuple[list[tuple[str, m.Message]], int]:
         names = ("N1", "N2", "N3")
         ids, views, nets = proven_nodes(names)
-        got: list[tuple[str, m.Message]] = []
-        arrived = asyncio.Event()
-
-        def receive(src: str, msg: m.Message) -> None:
-            got.append((src, msg))
-            arrived.set()
+        receive = Received()
+        got, arrived = receive.got, receive.arrived
 
         nets["N3"].set_receiver(receive)
         for n in names:

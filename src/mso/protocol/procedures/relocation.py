@@ -226,13 +226,13 @@ class Relocator:
         the node of a producer whose marker the handover waits for, is out of reach (held
         unreachable, not failed). Its instance drains and hands over, or nothing: a move
         started anyway waits on a marker that cannot come, past its commit (seeds 5449, 8978)."""
-        here, routes = self.ctx.id, self.ctx.routes
+        here, routes, failed = self.ctx.id, self.ctx.routes, self.ctx.failed
         source = dep.placed[vertex]
         if source != here and source not in routes:
             return f"{vertex!r} runs on {source}, out of reach: it cannot hand over its state"
         for e in dep.app.edges:
-            node = dep.placed.get(e.src, here) if e.dst == vertex else here
-            if node != here and node not in routes and node not in self.ctx.failed:
+            node = dep.placed.get(e.src, here)
+            if e.dst == vertex and node != here and node not in routes and node not in failed:
                 return f"{vertex!r} takes events from {e.src!r} on {node}, out of reach"
         return ""
 

@@ -364,10 +364,16 @@ class Restorer:
         dep.gates.pop(vid, None)
         dep.blocked_sources.discard(vid)
         rec.restarts += 1
-        pid = rec.restoring = self.ctx.new_pid()
-        reloc = Relocation(pid, now, app, vid, self.ctx.id, self.ctx.id, None)
+        rec.restoring = self._restore_here(dep, vid, self.ctx.id, now)
+
+    def _restore_here(self, dep: AppState, vid: str, source: str, now: float) -> int:
+        """Coordinate, from this node, a restore of ``vid`` (lost on ``source``) on this
+        node; its procedure id."""
+        pid = self.ctx.new_pid()
+        reloc = Relocation(pid, now, dep.app.name, vid, source, self.ctx.id, None)
         self.ctx.begin(reloc)
         self.relocator.start_restore(dep, reloc, pid, now)
+        return pid
 
     def on_peer_failed(self, ev: PeerFailed) -> None:
         """A replacement waiting here for its surviving ends whose coordinator failed: this
@@ -379,11 +385,9 @@ class Restorer:
             for vid, restoring in sorted(dep.restoring.items()):
                 if restoring.coordinator != node or vid not in dep.awaiting:
                     continue
-                pid = self.ctx.new_pid()
-                reloc = Relocation(pid, now, dep.app.name, vid, node, self.ctx.id, None)
-                self.ctx.begin(reloc)
                 self.ctx.note_event(now, f"{vid}: its restore's coordinator {node} failed")
-                self.relocator.start_restore(dep, reloc, pid, now)
+                lost_on = dep.placed.get(vid, node)  # (the coordinator's view, from Prepare)
+                self._restore_here(dep, vid, node if lost_on == self.ctx.id else lost_on, now)
 
     def on_relocation_ended(self, ev: RelocationEnded) -> None:
         """A restore in place after a crash ended: the vertex runs again, or stays crashed."""

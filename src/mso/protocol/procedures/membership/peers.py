@@ -405,7 +405,7 @@ class Membership(AppSyncing):
                 continue
             app, placed = dep.app.name, dep.placed
             lost = dep.lost(self.failed) | {  # what a failed node ran and is not running
-                v  # again elsewhere (restored, a node next to it is no longer needed: 5040)
+                v  # again elsewhere (restored, a node next to it is no longer needed: 3238)
                 for n in self.failed
                 for v in self._ran.get(n, {}).get(app, ())
                 if placed.get(v) == n or (app, v) in restoring
@@ -602,7 +602,7 @@ class Membership(AppSyncing):
             # failed and whom it outranks are gone with that incarnation
         self._incarnations[src] = msg.incarnation
         if known is None and self._newcomer(msg):
-            if any(src in dep.placed.values() for dep in self.ctx.apps.values()):
+            if src in self._hosts():
                 # it runs nothing, yet we place vertices there: a restart of a node we never
                 # heard a beat from (it joined an app by a move after its start): what it ran
                 # is gone (fault seed 10630: a move's marker went to a node that had no c)
@@ -638,11 +638,11 @@ class Membership(AppSyncing):
         meets this node running apps: a restart whose neighbours may never have known it
         either (at a first start nobody says hello to every node), so nobody would take it for
         one and sync it the apps -- this node does."""
-        return (
-            msg.incarnation > 0
-            and msg.hosting == 0
-            and any(dep.running for dep in self.ctx.apps.values())
-        )
+        return msg.incarnation > 0 and msg.hosting == 0 and self._running()
+
+    def _running(self) -> bool:
+        """An app runs here (what a node back with no instances needs to be told of)."""
+        return any(dep.running for dep in self.ctx.apps.values())
 
     def _oversized(self, msg: m.Heartbeat) -> bool:
         """A beat holding far more nodes failed than this node could know of: refused, as
@@ -824,7 +824,7 @@ class Membership(AppSyncing):
         if msg.node not in self.failed and msg.node not in self._incarnations:
             if not self.admits(msg.node, self._incarnations):
                 self.ctx.refusal("unknown_node_over_bound")
-            elif msg.incarnation > 0 and any(d.running for d in self.ctx.apps.values()):
+            elif msg.incarnation > 0 and self._running():
                 # back with no instances, from a start whose hellos went to its neighbours
                 # only: its first beat will not look new any more, so it is told the apps
                 # (and what we placed there restored) now (fault seeds 6828, 8554)
