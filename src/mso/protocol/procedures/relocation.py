@@ -300,6 +300,8 @@ class Relocator:
         if msg.error:
             if msg.no_app:  # a node that missed the app's sync: the retry will find it
                 self.ctx.publish(AppMissing(dep.app.name, reloc.target))
+                if self._ask_again(dep, reloc, now):
+                    return
             self.fail(reloc, msg.error, now)
             return
         reloc.on(RelocationEvent.PREPARED_RESTORE if reloc.restore else RelocationEvent.PREPARED)
@@ -317,6 +319,20 @@ class Relocator:
                 edge = dep.app.edges.index(e)
                 switch = m.Switch(msg.app, edge, reloc.target, msg.rid, reloc.source)
                 self.ctx.send(dep.placed[e.src], switch)
+
+    def _ask_again(self, dep: AppState, reloc: Relocation, now: float) -> bool:
+        """A move's target did not hold the app yet (the sync that carries it to a node that
+        hosts nothing of it may trail the deploy's reply): ask again once the sync is sent,
+        at once (a sync sent just before reaches it first), then on a timer, a few times."""
+        if reloc.restore or reloc.state is not S.PREPARING or reloc.attempts >= STEP_ATTEMPTS:
+            return False
+        reloc.on(RelocationEvent.RETRY)
+        reloc.attempts += 1
+        if reloc.attempts == 1:
+            self.ctx.send(reloc.target, placement.prepare(dep, reloc.vertex, reloc.pid))
+        else:
+            self.ctx.emit(SetTimer(Retry(reloc.pid, reloc.attempts), now + STEP_TIMEOUT_S / 4))
+        return True
 
     def on_handover_done(self, msg: m.HandoverDone, now: float) -> None:
         reloc = self._reloc(msg.rid)
@@ -419,10 +435,12 @@ class Relocator:
         """A restore's prepare was not answered in time: ask again, a few times."""
         rid = key.pid
         reloc = self._reloc(rid)
-        if reloc is None or not reloc.restore:
+        dep = self.ctx.apps.get(reloc.app) if reloc is not None else None
+        if reloc is None or dep is None:
             return
-        dep = self.ctx.apps.get(reloc.app)
-        if dep is None:
+        if not reloc.restore:  # a move's target that did not hold the app (_ask_again)
+            if reloc.state is S.PREPARING and key.attempt == reloc.attempts:
+                self.ctx.send(reloc.target, placement.prepare(dep, reloc.vertex, rid))
             return
         if reloc.attempts >= STEP_ATTEMPTS or reloc.target in self.ctx.failed:
             why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
