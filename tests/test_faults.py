@@ -103,6 +103,8 @@ BROKE = {
     10630: "a node restarted that nobody had heard a beat from: its moved-in vertex presumed run",
     6828: "a reset node first known by a NodeUp was never told the apps (its beat looked known)",
     8554: "the same: the origin, which hosts nothing, reset and was never synced the app",
+    16310: "a sink placed on its producer's node, not yet restored: events given to it there "
+    "were acknowledged and lost",
 }
 
 
@@ -620,18 +622,16 @@ def test_a_node_that_crashed_for_both_sides_does_not_decide_who_resets() -> None
 def test_a_node_that_missed_the_apps_sync_gets_it_when_asked_to_host_a_vertex() -> None:
     """A node reset while the view of the node that would sync it was in dispute; that node
     failed before the dispute ended, so nobody synced it and every restore on it was refused
-    for ever (seed 1020). Its refusal now says it lacks the app, and the coordinator syncs it."""
+    for ever (seed 1020). Its refusal now says it lacks the app, and the coordinator syncs it
+    and asks again: the move goes (an operator's move to a node whose copy of the app trailed
+    the deploy's reply once failed CI this way)."""
     sim = deployed_on_a_line()
     del sim.cores["N2"].apps["pipe"]  # the sync it was owed is lost
     sim.request("N1", m.RelocateRequest("pipe", "mid", target="N2"), client=7)
     sim.run_until(sim.now + 0.5)
-    (refused,) = [r for _, c, r in sim.replies if c == 7]
-    assert isinstance(refused, m.RelocateReply) and "does not run app" in refused.error
-    assert "pipe" in sim.cores["N2"].apps
-    sim.request("N1", m.RelocateRequest("pipe", "mid", target="N2"), client=8)
-    sim.run_until(sim.now + 0.5)
-    (moved,) = [r for _, c, r in sim.replies if c == 8]
+    (moved,) = [r for _, c, r in sim.replies if c == 7]
     assert isinstance(moved, m.RelocateReply) and moved.ok, moved
+    assert "pipe" in sim.cores["N2"].apps
     assert placements(sim)["N1"]["mid"] == "N2" and "mid" in sim.cores["N2"].instances("pipe")
 
 

@@ -308,6 +308,9 @@ class DataPlane:
         if dst in dep.awaiting:  # moving here: keep until the handover
             dep.stash.setdefault(edge, []).append((seq, list(events), ts))
             return
+        if dst not in dep.instances:  # placed here, not running (yet): taken, they would be
+            self.ctx.dropped()  # acknowledged and lost; the producer keeps them (16310)
+            return
         ch = dep.inc.get(edge)
         if ch is None:
             ch = dep.inc[edge] = InChannel(marks={})  # the edge's first events here
@@ -388,13 +391,7 @@ class DataPlane:
             return
         for i, (edge, seq, floor) in enumerate(parts):
             events = msg.events if i == 0 else list(msg.events)  # each edge its own list
-            dst = dep.app.edges[edge].dst
-            if dst in dep.awaiting:  # a relocated instance before its handover: keep for later
-                dep.stash.setdefault(edge, []).append((seq, events, msg.ts))
-            elif dst not in dep.instances:
-                self.ctx.dropped()
-            else:
-                self.deliver(dep, edge, seq, events, msg.ts, floor)
+            self.deliver(dep, edge, seq, events, msg.ts, floor)
 
     def _processed(
         self, dep: AppState, vid: str, h: HostedInstance, res: fx.VertexProcessed, now: float
