@@ -56,6 +56,17 @@ def wait_for(check: Callable[[], bool], timeout: float = 10.0) -> bool:
     return rmwpeers.wait_until(check, patience(timeout))
 
 
+def routed(session: Any, key: str, timeout: float = 10.0) -> bool:
+    """True once ``session`` knows a subscription on ``key`` in another session (Zenoh's
+    matching status, read from a probe publisher: every publisher of the session routes by the
+    same tables), so what its publishers put from then on reaches it; False at the deadline."""
+    probe = session.declare_publisher(key)
+    try:
+        return wait_for(lambda: bool(probe.matching_status.matching), timeout)
+    finally:
+        probe.undeclare()
+
+
 class Listener:
     """A ROS 2 listener as rmw_zenoh would be one: subscribes on the literal key, requires
     the 33-byte attachment, decodes CDR with rosbags."""

@@ -144,8 +144,8 @@ class _Endpoint:
         self.gid = b""
         self.closed = False
 
-    def _announce(self) -> None:
-        """Open the session and declare the node's and the entity's liveliness tokens."""
+    def _connect(self) -> None:
+        """Open the session and name the entity (its token's key, its GID)."""
         self.session = _session(self.router)
         zid = str(self.session.zid())
         self.token = wire.entity_token(
@@ -153,15 +153,24 @@ class _Endpoint:
             self.type_hash, self.qos, namespace=self.namespace,
         )  # fmt: skip
         self.gid = wire.gid_of(self.token)
+
+    def _announce(self) -> None:
+        """Declare the node's and the entity's liveliness tokens, once the entity is declared
+        (rmw_zenoh's order): a ROS node that sees the token in the graph (``ros2 topic info``,
+        a wait for a subscriber's count) reaches the entity, since the router has its
+        declaration first. Tokens first, a talker that waited for the graph published into
+        a subscription the router did not have yet, and lost the first messages."""
+        zid = str(self.session.zid())
         node = wire.node_token(self.domain, zid, 0, self.node, namespace=self.namespace)
         lv = self.session.liveliness()
         self.tokens = [lv.declare_token(node), lv.declare_token(self.token)]
 
     def _shut(self, *entities: Any) -> bool:
+        """Undeclare in the reverse order: off the graph first, then the entity."""
         self.closed = True
         session, self.session = self.session, None
         tokens, self.tokens = self.tokens, []
-        return _close_quietly(*entities, *reversed(tokens), session)
+        return _close_quietly(*reversed(tokens), *entities, session)
 
 
 class Subscriber(_Endpoint):
@@ -188,7 +197,7 @@ class Subscriber(_Endpoint):
         self.last_error = ""
 
     def open(self) -> None:
-        self._announce()
+        self._connect()
         if self.qos.durability == "transient_local":  # a late joiner: the last samples first
             from zenoh import ext
 
@@ -198,6 +207,7 @@ class Subscriber(_Endpoint):
             )
         else:
             self.subscriber = self.session.declare_subscriber(self.key, self._on_sample)
+        self._announce()
 
     def _on_sample(self, sample: Any) -> None:
         """On a Zenoh thread: decode, then queue (drop the oldest, or wait, when full). The
@@ -279,7 +289,7 @@ class Publisher(_Endpoint):
     def open(self) -> None:
         import zenoh
 
-        self._announce()
+        self._connect()
         reliable = self.qos.reliability == "reliable"
         Rel, Cc = zenoh.Reliability, zenoh.CongestionControl
         options: dict[str, Any] = {
@@ -295,6 +305,7 @@ class Publisher(_Endpoint):
             )  # fmt: skip
         else:
             self.publisher = self.session.declare_publisher(self.key, **options)
+        self._announce()
 
     def __call__(self, event: Any) -> Any:
         if self.publisher is None:
