@@ -105,6 +105,8 @@ BROKE = {
     8554: "the same: the origin, which hosts nothing, reset and was never synced the app",
     16310: "a sink placed on its producer's node, not yet restored: events given to it there "
     "were acknowledged and lost",
+    17236: "a node alone declared two nodes 9 ms before the heal to re-place a vertex that "
+    "would only feed a merge left out of reach: their reset lost the merge's order",
 }
 
 
