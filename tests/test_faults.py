@@ -15,7 +15,7 @@ from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol.events import HeartbeatTick
 from mso.sim import faults, vertices
-from mso.sim.invariants import check
+from mso.sim.invariants import AppHolders, check
 from mso.sim.runner import Simulation
 from runtime_vertices import pipe_app
 
@@ -105,6 +105,8 @@ BROKE = {
     8554: "the same: the origin, which hosts nothing, reset and was never synced the app",
     16310: "a sink placed on its producer's node, not yet restored: events given to it there "
     "were acknowledged and lost",
+    19231: "every node that held the app was down at once (the one back meanwhile was cut off "
+    "from them): the app is gone, rightly; the run now sees that it went with its holders",
     17236: "a node alone declared two nodes 9 ms before the heal to re-place a vertex that "
     "would only feed a merge left out of reach: their reset lost the merge's order",
 }
@@ -268,6 +270,25 @@ def deployed_on_a_line() -> Simulation:
     sim.request("N1", m.DeployRequest(LINE3, "app.yaml"))
     sim.run_until(1.0)
     return sim
+
+
+def test_an_app_is_gone_only_with_its_holders_not_when_a_live_node_drops_it() -> None:
+    """The fault runs excuse an app no node knows only if it went with the nodes that held it
+    (every one down at a moment); a live node that drops it is a finding, not excused."""
+    sim = deployed_on_a_line()
+    dropped, went = AppHolders("pipe"), AppHolders("pipe")
+    dropped.check(sim)
+    went.check(sim)
+    assert dropped.holders == went.holders == {"N1", "N2", "N3"}
+    del sim.cores["N3"].apps["pipe"]
+    for n in ("N1", "N2"):
+        sim.crash(n)
+    dropped.check(sim)
+    assert dropped.gone_at is None  # N3 is live and dropped it
+    for n in ("N1", "N2", "N3"):
+        sim.crash(n)
+    went.check(sim)
+    assert went.gone_at == sim.now
 
 
 def line3() -> Simulation:

@@ -42,6 +42,7 @@ from mso.scenario.timeline import Timeline
 from mso.sim import vertices
 from mso.sim.invariants import (
     STATUS_CLIENT,
+    AppHolders,
     HeldFailed,
     Violation,
     check,
@@ -53,6 +54,7 @@ from mso.sim.schedule import Schedule, Settings
 
 KINDS = ("crash", "partition", "flap", "loss", "relocate", "remap")
 RESTART = "restart"  # a daemon restart, drawn with ``Settings.restarts``
+HOLDERS_EVERY_S = 0.01  # how often the run looks whether the app went with its holders
 
 
 @dataclass
@@ -281,12 +283,15 @@ def run(seed: int, settings: Settings | None = None) -> Result:
         calls.append(request(at, node, msg))
 
     held = HeldFailed()
+    holders = AppHolders()
 
     def deadlines(s: Simulation) -> None:
         violations.extend(check_procedures(s))
         violations.extend(held.check(s))
 
     calls += [(k * 0.5, deadlines) for k in range(1, int(sched.end / 0.5))]
+    every = HOLDERS_EVERY_S
+    calls += [(k * every, holders.check) for k in range(1, int(sched.end / every))]
     sim.request("N1", m.DeployRequest(sched.app, f"faults-{seed}.yaml"))
     status_at = sched.end - 1.5  # a status round trip through every live node, before the end
     calls.append((status_at, _ask_status))
@@ -303,7 +308,7 @@ def run(seed: int, settings: Settings | None = None) -> Result:
     log.sort()  # one order for deliveries, changes and requests, by virtual time then text
     records = vertices.RUNS.pop(token, [])
     if not any(v.invariant == "exception" for v in violations):
-        violations += check(sim, sched, records)
+        violations += check(sim, sched, records, holders)
     unique = list(dict.fromkeys(violations))  # a periodic check may see one problem again
     return Result(seed, sched.topology, len(net.nodes), sched.faults, unique, log)
 
