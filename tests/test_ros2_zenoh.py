@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 from zenoh import ext as zenoh_ext
 
-from mso.ros2 import Publisher, Subscriber
+from mso.ros2 import Publisher, Subscriber, bridge
 from mso.ros2.bridge import CLOSE_S
 from mso.ros2.types import struct_for
 from ros2_helpers import (
@@ -84,6 +84,47 @@ def test_a_ros_talker_reaches_an_mso_subscriber_typed(net: tuple[str, Any]) -> N
     finally:
         sub.close()
     assert not any("mso_sub" in t for t in tokens(peer))  # its tokens went with it
+
+
+class _SlowToDeclare:
+    """A Zenoh session whose subscriptions are declared late: until the test says it has
+    published, or a second has passed (a loaded machine between two declarations)."""
+
+    def __init__(self, session: Any, published: threading.Event) -> None:
+        self._session = session
+        self._published = published
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._session, name)
+
+    def declare_subscriber(self, *args: Any, **kwargs: Any) -> Any:
+        self._published.wait(1.0)
+        return self._session.declare_subscriber(*args, **kwargs)
+
+
+def test_a_talker_that_waits_for_the_graph_reaches_a_subscriber_slow_to_declare(
+    net: tuple[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The graph shows an mso subscription only once it is declared (its token comes after
+    it, as rmw_zenoh's do): a ROS talker that waits for the subscriber in the graph and then
+    publishes reaches it. Tokens first, the talker published into nothing (CI, run 2)."""
+    endpoint, peer = net
+    published = threading.Event()
+    real = bridge._session
+    monkeypatch.setattr(bridge, "_session", lambda r: _SlowToDeclare(real(r), published))
+    sub = Subscriber("/chatter", "std_msgs/msg/String", router=endpoint)
+    opener = threading.Thread(target=sub.open, daemon=True)
+    opener.start()
+    try:
+        assert wait_for(lambda: any("/MS/" in t for t in tokens(peer)))
+        talker = peer.declare_publisher(chatter_key())
+        talker.put(cdr_string("first"), attachment=attachment(1, bytes(16)))
+        published.set()
+        assert drain(sub, 1) == [String(data="first")]
+        talker.undeclare()
+    finally:
+        opener.join(patience(10.0))
+        sub.close()
 
 
 def test_an_mso_publisher_reaches_a_ros_listener(net: tuple[str, Any]) -> None:
