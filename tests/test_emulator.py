@@ -173,8 +173,12 @@ def test_python_api_against_running_daemons(tmp_path: Path) -> None:
         assert moved.ok and moved.node != placement["mid"]
         with pytest.raises(MsoError, match="end of chain"):
             overlay.relocate("pipe", "src", direction="downstream")
-        time.sleep(0.5)
-        status = overlay.status()
+        deadline = time.monotonic() + patience(10.0)
+        while True:  # until events have passed the moved vertex to the sink
+            status = overlay.status()
+            if sink(status)["count"] > 0 or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)  # poll period
     finally:
         for p in procs:
             p.terminate()
@@ -265,29 +269,40 @@ def test_relocation_across_processes_keeps_every_event() -> None:
         "  mid: {code: runtime_vertices:Counter, output: runtime_vertices:Num}",
     )
 
-    async def run() -> tuple[list[Any], dict[str, Any]]:
+    def emitted(status: dict[str, Any]) -> int:
+        return int(status["N1"]["apps"]["pipe"]["vertices"]["src"]["emitted"])
+
+    async def run() -> tuple[list[Any], dict[str, Any], int, int]:
         emu = Emulator(loads_scenario(LINE))
         await emu.start()
         try:
             assert (await emu.deploy(app, "pipe.yaml", "N1")).ok
+            # N3 coordinates the moves: it runs the app once the deploy's StartApp reaches it,
+            # which may trail the reply
+            running = lambda st: st["N3"]["apps"]["pipe"]["running"]  # noqa: E731
+            await until(lambda: emu.status("N3"), running, 10, "N3 running the app")
             replies = []
             for k in range(6):
-                await asyncio.sleep(0.2)
+                seen = sink(await emu.status("N4"))["count"]  # events flow between the moves
+                await until(lambda: emu.status("N4"), lambda st, n=seen: sink(st)["count"] > n + 20,
+                            10, "events through mid since the last move")  # fmt: skip
                 direction = "downstream" if k % 2 == 0 else "upstream"
                 replies.append(await emu.relocate("pipe", "mid", direction=direction, via="N3"))
-            await asyncio.sleep(0.5)
-            return replies, await emu.status()
+            upto = emitted(await emu.status("N1"))
+            status = await until(  # what was emitted before the last status arrives, in order
+                emu.status, lambda st: sink(st)["count"] >= upto, 10, f"{upto} events at the sink"
+            )
+            return replies, status, upto, emitted(await emu.status("N1"))
         finally:
             await emu.stop()
 
-    replies, status = asyncio.run(run())
+    replies, status, upto, later = asyncio.run(run())
     assert sum(r.ok for r in replies) >= 3, [r.error for r in replies]
     hosts = [n for n, st in status.items() if "mid" in st["apps"]["pipe"]["vertices"]]
     assert len(hosts) == 1
     got = sink(status)
-    emitted = status["N1"]["apps"]["pipe"]["vertices"]["src"]["emitted"]
     assert got["repeats"] == 0 and got["out_of_order"] == 0  # the counter's state moved too
-    assert emitted - 20 <= got["count"] <= emitted
+    assert upto <= got["count"] <= later  # none lost, none made up
 
 
 def test_lossy_links_lose_no_event() -> None:
