@@ -45,7 +45,7 @@ from mso.emu.overlays import (
     write_key,
 )
 from mso.errors import MsoError
-from mso.model.network import LinkSpec
+from mso.model.network import LinkSpec, Network
 from mso.node.driver import BATTERY_EMPTY_EXIT, PARENT_ENV
 from mso.protocol import messages as m
 from mso.protocol.authority import Signer
@@ -103,6 +103,9 @@ class Emulator:
     failed: bool = False  # a node died or misbehaved: its logs are kept for a look
     dead: dict[str, float] = field(default_factory=dict)  # node -> when its process died
     killed: set[str] = field(default_factory=set)  # killed on purpose (scenario, benchmark)
+    # restarted nodes whose process does not listen yet: their links are not pushed (a relay
+    # announced before it runs swallowed a healed edge's frames, resent every 0.25 s)
+    starting: set[str] = field(default_factory=set)
     _watch_task: asyncio.Task[None] | None = None
     policy: str | None = None  # every node's policy (apps may name their own)
     manage: bool = True  # run the management rules on the nodes
@@ -307,7 +310,11 @@ class Emulator:
                     await self._start_again(action.node)
                 except MsoError as exc:
                     self.say(f"{action.node} did not come back: {exc}")
-            else:
+                if action.node in self.starting:  # not started here: the links as they are
+                    self.starting.discard(action.node)
+                    await self._links_changed()
+            else:  # a restart's links (its sync comes first) wait until it listens
+                self.starting.update(a.node for a in actions if isinstance(a, Restart))
                 await self._links_changed()
 
     async def fail(self, node: str) -> str:
@@ -319,7 +326,7 @@ class Emulator:
 
     async def restart(self, node: str, timeout: float = 20.0) -> str:
         """Start a failed, killed or crashed ``node`` again: a new process, so a new
-        incarnation; its links come back first. The others restore what it hosted."""
+        incarnation; its links come back once it listens. The others restore what it hosted."""
         if self.running(node):
             raise MsoError(f"node {node} is still running ('fail {node}' stops it)")
         assert self.timeline is not None, "start() first"
@@ -376,6 +383,7 @@ class Emulator:
         self.dead.pop(node, None)
         self.killed.discard(node)
         await self._connect(n, timeout)
+        self.starting.discard(node)
         await self._links_changed()
 
     async def _watch(self, period: float = 0.05) -> None:
@@ -449,8 +457,7 @@ class Emulator:
             identity=operator_client(self.signer),  # (with identities, a client must be one)
         )  # fmt: skip
 
-    def _link_state(self, node: str, routes: bool) -> m.LinkState:
-        net = self.scenario.network
+    def _link_state(self, node: str, routes: bool, net: Network) -> m.LinkState:
         neighbours: dict[str, list[Any]] = {}
         for n in net.neighbours(node):
             link = net.link(node, n)
@@ -473,12 +480,17 @@ class Emulator:
         )
 
     async def push_links(self, routes: bool) -> None:
-        """Send every node its neighbours, and its routes if they have converged."""
+        """Send every node its neighbours, and its routes if they have converged (without the
+        links of a restarted node that does not listen yet: it relays nothing before)."""
         self.version += 1
+        net = self.scenario.network
+        if self.starting:
+            links = [s for (a, b), s in net.links.items() if not {a, b} & self.starting]
+            net = Network(list(net.nodes.values()), links)
         for name, node in list(self.nodes.items()):
             if node.client is not None and name not in self.killed:
                 with contextlib.suppress(MsoError, OSError):
-                    await node.client.send(self._link_state(name, routes))
+                    await node.client.send(self._link_state(name, routes, net))
 
     async def wait_links(self, timeout: float = 10.0) -> None:
         """Wait until every node has a connection to each of its current neighbours."""
@@ -515,12 +527,13 @@ class Emulator:
         try:
             while (at := tl.next_at()) is not None:
                 await asyncio.sleep(max(0.0, start + at - loop.time()))
-                for action in tl.advance(at):
+                actions = tl.advance(at)
+                for action in actions:
                     if isinstance(action, Crash):
                         self.say(f"{action.node} fails (scripted)")
                     elif isinstance(action, Restart):
                         self.say(f"{action.node} restarts (scripted)")
-                    await self.carry_out([action])
+                await self.carry_out(actions)  # together: a restart's links wait for it
                 if tl.positions and tl.positions != self.positions:
                     self.positions = dict(tl.positions)
                     if self.name is not None and self.nodes:
