@@ -90,9 +90,12 @@ def test_emulate_then_drive_it_from_another_terminal(tmp_path: Path) -> None:
         assert code == 0, err
         code, out, err = cli("remap", "--all", "--via", "N3")
         assert code == 0 and "remapped in" in out, err
-        time.sleep(0.5)
-        code, out, _ = cli("status", "--json", "--via", "N2")
-        sink = json.loads(out)["N4"]["apps"]["pipe"]["vertices"]["sink"]["stats"]
+        deadline = time.monotonic() + patience(10.0)
+        while True:  # until 50 events have passed the moves and remaps to the sink
+            code, out, _ = cli("status", "--json", "--via", "N2")
+            sink = json.loads(out)["N4"]["apps"]["pipe"]["vertices"]["sink"]["stats"]
+            if sink["count"] > 50 or time.monotonic() > deadline:
+                break
         assert sink["count"] > 50 and sink["repeats"] == 0 and sink["out_of_order"] == 0
         emu.send_signal(signal.SIGINT)  # Ctrl-C: everything stops, cleanly
         rest, _ = emu.communicate(timeout=60)  # the summary and the stop, on a loaded CI box

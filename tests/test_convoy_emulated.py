@@ -15,7 +15,7 @@ import pytest
 from mso.emu.controller import Emulator
 from mso.examples.convoy.storage import DB_ENV, summary
 from mso.scenario import load_scenario
-from waits import patience
+from waits import patience, until
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples"
 
@@ -32,6 +32,12 @@ def seqs(db: Path, table: str) -> list[int]:
         conn.close()
 
 
+def scans(n: int) -> Any:
+    """A status where the leader's laser has emitted ``n`` scans: the convoy's world moves on
+    its sensors' clock (a scan's sequence number), not the host's."""
+    return lambda st: st["N1"]["apps"]["convoy"]["vertices"]["laser"]["emitted"] >= n
+
+
 def test_convoy_rows_in_sqlite_equal_events_emitted(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -45,12 +51,12 @@ def test_convoy_rows_in_sqlite_equal_events_emitted(
         try:
             reply = await emu.deploy(doc, "convoy.yaml", "N1")
             assert reply.ok, reply.error
-            await asyncio.sleep(4.0)
+            await until(lambda: emu.status("N1"), scans(20), 20, "4 s of scans (the world's)")
             host = reply.placement["target_map"]
             target = "N2" if host != "N2" else "N3"
             moved = await emu.relocate("convoy", "target_map", target=target)
             assert moved.ok, moved.error
-            await asyncio.sleep(4.0)
+            await until(lambda: emu.status("N1"), scans(40), 20, "4 s more of scans")
             status = await emu.status()
             sources = status["N1"]["apps"]["convoy"]["vertices"]
             emitted = {v: sources[v]["emitted"] for v in ("laser", "visible_camera")}

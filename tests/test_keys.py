@@ -18,7 +18,7 @@ from mso.node.core import NodeCore
 from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
 from mso.protocol.framing import FrameCodec, FramingError, WrongKey, psk_from_text
-from waits import answered
+from waits import answered, until
 
 OLD, NEW, OTHER = psk_from_text("old"), psk_from_text("new"), psk_from_text("other")
 
@@ -150,8 +150,8 @@ def test_an_encrypted_overlay_with_an_operator_runs_an_app_end_to_end(
             with pytest.raises(MsoError, match="needs an operator's signature"):
                 await unsigned.call(m.RelocateRequest("pipe", "mid", "upstream"))
             await unsigned.close()
-            await asyncio.sleep(1.5)
-            return await emu.status()
+            sink = lambda st: st["N4"]["apps"]["pipe"]["vertices"]["sink"]["stats"]  # noqa: E731
+            return await until(emu.status, lambda st: sink(st)["count"] >= 50, 10, "50 events")
         finally:
             await emu.stop()
 
