@@ -126,7 +126,7 @@ def test_a_scripted_restart_brings_back_a_node_killed_by_hand() -> None:
             os.kill(proc.pid, signal.SIGKILL)
             await told.wait_for("N2 died")
             await told.wait_for("N3 restarts (scripted)")
-            await asyncio.wait_for(playing, 30.0)
+            await asyncio.wait_for(playing, patience(30.0))
             assert emu.running("N3") and not emu.running("N2")
             await emu.restart("N2")
             return await answering(emu, 40.0)
