@@ -226,9 +226,9 @@ def test_the_benchmarks_client_path_through_the_api() -> None:
             assert (await emu.deploy(APP, "pipe.yaml", "N1", check=True)).ok
             with pytest.raises(CommandFailed, match="deployment failed"):  # it runs already
                 await emu.deploy(APP, "pipe.yaml", "N1", check=True)
-            trial = await emu.open_overlay("N4", "trial", timeout=2.0)
+            trial = await emu.open_overlay("N4", "trial", timeout=patience(2.0))
             try:
-                reply = await trial.remap("pipe", chains=[0], check=False, timeout=10.0)
+                reply = await trial.remap("pipe", chains=[0], check=False, timeout=patience(10.0))
                 assert reply.app == "pipe"
                 with pytest.raises(NodeUnreachable, match="did not answer in time"):
                     await trial.remap("pipe", everything=True, timeout=1e-9)
@@ -236,7 +236,8 @@ def test_the_benchmarks_client_path_through_the_api() -> None:
                 await trial.close()
             kept = emu.overlay("N4")
             await kept.close()  # not its own: the emulator's connection stays open
-            assert "pipe" in (await kept.status(everywhere=False, timeout=5.0))["N4"]["apps"]
+            here = await kept.status(everywhere=False, timeout=patience(5.0))
+            assert "pipe" in here["N4"]["apps"]
         finally:
             await emu.stop()
 
