@@ -21,10 +21,14 @@ source (samples not taken, none lost). Figures per outage:
 
 ``--emulated`` also runs the 10 s case on the user-space emulator (real ``mso node``
 processes, a ``--state-dir`` each, the link N1-N2 down and up via ``Emulator.set_link``),
-``--emulated-runs`` times (3: the load of the machine moves its figures).
+``--emulated-runs`` times (3: the load of the machine moves its figures); each
+``--emulated-outage S`` one more emulated cut of S seconds (the 54 Mbit/s link's rate shows in
+the catch-up there; the edge's held and spilled bytes and N1's state directory are polled). A
+row also says whether a node reset (a new incarnation) and how many failures were declared:
+a cut of a pair is to end with neither.
 
 Usage: .venv/bin/python bench/partition.py [--outage S ...] [--emulated] [--emulated-runs N]
-                                           [--json FILE]
+                                           [--emulated-outage S ...] [--json FILE]
 Writes bench/results/partition.json and partition.md.
 """
 
@@ -155,7 +159,9 @@ def sim_run(outage: float, tmp: Path) -> dict[str, Any]:
 
 
 async def emulated_run(outage: float, tmp: Path) -> dict[str, Any]:
-    """The 10 s case on real node processes (each with its own ``--state-dir``)."""
+    """One cut of ``outage`` s on real node processes (each with its own ``--state-dir``): the
+    edge's held and spilled bytes and N1's state directory polled every 0.2 s from the cut
+    until the sink has caught up."""
     from mso.emu.controller import Emulator
     from mso.scenario import loads_scenario
 
@@ -170,41 +176,74 @@ async def emulated_run(outage: float, tmp: Path) -> dict[str, Any]:
         "  sink: {code: mso.benchmarks.vertices.dataplane:LatencySink, pinned: N2}\n"
         f"edges: [{{from: src, to: sink, buffer_bytes: {BOUND}}}]\n"
     )
-    (tmp / "emulated").mkdir(exist_ok=True)
-    emu = Emulator(scenario, log_dir=tmp / "emulated", manage=False)
+    logs = tmp / f"emulated-{outage:g}-{time.monotonic_ns()}"
+    logs.mkdir()
+    emu = Emulator(scenario, log_dir=logs, manage=False)
     row: dict[str, Any] = {"outage_s": outage, "error": None}
+    held = spilled = disk = 0
+
+    def state_bytes() -> int:
+        return sum(f.stat().st_size for f in (logs / "state" / "N1").glob("*") if f.is_file())
+
+    def part(st: dict[str, Any], node: str) -> dict[str, Any]:
+        """``node``'s edge, or why it has none (a node that reset runs no app until told)."""
+        app = st.get(node, {}).get("apps", {}).get("part")
+        if app is None:
+            why = "out of reach" if node not in st else f"incarnation {st[node]['incarnation']}"
+            raise RuntimeError(f"{node} runs no app 'part' ({why})")
+        e: dict[str, Any] = app["edges"].get("src->sink", {})
+        return e
+
+    async def edge() -> dict[str, Any]:
+        nonlocal held, spilled, disk
+        st = await emu.status(via="N1", timeout=10.0)
+        out = part(st, "N1")
+        held, spilled = max(held, out["held_bytes"]), max(spilled, out["spilled_bytes"])
+        disk = max(disk, state_bytes())
+        return out
+
     try:
         await emu.start()
         await emu.deploy(app, "partition.yaml", "N1", check=True)
         await asyncio.sleep(STEADY_S)
+        first = await emu.status()
         link = scenario.network.link("N1", "N2") or LinkSpec("N1", "N2")
-        await emu.set_link("N1", "N2", False)
-        await asyncio.sleep(outage)
         loop = asyncio.get_running_loop()
+        await emu.set_link("N1", "N2", False)
+        cut = loop.time()
+        while loop.time() < cut + outage:
+            await asyncio.sleep(min(1.0, max(0.0, cut + outage - loop.time())))
+            await edge()
         heal = loop.time()
         await emu.set_link("N1", "N2", True, link)
         made_before = 0
-        st: dict[str, Any] = {}
-        while loop.time() < heal + 60:
+        while loop.time() < heal + max(60.0, outage / 5):
             await asyncio.sleep(0.2)
             st = await emu.status()
-            out = st["N1"]["apps"]["part"]["edges"]["src->sink"]
-            got = st["N2"]["apps"]["part"]["edges"].get("src->sink", {}).get("delivered", 0)
+            out = await edge()
+            got = part(st, "N2").get("delivered", 0)
             made_before = made_before or out["sent"]  # (the first poll: about the heal)
             if got >= made_before:
                 row["catch_up_s"] = loop.time() - heal
                 break
         await asyncio.sleep(1.0)
         st = await emu.status()
-        out = st["N1"]["apps"]["part"]["edges"]["src->sink"]
-        inc = st["N2"]["apps"]["part"]["edges"].get("src->sink", {})
+        out, inc = part(st, "N1"), part(st, "N2")
         row |= {
             "sent": out["sent"],
+            "sent_before_heal": made_before,
             "delivered": inc.get("delivered"),
             "duplicates": inc.get("duplicates"),
             "dropped": out["dropped"],
             "resent": out["resent"],
             "resent_mb": out["resent_bytes"] / 1e6,
+            "held_mb": held / 1e6,
+            "spilled_mb": spilled / 1e6,
+            "disk_mb": disk / 1e6,
+            "disk_after_mb": state_bytes() / 1e6,
+            # a node that reset or restarted has a new incarnation; declared: failures recorded
+            "reset": [n for n in ("N1", "N2") if st[n]["incarnation"] != first[n]["incarnation"]],
+            "declared": sum(len(st[n]["failures"]) for n in ("N1", "N2")),
         }
     except Exception as exc:  # reported, never a traceback in the table
         row["error"] = f"{type(exc).__name__}: {exc}"
@@ -230,20 +269,35 @@ def render(result: dict[str, Any]) -> str:
             f"| {r['disk_mb']:,.1f} / {r['disk_after_mb']:,.2f} "
             f"| {r['resent']} ({r['resent_mb']:,.1f}) |"
         )
-    for r in result.get("emulated", []):
-        lines.append("")
+    emulated = result.get("emulated", [])
+    if emulated:
+        lines += [
+            "",
+            "### The same on the user-space emulator (two `mso node` processes, 54 Mbit/s, 1 ms)",
+            "",
+            "| outage | sent | delivered | duplicates | given up | sent again (MB) | catch-up s "
+            "| held MB (max) | spilled MB (max) | disk MB (max / after) | reset / declared |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+    for r in emulated:
+        if r["error"]:
+            lines.append(f"| {r['outage_s']:g} s | error: {r['error']} |" + " |" * 9)
+            continue
+        up = r.get("catch_up_s")
         lines.append(
-            f"- emulated ({r['outage_s']:g} s, real node processes): "
-            + (
-                f"error {r['error']}"
-                if r["error"]
-                else f"sent {r.get('sent')}, delivered {r.get('delivered')} (the newest in "
-                f"flight), duplicates dropped at the sink {r.get('duplicates')}, given up "
-                f"{r.get('dropped')}, sent again {r.get('resent')} events "
-                f"({r.get('resent_mb', 0.0):,.1f} MB), catch-up "
-                f"{r.get('catch_up_s', float('nan')):.1f} s (wall clock, polled every 0.2 s)"
-            )
+            f"| {r['outage_s']:g} s | {r['sent']:,} | {r['delivered']:,} | {r['duplicates']} "
+            f"| {r['dropped']} | {r['resent']} ({r['resent_mb']:,.1f}) "
+            f"| {'-' if up is None else f'{up:.1f}'} | {r['held_mb']:,.1f} "
+            f"| {r['spilled_mb']:,.1f} | {r['disk_mb']:,.1f} / {r['disk_after_mb']:,.2f} "
+            f"| {', '.join(r['reset']) or 'none'} / {r['declared']} |"
         )
+    if emulated:
+        lines += [
+            "",
+            "Delivered counts the sink's events (the newest may be in flight); catch-up is wall "
+            "clock from the heal until the sink holds what was sent before it, polled every "
+            "0.2 s; disk is N1's state directory (the SQLite spill store).",
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -252,6 +306,9 @@ def main() -> int:
     ap.add_argument("--outage", type=float, action="append", help="seconds (repeat)")
     ap.add_argument("--emulated", action="store_true", help="also the 10 s case, emulated")
     ap.add_argument("--emulated-runs", type=int, default=3, help="how many (1..10)")
+    ap.add_argument(
+        "--emulated-outage", type=float, action="append", help="one more emulated cut, s (repeat)"
+    )
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     if not 1 <= args.emulated_runs <= 10:
@@ -259,6 +316,9 @@ def main() -> int:
     outages = tuple(args.outage or OUTAGES)
     if any(o <= 0 or o > 3600 for o in outages):
         ap.error("--outage: seconds in (0, 3600]")
+    cuts = [10.0] * (args.emulated_runs if args.emulated else 0) + (args.emulated_outage or [])
+    if any(o <= 0 or o > 3600 for o in cuts) or len(cuts) > 20:
+        ap.error("--emulated-outage: seconds in (0, 3600], at most 20 emulated runs")
     out: Path = args.json or RESULTS / "partition.json"
     started = time.monotonic()
     rows = []
@@ -267,10 +327,10 @@ def main() -> int:
             row = sim_run(outage, Path(tmp))
             print(row, file=sys.stderr)
             rows.append(row)
-        emulated = [
-            asyncio.run(emulated_run(10.0, Path(tmp)))
-            for _ in range(args.emulated_runs if args.emulated else 0)
-        ]
+        emulated = []
+        for cut in cuts:
+            emulated.append(asyncio.run(emulated_run(cut, Path(tmp))))
+            print(emulated[-1], file=sys.stderr)
     result: dict[str, Any] = {
         "benchmark": "partition",
         "rate": RATE,
