@@ -221,13 +221,19 @@ async def emulated_run(outage: float, tmp: Path) -> dict[str, Any]:
             await asyncio.sleep(0.2)
             st = await emu.status()
             out = await edge()
+            if "N2" not in st:  # (it missed this round)
+                continue
             got = part(st, "N2").get("delivered", 0)
             made_before = made_before or out["sent"]  # (the first poll: about the heal)
             if got >= made_before:
                 row["catch_up_s"] = loop.time() - heal
                 break
         await asyncio.sleep(1.0)
-        st = await emu.status()
+        for _ in range(20):  # a loaded node may miss one status round: asked again
+            st = await emu.status()
+            if "N1" in st and "N2" in st:
+                break
+            await asyncio.sleep(0.5)
         out, inc = part(st, "N1"), part(st, "N2")
         row |= {
             "sent": out["sent"],
