@@ -4,12 +4,14 @@ something unacknowledged, and a link change reaches only the nodes whose routes 
 from __future__ import annotations
 
 import itertools
+from collections import Counter
+from typing import Any
 
 import pytest
 
 from mso.model.appfile import with_planner
 from mso.model.network import LinkSpec, Network, NodeSpec
-from mso.node.core import NodeCore
+from mso.node.core import NodeCore, Send
 from mso.protocol import messages as m
 from mso.protocol.events import Retransmit
 from mso.protocol.procedures.membership.peers import Membership
@@ -65,10 +67,29 @@ def test_a_link_change_reaches_only_the_nodes_whose_routes_it_changes() -> None:
     assert sim.cores["N1"].routes["N6"] == ("N2", 4)
 
 
-def _grid_run(quiet: bool, monkeypatch: pytest.MonkeyPatch) -> tuple[Simulation, int]:
+def _grid_run(
+    quiet: bool, monkeypatch: pytest.MonkeyPatch, cast: bool = True
+) -> tuple[Simulation, int]:
     """A 4x4 grid, one app; its interior host killed at 3 s and revived at 6 s: with beats
-    that carry no news taken by the quiet path (``quiet``) or weighed whole."""
+    that carry no news taken by the quiet path (``quiet``) or weighed whole; a message to
+    several nodes delivered as one broadcast (``cast``) or as sends of their own."""
     monkeypatch.setattr(NodeCore, "quiet_beats", quiet)
+    if not cast:
+
+        def one_by_one(self: Simulation, node: str, sends: list[Send]) -> None:
+            for eff in sends:
+                if not self._send(node, eff.dst, eff.msg):
+                    self.waiting[node].hold(eff.dst, (eff.dst, eff.msg), 0, self.now)
+
+        monkeypatch.setattr(Simulation, "_cast", one_by_one)
+    pushed: Counter[str] = Counter()
+    original_push = Simulation._push
+
+    def push(self: Simulation, at: float, kind: str, node: str, payload: Any) -> None:
+        pushed[kind] += 1
+        original_push(self, at, kind, node, payload)
+
+    monkeypatch.setattr(Simulation, "_push", push)
     taken = [0]
     original = Membership.quiet_beat
 
@@ -96,6 +117,7 @@ def _grid_run(quiet: bool, monkeypatch: pytest.MonkeyPatch) -> tuple[Simulation,
             sim.network.add_link(LinkSpec(victim, n))
     sim.revive(victim)
     sim.run_until(10.0)
+    sim.pushed = pushed  # type: ignore[attr-defined]
     return sim, taken[0]
 
 
@@ -124,6 +146,45 @@ def test_a_beat_with_no_news_taken_quietly_changes_nothing(
         assert core.membership.liveness.last_heard == other.membership.liveness.last_heard
         assert core.membership.heard_of() == other.membership.heard_of()  # hellos taken quietly
         assert core.failures == other.failures and core.rejoins == other.rejoins
+
+
+def test_a_beat_to_every_neighbour_is_one_broadcast_that_changes_nothing(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A beat goes to every neighbour as one scheduled event (a radio's local broadcast),
+    yet each copy is counted, measured and delivered in the order its own send would have
+    had: the run with a failure and a restart goes message for message as with a send per
+    neighbour."""
+    apart, _ = _grid_run(True, monkeypatch, cast=False)
+    cast, _ = _grid_run(True, monkeypatch, cast=True)
+    assert cast.trace == apart.trace
+    assert cast.census.by_type == apart.census.by_type
+    assert cast.census.control == apart.census.control
+    assert cast.bytes == apart.bytes
+    assert cast.replies == apart.replies
+    assert cast.delivered == apart.delivered
+    for n, core in cast.cores.items():
+        assert core.failed == apart.cores[n].failed
+        assert core.membership.liveness.last_heard == apart.cores[n].membership.liveness.last_heard
+    scheduled = apart.pushed["msg"]  # type: ignore[attr-defined]
+    fewer = scheduled - cast.pushed["msg"] - cast.pushed["cast"]  # type: ignore[attr-defined]
+    # the grid's 16 nodes have 2-4 neighbours: a beat is 1 event, not 2-4
+    assert fewer > cast.census.by_type["Heartbeat"] // 2
+    assert apart.pushed["cast"] == 0  # type: ignore[attr-defined]
+
+
+def test_a_broadcast_copy_is_seen_and_lost_one_receiver_at_a_time() -> None:
+    """A test's taps see every copy of a broadcast and ``drop`` loses one receiver's copy,
+    not the others'."""
+    sim = Simulation(_line(3), manage=False)
+    seen: list[tuple[str, str]] = []
+    sim.taps.append(lambda a, b, msg: seen.append((a, b)) if a == "N2" else None)
+    sim.drop = lambda a, b, msg: a == "N2" and b == "N3"
+    sim.run_until(0.35)
+    assert seen.count(("N2", "N1")) == seen.count(("N2", "N3")) > 0
+    n1 = sim.cores["N1"].membership.liveness.last_heard["N2"]
+    assert n1 > 0.2
+    assert sim.cores["N3"].membership.liveness.last_heard.get("N2", 0.0) < 0.1
 
 
 def test_a_first_start_says_hello_to_neighbours_and_a_deployment_carries_incarnations() -> None:

@@ -279,15 +279,27 @@ class Simulation:
 
     def _send(self, node: str, dst: str, msg: m.Message) -> bool:
         """Put ``msg`` on the in-memory network; False when there is no route to ``dst``."""
+        put = self._put(node, dst, msg)
+        if put is None:
+            return False
+        delay, msg = put
+        if delay >= 0:
+            self._push(self.now + delay, "msg", dst, (node, msg))
+        return True
+
+    def _put(self, node: str, dst: str, msg: m.Message) -> tuple[float, m.Message] | None:
+        """Count ``msg`` on its way to ``dst`` (census, taps, bytes at every hop) and say when
+        it arrives, as received (decoded from its frame): its delay, -1 when lost on the way;
+        None when there is no route."""
         path = self._path(node, dst)
         if path is None or (node, dst) in self.lost_routes:
-            return False
+            return None
         route, delay, lossy, senders, receivers = path
         self.census.note(self.now, node, dst, msg, route)
         for tap in self.taps:
             tap(node, dst, msg)
         if self.drop is not None and self.drop(node, dst, msg):
-            return True  # lost on the way
+            return -1.0, msg  # lost on the way
         if lossy and m.kind_of(msg) == m.DATA:
             for end, loss in lossy:
                 if self.rng.random() < loss:
@@ -314,9 +326,33 @@ class Simulation:
                 c[0] += size
             for c in receivers:
                 c[1] += size
-        if delay >= 0:
-            self._push(self.now + delay, "msg", dst, (node, msg))
-        return True
+        return delay, msg
+
+    def _cast(self, node: str, sends: list[Send]) -> None:
+        """One message to several nodes (a beat to every neighbour): on a radio one local
+        broadcast that every neighbour hears at once. Each copy is counted, taps see it and
+        bytes are added as for a send of its own, but the receivers it reaches at the same
+        moment share one scheduled event, delivered to each in the order sent -- the order
+        their own events would have had (a beat's N scheduled sends were a fifth of a
+        1,000-node run)."""
+        group: list[str] = []
+        at = -1.0
+        arrived: m.Message | None = None
+        for eff in sends:
+            put = self._put(node, eff.dst, eff.msg)
+            if put is None:  # no route: control frames wait
+                self.waiting[node].hold(eff.dst, (eff.dst, eff.msg), m.kind_of(eff.msg), self.now)
+                continue
+            delay, arrived = put
+            if delay < 0:
+                continue
+            if group and self.now + delay != at:
+                self._push(at, "cast", node, (group, arrived))
+                group = []
+            at = self.now + delay
+            group.append(eff.dst)
+        if group:
+            self._push(at, "cast", node, (group, arrived))
 
     def _push(self, at: float, kind: str, node: str, payload: Any) -> None:
         heapq.heappush(self._heap, (at, next(self._seq), kind, node, payload))
@@ -324,9 +360,18 @@ class Simulation:
     def apply(self, node: str, effects: list[Effect]) -> None:
         """Carry out ``effects`` as if ``node``'s core had returned them (tests inject
         messages this way)."""
-        for eff in effects:
+        i, count = 0, len(effects)
+        while i < count:
+            eff = effects[i]
+            i += 1
             if isinstance(eff, Send):
-                if not self._send(node, eff.dst, eff.msg):  # no route: control frames wait
+                j = i
+                while j < count and type(nxt := effects[j]) is Send and nxt.msg is eff.msg:
+                    j += 1
+                if j > i:  # the same message to several nodes: one broadcast
+                    self._cast(node, effects[i - 1 : j])  # type: ignore[arg-type]
+                    i = j
+                elif not self._send(node, eff.dst, eff.msg):  # no route: control frames wait
                     self.waiting[node].hold(
                         eff.dst, (eff.dst, eff.msg), m.kind_of(eff.msg), self.now
                     )
@@ -392,6 +437,20 @@ class Simulation:
         self._recheck.add(node)
         self.update_routes()
 
+    def _deliver(self, at: float, src: str, dsts: list[str], msg: m.Message) -> None:
+        """A broadcast's copies arriving at ``at``, at each receiver in turn."""
+        cores, killed, count = self.cores, self.killed, self.bytes
+        for node in dsts:
+            if node in killed:
+                continue
+            core = cores[node]
+            sent, received = count[node]
+            core.observe(at, sent, received)
+            self.delivered += 1
+            if self.trace is not None:
+                self.trace.append((at, node, src, type(msg).__name__))
+            self.apply(node, core.receive(src, msg, at))
+
     def run_until(self, t: float) -> None:
         heap = self._heap
         while heap and heap[0][0] <= t:
@@ -399,6 +458,9 @@ class Simulation:
             self.now = at
             if kind == "routes":
                 self.update_routes()
+                continue
+            if kind == "cast":
+                self._deliver(at, node, *payload)
                 continue
             if node in self.killed:
                 continue
