@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -68,11 +69,22 @@ def test_a_link_change_reaches_only_the_nodes_whose_routes_it_changes() -> None:
 
 
 def _grid_run(
-    quiet: bool, monkeypatch: pytest.MonkeyPatch, cast: bool = True
+    quiet: bool,
+    monkeypatch: pytest.MonkeyPatch,
+    cast: bool = True,
+    each: Callable[[Simulation], None] | None = None,
 ) -> tuple[Simulation, int]:
     """A 4x4 grid, one app; its interior host killed at 3 s and revived at 6 s: with beats
     that carry no news taken by the quiet path (``quiet``) or weighed whole; a message to
-    several nodes delivered as one broadcast (``cast``) or as sends of their own."""
+    several nodes delivered as one broadcast (``cast``) or as sends of their own; ``each``
+    looks at the simulation every 50 ms."""
+
+    def run_until(t: float) -> None:
+        while each is not None and sim.now + 0.05 < t:
+            sim.run_until(sim.now + 0.05)
+            each(sim)
+        sim.run_until(t)
+
     monkeypatch.setattr(NodeCore, "quiet_beats", quiet)
     if not cast:
 
@@ -107,16 +119,16 @@ def _grid_run(
     (src, doc), = pipelines(["N1", "N16"], 1, seed=0, rate=20.0)  # fmt: skip
     # the paper's split puts p1 on an interior node, the victim (bytes: beside a pinned end)
     sim.request(src, m.DeployRequest(with_planner(doc, "paper"), "app.yaml"))
-    sim.run_until(3.0)
+    run_until(3.0)
     victim = sim.placement("N1", "app0")["p1"]
     assert victim not in ("N1", "N16")
     sim.kill(victim, convergence_s=0.2)
-    sim.run_until(6.0)
+    run_until(6.0)
     for n in sim.network.nodes:  # its links back, then the daemon restarts
         if n != victim and ids.index(n) in _grid_neighbours(ids.index(victim)):
             sim.network.add_link(LinkSpec(victim, n))
     sim.revive(victim)
-    sim.run_until(10.0)
+    run_until(10.0)
     sim.pushed = pushed  # type: ignore[attr-defined]
     return sim, taken[0]
 
@@ -171,6 +183,66 @@ def test_a_beat_to_every_neighbour_is_one_broadcast_that_changes_nothing(
     # the grid's 16 nodes have 2-4 neighbours: a beat is 1 event, not 2-4
     assert fewer > cast.census.by_type["Heartbeat"] // 2
     assert apart.pushed["cast"] == 0  # type: ignore[attr-defined]
+
+
+def test_a_beat_reads_only_the_apps_engaged_here_and_misses_none(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Every node holds every app's document, but a beat counts instances and looks for
+    vanished vertices only in the apps engaged here (Apps.engaged): through a deployment, a
+    failure, the restart that leaves vertices vanished and their restore, that is every app
+    with either, at every moment, on every node."""
+    seen = {"hosting": 0, "vanished": 0}
+
+    def check(sim: Simulation) -> None:
+        for n, core in sim.cores.items():
+            if n in sim.killed:
+                continue
+            apps = core.apps
+            full = {a for a, dep in apps.items() if dep.instances or dep.vanished}
+            assert {dep.app.name for dep in apps.engaged_apps()} == full, (sim.now, n)
+            hosting = sum(len(dep.instances) for dep in apps.values())
+            assert core.membership._hosting() == hosting
+            seen["hosting"] += hosting > 0
+            seen["vanished"] += any(dep.vanished for dep in apps.values())
+
+    _grid_run(True, monkeypatch, each=check)
+    assert seen["hosting"] and seen["vanished"]  # (both were there to be missed)
+
+
+def test_an_app_notes_itself_engaged_however_it_gains_an_instance_or_a_vanished_vertex() -> None:
+    sim = Simulation(_line(2), manage=False)
+    (_, doc), = pipelines(["N1", "N2"], 1, seed=0, rate=20.0)  # fmt: skip
+    sim.request("N1", m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(1.0)
+    apps = sim.cores["N2"].apps
+    dep = apps["app0"]
+    held = dict(dep.instances)
+    dep.instances.clear()
+    dep.vanished.clear()
+    assert apps.engaged_apps() == [] and not apps.engaged
+    grow: list[Callable[[], object]] = [
+        lambda: dep.instances.__setitem__("x", next(iter(held.values()))),
+        lambda: dep.instances.setdefault("x", next(iter(held.values()))),
+        lambda: dep.instances.update(held),
+        lambda: dep.instances.__ior__(held),
+        lambda: dep.vanished.add("p1"),
+        lambda: dep.vanished.update({"p1"}),
+        lambda: dep.vanished.__ior__({"p1"}),
+        lambda: dep.vanished.__ixor__({"p1"}),
+        lambda: dep.vanished.replace({"p1"}),
+    ]
+    for way in grow:
+        way()
+        assert apps.engaged_apps() == [dep]
+        dep.instances.clear()
+        dep.vanished.clear()
+        assert apps.engaged_apps() == []
+    dep.vanished.add("p1")  # a new record for the app (a sync) in place of the old one
+    apps["app0"] = replaced = type(dep)(dep.app, dep.layout, dep.origin, dict(dep.placed))
+    assert apps.engaged_apps() == []
+    replaced.vanished.add("p2")
+    assert apps.engaged_apps() == [replaced]
 
 
 def test_a_broadcast_copy_is_seen_and_lost_one_receiver_at_a_time() -> None:

@@ -83,7 +83,7 @@ from mso.protocol.procedures.replication import Replicator
 from mso.protocol.procedures.restore import Restorer
 from mso.protocol.procedures.status import StatusFanout
 from mso.protocol.spill import MemorySpill, SpillStore
-from mso.protocol.state import AppState, HostedInstance
+from mso.protocol.state import Apps, AppState, HostedInstance
 from mso.protocol.taps import TapTick
 
 __all__ = ["AppState", "Effect", "HostedInstance", "NodeCore", "Reply", "Send", "SetTimer"]
@@ -149,7 +149,7 @@ class NodeCore:
         # the hops the last figures carried: of which routing table, for which app partners
         self._beat_hops: tuple[dict[str, tuple[str, int]], frozenset[str], dict[str, int]] | None
         self._beat_hops = None
-        self.apps: dict[str, AppState] = {}
+        self.apps = Apps()
         self.procedures: dict[int, Procedure] = {}  # the procedures this node coordinates
         self._status_pid = -1  # the status fan-out gathering now, if any (one at a time)
         self.dropped_messages = 0
@@ -554,7 +554,9 @@ class NodeCore:
         relays, and the suspect's neighbours a detector asks) and to those of the apps this
         node runs part of (a move's radio cost at the relays) — never all N, so a beat's
         size does not grow with the network."""
-        partners = {n for dep in self.apps.values() if dep.instances for n in dep.placed.values()}
+        partners = {
+            n for dep in self.apps.engaged_apps() if dep.instances for n in dep.placed.values()
+        }
         kept = self._beat_hops
         if kept is not None and kept[0] is self.routes and kept[1] == partners:
             return kept[2]  # the same routing table (a new one on every change): the same hops

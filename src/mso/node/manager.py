@@ -36,7 +36,7 @@ if TYPE_CHECKING:
     from mso.node.monitor import Monitor
     from mso.protocol import messages as m
     from mso.protocol.procedures.base import Procedure
-    from mso.protocol.state import AppState
+    from mso.protocol.state import Apps, AppState
 
 
 class ManagementStatus(EngineStatus, frozen=True, kw_only=True):
@@ -54,7 +54,7 @@ class ManagedNode(Protocol):
     power: PowerModel
     monitor: Monitor
     routes: dict[str, tuple[str, int]]
-    apps: dict[str, AppState]
+    apps: Apps
     procedures: dict[int, Procedure]
 
     @property

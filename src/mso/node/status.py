@@ -29,7 +29,7 @@ from mso.protocol.authority import AuthorityStatus
 from mso.protocol.procedures.membership.liveness import LivenessStatus
 from mso.protocol.procedures.membership.peers import Membership
 from mso.protocol.procedures.membership.status import Heard
-from mso.protocol.state import AppState, AppStatus
+from mso.protocol.state import Apps, AppStatus
 
 if TYPE_CHECKING:
     from mso.protocol.dataplane import DataPlane
@@ -99,7 +99,7 @@ class StatusSource(Protocol):
 
     id: str
     routes: dict[str, tuple[str, int]]
-    apps: dict[str, AppState]
+    apps: Apps
     monitor: Monitor
     dataplane: DataPlane
     membership: Membership

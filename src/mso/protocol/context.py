@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from mso.protocol.events import InternalEvent
     from mso.protocol.procedures.base import Procedure
     from mso.protocol.spill import SpillStore
-    from mso.protocol.state import AppState
+    from mso.protocol.state import Apps
 
 
 class NodeContext(Protocol):
@@ -38,7 +38,7 @@ class NodeContext(Protocol):
     def incarnation(self) -> int: ...
 
     @property
-    def apps(self) -> dict[str, AppState]: ...
+    def apps(self) -> Apps: ...
 
     @property
     def routes(self) -> dict[str, tuple[str, int]]: ...

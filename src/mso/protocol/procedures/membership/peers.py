@@ -197,9 +197,9 @@ class Membership(AppSyncing):
         return {n for dep in self.ctx.apps.values() for n in dep.placed.values()}
 
     def _hosting(self) -> int:
-        """Instances hosted here, over every app held (on every beat: summed in C, not in a
-        generator, which was 14% of a 1,000-node simulation)."""
-        return sum(map(len, map(_INSTANCES, self.ctx.apps.values())))
+        """Instances hosted here (on every beat: over the apps engaged here only, not every
+        app held, and summed in C)."""
+        return sum(map(len, map(_INSTANCES, self.ctx.apps.engaged_apps())))
 
     # -- the detector: beats out, silence and unreachability judged, suspicion asked -----------
     def beat(self, news: list[m.NodeDown] | None = None, figures: bool = True) -> m.Heartbeat:
@@ -254,7 +254,7 @@ class Membership(AppSyncing):
         self._flush_syncs()
         # this node may have become an app's recovery coordinator (it runs part of it now);
         # with nothing failed and nothing vanished no app has a vertex to recover
-        if self.failed or any(map(_VANISHED, self.ctx.apps.values())):
+        if self.failed or any(map(_VANISHED, self.ctx.apps.engaged_apps())):
             self.ctx.publish(RecoveryDue())
         self.ctx.set_timer(HeartbeatTick(), now + self.liveness.period_s)
 

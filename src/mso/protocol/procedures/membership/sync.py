@@ -92,7 +92,7 @@ class AppSyncing:
         taken = {v for v, n in msg.placed.items() if better(v, n)}
         for v in taken:
             held.placed[v] = msg.placed[v]
-        held.vanished = (held.vanished - taken) | (taken & gone)
+        held.vanished.replace((held.vanished - taken) | (taken & gone))
 
     def _app_sync(self, dep: AppState) -> m.AppSync:
         placed = dict(dep.placed)
@@ -189,7 +189,7 @@ class AppSyncing:
             v: n for v, n in msg.placed.items() if v in app.vertices
         }
         dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
-        dep.vanished = {v for v in msg.vanished if v in app.vertices} | self._outlived(msg)
+        dep.vanished.replace({v for v in msg.vanished if v in app.vertices} | self._outlived(msg))
         dep.capable = {v: list(ns) for v, ns in msg.capable.items() if v in layout.resolved}
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
         dep.running, dep.started_at = True, now
