@@ -189,9 +189,10 @@ def test_a_beat_reads_only_the_apps_engaged_here_and_misses_none(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Every node holds every app's document, but a beat counts instances and looks for
-    vanished vertices only in the apps engaged here (Apps.engaged): through a deployment, a
-    failure, the restart that leaves vertices vanished and their restore, that is every app
-    with either, at every moment, on every node."""
+    vanished vertices (and a monitor period for chain delays to report) only in the apps
+    engaged here (Apps.engaged): through a deployment, a failure, the restart that leaves
+    vertices vanished and their restore, that is every app with any, at every moment, on
+    every node."""
     seen = {"hosting": 0, "vanished": 0}
 
     def check(sim: Simulation) -> None:
@@ -199,7 +200,11 @@ def test_a_beat_reads_only_the_apps_engaged_here_and_misses_none(
             if n in sim.killed:
                 continue
             apps = core.apps
-            full = {a for a, dep in apps.items() if dep.instances or dep.vanished}
+            full = {
+                a
+                for a, dep in apps.items()
+                if dep.instances or dep.vanished or dep.delays or n in dep.placed.values()
+            }
             assert {dep.app.name for dep in apps.engaged_apps()} == full, (sim.now, n)
             hosting = sum(len(dep.instances) for dep in apps.values())
             assert core.membership._hosting() == hosting
@@ -210,16 +215,20 @@ def test_a_beat_reads_only_the_apps_engaged_here_and_misses_none(
     assert seen["hosting"] and seen["vanished"]  # (both were there to be missed)
 
 
-def test_an_app_notes_itself_engaged_however_it_gains_an_instance_or_a_vanished_vertex() -> None:
+def test_an_app_notes_itself_engaged_however_it_gains_an_instance_or_a_vertex_here() -> None:
     sim = Simulation(_line(2), manage=False)
     (_, doc), = pipelines(["N1", "N2"], 1, seed=0, rate=20.0)  # fmt: skip
     sim.request("N1", m.DeployRequest(doc, "app.yaml"))
     sim.run_until(1.0)
-    apps = sim.cores["N2"].apps
+    apps = sim.cores[sim.placement("N1", "app0")["sink"]].apps
     dep = apps["app0"]
     held = dict(dep.instances)
+    assert dep.delays  # (the sink ends the app's one chain here)
     dep.instances.clear()
-    dep.vanished.clear()
+    assert apps.engaged_apps() == [dep]  # its delays are still reported from here
+    dep.delays.clear()
+    placed = dict(dep.placed)
+    dep.placed.update((v, "elsewhere") for v in placed)
     assert apps.engaged_apps() == [] and not apps.engaged
     grow: list[Callable[[], object]] = [
         lambda: dep.instances.__setitem__("x", next(iter(held.values()))),
@@ -231,15 +240,19 @@ def test_an_app_notes_itself_engaged_however_it_gains_an_instance_or_a_vanished_
         lambda: dep.vanished.__ior__({"p1"}),
         lambda: dep.vanished.__ixor__({"p1"}),
         lambda: dep.vanished.replace({"p1"}),
+        lambda: dep.placed.__setitem__("p1", apps.node),
+        lambda: dep.placed.update(placed),
+        lambda: dep.placed.__ior__({"sink": apps.node}),
     ]
     for way in grow:
         way()
         assert apps.engaged_apps() == [dep]
         dep.instances.clear()
         dep.vanished.clear()
+        dep.placed.update((v, "elsewhere") for v in placed)
         assert apps.engaged_apps() == []
     dep.vanished.add("p1")  # a new record for the app (a sync) in place of the old one
-    apps["app0"] = replaced = type(dep)(dep.app, dep.layout, dep.origin, dict(dep.placed))
+    apps["app0"] = replaced = type(dep)(dep.app, dep.layout, dep.origin, {})
     assert apps.engaged_apps() == []
     replaced.vanished.add("p2")
     assert apps.engaged_apps() == [replaced]

@@ -149,7 +149,7 @@ class NodeCore:
         # the hops the last figures carried: of which routing table, for which app partners
         self._beat_hops: tuple[dict[str, tuple[str, int]], frozenset[str], dict[str, int]] | None
         self._beat_hops = None
-        self.apps = Apps()
+        self.apps = Apps(node_id)
         self.procedures: dict[int, Procedure] = {}  # the procedures this node coordinates
         self._status_pid = -1  # the status fan-out gathering now, if any (one at a time)
         self.dropped_messages = 0

@@ -137,11 +137,11 @@ class Manager:
         me = self.core.id
         return any(
             dep.running and dep.recovering is None and (dep.instances or me in dep.placed.values())
-            for dep in self.core.apps.values()
+            for dep in self.core.apps.engaged_apps()
         )
 
     def _measure(self, now: float) -> None:
-        for dep in self.core.apps.values():
+        for dep in self.core.apps.engaged_apps():
             for vid, instance in dep.instances.items():
                 count = instance.emitted if instance.kind == "source" else instance.processed
                 key = (dep.app.name, vid)

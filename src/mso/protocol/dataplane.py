@@ -419,6 +419,7 @@ class DataPlane:
             dep.delays[chain] = (
                 ms if old is None else DELAY_SMOOTHING * ms + (1 - DELAY_SMOOTHING) * old
             )
+            dep.engaged.note()  # reported from here every monitor period (report_delays)
         out_edges = dep.out_edges.get(vid, [])
         if res.outputs and out_edges:
             h.emitted += fx.events_in(res.outputs)
@@ -615,7 +616,7 @@ class DataPlane:
 
     def report_delays(self, now: float) -> None:
         """Tell each chain's head node the delay measured at its tail (here)."""
-        for dep in self.ctx.apps.values():
+        for dep in self.ctx.apps.engaged_apps():
             for chain, ms in dep.delays.items():
                 head = dep.placed[dep.layout.chains[chain].head]
                 if head == self.ctx.id:

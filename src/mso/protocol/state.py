@@ -11,7 +11,7 @@ from collections import deque
 from collections.abc import Iterable
 from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
-from typing import Any, Self
+from typing import Any, Self, TypeVar
 
 import msgspec
 
@@ -22,6 +22,7 @@ from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.procedures.instance import InstanceLife
 from mso.protocol.provenance import Marks
 
+V = TypeVar("V")
 BUSY_AFTER_S = 1.0  # an instance working on one effect this long is reported busy ...
 HUNG_AFTER_S = 10.0  # ... and this long, hung (status only: it never takes the node down)
 
@@ -269,11 +270,12 @@ class HostedInstance:
 
 
 class Engaged:
-    """Which apps may have instances or vanished vertices on a node: an app's
-    :class:`Hosted` and :class:`Vanished` put its name in ``apps`` when they gain an entry,
-    and :class:`Apps` points every app it holds at its own set. A beat reads these apps
-    only, not every app held (at 1,000 nodes a node holds 50 apps and runs part of 0-2:
-    walking all 50 on every beat was a third of the simulator's CPU)."""
+    """Which apps a node takes part in: an app's :class:`Hosted`, :class:`Placed` and
+    :class:`Vanished` put its name in ``apps`` when they gain or change an entry (the data
+    plane when it measures a chain's delay), and :class:`Apps` points every app it holds at
+    its own set. A beat and a monitor period read these apps only, not every app held (at
+    1,000 nodes a node holds 50 apps and runs part of 0-2: walking all 50 on every beat and
+    every monitor period was a third of the simulator's CPU)."""
 
     __slots__ = ("apps", "name")
 
@@ -285,31 +287,45 @@ class Engaged:
         self.apps.add(self.name)
 
 
-class Hosted(dict[str, "HostedInstance"]):
-    """An app's instances on this node (vertex -> instance): a dict that notes its app engaged
-    whenever it gains one."""
+class _Noting(dict[str, V]):
+    """A dict that notes its app engaged whenever it gains (or changes) an entry."""
 
     __slots__ = ("engaged",)
 
-    def __init__(self, engaged: Engaged) -> None:
-        super().__init__()
+    def __init__(self, engaged: Engaged, items: dict[str, V] | None = None) -> None:
+        super().__init__(items or {})
         self.engaged = engaged
+        if self:
+            engaged.note()
 
-    def __setitem__(self, key: str, value: HostedInstance) -> None:
+    def __setitem__(self, key: str, value: V) -> None:
         super().__setitem__(key, value)
         self.engaged.note()
 
-    def setdefault(self, key: str, default: HostedInstance) -> HostedInstance:
+    def setdefault(self, key: str, default: V) -> V:
         self.engaged.note()
         return super().setdefault(key, default)
 
-    def update(self, *args: Any, **kwargs: HostedInstance) -> None:
+    def update(self, *args: Any, **kwargs: V) -> None:
         super().update(*args, **kwargs)
         self.engaged.note()
 
     def __ior__(self, other: Any) -> Self:  # type: ignore[override,misc]
         self.update(other)
         return self
+
+
+class Hosted(_Noting["HostedInstance"]):
+    """An app's instances on this node (vertex -> instance)."""
+
+    __slots__ = ()
+
+
+class Placed(_Noting[str]):
+    """Where this node holds each vertex of an app to run (vertex -> node): any change may
+    place one here (changed in place only, never assigned anew)."""
+
+    __slots__ = ()
 
 
 class Vanished(set[str]):
@@ -348,29 +364,34 @@ class Vanished(set[str]):
 
 
 class Apps(dict[str, "AppState"]):
-    """A node's apps (name -> what it holds of each), and ``engaged``: the names of those that
-    may have instances or vanished vertices here (a superset: an app that lost them stays
-    until :meth:`engaged_apps` looks)."""
+    """A node's apps (name -> what it holds of each), and ``engaged``: the names of those it
+    may take part in -- instances, vanished vertices or chain delays measured here, or a
+    vertex placed here (a superset: an app that lost them stays until :meth:`engaged_apps`
+    looks)."""
 
-    __slots__ = ("engaged",)
+    __slots__ = ("engaged", "node")
 
-    def __init__(self) -> None:
+    def __init__(self, node: str = "") -> None:
         super().__init__()
+        self.node = node  # this node: an app placing a vertex here is engaged
         self.engaged: set[str] = set()
 
     def __setitem__(self, name: str, dep: AppState) -> None:
         super().__setitem__(name, dep)
         dep.engaged.apps = self.engaged
-        if dep.instances or dep.vanished:
+        if self._engaged(dep):
             self.engaged.add(name)
 
+    def _engaged(self, dep: AppState) -> bool:
+        return bool(dep.instances or dep.vanished or dep.delays or self.node in dep.placed.values())
+
     def engaged_apps(self) -> list[AppState]:
-        """The apps with instances or vanished vertices here, in no particular order; the
-        others are forgotten from ``engaged``."""
+        """The apps this node takes part in, in no particular order; the others are
+        forgotten from ``engaged``."""
         out = []
         for name in list(self.engaged):
             dep = self.get(name)
-            if dep is not None and (dep.instances or dep.vanished):
+            if dep is not None and self._engaged(dep):
                 out.append(dep)
             else:
                 self.engaged.discard(name)
@@ -457,6 +478,7 @@ class AppState:
     def __post_init__(self) -> None:
         self.replicas = self.layout.replicas()
         self.engaged = Engaged(self.app.name)
+        self.placed = Placed(self.engaged, self.placed)
         self.instances = Hosted(self.engaged)
         self.vanished = Vanished(self.engaged)
 

@@ -150,7 +150,10 @@ class Liveness:
         if beat is not None:
             if beat.figures is not None:
                 self.heard[node] = (now, beat.figures)
-            self.gaps.setdefault(node, Gaps()).beat(now)
+            gaps = self.gaps.get(node)  # (not setdefault: a Gaps made and dropped per beat)
+            if gaps is None:
+                gaps = self.gaps[node] = Gaps()
+            gaps.beat(now)
 
     def silent(self, now: float, dead: set[str]) -> list[str]:
         """Watched nodes silent for longer than ``dead_after_s`` (sorted, deterministic):

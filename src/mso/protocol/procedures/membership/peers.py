@@ -368,6 +368,8 @@ class Membership(AppSyncing):
         once when they are heard again. Any other node out of reach stays unreachable (a
         robot that drove off with its pinned sink, or the node beyond it on a line that
         broke): taken back as it is, no reset."""
+        if not away:
+            return []
         window = self.liveness.dead_after_s
         return [
             n
