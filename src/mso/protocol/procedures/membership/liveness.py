@@ -172,6 +172,8 @@ class Liveness:
 
     def unreachable(self, dead: set[str]) -> list[str]:
         """Nodes out of reach that nobody declared failed (sorted): unreachable, not failed."""
+        if not self.gone:  # (on every beat: most of the time nobody is out of reach)
+            return []
         return sorted(n for n in self.gone if n not in dead)
 
     def hears(self, node: str, now: float, within: float | None = None) -> bool:
