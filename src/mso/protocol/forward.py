@@ -23,6 +23,12 @@ from mso.protocol.state import AppState
 RETRANSMIT_S = 0.25
 HANDOVER_PART_BYTES = 1 << 20  # events a move's Handover carries itself, and each part ahead
 MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
+# a backlog (after an outage, or handed over unsent) drains with at most about this much
+# unacknowledged: the rest goes as acks come back. Without it a heal sent a window (4,096
+# events: 200 MB of 50 KB ones) in one turn, and on the emulator the two ends of a 10-minute
+# cut, each busy with it past the detector's window, declared each other: the sink's node
+# reset, its sink was restored and the whole window went again: 58 times in 105 s.
+MAX_IN_FLIGHT_BYTES = 4 * 1024 * 1024
 
 
 class Plane(Protocol):
@@ -158,8 +164,9 @@ class StoreAndForward:
         self.dp.unblock(dep, edge)
 
     def drain(self, dep: AppState, edge: int) -> None:
-        """Send what ``edge`` holds unsent, as far as its window admits, in frames of about
-        ``MAX_BATCH_BYTES`` (after an outage, or events handed over unsent)."""
+        """Send what ``edge`` holds unsent, as far as its window and ``MAX_IN_FLIGHT_BYTES``
+        admit, in frames of about ``MAX_BATCH_BYTES`` (after an outage, or events handed over
+        unsent); each ack drains on."""
         out = dep.out.get(edge)
         if out is None or self.held(dep, edge):
             return
@@ -171,12 +178,15 @@ class StoreAndForward:
         batch = self.dp.outbox.pop((app, edge), None)  # what was sent before goes first
         if batch is not None:
             self.ctx.emit(Send(dst, m.Data(app, edge, dep.epoch, *batch, floor=out.acked)))
-        per_frame = max(1, MAX_BATCH_BYTES // max(1, out.kept_bytes // max(1, out.kept)))
+        size = max(1, out.kept_bytes // max(1, out.kept))  # an event's, on average
+        per_frame = max(1, MAX_BATCH_BYTES // size)
+        room = max(1, MAX_IN_FLIGHT_BYTES // size) - (out.sent - out.acked)
         ts = out.stamp(out.sent)
-        while True:
-            first, events = out.unsent(per_frame)
+        while room > 0:
+            first, events = out.unsent(min(per_frame, room))
             if not events:
                 return
+            room -= len(events)
             self.transmit(dep, edge, first, events, ts, out.acked)
 
     def back_in_reach(self, out: OutChannel) -> None:
