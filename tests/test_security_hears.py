@@ -4,7 +4,9 @@ declared. A captured member answering yes for a dead node kept it alive for ever
 that asked it — apps it hosts nothing of stopped for good. Now one member's uncorroborated yes
 keeps a suspect alive for at most ``LONE_YES_WINDOWS`` liveness windows (until this node hears
 the node itself); two members that hear it, or the only member there is to ask, still keep it
-alive as long as they hear it (a routing view that lags, as babeld's did for 12 s).
+alive as long as they hear it (a routing view that lags, as babeld's did for 12 s) — for at
+most ``MEMBERS_YES_WINDOWS`` windows (20 s): two captured members kept a dead node alive for
+ever.
 
 In the simulator, whose sources are proven as with node identities."""
 
@@ -14,7 +16,11 @@ from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.node.core import Effect
 from mso.protocol import messages as m
 from mso.protocol.effects import Send
-from mso.protocol.procedures.membership.claims import LONE_YES_WINDOWS, Vouchers
+from mso.protocol.procedures.membership.claims import (
+    LONE_YES_WINDOWS,
+    MEMBERS_YES_WINDOWS,
+    Vouchers,
+)
 from mso.sim.runner import Simulation
 from runtime_vertices import pipe_app
 from test_failure import emitted, recoveries, started, stats, where
@@ -112,3 +118,36 @@ def test_a_lone_yes_counts_for_its_windows_until_the_node_is_heard_itself() -> N
     v.heard("S")  # heard itself: a later lone yes has its windows again
     assert v.counts("S", {"X"}, 3, now=200.0, grace_s=grace)
     assert v.lone == {"S": 200.0}
+
+
+def test_two_captured_members_keep_a_dead_node_alive_only_for_their_windows() -> None:
+    """N2 and N6, both neighbours of N3, answer yes for it after it died (and claim nothing):
+    two members' word. It used to keep N3 alive for ever (the sink stopped at 200 of 3,200
+    events in 30 s); now for at most ``MEMBERS_YES_WINDOWS`` windows, then N3 is declared and
+    mid restored, the app whole."""
+    sim = overlay()
+    told = [captured(sim, n, "N3") for n in ("N2", "N6")]
+    t0 = sim.now
+    sim.kill("N3", convergence_s=0.3)
+    sim.run_until(t0 + 23.0)
+    assert all(told), "the liars were never asked: the attack did not happen"
+    survivors = [n for n in sim.cores if n != "N3"]
+    declared = min(f["at"] for n in survivors for f in sim.cores[n].failures) - t0
+    bound = MEMBERS_YES_WINDOWS * DEAD_AFTER_S
+    assert bound - 1.0 <= declared <= bound + 2 * DEAD_AFTER_S, declared
+    assert refused(sim, "hears_uncorroborated") >= 1
+    sim.run_until(t0 + 26.0)
+    assert where(sim, "pipe", "mid") not in ("N3", "N2", "N6")
+    got, sent = stats(sim, "pipe", "sink"), emitted(sim, "pipe", "src")
+    assert got["repeats"] == 0 and got["out_of_order"] == 0
+    assert sent - 5 <= got["count"] <= sent
+
+
+def test_members_yes_counts_for_their_windows_until_the_node_is_heard_itself() -> None:
+    v, bound = Vouchers(), MEMBERS_YES_WINDOWS * DEAD_AFTER_S
+    assert v.counts("S", {"X", "Y"}, 3, now=10.0, grace_s=2.0, bound_s=bound)
+    assert v.counts("S", {"X", "Y"}, 3, now=10.0 + bound, grace_s=2.0, bound_s=bound)
+    assert not v.counts("S", {"X", "Y"}, 3, now=10.1 + bound, grace_s=2.0, bound_s=bound)
+    assert not v.counts("S", {"X"}, 1, now=10.1 + bound, grace_s=2.0, bound_s=bound)
+    v.heard("S")  # heard itself: members' word has its windows again
+    assert v.counts("S", {"X", "Y"}, 3, now=99.0, grace_s=2.0, bound_s=bound)

@@ -21,6 +21,7 @@ if TYPE_CHECKING:  # cryptography is imported only by a client that signs; async
     from mso.protocol.clients import ClientIdentity
 
 DEFAULT_KEY = "mso-insecure-default-key"
+ORDERS = (m.RelocateRequest, m.RemapRequest)  # signed as orders too (mso.protocol.warrant)
 
 
 def encrypt_default() -> bool:
@@ -143,9 +144,14 @@ class Exchange:
         if own is not None and isinstance(msg, own.signs):
             nonce = self.codec.peer_nonce
             assert nonce is not None
+            if isinstance(msg, ORDERS) and not msg.sig and self.identity is not None:
+                cert = msgspec.msgpack.encode(self.identity.cert)  # (its key's, with it)
+                msg = own.order(msg, time.time_ns() // 1_000_000, cert)
             msg = own.command(nonce, msg)
         elif self.signer is not None and isinstance(msg, self.signer.signs):
             now_ms = time.time_ns() // 1_000_000  # a grant's generation, an undeploy's time
+            if isinstance(msg, ORDERS) and not msg.sig:  # a move's every step shows it
+                msg = self.signer.order(msg, now_ms)
             if isinstance(msg, m.DeployRequest):
                 msg = m.DeployRequest(self.signer.grant(msg.document, now_ms), msg.file)
             elif isinstance(msg, m.StopApp) and not msg.sig:  # verified by every node

@@ -52,6 +52,7 @@ _CMD = b"mso-command-1"
 _DOC = b"mso-document-2"
 _UNDEPLOY = b"mso-undeploy-1"
 _REVOKE_NODE = b"mso-revoke-node-1"
+_ORDER = b"mso-order-1"
 MAX_REVOKED = 4096  # apps whose undeploy a node remembers (the oldest is forgotten first)
 
 # client commands that change an overlay: an operator's (or the node's emulator's) signature
@@ -159,6 +160,15 @@ class Signer:
         sig = self.private.sign(_undeploy_bytes(app, at_ms))
         return m.StopApp(app, at=at_ms, key=self.id, sig=sig)
 
+    def order(
+        self, req: m.RelocateRequest | m.RemapRequest, at_ms: int, cert: bytes = b""
+    ) -> m.RelocateRequest | m.RemapRequest:
+        """``req`` as an *order* every node a step of the move reaches can verify (no
+        connection in it: :mod:`mso.protocol.warrant`); ``cert``: a command client's
+        certificate, for its key."""
+        req = msgspec.structs.replace(req, at=at_ms, key=self.id, sig=b"", cert=cert)
+        return msgspec.structs.replace(req, sig=self.private.sign(order_bytes(req)))
+
     def revoke_node(self, node_key: str, at_ms: int) -> m.RevokeNode:
         """A revocation of the node key ``node_key`` that every node verifies."""
         return m.RevokeNode(
@@ -169,6 +179,12 @@ class Signer:
 def revoke_bytes(node_key: str, at_ms: int) -> bytes:
     """What an operator signs to revoke a node key."""
     return _REVOKE_NODE + str(at_ms).encode() + b"\n" + node_key.encode()
+
+
+def order_bytes(req: m.RelocateRequest | m.RemapRequest) -> bytes:
+    """What an order's signature covers: the request but its signature fields, and its time."""
+    bare = msgspec.structs.replace(req, at=0, key="", sig=b"", cert=b"")
+    return _ORDER + str(req.at).encode() + b"\n" + m.encode(bare)
 
 
 def _grant_bytes(at_ms: int, text: str) -> bytes:

@@ -366,6 +366,7 @@ class Rewire(_Msg, tag="rewire"):
     to: str
     rid: int
     producer: bool
+    order: bytes = b""  # the operator's order the move carries out (mso.protocol.warrant)
 
 
 class Resume(_Msg, tag="resume"):
@@ -478,6 +479,7 @@ class Prepare(_Msg, tag="prepare"):
     # a restore: the nodes the coordinator knows hold the vertex's replicas (a target that
     # restarted since was never told, and would start the state afresh: seed 8029)
     replicas: list[str] = msgspec.field(default_factory=list)
+    order: bytes = b""  # the operator's order the move carries out (mso.protocol.warrant)
 
 
 class Unprepare(_Msg, tag="unprepare"):
@@ -508,6 +510,7 @@ class Switch(_Msg, tag="switch"):
     # where the coordinator moves the vertex from: the marker's way once another input of the
     # vertex, from this same node, has switched (the node's placement says ``to`` by then)
     source: str = ""
+    order: bytes = b""  # the operator's order the move carries out (mso.protocol.warrant)
 
 
 class Handover(_Msg, tag="handover"):
@@ -593,6 +596,13 @@ class RelocateRequest(_Msg, tag="relocate"):
     vertex: str
     direction: str = ""
     target: str = ""
+    # an operator's order, verified by every node a step of the move reaches (with operator
+    # keys: mso.protocol.warrant): the signer's clock (ms), key id, signature, and a command
+    # client's certificate
+    at: int = 0
+    key: str = ""
+    sig: bytes = b""
+    cert: bytes = b""
 
 
 class RemapRequest(_Msg, tag="remap"):
@@ -602,6 +612,13 @@ class RemapRequest(_Msg, tag="remap"):
     app: str
     chains: list[int]
     everything: bool = False
+    # an operator's order, verified by every node a step of the move reaches (with operator
+    # keys: mso.protocol.warrant): the signer's clock (ms), key id, signature, and a command
+    # client's certificate
+    at: int = 0
+    key: str = ""
+    sig: bytes = b""
+    cert: bytes = b""
 
 
 class RemapReply(_Msg, tag="remap_reply"):

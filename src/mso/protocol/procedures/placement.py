@@ -116,12 +116,14 @@ def prepare(
     rid: int,
     restore: bool = False,
     resumes: list[list[Any]] | None = None,
+    order: bytes = b"",
 ) -> m.Prepare:
     """A move's (or restore's) Prepare, with the coordinator's view of the app for a target
-    that hosts no part of it yet and so was not told of its moves."""
+    that hosts no part of it yet and so was not told of its moves (and the operator's order
+    it carries out, if any: :mod:`mso.protocol.warrant`)."""
     snapshot = dict(dep.placed), versions(dep), sorted(dep.vanished)
     replicas = list(dep.replica_nodes.get(vertex, [])) if restore else []
-    return m.Prepare(dep.app.name, vertex, rid, restore, resumes or [], *snapshot, replicas)
+    return m.Prepare(dep.app.name, vertex, rid, restore, resumes or [], *snapshot, replicas, order)
 
 
 def versions(dep: AppState) -> dict[str, int]:

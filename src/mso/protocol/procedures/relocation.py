@@ -34,7 +34,7 @@ from mso.errors import MsoError
 from mso.model.app import MAX_REPLICAS
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
-from mso.protocol import provenance
+from mso.protocol import provenance, warrant
 from mso.protocol.channel import AckGate, InChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
@@ -131,6 +131,7 @@ class Relocation(Procedure):
         self.resumes: list[list[Any]] = []
         self.attempts = 0
         self.retried: list[str] | None = None  # a recovery's log of steps sent again
+        self.order = b""  # the operator's order it carries out, for its steps' receivers
 
     def as_restore(self, now: float | None = None) -> None:
         """Become a restore, with a restore's deadline from ``now`` (a committed relocation
@@ -166,6 +167,10 @@ class Relocator:
         # restores that failed here (rid -> (app, vertex)), the last few: a prepare held while
         # the target was down may still reach it, and its answer gets an Unprepare
         self._failed_restores: dict[int, tuple[str, str]] = {}
+        # at a move's new host: the node its Prepare said the vertex leaves (rid -> node), the
+        # only one whose handover it takes (with operator keys)
+        self._sources: dict[int, str] = {}
+        self.orders = warrant.Orders()  # operator orders taken (mso.protocol.warrant)
 
     def _reloc(self, pid: int) -> Relocation | None:
         proc = self.ctx.procedure(pid)
@@ -179,11 +184,24 @@ class Relocator:
         self._handover_to.pop(rid, None)
         self._parts.pop(rid, None)
         self._early.pop(rid, None)
+        self._sources.pop(rid, None)
 
     def on_reset(self) -> None:
         self._handover_to.clear()
         self._parts.clear()
         self._early.clear()
+        self._sources.clear()
+
+    def unwarranted(self, dep: AppState, src: str, vertex: str, rid: int, order: bytes) -> bool:
+        """A step of a move that does not trace to a decision this node can check (with
+        operator keys: :func:`mso.protocol.warrant.refused`); counted by why."""
+        ctx = self.ctx
+        why = warrant.refused(
+            dep, ctx.id, src, vertex, rid, order, ctx.failed, ctx.authority, self.orders
+        )
+        if why:
+            ctx.refusal(f"move_{why}")
+        return bool(why)
 
     # -- the coordinator: asks, switches the producers, ends (a restore: retries) --------------
     def request(self, client: int | None, msg: m.RelocateRequest, now: float) -> bool:
@@ -217,8 +235,10 @@ class Relocator:
             self._refuse(client, msg, f"{msg.vertex!r} is already being relocated")
             return False
         pid = self.ctx.new_pid()
-        self.ctx.begin(Relocation(pid, now, msg.app, msg.vertex, source, target, client))
-        self.ctx.send(target, placement.prepare(dep, msg.vertex, pid))
+        reloc = Relocation(pid, now, msg.app, msg.vertex, source, target, client)
+        reloc.order = warrant.carried(msg)
+        self.ctx.begin(reloc)
+        self.ctx.send(target, placement.prepare(dep, msg.vertex, pid, order=reloc.order))
         return True
 
     def cannot_hand_over(self, dep: AppState, vertex: str) -> str:
@@ -286,9 +306,12 @@ class Relocator:
             reply = m.RelocateReply(msg.app, msg.vertex, False, error=reason)
             self.ctx.emit(Reply(client, reply))
 
-    def on_prepared(self, msg: m.Prepared, now: float) -> None:
+    def on_prepared(self, src: str, msg: m.Prepared, now: float) -> None:
         reloc = self._reloc(msg.rid)
         dep = self.ctx.apps.get(msg.app)
+        if reloc is not None and src != reloc.target and self.ctx.authority.signed:
+            self.ctx.refusal("prepared_not_by_its_target")  # (only the node asked answers)
+            return
         if reloc is None or dep is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
             self.ctx.refusal("prepared_unexpected")
             if not msg.error and self._failed_restores.get(msg.rid) == (msg.app, msg.vertex):
@@ -312,12 +335,13 @@ class Relocator:
             edges = dep.app.edges
             for edge, producer in reloc.resumes:
                 other = dep.placed[edges[edge].src if producer else edges[edge].dst]
-                self.ctx.send(other, m.Rewire(msg.app, edge, reloc.target, msg.rid, producer))
+                rewire = m.Rewire(msg.app, edge, reloc.target, msg.rid, producer, reloc.order)
+                self.ctx.send(other, rewire)
             return
         for e in dep.app.edges:
             if e.dst == msg.vertex:
                 edge = dep.app.edges.index(e)
-                switch = m.Switch(msg.app, edge, reloc.target, msg.rid, reloc.source)
+                switch = m.Switch(msg.app, edge, reloc.target, msg.rid, reloc.source, reloc.order)
                 self.ctx.send(dep.placed[e.src], switch)
 
     def _ask_again(self, dep: AppState, reloc: Relocation, now: float) -> bool:
@@ -329,15 +353,19 @@ class Relocator:
         reloc.on(RelocationEvent.RETRY)
         reloc.attempts += 1
         if reloc.attempts == 1:
-            self.ctx.send(reloc.target, placement.prepare(dep, reloc.vertex, reloc.pid))
+            prepare = placement.prepare(dep, reloc.vertex, reloc.pid, order=reloc.order)
+            self.ctx.send(reloc.target, prepare)
         else:
             self.ctx.emit(SetTimer(Retry(reloc.pid, reloc.attempts), now + STEP_TIMEOUT_S / 4))
         return True
 
-    def on_handover_done(self, msg: m.HandoverDone, now: float) -> None:
+    def on_handover_done(self, src: str, msg: m.HandoverDone, now: float) -> None:
         reloc = self._reloc(msg.rid)
         if reloc is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
             self.ctx.refusal("handover_done_unexpected")
+            return
+        if src != reloc.target and self.ctx.authority.signed:
+            self.ctx.refusal("handover_done_not_by_its_target")
             return
         reloc.on(RelocationEvent.HANDED_OVER)
         self.ctx.end(reloc.pid)
@@ -427,7 +455,7 @@ class Relocator:
             [i, True] for i, e in enumerate(edges) if e.dst == reloc.vertex and e.src not in lost
         ] + [[i, False] for i, e in enumerate(edges) if e.src == reloc.vertex and e.dst not in lost]
         reloc.attempts += 1
-        prepare = placement.prepare(dep, reloc.vertex, rid, True, reloc.resumes)
+        prepare = placement.prepare(dep, reloc.vertex, rid, True, reloc.resumes, reloc.order)
         self.ctx.send(reloc.target, prepare)
         self.ctx.emit(SetTimer(Retry(rid, reloc.attempts), now + STEP_TIMEOUT_S))
 
@@ -440,7 +468,8 @@ class Relocator:
             return
         if not reloc.restore:  # a move's target that did not hold the app (_ask_again)
             if reloc.state is S.PREPARING and key.attempt == reloc.attempts:
-                self.ctx.send(reloc.target, placement.prepare(dep, reloc.vertex, rid))
+                prepare = placement.prepare(dep, reloc.vertex, rid, order=reloc.order)
+                self.ctx.send(reloc.target, prepare)
             return
         if reloc.attempts >= STEP_ATTEMPTS or reloc.target in self.ctx.failed:
             why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"
@@ -479,7 +508,15 @@ class Relocator:
             error = f"{self.ctx.id} does not run app {msg.app!r}"
             self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, error, no_app=True))
             return
-        placement.merge(dep, src, msg.placed, msg.versions, msg.vanished, self.ctx.now)
+        if vid in dep.app.vertices and self.unwarranted(dep, src, vid, msg.rid, msg.order):
+            if not msg.restore:  # its coordinator hears at once (a restore's asks again: by
+                why = f"refused: {self.ctx.id} sees no warrant for moving {vid!r}"  # then we
+                self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, why))
+            return  # may hold the failure it follows)
+        signed = self.ctx.authority.signed
+        failed = self.ctx.failed if signed else None  # (a view restricted as a Moved is)
+        source = dep.placed.get(vid, "")
+        placement.merge(dep, src, msg.placed, msg.versions, msg.vanished, self.ctx.now, failed)
         if msg.restore and dep.replicas.get(vid) and not dep.replica_nodes.get(vid):
             dep.replica_nodes[vid] = list(msg.replicas[:MAX_REPLICAS])  # (as a ReplicaSet)
         if vid in dep.app.vertices and msg.restore and self._restored_since(dep, vid, src, msg):
@@ -490,6 +527,8 @@ class Relocator:
             dep.awaiting[vid] = self.dp.host(dep, vid)
             dep.preparing[vid] = (msg.rid, src, msg.restore)
             self._handover_to[msg.rid] = src
+            if not msg.restore:
+                self._sources[msg.rid] = source
             if msg.restore:
                 dep.restoring[vid] = Restoring(msg.rid, src, resumes)
             return
@@ -554,9 +593,9 @@ class Relocator:
             self._handover_to.pop(prep[0], None)
             self.ctx.send(prep[1], m.Prepared(dep.app.name, vid, prep[0], self.ctx.id, error))
 
-    def on_unprepare(self, msg: m.Unprepare, now: float) -> None:
+    def on_unprepare(self, src: str, msg: m.Unprepare, now: float) -> None:
         """At a failed move's target: drop the instance prepared for it (nothing was switched
-        to it, so nothing is lost)."""
+        to it, so nothing is lost). With operator keys, only the move's coordinator says so."""
         dep = self.ctx.apps.get(msg.app)
         if dep is None:
             self.ctx.refusal("unprepare_unexpected")
@@ -567,6 +606,10 @@ class Relocator:
         ours = msg.rid in self._handover_to or (prep is not None and prep[0] == msg.rid)
         if h is None or not ours or (restoring is not None and restoring.rid != msg.rid):
             self.ctx.refusal("unprepare_unexpected")  # (another move took the instance over since)
+            return
+        asker = self._handover_to.get(msg.rid, prep[1] if prep is not None else src)
+        if src not in (asker, self.ctx.id) and self.ctx.authority.signed:
+            self.ctx.refusal("unprepare_not_by_its_coordinator")
             return
         self.dp.stop(h, "abandoned")
         del dep.awaiting[msg.vertex]
@@ -584,6 +627,8 @@ class Relocator:
         ok = dep is not None and msg.vertex in dep.awaiting and 0 <= msg.edge < len(dep.app.edges)
         if not ok or dep is None or dep.app.edges[msg.edge].src != msg.vertex:
             self.ctx.refusal("handover_unexpected")
+            return
+        if self._not_its_source(src, msg.rid):
             return
         self._parts.setdefault(msg.rid, {}).setdefault(msg.edge, []).append((msg.first, msg.events))
         early = self._early.get(msg.rid)
@@ -603,6 +648,8 @@ class Relocator:
         shapes += [len(v) == 4 for v in msg.outputs.values()]
         if not all(shapes):  # (no genuine node sends one: a frame fuzzed or forged)
             self.ctx.refusal("handover_malformed")
+            return
+        if self._not_its_source(src, msg.rid):
             return
         if not self._complete(msg):  # (parts overtaken on the way: wait for them)
             self._early[msg.rid] = (src, msg)
@@ -649,14 +696,24 @@ class Relocator:
             self.ctx.send(coordinator, done)
         self.ctx.publish(Happened("hosted", msg.app, msg.vertex, f"{src} -> {self.ctx.id}"))
 
+    def _not_its_source(self, src: str, rid: int) -> bool:
+        """A move's state (or its events sent ahead) from another node than the one its
+        Prepare said the vertex leaves (with operator keys): refused, counted."""
+        if not self.ctx.authority.signed or self._sources.get(rid) == src:
+            return False
+        self.ctx.refusal("handover_not_from_its_host")
+        return True
+
     # -- a producer: switches its edge, sends a marker the old way -----------------------------
-    def on_switch(self, msg: m.Switch) -> None:
+    def on_switch(self, src: str, msg: m.Switch) -> None:
         """At the producer's node: new events go to the new instance; a marker goes the old way."""
         dep = self.ctx.apps.get(msg.app)
         if dep is None or not 0 <= msg.edge < len(dep.app.edges):
             self.ctx.refusal("switch_unknown_edge")
             return
         edge = dep.app.edges[msg.edge]
+        if self.unwarranted(dep, src, edge.dst, msg.rid, msg.order):
+            return
         old = dep.placed[edge.dst]
         if old == msg.to and msg.source:  # a merge vertex whose other input, produced here
             old = msg.source  # too, switched first: its marker goes the old way as well

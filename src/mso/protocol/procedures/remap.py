@@ -31,6 +31,7 @@ from mso.management.guard import RuleSettings
 from mso.model.app import App
 from mso.planning.placement import Hop, Layout, probed_hops
 from mso.protocol import messages as m
+from mso.protocol import warrant
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
 from mso.protocol.effects import Reply, SetTimer
@@ -115,6 +116,7 @@ class Remap(Procedure):
         # start from the current placement (not for an energy remap: the rules chose its moves)
         self.keep = True
         self.kept: dict[int, str] = {}  # chain -> why it kept its placement or took the new one
+        self.order = b""  # the operator's order it carries out (mso.protocol.warrant)
 
     @property
     def name(self) -> str:
@@ -247,6 +249,7 @@ class Remapper:
         remap = Remap(self.ctx.new_pid(), now, msg.app, order, client, placed, movable)
         remap.weights = dict(weights or {})
         remap.keep = not place
+        remap.order = warrant.carried(msg)
         self.ctx.begin(remap)
         self._next_chain(remap.pid, now)
 
@@ -409,13 +412,14 @@ class Remapper:
             pid = self.ctx.new_pid()
             source = dep.placed[vertex]
             reloc = Relocation(pid, now, remap.app, vertex, source, node, None, remap=rid)
+            reloc.order = remap.order
             if remap.recovery is not None:
                 reloc.retried = remap.recovery["retried"]
             self.ctx.begin(reloc)
             if lost:
                 self.relocator.start_restore(dep, reloc, pid, now)
             else:
-                self.ctx.send(node, placement.prepare(dep, vertex, pid))
+                self.ctx.send(node, placement.prepare(dep, vertex, pid, order=reloc.order))
             return
         remap.on(RemapEvent.ALL_MOVED)
         self._finish(rid, now, "")

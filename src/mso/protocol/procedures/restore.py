@@ -63,7 +63,7 @@ class Restorer:
         self.relocator = relocator
 
     # -- a surviving end: says where it stands, replays ----------------------------------------
-    def on_rewire(self, msg: m.Rewire, now: float) -> None:
+    def on_rewire(self, src: str, msg: m.Rewire, now: float) -> None:
         """At a surviving end of an edge whose other end is being replaced on ``msg.to``."""
         dep = self.ctx.apps.get(msg.app)
         if dep is None or not 0 <= msg.edge < len(dep.app.edges):
@@ -71,6 +71,8 @@ class Restorer:
             return
         edge = dep.app.edges[msg.edge]
         replaced = edge.dst if msg.producer else edge.src
+        if self.relocator.unwarranted(dep, src, replaced, msg.rid, msg.order):
+            return  # (the restore asks again: by then we may hold the failure too)
         pin = dep.app.vertices[replaced].pinned
         if pin is not None and msg.to != pin:
             self.ctx.refusal("rewire_a_pinned_vertex")

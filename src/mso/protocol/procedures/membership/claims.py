@@ -21,7 +21,10 @@ accepted claims spread. Sans-IO helpers of :mod:`.peers`.
   one that says it is the only member asked (then every path to the suspect runs through it)
   — or, alone, for at most ``LONE_YES_WINDOWS`` liveness windows until this node hears the
   suspect itself: a routing view that lags gets that long to converge, while a captured
-  member that answers yes for a dead node no longer keeps it from being declared.
+  member that answers yes for a dead node no longer keeps it from being declared. Members'
+  word, however many, keeps it alive for at most ``MEMBERS_YES_WINDOWS`` windows (20 s at
+  the defaults, past the 12 s babeld was seen to lag) until this node hears it itself: two
+  captured members answering yes for a dead node kept it alive for ever.
 - **How accepted claims spread** (:class:`Gossip`): the detector sends its ``NodeDown`` only
   to the nodes that host the apps (they recover); everyone else learns it piggybacked on the
   heartbeats already sent, each claim on ``rounds(n)`` beats (O(log N)), at most ``MAX_NEWS``
@@ -43,6 +46,7 @@ MAX_GOSSIP = 64  # claims waiting to be piggybacked; the oldest go first past th
 MAX_PENDING = 64  # uncorroborated claims waiting for this node's own probe
 INCARNATION_MARGIN = 16  # a claim may be this many incarnations (resets) ahead of what was seen
 LONE_YES_WINDOWS = 4  # liveness windows one member's uncorroborated yes keeps a suspect alive
+MEMBERS_YES_WINDOWS = 40  # ... and members' yes, however many (a route missing that long)
 
 
 def ask_whom(
@@ -158,10 +162,23 @@ class Vouchers:
     itself. Bounded by the suspects (membership drops an entry with its node)."""
 
     lone: dict[str, float] = field(default_factory=dict)
+    # suspect -> when members' yes first kept it alive since this node last heard it itself
+    since: dict[str, float] = field(default_factory=dict)
 
-    def counts(self, node: str, yes: set[str], asked: int, now: float, grace_s: float) -> bool:
+    def counts(
+        self,
+        node: str,
+        yes: set[str],
+        asked: int,
+        now: float,
+        grace_s: float,
+        bound_s: float = math.inf,
+    ) -> bool:
         """Whether the yes just added to ``yes`` (the members that said yes in this suspicion
-        of ``node``, of ``asked`` asked) counts."""
+        of ``node``, of ``asked`` asked) counts: within ``bound_s`` of the first yes that kept
+        it alive, and one member's alone within ``grace_s``."""
+        if now - self.since.setdefault(node, now) > bound_s:
+            return False  # members' word alone, for longer than a route takes to come back
         if len(yes) > 1:
             self.lone.pop(node, None)  # two members hear it: alive, whatever came before
             return True
@@ -172,6 +189,8 @@ class Vouchers:
     def heard(self, node: str) -> None:
         """This node heard ``node`` itself: its own word, not a member's."""
         self.lone.pop(node, None)
+        self.since.pop(node, None)
 
     def clear(self) -> None:
         self.lone.clear()
+        self.since.clear()

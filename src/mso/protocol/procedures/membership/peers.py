@@ -39,6 +39,7 @@ from mso.protocol.procedures.membership.claims import (
     INCARNATION_MARGIN,
     LONE_YES_WINDOWS,
     MAX_NEWS,
+    MEMBERS_YES_WINDOWS,
     Claims,
     Gossip,
     Vouchers,
@@ -272,7 +273,7 @@ class Membership(AppSyncing):
         :meth:`on_heartbeat` would do is note the incarnation and the sender's liveness clock:
         done here, outside the core's effect machinery. False: weigh it whole. Keep it in step
         with :meth:`on_heartbeat` (tests/test_sim_scale.py runs the two ways side by side)."""
-        if msg.news or src in self._suspicions or src in self._vouchers.lone:
+        if msg.news or src in self._suspicions or src in self._vouchers.since:
             return False
         neighbour = self.ctx.routes.get(src, ("", 0))[0] == src
         known = self._incarnations.get(src)
@@ -303,7 +304,7 @@ class Membership(AppSyncing):
     def heard_directly(self, src: str, now: float) -> None:
         """A message from a suspected node (it reaches us though we do not reach it): it
         lives, which is what the suspicion asked."""
-        if self._vouchers.lone:
+        if self._vouchers.since:
             self._vouchers.heard(src)
         if src in self._suspicions:
             self._unsuspect(src, PeerEvent.VOUCHED)
@@ -468,7 +469,8 @@ class Membership(AppSyncing):
         if yes:
             proc.heard_by.add(src)
             grace = LONE_YES_WINDOWS * self.liveness.dead_after_s
-            if not self._vouchers.counts(msg.node, proc.heard_by, proc.asked, now, grace):
+            bound = MEMBERS_YES_WINDOWS * self.liveness.dead_after_s
+            if not self._vouchers.counts(msg.node, proc.heard_by, proc.asked, now, grace, bound):
                 proc.set_aside(src)  # one member's word, for too long: another's, or none
         if src in proc.missing:
             proc.answer(src, yes)

@@ -68,20 +68,24 @@ class AppSyncing:
         ever correct it. But a sync is a snapshot and may be older than a Moved we have had
         since. So we take the sender's word where it is first-hand (a vertex it runs itself
         and does not hold vanished, or one we place on it that it says it handed over, and
-        to whom: a node held failed when the old host broadcast the move missed its Moved),
-        and its hearsay only where our own entry is known bad
+        to whom: a node held failed when the old host broadcast the move missed its Moved;
+        with operator keys, a claim to run a vertex only where our view's host is the sender
+        or failed, as a Moved is weighed: any member may send a sync), and its hearsay only
+        where our own entry is known bad
         (on a node we hold failed, vanished, or placed here where it does not run) — never
         where we run an instance ourselves, and never a vertex it places here (it holds
         that one vanished with our old incarnation)."""
         ours = set(held.instances) | set(held.awaiting) | set(held.restoring)
         gone = set(msg.vanished)
+        signed = self.ctx.authority.signed
 
         def better(v: str, n: str) -> bool:
             if v not in held.placed or v in ours or n == self.ctx.id:
                 return False
-            if n == src and v not in gone:
+            mine = held.placed[v]  # first-hand; with operator keys only where a Moved from
+            told = not signed or placement.may_tell(held, v, src, self.failed)  # src would be
+            if n == src and v not in gone and told:
                 return True
-            mine = held.placed[v]
             if mine == src and msg.handed.get(v) == n:  # it ran it and handed it over to n
                 return True
             if n == mine and v in held.vanished:  # names the node whose old incarnation took
@@ -185,8 +189,10 @@ class AppSyncing:
         except MsoError as exc:
             self.ctx.note_event(now, f"cannot rejoin app {msg.app}: {exc}")
             return
+        signed = self.ctx.authority.signed  # then a pinned vertex is where the pin says
+        pinned = layout.pinned if signed else {}
         placed = dict(layout.initial_placement()) | {
-            v: n for v, n in msg.placed.items() if v in app.vertices
+            v: n for v, n in msg.placed.items() if v in app.vertices and v not in pinned
         }
         dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
         dep.vanished.replace({v for v in msg.vanished if v in app.vertices} | self._outlived(msg))

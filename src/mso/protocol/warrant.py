@@ -1,0 +1,160 @@
+"""Warrants: why a node takes a relocation's step from another (issue 27).
+
+A relocation's steps (``Prepare`` to its target, ``Switch`` to the producers, ``Rewire`` to
+the surviving ends of a restore) are sent by the move's coordinator, which need not host the
+vertex: an operator's command goes to whichever node the client reached, a remap is
+coordinated by a chain's end, a recovery by the lowest-named surviving host. With operator
+keys configured, a member used to coordinate any move of an app it took part in, in its own
+name: the steps did not say who asked. Now a receiver takes a step only when it traces to a
+decision it can check itself (:func:`refused`):
+
+- the step is the receiver's own (it coordinates the move);
+- the coordinator hosts the vertex in the receiver's view (its rules move what it hosts, or it
+  restores its own crashed instance);
+- the vertex has no instance in the receiver's view (its node is held failed here, or its
+  instance vanished with a restart): a restore after a failure the receiver itself holds; a
+  recovery's other moves too (of a chain that lost a vertex, by a node hosting part of the
+  app);
+- the coordinator hosts an end of a chain through the vertex (a chain remap, which only the
+  head's rules ask for, or an energy remap of a junction's chains by the junction's host);
+- the step carries an operator's *order*: the ``RelocateRequest`` or ``RemapRequest`` the
+  client sent, signed by the client over its own fields and the time (``at``, the signer's
+  clock in ms), with no connection in it, so every node verifies it (by an operator key, or a
+  ``command`` client's key whose operator certificate travels with it). An order made before
+  the app's deployment does not apply to it, and each receiver takes an order for one move of
+  a vertex only (the newest it took, per coordinator and move), so a captured node replaying
+  an order it relayed or coordinated moves nothing again.
+
+Sans-IO: messages, keys and the receiver's view in; a verdict out.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Mapping, Set
+
+import msgspec
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
+from mso.protocol import messages as m
+from mso.protocol.authority import Authority, KeyError_, Signer, generation, order_bytes
+from mso.protocol.clients import parse_cert
+from mso.protocol.state import AppState
+
+MAX_ORDERS = 4096  # (app, vertex) whose last order a node remembers
+Order = m.RelocateRequest | m.RemapRequest
+_DECODER = msgspec.msgpack.Decoder(m.RelocateRequest | m.RemapRequest)
+
+
+def sign(signer: Signer, req: Order, at_ms: int, cert: bytes = b"") -> Order:
+    """``req`` as an order every node can verify (:meth:`Signer.order`)."""
+    return signer.order(req, at_ms, cert)
+
+
+def carried(req: Order) -> bytes:
+    """What a coordinator puts in the steps of a move it was asked (b"": no order)."""
+    return m.encode(req) if req.sig else b""
+
+
+def verify(
+    req: Order, operators: Mapping[str, Ed25519PublicKey], revoked: Set[str] = frozenset()
+) -> str:
+    """'' when ``req`` is signed by an operator, or by a command client an operator certified
+    and did not revoke; else why not."""
+    pub = operators.get(req.key)
+    if pub is None and req.cert:
+        try:
+            cert = parse_cert(req.cert)
+        except KeyError_ as exc:
+            return str(exc)
+        operator = operators.get(cert.operator)
+        if operator is None or cert.role != "command" or cert.key_id != req.key:
+            return f"an order by client key {req.key} no operator gave command of"
+        if cert.key_id in revoked:
+            return f"an order by client key {req.key}, revoked"
+        try:
+            operator.verify(cert.sig, cert.signed_bytes())
+            pub = Ed25519PublicKey.from_public_bytes(cert.key)
+        except (InvalidSignature, ValueError):
+            return "an order whose client certificate does not verify"
+    if pub is None:
+        return f"an order by key {req.key}, no operator's"
+    try:
+        pub.verify(req.sig, order_bytes(req))
+    except InvalidSignature:
+        return "an order whose signature does not verify"
+    return ""
+
+
+class Orders:
+    """The orders this node took, per (app, vertex): the newest, by which coordinator, for
+    which move. Another move on an order no newer is a replay."""
+
+    def __init__(self) -> None:
+        self._took: OrderedDict[tuple[str, str], tuple[int, str, int]] = OrderedDict()
+
+    def take(self, app: str, vertex: str, at: int, src: str, rid: int) -> bool:
+        key = (app, vertex)
+        held = self._took.get(key)
+        if held is not None and held != (at, src, rid) and at <= held[0]:
+            return False
+        self._took[key] = (at, src, rid)
+        self._took.move_to_end(key)
+        while len(self._took) > MAX_ORDERS:
+            self._took.popitem(last=False)
+        return True
+
+
+def refused(
+    dep: AppState,
+    here: str,
+    src: str,
+    vertex: str,
+    rid: int,
+    order: bytes,
+    failed: Set[str],
+    authority: Authority,
+    orders: Orders,
+) -> str:
+    """Why a step of a move of ``vertex`` coordinated by ``src`` (move ``rid``) is not taken
+    here ('' if it is): the module docstring's rules, with operator keys only."""
+    if not authority.signed or src == here:
+        return ""
+    host = dep.placed.get(vertex)
+    if host == src or host in failed or vertex in dep.vanished:
+        return ""
+    lost = dep.lost(set(failed))
+    hosts = set(dep.placed.values())
+    for c in dep.layout.chains:
+        if vertex not in c.vertices:
+            continue
+        if src in (dep.placed.get(c.head), dep.placed.get(c.tail)):  # the chain's remap
+            return ""
+        if src in hosts and any(v in lost for v in c.vertices):  # its recovery's
+            return ""
+    if not order:
+        return "no_warrant"
+    try:
+        req = _DECODER.decode(order)
+    except (msgspec.DecodeError, msgspec.ValidationError, RecursionError):
+        return "order_malformed"
+    if req.app != dep.app.name or not _names(dep, req, vertex):
+        return "order_of_another_move"
+    if req.at < generation(dep.document):
+        return "order_older_than_deployment"
+    if verify(req, authority.operators, authority.revoked_nodes):
+        authority.refused += 1
+        return "order_not_verified"
+    if not orders.take(dep.app.name, vertex, req.at, src, rid):
+        return "order_replayed"
+    return ""
+
+
+def _names(dep: AppState, req: Order, vertex: str) -> bool:
+    """Whether the order asks for a move of ``vertex``."""
+    if isinstance(req, m.RelocateRequest):
+        return req.vertex == vertex
+    chains = dep.layout.chains
+    wanted = range(len(chains)) if req.everything else req.chains
+    return any(0 <= c < len(chains) and vertex in chains[c].vertices for c in wanted)
