@@ -28,7 +28,10 @@ tiny scalars); with ``--identities`` also ``forged-words`` (a captured robot tha
 of the stream: events for N3 written in N2's name handed to N2, events of the stream's first
 edge and acks of its second sent to N2 in its own name, numbered around where the stream is —
 each would cost the sink events if taken; on an overlay without identities and operator keys
-a member is trusted with the data plane, so it runs only when asked for by ``--only``).
+a member is trusted with the data plane, so it runs only when asked for by ``--only``) and
+``captured-steps`` (the same robot coordinates moves of mid, unpinned for this attack, in its
+own name: a ``Switch`` of src's edge to N3 and a ``Rewire`` of the sink's input to N1, 20 a
+second: without the warrants of ``mso.protocol.warrant`` the stream stops).
 
 ``--mix S``: instead, one overlay under every attack (or those ``--only`` names) in turn,
 ``--attack`` seconds each, for ``S`` seconds (the issue's soak under a mix of them:
@@ -95,6 +98,11 @@ edges:
   - [src, mid]
   - [mid, sink]
 """
+# ``captured-steps``: mid not pinned (the paper's split puts it on the relay N2), so that a
+# move of it is a move at all: a captured robot coordinates its steps
+MOVABLE = APP.replace("name: stream\n", "name: stream\nplanner: paper\n").replace(
+    " pinned: N2,", ""
+)
 Attack = Callable[["Target", asyncio.Event], Awaitable[dict[str, Any]]]
 
 
@@ -303,27 +311,57 @@ async def big_documents(t: Target, stop: asyncio.Event) -> dict[str, Any]:
     return {"documents_sent": sent}
 
 
-async def forged_words(t: Target, stop: asyncio.Event) -> dict[str, Any]:
-    _, w, codec = await t.member("X4", peer=True)
-    epoch = (zlib.crc32(b"N1") & 0xFFFF) + 1  # the stream's: the first app N1 deployed
-    sent, seq, t0 = 0, t.next_seq, time.monotonic()
-    junk = [b"\x00"]
+async def robot_sends(
+    t: Target, stop: asyncio.Event, name: str, frames: Callable[[], list[bytes]], every_s: float
+) -> int:
+    """A captured robot ``name``, a proven peer of the node attacked, sends what ``frames``
+    makes every ``every_s`` until ``stop``; how many frames it sent."""
+    _, w, codec = await t.member(name, peer=True)
+    sent = 0
     while not stop.is_set():
+        batch = frames()
+        w.write(b"".join(codec.seal(f) for f in batch))
+        sent += len(batch)
+        await w.drain()
+        if await until(stop, every_s):
+            break
+    w.close()
+    return sent
+
+
+async def forged_words(t: Target, stop: asyncio.Event) -> dict[str, Any]:
+    epoch = (zlib.crc32(b"N1") & 0xFFFF) + 1  # the stream's: the first app N1 deployed
+    t0, junk = time.monotonic(), [b"\x00"]
+
+    def frames() -> list[bytes]:
         seq = t.next_seq + int((time.monotonic() - t0) * 100)  # the stream's 100 events/s
-        frames = []
+        out = []
         for s in range(seq - 5, seq + 15):
-            frames += [
+            out += [
                 m.wrap("N2", "N3", m.Data("stream", 1, epoch, s, junk)),  # in N2's name
                 m.wrap("X4", t.node, m.Data("stream", 0, epoch, s, junk)),  # its own
                 m.wrap("X4", t.node, m.Ack("stream", 1, epoch, s)),
             ]
-        w.write(b"".join(codec.seal(f) for f in frames))
-        sent += len(frames)
-        await w.drain()
-        if await until(stop, 0.05):
-            break
-    w.close()
-    return {"frames_sent": sent}
+        return out
+
+    return {"frames_sent": await robot_sends(t, stop, "X4", frames, 0.05)}
+
+
+async def captured_steps(t: Target, stop: asyncio.Event) -> dict[str, Any]:
+    """A captured robot (hosting nothing of the stream, not an end of its chain) coordinates
+    moves of mid in its own name: a ``Switch`` of src's edge to N3 (N2 would hand mid's
+    state to N3 at the marker, which prepared nothing) and a ``Rewire`` telling the sink
+    mid runs on N1 (it would ack there), each with a fresh move id, every 0.1 s."""
+    rids = iter(range(1 << 40, 1 << 41, 2))
+
+    def frames() -> list[bytes]:
+        rid = next(rids)
+        return [
+            t.frame("X5", "N1", m.Switch("stream", 0, "N3", rid)),
+            t.frame("X5", "N3", m.Rewire("stream", 1, "N1", rid + 1, False)),
+        ]
+
+    return {"steps_sent": await robot_sends(t, stop, "X5", frames, 0.1)}
 
 
 ATTACKS: dict[str, Attack] = {
@@ -336,8 +374,11 @@ ATTACKS: dict[str, Attack] = {
     "deep-bodies": deep_bodies,
     "big-documents": big_documents,
     "forged-words": forged_words,
+    "captured-steps": captured_steps,
 }
-IDENTITIES_ONLY = {"forged-words"}  # by default only against an overlay with identities
+# by default only against an overlay with identities (and operator keys)
+IDENTITIES_ONLY = {"forged-words", "captured-steps"}
+APPS = {"captured-steps": MOVABLE}  # the app an attack runs against (else APP)
 
 
 async def mix(
@@ -401,7 +442,7 @@ async def one(name: str, args: argparse.Namespace) -> dict[str, Any]:
     loop = asyncio.get_running_loop()
     row: dict[str, Any] = {"attack": name}
     try:
-        reply = await emu.deploy(APP, "stream.yaml", "N1")
+        reply = await emu.deploy(APPS.get(name, APP), "stream.yaml", "N1")
         assert reply.ok, reply.error
         await asyncio.sleep(args.steady)  # the stream flows
         target = Target(emu, "N2")

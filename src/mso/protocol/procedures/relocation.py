@@ -22,7 +22,8 @@ A *restore* replaces an instance lost with a failed node (or a crashed one): PRE
 creates the instance) → RESUMING (the surviving ends of its edges say where they stand and
 replay: their roles are in :mod:`.restore`) → FINISHED when the replacement runs. Its prepare
 is retried (``Retry``) a few times, since messages to a node behind a failure can be lost while
-routes converge. A step arriving in the wrong state raises :class:`IllegalTransition`.
+routes converge. A step arriving in the wrong state raises :class:`IllegalTransition`. With
+operator keys a step from another node is taken only on a warrant (:mod:`mso.protocol.warrant`).
 """
 
 from __future__ import annotations
