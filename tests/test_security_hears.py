@@ -144,10 +144,19 @@ def test_two_captured_members_keep_a_dead_node_alive_only_for_their_windows() ->
 
 
 def test_members_yes_counts_for_their_windows_until_the_node_is_heard_itself() -> None:
-    v, bound = Vouchers(), MEMBERS_YES_WINDOWS * DEAD_AFTER_S
-    assert v.counts("S", {"X", "Y"}, 3, now=10.0, grace_s=2.0, bound_s=bound)
-    assert v.counts("S", {"X", "Y"}, 3, now=10.0 + bound, grace_s=2.0, bound_s=bound)
-    assert not v.counts("S", {"X", "Y"}, 3, now=10.1 + bound, grace_s=2.0, bound_s=bound)
-    assert not v.counts("S", {"X"}, 1, now=10.1 + bound, grace_s=2.0, bound_s=bound)
+    v, bound, grace = Vouchers(), MEMBERS_YES_WINDOWS * DEAD_AFTER_S, 2.0
+
+    def episode(start: float) -> float:
+        """Two members' yes every second from ``start`` while it counts; when it stopped."""
+        t = start
+        while v.counts("S", {"X", "Y"}, 3, now=t, grace_s=grace, bound_s=bound):
+            t += 1.0
+        return t - start
+
+    assert episode(10.0) == bound + 1.0  # counted for its windows, then no more
+    assert not v.counts("S", {"X"}, 1, now=10.0 + bound + 1.5, grace_s=grace, bound_s=bound)
     v.heard("S")  # heard itself: members' word has its windows again
-    assert v.counts("S", {"X", "Y"}, 3, now=99.0, grace_s=2.0, bound_s=bound)
+    assert episode(100.0) == bound + 1.0
+    # an episode that ended (no yes for longer than grace_s), the node never heard directly
+    # since (one this node hears only through others): the next one has its windows too
+    assert episode(500.0) == bound + 1.0

@@ -163,7 +163,8 @@ class Vouchers:
 
     lone: dict[str, float] = field(default_factory=dict)
     # suspect -> when members' yes first kept it alive since this node last heard it itself
-    since: dict[str, float] = field(default_factory=dict)
+    # (or since a pause of more than ``grace_s`` between yeses: a new episode), and the last
+    since: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     def counts(
         self,
@@ -175,9 +176,14 @@ class Vouchers:
         bound_s: float = math.inf,
     ) -> bool:
         """Whether the yes just added to ``yes`` (the members that said yes in this suspicion
-        of ``node``, of ``asked`` asked) counts: within ``bound_s`` of the first yes that kept
-        it alive, and one member's alone within ``grace_s``."""
-        if now - self.since.setdefault(node, now) > bound_s:
+        of ``node``, of ``asked`` asked) counts: within ``bound_s`` of the first yes of this
+        episode (yeses no more than ``grace_s`` apart), and one member's alone within
+        ``grace_s``."""
+        start, last = self.since.get(node, (now, now))
+        if now - last > grace_s:  # (an earlier episode, over: a node not heard directly)
+            start = now
+        self.since[node] = (start, now)
+        if now - start > bound_s:
             return False  # members' word alone, for longer than a route takes to come back
         if len(yes) > 1:
             self.lone.pop(node, None)  # two members hear it: alive, whatever came before
