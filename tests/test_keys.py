@@ -88,13 +88,17 @@ def test_mso_node_rereads_its_key_file_on_sighup(tmp_path: Path) -> None:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     env = {k: v for k, v in os.environ.items() if k not in ("MSO_KEY", "MSO_ENCRYPT")}
-    node = subprocess.Popen(
-        [sys.executable, "-m", "mso", "node", "--id", "N1", "--listen", f"127.0.0.1:{port}",
-         "--key-file", str(keys), "--encrypt"],
-        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
+    log = tmp_path / "node.log"
+    with log.open("wb") as err:
+        node = subprocess.Popen(
+            [sys.executable, "-m", "mso", "node", "--id", "N1", "--listen", f"127.0.0.1:{port}",
+             "--key-file", str(keys), "--encrypt"],
+            env=env, stdout=subprocess.DEVNULL, stderr=err,
+        )  # fmt: skip
 
     async def status(key: bytes) -> m.Message:
+        if node.poll() is not None:  # it will never listen: say why (its port taken meanwhile?)
+            raise AssertionError(f"the node exited ({node.returncode}): {log.read_text()[-2000:]}")
         c = await Client("127.0.0.1", port, key, encrypt=True).connect(2.0)
         try:
             return await c.call(m.StatusRequest())
