@@ -14,8 +14,9 @@ from mso.cliargs import POSITIVE
     type=POSITIVE,
     default=56.0,
     show_default=True,
-    help="Seconds to run, the nodes' start included (56: N3's battery empties about 44 s in, "
-    "and the leader turns the first corner, where the second survivor lies).",
+    help="Seconds to run, the nodes' start included, and at least 3 after the deploy (56: N3's "
+    "battery empties about 44 s in, and the leader turns the first corner, where the second "
+    "survivor lies).",
 )
 @click.option("--plan-only", is_flag=True, help="Only form chains and plan; start no nodes.")
 @click.option(
