@@ -228,6 +228,14 @@ async def emulated_run(outage: float, tmp: Path) -> dict[str, Any]:
             if got >= made_before:
                 row["catch_up_s"] = loop.time() - heal
                 break
+        # then what the source made meanwhile (it went on at the same rate behind the backlog)
+        made = out["sent"]
+        while loop.time() < heal + max(60.0, outage / 5) * 2:
+            await asyncio.sleep(0.5)
+            st = await emu.status()
+            if "N2" in st and part(st, "N2").get("delivered", 0) >= made:
+                row["drained_s"] = loop.time() - heal
+                break
         await asyncio.sleep(1.0)
         for _ in range(20):  # a loaded node may miss one status round: asked again
             st = await emu.status()
@@ -302,7 +310,9 @@ def render(result: dict[str, Any]) -> str:
             "",
             "Delivered counts the sink's events (the newest may be in flight); catch-up is wall "
             "clock from the heal until the sink holds what was sent before it, polled every "
-            "0.2 s; disk is N1's state directory (the SQLite spill store).",
+            "0.2 s (and the run goes on until it holds what was sent by then: the source made "
+            "events behind the backlog all along); disk is N1's state directory (the SQLite "
+            "spill store), its size at the end after it.",
         ]
     return "\n".join(lines) + "\n"
 
