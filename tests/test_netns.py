@@ -262,11 +262,17 @@ def test_a_restarted_device_gets_a_fresh_babeld_and_its_routes_back() -> None:
     asyncio.run(run())
 
 
-def test_cleanup_removes_what_a_killed_controller_left(tmp_path: Path) -> None:
+def test_cleanup_removes_what_a_killed_controller_left(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A controller that dies by SIGKILL leaves namespaces and processes; the next
     ``mso emulate --cleanup`` removes them (and kills, by PID, what ran inside)."""
     import sys
 
+    # as a user of its own (sudo's SUDO_UID names whose they are): every testbed built
+    # meanwhile cleans up after its user's dead controllers too, and on the other worker one
+    # took these before this --cleanup could (CI, the slow set at load 20)
+    monkeypatch.setenv("SUDO_UID", str(60000 + os.getpid() % 5000))
     script = (
         "import os, signal\n"
         "from mso.emu.netns.testbed import Testbed\n"
