@@ -61,11 +61,11 @@ def test_a_lookups_answers_move_a_vertex_only_on_its_hosts_word() -> None:
     sim = overlay()
     dep = sim.cores["N3"].apps["pipe"]
     forged = {"src": "N1", "mid": "N1", "sink": "N3"}
-    placement.merge(dep, "N1", forged, {"mid": 9}, [], sim.now, failed=set())
+    placement.merge(dep, "N1", forged, {"mid": 9}, [], sim.now, failed=set(), here="N3")
     assert dep.placed["mid"] == "N2" and dep.versions.get("mid", 0) == 0
     handed = {"src": "N1", "mid": "N3", "sink": "N3"}  # mid's host says where it went
-    placement.merge(dep, "N2", handed, {"mid": 1}, [], sim.now, failed=set())
+    placement.merge(dep, "N2", handed, {"mid": 1}, [], sim.now, failed=set(), here="N3")
     assert dep.placed["mid"] == "N3" and dep.versions["mid"] == 1
     dep.placed["mid"] = "N2"  # its host failed: whoever restored it says where
-    placement.merge(dep, "N1", forged, {"mid": 9}, [], sim.now, failed={"N2"})
+    placement.merge(dep, "N1", forged, {"mid": 9}, [], sim.now, failed={"N2"}, here="N3")
     assert dep.placed["mid"] == "N1"

@@ -355,6 +355,9 @@ class AppSync(_Msg, tag="app_sync"):
     # never heard of one (it restarted since) learns which incarnation runs them, so a newer
     # one heard later is a restart whose instances went
     incarnations: dict[str, int] = msgspec.field(default_factory=dict)
+    # how many moves of each vertex the sender knows of: its hearsay never replaces a later
+    # placement the receiver knows (a node that missed a move syncs its older view)
+    versions: dict[str, int] = msgspec.field(default_factory=dict)
 
 
 class Rewire(_Msg, tag="rewire"):

@@ -130,7 +130,9 @@ class Lookups:
         look.on(LookupEvent.ANSWER)
         look.waiting.discard(src)
         signed = self.ctx.failed if self.ctx.authority.signed else None  # (the hosts' word)
-        placement.merge(dep, src, msg.placed, msg.versions, msg.vanished, now, signed)
+        placement.merge(
+            dep, src, msg.placed, msg.versions, msg.vanished, now, signed, here=self.ctx.id
+        )
         if look.rounds < ROUNDS:  # nodes the answers name that were not asked yet
             named = set(msg.placed.values()) - look.asked
             if named:

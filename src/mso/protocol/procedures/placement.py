@@ -33,7 +33,7 @@ from typing import Any
 
 from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
-from mso.protocol.events import PlacementStale, Superseded
+from mso.protocol.events import PlacementStale, RecoveryDue, Superseded
 from mso.protocol.state import AppState
 
 
@@ -89,11 +89,16 @@ def merge(
     vanished: list[str],
     now: float,
     failed: Set[str] | None = None,
+    *,
+    here: str,
 ) -> None:
     """Take from ``src``'s view (placement, versions, vanished instances) what is strictly newer
     than ours, or as new and first-hand (``src`` says where it runs it itself) — except for the
-    vertices this node runs or is taking over (its own word on them is first-hand). Given
-    ``failed`` (with operator keys), a change only where :func:`may_tell` lets ``src``."""
+    vertices this node runs or is taking over (its own word on them is first-hand), and a
+    vertex the view places ``here`` that does not run here is taken as vanished (seed 24786: a
+    restore's Prepare held while this node was down reached its next incarnation and placed
+    a vertex of the last one here, alive; nothing restored it). Given ``failed`` (with
+    operator keys), a change only where :func:`may_tell` lets ``src``."""
     ours = set(dep.instances) | set(dep.awaiting) | set(dep.restoring)
     gone = set(vanished)
     for v, n in placed.items():
@@ -104,7 +109,7 @@ def merge(
             continue
         if version > mine or (version == mine and n == src):
             learn(dep, v, n, version, now, running=False)
-            if v in gone:
+            if v in gone or n == here:
                 dep.vanished.add(v)
             else:
                 dep.vanished.discard(v)
@@ -156,7 +161,22 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
     """News that a vertex runs elsewhere now."""
     dep = ctx.apps.get(msg.app)
     if 0 <= msg.incarnation < ctx.incarnation_of(msg.node, msg.incarnation):
-        return  # its instance went with that incarnation (a claim overtaken by a reset)
+        # its instance went with that incarnation (a claim overtaken by a reset): where it
+        # went is still news, as a vertex lost with it (seed 22392: a move announced while
+        # this node was cut off, heard after the target's restart; it was never restored)
+        v = msg.vertex
+        news = (
+            dep is not None
+            and msg.node != ctx.id
+            and v in dep.placed
+            and not _runs_here(dep, v)
+            and msg.version > dep.versions.get(v, 0)
+        )
+        if news and dep is not None and not _moved_refused(ctx, dep, src, msg):
+            learn(dep, v, msg.node, msg.version, now, running=False)
+            dep.vanished.add(v)
+            ctx.publish(RecoveryDue(msg.app))
+        return
     why = _moved_refused(ctx, dep, src, msg) if dep is not None else "moved_unknown_app"
     if why:
         ctx.refusal(why)
@@ -170,7 +190,14 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
         and msg.version > dep.versions.get(msg.vertex, 0)
         and _runs_here(dep, msg.vertex)
     )
-    if known and dep is not None and not learn(dep, msg.vertex, msg.node, msg.version, now):
+    # only its host's word says it runs (un-vanishes it); an old host's news of a move it
+    # handed over, or a relayed later placement, says where, not that it survived a restart
+    # of that node (seed 24380: such news, sent as a node came back in reach, undid the
+    # vanishing of a vertex whose new host had restarted since; nothing restored it)
+    running = src == msg.node
+    v, node, version = msg.vertex, msg.node, msg.version
+    taken = known and dep is not None and learn(dep, v, node, version, now, running)
+    if known and dep is not None and not taken:
         ctx.dropped()  # an older move's news, overtaken
         newer = dep.placed[msg.vertex]
         if newer != msg.node and msg.node != ctx.id and msg.node not in ctx.failed:

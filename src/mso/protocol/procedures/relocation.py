@@ -517,7 +517,9 @@ class Relocator:
         signed = self.ctx.authority.signed
         failed = self.ctx.failed if signed else None  # (a view restricted as a Moved is)
         source = dep.placed.get(vid, "")
-        placement.merge(dep, src, msg.placed, msg.versions, msg.vanished, self.ctx.now, failed)
+        placement.merge(
+            dep, src, msg.placed, msg.versions, msg.vanished, self.ctx.now, failed, here=self.ctx.id
+        )
         if msg.restore and dep.replicas.get(vid) and not dep.replica_nodes.get(vid):
             dep.replica_nodes[vid] = list(msg.replicas[:MAX_REPLICAS])  # (as a ReplicaSet)
         if vid in dep.app.vertices and msg.restore and self._restored_since(dep, vid, src, msg):

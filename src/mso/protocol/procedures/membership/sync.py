@@ -48,12 +48,21 @@ class AppSyncing:
         """Tell ``node``, in reach again, where the instances this node runs are, for every
         app it takes part in: a move made while it was out of reach -- held *unreachable*, not
         failed, so no rejoin sync follows -- reached every member but it. First-hand claims at
-        their current version: a receiver that has them already takes nothing."""
+        their current version: a receiver that has them already takes nothing. So are the
+        vertices this node handed over and knows no later move of, with the incarnation of
+        the node it handed them to: if that node restarted since, they went with it, and the
+        receiver may be the one to restore them (seed 22770: a move's news lost in a partition
+        to the node that coordinates the recovery; the new host died, nobody restored it)."""
         for dep in self.ctx.apps.values():
             if node in placement.members(dep):
                 for vid in _claimed(dep):
                     msg = placement.moved(dep, vid, self.ctx.id, self.incarnation)
                     self.ctx.send(node, msg)
+                for vid, to in sorted(dep.handed.items()):
+                    if vid not in dep.instances and dep.placed.get(vid) == to != node:
+                        inc = self.ctx.incarnation_of(to, -1)  # (vanished: with an older one)
+                        inc = inc - 1 if vid in dep.vanished and inc > 0 else inc
+                        self.ctx.send(node, placement.moved(dep, vid, to, inc))
 
     def _disputed(self) -> bool:
         """This node holds a node it can reach failed: a partition healed and one side is
@@ -90,12 +99,15 @@ class AppSyncing:
                 return True
             if n == mine and v in held.vanished:  # names the node whose old incarnation took
                 return False  # it: no news (a claim from that node would be)
+            if msg.versions.get(v, 0) < held.versions.get(v, 0):
+                return False  # an older view (seed 24380: a node that missed a move)
             bad = mine in self.failed or v in held.vanished or mine == self.ctx.id
             return bad and (v not in gone or v in held.vanished)
 
         taken = {v for v, n in msg.placed.items() if better(v, n)}
         for v in taken:
             held.placed[v] = msg.placed[v]
+            held.versions[v] = max(held.versions.get(v, 0), msg.versions.get(v, 0))
         held.vanished.replace((held.vanished - taken) | (taken & gone))
 
     def _app_sync(self, dep: AppState) -> m.AppSync:
@@ -113,6 +125,7 @@ class AppSyncing:
             {v: list(ns) for v, ns in dep.capable.items()},
             {n: self._incarnations[n] for n in set(placed.values()) if n in self._incarnations}
             | {self.ctx.id: self.incarnation},
+            placement.versions(dep),
         )
 
     def _outlived(self, msg: m.AppSync) -> set[str]:
@@ -195,6 +208,7 @@ class AppSyncing:
             v: n for v, n in msg.placed.items() if v in app.vertices and v not in pinned
         }
         dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
+        dep.versions = {v: k for v, k in msg.versions.items() if v in app.vertices and k > 0}
         dep.vanished.replace({v for v in msg.vanished if v in app.vertices} | self._outlived(msg))
         dep.capable = {v: list(ns) for v, ns in msg.capable.items() if v in layout.resolved}
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
