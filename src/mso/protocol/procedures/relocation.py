@@ -232,7 +232,7 @@ class Relocator:
         if why := self.cannot_hand_over(dep, msg.vertex):
             self._refuse(client, msg, why)
             return False
-        if any(r.app == msg.app and r.vertex == msg.vertex for r in self._open()):
+        if self.moving(msg.app, msg.vertex):
             self._refuse(client, msg, f"{msg.vertex!r} is already being relocated")
             return False
         pid = self.ctx.new_pid()
@@ -241,6 +241,10 @@ class Relocator:
         self.ctx.begin(reloc)
         self.ctx.send(target, placement.prepare(dep, msg.vertex, pid, order=reloc.order))
         return True
+
+    def moving(self, app: str, vertex: str) -> bool:
+        """A relocation or restore of ``vertex`` this node coordinates is under way."""
+        return any(r.app == app and r.vertex == vertex for r in self._open())
 
     def cannot_hand_over(self, dep: AppState, vertex: str) -> str:
         """Why a live instance of ``vertex`` cannot be moved now ("" if it can): its node, or

@@ -409,6 +409,9 @@ class Remapper:
                 continue  # coordinates it); restored here too, it would run twice
             if not lost and self.relocator.cannot_hand_over(dep, vertex):
                 continue  # stays where it runs, as a relocation would be refused
+            if not lost and self.relocator.moving(remap.app, vertex):
+                continue  # a move of it is under way (a rule's, an operator's): a second
+                # one waited for a handover the first had taken, for ever (seed 26555)
             pid = self.ctx.new_pid()
             source = dep.placed[vertex]
             reloc = Relocation(pid, now, remap.app, vertex, source, node, None, remap=rid)
