@@ -113,6 +113,8 @@ BROKE = {
     24380: "an old host's news and a non-member's stale sync undid a vanished vertex",
     24786: "a restore's Prepare held while its target was down placed a vertex of the last "
     "incarnation there, alive, in the next",
+    25923: "an operator's remap moved a vertex next to a source the recovery was restoring: "
+    "its switch reached the source before the numbering did, 20 events lost",
     26555: "a recovery's remap moved a vertex a rule was moving: two relocations, one "
     "waiting for a handover the other had taken, and the recovery with it, for ever",
     17236: "a node alone declared two nodes 9 ms before the heal to re-place a vertex that "
