@@ -33,8 +33,10 @@ from __future__ import annotations
 import base64
 import hashlib
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 import msgspec
 from cryptography.exceptions import InvalidSignature
@@ -174,6 +176,34 @@ class Signer:
         return m.RevokeNode(
             node_key, at_ms, self.id, self.private.sign(revoke_bytes(node_key, at_ms))
         )
+
+
+class Certificate(Protocol):
+    """An operator's word on a key (a node's :class:`~mso.protocol.identity.NodeCert`, a
+    client's :class:`~mso.protocol.clients.ClientCert`)."""
+
+    @property
+    def operator(self) -> str: ...
+    @property
+    def sig(self) -> bytes: ...
+    @property
+    def key(self) -> bytes: ...
+    def signed_bytes(self) -> bytes: ...
+
+
+def certified_key(
+    cert: Certificate, operators: Mapping[str, Ed25519PublicKey]
+) -> Ed25519PublicKey | str:
+    """The key ``cert`` certifies, or why not: signed by no operator's key, or the signature
+    does not verify."""
+    operator = operators.get(cert.operator)
+    if operator is None:
+        return f"a certificate signed by an unknown key {cert.operator}"
+    try:
+        operator.verify(cert.sig, cert.signed_bytes())
+        return Ed25519PublicKey.from_public_bytes(cert.key)
+    except (InvalidSignature, ValueError):
+        return "a certificate whose signature does not verify"
 
 
 def revoke_bytes(node_key: str, at_ms: int) -> bytes:

@@ -35,7 +35,7 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from mso.protocol import messages as m
-from mso.protocol.authority import KeyError_
+from mso.protocol.authority import KeyError_, certified_key
 from mso.protocol.identity import Identity, NodeCert, parse_cert
 
 ORIGIN_DOMAIN = b"mso origin\0"
@@ -99,14 +99,9 @@ class Verifier:
             cert = parse_cert(raw)
         except KeyError_ as exc:
             return str(exc)
-        operator = operators.get(cert.operator)
-        if operator is None:
-            return f"a certificate signed by an unknown key {cert.operator}"
-        try:
-            operator.verify(cert.sig, cert.signed_bytes())
-            key = Ed25519PublicKey.from_public_bytes(cert.key)
-        except (InvalidSignature, ValueError):
-            return "a certificate whose signature does not verify"
+        key = certified_key(cert, operators)
+        if isinstance(key, str):
+            return key
         self._certs[raw] = (cert, key)
         while len(self._certs) > MAX_CERTS:
             self._certs.popitem(last=False)

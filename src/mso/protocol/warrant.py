@@ -38,7 +38,14 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
 
 from mso.protocol import messages as m
-from mso.protocol.authority import Authority, KeyError_, Signer, generation, order_bytes
+from mso.protocol.authority import (
+    Authority,
+    KeyError_,
+    Signer,
+    certified_key,
+    generation,
+    order_bytes,
+)
 from mso.protocol.clients import parse_cert
 from mso.protocol.state import AppState
 
@@ -68,16 +75,14 @@ def verify(
             cert = parse_cert(req.cert)
         except KeyError_ as exc:
             return str(exc)
-        operator = operators.get(cert.operator)
-        if operator is None or cert.role != "command" or cert.key_id != req.key:
+        if cert.operator not in operators or cert.role != "command" or cert.key_id != req.key:
             return f"an order by client key {req.key} no operator gave command of"
         if cert.key_id in revoked:
             return f"an order by client key {req.key}, revoked"
-        try:
-            operator.verify(cert.sig, cert.signed_bytes())
-            pub = Ed25519PublicKey.from_public_bytes(cert.key)
-        except (InvalidSignature, ValueError):
+        key = certified_key(cert, operators)
+        if isinstance(key, str):
             return "an order whose client certificate does not verify"
+        pub = key
     if pub is None:
         return f"an order by key {req.key}, no operator's"
     try:
