@@ -240,7 +240,7 @@ class NodeCore:
                 dp.on_ack(msg, now) if placement.from_member(self, src, msg.app) else None
             ),
             m.ChainDelay: lambda src, msg, now: dp.on_chain_delay(msg, now),
-            m.Marker: lambda src, msg, now: dp.on_marker_msg(msg, now),
+            m.Marker: lambda src, msg, now: rel.on_marker(msg, now),
             m.AppAnnounce: self._on_announce,
             m.CapabilityQuery: dep.on_capability_query,
             m.CapabilityReply: lambda src, msg, now: dep.on_capability_reply(src, msg),
@@ -261,6 +261,7 @@ class NodeCore:
             m.Prepare: lambda src, msg, now: rel.on_prepare(src, msg),
             m.Prepared: rel.on_prepared,
             m.Unprepare: rel.on_unprepare,
+            m.Moving: rel.on_moving,
             m.Switch: lambda src, msg, now: rel.on_switch(src, msg),
             m.Handover: lambda src, msg, now: rel.on_handover(src, msg, now),
             m.HandoverEvents: lambda src, msg, now: rel.on_handover_events(src, msg, now),
@@ -745,6 +746,7 @@ class NodeCore:
         self._sample(now)
         for reason in self.early.expire(now):
             self.refusal(reason)
+        self.relocator.expire_held(now)
         self.dataplane.report_delays(now)
         for action in self.manager.tick(now):  # the rules' decisions, carried out here
             self._carry_out(action, now)

@@ -494,6 +494,18 @@ class Unprepare(_Msg, tag="unprepare"):
     rid: int
 
 
+class Moving(_Msg, tag="moving"):
+    """To a move's old host, from its coordinator (with operator keys): ``vertex`` goes to
+    ``to`` in move ``rid``; hand it over when that move's markers come. The host takes the
+    markers of a move it holds such a warrant for, or coordinates itself, and no others."""
+
+    app: str
+    vertex: str
+    rid: int
+    to: str
+    order: bytes = b""  # the operator's order the move carries out (mso.protocol.warrant)
+
+
 class Prepared(_Msg, tag="prepared"):
     app: str
     vertex: str
@@ -742,6 +754,7 @@ Message = (
     | Marker
     | Prepare
     | Unprepare
+    | Moving
     | Prepared
     | Switch
     | Handover

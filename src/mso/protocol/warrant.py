@@ -25,6 +25,13 @@ decision it can check itself (:func:`refused`):
   a vertex only (the newest it took, per coordinator and move), so a captured node replaying
   an order it relayed or coordinated moves nothing again.
 
+A move's markers are sent by the vertex's producers, not its coordinator, so a marker proves
+nothing: the producer of every input of a vertex used to have its host hand the vertex's state
+to any node it named. Now (with operator keys) a host hands a vertex over at a marker only for
+a move it holds a warrant for (:class:`Leaving`): one it coordinates, or one whose coordinator
+told it with a ``Moving`` whose warrant it checked as a ``Prepare``'s. A marker that comes
+before its move's ``Moving`` waits for it, for as long as a committed move may take.
+
 Sans-IO: messages, keys and the receiver's view in; a verdict out.
 """
 
@@ -32,6 +39,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Mapping, Set
+from typing import Any
 
 import msgspec
 from cryptography.exceptions import InvalidSignature
@@ -50,6 +58,10 @@ from mso.protocol.clients import parse_cert
 from mso.protocol.state import AppState
 
 MAX_ORDERS = 4096  # (app, vertex) whose last order a node remembers
+# how long a marker waits for its move's Moving, and a Moving for its markers: the deadline
+# of a committed move (mso.protocol.procedures.relocation.SWITCH_DEADLINE_S)
+HOLD_S = 60.0
+MAX_HELD = 4096  # markers waiting, and moves warranted, at most (each of a vertex hosted here)
 Order = m.RelocateRequest | m.RemapRequest
 _DECODER = msgspec.msgpack.Decoder(m.RelocateRequest | m.RemapRequest)
 
@@ -163,3 +175,59 @@ def _names(dep: AppState, req: Order, vertex: str) -> bool:
     chains = dep.layout.chains
     wanted = range(len(chains)) if req.everything else req.chains
     return any(0 <= c < len(chains) and vertex in chains[c].vertices for c in wanted)
+
+
+class Leaving:
+    """The moves of vertices hosted here that a coordinator told this node of and whose
+    warrant it checked, and the markers that came before theirs (both bounded, both
+    forgotten after :data:`HOLD_S`)."""
+
+    def __init__(self) -> None:
+        self._moves: OrderedDict[tuple[str, str], tuple[int, str, float]] = OrderedDict()
+        self._held: OrderedDict[tuple[str, str, int], tuple[m.Marker, float]] = OrderedDict()
+
+    def warranted(self, app: str, vertex: str, rid: int, to: str, now: float) -> list[m.Marker]:
+        """Move ``rid`` of ``vertex`` to ``to`` is warranted here: the markers of it that
+        waited, to be taken now."""
+        self._moves[(app, vertex)] = (rid, to, now)
+        self._moves.move_to_end((app, vertex))
+        _bound(self._moves)
+        due = [
+            k
+            for k, (mk, _) in self._held.items()
+            if k[:2] == (app, vertex) and (mk.rid, mk.to) == (rid, to)
+        ]
+        return [self._held.pop(k)[0] for k in due]
+
+    def takes(self, app: str, vertex: str, marker: m.Marker) -> bool:
+        """Whether ``marker`` belongs to a move of ``vertex`` told and warranted here."""
+        held = self._moves.get((app, vertex))
+        return held is not None and held[:2] == (marker.rid, marker.to)
+
+    def hold(self, app: str, vertex: str, marker: m.Marker, now: float) -> None:
+        """``marker`` waits for its move's warrant (the newest one of its edge)."""
+        self._held[(app, vertex, marker.edge)] = (marker, now)
+        self._held.move_to_end((app, vertex, marker.edge))
+        _bound(self._held)
+
+    def done(self, app: str, vertex: str) -> None:
+        """``vertex`` was handed over: its move is over here."""
+        self._moves.pop((app, vertex), None)
+
+    def expire(self, now: float) -> int:
+        """Forget what is older than :data:`HOLD_S`; how many markers never got a warrant."""
+        for move in [k for k, v in self._moves.items() if now - v[2] > HOLD_S]:
+            del self._moves[move]
+        stale = [k for k, (_, since) in self._held.items() if now - since > HOLD_S]
+        for marker in stale:
+            del self._held[marker]
+        return len(stale)
+
+    def clear(self) -> None:
+        self._moves.clear()
+        self._held.clear()
+
+
+def _bound(table: OrderedDict[Any, Any]) -> None:
+    while len(table) > MAX_HELD:
+        table.popitem(last=False)

@@ -172,6 +172,7 @@ class Relocator:
         # only one whose handover it takes (with operator keys)
         self._sources: dict[int, str] = {}
         self.orders = warrant.Orders()  # operator orders taken (mso.protocol.warrant)
+        self.leaving = warrant.Leaving()  # moves of vertices hosted here, told and warranted
 
     def _reloc(self, pid: int) -> Relocation | None:
         proc = self.ctx.procedure(pid)
@@ -188,6 +189,7 @@ class Relocator:
         self._sources.pop(rid, None)
 
     def on_reset(self) -> None:
+        self.leaving.clear()
         self._handover_to.clear()
         self._parts.clear()
         self._early.clear()
@@ -239,8 +241,52 @@ class Relocator:
         reloc = Relocation(pid, now, msg.app, msg.vertex, source, target, client)
         reloc.order = warrant.carried(msg)
         self.ctx.begin(reloc)
-        self.ctx.send(target, placement.prepare(dep, msg.vertex, pid, order=reloc.order))
+        self.prepare(dep, reloc)
         return True
+
+    def prepare(self, dep: AppState, reloc: Relocation) -> None:
+        """Ask a move's target to prepare an instance. With operator keys the vertex's host,
+        if another node, is told the move too (``Moving``), so it knows the markers that
+        will come for it (:class:`mso.protocol.warrant.Leaving`)."""
+        order = reloc.order
+        self.ctx.send(reloc.target, placement.prepare(dep, reloc.vertex, reloc.pid, order=order))
+        if self.ctx.authority.signed and reloc.source != self.ctx.id:
+            moving = m.Moving(reloc.app, reloc.vertex, reloc.pid, reloc.target, order)
+            self.ctx.send(reloc.source, moving)
+
+    def on_moving(self, src: str, msg: m.Moving, now: float) -> None:
+        """At a move's old host: the coordinator tells it the move, with its warrant; the
+        move's markers that came first are taken now."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or msg.vertex not in dep.instances or msg.to == self.ctx.id:
+            self.ctx.refusal("moving_unexpected")
+            return
+        if self.unwarranted(dep, src, msg.vertex, msg.rid, msg.order):
+            return
+        for marker in self.leaving.warranted(msg.app, msg.vertex, msg.rid, msg.to, now):
+            self.dp.on_marker_msg(marker, now)
+
+    def on_marker(self, msg: m.Marker, now: float) -> None:
+        """A marker of a move of a vertex hosted here. With operator keys it hands the vertex
+        over only for a move this node coordinates or was told of with a warrant; before
+        that it waits (refused, counted, if none comes within the move's deadline)."""
+        dep = self.ctx.apps.get(msg.app)
+        if self.ctx.authority.signed and dep is not None and 0 <= msg.edge < len(dep.app.edges):
+            vid = dep.app.edges[msg.edge].dst
+            ours = any(
+                (r.app, r.vertex, r.pid, r.target) == (msg.app, vid, msg.rid, msg.to)
+                for r in self._open()
+            )
+            hosted = vid in dep.instances and msg.to != self.ctx.id
+            if hosted and not ours and not self.leaving.takes(msg.app, vid, msg):
+                self.leaving.hold(msg.app, vid, msg, now)
+                return
+        self.dp.on_marker_msg(msg, now)
+
+    def expire_held(self, now: float) -> None:
+        """Markers whose move never got a warrant here are refused, counted."""
+        for _ in range(self.leaving.expire(now)):
+            self.ctx.refusal("marker_no_warrant")
 
     def moving(self, app: str, vertex: str) -> bool:
         """A relocation or restore of ``vertex`` this node coordinates is under way."""
@@ -824,6 +870,7 @@ class Relocator:
         h.life.on(InstanceEvent.HANDED_OVER)
         self.dp.stop(h, "moved")
         del dep.instances[vid]
+        self.leaving.done(dep.app.name, vid)
         dep.placed[vid] = msg.to
         dep.handed[vid] = msg.to
         version = placement.bump(dep, vid)

@@ -45,7 +45,6 @@ from mso.protocol.events import (
     Retry,
     RoutesChanged,
 )
-from mso.protocol.procedures import placement
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
 from mso.protocol.procedures.relocation import Relocation, Relocator
 from mso.protocol.state import AppState
@@ -426,7 +425,7 @@ class Remapper:
             if lost:
                 self.relocator.start_restore(dep, reloc, pid, now)
             else:
-                self.ctx.send(node, placement.prepare(dep, vertex, pid, order=reloc.order))
+                self.relocator.prepare(dep, reloc)
             return
         remap.on(RemapEvent.ALL_MOVED)
         self._finish(rid, now, "")
