@@ -119,6 +119,15 @@ BROKE = {
     "waiting for a handover the other had taken, and the recovery with it, for ever",
     17236: "a node alone declared two nodes 9 ms before the heal to re-place a vertex that "
     "would only feed a merge left out of reach: their reset lost the merge's order",
+    8029: "a merge and its stateful consumer lost together: the consumer's replica, behind "
+    "what the sink had, took the merge's replay in a new order (one event twice, one lost)",
+    24507: "the same class: a merge and its counting consumer on one node that failed",
+    31247: "a consumer restored from its replica had no marks of the merge's inputs, so the "
+    "merge's later replacement numbered by acks: 4 events twice",
+    29505: "a consumer restored from its replica asked its source for the replay; the source's "
+    "node restarted, numbered on and never replayed: the stream stalled",
+    30719: "a restore's early frames from a producer's lost instance, numbered like its "
+    "replacement's, won over them: 5 events of the new lineage lost",
 }
 
 

@@ -78,16 +78,58 @@ def fan(e: Num) -> Any:
     return [None, Num(e.n), [Num(e.n), Num(e.n)], [object(), Num(e.n)]][e.n % 4]
 
 
+def test_a_forwarder_passes_on_the_merge_inputs_provenance_with_its_own_count() -> None:
+    merged = provenance.stamp([b"a", b"b"], 3, 10, [0, 1])  # the merge: edge 3, events 10, 11
+    payloads, heads = provenance.split(merged)
+    assert payloads == [b"a", b"b"] and heads == [(3, 10, 0), (3, 11, 0)]
+    # the forwarder made two outputs of the first event, none of the second, one more
+    out = provenance.forward([b"x", b"y"], heads, [0, 0])
+    marks: provenance.Marks = {}
+    assert provenance.strip(out, marks) == [b"x", b"y"]
+    assert marks == {3: (10, 1)}  # (the merge's k 0, the forwarder's second output)
+    assert provenance.past(out, {3: (10, 0)}) == out[1:]
+
+
+def test_a_forwarders_replacement_takes_what_its_consumer_saw_first_then_the_rest() -> None:
+    catch_up = provenance.CatchUp({0: (5, 0), 1: (3, 0)}, now=0.0)
+    a5, a6, b2, b3, b4 = (
+        provenance.stamp([x], e, s, [0])[0]
+        for x, e, s in ((b"a5", 0, 5), (b"a6", 0, 6), (b"b2", 1, 2), (b"b3", 1, 3), (b"b4", 1, 4))
+    )
+    # the replay interleaves differently: a6 is past its mark, so it waits for b's mark
+    assert catch_up.take([a5, a6, b2], now=0.1) == [a5, b2]
+    assert not catch_up.done
+    assert catch_up.take([b3, b4], now=0.2) == [b3, a6, b4]
+    assert catch_up.done and catch_up.take([a5], now=0.3) == [a5]
+
+
+def test_a_catch_up_whose_input_never_comes_lets_what_it_holds_go_at_its_deadline() -> None:
+    catch_up = provenance.CatchUp({0: (5, 0), 1: (3, 0)}, now=0.0)
+    a6 = provenance.stamp([b"a6"], 0, 6, [0])[0]
+    assert catch_up.take([a6], now=0.1) == [] and catch_up.due(provenance.CATCH_UP_S + 0.2)
+    assert catch_up.release() == [a6] and catch_up.done
+
+
+def test_a_snapshots_marks_stop_before_what_was_delivered_and_not_processed() -> None:
+    later = [provenance.stamp([b"x"], 0, 7, [0])[0], provenance.stamp([b"y"], 1, 4, [0])[0]]
+    later.append(provenance.stamp([b"z", b"w"], 1, 4, [0, 0])[1])  # (4, 1): not the first
+    marks = {0: (9, 0), 1: (4, 1), 2: (1, 0)}
+    assert provenance.processed(marks, later) == {0: (6, 0xFFFFFFFF), 1: (3, 0xFFFFFFFF), 2: (1, 0)}
+    assert provenance.processed(None, later) is None
+
+
 def test_a_merges_worker_says_which_event_of_the_batch_each_output_came_from() -> None:
     v = Vertex(id="m", code=fan)
-    start = fx.StartVertex(1, "app", v, "operator", inputs={0: Num, 1: Num}, outputs={2: Num})
+    start = fx.StartVertex(
+        1, "app", v, "operator", inputs={0: Num, 1: Num}, outputs={2: Num}, owners=True
+    )
     worker = VertexWorker(start)
     assert worker.open().error == ""
     batch = [msgspec.msgpack.encode(Num(n)) for n in (0, 1, 2, 3, 5)]
     res = worker.feed(fx.FeedVertex(1, 0, batch, 0.0))
     assert [msgspec.msgpack.decode(p, type=Num).n for p in res.outputs] == [1, 2, 2, 3, 5]
     assert res.owners == [1, 2, 2, 3, 4] and res.errors == 1
-    # a vertex with one input is not a merge: nothing is tracked on its hot path
+    # a vertex whose outputs carry no provenance: nothing is tracked on its hot path
     one = VertexWorker(fx.StartVertex(2, "app", v, "operator", inputs={0: Num}))
     assert one.open().error == "" and one.feed(fx.FeedVertex(2, 0, batch, 0.0)).owners == []
 

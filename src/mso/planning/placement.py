@@ -279,6 +279,14 @@ class Layout:
         self.kinds = app.kinds()  # once: the node looks them up per hosted vertex
         inputs = Counter(e.dst for e in app.edges)  # merges: outputs carry their provenance
         self.merges = frozenset(v for v, n in inputs.items() if n >= 2)
+        # a merge's direct consumer passes its provenance on (mso.protocol.provenance)
+        produces = {e.src for e in app.edges}
+        self.forwarders = frozenset(
+            e.dst
+            for e in app.edges
+            if e.src in self.merges and inputs[e.dst] == 1 and e.dst in produces
+        )
+        self.stamped = self.merges | self.forwarders  # their outputs carry a header
         self.edge_bytes: dict[tuple[str, str], float] = {}
         for e in app.edges:
             k = (e.src, e.dst)

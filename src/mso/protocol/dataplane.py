@@ -68,6 +68,9 @@ class DataPlane:
         self.cpu_ms = 0.0  # measured CPU time of the vertex code that ran here
         self.sf = StoreAndForward(ctx, self)  # the producer's side of an outage
         self.taps = Taps(ctx)  # copies of edges for clients looking at them (mso echo)
+        # forwarders' replacements holding input past their consumer's marks: (app, vertex)
+        # -> the input edge and its events' stamp (released by the deadline at a flush)
+        self.catching: dict[tuple[str, str], tuple[int, float]] = {}
 
     def host(self, dep: AppState, vid: str) -> HostedInstance:
         """Ask the executor for a new instance of ``vid``."""
@@ -82,7 +85,10 @@ class DataPlane:
         rec = dep.crashes.get(vid)
         if rec is not None and rec.restoring is not None:  # replaces a crashed instance:
             h.one_by_one = self.ctx.window * len(inputs)  # its replay is at most a window
-        start = fx.StartVertex(iid, dep.app.name, h.vertex, h.kind, inputs, None, outputs, names)
+        owners = vid in dep.layout.stamped
+        start = fx.StartVertex(
+            iid, dep.app.name, h.vertex, h.kind, inputs, None, outputs, names, owners
+        )
         self.submit(h, start)
         return h
 
@@ -316,11 +322,24 @@ class DataPlane:
             ch = dep.inc[edge] = InChannel(marks={})  # the edge's first events here
         fresh = ch.accept(seq, events, floor)
         self.touched.add(dep.app.name)
-        if fresh and dep.app.edges[edge].src in dep.layout.merges:
-            fresh = provenance.strip(fresh, ch.marks)
+        whole = False  # a forwarder's input keeps its headers until fed (pump)
+        if fresh and dep.app.edges[edge].src in dep.layout.stamped:
+            if dst in dep.layout.forwarders:
+                provenance.note(fresh, ch.marks)
+                whole = True
+            else:
+                fresh = provenance.strip(fresh, ch.marks)
         if fresh:
             if self.taps.watched:
-                self.taps.saw(dep.app.name, edge, ch.expected - len(fresh), fresh, ts)
+                seen = provenance.split(fresh)[0] if whole else fresh
+                self.taps.saw(dep.app.name, edge, ch.expected - len(fresh), seen, ts)
+            catch_up = dep.catch_up.get(dst)
+            if catch_up is not None:
+                fresh = catch_up.take(fresh, self.ctx.now)
+                if catch_up.done:
+                    del dep.catch_up[dst]
+                else:
+                    self.catching[(dep.app.name, dst)] = (edge, ts)
             deadline = dep.app.edges[edge].deadline_ms
             now = self.ctx.now
             late = ch.last_at is not None and (now - ch.last_at) * 1e3 > (deadline or 0)
@@ -335,6 +354,10 @@ class DataPlane:
         """Events and markers for an instance, in arrival order: a marker is handled once
         everything before it has been processed."""
         h = dep.instances.get(vid)
+        if isinstance(item, m.Marker) and vid in dep.catch_up:  # moving: what it held first
+            held = dep.catch_up.pop(vid).release()
+            if h is not None and held:
+                h.pending.append((item.edge, held, 0.0))
         if h is not None:
             h.pending.append(item)
             self.pump(dep, vid)
@@ -375,6 +398,9 @@ class DataPlane:
                 h.pending.popleft()
                 feed = events
             h.one_by_one -= len(feed) if h.one_by_one > 0 else 0
+            if vid in dep.layout.forwarders:
+                feed, heads = provenance.split(feed)
+                h.heads.append(heads)
             h.bytes_in += sum(map(len, feed))
             self.submit(h, fx.FeedVertex(h.instance, edge, feed, ts), len(feed))
 
@@ -398,6 +424,8 @@ class DataPlane:
     ) -> None:
         """A batch went through the edge's consumer: pass its outputs on, acknowledge."""
         edge = res.edge
+        # a forwarder: the headers of the batch it processed (fed in order, one by one)
+        heads = h.heads.popleft() if h.heads and vid in dep.layout.forwarders else []
         h.queued -= res.count
         h.processed += res.count - res.ends
         h.ended = h.ended or res.ended
@@ -424,8 +452,11 @@ class DataPlane:
         if res.outputs and out_edges:
             h.emitted += fx.events_in(res.outputs)
             outputs = res.outputs
-            if vid in dep.layout.merges:  # (module docstring of mso.protocol.provenance)
-                outputs = provenance.stamp(outputs, edge, first, res.owners)
+            if vid in dep.layout.stamped:  # (module docstring of mso.protocol.provenance)
+                if vid in dep.layout.merges:
+                    outputs = provenance.stamp(outputs, edge, first, res.owners)
+                else:
+                    outputs = provenance.forward(outputs, heads, res.owners)
                 marks = dep.marks.get(vid)
                 if marks:  # a replacement: only what each consumer lacks
                     for o in out_edges:
@@ -591,6 +622,8 @@ class DataPlane:
             for data in datas:
                 self.ctx.emit(Send(dst, data))
         self.outbox.clear()
+        if self.catching:
+            self._caught_up()
         touched, self.touched = self.touched, set()
         for app in touched if len(touched) < 2 else [a for a in self.ctx.apps if a in touched]:
             touched_dep = self.ctx.apps.get(app)
@@ -602,6 +635,24 @@ class DataPlane:
             if app not in self.armed and touched_dep.running and self.unacked(touched_dep):
                 self.armed.add(app)
                 self.ctx.emit(SetTimer(Retransmit(app), self.ctx.now + RETRANSMIT_S))
+
+    def _caught_up(self) -> None:
+        """Input a forwarder's replacement held past its deadline goes to it now (an edge
+        whose events never came: its producer out of reach; provenance.CatchUp)."""
+        for (app, vid), (edge, ts) in list(self.catching.items()):
+            dep = self.ctx.apps.get(app)
+            catch_up = dep.catch_up.get(vid) if dep is not None else None
+            if dep is None or catch_up is None:
+                del self.catching[(app, vid)]
+            elif catch_up.due(self.ctx.now):
+                del self.catching[(app, vid)], dep.catch_up[vid]
+                self.ctx.note_event(
+                    self.ctx.now,
+                    f"{vid}: input past its consumer's marks "
+                    f"held {provenance.CATCH_UP_S:g} s, processed now",
+                )
+                if held := catch_up.release():
+                    self.enqueue(dep, vid, (edge, held, ts))
 
     def touch(self, app: str) -> None:
         """A procedure may have changed ``app``'s channels (a handover, a restore): look at

@@ -66,6 +66,8 @@ class StartVertex:
     outputs: dict[int, Any] = field(default_factory=dict)
     # each input and output edge as errors name it: "producer -> consumer"
     edge_names: dict[int, str] = field(default_factory=dict)
+    # say which input event each output was made from (a merge's or forwarder's provenance)
+    owners: bool = False
 
 
 @dataclass(frozen=True)

@@ -410,6 +410,8 @@ class Replicate(_Msg, tag="replicate"):
     processed: int = 0
     emitted: int = 0
     rid: int = 0
+    # a forwarder's: what it had processed of the merge's inputs (mso.protocol.provenance)
+    marks: dict[int, list[int]] | None = None
 
 
 class ReplicaAck(_Msg, tag="replica_ack"):

@@ -16,6 +16,19 @@ merge, the provenance of the last event it has; each input is processed in order
 everything made from that input up to there. A replacement told these marks (``Resume.marks``)
 sends on each edge only what was made past them, numbered from where the consumer stands: every
 event once, whatever the interleaving.
+
+A merge lost *with* its consumer (one node hosting both) takes the interleaving along: the
+consumer's replacement, from its replica's snapshot, gets the merge's replay in a new order, and
+numbered by its own positions its output would not match what its own consumer has (seed 8029:
+one event twice, one lost, and a count that went back). So the merge's direct consumer (a
+*forwarder*, ``Layout.forwarders``) passes on each event's provenance, in the merge's inputs'
+terms: its outputs carry the header of the event they were made from, ``k`` combining the
+merge's ``k`` and the forwarder's own (:func:`forward`). Its consumer keeps the marks; on a
+restore it tells the replacement (``Resume.marks``), which numbers its output from where that
+consumer stands, sends only what was made past the marks, and takes its input up to the marks
+first (:class:`CatchUp`): its state then counts what its consumer saw before anything newer.
+The merge's order downstream of the forwarder is not logged: a merge lost with two vertices
+after it is not exact (docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -27,6 +40,9 @@ HEADER = struct.Struct("<HqI")  # input edge, input sequence number, k
 
 Mark = tuple[int, int]  # (input sequence number, k): the last event made from one input
 Marks = dict[int, Mark]  # input edge -> mark
+Head = tuple[int, int, int]  # one event's header: (input edge, input sequence number, k)
+NO_HEAD: Head = (0xFFFF, -1, 0)  # an event too short for a header (no genuine node sends one)
+CATCH_UP_S = 2.0  # a forwarder's replacement holds newer input this long at most
 
 
 def stamp(payloads: list[bytes], edge: int, first: int, owners: list[int]) -> list[bytes]:
@@ -59,6 +75,65 @@ def strip(events: Iterable[bytes], marks: Marks | None) -> list[bytes]:
     return out
 
 
+def split(events: Iterable[bytes]) -> tuple[list[bytes], list[Head]]:
+    """The payloads and their headers (a forwarder's input, stripped as it is fed)."""
+    payloads, heads = [], []
+    size = HEADER.size
+    for ev in events:
+        if len(ev) < size:
+            payloads.append(ev)
+            heads.append(NO_HEAD)
+        else:
+            heads.append(HEADER.unpack_from(ev))
+            payloads.append(ev[size:])
+    return payloads, heads
+
+
+def note(events: Iterable[bytes], marks: Marks | None) -> None:
+    """Learn the marks of stamped events kept whole (a forwarder strips them when fed)."""
+    if marks is None:
+        return
+    size = HEADER.size
+    for ev in events:
+        if len(ev) >= size:
+            edge, seq, k = HEADER.unpack_from(ev)
+            marks[edge] = (seq, k)
+
+
+def forward(payloads: list[bytes], heads: list[Head], owners: list[int]) -> list[bytes]:
+    """A forwarder's ``payloads``, each stamped with the header of the event it was made
+    from (``owners[j]``: its index in the batch), ``k`` combining that event's and the
+    forwarder's own count (16 bits each: past 65,535 outputs of one event they tie)."""
+    out = []
+    j, last = 0, -1
+    pack = HEADER.pack
+    for payload, owner in zip(payloads, owners, strict=True):
+        j = j + 1 if owner == last else 0
+        last = owner
+        edge, seq, k = heads[owner]
+        out.append(pack(edge, seq, (min(k, 0xFFFF) << 16) | min(j, 0xFFFF)) + payload)
+    return out
+
+
+def processed(marks: Marks | None, later: Iterable[bytes]) -> Marks | None:
+    """A forwarder's marks as of what it processed: ``marks`` (learnt on delivery) taken
+    back to just before the first of each input's ``later`` events (delivered, whole, not
+    processed yet)."""
+    if marks is None:
+        return None
+    out = dict(marks)
+    seen: set[int] = set()
+    size = HEADER.size
+    for ev in later:
+        if len(ev) < size:
+            continue
+        edge, seq, k = HEADER.unpack_from(ev)
+        if edge not in seen:
+            seen.add(edge)
+            out[edge] = (seq, k - 1) if k > 0 else (seq - 1, 0xFFFFFFFF)
+    return out
+
+
 def past(payloads: list[bytes], marks: Mapping[int, Mark]) -> list[bytes]:
     """The stamped payloads made after the marks: what a consumer with those marks lacks."""
     if not marks:
@@ -81,3 +156,53 @@ def from_wire(data: Mapping[int, list[int]] | None) -> Marks | None:
     if data is None:
         return None
     return {int(e): (int(v[0]), int(v[1])) for e, v in data.items() if len(v) == 2}
+
+
+class CatchUp:
+    """A forwarder's replacement takes first, in any order, the input its consumer already
+    saw the effects of (everything up to ``marks``), then the rest: input past the marks on
+    one edge waits until every marked edge has reached its mark (or :data:`CATCH_UP_S`).
+    Each edge's events come in order, so an event past an edge's mark says that edge has
+    caught up."""
+
+    def __init__(self, marks: Marks, now: float) -> None:
+        self.marks = dict(marks)
+        self.waiting = set(marks)  # marked edges not reached yet
+        self.held: list[bytes] = []
+        self.since = now
+
+    def due(self, now: float) -> bool:
+        return now - self.since > CATCH_UP_S
+
+    def release(self) -> list[bytes]:
+        """Everything held, to process now (the deadline, or the vertex is moving)."""
+        self.waiting.clear()
+        held, self.held = self.held, []
+        return held
+
+    def take(self, events: list[bytes], now: float) -> list[bytes]:
+        """Of stamped ``events`` in arrival order, those to process now (the rest held)."""
+        if not self.waiting:
+            return events
+        go = []
+        size = HEADER.size
+        for ev in events:
+            if len(ev) < size:
+                go.append(ev)
+                continue
+            edge, seq, k = HEADER.unpack_from(ev)
+            mark = self.marks.get(edge)
+            if mark is not None and (seq, k) <= mark:
+                go.append(ev)
+                if (seq, k) == mark:
+                    self.waiting.discard(edge)
+                continue
+            self.waiting.discard(edge)  # (everything of it up to its mark came before)
+            self.held.append(ev)
+        if not self.waiting or self.due(now):
+            go.extend(self.release())
+        return go
+
+    @property
+    def done(self) -> bool:
+        return not self.waiting

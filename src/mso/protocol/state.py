@@ -20,7 +20,7 @@ from mso.planning.placement import Hop, Layout
 from mso.protocol import messages as m
 from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.procedures.instance import InstanceLife
-from mso.protocol.provenance import Marks
+from mso.protocol.provenance import CatchUp, Head, Marks
 
 V = TypeVar("V")
 BUSY_AFTER_S = 1.0  # an instance working on one effect this long is reported busy ...
@@ -40,6 +40,8 @@ class Snapshot:
     processed: int = 0
     emitted: int = 0
     src: str = ""  # the host it came from
+    # a forwarder's: what it had processed of the merge's inputs (mso.protocol.provenance)
+    marks: Marks | None = None
 
     @property
     def size(self) -> int:
@@ -225,6 +227,8 @@ class HostedInstance:
     # snapshot's positions, the lost instance's own, never a guess to correct by a producer's
     # Resume (``Restorer.anchor``)
     from_snapshot: bool = False
+    # a forwarder: the headers of each batch fed, in order (mso.protocol.provenance)
+    heads: deque[list[Head]] = field(default_factory=deque)
     life: InstanceLife = field(init=False)  # its state at this host, by the table
 
     def __post_init__(self) -> None:
@@ -425,6 +429,8 @@ class AppState:
     gates: dict[str, AckGate] = field(default_factory=dict)  # vertex -> chained acks
     # a merge's replacement: vertex -> output -> what that consumer has (sent no more)
     marks: dict[str, dict[int, Marks]] = field(default_factory=dict)
+    # a forwarder's replacement: vertex -> its input up to its consumer's marks first
+    catch_up: dict[str, CatchUp] = field(default_factory=dict)
     decoders: dict[int, msgspec.msgpack.Decoder[Any]] = field(default_factory=dict)
     running: bool = False
     epoch: int = 0

@@ -54,6 +54,7 @@ class VertexSpec(msgspec.Struct, frozen=True):
     inputs: dict[int, str | None]  # edge -> format import path
     outputs: dict[int, str | None] = {}  # output edge -> format import path
     edge_names: dict[int, str] = {}  # edge -> "producer -> consumer"
+    owners: bool = False  # say which input event each output came from (provenance)
 
 
 class Start(msgspec.Struct, tag=True):
@@ -129,6 +130,7 @@ def spec_of(start: fx.StartVertex) -> VertexSpec:
         inputs={e: _path(f) for e, f in start.inputs.items()},
         outputs={e: _path(f) for e, f in start.outputs.items()},
         edge_names=dict(start.edge_names),
+        owners=start.owners,
     )
 
 
@@ -168,7 +170,15 @@ def _child(conn: Connection) -> None:
             )  # fmt: skip
             worker = VertexWorker(
                 fx.StartVertex(
-                    job.instance, job.app, vertex, s.kind, fmts, None, outs, s.edge_names
+                    job.instance,
+                    job.app,
+                    vertex,
+                    s.kind,
+                    fmts,
+                    None,
+                    outs,
+                    s.edge_names,
+                    s.owners,
                 )
             )
             started = worker.open()

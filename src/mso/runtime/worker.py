@@ -126,7 +126,7 @@ class VertexWorker:
         inst = self.instance
         outs: list[Any] = []
         # a merge's outputs say which event they were made from (mso.protocol.provenance)
-        owners: list[int] | None = [] if len(self.start.inputs) >= 2 else None
+        owners: list[int] | None = [] if self.start.owners else None
         ends, ended = 0, False
         decode = self.decoders[eff.edge].decode if eff.edge in self.decoders else None
         if inst is not None and decode is not None:

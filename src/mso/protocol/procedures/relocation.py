@@ -889,6 +889,7 @@ class Relocator:
             marks,
         )
         dep.marks.pop(vid, None)
+        dep.catch_up.pop(vid, None)
         self.dp.taps.hand_over(dep.app.name, vid, msg.to, self.ctx.now)  # (asked there first)
         self.ctx.send(msg.to, handover)
         placement.announce(self.ctx, dep, vid, msg.to)  # to the app's members, not everyone

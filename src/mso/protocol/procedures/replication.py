@@ -46,6 +46,7 @@ from typing import ClassVar
 
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
+from mso.protocol import provenance
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import REPLICA_OWNER, DataPlane
 from mso.protocol.events import (
@@ -58,6 +59,7 @@ from mso.protocol.events import (
     Snapshotted,
 )
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, StateMachine, Table
+from mso.protocol.provenance import Marks
 from mso.protocol.state import (
     SNAPSHOT_MARK,
     AppState,
@@ -127,6 +129,7 @@ class Replication(StateMachine):
         self.announced: list[str] = []  # the set broadcast last
         self.acked: set[str] = set()
         self.attempts: dict[str, int] = {}  # replica -> sends of the current snapshot
+        self.marks: Marks | None = None  # a forwarder's, at the snapshot
         self.snapshot: Snapshot | None = None  # being replicated (the newest taken)
         self.inputs: dict[int, int] = {}  # positions captured at the mark
         self.outputs: dict[int, tuple[int, list[bytes]]] = {}
@@ -264,6 +267,14 @@ class Replicator:
             rep.outputs[o] = out.unacked()
         rep.on(ReplicationEvent.ALIGNED)
         rep.counts = (h.processed, h.emitted)
+        rep.marks = None
+        if ev.vertex in dep.layout.forwarders:  # (one input edge)
+            (i,) = rep.inputs
+            ch = dep.inc.get(i)
+            catch_up = dep.catch_up.get(ev.vertex)
+            held = catch_up.held if catch_up is not None else []
+            later = [evs for it in h.pending if isinstance(it, tuple) for evs in it[1]]
+            rep.marks = provenance.processed(ch.marks if ch else {}, [*later, *held])
         rep.aligned_at = self.ctx.now
         rep.k += 1
         self.dp.submit(h, fx.SnapshotVertex(h.instance, -rep.k))  # (relocations' are >= 0)
@@ -278,7 +289,10 @@ class Replicator:
         if -res.token != rep.k or rep.state is not S.TAKING:
             return
         rep.on(ReplicationEvent.TAKEN)
-        snap = Snapshot(rep.k, res.state, rep.inputs, rep.outputs, *rep.counts, src=self.ctx.id)
+        snap = Snapshot(
+            rep.k, res.state, rep.inputs, rep.outputs, *rep.counts, src=self.ctx.id,
+            marks=rep.marks,
+        )  # fmt: skip
         cost = dep.replication.setdefault(ev.vertex, ReplicationCost(since=self.ctx.now))
         if rep.taken_at > 0:
             cost.interval_s = rep.aligned_at - rep.taken_at
@@ -300,11 +314,7 @@ class Replicator:
             return
         rep.attempts[node] = rep.attempts.get(node, 0) + 1
         rep.sent_at = self.ctx.now
-        msg = m.Replicate(
-            rep.app, rep.vertex, snap.k, snap.state, snap.inputs, snap.outputs,
-            snap.processed, snap.emitted,
-        )  # fmt: skip
-        self.ctx.send(node, msg)
+        self.ctx.send(node, _replicate(rep.app, rep.vertex, snap))
         cost = dep.replication.get(rep.vertex)
         if cost is not None:
             cost.bytes_sent += snap.size
@@ -421,7 +431,7 @@ class Replicator:
             return
         snap = Snapshot(
             msg.k, msg.state, dict(msg.inputs), dict(msg.outputs), msg.processed, msg.emitted,
-            src=src,
+            src=src, marks=provenance.from_wire(msg.marks),
         )  # fmt: skip
         if msg.rid:  # an answer to a replacement's fetch
             self._fetched(dep, src, msg, snap)
@@ -445,10 +455,7 @@ class Replicator:
         if snap is None:
             reply = m.Replicate(msg.app, msg.vertex, -1, b"", {}, {}, rid=msg.rid)
         else:
-            reply = m.Replicate(
-                msg.app, msg.vertex, snap.k, snap.state, snap.inputs, snap.outputs,
-                snap.processed, snap.emitted, rid=msg.rid,
-            )  # fmt: skip
+            reply = _replicate(msg.app, msg.vertex, snap, msg.rid)
         self.ctx.send(src, reply)
 
     def on_replica_set(self, src: str, msg: m.ReplicaSet) -> None:
@@ -534,6 +541,14 @@ def _valid(dep: AppState, msg: m.Replicate) -> bool:
     ins = all(0 <= i < n and edges[i].dst == msg.vertex and p >= 0 for i, p in msg.inputs.items())
     outs = all(0 <= o < n and edges[o].src == msg.vertex for o in msg.outputs)
     return ins and outs
+
+
+def _replicate(app: str, vertex: str, snap: Snapshot, rid: int = 0) -> m.Replicate:
+    """``snap`` on the wire: to a replica (``rid`` 0), or to a replacement that fetched it."""
+    return m.Replicate(
+        app, vertex, snap.k, snap.state, snap.inputs, snap.outputs, snap.processed,
+        snap.emitted, rid, provenance.to_wire(snap.marks),
+    )  # fmt: skip
 
 
 def usable(dep: AppState, vertex: str, restoring: Restoring) -> Snapshot | None:

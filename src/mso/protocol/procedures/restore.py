@@ -106,7 +106,7 @@ class Restorer:
             inc = dep.inc.get(msg.edge)
             start = inc.expected if inc is not None else 0
             resume = m.Resume(msg.app, msg.edge, msg.rid, False, start)
-            if inc is not None and edge.src in dep.layout.merges:
+            if inc is not None and edge.src in dep.layout.stamped:
                 resume.marks = provenance.to_wire(inc.marks)  # what it has of each input
             self.ctx.send(msg.to, resume)
 
@@ -120,13 +120,22 @@ class Restorer:
         vertex = edge.dst if msg.producer else edge.src
         restoring = dep.restoring.get(vertex)
         if restoring is None and msg.producer and vertex in dep.instances:
-            if not self.anchor(dep, vertex, msg):  # (a running consumer: see there)
+            inc = dep.inc.get(msg.edge)
+            if inc is not None and inc.awaiting_replay:  # it started from a snapshot and asked
+                # the producer's instance before this one for the replay: ask this one (seed
+                # 29505: that node restarted, its source numbered on, the replay never came)
+                producer = dep.placed[edge.src]
+                self.ctx.send(producer, m.Replay(msg.app, msg.edge, inc.expected, inc.positions))
+            elif not self.anchor(dep, vertex, msg):  # (a running consumer: see there)
                 self.ctx.refusal("resume_unexpected")
             return
         if restoring is None or restoring.rid != msg.rid:
             self.ctx.refusal("resume_unexpected")
             return
         if msg.producer:
+            # what came before the producer's Resume goes again after it: what an instance of
+            # it before made (a lineage since restored, numbered alike) must not win (30719)
+            dep.stash.pop(msg.edge, None)
             gated = bool(dep.out_edges.get(vertex))
             dep.inc[msg.edge] = InChannel(
                 expected=msg.start,
@@ -144,7 +153,7 @@ class Restorer:
         else:
             restoring.consumer_start[msg.edge] = msg.start
             marks = provenance.from_wire(msg.marks)
-            if marks is not None and vertex in dep.layout.merges:
+            if marks is not None and vertex in dep.layout.stamped:
                 restoring.consumer_marks[msg.edge] = marks
         restoring.pending.discard((msg.edge, msg.producer))
         if _ready(dep, vertex, restoring):
@@ -223,7 +232,11 @@ class Restorer:
                 resumed = dep.inc.get(i)
                 safe = min(pos, resumed.expected) if held and resumed is not None else pos
                 dep.inc[i] = InChannel(
-                    expected=pos, processed=pos, _acked=safe, released=safe if outs else None
+                    expected=pos,
+                    processed=pos,
+                    _acked=safe,
+                    released=safe if outs else None,
+                    marks=dict(snap.marks) if snap.marks is not None else None,
                 )  # its producer sends again from there (it retains them); what it sent
                 # before it gets the Replay is further on, not a reason to skip ahead
                 dep.inc[i].awaiting_replay = resumed is not None and pos < resumed.expected
@@ -239,10 +252,17 @@ class Restorer:
             self.ctx.publish(Happened("state_restarted", dep.app.name, vertex, why))
         starts = [c.expected for i, c in dep.inc.items() if dep.app.edges[i].dst == vertex]
         dep.marks.pop(vertex, None)
+        dep.catch_up.pop(vertex, None)
+        forwarder = vertex in dep.layout.forwarders
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
-            marks = restoring.consumer_marks.get(o) if snap is None else None
-            if marks is not None:  # a merge: from where its consumer stands, only what it
+            marks = restoring.consumer_marks.get(o) if snap is None or forwarder else None
+            if marks is not None and forwarder:  # its consumer has the effects of the merge's
+                base = restoring.consumer_start[o]  # inputs up to the marks: those first,
+                dep.marks.setdefault(vertex, {})[o] = marks  # and sent on only past them
+                if snap is not None:  # (mso.protocol.provenance, seed 8029)
+                    dep.catch_up[vertex] = provenance.CatchUp(marks, self.ctx.now)
+            elif marks is not None:  # a merge: from where its consumer stands, only what it
                 base = restoring.consumer_start[o]  # lacks (mso.protocol.provenance); not
                 # by an input numbered anew (its producer lost with the merge: seed 11242)
                 marks = {i: mk for i, mk in marks.items() if i not in restoring.fresh}
@@ -255,7 +275,11 @@ class Restorer:
             if h.kind == "source":  # after this node's reset, or its daemon's restart
                 carried = self.dp.sf.carry_over(dep, o, base) or self.dp.sf.recover(dep, o, base)
             if snap is not None:  # numbered as the lost instance did after the snapshot; what
-                base, unacked = snap.outputs.get(o, (base, []))  # it had not got acked goes again
+                numbered, unacked = snap.outputs.get(o, (base, []))  # not acked: again
+                if marks is not None and forwarder:  # (only what its consumer lacks)
+                    unacked = provenance.past(list(unacked), marks)
+                else:
+                    base = numbered
                 dep.out[o] = self.dp.channel(dep, o, base)
                 dep.out[o].push_many(list(unacked), self.ctx.now)
             else:
