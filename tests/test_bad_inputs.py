@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from waits import patience
+from waits import listening
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "src" / "mso" / "examples"
 APP = str(EXAMPLES / "convoy.yaml")
@@ -341,30 +341,17 @@ def test_bad_input_is_one_line_and_exit_2(case: Case, tmp_path: Path) -> None:
 def test_live_node_wrong_key_and_unknown_app(tmp_path: Path) -> None:
     """Against a running node: a wrong key fails at once with what is wrong, and undeploying an
     app that is not running is an error, not a success."""
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    addr = f"127.0.0.1:{port}"
     env = {**os.environ, "MSO_KEY": "right"}
-    node = subprocess.Popen(
-        [sys.executable, "-m", "mso", "node", "--id", "N1", "--listen", addr],
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
+    log = tmp_path / "node.log"
+    with log.open("wb") as out:
+        node = subprocess.Popen(
+            [sys.executable, "-m", "mso", "node", "--id", "N1", "--listen", "127.0.0.1:0"],
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
     try:
-        assert node.stdout is not None
-        started = threading.Event()  # its log's start line says it listens
-
-        def read() -> None:
-            for line in node.stdout or []:
-                if b"event=start" in line:
-                    started.set()
-
-        threading.Thread(target=read, daemon=True).start()
-        assert started.wait(patience(20.0)), "the node's start line"
+        addr = f"127.0.0.1:{listening(node, log)}"
         code, err, _, _ = run_limited(["status", "--via", addr, "--key", "wrong"], tmp_path)
         assert code == 2 and err.count("\n") == 1
         assert "wrong overlay key" in err

@@ -19,7 +19,7 @@ from mso.model.imports import DEFAULT_ALLOWED, ImportPathError, allow_code, allo
 from mso.node.core import NodeCore
 from mso.protocol import messages as m
 from mso.protocol.effects import Send
-from waits import answered
+from waits import listening
 
 TESTS = Path(__file__).resolve().parent
 
@@ -90,28 +90,20 @@ def test_every_node_refuses_an_announced_app_and_runs_nothing(
     assert not mark.exists() and "evil_module" not in sys.modules
 
 
-def _deploy_to_node_process(docs: list[str], env: dict[str, str]) -> list[m.Message]:
-    """Start ``mso node`` on loopback with ``env`` and deploy each document over TCP, one
-    connection each; the node is stopped (by its PID) whatever happens."""
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+def _deploy_to_node_process(docs: list[str], env: dict[str, str], log: Path) -> list[m.Message]:
+    """Start ``mso node`` on loopback with ``env`` (its log to ``log``) and deploy each document
+    over TCP, one connection each; the node is stopped (by its PID) whatever happens."""
     env = {**os.environ, "MSO_KEY": "k", **env}
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(TESTS), env.get("PYTHONPATH")) if p)
-    node = subprocess.Popen(
-        [sys.executable, "-m", "mso", "node", "--id", "N1", "--listen", f"127.0.0.1:{port}"],
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    with log.open("wb") as out:
+        node = subprocess.Popen(
+            [sys.executable, "-m", "mso", "node", "--id", "N1", "--listen", "127.0.0.1:0"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=out,
+        )
 
-    async def deploy_all() -> list[m.Message]:
-        async def listening() -> None:
-            await (await Client("127.0.0.1", port, overlay_key("k")).connect(1.0)).close()
-
-        await answered(listening, 10, "the node listening")
+    async def deploy_all(port: int) -> list[m.Message]:
         replies = []
         for doc in docs:
             client = await Client("127.0.0.1", port, overlay_key("k")).connect(2.0)
@@ -122,7 +114,7 @@ def _deploy_to_node_process(docs: list[str], env: dict[str, str]) -> list[m.Mess
         return replies
 
     try:
-        return asyncio.run(asyncio.wait_for(deploy_all(), 60))
+        return asyncio.run(asyncio.wait_for(deploy_all(listening(node, log)), 60))
     finally:
         node.terminate()
         node.wait(10)
@@ -133,7 +125,7 @@ def test_a_node_process_refuses_os_system(tmp_path: Path) -> None:
     """``mso node`` with the default allowlist: the deploy fails with the reason, nothing ran."""
     mark = tmp_path / "mark"
     env = {"MSO_EVIL_MARK": str(mark), "MSO_ALLOW_CODE": ""}
-    (reply,) = _deploy_to_node_process([evil_app(mark)], env)
+    (reply,) = _deploy_to_node_process([evil_app(mark)], env, tmp_path / "node.log")
     assert isinstance(reply, m.DeployReply) and not reply.ok
     assert "not on this node's code allowlist" in reply.error
     assert not mark.exists()
@@ -253,7 +245,9 @@ def test_a_node_process_refuses_attribute_path_tricks(tmp_path: Path) -> None:
     mark = tmp_path / "mark"
     chosen = [t for t in TRICKS if t[0].startswith("allowed_tricks") and t[2]]
     docs = [_trick_app(path, params, mark, as_vertex=False) for path, _, params in chosen]
-    replies = _deploy_to_node_process(docs, {"MSO_ALLOW_CODE": "allowed_tricks"})
+    replies = _deploy_to_node_process(
+        docs, {"MSO_ALLOW_CODE": "allowed_tricks"}, tmp_path / "node.log"
+    )
     for (path, why, _), reply in zip(chosen, replies, strict=True):
         assert isinstance(reply, m.DeployReply) and not reply.ok, path
         assert f"import path {path!r} is refused" in reply.error and why in reply.error

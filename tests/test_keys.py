@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -18,7 +17,7 @@ from mso.node.core import NodeCore
 from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
 from mso.protocol.framing import FrameCodec, FramingError, WrongKey, psk_from_text
-from waits import answered, until
+from waits import answered, listening, until
 
 OLD, NEW, OTHER = psk_from_text("old"), psk_from_text("new"), psk_from_text("other")
 
@@ -84,21 +83,16 @@ def test_rotating_a_nodes_keys_leaves_open_connections_alone() -> None:
 def test_mso_node_rereads_its_key_file_on_sighup(tmp_path: Path) -> None:
     keys = tmp_path / "keys"
     keys.write_text("# current first\nold\n")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     env = {k: v for k, v in os.environ.items() if k not in ("MSO_KEY", "MSO_ENCRYPT")}
     log = tmp_path / "node.log"
     with log.open("wb") as err:
         node = subprocess.Popen(
-            [sys.executable, "-m", "mso", "node", "--id", "N1", "--listen", f"127.0.0.1:{port}",
+            [sys.executable, "-m", "mso", "node", "--id", "N1", "--listen", "127.0.0.1:0",
              "--key-file", str(keys), "--encrypt"],
             env=env, stdout=subprocess.DEVNULL, stderr=err,
         )  # fmt: skip
 
     async def status(key: bytes) -> m.Message:
-        if node.poll() is not None:  # it will never listen: say why (its port taken meanwhile?)
-            raise AssertionError(f"the node exited ({node.returncode}): {log.read_text()[-2000:]}")
         c = await Client("127.0.0.1", port, key, encrypt=True).connect(2.0)
         try:
             return await c.call(m.StatusRequest())
@@ -106,7 +100,7 @@ def test_mso_node_rereads_its_key_file_on_sighup(tmp_path: Path) -> None:
             await c.close()
 
     async def run() -> None:
-        await answered(lambda: status(overlay_key("old")), 10, "the node listening")
+        await answered(lambda: status(overlay_key("old")), 10, "the node answering")
         keys.write_text("new\nold\n")
         node.send_signal(signal.SIGHUP)
         await answered(lambda: status(overlay_key("new")), 10, "the node taking the new file")
@@ -114,6 +108,7 @@ def test_mso_node_rereads_its_key_file_on_sighup(tmp_path: Path) -> None:
         assert isinstance(await status(overlay_key("old")), m.StatusReply)  # still accepted
 
     try:
+        port = listening(node, log)
         asyncio.run(run())
     finally:
         node.terminate()

@@ -7,7 +7,11 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
+import subprocess
+import time
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -85,6 +89,25 @@ async def answered(call: Callable[[], Awaitable[T]], timeout: float, what: str) 
             if loop.time() > deadline:
                 raise AssertionError(f"{what} within {patience(timeout):g} s: {exc}") from exc
         await asyncio.sleep(0.05)  # poll period, not synchronisation
+
+
+def listening(node: subprocess.Popen[bytes], log: Path, timeout: float = 20.0) -> int:
+    """The port an ``mso node --listen 127.0.0.1:0`` process listens on, read from its log's
+    start line (``listen=HOST:PORT``, written once it listens) as soon as it is there; a node
+    that exits first fails at once with its log. A port picked by binding a socket and closing
+    it could be taken by another worker's process before the node binds it: the kernel's pick
+    at the node's own bind cannot."""
+    deadline = time.monotonic() + patience(timeout)
+    while True:
+        text = log.read_text(errors="replace") if log.exists() else ""
+        found = re.search(r"event=start listen=[\d.]+:(\d+)", text)
+        if found:
+            return int(found.group(1))
+        if node.poll() is not None:
+            raise AssertionError(f"the node exited ({node.returncode}) before listening: {text}")
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the node's start line within {patience(timeout):g} s: {text}")
+        time.sleep(0.05)  # poll period, not synchronisation
 
 
 def _shown(show: Callable[[dict[str, Any]], object], got: dict[str, Any]) -> object:
