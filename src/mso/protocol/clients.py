@@ -42,6 +42,7 @@ from mso.protocol.authority import (
     OPERATOR_COMMANDS,
     KeyError_,
     Signer,
+    certified_key,
 )
 from mso.protocol.identity import load_key_and_cert
 
@@ -161,16 +162,16 @@ def check(
         cert = parse_cert(msg.cert)
     except KeyError_ as exc:
         return str(exc)
-    operator = operators.get(cert.operator)
-    if operator is None:
+    if cert.operator not in operators:
         return f"client {cert.name!r}'s certificate is signed by key {cert.operator}, no operator's"
     if cert.role not in ROLES:
         return f"client {cert.name!r}'s certificate gives an unknown role {cert.role!r}"
     if cert.key_id in revoked:
         return f"client key {cert.key_id} ({cert.name!r}) is revoked"
+    public = certified_key(cert, operators)
+    if isinstance(public, str):
+        return f"client {cert.name!r}'s certificate: {public}"
     try:
-        public = Ed25519PublicKey.from_public_bytes(cert.key)
-        operator.verify(cert.sig, cert.signed_bytes())
         public.verify(msg.sig, HELLO_DOMAIN + theirs + mine)
     except (InvalidSignature, ValueError):
         return f"client {cert.name!r}'s proof does not verify (not made for this connection)"

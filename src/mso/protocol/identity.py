@@ -27,7 +27,7 @@ import msgspec
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
-from mso.protocol.authority import KeyError_, Signer, parse_private
+from mso.protocol.authority import KeyError_, Signer, certified_key, parse_private
 
 CERT_PREFIX = "mso-node-cert:"
 CERT_DOMAIN = b"mso node certificate\0"
@@ -136,14 +136,13 @@ def check(
         return str(exc)
     if cert.node != node:
         return f"a certificate for {cert.node!r}, not {node!r}"
-    operator = operators.get(cert.operator)
-    if operator is None:
-        return f"a certificate signed by an unknown key {cert.operator}"
     if cert.key_id in revoked:
         return f"node key {cert.key_id} is revoked"
+    key = certified_key(cert, operators)
+    if isinstance(key, str):
+        return key
     try:
-        operator.verify(cert.sig, cert.signed_bytes())
-        Ed25519PublicKey.from_public_bytes(cert.key).verify(sig, LINK_DOMAIN + theirs + mine)
+        key.verify(sig, LINK_DOMAIN + theirs + mine)
     except (InvalidSignature, ValueError):
         return "a signature that does not verify"
     return None
