@@ -388,9 +388,10 @@ def test_a_sync_moves_nothing_its_sender_may_not_tell() -> None:
 
 def test_a_node_that_learns_an_app_from_a_sync_keeps_its_pinned_vertices_on_their_pins() -> None:
     """N6 (hosting nothing, so synced by nobody when it restarts) is synced first by the
-    captured N2, placing c and the pinned sink on N2: the sink stays on its pin; c is taken
-    on N2's word (a node with no view has nothing to weigh it by: docs/security.md). The lie
-    repeated once N6 holds the app moves nothing."""
+    captured N2, placing c and the pinned sink on N2: the sink stays on its pin; c is placed
+    on N2's word for now (a node with no view has nothing else), as hearsay, kept on a tie
+    with one member's truth; the word of two other members puts c back on N4, and from then
+    on N2's lie is weighed as any member's."""
     sim = line(n6=("N5",))
     sim.kill("N6")
     sim.run_until(sim.now + 2.0)
@@ -399,5 +400,10 @@ def test_a_node_that_learns_an_app_from_a_sync_keeps_its_pinned_vertices_on_thei
     robot(sim, "N6", sync(sim, {"c": "N2", "sink": "N2"}), src="N2")
     dep = sim.cores["N6"].apps["line"]
     assert dep.placed == dict(PLACED, c="N2")
-    robot(sim, "N6", sync(sim, {"b": "N2"}), src="N2")
+    assert set(dep.hearsay) == {"a", "b", "c"}
+    robot(sim, "N6", sync(sim, {}), src="N5")  # the truth, from one member: a tie for c
     assert dep.placed == dict(PLACED, c="N2")
+    robot(sim, "N6", sync(sim, {}), src="N1")  # and a second
+    assert dep.placed == PLACED and not dep.hearsay
+    robot(sim, "N6", sync(sim, {"c": "N2"}), src="N2")
+    assert dep.placed == PLACED

@@ -451,6 +451,9 @@ class AppState:
     # vertices whose instances went with a node that has since rejoined: restored like lost ones
     vanished: Vanished = field(init=False)
     handed: dict[str, str] = field(default_factory=dict)  # vertex -> where this node handed it
+    # with operator keys, a node that learnt the app from a sync: the unpinned vertices it
+    # places on its senders' word, not yet corroborated (vertex -> node -> senders saying so)
+    hearsay: dict[str, dict[str, set[str]]] = field(default_factory=dict)
     document: str = ""  # the app file as deployed, for a node that rejoins
     crashes: dict[str, Crashes] = field(default_factory=dict)  # vertex -> its crashes here
     # crashed, not in ``instances``

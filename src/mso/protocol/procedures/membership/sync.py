@@ -87,9 +87,10 @@ class AppSyncing:
         ours = set(held.instances) | set(held.awaiting) | set(held.restoring)
         gone = set(msg.vanished)
         signed = self.ctx.authority.signed
+        heard = self._corroborate(src, held, msg, ours)
 
         def better(v: str, n: str) -> bool:
-            if v not in held.placed or v in ours or n == self.ctx.id:
+            if v not in held.placed or v in ours or n == self.ctx.id or v in heard:
                 return False
             mine = held.placed[v]  # first-hand; with operator keys only where a Moved from
             told = not signed or placement.may_tell(held, v, src, self.failed)  # src would be
@@ -109,6 +110,33 @@ class AppSyncing:
             held.placed[v] = msg.placed[v]
             held.versions[v] = max(held.versions.get(v, 0), msg.versions.get(v, 0))
         held.vanished.replace((held.vanished - taken) | (taken & gone))
+
+    def _corroborate(self, src: str, held: AppState, msg: m.AppSync, ours: set[str]) -> set[str]:
+        """With operator keys, the vertices a node placed on a sync's word alone (it learnt
+        the app from it: no view to weigh that word by) are placed where most senders say,
+        one vote a sender, the first word kept on a tie; one is corroborated, and weighed
+        from then on as any placement is, once two senders agree. A captured member's first
+        sync ("c runs on me") used to stick: the host's own word then came from a node that
+        was not c's host in this view. Returns the vertices still on hearsay."""
+        for v in [
+            v for v, votes in held.hearsay.items() if v in ours or held.placed[v] not in votes
+        ]:
+            del held.hearsay[v]  # (it runs here now, or a Moved or a restore placed it since)
+        for v, votes in list(held.hearsay.items()):
+            n = msg.placed.get(v)
+            if n is None or n == self.ctx.id:
+                continue
+            for k in list(votes):
+                votes[k].discard(src)  # (a sender's newest word is its vote)
+                if not votes[k] and k != held.placed[v]:
+                    del votes[k]
+            votes.setdefault(n, set()).add(src)
+            now = held.placed[v]
+            best = max(votes, key=lambda k: (len(votes[k]), k == now))
+            held.placed[v] = best
+            if len(votes[best]) >= 2:
+                del held.hearsay[v]
+        return set(held.hearsay)
 
     def _app_sync(self, dep: AppState) -> m.AppSync:
         placed = dict(dep.placed)
@@ -209,6 +237,12 @@ class AppSyncing:
         }
         dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
         dep.versions = {v: k for v, k in msg.versions.items() if v in app.vertices and k > 0}
+        if signed:  # on the sender's word alone (_corroborate)
+            dep.hearsay = {
+                v: {n: {src}}
+                for v, n in placed.items()
+                if v in msg.placed and v not in pinned and n != self.ctx.id
+            }
         dep.vanished.replace({v for v in msg.vanished if v in app.vertices} | self._outlived(msg))
         dep.capable = {v: list(ns) for v, ns in msg.capable.items() if v in layout.resolved}
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
