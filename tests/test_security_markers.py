@@ -1,18 +1,30 @@
-"""A move's markers carry a warrant too (issue 27): with operator keys, a vertex's host hands
-it over at a marker only for a move it holds a warrant for — one it coordinates, or one whose
-coordinator told it with a ``Moving`` it checked as a ``Prepare`` (mso.protocol.warrant.
-Leaving). The producer of every input of a vertex used to steer its handover: it switched its
-own edge to a node it named (itself, with an instance it prepared there) and the host handed
-the vertex's state to it at the marker.
+"""A move's markers carry a warrant too, and a chain end's remap is bounded (issue 27).
+
+With operator keys, a vertex's host hands it over at a marker only for a move it holds a
+warrant for — one it coordinates, or one whose coordinator told it with a ``Moving`` it
+checked as a ``Prepare`` (mso.protocol.warrant.Leaving). The producer of every input of a
+vertex used to steer its handover: it switched its own edge to a node it named (itself, with
+an instance it prepared there) and the host handed the vertex's state to it at the marker.
+A chain end's remap moves a vertex at most once per interval at each node, and not at all
+without an operator's order on nodes told ``strict_moves``.
 
 The simulator's line N1 - N2 - N3 - N4 - N5 runs src -> a -> b -> c -> sink, one vertex a
 node; the captured N2 hosts ``a``, which feeds every input of ``b`` (on N3)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from mso.daemon.config import NodeFlags, settle
+from mso.errors import MsoError
+from mso.management import RemapChain
+from mso.model.imports import allow_code, allowed_code
 from mso.protocol import messages as m
-from mso.protocol.warrant import HOLD_S
-from test_captured_robot import robot
+from mso.protocol.warrant import CHAIN_END_INTERVAL_S, HOLD_S
+from test_captured_robot import OPERATOR, robot
 from test_security_steps import PLACED, flows_on, line, order, sink
 
 
@@ -71,3 +83,98 @@ def test_a_moving_without_a_warrant_is_refused_and_takes_no_marker() -> None:
     robot(sim, "N2", m.Switch("line", 1, "N2", 72), src="N2")
     sim.run_until(sim.now + 1.0)
     assert "b" in host.apps["line"].instances
+
+
+# -- a chain end's remap (the line is one chain: src on N1 heads it, the sink on N5 ends it) --
+def test_a_chain_end_moves_a_vertex_of_its_chain_at_most_once_per_interval() -> None:
+    """The captured N1 hosts the chain's head: its remap may move ``c`` (its rules may), but
+    a second move of ``c`` on that warrant within the interval is refused at each node, and
+    taken again once the interval has passed."""
+    sim = line()
+    target = sim.cores["N3"]
+    robot(sim, "N3", m.Prepare("line", "c", 80), src="N1")
+    assert "c" in target.apps["line"].awaiting  # a chain end's remap: warranted
+    robot(sim, "N3", m.Unprepare("line", "c", 80), src="N1")
+    robot(sim, "N3", m.Prepare("line", "c", 80), src="N1")  # (a step of the same move again)
+    assert target.refusals.get("move_chain_end_too_often", 0) == 0
+    robot(sim, "N3", m.Unprepare("line", "c", 80), src="N1")
+    robot(sim, "N3", m.Prepare("line", "c", 81), src="N1")  # another move, within 10 s
+    assert target.refusals["move_chain_end_too_often"] == 1
+    assert "c" not in target.apps["line"].awaiting
+    sim.run_until(sim.now + CHAIN_END_INTERVAL_S)
+    robot(sim, "N3", m.Prepare("line", "c", 82), src="N1")
+    assert "c" in target.apps["line"].awaiting
+    robot(sim, "N3", m.Unprepare("line", "c", 82), src="N1")
+
+
+def test_with_strict_moves_a_chain_end_moves_nothing_of_its_chain_without_an_order() -> None:
+    """Nodes told ``strict_moves``: the chain head's remap of ``c`` is refused at its
+    target; the same move on an operator's order is taken; the head's own rules remap
+    nothing (their remap is not started)."""
+    sim = line()
+    for core in sim.cores.values():
+        core.authority.strict_moves = True
+    target = sim.cores["N3"]
+    robot(sim, "N3", m.Prepare("line", "c", 83), src="N1")
+    assert target.refusals["move_chain_end_without_an_order"] == 1
+    assert "c" not in target.apps["line"].awaiting
+    ordered = order(m.RemapRequest("line", [0]))
+    robot(sim, "N3", m.Prepare("line", "c", 84, order=ordered), src="N1")
+    assert "c" in target.apps["line"].awaiting
+    robot(sim, "N3", m.Unprepare("line", "c", 84), src="N1")
+    head = sim.cores["N1"]
+    head._carry_out(RemapChain("line", 0, "slo"), sim.now)  # what its rules would ask
+    assert not [p for p in head.open() if p.name == "remap"]
+    head.authority.strict_moves = False  # (the same action, not strict: a remap starts)
+    head._carry_out(RemapChain("line", 0, "slo"), sim.now)
+    assert [p for p in head.open() if p.name == "remap"]
+
+
+@pytest.fixture
+def keep_allowlist() -> Iterator[None]:
+    """settle() restricts this process's code imports, as a daemon's must: undone after."""
+    before = allowed_code()
+    try:
+        yield
+    finally:
+        allow_code(before)
+
+
+def strict(flags: NodeFlags) -> bool:
+    authority = settle(flags).authority
+    assert authority is not None
+    return authority.strict_moves
+
+
+@pytest.mark.usefixtures("keep_allowlist")
+def test_strict_moves_is_a_node_option_and_needs_an_operator_key(tmp_path: Path) -> None:
+    pub = OPERATOR.public_text()
+    cfg = tmp_path / "n1.yaml"
+    cfg.write_text(f"id: N1\noperator_keys: [{pub}]\nstrict_moves: true\n")
+    assert strict(NodeFlags(config_file=cfg))
+    assert strict(NodeFlags(node_id="N1", operator_keys=(pub,), strict_moves=True))
+    assert not strict(NodeFlags(node_id="N1", operator_keys=(pub,)))
+    with pytest.raises(MsoError, match="--strict-moves needs --operator-key"):
+        settle(NodeFlags(node_id="N1", strict_moves=True))
+    cfg.write_text("id: N1\nstrict_moves: yes please\n")
+    with pytest.raises(MsoError, match=r"strict_moves.*expected true or false"):
+        settle(NodeFlags(config_file=cfg))
+
+
+def test_a_chain_heads_remap_by_its_rules_moves_its_chains_vertices() -> None:
+    """The honest case: N1's rules remap the chain, no operator's order, b and c kept off
+    N3 and N4 (an energy remap's weights and places): every node takes every step (the
+    hosts a ``Moving`` each), and the stream goes on, every event once and in order."""
+    sim = line()
+    flowing = sink(sim)["processed"]
+    head = sim.cores["N1"]
+    weights, place = {"N3": 0.0, "N4": 0.0}, {"b": "N2", "c": "N2"}
+    head.remapper.remap(m.RemapRequest("line", [0]), sim.now, weights, place)
+    sim.apply("N1", head._run(sim.now))  # (what the node's monitor tick hands its driver)
+    sim.run_until(sim.now + 1.0)
+    members = ("N1", "N2", "N5")
+    assert all(sim.cores[n].apps["line"].placed == dict(PLACED, b="N2", c="N2") for n in members)
+    assert not any(c.refusals for c in sim.cores.values())
+    flows_on(sim, flowing)
+    got = sink(sim)
+    assert got["count"] == got["next"], got

@@ -139,6 +139,13 @@ if TYPE_CHECKING:
     metavar="KEY_ID",
     help="A node key the operator withdrew (its id, as `mso keygen --node` says): refused.",
 )
+@click.option(
+    "--strict-moves",
+    is_flag=True,
+    default=None,
+    help="With --operator-key: a chain end's remap moves none of the chain's other vertices "
+    "here without an operator's order (its own rules remap nothing).",
+)
 @key_option
 @click.option(
     "-v", "--verbose", is_flag=True,
@@ -171,6 +178,7 @@ def node(
     insecure: bool,
     identity: Path | None,
     revoked_nodes: tuple[str, ...],
+    strict_moves: bool | None,
     key: str | None,
     verbose: bool,
 ) -> None:
@@ -185,7 +193,7 @@ def node(
         heartbeat_s=heartbeat_s, dead_after_s=dead_after_s, metrics=metrics,
         allow_code=allow_code, operator_keys=operator_keys, key_file=key_file, encrypt=encrypt,
         insecure=insecure, key=key, verbose=verbose, rules=rules, state_dir=state_dir,
-        identity=identity, revoked_nodes=revoked_nodes,
+        identity=identity, revoked_nodes=revoked_nodes, strict_moves=strict_moves,
     )  # fmt: skip
     run_daemon(flags)
 

@@ -50,6 +50,7 @@ NODE_CONFIG_KEYS = {
     "state_dir",
     "identity",
     "revoked_nodes",
+    "strict_moves",
 }
 
 
@@ -86,6 +87,7 @@ class NodeFlags:
     state_dir: Path | None = None
     identity: Path | None = None  # this node's key file (its certificate beside it, .cert)
     revoked_nodes: tuple[str, ...] = ()  # node key ids the operator withdrew
+    strict_moves: bool | None = None  # a chain end's remap needs an operator's order
 
 
 @dataclass
@@ -150,6 +152,10 @@ def settle(flags: NodeFlags) -> NodeSettings:
     authority = node_authority(flags.operator_keys or tuple(cfg.get("operator_keys", ())))
     revoked = flags.revoked_nodes or tuple(cfg.get("revoked_nodes", ()))
     authority.revoked_nodes = frozenset(revoked)
+    strict = flags.strict_moves if flags.strict_moves is not None else cfg.get("strict_moves")
+    authority.strict_moves = bool(strict)
+    if authority.strict_moves and not authority.signed:
+        raise MsoError("--strict-moves needs --operator-key: a move's order is an operator's")
     identity = node_identity(flags.identity or cfg.get("identity"), node_id, authority)
     listen = flags.listen or cfg.get("listen", DEFAULT_LISTEN)
     dev_key = check_key(key, listen, flags.insecure or bool(cfg.get("insecure", False)))
@@ -378,7 +384,9 @@ def _config_value_problem(k: str, v: Any) -> str | None:
         return f"expected seconds > 0, got {v!r}"
     if k == "rules" and not (isinstance(v, dict) and all(isinstance(x, str) for x in v)):
         return "expected a mapping of rule setting to value (docs/policies.md), e.g. warmup_s: 5"
-    if k in ("manage", "encrypt", "insecure", "verbose") and not isinstance(v, bool):
+    if k in ("manage", "encrypt", "insecure", "verbose", "strict_moves") and not isinstance(
+        v, bool
+    ):
         return f"expected true or false, got {v!r}"
     if k in ("allow_code", "operator_keys", "revoked_nodes") and not (
         isinstance(v, list) and all(isinstance(x, str) and x for x in v)

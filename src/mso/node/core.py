@@ -755,6 +755,10 @@ class NodeCore:
     def _carry_out(self, action: Action, now: float) -> None:
         """A management action, by the same procedures a user's request starts (the move log
         hears which rule asked, and why)."""
+        if self.authority.strict_moves and isinstance(action, RemapChain | RemapChains):
+            # a chain end's remap is no warrant there: the other hosts would refuse its moves
+            self.note_event(now, f"no remap of {action.app} by the rules: strict moves")
+            return
         asked = self.manager.asked(action)
         self.movelog.asking(
             action.app, action.vertex if isinstance(action, Relocate) else "", asked

@@ -258,6 +258,9 @@ class Authority:
     revoked: dict[str, m.StopApp] = field(default_factory=dict)
     # node keys (their ids, mso.protocol.identity) the operator withdrew
     revoked_nodes: frozenset[str] = frozenset()
+    # a chain end's remap is no warrant for moving the chain's other vertices: it needs an
+    # operator's order (mso.protocol.warrant; mso node --strict-moves)
+    strict_moves: bool = False
 
     @classmethod
     def configure(cls, operators: list[str], emulator: str | None = None) -> Authority:

@@ -16,7 +16,11 @@ decision it can check itself (:func:`refused`):
   recovery's other moves too (of a chain that lost a vertex, by a node hosting part of the
   app);
 - the coordinator hosts an end of a chain through the vertex (a chain remap, which only the
-  head's rules ask for, or an energy remap of a junction's chains by the junction's host);
+  head's rules ask for, or an energy remap of a junction's chains by the junction's host),
+  at most one move of the vertex per :data:`CHAIN_END_INTERVAL_S` (the rules remap a chain
+  at most every 15 s; a captured chain end moved a vertex as often as it liked), and not
+  at all on a node told ``strict_moves`` (its operator's choice: a chain end's remap then
+  needs an operator's order, see docs/security.md);
 - the step carries an operator's *order*: the ``RelocateRequest`` or ``RemapRequest`` the
   client sent, signed by the client over its own fields and the time (``at``, the signer's
   clock in ms), with no connection in it, so every node verifies it (by an operator key, or a
@@ -61,6 +65,9 @@ MAX_ORDERS = 4096  # (app, vertex) whose last order a node remembers
 # how long a marker waits for its move's Moving, and a Moving for its markers: the deadline
 # of a committed move (mso.protocol.procedures.relocation.SWITCH_DEADLINE_S)
 HOLD_S = 60.0
+# a chain end's warrant moves a vertex at most once per interval at each node: below the
+# rules' own chain_interval_s (15 s), as a node sees a move's steps later than it was decided
+CHAIN_END_INTERVAL_S = 10.0
 MAX_HELD = 4096  # markers waiting, and moves warranted, at most (each of a vertex hosted here)
 Order = m.RelocateRequest | m.RemapRequest
 _DECODER = msgspec.msgpack.Decoder(m.RelocateRequest | m.RemapRequest)
@@ -106,10 +113,26 @@ def verify(
 
 class Orders:
     """The orders this node took, per (app, vertex): the newest, by which coordinator, for
-    which move. Another move on an order no newer is a replay."""
+    which move. Another move on an order no newer is a replay. And the last move of each
+    vertex it took on a chain end's warrant, by whom and when (:meth:`chain_end`)."""
 
     def __init__(self) -> None:
         self._took: OrderedDict[tuple[str, str], tuple[int, str, int]] = OrderedDict()
+        self._ends: OrderedDict[tuple[str, str], tuple[str, int, float]] = OrderedDict()
+
+    def chain_end(self, app: str, vertex: str, src: str, rid: int, now: float) -> bool:
+        """Whether a step of move ``rid`` by the chain end ``src`` may be taken now: a step
+        of the move last taken so, or of a new move once the interval has passed."""
+        key = (app, vertex)
+        held = self._ends.get(key)
+        if held is not None and held[:2] != (src, rid) and now - held[2] < CHAIN_END_INTERVAL_S:
+            return False
+        if held is None or held[:2] != (src, rid):
+            self._ends[key] = (src, rid, now)
+        self._ends.move_to_end(key)
+        while len(self._ends) > MAX_ORDERS:
+            self._ends.popitem(last=False)
+        return True
 
     def take(self, app: str, vertex: str, at: int, src: str, rid: int) -> bool:
         key = (app, vertex)
@@ -133,9 +156,10 @@ def refused(
     failed: Set[str],
     authority: Authority,
     orders: Orders,
+    now: float = 0.0,
 ) -> str:
     """Why a step of a move of ``vertex`` coordinated by ``src`` (move ``rid``) is not taken
-    here ('' if it is): the module docstring's rules, with operator keys only."""
+    here ('' if it is), at ``now``: the module docstring's rules, with operator keys only."""
     if not authority.signed or src == here:
         return ""
     host = dep.placed.get(vertex)
@@ -143,13 +167,19 @@ def refused(
         return ""
     lost = dep.lost(set(failed))
     hosts = set(dep.placed.values())
+    end = False
     for c in dep.layout.chains:
         if vertex not in c.vertices:
             continue
-        if src in (dep.placed.get(c.head), dep.placed.get(c.tail)):  # the chain's remap
-            return ""
         if src in hosts and any(v in lost for v in c.vertices):  # its recovery's
             return ""
+        end = end or src in (dep.placed.get(c.head), dep.placed.get(c.tail))
+    if end and not order:  # the chain's remap (an order, if it carries one, decides)
+        if authority.strict_moves:
+            return "chain_end_without_an_order"
+        if not orders.chain_end(dep.app.name, vertex, src, rid, now):
+            return "chain_end_too_often"
+        return ""
     if not order:
         return "no_warrant"
     try:

@@ -200,7 +200,7 @@ class Relocator:
         operator keys: :func:`mso.protocol.warrant.refused`); counted by why."""
         ctx = self.ctx
         why = warrant.refused(
-            dep, ctx.id, src, vertex, rid, order, ctx.failed, ctx.authority, self.orders
+            dep, ctx.id, src, vertex, rid, order, ctx.failed, ctx.authority, self.orders, ctx.now
         )
         if why:
             ctx.refusal(f"move_{why}")
