@@ -14,6 +14,7 @@ _TESTS = str(Path(__file__).resolve().parent)
 if _TESTS not in sys.path:
     sys.path.insert(0, _TESTS)
 
+from mso.model.imports import allow_code, allowed_code  # noqa: E402
 from mso.node.core import NodeCore  # noqa: E402
 
 # node processes the tests start (the emulator's) may import the tests' own vertex modules
@@ -51,6 +52,16 @@ def _convoy_log_in_pytests_tmp(tmp_path_factory: pytest.TempPathFactory) -> Iter
     yield
     if old is None:
         os.environ.pop("MSO_CONVOY_DB", None)
+
+
+@pytest.fixture
+def keep_allowlist() -> Iterator[None]:
+    """settle() restricts this process's code imports, as a daemon's must: undone after."""
+    before = allowed_code()
+    try:
+        yield
+    finally:
+        allow_code(before)
 
 
 # Modules whose tests start node processes (an emulator), a netns testbed, Ray or a browser:

@@ -12,7 +12,6 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -21,7 +20,6 @@ import pytest
 from mso.daemon.config import NodeFlags, settle
 from mso.daemon.logs import LogfmtFormatter, logfmt
 from mso.errors import MsoError
-from mso.model.imports import allow_code, allowed_code
 from mso.protocol import messages as m
 from mso.protocol.events import Happened
 from mso.sim.runner import Simulation
@@ -64,16 +62,6 @@ def test_a_log_record_is_one_logfmt_line() -> None:
     record = logging.LogRecord("mso.node", logging.WARNING, "", 0, "x\ny", None, None)
     line_ = LogfmtFormatter("N1").format(record)
     assert "\n" not in line_ and line_.endswith('level=warning node=N1 msg="x\\ny"')
-
-
-@pytest.fixture
-def keep_allowlist() -> Iterator[None]:
-    """settle() restricts this process's code imports, as a daemon's must: undone after."""
-    before = allowed_code()
-    try:
-        yield
-    finally:
-        allow_code(before)
 
 
 @pytest.mark.usefixtures("keep_allowlist")

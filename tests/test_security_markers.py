@@ -13,7 +13,6 @@ node; the captured N2 hosts ``a``, which feeds every input of ``b`` (on N3)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -21,7 +20,6 @@ import pytest
 from mso.daemon.config import NodeFlags, settle
 from mso.errors import MsoError
 from mso.management import RemapChain
-from mso.model.imports import allow_code, allowed_code
 from mso.protocol import messages as m
 from mso.protocol.warrant import CHAIN_END_INTERVAL_S, HOLD_S
 from test_captured_robot import OPERATOR, robot
@@ -128,16 +126,6 @@ def test_with_strict_moves_a_chain_end_moves_nothing_of_its_chain_without_an_ord
     head.authority.strict_moves = False  # (the same action, not strict: a remap starts)
     head._carry_out(RemapChain("line", 0, "slo"), sim.now)
     assert [p for p in head.open() if p.name == "remap"]
-
-
-@pytest.fixture
-def keep_allowlist() -> Iterator[None]:
-    """settle() restricts this process's code imports, as a daemon's must: undone after."""
-    before = allowed_code()
-    try:
-        yield
-    finally:
-        allow_code(before)
 
 
 def strict(flags: NodeFlags) -> bool:
