@@ -31,7 +31,11 @@ each would cost the sink events if taken; on an overlay without identities and o
 a member is trusted with the data plane, so it runs only when asked for by ``--only``) and
 ``captured-steps`` (the same robot coordinates moves of mid, unpinned for this attack, in its
 own name: a ``Switch`` of src's edge to N3 and a ``Rewire`` of the sink's input to N1, 20 a
-second: without the warrants of ``mso.protocol.warrant`` the stream stops).
+second: without the warrants of ``mso.protocol.warrant`` the stream stops) and
+``captured-markers`` (the same robot sends mid's host markers of src's edge naming N3, as if
+a move of mid to N3 had switched it, 20 a second: taken, N2 handed mid's state to N3, which
+prepared nothing, and the stream stopped; now a marker is taken only for a move N2 holds a
+warrant for).
 
 ``--mix S``: instead, one overlay under every attack (or those ``--only`` names) in turn,
 ``--attack`` seconds each, for ``S`` seconds (the issue's soak under a mix of them:
@@ -364,6 +368,19 @@ async def captured_steps(t: Target, stop: asyncio.Event) -> dict[str, Any]:
     return {"steps_sent": await robot_sends(t, stop, "X5", frames, 0.1)}
 
 
+async def captured_markers(t: Target, stop: asyncio.Event) -> dict[str, Any]:
+    """A captured robot (hosting nothing of the stream) sends mid's host markers of src's
+    edge naming N3, each of a fresh move id and near where the stream stands, every 0.1 s."""
+    rids = iter(range(1 << 40, 1 << 41))
+    t0 = time.monotonic()
+
+    def frames() -> list[bytes]:
+        seq = t.next_seq + int((time.monotonic() - t0) * 100)  # the stream's 100 events/s
+        return [t.frame("X5", t.node, m.Marker("stream", 0, seq, next(rids), "N3"))]
+
+    return {"markers_sent": await robot_sends(t, stop, "X5", frames, 0.05)}
+
+
 ATTACKS: dict[str, Attack] = {
     "guesser": guesser,
     "slots": slots,
@@ -375,10 +392,12 @@ ATTACKS: dict[str, Attack] = {
     "big-documents": big_documents,
     "forged-words": forged_words,
     "captured-steps": captured_steps,
+    "captured-markers": captured_markers,
 }
 # by default only against an overlay with identities (and operator keys)
-IDENTITIES_ONLY = {"forged-words", "captured-steps"}
-APPS = {"captured-steps": MOVABLE}  # the app an attack runs against (else APP)
+IDENTITIES_ONLY = {"forged-words", "captured-steps", "captured-markers"}
+# the app an attack runs against (else APP)
+APPS = {"captured-steps": MOVABLE, "captured-markers": MOVABLE}
 
 
 async def mix(
