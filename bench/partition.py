@@ -125,6 +125,8 @@ def sim_run(outage: float, tmp: Path) -> dict[str, Any]:
             caught_up = sim.now - heal
             break
     sim.run_until(sim.now + 2.0)  # what came after the heal arrives too; acks drain the store
+    while stores["N1"].tidy():  # (the daemon's keep_tidy, a step per loop turn)
+        pass
     emitted = max(
         c.apps["part"].out[0].next_seq for c in sim.cores.values() if 0 in c.apps["part"].out
     )
@@ -237,6 +239,10 @@ async def emulated_run(outage: float, tmp: Path) -> dict[str, Any]:
                 row["drained_s"] = loop.time() - heal
                 break
         await asyncio.sleep(1.0)
+        for _ in range(40):  # the drained store's pages go back a step per loop turn
+            if state_bytes() < max(disk // 20, 1 << 20):
+                break
+            await asyncio.sleep(0.5)
         for _ in range(20):  # a loaded node may miss one status round: asked again
             st = await emu.status()
             if "N1" in st and "N2" in st:

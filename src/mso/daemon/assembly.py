@@ -112,6 +112,7 @@ def rotate_keys_on_hangup(s: NodeSettings, driver: NodeDriver) -> None:
 
 async def serve(s: NodeSettings, core: NodeCore) -> None:
     """Run the node until its driver stops."""
+    from mso.daemon.spill import SqliteSpill, keep_tidy
     from mso.node.device import DeviceProbe
     from mso.node.driver import PARENT_ENV, NodeDriver, stop_with_parent
 
@@ -137,6 +138,9 @@ async def serve(s: NodeSettings, core: NodeCore) -> None:
     watch = None
     if parent := os.environ.get(PARENT_ENV):  # started by an emulator: end with it
         watch = asyncio.create_task(stop_with_parent(driver, int(parent)))
+    tidy = None
+    if isinstance(core.spill, SqliteSpill):  # (--state-dir) its slow work off the loop's turns
+        tidy = asyncio.create_task(keep_tidy(core.spill))
     started = time.monotonic()
     fields = start_fields(s, driver, view)
     log.info("start", extra={KV: fields})
@@ -151,6 +155,8 @@ async def serve(s: NodeSettings, core: NodeCore) -> None:
     finally:
         if watch is not None:
             watch.cancel()
+        if tidy is not None:
+            tidy.cancel()
         if exporter is not None:
             await exporter.stop()
         if kernel is not None:
