@@ -4,6 +4,7 @@ sink of :mod:`mso.sim.vertices` got (every stream once, in order, whole)."""
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 
 import pytest
@@ -87,3 +88,50 @@ def test_a_source_and_its_consumer_cut_off_after_a_lost_ack_replay_once(run_toke
     verdict = streams_whole(vertices.RUNS[run_token])
     assert verdict[first] == "" and max(vertices.RUNS[run_token][0].streams[first].seen) >= 25
     assert set(verdict.values()) == {""}
+
+
+def test_go_back_n_backs_off_while_nothing_progresses_and_starts_over_on_progress(
+    run_token: str,
+) -> None:
+    """A link that carries beats but loses every event (the route stays): the source sends
+    its unacknowledged events again after 0.25 s, then waits twice as long each time up to
+    RETRANSMIT_MAX_S, not a window four times a second; once events pass again the stream is
+    whole, and the next loss is answered after the short wait again."""
+    ev = "output: mso.sim.vertices:Ev"
+    app = (
+        "name: t\nvertices:\n"
+        f"  src: {{code: mso.sim.vertices:Source, params: {{name: src}}, rate: 10, pinned: Z,"
+        f" {ev}}}\n"
+        f"  sink: {{code: mso.sim.vertices:Sink, params: {{run: '{run_token}', name: sink}}, "
+        "pinned: A}\nedges: [[src, sink]]\n"
+    )
+    net = Network([NodeSpec("Z"), NodeSpec("A")], [LinkSpec("Z", "A", delay_ms=1.0)])
+    sim = Simulation(net)
+    sim.request("Z", m.DeployRequest(app, "t.yaml"))
+    sim.run_until(1.0)
+    resent: list[float] = []  # when the source sent its unacknowledged events again
+    counted = [0]
+
+    def lose_events(src: str, dst: str, msg: m.Message) -> bool:
+        if not isinstance(msg, m.Data) or src != "Z":
+            return False
+        out = sim.cores["Z"].apps["t"].out[0]
+        if out.resent > counted[0]:
+            counted[0] = out.resent
+            resent.append(sim.now)
+        return True
+
+    sim.drop = lose_events
+    sim.run_until(9.0)
+    gaps = [round(b - a, 2) for a, b in itertools.pairwise(resent)]
+    # 0.25 s after the last progress, then 0.5, 1, 2, 2, ... (a tick is 0.25 s)
+    assert 4 <= len(resent) <= 7 and resent[0] < 1.75, resent
+    assert gaps[:3] == [0.5, 1.0, 2.0] and set(gaps[3:]) <= {2.0}, gaps
+    sim.drop = None
+    sim.run_until(12.0)
+    assert set(streams_whole(vertices.RUNS[run_token]).values()) == {""}
+    assert not any(c.incarnation or c.membership.failures for c in sim.cores.values())
+    resent.clear()
+    sim.drop = lose_events
+    sim.run_until(13.5)
+    assert resent and resent[0] < 12.75, resent  # progress started the doubling over

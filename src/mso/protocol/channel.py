@@ -66,6 +66,7 @@ class OutChannel:
     def __post_init__(self) -> None:
         self._unacked: deque[bytes] = deque()  # events from ``base`` on, in memory
         self.base = self.acked
+        self.origin = self.next_seq  # the first number this channel made (or was handed)
         self.top = self.next_seq  # every event below this has been sent at least once
         self.sent = self.next_seq  # events from here on have not been sent yet
         self.mem_bytes = 0
@@ -89,6 +90,9 @@ class OutChannel:
         # at exactly such a position passes them on upstream (transitive, see AckGate)
         self.history: dict[int, dict[int, int]] = {}
         self.positions_at = self.acked  # the ack ``positions`` came with
+        # go-back-N's backoff: times sent again since the clock last restarted otherwise
+        self.retries = 0
+        self._retried_at: float | None = None
 
     @property
     def sent(self) -> int:
@@ -288,9 +292,22 @@ class OutChannel:
             t = at
         return t
 
-    def overdue(self, now: float, timeout: float) -> bool:
-        """Events have waited ``timeout`` with no ack progress: time to send them again."""
-        return self.in_flight > 0 and now - self.waiting_since >= timeout
+    def overdue(self, now: float, timeout: float, cap: float | None = None) -> bool:
+        """Events have waited with no ack progress long enough to send them again:
+        ``timeout``, doubled for each time they were sent again since (up to ``cap``). Any
+        restart of the clock (an ack's progress, a consumer back in reach, a replay asked
+        for) starts the doubling over: a link that loses everything is not sent a window
+        four times a second, and once acks progress a new loss is answered soon again."""
+        if self.waiting_since != self._retried_at:
+            self.retries = 0
+        wait = timeout * 2 ** min(self.retries, 16)
+        return self.in_flight > 0 and now - self.waiting_since >= min(wait, cap or wait)
+
+    def retried(self, now: float) -> None:
+        """What was overdue has been sent again (or given up): the clock starts again, and
+        the next wait is twice as long (see :meth:`overdue`)."""
+        self.waiting_since = self._retried_at = now
+        self.retries += 1
 
     def unacked(self, start: int | None = None) -> tuple[int, list[bytes]]:
         """``(first seq, events)`` still unacknowledged from ``start`` (default: all)."""

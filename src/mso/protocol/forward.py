@@ -21,6 +21,8 @@ from mso.protocol.events import Retransmit
 from mso.protocol.state import AppState
 
 RETRANSMIT_S = 0.25
+# go-back-N doubles its wait after each resend without progress, up to this (OutChannel.overdue)
+RETRANSMIT_MAX_S = 2.0
 HANDOVER_PART_BYTES = 1 << 20  # events a move's Handover carries itself, and each part ahead
 MAX_BATCH_BYTES = 64 * 1024  # a Data frame is sent once its events reach about this size
 # a backlog (after an outage, or handed over unsent) drains with at most about this much
@@ -215,7 +217,8 @@ class StoreAndForward:
 
     def retransmit(self, app: str, now: float) -> None:
         """Go-back-N: resend what has waited a whole period without any ack progress (a
-        window at most; a best-effort edge gives it up instead). Then the periodic part of
+        window at most; a best-effort edge gives it up instead), the period doubling while
+        nothing progresses (up to RETRANSMIT_MAX_S). Then the periodic part of
         store and forward: bounds and lifespans applied, backlogs drained to consumers back
         in reach, producers the bound held woken."""
         dep = self.ctx.apps.get(app)
@@ -235,7 +238,7 @@ class StoreAndForward:
                 continue
             if ch.out_of_reach:
                 self.back_in_reach(ch)
-            if ch.overdue(now, RETRANSMIT_S) and ch.sent > ch.acked:
+            if ch.overdue(now, RETRANSMIT_S, RETRANSMIT_MAX_S) and ch.sent > ch.acked:
                 if e.qos == "best_effort":
                     ch.given_up += ch.drop_front(ch.sent, now)
                     self.gave_up(dep, edge)
@@ -246,7 +249,7 @@ class StoreAndForward:
                     for i in range(0, len(events), per_frame):
                         chunk = events[i : i + per_frame]
                         self.transmit(dep, edge, first + i, chunk, ch.stamp(first), first)
-                ch.waiting_since = now
+                ch.retried(now)
             self.drain(dep, edge)
             if dep.app.edges[edge].src in dep.blocked_sources:
                 self.dp.unblock(dep, edge)
