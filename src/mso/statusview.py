@@ -106,6 +106,16 @@ def _aged(line: str, clock: Any) -> str:
     return f"{max(0.0, clock - at):.1f} s ago, {rest}"
 
 
+def recovered_from(rec: dict[str, Any]) -> str:
+    """What a recovery record recovered from: the nodes declared failed, or those whose
+    instances were gone with an old incarnation (a restart; no node declared)."""
+    if rec.get("failed"):
+        return f"{', '.join(rec['failed'])} failed"
+    if rec.get("vanished_on"):
+        return f"{', '.join(rec['vanished_on'])} restarted (its instances gone)"
+    return "instances gone"
+
+
 def move_line(rec: dict[str, Any]) -> str:
     """One move a node coordinated (its status' ``moves``), with who asked and how long."""
     what, app = rec.get("what", "move"), rec.get("app", "")
@@ -179,7 +189,7 @@ def status_text(nodes: dict[str, Any]) -> str:
             agg["parked"] = app.get("parked", {}) or agg.get("parked", {})
             for rec in app.get("recoveries", []):
                 agg["notes"].append(
-                    f"{nid} recovered from {', '.join(rec['failed'])}: {rec['remap']} remap of "
+                    f"{nid} recovered from {recovered_from(rec)}: {rec['remap']} remap of "
                     f"{', '.join(rec['chains'])} "
                     + (
                         f"in {rec['took_ms']:.1f} ms"

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from mso.statusview import recovered_from
+
 if TYPE_CHECKING:
     from rich.console import Console
 
@@ -108,6 +110,12 @@ def render_simulation(console: Console, r: dict[str, Any]) -> None:
     for v, n in ev["delivered"].items():
         et.add_row(v, "delivered", str(n))
     console.print(et)
+    if ev.get("skipped"):
+        skips = ", ".join(f"{v} {n}" for v, n in ev["skipped"].items())
+        console.print(
+            f"sequence numbers a restarted source skipped (never used, not counted as "
+            f"emitted): {skips}"
+        )
     console.print(
         f"given up by edge bounds and QoS: {ev['given_up']}, "
         f"frames lost on lossy links (resent): {ev['frames_lost_on_links']}"
@@ -122,7 +130,7 @@ def render_simulation(console: Console, r: dict[str, Any]) -> None:
     for rec in rc["recoveries"]:
         state = "ok" if rec.get("ok") else (rec.get("error") or "in progress")
         console.print(
-            f"  recovery from {', '.join(rec['failed']) or '-'}: {rec['remap']} remap of "
+            f"  recovery from {recovered_from(rec)}: {rec['remap']} remap of "
             f"{', '.join(rec['chains'])}: {state}"
         )
     for rj in rc["rejoins"]:

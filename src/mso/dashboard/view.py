@@ -15,6 +15,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
+from mso.statusview import recovered_from
+
 # distinct colours for chains (Okabe-Ito, then Tableau): told apart by most colour-blind eyes
 PALETTE = (
     "#0072B2",
@@ -358,7 +360,7 @@ class Tracker:
             return
         self._seen.add(key)
         chains = ", ".join(rec.get("chains", [])) or "-"
-        failed = f"{', '.join(rec.get('failed', []))} failed"
+        failed = recovered_from(rec)
         entry = Entry(
             now - self.t0,
             "recovery",

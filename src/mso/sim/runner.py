@@ -102,6 +102,8 @@ class Simulation:
         self._seq = itertools.count()
         self._timers: dict[tuple[str, Hashable], float] = {}
         self.killed: set[str] = set()  # killed nodes: they receive and do nothing
+        # each node's cores before its restarts (what its old processes did, for reports)
+        self.retired: dict[str, list[NodeCore]] = {}
         # (node, destination): node's routing view has no route there although the links do
         # (a routing protocol that has not converged; see :meth:`lose_route`)
         self.lost_routes: set[tuple[str, str]] = set()
@@ -414,6 +416,7 @@ class Simulation:
         """Restart a killed ``node`` as a new process: a fresh core with a higher incarnation
         and no apps (add its links back first). The others restore what it hosted."""
         old = self.cores[node]
+        self.retired.setdefault(node, []).append(old)
         spec = self.network.nodes[node]
         self.cores[node] = core = NodeCore(
             node,

@@ -443,8 +443,10 @@ class Remapper:
             self.ctx.emit(Reply(remap.client, reply))
         if remap.client is not None:
             by = "operator"
-        elif remap.recovery is not None:
-            by = "failure of " + ",".join(remap.recovery.get("failed", ()))
+        elif remap.recovery is not None and remap.recovery.get("failed"):
+            by = "failure of " + ",".join(remap.recovery["failed"])
+        elif remap.recovery is not None:  # instances gone with an old incarnation, none failed
+            by = "recovery"
         else:
             by = "rule"
         self.ctx.publish(
@@ -503,6 +505,8 @@ class Remapper:
         record: dict[str, Any] = {
             "at": now,
             "failed": sorted(failed),
+            # nodes whose instances were gone with an old incarnation (a restart), not failed
+            "vanished_on": sorted({dep.placed[v] for v in dep.vanished if v in dep.placed}),
             "remap": plan.kind,
             "chains": [lay.chains[c].name for c in plan.chains],
             "lost": sorted(lost),
