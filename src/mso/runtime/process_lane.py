@@ -22,11 +22,13 @@ code 3"); the node core then restores the instance (``docs/architecture.md``, Ex
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import dataclasses
 import multiprocessing
 import signal
 import threading
+from collections import deque
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
@@ -92,7 +94,16 @@ class Stop(msgspec.Struct, tag=True):
     pass
 
 
-Job = Start | Feed | Run | Grant | Restore | Snapshot | Stop
+One = Start | Feed | Run | Grant | Restore | Snapshot | Stop
+
+
+class Batch(msgspec.Struct, tag=True):
+    """The jobs one turn of the node's loop made for this child, in order, in one write."""
+
+    jobs: list[One]
+
+
+Job = One | Batch
 
 
 class Result(msgspec.Struct):
@@ -144,6 +155,7 @@ def _child(conn: Connection) -> None:
     enc = msgspec.msgpack.Encoder()
     worker: VertexWorker | None = None
     credit, loop_source = 0, False
+    pending: deque[One] = deque()  # the rest of a batch
 
     def send(res: Any) -> None:
         body = msgspec.Raw(enc.encode(dataclasses.asdict(res)))
@@ -151,15 +163,19 @@ def _child(conn: Connection) -> None:
 
     while True:
         free = worker is not None and loop_source and credit > 0 and not worker.ended
-        if free and worker is not None and not conn.poll(0):  # a read loop, no job waiting
+        free = free and not pending and not conn.poll(0)  # and no job waiting
+        if free and worker is not None:  # a read loop
             res = worker.pull(min(credit, PULL_BATCH), PULL_BUDGET_S)
             credit -= res.calls
             send(res)
             continue
-        try:
-            job = jobs.decode(conn.recv_bytes())
-        except EOFError:
-            return
+        if not pending:
+            try:
+                got = jobs.decode(conn.recv_bytes())
+            except EOFError:
+                return
+            pending.extend(got.jobs if isinstance(got, Batch) else [got])
+        job = pending.popleft()
         if isinstance(job, Start):
             s = job.spec
             fmts = {e: (resolve(f) if f else None) for e, f in s.inputs.items()}
@@ -221,7 +237,7 @@ class _ProcLane:
         self.instance = start.instance
         self.stopping = False  # told to stop: its pipe closing is no crash
         self.lock = threading.Lock()  # submit is called from the loop; sends stay whole
-        self.waiting: list[Job] | None = []  # jobs before the child runs (None: it runs)
+        self.waiting: list[One] | None = []  # jobs before the child runs (None: it runs)
         self.started = threading.Event()  # the start was tried (the child runs, or failed)
         self._start = Start(start.instance, start.app, spec_of(start), start.state)
         self.reader = threading.Thread(
@@ -229,11 +245,14 @@ class _ProcLane:
         )
         self.reader.start()
 
-    def send(self, job: Job) -> None:
+    def send(self, jobs: list[One]) -> None:
+        """Write ``jobs`` in one message (one job alone as itself), or hold them behind the
+        ``Start`` while the child is not running yet."""
         with self.lock:
             if self.waiting is not None:
-                self.waiting.append(job)
-            else:
+                self.waiting.extend(jobs)
+            elif jobs:
+                job: Job = jobs[0] if len(jobs) == 1 else Batch(jobs)
                 self.conn.send_bytes(self.enc.encode(job))
 
     def _run(self) -> None:
@@ -247,11 +266,10 @@ class _ProcLane:
         finally:
             self._child_conn.close()
         self.started.set()
-        batch: list[Job] = [self._start]
+        batch: list[One] = [self._start]
         with contextlib.suppress(OSError):  # the child is gone already: the read says how
             while batch:  # sent outside the lock: the loop never waits for the child here
-                for job in batch:
-                    self.conn.send_bytes(self.enc.encode(job))
+                self.conn.send_bytes(self.enc.encode(Batch(batch)))
                 with self.lock:
                     batch, self.waiting = self.waiting or [], ([] if self.waiting else None)
         self._read()
@@ -281,6 +299,23 @@ class _ProcLane:
         return fx.VertexCrashed(self.instance, reason=exit_words(self.proc.exitcode))
 
 
+def _job(eff: fx.VertexEffect) -> One:
+    """The child's job for an effect on a running instance."""
+    if isinstance(eff, fx.FeedVertex):
+        return Feed(eff.edge, eff.events, eff.ts)
+    if isinstance(eff, fx.RunSource):
+        return Run(eff.first, eff.count, eff.now)
+    if isinstance(eff, fx.Credit):
+        return Grant(eff.count)
+    if isinstance(eff, fx.RestoreVertex):
+        return Restore(eff.state)
+    if isinstance(eff, fx.SnapshotVertex):
+        return Snapshot(eff.token)
+    if isinstance(eff, fx.StopVertex):
+        return Stop()
+    raise TypeError(f"no child job for {type(eff).__name__}")
+
+
 def exit_words(code: int | None) -> str:
     """A child's exit status in words: "killed by SIGKILL", "exit code 3"."""
     if code is None:
@@ -295,7 +330,14 @@ def exit_words(code: int | None) -> str:
 
 class ProcessExecutor:
     """Runs vertex effects in one child process per instance (``context``: forkserver or
-    spawn); the same interface as :class:`mso.runtime.executor.ThreadExecutor`."""
+    spawn); the same interface as :class:`mso.runtime.executor.ThreadExecutor`.
+
+    Submitted on a running event loop, a lane's jobs are written once per turn of that loop,
+    together: a write releases the GIL, and taking it back waits for any thread that took it
+    meanwhile (a lane's reader, woken by the child's results), which on a loaded machine may
+    itself be waiting for a core. One write per job (a replay after a crash feeds one event
+    a job) stopped the node's loop 25-65 ms a job, over 1 s for one read at load 13: no
+    heartbeats, and its peer declared the node failed."""
 
     def __init__(
         self, deliver: Callable[[fx.VertexResult], None], context: str = "forkserver"
@@ -303,6 +345,7 @@ class ProcessExecutor:
         self.deliver = deliver
         self.ctx = multiprocessing.get_context(context)
         self._lanes: dict[int, _ProcLane] = {}
+        self._due: dict[_ProcLane, list[One]] = {}  # this turn's jobs, written at its end
 
     def submit(self, eff: fx.VertexEffect) -> None:
         if isinstance(eff, fx.StartVertex):
@@ -314,22 +357,25 @@ class ProcessExecutor:
         if isinstance(eff, fx.StopVertex):
             lane.stopping = True
             del self._lanes[eff.instance]
-        with contextlib.suppress(OSError):  # the child is gone: its reader reports how it ended
-            self._send(lane, eff)
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:  # no loop here: write at once
+            self._write(lane, [_job(eff)])
+            return
+        if not self._due:
+            loop.call_soon(self.flush)
+        self._due.setdefault(lane, []).append(_job(eff))
 
-    def _send(self, lane: _ProcLane, eff: fx.VertexEffect) -> None:
-        if isinstance(eff, fx.FeedVertex):
-            lane.send(Feed(eff.edge, eff.events, eff.ts))
-        elif isinstance(eff, fx.RunSource):
-            lane.send(Run(eff.first, eff.count, eff.now))
-        elif isinstance(eff, fx.Credit):
-            lane.send(Grant(eff.count))
-        elif isinstance(eff, fx.RestoreVertex):
-            lane.send(Restore(eff.state))
-        elif isinstance(eff, fx.SnapshotVertex):
-            lane.send(Snapshot(eff.token))
-        elif isinstance(eff, fx.StopVertex):
-            lane.send(Stop())
+    def flush(self) -> None:
+        """Write every lane's jobs of this turn, in order, one message a lane."""
+        due, self._due = self._due, {}
+        for lane, jobs in due.items():
+            self._write(lane, jobs)
+
+    @staticmethod
+    def _write(lane: _ProcLane, jobs: list[One]) -> None:
+        with contextlib.suppress(OSError):  # the child is gone: its reader reports how it ended
+            lane.send(jobs)
 
     def pid(self, instance: int) -> int | None:
         """The process running ``instance`` (tests kill it to play a crash)."""
@@ -342,12 +388,12 @@ class ProcessExecutor:
 
     def shutdown(self, timeout: float = 1.0) -> None:
         """Stop every child (their ``close()`` hooks run); kill what does not end in time."""
+        self.flush()
         lanes = list(self._lanes.values())
         self._lanes.clear()
         for lane in lanes:
             lane.stopping = True
-            with contextlib.suppress(OSError):  # the child is gone already
-                lane.send(Stop())
+            self._write(lane, [Stop()])
         for lane in lanes:
             share = timeout / max(1, len(lanes))
             if not lane.started.wait(share) or lane.proc.pid is None:
