@@ -281,7 +281,8 @@ PIPE = (
 def test_over_tcp_a_captured_node_cannot_switch_an_edge_and_an_operators_order_can() -> None:
     """N1 - N2 - N3 - N4 with node identities, pipe src (N1) -> mid -> sink (N4). The captured
     N5, a proven neighbour of N1 hosting nothing, sends N1 a Switch of src's edge to itself
-    in its own name: refused, counted, nothing moves. The operator then relocates mid through
+    in its own name: refused, counted, nothing moves; and mid's host a marker of that edge
+    naming itself: held, mid handed to nobody. The operator then relocates mid through
     the node that neither hosts it nor an end of its chain, with the order its client signs:
     N1 and the target take the steps on it, and the stream goes on."""
 
@@ -336,9 +337,14 @@ def test_over_tcp_a_captured_node_cannot_switch_an_edge_and_an_operators_order_c
             captured = drivers["N5"].transport
             captured.send("N1", m.wrap("N5", "N1", m.Switch("pipe", 0, "N5", 7)), m.CONTROL)
             await until(lambda: refused("N1", "move_no_warrant") == 1, "the Switch refused")
+            # a marker of src's edge naming N5, to mid's host (its own, signed, relayed by
+            # N1): no move of mid is warranted there, so it waits and hands nothing over
+            captured.send(mid, m.wrap("N5", mid, m.Marker("pipe", 0, 0, 9, "N5")), m.MARKER)
+            await until(lambda: drivers[mid].core.relocator.leaving.held == 1, "the marker held")
             flowing = sunk()
             await until(lambda: sunk() > flowing + 20, "events to go on flowing")
             assert all(d.core.apps["pipe"].placed == placed for n, d in drivers.items())
+            assert "mid" in drivers[mid].core.apps["pipe"].instances
 
             # the operator, through the node that neither hosts mid nor an end of its chain
             client = await Client(HOST, port[other], KEY, signer=OPERATOR).connect()

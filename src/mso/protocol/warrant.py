@@ -240,6 +240,11 @@ class Leaving:
         self._held.move_to_end((app, vertex, marker.edge))
         _bound(self._held)
 
+    @property
+    def held(self) -> int:
+        """How many markers wait for their move's warrant."""
+        return len(self._held)
+
     def done(self, app: str, vertex: str) -> None:
         """``vertex`` was handed over: its move is over here."""
         self._moves.pop((app, vertex), None)
