@@ -9,6 +9,10 @@ the events the sink missed. Heartbeat bytes are the encoded size of the beats a 
 second (they must not grow with N), also split into beats per node per second (10 to each
 neighbour: the mean degree, which a grid's border lowers at small N) and bytes per beat.
 
+A restart of that node (its links back, a new incarnation, nothing hosted) 3 s after the kill
+is counted the same way: the control messages from the restart to quiescence, and the beats
+that are hellos (to or from the restarted node over more than one hop).
+
 Then 200 nodes in random waypoint (mean degree ~5, links by radio range) run for ``--mobile-s``
 simulated seconds: membership messages (heartbeats and the detector's own) per node per second,
 and, sampled every second, how many (node, peer) pairs hold a peer failed that they reach.
@@ -74,19 +78,25 @@ edges: [[src, a], [a, b], [b, sink]]
 """
 
 
-def failure(side: int, convergence_s: float) -> dict[str, Any]:
-    """One interior node of a side x side grid killed: the cost of its detection and recovery."""
+def deployed(side: int) -> tuple[Simulation, str]:
+    """The pipeline deployed on a side x side grid, and the interior node that runs ``a``."""
     n = side * side
-    net = grid(side)
-    wall = time.perf_counter()
-    sim = Simulation(net, wire=False, manage=False)
+    sim = Simulation(grid(side), wire=False, manage=False)
     src, sink = name(0), name(3 * side + 3 if side > 4 else n - 1)
     sim.request(src, m.DeployRequest(app(src, sink), "bench.yaml"))
     sim.run_until(3.0)
-    deployed = [r for _, _, r in sim.replies if isinstance(r, m.DeployReply)]
-    assert deployed and deployed[0].ok, deployed
+    replies = [r for _, _, r in sim.replies if isinstance(r, m.DeployReply)]
+    assert replies and replies[0].ok, replies
     (victim,) = sim.hosts("bench", "a")
     assert victim not in (src, sink), victim
+    return sim, victim
+
+
+def failure(side: int, convergence_s: float) -> dict[str, Any]:
+    """One interior node of a side x side grid killed: the cost of its detection and recovery."""
+    n = side * side
+    wall = time.perf_counter()
+    sim, victim = deployed(side)
     counts: Counter[str] = Counter()
     per_node: Counter[str] = Counter()
     beat_bytes = [0, 0]  # bytes, beats
@@ -135,6 +145,52 @@ def failure(side: int, convergence_s: float) -> dict[str, Any]:
         "heartbeat_bytes_per_node_s": round(beats_per_node_s, 1),
         "heartbeats_per_node_s": round(beats, 1),
         "heartbeat_bytes_per_beat": round(per_beat, 1),
+        "wall_s": round(time.perf_counter() - wall, 1),
+    }
+
+
+def restart(side: int, down_s: float = 3.0) -> dict[str, Any]:
+    """The interior node of :func:`deployed` killed, declared and recovered from, then back
+    after ``down_s`` (its links too) as a new incarnation: what its return costs."""
+    wall = time.perf_counter()
+    sim, victim = deployed(side)
+    links = [sim.network.link(victim, p) for p in sim.network.neighbours(victim)]
+    sim.kill(victim)
+    sim.run_until(sim.now + down_s)
+    counts: Counter[str] = Counter()
+    involved: set[str] = set()
+    hellos = [0]
+
+    def tap(a: str, b: str, msg: m.Message) -> None:
+        if isinstance(msg, m.Heartbeat):
+            if victim in (a, b) and sim.network.link(a, b) is None:
+                hellos[0] += 1
+            return
+        if isinstance(msg, NOT_CONTROL):
+            return
+        counts[type(msg).__name__] += 1
+        involved.update((a, b))
+
+    sim.taps.append(tap)
+    for link in links:
+        if link is not None:
+            sim.network.add_link(link)
+    t0 = sim.now
+    sim.revive(victim)
+    sim.run_until(t0 + 3.0)
+    back = [
+        j["at"] for c in sim.cores.values() for j in c.rejoins if j["node"] == victim
+    ]  # (the nodes that took it back, and when)
+    return {
+        "nodes": side * side,
+        "control_messages": sum(counts.values()),
+        "nodes_involved": len(involved),
+        "by_type": dict(sorted(counts.items())),
+        "hellos": hellos[0],
+        "taken_back_by": len(back),
+        "taken_back_by_all_s": round(max(back) - t0, 4) if back else None,
+        "held_failed_after": sum(victim in c.failed for c in sim.cores.values()),
+        "synced": "bench" in sim.cores[victim].apps,
         "wall_s": round(time.perf_counter() - wall, 1),
     }
 

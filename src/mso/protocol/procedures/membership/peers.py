@@ -197,6 +197,10 @@ class Membership(AppSyncing):
         recovery): told of failures and rejoins at once, the others by beats."""
         return {n for dep in self.ctx.apps.values() for n in dep.placed.values()}
 
+    def _neighbour(self, node: str) -> bool:
+        """Whether ``node`` is one hop away by the routing view."""
+        return self.ctx.routes.get(node, ("", 0))[0] == node
+
     def _hosting(self) -> int:
         """Instances hosted here (on every beat: over the apps engaged here only, not every
         app held, and summed in C)."""
@@ -522,9 +526,12 @@ class Membership(AppSyncing):
         now: float,
         incarnation: int | None = None,
         witness: str = "",
+        tell: bool = True,
     ) -> None:
         """A claim that ``node`` failed: this node's own (its detector's word), or another's,
-        acted on only when plausible and corroborated (:mod:`.claims`)."""
+        acted on only when plausible and corroborated (:mod:`.claims`). ``tell``: False when
+        the node is back already (a restart seen in its beat: its rejoin follows at once, and
+        the nodes that need it learn of that, not of a failure that is over)."""
         if node in self.failed or node == self.ctx.id:
             return
         if not self.heard_of_node(node) or not self.admits(node, self._failed_incarnation):
@@ -541,7 +548,7 @@ class Membership(AppSyncing):
         claim = m.NodeDown(node, detector, inc, witness)
         if detector != self.ctx.id and not self._believe(claim, now):
             return
-        self._declare(claim, now)
+        self._declare(claim, now, tell)
 
     def _believe(self, claim: m.NodeDown, now: float) -> bool:
         """Another node's claim: refused if this node hears the victim itself; acted on when
@@ -558,7 +565,7 @@ class Membership(AppSyncing):
             self.ctx.send(node, m.Suspect(node, 0))  # our own probe: does it answer?
         return False
 
-    def _declare(self, claim: m.NodeDown, now: float) -> None:
+    def _declare(self, claim: m.NodeDown, now: float, tell: bool = True) -> None:
         """``claim.node`` failed, by this node's detector or a claim it believes: the one
         place a peer is declared."""
         node, detector = claim.node, claim.detector
@@ -583,7 +590,7 @@ class Membership(AppSyncing):
         # it spreads on our next beats; the nodes that host the apps (one of them coordinates
         # the recovery) are told at once
         self._gossip.add(claim, rounds(len(self.ctx.routes) + 1))
-        if detector == self.ctx.id:
+        if detector == self.ctx.id and tell:
             for n in sorted(self._hosts() - self.failed - {self.ctx.id}):
                 self.ctx.send(n, claim)
         # moves that needed it fail or become restores; the chains it touched are recovered
@@ -598,7 +605,7 @@ class Membership(AppSyncing):
             self.ctx.refusal("unknown_node_over_bound")
             return
         if known is not None and msg.incarnation > known:  # it restarted: its instances went
-            self.on_node_down(src, self.ctx.id, now)
+            self.on_node_down(src, self.ctx.id, now, tell=False)
             self._rejoin(src, msg.incarnation, now, announce=True)
             return
         if known is not None and msg.incarnation < known:
@@ -802,10 +809,12 @@ class Membership(AppSyncing):
         self.ctx.publish(
             Happened("peer_rejoined", subject=node, detail=f"incarnation {incarnation}")
         )
-        if announce:  # to the nodes that host the apps (one of them restores what it hosted)
-            # and our neighbours, as a claim goes; the others hear it back from its own beats
-            # or at their next REJOIN_EVERY round (told every known node, a mobile network of
-            # 200 spent half its membership messages on NodeUp)
+        if announce and self._neighbour(node):  # to the nodes that host the apps (one of
+            # them restores what it hosted) and our neighbours, as a claim goes, by the node's
+            # neighbours alone: every node it reaches hears it back from its own hello (a
+            # restart's: :meth:`on_routes_changed`) or at its next REJOIN_EVERY round (told by
+            # every node that heard it, a restart at 1,000 nodes cost 7,557 NodeUp; told every
+            # known node, a mobile network of 200 spent half its membership messages on it)
             for n in sorted(self._hosts() | set(self.liveness.neighbours)):
                 if n not in (self.ctx.id, node) and n not in self.failed:
                     self.ctx.send(n, m.NodeUp(node, incarnation))
@@ -817,7 +826,7 @@ class Membership(AppSyncing):
             self.recovery.unpark(dep)
             if not dep.running:
                 continue
-            if not disputed:
+            if not disputed and self._syncs(dep, node):
                 self.ctx.send(node, self._app_sync(dep))
             self._claim(dep)
             self.recovery.maybe_recover(dep, now)
