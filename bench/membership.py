@@ -271,7 +271,9 @@ def mobile(n: int, seconds: float, seed: int = 1) -> dict[str, Any]:
     }
 
 
-def table(rows: list[dict[str, Any]], mob: dict[str, Any] | None) -> str:
+def table(
+    rows: list[dict[str, Any]], mob: dict[str, Any] | None, back: list[dict[str, Any]] | None = None
+) -> str:
     out = [
         "### Membership: one node failure on a grid (simulator, kill with routes converging "
         "in the given time)",
@@ -287,6 +289,22 @@ def table(rows: list[dict[str, Any]], mob: dict[str, Any] | None) -> str:
             f"| {r['recovery_s']} | {r['lost']} | {r['heartbeat_bytes_per_node_s']:,} "
             f"| {r.get('heartbeats_per_node_s', '')} | {r.get('heartbeat_bytes_per_beat', '')} |"
         )
+    if back:
+        out += [
+            "",
+            "### Membership: that node back 3 s later, a new incarnation (its links too)",
+            "",
+            "| N | control msgs | nodes involved | by type | hellos (beats over > 1 hop) "
+            "| taken back by | all within s | held failed after | app synced |",
+            "|---:|---:|---:|---|---:|---:|---:|---:|---|",
+        ]
+        for r in back:
+            kinds = ", ".join(f"{k} {v}" for k, v in r["by_type"].items())
+            out.append(
+                f"| {r['nodes']} | {r['control_messages']:,} | {r['nodes_involved']} | {kinds} "
+                f"| {r['hellos']:,} | {r['taken_back_by']} | {r['taken_back_by_all_s']} "
+                f"| {r['held_failed_after']} | {'yes' if r['synced'] else 'no'} |"
+            )
     if mob:
         out += [
             "",
@@ -326,16 +344,21 @@ def main(argv: list[str] | None = None) -> int:
         for conv in convs:
             rows.append(failure(side, conv))
             print(rows[-1], flush=True)
+    back = []
+    for side in sides:
+        back.append(restart(side))
+        print(back[-1], flush=True)
     mob = mobile(args.mobile_n, args.mobile_s) if args.mobile_s > 0 else None
     if mob is None and args.json.exists():  # a longer run measured before stays
         mob = json.loads(args.json.read_text()).get("mobility")
     result = {
         "provenance": provenance(),
         "failures": rows,
+        "restarts": back,
         "mobility": mob,
         "seconds": time.perf_counter() - start,
     }
-    write_results(args.json, result, table(rows, mob))
+    write_results(args.json, result, table(rows, mob, back))
     return 0
 
 

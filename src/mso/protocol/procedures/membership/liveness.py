@@ -159,16 +159,13 @@ class Liveness:
         """Watched nodes silent for longer than ``dead_after_s`` (sorted, deterministic):
         suspected. The clock runs from the last beat, or from when the node was first
         watched; losing a route does not restart it, a route back after an outage does."""
-        out = []
-        for n, since in sorted(self.watched.items()):
-            if n in dead:
-                continue
-            if now - self.last_seen(n, since) > self.dead_after_s:
-                out.append(n)
-        return out
-
-    def last_seen(self, node: str, since: float) -> float:
-        return max(since, self.last_heard.get(node, since))
+        heard, window = self.last_heard, self.dead_after_s  # (every beat: no sort, no call
+        # per watched node; the few found are sorted)
+        return sorted(
+            n
+            for n, since in self.watched.items()
+            if now - max(since, heard.get(n, since)) > window and n not in dead
+        )
 
     def unreachable(self, dead: set[str]) -> list[str]:
         """Nodes out of reach that nobody declared failed (sorted): unreachable, not failed."""

@@ -197,10 +197,6 @@ class Membership(AppSyncing):
         recovery): told of failures and rejoins at once, the others by beats."""
         return {n for dep in self.ctx.apps.values() for n in dep.placed.values()}
 
-    def _neighbour(self, node: str) -> bool:
-        """Whether ``node`` is one hop away by the routing view."""
-        return self.ctx.routes.get(node, ("", 0))[0] == node
-
     def _hosting(self) -> int:
         """Instances hosted here (on every beat: over the apps engaged here only, not every
         app held, and summed in C)."""
@@ -236,8 +232,9 @@ class Membership(AppSyncing):
                 if not briefed and full is None:
                     full = msgspec.structs.replace(slim, figures=self.ctx.figures())
                 self.ctx.emit(Send(n, full if not briefed and full is not None else slim))
-        for n in set(self._briefed) - set(self.liveness.neighbours):
-            del self._briefed[n]  # bounded by the neighbours
+        if not self._briefed.keys() <= self.liveness.neighbours.keys():
+            for n in set(self._briefed) - set(self.liveness.neighbours):
+                del self._briefed[n]  # bounded by the neighbours
         self._beats += 1
         if self._beats % REJOIN_EVERY == 0:  # a failed node we can reach again: a healed
             for n in sorted(self.failed):  # partition; tell it, so one side rejoins the other
@@ -809,12 +806,13 @@ class Membership(AppSyncing):
         self.ctx.publish(
             Happened("peer_rejoined", subject=node, detail=f"incarnation {incarnation}")
         )
-        if announce and self._neighbour(node):  # to the nodes that host the apps (one of
+        if announce and self._first_to_hear(node):  # to the nodes that host the apps (one of
             # them restores what it hosted) and our neighbours, as a claim goes, by the node's
-            # neighbours alone: every node it reaches hears it back from its own hello (a
-            # restart's: :meth:`on_routes_changed`) or at its next REJOIN_EVERY round (told by
-            # every node that heard it, a restart at 1,000 nodes cost 7,557 NodeUp; told every
-            # known node, a mobile network of 200 spent half its membership messages on it)
+            # neighbours alone (:meth:`_first_to_hear`): every node it reaches hears it back
+            # from its own hello (a restart's: :meth:`on_routes_changed`) or at its next
+            # REJOIN_EVERY round (told by every node that heard it, a restart at 1,000 nodes
+            # cost 7,557 NodeUp; told every known node, a mobile network of 200 spent half
+            # its membership messages on it)
             for n in sorted(self._hosts() | set(self.liveness.neighbours)):
                 if n not in (self.ctx.id, node) and n not in self.failed:
                     self.ctx.send(n, m.NodeUp(node, incarnation))

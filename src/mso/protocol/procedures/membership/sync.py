@@ -64,15 +64,22 @@ class AppSyncing:
                         inc = inc - 1 if vid in dep.vanished and inc > 0 else inc
                         self.ctx.send(node, placement.moved(dep, vid, to, inc))
 
+    def _first_to_hear(self, node: str) -> bool:
+        """Whether ``node``, just heard, is one of the first nodes to hear it: a neighbour by
+        the routing view, or a node the view has no route to yet (its link came up and the
+        routes lag its beats: babeld, the emulator's convergence)."""
+        hop = self.ctx.routes.get(node)
+        return hop is None or hop[0] == node
+
     def _syncs(self, dep: AppState, node: str) -> bool:
         """Whether this node tells ``node``, back with nothing, the app ``dep``: it hosts
-        part of it (its instances, or its view), or it is ``node``'s neighbour (it holds
-        every app it held; a host may be down or back empty itself, seed 91). Not every node
-        that holds the app: each node that heard a restart's hello sent it every app (999
-        syncs at 1,000 nodes)."""
-        if dep.instances or self.ctx.id in dep.placed.values():
-            return True
-        return self.ctx.routes.get(node, ("", 0))[0] == node
+        part of it (its instances, or its view), or it is among the first to hear ``node``
+        (it holds every app it held; a host may be down or back empty itself, seed 91). Not
+        every node that holds the app: each node that heard a restart's hello sent it every
+        app (999 syncs at 1,000 nodes)."""
+        return (
+            bool(dep.instances) or self.ctx.id in dep.placed.values() or self._first_to_hear(node)
+        )
 
     def _disputed(self) -> bool:
         """This node holds a node it can reach failed: a partition healed and one side is
