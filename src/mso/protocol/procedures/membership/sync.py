@@ -76,9 +76,15 @@ class AppSyncing:
         part of it (its instances, or its view), or it is among the first to hear ``node``
         (it holds every app it held; a host may be down or back empty itself, seed 91). Not
         every node that holds the app: each node that heard a restart's hello sent it every
-        app (999 syncs at 1,000 nodes)."""
-        return (
-            bool(dep.instances) or self.ctx.id in dep.placed.values() or self._first_to_hear(node)
+        app (999 syncs at 1,000 nodes) -- unless the app has no host left but ``node`` (every
+        live vertex placed there, now vanished, or on nodes held failed): then every node that
+        holds it does, as no host will (seed 866: a line whose far end alone held the app, the
+        restarted node's one neighbour back empty too)."""
+        if dep.instances or self.ctx.id in dep.placed.values() or self._first_to_hear(node):
+            return True
+        return not any(
+            n != node and n not in self.failed and v not in dep.vanished
+            for v, n in dep.placed.items()
         )
 
     def _disputed(self) -> bool:
