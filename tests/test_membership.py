@@ -236,3 +236,15 @@ def test_a_restarts_control_messages_do_not_grow_with_the_network() -> None:
     assert small["control_messages"] > 0
     assert large["control_messages"] <= 1.2 * small["control_messages"], (small, large)
     assert large["nodes_involved"] <= small["nodes_involved"] + 2, (small, large)
+
+
+def test_a_restarted_node_whose_apps_have_no_other_host_is_sent_them() -> None:
+    """Fault seed 866: on the line N1 - N2 - N3 the app runs on N1 alone; N2 and N1 crash,
+    then come back. N1's only neighbour is N2, back empty too, and N3 hosts nothing: before,
+    nobody sent N1 the app (a restart is synced by its neighbours and the app's hosts), and
+    no node ran it again. Every node that holds an app with no other host left sends it."""
+    from mso.sim.faults import Settings, run
+
+    result = run(866, Settings(start_s=1, faults_s=3, quiet_s=4, rate=10))
+    assert result.topology == "line" and result.faults["crash"] == 2
+    assert not result.violations, "\n".join(map(str, result.violations))
