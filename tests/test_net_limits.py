@@ -14,6 +14,7 @@ from mso.node.core import NodeCore
 from mso.node.driver import NodeDriver
 from mso.protocol import messages as m
 from mso.protocol.framing import HELLO_BYTES, MAGIC, FrameCodec
+from waits import holds, patience
 
 HOST = "127.0.0.1"
 LIMITS = Limits(
@@ -26,8 +27,9 @@ LIMITS = Limits(
 
 
 async def read_all(reader: asyncio.StreamReader) -> bytes:
+    """Everything until the node closes the connection (a reset: nothing)."""
     try:
-        return await asyncio.wait_for(reader.read(), 5.0)
+        return await asyncio.wait_for(reader.read(), patience(5.0))
     except ConnectionError:
         return b""
 
@@ -104,10 +106,7 @@ def test_members_cannot_fill_a_nodes_memory_with_partial_frames_or_unread_replie
             for _, w, _ in conns:
                 w.write(struct.pack(">I", 8 << 20) + b"\0" * (2 << 20))
             counters = driver.transport.connection_counters
-            for _ in range(500):  # until the node has read what they sent
-                if counters.over_buffer >= 3:
-                    break
-                await asyncio.sleep(0.01)
+            await holds(lambda: counters.over_buffer >= 3, 5.0, "the node reading what they sent")
             assert counters.over_buffer == 3  # the fourth fits in what is left
             assert driver.transport._held_total <= 4 << 20
             for _, w, _ in conns:
@@ -153,10 +152,7 @@ def test_an_incarnation_at_the_end_of_its_range_is_not_believed() -> None:
             ]:
                 writer.write(codec.seal(m.wrap("N2", "N1", msg)))
             await writer.drain()
-            for _ in range(200):  # until the plausible one was taken
-                if "N5" in driver.core.failed:
-                    break
-                await asyncio.sleep(0.01)
+            await holds(lambda: "N5" in driver.core.failed, 2.0, "the plausible claim taken")
             writer.close()
             client = await Client(HOST, port, overlay_key("k")).connect()
             reply = await client.call(m.StatusRequest())
@@ -187,10 +183,8 @@ def test_twenty_clients_that_never_read_are_closed_by_their_backlog_together() -
             ask = m.wrap("c", "N1", m.StatusRequest())
             for _, w, codec in conns:  # 3,000 replies each: about 9 MiB, under 16 MiB
                 w.write(b"".join(codec.seal(ask) for _ in range(3000)))
-            for _ in range(1000):  # until the node has answered (it closes them as it does)
-                if counters.over_buffer >= 19:
-                    break
-                await asyncio.sleep(0.01)
+            # until the node has answered (it closes them as it does)
+            await holds(lambda: counters.over_buffer >= 19, 10.0, "19 clients closed")
             backlog = sum(
                 c.transport.get_write_buffer_size()
                 for c in driver.transport.clients.values()

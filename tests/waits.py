@@ -74,6 +74,17 @@ async def until(
         await asyncio.sleep(0.1)  # poll period, not synchronisation
 
 
+async def holds(check: Callable[[], object], timeout: float, what: str) -> None:
+    """Return once ``check()`` is true (state this process holds: a node driver's counters),
+    looked at every 10 ms, or fail saying what did not happen by the scaled deadline."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + patience(timeout)
+    while not check():
+        if loop.time() > deadline:
+            raise AssertionError(f"{what} within {patience(timeout):g} s")
+        await asyncio.sleep(0.01)  # poll period, not synchronisation
+
+
 async def answered(call: Callable[[], Awaitable[T]], timeout: float, what: str) -> T:
     """``call()``'s result once it stops raising :class:`MsoError` (a node still starting, a key
     not taken yet), asked again every 50 ms until the scaled deadline, where the last error is
