@@ -75,6 +75,13 @@ def _free_port(hosts: list[str]) -> int:
     raise MsoError("no free port on the loopback addresses")
 
 
+# every node process imports mso, binds and meets its neighbours within this: 20 s was tight
+# for four processes at load 17 on two cores (perhaps why a CI run's `mso demo` exited 2 there;
+# its message was not kept); a process that exits fails the wait at once, so a slow start
+# costs time, never a false error
+NODE_START_S = 60.0
+
+
 @dataclass
 class EmulatedNode:
     id: str
@@ -132,7 +139,7 @@ class Emulator:
     story: list[tuple[float, str]] = field(default_factory=list)  # what was told, in order
     emptied: set[str] = field(default_factory=set)  # stopped by an empty battery (fail-stop)
 
-    async def start(self, timeout: float = 20.0) -> None:
+    async def start(self, timeout: float = NODE_START_S) -> None:
         names = list(self.scenario.network.nodes)
         if len(names) > 250:
             raise MsoError("the user-space emulator supports at most 250 nodes")
@@ -324,7 +331,7 @@ class Emulator:
         await self.change(NodeFailure(self.now(), node))
         return f"{node} failed (killed); its links are down"
 
-    async def restart(self, node: str, timeout: float = 20.0) -> str:
+    async def restart(self, node: str, timeout: float = NODE_START_S) -> str:
         """Start a failed, killed or crashed ``node`` again: a new process, so a new
         incarnation; its links come back once it listens. The others restore what it hosted."""
         if self.running(node):
@@ -369,7 +376,7 @@ class Emulator:
         near = ", ".join(self.scenario.network.neighbours(node)) or "none"
         return f"{node} is at ({x:g}, {y:g}); in range of {near}"
 
-    async def _start_again(self, node: str, timeout: float = 20.0) -> None:
+    async def _start_again(self, node: str, timeout: float = NODE_START_S) -> None:
         n = self._node(node)
         if n.process is not None and n.process.poll() is None and node not in self.killed:
             return  # never killed (the timeline only thought so)
