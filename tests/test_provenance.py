@@ -88,6 +88,8 @@ def test_a_forwarder_passes_on_the_merge_inputs_provenance_with_its_own_count() 
     assert provenance.strip(out, marks) == [b"x", b"y"]
     assert marks == {3: (10, 1)}  # (the merge's k 0, the forwarder's second output)
     assert provenance.past(out, {3: (10, 0)}) == out[1:]
+    # headers missing for the batch (never expected): stamped as headerless, no exception
+    assert provenance.split(provenance.forward([b"z"], [], [0]))[1] == [(0xFFFF, -1, 0)]
 
 
 def test_a_forwarders_replacement_takes_what_its_consumer_saw_first_then_the_rest() -> None:

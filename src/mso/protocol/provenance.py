@@ -110,7 +110,8 @@ def forward(payloads: list[bytes], heads: list[Head], owners: list[int]) -> list
     for payload, owner in zip(payloads, owners, strict=True):
         j = j + 1 if owner == last else 0
         last = owner
-        edge, seq, k = heads[owner]
+        # (a batch's headers are kept as it is fed; never trust they are there: no crash)
+        edge, seq, k = heads[owner] if 0 <= owner < len(heads) else NO_HEAD
         out.append(pack(edge, seq, (min(k, 0xFFFF) << 16) | min(j, 0xFFFF)) + payload)
     return out
 
