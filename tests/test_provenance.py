@@ -93,7 +93,7 @@ def test_a_forwarder_passes_on_the_merge_inputs_provenance_with_its_own_count() 
 
 
 def test_a_forwarders_replacement_takes_what_its_consumer_saw_first_then_the_rest() -> None:
-    catch_up = provenance.CatchUp({0: (5, 0), 1: (3, 0)}, now=0.0)
+    catch_up = provenance.CatchUp({0: (5, 0), 1: (3, 0)}, now=0.0, edge=4)
     a5, a6, b2, b3, b4 = (
         provenance.stamp([x], e, s, [0])[0]
         for x, e, s in ((b"a5", 0, 5), (b"a6", 0, 6), (b"b2", 1, 2), (b"b3", 1, 3), (b"b4", 1, 4))
@@ -106,7 +106,7 @@ def test_a_forwarders_replacement_takes_what_its_consumer_saw_first_then_the_res
 
 
 def test_a_catch_up_whose_input_never_comes_lets_what_it_holds_go_at_its_deadline() -> None:
-    catch_up = provenance.CatchUp({0: (5, 0), 1: (3, 0)}, now=0.0)
+    catch_up = provenance.CatchUp({0: (5, 0), 1: (3, 0)}, now=0.0, edge=4)
     a6 = provenance.stamp([b"a6"], 0, 6, [0])[0]
     assert catch_up.take([a6], now=0.1) == [] and catch_up.due(provenance.CATCH_UP_S + 0.2)
     assert catch_up.release() == [a6] and catch_up.done

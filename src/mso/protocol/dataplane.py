@@ -68,9 +68,9 @@ class DataPlane:
         self.cpu_ms = 0.0  # measured CPU time of the vertex code that ran here
         self.sf = StoreAndForward(ctx, self)  # the producer's side of an outage
         self.taps = Taps(ctx)  # copies of edges for clients looking at them (mso echo)
-        # forwarders' replacements holding input past their consumer's marks: (app, vertex)
-        # -> the input edge and its events' stamp (released by the deadline at a flush)
-        self.catching: dict[tuple[str, str], tuple[int, float]] = {}
+        # forwarders' replacements holding input past their consumer's marks, (app, vertex):
+        # released by the deadline at a flush (AppState.catch_up holds what they hold)
+        self.catching: set[tuple[str, str]] = set()
 
     def host(self, dep: AppState, vid: str) -> HostedInstance:
         """Ask the executor for a new instance of ``vid``."""
@@ -339,7 +339,8 @@ class DataPlane:
                 if catch_up.done:
                     del dep.catch_up[dst]
                 else:
-                    self.catching[(dep.app.name, dst)] = (edge, ts)
+                    catch_up.ts = ts
+                    self.catching.add((dep.app.name, dst))
             deadline = dep.app.edges[edge].deadline_ms
             now = self.ctx.now
             late = ch.last_at is not None and (now - ch.last_at) * 1e3 > (deadline or 0)
@@ -355,9 +356,9 @@ class DataPlane:
         everything before it has been processed."""
         h = dep.instances.get(vid)
         if isinstance(item, m.Marker) and vid in dep.catch_up:  # moving: what it held first
-            held = dep.catch_up.pop(vid).release()
-            if h is not None and held:
-                h.pending.append((item.edge, held, 0.0))
+            catch_up = dep.catch_up.pop(vid)
+            if h is not None and (held := catch_up.release()):
+                h.pending.append((catch_up.edge, held, catch_up.ts))
         if h is not None:
             h.pending.append(item)
             self.pump(dep, vid)
@@ -639,20 +640,21 @@ class DataPlane:
     def _caught_up(self) -> None:
         """Input a forwarder's replacement held past its deadline goes to it now (an edge
         whose events never came: its producer out of reach; provenance.CatchUp)."""
-        for (app, vid), (edge, ts) in list(self.catching.items()):
+        for app, vid in list(self.catching):
             dep = self.ctx.apps.get(app)
             catch_up = dep.catch_up.get(vid) if dep is not None else None
             if dep is None or catch_up is None:
-                del self.catching[(app, vid)]
+                self.catching.discard((app, vid))
             elif catch_up.due(self.ctx.now):
-                del self.catching[(app, vid)], dep.catch_up[vid]
+                self.catching.discard((app, vid))
+                del dep.catch_up[vid]
                 self.ctx.note_event(
                     self.ctx.now,
                     f"{vid}: input past its consumer's marks "
                     f"held {provenance.CATCH_UP_S:g} s, processed now",
                 )
                 if held := catch_up.release():
-                    self.enqueue(dep, vid, (edge, held, ts))
+                    self.enqueue(dep, vid, (catch_up.edge, held, catch_up.ts))
 
     def touch(self, app: str) -> None:
         """A procedure may have changed ``app``'s channels (a handover, a restore): look at

@@ -166,11 +166,13 @@ class CatchUp:
     Each edge's events come in order, so an event past an edge's mark says that edge has
     caught up."""
 
-    def __init__(self, marks: Marks, now: float) -> None:
+    def __init__(self, marks: Marks, now: float, edge: int) -> None:
         self.marks = dict(marks)
         self.waiting = set(marks)  # marked edges not reached yet
         self.held: list[bytes] = []
         self.since = now
+        self.edge = edge  # the forwarder's input edge (what is held goes back on it)
+        self.ts = 0.0  # when the newest held events entered their chain
 
     def due(self, now: float) -> bool:
         return now - self.since > CATCH_UP_S

@@ -261,7 +261,8 @@ class Restorer:
                 base = restoring.consumer_start[o]  # inputs up to the marks: those first,
                 dep.marks.setdefault(vertex, {})[o] = marks  # and sent on only past them
                 if snap is not None:  # (mso.protocol.provenance, seed 8029)
-                    dep.catch_up[vertex] = provenance.CatchUp(marks, self.ctx.now)
+                    (i,) = snap.inputs  # (a forwarder has one input)
+                    dep.catch_up[vertex] = provenance.CatchUp(marks, self.ctx.now, i)
             elif marks is not None:  # a merge: from where its consumer stands, only what it
                 base = restoring.consumer_start[o]  # lacks (mso.protocol.provenance); not
                 # by an input numbered anew (its producer lost with the merge: seed 11242)
