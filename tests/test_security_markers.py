@@ -166,3 +166,35 @@ def test_a_chain_heads_remap_by_its_rules_moves_its_chains_vertices() -> None:
     flows_on(sim, flowing)
     got = sink(sim)
     assert got["count"] == got["next"], got
+
+
+def test_a_marker_is_taken_only_from_its_edges_producer() -> None:
+    """An operator's move of ``b`` to N4, coordinated by N5 on its order: N3 (b's host) holds
+    the move's ``Moving``, and N4 prepared ``b``. The captured N4 knows the move's number and
+    target and sends N3 a marker of ``b``'s input edge before a's host N2 has switched: N3
+    hands nothing over on it (it used to: the edge's drain ended early), then takes N2's own
+    marker; the forged one is refused, counted, at the move's deadline. Every event once,
+    in order."""
+    sim = line()
+    flowing = sink(sim)["processed"]
+    host = sim.cores["N3"]
+    ordered = order(m.RelocateRequest("line", "b", target="N4"))
+    robot(sim, "N4", m.Prepare("line", "b", 73, order=ordered), src="N5")
+    robot(sim, "N3", m.Moving("line", "b", 73, "N4", ordered), src="N5")
+    sim.run_until(sim.now + 0.1)
+    assert "b" in sim.cores["N4"].apps["line"].awaiting
+    seq = host.apps["line"].inc[1].expected
+    robot(sim, "N3", m.Marker("line", 1, seq, 73, "N4"), src="N4")
+    sim.run_until(sim.now + 0.3)
+    assert "b" in host.apps["line"].instances  # the forged marker ended nothing
+    assert host.relocator.leaving.held == 1
+    robot(sim, "N2", m.Switch("line", 1, "N4", 73, order=ordered), src="N5")
+    sim.run_until(sim.now + 0.3)
+    assert "b" not in host.apps["line"].instances  # a's host's own marker hands it over
+    assert "b" in sim.cores["N4"].apps["line"].instances
+    assert all(c.apps["line"].placed == dict(PLACED, b="N4") for c in sim.cores.values())
+    flows_on(sim, flowing)
+    got = sink(sim)
+    assert got["count"] == got["next"], got  # every number once, none skipped
+    sim.run_until(sim.now + HOLD_S + 1.5)
+    assert host.refusals["marker_not_from_its_producer"] == 1

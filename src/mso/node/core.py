@@ -240,7 +240,7 @@ class NodeCore:
                 dp.on_ack(msg, now) if placement.from_member(self, src, msg.app) else None
             ),
             m.ChainDelay: lambda src, msg, now: dp.on_chain_delay(msg, now),
-            m.Marker: lambda src, msg, now: rel.on_marker(msg, now),
+            m.Marker: rel.on_marker,
             m.AppAnnounce: self._on_announce,
             m.CapabilityQuery: dep.on_capability_query,
             m.CapabilityReply: lambda src, msg, now: dep.on_capability_reply(src, msg),

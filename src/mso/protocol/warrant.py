@@ -34,7 +34,11 @@ nothing: the producer of every input of a vertex used to have its host hand the 
 to any node it named. Now (with operator keys) a host hands a vertex over at a marker only for
 a move it holds a warrant for (:class:`Leaving`): one it coordinates, or one whose coordinator
 told it with a ``Moving`` whose warrant it checked as a ``Prepare``'s. A marker that comes
-before its move's ``Moving`` waits for it, for as long as a committed move may take.
+before its move's ``Moving`` waits for it, for as long as a committed move may take. And a
+marker is taken only from its edge's producer (the node this node's view places the edge's
+producer on): one from another node waits until the view agrees (a move of the producer not
+heard of yet), else is refused at the same deadline; a member knowing a running move's number
+and target used to end an edge's drain early with a marker of its own.
 
 Sans-IO: messages, keys and the receiver's view in; a verdict out.
 """
@@ -215,6 +219,8 @@ class Leaving:
     def __init__(self) -> None:
         self._moves: OrderedDict[tuple[str, str], tuple[int, str, float]] = OrderedDict()
         self._held: OrderedDict[tuple[str, str, int], tuple[m.Marker, float]] = OrderedDict()
+        # markers from another node than their edge's producer, by (app, edge, sender)
+        self._strays: OrderedDict[tuple[str, int, str], tuple[m.Marker, float]] = OrderedDict()
 
     def warranted(self, app: str, vertex: str, rid: int, to: str, now: float) -> list[m.Marker]:
         """Move ``rid`` of ``vertex`` to ``to`` is warranted here: the markers of it that
@@ -240,27 +246,51 @@ class Leaving:
         self._held.move_to_end((app, vertex, marker.edge))
         _bound(self._held)
 
+    def stray(self, app: str, vertex: str, sender: str, marker: m.Marker, now: float) -> None:
+        """``marker`` came from ``sender``, not its edge's producer in this node's view: it
+        waits for the view to agree (the newest one of its edge from that sender), apart
+        from the producer's own markers, which it never displaces."""
+        key = (app, marker.edge, sender)
+        self._strays[key] = (marker, now)
+        self._strays.move_to_end(key)
+        _bound(self._strays)
+
+    def strays(self) -> list[tuple[str, m.Marker]]:
+        """The markers waiting for their sender to be their edge's producer, with it."""
+        return [(k[2], mk) for k, (mk, _) in self._strays.items()]
+
+    def unstray(self, sender: str, marker: m.Marker) -> None:
+        """``marker`` is now its producer's: it waits no longer as a stray."""
+        self._strays.pop((marker.app, marker.edge, sender), None)
+
     @property
     def held(self) -> int:
-        """How many markers wait for their move's warrant."""
-        return len(self._held)
+        """How many markers wait for their move's warrant or their producer."""
+        return len(self._held) + len(self._strays)
 
     def done(self, app: str, vertex: str) -> None:
         """``vertex`` was handed over: its move is over here."""
         self._moves.pop((app, vertex), None)
 
-    def expire(self, now: float) -> int:
-        """Forget what is older than :data:`HOLD_S`; how many markers never got a warrant."""
+    def expire(self, now: float) -> tuple[int, int]:
+        """Forget what is older than :data:`HOLD_S`; how many markers never got a warrant,
+        and how many never came from their edge's producer."""
         for move in [k for k, v in self._moves.items() if now - v[2] > HOLD_S]:
             del self._moves[move]
-        stale = [k for k, (_, since) in self._held.items() if now - since > HOLD_S]
-        for marker in stale:
-            del self._held[marker]
-        return len(stale)
+        return _expire(self._held, now), _expire(self._strays, now)
 
     def clear(self) -> None:
         self._moves.clear()
         self._held.clear()
+        self._strays.clear()
+
+
+def _expire(table: OrderedDict[Any, tuple[m.Marker, float]], now: float) -> int:
+    """Drop the markers waiting longer than :data:`HOLD_S`; how many."""
+    stale = [k for k, (_, since) in table.items() if now - since > HOLD_S]
+    for k in stale:
+        del table[k]
+    return len(stale)
 
 
 def _bound(table: OrderedDict[Any, Any]) -> None:

@@ -266,27 +266,51 @@ class Relocator:
         for marker in self.leaving.warranted(msg.app, msg.vertex, msg.rid, msg.to, now):
             self.dp.on_marker_msg(marker, now)
 
-    def on_marker(self, msg: m.Marker, now: float) -> None:
+    def on_marker(self, src: str, msg: m.Marker, now: float) -> None:
         """A marker of a move of a vertex hosted here. With operator keys it hands the vertex
         over only for a move this node coordinates or was told of with a warrant; before
-        that it waits (refused, counted, if none comes within the move's deadline)."""
+        that it waits (refused, counted, if none comes within the move's deadline). And only
+        from its edge's producer: the host of the edge's producer in this node's view sends
+        it (:meth:`on_switch`); a marker from any other node waits until the view says that
+        node hosts the producer (a move of the producer this node has not heard of yet), or
+        is refused, counted, at the move's deadline: a member that knew a running move's
+        number and target used to end one edge's drain early."""
         dep = self.ctx.apps.get(msg.app)
         if self.ctx.authority.signed and dep is not None and 0 <= msg.edge < len(dep.app.edges):
-            vid = dep.app.edges[msg.edge].dst
+            edge = dep.app.edges[msg.edge]
+            vid = edge.dst
+            hosted = vid in dep.instances and msg.to != self.ctx.id
+            if hosted and dep.placed.get(edge.src) != src:
+                self.leaving.stray(msg.app, vid, src, msg, now)
+                return
             ours = any(
                 (r.app, r.vertex, r.pid, r.target) == (msg.app, vid, msg.rid, msg.to)
                 for r in self._open()
             )
-            hosted = vid in dep.instances and msg.to != self.ctx.id
             if hosted and not ours and not self.leaving.takes(msg.app, vid, msg):
                 self.leaving.hold(msg.app, vid, msg, now)
                 return
         self.dp.on_marker_msg(msg, now)
 
     def expire_held(self, now: float) -> None:
-        """Markers whose move never got a warrant here are refused, counted."""
-        for _ in range(self.leaving.expire(now)):
+        """Markers from a node the view now places their edge's producer on are taken;
+        markers whose move never got a warrant here, or that never came from their edge's
+        producer, are refused, counted."""
+        for sender, msg in self.leaving.strays():
+            dep = self.ctx.apps.get(msg.app)
+            edges = dep.app.edges if dep is not None else []
+            if (
+                dep is not None
+                and msg.edge < len(edges)
+                and dep.placed.get(edges[msg.edge].src) == sender
+            ):
+                self.leaving.unstray(sender, msg)
+                self.on_marker(sender, msg, now)
+        unwarranted, strays = self.leaving.expire(now)
+        for _ in range(unwarranted):
             self.ctx.refusal("marker_no_warrant")
+        for _ in range(strays):
+            self.ctx.refusal("marker_not_from_its_producer")
 
     def moving(self, app: str, vertex: str) -> bool:
         """A relocation or restore of ``vertex`` this node coordinates is under way."""
