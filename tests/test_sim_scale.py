@@ -293,3 +293,38 @@ def test_a_first_start_says_hello_to_neighbours_and_a_deployment_carries_incarna
     sim.run_until(6.0)
     assert [j["node"] for j in sim.cores["N1"].membership.rejoins] == ["N7"]
     assert ran and ran <= set(sim.cores["N7"].instances("app0"))
+
+
+def test_every_copy_counts_its_frame_at_its_encoded_size_at_every_hop() -> None:
+    """A message to many is encoded once; each copy's frame size is worked out from its two
+    names, not encoded again: every node's byte counters come out as if each copy had been
+    encoded, with names of different lengths and routes of several hops, taps on or off."""
+    ids = [f"N{i}" for i in range(1, 13)]  # names of 2 and 3 bytes
+
+    def run(tapped: bool) -> tuple[Simulation, dict[str, list[int]]]:
+        sim = Simulation(_line(12), manage=False)
+        # what each node counted once started, and then each copy's frame encoded when sent
+        want = {n: list(c) for n, c in sim.bytes.items()}
+        hops = [0]
+
+        def tap(a: str, b: str, msg: m.Message) -> None:
+            size, route = len(m.wrap(a, b, msg)), sim.network.route(a, b)
+            assert route is not None
+            hops[0] = max(hops[0], len(route) - 1)
+            for x in route[:-1]:
+                want[x][0] += size
+            for x in route[1:]:
+                want[x][1] += size
+
+        if tapped:
+            sim.taps.append(tap)
+        (src, doc), = pipelines([ids[0], ids[-1]], 1, seed=0, rate=20.0)  # fmt: skip
+        sim.request(src, m.DeployRequest(doc, "app.yaml"))
+        sim.run_until(2.0)
+        assert hops[0] > 1 or not tapped  # (routes of several hops among them)
+        return sim, want
+
+    tapped, want = run(True)
+    plain, _ = run(False)
+    assert tapped.bytes == want
+    assert plain.bytes == want

@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import zlib
 from collections import deque
-from collections.abc import Callable, Hashable, Mapping
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from typing import Any, TypeVar
 
 from mso.errors import MsoError
@@ -140,7 +140,7 @@ class NodeCore:
         # one synchronous run); None in simulation, where ``now`` is exact
         self.clock = clock
         # the driver's inputs: cumulative bytes (sent, received), its links for status
-        self._traffic = (0, 0)
+        self._traffic: Sequence[int] = (0, 0)
         self._links: LinkStatus | None = None
         # operator keys and the undeploys they signed; open (no keys) unless the driver shares
         # its own (``mso node --operator-key``), which the transport checks frames with too
@@ -354,6 +354,13 @@ class NodeCore:
         if device is not None:
             self.monitor.observe(now, device)
 
+    def count_traffic(self, counters: Sequence[int]) -> None:
+        """The driver's cumulative byte counters (sent, received) as a live sequence it keeps
+        up to date, read when the node samples them: the simulator's, whose counters change
+        only between the core's calls, so this reads what an :meth:`observe` before every
+        call would have given, without the call per message."""
+        self._traffic = counters
+
     def set_routes(self, routes: dict[str, tuple[str, int]], now: float = 0.0) -> list[Effect]:
         """Take the routing view's current routes; returns effects (a recovery waiting for
         routes around a failed node may start)."""
@@ -400,7 +407,7 @@ class NodeCore:
     def receive(self, src: str, msg: m.Message, now: float) -> list[Effect]:
         """A message from another node (or relayed by one)."""
         self._now = now
-        if src in self.failed:  # a node declared failed is heard only to rejoin
+        if src in self.membership.failed:  # a node declared failed is heard only to rejoin
             if not isinstance(msg, m.Heartbeat):
                 self.dropped_messages += 1
                 return []

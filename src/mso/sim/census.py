@@ -65,15 +65,31 @@ class Census:
     forgotten: int = 0  # control messages dropped from ``control`` past MAX_KEPT
 
     def note(self, at: float, src: str, dst: str, msg: m.Message, route: list[str]) -> None:
+        self.note_many(at, src, msg, ((dst, route),))
+
+    def note_many(
+        self, at: float, src: str, msg: m.Message, copies: Iterable[tuple[str, list[str]]]
+    ) -> None:
+        """``msg`` sent to each (destination, route) of ``copies``: every copy counted, as
+        :meth:`note` counts one (a beat to every neighbour is counted in one call)."""
         kind = _KINDS.get(type(msg))
         if kind is None:  # a message's kind is its type's: looked up once per type
             name = type(msg).__name__
             control = m.kind_of(msg) in (m.CONTROL, m.MARKER) and name not in PERIODIC
             kind = _KINDS[type(msg)] = (name, control)
         name, control = kind
-        self.by_type[name] += 1
-        self.hops_by_type[name] += len(route) - 1
-        if control:
+        if not control:
+            hops = sent = 0
+            for _, route in copies:
+                sent += 1
+                hops += len(route) - 1
+            if sent:
+                self.by_type[name] += sent
+                self.hops_by_type[name] += hops
+            return
+        for dst, route in copies:
+            self.by_type[name] += 1
+            self.hops_by_type[name] += len(route) - 1
             if len(self.control) >= MAX_KEPT:
                 drop = MAX_KEPT // 4
                 del self.control[:drop]

@@ -14,6 +14,8 @@ from collections import deque
 from collections.abc import Callable, Hashable
 from typing import Any
 
+import msgspec
+
 from mso.management import RuleSettings
 from mso.model.network import Network
 from mso.net.forwarding import RouteWait
@@ -66,7 +68,9 @@ class Simulation:
         self._policy, self._rules = policy, rules
         self.wire = wire  # pass every message through the real encoding, as the wire does
         # (sent, its envelope as received, its body as received)
-        self._last_decoded: tuple[m.Message, m.Envelope, m.Message] | None = None
+        # (sent, its frame's size without its two ends' names, its body as received)
+        self._last_decoded: tuple[m.Message, int, m.Message] | None = None
+        self._names: dict[str, int] = {}  # a node's name -> its length in an envelope
         self._paths: dict[tuple[str, str], _Path | None] = {}
         self._paths_version = -1
         self._hops: dict[tuple[str, str], tuple[float, float]] = {}  # (a, b) -> delay, loss
@@ -124,6 +128,7 @@ class Simulation:
         self.update_routes()
         for n, core in self.cores.items():
             self.apply(n, core.start(self.now))
+            core.count_traffic(self.bytes[n])  # read live from now on (started with none)
 
     def _link_rates(self, node: str) -> Callable[[str], float | None]:
         """What ``node`` knows of its links' rates: the scenario's ``bandwidth_mbps`` now."""
@@ -296,8 +301,12 @@ class Simulation:
         path = self._path(node, dst)
         if path is None or (node, dst) in self.lost_routes:
             return None
+        self.census.note(self.now, node, dst, msg, path[0])
+        return self._carry(node, dst, msg, path)
+
+    def _carry(self, node: str, dst: str, msg: m.Message, path: _Path) -> tuple[float, m.Message]:
+        """:meth:`_put` past the census: taps, loss, the wire and the bytes at every hop."""
         route, delay, lossy, senders, receivers = path
-        self.census.note(self.now, node, dst, msg, route)
         for tap in self.taps:
             tap(node, dst, msg)
         if self.drop is not None and self.drop(node, dst, msg):
@@ -315,44 +324,80 @@ class Simulation:
             if last is not None and last[0] is msg:  # one message to many (a beat to every
                 # neighbour): encoded and decoded once, its receivers share it as without
                 # the wire (decoding it per receiver held N² copies of N-entry beats); each
-                # frame is its own envelope around the one body
-                _, env, msg = last
-                frame = m.rewrap(m.Envelope(node, dst, env.ttl, env.kind, env.body))
+                # frame is the same envelope but for its ends, so its size is the rest of the
+                # first frame and the two names' encoded lengths (not encoded per copy)
+                _, rest, msg = last
+                names = self._names
+                size = rest + (names.get(node) or self._name_bytes(node))
+                size += names.get(dst) or self._name_bytes(dst)
             else:
                 frame = m.wrap(node, dst, msg)
-                env = m.unwrap(frame)
-                decoded = m.decode(env.body)
-                self._last_decoded, msg = (msg, env, decoded), decoded
-            size = len(frame)
+                decoded = m.decode(m.unwrap(frame).body)
+                size = len(frame)
+                rest = size - self._name_bytes(node) - self._name_bytes(dst)
+                self._last_decoded, msg = (msg, rest, decoded), decoded
             for c in senders:  # every hop sends and receives it
                 c[0] += size
             for c in receivers:
                 c[1] += size
         return delay, msg
 
+    def _name_bytes(self, name: str) -> int:
+        """How many bytes ``name`` takes in an envelope (msgpack: its header and UTF-8)."""
+        size = self._names.get(name)
+        if size is None:
+            size = self._names[name] = len(msgspec.msgpack.encode(name))
+        return size
+
     def _cast(self, node: str, sends: list[Send]) -> None:
         """One message to several nodes (a beat to every neighbour): on a radio one local
-        broadcast that every neighbour hears at once. Each copy is counted, taps see it and
-        bytes are added as for a send of its own, but the receivers it reaches at the same
-        moment share one scheduled event, delivered to each in the order sent -- the order
-        their own events would have had (a beat's N scheduled sends were a fifth of a
-        1,000-node run)."""
+        broadcast that every neighbour hears at once. Each copy is counted (the census in one
+        call for them all), taps see it and bytes are added as for a send of its own, but the
+        receivers it reaches at the same moment share one scheduled event, delivered to each
+        in the order sent -- the order their own events would have had (a beat's N scheduled
+        sends were a fifth of a 1,000-node run)."""
+        msg = sends[0].msg
+        paths: list[tuple[str, _Path | None]] = []
+        copies: list[tuple[str, list[str]]] = []
+        lost = self.lost_routes
+        for eff in sends:
+            path = self._path(node, eff.dst)
+            if path is None or (lost and (node, eff.dst) in lost):
+                path = None
+            else:
+                copies.append((eff.dst, path[0]))
+            paths.append((eff.dst, path))
+        if copies:
+            self.census.note_many(self.now, node, msg, copies)
         group: list[str] = []
         at = -1.0
         arrived: m.Message | None = None
-        for eff in sends:
-            put = self._put(node, eff.dst, eff.msg)
-            if put is None:  # no route: control frames wait
-                self.waiting[node].hold(eff.dst, (eff.dst, eff.msg), m.kind_of(eff.msg), self.now)
+        # with nothing to see or lose a copy (no taps, no test's drop) and the body decoded
+        # already, a lossless path's copy only adds its bytes: done here, as _carry does
+        plain = self.wire and not self.taps and self.drop is None
+        names = self._names
+        for dst, path in paths:
+            if path is None:  # no route: control frames wait
+                self.waiting[node].hold(dst, (dst, msg), m.kind_of(msg), self.now)
                 continue
-            delay, arrived = put
+            last = self._last_decoded
+            if plain and not path[2] and last is not None and last[0] is msg:
+                size = last[1] + (names.get(node) or self._name_bytes(node))
+                size += names.get(dst) or self._name_bytes(dst)
+                for c in path[3]:
+                    c[0] += size
+                for c in path[4]:
+                    c[1] += size
+                delay, arrived = path[1], last[2]
+            else:
+                delay, arrived = self._carry(node, dst, msg, path)
             if delay < 0:
                 continue
             if group and self.now + delay != at:
                 self._push(at, "cast", node, (group, arrived))
                 group = []
             at = self.now + delay
-            group.append(eff.dst)
+            group.append(dst)
         if group:
             self._push(at, "cast", node, (group, arrived))
 
@@ -389,7 +434,6 @@ class Simulation:
 
     def request(self, node: str, msg: m.Message, client: int = 1) -> None:
         core = self.cores[node]
-        core.observe(self.now, self.bytes[node][0], self.bytes[node][1])
         self.apply(node, core.request(client, msg, self.now))
 
     def kill(self, node: str, convergence_s: float = 0.0) -> None:
@@ -437,22 +481,23 @@ class Simulation:
         self.killed.discard(node)
         self._timers = {k: v for k, v in self._timers.items() if k[0] != node}
         self.apply(node, core.start(self.now))
+        core.count_traffic(self.bytes[node])  # (it started with none, as a new process)
         self._recheck.add(node)
         self.update_routes()
 
     def _deliver(self, at: float, src: str, dsts: list[str], msg: m.Message) -> None:
         """A broadcast's copies arriving at ``at``, at each receiver in turn."""
-        cores, killed, count = self.cores, self.killed, self.bytes
+        cores, killed, trace = self.cores, self.killed, self.trace
         for node in dsts:
             if node in killed:
                 continue
-            core = cores[node]
-            sent, received = count[node]
-            core.observe(at, sent, received)
+            core = cores[node]  # (its byte counters it reads itself: count_traffic)
             self.delivered += 1
-            if self.trace is not None:
-                self.trace.append((at, node, src, type(msg).__name__))
-            self.apply(node, core.receive(src, msg, at))
+            if trace is not None:
+                trace.append((at, node, src, type(msg).__name__))
+            effects = core.receive(src, msg, at)
+            if effects:  # (a quiet beat's none)
+                self.apply(node, effects)
 
     def run_until(self, t: float) -> None:
         heap = self._heap
@@ -467,9 +512,7 @@ class Simulation:
                 continue
             if node in self.killed:
                 continue
-            core = self.cores[node]
-            sent, received = self.bytes[node]
-            core.observe(at, sent, received)  # its driver's byte counters, as inputs
+            core = self.cores[node]  # (its byte counters it reads itself: count_traffic)
             if kind == "msg":
                 src, msg = payload
                 self.delivered += 1

@@ -106,6 +106,8 @@ class Gossip:
 
     def next_beat(self) -> list[m.NodeDown]:
         """The claims for this period's beats (one beat round to every neighbour)."""
+        if not self.waiting:  # (every beat: mostly nothing to tell)
+            return []
         out = []
         for node, (claim, left) in list(self.waiting.items())[:MAX_NEWS]:
             out.append(claim)
@@ -143,6 +145,8 @@ class Claims:
 
     def due(self, now: float, wait_s: float) -> list[tuple[m.NodeDown, float]]:
         """Claims whose probe has had ``wait_s`` to be answered (removed)."""
+        if not self.pending:  # (every beat: mostly none)
+            return []
         out = [(c, at) for c, at in self.pending.values() if now - at >= wait_s]
         for c, _ in out:
             del self.pending[c.node]

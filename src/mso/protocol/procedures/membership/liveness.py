@@ -24,7 +24,7 @@ tells whether ``dead_after_s`` can be lowered, and whether vertex code delays th
 from __future__ import annotations
 
 import math
-from collections import deque
+from array import array
 from dataclasses import dataclass, field
 
 import msgspec
@@ -72,17 +72,11 @@ class Gaps:
     """One neighbour's recent heartbeat inter-arrival times (s), bounded; and the largest."""
 
     last: float | None = None
-    recent: deque[float] = field(default_factory=lambda: deque(maxlen=GAP_SAMPLES))
+    # the last GAP_SAMPLES gaps, in no order once full (a ring: ``count`` says where the
+    # next goes); raw doubles, not a float object kept per beat per neighbour
+    recent: array[float] = field(default_factory=lambda: array("d"))
     count: int = 0
     max_s: float = 0.0
-
-    def beat(self, now: float) -> None:
-        if self.last is not None:
-            gap = now - self.last
-            self.recent.append(gap)
-            self.count += 1
-            self.max_s = max(self.max_s, gap)
-        self.last = now
 
     def summary(self) -> InterArrival:
         s = sorted(self.recent)
@@ -153,19 +147,33 @@ class Liveness:
             gaps = self.gaps.get(node)  # (not setdefault: a Gaps made and dropped per beat)
             if gaps is None:
                 gaps = self.gaps[node] = Gaps()
-            gaps.beat(now)
+            if gaps.last is None:
+                gaps.last = now
+            else:  # a gap, noted here (every beat from a neighbour comes here: no call)
+                gap = now - gaps.last
+                if gaps.count < GAP_SAMPLES:
+                    gaps.recent.append(gap)
+                else:
+                    gaps.recent[gaps.count % GAP_SAMPLES] = gap
+                gaps.count += 1
+                if gap > gaps.max_s:
+                    gaps.max_s = gap
+                gaps.last = now
 
     def silent(self, now: float, dead: set[str]) -> list[str]:
         """Watched nodes silent for longer than ``dead_after_s`` (sorted, deterministic):
         suspected. The clock runs from the last beat, or from when the node was first
         watched; losing a route does not restart it, a route back after an outage does."""
         heard, window = self.last_heard, self.dead_after_s  # (every beat: no sort, no call
-        # per watched node; the few found are sorted)
-        return sorted(
-            n
-            for n, since in self.watched.items()
-            if now - max(since, heard.get(n, since)) > window and n not in dead
-        )
+        # per watched node but the look-up; the few found are sorted)
+        out = []
+        for n, since in self.watched.items():
+            last = heard.get(n, since)
+            if now - (last if last > since else since) > window and n not in dead:
+                out.append(n)
+        if len(out) > 1:
+            out.sort()
+        return out
 
     def unreachable(self, dead: set[str]) -> list[str]:
         """Nodes out of reach that nobody declared failed (sorted): unreachable, not failed."""

@@ -276,7 +276,9 @@ class Membership(AppSyncing):
         with :meth:`on_heartbeat` (tests/test_sim_scale.py runs the two ways side by side)."""
         if msg.news or src in self._suspicions or src in self._vouchers.since:
             return False
-        neighbour = self.ctx.routes.get(src, ("", 0))[0] == src
+        # (the liveness table's few neighbours, which on_routes_changed keeps equal to the
+        # routes whose next hop is their destination: not the N-entry routing table)
+        neighbour = src in self.liveness.neighbours
         known = self._incarnations.get(src)
         if known is None:
             if neighbour or not self.admits(src, self._incarnations) or self._newcomer(msg):
