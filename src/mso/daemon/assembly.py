@@ -141,6 +141,7 @@ async def serve(s: NodeSettings, core: NodeCore) -> None:
     tidy = None
     if isinstance(core.spill, SqliteSpill):  # (--state-dir) its slow work off the loop's turns
         tidy = asyncio.create_task(keep_tidy(core.spill))
+        core.spill.read_apart(asyncio.get_running_loop().call_soon_threadsafe, driver.spill_ready)
     started = time.monotonic()
     fields = start_fields(s, driver, view)
     log.info("start", extra={KV: fields})
@@ -157,6 +158,8 @@ async def serve(s: NodeSettings, core: NodeCore) -> None:
             watch.cancel()
         if tidy is not None:
             tidy.cancel()
+            assert isinstance(core.spill, SqliteSpill)
+            core.spill.stop_reading()
         if exporter is not None:
             await exporter.stop()
         if kernel is not None:

@@ -404,6 +404,13 @@ class NodeCore:
         self._guarded(type(res).__name__, self.dataplane.on_vertex, res, now)
         return self._run(now)
 
+    def on_spill(self, key: str, now: float) -> list[Effect]:
+        """The spill store read ahead events of ``key`` a drain waited for (drivers call
+        this when a store reads off the loop, ``mso.daemon.spill``)."""
+        self._now = now
+        self._guarded("spill", self.dataplane.sf.spill_ready, key)
+        return self._run(now)
+
     def receive(self, src: str, msg: m.Message, now: float) -> list[Effect]:
         """A message from another node (or relayed by one)."""
         self._now = now

@@ -282,6 +282,11 @@ class NodeDriver:
         for result in results:
             self._apply(self.core.on_vertex(result, self.loop.time()))
 
+    def spill_ready(self, key: str) -> None:
+        """On the loop: the spill store's reader thread has events of ``key`` in memory."""
+        if not self.stopped.is_set():
+            self._apply(self.core.on_spill(key, self.loop.time()))
+
     def _fire(self, key: Hashable) -> None:
         self._timers.pop(key, None)
         if isinstance(key, MonitorTick):  # the monitor samples the byte counters

@@ -257,7 +257,7 @@ class OutChannel:
         assert self.store is not None
         while self.spilled and self.mem_bytes < self.mem_limit:
             first = self.base + len(self._unacked)
-            back = self.store.read(self.key, first, min(self.spilled, 256))
+            back = self.store.ready(self.key, first, min(self.spilled, 256))
             if not back:
                 break
             self._unacked.extend(back)
@@ -313,9 +313,12 @@ class OutChannel:
         """``(first seq, events)`` still unacknowledged from ``start`` (default: all)."""
         return self.events_from(self.acked if start is None else max(start, self.acked))
 
-    def events_from(self, start: int, count: int | None = None) -> tuple[int, list[bytes]]:
+    def events_from(
+        self, start: int, count: int | None = None, ready: bool = False
+    ) -> tuple[int, list[bytes]]:
         """``(first seq, events)`` kept from ``start`` on (no earlier than ``base``), at most
-        ``count`` of them."""
+        ``count`` of them; ``ready``: only the first of them the store has at hand (a drain:
+        the rest is read off the loop, and sent when it is in)."""
         begin = max(start, self.base)
         end = self.next_seq if count is None else min(self.next_seq, begin + count)
         in_memory = self.base + len(self._unacked)
@@ -328,14 +331,15 @@ class OutChannel:
         )
         if end > in_memory and self.store is not None:
             frm = max(begin, in_memory)
-            out += self.store.read(self.key, frm, end - frm)
+            read = self.store.ready if ready else self.store.read
+            out += read(self.key, frm, end - frm)
         return begin, out
 
     def unsent(self, limit: int) -> tuple[int, list[bytes]]:
         """The next events to send, within the window and at most ``limit``; they count as
         sent from now on."""
         end = min(self.next_seq, self.acked + self.window, self.sent + limit)
-        first, events = self.events_from(self.sent, max(0, end - self.sent))
+        first, events = self.events_from(self.sent, max(0, end - self.sent), ready=True)
         self.sent_again(events[: max(0, self.top - first)])
         self.sent = max(self.sent, first + len(events))
         return first, events

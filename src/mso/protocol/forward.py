@@ -191,6 +191,14 @@ class StoreAndForward:
             room -= len(events)
             self.transmit(dep, edge, first, events, ts, out.acked)
 
+    def spill_ready(self, key: str) -> None:
+        """The node's store has read ahead events of ``key`` (an edge's name in it, see
+        :meth:`key`) that a drain waited for: drain on."""
+        app, epoch, edge = key.rsplit("/", 2)
+        dep = self.ctx.apps.get(app)
+        if dep is not None and dep.running and str(dep.epoch) == epoch and edge.isdigit():
+            self.drain(dep, int(edge))
+
     def back_in_reach(self, out: OutChannel) -> None:
         """The consumer is in reach again after an outage. What was sent before it went out
         of reach and is not acknowledged may have been lost with the link (and a consumer
@@ -243,8 +251,11 @@ class StoreAndForward:
                     ch.given_up += ch.drop_front(ch.sent, now)
                     self.gave_up(dep, edge)
                 else:  # ``first`` is the acked position: nothing below it will come again
-                    first, events = ch.events_from(ch.acked, min(ch.sent - ch.acked, ch.window))
+                    n = min(ch.sent - ch.acked, ch.window)
+                    first, events = ch.events_from(ch.acked, n, ready=True)
                     ch.sent_again(events)
+                    if len(events) < n:  # the rest is still read: the drain sends it
+                        ch.sent = first + len(events)
                     per_frame = max(1, MAX_BATCH_BYTES // max(1, ch.kept_bytes // ch.kept))
                     for i in range(0, len(events), per_frame):
                         chunk = events[i : i + per_frame]

@@ -29,6 +29,12 @@ class SpillStore(Protocol):
         """Up to ``count`` events of ``key`` from ``start`` on, in order."""
         ...
 
+    def ready(self, key: str, start: int, count: int) -> list[bytes]:
+        """Up to ``count`` events of ``key`` from ``start`` on, in order, that can be had
+        without waiting (a first part of them, perhaps none: a store that reads apart reads
+        on meanwhile and its driver tells the node when they are in)."""
+        ...
+
     def trim(self, key: str, below: int) -> None:
         """Forget the events of ``key`` below ``below``."""
 
@@ -80,6 +86,9 @@ class MemorySpill:
             return []
         skip = max(0, start - log[0][0])
         return [e for _, e in itertools.islice(log, skip, skip + count)]
+
+    def ready(self, key: str, start: int, count: int) -> list[bytes]:
+        return self.read(key, start, count)
 
     def trim(self, key: str, below: int) -> None:
         log = self._logs.get(key)
