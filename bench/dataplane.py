@@ -48,6 +48,7 @@ import msgspec
 
 from mso.benchmarks.common import cpu_seconds, src_digest
 from mso.benchmarks.vertices.dataplane import LatencySink, Stamped, pad_len
+from mso.errors import MsoError
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
@@ -258,6 +259,39 @@ async def run_baseline(
 
 
 # -- mso driver ---------------------------------------------------------------------------------
+STATUS_S = 30.0  # how long a status read waits for every node's part (and the app's) in it
+
+
+class StatusMissing(Exception):
+    """The overlay's status did not list a node or the case's app in time."""
+
+
+async def status_of(emu: Any, app: str | None = None, timeout: float = STATUS_S) -> dict[str, Any]:
+    """Both nodes' status, once one reply lists both (and ``app`` on each): a reply gathered
+    by one node lacks a node whose part did not come in time (a bench run at load 16 read
+    ``KeyError: 'N2'``). Asked again every 0.2 s until ``timeout``; then StatusMissing
+    says what was missing."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while True:
+        try:
+            nodes: dict[str, Any] = await emu.status()
+        except MsoError as exc:
+            nodes, missing = {}, [str(exc)]
+        else:
+            missing = [n for n in ("N1", "N2") if n not in nodes]
+            missing += [
+                f"{app} on {n}"
+                for n in ("N1", "N2")
+                if app and app not in nodes.get(n, {}).get("apps", {})
+            ]
+        if not missing:
+            return nodes
+        if loop.time() > deadline:
+            raise StatusMissing(f"the status lacked {', '.join(missing)} after {timeout:g} s")
+        await asyncio.sleep(0.2)  # (a poll period)
+
+
 async def run_mso(
     cpus: tuple[int, int],
     cases: list[tuple[int, float]],
@@ -293,14 +327,18 @@ async def run_mso(
             name = f"dp{k}x{size}{'paced' if rate else ''}"
             doc = app_yaml(name, size, rate or None, warmup, window)
             (tmp / f"{name}.yaml").write_text(doc)
-            before = await emu.status()
-            reply = await emu.deploy(doc, str(tmp / f"{name}.yaml"), "N1")
             row: dict[str, Any] = {
                 "system": "mso",
                 "size": size,
                 "rate": rate or None,
                 "loadavg_before": os.getloadavg()[0],
             }
+            try:
+                before = await status_of(emu)
+            except StatusMissing as exc:
+                out.append(row | {"error": str(exc)})
+                continue
+            reply = await emu.deploy(doc, str(tmp / f"{name}.yaml"), "N1")
             if not reply.ok:
                 row["error"] = reply.error
                 out.append(row)
@@ -319,12 +357,18 @@ async def run_mso(
             deadline = loop.time() + 20.0
             sink: dict[str, Any] = {}
             nodes: dict[str, Any] = {}
-            for _ in range(1000):
-                nodes = await emu.status()
-                sink = nodes["N2"]["apps"][name]["vertices"]["sink"]["stats"] or {}
-                if sink.get("done") or loop.time() > deadline:
-                    break
-                await asyncio.sleep(0.1)
+            try:
+                for _ in range(1000):
+                    nodes = await status_of(emu, name)
+                    sink = nodes["N2"]["apps"][name]["vertices"]["sink"]["stats"] or {}
+                    if sink.get("done") or loop.time() > deadline:
+                        break
+                    await asyncio.sleep(0.1)
+            except StatusMissing as exc:
+                row["error"] = str(exc)
+                out.append(row)
+                await emu.undeploy(name, "N1")
+                continue
             row["sink"] = sink
             src = nodes["N1"]["apps"][name]
             row["source_emitted"] = src["vertices"]["src"]["emitted"]
