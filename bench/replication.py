@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import os
 import random
 import re
@@ -47,6 +48,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -211,15 +213,28 @@ def convoy_doc(replicas_zero: bool) -> str:
     return doc
 
 
+@contextlib.contextmanager
+def logging_to(db: Path, sim: Simulation) -> Iterator[None]:
+    """The convoy's storage logs into ``db``, stamped with the simulator's clock (undone after)."""
+    old = os.environ.get(storage.DB_ENV)
+    os.environ[storage.DB_ENV] = str(db)
+    storage.set_clock(lambda: sim.now)
+    try:
+        yield
+    finally:
+        storage.set_clock(time.monotonic)
+        if old is None:
+            os.environ.pop(storage.DB_ENV, None)
+        else:
+            os.environ[storage.DB_ENV] = old
+
+
 def convoy_run(replicas_zero: bool, seconds: float, db: Path) -> dict[str, Any]:
     """The convoy for ``seconds`` of virtual time; delays from its storage log."""
     doc = convoy_doc(replicas_zero)
     net = load_scenario(EXAMPLES / "convoy-line.yaml").network
     sim = Simulation(net, manage=False, model_time=True)
-    old = os.environ.get(storage.DB_ENV)
-    os.environ[storage.DB_ENV] = str(db)
-    storage.set_clock(lambda: sim.now)
-    try:
+    with logging_to(db, sim):
         sim.request("N1", m.DeployRequest(doc, "convoy.yaml"))
         sim.run_until(seconds)
         replies = [r for _, _, r in sim.replies if isinstance(r, m.DeployReply)]
@@ -229,12 +244,6 @@ def convoy_run(replicas_zero: bool, seconds: float, db: Path) -> dict[str, Any]:
         for c in sim.cores.values():
             cost |= c.status(sim.now)["apps"]["convoy"]["replication"]
         sent = sum(out for out, _ in sim.bytes.values())
-    finally:
-        storage.set_clock(time.monotonic)
-        if old is None:
-            os.environ.pop(storage.DB_ENV, None)
-        else:
-            os.environ[storage.DB_ENV] = old
     return _figures(replicas_zero, _delays(db), cost) | {
         "bytes_sent_per_s": round(sent / seconds, 1)
     }
