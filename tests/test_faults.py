@@ -124,6 +124,8 @@ BROKE = {
     24507: "the same class: a merge and its counting consumer on one node that failed",
     31247: "a consumer restored from its replica had no marks of the merge's inputs, so the "
     "merge's later replacement numbered by acks: 4 events twice",
+    5040: "a fork re-placed on both sides of two partitions: its consumers held outputs of "
+    "different instances numbered alike, and its next replacement numbered by one (9 twice)",
     29505: "a consumer restored from its replica asked its source for the replay; the source's "
     "node restarted, numbered on and never replayed: the stream stalled",
     30719: "a restore's early frames from a producer's lost instance, numbered like its "

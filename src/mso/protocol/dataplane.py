@@ -454,10 +454,10 @@ class DataPlane:
             h.emitted += fx.events_in(res.outputs)
             outputs = res.outputs
             if vid in dep.layout.stamped:  # (module docstring of mso.protocol.provenance)
-                if vid in dep.layout.merges:
-                    outputs = provenance.stamp(outputs, edge, first, res.owners)
-                else:
+                if vid in dep.layout.forwarders:
                     outputs = provenance.forward(outputs, heads, res.owners)
+                else:
+                    outputs = provenance.stamp(outputs, edge, first, res.owners)
                 marks = dep.marks.get(vid)
                 if marks:  # a replacement: only what each consumer lacks
                     for o in out_edges:

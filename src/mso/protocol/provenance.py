@@ -29,6 +29,15 @@ consumer stands, sends only what was made past the marks, and takes its input up
 first (:class:`CatchUp`): its state then counts what its consumer saw before anything newer.
 The merge's order downstream of the forwarder is not logged: a merge lost with two vertices
 after it is not exact (docs/architecture.md).
+
+A *fork* (``Layout.forks``: two consumers or more) stamps its outputs too, with its input's
+provenance: after two partitions in quick succession each side may have re-placed it, and its
+consumers then hold outputs of different lost instances numbered alike (seed 5040: one had the
+source's events 0-9 as 12-21, the other 24 events of the other side's instance). Numbered by
+one consumer's position, the next replacement's output is wrong for the other; with each
+consumer's marks in the input's terms it sends each only what that one lacks. A consumer
+started fresh from a stamped producer's ``Resume`` keeps marks from then on (empty: what its
+lost instance had went on and was acknowledged).
 """
 
 from __future__ import annotations

@@ -142,6 +142,9 @@ class Restorer:
                 processed=msg.start,
                 _acked=msg.start,
                 released=msg.start if gated else None,
+                # a fresh instance: what it has of a stamped producer's inputs is what comes
+                # from here on (its lost instance's output went on and was acknowledged)
+                marks={} if edge.src in dep.layout.stamped else None,
             )
             for o, pos in msg.positions.items():
                 restoring.positions[o] = max(restoring.positions.get(o, 0), pos)
@@ -294,6 +297,10 @@ class Restorer:
             # positions further down, for a restore of its consumer (replayed from here); a
             # source's carried channel keeps those its last ack brought (seed 1998)
             further = {e: p for e, p in restoring.positions.items() if e not in outs}
+            if marks is not None and restoring.positions.get(o, base) != base:
+                # numbered from where a marked consumer stands, not from the ack the positions
+                # came with: they say nothing of this numbering (seed 1983, forks stamped)
+                further = {}
             out = dep.out[o]
             if further or carried is None:
                 out.positions = further
