@@ -126,6 +126,9 @@ BROKE = {
     "merge's later replacement numbered by acks: 4 events twice",
     5040: "a fork re-placed on both sides of two partitions: its consumers held outputs of "
     "different instances numbered alike, and its next replacement numbered by one (9 twice)",
+    7472: "a fork restored while its producer was lost too kept its consumers' marks of "
+    "that input: the producer's replacement numbered anew below them, 1 event dropped",
+    9020: "the same: 17 events of a restarted source dropped by a fork's stale marks",
     29505: "a consumer restored from its replica asked its source for the replay; the source's "
     "node restarted, numbered on and never replayed: the stream stalled",
     30719: "a restore's early frames from a producer's lost instance, numbered like its "

@@ -268,8 +268,14 @@ class Restorer:
                     dep.catch_up[vertex] = provenance.CatchUp(marks, self.ctx.now, i)
             elif marks is not None:  # a merge: from where its consumer stands, only what it
                 base = restoring.consumer_start[o]  # lacks (mso.protocol.provenance); not
-                # by an input numbered anew (its producer lost with the merge: seed 11242)
-                marks = {i: mk for i, mk in marks.items() if i not in restoring.fresh}
+                # by an input numbered anew (its producer lost with the merge: seed 11242), or
+                # to be (its producer lost too, its replacement to number from this one's
+                # start, below the marks: its new events were dropped, seed 7472)
+                marks = {
+                    i: mk
+                    for i, mk in marks.items()
+                    if i in restoring.resumed and i not in restoring.fresh
+                }
                 dep.marks.setdefault(vertex, {})[o] = marks
             elif snap is None and dep.replicas.get(vertex) and o not in restoring.positions:
                 # no ack said where its output stood: a producer that replays what it retains
