@@ -136,10 +136,15 @@ class StoreAndForward:
             self.ctx.spill.drop(self.key(dep, edge))
 
     def held(self, dep: AppState, edge: int) -> bool:
-        """The consumer of ``edge`` is out of reach (failed, or no route to it): its events
-        wait here until it is back or restored elsewhere (store and forward)."""
-        dst = dep.placed[dep.app.edges[edge].dst]
-        return dst != self.ctx.id and (dst in self.ctx.failed or dst not in self.ctx.routes)
+        """The consumer of ``edge`` is out of reach (failed, or no route to it), or placed on
+        unconfirmed hearsay (:meth:`AppState.unconfirmed`: a captured member's first sync
+        would have its events sent to it): its events wait here until it is back, restored
+        elsewhere or confirmed (store and forward)."""
+        consumer = dep.app.edges[edge].dst
+        dst = dep.placed[consumer]
+        if dst == self.ctx.id:
+            return False
+        return dst in self.ctx.failed or dst not in self.ctx.routes or dep.unconfirmed(consumer)
 
     def edge_room(self, dep: AppState, edge: int) -> int:
         """Events the producer of ``edge`` may make now (the window, or the store's bound)."""

@@ -573,6 +573,20 @@ class AppState:
         of every move of the app's vertices."""
         return bool(self.instances or self.awaiting or self.restoring or self.crashed)
 
+    def unconfirmed(self, vertex: str) -> bool:
+        """Whether this node placed ``vertex`` on a sync's word alone and no node's own word
+        it runs there stands uncontested: hearsay (a node that learnt the app from syncs,
+        with operator keys) that only another node's word, or a tie, supports. Its events
+        wait here (store and forward) rather than go where the word says, until two senders
+        agree or the node named says so itself and no sender names another
+        (:mod:`mso.protocol.procedures.membership.sync`)."""
+        votes = self.hearsay.get(vertex)
+        if votes is None:
+            return False
+        node = self.placed.get(vertex, "")
+        named = {n for n, senders in votes.items() if senders}
+        return named != {node} or node not in votes[node]
+
     def lost(self, failed: set[str]) -> set[str]:
         """Vertices with no running instance: on a failed node, or gone with a node's old
         incarnation."""

@@ -140,7 +140,10 @@ class AppSyncing:
         one vote a sender, the first word kept on a tie; one is corroborated, and weighed
         from then on as any placement is, once two senders agree. A captured member's first
         sync ("c runs on me") used to stick: the host's own word then came from a node that
-        was not c's host in this view. Returns the vertices still on hearsay."""
+        was not c's host in this view. Until then the node does not act on it where the
+        node named has not said so itself or another sender names another node (a tie: a
+        captured member against the one honest member of a two-member app): the vertex's
+        events wait (:meth:`AppState.unconfirmed`). Returns the vertices still on hearsay."""
         for v in [
             v for v, votes in held.hearsay.items() if v in ours or held.placed[v] not in votes
         ]:
