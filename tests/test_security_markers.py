@@ -13,6 +13,7 @@ node; the captured N2 hosts ``a``, which feeds every input of ``b`` (on N3)."""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import pytest
@@ -21,7 +22,9 @@ from mso.daemon.config import NodeFlags, settle
 from mso.errors import MsoError
 from mso.management import RemapChain
 from mso.protocol import messages as m
+from mso.protocol.procedures.relocation import SWITCH_DEADLINE_S
 from mso.protocol.warrant import CHAIN_END_INTERVAL_S, HOLD_S
+from mso.sim.runner import Simulation
 from test_captured_robot import OPERATOR, robot
 from test_security_steps import PLACED, flows_on, line, order, sink
 
@@ -198,3 +201,122 @@ def test_a_marker_is_taken_only_from_its_edges_producer() -> None:
     assert got["count"] == got["next"], got  # every number once, none skipped
     sim.run_until(sim.now + HOLD_S + 1.5)
     assert host.refusals["marker_not_from_its_producer"] == 1
+
+
+def test_a_chain_end_asking_as_fast_as_it_may_moves_each_vertex_once_per_interval() -> None:
+    """The captured N5 (the sink's host: the chain's tail) asks its relocator every second
+    for 12 s to move a, b and c round the other nodes. Each vertex moves at most once per
+    interval (twice in 12 s), the rest refused, and the stream goes on: every event once,
+    in order. (The old host used to keep the pace too, on its own clock: it refused the
+    ``Moving`` of a move a producer had switched for, and the stream stopped.)"""
+    sim = line()
+    flowing = sink(sim)["processed"]
+    end = sim.cores["N5"]
+    dep = end.apps["line"]
+    nodes = sorted(sim.cores)
+    paths = {v: [dep.placed[v]] for v in ("a", "b", "c")}
+    turn = itertools.count()
+    for _ in range(12):
+        for v in paths:
+            others = [n for n in nodes if n != dep.placed[v]]
+            to = others[next(turn) % len(others)]
+            end.relocator.request(None, m.RelocateRequest("line", v, target=to), sim.now)
+        sim.apply("N5", end._run(sim.now))
+        sim.run_until(sim.now + 1.0)
+        for v, path in paths.items():
+            if dep.placed[v] != path[-1]:
+                path.append(dep.placed[v])
+    assert all(len(p) - 1 <= 2 for p in paths.values()), paths
+    assert sum(len(p) - 1 for p in paths.values()) >= 3, paths  # (it did move them)
+    assert sum(c.refusals.get("move_chain_end_too_often", 0) for c in sim.cores.values())
+    flows_on(sim, flowing + 12 * 40)
+    got = sink(sim)
+    assert got["count"] == got["next"], got  # every number once, none skipped
+
+
+def move(sim: Simulation, coordinator: str, vertex: str, to: str) -> None:
+    """``coordinator``'s relocator moves ``vertex`` to ``to`` (its rules' way: no order)."""
+    core = sim.cores[coordinator]
+    assert core.relocator.request(None, m.RelocateRequest("line", vertex, target=to), sim.now)
+    sim.apply(coordinator, core._run(sim.now))
+    sim.run_until(sim.now + 1.0)
+
+
+def test_an_instance_prepared_for_a_move_that_never_switched_does_not_take_a_later_one() -> None:
+    """The captured N5 (the chain's tail) has N3 prepare ``c`` for a move it never switches.
+    ``c``'s host N4 then moves it to N3 by its rules: refused while that move may still
+    commit (it used to be answered as prepared, and the handover refused at N3: ``c``
+    lost), and carried out once that move is past its deadline; every event once, in
+    order."""
+    sim = line()
+    flowing = sink(sim)["processed"]
+    robot(sim, "N3", m.Prepare("line", "c", 90), src="N5")
+    assert "c" in sim.cores["N3"].apps["line"].awaiting
+    host = sim.cores["N4"]
+    assert host.relocator.request(None, m.RelocateRequest("line", "c", target="N3"), sim.now)
+    sim.apply("N4", host._run(sim.now))
+    sim.run_until(sim.now + 1.0)
+    assert all(c.apps["line"].placed["c"] == "N4" for c in sim.cores.values())
+    assert "c" in host.apps["line"].instances
+    flows_on(sim, flowing)
+    sim.run_until(sim.now + SWITCH_DEADLINE_S)
+    move(sim, "N4", "c", "N3")
+    assert all(c.apps["line"].placed == dict(PLACED, c="N3") for c in sim.cores.values())
+    flows_on(sim, sink(sim)["processed"])
+    got = sink(sim)
+    assert got["count"] == got["next"], got
+
+
+def c_moved_unheard_by_n6() -> tuple[Simulation, int]:
+    """The line with N6 (hosting nothing, so told of no move) linked to N3: ``c`` moved N4
+    -> N3 by its host's rules a chain end's interval ago; and where the sink stood."""
+    sim = line(n6=("N3",))
+    flowing = sink(sim)["processed"]
+    move(sim, "N4", "c", "N3")
+    assert sim.cores["N6"].apps["line"].placed["c"] == "N4"  # (it missed the Moved)
+    sim.run_until(sim.now + CHAIN_END_INTERVAL_S)
+    return sim, flowing
+
+
+def test_a_target_that_missed_a_vertexs_last_move_takes_its_handover() -> None:
+    """N6 hosts nothing of the app, so it hears none of its moves: ``c`` moves N4 -> N3 (its
+    host's rules), then the chain's tail N5 remaps it on to N6, whose view still places
+    ``c`` on N4. N6 takes the handover from N3, the node the move's ``Prepare`` names (it
+    took it only from its own view's host, and ``c`` was lost); every event once, in
+    order."""
+    sim, flowing = c_moved_unheard_by_n6()
+    move(sim, "N5", "c", "N6")
+    assert "c" in sim.cores["N6"].apps["line"].instances
+    assert "handover_not_from_its_host" not in sim.cores["N6"].refusals
+    flows_on(sim, flowing)
+    got = sink(sim)
+    assert got["count"] == got["next"], got
+
+
+def test_a_hosts_moving_does_not_keep_the_pace_its_producers_switch_by() -> None:
+    """The chain's tail N5 tells ``c``'s host N4 of a move it never makes, then moves ``c``
+    to N2 within the interval. The producer switches (it took no step of ``c`` before);
+    the host takes the move's markers too (it used to refuse its ``Moving`` as too soon,
+    hold the marker, keep ``c``: the producer's events went to a twin that never got the
+    state, and the stream stopped). Every event once, in order."""
+    sim = line()
+    flowing = sink(sim)["processed"]
+    robot(sim, "N4", m.Moving("line", "c", 95, "N3"), src="N5")
+    move(sim, "N5", "c", "N2")
+    assert all(c.apps["line"].placed == dict(PLACED, c="N2") for c in sim.cores.values())
+    flows_on(sim, flowing)
+    got = sink(sim)
+    assert got["count"] == got["next"], got
+
+
+def test_a_target_that_missed_a_neighbours_move_learns_it_from_the_moves_prepare() -> None:
+    """N6 hosts nothing of the app, so it hears none of its moves: ``c`` moves N4 -> N3 (its
+    host's rules); then the chain's tail N5 remaps ``b`` onto N6, which learns from the
+    move's ``Prepare`` that ``c`` now runs on N3 (it kept ``c`` on N4 and sent ``b``'s
+    output there: the stream stopped). Every event once, in order."""
+    sim, flowing = c_moved_unheard_by_n6()
+    move(sim, "N5", "b", "N6")
+    assert sim.cores["N6"].apps["line"].placed == dict(PLACED, b="N6", c="N3")
+    flows_on(sim, flowing)
+    got = sink(sim)
+    assert got["count"] == got["next"], got

@@ -460,6 +460,9 @@ class AppState:
     crashed: dict[str, HostedInstance] = field(default_factory=dict)
     delays: dict[int, float] = field(default_factory=dict)  # at a tail's node: chain -> ms
     moved: dict[str, tuple[float, str]] = field(default_factory=dict)  # vertex -> (when, from)
+    # vertex -> when this node last learnt it moved (a Moved, a sync): a chain end's next
+    # move of it waits its interval from then (mso.protocol.warrant)
+    moved_at: dict[str, float] = field(default_factory=dict)
     placed_at: dict[int, float] = field(default_factory=dict)  # chain -> when last (re)mapped
     route_changed: dict[int, float] = field(default_factory=dict)  # chain -> last route change
     chain_delay: dict[int, tuple[float, float]] = field(default_factory=dict)  # at a head's

@@ -18,7 +18,11 @@ decision it can check itself (:func:`refused`):
 - the coordinator hosts an end of a chain through the vertex (a chain remap, which only the
   head's rules ask for, or an energy remap of a junction's chains by the junction's host),
   at most one move of the vertex per :data:`CHAIN_END_INTERVAL_S` (the rules remap a chain
-  at most every 15 s; a captured chain end moved a vertex as often as it liked), and not
+  at most every 15 s; a captured chain end moved a vertex as often as it liked) — kept by the
+  move's target (its refusal is answered: the move ends before any switch) and its producers
+  (whose switch commits it), not by the old host: a host refusing on its own clock a move a
+  producer had switched for left the producer's events with a twin that never got the
+  state, and the stream stopped (``bench/chain_end.py``) —, and not
   at all on a node told ``strict_moves`` (its operator's choice: a chain end's remap then
   needs an operator's order, see docs/security.md);
 - the step carries an operator's *order*: the ``RelocateRequest`` or ``RemapRequest`` the
@@ -124,14 +128,20 @@ class Orders:
         self._took: OrderedDict[tuple[str, str], tuple[int, str, int]] = OrderedDict()
         self._ends: OrderedDict[tuple[str, str], tuple[str, int, float]] = OrderedDict()
 
-    def chain_end(self, app: str, vertex: str, src: str, rid: int, now: float) -> bool:
+    def chain_end(
+        self, app: str, vertex: str, src: str, rid: int, now: float, moved_at: float = -1e18
+    ) -> bool:
         """Whether a step of move ``rid`` by the chain end ``src`` may be taken now: a step
-        of the move last taken so, or of a new move once the interval has passed."""
+        of the move last taken so, or of a new move once the interval has passed since the
+        last move this node took a step of and since the vertex last moved in its view
+        (``moved_at``: a node new to the vertex's moves — a producer's new host — knows
+        that much of them)."""
         key = (app, vertex)
         held = self._ends.get(key)
-        if held is not None and held[:2] != (src, rid) and now - held[2] < CHAIN_END_INTERVAL_S:
-            return False
         if held is None or held[:2] != (src, rid):
+            last = max(held[2] if held is not None else -1e18, moved_at)
+            if now - last < CHAIN_END_INTERVAL_S:
+                return False
             self._ends[key] = (src, rid, now)
         self._ends.move_to_end(key)
         while len(self._ends) > MAX_ORDERS:
@@ -161,9 +171,14 @@ def refused(
     authority: Authority,
     orders: Orders,
     now: float = 0.0,
+    *,
+    paced: bool = True,
 ) -> str:
     """Why a step of a move of ``vertex`` coordinated by ``src`` (move ``rid``) is not taken
-    here ('' if it is), at ``now``: the module docstring's rules, with operator keys only."""
+    here ('' if it is), at ``now``: the module docstring's rules, with operator keys only.
+    Not ``paced``: a chain end's move is not held to its interval here (the old host's
+    ``Moving``: the target and the producers keep the pace, and the host must not refuse a
+    move a producer has switched for)."""
     if not authority.signed or src == here:
         return ""
     host = dep.placed.get(vertex)
@@ -181,7 +196,8 @@ def refused(
     if end and not order:  # the chain's remap (an order, if it carries one, decides)
         if authority.strict_moves:
             return "chain_end_without_an_order"
-        if not orders.chain_end(dep.app.name, vertex, src, rid, now):
+        moved_at = dep.moved_at.get(vertex, -1e18)
+        if paced and not orders.chain_end(dep.app.name, vertex, src, rid, now, moved_at):
             return "chain_end_too_often"
         return ""
     if not order:
@@ -200,6 +216,20 @@ def refused(
     if not orders.take(dep.app.name, vertex, req.at, src, rid):
         return "order_replayed"
     return ""
+
+
+def could_take(dep: AppState, src: str, vertex: str) -> bool:
+    """Whether ``src`` could move ``vertex`` onto itself on its own warrant, and so already
+    holds where its output goes and whose events it acks: it hosts the vertex, or an end of
+    a chain through it, in this node's view. A move's target that runs no instance of the
+    app (told of none of its moves) may take from such a coordinator where the vertex's
+    neighbours run (:func:`mso.protocol.procedures.placement.brief`)."""
+    if dep.placed.get(vertex) == src:
+        return True
+    return any(
+        vertex in c.vertices and src in (dep.placed.get(c.head), dep.placed.get(c.tail))
+        for c in dep.layout.chains
+    )
 
 
 def _names(dep: AppState, req: Order, vertex: str) -> bool:

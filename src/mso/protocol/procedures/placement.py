@@ -51,6 +51,8 @@ def learn(
     record) says nothing about that."""
     if version and version < dep.versions.get(vertex, 0):
         return False
+    if dep.placed.get(vertex) != node or version > dep.versions.get(vertex, 0):
+        dep.moved_at[vertex] = now
     dep.placed[vertex] = node
     dep.versions[vertex] = max(version, dep.versions.get(vertex, 0))
     if running:
@@ -59,6 +61,25 @@ def learn(
         if vertex in c.vertices:
             dep.placed_at[c.index] = now
     return True
+
+
+def brief(
+    dep: AppState, vertex: str, placed: dict[str, str], versions: dict[str, int], now: float
+) -> None:
+    """A move's target that runs no instance of the app (told of none of its moves) takes from
+    the move's ``Prepare`` where ``vertex``'s producers and consumers run, where that is a
+    later move than it knows of: with operator keys it took a placement only on the host's
+    word, kept the view of when it last took part, and sent the vertex's output to a node
+    the consumer had left (the stream stopped: ``bench/chain_end.py``). The caller takes
+    it only from a coordinator that could move the vertex onto itself
+    (:func:`mso.protocol.warrant.could_take`), which holds those edges anyway."""
+    for e in dep.app.edges:
+        if vertex not in (e.src, e.dst):
+            continue
+        other = e.dst if e.src == vertex else e.src
+        node, version = placed.get(other), versions.get(other, 0)
+        if node is not None and version > dep.versions.get(other, 0):
+            learn(dep, other, node, version, now, running=False)
 
 
 def bump(dep: AppState, vertex: str) -> int:

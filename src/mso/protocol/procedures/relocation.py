@@ -168,9 +168,15 @@ class Relocator:
         # restores that failed here (rid -> (app, vertex)), the last few: a prepare held while
         # the target was down may still reach it, and its answer gets an Unprepare
         self._failed_restores: dict[int, tuple[str, str]] = {}
-        # at a move's new host: the node its Prepare said the vertex leaves (rid -> node), the
-        # only one whose handover it takes (with operator keys)
-        self._sources: dict[int, str] = {}
+        # at a move's new host: the node its Prepare said the vertex leaves, and the vertex's
+        # host in this node's view when asked (rid -> nodes), the only ones whose handover it
+        # takes (with operator keys; a target that took no part in the app since a move of
+        # the vertex missed its Moved: its own view alone had the handover refused, and the
+        # vertex lost)
+        self._sources: dict[int, set[str]] = {}
+        # at a move's new host: the move each instance awaiting a handover was prepared for,
+        # and when ((app, vertex) -> (rid, since)): another move's Prepare meanwhile is refused
+        self._twins: dict[tuple[str, str], tuple[int, float]] = {}
         self.orders = warrant.Orders()  # operator orders taken (mso.protocol.warrant)
         self.leaving = warrant.Leaving()  # moves of vertices hosted here, told and warranted
 
@@ -190,17 +196,31 @@ class Relocator:
 
     def on_reset(self) -> None:
         self.leaving.clear()
+        self._twins.clear()
         self._handover_to.clear()
         self._parts.clear()
         self._early.clear()
         self._sources.clear()
 
-    def unwarranted(self, dep: AppState, src: str, vertex: str, rid: int, order: bytes) -> bool:
+    def unwarranted(
+        self, dep: AppState, src: str, vertex: str, rid: int, order: bytes, paced: bool = True
+    ) -> bool:
         """A step of a move that does not trace to a decision this node can check (with
-        operator keys: :func:`mso.protocol.warrant.refused`); counted by why."""
+        operator keys: :func:`mso.protocol.warrant.refused`; ``paced``: a chain end's move
+        counts against its interval here); counted by why."""
         ctx = self.ctx
         why = warrant.refused(
-            dep, ctx.id, src, vertex, rid, order, ctx.failed, ctx.authority, self.orders, ctx.now
+            dep,
+            ctx.id,
+            src,
+            vertex,
+            rid,
+            order,
+            ctx.failed,
+            ctx.authority,
+            self.orders,
+            ctx.now,
+            paced=paced,
         )
         if why:
             ctx.refusal(f"move_{why}")
@@ -261,7 +281,10 @@ class Relocator:
         if dep is None or msg.vertex not in dep.instances or msg.to == self.ctx.id:
             self.ctx.refusal("moving_unexpected")
             return
-        if self.unwarranted(dep, src, msg.vertex, msg.rid, msg.order):
+        # (a chain end's pace is kept by the move's target and producers, whose refusals end
+        # it before or instead of its switch; the host refusing alone would stop the stream:
+        # a producer switched, and the host kept the vertex)
+        if self.unwarranted(dep, src, msg.vertex, msg.rid, msg.order, paced=False):
             return
         for marker in self.leaving.warranted(msg.app, msg.vertex, msg.rid, msg.to, now):
             self.dp.on_marker_msg(marker, now)
@@ -591,21 +614,33 @@ class Relocator:
         signed = self.ctx.authority.signed
         failed = self.ctx.failed if signed else None  # (a view restricted as a Moved is)
         source = dep.placed.get(vid, "")
+        briefed = signed and not dep.instances and warrant.could_take(dep, src, vid)
         placement.merge(
             dep, src, msg.placed, msg.versions, msg.vanished, self.ctx.now, failed, here=self.ctx.id
         )
+        if briefed and vid in dep.app.vertices:  # (a target told of none of the app's moves)
+            placement.brief(dep, vid, msg.placed, msg.versions, self.ctx.now)
         if msg.restore and dep.replicas.get(vid) and not dep.replica_nodes.get(vid):
             dep.replica_nodes[vid] = list(msg.replicas[:MAX_REPLICAS])  # (as a ReplicaSet)
         if vid in dep.app.vertices and msg.restore and self._restored_since(dep, vid, src, msg):
             return
+        twin = self._twins.get((msg.app, vid)) if vid in dep.awaiting else None
+        if twin is not None and (twin[0] == msg.rid or vid in dep.restoring):
+            twin = None  # (asked again; or a restore took the instance over)
+        if twin is not None and self.ctx.now - twin[1] > SWITCH_DEADLINE_S:
+            self._abandon(dep, vid, twin[0])  # its move is past its deadline: given up
+            twin = None
         if vid not in dep.app.vertices:
             error = f"{self.ctx.id}: unknown vertex {vid!r}"
+        elif twin is not None and not msg.restore:  # its handover would be refused here
+            error = f"{self.ctx.id} holds {vid!r} prepared for another move"
         elif vid not in dep.instances and vid not in dep.awaiting:
             dep.awaiting[vid] = self.dp.host(dep, vid)
             dep.preparing[vid] = (msg.rid, src, msg.restore)
             self._handover_to[msg.rid] = src
             if not msg.restore:
-                self._sources[msg.rid] = source
+                self._sources[msg.rid] = {source, msg.placed.get(vid, source)}
+                self._twins[(msg.app, vid)] = (msg.rid, self.ctx.now)
             if msg.restore:
                 dep.restoring[vid] = Restoring(msg.rid, src, resumes)
             return
@@ -688,15 +723,19 @@ class Relocator:
         if src not in (asker, self.ctx.id) and self.ctx.authority.signed:
             self.ctx.refusal("unprepare_not_by_its_coordinator")
             return
-        self.dp.stop(h, "abandoned")
-        del dep.awaiting[msg.vertex]
-        dep.preparing.pop(msg.vertex, None)
-        dep.restoring.pop(msg.vertex, None)
-        self.forget(msg.rid)
+        self._abandon(dep, msg.vertex, msg.rid)
+
+    def _abandon(self, dep: AppState, vid: str, rid: int) -> None:
+        """Drop the instance of ``vid`` prepared here for move ``rid``, which failed."""
+        self.dp.stop(dep.awaiting.pop(vid), "abandoned")
+        dep.preparing.pop(vid, None)
+        dep.restoring.pop(vid, None)
+        self._twins.pop((dep.app.name, vid), None)
+        self.forget(rid)
         for i, e in enumerate(dep.app.edges):
-            if e.dst == msg.vertex:
+            if e.dst == vid:
                 dep.stash.pop(i, None)
-        self.ctx.note_event(now, f"dropped {msg.vertex}, prepared for a move that failed")
+        self.ctx.note_event(self.ctx.now, f"dropped {vid}, prepared for a move that failed")
 
     def on_handover_events(self, src: str, msg: m.HandoverEvents, now: float) -> None:
         """Output events of a move, ahead of its handover: kept until it comes."""
@@ -734,6 +773,7 @@ class Relocator:
         parts = self._parts.pop(msg.rid, {})
         dep.moved[msg.vertex] = (now, src)
         h = dep.awaiting.pop(msg.vertex)
+        self._twins.pop((msg.app, msg.vertex), None)
         h.life.on(InstanceEvent.HANDOVER)
         self.ctx.emit(fx.RestoreVertex(h.instance, msg.state))  # before any feed
         h.processed, h.emitted = msg.processed, msg.emitted
@@ -776,7 +816,7 @@ class Relocator:
     def _not_its_source(self, src: str, rid: int) -> bool:
         """A move's state (or its events sent ahead) from another node than the one its
         Prepare said the vertex leaves (with operator keys): refused, counted."""
-        if not self.ctx.authority.signed or self._sources.get(rid) == src:
+        if not self.ctx.authority.signed or src in self._sources.get(rid, ()):
             return False
         self.ctx.refusal("handover_not_from_its_host")
         return True
