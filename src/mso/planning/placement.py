@@ -289,7 +289,7 @@ class Layout:
         # a fork (two consumers or more): its consumers may hold outputs of different lost
         # instances, numbered alike; each says what it has in the input's terms (seed 5040)
         outputs = Counter(e.src for e in app.edges)
-        self.forks = frozenset(v for v, n in outputs.items() if n >= 2)
+        self.forks = frozenset(v for v, n in outputs.items() if n >= 2 and v in inputs)
         self.stamped = self.merges | self.forwarders | self.forks  # outputs carry a header
         self.edge_bytes: dict[tuple[str, str], float] = {}
         for e in app.edges:
