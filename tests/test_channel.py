@@ -31,9 +31,10 @@ def test_a_retention_keeps_events_past_their_ack_until_released() -> None:
     assert out.unacked() == (8, [ev(8), ev(9)])
     out.release("snap", upto=6)  # the replica has what came before 6
     assert out.retained("snap") == (6, [ev(i) for i in range(6, 10)])
-    assert out.base == 6
+    assert out.base == 6 and out.retained_from("snap") == 6
     out.release("snap")
     assert out.retained("snap") is None and out.base == 8 and out.kept == 2
+    assert out.retained_from("snap") is None
 
 
 def test_the_oldest_retention_holds_and_an_unknown_owner_is_ignored() -> None:

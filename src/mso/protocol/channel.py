@@ -382,8 +382,14 @@ class OutChannel:
 
     def retained(self, owner: Hashable) -> tuple[int, list[bytes]] | None:
         """``(first seq, events)`` that ``owner`` retains (to replay them), or None."""
-        start = self.retentions.get(owner)
+        start = self.retained_from(owner)
         return None if start is None else self.events_from(start)
+
+    def retained_from(self, owner: Hashable) -> int | None:
+        """The first sequence number ``owner`` retains, or None (no events read: what it
+        retains may be far beyond memory, in the store)."""
+        start = self.retentions.get(owner)
+        return None if start is None else max(start, self.base)
 
     @property
     def kept(self) -> int:

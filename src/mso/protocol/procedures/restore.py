@@ -81,9 +81,9 @@ class Restorer:
             dep.placed[edge.dst] = msg.to
             self.dp.outbox.pop((msg.app, msg.edge), None)  # those events are in the replay
             out = self.dp.out(dep, msg.edge)
-            kept = out.retained(REPLICA_OWNER)  # a replicated consumer: replay from its
-            # newest replicated snapshot on (or from the ack, if that is earlier)
-            start = min(kept[0], out.acked) if kept is not None else -1
+            kept = out.retained_from(REPLICA_OWNER)  # a replicated consumer: replay from
+            # its newest replicated snapshot on (or from the ack, if that is earlier)
+            start = min(kept, out.acked) if kept is not None else -1
             # (events made anew since the consumer's snapshot: not the ones it counted)
             retained = -1 if msg.edge in dep.fresh_from else start
             resume = m.Resume(
