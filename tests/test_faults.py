@@ -129,6 +129,12 @@ BROKE = {
     7472: "a fork restored while its producer was lost too kept its consumers' marks of "
     "that input: the producer's replacement numbered anew below them, 1 event dropped",
     9020: "the same: 17 events of a restarted source dropped by a fork's stale marks",
+    219: "the same at a merge, found once streams through a restored merge were checked: "
+    "34 events of a restored source dropped by its marks of the lost producer's numbering",
+    1996: "the same through a merge lost with its forwarder: the forwarder's marks dropped "
+    "28 events the merge's producer's replacement numbered anew from 0",
+    2678: "a merge restored with its consumer's marks renumbered its output by its producer's "
+    "replacement's positions: one event took the number of one the sink had",
     29505: "a consumer restored from its replica asked its source for the replay; the source's "
     "node restarted, numbered on and never replayed: the stream stalled",
     30719: "a restore's early frames from a producer's lost instance, numbered like its "

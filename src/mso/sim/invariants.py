@@ -25,12 +25,9 @@ names its invariant, so a benchmark can count them by kind and a failing seed sa
   allowed is the newest events of a stream whose source's node died (what its edges had in
   memory, in flight to a consumer in reach), and, when an edge's bound or QoS gave some up,
   what it counted (``given_up``). Within one instance no event twice (``duplicate``); across a
-  sink's restore the replay may repeat what it processed but had not acknowledged. Not
-  checked (a known gap, not a promise): streams through a merge vertex that was restored or
-  moved (as its nodes hold it at the end or said it during the run: a reset forgets the
-  former), since its replay may interleave its inputs otherwise than the lost instance did while
-  its output is numbered from the acknowledged positions, so its consumer can drop a new event
-  as a duplicate (seed 30 of the extended schedules: one event of 80);
+  sink's restore the replay may repeat what it processed but had not acknowledged. Streams
+  through a merge that was restored or moved are checked too (its outputs carry their
+  provenance: mso.protocol.provenance);
 - ``held-failed``: a live node held failed by another while the two have routes to each other
   (it is heard) for longer than ``HEARD_GRACE_S`` — unreachable is not failed, and a node
   declared failed that is heard again rejoins or resets within a few beats (checked
@@ -61,7 +58,6 @@ DEADLINE_SLACK_S = 1e-3  # a procedure's own expiry timer fires at its deadline
 # how long a node may hold a live node it has routes with failed: a heal's rejoin beat comes
 # every REJOIN_EVERY heartbeat periods (1 s), then a reset and a sync
 HEARD_GRACE_S = 2.0
-MOVES = ("restore", "relocation", "hosted")  # what a node says when a vertex moved or came back
 
 
 @dataclass(frozen=True)
@@ -231,12 +227,8 @@ def _delivered_once(
     stream seen at a sink is whole from 0 up to the newest event it got."""
     if any(sum(a["given_up"].values()) for a in known.values()):
         return []  # a bound or QoS gave events up, counted: gaps are expected there
-    app = next((c.apps[APP].app for c in sim.cores.values() if APP in c.apps), None)
-    if app is None:
+    if not any(APP in c.apps for c in sim.cores.values()):
         return []
-    merges = {v for v in app.vertices if sum(e.dst == v for e in app.edges) > 1}
-    if merges & _moved(sim):
-        return []  # (the known gap above)
     seen: dict[tuple[str, str, float], set[int]] = {}
     for rec in records:  # over a sink's instances (a restored sink is a new one)
         for (src, born), s in rec.streams.items():
@@ -254,14 +246,6 @@ def _delivered_once(
                 )
             )
     return out
-
-
-def _moved(sim: Simulation) -> set[str]:
-    """The vertices restored or moved during the run: what the nodes hold now, and what they
-    said happened (a node's reset forgets its own record of a restore it did)."""
-    held = {v for c in sim.cores.values() if APP in c.apps for v in c.apps[APP].moved}
-    said = {h.subject for _, _, h in sim.happened if h.what in MOVES and not h.error}
-    return held | said
 
 
 def _everyone_failed(sched: Schedule) -> bool:

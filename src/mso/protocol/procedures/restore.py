@@ -32,6 +32,8 @@ before it, which a batch ending in the fatal one would have taken down with it o
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 from mso.model.app import has_state
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
@@ -127,6 +129,13 @@ class Restorer:
                 producer = dep.placed[edge.src]
                 self.ctx.send(producer, m.Replay(msg.app, msg.edge, inc.expected, inc.positions))
             elif not self.anchor(dep, vertex, msg):  # (a running consumer: see there)
+                self.ctx.refusal("resume_unexpected")
+            return
+        if restoring is None and not msg.producer and vertex in dep.instances:
+            marks = provenance.from_wire(msg.marks)
+            if marks and vertex in dep.layout.merges and edge.dst in dep.layout.forwarders:
+                self._start_past(dep, vertex, [marks], set())  # (its forwarder's activate)
+            else:
                 self.ctx.refusal("resume_unexpected")
             return
         if restoring is None or restoring.rid != msg.rid:
@@ -268,14 +277,8 @@ class Restorer:
                     dep.catch_up[vertex] = provenance.CatchUp(marks, self.ctx.now, i)
             elif marks is not None:  # a merge: from where its consumer stands, only what it
                 base = restoring.consumer_start[o]  # lacks (mso.protocol.provenance); not
-                # by an input numbered anew (its producer lost with the merge: seed 11242), or
-                # to be (its producer lost too, its replacement to number from this one's
-                # start, below the marks: its new events were dropped, seed 7472)
-                marks = {
-                    i: mk
-                    for i, mk in marks.items()
-                    if i in restoring.resumed and i not in restoring.fresh
-                }
+                # by an input numbered anew (its producer lost with the merge: seed 11242)
+                marks = {i: mk for i, mk in marks.items() if i not in restoring.fresh}
                 dep.marks.setdefault(vertex, {})[o] = marks
             elif snap is None and dep.replicas.get(vertex) and o not in restoring.positions:
                 # no ack said where its output stood: a producer that replays what it retains
@@ -315,6 +318,14 @@ class Restorer:
                 # this one was out of reach or before it; say where its numbering stood
                 resume = m.Resume(dep.app.name, o, restoring.rid, True, out.acked, out.positions)
                 self.ctx.send(dep.placed[dep.app.edges[o].dst], resume)
+        if vertex in dep.marks and not forwarder:
+            self._past_marks(dep, vertex, restoring)
+        elif vertex in dep.marks:  # a forwarder: its marks are of the merge's inputs, which
+            # start past them there if their producers were lost too (seed 1996)
+            for i in restoring.resumed:
+                resume = m.Resume(dep.app.name, i, restoring.rid, False, dep.inc[i].expected)
+                resume.marks = provenance.to_wire(_merged(dep.marks[vertex].values()))
+                self.ctx.send(dep.placed[dep.app.edges[i].src], resume)
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
             if e.dst == vertex:
                 for seq, events, ts in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
@@ -330,6 +341,37 @@ class Restorer:
         self.ctx.send(coordinator, done)
         if h.kind == "source":
             self.dp.start_source(dep, vertex, self.ctx.now)
+
+    def _past_marks(self, dep: AppState, vertex: str, restoring: Restoring) -> None:
+        """A merge's or fork's replacement whose producer of an input was lost too: that
+        producer's replacement numbers the edge from where this one says it stands — from 0 if
+        it has no channel yet, below what its consumers have of that input (their marks), so
+        its new events were dropped as had (seeds 7472, 1996). The edge starts past the
+        marks instead: what the producer makes anew is past them, and what it makes again in
+        the old numbering (from its own producer's acks) comes below and is dropped as had;
+        its output keeps the numbering from where its consumers stand (2678: renumbered by
+        the producer's positions, one event took the number of one the sink had)."""
+        self._start_past(dep, vertex, list(dep.marks[vertex].values()), restoring.resumed)
+
+    def _start_past(
+        self, dep: AppState, vertex: str, marks: list[provenance.Marks], skip: set[int]
+    ) -> None:
+        """Each input of ``vertex`` with no channel yet (and not in ``skip``) starts past
+        what its consumers' ``marks`` say they have of it."""
+        gated = bool(dep.out_edges.get(vertex))
+        for i, e in enumerate(dep.app.edges):
+            if e.dst != vertex or i in skip or i in dep.inc:
+                continue
+            seqs = [mk[i][0] for mk in marks if i in mk]
+            if seqs:
+                start = min(seqs) + 1
+                dep.inc[i] = InChannel(
+                    expected=start,
+                    processed=start,
+                    _acked=start,
+                    released=start if gated else None,
+                    marks={} if e.src in dep.layout.stamped else None,
+                )
 
     # -- a twin: a later restore placed the vertex elsewhere ------------------------------------
     def on_superseded(self, ev: Superseded) -> None:
@@ -442,6 +484,15 @@ class Restorer:
                         dep.parked.setdefault(c.index, rec.gave_up)
             else:
                 dep.crashed.pop(ev.vertex, None)
+
+
+def _merged(marks: Iterable[provenance.Marks]) -> provenance.Marks:
+    """The lowest mark of each input over several consumers' marks."""
+    out: provenance.Marks = {}
+    for mk in marks:
+        for i, mark in mk.items():
+            out[i] = min(out.get(i, mark), mark)
+    return out
 
 
 def _ready(dep: AppState, vertex: str, restoring: Restoring) -> bool:
