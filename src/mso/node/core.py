@@ -146,6 +146,7 @@ class NodeCore:
         # its own (``mso node --operator-key``), which the transport checks frames with too
         self.authority = Authority()
         self.routes: dict[str, tuple[str, int]] = {}  # destination -> (next hop, hops)
+        self._route_hops: tuple[dict[str, tuple[str, int]], dict[str, int]] | None = None
         # the hops the last figures carried: of which routing table, for which app partners
         self._beat_hops: tuple[dict[str, tuple[str, int]], frozenset[str], dict[str, int]] | None
         self._beat_hops = None
@@ -561,8 +562,15 @@ class NodeCore:
         return sorted({self.id, *self.routes})
 
     def route_hops(self) -> dict[str, int]:
-        """Hops to each node this node routes to (itself not included)."""
-        return {n: hops for n, (_, hops) in self.routes.items()}
+        """Hops to each node this node routes to (itself not included): kept until the
+        routing table changes (a new one on every change), not made again every monitor
+        period (an N-entry dict a second per node running an app)."""
+        kept = self._route_hops
+        if kept is not None and kept[0] is self.routes:
+            return kept[1]
+        hops = {n: h for n, (_, h) in self.routes.items()}
+        self._route_hops = (self.routes, hops)
+        return hops
 
     def beat_hops(self) -> dict[str, int]:
         """The hops a beat's figures carry: to the nodes within two hops (a neighbour's

@@ -360,8 +360,9 @@ class Simulation:
         paths: list[tuple[str, _Path | None]] = []
         copies: list[tuple[str, list[str]]] = []
         lost = self.lost_routes
+        kept = self._paths if self.network.version == self._paths_version else {}
         for eff in sends:
-            path = self._path(node, eff.dst)
+            path = kept.get((node, eff.dst)) or self._path(node, eff.dst)
             if path is None or (lost and (node, eff.dst) in lost):
                 path = None
             else:
