@@ -79,6 +79,14 @@ class Restorer:
         if pin is not None and msg.to != pin:
             self.ctx.refusal("rewire_a_pinned_vertex")
             return
+        ours = edge.src if msg.producer else edge.dst
+        if ours not in dep.instances and ours not in dep.awaiting:
+            # a view that places our end here is stale (it moved on): answering from no
+            # channel said the edge starts at 0 and the replacement numbered from there,
+            # below what the real end had (seed 401 with restarts: 12 events dropped); the
+            # restore asks again where its view then places this end
+            self.ctx.refusal("rewire_not_our_end")
+            return
         if msg.producer:  # we produce: say where we stand, then replay what is unacked
             dep.placed[edge.dst] = msg.to
             self.dp.outbox.pop((msg.app, msg.edge), None)  # those events are in the replay
