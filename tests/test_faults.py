@@ -155,6 +155,8 @@ RESTARTS = faults.Settings(start_s=1.0, faults_s=3.0, quiet_s=4.0, rate=10.0, re
 RESTARTS_BROKE = {
     401: "a restore's Rewire reached a node its stale view placed the consumer on (it had "
     "moved): answered from no channel, the edge started at 0 and 12 events were dropped",
+    2528: "a merge restored with an input numbered anew (its source restarted), its forwarder "
+    "after it with the sink's marks of that input's old numbering: 21 new events dropped",
 }
 
 

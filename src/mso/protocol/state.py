@@ -86,6 +86,8 @@ class Restoring:
     # output -> what its consumer has of a merge's inputs (mso.protocol.provenance)
     consumer_marks: dict[int, Marks] = field(default_factory=dict)
     fresh: set[int] = field(default_factory=set)  # inputs their producer numbers anew
+    # a forwarder's: the merge's inputs its restored producer (the merge) numbers anew
+    renumbered: set[int] = field(default_factory=set)
     retained: dict[int, int] = field(default_factory=dict)  # input -> first event replayed
     resumed: set[int] = field(default_factory=set)  # inputs whose producer survived
     replica: Snapshot | None = None  # the state it starts from (None: from its constructor)
@@ -484,6 +486,8 @@ class AppState:
     # the events a replica of its consumer counted are not among them, so they cannot replay
     # them; forgotten once the consumer's replicas hold a snapshot past it (``m.Release``)
     fresh_from: dict[int, int] = field(default_factory=dict)
+    # per restored merge: its inputs numbered anew at its restore (told to its forwarder)
+    renumbered: dict[str, set[int]] = field(default_factory=dict)
 
     engaged: Engaged = field(init=False, repr=False, compare=False)
 

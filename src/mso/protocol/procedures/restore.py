@@ -100,6 +100,7 @@ class Restorer:
                 msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions), retained
             )
             resume.fresh = out.guessed
+            resume.renumbered = sorted(dep.renumbered.get(edge.src, ()))
             self.ctx.send(msg.to, resume)
             out.sent = out.acked  # everything unacknowledged goes again, a window at a time
             if msg.to == self.ctx.id:
@@ -169,6 +170,7 @@ class Restorer:
                 restoring.retained[msg.edge] = msg.retained
             if msg.fresh:
                 restoring.fresh.add(msg.edge)
+            restoring.renumbered.update(msg.renumbered)
             restoring.resumed.add(msg.edge)
         else:
             restoring.consumer_start[msg.edge] = msg.start
@@ -273,11 +275,16 @@ class Restorer:
         starts = [c.expected for i, c in dep.inc.items() if dep.app.edges[i].dst == vertex]
         dep.marks.pop(vertex, None)
         dep.catch_up.pop(vertex, None)
+        dep.renumbered.pop(vertex, None)
+        if restoring.fresh and vertex in dep.layout.merges:
+            dep.renumbered[vertex] = set(restoring.fresh)
         forwarder = vertex in dep.layout.forwarders
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
             marks = restoring.consumer_marks.get(o) if snap is None or forwarder else None
             if marks is not None and forwarder:  # its consumer has the effects of the merge's
+                # (not of an input the merge's replacement numbers anew: seed 2528)
+                marks = {i: mk for i, mk in marks.items() if i not in restoring.renumbered}
                 base = restoring.consumer_start[o]  # inputs up to the marks: those first,
                 dep.marks.setdefault(vertex, {})[o] = marks  # and sent on only past them
                 if snap is not None:  # (mso.protocol.provenance, seed 8029)
@@ -325,6 +332,7 @@ class Restorer:
                 # its consumer has nothing of this edge: a replacement too, restored while
                 # this one was out of reach or before it; say where its numbering stood
                 resume = m.Resume(dep.app.name, o, restoring.rid, True, out.acked, out.positions)
+                resume.renumbered = sorted(dep.renumbered.get(vertex, ()))
                 self.ctx.send(dep.placed[dep.app.edges[o].dst], resume)
         if vertex in dep.marks and not forwarder:
             self._past_marks(dep, vertex, restoring)

@@ -44,6 +44,9 @@ class Resume(_Msg, tag="resume"):
     # from a producer restored with its consumer: it numbers the edge anew, not as the marks
     # of the lost consumer's consumers knew it
     fresh: bool = False
+    # from a merge to its forwarder: the merge's inputs numbered anew at its restore (their
+    # producers lost with it), whose marks kept downstream name another numbering
+    renumbered: list[int] = msgspec.field(default_factory=list)
 
 
 class Replicate(_Msg, tag="replicate"):
