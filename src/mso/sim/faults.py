@@ -292,6 +292,10 @@ def run(seed: int, settings: Settings | None = None) -> Result:
     calls += [(k * 0.5, deadlines) for k in range(1, int(sched.end / 0.5))]
     every = HOLDERS_EVERY_S
     calls += [(k * every, holders.check) for k in range(1, int(sched.end / every))]
+    # and just after every failure and restart: a node back 2 ms before the last holder died
+    # never got the app, a window the sampling alone missed (restart seed 8271)
+    ups_downs = {c.at for c in sched.changes if isinstance(c, NodeFailure | NodeRestart)}
+    calls += [(at, holders.check) for at in sorted(ups_downs)]
     sim.request("N1", m.DeployRequest(sched.app, f"faults-{seed}.yaml"))
     status_at = sched.end - 1.5  # a status round trip through every live node, before the end
     calls.append((status_at, _ask_status))
