@@ -425,6 +425,16 @@ class InChannel:
     # from positions, without them)
     marks: dict[int, tuple[int, int]] | None = None
 
+    @classmethod
+    def starting_at(
+        cls, pos: int, gated: bool, marks: dict[int, tuple[int, int]] | None = None
+    ) -> InChannel:
+        """A channel whose next event is ``pos``, everything before it taken and
+        acknowledged (``gated``: its consumer has outputs, so acks are chained)."""
+        return cls(
+            expected=pos, processed=pos, _acked=pos, released=pos if gated else None, marks=marks
+        )
+
     def __post_init__(self) -> None:
         # (position, count): once ``processed`` reaches position, count events were skipped
         self._skips: deque[tuple[int, int]] = deque()

@@ -53,6 +53,7 @@ from mso.protocol.procedures import placement
 from mso.protocol.procedures.instance import MAX_RESTARTS, RESTART_WINDOW_S, H, InstanceEvent
 from mso.protocol.procedures.relocation import Relocation, Relocator
 from mso.protocol.procedures.replication import usable
+from mso.protocol.provenance import Marks
 from mso.protocol.state import AppState, Restoring
 
 
@@ -143,7 +144,7 @@ class Restorer:
         if restoring is None and not msg.producer and vertex in dep.instances:
             marks = provenance.from_wire(msg.marks)
             if marks and vertex in dep.layout.merges and edge.dst in dep.layout.forwarders:
-                self._start_past(dep, vertex, [marks], set())  # (its forwarder's activate)
+                self._start_past(dep, vertex, marks, set())  # (its forwarder's activate)
             else:
                 self.ctx.refusal("resume_unexpected")
             return
@@ -155,15 +156,10 @@ class Restorer:
             # it before made (a lineage since restored, numbered alike) must not win (30719)
             dep.stash.pop(msg.edge, None)
             gated = bool(dep.out_edges.get(vertex))
-            dep.inc[msg.edge] = InChannel(
-                expected=msg.start,
-                processed=msg.start,
-                _acked=msg.start,
-                released=msg.start if gated else None,
-                # a fresh instance: what it has of a stamped producer's inputs is what comes
-                # from here on (its lost instance's output went on and was acknowledged)
-                marks={} if edge.src in dep.layout.stamped else None,
-            )
+            # a fresh instance: what it has of a stamped producer's inputs is what comes
+            # from here on (its lost instance's output went on and was acknowledged)
+            marks = {} if edge.src in dep.layout.stamped else None
+            dep.inc[msg.edge] = InChannel.starting_at(msg.start, gated, marks)
             for o, pos in msg.positions.items():
                 restoring.positions[o] = max(restoring.positions.get(o, 0), pos)
             if msg.retained >= 0:
@@ -200,10 +196,7 @@ class Restorer:
         outs = dep.out_edges.get(vertex, [])
         if not all(o in msg.positions and msg.positions[o] >= 0 for o in outs):
             return False
-        released = msg.start if outs else None
-        dep.inc[msg.edge] = InChannel(
-            expected=msg.start, processed=msg.start, _acked=msg.start, released=released
-        )
+        dep.inc[msg.edge] = InChannel.starting_at(msg.start, bool(outs))
         further = {e: p for e, p in msg.positions.items() if e not in outs}
         for o in outs:
             pos = msg.positions[o]
@@ -334,14 +327,15 @@ class Restorer:
                 resume = m.Resume(dep.app.name, o, restoring.rid, True, out.acked, out.positions)
                 resume.renumbered = sorted(dep.renumbered.get(vertex, ()))
                 self.ctx.send(dep.placed[dep.app.edges[o].dst], resume)
-        if vertex in dep.marks and not forwarder:
-            self._past_marks(dep, vertex, restoring)
-        elif vertex in dep.marks:  # a forwarder: its marks are of the merge's inputs, which
-            # start past them there if their producers were lost too (seed 1996)
-            for i in restoring.resumed:
-                resume = m.Resume(dep.app.name, i, restoring.rid, False, dep.inc[i].expected)
-                resume.marks = provenance.to_wire(_merged(dep.marks[vertex].values()))
-                self.ctx.send(dep.placed[dep.app.edges[i].src], resume)
+        if vertex in dep.marks:
+            lowest = _merged(dep.marks[vertex].values())
+            if not forwarder:
+                self._start_past(dep, vertex, lowest, restoring.resumed)
+            else:  # its marks are of the merge's inputs, which start past them there if
+                for i in restoring.resumed:  # their producers were lost too (seed 1996)
+                    resume = m.Resume(dep.app.name, i, restoring.rid, False, dep.inc[i].expected)
+                    resume.marks = provenance.to_wire(lowest)
+                    self.ctx.send(dep.placed[dep.app.edges[i].src], resume)
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
             if e.dst == vertex:
                 for seq, events, ts in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
@@ -358,36 +352,21 @@ class Restorer:
         if h.kind == "source":
             self.dp.start_source(dep, vertex, self.ctx.now)
 
-    def _past_marks(self, dep: AppState, vertex: str, restoring: Restoring) -> None:
+    def _start_past(self, dep: AppState, vertex: str, marks: Marks, skip: set[int]) -> None:
         """A merge's or fork's replacement whose producer of an input was lost too: that
         producer's replacement numbers the edge from where this one says it stands — from 0 if
-        it has no channel yet, below what its consumers have of that input (their marks), so
-        its new events were dropped as had (seeds 7472, 1996). The edge starts past the
+        it has no channel yet, below what its consumers have of that input (their lowest
+        ``marks``), so its new events were dropped as had (seeds 7472, 1996). Each input with
+        no channel yet (and not in ``skip``: those whose producer resumed it) starts past the
         marks instead: what the producer makes anew is past them, and what it makes again in
         the old numbering (from its own producer's acks) comes below and is dropped as had;
         its output keeps the numbering from where its consumers stand (2678: renumbered by
         the producer's positions, one event took the number of one the sink had)."""
-        self._start_past(dep, vertex, list(dep.marks[vertex].values()), restoring.resumed)
-
-    def _start_past(
-        self, dep: AppState, vertex: str, marks: list[provenance.Marks], skip: set[int]
-    ) -> None:
-        """Each input of ``vertex`` with no channel yet (and not in ``skip``) starts past
-        what its consumers' ``marks`` say they have of it."""
         gated = bool(dep.out_edges.get(vertex))
         for i, e in enumerate(dep.app.edges):
-            if e.dst != vertex or i in skip or i in dep.inc:
-                continue
-            seqs = [mk[i][0] for mk in marks if i in mk]
-            if seqs:
-                start = min(seqs) + 1
-                dep.inc[i] = InChannel(
-                    expected=start,
-                    processed=start,
-                    _acked=start,
-                    released=start if gated else None,
-                    marks={} if e.src in dep.layout.stamped else None,
-                )
+            if e.dst == vertex and i in marks and i not in skip and i not in dep.inc:
+                stamped = e.src in dep.layout.stamped
+                dep.inc[i] = InChannel.starting_at(marks[i][0] + 1, gated, {} if stamped else None)
 
     # -- a twin: a later restore placed the vertex elsewhere ------------------------------------
     def on_superseded(self, ev: Superseded) -> None:
@@ -502,9 +481,9 @@ class Restorer:
                 dep.crashed.pop(ev.vertex, None)
 
 
-def _merged(marks: Iterable[provenance.Marks]) -> provenance.Marks:
+def _merged(marks: Iterable[Marks]) -> Marks:
     """The lowest mark of each input over several consumers' marks."""
-    out: provenance.Marks = {}
+    out: Marks = {}
     for mk in marks:
         for i, mark in mk.items():
             out[i] = min(out.get(i, mark), mark)
