@@ -182,11 +182,11 @@ def sweep(runs: int) -> dict[str, Any]:
     return out
 
 
-def _child(args: list[str], limit: float) -> dict[str, Any]:
+def _child(args: list[str], limit: float, script: str = __file__) -> dict[str, Any]:
     """Run one measurement in a fresh process (its own RSS), bounded by ``limit`` seconds."""
     try:
         done = subprocess.run(
-            [sys.executable, __file__, *args], capture_output=True, text=True, timeout=limit
+            [sys.executable, script, *args], capture_output=True, text=True, timeout=limit
         )
     except subprocess.TimeoutExpired:
         return {"error": f"over the {limit:g} s limit"}
