@@ -28,8 +28,6 @@ import json
 import statistics
 import sys
 import time
-import types
-from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -37,69 +35,10 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 sys.path.insert(0, str(HERE))
 
-# components walked one level deeper: their own attributes are the rows
-EXPAND = ("membership", "dataplane", "manager", "deployer", "relocator", "restorer", "remapper")
-# code and ways back into a core or the simulator: never walked
-STOP_TYPES = (
-    type,
-    types.ModuleType,
-    types.FunctionType,
-    types.BuiltinFunctionType,
-    types.MethodType,
-    types.CodeType,
-    types.FrameType,
-)
-
-
-class Walker:
-    """Deep sizes with one ``seen`` set: each object counted once, to the first to reach it."""
-
-    def __init__(self, stop: list[object]) -> None:
-        self.seen: set[int] = {id(x) for x in stop}
-        self.keep = stop  # the stop objects stay alive while their ids are in ``seen``
-
-    def size(self, root: object, block: set[int] = frozenset()) -> int:  # type: ignore[assignment]
-        """The bytes of what ``root`` reaches and nothing reached before; not through
-        ``block`` (the node's other components: each is a row of its own)."""
-        total, todo = 0, [root]
-        seen, getsizeof, referents = self.seen, sys.getsizeof, gc.get_referents
-        while todo:
-            obj = todo.pop()
-            i = id(obj)
-            if i in seen or (i in block and obj is not root) or isinstance(obj, STOP_TYPES):
-                continue
-            seen.add(i)
-            total += getsizeof(obj)
-            todo.extend(referents(obj))
-            if type(obj) is dict or isinstance(obj, dict):
-                todo.extend(obj.keys())  # a str-keyed dict does not traverse its keys
-        return total
-
-
-def _parts(core: Any) -> list[tuple[str, object]]:
-    """A core's components: expanded ones by their attributes, each app held by its fields."""
-    out: list[tuple[str, object]] = []
-    attrs = dict(vars(core))
-    apps = attrs.pop("apps")
-    for name in EXPAND:
-        obj = attrs.pop(name, None)
-        if obj is not None:
-            out += [(f"{name}.{sub}", val) for sub, val in _attrs(obj).items()]
-    out += list(attrs.items())
-    for dep in apps.values():
-        out += [(f"apps.{f}", val) for f, val in _attrs(dep).items()]
-    out.append(("apps", apps))
-    return out
-
-
-def _attrs(obj: object) -> dict[str, object]:
-    if hasattr(obj, "__dict__"):
-        return dict(vars(obj))
-    return {s: getattr(obj, s) for s in getattr(type(obj), "__slots__", ()) if hasattr(obj, s)}
-
 
 def measure(topology: str, n: int, settle: float) -> dict[str, Any]:
     """One size, in this process: start-up, ``settle`` simulated seconds, then the walk."""
+    from mso.benchmarks.footprint import Walker, by_component
     from mso.sim.runner import Simulation
     from scale import _deploy, _replies, _rss_mb, _scenario
 
@@ -120,11 +59,7 @@ def measure(topology: str, n: int, settle: float) -> dict[str, Any]:
     hosts: set[str] = set()
     c1 = time.process_time()
     for x, core in cores.items():
-        row: dict[str, int] = defaultdict(int)
-        parts = _parts(core)
-        block = {id(v) for _, v in parts} | {id(core)}
-        for name, val in parts:
-            row[name] += walker.size(val, block)
+        row = by_component(walker, core)
         row["apps held, all"] = sum(v for k, v in row.items() if k.startswith("apps"))
         per_node[x] = dict(row)
         apps_held[x] = len(core.apps)

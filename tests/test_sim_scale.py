@@ -328,3 +328,39 @@ def test_every_copy_counts_its_frame_at_its_encoded_size_at_every_hop() -> None:
     plain, _ = run(False)
     assert tapped.bytes == want
     assert plain.bytes == want
+
+
+def _idle_footprint(n: int) -> tuple[int, int]:
+    """The bytes an interior node of an N-node grid holds, apart from its routing table, 2
+    simulated seconds after start (no apps): its degree and the bytes."""
+    from mso.benchmarks.footprint import Walker, by_component
+    from mso.scenario.format import loads_scenario
+    from mso.scenario.generate import Spec, dumps, generate
+
+    spec = Spec("grid", n, seed=1, degree=6)
+    sim = Simulation(loads_scenario(dumps(generate(spec), spec), file="grid.yaml").network)
+    sim.run_until(2.0)
+    core = max(sim.cores.values(), key=lambda c: (len(c.membership.liveness.neighbours), c.id))
+    walker = Walker([sim, sim.network, *sim.cores.values()])
+    walker.size(core.routes)  # the routing view's own N entries: not counted
+    return len(core.membership.liveness.neighbours), sum(by_component(walker, core).values())
+
+
+def test_a_node_hosting_nothing_holds_no_table_of_every_node_besides_its_routes() -> None:
+    """Issue 24: per-node memory independent of N beyond the node's apps. The monitor kept a
+    copy of every route's next hop and liveness a set of every reachable node (about 77 bytes
+    a node of the network at an interior node); they keep the core's table instead."""
+    (deg_a, small), (deg_b, large) = _idle_footprint(25), _idle_footprint(100)
+    assert deg_a == deg_b == 6
+    assert (large - small) / (100 - 25) < 20, (small, large)
+
+
+def test_route_values_are_shared_not_one_per_destination() -> None:
+    core = NodeCore("N0")
+    routes = {f"N{i}": (f"N{i % 3 + 1}", 1 + i // 100) for i in range(1, 1000)}
+    core.set_routes({d: (h, k) for d, (h, k) in routes.items()}, 0.0)
+    assert core.routes == routes
+    assert len({id(r) for r in core.routes.values()}) <= 3 * 10
+    core.change_routes({"N5": ("N2", 4), "N6": None}, 1.0)
+    assert core.routes["N5"] == ("N2", 4) and "N6" not in core.routes
+    assert len({id(r) for r in core.routes.values()}) <= 3 * 10 + 1

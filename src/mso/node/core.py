@@ -90,6 +90,7 @@ __all__ = ["AppState", "Effect", "HostedInstance", "NodeCore", "Reply", "Send", 
 
 E = TypeVar("E")
 MAX_HAPPENED = 256  # what happened, kept for the driver to log
+ROUTE_VALUES_KEPT = 4096  # distinct (next hop, hops) route values shared, at the most
 Handler = Callable[[str, Any, float], None]
 
 
@@ -146,6 +147,9 @@ class NodeCore:
         # its own (``mso node --operator-key``), which the transport checks frames with too
         self.authority = Authority()
         self.routes: dict[str, tuple[str, int]] = {}  # destination -> (next hop, hops)
+        # one (next hop, hops) tuple per distinct value: a table of N routes holds about
+        # degree x diameter of them, not one per destination (45 KB a node at 1,000 nodes)
+        self._route_values: dict[tuple[str, int], tuple[str, int]] = {}
         self._route_hops: tuple[dict[str, tuple[str, int]], dict[str, int]] | None = None
         # the hops the last figures carried: of which routing table, for which app partners
         self._beat_hops: tuple[dict[str, tuple[str, int]], frozenset[str], dict[str, int]] | None
@@ -366,7 +370,9 @@ class NodeCore:
         """Take the routing view's current routes; returns effects (a recovery waiting for
         routes around a failed node may start)."""
         self._now = now
-        old, self.routes = self.routes, {d: r for d, r in routes.items() if d != self.id}
+        kept = self._kept_routes()
+        new = {d: kept.setdefault(r, r) for d, r in routes.items() if d != self.id}
+        old, self.routes = self.routes, new
         changed = {d for d in set(old) | set(self.routes) if old.get(d) != self.routes.get(d)}
         return self._routes_changed(changed, set(self.routes) - set(old), now)
 
@@ -378,6 +384,7 @@ class NodeCore:
         whole table, without the O(N) comparison per node per link change."""
         self._now = now
         routes = dict(self.routes)  # a new table, as set_routes makes: no one sees it change
+        kept = self._kept_routes()
         changed, appeared = set(), set()
         for d, r in delta.items():
             was = routes.get(d)
@@ -387,11 +394,18 @@ class NodeCore:
             if r is None:
                 del routes[d]
             else:
-                routes[d] = r
+                routes[d] = kept.setdefault(r, r)
                 if was is None:
                     appeared.add(d)
         self.routes = routes
         return self._routes_changed(changed, appeared, now)
+
+    def _kept_routes(self) -> dict[tuple[str, int], tuple[str, int]]:
+        """The distinct route values, bounded: started afresh past a bound that a node's
+        neighbours times its routes' lengths stays under (mobility makes new ones)."""
+        if len(self._route_values) > ROUTE_VALUES_KEPT:
+            self._route_values = {}
+        return self._route_values
 
     def _routes_changed(self, changed: set[str], appeared: set[str], now: float) -> list[Effect]:
         self.monitor.note_routes(now, self.routes)

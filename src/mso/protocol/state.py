@@ -404,7 +404,7 @@ class Apps(dict[str, "AppState"]):
         return out
 
 
-@dataclass
+@dataclass(slots=True)
 class AppState:
     """One app as this node holds it: the shared layout, where each vertex is placed, the
     instances that run here and their channels, and each procedure's per-app bookkeeping."""

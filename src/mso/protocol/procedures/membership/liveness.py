@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from array import array
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import msgspec
@@ -107,27 +108,47 @@ class Liveness:
     last_heard: dict[str, float] = field(default_factory=dict)
     # each neighbour's figures as its last beat that carried them said (and when)
     heard: dict[str, tuple[float, m.Figures]] = field(default_factory=dict)
-    reachable: set[str] = field(default_factory=set)
+    # who is reachable: the nodes of the routing table last given (the core's, which it replaces
+    # and never changes: kept, not copied -- an N-entry set per node was 32 KB of each node at
+    # 1,000 nodes) but ``_unreached`` (failed then, or forgotten since), and ``_rejoined``
+    _reach: Collection[str] = field(default_factory=frozenset)
+    _unreached: set[str] = field(default_factory=set)
+    _rejoined: set[str] = field(default_factory=set)
     gone: dict[str, float] = field(default_factory=dict)  # unreachable node -> since
     gaps: dict[str, Gaps] = field(default_factory=dict)  # neighbour -> heartbeat inter-arrivals
 
-    def set_routes(self, now: float, reachable: set[str], neighbours: set[str]) -> None:
-        """The routing view changed: who is a neighbour, who is reachable at all. A watched
-        node that became unreachable stays watched (its silence clock runs on); one still
-        reachable through others is no longer this node's to watch."""
-        for n in self.reachable - reachable:
-            self.gone.setdefault(n, now)
+    def reaches(self, node: str) -> bool:
+        """Whether ``node`` was reachable in the routing view last given (and not failed)."""
+        return node in self._rejoined or (node in self._reach and node not in self._unreached)
+
+    def set_routes(
+        self,
+        now: float,
+        reachable: Collection[str],
+        neighbours: set[str],
+        failed: Collection[str] = frozenset(),
+    ) -> None:
+        """The routing view changed: who is a neighbour, who is reachable at all (the nodes of
+        ``reachable`` that are not ``failed``; kept as given, so a new collection each time). A
+        watched node that became unreachable stays watched (its silence clock runs on); one
+        still reachable through others is no longer this node's to watch."""
+        unreached = {n for n in failed if n in reachable}
+        for n in (*self._reach, *self._rejoined):
+            if self.reaches(n) and (n not in reachable or n in unreached):
+                self.gone.setdefault(n, now)
         for n in reachable:
+            if n in unreached:
+                continue
             if self.gone.pop(n, None) is not None and n in self.watched:
                 # back in reach: silent only from now on, as its beats could not come before
                 # (held silent since it left, it was suspected the instant its route came
                 # back, before its first beat crossed a 100 ms link: both ends of a healed
                 # pair declared each other and one reset)
                 self.watched[n] = now
-        self.reachable = set(reachable)
+        self._reach, self._unreached, self._rejoined = reachable, unreached, set()
         self.set_neighbours(now, neighbours)
         for n in list(self.watched):
-            if n not in neighbours and n in reachable:
+            if n not in neighbours and n in reachable and n not in unreached:
                 del self.watched[n]
 
     def set_neighbours(self, now: float, neighbours: set[str]) -> None:
@@ -203,7 +224,7 @@ class Liveness:
         self.last_heard[node] = now
         self.gaps.pop(node, None)
         if reachable:
-            self.reachable.add(node)
+            self._rejoined.add(node)
             self.gone.pop(node, None)
         else:  # out of reach right now: failed again unless heard or a route appears in time
             self.gone.setdefault(node, now)
@@ -217,7 +238,9 @@ class Liveness:
         self.watched.pop(node, None)
         self.last_heard.pop(node, None)
         self.heard.pop(node, None)
-        self.reachable.discard(node)
+        self._rejoined.discard(node)
+        if node in self._reach:
+            self._unreached.add(node)
         self.gaps.pop(node, None)
 
     def status(self) -> LivenessStatus:

@@ -330,7 +330,7 @@ class Membership(AppSyncing):
         incarnation: a node that held it out of reach learns of the restart from its hello."""
         now, routes = self.ctx.now, self.ctx.routes
         neighbours = {d for d, (hop, _) in routes.items() if hop == d}
-        self.liveness.set_routes(now, set(routes) - self.failed, neighbours)
+        self.liveness.set_routes(now, routes, neighbours, self.failed)
         everyone = self._routed or self.incarnation > 0
         self._routed = self._routed or bool(routes)
         if ev.appeared:
