@@ -364,3 +364,27 @@ def test_route_values_are_shared_not_one_per_destination() -> None:
     core.change_routes({"N5": ("N2", 4), "N6": None}, 1.0)
     assert core.routes["N5"] == ("N2", 4) and "N6" not in core.routes
     assert len({id(r) for r in core.routes.values()}) <= 3 * 10 + 1
+
+
+def test_an_app_held_by_a_node_that_takes_no_part_in_it_is_small() -> None:
+    """Every node holds every app (issue 24.1 is not done), so what an app costs a node that
+    takes no part in it is paid N/20 times per node at scale: its per-procedure tables are
+    made when first used (9.8 KB an app before, 5.5 KB with slots and the layout's edges)."""
+    from mso.benchmarks.footprint import Walker
+    from mso.scenario.format import loads_scenario
+    from mso.scenario.generate import Spec, dumps, generate
+
+    spec = Spec("grid", 25, seed=1, degree=6)
+    sim = Simulation(loads_scenario(dumps(generate(spec), spec), file="grid.yaml").network)
+    ((src, doc),) = pipelines(list(sim.cores), 1, seed=1)
+    sim.request(src, m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(3.0)
+    idle = []
+    for x, core in sim.cores.items():
+        (dep,) = core.apps.values()
+        assert dep.running
+        if x == dep.origin or dep.instances:
+            continue
+        shared = [dep.app, dep.layout, dep.document, dep.engaged]  # shared, or the node's
+        idle.append(Walker([sim, sim.network, *sim.cores.values(), *shared]).size(dep))
+    assert len(idle) >= 20 and max(idle) < 4000, idle

@@ -70,8 +70,14 @@ def parts(core: Any) -> list[tuple[str, object]]:
 def _attrs(obj: object) -> dict[str, object]:
     if hasattr(obj, "__dict__"):
         return dict(vars(obj))
+    out: dict[str, object] = {}
     slots: Iterable[str] = getattr(type(obj), "__slots__", ())
-    return {s: getattr(obj, s) for s in slots if hasattr(obj, s)}
+    for s in slots:
+        try:  # the slot itself: a getattr would make a lazy table (AppState.__getattr__)
+            out[s] = getattr(type(obj), s).__get__(obj, type(obj))
+        except AttributeError:
+            continue
+    return out
 
 
 def by_component(walker: Walker, core: Any) -> dict[str, int]:

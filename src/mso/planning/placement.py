@@ -298,6 +298,10 @@ class Layout:
         self.topo = app.topological_order()
         self.rates = vertex_rates(app, self.topo, self.graph.pred)
         self.load = {v: self.rates[v] * self.cost[v] for v in app.vertices}
+        # vertex -> its output edges (indices in app.edges): what its outputs are sent on
+        self.out_edges: dict[str, list[int]] = {}
+        for i, e in enumerate(app.edges):
+            self.out_edges.setdefault(e.src, []).append(i)
         self.out_bytes: dict[str, list[tuple[str, float]]] = {v: [] for v in app.vertices}
         self.in_bytes: dict[str, list[tuple[str, float]]] = {v: [] for v in app.vertices}
         for (a, b), size in self.edge_bytes.items():

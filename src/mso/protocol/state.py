@@ -8,10 +8,10 @@ their own bookkeeping fields (marked below by who uses them).
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from collections.abc import Set as AbstractSet
-from dataclasses import dataclass, field
-from typing import Any, Self, TypeVar
+from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING, Any, Self, TypeVar
 
 import msgspec
 
@@ -404,6 +404,13 @@ class Apps(dict[str, "AppState"]):
         return out
 
 
+def lazy(make: Callable[[], object]) -> Any:
+    """An :class:`AppState` table made the first time it is read: every node holds every app
+    but takes part in few, and about forty empty tables per app held were two thirds of an
+    idle node's memory for it (``bench/node_memory.py``)."""
+    return field(init=False, repr=False, compare=False, metadata={"lazy": make})
+
+
 @dataclass(slots=True)
 class AppState:
     """One app as this node holds it: the shared layout, where each vertex is placed, the
@@ -415,81 +422,97 @@ class AppState:
     placed: dict[str, str]
     # vertex -> how many moves of it this node knows of: news of an older move loses
     # (:mod:`mso.protocol.procedures.placement`)
-    versions: dict[str, int] = field(default_factory=dict)
+    versions: dict[str, int] = lazy(dict)
     # the failed nodes this node last looked the placement up for (it hosts no part of the
     # app, so its view is not kept up to date): a recovery it would coordinate may act on the
     # answers until the failures change, and no new lookup is started before
     looked_up: frozenset[str] | None = None
-    placed_chains: set[int] = field(default_factory=set)
-    started_chains: set[int] = field(default_factory=set)
-    probes: dict[int, dict[int, list[Hop]]] = field(default_factory=dict)
-    probes_expected: dict[int, int] = field(default_factory=dict)
-    parts_pending: dict[int, set[str]] = field(default_factory=dict)
+    placed_chains: set[int] = lazy(set)
+    started_chains: set[int] = lazy(set)
+    probes: dict[int, dict[int, list[Hop]]] = lazy(dict)
+    probes_expected: dict[int, int] = lazy(dict)
+    parts_pending: dict[int, set[str]] = lazy(dict)
     instances: Hosted = field(init=False)
-    out: dict[int, OutChannel] = field(default_factory=dict)
-    inc: dict[int, InChannel] = field(default_factory=dict)
-    gates: dict[str, AckGate] = field(default_factory=dict)  # vertex -> chained acks
+    out: dict[int, OutChannel] = lazy(dict)
+    inc: dict[int, InChannel] = lazy(dict)
+    gates: dict[str, AckGate] = lazy(dict)  # vertex -> chained acks
     # a merge's replacement: vertex -> output -> what that consumer has (sent no more)
-    marks: dict[str, dict[int, Marks]] = field(default_factory=dict)
+    marks: dict[str, dict[int, Marks]] = lazy(dict)
     # a forwarder's replacement: vertex -> its input up to its consumer's marks first
-    catch_up: dict[str, CatchUp] = field(default_factory=dict)
-    decoders: dict[int, msgspec.msgpack.Decoder[Any]] = field(default_factory=dict)
+    catch_up: dict[str, CatchUp] = lazy(dict)
+    decoders: dict[int, msgspec.msgpack.Decoder[Any]] = lazy(dict)
     running: bool = False
     epoch: int = 0
-    awaiting: dict[str, HostedInstance] = field(default_factory=dict)  # prepared, awaiting handover
-    building: dict[int, tuple[str, set[str]]] = field(default_factory=dict)  # chain -> (asker,
+    awaiting: dict[str, HostedInstance] = lazy(dict)  # prepared, awaiting handover
+    building: dict[int, tuple[str, set[str]]] = lazy(dict)  # chain -> (asker,
     # vertices still starting)
-    preparing: dict[str, tuple[int, str, bool]] = field(default_factory=dict)  # vertex -> (rid,
+    preparing: dict[str, tuple[int, str, bool]] = lazy(dict)  # vertex -> (rid,
     # coordinator, restore) until its instance has started
     # edge -> (seq, events, when they entered their chain): kept until the handover
-    stash: dict[int, list[tuple[int, list[bytes], float]]] = field(default_factory=dict)
-    markers: dict[str, set[int]] = field(default_factory=dict)  # vertex -> edges marked
-    blocked_sources: set[str] = field(default_factory=set)
+    stash: dict[int, list[tuple[int, list[bytes], float]]] = lazy(dict)
+    markers: dict[str, set[int]] = lazy(dict)  # vertex -> edges marked
+    blocked_sources: set[str] = lazy(set)
     started_at: float = 0.0
-    parked: dict[int, str] = field(default_factory=dict)  # chain -> why it cannot run
+    parked: dict[int, str] = lazy(dict)  # chain -> why it cannot run
     recovering: int | None = None  # the remap recovering from a failure, at its coordinator
-    restoring: dict[str, Restoring] = field(default_factory=dict)  # replacements awaiting
-    recoveries: list[dict[str, Any]] = field(default_factory=list)  # what was done, bounded
+    restoring: dict[str, Restoring] = lazy(dict)  # replacements awaiting
+    recoveries: list[dict[str, Any]] = lazy(list)  # what was done, bounded
     # vertices whose instances went with a node that has since rejoined: restored like lost ones
     vanished: Vanished = field(init=False)
-    handed: dict[str, str] = field(default_factory=dict)  # vertex -> where this node handed it
+    handed: dict[str, str] = lazy(dict)  # vertex -> where this node handed it
     # with operator keys, a node that learnt the app from a sync: the unpinned vertices it
     # places on its senders' word, not yet corroborated (vertex -> node -> senders saying so)
-    hearsay: dict[str, dict[str, set[str]]] = field(default_factory=dict)
+    hearsay: dict[str, dict[str, set[str]]] = lazy(dict)
     document: str = ""  # the app file as deployed, for a node that rejoins
-    crashes: dict[str, Crashes] = field(default_factory=dict)  # vertex -> its crashes here
+    crashes: dict[str, Crashes] = lazy(dict)  # vertex -> its crashes here
     # crashed, not in ``instances``
-    crashed: dict[str, HostedInstance] = field(default_factory=dict)
-    delays: dict[int, float] = field(default_factory=dict)  # at a tail's node: chain -> ms
-    moved: dict[str, tuple[float, str]] = field(default_factory=dict)  # vertex -> (when, from)
+    crashed: dict[str, HostedInstance] = lazy(dict)
+    delays: dict[int, float] = lazy(dict)  # at a tail's node: chain -> ms
+    moved: dict[str, tuple[float, str]] = lazy(dict)  # vertex -> (when, from)
     # vertex -> when this node last learnt it moved (a Moved, a sync): a chain end's next
     # move of it waits its interval from then (mso.protocol.warrant)
-    moved_at: dict[str, float] = field(default_factory=dict)
-    placed_at: dict[int, float] = field(default_factory=dict)  # chain -> when last (re)mapped
-    route_changed: dict[int, float] = field(default_factory=dict)  # chain -> last route change
-    chain_delay: dict[int, tuple[float, float]] = field(default_factory=dict)  # at a head's
+    moved_at: dict[str, float] = lazy(dict)
+    placed_at: dict[int, float] = lazy(dict)  # chain -> when last (re)mapped
+    route_changed: dict[int, float] = lazy(dict)  # chain -> last route change
+    chain_delay: dict[int, tuple[float, float]] = lazy(dict)  # at a head's
     # at the origin only
-    built: set[int] = field(default_factory=set)
+    built: set[int] = lazy(set)
     client: int | None = None
     requested_at: float = 0.0
-    out_edges: dict[str, list[int]] = field(default_factory=dict)
     # each vertex placed by capability: the nodes that qualify, best first (§3.3)
     capable: dict[str, list[str]] = field(default_factory=dict)
     # chain replication: vertex -> replicas kept; at its host, what it costs; at a replica,
     # the snapshot held; everywhere, where its replicas are (the host's broadcast)
     replicas: dict[str, int] = field(init=False)
-    replication: dict[str, ReplicationCost] = field(default_factory=dict)
-    held: dict[str, Snapshot] = field(default_factory=dict)
-    replica_nodes: dict[str, list[str]] = field(default_factory=dict)
+    replication: dict[str, ReplicationCost] = lazy(dict)
+    held: dict[str, Snapshot] = lazy(dict)
+    replica_nodes: dict[str, list[str]] = lazy(dict)
     # at a producer's node: edge -> the first event that is new, made by a producer restored
     # without its predecessor's history (a source, a state restarted, or one fed by such):
     # the events a replica of its consumer counted are not among them, so they cannot replay
     # them; forgotten once the consumer's replicas hold a snapshot past it (``m.Release``)
-    fresh_from: dict[int, int] = field(default_factory=dict)
+    fresh_from: dict[int, int] = lazy(dict)
     # per restored merge: its inputs numbered anew at its restore (told to its forwarder)
-    renumbered: dict[str, set[int]] = field(default_factory=dict)
+    renumbered: dict[str, set[int]] = lazy(dict)
 
     engaged: Engaged = field(init=False, repr=False, compare=False)
+
+    @property
+    def out_edges(self) -> dict[str, list[int]]:
+        """Vertex -> its output edges' indices: the layout's (the same at every node, shared
+        where the layout is; it was a table per app per node)."""
+        return self.layout.out_edges
+
+    if not TYPE_CHECKING:  # (mypy keeps checking the attributes' names and types)
+
+        def __getattr__(self, name: str) -> Any:
+            """A lazy table not made yet (an unset slot): made now, and kept."""
+            make = _LAZY.get(name)
+            if make is None:
+                raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+            value = make()
+            setattr(self, name, value)
+            return value
 
     def __post_init__(self) -> None:
         self.replicas = self.layout.replicas()
@@ -598,3 +621,9 @@ class AppState:
         """Vertices with no running instance: on a failed node, or gone with a node's old
         incarnation."""
         return {v for v, n in self.placed.items() if n in failed} | self.vanished
+
+
+# a lazy table's name -> what makes it (:func:`lazy`)
+_LAZY: dict[str, Callable[[], object]] = {
+    f.name: f.metadata["lazy"] for f in fields(AppState) if "lazy" in f.metadata
+}

@@ -386,8 +386,6 @@ class Deployer:
             document=msg.document,
             capable={v: list(ns) for v, ns in msg.capable.items() if v in msg.resolved},
         )
-        for i, e in enumerate(app.edges):
-            dep.out_edges.setdefault(e.src, []).append(i)
         if msg.origin == self.ctx.id and msg.app in self._clients:
             dep.client, dep.requested_at = self._clients.pop(msg.app)
         self.ctx.apps[msg.app] = dep

@@ -274,8 +274,6 @@ class AppSyncing:
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
         dep.running, dep.started_at = True, now
         dep.placed_at = dict.fromkeys(range(len(layout.chains)), now)
-        for i, e in enumerate(app.edges):
-            dep.out_edges.setdefault(e.src, []).append(i)
         self.ctx.apps[msg.app] = dep
         # (re)arm go-back-N for the app: a timer left from before a reset may have lapsed
         self.ctx.emit(SetTimer(Retransmit(msg.app), now + RETRANSMIT_S))
