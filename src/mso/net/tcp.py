@@ -595,6 +595,10 @@ class TcpTransport:
             if said is None:
                 return
             msg = said
+            if isinstance(msg, m.Hears):  # a member's "I hear it": the suspect's own word
+                msg = self.trust.hears(conn.peer, env, msg, self.loop.time())
+        elif isinstance(msg, m.Hears) and msg.proof:
+            msg = msgspec.structs.replace(msg, proof=b"")  # nothing here checks it
         if isinstance(msg, m.RevokeNode):
             self._revoke(msg, conn.peer)
             return

@@ -12,6 +12,8 @@ from __future__ import annotations
 import logging
 import time
 
+import msgspec
+
 from mso.net.base import Counters
 from mso.net.limits import ConnectionCounters
 from mso.net.relaying import RelayBudget
@@ -159,6 +161,22 @@ class Trust:
             self.counters.frames_origin_refused += 1
             log.info("from %s via %s: %s: %s", env.src, peer, type(msg).__name__, said)
             return None
+        return said
+
+    def hears(self, peer: str, env: m.Envelope, msg: m.Hears, now: float) -> m.Hears:
+        """``msg`` with the proof it may carry (:meth:`mso.protocol.origin.Verifier.hears`):
+        a proof that does not hold, or one past ``peer``'s budget of checks, is stripped
+        (counted in ``frames_origin_refused``): the core then takes the yes as a member's
+        word alone."""
+        if msg.proof and env.src != msg.node and not self.checks.allow(peer, m.CONTROL, now):
+            self.counters.frames_dropped_rate += 1
+            return msgspec.structs.replace(msg, proof=b"")
+        wall_ms = time.time_ns() // 1_000_000
+        ops, revoked = self.authority.operators, self.revoked()
+        said, why = self.origins.hears(env.src, env, msg, wall_ms, ops, revoked)
+        if why is not None:
+            self.counters.frames_origin_refused += 1
+            log.info("from %s via %s: Hears of %s: %s", env.src, peer, msg.node, why)
         return said
 
     def revoke(self, msg: m.RevokeNode, via: str | None) -> str | None:

@@ -74,6 +74,10 @@ class NodeDriver:
             core.id, host, port, psk, self.view, limits, self.authority, encrypt, identity
         )
         self.transport.set_receiver(self._receive, self._read_done)
+        # with node identities a member's "I hear it" carries the suspect's own signed word,
+        # which the transport sets and checks (mso.net.trust): the core asks for it
+        transport = self.transport
+        core.membership.proofs = lambda: transport.requires_identity
         self.transport.set_client_handler(self._request)
         self.view.subscribe(self._routes_changed)
         self._timers: dict[Hashable, asyncio.TimerHandle] = {}

@@ -30,6 +30,7 @@ from mso.protocol.wire.deploy import StartApp as StartApp
 from mso.protocol.wire.deploy import StopApp as StopApp
 from mso.protocol.wire.link import ClientHello as ClientHello
 from mso.protocol.wire.link import PeerHello as PeerHello
+from mso.protocol.wire.membership import MAX_PROOF as MAX_PROOF
 from mso.protocol.wire.membership import AppSync as AppSync
 from mso.protocol.wire.membership import Figures as Figures
 from mso.protocol.wire.membership import Hears as Hears

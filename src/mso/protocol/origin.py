@@ -19,6 +19,13 @@ back) is taken only from that node itself: a neighbour's announcement of it is n
 and its own beats, signed to every node it is not a neighbour of, bring it back (at a host
 that is not its neighbour, within a rejoin round of the beats, ``REJOIN_EVERY``).
 
+A member's "I hear it" (a ``Hears`` yes about a suspect) is the suspect's own word carried
+back (:meth:`Verifier.hears`): the member asks the suspect on with the asker's challenge, the
+receiving transport keeps the suspect's signed answer as it came (``Hears.proof``: the frame,
+with its origin), and the asker's transport takes the member's yes with that proof only when
+the proof is the suspect's, signed, a yes, to the very challenge; else the proof is stripped
+and the core takes the yes as a member's word alone, which it sets aside.
+
 Data frames (events and acks) are not signed — a signature per event would cost more than the
 event — but tagged by a key only their two ends hold (:mod:`mso.protocol.dataseal`).
 
@@ -155,6 +162,53 @@ class Verifier:
             if why is not None:
                 return why
         return attribute(env.src, msg)
+
+    def hears(
+        self,
+        src: str,
+        env: m.Envelope,
+        msg: m.Hears,
+        wall_ms: int,
+        operators: Mapping[str, Ed25519PublicKey],
+        revoked: Set[str] = frozenset(),
+    ) -> tuple[m.Hears, str | None]:
+        """``msg`` (from ``src``, in the frame ``env``) with the proof it may carry, and why a
+        proof it came with was stripped (None: none was): the suspect's own yes to a
+        challenge gets its frame as its proof (checked where it is carried to); another's
+        keeps its proof only when that is the suspect's own signed yes to the same
+        challenge."""
+        if src == msg.node:
+            own = msg.yes and msg.nonce and env.origin and env.src == src
+            proof = m.rewrap(env) if own else b""
+            if len(proof) > m.MAX_PROOF:
+                proof = b""
+            return msgspec.structs.replace(msg, proof=proof), None
+        if not msg.proof:
+            return msg, None
+        why = self._proof_refused(msg, wall_ms, operators, revoked)
+        if why is None:
+            return msg, None
+        return msgspec.structs.replace(msg, proof=b""), why
+
+    def _proof_refused(
+        self,
+        msg: m.Hears,
+        wall_ms: int,
+        operators: Mapping[str, Ed25519PublicKey],
+        revoked: Set[str],
+    ) -> str | None:
+        try:
+            env = m.unwrap(msg.proof)
+            said = m.decode(env.body)
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            return "a proof that does not decode"
+        if env.src != msg.node or env.kind != m.CONTROL:
+            return f"a proof from {env.src!r}, not {msg.node!r}'s own answer"
+        if not (isinstance(said, m.Hears) and said.node == msg.node and said.yes):
+            return f"a proof that is not {msg.node!r}'s yes"
+        if not msg.nonce or said.nonce != msg.nonce:
+            return "a proof of another challenge"
+        return self.check(env, wall_ms, operators, revoked)
 
 
 def attribute(src: str, msg: m.Message) -> m.Message | str:

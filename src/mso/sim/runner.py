@@ -7,8 +7,10 @@ Messages between nodes take the sum of the per-hop link delays of their route (p
 
 from __future__ import annotations
 
+import hashlib
 import heapq
 import itertools
+import os
 import random
 from collections import deque
 from collections.abc import Callable, Hashable
@@ -52,8 +54,16 @@ class Simulation:
         model_time: bool = False,
         seed: int = 0,
         spill: Callable[[str], SpillStore] | None = None,
+        proofs: bool = True,
     ) -> None:
         self.network = network
+        # a member's "I hear it" carries the suspect's own answer, as with node identities
+        # (``Hears.proof``): each node's answer is sealed with a key only this simulator holds,
+        # standing for its signature, and a seal that does not hold is stripped on arrival
+        # (False: as without identities, a member's word alone, for the rules' windows)
+        self.proofs = proofs
+        self._proof_key = os.urandom(32)
+        self.proofs_refused = 0  # Hears whose proof did not hold (stripped)
         self.rng = random.Random(seed)  # emulated loss of data frames (a link's ``loss``)
         self.lost = 0  # data frames lost that way
         # (time, node, from, message type): every delivery, when a test or a fault run asks
@@ -456,6 +466,22 @@ class Simulation:
     def _watch(self, node: str, core: NodeCore) -> None:
         """Keep what ``core`` says happened (its driver drains and logs the same)."""
         core.subscribe(Happened, lambda h: self.happened.append((self.now, node, h)))
+        if self.proofs:
+            core.membership.proofs = lambda: True
+
+    def _seal(self, node: str, nonce: bytes) -> bytes:
+        """What stands for ``node``'s signature on its yes to ``nonce``."""
+        return hashlib.blake2b(node.encode() + b"\0" + nonce, key=self._proof_key).digest()
+
+    def _proven(self, src: str, msg: m.Hears) -> m.Hears:
+        """``msg`` as the receiving transport hands it over with identities: a node's own yes
+        with its seal (the frame as it came), another's proof only if it holds."""
+        if src == msg.node and msg.yes and msg.nonce:
+            return msgspec.structs.replace(msg, proof=self._seal(src, msg.nonce))
+        if msg.proof and (not msg.yes or msg.proof != self._seal(msg.node, msg.nonce)):
+            self.proofs_refused += 1
+            return msgspec.structs.replace(msg, proof=b"")
+        return msg
 
     def revive(self, node: str) -> None:
         """Restart a killed ``node`` as a new process: a fresh core with a higher incarnation
@@ -516,6 +542,8 @@ class Simulation:
             core = self.cores[node]  # (its byte counters it reads itself: count_traffic)
             if kind == "msg":
                 src, msg = payload
+                if self.proofs and type(msg) is m.Hears:
+                    msg = self._proven(src, msg)
                 self.delivered += 1
                 if self.trace is not None:
                     self.trace.append((at, node, src, type(msg).__name__))

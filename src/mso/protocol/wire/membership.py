@@ -16,6 +16,11 @@ class _Msg(msgspec.Struct, tag_field="t", array_like=True):
 
 Hops = Annotated[int, msgspec.Meta(ge=1, le=64)]
 """A route's length: no route between the robots of one overlay is longer."""
+Nonce = Annotated[bytes, msgspec.Meta(max_length=16)]
+"""An asker's challenge in a :class:`Suspect`, echoed by the suspect's own answer."""
+MAX_PROOF = 4096
+Proof = Annotated[bytes, msgspec.Meta(max_length=MAX_PROOF)]
+"""A suspect's own answer as it came, with its origin signature (:class:`Hears`)."""
 
 
 class Figures(msgspec.Struct, array_like=True, frozen=True):
@@ -72,6 +77,9 @@ class Suspect(_Msg, tag="suspect"):
 
     node: str
     rid: int
+    # the asker's fresh challenge (with node identities): a member that hears ``node`` asks
+    # it on, and ``node``'s own signed answer, which echoes it, is the member's proof
+    nonce: Nonce = b""
 
 
 class Hears(_Msg, tag="hears"):
@@ -85,6 +93,12 @@ class Hears(_Msg, tag="hears"):
     # how long ago the sender last heard ``node`` (ms; -1: never): a yes moves the asker's
     # silence clock to then, not to now (a dead node is not kept alive by a late answer)
     ago_ms: int = -1
+    nonce: Nonce = b""  # the asker's challenge this answers
+    # with node identities: ``node``'s own yes to ``nonce`` as it came, signed by ``node``
+    # (the frame, with its origin): a member's "I hear it" backed by the suspect's own word,
+    # which a member cannot write for a dead node. Set and checked by the receiving
+    # transport (mso.net.trust), never taken as sent
+    proof: Proof = b""
 
 
 class NodeUp(_Msg, tag="node_up"):

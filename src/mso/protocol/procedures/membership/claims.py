@@ -25,6 +25,16 @@ accepted claims spread. Sans-IO helpers of :mod:`.peers`.
   word, however many, keeps it alive for at most ``MEMBERS_YES_WINDOWS`` windows (20 s at
   the defaults, past the 12 s babeld was seen to lag) until this node hears it itself: two
   captured members answering yes for a dead node kept it alive for ever.
+
+  **With node identities** (and in the simulator, whose sources are proven as with them) none
+  of that is needed: a suspicion carries a fresh challenge (``Suspect.nonce``), a member that
+  hears the suspect asks it on, and its yes carries the suspect's own answer to that
+  challenge as it came, signed by the suspect (``Hears.proof``, checked by the receiving
+  transport: :mod:`mso.net.trust`). A dead node answers nothing, and a member cannot sign in
+  its name, so a yes without the proof is set aside at once (``hears_unproven``): one captured
+  member, or any number, delay a dead node's declaration by nothing more than their answers'
+  round trip, and a live node whose route is missing at one asker stays alive as long as
+  any member reaches it.
 - **How accepted claims spread** (:class:`Gossip`): the detector sends its ``NodeDown`` only
   to the nodes that host the apps (they recover); everyone else learns it piggybacked on the
   heartbeats already sent, each claim on ``rounds(n)`` beats (O(log N)), at most ``MAX_NEWS``
@@ -47,6 +57,7 @@ MAX_PENDING = 64  # uncorroborated claims waiting for this node's own probe
 INCARNATION_MARGIN = 16  # a claim may be this many incarnations (resets) ahead of what was seen
 LONE_YES_WINDOWS = 4  # liveness windows one member's uncorroborated yes keeps a suspect alive
 MEMBERS_YES_WINDOWS = 40  # ... and members' yes, however many (a route missing that long)
+NONCE_BYTES = 8  # a suspicion's challenge, with proofs: fresh, so no earlier answer holds it
 
 
 def ask_whom(

@@ -117,7 +117,13 @@ class Suspicion(Procedure):
     }
 
     def __init__(
-        self, pid: int, now: float, node: str, asked: list[str], deadline_s: float | None = None
+        self,
+        pid: int,
+        now: float,
+        node: str,
+        asked: list[str],
+        deadline_s: float | None = None,
+        nonce: bytes = b"",
     ) -> None:
         super().__init__(pid, now, deadline_s)
         self.node = node
@@ -126,6 +132,9 @@ class Suspicion(Procedure):
         self.heard_by: set[str] = set()  # the asked that said they hear it
         self.outcome = ""
         self.witness = ""
+        # this suspicion's challenge (with node identities): a yes counts when it carries
+        # the suspect's own signed answer to it (:class:`~mso.protocol.messages.Hears`)
+        self.nonce = nonce
 
     @property
     def name(self) -> str:
@@ -133,7 +142,7 @@ class Suspicion(Procedure):
 
     def start(self, ctx: Messenger) -> None:
         for n in sorted(self.missing):
-            ctx.send(n, m.Suspect(self.node, self.pid))
+            ctx.send(n, m.Suspect(self.node, self.pid, self.nonce))
 
     def answer(self, src: str, yes: bool) -> None:
         """One asked node's answer (an answer from a node not asked, or twice, is refused
@@ -178,15 +187,21 @@ class VouchEvent(enum.Enum):
     """What moves a Vouch along its table."""
 
     ASKED = "asked"
+    TOLD = "told"
     ANSWERED = "answered"
     DEADLINE = "deadline"
 
 
 class Vouch(Procedure):
-    """Asked whether this node hears ``node``, which it does not hear itself but reaches: it
-    asks ``node`` (a ``Suspect`` about itself, which a live node answers yes) and answers its
-    askers (``askers``: asker -> their suspicion's id) with what came back by the deadline —
-    SWIM's ping-req. Half the askers' window, so that a no still reaches them in time."""
+    """Asked whether this node hears ``node``: it asks ``node`` (a ``Suspect`` about itself,
+    which a live node answers yes) and answers its askers (``askers``: asker -> their
+    suspicion's id and challenge) with what came back by the deadline — SWIM's ping-req.
+    Half the askers' window, so that a no still reaches them in time.
+
+    With node identities each asker's challenge goes on to ``node`` (one ``Suspect`` per
+    distinct challenge), and each asker is told yes with ``node``'s own signed answer to its
+    challenge (the proof its yes needs: a member's word alone is not taken); without them
+    ``node``'s first answer is every asker's."""
 
     NAME = "vouch"
     INITIAL = Q.ASKING
@@ -195,6 +210,7 @@ class Vouch(Procedure):
     TRANSITIONS: ClassVar[Table] = {
         Q.ASKING: {
             VouchEvent.ASKED: Q.ASKING,
+            VouchEvent.TOLD: Q.ASKING,
             VouchEvent.ANSWERED: Phase.FINISHED,
             VouchEvent.DEADLINE: Phase.FINISHED,
         }
@@ -203,33 +219,41 @@ class Vouch(Procedure):
     def __init__(self, pid: int, now: float, node: str, deadline_s: float | None = None) -> None:
         super().__init__(pid, now, deadline_s)
         self.node = node
-        self.askers: dict[str, int] = {}
+        self.askers: dict[str, tuple[int, bytes]] = {}
 
     @property
     def name(self) -> str:
         return f"vouch for {self.node}"
 
-    def ask(self, asker: str, rid: int) -> None:
+    def ask(self, ctx: Messenger, asker: str, rid: int, nonce: bytes = b"") -> None:
+        """``asker`` asks (again, or first): ``node`` is asked with its challenge, unless an
+        asker's same challenge (or, without one, any question) is already on its way."""
         self.on(VouchEvent.ASKED)
-        if asker in self.askers or len(self.askers) < self.MAX_ASKERS:
-            self.askers[asker] = rid
+        if asker not in self.askers and len(self.askers) >= self.MAX_ASKERS:
+            return
+        sent = {n for _, n in self.askers.values()}
+        self.askers[asker] = (rid, nonce)
+        if nonce not in sent and (nonce or not sent):
+            ctx.send(self.node, m.Suspect(self.node, self.pid, nonce))
 
     def start(self, ctx: Messenger) -> None:
-        ctx.send(self.node, m.Suspect(self.node, self.pid))
+        """Nothing to send yet: each asker's question goes on as it comes (:meth:`ask`)."""
 
-    def _tell(self, ctx: Messenger, yes: bool) -> None:
-        for asker, rid in sorted(self.askers.items()):
-            ctx.send(asker, m.Hears(self.node, rid, yes, 0 if yes else -1))
-
-    def answered(self, ctx: Messenger) -> None:
-        """``node`` answered: it lives."""
-        self.on(VouchEvent.ANSWERED)
-        self._tell(ctx, True)
+    def answered(self, ctx: Messenger, nonce: bytes = b"", proof: bytes = b"") -> None:
+        """``node`` answered ``nonce`` (b"": a question without one): it lives. The askers of
+        that challenge are told, with its proof, and those that sent none; an answer without
+        a challenge is every asker's (no proof)."""
+        told = [a for a, (_, n) in self.askers.items() if n == nonce or not n or not nonce]
+        for asker in sorted(told):
+            rid, n = self.askers.pop(asker)
+            ctx.send(asker, m.Hears(self.node, rid, True, 0, n, proof if n else b""))
+        self.on(VouchEvent.TOLD if self.askers else VouchEvent.ANSWERED)
 
     def expire(self, ctx: Messenger) -> None:
         """``node`` did not answer in time: we do not hear it."""
         self.on(VouchEvent.DEADLINE)
-        self._tell(ctx, False)
+        for asker, (rid, nonce) in sorted(self.askers.items()):
+            ctx.send(asker, m.Hears(self.node, rid, False, -1, nonce))
 
     def describe(self) -> dict[str, Any]:
         return super().describe() | {"node": self.node, "askers": sorted(self.askers)}

@@ -15,7 +15,8 @@ pinned vertices restored.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import os
+from collections.abc import Callable, Mapping
 from operator import attrgetter
 from typing import Any
 
@@ -40,6 +41,7 @@ from mso.protocol.procedures.membership.claims import (
     LONE_YES_WINDOWS,
     MAX_NEWS,
     MEMBERS_YES_WINDOWS,
+    NONCE_BYTES,
     Claims,
     Gossip,
     Vouchers,
@@ -111,6 +113,10 @@ class Membership(AppSyncing):
         self._gossip = Gossip()  # accepted failure claims, piggybacked on the next beats
         self._claims = Claims()  # others' claims waiting for this node's own probe
         self._vouchers = Vouchers()  # when a member's "I hear it" keeps a suspect alive
+        # whether a member's "I hear it" must carry the suspect's own signed answer (the
+        # driver's transport sets and checks ``Hears.proof``: with node identities, and in
+        # the simulator, whose sources are proven as with them); a yes without it is not taken
+        self.proofs: Callable[[], bool] = lambda: False
         self._told: dict[str, float] = {}  # failed node heard directly -> when told so
         # the leader, and the routing table (a new one on every change) and failed set it is of
         self._leader_of: tuple[Mapping[str, object], frozenset[str], str] | None = None
@@ -358,7 +364,8 @@ class Membership(AppSyncing):
         if not asked:  # nobody left to ask: this node is cut off (its own probes agree)
             self.on_node_down(node, self.ctx.id, now)
             return
-        proc = Suspicion(self.ctx.new_pid(), now, node, asked, self.liveness.dead_after_s)
+        nonce = os.urandom(NONCE_BYTES) if self.proofs() else b""
+        proc = Suspicion(self.ctx.new_pid(), now, node, asked, self.liveness.dead_after_s, nonce)
         self.ctx.begin(proc)
         self._suspicions[node] = proc.pid
         proc.start(self.ctx)
@@ -433,15 +440,21 @@ class Membership(AppSyncing):
         not but reach it, we ask it and answer when it does or our :class:`Vouch` expires."""
         node = msg.node
         if node == self.ctx.id:
-            self.ctx.send(src, m.Hears(node, msg.rid, True, 0))
+            self.ctx.send(src, m.Hears(node, msg.rid, True, 0, msg.nonce))
             return
         ago = self.liveness.ago_ms(node, now)
-        if node in self.failed or self.liveness.hears(node, now, self.liveness.dead_after_s / 2):
-            self.ctx.send(src, m.Hears(node, msg.rid, node not in self.failed, ago))
+        hears = self.liveness.hears(node, now, self.liveness.dead_after_s / 2)
+        if node in self.failed or (hears and not msg.nonce):
+            self.ctx.send(src, m.Hears(node, msg.rid, node not in self.failed, ago, msg.nonce))
             return
-        if node not in self.ctx.routes or node == src or node in self.liveness.neighbours:
-            self.ctx.send(src, m.Hears(node, msg.rid, False, ago))  # (a neighbour we watch
-            return  # and have not heard: our own beats are the probe)
+        if (
+            node not in self.ctx.routes
+            or node == src
+            or (node in self.liveness.neighbours and not hears)
+        ):
+            self.ctx.send(src, m.Hears(node, msg.rid, False, ago, msg.nonce))  # (a neighbour
+            return  # we watch and have not heard: our own beats are the probe)
+        # not heard lately but reached, or heard and the asker wants the proof: ask it
         proc = self.ctx.procedure(self._vouching.get(node, -1))
         if not isinstance(proc, Vouch):
             wait = min(self.liveness.dead_after_s / 2, 2 * self.liveness.period_s)
@@ -449,20 +462,33 @@ class Membership(AppSyncing):
             self.ctx.begin(proc)
             self._vouching[node] = proc.pid  # (bounded by the nodes this node reaches)
             proc.start(self.ctx)
-        proc.ask(src, msg.rid)
+        proc.ask(self.ctx, src, msg.rid, msg.nonce)
 
     def on_hears(self, src: str, msg: m.Hears, now: float) -> None:
         if msg.rid == 0 and src == msg.node:
             return  # the answer to our own probe of a claim: hearing it was the point
         proc = self.ctx.procedure(msg.rid)
         if isinstance(proc, Vouch) and src == proc.node == msg.node and msg.yes:
-            self._vouching.pop(proc.node, None)
-            proc.answered(self.ctx)
-            self.ctx.end(proc.pid)
+            proc.answered(self.ctx, msg.nonce, msg.proof)
+            if proc.done:
+                self._vouching.pop(proc.node, None)
+                self.ctx.end(proc.pid)
             return
         if not isinstance(proc, Suspicion) or proc.node != msg.node or src not in proc.missing:
             if not self.ctx.ours(msg.rid):  # (ours: a late answer to a suspicion that ended)
                 self.ctx.refusal("hears_unasked")  # no such suspicion, or not asked (or twice)
+            return
+        if proc.nonce and msg.yes:  # with proofs: the suspect's own word, or nothing
+            if msg.proof and msg.nonce == proc.nonce:  # (the transport checked its signature)
+                self.liveness.vouched(msg.node, now)  # it answered our challenge: alive now
+                self._vouchers.heard(msg.node)
+                proc.heard_by.add(src)
+                proc.answer(src, True)
+            else:
+                self.ctx.refusal("hears_unproven")  # a member's word alone: not taken
+                proc.set_aside(src)
+            if proc.done:
+                self.suspected(proc, now)
             return
         yes = msg.yes
         if yes and msg.ago_ms >= 0:  # heard then: the silence clock runs from there
