@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import dataclasses
 
+import msgspec
+
 from mso.management import RuleSettings
 from mso.model.network import LinkSpec, Network, NodeSpec, PowerModel
+from mso.node.core import NodeCore
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.sim.runner import Simulation
@@ -238,6 +241,40 @@ def test_an_energy_remap_keeps_the_join_off_the_robot_with_the_sensors() -> None
         (remap,) = [d for c in sim.cores.values() for d in c.manager.done]
         assert "N2 draining, sheds join/fork join" in remap and f"better on {where}" in remap
         assert sim.cores["N1"].placement("joined")["join"] == where
+
+
+def lying(core: NodeCore) -> None:
+    """``core`` claims a full battery, no drain and an idle 100x CPU in every beat."""
+    honest = core.figures
+
+    def figures() -> m.Figures:
+        f = honest()
+        return msgspec.structs.replace(
+            f, cpu=100.0, load=0.0, drain_w=0.01, remaining_j=1e9, lifetime_s=1e9
+        )
+
+    core.figures = figures  # type: ignore[method-assign]
+
+
+def test_an_energy_remap_never_puts_the_join_on_a_node_with_no_part_in_the_app() -> None:
+    """N5, a neighbour of the draining N2 alone that hosts and relays nothing of the app,
+    claims a full battery, no drain and an idle 100x CPU in every beat (a captured node's
+    false figures: nothing else measures them). The remap took the join onto it — an app it
+    had no part in, now hosted by it; only the app's own nodes are candidates now, and the
+    join goes to N3 as without the lie (``energy_outsiders`` brings the old rule back)."""
+    nodes = [
+        NodeSpec(f"N{i}", battery_wh=1.0 if i in (2, 5) else 5.0, power=POWER) for i in range(1, 6)
+    ]
+    links = [LinkSpec(f"N{i}", f"N{i + 1}", delay_ms=1) for i in range(1, 4)]
+    net = Network(nodes, [*links, LinkSpec("N2", "N5", delay_ms=1)])
+    for rules, where in ((None, "N3"), (RuleSettings(energy_outsiders=True), "N5")):
+        sim = deployed(net, JOINED, **({} if rules is None else {"rules": rules}))
+        assert sim.cores["N1"].placement("joined")["join"] == "N2"
+        lying(sim.cores["N5"])
+        sim.run_until(20.0)
+        (remap,) = [d for c in sim.cores.values() for d in c.manager.done]
+        assert "N2 draining, sheds join/fork join" in remap and f"better on {where}" in remap
+        assert {sim.cores[n].placement("joined")["join"] for n in ("N1", "N4")} == {where}
 
 
 # planner: paper: work and tail start on the relays, as the paper's split spreads them

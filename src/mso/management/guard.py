@@ -47,6 +47,11 @@ class RuleSettings:
     # an energy remap places the join on a node that runs pinned vertices only when no other
     # candidate is left (False: any candidate the policy weighs above 0)
     spare_pinned: bool = True
+    # an energy remap may place the join on any node in view, also one that neither hosts nor
+    # relays the app (False: only on the app's own nodes: its hosts and this node's next hops
+    # toward them — a node's figures are its own word, and a captured node's false ones would
+    # otherwise pull an app it has no part in onto itself)
+    energy_outsiders: bool = False
     # after a vertex instance starts here, its start-up work (imports, open(), first calls) is
     # in this node's drain for this long: no draining judgement, no relocation or energy
     # remap off this node until then
@@ -58,7 +63,7 @@ class RuleSettings:
         return min(1.0, 1.25 * self.critical_ratio)
 
     def __post_init__(self) -> None:
-        for name in ("energy_remap", "spare_pinned"):
+        for name in ("energy_remap", "spare_pinned", "energy_outsiders"):
             value = getattr(self, name)
             if not isinstance(value, bool):
                 raise MsoError(f"rule settings: {name}: expected true or false, got {value!r}")

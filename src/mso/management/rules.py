@@ -240,7 +240,10 @@ class EnergyRemapRule(_PolicyRule):
     :meth:`~mso.management.Policy.capacity_weight` gives a weight above 0 — never this node, a
     flat battery, a node expected to die no later than this one, nor, within ``ping_pong_s``
     of its last move, the node the vertex came from (unless this node would die first, or
-    within ``vertex_interval_s`` of the hold's end); and
+    within ``vertex_interval_s`` of the hold's end), nor, unless ``energy_outsiders``, a node
+    that has no part in the app (neither hosts a vertex of it nor is this node's next hop
+    toward one: the figures the rules weigh are each node's own word, and a captured node's
+    would pull the join of an app it neither hosts nor relays onto itself); and
     with ``spare_pinned``, a node that runs pinned vertices only when every other node in view
     does too (the paper's robot that "cannot offload any of its local sensing": its battery
     is kept for what only it can do, and the app ends when it dies, while movable work finds
@@ -284,6 +287,11 @@ class EnergyRemapRule(_PolicyRule):
                 ):
                     return []  # a shorter-lived host of these chains: it asks first
         weights = self.weights(snap)
+        part = snap.app_nodes.get(v.app)
+        if part is not None and not self.settings.energy_outsiders:
+            for n in weights:  # a node with no part in the app: its word steers none of it
+                if n not in part:
+                    weights[n] = 0.0
         if (
             moved is not None
             and moved < self.settings.ping_pong_s

@@ -108,6 +108,10 @@ class Snapshot:
     # when a vertex instance last started on this node (deployment, a move here, a remap, a
     # restore): its drain and load include that start-up work for a while (RuleSettings.warmup_s)
     last_start: float | None = None
+    # app -> the nodes that take part in it as this node sees them: its vertices' hosts and
+    # this node's next hops toward them (the relays of its edges here). An app not listed:
+    # not known (every node in view may take part)
+    app_nodes: Mapping[str, frozenset[str]] = dataclasses.field(default_factory=dict)
 
     def vertex(self, key: str) -> VertexView | None:
         """The hosted vertex with ``key`` (``app/id``), if any."""

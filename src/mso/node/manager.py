@@ -183,11 +183,17 @@ class Manager:
                 )
         vertices: list[VertexView] = []
         chains: list[ChainView] = []
+        app_nodes: dict[str, frozenset[str]] = {}
+        routes = core.routes
         for dep in core.apps.values():
             if not dep.running or dep.recovering is not None:
                 continue
             vertices += self._vertices(dep, now)
             chains += self._chains(dep)
+            if dep.instances:
+                hosts = set(dep.placed.values())
+                hops = {routes[h][0] for h in hosts if h in routes}
+                app_nodes[dep.app.name] = frozenset(hosts | hops)
         busy = frozenset(
             app for p in core.procedures.values() if (app := getattr(p, "app", None)) is not None
         )
@@ -195,7 +201,15 @@ class Manager:
             node for dep in core.apps.values() for node in dep.layout.pinned.values()
         )
         return Snapshot(
-            now, core.id, nodes, tuple(vertices), tuple(chains), busy, pinned_hosts, mon.last_start
+            now,
+            core.id,
+            nodes,
+            tuple(vertices),
+            tuple(chains),
+            busy,
+            pinned_hosts,
+            mon.last_start,
+            app_nodes,
         )
 
     def _vertices(self, dep: AppState, now: float) -> list[VertexView]:
