@@ -60,6 +60,8 @@ class OutChannel:
     # numbered from a guess: a replacement whose consumer was lost too and no ack said where
     # the edge stood; its numbers are not the lost consumer's (until a consumer acks one)
     guessed: bool = False
+    # a merge's replacement: the first number it made itself, a new interleaving (-1: none)
+    remade: int = -1
 
     HISTORY = 64  # acks whose positions are kept, to look one up at an exact position
 
@@ -424,6 +426,10 @@ class InChannel:
     # inputs (mso.protocol.provenance); None when it cannot know (the channel was rebuilt
     # from positions, without them)
     marks: dict[int, tuple[int, int]] | None = None
+    # started past its consumers' marks, not at a position it held (a fork's or merge's
+    # replacement whose producer was lost too): until an event comes, a producer that numbers
+    # from its acks' positions may start it there instead (Restorer.anchor)
+    unheld: bool = False
 
     @classmethod
     def starting_at(
@@ -461,6 +467,7 @@ class InChannel:
                 self.gaps += 1
                 return []
             self.awaiting_replay = False
+        self.unheld = False
         self.skip_to(floor)
         end = seq + len(events)
         if end <= self.expected:

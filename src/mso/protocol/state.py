@@ -89,6 +89,8 @@ class Restoring:
     # a forwarder's: the merge's inputs its restored producer (the merge) numbers anew
     renumbered: set[int] = field(default_factory=set)
     retained: dict[int, int] = field(default_factory=dict)  # input -> first event replayed
+    remade: dict[int, int] = field(default_factory=dict)  # input -> a merge's first remade
+    unheld: set[int] = field(default_factory=set)  # outputs whose consumer's start is a guess
     resumed: set[int] = field(default_factory=set)  # inputs whose producer survived
     replica: Snapshot | None = None  # the state it starts from (None: from its constructor)
     fetching: set[str] = field(default_factory=set)  # replicas asked, none answered yet

@@ -568,6 +568,8 @@ def usable(dep: AppState, vertex: str, restoring: Restoring) -> Snapshot | None:
             if i in restoring.fresh:  # its producer numbers the edge anew (lost with its
                 return None  # own producers): the snapshot's position is of a numbering
                 # that is gone, and taken as its own the new events were dropped (6390)
+            if snap.inputs.get(i, 0) > restoring.remade.get(i, snap.inputs.get(i, 0)):
+                return None  # a merge restored since made those numbers anew (44712)
         elif e.src == vertex and i not in restoring.consumer_start:
             # its consumer is being replaced too: what the snapshot's output position is
             # behind what went further down would reach it as new (no end left to drop it)

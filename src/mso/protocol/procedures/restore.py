@@ -101,6 +101,7 @@ class Restorer:
                 msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions), retained
             )
             resume.fresh = out.guessed
+            resume.remade = out.remade
             resume.renumbered = sorted(dep.renumbered.get(edge.src, ()))
             self.ctx.send(msg.to, resume)
             out.sent = out.acked  # everything unacknowledged goes again, a window at a time
@@ -118,6 +119,7 @@ class Restorer:
             inc = dep.inc.get(msg.edge)
             start = inc.expected if inc is not None else 0
             resume = m.Resume(msg.app, msg.edge, msg.rid, False, start)
+            resume.unheld = inc is not None and inc.unheld
             if inc is not None and edge.src in dep.layout.stamped:
                 resume.marks = provenance.to_wire(inc.marks)  # what it has of each input
             self.ctx.send(msg.to, resume)
@@ -164,12 +166,16 @@ class Restorer:
                 restoring.positions[o] = max(restoring.positions.get(o, 0), pos)
             if msg.retained >= 0:
                 restoring.retained[msg.edge] = msg.retained
+            if msg.remade >= 0:
+                restoring.remade[msg.edge] = msg.remade
             if msg.fresh:
                 restoring.fresh.add(msg.edge)
             restoring.renumbered.update(msg.renumbered)
             restoring.resumed.add(msg.edge)
         else:
             restoring.consumer_start[msg.edge] = msg.start
+            if msg.unheld:
+                restoring.unheld.add(msg.edge)
             marks = provenance.from_wire(msg.marks)
             if marks is not None and vertex in dep.layout.stamped:
                 restoring.consumer_marks[msg.edge] = marks
@@ -189,7 +195,9 @@ class Restorer:
         by its other input meanwhile: counted refused)."""
         h = dep.instances[vertex]
         inc = dep.inc.get(msg.edge)
-        if h.processed or h.queued or h.pending or (inc is not None and inc.expected > 0):
+        if h.processed or h.queued or h.pending:
+            return False
+        if inc is not None and inc.expected > 0 and not inc.unheld:
             return False
         if h.from_snapshot:  # numbered from its snapshot (a restore's Rewire sent again,
             return False  # answered after it ran: renumbered, its count repeated at the sink)
@@ -198,11 +206,16 @@ class Restorer:
             return False
         dep.inc[msg.edge] = InChannel.starting_at(msg.start, bool(outs))
         further = {e: p for e, p in msg.positions.items() if e not in outs}
+        marked = dep.marks.get(vertex, {})
         for o in outs:
+            if o in marked:  # numbered from where its consumer stands, past its marks: kept
+                continue  # (a fork's other consumer lost too: 40794)
             pos = msg.positions[o]
             self.dp.outbox.pop((dep.app.name, o), None)
             dep.out[o] = self.dp.channel(dep, o, pos)
             dep.out[o].positions = further
+            if vertex in dep.layout.merges:
+                dep.out[o].remade = pos
             if o in dep.fresh_from:  # a state restarted still makes new events
                 if has_state(dep.app.vertices[vertex]):
                     dep.fresh_from[o] = pos
@@ -307,6 +320,8 @@ class Restorer:
                 dep.out[o] = carried or self.dp.channel(dep, o, base)
                 known = o in restoring.positions or o in restoring.consumer_start
                 dep.out[o].guessed = carried is None and not known
+            if vertex in dep.layout.merges:  # what it makes from here interleaves anew
+                dep.out[o].remade = dep.out[o].next_seq
             # a source numbers on from its edges' positions: its sequence never restarts
             h.asked = max(h.asked, dep.out[o].next_seq) if h.kind == "source" else h.asked
             if _fresh(dep, vertex, h.kind, snap is not None, restoring):
@@ -321,9 +336,13 @@ class Restorer:
             out = dep.out[o]
             if further or carried is None:
                 out.positions = further
-            if out.positions and restoring.consumer_start.get(o, 0) < out.acked:
+            theirs = restoring.consumer_start.get(o, 0)
+            guess = o in restoring.unheld and theirs > out.acked
+            if out.positions and (theirs < out.acked or guess):
                 # its consumer has nothing of this edge: a replacement too, restored while
-                # this one was out of reach or before it; say where its numbering stood
+                # this one was out of reach or before it; say where its numbering stood (or
+                # its start is past its consumers' marks, a guess: 40794, a fork's other
+                # consumer, lost too, lacks what this one makes again below them)
                 resume = m.Resume(dep.app.name, o, restoring.rid, True, out.acked, out.positions)
                 resume.renumbered = sorted(dep.renumbered.get(vertex, ()))
                 self.ctx.send(dep.placed[dep.app.edges[o].dst], resume)
@@ -366,7 +385,9 @@ class Restorer:
         for i, e in enumerate(dep.app.edges):
             if e.dst == vertex and i in marks and i not in skip and i not in dep.inc:
                 stamped = e.src in dep.layout.stamped
-                dep.inc[i] = InChannel.starting_at(marks[i][0] + 1, gated, {} if stamped else None)
+                start = marks[i][0] + 1
+                dep.inc[i] = InChannel.starting_at(start, gated, {} if stamped else None)
+                dep.inc[i].unheld = True
 
     # -- a twin: a later restore placed the vertex elsewhere ------------------------------------
     def on_superseded(self, ev: Superseded) -> None:

@@ -47,6 +47,13 @@ class Resume(_Msg, tag="resume"):
     # from a merge to its forwarder: the merge's inputs numbered anew at its restore (their
     # producers lost with it), whose marks kept downstream name another numbering
     renumbered: list[int] = msgspec.field(default_factory=list)
+    # from a merge restored since: the first number of the edge it made itself (-1: none).
+    # From there on its outputs interleave its inputs anew, unlike the lost instance's: a
+    # consumer's snapshot counted past it counted other events under those numbers (44712)
+    remade: int = -1
+    # from a consumer: ``start`` is past its own consumers' marks, not a position it held
+    # (Restorer._start_past); a producer that numbers from its acks' positions says so back
+    unheld: bool = False
 
 
 class Replicate(_Msg, tag="replicate"):

@@ -110,6 +110,9 @@ class Membership(AppSyncing):
         # nodes that rejoined while this node's own view was in dispute (it holds a reachable
         # node failed: a healed partition whose losing side has not reset yet): synced after
         self._sync_pending: set[str] = set()
+        # nodes heard back empty (a rejoin, or a newcomer's hello) lately -> when: an app this
+        # node learns from a sync after that goes on to them too (sync.PASS_ON_S)
+        self._heard_back: dict[str, float] = {}
         self._gossip = Gossip()  # accepted failure claims, piggybacked on the next beats
         self._claims = Claims()  # others' claims waiting for this node's own probe
         self._vouchers = Vouchers()  # when a member's "I hear it" keeps a suspect alive
@@ -646,6 +649,8 @@ class Membership(AppSyncing):
             else:
                 self._sync_pending.add(src)  # (bounded: its incarnation was admitted)
                 self._flush_syncs()
+        elif known is None and msg.incarnation > 0 and msg.hosting == 0:
+            self._heard_empty(src, now)  # we hold no app yet: told it when we learn one
         for node, inc in msg.failed.items():  # a node we never heard of (we restarted since)
             if node != self.ctx.id and self.admits(node, self._incarnations):  # failed in that
                 self._incarnations.setdefault(node, inc)  # incarnation: a newer one will be a
@@ -827,6 +832,7 @@ class Membership(AppSyncing):
         self._claims.drop(node)
         self._vouchers.heard(node)
         self._incarnations[node] = incarnation
+        self._heard_empty(node, now)
         self.liveness.rejoin(node, now, node in self.ctx.routes, self.ctx.routes.get(node))
         self.rejoins.append({"node": node, "incarnation": incarnation, "at": now})
         del self.rejoins[:-50]

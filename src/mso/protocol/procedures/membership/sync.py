@@ -20,6 +20,11 @@ from mso.protocol.procedures.deploy import Deployer
 from mso.protocol.procedures.remap import Remapper
 from mso.protocol.state import AppState
 
+# an app learnt from a sync goes on to the nodes heard back empty this long before: heard
+# while this node held no app yet (both restarted at once), nobody else may tell them
+# (fault seed 44222: a node back with its one neighbour, both empty; the app never reached it)
+PASS_ON_S = 5.0
+
 
 class AppSyncing:
     """What :class:`~.peers.Membership` does to sync apps (it provides these attributes)."""
@@ -30,6 +35,7 @@ class AppSyncing:
     recovery: Remapper
     incarnation: int
     _sync_pending: set[str]
+    _heard_back: dict[str, float]
     _incarnations: dict[str, int]
 
     def admits(self, node: str, table: Mapping[str, object]) -> bool:
@@ -217,6 +223,22 @@ class AppSyncing:
         else:
             self.ctx.send(node, self._app_sync(dep))
 
+    def _heard_empty(self, node: str, now: float) -> None:
+        """``node`` is back with no app: note it (bounded, as the nodes admitted are)."""
+        for n in [n for n, at in self._heard_back.items() if now - at > PASS_ON_S]:
+            del self._heard_back[n]
+        self._heard_back[node] = now
+
+    def _pass_on(self, src: str, dep: AppState, now: float) -> None:
+        """An app just learnt from ``src``'s sync: to the nodes heard back empty lately that
+        this node would have synced, had it held the app then."""
+        if self._disputed():
+            return
+        for node, at in sorted(self._heard_back.items()):
+            late = now - at > PASS_ON_S or node == src or node in self.failed
+            if not late and self._syncs(dep, node):
+                self.ctx.send(node, self._app_sync(dep))
+
     def _flush_syncs(self) -> None:
         """Sync the nodes that rejoined while this node's view was in dispute, once it is not."""
         if not self._sync_pending or self._disputed():
@@ -279,6 +301,7 @@ class AppSyncing:
         self.ctx.emit(SetTimer(Retransmit(msg.app), now + RETRANSMIT_S))
         self.recovery.park(dep)
         self.recovery.maybe_recover(dep, now)
+        self._pass_on(src, dep, now)
 
 
 def _claimed(dep: AppState) -> list[str]:
