@@ -143,6 +143,9 @@ BROKE = {
     "past the one's marks, and the other never got the 10 events below them",
     44314: "the same fork, its producer's replacement numbering anew: its input must start "
     "past the marked consumer's marks, or that one drops the 24 new events as had",
+    40939: "a fork restored while its consumer's node was cut off and held failed numbered "
+    "that edge from a guess; the consumer survived, kept its position, and took the restarted "
+    "source's first 18 events for ones it had",
     42072: "the same at a merge (18 lost), a stream the checker skipped before provenance",
     44222: "two neighbours restarted at once, both empty: the one that learnt the app from a "
     "sync never passed it on, and the other never got it",

@@ -60,6 +60,11 @@ class OutChannel:
     # numbered from a guess: a replacement whose consumer was lost too and no ack said where
     # the edge stood; its numbers are not the lost consumer's (until a consumer acks one)
     guessed: bool = False
+    # a guessed channel's consumer said where it stands, or took this numbering (a replacement
+    # that asked): until then its events wait here (StoreAndForward.held), since a consumer
+    # that survived out of reach would take them for what it has (fault seed 40939)
+    confirmed: bool = False
+    asked_at: float = -1e18  # when the consumer was last asked where it stands
     # a merge's replacement: the first number it made itself, a new interleaving (-1: none)
     remade: int = -1
 

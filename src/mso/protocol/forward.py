@@ -21,6 +21,7 @@ from mso.protocol.events import Retransmit
 from mso.protocol.state import AppState
 
 RETRANSMIT_S = 0.25
+ASK_EVERY_S = 1.0  # a guessed channel asks its consumer where it stands at most this often
 # go-back-N doubles its wait after each resend without progress, up to this (OutChannel.overdue)
 RETRANSMIT_MAX_S = 2.0
 HANDOVER_PART_BYTES = 1 << 20  # events a move's Handover carries itself, and each part ahead
@@ -144,7 +145,21 @@ class StoreAndForward:
         dst = dep.placed[consumer]
         if dst == self.ctx.id:
             return False
-        return dst in self.ctx.failed or dst not in self.ctx.routes or dep.unconfirmed(consumer)
+        if dst in self.ctx.failed or dst not in self.ctx.routes or dep.unconfirmed(consumer):
+            return True
+        out = dep.out.get(edge)
+        return out is not None and out.guessed and not out.confirmed
+
+    def ask_where(self, dep: AppState, edge: int, out: OutChannel, now: float) -> None:
+        """A guessed channel whose consumer is in reach: ask it where it stands, as a
+        restore's ``Rewire`` does (its answer, a ``Resume``, renumbers the channel from there:
+        :meth:`mso.protocol.procedures.restore.Restorer.on_resume`). A consumer that survived
+        out of reach of the restore has events this numbering would repeat."""
+        dst = dep.placed[dep.app.edges[edge].dst]
+        if now - out.asked_at < ASK_EVERY_S or dst in self.ctx.failed or dst not in self.ctx.routes:
+            return
+        out.asked_at = now
+        self.ctx.send(dst, m.Rewire(dep.app.name, edge, self.ctx.id, 0, False))
 
     def edge_room(self, dep: AppState, edge: int) -> int:
         """Events the producer of ``edge`` may make now (the window, or the store's bound)."""
@@ -244,6 +259,8 @@ class StoreAndForward:
             if delivery.enforce(ch, e, held, now):
                 self.gave_up(dep, edge)
             if held:  # kept until the consumer is back or restored elsewhere
+                if ch.guessed and not ch.confirmed:
+                    self.ask_where(dep, edge, ch, now)
                 ch.out_of_reach = True
                 if ch.persist:
                     ch.make_durable()

@@ -102,6 +102,7 @@ class Restorer:
             )
             resume.fresh = out.guessed
             resume.remade = out.remade
+            out.confirmed = True  # (a replacement: it numbers on from here)
             resume.renumbered = sorted(dep.renumbered.get(edge.src, ()))
             self.ctx.send(msg.to, resume)
             out.sent = out.acked  # everything unacknowledged goes again, a window at a time
@@ -143,6 +144,11 @@ class Restorer:
             elif not self.anchor(dep, vertex, msg):  # (a running consumer: see there)
                 self.ctx.refusal("resume_unexpected")
             return
+        out = dep.out.get(msg.edge)
+        unsure = out is not None and out.guessed and not out.confirmed
+        if restoring is None and not msg.producer and vertex in dep.instances and unsure:
+            self._renumber(dep, vertex, msg, now)  # (a consumer that survived: ask_where)
+            return
         if restoring is None and not msg.producer and vertex in dep.instances:
             marks = provenance.from_wire(msg.marks)
             if marks and vertex in dep.layout.merges and edge.dst in dep.layout.forwarders:
@@ -182,6 +188,33 @@ class Restorer:
         restoring.pending.discard((msg.edge, msg.producer))
         if _ready(dep, vertex, restoring):
             self.activate(dep, vertex)
+
+    def _renumber(self, dep: AppState, vertex: str, msg: m.Resume, now: float) -> None:
+        """A guessed output channel's consumer says where it stands (it survived out of reach
+        of this instance's restore, held lost, and was never restored: fault seed 40939, a
+        restarted source's first 18 events dropped as had). Its numbering wins: what this
+        channel holds goes from there on, past the consumer's marks for a stamped vertex
+        (not those of an input numbered anew: they name another numbering)."""
+        old = dep.out[msg.edge]
+        if old.spilled:  # (read off the loop only: a backlog past memory keeps its guess)
+            self.ctx.note_event(now, f"{vertex}: edge {msg.edge} keeps a guessed numbering")
+            old.confirmed = True
+            return
+        _, events = old.unacked()
+        marks = provenance.from_wire(msg.marks)
+        if marks and vertex in dep.layout.stamped:
+            fresh = dep.renumbered.get(vertex, set())
+            marks = {i: mk for i, mk in marks.items() if i not in fresh}
+            dep.marks.setdefault(vertex, {})[msg.edge] = marks
+            events = provenance.past(events, marks)
+        self.dp.outbox.pop((dep.app.name, msg.edge), None)
+        new = self.dp.channel(dep, msg.edge, msg.start)
+        new.push_many(events, now)
+        new.confirmed = True
+        if msg.edge in dep.fresh_from:
+            dep.fresh_from[msg.edge] = msg.start
+        dep.out[msg.edge] = new
+        self.dp.sf.drain(dep, msg.edge)
 
     def anchor(self, dep: AppState, vertex: str, msg: m.Resume) -> bool:
         """A consumer restored while this edge's producer was out of reach (or before it) has
@@ -282,7 +315,7 @@ class Restorer:
         dep.marks.pop(vertex, None)
         dep.catch_up.pop(vertex, None)
         dep.renumbered.pop(vertex, None)
-        if restoring.fresh and vertex in dep.layout.merges:
+        if restoring.fresh and vertex in dep.layout.stamped:
             dep.renumbered[vertex] = set(restoring.fresh)
         forwarder = vertex in dep.layout.forwarders
         for o in outs:
