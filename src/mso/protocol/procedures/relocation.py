@@ -430,10 +430,11 @@ class Relocator:
             reloc.deadline = max(reloc.deadline, now + SWITCH_DEADLINE_S)  # over; a busy
             self.ctx.set_timer(Deadline(reloc.pid), reloc.deadline)  # vertex may take a while
         if reloc.restore:  # the surviving ends of its edges resume the replacement
-            edges = dep.app.edges
+            edges, version = dep.app.edges, dep.versions.get(reloc.vertex, 0)
             for edge, producer in reloc.resumes:
                 other = dep.placed[edges[edge].src if producer else edges[edge].dst]
                 rewire = m.Rewire(msg.app, edge, reloc.target, msg.rid, producer, reloc.order)
+                rewire.version = version
                 self.ctx.send(other, rewire)
             return
         for e in dep.app.edges:

@@ -80,6 +80,8 @@ class Restorer:
         if pin is not None and msg.to != pin:
             self.ctx.refusal("rewire_a_pinned_vertex")
             return
+        if self._restored_since(dep, src, replaced, msg):
+            return
         ours = edge.src if msg.producer else edge.dst
         if ours not in dep.instances and ours not in dep.awaiting:
             # a view that places our end here is stale (it moved on): answering from no
@@ -124,6 +126,28 @@ class Restorer:
             if inc is not None and edge.src in dep.layout.stamped:
                 resume.marks = provenance.to_wire(inc.marks)  # what it has of each input
             self.ctx.send(msg.to, resume)
+
+    def _restored_since(self, dep: AppState, src: str, replaced: str, msg: m.Rewire) -> bool:
+        """A restore of a view older than ours: this end knows ``replaced`` runs on a live
+        node at a later move than the coordinator does (this one, perhaps). Following it
+        would rewire the edge to a twin of equal version, and both would run on (restart
+        seed 3316: a restarted daemon's restore of a vertex restored meanwhile on the other
+        side of a cut). Refused, and the coordinator told where it runs: its retry ends the
+        restore there (as the target's own check, ``Relocator._restored_since``)."""
+        where, version = dep.placed.get(replaced), dep.versions.get(replaced, 0)
+        if (
+            msg.version < 0
+            or version <= msg.version
+            or where is None
+            or where == msg.to
+            or where in self.ctx.failed
+            or replaced in dep.vanished
+        ):
+            return False
+        self.ctx.refusal("rewire_of_a_vertex_restored_since")
+        inc = self.ctx.incarnation if where == self.ctx.id else -1
+        self.ctx.send(src, m.Moved(dep.app.name, replaced, where, inc, version))
+        return True
 
     # -- the replacement: runs once every surviving end has resumed it -------------------------
     def on_resume(self, msg: m.Resume, now: float) -> None:

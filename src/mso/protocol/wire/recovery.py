@@ -22,6 +22,9 @@ class Rewire(_Msg, tag="rewire"):
     rid: int
     producer: bool
     order: bytes = b""  # the operator's order the move carries out (mso.protocol.warrant)
+    # the version of the vertex the coordinator restores (its view's; -1: not said): an end
+    # that knows a later one, on a live node, refuses to follow a restore of a stale view
+    version: int = -1
 
 
 class Resume(_Msg, tag="resume"):
