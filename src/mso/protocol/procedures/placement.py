@@ -24,17 +24,38 @@ hosts part of an app once moved any of its vertices — to itself, so that their
 it, or to a node that never ran them — with one ``Moved`` to the app's nodes. A refused claim
 is counted (``moved_not_by_its_host``) and the placement looked up (:mod:`.lookup`), whose
 answers are weighed by the same rule: a move this node missed is learnt from the old host.
+Two moves of one version are two restores of one view (on either side of a cut, or by a
+daemon that restarted and relearnt an older view than its old process had): the twins are
+ordered by their hosts (:func:`prevails`), so every node keeps the same one and the other yields.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Set
+from collections.abc import Callable, Iterable, Set
 from typing import Any
 
 from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
 from mso.protocol.events import PlacementStale, RecoveryDue, Superseded
 from mso.protocol.state import AppState
+
+Tie = Callable[[str, str], bool]  # (node, over): a placement on node prevails at equal version
+
+
+def prevails(ctx: NodeContext) -> Tie:
+    """Of two placements of one vertex at one version, the one that stands: the one on a live
+    node where the other's host is held failed or its instance vanished; else the one on the
+    node up longer (its lower incarnation; a restarted daemon's view was relearnt from
+    others'), then the lower name. Each node orders the twins alike once it has heard their
+    hosts' incarnations."""
+
+    def rank(n: str) -> tuple[int, str]:
+        return (ctx.incarnation if n == ctx.id else ctx.incarnation_of(n, 0), n)
+
+    def tie(node: str, over: str) -> bool:
+        return over in ctx.failed or rank(node) < rank(over)
+
+    return tie
 
 
 def members(dep: AppState) -> set[str]:
@@ -43,14 +64,25 @@ def members(dep: AppState) -> set[str]:
 
 
 def learn(
-    dep: AppState, vertex: str, node: str, version: int, now: float, running: bool = True
+    dep: AppState,
+    vertex: str,
+    node: str,
+    version: int,
+    now: float,
+    running: bool = True,
+    tie: Tie | None = None,
 ) -> bool:
     """Take ``vertex`` runs on ``node`` as its ``version``-th move, unless we know of a later
-    one; True if taken. ``running``: the word of a node that runs it (a Moved), so it has not
-    vanished with a node's old incarnation; a view passed on (a snapshot, a coordinator's
-    record) says nothing about that."""
-    if version and version < dep.versions.get(vertex, 0):
+    one (or, given ``tie``, of one of this version that prevails); True if taken.
+    ``running``: the word of a node that runs it (a Moved), so it has not vanished with a
+    node's old incarnation; a view passed on (a snapshot, a coordinator's record) says
+    nothing about that."""
+    known, where = dep.versions.get(vertex, 0), dep.placed.get(vertex)
+    if version and version < known:
         return False
+    if version and version == known and tie is not None and where not in (None, node):
+        if vertex not in dep.vanished and not tie(node, where):
+            return False
     if dep.placed.get(vertex) != node or version > dep.versions.get(vertex, 0):
         dep.moved_at[vertex] = now
     dep.placed[vertex] = node
@@ -205,10 +237,14 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
             ctx.publish(PlacementStale(msg.app))
         return
     known = dep is not None and msg.vertex in dep.placed
+    tie = prevails(ctx)
+    mine = dep.versions.get(msg.vertex, 0) if dep is not None else 0
+    # a later move placed it elsewhere while it runs here, or one of this version that
+    # prevails over this node's (a twin restored from the same view)
     twin = (
         dep is not None
         and msg.node != ctx.id
-        and msg.version > dep.versions.get(msg.vertex, 0)
+        and (msg.version > mine or (msg.version == mine > 0 and tie(msg.node, ctx.id)))
         and _runs_here(dep, msg.vertex)
     )
     # only its host's word says it runs (un-vanishes it); an old host's news of a move it
@@ -217,7 +253,7 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
     # vanishing of a vertex whose new host had restarted since; nothing restored it)
     running = src == msg.node
     v, node, version = msg.vertex, msg.node, msg.version
-    taken = known and dep is not None and learn(dep, v, node, version, now, running)
+    taken = known and dep is not None and learn(dep, v, node, version, now, running, tie)
     if known and dep is not None and not taken:
         ctx.dropped()  # an older move's news, overtaken
         newer = dep.placed[msg.vertex]
@@ -227,7 +263,7 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
             inc = ctx.incarnation if newer == ctx.id else -1
             version = dep.versions.get(msg.vertex, 0)
             ctx.send(msg.node, m.Moved(msg.app, msg.vertex, newer, inc, version))
-    elif twin:  # a later move placed it elsewhere while it ran on here: this one yields
+    elif twin:  # this one yields
         ctx.publish(Superseded(msg.app, msg.vertex, msg.node, msg.version))
 
 
