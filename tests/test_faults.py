@@ -902,8 +902,29 @@ def test_an_instance_superseded_by_a_later_move_elsewhere_yields() -> None:
     # news of the same move, or an older one, leaves a running instance alone
     sim2 = line3()
     n3 = sim2.cores["N3"]
-    sim2.apply("N3", n3.receive("N2", m.Moved("pipe", "mid", "N2", 0, version), sim2.now))
+    sim2.apply("N3", n3.receive("N3", m.Moved("pipe", "mid", "N3", 0, version), sim2.now))
+    sim2.apply("N3", n3.receive("N2", m.Moved("pipe", "mid", "N2", 0, version - 1), sim2.now))
     assert "mid" in n3.instances("pipe")
+
+
+def test_twins_of_equal_version_are_ordered_by_their_hosts() -> None:
+    """Two restores of one view (across a cut, or by a daemon that restarted and relearnt an
+    older view) give the vertex one version on two nodes; both ran on and the views split
+    by which news came last (restart seeds 3348, 7422). The twin on the node up longer
+    (lower incarnation), then the lower name, stands; the other yields, and a node that
+    hears of the twin that does not prevail answers with the one that does."""
+    sim = line3()
+    n3 = sim.cores["N3"]
+    version = n3.apps["pipe"].versions["mid"]
+    assert version > 0
+    effects = n3.receive("N4", m.Moved("pipe", "mid", "N4", 0, version), sim.now)  # N4 > N3
+    sent = [e for e in effects if isinstance(e, fx.Send) and isinstance(e.msg, m.Moved)]
+    assert [(e.dst, e.msg.node, e.msg.version) for e in sent] == [("N4", "N3", version)]
+    sim.apply("N3", effects)
+    assert "mid" in n3.instances("pipe") and n3.placement("pipe")["mid"] == "N3"
+    sim.apply("N3", n3.receive("N2", m.Moved("pipe", "mid", "N2", 0, version), sim.now))
+    assert "mid" not in n3.instances("pipe")  # N2 < N3, at one incarnation
+    assert n3.placement("pipe")["mid"] == "N2"
 
 
 def test_news_of_an_older_move_is_answered_with_the_later_one() -> None:
