@@ -174,6 +174,12 @@ RESTARTS_BROKE = {
     "app went with its holders, which sampling every 10 ms alone did not see",
     6390: "a whole node restarted: the merge numbered its output anew, its counting consumer "
     "took its replica's snapshot position of the old numbering and dropped 34 new events",
+    3316: "a restarted daemon took over a restore of a vertex restored meanwhile on the other "
+    "side of a cut, at the same version: the surviving ends followed it and both ran on",
+    3348: "two restores of one view on both sides of a cut, one by a restarted daemon: equal "
+    "versions, each node kept the last it heard, both ran on; events twice and lost",
+    7422: "a restarted daemon relearnt the app from a node that never heard of a restore and "
+    "restored the vertex again (a twin of equal version), numbering its producer's edge anew",
 }
 
 

@@ -18,6 +18,7 @@ import pytest
 from mso.daemon.spill import FILE, VACUUM_PAGES, SqliteSpill, keep_tidy
 from mso.errors import MsoError
 from mso.protocol.channel import OutChannel
+from mso.protocol.spill import MemorySpill, placement_notes
 from waits import holds, patience
 
 
@@ -37,6 +38,24 @@ def test_events_and_positions_survive_a_reopen(tmp_path: Path) -> None:
     s.drop("a/1/0")
     assert s.span("a/1/0") is None and s.position("a/1/0") is None and s.size("a/1/0") == 0
     s.close()
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "memory"])
+def test_placement_notes_keep_one_a_vertex_and_survive_a_reopen(tmp_path: Path, kind: str) -> None:
+    """Where a vertex runs as its host said (placement.remember): one note a vertex, the
+    newest, kept across a restart; an app's notes go with it, not its edges' positions."""
+    s: Any = SqliteSpill(tmp_path) if kind == "sqlite" else MemorySpill()
+    s.save_position("a/1/0", 13)
+    s.note(placement_notes("a", "j"), "0/N1", 1)
+    s.note(placement_notes("a", "j"), "1/N2", 2)  # a later move: the one kept
+    s.note(placement_notes("a", "j2"), "0/N3", 1)
+    if kind == "sqlite":
+        s.close()
+        s = SqliteSpill(tmp_path)
+    assert s.notes(placement_notes("a", "j")) == {"1/N2": 2}
+    assert s.notes(placement_notes("a", "j2")) == {"0/N3": 1}
+    s.forget_notes(placement_notes("a"))
+    assert s.notes(placement_notes("a", "j")) == {} and s.position("a/1/0") == 13
 
 
 def free_pages(path: Path) -> int:

@@ -46,6 +46,9 @@ VERSION = "1"
 # the last ack of a held source edge brought (``save_positions``)
 ACKED = "@"
 _DELETE_ACK_POSITIONS = "DELETE FROM positions WHERE substr(key, 1, ?) = ?"
+# notes (SpillStore.note): named integers under a prefix, in the positions table too
+_NOTES = "SELECT key, value FROM positions WHERE substr(key, 1, ?) = ?"
+_DELETE_NOTES = "DELETE FROM positions WHERE substr(key, 1, ?) = ?"
 # pages (4 KiB) one tidy step gives back to the file system: a few ms (bench: 300 MB in 288
 # steps, p50 0.7 ms, p99 9-13 ms, wall time on a loaded 2-core machine)
 VACUUM_PAGES = 256
@@ -361,6 +364,23 @@ class SqliteSpill:
             self._db.execute("BEGIN")
             self._db.execute(_DELETE_ACK_POSITIONS, (len(key) + 1, key + ACKED))
             self._db.executemany("INSERT OR REPLACE INTO positions VALUES (?, ?)", rows)
+        self.wrote = True
+
+    def note(self, prefix: str, name: str, value: int) -> None:
+        with self._db:
+            self._db.execute("BEGIN")
+            self._db.execute(_DELETE_NOTES, (len(prefix), prefix))
+            self._db.execute(
+                "INSERT OR REPLACE INTO positions VALUES (?, ?)", (prefix + name, value)
+            )
+        self.wrote = True
+
+    def notes(self, prefix: str) -> dict[str, int]:
+        rows = self._db.execute(_NOTES, (len(prefix), prefix)).fetchall()
+        return {str(k)[len(prefix) :]: int(v) for k, v in rows}
+
+    def forget_notes(self, prefix: str) -> None:
+        self._db.execute(_DELETE_NOTES, (len(prefix), prefix))
         self.wrote = True
 
     def saved_positions(self, key: str) -> tuple[int, dict[int, int]] | None:

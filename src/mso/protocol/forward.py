@@ -18,6 +18,7 @@ from mso.protocol.channel import REPLICA_OWNER, OutChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.effects import Send, SetTimer
 from mso.protocol.events import Retransmit
+from mso.protocol.spill import placement_notes
 from mso.protocol.state import AppState
 
 RETRANSMIT_S = 0.25
@@ -135,6 +136,7 @@ class StoreAndForward:
         """The app is gone from this node: its edges' events and positions too."""
         for edge in range(len(dep.app.edges)):
             self.ctx.spill.drop(self.key(dep, edge))
+        self.ctx.spill.forget_notes(placement_notes(dep.app.name))  # (placement.remember)
 
     def held(self, dep: AppState, edge: int) -> bool:
         """The consumer of ``edge`` is out of reach (failed, or no route to it), or placed on

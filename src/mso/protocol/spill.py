@@ -8,7 +8,9 @@ end (or, when a held edge moves what it had in memory into the store, just befor
 and trimmed at the front. Positions are small integers that must survive a restart (the next
 sequence number of a source's edge), saved on change, and, while a source's edge holds events
 here, the output positions its consumer's last ack brought (a restore after a restart numbers
-the replay as the lost instances did); dropping a key forgets all of them.
+the replay as the lost instances did); dropping a key forgets all of them. Notes are named
+integers kept one under a prefix (where a vertex runs and at which move, as its host last said:
+:func:`mso.protocol.procedures.placement.remember`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,11 @@ from __future__ import annotations
 import itertools
 from collections import deque
 from typing import Protocol
+
+
+def placement_notes(app: str, vertex: str = "") -> str:
+    """The prefix of an app's placement notes (of one vertex's, given ``vertex``)."""
+    return f"{app}/placed/{vertex}/" if vertex else f"{app}/placed/"
 
 
 class SpillStore(Protocol):
@@ -61,6 +68,16 @@ class SpillStore(Protocol):
         """``(at, positions)`` saved for ``key``, or None."""
         ...
 
+    def note(self, prefix: str, name: str, value: int) -> None:
+        """Keep ``value`` as the one note under ``prefix`` (forgetting the others there)."""
+
+    def notes(self, prefix: str) -> dict[str, int]:
+        """The notes under ``prefix`` (name -> value)."""
+        ...
+
+    def forget_notes(self, prefix: str) -> None:
+        """Forget every note under ``prefix``."""
+
 
 class MemorySpill:
     """The simulator's spill store: in memory, per node, kept across the node's restarts."""
@@ -70,6 +87,7 @@ class MemorySpill:
         self._bytes: dict[str, int] = {}
         self._positions: dict[str, int] = {}
         self._ack_positions: dict[str, tuple[int, dict[int, int]]] = {}
+        self._notes: dict[str, int] = {}  # prefix + name -> value
 
     def append(self, key: str, seq: int, events: list[bytes]) -> None:
         log = self._logs.setdefault(key, deque())
@@ -123,3 +141,14 @@ class MemorySpill:
     def saved_positions(self, key: str) -> tuple[int, dict[int, int]] | None:
         saved = self._ack_positions.get(key)
         return None if saved is None else (saved[0], dict(saved[1]))
+
+    def note(self, prefix: str, name: str, value: int) -> None:
+        self.forget_notes(prefix)
+        self._notes[prefix + name] = value
+
+    def notes(self, prefix: str) -> dict[str, int]:
+        return {k[len(prefix) :]: v for k, v in self._notes.items() if k.startswith(prefix)}
+
+    def forget_notes(self, prefix: str) -> None:
+        for k in [k for k in self._notes if k.startswith(prefix)]:
+            del self._notes[k]

@@ -37,6 +37,7 @@ from typing import Any
 from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
 from mso.protocol.events import PlacementStale, RecoveryDue, Superseded
+from mso.protocol.spill import placement_notes
 from mso.protocol.state import AppState
 
 Tie = Callable[[str, str], bool]  # (node, over): a placement on node prevails at equal version
@@ -56,6 +57,32 @@ def prevails(ctx: NodeContext) -> Tie:
         return over in ctx.failed or rank(node) < rank(over)
 
     return tie
+
+
+def remember(ctx: NodeContext, app: str, vertex: str, node: str, inc: int, version: int) -> None:
+    """Note, durably, where ``vertex`` runs as its host said itself (its incarnation, the
+    move): a daemon that restarts relearns the app from others' syncs, which may be older
+    than what its last process heard (:func:`recall`)."""
+    ctx.spill.note(placement_notes(app, vertex), f"{inc}/{node}", version)
+
+
+def recall(ctx: NodeContext, dep: AppState) -> None:
+    """A node that learnt the app from a sync (its daemon restarted): a vertex its last
+    process heard its host say it runs, at a later move than the sync's, runs there still
+    while that host is in the same incarnation and not held failed; the sync's view of it is
+    older (restart seed 7422: a sync from a node that never heard of a restore placed the
+    vertex on its host's old incarnation, gone; restored here again, a twin of equal
+    version, and the producer restored here beside it numbered its edge anew, from 0)."""
+    for v in dep.app.vertices:
+        for name, version in ctx.spill.notes(placement_notes(dep.app.name, v)).items():
+            inc, _, node = name.partition("/")
+            if version <= dep.versions.get(v, 0) or node == ctx.id or node in ctx.failed:
+                continue
+            if not inc.isdigit() or ctx.incarnation_of(node, int(inc)) != int(inc):
+                continue
+            dep.placed[v] = node
+            dep.versions[v] = version
+            dep.vanished.discard(v)
 
 
 def members(dep: AppState) -> set[str]:
@@ -80,9 +107,9 @@ def learn(
     known, where = dep.versions.get(vertex, 0), dep.placed.get(vertex)
     if version and version < known:
         return False
-    if version and version == known and tie is not None and where not in (None, node):
-        if vertex not in dep.vanished and not tie(node, where):
-            return False
+    tied = version and version == known and where not in (None, node)
+    if tied and tie is not None and vertex not in dep.vanished and not tie(node, where or ""):
+        return False
     if dep.placed.get(vertex) != node or version > dep.versions.get(vertex, 0):
         dep.moved_at[vertex] = now
     dep.placed[vertex] = node
@@ -265,6 +292,8 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
             ctx.send(msg.node, m.Moved(msg.app, msg.vertex, newer, inc, version))
     elif twin:  # this one yields
         ctx.publish(Superseded(msg.app, msg.vertex, msg.node, msg.version))
+    if taken and running and msg.incarnation >= 0 and version and msg.node != ctx.id:
+        remember(ctx, msg.app, v, node, msg.incarnation, version)
 
 
 def _runs_here(dep: AppState, vertex: str) -> bool:
@@ -328,6 +357,8 @@ __all__ = [
     "merge",
     "on_moved",
     "prepare",
+    "recall",
+    "remember",
     "reply",
     "versions",
 ]

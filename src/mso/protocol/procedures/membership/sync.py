@@ -292,6 +292,7 @@ class AppSyncing:
                 if v in msg.placed and v not in pinned and n != self.ctx.id
             }
         dep.vanished.replace({v for v in msg.vanished if v in app.vertices} | self._outlived(msg))
+        placement.recall(self.ctx, dep)  # (what its last process heard, if later)
         dep.capable = {v: list(ns) for v, ns in msg.capable.items() if v in layout.resolved}
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
         dep.running, dep.started_at = True, now
