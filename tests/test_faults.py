@@ -180,6 +180,9 @@ RESTARTS_BROKE = {
     "versions, each node kept the last it heard, both ran on; events twice and lost",
     7422: "a restarted daemon relearnt the app from a node that never heard of a restore and "
     "restored the vertex again (a twin of equal version), numbering its producer's edge anew",
+    862: "a restarted daemon raised a vertex's version to what its last process heard where "
+    "the sync placed it alike: the later restores of nodes that had the sync's view were "
+    "refused as older, and the app ran nowhere",
 }
 
 

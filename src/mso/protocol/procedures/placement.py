@@ -67,13 +67,14 @@ def remember(ctx: NodeContext, app: str, vertex: str, node: str, inc: int, versi
 
 
 def recall(ctx: NodeContext, dep: AppState) -> None:
-    """A node that learnt the app from a sync (its daemon restarted): a vertex its last
-    process heard its host say it runs, at a later move than the sync's, runs there still
-    while that host is in the same incarnation and not held failed; the sync's view of it is
-    older (restart seed 7422: a sync from a node that never heard of a restore placed the
-    vertex on its host's old incarnation, gone; restored here again, a twin of equal
-    version, and the producer restored here beside it numbered its edge anew, from 0)."""
-    for v in dep.app.vertices:
+    """A node that learnt the app from a sync (its daemon restarted): a vertex the sync holds
+    gone that its last process heard its host say it runs, at a later move than the sync's,
+    runs there still while that host is in the same incarnation and not held failed; the
+    sync's view of it is older (restart seed 7422: a sync from a node that never heard of a
+    restore placed the vertex on its host's old incarnation, gone; restored here again, a
+    twin of equal version, and the producer restored beside it numbered its edge from 0)."""
+    for v in sorted(dep.vanished):  # (where the sync's view runs it too, it is left as is:
+        # a version raised alone refused the moves of nodes that had the sync's, seed 862)
         for name, version in ctx.spill.notes(placement_notes(dep.app.name, v)).items():
             inc, _, node = name.partition("/")
             if version <= dep.versions.get(v, 0) or node == ctx.id or node in ctx.failed:
