@@ -157,6 +157,12 @@ def past(payloads: list[bytes], marks: Mapping[int, Mark]) -> list[bytes]:
     return keep
 
 
+def without(marks: Marks, inputs: Iterable[int]) -> Marks:
+    """``marks`` but those of ``inputs`` (numbered anew: their marks name a numbering gone)."""
+    gone = set(inputs)
+    return {i: mk for i, mk in marks.items() if i not in gone}
+
+
 def to_wire(marks: Marks | None) -> dict[int, list[int]] | None:
     return None if marks is None else {e: [s, k] for e, (s, k) in marks.items()}
 

@@ -227,8 +227,7 @@ class Restorer:
         _, events = old.unacked()
         marks = provenance.from_wire(msg.marks)
         if marks and vertex in dep.layout.stamped:
-            fresh = dep.renumbered.get(vertex, set())
-            marks = {i: mk for i, mk in marks.items() if i not in fresh}
+            marks = provenance.without(marks, dep.renumbered.get(vertex, set()))
             dep.marks.setdefault(vertex, {})[msg.edge] = marks
             events = provenance.past(events, marks)
         self.dp.outbox.pop((dep.app.name, msg.edge), None)
@@ -347,7 +346,7 @@ class Restorer:
             marks = restoring.consumer_marks.get(o) if snap is None or forwarder else None
             if marks is not None and forwarder:  # its consumer has the effects of the merge's
                 # (not of an input the merge's replacement numbers anew: seed 2528)
-                marks = {i: mk for i, mk in marks.items() if i not in restoring.renumbered}
+                marks = provenance.without(marks, restoring.renumbered)
                 base = restoring.consumer_start[o]  # inputs up to the marks: those first,
                 dep.marks.setdefault(vertex, {})[o] = marks  # and sent on only past them
                 if snap is not None:  # (mso.protocol.provenance, seed 8029)
@@ -356,7 +355,7 @@ class Restorer:
             elif marks is not None:  # a merge: from where its consumer stands, only what it
                 base = restoring.consumer_start[o]  # lacks (mso.protocol.provenance); not
                 # by an input numbered anew (its producer lost with the merge: seed 11242)
-                marks = {i: mk for i, mk in marks.items() if i not in restoring.fresh}
+                marks = provenance.without(marks, restoring.fresh)
                 dep.marks.setdefault(vertex, {})[o] = marks
             elif snap is None and dep.replicas.get(vertex) and o not in restoring.positions:
                 # no ack said where its output stood: a producer that replays what it retains
