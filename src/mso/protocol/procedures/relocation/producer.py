@@ -1,0 +1,63 @@
+"""A producer of a moving vertex: switches its edge to the new host and sends a marker the old
+way."""
+
+from __future__ import annotations
+
+from mso.protocol import messages as m
+from mso.protocol.effects import Send
+from mso.protocol.procedures.relocation._role import Role
+from mso.protocol.state import AppState
+
+
+class Producer(Role):
+    """At the node of a producer of the vertex that moves."""
+
+    def on_switch(self, src: str, msg: m.Switch) -> None:
+        """At the producer's node: new events go to the new instance; a marker goes the old way."""
+        dep = self.ctx.apps.get(msg.app)
+        if dep is None or not 0 <= msg.edge < len(dep.app.edges):
+            self.ctx.refusal("switch_unknown_edge")
+            return
+        edge = dep.app.edges[msg.edge]
+        if self.unwarranted(dep, src, edge.dst, msg.rid, msg.order):
+            return
+        old = dep.placed[edge.dst]
+        if old == msg.to and msg.source:  # a merge vertex whose other input, produced here
+            old = msg.source  # too, switched first: its marker goes the old way as well
+        why = self._switch_refused(dep, edge.src, edge.dst, msg.to, old)
+        if why:
+            self.ctx.refusal(why)
+            return
+        key = (msg.app, msg.edge)
+        batch = self.dp.outbox.pop(key, None)
+        if batch is not None:  # what is already queued leaves before the marker
+            data = m.Data(msg.app, msg.edge, dep.epoch, *batch)
+            self.ctx.emit(Send(old, data))
+        seq = self.dp.out(dep, msg.edge).next_seq
+        dep.placed[edge.dst] = msg.to
+        dep.vanished.discard(edge.dst)  # the move's coordinator sees to it from now on (it
+        # restores it at the target if the old host went); a recovery here would make a twin
+        marker = m.Marker(msg.app, msg.edge, seq, msg.rid, msg.to)
+        if old == self.ctx.id:
+            self.dp.enqueue(dep, edge.dst, marker)
+        else:
+            self.ctx.emit(Send(old, marker))
+
+    def _switch_refused(
+        self, dep: AppState, producer: str, consumer: str, to: str, old: str
+    ) -> str:
+        """Why a Switch cannot be part of a relocation ('' if it can): a relocation never
+        moves a pinned vertex, nor to where it runs already (its instance would be handed
+        over to nobody; ``old`` is where it runs, the move's source once another input of
+        the vertex switched here). With operator keys, the producer must run here and ``to``
+        be a node this one can reach."""
+        if to == old:
+            return "switch_to_where_it_runs"
+        if dep.app.vertices[consumer].pinned is not None:
+            return "switch_of_a_pinned_vertex"
+        if self.ctx.authority.signed:
+            if producer not in dep.instances:
+                return "switch_not_the_producer"
+            if to != self.ctx.id and to not in self.ctx.routes:
+                return "switch_to_an_unknown_node"
+        return ""
