@@ -29,7 +29,7 @@ from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.node.core import Effect
 from mso.protocol import messages as m
 from mso.protocol.effects import Send
-from mso.protocol.procedures.membership import peers
+from mso.protocol.procedures.membership import suspicion
 from mso.sim.runner import Simulation
 
 HERE = Path(__file__).resolve().parent
@@ -73,15 +73,15 @@ def liar(sim: Simulation, node: str, about: str) -> list[int]:
 
 def only_asked(member: str, about: str) -> Callable[[], None]:
     """Every node but ``member`` can ask only ``member`` about ``about``; returns the undo."""
-    ask_whom = peers.ask_whom
+    ask_whom = suspicion.ask_whom
 
     def only(suspect: str, me: str, *args: Any, **kw: Any) -> list[str]:
         return [member] if suspect == about and me != member else ask_whom(suspect, me, *args, **kw)
 
-    peers.ask_whom = only
+    suspicion.ask_whom = only
 
     def undo() -> None:
-        peers.ask_whom = ask_whom
+        suspicion.ask_whom = ask_whom
 
     return undo
 

@@ -29,7 +29,7 @@ from mso.node.core import Effect
 from mso.protocol import messages as m
 from mso.protocol import origin
 from mso.protocol.effects import Send
-from mso.protocol.procedures.membership import peers
+from mso.protocol.procedures.membership import suspicion
 from mso.protocol.procedures.membership.claims import (
     LONE_YES_WINDOWS,
     MEMBERS_YES_WINDOWS,
@@ -196,18 +196,18 @@ def test_members_yes_counts_for_their_windows_until_the_node_is_heard_itself() -
 def only_asked(member: str, about: str) -> Iterator[None]:
     """Every node but ``member`` can ask only ``member`` about ``about`` (the suspect's one
     neighbour it reaches, through which every path between them runs)."""
-    ask_whom = peers.ask_whom
+    ask_whom = suspicion.ask_whom
 
     def only(suspect: str, me: str, *args: object, **kw: object) -> list[str]:
         if suspect == about and me != member:
             return [member]
         return ask_whom(suspect, me, *args, **kw)  # type: ignore[arg-type]
 
-    peers.ask_whom = only  # type: ignore[assignment]
+    suspicion.ask_whom = only  # type: ignore[assignment]
     try:
         yield
     finally:
-        peers.ask_whom = ask_whom
+        suspicion.ask_whom = ask_whom
 
 
 def declared_after(sim: Simulation, t0: float) -> float:

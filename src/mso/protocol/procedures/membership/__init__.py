@@ -13,5 +13,13 @@
   view and the other's beat.
 - :mod:`.status` — its part of a node's status, as typed records.
 - :mod:`.sync` — app sync for a node that rejoins.
-- :mod:`.peers` — the component: heartbeats, the one failed set, incarnations, reset, rejoin.
+- :mod:`.peers` — the component, :class:`~.peers.Membership`: its layers below, each using
+  only those beneath it:
+
+  - :mod:`.tables` — what it holds of the others: each one's state, the one failed set,
+    incarnations, and how many nodes those tables admit.
+  - :mod:`.declare` — declaring a peer failed, in one place (its own word, or a claim believed).
+  - :mod:`.suspicion` — the indirect probe at both ends: suspect and ask, answer or vouch.
+  - :mod:`.beats` — beats out, the silent and blocking suspected on each tick, routes changed.
+  - :mod:`.rejoin` — beats in: restarts, healed partitions (who resets), rejoin, ``NodeUp``.
 """

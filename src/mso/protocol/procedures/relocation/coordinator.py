@@ -11,14 +11,7 @@ from mso.protocol import warrant
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
 from mso.protocol.effects import Reply, SetTimer
-from mso.protocol.events import (
-    AppMissing,
-    Deadline,
-    Happened,
-    PeerFailed,
-    RelocationEnded,
-    Retry,
-)
+from mso.protocol.events import AppMissing, Deadline, Happened, PeerFailed, RelocationEnded, Retry
 from mso.protocol.procedures import placement
 from mso.protocol.procedures.base import STEP_TIMEOUT_S
 from mso.protocol.procedures.relocation._role import Role

@@ -14,12 +14,7 @@ from mso.protocol import provenance, warrant
 from mso.protocol.channel import AckGate, InChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
-from mso.protocol.events import (
-    Happened,
-    InstanceFailed,
-    InstanceReady,
-    ReplacementPrepared,
-)
+from mso.protocol.events import Happened, InstanceFailed, InstanceReady, ReplacementPrepared
 from mso.protocol.procedures import placement
 from mso.protocol.procedures.instance import InstanceEvent
 from mso.protocol.procedures.relocation._role import Role

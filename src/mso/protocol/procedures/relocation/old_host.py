@@ -13,10 +13,7 @@ from mso.protocol import provenance, warrant
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
 from mso.protocol.effects import Send
-from mso.protocol.events import (
-    MarkerReached,
-    Snapshotted,
-)
+from mso.protocol.events import MarkerReached, Snapshotted
 from mso.protocol.procedures import placement
 from mso.protocol.procedures.instance import InstanceEvent
 from mso.protocol.procedures.relocation._role import Role
