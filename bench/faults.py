@@ -9,11 +9,11 @@ failure explains, every node answering status, the flow following the sources. A
 replays exactly: ``.venv/bin/python -c "from mso.sim import faults; print(faults.run(SEED))"``.
 
 Usage: .venv/bin/python bench/faults.py [--seeds 5000] [--first 0] [--jobs N]
-                                        [--faults-s 3] [--quiet-s 4] [--json FILE] [--restarts]
-                                        [--planner paper|bytes]
-(``--restarts``: daemon restarts too, alone or while cut off; off by default, see
-docs/benchmarks.md. ``--planner``: how the apps' chains are split, the paper's by default as the
-committed runs were; under ``bytes`` 4 of seeds 0-1,199 break, docs/benchmarks.md.)
+                                        [--faults-s 3] [--quiet-s 4] [--json FILE]
+                                        [--no-restarts] [--planner paper|bytes]
+(daemon restarts are drawn too, alone or while cut off; ``--no-restarts`` draws the schedules of
+the runs before the ninth stop, docs/benchmarks.md. ``--planner``: how the apps' chains are
+split, the paper's by default as the committed runs were, or the default bytes split.)
 Writes bench/results/faults.json and faults.md.
 """
 
@@ -74,9 +74,10 @@ def run_chunk(args: tuple[int, int, float, float, bool, str]) -> list[dict[str, 
 def render(result: dict[str, Any]) -> str:
     s = result["summary"]
     lines = [
-        f"### Seeded fault schedules: {s['seeds']:,} seeds in {result['seconds']:.0f} s "
-        f"({result['jobs']} processes; faults over {result['faults_s']:g} s, then "
-        f"{result['quiet_s']:g} s quiet, virtual time)",
+        f"### Seeded fault schedules: {s['seeds']:,} seeds from {result.get('first', 0):,} in "
+        f"{result['seconds']:.0f} s ({result['jobs']} processes; faults over "
+        f"{result['faults_s']:g} s, then {result['quiet_s']:g} s quiet, virtual time; daemon "
+        f"restarts {'on' if result['restarts'] else 'off'}; the {result['planner']} planner)",
         "",
         "| faults injected | count |",
         "|---|---:|",
@@ -98,7 +99,8 @@ def render(result: dict[str, Any]) -> str:
     if s["failing_seeds"]:
         lines.append(
             "First failing seeds (replay with `faults.run(seed, Settings(start_s=1, "
-            f"faults_s={result['faults_s']:g}, quiet_s={result['quiet_s']:g}, rate=10))`): "
+            f"faults_s={result['faults_s']:g}, quiet_s={result['quiet_s']:g}, rate=10, "
+            f"restarts={result['restarts']}, planner={result['planner']!r}))`): "
             + ", ".join(f"{seed} ({', '.join(inv)})" for seed, inv in s["failing_seeds"][:15])
         )
     return "\n".join(lines) + "\n"
@@ -112,7 +114,12 @@ def main() -> int:
     ap.add_argument("--faults-s", type=float, default=3.0)
     ap.add_argument("--quiet-s", type=float, default=4.0)
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--restarts", action="store_true", help="daemon restarts too (kind restart)")
+    ap.add_argument(
+        "--restarts",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="daemon restarts too (kind restart; --no-restarts: the schedules before them)",
+    )
     ap.add_argument(
         "--planner", choices=["paper", "bytes"], default="paper", help="the apps' planner:"
     )
@@ -154,6 +161,7 @@ def main() -> int:
         "jobs": args.jobs,
         "faults_s": args.faults_s,
         "quiet_s": args.quiet_s,
+        "first": args.first,
         "restarts": args.restarts,
         "planner": args.planner,
         "summary": {

@@ -245,6 +245,6 @@ def test_a_restarted_node_whose_apps_have_no_other_host_is_sent_them() -> None:
     no node ran it again. Every node that holds an app with no other host left sends it."""
     from mso.sim.faults import Settings, run
 
-    result = run(866, Settings(start_s=1, faults_s=3, quiet_s=4, rate=10))
+    result = run(866, Settings(start_s=1, faults_s=3, quiet_s=4, rate=10, restarts=False))
     assert result.topology == "line" and result.faults["crash"] == 2
     assert not result.violations, "\n".join(map(str, result.violations))

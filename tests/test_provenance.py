@@ -57,7 +57,7 @@ def test_a_replay_in_another_interleaving_sends_only_what_the_consumer_lacks() -
     assert provenance.from_wire({0: [1]}) == {}  # malformed: never taken as a mark
 
 
-BENCH = faults.Settings(start_s=1.0, faults_s=3.0, quiet_s=4.0, rate=10.0)
+BENCH = faults.Settings(start_s=1.0, faults_s=3.0, quiet_s=4.0, rate=10.0, restarts=False)
 
 
 @pytest.mark.parametrize("seed", [1964, 3859, 5490, 8895, 9916])

@@ -20,12 +20,12 @@ class Settings:
     quiet_s: float = 6.0  # after everything heals: recovery, rejoins, catch-up
     rate: float = 20.0  # events per second per source
     max_faults: int = 6
-    # daemon restarts too (the kind ``restart``): off by default until the seeds they break
-    # are fixed (docs/benchmarks.md, "Store and forward's invariant and daemon restarts")
-    restarts: bool = False
-    # how the app's chains are split (``planner:``): the paper's split, as the committed
-    # 5,000-seed runs were; under the default bytes split 4 of seeds 0-1,199 break (events
-    # twice at the merge after partitions, a vertex run nowhere: docs/benchmarks.md), not fixed
+    # daemon restarts too (the kind ``restart``, a new process with its spill store kept): on
+    # since the ninth stop's 10,000 seeds with them held (docs/benchmarks.md); the seeds of the
+    # runs before are recorded with ``restarts=False``
+    restarts: bool = True
+    # how the app's chains are split (``planner:``): the paper's split, as the committed runs
+    # were; the default bytes split is run too (``bench/faults.py --planner bytes``)
     planner: str = "paper"
 
 
