@@ -185,6 +185,9 @@ RESTARTS_BROKE = {
     862: "a restarted daemon raised a vertex's version to what its last process heard where "
     "the sync placed it alike: the later restores of nodes that had the sync's view were "
     "refused as older, and the app ran nowhere",
+    5000: "a merge restored with an input's producer cut off, its counting forwarder restored "
+    "with the sink's marks: the forwarder said it had nothing of that input, the input started "
+    "at 0 and the forwarder dropped the producer's 28 new events as the sink's",
 }
 
 

@@ -163,6 +163,14 @@ def without(marks: Marks, inputs: Iterable[int]) -> Marks:
     return {i: mk for i, mk in marks.items() if i not in gone}
 
 
+def highest(a: Marks, b: Marks) -> Marks:
+    """The higher mark of each input over two views of what one consumer has."""
+    out = dict(a)
+    for i, mark in b.items():
+        out[i] = max(out.get(i, mark), mark)
+    return out
+
+
 def to_wire(marks: Marks | None) -> dict[int, list[int]] | None:
     return None if marks is None else {e: [s, k] for e, (s, k) in marks.items()}
 

@@ -124,7 +124,11 @@ class Restorer:
             resume = m.Resume(msg.app, msg.edge, msg.rid, False, start)
             resume.unheld = inc is not None and inc.unheld
             if inc is not None and edge.src in dep.layout.stamped:
-                resume.marks = provenance.to_wire(inc.marks)  # what it has of each input
+                marks = inc.marks  # what it has of each input; a forwarder that passes on
+                sent_on = dep.marks.get(edge.dst)  # only what its consumer lacks drops the
+                if marks is not None and sent_on:  # rest as had: its consumer's marks count
+                    marks = provenance.highest(marks, _merged(sent_on.values()))  # (5000)
+                resume.marks = provenance.to_wire(marks)
             self.ctx.send(msg.to, resume)
 
     def _restored_since(self, dep: AppState, src: str, replaced: str, msg: m.Rewire) -> bool:
