@@ -188,6 +188,8 @@ RESTARTS_BROKE = {
     5000: "a merge restored with an input's producer cut off, its counting forwarder restored "
     "with the sink's marks: the forwarder said it had nothing of that input, the input started "
     "at 0 and the forwarder dropped the producer's 28 new events as the sink's",
+    52794: "a producer restored at the same version as its twin across a cut, gone with a "
+    "reset since: its consumer's replacement kept the twin's view (nodes disagree)",
 }
 
 

@@ -90,6 +90,12 @@ class Restorer:
             # restore asks again where its view then places this end
             self.ctx.refusal("rewire_not_our_end")
             return
+        if ours in dep.instances and msg.to != self.ctx.id:
+            # the replacement's node hears first-hand where this end runs: the restore's
+            # view said so only where it was a later move than the node knew of, and a twin
+            # of equal version restored across a cut and gone since stayed its view (restart
+            # seed 52794: the consumer's node held its producer vanished on a reset node)
+            self.ctx.send(msg.to, placement.moved(dep, ours, self.ctx.id, self.ctx.incarnation))
         if msg.producer:  # we produce: say where we stand, then replay what is unacked
             dep.placed[edge.dst] = msg.to
             self.dp.outbox.pop((msg.app, msg.edge), None)  # those events are in the replay
