@@ -58,6 +58,7 @@ def run_chunk(args: tuple[int, int, float, float, bool, str]) -> list[dict[str, 
                     "faults": dict(r.faults),
                     "violations": [[v.invariant, v.detail] for v in r.violations],
                     "digest": r.digest,
+                    "repeats": r.repeats,
                 }
             )
         except Exception as exc:  # a crash of the simulation itself is a finding too
@@ -84,6 +85,10 @@ def render(result: dict[str, Any]) -> str:
         *[f"| {k} | {v:,} |" for k, v in s["faults"].items()],
         "",
         f"Seeds with a violation: {len(s['failing_seeds']):,} of {s['seeds']:,}.",
+        "",
+        f"Events a sink got again in a new instance (after its own node's crash or reset: "
+        f"what it processed but had not acknowledged, allowed): {s.get('repeats', 0):,}, in "
+        f"{s.get('seeds_with_repeats', 0):,} seeds.",
         "",
     ]
     if s["violations"]:
@@ -170,6 +175,8 @@ def main() -> int:
             "violations": dict(sorted(by_inv.items())),
             "seeds_by_invariant": dict(sorted(seeds_by_inv.items())),
             "failing_seeds": failing,
+            "repeats": sum(r.get("repeats", 0) for r in rows),
+            "seeds_with_repeats": sum(1 for r in rows if r.get("repeats", 0)),
         },
         "failing": [r for r in rows if r["violations"]],
         "seconds": time.monotonic() - started,

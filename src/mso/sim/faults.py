@@ -47,6 +47,7 @@ from mso.sim.invariants import (
     Violation,
     check,
     check_procedures,
+    repeats,
 )
 from mso.sim.play import Call, drive
 from mso.sim.runner import Simulation
@@ -65,6 +66,7 @@ class Result:
     faults: Counter[str]
     violations: list[Violation]
     log: list[str] = field(default_factory=list)
+    repeats: int = 0  # events a sink got in two instances (invariants.repeats)
 
     @property
     def digest(self) -> str:
@@ -314,7 +316,8 @@ def run(seed: int, settings: Settings | None = None) -> Result:
     if not any(v.invariant == "exception" for v in violations):
         violations += check(sim, sched, records, holders)
     unique = list(dict.fromkeys(violations))  # a periodic check may see one problem again
-    return Result(seed, sched.topology, len(net.nodes), sched.faults, unique, log)
+    again = repeats(records)
+    return Result(seed, sched.topology, len(net.nodes), sched.faults, unique, log, again)
 
 
 def _ask_status(sim: Simulation) -> None:

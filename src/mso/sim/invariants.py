@@ -43,6 +43,7 @@ names its invariant, so a benchmark can count them by kind and a failing seed sa
 from __future__ import annotations
 
 import itertools
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -246,6 +247,17 @@ def _delivered_once(
                 )
             )
     return out
+
+
+def repeats(records: list[SinkRecord]) -> int:
+    """Events a sink got in two of its instances: the replay to a sink restored after its own
+    node's crash or reset repeats what it processed but had not acknowledged (allowed,
+    counted: its position is not kept with its effects)."""
+    seen: dict[tuple[str, str, float], Counter[int]] = {}
+    for rec in records:
+        for (src, born), s in rec.streams.items():
+            seen.setdefault((rec.vertex, src, born), Counter()).update(s.seen)
+    return sum(1 for c in seen.values() for n in c.values() if n > 1)
 
 
 def _everyone_failed(sched: Schedule) -> bool:
