@@ -135,6 +135,8 @@ def assign_bytes(
         if any(h.rate_mbps for h in hops)
         else None
     )
+    # what the last vertex's pulls cost at each position (the same for both passes)
+    pulled = [sum(b * abs(acc[p] - acc[q]) for q, b in pulls) for p in range(r)] if pulls else None
     for limited in (True, False):
         out = _bytes_dp(
             costs,
@@ -144,7 +146,7 @@ def assign_bytes(
             acc,
             left if limited else None,
             to_end,
-            pulls,
+            pulled,
             slow if limited else None,
         )
         if out is not None:
@@ -160,7 +162,7 @@ def _bytes_dp(
     acc: Sequence[float],
     left: Sequence[float] | None,
     to_end: bool,
-    pulls: Sequence[tuple[int, float]],
+    pulled: Sequence[float] | None,
     slow: Sequence[Sequence[bool]] | None,
 ) -> list[int] | None:
     k, r, inf = len(costs), len(hops), math.inf
@@ -190,6 +192,8 @@ def _bytes_dp(
                 best, best_q = prev_val[p] - size_i * acc[p], p
         prev_val, prev_load = val, load
         parent.append(par)
+        if val.count(inf) == r:
+            return None  # no position for vertex i: none for the vertices after it either
     out_size, last = sizes[k], acc[r - 1]
     end = [v + out_size * (last - acc[p]) for p, v in enumerate(prev_val)] if to_end else prev_val
     if to_end and slow is not None and out_size:
@@ -198,8 +202,8 @@ def _bytes_dp(
         for p in range(r - 1, -1, -1):
             end[p] = inf if blocked else end[p]
             blocked = blocked or slow[k][p]
-    if pulls:
-        end = [v + sum(b * abs(acc[p] - acc[q]) for q, b in pulls) for p, v in enumerate(end)]
+    if pulled is not None:
+        end = [v + c for v, c in zip(end, pulled, strict=True)]
     p = min(range(r), key=lambda q: (end[q], q))
     if math.isinf(end[p]):
         return None

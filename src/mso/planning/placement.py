@@ -260,7 +260,8 @@ class Layout:
         if self.planner not in PLANNERS:
             raise PlanningError(f"unknown planner {self.planner!r} (known: {', '.join(PLANNERS)})")
         self.chains = form_chains(app)
-        self.order = chain_order(self.chains)
+        leading = chain_dependencies(self.chains)
+        self.order = chain_order(self.chains, leading)
         self.graph = _Graph(app)
         self.cost = {v.id: float(v.cost) for v in app.vertices.values()}
         self.pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
@@ -316,24 +317,26 @@ class Layout:
         for c in self.chains:
             for a, b in itertools.pairwise(c.vertices):
                 self.edge_chain[index[(a, b)]] = c.index
-        rank = {ci: k for k, ci in enumerate(self.order)}
         placer: dict[str, int] = {}
-        for c in sorted(self.chains, key=lambda c: rank[c.index]):
-            if len(c) > 1:
-                placer.setdefault(c.tail, c.index)
+        for ci in self.order:
+            verts = self.chains[ci].vertices
+            if len(verts) > 1:
+                placer.setdefault(verts[-1], ci)
         self.placer = placer
         # vertices whose chain runs between two vertices pinned to one node have nowhere else
         # to go: their load is reserved there before any chain is split
         self.forced: dict[str, str] = {}
         for c in self.chains:
-            at = self.pinned.get(c.head)
-            if at is not None and at == self.pinned.get(c.tail):
-                self.forced.update({v: at for v in c.vertices[1:-1] if v not in self.pinned})
+            verts = c.vertices
+            at = self.pinned.get(verts[0]) if len(verts) > 2 else None
+            if at is not None and at == self.pinned.get(verts[-1]):
+                self.forced.update({v: at for v in verts[1:-1] if v not in self.pinned})
         self.deps: list[set[int]] = []
-        for c, leading in zip(self.chains, chain_dependencies(self.chains), strict=True):
-            d = set(leading)
-            p = placer.get(c.tail)
-            if p is not None and p != c.index and c.tail not in self.pinned:
+        for c, first in zip(self.chains, leading, strict=True):
+            d = set(first)
+            tail = c.vertices[-1]
+            p = placer.get(tail)
+            if p is not None and p != c.index and tail not in self.pinned:
                 d.add(p)
             self.deps.append(d)
         if self.planner == "bytes":
@@ -364,7 +367,9 @@ class Layout:
         Only pinned vertices count: every node knows them before deployment starts."""
         c = self.chains[chain]
         verts = c.vertices
-        last = max(i for i, v in enumerate(verts) if v in placed)
+        last = len(verts) - 1
+        while last > 0 and verts[last] not in placed:  # (the head: place_chain checks it)
+            last -= 1
         if last == len(verts) - 1:
             return None, 0.0
         best = self.downstream.furthest_pinned(c.tail, distances, verts[: last + 1])
@@ -546,8 +551,10 @@ class Layout:
         return kept, "kept: the new plan does not beat the current one by the margin"
 
     def last_anchor_node(self, chain: int, placed: Mapping[str, str]) -> str:
-        verts = self.chains[chain].vertices
-        return placed[max((v for v in verts if v in placed), key=verts.index)]
+        for v in reversed(self.chains[chain].vertices):  # (a chain never repeats a vertex)
+            if v in placed:
+                return placed[v]
+        raise PlanningError(f"chain {self.chains[chain].name}: none of its vertices is placed")
 
     def probes_needed(
         self, chain: int, placed: Mapping[str, str], target: str | None
@@ -666,7 +673,14 @@ def plan(
     routes: dict[int, list[str]] = {}
     distances: dict[str, dict[str, int]] = {}  # chains often start at one node
     used = layout.loads(placed)  # kept as chains are placed, not summed again for each
+    chains = layout.chains
     for ci in layout.order:
+        verts = chains[ci].vertices
+        if all(v in placed for v in verts):
+            # nothing to place (most chains of a large app run between two vertices placed
+            # already): place_chain would probe nothing and return the head's node as route
+            routes[ci] = [placed[verts[0]]]
+            continue
         start = layout.last_anchor_node(ci, placed)
         if start not in distances:
             distances[start] = network.distances(start)
