@@ -77,8 +77,12 @@ class Downstream:
                 t |= self._chains_above[u]
             self._chains_above[v] = t
         cost = np.zeros(max(8, -(-len(chains) // 8) * 8))
+        costs = self._costs
         for c in chains:
-            cost[c.index] = sum(self._costs[v] for v in c.vertices)
+            total = 0.0  # (sum()'s order: the same float)
+            for v in c.vertices:
+                total += costs[v]
+            cost[c.index] = total
         self._cost = cost
         return cost
 
@@ -109,5 +113,5 @@ class Downstream:
         if not bits:
             return 0.0
         raw = np.frombuffer(bits.to_bytes(len(costs) // 8, "little"), dtype=np.uint8)
-        mask = np.unpackbits(raw, bitorder="little").astype(bool)
+        mask = np.unpackbits(raw, bitorder="little").view(np.bool_)
         return float(costs[mask].sum())
