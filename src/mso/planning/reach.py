@@ -95,14 +95,19 @@ class Downstream:
         below = self._pinned_below[v]
         for u in leave_out:
             below &= ~self._bit.get(u, 0)
-        by_distance: dict[int, int] = {}
-        for node, bits in self._on.items():
-            if node in distances and below & bits:
-                d = distances[node]
-                by_distance[d] = by_distance.get(d, 0) | (below & bits)
-        if not by_distance:
+        far, bits = -1, 0  # the furthest distance yet, and the pinned vertices there
+        for node, on in self._on.items():
+            hit = below & on
+            if hit:
+                d = distances.get(node)
+                if d is None or d < far:
+                    continue
+                if d > far:
+                    far, bits = d, hit
+                else:
+                    bits |= hit
+        if not bits:
             return None
-        bits = by_distance[max(by_distance)]
         return self.pinned[(bits & -bits).bit_length() - 1]
 
     def cost_between(self, start: str, target: str, leave_out: int) -> float:
