@@ -27,6 +27,7 @@ import math
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 from mso.errors import PlanningError
@@ -277,21 +278,6 @@ class Layout:
                 f"vertex {unresolved[0]!r}: its node is chosen by capability, and was not"
             )
         self.pinned.update(self.resolved)
-        self.kinds = app.kinds()  # once: the node looks them up per hosted vertex
-        inputs = Counter(e.dst for e in app.edges)  # merges: outputs carry their provenance
-        self.merges = frozenset(v for v, n in inputs.items() if n >= 2)
-        # a merge's direct consumer passes its provenance on (mso.protocol.provenance)
-        produces = {e.src for e in app.edges}
-        self.forwarders = frozenset(
-            e.dst
-            for e in app.edges
-            if e.src in self.merges and inputs[e.dst] == 1 and e.dst in produces
-        )
-        # a fork (two consumers or more): its consumers may hold outputs of different lost
-        # instances, numbered alike; each says what it has in the input's terms (seed 5040)
-        outputs = Counter(e.src for e in app.edges)
-        self.forks = frozenset(v for v, n in outputs.items() if n >= 2 and v in inputs)
-        self.stamped = self.merges | self.forwarders | self.forks  # outputs carry a header
         self.edge_bytes: dict[tuple[str, str], float] = {}
         for e in app.edges:
             k = (e.src, e.dst)
@@ -299,10 +285,6 @@ class Layout:
         self.topo = app.topological_order()
         self.rates = vertex_rates(app, self.topo, self.graph.pred)
         self.load = {v: self.rates[v] * self.cost[v] for v in app.vertices}
-        # vertex -> its output edges (indices in app.edges): what its outputs are sent on
-        self.out_edges: dict[str, list[int]] = {}
-        for i, e in enumerate(app.edges):
-            self.out_edges.setdefault(e.src, []).append(i)
         self.out_bytes: dict[str, list[tuple[str, float]]] = {v: [] for v in app.vertices}
         self.in_bytes: dict[str, list[tuple[str, float]]] = {v: [] for v in app.vertices}
         for (a, b), size in self.edge_bytes.items():
@@ -311,18 +293,7 @@ class Layout:
         self.downstream = self._downstream()
         self._flow: dict[str, dict[str, float]] = {}  # target -> bottleneck()
         self._replicas: dict[str, int] | None = None
-        # the chain each edge lies in (every edge lies in exactly one, §3.2)
-        index = {(e.src, e.dst): i for i, e in enumerate(app.edges)}
-        self.edge_chain = [-1] * len(app.edges)
-        for c in self.chains:
-            for a, b in itertools.pairwise(c.vertices):
-                self.edge_chain[index[(a, b)]] = c.index
-        placer: dict[str, int] = {}
-        for ci in self.order:
-            verts = self.chains[ci].vertices
-            if len(verts) > 1:
-                placer.setdefault(verts[-1], ci)
-        self.placer = placer
+        self._leading = leading  # (the deployment dependencies: deps)
         # vertices whose chain runs between two vertices pinned to one node have nowhere else
         # to go: their load is reserved there before any chain is split
         self.forced: dict[str, str] = {}
@@ -331,19 +302,91 @@ class Layout:
             at = self.pinned.get(verts[0]) if len(verts) > 2 else None
             if at is not None and at == self.pinned.get(verts[-1]):
                 self.forced.update({v: at for v in verts[1:-1] if v not in self.pinned})
-        self.deps: list[set[int]] = []
-        for c, first in zip(self.chains, leading, strict=True):
+
+    # What a deploying node needs and the central plan does not: made on first use (the
+    # largest allowed app spent a third of its planning on them). None depends on where a
+    # vertex is pinned (repin), only on which vertices are.
+
+    @cached_property
+    def kinds(self) -> dict[str, str]:
+        """Each vertex's kind: the node looks them up per hosted vertex."""
+        return self.app.kinds()
+
+    @cached_property
+    def merges(self) -> frozenset[str]:
+        """Vertices of two inputs or more: their outputs carry their provenance."""
+        inputs = Counter(e.dst for e in self.app.edges)
+        return frozenset(v for v, n in inputs.items() if n >= 2)
+
+    @cached_property
+    def forwarders(self) -> frozenset[str]:
+        """A merge's direct consumers, which pass its provenance on (mso.protocol.provenance)."""
+        edges, merges = self.app.edges, self.merges
+        inputs = Counter(e.dst for e in edges)
+        produces = {e.src for e in edges}
+        return frozenset(
+            e.dst for e in edges if e.src in merges and inputs[e.dst] == 1 and e.dst in produces
+        )
+
+    @cached_property
+    def forks(self) -> frozenset[str]:
+        """Vertices of two consumers or more: their consumers may hold outputs of different
+        lost instances, numbered alike; each says what it has in the input's terms (seed 5040)."""
+        inputs = {e.dst for e in self.app.edges}
+        outputs = Counter(e.src for e in self.app.edges)
+        return frozenset(v for v, n in outputs.items() if n >= 2 and v in inputs)
+
+    @cached_property
+    def stamped(self) -> frozenset[str]:
+        """Vertices whose outputs carry a header."""
+        return self.merges | self.forwarders | self.forks
+
+    @cached_property
+    def out_edges(self) -> dict[str, list[int]]:
+        """Vertex -> its output edges (indices in app.edges): what its outputs are sent on."""
+        out: dict[str, list[int]] = {}
+        for i, e in enumerate(self.app.edges):
+            out.setdefault(e.src, []).append(i)
+        return out
+
+    @cached_property
+    def edge_chain(self) -> list[int]:
+        """The chain each edge lies in (every edge lies in exactly one, §3.2)."""
+        index = {(e.src, e.dst): i for i, e in enumerate(self.app.edges)}
+        out = [-1] * len(self.app.edges)
+        for c in self.chains:
+            for a, b in itertools.pairwise(c.vertices):
+                out[index[(a, b)]] = c.index
+        return out
+
+    @cached_property
+    def placer(self) -> dict[str, int]:
+        """Each merge vertex's placer: the first chain in order ending there."""
+        placer: dict[str, int] = {}
+        for ci in self.order:
+            verts = self.chains[ci].vertices
+            if len(verts) > 1:
+                placer.setdefault(verts[-1], ci)
+        return placer
+
+    @cached_property
+    def deps(self) -> list[set[int]]:
+        """The chains each chain waits for before it is placed (the class's docstring)."""
+        deps: list[set[int]] = []
+        placer = self.placer
+        for c, first in zip(self.chains, self._leading, strict=True):
             d = set(first)
             tail = c.vertices[-1]
             p = placer.get(tail)
             if p is not None and p != c.index and tail not in self.pinned:
                 d.add(p)
-            self.deps.append(d)
+            deps.append(d)
         if self.planner == "bytes":
             # the bytes planner weighs where a chain's neighbours went and what load is left
             # on each node: chains are placed one after another, each knowing every earlier one
             for before, ci in itertools.pairwise(self.order):
-                self.deps[ci].add(before)
+                deps[ci].add(before)
+        return deps
 
     def initial_placement(self) -> dict[str, str]:
         """Pinned vertices, and unpinned heads no chain leads to (sources) on the origin."""
