@@ -106,7 +106,7 @@ def learn(
     node's old incarnation; a view passed on (a snapshot, a coordinator's record) says
     nothing about that."""
     known, where = dep.versions.get(vertex, 0), dep.placed.get(vertex)
-    if version and version < known:
+    if version < known:  # (a version-0 word too: the deployment's, overtaken; 57866)
         return False
     tied = version and version == known and where not in (None, node)
     if tied and tie is not None and vertex not in dep.vanished and not tie(node, where or ""):
