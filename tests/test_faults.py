@@ -190,6 +190,9 @@ RESTARTS_BROKE = {
     "at 0 and the forwarder dropped the producer's 28 new events as the sink's",
     52794: "a producer restored at the same version as its twin across a cut, gone with a "
     "reset since: its consumer's replacement kept the twin's view (nodes disagree)",
+    57866: "a node that ran the merge from the deployment (version 0) said so as the cut "
+    "healed; the node running its restore (version 1) took the older word for news, and the "
+    "merge ran nowhere in its view: edges dangling, the sink stalled",
 }
 
 
