@@ -103,7 +103,9 @@ def test_a_process_isolated_vertex_runs_apart_and_moves_with_its_state(
     st, pids, (home, target) = asyncio.run(run())
     count = st[target]["apps"]["iso"]["vertices"]["count"]
     assert count["stats"]["pid"] != pids[target]  # a child of the node, not the node
-    assert count["stats"]["count"] >= 600  # the count went on from the moved state
+    # the count went on from the moved state (once, in a loaded whole-suite run, the target's
+    # stats said 0 here, not reproduced since: show every node's vertices if it comes back)
+    assert count["stats"]["count"] >= 600, (home, target, _apps(st))
     sink = st["N3"]["apps"]["iso"]["vertices"]["sink"]["stats"]
     assert sink["repeats"] == 0 and sink["out_of_order"] == 0, sink
     assert sink["count"] == sink["next"]  # 0, 1, 2, ... with no gap and no repeat
