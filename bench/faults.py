@@ -87,8 +87,8 @@ def render(result: dict[str, Any]) -> str:
         f"Seeds with a violation: {len(s['failing_seeds']):,} of {s['seeds']:,}.",
         "",
         f"Events a sink got again in a new instance (after its own node's crash or reset: "
-        f"what it processed but had not acknowledged, allowed): {s.get('repeats', 0):,}, in "
-        f"{s.get('seeds_with_repeats', 0):,} seeds.",
+        f"what it processed but had not acknowledged, allowed): {s['repeats']:,}, in "
+        f"{s['seeds_with_repeats']:,} seeds.",
         "",
     ]
     if s["violations"]:
@@ -175,8 +175,8 @@ def main() -> int:
             "violations": dict(sorted(by_inv.items())),
             "seeds_by_invariant": dict(sorted(seeds_by_inv.items())),
             "failing_seeds": failing,
-            "repeats": sum(r.get("repeats", 0) for r in rows),
-            "seeds_with_repeats": sum(1 for r in rows if r.get("repeats", 0)),
+            "repeats": sum(r["repeats"] for r in rows),
+            "seeds_with_repeats": sum(1 for r in rows if r["repeats"]),
         },
         "failing": [r for r in rows if r["violations"]],
         "seconds": time.monotonic() - started,

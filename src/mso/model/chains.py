@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mso.model.app import App
+from mso.model.graph import topological_order
 
 IntArray = npt.NDArray[np.int64]
 
@@ -179,28 +180,13 @@ def chain_order(
     chains: Sequence[Chain], dependencies: Sequence[Sequence[int]] | None = None
 ) -> list[int]:
     """Chain indices in dependency order (Algorithm 1): a chain only after all leading to it.
-    ``dependencies``: :func:`chain_dependencies` of ``chains``, if the caller has them.
-
-    Kahn's algorithm over the indices (as :func:`~mso.model.graph.topological_order`: stable in
-    index order, first ready first), on lists: chains are as many as edges."""
+    ``dependencies``: :func:`chain_dependencies` of ``chains``, if the caller has them."""
     leading = chain_dependencies(chains) if dependencies is None else dependencies
-    n = len(chains)
-    if any(c.index != i for i, c in enumerate(chains)):
-        raise ValueError("chains must be indexed 0..n-1 in order")
-    followers: list[list[int]] = [[] for _ in range(n)]
-    indeg = [0] * n
-    for j, before in enumerate(leading):
-        indeg[j] = len(before)
+    followers: dict[int, list[int]] = {c.index: [] for c in chains}
+    for c, before in zip(chains, leading, strict=True):
         for i in before:
-            followers[i].append(j)
-    order = [j for j in range(n) if indeg[j] == 0]
-    k = 0
-    while k < len(order):
-        for j in followers[order[k]]:
-            indeg[j] -= 1
-            if indeg[j] == 0:
-                order.append(j)
-        k += 1
-    if len(order) != n:
+            followers[i].append(c.index)
+    order = topological_order([c.index for c in chains], followers)
+    if len(order) != len(chains):
         raise ValueError("chains depend on each other in a cycle; the app graph must be a DAG")
     return order

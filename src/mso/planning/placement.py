@@ -313,16 +313,19 @@ class Layout:
         return self.app.kinds()
 
     @cached_property
+    def _inputs(self) -> Counter[str]:
+        """Each vertex's number of input edges."""
+        return Counter(e.dst for e in self.app.edges)
+
+    @cached_property
     def merges(self) -> frozenset[str]:
         """Vertices of two inputs or more: their outputs carry their provenance."""
-        inputs = Counter(e.dst for e in self.app.edges)
-        return frozenset(v for v, n in inputs.items() if n >= 2)
+        return frozenset(v for v, n in self._inputs.items() if n >= 2)
 
     @cached_property
     def forwarders(self) -> frozenset[str]:
         """A merge's direct consumers, which pass its provenance on (mso.protocol.provenance)."""
-        edges, merges = self.app.edges, self.merges
-        inputs = Counter(e.dst for e in edges)
+        edges, merges, inputs = self.app.edges, self.merges, self._inputs
         produces = {e.src for e in edges}
         return frozenset(
             e.dst for e in edges if e.src in merges and inputs[e.dst] == 1 and e.dst in produces
@@ -332,9 +335,8 @@ class Layout:
     def forks(self) -> frozenset[str]:
         """Vertices of two consumers or more: their consumers may hold outputs of different
         lost instances, numbered alike; each says what it has in the input's terms (seed 5040)."""
-        inputs = {e.dst for e in self.app.edges}
         outputs = Counter(e.src for e in self.app.edges)
-        return frozenset(v for v, n in outputs.items() if n >= 2 and v in inputs)
+        return frozenset(v for v, n in outputs.items() if n >= 2 and v in self._inputs)
 
     @cached_property
     def stamped(self) -> frozenset[str]:

@@ -90,7 +90,8 @@ class Restorer:
             # restore asks again where its view then places this end
             self.ctx.refusal("rewire_not_our_end")
             return
-        if ours in dep.instances and msg.to != self.ctx.id:
+        if ours in dep.instances and msg.to != self.ctx.id and msg.rid:
+            # (not a producer's ``ask_where``, rid 0: it knows where this end runs)
             # the replacement's node hears first-hand where this end runs: the restore's
             # view said so only where it was a later move than the node knew of, and a twin
             # of equal version restored across a cut and gone since stayed its view (restart
