@@ -193,6 +193,12 @@ RESTARTS_BROKE = {
     57866: "a node that ran the merge from the deployment (version 0) said so as the cut "
     "healed; the node running its restore (version 1) took the older word for news, and the "
     "merge ran nowhere in its view: edges dangling, the sink stalled",
+    57857: "a counter restored from its replica's snapshot acked its producer at the ack it "
+    "held back with the positions of the snapshot's: the source's node reset, the next "
+    "replacement numbered the replay one on, and the sink got an event twice",
+    59759: "a replacement numbered its output from its consumer's position and never told its "
+    "producer, restarted just before: both lost again behind a cut, the next replacement "
+    "guessed from 0 and the merge set the sink's marks aside: an event of each source twice",
 }
 
 

@@ -335,7 +335,10 @@ class Restorer:
                 )  # its producer sends again from there (it retains them); what it sent
                 # before it gets the Replay is further on, not a reason to skip ahead
                 dep.inc[i].awaiting_replay = resumed is not None and pos < resumed.expected
-                dep.inc[i].positions = dict(at)  # what an ack at ``pos`` says
+                # what an ack at ``pos`` says; an ack held back at ``safe`` says nothing of
+                # positions (those at ``pos`` sent with it numbered the events between again
+                # one on, once the node reset and the source's channel came back: 57857)
+                dep.inc[i].positions = dict(at) if safe == pos else {}
                 producer = dep.placed[dep.app.edges[i].src]
                 self.ctx.send(producer, m.Replay(dep.app.name, i, pos, at))
             if held:
@@ -413,6 +416,8 @@ class Restorer:
                 resume = m.Resume(dep.app.name, o, restoring.rid, True, out.acked, out.positions)
                 resume.renumbered = sorted(dep.renumbered.get(vertex, ()))
                 self.ctx.send(dep.placed[dep.app.edges[o].dst], resume)
+        if snap is None and outs:
+            self._tell_start(dep, vertex, restoring, outs)
         if vertex in dep.marks:
             lowest = _merged(dep.marks[vertex].values())
             if not forwarder:
@@ -437,6 +442,28 @@ class Restorer:
         self.ctx.send(coordinator, done)
         if h.kind == "source":
             self.dp.start_source(dep, vertex, self.ctx.now)
+
+    def _tell_start(
+        self, dep: AppState, vertex: str, restoring: Restoring, outs: list[int]
+    ) -> None:
+        """A replacement with one input that numbers its output from a known position tells
+        its producer at once, with an ack at the input's start, where that output starts: the
+        producer keeps it with the events it retains, so if this instance is lost too before
+        an ack of its own came back (a partition holding the chained acks), the next
+        replacement numbers what the replay makes as this one did. Without it, a producer
+        restarted just before (its positions gone with its process) knew none; the next one
+        guessed from 0 and its consumer's marks of this numbering were set aside (59759: an
+        event of each source twice at the sink)."""
+        inputs = [i for i, e in enumerate(dep.app.edges) if e.dst == vertex]
+        if len(inputs) != 1 or vertex in dep.marks or inputs[0] not in restoring.resumed:
+            return
+        ch = dep.inc.get(inputs[0])
+        if ch is None or ch.processed != ch.expected or any(dep.out[o].guessed for o in outs):
+            return
+        at = {e: p for e, p in restoring.positions.items() if e not in outs}
+        ch.positions = at | {o: dep.out[o].next_seq for o in outs}
+        ch.reack = True
+        self.dp.ack(dep, inputs[0])
 
     def _start_past(self, dep: AppState, vertex: str, marks: Marks, skip: set[int]) -> None:
         """A merge's or fork's replacement whose producer of an input was lost too: that
