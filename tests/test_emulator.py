@@ -151,14 +151,19 @@ def test_link_break_reroutes_traffic() -> None:
     assert a["repeats"] == 0 and a["out_of_order"] == 0
 
 
-def start_pair(tmp_path: Path) -> tuple[list[subprocess.Popen[bytes]], int]:
-    """Two daemons N1 and N4 configured by files, as on real devices (no emulator)."""
+def start_pair(
+    tmp_path: Path, only: tuple[str, ...] = ("N1", "N4"), port: int = 0
+) -> tuple[list[subprocess.Popen[bytes]], int]:
+    """Two daemons N1 and N4 configured by files, as on real devices (no emulator); ``only``
+    some of them (the other later, on the same ``port``)."""
     from mso.emu.controller import _free_port
 
-    port = _free_port(["127.0.1.1", "127.0.1.2"])
+    port = port or _free_port(["127.0.1.1", "127.0.1.2"])
     procs = []
     pairs = (("N1", "N4", "127.0.1.1", "127.0.1.2"), ("N4", "N1", "127.0.1.2", "127.0.1.1"))
     for me, other, ip, oip in pairs:
+        if me not in only:
+            continue
         cfg = tmp_path / f"{me}.yaml"
         cfg.write_text(
             f"id: {me}\nlisten: {ip}:{port}\nkey: k1\npeers: {{{other}: '{oip}:{port}'}}\n"
@@ -286,6 +291,41 @@ def test_static_peers_from_config_files(tmp_path: Path) -> None:
             p.wait(timeout=5)
     got = sink(nodes)
     assert got["count"] >= 100 and got["repeats"] == 0 and got["out_of_order"] == 0
+
+
+def test_a_deploy_sent_while_its_pinned_node_is_held_failed_waits_for_its_rejoin(
+    tmp_path: Path,
+) -> None:
+    """The race of a fresh clone's flake, made certain: N1 holds N4 failed (its daemon is not
+    up yet) when the deployment, which pins the sink to N4, arrives; N4 rejoins a moment
+    later. The deployment waits for it and succeeds (it was announced without N4, and never
+    answered within the client's wait)."""
+    from mso.client import request
+    from mso.protocol import messages as m
+
+    procs, port = start_pair(tmp_path, only=("N1",))
+    addr = f"127.0.1.1:{port}"
+
+    async def run() -> m.Message:
+        async def read() -> dict[str, Any]:
+            st = await request(addr, m.StatusRequest(), key="k1", timeout=2)
+            assert isinstance(st, m.StatusReply)
+            return st.nodes
+
+        await until(read, lambda st: "N4" in st["N1"]["failed_nodes"], 20, "N1 holding N4 failed")
+        later, _ = start_pair(tmp_path, only=("N4",), port=port)
+        procs.extend(later)
+        return await request(addr, m.DeployRequest(APP, "pipe.yaml"), key="k1",
+                             timeout=patience(10.0))  # fmt: skip
+
+    try:
+        reply = asyncio.run(run())
+    finally:
+        for p in procs:
+            p.terminate()
+            p.wait(timeout=5)
+    assert isinstance(reply, m.DeployReply) and reply.ok, reply
+    assert reply.placement["sink"] == "N4"
 
 
 def test_relocation_across_processes_keeps_every_event() -> None:

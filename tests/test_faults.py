@@ -704,15 +704,11 @@ def test_a_parked_chain_keeps_its_events_and_its_consumer_gets_them_all() -> Non
     assert not n1.status(sim.now).given_up
 
 
-def test_a_node_that_crashed_for_both_sides_does_not_decide_who_resets() -> None:
-    """N1 and N4 each run part of the app and hold each other failed after a partition
-    healed; N5 crashed meanwhile, and N1 has heard of it while N4's beat was sent before N4
-    had. Counting N5, N1 saw N4's side as the larger one and reset while N4 reset for N1:
-    the app was gone from every node (seed 1425). Only the nodes in dispute count."""
-    import msgspec
-
+def held_failed_both_ways() -> Simulation:
+    """A line of 5 running the pipe (src on N1, sink on N4) after a partition healed: N1 and
+    N4 hold each other failed (corroborated claims), and N5 too, gone from their routes."""
     sim = Simulation(line_net(5))
-    sim.request("N1", m.DeployRequest(pipe_app(50), "app.yaml"))  # src on N1, sink on N4
+    sim.request("N1", m.DeployRequest(pipe_app(50), "app.yaml"))
     sim.run_until(1.0)
     n1, n4 = sim.cores["N1"], sim.cores["N4"]
     assert n1.instances("pipe") and n4.instances("pipe")
@@ -722,6 +718,18 @@ def test_a_node_that_crashed_for_both_sides_does_not_decide_who_resets() -> None
     for core, other in ((n1, "N4"), (n4, "N1")):
         core.receive("N3", m.NodeDown(other, "N3", 0, "N2"), now)  # corroborated claims
         core.receive("N3", m.NodeDown("N5", "N3", 0, "N2"), now)
+    return sim
+
+
+def test_a_node_that_crashed_for_both_sides_does_not_decide_who_resets() -> None:
+    """N1 and N4 each run part of the app and hold each other failed after a partition
+    healed; N5 crashed meanwhile, and N1 has heard of it while N4's beat was sent before N4
+    had. Counting N5, N1 saw N4's side as the larger one and reset while N4 reset for N1:
+    the app was gone from every node (seed 1425). Only the nodes in dispute count."""
+    import msgspec
+
+    sim = held_failed_both_ways()
+    n1, n4, now = sim.cores["N1"], sim.cores["N4"], sim.now
     beat4 = msgspec.structs.replace(
         n4.membership.beat(), failed={"N1": 0}
     )  # sent before N5 was heard of

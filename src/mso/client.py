@@ -153,7 +153,7 @@ class Exchange:
             if isinstance(msg, ORDERS) and not msg.sig:  # a move's every step shows it
                 msg = self.signer.order(msg, now_ms)
             if isinstance(msg, m.DeployRequest):
-                msg = m.DeployRequest(self.signer.grant(msg.document, now_ms), msg.file)
+                msg = msgspec.structs.replace(msg, document=self.signer.grant(msg.document, now_ms))
             elif isinstance(msg, m.StopApp) and not msg.sig:  # verified by every node
                 msg = self.signer.undeploy(msg.app, now_ms)
             elif isinstance(msg, m.RevokeNode) and not msg.sig:  # verified by every node too
@@ -295,7 +295,7 @@ class Client:
         """Send ``msg`` and wait for the node's answer to it."""
         if self._stale:
             await self._reopen(timeout)
-        await self.send(msg)
+        await self.send(waiting(msg, timeout))
         try:
             return await self.receive(timeout)
         except NodeUnreachable:
@@ -316,6 +316,14 @@ class Client:
             self._writer.close()
             with contextlib.suppress(OSError):
                 await self._writer.wait_closed()
+
+
+def waiting(msg: m.Message, timeout: float) -> m.Message:
+    """A deployment request saying how long the client waits (unless it says already): the
+    node refuses it before then if it has not finished, rather than answer nobody."""
+    if isinstance(msg, m.DeployRequest) and not msg.within_s:
+        return msgspec.structs.replace(msg, within_s=timeout)
+    return msg
 
 
 def _ip_literal(host: str) -> bool:
@@ -427,7 +435,7 @@ def request_blocking(
         except OSError as exc:
             raise x.unreachable(exc) from None
         try:
-            sock.sendall(x.hello("cli") + x.seal(msg))
+            sock.sendall(x.hello("cli") + x.seal(waiting(msg, timeout)))
             while not x.inbox:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:

@@ -56,6 +56,7 @@ from mso.protocol.events import (
     MonitorTick,
     NodeReset,
     PeerFailed,
+    PeerRejoined,
     PlacementStale,
     RecoverTick,
     RecoveryDue,
@@ -213,6 +214,7 @@ class NodeCore:
         self._subscribe(PeerFailed, self.restorer.on_peer_failed)
         self._subscribe(PeerFailed, self.remapper.on_peer_failed)
         self._subscribe(PeerFailed, self.deployer.on_peer_failed)
+        self._subscribe(PeerRejoined, self.deployer.on_peer_rejoined)
         self._subscribe(RoutesChanged, self.membership.on_routes_changed)
         self._subscribe(RoutesChanged, self.deployer.on_routes_changed)
         self._subscribe(RoutesChanged, self.remapper.on_routes_changed)

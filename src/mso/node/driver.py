@@ -17,6 +17,8 @@ import threading
 from collections.abc import Callable, Hashable, Mapping
 from typing import NoReturn
 
+import msgspec
+
 from mso.management import load_policy
 from mso.model.appfile import loads_app
 from mso.net.base import RoutesChanged, RoutingView, encode
@@ -177,9 +179,18 @@ class NodeDriver:
 
     def _request(self, client: int, msg: m.Message) -> None:
         if isinstance(msg, m.DeployRequest):
-            self._warm(
-                msg.document, lambda: self._apply(self.core.request(client, msg, self.loop.time()))
-            )
+            asked = self.loop.time()
+
+            def deploy() -> None:  # the client's wait counts from its request, warming too
+                now = self.loop.time()
+                req = msg
+                if msg.within_s > 0:  # (not NaN)
+                    req = msgspec.structs.replace(
+                        msg, within_s=max(msg.within_s - (now - asked), 1e-3)
+                    )
+                self._apply(self.core.request(client, req, now))
+
+            self._warm(msg.document, deploy)
         elif isinstance(msg, m.LinkState):
             self.apply_links(msg)
         elif isinstance(msg, m.Shutdown):

@@ -104,6 +104,14 @@ class PeerFailed:
 
 
 @dataclass(frozen=True)
+class PeerRejoined:
+    """Membership took ``node`` back (a restart, a healed partition): it is a member again, so
+    what waited for it (a deployment pinning a vertex there) may go on."""
+
+    node: str
+
+
+@dataclass(frozen=True)
 class RoutesChanged:
     """The routing view changed: ``changed`` are the destinations whose route differs,
     ``appeared`` those newly reachable."""
@@ -261,6 +269,7 @@ InternalEvent = (
     | RelocationEnded
     | ReplacementPrepared
     | AppMissing
+    | PeerRejoined
     | NodeReset
     | Happened
 )

@@ -479,8 +479,6 @@ class AppState:
     chain_delay: dict[int, tuple[float, float]] = lazy(dict)  # at a head's
     # at the origin only
     built: set[int] = lazy(set)
-    client: int | None = None
-    requested_at: float = 0.0
     # each vertex placed by capability: the nodes that qualify, best first (§3.3)
     capable: dict[str, list[str]] = field(default_factory=dict)
     # chain replication: vertex -> replicas kept; at its host, what it costs; at a replica,

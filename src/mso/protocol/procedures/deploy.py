@@ -1,12 +1,18 @@
 """Deployment (§3.3, Algorithm 1), every role in one place: the origin, each chain head's node,
 each probe hop, each builder.
 
-- The **origin** (the node a client asked) announces the app to every node (``AppAnnounce``)
-  and opens the :class:`Deploy` procedure: BUILDING while chains are probed, placed and built
-  across the nodes, FINISHED when every chain reports built (``ChainBuilt``) and the origin
-  starts the app (``StartApp``), FAILED when a node refuses (bad code, placement impossible)
-  or at the deadline — then the app is stopped everywhere and the client told why, instead of
-  waiting for ever on a probe or a chain build that was lost.
+- The **origin** (the node a client asked) opens the :class:`Deploy` procedure, which holds
+  the client until it is answered: WAITING while a node a vertex is pinned to is held failed
+  but in reach (a restart whose first beat is on its way: the announcement would skip it and
+  the deployment could only time out), then it announces the app to every node
+  (``AppAnnounce``); BUILDING while chains are probed, placed and built across the nodes,
+  FINISHED when every chain reports built (``ChainBuilt``) and the origin starts the app
+  (``StartApp``), FAILED when a node refuses (bad code, placement impossible), the pinned node
+  stays failed, the origin resets or the app is undeployed meanwhile, or at the deadline —
+  then the app is stopped everywhere and the client told why, instead of waiting for ever on
+  a probe or a chain build that was lost. The deadline is the client's own wait
+  (``DeployRequest.within_s``) less a margin for the reply, at most ``DEADLINE_S``: the
+  client hears the refusal before it gives up.
 - A **chain head's node**, once every chain its chain depends on is placed, probes the route
   toward the chain's furthest pinned vertex (``Probe`` → ``ProbeReply``: each hop appends its
   capacity), places the chain in proportion to cost and capacity, and tells everyone
@@ -23,6 +29,7 @@ stops a running app.
 from __future__ import annotations
 
 import enum
+import math
 import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -44,6 +51,7 @@ from mso.protocol.events import (
     InstanceFailed,
     InstanceReady,
     PeerFailed,
+    PeerRejoined,
     Retransmit,
     Retry,
     RoutesChanged,
@@ -59,8 +67,18 @@ PROBE_HOLD_S = STEP_TIMEOUT_S / 2  # how long they wait for routes around it (th
 # it chooses as soon as every live node asked has answered or declined
 CHOOSE_S = 1.0
 
+# how long a deployment waits for a node one of its vertices is pinned to, held failed yet in
+# reach, to rejoin (a daemon restarting: its first beat rejoins it within a heartbeat of its
+# start) before it is refused, naming the node; announced meanwhile, the app would skip the
+# node and the deployment could only time out
+PINNED_WAIT_S = 5.0
+# the origin answers this long before the client stops waiting (``DeployRequest.within_s``),
+# for the reply's way back
+REPLY_MARGIN_S = 0.5
+
 
 class S(enum.Enum):
+    WAITING = "waiting"
     CHOOSING = "choosing"
     BUILDING = "building"
 
@@ -68,6 +86,8 @@ class S(enum.Enum):
 class DeployEvent(enum.Enum):
     """What moves a Deploy along its table."""
 
+    PINNED_IN = "pinned_in"  # every node a vertex is pinned to is a member: announced
+    ASKED = "asked"  # ... and the capability query is out
     ANSWER = "answer"
     CHOSEN = "chosen"
     BUILT = "built"
@@ -91,20 +111,32 @@ class Choosing:
 
 
 class Deploy(Procedure):
+    """One deployment at its origin; ``client`` is answered exactly once, whatever ends it."""
+
     NAME = "deploy"
-    INITIAL = S.BUILDING
+    INITIAL = S.WAITING
     DEADLINE_S = 30.0
     TRANSITIONS: ClassVar[Table] = {
+        S.WAITING: {DeployEvent.PINNED_IN: S.BUILDING, DeployEvent.ASKED: S.CHOOSING},
         S.CHOOSING: {DeployEvent.ANSWER: S.CHOOSING, DeployEvent.CHOSEN: S.BUILDING},
         S.BUILDING: {DeployEvent.BUILT: S.BUILDING, DeployEvent.ALL_BUILT: Phase.FINISHED},
     }
 
-    def __init__(self, pid: int, now: float, app: str, choosing: Choosing | None = None) -> None:
-        super().__init__(pid, now)
-        self.app = app
-        self.choosing = choosing
-        if choosing is not None:
-            self.state = S.CHOOSING
+    def __init__(
+        self,
+        pid: int,
+        now: float,
+        app: App,
+        document: str,
+        client: int | None = None,
+        deadline_s: float | None = None,
+    ) -> None:
+        super().__init__(pid, now, deadline_s)
+        self.app = app.name
+        self.parsed: App | None = app  # until announced (WAITING holds it)
+        self.document = document
+        self.client = client
+        self.choosing: Choosing | None = None
 
     def describe(self) -> dict[str, Any]:
         out = super().describe() | {"app": self.app}
@@ -129,7 +161,6 @@ class Deployer:
         self.ctx = ctx
         self.dp = dp
         self.policies = policies
-        self._clients: dict[str, tuple[int, float]] = {}  # app -> (client, asked at), origin
         self._epochs = zlib.crc32(ctx.id.encode()) & 0xFFFF
         self._waiting_probes: list[tuple[float, m.Probe]] = []  # (give up at, probe)
 
@@ -179,8 +210,9 @@ class Deployer:
         if revoked:
             self.ctx.emit(Reply(client, _failed_reply(app.name, revoked)))
             return
-        if app.name in self.ctx.apps:
-            reply = _failed_reply(app.name, f"an app named {app.name!r} is already deployed")
+        if app.name in self.ctx.apps or self._deploying(app.name) is not None:
+            state = "already deployed" if app.name in self.ctx.apps else "being deployed"
+            reply = _failed_reply(app.name, f"an app named {app.name!r} is {state}")
             self.ctx.emit(Reply(client, reply))
             return
         known = set(self.ctx.known_nodes())
@@ -192,22 +224,80 @@ class Deployer:
                 )
                 self.ctx.emit(Reply(client, _failed_reply(app.name, reason)))
                 return
-        self._clients[app.name] = (client, now)
+        proc = Deploy(self.ctx.new_pid(), now, app, req.document, client, _deadline_s(req))
+        self.ctx.begin(proc)
+        if self._pinned_failed(app):  # back soon (a restart), or refused at PINNED_WAIT_S
+            self.ctx.emit(SetTimer(Retry(proc.pid, 0), now + PINNED_WAIT_S))
+            return
+        self._start(proc, now)
+
+    def _pinned_failed(self, app: App) -> dict[str, str]:
+        """vertex -> the node it is pinned to, for each such node held failed."""
+        failed = self.ctx.failed
+        return {
+            v.id: v.pinned
+            for v in app.vertices.values()
+            if v.pinned is not None and v.pinned in failed
+        }
+
+    def _start(self, proc: Deploy, now: float) -> None:
+        """Every node a vertex is pinned to is a member: announce (or ask for capabilities)."""
+        app, proc.parsed = proc.parsed, None
+        assert app is not None
         needs = app.needs()
         if not needs:
-            self.ctx.begin(Deploy(self.ctx.new_pid(), now, app.name))
-            self._announce(app.name, req.document, {}, {})
+            proc.on(DeployEvent.PINNED_IN)
+            self._announce(app.name, proc.document, {}, {})
             return
         # §3.3: the nodes with the capabilities answer, the others decline; the choice is made
         # when every live node asked has spoken, or at the deadline from the answers in
+        known = set(self.ctx.known_nodes())
         pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
-        choosing = Choosing(req.document, needs, pinned, known)
-        proc = Deploy(self.ctx.new_pid(), now, app.name, choosing)
-        self.ctx.begin(proc)
+        proc.choosing = Choosing(proc.document, needs, pinned, known)
+        proc.on(DeployEvent.ASKED)
         anchors = sorted(known) if any(n.near for n in needs) else []
         wanted = {n.vertex: dict(n.requires) for n in needs}
         self.ctx.broadcast(m.CapabilityQuery(app.name, proc.pid, wanted, anchors))
-        self.ctx.emit(SetTimer(Retry(proc.pid, 0), now + CHOOSE_S))
+        self.ctx.emit(SetTimer(Retry(proc.pid, 1), now + CHOOSE_S))
+
+    def on_peer_rejoined(self, ev: PeerRejoined) -> None:
+        """A node back: the deployments that waited for it (a vertex pinned there) go on."""
+        for proc in self.ctx.open():
+            if not isinstance(proc, Deploy) or proc.state is not S.WAITING:
+                continue
+            app = proc.parsed
+            if app is not None and not self._pinned_failed(app):
+                self._start(proc, self.ctx.now)
+
+    def _answer(self, proc: Deploy, reply: m.DeployReply) -> None:
+        """Tell the client, once."""
+        if proc.client is not None:
+            self.ctx.emit(Reply(proc.client, reply))
+            proc.client = None
+
+    def _refuse(self, proc: Deploy, reason: str) -> None:
+        """End the deployment unsuccessfully and tell the client why; the nodes that took the
+        app stop it (only a deployment of ours: another origin's of the same name is not)."""
+        proc.fail(self.ctx, reason)
+        self.ctx.end(proc.pid)
+        self._answer(proc, _failed_reply(proc.app, reason))
+        dep = self.ctx.apps.get(proc.app)
+        if proc.parsed is None and (dep is None or dep.origin == self.ctx.id):
+            self.ctx.broadcast(m.StopApp(proc.app))  # (announced or asked: not while WAITING)
+
+    def _waited_in_vain(self, proc: Deploy) -> str:
+        """Why a deployment still WAITING is refused: the pinned nodes held failed."""
+        app = proc.parsed
+        held = self._pinned_failed(app) if app is not None else {}
+        which = ", ".join(f"vertex {v!r} is pinned to node {n!r}" for v, n in sorted(held.items()))
+        return f"{self.ctx.id}: {which or 'a pinned node'}, held failed (no beat from it since)"
+
+    def abandon(self, why: str) -> None:
+        """This node resets (declared failed by a side that outranks it): every deployment it
+        coordinates is refused, its client told why (then the procedures are dropped)."""
+        for proc in self.ctx.open():
+            if isinstance(proc, Deploy):
+                self._refuse(proc, f"{self.ctx.id}: {why}")
 
     def _announce(
         self, app: str, document: str, resolved: dict[str, str], capable: dict[str, list[str]]
@@ -277,10 +367,15 @@ class Deployer:
                 self._choose(proc)
 
     def on_retry(self, key: Retry, now: float) -> None:
-        """The time for capability answers is up: choose from those in."""
-        proc = self._choosing(key.pid)
-        if proc is not None:
-            self._choose(proc)
+        """The time for capability answers is up: choose from those in. Or the pinned nodes
+        did not rejoin in time: refused, naming them."""
+        proc = self.ctx.procedure(key.pid)
+        if isinstance(proc, Deploy) and proc.state is S.WAITING:
+            self._refuse(proc, self._waited_in_vain(proc))
+            return
+        chooser = self._choosing(key.pid)
+        if chooser is not None:
+            self._choose(chooser)
 
     def _choose(self, proc: Deploy) -> None:
         """Each constrained vertex's node, deterministically from the answers
@@ -294,9 +389,7 @@ class Deployer:
         except PlanningError as exc:
             proc.fail(self.ctx, str(exc))
             self.ctx.end(proc.pid)
-            client = self._clients.pop(proc.app, None)
-            if client is not None:
-                self.ctx.emit(Reply(client[0], _failed_reply(proc.app, str(exc))))
+            self._answer(proc, _failed_reply(proc.app, str(exc)))
             return
         proc.on(DeployEvent.CHOSEN)
         self._announce(proc.app, ch.document, resolved, capable)
@@ -320,11 +413,8 @@ class Deployer:
             proc.on(DeployEvent.ALL_BUILT)
             self.ctx.end(proc.pid)
             self.ctx.broadcast(m.StartApp(msg.app, self._incarnations(dep, dep.placed.values())))
-            if dep.client is not None:
-                elapsed = self.ctx.elapsed_ms(dep.requested_at)
-                reply = m.DeployReply(msg.app, True, dict(dep.placed), elapsed)
-                self.ctx.emit(Reply(dep.client, reply))
-                dep.client = None
+            elapsed = self.ctx.elapsed_ms(proc.started_at)
+            self._answer(proc, m.DeployReply(msg.app, True, dict(dep.placed), elapsed))
 
     def _incarnations(self, dep: AppState, nodes: Iterable[str]) -> dict[str, int]:
         """The incarnations this node knows of ``nodes`` (itself included), for the app's
@@ -336,25 +426,24 @@ class Deployer:
         return {n: i for n, i in sorted(out.items()) if i >= 0}
 
     def on_deploy_failed(self, msg: m.DeployFailed, now: float) -> None:
-        dep = self.ctx.apps.get(msg.app)
-        if dep is None or dep.origin != self.ctx.id:
-            return
+        """A node refused its part (its announcement may have been this node's own, when the
+        app's layout fails here: then there is no app state, only the procedure)."""
         proc = self._deploying(msg.app)
         if proc is None:  # deployed (or failed) already: a failure report cannot stop it
-            self.ctx.refusal("deploy_failed_after_deployment")
+            dep = self.ctx.apps.get(msg.app)
+            if dep is not None and dep.origin == self.ctx.id:
+                self.ctx.refusal("deploy_failed_after_deployment")
             return
-        proc.fail(self.ctx, msg.reason)
-        self.ctx.end(proc.pid)
-        if dep.client is not None:
-            self.ctx.emit(Reply(dep.client, _failed_reply(msg.app, msg.reason)))
-            dep.client = None
-        self.ctx.broadcast(m.StopApp(msg.app))
+        self._refuse(proc, msg.reason)
 
     def expire(self, proc: Deploy, now: float) -> None:
-        """The deadline passed: a probe or a chain build was lost; stop it everywhere."""
+        """The deadline passed: a probe or a chain build was lost, or the pinned nodes are
+        still held failed; stop it everywhere, tell the client."""
+        if proc.state is S.WAITING:
+            self._refuse(proc, self._waited_in_vain(proc))
+            return
         why = f"{proc.name} did not finish within {proc.deadline - proc.started_at:g} s"
-        self.on_deploy_failed(m.DeployFailed(proc.app, f"{self.ctx.id}: {why}"), now)
-        self.ctx.end(proc.pid)
+        self._refuse(proc, f"{self.ctx.id}: {why}")
 
     # -- every node: takes the app; a chain head's node probes, places, builds -----------------
     def on_announce(self, src: str, msg: m.AppAnnounce, now: float) -> None:
@@ -386,8 +475,6 @@ class Deployer:
             document=msg.document,
             capable={v: list(ns) for v, ns in msg.capable.items() if v in msg.resolved},
         )
-        if msg.origin == self.ctx.id and msg.app in self._clients:
-            dep.client, dep.requested_at = self._clients.pop(msg.app)
         self.ctx.apps[msg.app] = dep
         self._start_ready_chains(dep)
 
@@ -643,6 +730,9 @@ class Deployer:
         if gone is not None:
             self.dp.stop_app(gone, "undeploy")
         self.policies.forget(msg.app)
+        proc = self._deploying(msg.app)
+        if proc is not None and proc.parsed is None:  # (announced) undeployed meanwhile
+            self._refuse(proc, f"{self.ctx.id}: undeployed before the deployment finished")
 
 
 # (document, origin) -> (the shared parse of the document, its Layout): see _layout
@@ -670,6 +760,16 @@ def _hosts_only(dep: AppState, incarnations: dict[str, int]) -> dict[str, int]:
     """Of a message's incarnations, those of nodes the app runs on (it names no others)."""
     hosts = set(dep.placed.values())
     return {n: i for n, i in incarnations.items() if n in hosts}
+
+
+def _deadline_s(req: m.DeployRequest) -> float:
+    """The deployment's deadline: ``REPLY_MARGIN_S`` before the client stops waiting (half
+    its wait, for a short one), at most ``Deploy.DEADLINE_S``; that if the client said
+    nothing (``within_s`` 0)."""
+    wait = req.within_s
+    if not (math.isfinite(wait) and wait > 0):
+        return Deploy.DEADLINE_S
+    return min(Deploy.DEADLINE_S, max(wait - REPLY_MARGIN_S, wait / 2))
 
 
 def _failed_reply(app: str, reason: str) -> m.DeployReply:

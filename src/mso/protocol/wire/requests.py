@@ -65,8 +65,12 @@ class RelocateReply(_Msg, tag="relocate_reply"):
 
 
 class DeployRequest(_Msg, tag="deploy"):
+    """``within_s``: how long the client waits for the reply (0: not said); the node answers
+    before then, refusing the deployment if it has not finished."""
+
     document: str
     file: str = "<app>"
+    within_s: float = 0.0
 
 
 class DeployReply(_Msg, tag="deploy_reply"):

@@ -5,7 +5,7 @@ sent the apps (:mod:`.sync`)."""
 from __future__ import annotations
 
 from mso.protocol import messages as m
-from mso.protocol.events import Happened, NodeReset
+from mso.protocol.events import Happened, NodeReset, PeerRejoined
 from mso.protocol.procedures.membership import ranks
 from mso.protocol.procedures.membership.beats import Beating
 from mso.protocol.procedures.membership.claims import MAX_NEWS
@@ -215,6 +215,7 @@ class Rejoining(Beating):
         """Rejoin as a new incarnation: the others have recovered without this node's
         instances, so it drops them (and every app) and is told the apps again."""
         dropped = sorted(self.ctx.apps)
+        self.deployer.abandon(f"declared failed by {by}, reset during the deployment")
         self.dp.stop_all("reset")
         self.ctx.apps.clear()
         for proc in self.ctx.open():  # nobody waits for them any more
@@ -273,6 +274,7 @@ class Rejoining(Beating):
         self.ctx.publish(
             Happened("peer_rejoined", subject=node, detail=f"incarnation {incarnation}")
         )
+        self.ctx.publish(PeerRejoined(node))
         if announce and self._first_to_hear(node):  # to the nodes that host the apps (one of
             # them restores what it hosted) and our neighbours, as a claim goes, by the node's
             # neighbours alone (:meth:`_first_to_hear`): every node it reaches hears it back
