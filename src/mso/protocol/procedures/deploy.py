@@ -227,7 +227,7 @@ class Deployer:
         proc = Deploy(self.ctx.new_pid(), now, app, req.document, client, _deadline_s(req))
         self.ctx.begin(proc)
         if self._pinned_failed(app):  # back soon (a restart), or refused at PINNED_WAIT_S
-            self.ctx.emit(SetTimer(Retry(proc.pid, 0), now + PINNED_WAIT_S))
+            self.ctx.emit(SetTimer(Retry(proc.pid, 0), now + PINNED_WAIT_S))  # (0: waiting)
             return
         self._start(proc, now)
 
@@ -258,7 +258,7 @@ class Deployer:
         anchors = sorted(known) if any(n.near for n in needs) else []
         wanted = {n.vertex: dict(n.requires) for n in needs}
         self.ctx.broadcast(m.CapabilityQuery(app.name, proc.pid, wanted, anchors))
-        self.ctx.emit(SetTimer(Retry(proc.pid, 1), now + CHOOSE_S))
+        self.ctx.emit(SetTimer(Retry(proc.pid, 1), now + CHOOSE_S))  # (1: choosing)
 
     def on_peer_rejoined(self, ev: PeerRejoined) -> None:
         """A node back: the deployments that waited for it (a vertex pinned there) go on."""
@@ -370,11 +370,11 @@ class Deployer:
         """The time for capability answers is up: choose from those in. Or the pinned nodes
         did not rejoin in time: refused, naming them."""
         proc = self.ctx.procedure(key.pid)
-        if isinstance(proc, Deploy) and proc.state is S.WAITING:
+        if key.attempt == 0 and isinstance(proc, Deploy) and proc.state is S.WAITING:
             self._refuse(proc, self._waited_in_vain(proc))
             return
         chooser = self._choosing(key.pid)
-        if chooser is not None:
+        if key.attempt == 1 and chooser is not None:
             self._choose(chooser)
 
     def _choose(self, proc: Deploy) -> None:
