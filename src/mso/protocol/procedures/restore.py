@@ -317,6 +317,7 @@ class Restorer:
         if snap is not None:  # chain replication: from a replica's state, at its positions
             self.ctx.emit(fx.RestoreVertex(h.instance, snap.state))  # before any feed
             h.processed, h.emitted = snap.processed, snap.emitted
+            h.stats = None  # (its start's, not the state's: see new_host.on_handover)
             h.from_snapshot = True
             at = {o: acked + len(events) for o, (acked, events) in snap.outputs.items()}
             # what it had made and not got acknowledged goes again below: its inputs are

@@ -234,6 +234,9 @@ class NewHost(Role):
         h.life.on(InstanceEvent.HANDOVER)
         self.ctx.emit(fx.RestoreVertex(h.instance, msg.state))  # before any feed
         h.processed, h.emitted = msg.processed, msg.emitted
+        # its stats came with its start, before the state: a restore returns none, so until
+        # its next result they are not known (a moved counter's said 0 after 600 events)
+        h.stats = None
         dep.instances[msg.vertex] = h
         placement.learn(dep, msg.vertex, self.ctx.id, msg.version, now)
         dep.placed[msg.vertex] = self.ctx.id  # (first-hand, whatever news came first)
