@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from mso.protocol.channel import InChannel, OutChannel
+from mso.protocol.channel import HOLD_INEXACT, AckGate, InChannel, OutChannel
 
 
 def ev(i: int) -> bytes:
@@ -77,3 +77,23 @@ def test_a_consumer_awaiting_a_replay_does_not_skip_ahead_on_an_earlier_frame() 
     assert inc.expected == 3 and inc.skipped == 0
     assert inc.accept(3, [ev(i) for i in range(3, 10)], floor=3) == [ev(i) for i in range(3, 10)]
     assert inc.accept(10, [ev(10)], floor=9) == [ev(10)] and not inc.awaiting_replay
+
+
+def test_ack_gate_waits_for_positions_known_further_down() -> None:
+    """A checkpoint whose output positions no ack from downstream came at is held for the next
+    one that is (seed 60473); at most HOLD_INEXACT of them, then the ack goes anyway."""
+    gate = AckGate()
+    for n in (1, 2, 3):
+        gate.record({0: n}, {1: n})
+    known = {3}
+    assert gate.release({1: 2}, lambda outs: outs[1] in known) is None  # 1 and 2: not known
+    assert gate.release({1: 3}, lambda outs: outs[1] in known) == ({0: 3}, {1: 3})
+    gate.record({0: 4}, {1: 4})
+    gate.record({0: 5}, {1: 5})
+    assert gate.release({1: 5}, lambda outs: outs[1] == 4) == ({0: 4}, {1: 4})  # the last known
+    assert gate.release({1: 5}) == ({0: 5}, {1: 5})  # (no check: as before)
+    for n in range(6, 6 + HOLD_INEXACT):
+        gate.record({0: n}, {1: n})
+    last = 5 + HOLD_INEXACT
+    assert gate.release({1: last - 1}, lambda outs: False) is None
+    assert gate.release({1: last}, lambda outs: False) == ({0: last}, {1: last})

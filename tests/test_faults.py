@@ -199,6 +199,9 @@ RESTARTS_BROKE = {
     59759: "a replacement numbered its output from its consumer's position and never told its "
     "producer, restarted just before: both lost again behind a cut, the next replacement "
     "guessed from 0 and the merge set the sink's marks aside: an event of each source twice",
+    60473: "a fork's ack upstream came at a position where one consumer's ack was lost (the "
+    "next acked two batches at once): the positions below it missed that edge, and the "
+    "restore of the chain numbered it from the sink's position, one on: an event twice",
 }
 
 

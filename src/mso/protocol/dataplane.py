@@ -535,7 +535,7 @@ class DataPlane:
         if gate is None:
             return
         acked = {o: out.acked for o in dep.out_edges.get(vid, []) if (out := dep.out.get(o))}
-        released = gate.release(acked)
+        released = gate.release(acked, lambda outputs: self._known_below(dep, outputs))
         if released is None:
             return
         inputs, outputs = released
@@ -550,6 +550,20 @@ class DataPlane:
                 ch.released = max(ch.released or 0, pos)
                 ch.positions = further
                 self.ack(dep, i)
+
+    @staticmethod
+    def _known_below(dep: AppState, outputs: dict[int, int]) -> bool:
+        """At these output positions, an ack from each consumer with outputs of its own came
+        (its positions further down are known there: :meth:`AckGate.release`)."""
+        for o, pos in outputs.items():
+            out = dep.out.get(o)
+            if (
+                out is not None
+                and pos not in out.history
+                and dep.out_edges.get(dep.app.edges[o].dst)
+            ):
+                return False
+        return True
 
     def ack(self, dep: AppState, edge: int) -> None:
         ch = dep.inc.get(edge)
