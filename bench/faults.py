@@ -149,7 +149,11 @@ def main() -> int:
         for part in pool.map(run_chunk, chunks):
             rows += part
             bad = sum(1 for r in rows if r["violations"])
-            print(f"{len(rows)} seeds, {bad} with violations", file=sys.stderr)
+            new = ", ".join(str(r["seed"]) for r in part if r["violations"])
+            print(
+                f"{len(rows)} seeds, {bad} with violations" + (f" (new: {new})" if new else ""),
+                file=sys.stderr,
+            )
     injected: Counter[str] = Counter()
     by_inv: Counter[str] = Counter()
     seeds_by_inv: Counter[str] = Counter()
