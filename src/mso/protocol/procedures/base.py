@@ -91,6 +91,28 @@ class Procedure(StateMachine):
         self.started_at = now
         self.deadline = now + (self.DEADLINE_S if deadline_s is None else deadline_s)
         self.error = ""
+        self.client: int | None = None  # the client waiting for its outcome, if any
+        self.told_client = False
+
+    def tell_client(self, ctx: Messenger, reply: m.Message) -> None:
+        """Tell the waiting client how the procedure ended: once, whatever ends it (a
+        second ending, the node's reset after its outcome, is not told)."""
+        if self.client is not None and not self.told_client:
+            self.told_client = True
+            ctx.reply(self.client, reply)
+
+    def refusal(self, why: str) -> m.Message | None:
+        """The reply that tells this procedure's client it was ended unfinished, and why
+        (None: a procedure no client waits for)."""
+        return None
+
+    def abandon(self, ctx: Messenger, why: str) -> None:
+        """Ended from outside, unfinished (the node resets: every procedure goes with its
+        state): the waiting client is told why rather than left waiting."""
+        reply = self.refusal(why)
+        if reply is not None:
+            self.tell_client(ctx, reply)
+        self.fail(ctx, why)
 
     def on(self, event: enum.Enum) -> None:
         try:

@@ -138,6 +138,9 @@ class Deploy(Procedure):
         self.client = client
         self.choosing: Choosing | None = None
 
+    def refusal(self, why: str) -> m.Message:
+        return _failed_reply(self.app, why)
+
     def describe(self) -> dict[str, Any]:
         out = super().describe() | {"app": self.app}
         if self.choosing is not None:
@@ -269,18 +272,12 @@ class Deployer:
             if app is not None and not self._pinned_failed(app):
                 self._start(proc, self.ctx.now)
 
-    def _answer(self, proc: Deploy, reply: m.DeployReply) -> None:
-        """Tell the client, once."""
-        if proc.client is not None:
-            self.ctx.emit(Reply(proc.client, reply))
-            proc.client = None
-
     def _refuse(self, proc: Deploy, reason: str) -> None:
         """End the deployment unsuccessfully and tell the client why; the nodes that took the
         app stop it (only a deployment of ours: another origin's of the same name is not)."""
         proc.fail(self.ctx, reason)
         self.ctx.end(proc.pid)
-        self._answer(proc, _failed_reply(proc.app, reason))
+        proc.tell_client(self.ctx, _failed_reply(proc.app, reason))
         dep = self.ctx.apps.get(proc.app)
         if proc.parsed is None and (dep is None or dep.origin == self.ctx.id):
             self.ctx.broadcast(m.StopApp(proc.app))  # (announced or asked: not while WAITING)
@@ -389,7 +386,7 @@ class Deployer:
         except PlanningError as exc:
             proc.fail(self.ctx, str(exc))
             self.ctx.end(proc.pid)
-            self._answer(proc, _failed_reply(proc.app, str(exc)))
+            proc.tell_client(self.ctx, _failed_reply(proc.app, str(exc)))
             return
         proc.on(DeployEvent.CHOSEN)
         self._announce(proc.app, ch.document, resolved, capable)
@@ -414,7 +411,7 @@ class Deployer:
             self.ctx.end(proc.pid)
             self.ctx.broadcast(m.StartApp(msg.app, self._incarnations(dep, dep.placed.values())))
             elapsed = self.ctx.elapsed_ms(proc.started_at)
-            self._answer(proc, m.DeployReply(msg.app, True, dict(dep.placed), elapsed))
+            proc.tell_client(self.ctx, m.DeployReply(msg.app, True, dict(dep.placed), elapsed))
 
     def _incarnations(self, dep: AppState, nodes: Iterable[str]) -> dict[str, int]:
         """The incarnations this node knows of ``nodes`` (itself included), for the app's

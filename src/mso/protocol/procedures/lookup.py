@@ -63,6 +63,14 @@ class Lookup(Procedure):
         self.waiting: set[str] = set()
         self.rounds = 0
 
+    def refusal(self, why: str) -> m.Message | None:
+        """(Its client waits for what the lookup lets go on: that request's reply.)"""
+        if isinstance(self.then, m.RelocateRequest):
+            return m.RelocateReply(self.app, self.then.vertex, False, error=why)
+        if isinstance(self.then, m.RemapRequest):
+            return m.RemapReply(self.app, False, {}, error=why)
+        return None
+
 
 class Lookups:
     """This node's lookups, and what each one lets go on when it ends."""

@@ -121,6 +121,9 @@ class Remap(Procedure):
     def name(self) -> str:
         return "recovery" if self.recovery is not None else self.NAME
 
+    def refusal(self, why: str) -> m.Message:
+        return m.RemapReply(self.app, False, dict(self.moved), error=why)
+
     def describe(self) -> dict[str, Any]:
         return super().describe() | {
             "app": self.app,
@@ -437,10 +440,8 @@ class Remapper:
         if error:
             remap.fail(self.ctx, error)
         self.ctx.end(rid)
-        if remap.client is not None:
-            elapsed = self.ctx.elapsed_ms(remap.started_at)
-            reply = m.RemapReply(remap.app, not error, remap.moved, elapsed, error)
-            self.ctx.emit(Reply(remap.client, reply))
+        elapsed = self.ctx.elapsed_ms(remap.started_at)
+        remap.tell_client(self.ctx, m.RemapReply(remap.app, not error, remap.moved, elapsed, error))
         if remap.client is not None:
             by = "operator"
         elif remap.recovery is not None and remap.recovery.get("failed"):

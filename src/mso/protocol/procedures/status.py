@@ -74,6 +74,12 @@ class StatusFanout(Procedure):
             self.on(StatusEvent.ALL_ANSWERED)
             self._answer(ctx)
 
+    def abandon(self, ctx: Messenger, why: str) -> None:
+        """The node resets: its waiting clients get what came in (its own status at least)."""
+        if not self.done:
+            self._answer(ctx)
+        super().abandon(ctx, why)
+
     def expire(self, ctx: Messenger) -> None:
         """The defined outcome of a late node: answer with the others."""
         self.on(StatusEvent.DEADLINE)

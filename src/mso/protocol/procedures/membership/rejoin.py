@@ -218,7 +218,10 @@ class Rejoining(Beating):
         self.deployer.abandon(f"declared failed by {by}, reset during the deployment")
         self.dp.stop_all("reset")
         self.ctx.apps.clear()
-        for proc in self.ctx.open():  # nobody waits for them any more
+        for proc in self.ctx.open():  # they go with the state; a waiting client is told why
+            proc.abandon(
+                self.ctx, f"{self.ctx.id}: declared failed by {by}, reset during the {proc.name}"
+            )
             self.ctx.end(proc.pid)
         self.dp.outbox.clear()
         self.ctx.publish(NodeReset())  # each component drops what it waited for

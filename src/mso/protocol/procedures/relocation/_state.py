@@ -19,6 +19,7 @@ from __future__ import annotations
 import enum
 from typing import Any, ClassVar
 
+from mso.protocol import messages as m
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
 
 # once producers have switched, the move is committed: the old instance hands over after it has
@@ -95,6 +96,9 @@ class Relocation(Procedure):
         self.attempts = 0
         self.retried: list[str] | None = None  # a recovery's log of steps sent again
         self.order = b""  # the operator's order it carries out, for its steps' receivers
+
+    def refusal(self, why: str) -> m.Message:
+        return m.RelocateReply(self.app, self.vertex, False, error=why)
 
     def as_restore(self, now: float | None = None) -> None:
         """Become a restore, with a restore's deadline from ``now`` (a committed relocation

@@ -242,12 +242,13 @@ class Coordinator(Role):
     def _ended(self, reloc: Relocation, error: str) -> None:
         """Tell whoever waits for a relocation how it ended: its client, and (by an internal
         event) whoever started it: a remap, a crash restore."""
-        if reloc.client is not None and error:
-            self._refuse(reloc.client, m.RelocateRequest(reloc.app, reloc.vertex), error)
-        elif reloc.client is not None:
+        if error:
+            reloc.tell_client(self.ctx, reloc.refusal(error))
+        else:
             elapsed = self.ctx.elapsed_ms(reloc.started_at)
-            reply = m.RelocateReply(reloc.app, reloc.vertex, True, reloc.target, elapsed)
-            self.ctx.emit(Reply(reloc.client, reply))
+            reloc.tell_client(
+                self.ctx, m.RelocateReply(reloc.app, reloc.vertex, True, reloc.target, elapsed)
+            )
         ended = RelocationEnded(
             reloc.pid, reloc.app, reloc.vertex, reloc.target, reloc.remap, error
         )
