@@ -99,3 +99,24 @@ def test_a_lookup_tells_its_client_what_waited_on_it(then: m.Message, reply: m.M
     look.abandon(Ctx(), "again")  # once
     assert told == [(CLIENT, reply)]
     assert Lookup(2, 0.0, "pipe", None, None).refusal("why") is None  # a recovery's: nobody
+
+
+@pytest.mark.parametrize(
+    ("msg", "kind"),
+    [
+        (m.RemapRequest("pipe", [], everything=True), Remap),
+        (m.RelocateRequest("pipe", "mid", target="N2"), Relocation),  # (mid on N3)
+    ],
+)
+def test_an_undeploy_meanwhile_answers_a_move_or_remap(msg: m.Message, kind: type) -> None:
+    """The app is undeployed while a move or remap of it runs: the procedure runs out its
+    deadline (a remap's is past the client's 10 s), its client is told at once."""
+    sim = held_failed_both_ways()
+    n4, now = sim.cores["N4"], sim.now
+    asked(n4, msg, now, kind)
+    effects = n4.request(2, m.StopApp("pipe"), now)
+    assert "pipe" not in n4.apps
+    (reply,) = replies(effects)
+    assert isinstance(reply, m.RemapReply | m.RelocateReply) and not reply.ok
+    assert reply.error == f"N4: undeployed before the {kind.NAME} finished"
+    assert replies(n4.receive("N3", m.StopApp("pipe"), now)) == []  # once

@@ -742,6 +742,11 @@ class NodeCore:
         self.early.drop_app(msg.app)
         if known and msg.app not in self.apps:
             self.publish(Happened("undeploy", msg.app, by=src))
+            for proc in self.open():  # they run out their deadlines; their clients wait not
+                if proc.app == msg.app:
+                    proc.refuse_client(
+                        self, f"{self.id}: undeployed before the {proc.name} finished"
+                    )
 
     def _relocate_request(self, client: int, msg: m.RelocateRequest, now: float) -> None:
         self.lookups.relocate(client, msg, now)  # (a refusal is told to the client)

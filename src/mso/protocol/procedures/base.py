@@ -92,6 +92,7 @@ class Procedure(StateMachine):
         self.deadline = now + (self.DEADLINE_S if deadline_s is None else deadline_s)
         self.error = ""
         self.client: int | None = None  # the client waiting for its outcome, if any
+        self.app = ""  # the app it acts on, if one
         self.told_client = False
 
     def tell_client(self, ctx: Messenger, reply: m.Message) -> None:
@@ -106,12 +107,16 @@ class Procedure(StateMachine):
         (None: a procedure no client waits for)."""
         return None
 
-    def abandon(self, ctx: Messenger, why: str) -> None:
-        """Ended from outside, unfinished (the node resets: every procedure goes with its
-        state): the waiting client is told why rather than left waiting."""
+    def refuse_client(self, ctx: Messenger, why: str) -> None:
+        """Tell the waiting client, if any, that the procedure will not finish for it."""
         reply = self.refusal(why)
         if reply is not None:
             self.tell_client(ctx, reply)
+
+    def abandon(self, ctx: Messenger, why: str) -> None:
+        """Ended from outside, unfinished (the node resets: every procedure goes with its
+        state): the waiting client is told why rather than left waiting."""
+        self.refuse_client(ctx, why)
         self.fail(ctx, why)
 
     def on(self, event: enum.Enum) -> None:
