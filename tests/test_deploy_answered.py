@@ -13,7 +13,8 @@ from mso.client import waiting
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.protocol import messages as m
 from mso.protocol.effects import Reply
-from mso.protocol.procedures.deploy import PINNED_WAIT_S, REPLY_MARGIN_S, Deploy, _deadline_s
+from mso.protocol.procedures.base import REPLY_MARGIN_S
+from mso.protocol.procedures.deploy import PINNED_WAIT_S, Deploy, _deadline_s
 from mso.sim.runner import Simulation
 from runtime_vertices import pipe_app
 from test_faults import held_failed_both_ways

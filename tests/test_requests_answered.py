@@ -8,9 +8,12 @@ from __future__ import annotations
 import msgspec
 import pytest
 
+from mso.client import waiting
 from mso.node.core import NodeCore
 from mso.protocol import messages as m
-from mso.protocol.effects import Effect, Reply
+from mso.protocol.effects import Effect, Reply, SetTimer
+from mso.protocol.events import Deadline
+from mso.protocol.procedures.base import REPLY_MARGIN_S
 from mso.protocol.procedures.lookup import Lookup
 from mso.protocol.procedures.relocation import Relocation
 from mso.protocol.procedures.remap import Remap
@@ -120,3 +123,29 @@ def test_an_undeploy_meanwhile_answers_a_move_or_remap(msg: m.Message, kind: typ
     assert isinstance(reply, m.RemapReply | m.RelocateReply) and not reply.ok
     assert reply.error == f"N4: undeployed before the {kind.NAME} finished"
     assert replies(n4.receive("N3", m.StopApp("pipe"), now)) == []  # once
+
+
+def test_a_remap_ends_before_its_client_stops_waiting() -> None:
+    """A remap's deadline was 10 s and more (5 s a chain, 0.5 s a vertex), past the 10 s a
+    client waits for it: its probes lost, it was answered when nobody listened. The client
+    says how long it waits (``within_s``, filled in by ``mso.client``); the remap ends
+    ``REPLY_MARGIN_S`` before, telling the client."""
+    sim = held_failed_both_ways()
+    n4, now = sim.cores["N4"], sim.now
+    effects = n4.request(CLIENT, m.RemapRequest("pipe", [], everything=True, within_s=3.0), now)
+    assert replies(effects) == []  # (its probes are never delivered)
+    (remap,) = open_of(n4, Remap, now)
+    assert isinstance(remap, Remap)
+    assert remap.deadline == pytest.approx(now + 3.0 - REPLY_MARGIN_S)
+    deadline = next(e for e in effects if isinstance(e, SetTimer) and e.key == Deadline(remap.pid))
+    (reply,) = replies(n4.on_timer(deadline.key, deadline.at))
+    assert isinstance(reply, m.RemapReply) and not reply.ok
+    assert reply.error == "remap did not finish within 2.5 s"
+
+
+def test_a_client_says_how_long_it_waits_for_a_remap() -> None:
+    assert waiting(m.RemapRequest("a", [0]), 10.0).within_s == 10.0
+    assert waiting(m.RemapRequest("a", [0], within_s=4.0), 10.0).within_s == 4.0
+    for wait in (float("nan"), float("inf"), -1.0, 0.0):  # not said, or nothing sensible
+        remap = Remap(1, 0.0, "a", [0], CLIENT, {}, set(), within_s=wait)
+        assert remap.deadline == 15.0  # its own: 10 s, 5 s a chain

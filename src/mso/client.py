@@ -319,9 +319,10 @@ class Client:
 
 
 def waiting(msg: m.Message, timeout: float) -> m.Message:
-    """A deployment request saying how long the client waits (unless it says already): the
-    node refuses it before then if it has not finished, rather than answer nobody."""
-    if isinstance(msg, m.DeployRequest) and not msg.within_s:
+    """A deployment or remap request saying how long the client waits (unless it says
+    already): the node ends it before then if it has not finished, rather than answer
+    nobody. (Before an order is signed: its signature covers the wait.)"""
+    if isinstance(msg, m.DeployRequest | m.RemapRequest) and not msg.within_s:
         return msgspec.structs.replace(msg, within_s=timeout)
     return msg
 

@@ -16,6 +16,7 @@ the core implements.
 from __future__ import annotations
 
 import enum
+import math
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 if TYPE_CHECKING:
@@ -38,6 +39,18 @@ class Phase(enum.Enum):
 
 
 STEP_TIMEOUT_S = 1.0  # a step of a procedure not answered by then is sent again (or given up)
+# a procedure a client waits for ends this long before the client stops waiting (its request's
+# ``within_s``), for the reply's way back
+REPLY_MARGIN_S = 0.5
+
+
+def within_client_wait(within_s: float, longest_s: float) -> float:
+    """A procedure's deadline for a client that waits ``within_s``: ``REPLY_MARGIN_S`` before
+    it stops waiting (half its wait, for a short one), at most ``longest_s``; that if the
+    client said nothing (0), or nothing sensible (NaN, infinite, negative)."""
+    if not (math.isfinite(within_s) and within_s > 0):
+        return longest_s
+    return min(longest_s, max(within_s - REPLY_MARGIN_S, within_s / 2))
 
 
 class Messenger(Protocol):

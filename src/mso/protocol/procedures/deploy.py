@@ -29,7 +29,6 @@ stops a running app.
 from __future__ import annotations
 
 import enum
-import math
 import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -56,7 +55,13 @@ from mso.protocol.events import (
     Retry,
     RoutesChanged,
 )
-from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
+from mso.protocol.procedures.base import (
+    STEP_TIMEOUT_S,
+    Phase,
+    Procedure,
+    Table,
+    within_client_wait,
+)
 from mso.protocol.state import AppState
 
 MAX_WAITING_PROBES = 256  # probes held at a hop whose route still goes through a failed node
@@ -72,9 +77,6 @@ CHOOSE_S = 1.0
 # start) before it is refused, naming the node; announced meanwhile, the app would skip the
 # node and the deployment could only time out
 PINNED_WAIT_S = 5.0
-# the origin answers this long before the client stops waiting (``DeployRequest.within_s``),
-# for the reply's way back
-REPLY_MARGIN_S = 0.5
 
 
 class S(enum.Enum):
@@ -760,13 +762,8 @@ def _hosts_only(dep: AppState, incarnations: dict[str, int]) -> dict[str, int]:
 
 
 def _deadline_s(req: m.DeployRequest) -> float:
-    """The deployment's deadline: ``REPLY_MARGIN_S`` before the client stops waiting (half
-    its wait, for a short one), at most ``Deploy.DEADLINE_S``; that if the client said
-    nothing (``within_s`` 0)."""
-    wait = req.within_s
-    if not (math.isfinite(wait) and wait > 0):
-        return Deploy.DEADLINE_S
-    return min(Deploy.DEADLINE_S, max(wait - REPLY_MARGIN_S, wait / 2))
+    """The deployment's deadline: before the client stops waiting, at most 30 s."""
+    return within_client_wait(req.within_s, Deploy.DEADLINE_S)
 
 
 def _failed_reply(app: str, reason: str) -> m.DeployReply:

@@ -166,7 +166,7 @@ class Lookups:
             if not self.relocator.request(look.client, look.then, now) and look.client is None:
                 self.ctx.refusal("relocate_refused")
         elif isinstance(look.then, m.RemapRequest):
-            self.remapper.request(look.client, look.then, now)
+            self.remapper.request(look.client, look.then, now, asked_at=look.started_at)
         elif dep is not None:
             dep.looked_up = frozenset(self.ctx.failed)
             self.ctx.publish(RecoveryDue(look.app))

@@ -45,7 +45,7 @@ from mso.protocol.events import (
     Retry,
     RoutesChanged,
 )
-from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
+from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table, within_client_wait
 from mso.protocol.procedures.relocation import Relocation, Relocator
 from mso.protocol.state import AppState
 
@@ -97,9 +97,12 @@ class Remap(Procedure):
         placed: dict[str, str],
         movable: set[str],
         recovery: dict[str, Any] | None = None,
+        within_s: float = 0.0,
     ) -> None:
-        # every chain may need its probes retried, and every vertex a move
-        super().__init__(pid, now, 10.0 + 5.0 * len(chains) + 0.5 * len(movable))
+        # every chain may need its probes retried, and every vertex a move; a client's remap
+        # ends before the client stops waiting
+        longest = 10.0 + 5.0 * len(chains) + 0.5 * len(movable)
+        super().__init__(pid, now, within_client_wait(within_s, longest))
         self.app = app
         self.chains = chains  # still to place, in dependency order
         self.client = client
@@ -223,7 +226,9 @@ class Remapper:
         now: float,
         weights: dict[str, float] | None = None,
         place: dict[str, str] | None = None,
+        asked_at: float | None = None,
     ) -> None:
+        """``asked_at``: when the client asked, if before ``now`` (a lookup went first)."""
         dep = self.ctx.apps.get(msg.app)
         if dep is None or not dep.running:
             self._refuse(client, msg.app, f"no running app named {msg.app!r}")
@@ -248,7 +253,10 @@ class Remapper:
         placed = {v: dep.placed[v] for v in stays}
         movable = in_set - stays
         placed |= {v: n for v, n in (place or {}).items() if v in movable}
-        remap = Remap(self.ctx.new_pid(), now, msg.app, order, client, placed, movable)
+        wait = msg.within_s if client is not None else 0.0
+        if wait > 0 and asked_at is not None:  # (not NaN) the lookup's time is the client's
+            wait = max(wait - (now - asked_at), 1e-3)
+        remap = Remap(self.ctx.new_pid(), now, msg.app, order, client, placed, movable, None, wait)
         remap.weights = dict(weights or {})
         remap.keep = not place
         remap.order = warrant.carried(msg)

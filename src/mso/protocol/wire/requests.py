@@ -33,7 +33,9 @@ class RelocateRequest(_Msg, tag="relocate"):
 
 class RemapRequest(_Msg, tag="remap"):
     """Re-place chains along freshly probed routes (§3.4.2; several: §3.4.3, in dependency
-    order). ``chains`` are chain indices; empty with ``everything`` remaps them all."""
+    order). ``chains`` are chain indices; empty with ``everything`` remaps them all.
+    ``within_s``: how long the client waits for the reply (0: not said); the remap ends
+    before then, its moves so far told, if it has not finished."""
 
     app: str
     chains: list[int]
@@ -45,6 +47,7 @@ class RemapRequest(_Msg, tag="remap"):
     key: str = ""
     sig: bytes = b""
     cert: bytes = b""
+    within_s: float = 0.0
 
 
 class RemapReply(_Msg, tag="remap_reply"):
