@@ -202,6 +202,12 @@ RESTARTS_BROKE = {
     60473: "a fork's ack upstream came at a position where one consumer's ack was lost (the "
     "next acked two batches at once): the positions below it missed that edge, and the "
     "restore of the chain numbered it from the sink's position, one on: an event twice",
+    65198: "a merge restored on both sides of a cut; as it healed, one side's node reset and "
+    "dropped its twin, and a relayed word of that twin retired the other: the merge ran "
+    "nowhere and the chain's restore waited on it for ever",
+    66410: "every instance lost (two nodes restarted) after a move the other nodes were not "
+    "told of: their view named the old host coordinator, whose view named the lowest node: "
+    "nobody recovered and the app ran nowhere",
 }
 
 

@@ -131,9 +131,11 @@ class RecoveryDue:
 @dataclass(frozen=True)
 class PlacementStale:
     """A recovery of ``app`` this node would coordinate rests on a view it was not kept up to
-    date on (it hosts no part of the app): look the placement up first."""
+    date on (it hosts no part of the app): look the placement up first (``wide``: every node
+    it reaches, not only those its view names)."""
 
     app: str
+    wide: bool = True
 
 
 @dataclass(frozen=True)

@@ -102,11 +102,13 @@ class Lookups:
             return
         self._start(msg.app, client, msg, now, wide=False)
 
-    def on_stale(self, app: str) -> None:
+    def on_stale(self, app: str, wide: bool = True) -> None:
         """A recovery this node would coordinate on a view it was not kept up to date on (it
-        sees every instance of the app lost): look the placement up first, widely."""
+        sees every instance of the app lost): look the placement up first, widely; or one it
+        would coordinate if that view is out of date (:meth:`Remapper.maybe_recover`): ask
+        the nodes it names."""
         if not any(isinstance(p, Lookup) and p.app == app for p in self.ctx.open()):
-            self._start(app, None, None, self.ctx.now, wide=True)
+            self._start(app, None, None, self.ctx.now, wide=wide)
 
     # -- the lookup ------------------------------------------------------------------------------
     def _start(self, app: str, client: int | None, then: Then, now: float, wide: bool) -> None:

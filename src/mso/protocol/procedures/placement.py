@@ -291,8 +291,14 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
             inc = ctx.incarnation if newer == ctx.id else -1
             version = dep.versions.get(msg.vertex, 0)
             ctx.send(msg.node, m.Moved(msg.app, msg.vertex, newer, inc, version))
-    elif twin:  # this one yields
+    elif twin and running:  # this one yields, to the twin's host's own word
         ctx.publish(Superseded(msg.app, msg.vertex, msg.node, msg.version))
+    elif twin and dep is not None:
+        # a relayed word (a node that missed ours): the twin it names may be gone with a
+        # reset this node has not heard of yet, and retiring this one left the vertex running
+        # nowhere (fault seed 65198). Its node is told of this one instead: if it still runs
+        # the twin and prevails, its answer is its own word, and this one yields then
+        ctx.send(msg.node, moved(dep, msg.vertex, ctx.id, ctx.incarnation))
     if taken and running and msg.incarnation >= 0 and version and msg.node != ctx.id:
         remember(ctx, msg.app, v, node, msg.incarnation, version)
 

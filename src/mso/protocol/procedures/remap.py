@@ -496,6 +496,13 @@ class Remapper:
             return
         alive = {self.ctx.id, *(n for n in routes if n not in failed)}
         if recovery_coordinator(dep.placed, lost, alive) != self.ctx.id:
+            # with every instance lost, the lowest node alive coordinates; its view (not kept
+            # up to date: it hosts nothing) names a host, maybe one a vertex has left since,
+            # whose view named this one: nobody recovered (fault seed 66410). It asks the
+            # nodes its view names first, once per set of failures
+            stale = min(alive) == self.ctx.id and not dep.hosts_part()
+            if stale and dep.looked_up != frozenset(failed):
+                self.ctx.publish(PlacementStale(dep.app.name, wide=False))
             return
         if not dep.hosts_part() and dep.looked_up != frozenset(failed):  # this view is not
             self.ctx.publish(PlacementStale(dep.app.name))  # kept up to date: the app may run
