@@ -124,7 +124,13 @@ def failure(side: int, convergence_s: float) -> dict[str, Any]:
     sim.kill(victim, convergence_s=convergence_s)
     sim.run_until(t0 + 8.0)
     declared = [f["at"] for c in sim.cores.values() for f in c.failures if f["node"] == victim]
-    recs = [r for c in sim.cores.values() for r in c.apps["bench"].recoveries if r["ok"]]
+    recs = [
+        r
+        for c in sim.cores.values()
+        if "bench" in c.apps
+        for r in c.apps["bench"].recoveries
+        if r["ok"]
+    ]
     sinks = [sim.instance(h, "bench", "sink") for h in sim.hosts("bench", "sink")]
     missing = sum(s.missing for rec in sinks for s in rec.record.streams.values())
     return {

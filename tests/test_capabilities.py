@@ -181,7 +181,8 @@ def test_a_deployment_asks_the_capable_nodes_and_the_choice_is_redone_on_failure
     # as the central plan decides it
     assert {v: n for v, n in plan(loads_app(STANDIN), camera_net(), origin="D").placement.items()
             } == reply.placement  # fmt: skip
-    st = sim.cores["C"].status(sim.now)["apps"]["watch"]
+    assert "watch" not in sim.cores["C"].apps  # a candidate not chosen takes no part
+    st = sim.cores["D"].status(sim.now)["apps"]["watch"]
     assert st["capable"] == {"cam": ["A", "C"], "detect": ["B", "E"]}
     sim.kill("A", convergence_s=0.3)
     sim.run_until(sim.now + 7.0)
@@ -190,7 +191,9 @@ def test_a_deployment_asks_the_capable_nodes_and_the_choice_is_redone_on_failure
     # moves: they look the placement up before acting on it)
     members = [c for c in live if c.instances("watch")]
     assert members and all(c.placement("watch")["cam"] == "C" for c in members)
-    (rec,) = [r for c in live for r in c.apps["watch"].recoveries]
+    recs = [(c.id, r) for c in live if "watch" in c.apps for r in c.apps["watch"].recoveries]
+    assert len(recs) == 1, recs
+    ((_, rec),) = recs
     assert rec["ok"] and rec["moved"] == {"cam": "C"}, rec
     before = sim.cores["D"].instances("watch")["log"].processed
     sim.run_until(sim.now + 2.0)
@@ -286,7 +289,10 @@ def test_a_node_that_rejoins_learns_the_nodes_chosen_by_capability() -> None:
         sim.network.add_link(LinkSpec(a, b, delay_ms=1.0))
     sim.revive("B")
     sim.run_until(sim.now + 5.0)
-    back = sim.cores["B"].apps["watch"]
+    # B takes no part any more, and holds none of the app (issue 24.1); the nodes that do,
+    # the sync's receivers among them, all know the choice
+    assert "watch" not in sim.cores["B"].apps
+    (back,) = [c.apps["watch"] for n, c in sim.cores.items() if n == "E"]
     assert back.layout.resolved == {"cam": "A", "detect": "E"}
     assert back.capable == {"cam": ["A", "C"], "detect": ["B", "E"]}
     assert back.placed["detect"] == "E"

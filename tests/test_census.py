@@ -67,10 +67,13 @@ def test_simulate_json_reports_messages_and_each_episodes_cost(tmp_path: Path) -
     assert by_type["Heartbeat"] > 0 and by_type["Data"] > 0 and by_type["Suspect"] > 0
     assert r["messages"]["total"] == sum(by_type.values())
     deploy, failure, rejoin = r["reconfigurations"]["episodes"]
-    assert deploy["at"] == 0.0 and deploy["by_type"]["StartApp"] == 5
+    # StartApp to the app's other holders, its vertices' two other nodes, not all five
+    assert deploy["at"] == 0.0 and deploy["by_type"]["StartApp"] == 2
     assert failure["changes"] == ["fail N3"] and failure["failures"] == ["N3"]
     assert 2.0 < failure["at"] < 3.0  # from its detection, not the crash
-    assert rejoin["changes"] == ["restart N3"] and "AppSync" in rejoin["by_type"]
+    # N3 back: mid was re-placed meanwhile, so it takes no part and is not given the app
+    assert rejoin["changes"] == ["restart N3"] and "NodeUp" in rejoin["by_type"]
+    assert "AppSync" not in rejoin["by_type"]
     for ep in (deploy, failure, rejoin):
         assert ep["control_messages"] == sum(ep["by_type"].values()) > 0
         assert ep["nodes_involved"] == len(ep["nodes"])

@@ -15,7 +15,9 @@ def test_a_wrong_output_is_counted_at_its_producer_naming_the_edge() -> None:
     sim.run_until(sim.now + 2.0)
     nodes = {n: core.status(sim.now) for n, core in sim.cores.items()}
     vertices = {
-        v: st for node in nodes.values() for v, st in node["apps"]["pipe"]["vertices"].items()
+        v: st
+        for node in nodes.values()
+        for v, st in node["apps"].get("pipe", {"vertices": {}})["vertices"].items()
     }
     mid, sink = vertices["mid"], vertices["sink"]
     assert mid["errors"] >= 100 and sink["errors"] == 0, (mid, sink)

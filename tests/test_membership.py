@@ -227,12 +227,14 @@ def test_a_restarts_control_messages_do_not_grow_with_the_network() -> None:
     """The app's interior node killed, recovered from, then back 3 s later on a 5x5 and a
     10x10 grid: its return is told to its neighbours and the app's nodes, not by every node
     that heard its hello (NodeUp to theirs, the app from each: 175 then 755 messages); every
-    node takes it back all the same, and it holds the app again."""
+    node takes it back all the same. Its vertex was recovered elsewhere meanwhile, so it
+    takes no part in the app and is not given it (issue 24.1: only the nodes that take part
+    hold an app)."""
     small, large = bench.restart(5), bench.restart(10)
     for r in (small, large):
-        assert r["synced"] and r["held_failed_after"] == 0, r
+        assert not r["synced"] and r["held_failed_after"] == 0, r
         assert r["taken_back_by"] == r["nodes"] - 1, r
-        assert r["by_type"].get("AppSync", 0) >= 1 and r["by_type"].get("NodeUp", 0) >= 1, r
+        assert r["by_type"].get("NodeUp", 0) >= 1, r
     assert small["control_messages"] > 0
     assert large["control_messages"] <= 1.2 * small["control_messages"], (small, large)
     assert large["nodes_involved"] <= small["nodes_involved"] + 2, (small, large)

@@ -33,7 +33,7 @@ edges: [{{from: src, to: counter, {qos}}}, [counter, sink]]
 def edge(sim: Simulation, name: str, field: str) -> int:
     """``field`` of edge ``name`` summed over every node's status (each end counts its own)."""
     return sum(
-        int(c.status(sim.now)["apps"]["q"]["edges"].get(name, {}).get(field, 0))
+        int(c.status(sim.now)["apps"].get("q", {}).get("edges", {}).get(name, {}).get(field, 0))
         for c in sim.cores.values()
     )
 

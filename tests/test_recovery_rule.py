@@ -82,3 +82,37 @@ def test_parked_chains_are_not_remapped_and_pins_to_a_failed_node_park() -> None
     assert "pinned to failed node N5" in next(iter(parked.values()))
     assert recovery_plan(lay, PLACED, {"b", "sink"}, parked=set(parked)) is None
     assert pinned_to_failed(app, lay, {"N2"}) == {}  # nothing is pinned there
+
+
+def test_with_every_instance_lost_a_live_holder_coordinates_not_the_lowest_node() -> None:
+    """Only the nodes that take part in an app hold it (issue 24.1): with every instance
+    gone at once, the lowest-named node alive may hold none of it; the app's origin (or a
+    replica's node) coordinates instead."""
+    placed = {"a": "N5", "b": "N5"}
+    alive = {"N1", "N2", "N3"}
+    assert recovery_coordinator(placed, {"a", "b"}, alive, {"N3", "N9"}) == "N3"
+    assert recovery_coordinator(placed, {"a", "b"}, alive, {"N9"}) == "N1"  # none left
+
+
+def test_every_vertex_on_one_failed_node_is_recovered_by_the_origin() -> None:
+    """The whole app on N3 (origin N2, which runs nothing of it), N3 fails: N1, the lowest
+    node alive, holds none of the app; N2 restores it all."""
+    from mso.model.network import LinkSpec, Network, NodeSpec
+    from mso.protocol import messages as m
+    from mso.sim.runner import Simulation
+    from runtime_vertices import pipe_app
+
+    ids = ["N1", "N2", "N3", "N4"]
+    links = [("N1", "N2"), ("N2", "N3"), ("N3", "N4"), ("N4", "N1"), ("N2", "N4")]
+    sim = Simulation(Network([NodeSpec(i) for i in ids], [LinkSpec(a, b, 1.0) for a, b in links]))
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N3").replace("pinned: N4", "pinned: N3")
+    doc = doc.replace("planner: paper\n", "")
+    sim.request("N2", m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(2.0)
+    assert set(sim.cores["N3"].instances("pipe")) == {"src", "mid", "sink"}
+    assert "pipe" not in sim.cores["N1"].apps
+    sim.kill("N3", convergence_s=0.2)
+    sim.network.add_link(LinkSpec("N3", "N4", 1.0))  # (back at once, empty: a restart)
+    sim.revive("N3")
+    sim.run_until(sim.now + 5.0)
+    assert set(sim.cores["N3"].instances("pipe")) == {"src", "mid", "sink"}

@@ -216,7 +216,11 @@ def test_kill_9_of_the_host_on_the_emulator_keeps_the_count(
                 return emu.status("N1")
 
             def moved(st: dict[str, Any]) -> bool:  # a live node runs mid again
-                hosts = [n for n, s in st.items() if "mid" in s["apps"]["pipe"]["vertices"]]
+                hosts = [
+                    n
+                    for n, s in st.items()
+                    if "mid" in s["apps"].get("pipe", {"vertices": {}})["vertices"]
+                ]
                 return victim not in st and bool(hosts)
 
             status = await until(read, moved, 10, f"mid restored off {victim}")
@@ -233,7 +237,11 @@ def test_kill_9_of_the_host_on_the_emulator_keeps_the_count(
             await emu.stop()
 
     victim, emitted, status = asyncio.run(run())
-    hosts = [n for n, st in status.items() if "mid" in st["apps"]["pipe"]["vertices"]]
+    hosts = [
+        n
+        for n, st in status.items()
+        if "mid" in st["apps"].get("pipe", {"vertices": {}})["vertices"]
+    ]
     assert len(hosts) == 1 and hosts[0] != victim
     got = status["N6"]["apps"]["pipe"]["vertices"]["sink"]["stats"]
     assert got["repeats"] == 0 and got["out_of_order"] == 0, got

@@ -58,9 +58,13 @@ def test_distributed_deployment_matches_central_plan(app_file: str, scenario_fil
     reply = deploy(sim, doc, via=next(iter(scenario.network.nodes)))
     assert reply.ok, reply.error
     assert reply.placement == expected
-    # every node learned the whole mapping, and hosts exactly its own vertices
+    # every node that takes part learned the whole mapping and hosts exactly its own
+    # vertices; the others hold none of the app (issue 24.1)
     for node, core in sim.cores.items():
-        dep = core.apps[loads_app(doc).name]
+        dep = core.apps.get(loads_app(doc).name)
+        if dep is None:
+            assert node not in expected.values()
+            continue
         assert dep.placed == expected
         assert set(dep.instances) == {v for v, n in expected.items() if n == node}
 
@@ -86,7 +90,7 @@ def test_backpressure_bounds_what_is_in_flight() -> None:
     for _ in range(50):
         sim.run_until(sim.now + 0.01)
         for core in sim.cores.values():
-            for ch in core.apps["pipe"].out.values():
+            for ch in (core.apps["pipe"].out if "pipe" in core.apps else {}).values():
                 peak = max(peak, ch.in_flight)
     assert 0 < peak <= 16
     stats = sink_stats(sim, "pipe", "sink")

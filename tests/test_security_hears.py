@@ -61,7 +61,7 @@ def overlay(proofs: bool = True) -> Simulation:
         "mid": "N3",
         "sink": "N4",
     }
-    assert not sim.cores["N6"].apps["pipe"].instances
+    assert not sim.cores["N6"].instances("pipe")
     return sim
 
 

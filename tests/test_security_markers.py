@@ -273,7 +273,8 @@ def c_moved_unheard_by_n6() -> tuple[Simulation, int]:
     sim = line(n6=("N3",))
     flowing = sink(sim)["processed"]
     move(sim, "N4", "c", "N3")
-    assert sim.cores["N6"].apps["line"].placed["c"] == "N4"  # (it missed the Moved)
+    n6 = sim.cores["N6"].apps.get("line")  # (it takes no part: issue 24.1, it holds none of
+    assert n6 is None or n6.placed["c"] == "N4"  # the app, or it missed the Moved)
     sim.run_until(sim.now + CHAIN_END_INTERVAL_S)
     return sim, flowing
 

@@ -201,13 +201,22 @@ def typed_status(nodes: dict[str, Any]) -> dict[str, NodeStatus]:
 
 
 def running(nodes: dict[str, Any]) -> list[str]:
-    """The apps running, by name, as the node asked sees them."""
-    return sorted(asked_node(nodes).get("apps", {}))
+    """The apps running, by name, as the nodes in ``nodes`` hold them: only the nodes that
+    take part in an app hold it (issue 24.1), so ask everywhere to hear of every app."""
+    return sorted({a for st in nodes.values() for a in st.get("apps", {})})
+
+
+def held_by(nodes: dict[str, Any], app: str) -> dict[str, Any] | None:
+    """``app`` as the node asked holds it, else as the first node in ``nodes`` that does."""
+    found: dict[str, Any] | None = asked_node(nodes).get("apps", {}).get(app)
+    if found is None:
+        found = next((st["apps"][app] for st in nodes.values() if app in st.get("apps", {})), None)
+    return found
 
 
 def chain_indices(nodes: dict[str, Any], app: str, chains: Sequence[int | str]) -> list[int]:
     """Chains named by index (``3``, ``"3"``) or as ``head-...-tail`` -> their indices."""
-    found = asked_node(nodes).get("apps", {}).get(app)
+    found = held_by(nodes, app)
     if found is None:
         raise MsoError(f"no running app named {app!r}")
     known = ["-".join(c) for c in found["chains"]]
@@ -369,7 +378,7 @@ class AsyncOverlay:
         (§3.4.2, §3.4.3); a remap of the whole app may want a longer ``timeout``."""
         indices = [c for c in chains if isinstance(c, int)]
         if len(indices) < len(chains):  # a name: the chains are as the node knows them
-            indices = chain_indices(await self.status(everywhere=False), app, chains)
+            indices = chain_indices(await self.status(), app, chains)
         reply = await self.ask(m.RemapRequest(app, indices, everything), timeout)
         if check:
             return judge(reply, m.RemapReply, "remap refused")
@@ -384,8 +393,9 @@ class AsyncOverlay:
         return expect(reply, m.StatusReply).nodes
 
     async def apps(self) -> list[str]:
-        """The apps running, by name."""
-        return running(await self.status(everywhere=False))
+        """The apps running, by name (every node is asked: a node holds only the apps it
+        takes part in)."""
+        return running(await self.status())
 
     async def tap(
         self, app: str, edge: str, *, rate: float = 10.0, lease_s: float = TAP_LEASE_S
@@ -496,7 +506,7 @@ class Overlay:
         return expect(reply, m.StatusReply).nodes
 
     def apps(self) -> list[str]:
-        return running(self.status(everywhere=False))
+        return running(self.status())
 
     def _operator_client(self) -> ClientIdentity | None:
         """The client an operator key makes of its holder (status is asked unsigned)."""

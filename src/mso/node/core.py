@@ -90,6 +90,9 @@ from mso.protocol.taps import TapTick
 __all__ = ["AppState", "Effect", "HostedInstance", "NodeCore", "Reply", "Send", "SetTimer"]
 
 E = TypeVar("E")
+# an app this node took no part in for this long is let go (checked every monitor period, so
+# within LET_GO_S + MONITOR_PERIOD_S of its last part: a handover's steps are over by then)
+LET_GO_S = 1.0
 MAX_HAPPENED = 256  # what happened, kept for the driver to log
 ROUTE_VALUES_KEPT = 4096  # distinct (next hop, hops) route values shared, at the most
 Handler = Callable[[str, Any, float], None]
@@ -156,6 +159,7 @@ class NodeCore:
         self._beat_hops: tuple[dict[str, tuple[str, int]], frozenset[str], dict[str, int]] | None
         self._beat_hops = None
         self.apps = Apps(node_id)
+        self._idle: dict[str, float] = {}  # app -> since when this node takes no part in it
         self.procedures: dict[int, Procedure] = {}  # the procedures this node coordinates
         self._status_pid = -1  # the status fan-out gathering now, if any (one at a time)
         self.dropped_messages = 0
@@ -187,7 +191,7 @@ class NodeCore:
         self.restorer = Restorer(self, dp, self.relocator)
         self.replicator = Replicator(self, dp)
         self.remapper = Remapper(self, dp, self.relocator)
-        self.lookups = Lookups(self, self.relocator, self.remapper)
+        self.lookups = Lookups(self, self.relocator, self.remapper, dp.taps.on_client)
         liveness = Liveness(heartbeat_s, dead_after_s)
         self.membership = Membership(self, dp, self.deployer, self.remapper, liveness, incarnation)
 
@@ -220,7 +224,7 @@ class NodeCore:
         self._subscribe(RoutesChanged, self.remapper.on_routes_changed)
         self._subscribe(RoutesChanged, self.replicator.on_routes_changed)
         self._subscribe(RecoveryDue, self.remapper.on_recovery_due)
-        self._subscribe(PlacementStale, lambda ev: self.lookups.on_stale(ev.app, ev.wide))
+        self._subscribe(PlacementStale, lambda ev: self.lookups.on_stale(ev.app, ev.wide, ev.sync))
         self._subscribe(AppMissing, self.membership.on_app_missing)
         self._subscribe(NodeReset, lambda ev: self.deployer.on_reset())
         self._subscribe(NodeReset, lambda ev: self.relocator.on_reset())
@@ -304,7 +308,7 @@ class NodeCore:
             m.RelocateRequest: self._relocate_request,
             m.RemapRequest: lambda client, msg, now: self.lookups.remap(client, msg, now),
             m.StatusRequest: self._status_request,
-            m.Tap: dp.taps.on_client,
+            m.Tap: self.lookups.tap_request,
         }
         # timer keys
         self._timers: dict[type, Callable[[Any, float], None]] = {
@@ -460,6 +464,44 @@ class NodeCore:
         else:
             handle(client, msg, now)
         return self._run(now)
+
+    def _let_go_idle(self, now: float) -> None:
+        """Only the nodes that take part in an app hold it (issue 24.1): an app this node
+        has taken no part in, first-hand, for ``LET_GO_S`` (checked every monitor period) is
+        let go. Its own view of the placement is not trusted for this: it may be out of date
+        (a move or a restore it was not told of, a sync from a node behind), while what it
+        runs, restores, builds, coordinates or keeps a replica of here is known here."""
+        for name, dep in list(self.apps.items()):
+            if self.takes_part(dep):
+                self._idle.pop(name, None)
+                if not self.takes_part(dep, copies=False):
+                    self.replicator.ask_if_replica(dep, now, LET_GO_S)
+                continue
+            since = self._idle.setdefault(name, now)
+            if now - since >= LET_GO_S:
+                del self._idle[name]
+                del self.apps[name]
+                self.dataplane.stop_app(dep, "let go")
+                self.deployer.policies.forget(name)
+
+    def takes_part(self, dep: AppState, copies: bool = True) -> bool:
+        """First-hand: its origin, an instance here (running, starting, handed over to
+        here, restoring, crashed), a chain being built or a deploy not yet started that
+        places a vertex here, a replica's snapshot, a recovery coordinated here or any
+        procedure of the app open here."""
+        me = self.id
+        if dep.origin == me or dep.hosts_part() or dep.preparing or dep.building:
+            return True
+        if copies and (dep.held or any(me in ns for ns in dep.replica_nodes.values())):
+            return True  # a replica's copy, or named a replica (ask_if_replica settles it)
+        if dep.recovering is not None or dep.stash:
+            return True
+        if not dep.running and me in dep.placed.values():
+            return True
+        name = dep.app.name
+        if any(relay.app == name for relay in self.dataplane.taps.relays.values()):
+            return True  # a client's tap relayed here
+        return any(getattr(p, "app", None) == name for p in self.procedures.values())
 
     def on_timer(self, key: Any, now: float) -> list[Effect]:
         self._now = now
@@ -759,8 +801,9 @@ class NodeCore:
             self.refusal("stop_app_unauthorized")
             self._effects.append(Reply(client, m.Refused(why)))
             return
-        if msg.app in self.apps:
-            self.broadcast(msg)
+        # to every node, held here or not: only the nodes that take part in an app hold it
+        # (issue 24.1), and the one asked may be none of them (an operator's rare request)
+        self.broadcast(msg)
         self._effects.append(Reply(client, m.StopApp(msg.app)))
 
     def _on_deadline(self, key: Deadline, now: float) -> None:
@@ -791,6 +834,7 @@ class NodeCore:
             self.refusal(reason)
         self.relocator.expire_held(now)
         self.dataplane.report_delays(now)
+        self._let_go_idle(now)
         for action in self.manager.tick(now):  # the rules' decisions, carried out here
             self._carry_out(action, now)
         self._effects.append(SetTimer(MonitorTick(), now + MONITOR_PERIOD_S))

@@ -132,10 +132,13 @@ class RecoveryDue:
 class PlacementStale:
     """A recovery of ``app`` this node would coordinate rests on a view it was not kept up to
     date on (it hosts no part of the app): look the placement up first (``wide``: every node
-    it reaches, not only those its view names)."""
+    it reaches, not only those its view names). ``sync``: the app just came with a sync from
+    a node that may not have been kept up to date either (issue 24.1: a move's coordinator
+    that holds it for the move alone): ask the nodes it names, nothing waiting on it."""
 
     app: str
     wide: bool = True
+    sync: bool = False
 
 
 @dataclass(frozen=True)
@@ -227,10 +230,14 @@ class ReplacementPrepared:
 
 @dataclass(frozen=True)
 class AppMissing:
-    """``node``, asked to host a vertex of ``app``, does not hold the app (its sync was lost)."""
+    """``node``, asked to host a vertex of ``app``, does not hold the app (its sync was lost).
+    ``ahead``: it may hold none of it, as it takes no part yet (issue 24.1), and is sent it
+    ahead of a request that carries the sender's view anyway (a ``Prepare``, a snapshot, a
+    lookup's answer): sent even while the sender's view is in dispute."""
 
     app: str
     node: str
+    ahead: bool = False
 
 
 @dataclass(frozen=True)

@@ -98,14 +98,19 @@ class AppHolders:
     a live node that loses the app is a finding). Nothing persists an app across a restart
     of every node that holds it; a node that restarted meanwhile but was cut off from them
     never got it (seed 19231: a 3-node line, every holder down at once though one node was
-    back)."""
+    back). Only the nodes that take part in it count (issue 24.1): one that holds it idle
+    lets it go by design (``NodeCore.takes_part``)."""
 
     app: str = APP
     holders: set[str] = field(default_factory=set)
     gone_at: float | None = None
 
     def check(self, sim: Simulation) -> None:
-        now = {n for n, c in sim.cores.items() if n not in sim.killed and self.app in c.apps}
+        now = {
+            n
+            for n, c in sim.cores.items()
+            if n not in sim.killed and self.app in c.apps and c.takes_part(c.apps[self.app])
+        }
         if not now and self.holders and self.holders <= sim.killed and self.gone_at is None:
             self.gone_at = sim.now
         self.holders = now
@@ -183,11 +188,21 @@ def check(
     gone = holders is not None and holders.gone_at is not None
     if not known and (gone or _everyone_failed(sched)):
         return out  # the app went with the last node that held it: nothing left to check
-    if missing_app:
-        out.append(Violation("placement", f"{missing_app} do not know the app"))
     if not known:
+        if missing_app:
+            out.append(Violation("placement", f"{missing_app} do not know the app"))
         return out
     members = {n: a for n, a in known.items() if a["vertices"]} or known
+    # issue 24.1: the nodes that take part in the app hold it (its vertices' nodes, by the
+    # view of the nodes that host part of it); the others need not
+    taking_part = {x for a in members.values() for x in a["placement"].values()}
+    taking_part |= {r for a in members.values() for x in a["replication"].values()
+                    for r in x["replicas"]}  # fmt: skip
+    if unaware := sorted(set(missing_app) & taking_part):
+        out.append(Violation("placement", f"{unaware} take part in the app but do not know it"))
+    origins = {a["origin"] for a in known.values()}
+    if idle := sorted(set(known) - taking_part - origins):
+        out.append(Violation("holding", f"{idle} hold the app but take no part in it"))
     placements = {tuple(sorted(a["placement"].items())) for a in members.values()}
     if len(placements) > 1:
         out.append(Violation("placement", f"nodes disagree: {sorted(placements)}"))

@@ -106,6 +106,7 @@ class Choosing:
     asked: set[str]  # the nodes the query went to
     answers: dict[str, Candidate] = field(default_factory=dict)
     declined: set[str] = field(default_factory=set)  # nodes with none of what is required
+    pins: set[str] = field(default_factory=set)  # the nodes its vertices are pinned to
 
     def all_in(self, failed: set[str]) -> bool:
         """Every node asked that is not held failed has answered or declined."""
@@ -252,13 +253,13 @@ class Deployer:
         needs = app.needs()
         if not needs:
             proc.on(DeployEvent.PINNED_IN)
-            self._announce(app.name, proc.document, {}, {})
+            self._announce(app.name, proc.document, {}, {}, _pins(app))
             return
         # §3.3: the nodes with the capabilities answer, the others decline; the choice is made
         # when every live node asked has spoken, or at the deadline from the answers in
         known = set(self.ctx.known_nodes())
         pinned = {v.id: v.pinned for v in app.vertices.values() if v.pinned is not None}
-        proc.choosing = Choosing(proc.document, needs, pinned, known)
+        proc.choosing = Choosing(proc.document, needs, pinned, known, pins=_pins(app))
         proc.on(DeployEvent.ASKED)
         anchors = sorted(known) if any(n.near for n in needs) else []
         wanted = {n.vertex: dict(n.requires) for n in needs}
@@ -299,12 +300,21 @@ class Deployer:
                 self._refuse(proc, f"{self.ctx.id}: {why}")
 
     def _announce(
-        self, app: str, document: str, resolved: dict[str, str], capable: dict[str, list[str]]
+        self,
+        app: str,
+        document: str,
+        resolved: dict[str, str],
+        capable: dict[str, list[str]],
+        pins: set[str],
     ) -> None:
+        """To the app's first holders only (issue 24.1): this node, the nodes its vertices
+        are pinned to and those chosen by capability -- the chain heads' nodes; a builder is
+        sent the app by its chain head (:meth:`_build`)."""
         epoch = self._epochs = (self._epochs + 1) & 0x7FFFFFFF
-        self.ctx.broadcast(
-            m.AppAnnounce(app, self.ctx.id, document, epoch, dict(resolved), dict(capable))
-        )
+        msg = m.AppAnnounce(app, self.ctx.id, document, epoch, dict(resolved), dict(capable))
+        for node in sorted({self.ctx.id, *pins, *resolved.values()}):
+            if node not in self.ctx.failed:
+                self.ctx.send(node, msg)
 
     # -- every node: answers a capability query if it qualifies for a vertex -------------------
     def on_capability_query(self, src: str, msg: m.CapabilityQuery, now: float) -> None:
@@ -391,7 +401,7 @@ class Deployer:
             proc.tell_client(self.ctx, _failed_reply(proc.app, str(exc)))
             return
         proc.on(DeployEvent.CHOSEN)
-        self._announce(proc.app, ch.document, resolved, capable)
+        self._announce(proc.app, ch.document, resolved, capable, ch.pins)
 
     def on_built(self, msg: m.ChainBuilt, now: float) -> None:
         dep = self.ctx.apps.get(msg.app)
@@ -411,9 +421,15 @@ class Deployer:
         if len(dep.built) == len(dep.layout.chains):
             proc.on(DeployEvent.ALL_BUILT)
             self.ctx.end(proc.pid)
-            self.ctx.broadcast(m.StartApp(msg.app, self._incarnations(dep, dep.placed.values())))
+            start = m.StartApp(msg.app, self._incarnations(dep, dep.placed.values()))
+            self._to_holders(dep, start)
             elapsed = self.ctx.elapsed_ms(proc.started_at)
             proc.tell_client(self.ctx, m.DeployReply(msg.app, True, dict(dep.placed), elapsed))
+
+    def _to_holders(self, dep: AppState, msg: m.Message) -> None:
+        for node in sorted(holders(dep)):
+            if node not in self.ctx.failed:
+                self.ctx.send(node, msg)
 
     def _incarnations(self, dep: AppState, nodes: Iterable[str]) -> dict[str, int]:
         """The incarnations this node knows of ``nodes`` (itself included), for the app's
@@ -539,7 +555,18 @@ class Deployer:
         except MsoError as exc:
             self.ctx.send(dep.origin, m.DeployFailed(dep.app.name, f"{self.ctx.id}: {exc}"))
             return
-        self.ctx.broadcast(m.ChainPlaced(dep.app.name, ci, assigned))
+        announce = _announcement(dep)
+        for node in sorted(holders(dep) | set(assigned.values())):
+            if node in self.ctx.failed:
+                continue
+            if node not in holders(dep):  # a builder new to the app: the app, and what is
+                self.ctx.send(node, announce)  # placed so far, ahead of this chain's place
+                for cj in sorted(dep.placed_chains):
+                    verts = dep.layout.chains[cj].vertices
+                    self.ctx.send(
+                        node, m.ChainPlaced(dep.app.name, cj, {v: dep.placed[v] for v in verts})
+                    )
+            self.ctx.send(node, m.ChainPlaced(dep.app.name, ci, assigned))
 
     def on_placed(self, msg: m.ChainPlaced) -> None:
         dep = self.ctx.apps.get(msg.app)
@@ -768,3 +795,22 @@ def _deadline_s(req: m.DeployRequest) -> float:
 
 def _failed_reply(app: str, reason: str) -> m.DeployReply:
     return m.DeployReply(app=app, ok=False, placement={}, elapsed_ms=0.0, error=reason)
+
+
+def holders(dep: AppState) -> set[str]:
+    """The nodes that take part in the app by this node's view (issue 24.1): its origin, its
+    vertices' nodes and its replicas'."""
+    reps = {r for ns in dep.replica_nodes.values() for r in ns}
+    return {dep.origin, *dep.placed.values(), *dep.layout.pinned.values(), *reps}
+
+
+def _pins(app: App) -> set[str]:
+    return {v.pinned for v in app.vertices.values() if v.pinned is not None}
+
+
+def _announcement(dep: AppState) -> m.AppAnnounce:
+    """The app's announcement as its origin made it (a signed document travels verbatim)."""
+    resolved = dict(dep.layout.resolved)
+    return m.AppAnnounce(
+        dep.app.name, dep.origin, dep.document, dep.epoch, resolved, dict(dep.capable)
+    )

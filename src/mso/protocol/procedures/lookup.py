@@ -12,6 +12,7 @@ remap, or a recovery check. No coordinator: any node may look up, and a late ans
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from typing import ClassVar
 
 from mso.protocol import messages as m
@@ -21,6 +22,7 @@ from mso.protocol.procedures import placement
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
 from mso.protocol.procedures.relocation import Relocator
 from mso.protocol.procedures.remap import Remapper
+from mso.protocol.tapwire import Tap
 
 ROUNDS = 3  # rounds of asking the nodes answers name
 
@@ -38,7 +40,8 @@ class LookupEvent(enum.Enum):
     DEADLINE = "deadline"
 
 
-Then = m.RelocateRequest | m.RemapRequest | None  # what waits on the lookup (None: recovery)
+# what waits on the lookup (None: a recovery check)
+Then = m.RelocateRequest | m.RemapRequest | Tap | None
 
 
 class Lookup(Procedure):
@@ -62,6 +65,8 @@ class Lookup(Procedure):
         self.asked: set[str] = set()
         self.waiting: set[str] = set()
         self.rounds = 0
+        self.fetch = False  # this node held none of the app: the holders send it too
+        self.quiet = False  # only to bring the view up to date: nothing waits on it
 
     def refusal(self, why: str) -> m.Message | None:
         """(Its client waits for what the lookup lets go on: that request's reply.)"""
@@ -75,10 +80,17 @@ class Lookup(Procedure):
 class Lookups:
     """This node's lookups, and what each one lets go on when it ends."""
 
-    def __init__(self, ctx: NodeContext, relocator: Relocator, remapper: Remapper) -> None:
+    def __init__(
+        self,
+        ctx: NodeContext,
+        relocator: Relocator,
+        remapper: Remapper,
+        tap: Callable[[int, Tap, float], None],
+    ) -> None:
         self.ctx = ctx
         self.relocator = relocator
         self.remapper = remapper
+        self.tap = tap  # the data plane's taps: a client's tap, once the app is here
 
     def _lookup(self, pid: int) -> Lookup | None:
         proc = self.ctx.procedure(pid)
@@ -89,6 +101,8 @@ class Lookups:
         """A relocation asked of this node: at once if it hosts part of the app (its view is
         kept whole), else after a lookup. False if refused at once."""
         dep = self.ctx.apps.get(msg.app)
+        if dep is None and self._find(msg.app, client, msg, now):
+            return True
         if dep is None or dep.hosts_part() or not dep.running:
             return self.relocator.request(client, msg, now)
         self._start(msg.app, client, msg, now, wide=False)
@@ -97,22 +111,61 @@ class Lookups:
     def remap(self, client: int | None, msg: m.RemapRequest, now: float) -> None:
         """A remap asked of this node: as :meth:`relocate`."""
         dep = self.ctx.apps.get(msg.app)
+        if dep is None and self._find(msg.app, client, msg, now):
+            return
         if dep is None or dep.hosts_part() or not dep.running:
             self.remapper.request(client, msg, now)
             return
         self._start(msg.app, client, msg, now, wide=False)
 
-    def on_stale(self, app: str, wide: bool = True) -> None:
+    def tap_request(self, client: int, msg: Tap, now: float) -> None:
+        """A client's tap: at once if this node holds the app, else after finding it."""
+        if msg.app in self.ctx.apps or not self._find(msg.app, client, msg, now):
+            self.tap(client, msg, now)
+
+    def _find(self, app: str, client: int | None, then: Then, now: float) -> bool:
+        """A client's request for an app this node holds none of: only the nodes that take
+        part in an app hold it (issue 24.1), so it asks every node it reaches (as the status
+        fan-out does, once per request), the holders send the app with their view, and the
+        request goes on here as at a holder. False if nobody is there to ask."""
+        if any(isinstance(p, Lookup) and p.app == app and p.fetch for p in self.ctx.open()):
+            return False  # (one search at a time: the request is refused, not queued)
+        look = Lookup(self.ctx.new_pid(), now, app, client, then)
+        look.fetch = True
+        self.ctx.begin(look)
+        self._ask(look, set(self.ctx.known_nodes()))
+        if not look.waiting:
+            self._end(look, now)
+        return True
+
+    def on_stale(self, app: str, wide: bool = True, sync: bool = False) -> None:
         """A recovery this node would coordinate on a view it was not kept up to date on (it
         sees every instance of the app lost): look the placement up first, widely; or one it
-        would coordinate if that view is out of date (:meth:`Remapper.maybe_recover`): ask
-        the nodes it names."""
-        if not any(isinstance(p, Lookup) and p.app == app for p in self.ctx.open()):
-            self._start(app, None, None, self.ctx.now, wide=wide)
+        would coordinate if that view is out of date (``wide`` False,
+        :meth:`Remapper.maybe_recover`): ask the nodes it names. Or
+        (``sync``) the app just came with a sync: ask the nodes it names where they run
+        what (the sender may have been behind, and nobody tells this node of the moves made
+        since: seed 1079, a move's coordinator that had looked the app up 2 s before)."""
+        open_ = [p for p in self.ctx.open() if isinstance(p, Lookup) and p.app == app]
+        if not open_:
+            self._start(app, None, None, self.ctx.now, wide=wide and not sync, quiet=sync)
+        elif not sync and open_[0].quiet:  # a recovery now waits on the one under way
+            open_[0].quiet = False
+            if wide:
+                self._ask(open_[0], set(self.ctx.known_nodes()))
 
     # -- the lookup ------------------------------------------------------------------------------
-    def _start(self, app: str, client: int | None, then: Then, now: float, wide: bool) -> None:
+    def _start(
+        self,
+        app: str,
+        client: int | None,
+        then: Then,
+        now: float,
+        wide: bool,
+        quiet: bool = False,
+    ) -> None:
         look = Lookup(self.ctx.new_pid(), now, app, client, then)
+        look.quiet = quiet
         self.ctx.begin(look)
         dep = self.ctx.apps[app]
         first = set(self.ctx.known_nodes()) if wide else placement.members(dep)
@@ -129,16 +182,24 @@ class Lookups:
         look.asked |= new
         look.waiting |= new
         for n in sorted(new):
-            self.ctx.send(n, m.PlacementQuery(look.app, look.pid))
+            self.ctx.send(n, m.PlacementQuery(look.app, look.pid, look.fetch))
 
     def on_reply(self, src: str, msg: m.PlacementReply, now: float) -> None:
         look = self._lookup(msg.qid)
         dep = self.ctx.apps.get(msg.app)
-        if look is None or dep is None or msg.app != look.app or src not in look.waiting:
+        if look is None or msg.app != look.app or src not in look.waiting:
             self.ctx.refusal("placement_reply_unexpected")
+            return
+        if dep is None and not (look.fetch and not msg.placed):
+            self.ctx.refusal("placement_reply_unexpected")  # (its app sync did not come)
             return
         look.on(LookupEvent.ANSWER)
         look.waiting.discard(src)
+        if dep is None:  # a node that holds none of it either
+            if not look.waiting:
+                look.on(LookupEvent.ALL_ANSWERED)
+                self._end(look, now)
+            return
         signed = self.ctx.failed if self.ctx.authority.signed else None  # (the hosts' word)
         placement.merge(
             dep, src, msg.placed, msg.versions, msg.vanished, now, signed, here=self.ctx.id
@@ -169,7 +230,10 @@ class Lookups:
                 self.ctx.refusal("relocate_refused")
         elif isinstance(look.then, m.RemapRequest):
             self.remapper.request(look.client, look.then, now, asked_at=look.started_at)
-        elif dep is not None:
+        elif isinstance(look.then, Tap):
+            if look.client is not None:
+                self.tap(look.client, look.then, now)
+        elif dep is not None and not look.quiet:
             dep.looked_up = frozenset(self.ctx.failed)
             self.ctx.publish(RecoveryDue(look.app))
 

@@ -36,7 +36,7 @@ from typing import Any
 
 from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
-from mso.protocol.events import PlacementStale, RecoveryDue, Superseded
+from mso.protocol.events import AppMissing, PlacementStale, RecoveryDue, Superseded
 from mso.protocol.spill import placement_notes
 from mso.protocol.state import AppState
 
@@ -208,7 +208,9 @@ def prepare(
     that hosts no part of it yet and so was not told of its moves (and the operator's order
     it carries out, if any: :mod:`mso.protocol.warrant`)."""
     snapshot = dict(dep.placed), versions(dep), sorted(dep.vanished)
-    replicas = list(dep.replica_nodes.get(vertex, [])) if restore else []
+    # a restore's: where to fetch its state; a move's: the replicas the new host tells when
+    # it has its own (they let the snapshot, and the app, go: issue 24.1)
+    replicas = list(dep.replica_nodes.get(vertex, []))
     return m.Prepare(dep.app.name, vertex, rid, restore, resumes or [], *snapshot, replicas, order)
 
 
@@ -349,6 +351,8 @@ def reply(ctx: NodeContext, src: str, msg: m.PlacementQuery) -> None:
     if dep is None:  # an empty answer: the asker need not wait for it
         ctx.send(src, m.PlacementReply(msg.app, msg.qid, {}))
         return
+    if msg.fetch:  # the asker holds none of it: the app first (issue 24.1)
+        ctx.publish(AppMissing(msg.app, src, ahead=True))
     snapshot = dict(dep.placed), versions(dep), sorted(dep.vanished)
     ctx.send(src, m.PlacementReply(msg.app, msg.qid, *snapshot))
 

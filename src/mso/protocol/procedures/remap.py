@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Collection
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -495,12 +496,14 @@ class Remapper:
         if not lost:
             return
         alive = {self.ctx.id, *(n for n in routes if n not in failed)}
-        if recovery_coordinator(dep.placed, lost, alive) != self.ctx.id:
-            # with every instance lost, the lowest node alive coordinates; its view (not kept
-            # up to date: it hosts nothing) names a host, maybe one a vertex has left since,
-            # whose view named this one: nobody recovered (fault seed 66410). It asks the
-            # nodes its view names first, once per set of failures
-            stale = min(alive) == self.ctx.id and not dep.hosts_part()
+        holding = {dep.origin, *(n for ns in dep.replica_nodes.values() for n in ns)}
+        if recovery_coordinator(dep.placed, lost, alive, holding) != self.ctx.id:
+            # with every instance lost, the lowest live holder (else node alive) coordinates;
+            # its view (not kept up to date: it hosts nothing) names a host, maybe one a vertex
+            # has left since, whose view named this one: nobody recovered (fault seed 66410).
+            # It asks the nodes its view names first, once per set of failures
+            alone = recovery_coordinator({}, set(), alive, holding) == self.ctx.id
+            stale = alone and not dep.hosts_part()
             if stale and dep.looked_up != frozenset(failed):
                 self.ctx.publish(PlacementStale(dep.app.name, wide=False))
             return
@@ -589,13 +592,16 @@ class RecoveryPlan:
     place: dict[str, str] = field(default_factory=dict)
 
 
-def recovery_coordinator(placed: dict[str, str], lost: set[str], alive: set[str]) -> str:
+def recovery_coordinator(
+    placed: dict[str, str], lost: set[str], alive: set[str], holders: AbstractSet[str] = frozenset()
+) -> str:
     """The one node that recovers an app: the lowest-named node that still hosts part of it,
-    or if none does (every instance went at once), the lowest-named node alive. Every node
-    derives the same answer from the same placement and failure set, so two detectors never
-    both remap."""
+    or if none does (every instance went at once), the lowest-named live one of ``holders``
+    (its origin and replicas': only the nodes that take part in an app hold it, issue 24.1),
+    else the lowest-named node alive. Every node derives the same answer from the same
+    placement and failure set, so two detectors never both remap."""
     hosting = {n for v, n in placed.items() if v not in lost}
-    return min(hosting or alive)
+    return min(hosting or (alive & holders) or alive)
 
 
 def routes_settled(routes: dict[str, tuple[str, int]], failed: set[str]) -> bool:

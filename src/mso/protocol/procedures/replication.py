@@ -50,6 +50,7 @@ from mso.protocol import provenance
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import REPLICA_OWNER, DataPlane
 from mso.protocol.events import (
+    AppMissing,
     InstanceReady,
     PeerFailed,
     ReplacementPrepared,
@@ -59,6 +60,7 @@ from mso.protocol.events import (
     Snapshotted,
 )
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, StateMachine, Table
+from mso.protocol.procedures.deploy import holders
 from mso.protocol.provenance import Marks
 from mso.protocol.state import (
     SNAPSHOT_MARK,
@@ -129,6 +131,8 @@ class Replication(StateMachine):
         self.announced: list[str] = []  # the set broadcast last
         self.acked: set[str] = set()
         self.attempts: dict[str, int] = {}  # replica -> sends of the current snapshot
+        self.told: set[str] = set()  # replicas sent the app by this host (issue 24.1)
+        self.former: set[str] = set()  # replicas replaced while out of reach, not told so
         self.marks: Marks | None = None  # a forwarder's, at the snapshot
         self.snapshot: Snapshot | None = None  # being replicated (the newest taken)
         self.inputs: dict[int, int] = {}  # positions captured at the mark
@@ -161,6 +165,7 @@ class Replicator:
         self.hosting: dict[tuple[str, str], Replication] = {}
         self._armed: set[str] = set()  # apps whose tick is set
         self.held = _Held()
+        self._asked: dict[tuple[str, str], float] = {}  # (app, vertex) -> asked its host
 
     def on_reset(self) -> None:
         self.hosting.clear()
@@ -173,6 +178,10 @@ class Replicator:
         dep = self.ctx.apps.get(ev.app)
         if dep is not None and dep.replicas.get(ev.vertex):
             self._arm(ev.app, self.ctx.now)
+            # a host is not its own replica: a copy held here from before (it was one, or a
+            # replacement here started from it) would keep the app here for ever once the
+            # vertex moves on (issue 24.1)
+            dep.held.pop(ev.vertex, None)
 
     def _arm(self, app: str, at: float) -> None:
         if app not in self._armed:
@@ -203,6 +212,8 @@ class Replicator:
                 rep = self.hosting[(app, vid)] = Replication(app, vid, h.instance, now)
                 dep.replication[vid] = ReplicationCost(since=now)
                 rep.replicas = self._choose(dep, vid, n, [])
+                # the replicas of the instance before (a move, a restore): told the new set
+                rep.former = set(dep.replica_nodes.get(vid, [])) - {self.ctx.id}
                 self._due(dep, h, rep)
             elif rep.state is S.IDLE and now - rep.taken_at >= v.snapshot_s - 1e-9:
                 if len(rep.replicas) < n:  # too few nodes were reachable: try again
@@ -314,6 +325,12 @@ class Replicator:
             return
         rep.attempts[node] = rep.attempts.get(node, 0) + 1
         rep.sent_at = self.ctx.now
+        new = node not in rep.told and node not in holders(dep)
+        rep.told.add(node)
+        if new or rep.attempts[node] > 1:
+            # only the nodes that take part in an app hold it (issue 24.1): a new replica,
+            # or one silent (reset, restarted, or it let the app go), gets it first
+            self.ctx.publish(AppMissing(rep.app, node, ahead=True))
         self.ctx.send(node, _replicate(rep.app, rep.vertex, snap))
         cost = dep.replication.get(rep.vertex)
         if cost is not None:
@@ -334,6 +351,15 @@ class Replicator:
     def on_replica_ack(self, src: str, msg: m.ReplicaAck) -> None:
         rep = self.hosting.get((msg.app, msg.vertex))
         dep = self.ctx.apps.get(msg.app)
+        if rep is None or src not in rep.replicas:
+            # a copy's holder asks whether it is still a replica (ask_if_replica): not of
+            # this node's instance, if any (the set it has, or none)
+            nodes = list(rep.replicas) if rep is not None else []
+            if len(msg.vertex) <= 256 and msg.vertex and src not in nodes:
+                self.ctx.send(src, m.ReplicaSet(msg.app, msg.vertex, nodes))
+        elif msg.k == -1 and dep is not None and rep.snapshot is not None:
+            self._send(dep, rep, src)  # a replica with no copy asks for it (ask_if_replica)
+            return
         if rep is None or dep is None or rep.state is not S.REPLICATING or msg.k != rep.k:
             self.ctx.dropped()  # (a late ack of an earlier snapshot, or of a gone instance)
             return
@@ -363,10 +389,19 @@ class Replicator:
             cost.acked_at = rep.aligned_at
             cost.acked_processed = snap.processed
             cost.replicas = list(rep.replicas)
+        # replicas replaced since (in reach): told they are no longer, so they let their
+        # snapshot, and the app, go (issue 24.1: only the nodes that take part hold it)
+        routes = self.ctx.routes
+        told = {n for n in rep.former if n in routes and n not in rep.replicas}
+        rep.former -= told | set(rep.replicas)
+        to = told
         if rep.replicas != rep.announced and rep.replicas:
-            rep.announced = list(rep.replicas)
-            self.ctx.broadcast(m.ReplicaSet(rep.app, rep.vertex, rep.announced))
+            before, rep.announced = rep.announced, list(rep.replicas)
             dep.replica_nodes[rep.vertex] = list(rep.announced)
+            to = holders(dep) | set(before) | told  # (the app's holders, not everyone)
+        msg = m.ReplicaSet(rep.app, rep.vertex, list(rep.replicas))
+        for node in sorted(to - {self.ctx.id}):
+            self.ctx.send(node, msg)
         h = dep.instances.get(rep.vertex)
         if h is not None and h.instance == rep.instance:
             h.snapshot_at = h.processed + dep.app.vertices[rep.vertex].snapshot_events
@@ -376,6 +411,7 @@ class Replicator:
         or, between snapshots, a new one at once (re-replication)."""
         n = dep.replicas.get(rep.vertex, 0)
         keep = [r for r in rep.replicas if r != node]
+        rep.former.add(node)
         rep.replicas = self._choose(dep, rep.vertex, n, keep)
         rep.on(ReplicationEvent.REPLICA_LOST)
         rep.acked &= set(rep.replicas)
@@ -437,20 +473,51 @@ class Replicator:
             self._fetched(dep, src, msg, snap)
             return
         old = dep.held.get(msg.vertex)
+        snap.got_at = self.ctx.now
         if old is None or old.src != src or msg.k > old.k:
             dep.held[msg.vertex] = snap
             self.held.stored += 1
         else:
+            old.got_at = self.ctx.now
             self.held.stale += 1
         self.ctx.send(src, m.ReplicaAck(msg.app, msg.vertex, msg.k))
+
+    def ask_if_replica(self, dep: AppState, now: float, every: float) -> None:
+        """This node takes no other part in the app and its copies have not been refreshed
+        for ``every``: ask each copy's host, by acknowledging the copy again, whether this
+        node is still its replica (one replaced while out of reach, or by an instance it
+        was not told of, is told so and lets the copy go: issue 24.1). A host that failed
+        is not asked: its replacement may fetch the copy."""
+        me, failed, app = self.ctx.id, self.ctx.failed, dep.app.name
+        for vid, snap in dep.held.items():
+            src = snap.src
+            if now - snap.got_at < every or now - snap.asked_at < every:
+                continue
+            if src and src != me and src not in failed:
+                snap.asked_at = now
+                self.ctx.send(src, m.ReplicaAck(app, vid, snap.k))
+        # named a replica with no copy here (reset, restarted, or the app came with a sync):
+        # the host by this node's view sends one, or says this node is none
+        for vid, nodes in dep.replica_nodes.items():
+            host = dep.placed.get(vid, "")
+            if me not in nodes or vid in dep.held or not host or host == me or host in failed:
+                continue
+            if now - self._asked.get((app, vid), -every) >= every:
+                self._asked[(app, vid)] = now
+                self.ctx.send(host, m.ReplicaAck(app, vid, -1))
+        if len(self._asked) > 4096:  # (bounded: the oldest go)
+            for key in sorted(self._asked, key=self._asked.__getitem__)[:2048]:
+                del self._asked[key]
 
     def on_fetch(self, src: str, msg: m.FetchReplica) -> None:
         """A replacement asks for the snapshot held here."""
         dep = self.ctx.apps.get(msg.app)
-        if dep is None or msg.vertex not in dep.replicas:
+        if dep is not None and msg.vertex not in dep.replicas:
             self.ctx.refusal("fetch_replica_unknown")
             return
-        snap = dep.held.get(msg.vertex)
+        # (a node that let the app go holds no copy: it says so, and the replacement goes
+        # on with the others' answers instead of waiting for it)
+        snap = dep.held.get(msg.vertex) if dep is not None else None
         self.held.served += 1
         if snap is None:
             reply = m.Replicate(msg.app, msg.vertex, -1, b"", {}, {}, rid=msg.rid)

@@ -131,3 +131,6 @@ class AppSync(_Msg, tag="app_sync"):
     # how many moves of each vertex the sender knows of: its hearsay never replaces a later
     # placement the receiver knows (a node that missed a move syncs its older view)
     versions: dict[str, int] = msgspec.field(default_factory=dict)
+    # where each replicated vertex's replicas are, as the sender knows (issue 24.1: a node
+    # given the app learns them, so a host it becomes tells the old ones they are no more)
+    replicas: dict[str, list[str]] = msgspec.field(default_factory=dict)

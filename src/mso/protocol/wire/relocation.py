@@ -145,10 +145,13 @@ class HandoverDone(_Msg, tag="handover_done"):
 
 class PlacementQuery(_Msg, tag="where"):
     """Where do the vertices of ``app`` run, as you know it? From a node about to act on an
-    app it hosts no part of (its view is not kept up to date: it asks first)."""
+    app it hosts no part of (its view is not kept up to date: it asks first). With
+    ``fetch``, from a node that holds none of it (a client's request there): a node that
+    holds it sends the app first (``AppSync``), as only the nodes that take part hold it."""
 
     app: str
     qid: int
+    fetch: bool = False
 
 
 class PlacementReply(_Msg, tag="where_reply"):

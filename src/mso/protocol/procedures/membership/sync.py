@@ -8,15 +8,16 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from mso.errors import MsoError
+from mso.model.app import MAX_REPLICAS
 from mso.planning.placement import Layout
 from mso.protocol import messages as m
 from mso.protocol.authority import generation
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import RETRANSMIT_S
 from mso.protocol.effects import SetTimer
-from mso.protocol.events import AppMissing, Retransmit
+from mso.protocol.events import AppMissing, PlacementStale, Retransmit
 from mso.protocol.procedures import placement
-from mso.protocol.procedures.deploy import Deployer
+from mso.protocol.procedures.deploy import Deployer, holders
 from mso.protocol.procedures.remap import Remapper
 from mso.protocol.state import AppState
 
@@ -86,6 +87,8 @@ class AppSyncing:
         live vertex placed there, now vanished, or on nodes held failed): then every node that
         holds it does, as no host will (seed 866: a line whose far end alone held the app, the
         restarted node's one neighbour back empty too)."""
+        if node not in holders(dep):  # issue 24.1: only the nodes that take part hold it
+            return False
         if dep.instances or self.ctx.id in dep.placed.values() or self._first_to_hear(node):
             return True
         return not any(
@@ -186,6 +189,7 @@ class AppSyncing:
             {n: self._incarnations[n] for n in set(placed.values()) if n in self._incarnations}
             | {self.ctx.id: self.incarnation},
             placement.versions(dep),
+            {v: list(ns) for v, ns in dep.replica_nodes.items()},
         )
 
     def _outlived(self, msg: m.AppSync) -> set[str]:
@@ -218,7 +222,7 @@ class AppSyncing:
         dep, node = self.ctx.apps.get(ev.app), ev.node
         if dep is None or node in self.failed or node == self.ctx.id or not dep.running:
             return
-        if self._disputed():
+        if self._disputed() and not ev.ahead:
             self._sync_pending.add(node)
         else:
             self.ctx.send(node, self._app_sync(dep))
@@ -261,6 +265,9 @@ class AppSyncing:
             return
         self.learn_incarnations(msg.incarnations)
         if held is not None:
+            for v, ns in msg.replicas.items():  # (where this node knows none)
+                if held.replicas.get(v) and not held.replica_nodes.get(v):
+                    held.replica_nodes[v] = [n for n in ns[:MAX_REPLICAS] if isinstance(n, str)]
             self._merge_sync(src, held, msg)
             self.recovery.unpark(held)
             self.recovery.park(held)
@@ -285,6 +292,11 @@ class AppSyncing:
         }
         dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
         dep.versions = {v: k for v, k in msg.versions.items() if v in app.vertices and k > 0}
+        dep.replica_nodes = {  # (bounded as a ReplicaSet is)
+            v: [n for n in ns[:MAX_REPLICAS] if isinstance(n, str)]
+            for v, ns in msg.replicas.items()
+            if dep.replicas.get(v)
+        }
         if signed:  # on the sender's word alone (_corroborate)
             dep.hearsay = {
                 v: {n: {src}}
@@ -303,6 +315,8 @@ class AppSyncing:
         self.recovery.park(dep)
         self.recovery.maybe_recover(dep, now)
         self._pass_on(src, dep, now)
+        if src not in msg.placed.values():  # (a host's view is kept up to date: no need)
+            self.ctx.publish(PlacementStale(msg.app, sync=True))
 
 
 def _claimed(dep: AppState) -> list[str]:

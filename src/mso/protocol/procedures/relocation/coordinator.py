@@ -73,12 +73,23 @@ class Coordinator(Role):
         self.prepare(dep, reloc)
         return True
 
+    def _send_prepare(self, dep: AppState, reloc: Relocation, prepare: m.Prepare) -> None:
+        """A ``Prepare``, after the app for a target that may not hold it: only the nodes
+        that take part in an app hold it (issue 24.1), so a target that runs none of it by
+        this node's view (a node just chosen by capability is pinned, not yet a host), or one
+        asked again (it may have let the app go), is sent it first."""
+        target = reloc.target
+        hosts = {dep.origin, *dep.placed.values()}
+        if target != self.ctx.id and (target not in hosts or reloc.attempts > 1):
+            self.ctx.publish(AppMissing(dep.app.name, target, ahead=True))
+        self.ctx.send(target, prepare)
+
     def prepare(self, dep: AppState, reloc: Relocation) -> None:
         """Ask a move's target to prepare an instance. With operator keys the vertex's host,
         if another node, is told the move too (``Moving``), so it knows the markers that
         will come for it (:class:`mso.protocol.warrant.Leaving`)."""
         order = reloc.order
-        self.ctx.send(reloc.target, placement.prepare(dep, reloc.vertex, reloc.pid, order=order))
+        self._send_prepare(dep, reloc, placement.prepare(dep, reloc.vertex, reloc.pid, order=order))
         if self.ctx.authority.signed and reloc.source != self.ctx.id:
             moving = m.Moving(reloc.app, reloc.vertex, reloc.pid, reloc.target, order)
             self.ctx.send(reloc.source, moving)
@@ -201,7 +212,7 @@ class Coordinator(Role):
         reloc.attempts += 1
         if reloc.attempts == 1:
             prepare = placement.prepare(dep, reloc.vertex, reloc.pid, order=reloc.order)
-            self.ctx.send(reloc.target, prepare)
+            self._send_prepare(dep, reloc, prepare)
         else:
             self.ctx.emit(SetTimer(Retry(reloc.pid, reloc.attempts), now + STEP_TIMEOUT_S / 4))
         return True
@@ -304,7 +315,7 @@ class Coordinator(Role):
         ] + [[i, False] for i, e in enumerate(edges) if e.src == reloc.vertex and e.dst not in lost]
         reloc.attempts += 1
         prepare = placement.prepare(dep, reloc.vertex, rid, True, reloc.resumes, reloc.order)
-        self.ctx.send(reloc.target, prepare)
+        self._send_prepare(dep, reloc, prepare)
         self.ctx.emit(SetTimer(Retry(rid, reloc.attempts), now + STEP_TIMEOUT_S))
 
     def on_retry(self, key: Retry, now: float) -> None:
@@ -317,7 +328,7 @@ class Coordinator(Role):
         if not reloc.restore:  # a move's target that did not hold the app (_ask_again)
             if reloc.state is S.PREPARING and key.attempt == reloc.attempts:
                 prepare = placement.prepare(dep, reloc.vertex, rid, order=reloc.order)
-                self.ctx.send(reloc.target, prepare)
+                self._send_prepare(dep, reloc, prepare)
             return
         if reloc.attempts >= STEP_ATTEMPTS or reloc.target in self.ctx.failed:
             why = f"restoring {reloc.vertex!r} on {reloc.target} did not complete"

@@ -77,8 +77,8 @@ class NewHost(Role):
         )
         if briefed and vid in dep.app.vertices:  # (a target told of none of the app's moves)
             placement.brief(dep, vid, msg.placed, msg.versions, self.ctx.now)
-        if msg.restore and dep.replicas.get(vid) and not dep.replica_nodes.get(vid):
-            dep.replica_nodes[vid] = list(msg.replicas[:MAX_REPLICAS])  # (as a ReplicaSet)
+        if dep.replicas.get(vid) and not dep.replica_nodes.get(vid):  # (as a ReplicaSet: a
+            dep.replica_nodes[vid] = list(msg.replicas[:MAX_REPLICAS])  # move's are told, later)
         if vid in dep.app.vertices and msg.restore and self._restored_since(dep, vid, src, msg):
             return
         twin = self._twins.get((msg.app, vid)) if vid in dep.awaiting else None

@@ -1,0 +1,72 @@
+"""Issue 24.1: an app is held only by the nodes that take part in it -- its origin, its
+vertices' nodes, its replicas' -- and any node can still answer for it."""
+
+from __future__ import annotations
+
+import pytest
+
+from mso.model.appfile import with_planner
+from mso.protocol import messages as m
+from mso.protocol.procedures.deploy import holders
+from mso.scenario.format import loads_scenario
+from mso.scenario.generate import Spec, dumps, generate, pipelines
+from mso.sim.runner import Simulation
+
+
+def _grid(n: int) -> Simulation:
+    spec = Spec("grid", n, seed=1, degree=4)
+    return Simulation(loads_scenario(dumps(generate(spec), spec), file="grid.yaml").network)
+
+
+def _deployed(n: int) -> tuple[Simulation, str]:
+    sim = _grid(n)
+    nodes = sorted(sim.cores)
+    (src, doc), = pipelines([nodes[0], nodes[n // 2]], 1, seed=0, rate=20.0)  # fmt: skip
+    sim.request(src, m.DeployRequest(with_planner(doc, "paper"), "app.yaml"))
+    sim.run_until(3.0)
+    reply = sim.replies[-1][2]
+    assert isinstance(reply, m.DeployReply) and reply.ok, reply
+    return sim, src
+
+
+@pytest.mark.parametrize("n", [25, 100])
+def test_a_node_that_takes_no_part_in_an_app_does_not_hold_it(n: int) -> None:
+    sim, origin = _deployed(n)
+    dep = sim.cores[origin].apps["app0"]
+    taking_part = holders(dep)
+    assert origin in taking_part and len(taking_part) < n // 4
+    held = {x for x, core in sim.cores.items() if "app0" in core.apps}
+    assert held == taking_part, (sorted(held - taking_part), sorted(taking_part - held))
+
+
+def test_status_from_a_node_that_does_not_hold_the_app_still_reports_it() -> None:
+    sim, origin = _deployed(25)
+    outsider = max(x for x, core in sim.cores.items() if "app0" not in core.apps)
+    sim.request(outsider, m.StatusRequest(req=7, everywhere=True), client=9)
+    sim.run_until(sim.now + 2.0)
+    (reply,) = [r for _, c, r in sim.replies if c == 9]
+    assert isinstance(reply, m.StatusReply)
+    assert "app0" not in reply.nodes[outsider]["apps"]
+    told = {x for x, st in reply.nodes.items() if "app0" in st["apps"]}
+    assert origin in told
+    placed = reply.nodes[origin]["apps"]["app0"]["placement"]
+    assert set(placed.values()) <= told
+
+
+def test_a_vertex_whose_host_died_is_recovered_though_few_nodes_hold_the_app() -> None:
+    sim, origin = _deployed(25)
+    placed = dict(sim.cores[origin].apps["app0"].placed)
+    pins = set(sim.cores[origin].apps["app0"].layout.pinned.values())
+    victims = sorted({placed[v] for v in placed} - pins - {origin})
+    assert victims, placed  # (the paper's split puts a vertex on an interior node)
+    before = {x for x, core in sim.cores.items() if "app0" in core.apps}
+    sim.kill(victims[0], convergence_s=0.2)
+    sim.run_until(sim.now + 6.0)
+    after = dict(sim.cores[origin].apps["app0"].placed)
+    lost = [v for v, node in placed.items() if node == victims[0]]
+    assert all(after[v] not in sim.killed for v in lost), after
+    newcomers = {after[v] for v in lost} - before
+    for node in {after[v] for v in lost}:
+        assert "app0" in sim.cores[node].apps  # the new host was sent the app
+        assert all(v in sim.cores[node].apps["app0"].instances for v in lost if after[v] == node)
+    assert newcomers or {after[v] for v in lost} <= before
