@@ -159,9 +159,12 @@ def run(
             if not died:  # the energy spent while every robot lives (see network_energy)
                 alive_j = (sim.now, sum(mon.energy_j for mon in mons.values()))
         wall = time.perf_counter() - started
+        # only the nodes that take part in the app hold it (issue 24.1): read its holders
+        holders = [c.apps["convoy"] for c in sim.cores.values() if "convoy" in c.apps]
         emitted = {
             v: h.emitted
-            for v, h in sim.cores[LEADER].apps["convoy"].instances.items()
+            for dep in holders
+            for v, h in dep.instances.items()
             if v in ("laser", "visible_camera")
         }
         relocations = sorted(
@@ -169,7 +172,12 @@ def run(
             for c in sim.cores.values()
             for d in c.manager.done
         )
-        final = {v: c.id for c in sim.cores.values() for v in c.apps["convoy"].instances}
+        final = {
+            v: c.id
+            for c in sim.cores.values()
+            if "convoy" in c.apps
+            for v in c.apps["convoy"].instances
+        }
     finally:
         storage.set_clock(time.monotonic)
         if old_db is None:
