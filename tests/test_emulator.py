@@ -356,7 +356,9 @@ def test_relocation_across_processes_keeps_every_event() -> None:
 
     replies, status, upto, later = asyncio.run(run())
     assert sum(r.ok for r in replies) >= 3, [r.error for r in replies]
-    hosts = [n for n, st in status.items() if "mid" in st["apps"]["pipe"]["vertices"]]
+    hosts = [  # (a node that takes no part in the app holds none of it: issue 24.1)
+        n for n, st in status.items() if "mid" in st["apps"].get("pipe", {}).get("vertices", {})
+    ]
     assert len(hosts) == 1
     got = sink(status)
     assert got["repeats"] == 0 and got["out_of_order"] == 0  # the counter's state moved too
@@ -462,7 +464,7 @@ def test_a_killed_relay_is_detected_and_its_chain_recovered() -> None:
             emu.kill(victim)
 
             def recovered(st: dict[str, Any]) -> bool:
-                records = [r for s in st.values() for r in s["apps"]["pipe"]["recoveries"]]
+                records = [r for s in st.values() for r in recoveries(s)]
                 told = all(s["failed_nodes"] == [victim] for s in st.values())
                 return victim not in st and told and any(r["ok"] for r in records)
 
@@ -479,15 +481,24 @@ def test_a_killed_relay_is_detected_and_its_chain_recovered() -> None:
     assert victim not in status
     for node, st in status.items():
         assert st["failed_nodes"] == [victim], node
-    records = [r for st in status.values() for r in st["apps"]["pipe"]["recoveries"]]
+    records = [r for st in status.values() for r in recoveries(st)]
     assert len(records) == 1 and records[0]["ok"], records
-    hosts = [n for n, st in status.items() if "mid" in st["apps"]["pipe"]["vertices"]]
+    hosts = [  # (a node that takes no part in the app holds none of it: issue 24.1)
+        n for n, st in status.items() if "mid" in st["apps"].get("pipe", {}).get("vertices", {})
+    ]
     assert len(hosts) == 1 and hosts[0] != victim
     got = sink_at(status, "N6")
     assert got["repeats"] == 0 and got["out_of_order"] == 0
     # in order, no gap and no repeat: every event emitted by the first reading has arrived (the
     # source runs on while the sink is read, so the sink may be a little ahead of that reading)
     assert got["count"] >= emitted
+
+
+def recoveries(node_status: dict[str, Any]) -> list[dict[str, Any]]:
+    """The pipe's recoveries a node records; none at a node that holds none of the app (only
+    its origin, hosts and replicas' nodes hold it: issue 24.1)."""
+    got: list[dict[str, Any]] = node_status["apps"].get("pipe", {}).get("recoveries", [])
+    return got
 
 
 def sink_at(status: dict[str, Any], node: str) -> dict[str, int]:
@@ -566,7 +577,8 @@ def test_a_cut_off_sink_node_rejoins_when_its_link_comes_back() -> None:
         return "N4" in st["N1"]["unreachable_nodes"] and "src-mid-sink" in (parked(st, "N1") or {})
 
     def back(st: dict[str, Any]) -> bool:
-        healed = all(not s["unreachable_nodes"] and parked(st, n) == {} for n, s in st.items())
+        # (a node that takes no part in the app holds none of it: parked None, issue 24.1)
+        healed = all(not s["unreachable_nodes"] and not parked(st, n) for n, s in st.items())
         return healed and "N4" in st and sink_at(st, "N4")["count"] > during_count + 100
 
     during_count = 0
@@ -597,7 +609,7 @@ def test_a_cut_off_sink_node_rejoins_when_its_link_comes_back() -> None:
     why = during["N1"]["apps"]["pipe"]["parked"]["src-mid-sink"]
     assert why == "'sink' is pinned to N4, out of reach", why
     for node, st in after.items():
-        assert st["failed_nodes"] == [] and st["apps"]["pipe"]["parked"] == {}, node
+        assert st["failed_nodes"] == [] and not parked(after, node), node
         assert st["incarnation"] == before[node]["incarnation"], node  # nobody reset
     got = sink(after)  # the same sink: every event kept while it was away, in order
     assert got["count"] > 100 and got["repeats"] == 0 and got["out_of_order"] == 0, got
