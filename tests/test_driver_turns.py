@@ -6,6 +6,7 @@ queued elsewhere (a client's request, a worker thread's result) still get a turn
 from __future__ import annotations
 
 import asyncio
+import threading
 
 import pytest
 
@@ -74,5 +75,39 @@ def test_jobs_made_outside_a_read_or_a_timer_get_a_turn_of_their_own(
         for _ in range(3):
             await asyncio.sleep(0)
         assert ran == ["inline"]
+
+    asyncio.run(run())
+
+
+def test_a_prepare_that_overtakes_its_apps_sync_while_it_warms_follows_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Only the nodes that take part in an app hold it (issue 24.1): a restore's target is
+    sent the app (``AppSync``) just ahead of its ``Prepare``. The sync of an app new to the
+    node is held while its imports warm in a thread; the ``Prepare`` behind it must wait for it,
+    or the target answers "does not run app" (the restore failed, the recovery ran twice)."""
+
+    async def run() -> None:
+        driver, _ = make(monkeypatch)
+        imported = threading.Event()
+        monkeypatch.setattr(d, "warm_imports", lambda document: imported.wait(10))
+        got: list[str] = []
+        both = asyncio.Event()
+
+        def receive(src: str, msg: m.Message, now: float) -> list[object]:
+            got.append(type(msg).__name__)
+            if len(got) == 2:
+                both.set()
+            return []
+
+        monkeypatch.setattr(driver.core, "receive", receive)
+        sync = m.AppSync("pipe", "N1", "name: pipe", 1, {"mid": "N2"})
+        driver._receive("N1", sync)
+        driver._receive("N1", m.Prepare("pipe", "mid", 7, restore=True))
+        driver._read_done()
+        assert got == []  # the sync still warms: the prepare waits behind it
+        imported.set()
+        await asyncio.wait_for(both.wait(), 10)
+        assert got == ["AppSync", "Prepare"]
 
     asyncio.run(run())

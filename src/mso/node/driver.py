@@ -97,6 +97,9 @@ class NodeDriver:
         self._loop_thread = threading.get_ident()
         self.stopped = asyncio.Event()
         self._warmed: set[int] = set()  # app documents whose imports are done
+        # apps whose announcement or sync is warming in a thread: the messages for the app
+        # that arrive meanwhile, held to follow it in order (bounded: MAX_HELD_WARMING)
+        self._warming: dict[str, list[tuple[str, m.Message]]] = {}
         self.seen: dict[str, int] = {}  # what happened, by kind: the stop line's summary
 
     @property
@@ -146,10 +149,39 @@ class NodeDriver:
     # -- inbound ----------------------------------------------------------------------------
     def _receive(self, src: str, msg: m.Message) -> None:
         self._in_turn = True  # (until the read's end: ``_read_done``)
+        app = getattr(msg, "app", None)
+        if isinstance(app, str) and app in self._warming:
+            self._hold_warming(app, src, msg)
+            return
         if isinstance(msg, m.AppAnnounce | m.AppSync) and msg.app not in self.core.apps:
-            self._warm(msg.document, lambda: self._receive_now(src, msg))
+            if hash(msg.document) not in self._warmed:
+                self._warming[msg.app] = []
+            self._warm(msg.document, lambda: self._warmed_app(msg.app, src, msg))
             return
         self._receive_now(src, msg)
+
+    def _hold_warming(self, app: str, src: str, msg: m.Message) -> None:
+        """A message for an app whose announcement or sync is warming: it follows that, in
+        order. Only the nodes that take part in an app hold it (issue 24.1): a move's or
+        restore's target is sent the app (``AppSync``) just ahead of its ``Prepare``, and a
+        ``Prepare`` that overtook the sync was answered "does not run app" (a restore failed,
+        and the recovery ran twice)."""
+        held = self._warming[app]
+        if len(held) >= MAX_HELD_WARMING:
+            self.core.refusal("held_while_warming_full")
+            return
+        held.append((src, msg))
+
+    def _warmed_app(self, app: str, src: str, msg: m.Message) -> None:
+        """The app's imports are done: its announcement or sync, then what came meanwhile."""
+        held = self._warming.pop(app, [])
+        self._receive_now(src, msg)
+        for s, later in held:
+            if self.stopped.is_set():
+                return
+            self._receive(s, later)
+        if held:
+            self._read_done()
 
     def _receive_now(self, src: str, msg: m.Message) -> None:
         if isinstance(msg, m.StatusRequest):
@@ -345,6 +377,8 @@ async def run_node(core: NodeCore, host: str, port: int, psk: bytes) -> None:
 
 
 MAX_WARMED = 256
+# messages held for an app while its announcement or sync warms (a few seconds at most)
+MAX_HELD_WARMING = 4096
 BATTERY_EMPTY_EXIT = 3  # the exit code of a node whose modelled battery emptied
 PARENT_ENV = "MSO_PARENT_PID"  # set by an emulator for the node processes it starts
 PARENT_CHECK_S = 0.5
