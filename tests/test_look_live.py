@@ -113,11 +113,12 @@ def test_logs_prints_a_nodes_structured_lines(emulator: Path) -> None:
 
 
 def test_logs_follow_prints_lines_as_the_node_writes_them(emulator: Path) -> None:
-    """``mso logs N2 --follow`` in a second terminal, while an app is deployed and stopped."""
+    """``mso logs N1 --follow`` in a second terminal, while an app is deployed and stopped
+    (N1, the app's origin: only the nodes that take part in an app hold it and log its deploy)."""
     (emulator / "chat2.yaml").write_text(CHATTER.replace("name: chat", "name: chat2"))
     env = dict(os.environ, MSO_OVERLAY=NAME)
     follower = subprocess.Popen(
-        [sys.executable, "-m", "mso", "logs", "N2", "--follow", "-n", "1"],
+        [sys.executable, "-m", "mso", "logs", "N1", "--follow", "-n", "1"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
     try:
@@ -135,7 +136,7 @@ def test_logs_follow_prints_lines_as_the_node_writes_them(emulator: Path) -> Non
         while time.monotonic() < deadline and not any("app=chat2" in ln for ln in list(seen)):
             time.sleep(0.1)  # polls what the reader thread collected; bounded by the deadline
         assert any("event=deploy" in ln and "app=chat2" in ln for ln in seen), seen
-        assert all("node=N2" in ln for ln in seen if "level=" in ln), seen
+        assert all("node=N1" in ln for ln in seen if "level=" in ln), seen
     finally:
         follower.terminate()
         follower.wait(timeout=patience(10))
