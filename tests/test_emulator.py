@@ -151,6 +151,13 @@ def test_link_break_reroutes_traffic() -> None:
     assert a["repeats"] == 0 and a["out_of_order"] == 0
 
 
+def stop_daemons(procs: list[subprocess.Popen[bytes]]) -> None:
+    """Stop the daemons :func:`start_pair` started (ours, by their handles)."""
+    for p in procs:
+        p.terminate()
+        p.wait(timeout=5)
+
+
 def start_pair(
     tmp_path: Path, only: tuple[str, ...] = ("N1", "N4"), port: int = 0
 ) -> tuple[list[subprocess.Popen[bytes]], int]:
@@ -209,9 +216,7 @@ def test_python_api_against_running_daemons(tmp_path: Path) -> None:
                 break
             time.sleep(0.05)  # poll period
     finally:
-        for p in procs:
-            p.terminate()
-            p.wait(timeout=5)
+        stop_daemons(procs)
     got = sink(status)
     assert got["count"] > 0 and got["repeats"] == 0 and got["out_of_order"] == 0
     assert "mid" in status[moved.node]["apps"]["pipe"]["vertices"]
@@ -286,9 +291,7 @@ def test_static_peers_from_config_files(tmp_path: Path) -> None:
     try:
         nodes = asyncio.run(run())
     finally:
-        for p in procs:
-            p.terminate()
-            p.wait(timeout=5)
+        stop_daemons(procs)
     got = sink(nodes)
     assert got["count"] >= 100 and got["repeats"] == 0 and got["out_of_order"] == 0
 
@@ -321,9 +324,7 @@ def test_a_deploy_sent_while_its_pinned_node_is_held_failed_waits_for_its_rejoin
     try:
         reply = asyncio.run(run())
     finally:
-        for p in procs:
-            p.terminate()
-            p.wait(timeout=5)
+        stop_daemons(procs)
     assert isinstance(reply, m.DeployReply) and reply.ok, reply
     assert reply.placement["sink"] == "N4"
 
