@@ -92,7 +92,9 @@ def run(attack: str, strict: bool, seconds: float, every: float) -> dict[str, An
     sim.run_until(end + 5.0)  # the stream drains
     sink = tail.status(sim.now)["apps"]["chain"]["vertices"]["sink"]["stats"]
     sent = head.instances("chain")["src"].emitted
-    twins = sum(len(c.apps["chain"].awaiting) for c in sim.cores.values())
+    twins = sum(  # (only the app's holders hold it: issue 24.1)
+        len(c.apps["chain"].awaiting) for c in sim.cores.values() if "chain" in c.apps
+    )
     refused: dict[str, int] = {}
     for core in sim.cores.values():
         for why, k in core.refusals.items():

@@ -95,6 +95,13 @@ def _placed(sim: Simulation, app: str, vertex: str) -> str:
     return node
 
 
+def _vertices(node_status: dict[str, Any], app: str) -> dict[str, Any]:
+    """``app``'s vertices as a node's status lists them; none at a node that holds none of it
+    (only its origin, hosts and replicas' nodes do: issue 24.1)."""
+    got: dict[str, Any] = node_status["apps"].get(app, {}).get("vertices", {})
+    return got
+
+
 def kill_run(replicas: int, kill_at: float, rate: float, after: float) -> dict[str, Any]:
     """One run: flow, kill the counter's host at ``kill_at``, go on ``after`` s."""
     sim = Simulation(mesh(), model_time=True)
@@ -113,7 +120,9 @@ def kill_run(replicas: int, kill_at: float, rate: float, after: float) -> dict[s
         src = sim.cores["N1"].instances("pipe")["src"]
         emitted = src.emitted
         tail = int(rate * IN_FLIGHT_S) + 1
-        recs = [r for c in sim.cores.values() for r in c.apps["pipe"].recoveries]
+        recs = [
+            r for c in sim.cores.values() if "pipe" in c.apps for r in c.apps["pipe"].recoveries
+        ]
         return {
             "replicas": replicas,
             "kill_at": round(kill_at, 3),
@@ -167,7 +176,9 @@ def kill_emulated(replicas: int, rate: float) -> dict[str, Any]:
             while loop.time() < killed + 30:
                 await asyncio.sleep(0.1)
                 st = await emu.status("N1")
-                hosts = [n for n, s in st.items() if "counter" in s["apps"]["pipe"]["vertices"]]
+                hosts = [  # (only the app's holders hold it: issue 24.1)
+                    n for n, s in st.items() if "counter" in _vertices(s, "pipe")
+                ]
                 if restored is None and host not in st and hosts and hosts[0] != host:
                     restored = loop.time() - killed
                     emitted = int(st["N1"]["apps"]["pipe"]["vertices"]["src"]["emitted"])
@@ -242,7 +253,8 @@ def convoy_run(replicas_zero: bool, seconds: float, db: Path) -> dict[str, Any]:
             raise RuntimeError(f"convoy deployment failed: {replies}")
         cost: dict[str, Any] = {}
         for c in sim.cores.values():
-            cost |= c.status(sim.now)["apps"]["convoy"]["replication"]
+            if "convoy" in c.apps:  # (only the app's holders hold it: issue 24.1)
+                cost |= c.status(sim.now)["apps"]["convoy"]["replication"]
         sent = sum(out for out, _ in sim.bytes.values())
     return _figures(replicas_zero, _delays(db), cost) | {
         "bytes_sent_per_s": round(sent / seconds, 1)
@@ -308,8 +320,8 @@ def convoy_emulated(replicas_zero: bool, seconds: float, db: Path) -> dict[str, 
         else:
             os.environ[storage.DB_ENV] = old
     cost: dict[str, Any] = {}
-    for st in out["status"].values():
-        cost |= st["apps"]["convoy"]["replication"]
+    for st in out["status"].values():  # (only the app's holders hold it: issue 24.1)
+        cost |= st["apps"].get("convoy", {}).get("replication", {})
     delays = _delays(db, since=out["t0"])
     return _figures(replicas_zero, delays, cost) | {"delays_ms": [round(d, 3) for d in delays]}
 
