@@ -70,3 +70,37 @@ def test_a_vertex_whose_host_died_is_recovered_though_few_nodes_hold_the_app() -
         assert "app0" in sim.cores[node].apps  # the new host was sent the app
         assert all(v in sim.cores[node].apps["app0"].instances for v in lost if after[v] == node)
     assert newcomers or {after[v] for v in lost} <= before
+
+
+def test_a_restore_whose_app_sync_was_lost_sends_it_again_rather_than_fail() -> None:
+    """A restore's target that holds none of the app is sent it (``AppSync``) ahead of the
+    ``Prepare``; with that sync lost, the target answers it does not run the app, and the
+    coordinator sends the app again with the same ``Prepare``: the restore goes on, and the
+    recovery runs once (the restore failed, and the recovery ran a second time, before)."""
+    sim, origin = _deployed(25)
+    placed = dict(sim.cores[origin].apps["app0"].placed)
+    pins = set(sim.cores[origin].apps["app0"].layout.pinned.values())
+    victim = min({placed[v] for v in placed} - pins - {origin})
+    lost: list[str] = []
+
+    def drop(src: str, dst: str, msg: m.Message) -> bool:
+        """The first sync of the app to each node that holds none of it."""
+        if isinstance(msg, m.AppSync) and "app0" not in sim.cores[dst].apps and dst not in lost:
+            lost.append(dst)
+            return True
+        return False
+
+    sim.drop = drop
+    sim.kill(victim, convergence_s=0.2)
+    sim.run_until(sim.now + 6.0)
+    after = dict(sim.cores[origin].apps["app0"].placed)
+    assert lost and all(after[v] not in sim.killed for v in placed), (lost, after)
+    records = [
+        r
+        for core in sim.cores.values()
+        if "app0" in core.apps
+        for r in core.status(sim.now)["apps"]["app0"]["recoveries"]
+    ]
+    assert len(records) == 1 and records[0]["ok"], records
+    for v, node in after.items():
+        assert v in sim.cores[node].apps["app0"].instances, (v, node)

@@ -94,6 +94,7 @@ class Relocation(Procedure):
         self.restore = False
         self.resumes: list[list[Any]] = []
         self.attempts = 0
+        self.synced_again = 0  # a restore's target answered it holds no app: sent it again
         self.retried: list[str] | None = None  # a recovery's log of steps sent again
         self.order = b""  # the operator's order it carries out, for its steps' receivers
 

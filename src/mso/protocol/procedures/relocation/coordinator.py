@@ -178,6 +178,8 @@ class Coordinator(Role):
                 self.ctx.send(msg.node, m.Unprepare(msg.app, msg.vertex, msg.rid))
             return
         if msg.error:
+            if msg.no_app and reloc.restore and self._sync_again(dep, reloc):
+                return
             if msg.no_app:  # a node that missed the app's sync: the retry will find it
                 self.ctx.publish(AppMissing(dep.app.name, reloc.target))
                 if self._ask_again(dep, reloc, now):
@@ -215,6 +217,19 @@ class Coordinator(Role):
             self._send_prepare(dep, reloc, prepare)
         else:
             self.ctx.emit(SetTimer(Retry(reloc.pid, reloc.attempts), now + STEP_TIMEOUT_S / 4))
+        return True
+
+    def _sync_again(self, dep: AppState, reloc: Relocation) -> bool:
+        """A restore's target answered that it holds none of the app: the ``AppSync`` sent
+        ahead of the ``Prepare`` was lost (or the target let the app go before it came).
+        Send the app again with the same ``Prepare`` just behind it, a few times, rather
+        than fail the restore (its recovery then ran a second time, on a second target)."""
+        if reloc.synced_again >= STEP_ATTEMPTS or reloc.target in self.ctx.failed:
+            return False
+        reloc.synced_again += 1
+        self.ctx.publish(AppMissing(dep.app.name, reloc.target, ahead=True))
+        prepare = placement.prepare(dep, reloc.vertex, reloc.pid, True, reloc.resumes, reloc.order)
+        self.ctx.send(reloc.target, prepare)
         return True
 
     def on_handover_done(self, src: str, msg: m.HandoverDone, now: float) -> None:
