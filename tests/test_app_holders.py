@@ -8,6 +8,7 @@ import pytest
 from mso.model.appfile import with_planner
 from mso.protocol import messages as m
 from mso.protocol.procedures.deploy import holders
+from mso.protocol.procedures.lookup import SEARCH_BURST, SEARCH_RATE
 from mso.scenario.format import loads_scenario
 from mso.scenario.generate import Spec, dumps, generate, pipelines
 from mso.sim.runner import Simulation
@@ -104,3 +105,26 @@ def test_a_restore_whose_app_sync_was_lost_sends_it_again_rather_than_fail() -> 
     assert len(records) == 1 and records[0]["ok"], records
     for v, node in after.items():
         assert v in sim.cores[node].apps["app0"].instances, (v, node)
+
+
+def test_requests_at_a_node_that_holds_no_app_search_at_a_bounded_rate() -> None:
+    """Each request for an app a node holds none of asks every node it reaches: a client
+    naming a new app each time would have a node send N messages per request. A node starts
+    at most SEARCH_BURST such searches, then SEARCH_RATE a second, whoever asks; the others
+    are refused with why, and an honest request later goes through."""
+    sim, _ = _deployed(25)
+    outsider = max(x for x, core in sim.cores.items() if "app0" not in core.apps)
+    asked = sim.census.by_type["PlacementQuery"]
+    for k in range(40):  # apps nobody holds: every search asks all 24 others
+        sim.request(outsider, m.RelocateRequest(f"nothing{k}", "p1", "upstream"), client=k + 10)
+    sim.run_until(sim.now + 0.5)
+    searches = (sim.census.by_type["PlacementQuery"] - asked) / (len(sim.cores) - 1)
+    assert searches <= SEARCH_BURST + 0.5 * SEARCH_RATE + 1, searches
+    refused = [r for _, c, r in sim.replies if c >= 10 and "at most" in getattr(r, "error", "")]
+    assert len(refused) >= 40 - SEARCH_BURST - 2, [r for _, c, r in sim.replies if c >= 10]
+    assert sim.cores[outsider].refusals["holder_search_over_rate"] == len(refused)
+    sim.run_until(sim.now + SEARCH_BURST / SEARCH_RATE)  # the bucket fills again
+    sim.request(outsider, m.RelocateRequest("app0", "p1", "upstream"), client=99)
+    sim.run_until(sim.now + 2.0)
+    (reply,) = [r for _, c, r in sim.replies if c == 99]
+    assert isinstance(reply, m.RelocateReply) and "at most" not in reply.error, reply

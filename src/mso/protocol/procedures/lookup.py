@@ -7,6 +7,11 @@ lost), keeps per vertex the answer with the highest version, and asks again the 
 answers name that it has not asked yet — at most :data:`ROUNDS` times. It ends when every asked
 node has answered or at its deadline, and then does what waited: a client's relocation or
 remap, or a recovery check. No coordinator: any node may look up, and a late answer is dropped.
+
+A client's request at a node that holds none of the app costs a message to every node the
+node reaches (and the holders' syncs): at most :data:`SEARCH_BURST` such searches, then
+:data:`SEARCH_RATE` a second, per node, whoever asks; past that, the request is refused (the
+client may ask a holder: ``mso status`` names them).
 """
 
 from __future__ import annotations
@@ -22,9 +27,14 @@ from mso.protocol.procedures import placement
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
 from mso.protocol.procedures.relocation import Relocator
 from mso.protocol.procedures.remap import Remapper
-from mso.protocol.tapwire import Tap
+from mso.protocol.tapwire import Tap, TapEvents
 
 ROUNDS = 3  # rounds of asking the nodes answers name
+# searches for an app this node holds none of (each asks every node it reaches): a bucket of
+# SEARCH_BURST, refilled at SEARCH_RATE a second, for every client of the node together (a
+# client is a connection: one per client would be one per connection it opens)
+SEARCH_BURST = 8
+SEARCH_RATE = 2.0
 
 
 class S(enum.Enum):
@@ -70,11 +80,16 @@ class Lookup(Procedure):
 
     def refusal(self, why: str) -> m.Message | None:
         """(Its client waits for what the lookup lets go on: that request's reply.)"""
-        if isinstance(self.then, m.RelocateRequest):
-            return m.RelocateReply(self.app, self.then.vertex, False, error=why)
-        if isinstance(self.then, m.RemapRequest):
-            return m.RemapReply(self.app, False, {}, error=why)
-        return None
+        return _refusal(self.app, self.then, why)
+
+
+def _refusal(app: str, then: Then, why: str) -> m.Message | None:
+    """The reply that refuses ``then``, a client's request for ``app``."""
+    if isinstance(then, m.RelocateRequest):
+        return m.RelocateReply(app, then.vertex, False, error=why)
+    if isinstance(then, m.RemapRequest):
+        return m.RemapReply(app, False, {}, error=why)
+    return None
 
 
 class Lookups:
@@ -91,6 +106,8 @@ class Lookups:
         self.relocator = relocator
         self.remapper = remapper
         self.tap = tap  # the data plane's taps: a client's tap, once the app is here
+        self._searches = float(SEARCH_BURST)  # searches it may start now (a token bucket)
+        self._searched_at = 0.0
 
     def _lookup(self, pid: int) -> Lookup | None:
         proc = self.ctx.procedure(pid)
@@ -130,6 +147,9 @@ class Lookups:
         request goes on here as at a holder. False if nobody is there to ask."""
         if any(isinstance(p, Lookup) and p.app == app and p.fetch for p in self.ctx.open()):
             return False  # (one search at a time: the request is refused, not queued)
+        if not self._may_search(now):
+            self._refuse_search(app, client, then)
+            return True
         look = Lookup(self.ctx.new_pid(), now, app, client, then)
         look.fetch = True
         self.ctx.begin(look)
@@ -137,6 +157,29 @@ class Lookups:
         if not look.waiting:
             self._end(look, now)
         return True
+
+    def _may_search(self, now: float) -> bool:
+        """One more search within :data:`SEARCH_BURST` and :data:`SEARCH_RATE` (taken)."""
+        elapsed = max(0.0, now - self._searched_at)
+        self._searches = min(float(SEARCH_BURST), self._searches + elapsed * SEARCH_RATE)
+        self._searched_at = now
+        if self._searches < 1.0:
+            return False
+        self._searches -= 1.0
+        return True
+
+    def _refuse_search(self, app: str, client: int | None, then: Then) -> None:
+        """A search past the bound: counted, and the client told why."""
+        self.ctx.refusal("holder_search_over_rate")
+        why = (
+            f"{self.ctx.id} holds none of app {app!r} and searches for such apps at most "
+            f"{SEARCH_RATE:g} a second: ask again later, or ask a node that holds it"
+        )
+        refusal = _refusal(app, then, why)
+        if isinstance(then, Tap):
+            refusal = TapEvents(0, app, then.edge, self.ctx.id, self.ctx.now, 0, 0, ended=why)
+        if client is not None and refusal is not None:
+            self.ctx.reply(client, refusal)
 
     def on_stale(self, app: str, wide: bool = True, sync: bool = False) -> None:
         """A recovery this node would coordinate on a view it was not kept up to date on (it
@@ -238,4 +281,4 @@ class Lookups:
             self.ctx.publish(RecoveryDue(look.app))
 
 
-__all__ = ["ROUNDS", "Lookup", "LookupEvent", "Lookups"]
+__all__ = ["ROUNDS", "SEARCH_BURST", "SEARCH_RATE", "Lookup", "LookupEvent", "Lookups"]
