@@ -15,14 +15,17 @@ a sweep on 1 and 2 workers.
    links recomputed every 0.5 s, 10 apps, for ``--rwp-duration`` simulated seconds (300) or
    until its wall-time limit: CPU per simulated second, nodes declared failed, failed nodes
    still reachable at the end, membership messages per node per second, vertex moves.
-3. **Sweep.** 100 runs (a 25-node grid, one app, 5 s each: ``mso.sim.sweep``) on 1 and then 2
-   workers (Ray when installed, else local processes): wall time of each, and their ratio.
+3. **Sweep.** 100 runs (a 25-node grid, one app, ``--sweep-run-s`` simulated seconds each, 5 by
+   default: ``mso.sim.sweep``) on 1 and then 2 workers (Ray when installed, else local
+   processes): wall time of each, and their ratio; with Ray, its start and stop apart (as long
+   as the runs themselves when they are short).
 
 ``--only sizes|rwp|sweep`` measures one part and puts it into the kept results (the other
 parts stay as they were measured).
 
 Usage: .venv/bin/python bench/scale.py [--sizes 25,50,...] [--topologies grid,geometric]
-       [--duration 10] [--rwp-duration 300] [--sweep-runs 100] [--limit 1200] [--quick]
+       [--duration 10] [--rwp-duration 300] [--sweep-runs 100] [--sweep-run-s 5]
+       [--limit 1200] [--quick]
        [--only sizes|rwp|sweep]
 """
 
@@ -160,8 +163,11 @@ def rwp(n: int, duration: float, limit_s: float) -> dict[str, Any]:
     }
 
 
-def sweep(runs: int) -> dict[str, Any]:
-    """``runs`` small runs on 1 worker, then on 2: wall time each."""
+def sweep(runs: int, run_s: float = 5.0) -> dict[str, Any]:
+    """``runs`` small runs on 1 worker, then on 2: wall time each. With Ray, its local
+    instance is started before the runs and stopped after them, timed apart (``start_s_W``):
+    7-8 s on this machine whatever the workers, as long as a 1-worker sweep of 5-s runs, so the
+    runs' wall time (``wall_s_W``) is what scales with the workers, and ``total_s_W`` is both."""
     from mso.scenario.generate import Spec, dumps, generate, pipelines
     from mso.sim import sweep as sw
 
@@ -169,17 +175,40 @@ def sweep(runs: int) -> dict[str, Any]:
     scenario = ("grid-25.yaml", dumps(generate(spec), spec))
     ((_, app),) = pipelines([f"N{i}" for i in range(1, 26)], 1, seed=1, run="sweep")
     policies = ["lifetime", "energy"]
-    jobs = sw.jobs([scenario], ("app.yaml", app), policies, list(range(runs // 2)), 5.0)
+    jobs = sw.jobs([scenario], ("app.yaml", app), policies, list(range(runs // 2)), run_s)
     backend = sw.backend_for("auto", None)
-    out: dict[str, Any] = {"runs": len(jobs), "backend": backend, "run_s": 5.0}
+    out: dict[str, Any] = {"runs": len(jobs), "backend": backend, "run_s": run_s}
     for workers in (1, 2):
         t0 = time.perf_counter()
-        rows = sw.execute(jobs, workers=workers, backend=backend)
-        out[f"wall_s_{workers}"] = round(time.perf_counter() - t0, 1)
+        ray = _ray_started(workers) if backend == "ray" else None
+        t1 = time.perf_counter()
+        try:
+            rows = sw.execute(jobs, workers=workers, backend=backend)
+        finally:
+            t2 = time.perf_counter()
+            if ray is not None:
+                ray.shutdown()
+        t3 = time.perf_counter()
+        out[f"wall_s_{workers}"] = round(t2 - t1, 1)
+        out[f"start_s_{workers}"] = round((t1 - t0) + (t3 - t2), 1)
+        out[f"total_s_{workers}"] = round(t3 - t0, 1)
         out[f"ok_{workers}"] = sum(bool(r["deploy_ok"]) for r in rows)
         out[f"cpu_s_{workers}"] = round(sum(r["cpu_s"] for r in rows), 1)
     out["speedup"] = round(out["wall_s_1"] / out["wall_s_2"], 2)
+    out["speedup_total"] = round(out["total_s_1"] / out["total_s_2"], 2)
     return out
+
+
+def _ray_started(workers: int) -> Any:
+    """A local Ray instance of ``workers`` CPUs, as :func:`mso.sim.sweep.execute` starts it
+    (which then uses it and leaves it running)."""
+    import os
+
+    import ray
+
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    return ray
 
 
 def _child(args: list[str], limit: float, script: str = __file__) -> dict[str, Any]:
@@ -243,10 +272,13 @@ def table(result: dict[str, Any]) -> str:
             lines.append(f"sweep: {s['error']}")
         else:
             lines += [
-                "| runs | backend | wall s, 1 worker | wall s, 2 workers | speed-up |",
-                "|---:|---|---:|---:|---:|",
-                f"| {s['runs']} | {s['backend']} | {s['wall_s_1']} | {s['wall_s_2']} |"
-                f" {s['speedup']}x |",
+                "| runs | backend | s a run (simulated) | wall s, 1 worker | wall s, 2 workers"
+                " | speed-up | Ray's start and stop s, 1 / 2 | with them: 1 / 2, speed-up |",
+                "|---:|---|---:|---:|---:|---:|---:|---:|",
+                f"| {s['runs']} | {s['backend']} | {s.get('run_s', 5.0):g} | {s['wall_s_1']} |"
+                f" {s['wall_s_2']} | {s['speedup']}x | {s.get('start_s_1', '—')} /"
+                f" {s.get('start_s_2', '—')} | {s.get('total_s_1', '—')} /"
+                f" {s.get('total_s_2', '—')}, {s.get('speedup_total', '—')}x |",
             ]
     load = result["machine"]["load_average"]
     lines += ["", f"Load average when written: {load[0]:.1f} on {result['machine']['cpus']} CPUs."]
@@ -262,6 +294,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--rwp-duration", type=float, default=300.0)
     ap.add_argument("--sweep-runs", type=int, default=100)
+    ap.add_argument("--sweep-run-s", type=float, default=5.0, help="Simulated s a sweep run.")
     ap.add_argument("--limit", type=float, default=1200.0, help="Wall seconds per measurement.")
     ap.add_argument("--quick", action="store_true", help="Sizes up to 100, short runs.")
     ap.add_argument(
@@ -303,7 +336,7 @@ def main() -> None:
     if runs > 0:
         say(f"sweep of {runs} runs")
         try:
-            result["sweep"] = sweep(runs)
+            result["sweep"] = sweep(runs, args.sweep_run_s)
         except Exception as exc:  # reported in the table, the rest is kept
             result["sweep"] = {"error": f"{type(exc).__name__}: {exc}"}
     result |= provenance()
