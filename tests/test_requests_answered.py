@@ -48,11 +48,14 @@ def asked(core: NodeCore, msg: m.Message, now: float, kind: type) -> None:
 
 
 def test_a_move_the_node_coordinates_is_answered_when_it_resets() -> None:
-    sim = held_failed_both_ways()
+    def move(sim: Simulation) -> None:  # (asked before N4 holds N1, src's node, failed)
+        n4 = sim.cores["N4"]
+        mid = n4.apps["pipe"].placed["mid"]
+        target = next(n for n in ("N2", "N3") if n != mid)
+        asked(n4, m.RelocateRequest("pipe", "mid", target=target), sim.now, Relocation)
+
+    sim = held_failed_both_ways(move)
     n4, now = sim.cores["N4"], sim.now
-    mid = n4.apps["pipe"].placed["mid"]
-    target = next(n for n in ("N2", "N3") if n != mid)
-    asked(n4, m.RelocateRequest("pipe", "mid", target=target), now, Relocation)
     (reply,) = replies(reset_by_n1(sim))
     assert reply == m.RelocateReply(
         "pipe", "mid", False, error="N4: declared failed by N1, reset during the relocation"
@@ -114,9 +117,8 @@ def test_a_lookup_tells_its_client_what_waited_on_it(then: m.Message, reply: m.M
 def test_an_undeploy_meanwhile_answers_a_move_or_remap(msg: m.Message, kind: type) -> None:
     """The app is undeployed while a move or remap of it runs: the procedure runs out its
     deadline (a remap's is past the client's 10 s), its client is told at once."""
-    sim = held_failed_both_ways()
+    sim = held_failed_both_ways(lambda sim: asked(sim.cores["N4"], msg, sim.now, kind))
     n4, now = sim.cores["N4"], sim.now
-    asked(n4, msg, now, kind)
     effects = n4.request(2, m.StopApp("pipe"), now)
     assert "pipe" not in n4.apps
     (reply,) = replies(effects)

@@ -93,6 +93,25 @@ def test_loss_changes_one_link_or_every_link() -> None:
     assert {k: s.loss for k, s in tl.network.links.items()} == loss
 
 
+def test_a_loss_lifted_for_every_link_is_lifted_on_a_link_that_was_down_then() -> None:
+    """A link down while the loss on every link was lifted comes back lossless, not with the
+    loss it had before it went down (fault seed 74864: 26% loss on one link through the
+    whole quiet phase of a schedule, which stalled its sinks)."""
+    tl = timeline("""
+    - {at: 1, loss: 0.26, between: [C, D]}
+    - {at: 2, down: [C, D]}
+    - {at: 3, loss: 0}
+    - {at: 4, up: [C, D]}
+    """)
+    tl.advance(4.0)
+    assert {k: s.loss for k, s in tl.network.links.items()} == {
+        ("A", "B"): 0.0,
+        ("B", "C"): 0.0,
+        ("C", "D"): 0.0,
+        ("A", "D"): 0.0,
+    }
+
+
 MOVING = """
 radio_range: 120
 nodes:

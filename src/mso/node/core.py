@@ -38,6 +38,7 @@ from mso.node.monitor import Monitor
 from mso.node.moves import MoveLog
 from mso.node.status import LinkStatus, node_status, to_wire
 from mso.protocol import effects as fx
+from mso.protocol import kept
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority
 from mso.protocol.dataplane import DataPlane
@@ -160,6 +161,7 @@ class NodeCore:
         self._beat_hops = None
         self.apps = Apps(node_id)
         self._idle: dict[str, float] = {}  # app -> since when this node takes no part in it
+        self._kept: dict[str, int] = {}  # app -> the fingerprint of its record in the store
         self.procedures: dict[int, Procedure] = {}  # the procedures this node coordinates
         self._status_pid = -1  # the status fan-out gathering now, if any (one at a time)
         self.dropped_messages = 0
@@ -345,6 +347,9 @@ class NodeCore:
         self._sample(now)
         self._effects.append(SetTimer(MonitorTick(), now + MONITOR_PERIOD_S))
         self.membership.start(now)
+        for sync in kept.recall(self.spill):  # the apps its last process held (a restart)
+            self.send(self.id, sync)
+            self._kept[sync.app] = 0  # (kept again at the first period, or forgotten)
         return self._run(now)
 
     def observe(
@@ -483,6 +488,18 @@ class NodeCore:
                 del self.apps[name]
                 self.dataplane.stop_app(dep, "let go")
                 self.deployer.policies.forget(name)
+
+    def _keep_held(self) -> None:
+        """The apps this node holds, kept in its store as their placement changes (checked
+        every monitor period), and forgotten there once let go or undeployed: a restarted
+        daemon takes them back (:mod:`mso.protocol.kept`)."""
+        for name in [n for n in self._kept if n not in self.apps]:
+            del self._kept[name]
+            kept.forget(self.spill, name)
+        for name, dep in self.apps.items():
+            if dep.running and self._kept.get(name) != (mark := kept.fingerprint(dep)):
+                kept.keep(self.spill, dep)
+                self._kept[name] = mark
 
     def takes_part(self, dep: AppState, copies: bool = True) -> bool:
         """First-hand: its origin, an instance here (running, starting, handed over to
@@ -835,6 +852,7 @@ class NodeCore:
         self.relocator.expire_held(now)
         self.dataplane.report_delays(now)
         self._let_go_idle(now)
+        self._keep_held()
         for action in self.manager.tick(now):  # the rules' decisions, carried out here
             self._carry_out(action, now)
         self._effects.append(SetTimer(MonitorTick(), now + MONITOR_PERIOD_S))

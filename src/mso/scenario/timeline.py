@@ -233,9 +233,11 @@ class Timeline:
             self.groups = None
             return self._sync(at, "heal")
         if isinstance(change, LossChange):
-            if change.ends is None:
+            if change.ends is None:  # every link's, a link down now too: one that came
+                # back up after the loss was lifted kept it (fault seed 74864: 26% loss on
+                # a link all through the quiet phase)
                 self.template = replace(self.template, loss=change.loss)
-                for k in self.radio:
+                for k in {*self.radio, *self.loss}:
                     self.loss[k] = change.loss
             else:
                 self.loss[_key(*change.ends)] = change.loss

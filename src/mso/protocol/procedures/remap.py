@@ -418,6 +418,9 @@ class Remapper:
                 continue
             if lost and remap.recovery is None:  # the failure recovery restores it (one node
                 continue  # coordinates it); restored here too, it would run twice
+            if lost and vertex in dep.restoring:  # being restored here: a committed move to
+                continue  # this node whose old host failed, restored by its coordinator;
+                # restored elsewhere too, it ran twice (fault seed 71956)
             if not lost and self.relocator.cannot_hand_over(dep, vertex):
                 continue  # stays where it runs, as a relocation would be refused
             if not lost and remap.recovery is None and dep.recovering is not None:
@@ -493,8 +496,8 @@ class Remapper:
             return
         failed, routes = self.ctx.failed, self.ctx.routes
         lost = dep.lost(failed)
-        if not lost:
-            return
+        if not lost or lost <= dep.restoring.keys():  # (each being restored here, by another
+            return  # coordinator: its end or its failure is seen at a later beat)
         alive = {self.ctx.id, *(n for n in routes if n not in failed)}
         holding = {dep.origin, *(n for ns in dep.replica_nodes.values() for n in ns)}
         if recovery_coordinator(dep.placed, lost, alive, holding) != self.ctx.id:

@@ -290,6 +290,10 @@ class AppSyncing:
         placed = dict(layout.initial_placement()) | {
             v: n for v, n in msg.placed.items() if v in app.vertices and v not in pinned
         }
+        mine = src == self.ctx.id  # kept by this node's last process (mso.protocol.kept)
+        if mine and set(placed) != set(app.vertices):  # (it was not placed yet: not running)
+            self.ctx.note_event(now, f"cannot take app {msg.app} back: it was never placed")
+            return
         dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
         dep.versions = {v: k for v, k in msg.versions.items() if v in app.vertices and k > 0}
         dep.replica_nodes = {  # (bounded as a ReplicaSet is)
@@ -304,6 +308,8 @@ class AppSyncing:
                 if v in msg.placed and v not in pinned and n != self.ctx.id
             }
         dep.vanished.replace({v for v in msg.vanished if v in app.vertices} | self._outlived(msg))
+        if mine:  # what ran here went with that process
+            dep.vanished |= {v for v, n in placed.items() if n == src}
         placement.recall(self.ctx, dep)  # (what its last process heard, if later)
         dep.capable = {v: list(ns) for v, ns in msg.capable.items() if v in layout.resolved}
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
@@ -315,7 +321,7 @@ class AppSyncing:
         self.recovery.park(dep)
         self.recovery.maybe_recover(dep, now)
         self._pass_on(src, dep, now)
-        if src not in msg.placed.values():  # (a host's view is kept up to date: no need)
+        if mine or src not in msg.placed.values():  # (a host's view is kept up to date)
             self.ctx.publish(PlacementStale(msg.app, sync=True))
 
 

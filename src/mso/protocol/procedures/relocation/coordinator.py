@@ -101,15 +101,23 @@ class Coordinator(Role):
     def cannot_hand_over(self, dep: AppState, vertex: str) -> str:
         """Why a live instance of ``vertex`` cannot be moved now ("" if it can): its node, or
         the node of a producer whose marker the handover waits for, is out of reach (held
-        unreachable, not failed). Its instance drains and hands over, or nothing: a move
-        started anyway waits on a marker that cannot come, past its commit (seeds 5449, 8978)."""
+        unreachable, not failed), or that producer is lost (its node failed, or its instance
+        vanished with a restart) and not restored yet. Its instance drains and hands over, or
+        nothing: a move started anyway waits on a marker that cannot come, past its commit
+        (seeds 5449, 8978)."""
         here, routes, failed = self.ctx.id, self.ctx.routes, self.ctx.failed
         source = dep.placed[vertex]
         if source != here and source not in routes:
             return f"{vertex!r} runs on {source}, out of reach: it cannot hand over its state"
         for e in dep.app.edges:
             node = dep.placed.get(e.src, here)
-            if e.dst == vertex and node != here and node not in routes and node not in failed:
+            if e.dst != vertex:
+                continue
+            if node in failed or e.src in dep.vanished:  # (a parked chain's, or not yet
+                # restored): no marker comes from it; a move committed anyway held the
+                # vertex's events for its deadline and left nodes disagreeing (seed 71642)
+                return f"{vertex!r} takes events from {e.src!r}, lost with {node}"
+            if node != here and node not in routes:
                 return f"{vertex!r} takes events from {e.src!r} on {node}, out of reach"
         return ""
 
