@@ -221,6 +221,10 @@ RESTARTS_BROKE = {
     2574: "issue 24.1: the app was held only by the node running it all and its replica's "
     "node, both restarted: nobody synced it back and it was gone (a node keeps the apps it "
     "holds in its store now)",
+    3605: "issue 24.1 made two coordinators likelier: one restored a producer whose consumer's "
+    "replacement, prepared by the other, was not running yet; asked where the edge stood, its "
+    "node answered 0 from no channel, the producer numbered from 0 and the replacement, "
+    "started from its consumers' marks at 29, dropped 29 events",
     71956: "a committed move's old host crashed and came back: the move's coordinator restored "
     "the vertex at its target, which coordinated the recovery too and restored it on the old "
     "host while its own replacement was being made: it ran on both",

@@ -90,6 +90,14 @@ class Restorer:
             # restore asks again where its view then places this end
             self.ctx.refusal("rewire_not_our_end")
             return
+        if not msg.producer and ours not in dep.instances and msg.edge not in dep.inc:
+            # our end is a replacement (or a move's target) not running yet: where its input
+            # starts is set when it does (its consumers' marks). Answered now, from no
+            # channel, the edge started at 0 and the producer's replacement numbered from 0
+            # below that start: 29 events dropped (restart seed 3605, two coordinators). The
+            # restore asks again (its retry)
+            self.ctx.refusal("rewire_end_not_running")
+            return
         if ours in dep.instances and msg.to != self.ctx.id and msg.rid:
             # (not a producer's ``ask_where``, rid 0: it knows where this end runs)
             # the replacement's node hears first-hand where this end runs: the restore's
