@@ -1,0 +1,105 @@
+"""The apps a node holds, kept in its store across a daemon restart (mso.protocol.kept)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from mso.daemon.spill import SqliteSpill
+from mso.model.network import LinkSpec
+from mso.protocol import kept
+from mso.protocol import messages as m
+from mso.protocol.spill import MemorySpill
+from mso.sim.runner import Simulation
+from runtime_vertices import pipe_app
+from test_faults import deployed_on_a_line, line_net
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "memory"])
+def test_an_app_kept_is_read_back_after_a_reopen_and_forgotten_with_it(
+    tmp_path: Path, kind: str
+) -> None:
+    sim = deployed_on_a_line()
+    dep = sim.cores["N1"].apps["pipe"]
+    s: Any = SqliteSpill(tmp_path) if kind == "sqlite" else MemorySpill()
+    s.save_position("pipe/1/0", 7)  # an edge's position beside it: not an app kept
+    kept.keep(s, dep)
+    kept.keep(s, dep)  # again, as its placement changed: one record
+    if kind == "sqlite":
+        s.close()
+        s = SqliteSpill(tmp_path)
+    (back,) = kept.recall(s)
+    assert back == kept.record(dep)
+    assert (back.app, back.origin, back.epoch) == ("pipe", "N1", dep.epoch)
+    assert back.placed == dep.placed and set(back.placed) == set(dep.app.vertices)
+    kept.forget(s, "pipe")
+    assert kept.recall(s) == [] and s.position("pipe/1/0") == 7
+    if kind == "sqlite":
+        s.close()
+
+
+def test_a_damaged_record_costs_the_app_not_the_node() -> None:
+    """A record that does not decode as an app's sync (a damaged store) is skipped."""
+    s = MemorySpill()
+    s.append(kept.PREFIX + "pipe", 0, [b"\xc1 not msgpack"])
+    s.note(kept.PREFIX + "pipe/", "epoch", 1)
+    other = m.encode(m.StatusRequest())  # a message, but not a sync of that app
+    s.append(kept.PREFIX + "other", 0, [other])
+    s.note(kept.PREFIX + "other/", "epoch", 1)
+    assert kept.recall(s) == []
+
+
+def test_every_holder_restarted_at_once_takes_the_app_back() -> None:
+    """src and the sink on N1, mid on N3 (N2 between them takes no part and holds nothing):
+    N1 and N3 both crash, then restart. Nobody was left to sync the app back to them (issue
+    24.1); each takes it back from its store, and the app runs again on them."""
+    doc = pipe_app(50).replace("pinned: N4", "pinned: N1")
+    sim = Simulation(line_net())
+    sim.request("N1", m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(1.0)
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target="N3"))
+    sim.run_until(3.0)  # (a monitor period or two: each keeps what it holds now)
+    assert "mid" in sim.cores["N3"].instances("pipe") and "pipe" not in sim.cores["N2"].apps
+    for n in ("N1", "N3"):
+        sim.kill(n)
+    sim.run_until(sim.now + 2.0)
+    for a, b in (("N1", "N2"), ("N2", "N3")):
+        sim.network.add_link(LinkSpec(a, b, delay_ms=1.0))
+    for n in ("N1", "N3"):
+        sim.revive(n)
+    sim.run_until(sim.now + 4.0)
+    running = {v for c in sim.cores.values() if "pipe" in c.apps for v in c.instances("pipe")}
+    assert running == {"src", "mid", "sink"}
+    assert sim.cores["N1"].apps["pipe"].inc[1].expected > 0  # mid -> sink: events arrive
+
+
+def test_an_app_its_origin_alone_holds_outlives_the_origins_restart() -> None:
+    """src pinned to N3, the sink to N4, deployed at N1; N3 and N4 die, so the app's chains
+    wait parked at N1, its one holder. N1's daemon restarts meanwhile: it takes the app back
+    from its store, and when N3 and N4 are back the app runs again (before, no node held it
+    and it had to be deployed again)."""
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N3")
+    sim = Simulation(line_net(4))
+    sim.request("N1", m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(2.0)
+    assert sim.cores["N1"].apps["pipe"].origin == "N1"
+    for n in ("N3", "N4"):
+        sim.kill(n)
+    sim.run_until(sim.now + 3.0)
+    alive = {n for n, c in sim.cores.items() if "pipe" in c.apps and n not in sim.killed}
+    assert alive == {"N1"}, sim.cores["N1"].placement("pipe")
+    sim.kill("N1")
+    sim.run_until(sim.now + 0.1)
+    sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
+    sim.revive("N1")
+    sim.run_until(sim.now + 2.0)
+    assert "pipe" in sim.cores["N1"].apps  # taken back from its store
+    for a, b in (("N2", "N3"), ("N3", "N4")):
+        sim.network.add_link(LinkSpec(a, b, delay_ms=1.0))
+    for n in ("N3", "N4"):
+        sim.revive(n)
+    sim.run_until(sim.now + 5.0)
+    running = {v for c in sim.cores.values() if "pipe" in c.apps for v in c.instances("pipe")}
+    assert running == {"src", "mid", "sink"}
