@@ -225,6 +225,14 @@ RESTARTS_BROKE = {
     "replacement, prepared by the other, was not running yet; asked where the edge stood, its "
     "node answered 0 from no channel, the producer numbered from 0 and the replacement, "
     "started from its consumers' marks at 29, dropped 29 events",
+    1353: "a daemon restarted with the app kept (mso.protocol.kept), its vertex vanished, told "
+    "the node running the vertex's one instance left that a later move had placed it on "
+    "itself, in its own name: that instance retired and the vertex ran nowhere",
+    1564: "a daemon restarted with the app kept from before a move it took part in; a live "
+    "node's sync placing the vertex on it was no news to it (one placed here): nobody "
+    "recovered, the app ran nowhere",
+    1614: "a daemon restarted with the app kept from its side of a partition, where it had "
+    "restored a vertex the other side still ran: it restored it again, both ran on",
     71956: "a committed move's old host crashed and came back: the move's coordinator restored "
     "the vertex at its target, which coordinated the recovery too and restored it on the old "
     "host while its own replacement was being made: it ran on both",

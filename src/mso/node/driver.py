@@ -29,6 +29,7 @@ from mso.node.core import Effect, NodeCore, Reply, Send, SetTimer
 from mso.node.device import DeviceProbe
 from mso.node.status import LinkStatus
 from mso.protocol import effects as fx
+from mso.protocol import kept
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority
 from mso.protocol.events import Happened, MonitorTick
@@ -131,6 +132,9 @@ class NodeDriver:
 
     async def start(self) -> None:
         await self.transport.start()
+        for sync in kept.recall(self.core.spill):  # the apps the core takes back at its start
+            # (mso.protocol.kept): their imports in a thread first, as for any app new here
+            await self.loop.run_in_executor(None, warm_imports, sync.document)
         self._apply(self.core.start(self.loop.time()))
         if self.device is not None:
             self._device_tick()

@@ -434,6 +434,9 @@ class AppState:
     # app, so its view is not kept up to date): a recovery it would coordinate may act on the
     # answers until the failures change, and no new lookup is started before
     looked_up: frozenset[str] | None = None
+    # the view is the one this node's last process kept in its store (mso.protocol.kept),
+    # heard from no other node since: the first sync from another node may overrule it
+    stored: bool = False
     placed_chains: set[int] = lazy(set)
     started_chains: set[int] = lazy(set)
     probes: dict[int, dict[int, list[Hop]]] = lazy(dict)

@@ -287,7 +287,11 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
     if known and dep is not None and not taken:
         ctx.dropped()  # an older move's news, overtaken
         newer = dep.placed[msg.vertex]
-        if newer != msg.node and msg.node != ctx.id and msg.node not in ctx.failed:
+        # (not a later move onto this node whose instance is gone: said in this node's own
+        # name, it retired the one instance left, the sender's: a daemon restarted with the
+        # app kept, its vertex vanished, fault seed 1353)
+        gone = newer == ctx.id and not _runs_here(dep, msg.vertex)
+        if newer != msg.node and msg.node != ctx.id and msg.node not in ctx.failed and not gone:
             # the node it names may still run it (a move it missed while cut off): tell it
             # the later one, so that it yields rather than run a twin
             inc = ctx.incarnation if newer == ctx.id else -1

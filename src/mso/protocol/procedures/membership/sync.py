@@ -119,6 +119,24 @@ class AppSyncing:
         ours = set(held.instances) | set(held.awaiting) | set(held.restoring)
         gone = set(msg.vanished)
         signed = self.ctx.authority.signed
+        if held.stored and src != self.ctx.id:
+            # our view is what our last process kept (mso.protocol.kept), maybe from before
+            # moves it made itself: a live node's is as good where it is as new (it may
+            # place a vertex here: one that vanished with that process; fault seed 1564)
+            held.stored = False
+            newer = {
+                v
+                for v, n in msg.placed.items()
+                if v in held.placed
+                and v not in ours
+                and msg.versions.get(v, 0) >= held.versions.get(v, 0)
+            }
+            for v in newer:
+                held.placed[v] = msg.placed[v]
+                held.versions[v] = max(held.versions.get(v, 0), msg.versions.get(v, 0))
+            here = {v for v in newer if msg.placed[v] == self.ctx.id}
+            held.vanished.replace((held.vanished - newer) | (newer & gone) | here)
+            return
         heard = self._corroborate(src, held, msg, ours)
 
         def better(v: str, n: str) -> bool:
@@ -264,6 +282,11 @@ class AppSyncing:
             self.ctx.refusal("app_sync_other_deployment")  # (an operator deployed it again since)
             return
         self.learn_incarnations(msg.incarnations)
+        # kept by our last process (mso.protocol.kept), and nothing done on it yet: a live
+        # node's view is taken as a node back empty takes it (fault seeds 1564, 1614)
+        if held is not None and held.stored and src != self.ctx.id and _idle(held):
+            del self.ctx.apps[msg.app]
+            held = None
         if held is not None:
             for v, ns in msg.replicas.items():  # (where this node knows none)
                 if held.replicas.get(v) and not held.replica_nodes.get(v):
@@ -309,6 +332,7 @@ class AppSyncing:
             }
         dep.vanished.replace({v for v in msg.vanished if v in app.vertices} | self._outlived(msg))
         if mine:  # what ran here went with that process
+            dep.stored = True
             dep.vanished |= {v for v, n in placed.items() if n == src}
         placement.recall(self.ctx, dep)  # (what its last process heard, if later)
         dep.capable = {v: list(ns) for v, ns in msg.capable.items() if v in layout.resolved}
@@ -323,6 +347,12 @@ class AppSyncing:
         self._pass_on(src, dep, now)
         if mine or src not in msg.placed.values():  # (a host's view is kept up to date)
             self.ctx.publish(PlacementStale(msg.app, sync=True))
+
+
+def _idle(dep: AppState) -> bool:
+    """Nothing of the app runs, starts, is restored or recovered here."""
+    busy = dep.instances or dep.awaiting or dep.restoring or dep.recovering is not None
+    return not busy
 
 
 def _claimed(dep: AppState) -> list[str]:
