@@ -233,6 +233,9 @@ RESTARTS_BROKE = {
     "recovered, the app ran nowhere",
     1614: "a daemon restarted with the app kept from its side of a partition, where it had "
     "restored a vertex the other side still ran: it restored it again, both ran on",
+    451: "two nodes restarted with the app kept; a live node's sync undid what the kept view "
+    "had learnt vanished since (a rejoin heard first): a replacement waited for ever on an "
+    "end that ran nowhere",
     71956: "a committed move's old host crashed and came back: the move's coordinator restored "
     "the vertex at its target, which coordinated the recovery too and restored it on the old "
     "host while its own replacement was being made: it ran on both",

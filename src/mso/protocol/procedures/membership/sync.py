@@ -124,11 +124,12 @@ class AppSyncing:
             # moves it made itself: a live node's is as good where it is as new (it may
             # place a vertex here: one that vanished with that process; fault seed 1564)
             held.stored = False
-            newer = {
+            newer = {  # (the same placement: ours stands, and what we know vanished of it)
                 v
                 for v, n in msg.placed.items()
                 if v in held.placed
                 and v not in ours
+                and (n, msg.versions.get(v, 0)) != (held.placed[v], held.versions.get(v, 0))
                 and msg.versions.get(v, 0) >= held.versions.get(v, 0)
             }
             for v in newer:
@@ -284,8 +285,10 @@ class AppSyncing:
         self.learn_incarnations(msg.incarnations)
         # kept by our last process (mso.protocol.kept), and nothing done on it yet: a live
         # node's view is taken as a node back empty takes it (fault seeds 1564, 1614)
+        gone_since: set[str] = set()  # (what the kept view learnt vanished meanwhile: a
         if held is not None and held.stored and src != self.ctx.id and _idle(held):
-            del self.ctx.apps[msg.app]
+            del self.ctx.apps[msg.app]  # rejoin heard before this sync, fault seed 451)
+            gone_since = {v for v in held.vanished if held.placed.get(v) == msg.placed.get(v)}
             held = None
         if held is not None:
             for v, ns in msg.replicas.items():  # (where this node knows none)
@@ -334,6 +337,7 @@ class AppSyncing:
         if mine:  # what ran here went with that process
             dep.stored = True
             dep.vanished |= {v for v, n in placed.items() if n == src}
+        dep.vanished |= {v for v in gone_since if placed.get(v) != src or v in msg.vanished}
         placement.recall(self.ctx, dep)  # (what its last process heard, if later)
         dep.capable = {v: list(ns) for v, ns in msg.capable.items() if v in layout.resolved}
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
