@@ -5,11 +5,14 @@ grow with N, and failure claims that need corroboration. Simulator, virtual cloc
 from __future__ import annotations
 
 import sys
+from itertools import pairwise
 from pathlib import Path
 
+from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.node.core import NodeCore
 from mso.protocol import messages as m
 from mso.protocol.events import HeartbeatTick
+from runtime_vertices import pipe_app
 from test_failure import PIPE, emitted, started, stats, where
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
@@ -250,3 +253,46 @@ def test_a_restarted_node_whose_apps_have_no_other_host_is_sent_them() -> None:
     result = run(866, Settings(start_s=1, faults_s=3, quiet_s=4, rate=10, restarts=False))
     assert result.topology == "line" and result.faults["crash"] == 2
     assert not result.violations, "\n".join(map(str, result.violations))
+
+
+SQUARE_LINKS = [("N1", "N2"), ("N2", "N4"), ("N1", "N3"), ("N3", "N4")]
+
+
+def test_a_link_break_whose_routes_converge_after_the_window_declares_nobody() -> None:
+    """The netns square N1-N2-N4 / N1-N3-N4 as babeld runs it: the link N1 routes to N4 by
+    breaks, and for 1 s (babeld's re-route, hellos every 0.5 s) every node's routes still go
+    over it, so whatever they send that way is lost -- N1's beats to that neighbour and its
+    questions about it alike. Beats every 0.1 s, declared after 0.5 s: the silent neighbour
+    is suspected, but a suspicion that nobody answers is no evidence (the asker's own routes
+    are what failed); it waits for the routing view to settle, then the nodes hear each other
+    over the other path. Before, both ends were declared failed by everyone, reset, and the
+    source's node's reset repeated events at the sink."""
+    net = Network(
+        [NodeSpec(f"N{i}") for i in range(1, 5)],
+        [LinkSpec(a, b, delay_ms=1.0) for a, b in SQUARE_LINKS],
+    )
+    sim = started(pipe_app(100), net)
+    via = sim.cores["N1"].routes["N4"][0]
+    assert via in ("N2", "N3")
+    old = {(a, b): net.route(a, b) for a in net.nodes for b in net.nodes if a != b}
+    incarnations = {n: c.incarnation for n, c in sim.cores.items()}
+    hole_ends = sim.now + 1.0
+
+    def over_the_broken_link(src: str, dst: str, msg: m.Message) -> bool:
+        route = old.get((src, dst)) or []
+        hops = set(pairwise(route))
+        return sim.now < hole_ends and bool(hops & {("N1", via), (via, "N1")})
+
+    sim.drop = over_the_broken_link
+    sim.network.remove_link("N1", via)
+    sim.links_changed(convergence_s=1.0)
+    sim.run_until(sim.now + 4.0)
+    sim.drop = None
+    sim.run_until(sim.now + 2.0)
+    assert all(not c.failures for c in sim.cores.values()), {
+        n: c.failures for n, c in sim.cores.items()
+    }
+    assert {n: c.incarnation for n, c in sim.cores.items()} == incarnations
+    assert sim.cores["N1"].routes["N4"][0] != via
+    got = stats(sim, "pipe", "sink")
+    assert got["repeats"] == 0, got

@@ -172,15 +172,31 @@ def test_a_node_nobody_hears_is_declared_with_its_witness_and_the_news_rides_on_
     assert beats[0].news == [m.NodeDown("N4", "N1", 0, "N3")]  # piggybacked, not a message
 
 
-def test_a_suspicion_nobody_answers_is_confirmed_at_its_deadline() -> None:
-    """A node asked may have died too: its silence does not hold the declaration back."""
+def test_a_suspicion_nobody_answers_is_asked_again_until_the_routes_settle() -> None:
+    """Nobody answering is no evidence while the routing view may still be converging: the
+    asker's own route may be what broke (babeld forwards into a broken link for 1.3-2.1 s),
+    so it asks again each window. Once the view has had ROUTES_SETTLE_S since the node was
+    last heard, a node asked may have died too: the silence holds, and it is declared."""
     from mso.protocol.events import Deadline
+    from mso.protocol.procedures.remap import ROUTES_SETTLE_S
 
     core, effects = suspecting()
     (rid,) = {q.rid for q in asked(effects).values()}
     assert core.procedures[rid].deadline == 1.0 + core.liveness.dead_after_s
     core.on_timer(Deadline(rid), 1.0 + core.liveness.dead_after_s)
+    assert core.failed == set() and core.peer_state("N4") == "ALIVE"
+    settled = core.liveness.dead_after_s + ROUTES_SETTLE_S  # N4 was last heard at 0
+    t, rounds = 1.5, 0
+    while not core.failed and t < 10.0:
+        t = round(t + 0.1, 3)
+        core.receive("N2", m.Heartbeat("N2", 0), t - 0.01)
+        rounds += bool(asked(core.on_timer(HeartbeatTick(), t)))
+        for pid, proc in list(core.procedures.items()):
+            if proc.deadline is not None and proc.deadline <= t:
+                core.on_timer(Deadline(pid), t)
+        assert core.failed == set() or t >= settled, t
     assert core.failed == {"N4"} and core.procedures == {}
+    assert t < settled + 2 * core.liveness.dead_after_s and rounds >= 2  # asked twice more
 
 
 def test_a_suspicion_ends_when_the_node_is_heard_or_another_detector_is_corroborated() -> None:

@@ -100,7 +100,8 @@ class SuspicionEvent(enum.Enum):
 class Suspicion(Procedure):
     """``node``, which this node watches, has been silent for the window: before declaring it
     failed, this node asks a few others (``asked``) whether they hear it. The outcome
-    (``vouched``, ``confirmed`` or, when the wait ended for another reason, ``ended``) is for
+    (``vouched``, ``confirmed``, ``unanswered`` when none of the asked answered in time, or,
+    when the wait ended for another reason, ``ended``) is for
     the node to act on; ``witness`` is the first that said no."""
 
     NAME = "suspicion"
@@ -130,6 +131,7 @@ class Suspicion(Procedure):
         self.missing = set(asked)
         self.asked = len(self.missing)
         self.heard_by: set[str] = set()  # the asked that said they hear it
+        self.answers = 0  # the asked that answered at all (a yes set aside counts)
         self.outcome = ""
         self.witness = ""
         # this suspicion's challenge (with node identities): a yes counts when it carries
@@ -148,6 +150,7 @@ class Suspicion(Procedure):
         """One asked node's answer (an answer from a node not asked, or twice, is refused
         by the caller)."""
         self.missing.discard(src)
+        self.answers += 1
         if not yes and not self.witness:
             self.witness = src
         if yes:
@@ -163,6 +166,7 @@ class Suspicion(Procedure):
         """An asked node's yes that does not count on its own (:class:`.claims.Vouchers`):
         another's yes may still come; with none, it is confirmed."""
         self.missing.discard(src)
+        self.answers += 1
         if self.missing:
             self.on(SuspicionEvent.DENIED)
         else:
@@ -170,9 +174,12 @@ class Suspicion(Procedure):
             self.outcome = "confirmed"
 
     def expire(self, ctx: Messenger) -> None:
-        """Nobody said yes in time (a node asked may have died too): confirmed."""
+        """Nobody said yes in time (a node asked may have died too): confirmed if one of
+        the asked answered; ``unanswered`` if none did -- then the asker's own routes may be
+        what failed (a link broken that the routing view still uses), which is no evidence
+        against the suspect."""
         self.on(SuspicionEvent.DEADLINE)
-        self.outcome = "confirmed"
+        self.outcome = "confirmed" if self.answers else "unanswered"
 
     def end(self) -> None:
         """The wait is moot: the node came back into reach, was heard, or declared failed."""

@@ -17,6 +17,7 @@ from mso.protocol.procedures.membership.claims import (
 from mso.protocol.procedures.membership.declare import Declaring
 from mso.protocol.procedures.membership.detector import P, PeerEvent, Suspicion, Vouch
 from mso.protocol.procedures.relocation import Relocation
+from mso.protocol.procedures.remap import ROUTES_SETTLE_S
 
 
 class Suspecting(Declaring):
@@ -57,6 +58,15 @@ class Suspecting(Declaring):
         self.ctx.begin(proc)
         self._suspicions[node] = proc.pid
         proc.start(self.ctx)
+
+    def _routes_settled(self, node: str, now: float) -> bool:
+        """Whether the routing view has had :data:`~.remap.ROUTES_SETTLE_S` to converge since
+        ``node``, silent, was last heard (past the liveness window): a suspicion of it that
+        nobody answers is then taken as confirmed -- the asker is cut off from the suspect's
+        side, or all of it died -- and not before. Silence alone is evidence only while the
+        asker can ask someone; a route hole shorter than that declares nobody."""
+        last = self.liveness.last_heard.get(node)
+        return last is None or now - last >= self.liveness.dead_after_s + ROUTES_SETTLE_S
 
     def _blocking(self, now: float, away: set[str]) -> list[str]:
         """Nodes out of reach for the liveness window, not heard in it, that host a vertex of
@@ -210,6 +220,12 @@ class Suspecting(Declaring):
         self.ctx.end(proc.pid)
         self._suspicions.pop(proc.node, None)
         if proc.outcome == "vouched":  # someone heard it lately: judged again from then
+            self._move(proc.node, PeerEvent.VOUCHED)
+        elif proc.outcome == "unanswered" and not self._routes_settled(proc.node, now):
+            # nobody answered: this node's own routes may be what broke (babeld re-routes a
+            # broken link in 1.3-2.1 s and forwards into it meanwhile). Asked again over the
+            # routes as they are then, until the routing view has had time to converge
+            self.ctx.refusal("suspicion_unanswered")  # (counted in status, refusals)
             self._move(proc.node, PeerEvent.VOUCHED)
         else:
             if proc.heard_by and proc.outcome == "confirmed":
