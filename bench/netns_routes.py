@@ -18,6 +18,8 @@ lets the link's frames through:
 * flow_gap_ms: a 200 events/s flow from N1 to N4 runs throughout (``vertices.netns``): the
   sink's inter-arrival gap that spans the break, i.e. how long the app saw nothing; events
   lost, repeated or out of order are counted over all breaks.
+* declared_failed: every failure any node recorded (nobody dies: each is a live node declared
+  failed -- it resets, and its vertices are restored, which repeats events at the sink).
 
 Then the link comes back and the run waits until both agree on a route again. Also the
 testbed's start: namespaces + babeld + nodes until every node is connected to every other.
@@ -156,6 +158,16 @@ async def one_break(emu: NetnsEmulator, watch: KernelWatch, k: int) -> dict[str,
     return row
 
 
+async def declarations(emu: NetnsEmulator) -> list[list[str]]:
+    """Every [failed, detector] any node recorded: the breaks kill nobody, so each is a live
+    node declared failed (a reset follows, and its vertices are restored)."""
+    out = []
+    for node in emu.nodes:
+        st = (await emu.overlay(node).status(everywhere=False, timeout=5.0))[node]
+        out += [[f["node"], f["detector"]] for f in st["failures"]]
+    return out
+
+
 async def sink_stats(emu: NetnsEmulator) -> dict[str, Any]:
     nodes = await emu.overlay("N4").status(everywhere=False, timeout=5.0)
     stats: dict[str, Any] = nodes["N4"]["apps"]["flow"]["vertices"]["sink"]["stats"]
@@ -186,6 +198,7 @@ async def run(runs: int) -> dict[str, Any]:
     watch = KernelWatch(emu.testbed.netns("N1"), emu.testbed.address("N4"))
     rows = []
     sink: dict[str, Any] = {}
+    declared: list[list[str]] = []
     try:
         await watch.start()
         await emu.deploy(FLOW, "flow.yaml", "N1", check=True)
@@ -195,6 +208,7 @@ async def run(runs: int) -> dict[str, Any]:
             print(row, file=sys.stderr)
             rows.append(row)
         sink = await sink_stats(emu)
+        declared = await declarations(emu)
     finally:
         watch.close()
         await emu.stop()
@@ -211,6 +225,7 @@ async def run(runs: int) -> dict[str, Any]:
         "lag_ms": summary([r["lag_ms"] for r in ok]),
         "flow_gap_ms": summary([r["flow_gap_ms"] for r in ok if r.get("flow_gap_ms")]),
         "flow": {k: sink.get(k) for k in ("count", "repeats", "out_of_order")},
+        "declared_failed": declared,
         "failures": [r for r in rows if r["error"]],
         "rows": rows,
         "seconds": time.monotonic() - t_start,
@@ -249,6 +264,10 @@ def render(result: dict[str, Any]) -> str:
     lines.append(
         f"- the flow over all breaks: {f['count']} events delivered, {f['repeats']} repeated, "
         f"{f['out_of_order']} out of order (a gap in the sequence: lost)"
+    )
+    lines.append(
+        f"- live nodes declared failed (every node's records, summed): "
+        f"{len(result['declared_failed'])}"
     )
     load = result.get("machine", {}).get("load_average")
     lines.append(f"- load average at the end: {load} (a shared 2-vCPU VM, other agents running)")
