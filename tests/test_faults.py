@@ -236,6 +236,12 @@ RESTARTS_BROKE = {
     451: "two nodes restarted with the app kept; a live node's sync undid what the kept view "
     "had learnt vanished since (a rejoin heard first): a replacement waited for ever on an "
     "end that ran nowhere",
+    76070: "a daemon restarted with the app kept from before a move of one of its vertices and "
+    "restored the whole chain on itself at once, on that view, before the move's host synced "
+    "it: the chain restored twice over, 36 events never delivered (a kept view waits 2 s)",
+    78957: "a recovery restored a consumer from its marks beside a restore of its producer by "
+    "another coordinator, whose state restarted and numbered its output from 0: 22 events "
+    "dropped (a recovery waits while a vertex it lost is being restored on its node)",
     71956: "a committed move's old host crashed and came back: the move's coordinator restored "
     "the vertex at its target, which coordinated the recovery too and restored it on the old "
     "host while its own replacement was being made: it ran on both",
