@@ -284,10 +284,12 @@ class AppSyncing:
             return
         self.learn_incarnations(msg.incarnations)
         # kept by our last process (mso.protocol.kept), and nothing done on it yet: a live
-        # node's view is taken as a node back empty takes it (fault seeds 1564, 1614)
-        gone_since: set[str] = set()  # (what the kept view learnt vanished meanwhile: a
+        # node's view is taken as a node back empty takes it (fault seeds 1564, 1614), with
+        # what the kept view learnt vanished since where both place it alike (a rejoin heard
+        # before this sync, fault seed 451)
+        gone_since: set[str] = set()
         if held is not None and held.stored and src != self.ctx.id and _idle(held):
-            del self.ctx.apps[msg.app]  # rejoin heard before this sync, fault seed 451)
+            del self.ctx.apps[msg.app]
             gone_since = {v for v in held.vanished if held.placed.get(v) == msg.placed.get(v)}
             held = None
         if held is not None:
