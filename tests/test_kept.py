@@ -51,6 +51,19 @@ def test_a_damaged_record_costs_the_app_not_the_node() -> None:
     assert kept.recall(s) == []
 
 
+def revive(sim: Simulation, nodes: list[str], links: list[tuple[str, str]]) -> None:
+    """Restart killed ``nodes`` with ``links`` back (their links went with them)."""
+    for a, b in links:
+        sim.network.add_link(LinkSpec(a, b, delay_ms=1.0))
+    for n in nodes:
+        sim.revive(n)
+
+
+def running(sim: Simulation) -> set[str]:
+    """The vertices of the app that run on some node."""
+    return {v for c in sim.cores.values() if "pipe" in c.apps for v in c.instances("pipe")}
+
+
 def test_every_holder_restarted_at_once_takes_the_app_back() -> None:
     """src and the sink on N1, mid on N3 (N2 between them takes no part and holds nothing):
     N1 and N3 both crash, then restart. Nobody was left to sync the app back to them (issue
@@ -65,13 +78,9 @@ def test_every_holder_restarted_at_once_takes_the_app_back() -> None:
     for n in ("N1", "N3"):
         sim.kill(n)
     sim.run_until(sim.now + 2.0)
-    for a, b in (("N1", "N2"), ("N2", "N3")):
-        sim.network.add_link(LinkSpec(a, b, delay_ms=1.0))
-    for n in ("N1", "N3"):
-        sim.revive(n)
+    revive(sim, ["N1", "N3"], [("N1", "N2"), ("N2", "N3")])
     sim.run_until(sim.now + 4.0)
-    running = {v for c in sim.cores.values() if "pipe" in c.apps for v in c.instances("pipe")}
-    assert running == {"src", "mid", "sink"}
+    assert running(sim) == {"src", "mid", "sink"}
     assert sim.cores["N1"].apps["pipe"].inc[1].expected > 0  # mid -> sink: events arrive
 
 
@@ -96,10 +105,6 @@ def test_an_app_its_origin_alone_holds_outlives_the_origins_restart() -> None:
     sim.revive("N1")
     sim.run_until(sim.now + 2.0)
     assert "pipe" in sim.cores["N1"].apps  # taken back from its store
-    for a, b in (("N2", "N3"), ("N3", "N4")):
-        sim.network.add_link(LinkSpec(a, b, delay_ms=1.0))
-    for n in ("N3", "N4"):
-        sim.revive(n)
+    revive(sim, ["N3", "N4"], [("N2", "N3"), ("N3", "N4")])
     sim.run_until(sim.now + 5.0)
-    running = {v for c in sim.cores.values() if "pipe" in c.apps for v in c.instances("pipe")}
-    assert running == {"src", "mid", "sink"}
+    assert running(sim) == {"src", "mid", "sink"}

@@ -342,12 +342,16 @@ class NodeCore:
         }
 
     # -- the driver's entry points ---------------------------------------------------------
-    def start(self, now: float) -> list[Effect]:
-        """Begin monitoring; drivers call this once when the node starts."""
+    def start(self, now: float, recalled: list[m.AppSync] | None = None) -> list[Effect]:
+        """Begin monitoring; drivers call this once when the node starts. ``recalled``: the
+        apps kept in its store (:func:`mso.protocol.kept.recall`), if the driver read them
+        already (to warm their imports first); else read here."""
         self._sample(now)
         self._effects.append(SetTimer(MonitorTick(), now + MONITOR_PERIOD_S))
         self.membership.start(now)
-        for sync in kept.recall(self.spill):  # the apps its last process held (a restart)
+        if recalled is None:
+            recalled = kept.recall(self.spill)
+        for sync in recalled:  # the apps its last process held (a restart)
             self.send(self.id, sync)
             self._kept[sync.app] = 0  # (kept again at the first period, or forgotten)
         return self._run(now)

@@ -132,10 +132,10 @@ class NodeDriver:
 
     async def start(self) -> None:
         await self.transport.start()
-        for sync in kept.recall(self.core.spill):  # the apps the core takes back at its start
-            # (mso.protocol.kept): their imports in a thread first, as for any app new here
-            await self.loop.run_in_executor(None, warm_imports, sync.document)
-        self._apply(self.core.start(self.loop.time()))
+        recalled = kept.recall(self.core.spill)  # the apps the core takes back at its start
+        for sync in recalled:  # (mso.protocol.kept): imports in a thread first, as for any
+            await self.loop.run_in_executor(None, warm_imports, sync.document)  # app new here
+        self._apply(self.core.start(self.loop.time(), recalled))
         if self.device is not None:
             self._device_tick()
         if self.view.routes() or self.view.neighbours():  # a static view knows them already

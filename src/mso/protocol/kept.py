@@ -28,8 +28,12 @@ from mso.protocol.state import AppState
 PREFIX = "\x1fheld/"
 
 
-def record(dep: AppState) -> m.AppSync:
-    """What taking ``dep`` again needs, as a sync of the view this node has now."""
+def record(
+    dep: AppState, handed: dict[str, str] | None = None, incarnations: dict[str, int] | None = None
+) -> m.AppSync:
+    """``dep`` as a sync of the view this node has now: what taking it again needs (the
+    record kept), and, for a sync sent to another node, the vertices this node handed over
+    (``handed``) and the incarnations it knows of their hosts (``incarnations``)."""
     return m.AppSync(
         dep.app.name,
         dep.origin,
@@ -37,10 +41,10 @@ def record(dep: AppState) -> m.AppSync:
         dep.epoch,
         dict(dep.placed),
         sorted(dep.vanished),
-        {},
+        handed or {},
         dict(dep.layout.resolved),
         {v: list(ns) for v, ns in dep.capable.items()},
-        {},
+        incarnations or {},
         {v: k for v, k in dep.versions.items() if k},
         {v: list(ns) for v, ns in dep.replica_nodes.items()},
     )

@@ -10,6 +10,7 @@ from collections.abc import Mapping
 from mso.errors import MsoError
 from mso.model.app import MAX_REPLICAS
 from mso.planning.placement import Layout
+from mso.protocol import kept
 from mso.protocol import messages as m
 from mso.protocol.authority import generation
 from mso.protocol.context import NodeContext
@@ -193,23 +194,11 @@ class AppSyncing:
         return set(held.hearsay)
 
     def _app_sync(self, dep: AppState) -> m.AppSync:
-        placed = dict(dep.placed)
         handed = {v: n for v, n in dep.handed.items() if v not in dep.instances}
-        return m.AppSync(
-            dep.app.name,
-            dep.origin,
-            dep.document,
-            dep.epoch,
-            placed,
-            sorted(dep.vanished),
-            handed,
-            dict(dep.layout.resolved),
-            {v: list(ns) for v, ns in dep.capable.items()},
-            {n: self._incarnations[n] for n in set(placed.values()) if n in self._incarnations}
-            | {self.ctx.id: self.incarnation},
-            placement.versions(dep),
-            {v: list(ns) for v, ns in dep.replica_nodes.items()},
-        )
+        known = self._incarnations
+        hosts = set(dep.placed.values())
+        incarnations = {n: known[n] for n in hosts if n in known} | {self.ctx.id: self.incarnation}
+        return kept.record(dep, handed, incarnations)
 
     def _outlived(self, msg: m.AppSync) -> set[str]:
         """The vertices a sync places on a node in an incarnation older than one we heard
