@@ -245,6 +245,9 @@ RESTARTS_BROKE = {
     71956: "a committed move's old host crashed and came back: the move's coordinator restored "
     "the vertex at its target, which coordinated the recovery too and restored it on the old "
     "host while its own replacement was being made: it ran on both",
+    84069: "a host whose replica went out of reach, with no node to replace it, told it it "
+    "was none but its view still named it: a new replica synced by the host passed the app "
+    "on to it (heard back 3 s before) after it had let it go, past the quiet phase",
 }
 
 

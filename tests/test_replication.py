@@ -11,7 +11,9 @@ import pytest
 from mso.errors import AppError
 from mso.model.appfile import loads_app
 from mso.model.network import LinkSpec, Network, NodeSpec
+from mso.protocol import kept
 from mso.protocol import messages as m
+from mso.protocol.procedures.deploy import holders
 from mso.sim.runner import Simulation
 from test_failure import emitted, mesh, recoveries, started, stats, where
 
@@ -155,6 +157,29 @@ def test_a_restore_asked_again_after_its_replacement_ran_keeps_the_count() -> No
     ran = sim.cores[replacement].apps["pipe"].moved["mid"][0]
     assert [t for t, dst in resumes if dst == replacement and t >= ran], resumes  # asked again
     assert_continuous(sim)
+
+
+def test_a_replica_replaced_by_none_is_no_longer_named_by_its_host() -> None:
+    """The counter's one replica goes out of reach and no other node is left to replace it:
+    the host tells it it is none and names none in its own view too. Before, the view (which
+    the host's syncs carry, and which says who holds the app) still named the old replica, so
+    a node synced by the host gave it the app again after it had let it go (fault seed
+    84069: it held the app past the quiet phase, taking no part in it)."""
+    pair = Network([NodeSpec("N1"), NodeSpec("N2")], [LinkSpec("N1", "N2", delay_ms=1.0)])
+    doc = (
+        counter_app()
+        .replace("{code: runtime_vertices:Counter,", "{code: runtime_vertices:Counter, pinned: N1,")
+        .replace("pinned: N6", "pinned: N1")
+    )
+    sim = started(doc, pair)
+    dep = sim.cores["N1"].apps["pipe"]
+    assert dep.replica_nodes["mid"] == ["N2"] and "N2" in holders(dep)
+    sim.network.remove_link("N1", "N2")
+    sim.links_changed()
+    sim.run_until(sim.now + 2.0)
+    assert replication(sim)["replicas"] == []
+    assert dep.replica_nodes["mid"] == [] and "N2" not in holders(dep)
+    assert "N2" not in kept.record(dep).replicas["mid"]  # (what a sync of this view says)
 
 
 def test_replication_attributes_are_validated_and_defaulted() -> None:

@@ -395,7 +395,10 @@ class Replicator:
         told = {n for n in rep.former if n in routes and n not in rep.replicas}
         rep.former -= told | set(rep.replicas)
         to = told
-        if rep.replicas != rep.announced and rep.replicas:
+        if rep.replicas != rep.announced:  # (none too: a node told it is none is no holder
+            # by this view either, nor a copy to restore from -- its producers released what
+            # came before this snapshot; fault seed 84069: a host's syncs still named a
+            # replica it had told it was none, and gave it the app again)
             before, rep.announced = rep.announced, list(rep.replicas)
             dep.replica_nodes[rep.vertex] = list(rep.announced)
             to = holders(dep) | set(before) | told  # (the app's holders, not everyone)
