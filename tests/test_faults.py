@@ -248,6 +248,19 @@ RESTARTS_BROKE = {
     84069: "a host whose replica went out of reach, with no node to replace it, told it it "
     "was none but its view still named it: a new replica synced by the host passed the app "
     "on to it (heard back 3 s before) after it had let it go, past the quiet phase",
+    84293: "a forwarder's replacement kept the marks it was restored with after passing them; "
+    "the merge's input was numbered anew from 0 later (its producer restored fresh), and the "
+    "forwarder dropped its first 14 events as had (a mark holds until the first event past it)",
+    81772: "a coordinator that was not told of a move restored a merge as if its forwarder were "
+    "lost with it: the replacement numbered its output from the last ack, one below where "
+    "the forwarder, alive elsewhere, stood; its first event was dropped by number as had",
+    86613: "a replica told it was one no more stayed named one in its host's syncs until the "
+    "next snapshot was acknowledged: the new replica's node, synced ahead of it, passed the app "
+    "on to the old one (heard back empty 3 s before), which held it past the quiet phase",
+    86603: "as 86613, on a line of 7 after a remap",
+    87093: "a replica asked the vertex's host by a view from before a move; the old host "
+    "answered for itself, none, and the replica dropped the copy the new host had just made "
+    "and let the app go: the vertex's state held nowhere",
 }
 
 

@@ -57,6 +57,22 @@ def test_a_replay_in_another_interleaving_sends_only_what_the_consumer_lacks() -
     assert provenance.from_wire({0: [1]}) == {}  # malformed: never taken as a mark
 
 
+def test_a_mark_holds_until_the_first_event_past_it_then_an_input_numbered_anew_passes() -> None:
+    # a replacement's consumer had input 0 up to 12 and input 1 up to 20
+    marks: provenance.Marks = {0: (12, 0), 1: (20, 0)}
+    made = provenance.stamp([b"a12", b"a13"], 0, 12, [0, 1])
+    sent = provenance.past(made, marks)
+    assert provenance.strip(sent, None) == [b"a13"]
+    provenance.outlived(sent, marks)  # a13 went past input 0's mark: it has done its work
+    assert marks == {1: (20, 0)}
+    # input 0 numbered anew from 0 (its producer restored fresh): nothing of it is dropped
+    anew = provenance.stamp([b"n0", b"n1"], 0, 0, [0, 1])
+    assert provenance.strip(provenance.past(anew, marks), None) == [b"n0", b"n1"]
+    # an event at the mark, or below it, leaves it in place
+    provenance.outlived(provenance.stamp([b"b20"], 1, 20, [0]), marks)
+    assert marks == {1: (20, 0)}
+
+
 BENCH = faults.Settings(start_s=1.0, faults_s=3.0, quiet_s=4.0, rate=10.0, restarts=False)
 
 

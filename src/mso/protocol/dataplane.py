@@ -463,6 +463,12 @@ class DataPlane:
                     for o in out_edges:
                         if lacks := provenance.past(outputs, marks.get(o, {})):
                             h.bytes_out += self.send_events(dep, [o], lacks, ts, chain)
+                            if o in marks:  # a mark held only until the first event past it
+                                provenance.outlived(lacks, marks[o])
+                                if not marks[o]:
+                                    del marks[o]
+                    if not marks:
+                        del dep.marks[vid]
                     outputs = []
             if outputs:
                 sent = self.send_events(dep, out_edges, outputs, ts, chain)

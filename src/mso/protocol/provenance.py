@@ -157,6 +157,18 @@ def past(payloads: list[bytes], marks: Mapping[int, Mark]) -> list[bytes]:
     return keep
 
 
+def outlived(payloads: list[bytes], marks: Marks) -> None:
+    """Drop from ``marks`` each input an event of ``payloads`` (sent on) went past: each input
+    comes in order, so what follows is past it too, unless that input is numbered anew later —
+    and then a mark kept would drop its new events as had (fault seed 84293: a forwarder's
+    replacement, fed a restored merge's input anew from 0, dropped its first 14 events)."""
+    for ev in payloads:
+        edge, seq, k = HEADER.unpack_from(ev)
+        mark = marks.get(edge)
+        if mark is not None and (seq, k) > mark:
+            del marks[edge]
+
+
 def without(marks: Marks, inputs: Iterable[int]) -> Marks:
     """``marks`` but those of ``inputs`` (numbered anew: their marks name a numbering gone)."""
     gone = set(inputs)

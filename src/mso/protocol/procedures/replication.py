@@ -357,6 +357,12 @@ class Replicator:
             nodes = list(rep.replicas) if rep is not None else []
             if len(msg.vertex) <= 256 and msg.vertex and src not in nodes:
                 self.ctx.send(src, m.ReplicaSet(msg.app, msg.vertex, nodes))
+                if rep is not None and dep is not None and src in rep.announced:
+                    # told so, it lets its copy and the app go: no longer named a replica in
+                    # this node's syncs (seed 86613: a new replica's node, synced ahead of its
+                    # first snapshot, passed the app on to the old one, back empty)
+                    rep.announced = [n for n in rep.announced if n != src]
+                    dep.replica_nodes[msg.vertex] = list(rep.announced)
         elif msg.k == -1 and dep is not None and rep.snapshot is not None:
             self._send(dep, rep, src)  # a replica with no copy asks for it (ask_if_replica)
             return
@@ -533,6 +539,14 @@ class Replicator:
         dep = self.ctx.apps.get(msg.app)
         if dep is None or msg.vertex not in dep.replicas or len(msg.nodes) > 2:
             self.ctx.refusal("replica_set_invalid")
+            return
+        copy = dep.held.get(msg.vertex)
+        if copy is not None and src not in (copy.src, dep.placed.get(msg.vertex), self.ctx.id):
+            # a copy is dropped on the word of the instance that made it, or of the vertex's
+            # host: a node that once hosted it answers for itself, "none" (seed 87093: a
+            # replica asked the vertex's host before a move it heard of late, and dropped the
+            # copy the new host had just made; no node held the vertex's state)
+            self.ctx.refusal("replica_set_not_from_host")
             return
         dep.replica_nodes[msg.vertex] = list(msg.nodes)
         if self.ctx.id not in msg.nodes and src != self.ctx.id:

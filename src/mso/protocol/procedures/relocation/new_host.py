@@ -81,6 +81,8 @@ class NewHost(Role):
             dep.replica_nodes[vid] = list(msg.replicas[:MAX_REPLICAS])  # move's are told, later)
         if vid in dep.app.vertices and msg.restore and self._restored_since(dep, vid, src, msg):
             return
+        if vid in dep.app.vertices and msg.restore and self._end_runs_on(dep, src, msg, resumes):
+            return
         twin = self._twins.get((msg.app, vid)) if vid in dep.awaiting else None
         if twin is not None and (twin[0] == msg.rid or vid in dep.restoring):
             twin = None  # (asked again; or a restore took the instance over)
@@ -142,6 +144,35 @@ class NewHost(Role):
         why = f"{vid!r} runs on {where} since (move {version}); not restored on {self.ctx.id}"
         self.ctx.send(src, m.Prepared(dep.app.name, vid, msg.rid, self.ctx.id, why))
         return True
+
+    def _end_runs_on(
+        self, dep: AppState, src: str, msg: m.Prepare, resumes: set[tuple[int, bool]]
+    ) -> bool:
+        """A restore that takes an end of the vertex's edges for lost with it (no Resume will
+        come from there), where we know that end runs on a live node at a later move than
+        the coordinator does (moved before the failure, and the coordinator not told: seed
+        81772). The replacement would number its output from the last ack, not from where
+        that end stands, and the end would drop what it makes anew by number as had:
+        refused, and the coordinator told where the end runs (its recovery is tried again
+        on that view, resuming the end)."""
+        vid = msg.vertex
+        for i, e in enumerate(dep.app.edges):
+            if vid not in (e.src, e.dst) or (i, e.dst == vid) in resumes:
+                continue
+            end = e.src if e.dst == vid else e.dst
+            where, version = dep.placed.get(end), dep.versions.get(end, 0)
+            if where is None or where in self.ctx.failed or end in dep.vanished:
+                continue
+            if version <= msg.versions.get(end, 0):
+                continue
+            if where == self.ctx.id and end not in dep.instances:
+                continue
+            self.ctx.refusal("restore_of_an_end_running_since")
+            self.ctx.send(src, m.Moved(dep.app.name, end, where, -1, version))
+            why = f"{end!r} runs on {where} since (move {version}): resume it, not restore it"
+            self.ctx.send(src, m.Prepared(dep.app.name, vid, msg.rid, self.ctx.id, why))
+            return True
+        return False
 
     def on_instance_ready(self, ev: InstanceReady) -> None:
         """A move's new instance started: the coordinator hears it is prepared."""
