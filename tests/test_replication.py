@@ -182,6 +182,28 @@ def test_a_replica_replaced_by_none_is_no_longer_named_by_its_host() -> None:
     assert "N2" not in kept.record(dep).replicas["mid"]  # (what a sync of this view says)
 
 
+def test_a_restarted_host_does_not_tell_a_copy_of_its_lost_instance_to_go() -> None:
+    """The counter's host restarts; the replica's ask whether it is still one (held while
+    the host was down) reaches the new process, which runs no counter. A copy whose host
+    failed is kept: the replacement starts from it. Before, the host answered it ran none,
+    the replica let its copy go, and the restored counter started again from 0 (fault seed
+    77821: the replica let go a newer copy, of the restored vertex, and the app with it)."""
+    sim = started(counter_app())
+    sim.run_until(sim.now + 1.5)
+    host = where(sim, "pipe", "mid")
+    (replica,) = replication(sim)["replicas"]
+    copy = sim.cores[replica].apps["pipe"].held["mid"]
+    sim.crash(host)
+    sim.run_until(sim.now + 0.05)
+    sim.revive(host)
+    ask = m.ReplicaAck("pipe", "mid", copy.k)
+    sim.apply(host, sim.cores[host].receive(replica, ask, sim.now))
+    sim.run_until(sim.now + 0.02)
+    assert "mid" in sim.cores[replica].apps["pipe"].held
+    sim.run_until(sim.now + 5.0)
+    assert_continuous(sim)
+
+
 def test_replication_attributes_are_validated_and_defaulted() -> None:
     app = loads_app(counter_app())
     assert app.replicas("mid") == 1 and app.replicas("src") == 0 and app.replicas("sink") == 0

@@ -353,9 +353,16 @@ class Replicator:
         dep = self.ctx.apps.get(msg.app)
         if rep is None or src not in rep.replicas:
             # a copy's holder asks whether it is still a replica (ask_if_replica): not of
-            # this node's instance, if any (the set it has, or none)
+            # this node's instance, if any (the set it has, or none) -- unless the instance
+            # went with this node's last process (placed here, vanished): a copy whose host
+            # failed is kept, as its replacement may start from it, and that replacement's
+            # host tells the replica its set (fault seed 77821: an ask held while this node
+            # was down was answered by its next process, and the replica let go a newer
+            # copy, of the restored vertex, and the app with it)
             nodes = list(rep.replicas) if rep is not None else []
-            if len(msg.vertex) <= 256 and msg.vertex and src not in nodes:
+            here = dep is not None and dep.placed.get(msg.vertex) == self.ctx.id
+            gone = here and rep is None and dep is not None and msg.vertex in dep.vanished
+            if len(msg.vertex) <= 256 and msg.vertex and src not in nodes and not gone:
                 self.ctx.send(src, m.ReplicaSet(msg.app, msg.vertex, nodes))
                 if rep is not None and dep is not None and src in rep.announced:
                     # told so, it lets its copy and the app go: no longer named a replica in
