@@ -261,6 +261,12 @@ RESTARTS_BROKE = {
     87093: "a replica asked the vertex's host by a view from before a move; the old host "
     "answered for itself, none, and the replica dropped the copy the new host had just made "
     "and let the app go: the vertex's state held nowhere",
+    77821: "a replica's ask whether it still was one, held while the copy's host was down, "
+    "reached the host's next process, which ran none: answered so, the replica let go its "
+    "copy -- a newer one, of the vertex restored elsewhere -- and the app it took part in",
+    79022: "an operator's remap at a node that learnt the app from a node behind moved a "
+    "vertex to the node running it already: prepared, the move committed and waited for a "
+    "handover that never came, holding the remap and the app open for 60 s",
 }
 
 

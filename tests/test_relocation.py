@@ -107,6 +107,24 @@ def test_refusals_leave_the_overlay_as_it_was(kw: dict[str, str], error: str) ->
     assert {n: dict(c.placement("pipe")) for n, c in sim.cores.items()} == before
 
 
+def test_a_move_asked_on_a_view_from_before_the_vertex_came_to_its_target_is_refused() -> None:
+    """A node whose view places the counter where it ran before (it learnt the app from a
+    node behind) asks to move it to the node that runs it now. Before, the target prepared,
+    the move committed and waited for a handover from a node that ran no counter: open for
+    the switch's 60 s, with the app held (fault seed 79022). Refused now, and the asker is
+    told where the counter runs."""
+    sim = started()
+    (host,) = where(sim, "counter")
+    dep = sim.cores["N1"].apps["pipe"]
+    dep.placed["counter"] = next(n for n in ("N2", "N3") if n != host)
+    reply = relocate(sim, "N1", vertex="counter", target=host)
+    assert not reply.ok and f"runs on {host} already" in reply.error, reply
+    assert not sim.cores["N1"].procedures and dep.placed["counter"] == host
+    before = sink_stats(sim)["count"]
+    sim.run_until(sim.now + 1.0)
+    assert where(sim, "counter") == {host} and sink_stats(sim)["count"] > before + 400
+
+
 # planner: paper: the moves below start from the paper's split (left and right apart)
 FORK = """
 name: pipe

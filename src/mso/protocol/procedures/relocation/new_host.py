@@ -103,6 +103,16 @@ class NewHost(Role):
             if msg.restore:
                 dep.restoring[vid] = Restoring(msg.rid, src, resumes)
             return
+        elif vid in dep.instances and not msg.restore:
+            # a move to a node that runs the vertex already: asked on a view from before
+            # the vertex came here (a coordinator that learnt the app from a node behind).
+            # Prepared, it committed the move and waited for a handover from a node that
+            # no longer ran the vertex, holding its remap, and the app, open for the
+            # switch's 60 s (fault seed 79022): refused, and the coordinator told where
+            # the vertex runs
+            error = f"{vid!r} runs on {self.ctx.id} already"
+            inc = self.ctx.incarnation
+            self.ctx.send(src, placement.moved(dep, vid, self.ctx.id, inc))
         elif msg.restore and vid in dep.instances:  # it never went: nothing to restore
             self.ctx.send(src, m.Prepared(msg.app, vid, msg.rid, self.ctx.id, error))
             version = dep.versions.get(vid, 0)
