@@ -258,6 +258,10 @@ RESTARTS_BROKE = {
     "next snapshot was acknowledged: the new replica's node, synced ahead of it, passed the app "
     "on to the old one (heard back empty 3 s before), which held it past the quiet phase",
     86603: "as 86613, on a line of 7 after a remap",
+    89096: "a move's old host let the app go, taking no part, while the node coordinating "
+    "the recovery was cut off; the move's new host died, and nobody told that node of the move "
+    "at the heal: it rewired a consumer end on the old host, which held nothing, for ever "
+    "(a node keeps the app while it handed a vertex over and a host is out of reach)",
     87093: "a replica asked the vertex's host by a view from before a move; the old host "
     "answered for itself, none, and the replica dropped the copy the new host had just made "
     "and let the app go: the vertex's state held nowhere",

@@ -508,8 +508,9 @@ class NodeCore:
     def takes_part(self, dep: AppState, copies: bool = True) -> bool:
         """First-hand: its origin, an instance here (running, starting, handed over to
         here, restoring, crashed), a chain being built or a deploy not yet started that
-        places a vertex here, a replica's snapshot, a recovery coordinated here or any
-        procedure of the app open here."""
+        places a vertex here, a replica's snapshot, a recovery coordinated here, a vertex
+        handed over from here while a host is out of reach, or any procedure of the app
+        open here."""
         me = self.id
         if dep.origin == me or dep.hosts_part() or dep.preparing or dep.building:
             return True
@@ -517,6 +518,10 @@ class NodeCore:
             return True  # a replica's copy, or named a replica (ask_if_replica settles it)
         if dep.recovering is not None or dep.stash:
             return True
+        if dep.handed and any(
+            n != me and n not in self.routes and n not in self.failed for n in dep.placed.values()
+        ):  # news of a move to tell a member out of reach, once back (Membership._claim_to):
+            return True  # none else may have it (seed 89096: the new host died meanwhile)
         if not dep.running and me in dep.placed.values():
             return True
         name = dep.app.name
