@@ -626,6 +626,8 @@ class DataPlane:
     def flush(self) -> None:
         """Send what the outbox gathered: one frame per edge, except that edges carrying the
         same events at the same time to the same node share one (``Data.also``)."""
+        if not (self.outbox or self.touched or self.catching):
+            return  # (after every event the core handles: after a beat's tick, nothing)
         # (app, node, ts) -> its frames; events are compared, not hashed: the batches of one
         # emit share their payload objects, so a fork's comparison is a pointer walk
         frames: dict[tuple[str, str, float], list[m.Data]] = {}

@@ -62,6 +62,7 @@ class PeerTables(AppSyncing):
         self._failed_incarnation: dict[str, int] = {}  # the incarnation declared failed
         self._beats = 0
         self._briefed: dict[str, float] = {}  # neighbour -> its link's start, once told our figures
+        self._round: list[str] = []  # the keys of ``_briefed``, sorted: a round's order
         # nodes that rejoined while this node's own view was in dispute (it holds a reachable
         # node failed: a healed partition whose losing side has not reset yet): synced after
         self._sync_pending: set[str] = set()
