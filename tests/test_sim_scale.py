@@ -157,7 +157,7 @@ def test_a_beat_with_no_news_taken_quietly_changes_nothing(
     a failure and a restart goes message for message as when every beat is weighed whole."""
     whole, none_taken = _grid_run(False, monkeypatch)
     quiet, taken = _grid_run(True, monkeypatch)
-    # most beats carry no news (about 80% here: the rest carry figures, or follow the failure)
+    # most beats carry no news (the rest follow the failure, or are hellos)
     assert none_taken == 0 and taken > quiet.census.by_type["Heartbeat"] // 2
     assert quiet.trace == whole.trace
     assert quiet.census.by_type == whole.census.by_type
@@ -168,6 +168,11 @@ def test_a_beat_with_no_news_taken_quietly_changes_nothing(
         assert core.failed == other.failed
         assert core.placement("app0") == other.placement("app0")
         assert core.membership.liveness.last_heard == other.membership.liveness.last_heard
+        assert core.membership.liveness.heard == other.membership.liveness.heard  # figures
+        gaps, other_gaps = core.membership.liveness.gaps, other.membership.liveness.gaps
+        assert {k: (g.count, g.recent) for k, g in gaps.items()} == {
+            k: (g.count, g.recent) for k, g in other_gaps.items()
+        }
         assert core.membership.heard_of() == other.membership.heard_of()  # hellos taken quietly
         assert core.failures == other.failures and core.rejoins == other.rejoins
 

@@ -23,11 +23,13 @@ class Rejoining(Beating):
 
     def quiet_beat(self, src: str, msg: m.Heartbeat, now: float) -> bool:
         """Take a beat with no news (no claims, not from a suspect, holding failed only nodes
-        heard of, not this one): a beat in the incarnation known, without figures, or a
-        non-neighbour's first (the N² hellos of a start-up). All :meth:`heard` and
-        :meth:`on_heartbeat` would do is note the incarnation and the sender's liveness clock:
-        done here, outside the core's effect machinery. False: weigh it whole. Keep it in step
-        with :meth:`on_heartbeat` (tests/test_sim_scale.py runs the two ways side by side)."""
+        heard of, not this one): a beat in the incarnation known, or a non-neighbour's first
+        (the N² hellos of a start-up). All :meth:`heard` and :meth:`on_heartbeat` would do is
+        note the incarnation and the sender's liveness clock, and a neighbour's figures if it
+        carries them (one beat in ten: weighed whole, they were half of what receiving beats
+        cost): done here, outside the core's effect machinery. False: weigh it whole. Keep it
+        in step with :meth:`on_heartbeat` (tests/test_sim_scale.py runs the two ways side by
+        side)."""
         if msg.news or src in self._suspicions or src in self._vouchers.since:
             return False
         # (the liveness table's few neighbours, which on_routes_changed keeps equal to the
@@ -37,11 +39,7 @@ class Rejoining(Beating):
         if known is None:
             if neighbour or not self.admits(src, self._incarnations) or self._newcomer(msg):
                 return False
-        elif (
-            known != msg.incarnation
-            or src not in self.liveness.last_heard
-            or msg.figures is not None
-        ):
+        elif known != msg.incarnation or src not in self.liveness.last_heard:
             return False
         held = msg.failed
         if held and (
