@@ -13,8 +13,8 @@ import itertools
 import os
 import random
 from collections import deque
-from collections.abc import Callable, Hashable
-from typing import Any
+from collections.abc import Callable, Hashable, Sequence
+from typing import Any, NamedTuple
 
 import msgspec
 
@@ -34,6 +34,17 @@ from mso.sim.executor import SimExecutor
 _Item = tuple[float, int, str, str, Any]
 # route, delay, lossy hops, and the byte counters of each hop's sender and receiver
 _Path = tuple[list[str], float, tuple[tuple[int, float], ...], list[list[int]], list[list[int]]]
+
+
+class _Plan(NamedTuple):
+    """A broadcast's copies worked out (:meth:`Simulation._plan`)."""
+
+    copies: list[tuple[str, list[str]]]  # (receiver, route), for the census
+    # (a byte counter, 0 sent / 1 received, the copies that cross it, their names' bytes)
+    shares: list[tuple[list[int], int, int, int]]
+    groups: list[tuple[float, tuple[str, ...]]]  # (delay, the receivers it brings), in order
+
+
 MAX_PATHS = 200_000  # paths kept between two link changes, at most
 HAPPENED_KEPT = 4096
 
@@ -86,6 +97,8 @@ class Simulation:
         self._hops: dict[tuple[str, str], tuple[float, float]] = {}  # (a, b) -> delay, loss
         self._uniform: tuple[float, float] | None = None  # every hop's, when all are alike
         self._sums = [0.0]
+        # node -> (the links' version, receivers, its last broadcast's plan or None)
+        self._plans: dict[str, tuple[int, tuple[str, ...], _Plan | None]] = {}
         self.hop_latency_s = hop_latency_s
         self.now = 0.0
         # each node's spill store outlives its restarts, as the daemon's file does
@@ -341,16 +354,23 @@ class Simulation:
                 size = rest + (names.get(node) or self._name_bytes(node))
                 size += names.get(dst) or self._name_bytes(dst)
             else:
-                frame = m.wrap(node, dst, msg)
-                decoded = m.decode(m.unwrap(frame).body)
-                size = len(frame)
-                rest = size - self._name_bytes(node) - self._name_bytes(dst)
-                self._last_decoded, msg = (msg, rest, decoded), decoded
+                _, rest, msg = self._encode(node, dst, msg)
+                size = rest + self._name_bytes(node) + self._name_bytes(dst)
             for c in senders:  # every hop sends and receives it
                 c[0] += size
             for c in receivers:
                 c[1] += size
         return delay, msg
+
+    def _encode(self, node: str, dst: str, msg: m.Message) -> tuple[m.Message, int, m.Message]:
+        """``msg`` through the wire, as ``dst`` would receive it from ``node``: encoded in its
+        envelope and decoded, kept as the last decoded (sent, its frame's size without its
+        two ends' names, its body as received)."""
+        frame = m.wrap(node, dst, msg)
+        decoded = m.decode(m.unwrap(frame).body)
+        rest = len(frame) - self._name_bytes(node) - self._name_bytes(dst)
+        self._last_decoded = (msg, rest, decoded)
+        return self._last_decoded
 
     def _name_bytes(self, name: str) -> int:
         """How many bytes ``name`` takes in an envelope (msgpack: its header and UTF-8)."""
@@ -365,36 +385,44 @@ class Simulation:
         call for them all), taps see it and bytes are added as for a send of its own, but the
         receivers it reaches at the same moment share one scheduled event, delivered to each
         in the order sent -- the order their own events would have had (a beat's N scheduled
-        sends were a fifth of a 1,000-node run)."""
-        msg = sends[0].msg
-        paths: list[tuple[str, _Path | None]] = []
-        copies: list[tuple[str, list[str]]] = []
-        lost = self.lost_routes
-        kept = self._paths if self.network.version == self._paths_version else {}
+        sends were a fifth of a 1,000-node run). A broadcast to the receivers of the last one
+        from ``node``, over the same links, follows its plan (:meth:`_plan`)."""
+        msg, now = sends[0].msg, self.now
+        if self.wire and not self.taps and self.drop is None and not self.lost_routes:
+            dsts = tuple([eff.dst for eff in sends])
+            planned = self._plans.get(node)
+            if planned is None or planned[0] != self.network.version or planned[1] != dsts:
+                plan = self._plan(node, dsts)
+                planned = self._plans[node] = (self.network.version, dsts, plan)
+            if planned[2] is not None:
+                self._cast_planned(node, msg, planned[2])
+                return
+        if self.network.version != self._paths_version:
+            self._path(node, sends[0].dst)  # (the paths kept are of older links: dropped)
+        kept, lost = self._paths, self.lost_routes
+        routed: list[tuple[str, _Path]] = []
         for eff in sends:
-            path = kept.get((node, eff.dst)) or self._path(node, eff.dst)
-            if path is None or (lost and (node, eff.dst) in lost):
-                path = None
+            dst = eff.dst
+            path = kept.get((node, dst)) or self._path(node, dst)
+            if path is None or (lost and (node, dst) in lost):  # no route: control frames
+                self.waiting[node].hold(dst, (dst, msg), m.kind_of(msg), now)  # wait
             else:
-                copies.append((eff.dst, path[0]))
-            paths.append((eff.dst, path))
-        if copies:
-            self.census.note_many(self.now, node, msg, copies)
+                routed.append((dst, path))
+        if not routed:
+            return
+        self.census.note_many(now, node, msg, [(dst, path[0]) for dst, path in routed])
         group: list[str] = []
         at = -1.0
-        arrived: m.Message | None = None
+        arrived: m.Message = msg
         # with nothing to see or lose a copy (no taps, no test's drop) and the body decoded
         # already, a lossless path's copy only adds its bytes: done here, as _carry does
         plain = self.wire and not self.taps and self.drop is None
         names = self._names
-        for dst, path in paths:
-            if path is None:  # no route: control frames wait
-                self.waiting[node].hold(dst, (dst, msg), m.kind_of(msg), self.now)
-                continue
+        own = names.get(node) or self._name_bytes(node)  # (the sender's name, in each frame)
+        for dst, path in routed:
             last = self._last_decoded
             if plain and not path[2] and last is not None and last[0] is msg:
-                size = last[1] + (names.get(node) or self._name_bytes(node))
-                size += names.get(dst) or self._name_bytes(dst)
+                size = last[1] + own + (names.get(dst) or self._name_bytes(dst))
                 for c in path[3]:
                     c[0] += size
                 for c in path[4]:
@@ -404,13 +432,69 @@ class Simulation:
                 delay, arrived = self._carry(node, dst, msg, path)
             if delay < 0:
                 continue
-            if group and self.now + delay != at:
-                self._push(at, "cast", node, (group, arrived))
-                group = []
-            at = self.now + delay
+            if now + delay != at:
+                if group:
+                    self._push(at, "cast", node, (group, arrived))
+                    group = []
+                at = now + delay
             group.append(dst)
         if group:
             self._push(at, "cast", node, (group, arrived))
+
+    def _plan(self, node: str, dsts: tuple[str, ...]) -> _Plan | None:
+        """What a broadcast from ``node`` to ``dsts`` costs, worked out once for as long as
+        the links stay (a beat goes to the same neighbours every period): the census's copies,
+        each byte counter's share, and the receivers grouped by arrival. A copy's frame is
+        the first's but for its two names (:meth:`_carry`), so a counter that ``k`` copies
+        cross gains ``k`` times the rest of the frame and those copies' names. None (each copy
+        carried on its own, as :meth:`_cast` does) when a receiver has no route or a hop
+        loses frames."""
+        copies: list[tuple[str, list[str]]] = []
+        shares: dict[tuple[int, int], list[Any]] = {}  # (counter's id, end) -> its share
+        groups: list[tuple[float, list[str]]] = []
+        own = self._name_bytes(node)
+        for dst in dsts:
+            path = self._path(node, dst)
+            if path is None or path[2]:
+                return None
+            route, delay, _, senders, receivers = path
+            copies.append((dst, route))
+            names = own + self._name_bytes(dst)
+            for end, counters in ((0, senders), (1, receivers)):
+                for c in counters:
+                    share = shares.setdefault((id(c), end), [c, end, 0, 0])
+                    share[2] += 1
+                    share[3] += names
+            if groups and groups[-1][0] == delay:
+                groups[-1][1].append(dst)
+            else:
+                groups.append((delay, [dst]))
+        return _Plan(
+            copies,
+            [(c, end, k, b) for c, end, k, b in shares.values()],
+            [(delay, tuple(group)) for delay, group in groups],
+        )
+
+    def _cast_planned(self, node: str, msg: m.Message, plan: _Plan) -> None:
+        """:meth:`_cast` by its plan: what its loop over the copies would do, in one go."""
+        now = self.now
+        self.census.note_many(now, node, msg, plan.copies)
+        last = self._last_decoded
+        if last is None or last[0] is not msg:
+            last = self._encode(node, plan.copies[0][0], msg)
+        _, rest, arrived = last
+        for counter, end, k, names in plan.shares:
+            counter[end] += k * rest + names
+        at = -1.0
+        group: tuple[str, ...] = ()
+        for delay, receivers in plan.groups:
+            if now + delay == at:  # (different delays, one arrival: one event, as _cast)
+                group += receivers
+                continue
+            if group:
+                self._push(at, "cast", node, (group, arrived))
+            at, group = now + delay, receivers
+        self._push(at, "cast", node, (group, arrived))
 
     def _push(self, at: float, kind: str, node: str, payload: Any) -> None:
         heapq.heappush(self._heap, (at, next(self._seq), kind, node, payload))
@@ -512,30 +596,30 @@ class Simulation:
         self._recheck.add(node)
         self.update_routes()
 
-    def _deliver(self, at: float, src: str, dsts: list[str], msg: m.Message) -> None:
+    def _deliver(self, at: float, src: str, dsts: Sequence[str], msg: m.Message) -> None:
         """A broadcast's copies arriving at ``at``, at each receiver in turn."""
         cores, killed, trace = self.cores, self.killed, self.trace
         for node in dsts:
             if node in killed:
                 continue
-            core = cores[node]  # (its byte counters it reads itself: count_traffic)
             self.delivered += 1
             if trace is not None:
                 trace.append((at, node, src, type(msg).__name__))
-            effects = core.receive(src, msg, at)
+            # (its byte counters the core reads itself: count_traffic)
+            effects = cores[node].receive(src, msg, at)
             if effects:  # (a quiet beat's none)
                 self.apply(node, effects)
 
     def run_until(self, t: float) -> None:
-        heap = self._heap
+        heap, pop = self._heap, heapq.heappop
         while heap and heap[0][0] <= t:
-            at, _, kind, node, payload = heapq.heappop(heap)
+            at, _, kind, node, payload = pop(heap)
             self.now = at
+            if kind == "cast":  # (a beat's copies: the commonest)
+                self._deliver(at, node, *payload)
+                continue
             if kind == "routes":
                 self.update_routes()
-                continue
-            if kind == "cast":
-                self._deliver(at, node, *payload)
                 continue
             if node in self.killed:
                 continue
@@ -552,7 +636,7 @@ class Simulation:
                 executor, result = payload
                 if executor is self.executors[node]:
                     self.apply(node, core.on_vertex(result, at))
-            elif self._timers.get((node, payload)) == at:
-                del self._timers[(node, payload)]
+            elif self._timers.get(key := (node, payload)) == at:
+                del self._timers[key]
                 self.apply(node, core.on_timer(payload, at))
         self.now = max(self.now, t)
