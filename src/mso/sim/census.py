@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import bisect
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -68,10 +68,16 @@ class Census:
         self.note_many(at, src, msg, ((dst, route),))
 
     def note_many(
-        self, at: float, src: str, msg: m.Message, copies: Iterable[tuple[str, list[str]]]
+        self,
+        at: float,
+        src: str,
+        msg: m.Message,
+        copies: Collection[tuple[str, list[str]]],
+        hops: int | None = None,
     ) -> None:
         """``msg`` sent to each (destination, route) of ``copies``: every copy counted, as
-        :meth:`note` counts one (a beat to every neighbour is counted in one call)."""
+        :meth:`note` counts one (a beat to every neighbour is counted in one call). ``hops``:
+        the copies' hop transmissions, when the caller knows them (a planned broadcast)."""
         kind = _KINDS.get(type(msg))
         if kind is None:  # a message's kind is its type's: looked up once per type
             name = type(msg).__name__
@@ -79,10 +85,9 @@ class Census:
             kind = _KINDS[type(msg)] = (name, control)
         name, control = kind
         if not control:
-            hops = sent = 0
-            for _, route in copies:
-                sent += 1
-                hops += len(route) - 1
+            sent = len(copies)
+            if hops is None:
+                hops = sum(len(route) - 1 for _, route in copies)
             if sent:
                 self.by_type[name] += sent
                 self.hops_by_type[name] += hops

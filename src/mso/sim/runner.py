@@ -40,6 +40,7 @@ class _Plan(NamedTuple):
     """A broadcast's copies worked out (:meth:`Simulation._plan`)."""
 
     copies: list[tuple[str, list[str]]]  # (receiver, route), for the census
+    hops: int  # the copies' hop transmissions
     # (a byte counter, 0 sent / 1 received, the copies that cross it, their names' bytes)
     shares: list[tuple[list[int], int, int, int]]
     groups: list[tuple[float, tuple[str, ...]]]  # (delay, the receivers it brings), in order
@@ -471,6 +472,7 @@ class Simulation:
                 groups.append((delay, [dst]))
         return _Plan(
             copies,
+            sum(len(route) - 1 for _, route in copies),
             [(c, end, k, b) for c, end, k, b in shares.values()],
             [(delay, tuple(group)) for delay, group in groups],
         )
@@ -478,7 +480,7 @@ class Simulation:
     def _cast_planned(self, node: str, msg: m.Message, plan: _Plan) -> None:
         """:meth:`_cast` by its plan: what its loop over the copies would do, in one go."""
         now = self.now
-        self.census.note_many(now, node, msg, plan.copies)
+        self.census.note_many(now, node, msg, plan.copies, plan.hops)
         last = self._last_decoded
         if last is None or last[0] is not msg:
             last = self._encode(node, plan.copies[0][0], msg)
