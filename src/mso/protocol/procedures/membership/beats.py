@@ -77,13 +77,17 @@ class Beating(Suspecting):
                     if full is None:
                         full = msgspec.structs.replace(slim, figures=self.ctx.figures())
                     self.ctx.emit(Send(n, full))
-        away = set(self.liveness.unreachable(self.failed))
+        # (on every beat: mostly nobody out of reach, no claim pending, no app engaged here)
+        away = set(self.liveness.unreachable(self.failed)) if self.liveness.gone else set()
         for n in self.liveness.silent(now, self.failed):  # silent with a route: suspected;
             if n in self.ctx.routes or self._needed(n, away):  # out of reach, only if the
                 self._suspect(n, now)  # apps cannot progress without re-placing what it runs
-        for n in self._blocking(now, away):  # unreachable, and it runs part of an app we run:
-            self._suspect(n, now)  # asked about like a silent neighbour
-        for claim, at in self._claims.due(now, self.liveness.dead_after_s / 2):
+        for n in self._blocking(now, away) if away else ():  # unreachable, and it runs part
+            self._suspect(n, now)  # of an app we run: asked about like a silent neighbour
+        pending = (
+            self._claims.due(now, self.liveness.dead_after_s / 2) if self._claims.pending else ()
+        )
+        for claim, at in pending:
             if self.liveness.hears(claim.node, now, within=now - at):
                 self.ctx.refusal("node_down_refuted")  # it answered our probe: it lives
             elif claim.node not in self.failed:
@@ -91,7 +95,8 @@ class Beating(Suspecting):
         self._flush_syncs()
         # this node may have become an app's recovery coordinator (it runs part of it now);
         # with nothing failed and nothing vanished no app has a vertex to recover
-        if self.failed or any(map(_VANISHED, self.ctx.apps.engaged_apps())):
+        apps = self.ctx.apps
+        if self.failed or (apps.engaged and any(map(_VANISHED, apps.engaged_apps()))):
             self.ctx.publish(RecoveryDue())
         self.ctx.set_timer(_TICK, now + self.liveness.period_s)
 

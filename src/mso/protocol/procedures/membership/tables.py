@@ -161,5 +161,6 @@ class PeerTables(AppSyncing):
 
     def _hosting(self) -> int:
         """Instances hosted here (on every beat: over the apps engaged here only, not every
-        app held, and summed in C)."""
-        return sum(map(len, map(_INSTANCES, self.ctx.apps.engaged_apps())))
+        app held, and summed in C; most nodes take part in none)."""
+        apps = self.ctx.apps
+        return sum(map(len, map(_INSTANCES, apps.engaged_apps()))) if apps.engaged else 0
