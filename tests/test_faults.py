@@ -262,6 +262,9 @@ RESTARTS_BROKE = {
     "the recovery was cut off; the move's new host died, and nobody told that node of the move "
     "at the heal: it rewired a consumer end on the old host, which held nothing, for ever "
     "(a node keeps the app while it handed a vertex over and a host is out of reach)",
+    92532: "a daemon restarted with the app kept, its vertex restored meanwhile on a node "
+    "that did not count it a holder: nobody synced it, it did not coordinate, and it held the "
+    "app for ever, named a replica by its own view (a kept view asks the nodes it names at once)",
     87093: "a replica asked the vertex's host by a view from before a move; the old host "
     "answered for itself, none, and the replica dropped the copy the new host had just made "
     "and let the app go: the vertex's state held nowhere",

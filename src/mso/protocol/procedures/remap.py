@@ -506,6 +506,12 @@ class Remapper:
             # restarted and numbered its output from 0: 22 events dropped, seed 78957)
             return
         if dep.stored and now < dep.started_at + KEPT_WAIT_S:
+            named = set(dep.placed.values()) & routes.keys()
+            if named - {self.ctx.id} and dep.looked_up != frozenset(failed):
+                # asking acts on nothing: at once, once a node the view names is in reach (the
+                # vertices it ran may run elsewhere since, restored by nodes that do not
+                # count it a holder and will not sync it: seed 92532)
+                self.ctx.publish(PlacementStale(dep.app.name, wide=False))
             self.ctx.emit(SetTimer(RecoverTick(dep.app.name), dep.started_at + KEPT_WAIT_S))
             return
         alive = {self.ctx.id, *(n for n in routes if n not in failed)}
@@ -516,7 +522,8 @@ class Remapper:
             # has left since, whose view named this one: nobody recovered (fault seed 66410).
             # It asks the nodes its view names first, once per set of failures
             alone = recovery_coordinator({}, set(), alive, holding) == self.ctx.id
-            stale = alone and not dep.hosts_part()
+            # so does a view this node's last process kept (asked at once, above)
+            stale = (alone and not dep.hosts_part()) or dep.stored
             if stale and dep.looked_up != frozenset(failed):
                 self.ctx.publish(PlacementStale(dep.app.name, wide=False))
             return
