@@ -265,6 +265,7 @@ RESTARTS_BROKE = {
     92532: "a daemon restarted with the app kept, its vertex restored meanwhile on a node "
     "that did not count it a holder: nobody synced it, it did not coordinate, and it held the "
     "app for ever, named a replica by its own view (a kept view asks the nodes it names at once)",
+    94289: "as 92532, on a line of 8 after two partitions",
     87093: "a replica asked the vertex's host by a view from before a move; the old host "
     "answered for itself, none, and the replica dropped the copy the new host had just made "
     "and let the app go: the vertex's state held nowhere",
