@@ -9,6 +9,7 @@ from mso.protocol.procedures.membership.ranks import (
     cut_off,
     holds_more_failed,
     outranked_by,
+    smaller_side,
 )
 
 
@@ -49,3 +50,16 @@ def test_the_larger_side_stays_and_an_empty_node_yields_to_a_busy_one() -> None:
     assert outranked_by(view({"N5"}, hosting=0), small)  # we run nothing: we would yield
     assert outranked_by(view(set(), hosting=1), beat("N5", {"N2": 0}))  # one-sided: we reset
     assert not outranked_by(view(set(), hosting=1), beat("N5", {"N2": 0}, hosting=0))
+
+
+def test_a_node_held_failed_that_holds_us_alive_is_the_side_cut_off_if_we_reach_most() -> None:
+    """Issue 22.1: a node cut off holds the others out of reach, alive, not failed. Its beat
+    holding nobody failed marks it as the smaller side when we hold most of those we reach
+    alive; a node that holds most of them failed (restarted amid a partition) is the smaller
+    side itself, and one that holds us failed is weighed by the counts alone."""
+    cut = beat("N5", {})
+    assert smaller_side(view({"N5"}), cut)  # we hold N1, N3, N4 alive
+    assert not smaller_side(view({"N5", "N1", "N3"}), cut)  # we hold most of them failed
+    assert not smaller_side(view(set()), cut)  # (we hold it alive: no dispute)
+    assert not smaller_side(view({"N5"}), beat("N5", {"N2": 0}))  # one for one
+    assert smaller_side(view({"N5"}), beat("N5", {"N2": 0, "N1": 0}))  # it holds more

@@ -9,7 +9,7 @@ from collections import Counter
 from mso.model.network import LinkSpec
 from mso.sim.runner import Simulation
 from mso.statusview import status_text
-from test_failure import BRANCH, MESH_LINKS, PIPE, started, stats
+from test_failure import BRANCH, MESH_LINKS, PIPE, emitted, started, stats, where
 
 
 def cut(sim: Simulation, links: list[tuple[str, str]]) -> None:
@@ -88,6 +88,39 @@ def test_a_healed_even_split_where_neither_side_can_run_the_app_declares_nobody(
     got = stats(sim, "pipe", "sink")
     assert got["count"] >= before + 150 and got["repeats"] == 0, got
     assert got["out_of_order"] == 0 and got["next"] == got["count"], got  # none lost
+
+
+def test_a_relay_cut_off_2_s_is_the_only_node_declared_and_is_taken_back_once() -> None:
+    """bench/failure.py's partition case in virtual time (beats every 0.1 s, a 0.5 s window):
+    N3, which runs mid, loses every link for 2 s. mid can run elsewhere, so its neighbours
+    declare N3 and mid is restored; N3 itself holds the others out of reach, alive. On the heal
+    N3 alone resets and is taken back, once, at every node. (The nodes that ran nothing and
+    held no app read N3's beat, which held them alive, as a sign that they were the ones cut
+    off, and reset: each taken for a restart, "declared", by every other node.)"""
+    sim = started(PIPE)  # src on N1, mid on N3, sink pinned on N6
+    assert where(sim, "pipe", "mid") == "N3"
+    links = [(a, b) for a, b in MESH_LINKS if "N3" in (a, b)]
+    cut(sim, links)
+    sim.run_until(sim.now + 2.0)
+    restored = [n for n, c in sim.cores.items() if n != "N3" and "mid" in c.instances("pipe")]
+    assert len(restored) == 1  # restored on the larger side (N3's own runs on, out of reach)
+    assert not sim.cores["N3"].failed  # out of reach is not failed: N3 declared nobody
+    assert all(core.failed == {"N3"} for n, core in sim.cores.items() if n != "N3")
+
+    heal(sim, links)
+    sim.run_until(sim.now + 5.0)
+    assert {n: c.incarnation for n, c in sim.cores.items()} == {
+        n: int(n == "N3") for n in sim.cores
+    }  # N3 reset once; nobody else did
+    for n, core in sim.cores.items():
+        assert not core.failed, (n, core.failed)
+        assert {f["node"] for f in core.membership.failures} <= {"N3"}, (n, core.failures)
+        if n != "N3":  # taken back exactly once, as its next incarnation
+            assert [(r["node"], r["incarnation"]) for r in core.rejoins] == [("N3", 1)], n
+    assert instances(sim, "pipe") == Counter({"src": 1, "mid": 1, "sink": 1})
+    got, sent = stats(sim, "pipe", "sink"), emitted(sim, "pipe", "src")
+    assert got["repeats"] == 0 and got["out_of_order"] == 0, got
+    assert sent - 5 <= got["count"] <= sent  # nothing lost across the cut and the heal
 
 
 def test_a_restarted_node_is_a_new_incarnation_and_gets_its_pinned_vertex_back() -> None:

@@ -81,6 +81,26 @@ def holds_more_failed(view: View, msg: m.Heartbeat) -> bool:
     return theirs > sum(1 for n in view.failed if n in view.routes)
 
 
+def smaller_side(view: View, msg: m.Heartbeat) -> bool:
+    """``msg.node``, which we hold failed, is the side cut off by a partition that healed,
+    not we: it holds more of the nodes we reach failed than we do (:func:`holds_more_failed`),
+    or it holds us alive while we hold alive most of the nodes we reach. A node out of reach
+    is not declared (issue 22.1), so the node cut off holds the others *unreachable*, alive,
+    while they declared it to re-place what it ran: its beat holds nobody failed, and read as
+    the larger side's, every node that ran nothing reset for a relay cut off 2 s and was taken
+    for a restart by the others. A node that holds most of those it reaches failed (restarted
+    amid a partition, told of failures that are over) is the one to yield."""
+    if msg.node not in view.failed:
+        return False
+    if holds_more_failed(view, msg):
+        return True
+    if msg.failed.get(view.id) == view.incarnation:
+        return False
+    seen = [n for n in view.routes if n != msg.node]
+    held = sum(1 for n in seen if n in view.failed)
+    return len(seen) - held > held
+
+
 def _runs(view: View, node: str, incarnation: int) -> bool:
     """Whether ``node`` runs ``incarnation``, as far as this node knows: one whose incarnation
     it never heard (a node far away that shares no app with it: nobody says hello to every

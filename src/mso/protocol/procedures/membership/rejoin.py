@@ -148,8 +148,9 @@ class Rejoining(Beating):
         if (
             self._hosting() > 0
             or msg.hosting == 0
-            or not self._hosts() - self.failed - {src}  # no node of ours our views place work on
-            or not ranks.holds_more_failed(self._view(), msg)
+            or (self.ctx.apps and not self._hosts() - self.failed - {src})  # no node of ours
+            # our views place work on (a node that holds no app cannot tell: it waits)
+            or not ranks.smaller_side(self._view(), msg)
         ):
             self._awaiting.pop(src, None)
             return False
