@@ -116,6 +116,9 @@ class Liveness:
     _rejoined: set[str] = field(default_factory=set)
     gone: dict[str, float] = field(default_factory=dict)  # unreachable node -> since
     gaps: dict[str, Gaps] = field(default_factory=dict)  # neighbour -> heartbeat inter-arrivals
+    # the neighbours whose last beat said they run an instance: whether this node's side of a
+    # healed partition runs something (a node cut off resets when it hears one of them)
+    busy: set[str] = field(default_factory=set)
 
     def reaches(self, node: str) -> bool:
         """Whether ``node`` was reachable in the routing view last given (and not failed)."""
@@ -156,6 +159,7 @@ class Liveness:
             if n not in neighbours:
                 del self.neighbours[n]
                 self.gaps.pop(n, None)  # a gap across a lost link is not a late beat
+                self.busy.discard(n)
         for n in neighbours:
             self.neighbours.setdefault(n, now)
             self.watched.setdefault(n, now)
@@ -165,6 +169,10 @@ class Liveness:
         if beat is not None:
             if beat.figures is not None:
                 self.heard[node] = (now, beat.figures)
+            if beat.hosting:
+                self.busy.add(node)
+            else:
+                self.busy.discard(node)
             gaps = self.gaps.get(node)  # (not setdefault: a Gaps made and dropped per beat)
             if gaps is None:
                 gaps = self.gaps[node] = Gaps()
@@ -223,6 +231,7 @@ class Liveness:
         """A node declared failed is back: watch it again from now."""
         self.last_heard[node] = now
         self.gaps.pop(node, None)
+        self.busy.discard(node)
         if reachable:
             self._rejoined.add(node)
             self.gone.pop(node, None)
@@ -238,6 +247,7 @@ class Liveness:
         self.watched.pop(node, None)
         self.last_heard.pop(node, None)
         self.heard.pop(node, None)
+        self.busy.discard(node)
         self._rejoined.discard(node)
         if node in self._reach:
             self._unreached.add(node)

@@ -140,16 +140,17 @@ class Rejoining(Beating):
         """Whether this node, which runs nothing, should not yield to ``msg.node`` (held
         failed here, running something) although the tie-break says so: it is on the smaller
         side of a healed partition and will reset when it hears a node of ours that runs
-        something (our views place work on one), and we take its new incarnation back.
-        Yielding, we would reset, be declared failed by everyone who holds us alive, and drop
-        the replicas we keep, for nothing. At most ``YIELD_WAIT_S``: where no node of ours
-        outranks it, we yield as before."""
+        something (a neighbour whose last beat said it runs an instance: not where our views
+        place work, which may be a node that restarted since, and a node that takes no part
+        in an app holds none of it), and we take its new incarnation back. Yielding, we would
+        reset, be declared failed by everyone who holds us alive, and drop the replicas we
+        keep, for nothing. At most ``YIELD_WAIT_S``: where no node of ours outranks it, we
+        yield as before."""
         src = msg.node
         if (
             self._hosting() > 0
             or msg.hosting == 0
-            or (self.ctx.apps and not self._hosts() - self.failed - {src})  # no node of ours
-            # our views place work on (a node that holds no app cannot tell: it waits)
+            or not any(n != src and n not in self.failed for n in self.liveness.busy)
             or not ranks.smaller_side(self._view(), msg)
         ):
             self._awaiting.pop(src, None)
