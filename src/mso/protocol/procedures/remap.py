@@ -506,12 +506,11 @@ class Remapper:
             # restarted and numbered its output from 0: 22 events dropped, seed 78957)
             return
         if dep.stored and now < dep.started_at + KEPT_WAIT_S:
-            named = set(dep.placed.values()) & routes.keys()
-            if named - {self.ctx.id} and dep.looked_up != frozenset(failed):
+            if (set(dep.placed.values()) & routes.keys()) - {self.ctx.id}:
                 # asking acts on nothing: at once, once a node the view names is in reach (the
                 # vertices it ran may run elsewhere since, restored by nodes that do not
                 # count it a holder and will not sync it: seed 92532)
-                self.ctx.publish(PlacementStale(dep.app.name, wide=False))
+                self._ask_where(dep, failed)
             self.ctx.emit(SetTimer(RecoverTick(dep.app.name), dep.started_at + KEPT_WAIT_S))
             return
         alive = {self.ctx.id, *(n for n in routes if n not in failed)}
@@ -523,9 +522,8 @@ class Remapper:
             # It asks the nodes its view names first, once per set of failures
             alone = recovery_coordinator({}, set(), alive, holding) == self.ctx.id
             # so does a view this node's last process kept (asked at once, above)
-            stale = (alone and not dep.hosts_part()) or dep.stored
-            if stale and dep.looked_up != frozenset(failed):
-                self.ctx.publish(PlacementStale(dep.app.name, wide=False))
+            if (alone and not dep.hosts_part()) or dep.stored:
+                self._ask_where(dep, failed)
             return
         if not dep.hosts_part() and dep.looked_up != frozenset(failed):  # this view is not
             self.ctx.publish(PlacementStale(dep.app.name))  # kept up to date: the app may run
@@ -560,6 +558,11 @@ class Remapper:
         self.ctx.begin(remap)
         dep.recovering = pid
         self._next_chain(pid, now)
+
+    def _ask_where(self, dep: AppState, failed: set[str]) -> None:
+        """Ask the nodes this view names where the app runs, once per set of failures."""
+        if dep.looked_up != frozenset(failed):
+            self.ctx.publish(PlacementStale(dep.app.name, wide=False))
 
     def park(self, dep: AppState) -> None:
         """Chains with a vertex pinned to a failed node cannot run anywhere: park them (they

@@ -140,20 +140,11 @@ class NewHost(Role):
         did not hear of). A second instance here would start without the positions the
         running one has and make its consumers drop what it sends as repeats: refused, and
         the coordinator told where it runs (its recovery is tried again on that view)."""
-        where, version = dep.placed.get(vid), dep.versions.get(vid, 0)
-        if (
-            where is None
-            or where == self.ctx.id
-            or where in self.ctx.failed
-            or vid in dep.vanished
-            or version <= msg.versions.get(vid, 0)
-        ):
+        later = self._runs_later(dep, vid, msg)
+        if later is None or later[0] == self.ctx.id:
             return False
-        self.ctx.refusal("restore_of_a_vertex_restored_since")
-        self.ctx.send(src, m.Moved(dep.app.name, vid, where, -1, version))
-        why = f"{vid!r} runs on {where} since (move {version}); not restored on {self.ctx.id}"
-        self.ctx.send(src, m.Prepared(dep.app.name, vid, msg.rid, self.ctx.id, why))
-        return True
+        refusal, why = "restore_of_a_vertex_restored_since", f"not restored on {self.ctx.id}"
+        return self._refuse_restore(dep, src, msg, vid, later, refusal, why)
 
     def _end_runs_on(
         self, dep: AppState, src: str, msg: m.Prepare, resumes: set[tuple[int, bool]]
@@ -170,19 +161,38 @@ class NewHost(Role):
             if vid not in (e.src, e.dst) or (i, e.dst == vid) in resumes:
                 continue
             end = e.src if e.dst == vid else e.dst
-            where, version = dep.placed.get(end), dep.versions.get(end, 0)
-            if where is None or where in self.ctx.failed or end in dep.vanished:
+            later = self._runs_later(dep, end, msg)
+            if later is None or (later[0] == self.ctx.id and end not in dep.instances):
                 continue
-            if version <= msg.versions.get(end, 0):
-                continue
-            if where == self.ctx.id and end not in dep.instances:
-                continue
-            self.ctx.refusal("restore_of_an_end_running_since")
-            self.ctx.send(src, m.Moved(dep.app.name, end, where, -1, version))
-            why = f"{end!r} runs on {where} since (move {version}): resume it, not restore it"
-            self.ctx.send(src, m.Prepared(dep.app.name, vid, msg.rid, self.ctx.id, why))
-            return True
+            refusal, why = "restore_of_an_end_running_since", "resume it, not restore it"
+            return self._refuse_restore(dep, src, msg, end, later, refusal, why)
         return False
+
+    def _runs_later(self, dep: AppState, vid: str, msg: m.Prepare) -> tuple[str, int] | None:
+        """Where ``vid`` runs by our view, if on a live node at a later move than the view
+        the coordinator's ``Prepare`` carries."""
+        where, version = dep.placed.get(vid), dep.versions.get(vid, 0)
+        if where is None or where in self.ctx.failed or vid in dep.vanished:
+            return None
+        return (where, version) if version > msg.versions.get(vid, 0) else None
+
+    def _refuse_restore(
+        self,
+        dep: AppState,
+        src: str,
+        msg: m.Prepare,
+        vid: str,
+        later: tuple[str, int],
+        refusal: str,
+        why: str,
+    ) -> bool:
+        """Refuse a restore, telling its coordinator where ``vid`` runs (a ``Moved`` first)."""
+        where, version = later
+        self.ctx.refusal(refusal)
+        self.ctx.send(src, m.Moved(dep.app.name, vid, where, -1, version))
+        why = f"{vid!r} runs on {where} since (move {version}): {why}"
+        self.ctx.send(src, m.Prepared(dep.app.name, msg.vertex, msg.rid, self.ctx.id, why))
+        return True
 
     def on_instance_ready(self, ev: InstanceReady) -> None:
         """A move's new instance started: the coordinator hears it is prepared."""
