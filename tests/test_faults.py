@@ -275,6 +275,9 @@ RESTARTS_BROKE = {
     79022: "an operator's remap at a node that learnt the app from a node behind moved a "
     "vertex to the node running it already: prepared, the move committed and waited for a "
     "handover that never came, holding the remap and the app open for 60 s",
+    96201: "a forwarder's replacement, to send its consumer only what was past that consumer's "
+    "marks, was moved before its replay came; the marks stayed behind and its new host sent "
+    "the sink 22 events it had (a handover carries them now: Handover.lacks)",
 }
 
 

@@ -227,3 +227,23 @@ def test_a_forks_consumers_each_keep_what_they_have_in_the_inputs_terms() -> Non
         (s,) = record.streams.values()
         assert s.duplicates == 0 and s.reordered == 0 and s.last - s.first + 1 == len(s.seen)
         assert s.last >= 80  # it went on after the restore
+
+
+def test_a_replacement_moved_before_it_passed_its_consumers_marks_hands_them_over() -> None:
+    """A forwarder's replacement sends its consumer only what was made past the consumer's
+    marks; moved before it made anything past them (its replay not come yet), its new host
+    must hold them too, or it sends on what the consumer has (seed 96201: 22 events twice)."""
+    vertices.RUNS.pop("provenance-moved", None)
+    sim = started(MERGE)
+    before = where(sim, "merge", "c")
+    far = {0: (10**6, 0), 1: (10**6, 0)}  # a consumer that has everything up to far ahead
+    sim.cores[before].apps["merge"].marks["c"] = {3: dict(far)}  # (edge 3: c -> sink)
+    target = next(n for n in ("N4", "N5", "N6") if n != before)
+    sim.request("N1", m.RelocateRequest("merge", "c", target=target))
+    sim.run_until(sim.now + 0.5)
+    assert where(sim, "merge", "c") == target
+    assert sim.cores[target].apps["merge"].marks.get("c") == {3: far}
+    (record,) = vertices.RUNS["provenance-moved"]
+    had = sum(len(s.seen) for s in record.streams.values())
+    sim.run_until(sim.now + 1.0)  # what it makes now is below the marks: none sent on
+    assert sum(len(s.seen) for s in record.streams.values()) == had

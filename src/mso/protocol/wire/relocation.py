@@ -105,6 +105,10 @@ class Handover(_Msg, tag="handover"):
     version: int = 0  # the move's version (the old host counted it)
     # input edge -> the provenance marks its consumer has of a merge's output (absent: unknown)
     marks: dict[int, dict[int, list[int]]] = msgspec.field(default_factory=dict)
+    # output edge -> the marks its consumer has, for a replacement that still sends that
+    # consumer only what is past them (mso.protocol.provenance): moved before it made
+    # anything past them, the new host sends on what the consumer has too (seed 96201)
+    lacks: dict[int, dict[int, list[int]]] = msgspec.field(default_factory=dict)
 
 
 class HandoverEvents(_Msg, tag="handover_events"):

@@ -315,6 +315,15 @@ class NewHost(Role):
             dep.out[i] = ch
         if msg.gate:
             dep.gates[msg.vertex] = AckGate.from_wire(msg.gate)
+        lacks = {  # (of its own output edges only: a peer's word)
+            o: marks
+            for o, wire in msg.lacks.items()
+            if o in msg.outputs and (marks := provenance.from_wire(wire))
+        }
+        if lacks and msg.vertex in dep.layout.stamped:
+            dep.marks[msg.vertex] = lacks
+        else:
+            dep.marks.pop(msg.vertex, None)
         for i in msg.inputs:  # what arrived early, in order, now that positions are known
             for seq, events, ts in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
                 self.dp.deliver(dep, i, seq, events, ts)

@@ -165,8 +165,12 @@ class OldHost(Role):
             parts,
             version,
             marks,
+            {  # a replacement's consumers' marks, not passed yet: its new host sends on
+                o: wire  # only what is past them, as it would have
+                for o, mk in dep.marks.pop(vid, {}).items()
+                if o in outputs and (wire := provenance.to_wire(mk))
+            },
         )
-        dep.marks.pop(vid, None)
         dep.catch_up.pop(vid, None)
         self.dp.taps.hand_over(dep.app.name, vid, msg.to, self.ctx.now)  # (asked there first)
         self.ctx.send(msg.to, handover)
