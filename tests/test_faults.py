@@ -272,6 +272,11 @@ RESTARTS_BROKE = {
     77821: "a replica's ask whether it still was one, held while the copy's host was down, "
     "reached the host's next process, which ran none: answered so, the replica let go its "
     "copy -- a newer one, of the vertex restored elsewhere -- and the app it took part in",
+    92622: "a vertex restored on both sides of a cut; at the heal one side's host reset, and "
+    "a node that had missed the reset relayed its placement, at a later version, to the other "
+    "host, which took it while running the vertex: its view placed it on a node that ran "
+    "nothing, whose view placed it back; b, c and the sink ran nowhere and were never restored",
+    93915: "as 92622, on a mesh of 7 after a partition, two crashes and a remap",
     79022: "an operator's remap at a node that learnt the app from a node behind moved a "
     "vertex to the node running it already: prepared, the move committed and waited for a "
     "handover that never came, holding the remap and the app open for 60 s",

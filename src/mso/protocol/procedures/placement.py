@@ -283,8 +283,32 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
     # vanishing of a vertex whose new host had restarted since; nothing restored it)
     running = src == msg.node
     v, node, version = msg.vertex, msg.node, msg.version
-    taken = known and dep is not None and learn(dep, v, node, version, now, running, tie)
-    if known and dep is not None and not taken:
+    if running and known and dep is not None and v in dep.vanished and dep.placed[v] != node:
+        # the one instance said to run, against a later placement whose instance went with
+        # its node's old incarnation: that placement's version says nothing live (fault seed
+        # 92622: a twin restored across a cut, the other side's host reset at the heal)
+        version = max(version, dep.versions.get(v, 0))
+    # (a relayed later placement while it runs here is not taken: fault seed 92622, this
+    # node ran a vertex it placed elsewhere, on a node that had reset since)
+    taken = (
+        known
+        and dep is not None
+        and not (twin and not running)
+        and learn(dep, v, node, version, now, running, tie)
+    )
+    if twin and not running and dep is not None:
+        # a relayed word (a node that missed ours): the twin it names may be gone with a
+        # reset this node has not heard of yet, and retiring this one left the vertex running
+        # nowhere (fault seed 65198). Its node and the relayer are told of this one, as of
+        # the version they hold: if that node still runs the twin and prevails, its answer
+        # is its own word, and this one yields then; if its instance went, they take this one
+        ctx.dropped()
+        dep.versions[v] = max(mine, version)
+        word = moved(dep, v, ctx.id, ctx.incarnation)
+        ctx.send(msg.node, word)
+        if src != msg.node:
+            ctx.send(src, word)
+    elif known and dep is not None and not taken:
         ctx.dropped()  # an older move's news, overtaken
         newer = dep.placed[msg.vertex]
         # (not a later move onto this node whose instance is gone: said in this node's own
@@ -299,12 +323,6 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
             ctx.send(msg.node, m.Moved(msg.app, msg.vertex, newer, inc, version))
     elif twin and running:  # this one yields, to the twin's host's own word
         ctx.publish(Superseded(msg.app, msg.vertex, msg.node, msg.version))
-    elif twin and dep is not None:
-        # a relayed word (a node that missed ours): the twin it names may be gone with a
-        # reset this node has not heard of yet, and retiring this one left the vertex running
-        # nowhere (fault seed 65198). Its node is told of this one instead: if it still runs
-        # the twin and prevails, its answer is its own word, and this one yields then
-        ctx.send(msg.node, moved(dep, msg.vertex, ctx.id, ctx.incarnation))
     if taken and running and msg.incarnation >= 0 and version and msg.node != ctx.id:
         remember(ctx, msg.app, v, node, msg.incarnation, version)
 
