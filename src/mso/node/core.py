@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import zlib
 from collections import deque
-from collections.abc import Callable, Hashable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 from typing import Any, TypeVar
 
 from mso.errors import MsoError
@@ -570,6 +570,9 @@ class NodeCore:
 
     def emit(self, effect: Effect) -> None:
         self._effects.append(effect)
+
+    def emit_all(self, effects: Iterable[Effect]) -> None:
+        self._effects.extend(effects)
 
     def set_timer(self, key: Hashable, at: float) -> None:
         self._effects.append(SetTimer(key, at))

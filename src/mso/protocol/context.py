@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Protocol
 
 if TYPE_CHECKING:
-    from collections.abc import Hashable, Mapping
+    from collections.abc import Hashable, Iterable, Mapping
 
     from mso.model.network import PowerModel
     from mso.protocol import messages as m
@@ -88,6 +88,9 @@ class NodeContext(Protocol):
 
     def emit(self, effect: Effect) -> None:
         """Any other effect: a vertex effect, or a Send that must not loop back."""
+
+    def emit_all(self, effects: Iterable[Effect]) -> None:
+        """:meth:`emit` each of ``effects``, in order (a beat's sends, in one call)."""
 
     def set_timer(self, key: Hashable, at: float) -> None: ...
 

@@ -42,22 +42,45 @@ class Beating(Suspecting):
             news or [],
         )
 
+    def _slim_beat(self, news: list[m.NodeDown]) -> m.Heartbeat:
+        """This period's beat without figures: the last one again when it says all this one
+        would (no news; the same incarnation, nodes held failed, leader and instances hosted),
+        as in most periods -- no message made, and the same sends (:meth:`heartbeat`). Sent
+        messages are never changed, so one can go out again."""
+        kept = self._slim
+        if (
+            not news
+            and kept is not None
+            and kept.incarnation == self.incarnation
+            and kept.hosting == self._hosting()
+            and kept.leader == self._leader()
+            and kept.failed == self._failed_incarnation
+        ):
+            return kept
+        slim = self.beat(news, figures=False)
+        self._slim = None if news else slim
+        return slim
+
     def heartbeat(self, now: float) -> None:
         """Tell the neighbours we live; declare the silent ones failed. Our figures go on one
         beat per monitor period, and on the first beat to a neighbour since its link came up
         (``_briefed``: the time the link came up, when it was given them)."""
         every = max(1, round(MONITOR_PERIOD_S / self.liveness.period_s))
-        slim = self.beat(self._gossip.next_beat(), figures=self._beats % every == 0)
+        news = self._gossip.next_beat()
         # the figures (hops to the nodes within two hops) are made only for a beat that
         # carries them, not on every beat
+        slim = self.beat(news) if self._beats % every == 0 else self._slim_beat(news)
         full = slim if slim.figures is not None else None
         neighbours, emit = self.liveness.neighbours, self.ctx.emit
         if full is None and self._briefed == neighbours and self.failed.isdisjoint(neighbours):
             # most rounds: every neighbour briefed since its link came up and none held
             # failed, so the slim beat to each, in the order the last round that changed
-            # ``_briefed`` (the only one that does) put them
-            for n in self._round:
-                emit(Send(n, slim))
+            # ``_briefed`` (the only one that does) put them: the last round's sends again
+            # when it was this beat to these neighbours
+            sends = self._sends
+            if sends[0] is not self._round or sends[1] is not slim:
+                sends = self._sends = (self._round, slim, [Send(n, slim) for n in self._round])
+            self.ctx.emit_all(sends[2])
         else:
             for n, since in sorted(neighbours.items()):
                 if n not in self.failed:

@@ -7,8 +7,10 @@ from collections.abc import Callable, Mapping
 from operator import attrgetter
 from typing import Any
 
+from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
+from mso.protocol.effects import Send
 from mso.protocol.procedures.deploy import Deployer
 from mso.protocol.procedures.membership.claims import Claims, Gossip, Vouchers
 from mso.protocol.procedures.membership.detector import P, PeerEvent, PeerLife
@@ -63,6 +65,10 @@ class PeerTables(AppSyncing):
         self._beats = 0
         self._briefed: dict[str, float] = {}  # neighbour -> its link's start, once told our figures
         self._round: list[str] = []  # the keys of ``_briefed``, sorted: a round's order
+        # the last beat without figures or news, and the last steady round's sends (of which
+        # round, of which beat): sent again while nothing they say changes (Beating)
+        self._slim: m.Heartbeat | None = None
+        self._sends: tuple[list[str], m.Heartbeat | None, list[Send]] = ([], None, [])
         # nodes that rejoined while this node's own view was in dispute (it holds a reachable
         # node failed: a healed partition whose losing side has not reset yet): synced after
         self._sync_pending: set[str] = set()
