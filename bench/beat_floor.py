@@ -20,8 +20,10 @@ codec:
 
 Nothing else: no liveness judgement (silence), no routes, no census, no byte counters per hop,
 no data plane, no monitor. Beside it, in alternated child processes: ``bench/scale.py --one``
-itself (N/20 apps, the issue's setting) and the simulator with no app (beats, monitor ticks,
-nothing else). Each measures the CPU of ``--duration`` simulated seconds after start-up.
+itself (N/20 apps, the issue's setting), the same with start-up's objects left to the cycle
+collector (``--collector-default``: as before the thirteenth stop), and the simulator with no
+app (beats, monitor ticks, nothing else). Each measures the CPU of ``--duration`` simulated
+seconds after start-up.
 
 Usage: .venv/bin/python bench/beat_floor.py [--topologies grid,geometric] [--nodes 1000]
        [--duration 10] [--rounds 2]
@@ -32,6 +34,7 @@ from __future__ import annotations
 import argparse
 import heapq
 import json
+import os
 import statistics
 import sys
 import time
@@ -43,7 +46,14 @@ from mso.benchmarks.common import Progress, provenance, write_results
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 SCALE = HERE / "scale.py"
-VARIANTS = ("simulator", "simulator, no app", "floor", "floor, decoded at each", "no codec")
+VARIANTS = (
+    "simulator",
+    "simulator, start-up left to the collector",
+    "simulator, no app",
+    "floor",
+    "floor, decoded at each",
+    "no codec",
+)
 
 
 def _scenario(topology: str, n: int) -> Any:
@@ -135,11 +145,14 @@ def floor(topology: str, n: int, duration: float, codec: str) -> dict[str, Any]:
 
 
 def no_app(topology: str, n: int, duration: float) -> dict[str, Any]:
-    """The simulator with no app deployed: its beats and monitor ticks alone."""
+    """The simulator with no app deployed: its beats and monitor ticks alone (start-up
+    kept out of the collector's way, as ``bench/scale.py`` does)."""
+    from mso.model.gcpause import keep_built
     from mso.sim.runner import Simulation
 
     sim = Simulation(_scenario(topology, n).network)
     sim.run_until(1.0)
+    keep_built()
     beats0 = sim.census.by_type.get("Heartbeat", 0)
     bytes0 = sum(b[0] for b in sim.bytes.values())
     c0 = time.process_time()
@@ -171,9 +184,10 @@ def _child(args: list[str], limit: float = 1200.0) -> dict[str, Any]:
 
 def _measure(variant: str, topology: str, n: int, duration: float) -> dict[str, Any]:
     """One variant in a fresh process (its own memory), with the load when it started."""
-    load = round(__import__("os").getloadavg()[0], 2)
-    if variant == "simulator":
-        r = _child([str(SCALE), "--one", topology, str(n), str(duration)])
+    load = round(os.getloadavg()[0], 2)
+    if variant in VARIANTS[:2]:  # bench/scale.py itself
+        default = ["--collector-default"] if "collector" in variant else []
+        r = _child([str(SCALE), "--one", topology, str(n), str(duration), *default])
         keep = ("cpu_ms_per_node_per_sim_s", "cpu_per_sim_s", "heartbeats_per_node_s")
         r = {k: r[k] for k in (*keep, "bytes_per_node_s", "messages_per_node_s")} | (
             {"error": r["error"]} if "error" in r else {}
