@@ -45,7 +45,6 @@ from mso.benchmarks.common import Progress, provenance, write_results
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
-SCALE = HERE / "scale.py"
 VARIANTS = (
     "simulator",
     "simulator, start-up left to the collector",
@@ -56,11 +55,16 @@ VARIANTS = (
 )
 
 
-def _scenario(topology: str, n: int) -> Any:
+def _scale() -> Any:
+    """bench/scale.py, whose builder and child runner this uses."""
     sys.path.insert(0, str(HERE))
     import scale
 
-    return scale._scenario(topology, n)
+    return scale
+
+
+def _scenario(topology: str, n: int) -> Any:
+    return _scale()._scenario(topology, n)
 
 
 def floor(topology: str, n: int, duration: float, codec: str) -> dict[str, Any]:
@@ -167,27 +171,12 @@ def no_app(topology: str, n: int, duration: float) -> dict[str, Any]:
     }
 
 
-def _child(args: list[str], limit: float = 1200.0) -> dict[str, Any]:
-    import subprocess
-
-    try:
-        done = subprocess.run(
-            [sys.executable, *args], capture_output=True, text=True, timeout=limit
-        )
-    except subprocess.TimeoutExpired:
-        return {"error": f"over the {limit:g} s limit"}
-    if done.returncode != 0:
-        return {"error": done.stderr.strip().splitlines()[-1] if done.stderr else "failed"}
-    out: dict[str, Any] = json.loads(done.stdout)
-    return out
-
-
 def _measure(variant: str, topology: str, n: int, duration: float) -> dict[str, Any]:
     """One variant in a fresh process (its own memory), with the load when it started."""
     load = round(os.getloadavg()[0], 2)
     if variant in VARIANTS[:2]:  # bench/scale.py itself
         default = ["--collector-default"] if "collector" in variant else []
-        r = _child([str(SCALE), "--one", topology, str(n), str(duration), *default])
+        r = _scale()._child(["--one", topology, str(n), str(duration), *default], 1200.0)
         keep = ("cpu_ms_per_node_per_sim_s", "cpu_per_sim_s", "heartbeats_per_node_s")
         r = {k: r[k] for k in (*keep, "bytes_per_node_s", "messages_per_node_s")} | (
             {"error": r["error"]} if "error" in r else {}
@@ -199,7 +188,8 @@ def _measure(variant: str, topology: str, n: int, duration: float) -> dict[str, 
             "floor, decoded at each": "each",
             "no codec": "none",
         }
-        r = _child([__file__, "--one", which[variant], topology, str(n), str(duration)])
+        args = ["--one", which[variant], topology, str(n), str(duration)]
+        r = _scale()._child(args, 1200.0, script=__file__)
     return {"variant": variant, "topology": topology, "nodes": n, "load": load, **r}
 
 
