@@ -299,15 +299,15 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
     if twin and not running and dep is not None:
         # a relayed word (a node that missed ours): the twin it names may be gone with a
         # reset this node has not heard of yet, and retiring this one left the vertex running
-        # nowhere (fault seed 65198). Its node and the relayer are told of this one, as of
-        # the version they hold: if that node still runs the twin and prevails, its answer
-        # is its own word, and this one yields then; if its instance went, they take this one
+        # nowhere (fault seed 65198). Its node is told of this one, as of the version the
+        # relayer holds: if it still runs the twin and prevails, its answer is its own word,
+        # and this one yields then; if its instance went, it takes this one. (Not the relayer
+        # too: while that node's word is out, the two would pass the two placements back and
+        # forth.)
         ctx.dropped()
         dep.versions[v] = max(mine, version)
         word = moved(dep, v, ctx.id, ctx.incarnation)
         ctx.send(msg.node, word)
-        if src != msg.node:
-            ctx.send(src, word)
     elif known and dep is not None and not taken:
         ctx.dropped()  # an older move's news, overtaken
         newer = dep.placed[msg.vertex]
