@@ -280,6 +280,9 @@ RESTARTS_BROKE = {
     79022: "an operator's remap at a node that learnt the app from a node behind moved a "
     "vertex to the node running it already: prepared, the move committed and waited for a "
     "handover that never came, holding the remap and the app open for 60 s",
+    101043: "a node took a host's first-hand word at the version of a vanished twin's; the "
+    "host's later move, at that version, was refused as a twin that did not prevail, and the "
+    "node told the new host the vertex ran on the old: the edges dangled, the sink stalled",
     96201: "a forwarder's replacement, to send its consumer only what was past that consumer's "
     "marks, was moved before its replay came; the marks stayed behind and its new host sent "
     "the sink 22 events it had (a handover carries them now: Handover.lacks)",
@@ -1058,6 +1061,23 @@ def test_twins_of_equal_version_are_ordered_by_their_hosts() -> None:
     sim.apply("N3", n3.receive("N2", m.Moved("pipe", "mid", "N2", 0, version), sim.now))
     assert "mid" not in n3.instances("pipe")  # N2 < N3, at one incarnation
     assert n3.placement("pipe")["mid"] == "N2"
+
+
+def test_the_hosts_word_that_it_handed_a_vertex_over_is_taken_at_an_equal_version() -> None:
+    """A node whose view places a vertex on N2 at a version counted on another placement (a
+    twin restored across a cut and vanished since: the host's first-hand word took the
+    place, the version stayed) hears from N2 that it handed the vertex over at that version.
+    No twin to order: the move is taken. Refused as a twin that does not prevail, the node
+    told the new host the vertex ran on N2, which took it, and the edges dangled (restart
+    seed 101043)."""
+    sim = line3()
+    n1 = sim.cores["N1"]
+    dep = n1.apps["pipe"]
+    version = dep.versions["mid"]
+    dep.placed["mid"] = "N2"  # the host's own word, at the twin's version
+    effects = n1.receive("N2", m.Moved("pipe", "mid", "N3", -1, version), sim.now)
+    assert n1.placement("pipe")["mid"] == "N3"
+    assert not [e for e in effects if isinstance(e, fx.Send) and isinstance(e.msg, m.Moved)]
 
 
 def test_news_of_an_older_move_is_answered_with_the_later_one() -> None:

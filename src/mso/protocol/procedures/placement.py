@@ -290,11 +290,15 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
         version = max(version, dep.versions.get(v, 0))
     # (a relayed later placement while it runs here is not taken: fault seed 92622, this
     # node ran a vertex it placed elsewhere, on a node that had reset since)
+    # the node this one places the vertex on says it handed it over: no twin to order (an
+    # equal version here is one counted on another placement: a twin's, vanished since, its
+    # version kept with the host's first-hand word of the one before; seed 101043)
+    handed = dep is not None and src == dep.placed.get(v) != node and src != ctx.id
     taken = (
         known
         and dep is not None
         and not (twin and not running)
-        and learn(dep, v, node, version, now, running, tie)
+        and learn(dep, v, node, version, now, running, None if handed else tie)
     )
     if twin and not running and dep is not None:
         # a relayed word (a node that missed ours): the twin it names may be gone with a
