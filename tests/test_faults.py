@@ -283,6 +283,15 @@ RESTARTS_BROKE = {
     101043: "a node took a host's first-hand word at the version of a vanished twin's; the "
     "host's later move, at that version, was refused as a twin that did not prevail, and the "
     "node told the new host the vertex ran on the old: the edges dangled, the sink stalled",
+    102439: "a fork's replacement started its input past its consumers' marks; the input's "
+    "producer, restored before it by another coordinator, numbered the edge anew from 0 and "
+    "said so after the fork ran: refused, the fork dropped a restarted source's first 39 events",
+    100772: "a move's target restarted as it took the Prepare: the coordinator, seeing the "
+    "restart, failed the move without an Unprepare, and the new incarnation held the prepared "
+    "instance and the app for the switch's 60 s",
+    100429: "a move's producer went out of reach as the target was prepared: its Switch was "
+    "lost, never sent again, and the move waited for its marker for 60 s, the target and the "
+    "coordinator holding the app past the quiet phase",
     96201: "a forwarder's replacement, to send its consumer only what was past that consumer's "
     "marks, was moved before its replay came; the marks stayed behind and its new host sent "
     "the sink 22 events it had (a handover carries them now: Handover.lacks)",

@@ -247,3 +247,30 @@ def test_a_replacement_moved_before_it_passed_its_consumers_marks_hands_them_ove
     had = sum(len(s.seen) for s in record.streams.values())
     sim.run_until(sim.now + 1.0)  # what it makes now is below the marks: none sent on
     assert sum(len(s.seen) for s in record.streams.values()) == had
+
+
+def test_an_input_started_past_the_marks_takes_a_producer_that_numbers_anew() -> None:
+    """A fork's replacement starts an input whose producer was lost too past its consumers'
+    marks; a producer restored first, by another coordinator, numbers the edge anew (a
+    guess, ``Resume.fresh``) and says so after the fork runs. Its events are new: the input
+    starts where it says, and the marks of that input (another numbering) are dropped. Kept
+    past the marks, the fork dropped a restarted source's first 39 events (seed 102439)."""
+    sim = started(FORK)
+    node = where(sim, "fork", "j")
+    core = sim.cores[node]
+    dep = core.apps["fork"]
+    old = dep.inc[0]
+    dep.inc[0] = InChannel.starting_at(old.expected + 50, True, {})  # past the marks
+    dep.inc[0].past_marks = dep.inc[0].expected
+    dep.marks["j"] = {1: {0: (old.expected + 49, 0)}, 3: {0: (old.expected + 49, 0)}}
+    resume = m.Resume("fork", 0, 1234, True, old.expected)
+    resume.fresh = True
+    sim.apply(node, core.receive(where(sim, "fork", "s"), resume, sim.now))
+    assert dep.inc[0].expected == old.expected
+    assert dep.marks["j"] == {1: {}, 3: {}} and dep.renumbered["j"] == {0}
+    # a producer whose numbering is known (not fresh) leaves the input where it was started
+    dep.inc[0] = InChannel.starting_at(old.expected + 50, True, {})
+    dep.inc[0].past_marks = dep.inc[0].expected
+    resume.fresh = False
+    sim.apply(node, core.receive(where(sim, "fork", "s"), resume, sim.now))
+    assert dep.inc[0].expected == old.expected + 50

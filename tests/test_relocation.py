@@ -250,3 +250,37 @@ def test_a_moved_vertex_never_shows_the_stats_of_its_empty_start() -> None:
         seen += shown()
     assert where(sim, "counter") != {home}
     assert min(seen) >= before, seen
+
+
+def test_a_move_whose_switch_was_lost_is_switched_again_and_finishes() -> None:
+    """The move's target is prepared and the coordinator tells the producer to switch; that
+    Switch is lost (its node went out of reach as the target answered). The coordinator
+    sends it again a second on, and the move finishes; before, it waited for the producer's
+    marker the switch's 60 s, its target holding the app (restart seed 100429). A Switch
+    that comes twice is taken once: one marker, nothing lost or repeated."""
+    sim = started()
+    (host,) = where(sim, "counter")
+    (producer,) = where(sim, "a")
+    rel = sim.cores[producer].relocator
+    lost: list[m.Switch] = []
+    take = rel.on_switch
+
+    def once_lost(src: str, msg: m.Switch) -> None:
+        if not lost:
+            lost.append(msg)
+            return
+        take(src, msg)
+        take(src, msg)  # (and the same Switch again: dropped)
+
+    rel.on_switch = once_lost  # type: ignore[method-assign]
+    target = next(n for n in ("N2", "N3") if n != host)
+    sim.request("N1", m.RelocateRequest("pipe", "counter", target=target))
+    sim.run_until(sim.now + 0.5)
+    assert lost and where(sim, "counter") == {host}  # committed, waiting for the marker
+    sim.run_until(sim.now + 1.5)
+    assert where(sim, "counter") == {target} and not sim.cores["N1"].procedures
+    before = sink_stats(sim)
+    sim.run_until(sim.now + 1.0)
+    after = sink_stats(sim)
+    assert after["count"] > before["count"] + 400
+    assert after["repeats"] == 0 and after["out_of_order"] == 0, after

@@ -435,6 +435,9 @@ class InChannel:
     # replacement whose producer was lost too): until an event comes, a producer that numbers
     # from its acks' positions may start it there instead (Restorer.anchor)
     unheld: bool = False
+    # where it was started past its consumers' marks (-1: not so): a guess, which a producer
+    # that numbers anew overrides while nothing of it was taken (Restorer.anchor)
+    past_marks: int = -1
 
     @classmethod
     def starting_at(

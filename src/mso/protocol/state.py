@@ -502,6 +502,9 @@ class AppState:
     fresh_from: dict[int, int] = lazy(dict)
     # per restored merge: its inputs numbered anew at its restore (told to its forwarder)
     renumbered: dict[str, set[int]] = lazy(dict)
+    # at a producer's node: edge -> the move (rid) it last switched that edge for; a Switch
+    # the move's coordinator sends again (one lost to a producer out of reach) is not taken twice
+    switched: dict[int, int] = lazy(dict)
 
     engaged: Engaged = field(init=False, repr=False, compare=False)
 

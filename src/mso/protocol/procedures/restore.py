@@ -270,6 +270,8 @@ class Restorer:
         by its other input meanwhile: counted refused)."""
         h = dep.instances[vertex]
         inc = dep.inc.get(msg.edge)
+        if inc is not None and msg.fresh and 0 <= inc.past_marks == inc.expected:
+            return self._numbered_anew(dep, vertex, msg)
         if h.processed or h.queued or h.pending:
             return False
         if inc is not None and inc.expected > 0 and not inc.unheld:
@@ -298,6 +300,24 @@ class Restorer:
                     del dep.fresh_from[o]
             consumer = dep.placed[dep.app.edges[o].dst]
             self.ctx.send(consumer, m.Resume(dep.app.name, o, msg.rid, True, pos, further))
+        self.dp.touch(dep.app.name)
+        return True
+
+    def _numbered_anew(self, dep: AppState, vertex: str, msg: m.Resume) -> bool:
+        """A fork's or merge's replacement started an input past its consumers' marks (its
+        producer was held lost with it), and the producer, restored by another coordinator
+        before it, numbers that edge anew (``Resume.fresh``: no position said where), so its
+        events are new ones from ``msg.start``, not past the marks: taken from there, as the
+        restore would have had the Resume come in it, and the marks of that input, which
+        name a numbering gone, are dropped (restart seed 102439: started at 39, the
+        replacement dropped a restarted source's first 39 events as had)."""
+        edge = dep.app.edges[msg.edge]
+        gated = bool(dep.out_edges.get(vertex))
+        marks: provenance.Marks | None = {} if edge.src in dep.layout.stamped else None
+        dep.inc[msg.edge] = InChannel.starting_at(msg.start, gated, marks)
+        dep.renumbered.setdefault(vertex, set()).add(msg.edge)
+        for o, held in list(dep.marks.get(vertex, {}).items()):
+            dep.marks[vertex][o] = provenance.without(held, [msg.edge])
         self.dp.touch(dep.app.name)
         return True
 
@@ -491,6 +511,7 @@ class Restorer:
                 start = marks[i][0] + 1
                 dep.inc[i] = InChannel.starting_at(start, gated, {} if stamped else None)
                 dep.inc[i].unheld = True
+                dep.inc[i].past_marks = start
 
     # -- a twin: a later restore placed the vertex elsewhere ------------------------------------
     def on_superseded(self, ev: Superseded) -> None:

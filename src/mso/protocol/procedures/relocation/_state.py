@@ -61,6 +61,7 @@ class Relocation(Procedure):
         # gone, the new one waits for a handover that never comes; it is restored instead
         S.SWITCHING: {
             RelocationEvent.HANDED_OVER: Phase.FINISHED,
+            RelocationEvent.RETRY: S.SWITCHING,  # the Switch sent again (a producer cut off)
             RelocationEvent.SOURCE_FAILED: S.RESUMING,
         },
         # a restore's prepare is re-sent until answered: answers may come more than once

@@ -25,6 +25,7 @@ from mso.protocol.procedures.relocation._state import (
 from mso.protocol.state import AppState
 
 MAX_FAILED_RESTORES = 64  # remembered to unprepare what a held prepare made after all
+SWITCH_AGAIN = -1  # a Retry of a committed move's Switch (not an attempt of its prepare)
 
 
 class Coordinator(Role):
@@ -32,8 +33,9 @@ class Coordinator(Role):
 
     def __init__(self, ctx: NodeContext, dp: DataPlane) -> None:
         super().__init__(ctx, dp)
-        # restores that failed here (rid -> (app, vertex)), the last few: a prepare held while
-        # the target was down may still reach it, and its answer gets an Unprepare
+        # restores that failed here (rid -> (app, vertex)), the last few, and moves that failed
+        # before their switch with their target held failed (no Unprepare sent): a prepare
+        # held while the target was down may still reach it, and its answer gets an Unprepare
         self._failed_restores: dict[int, tuple[str, str]] = {}
 
     def request(self, client: int | None, msg: m.RelocateRequest, now: float) -> bool:
@@ -180,9 +182,10 @@ class Coordinator(Role):
         if reloc is None or dep is None or (reloc.app, reloc.vertex) != (msg.app, msg.vertex):
             self.ctx.refusal("prepared_unexpected")
             if not msg.error and self._failed_restores.get(msg.rid) == (msg.app, msg.vertex):
-                # a restore that failed here (its target was held failed) prepared anyway: a
-                # prepare held while the node was down reaches it when it is back. Nothing
-                # will resume that instance; drop it rather than leave a twin.
+                # a restore (or move) that failed here (its target was held failed) prepared
+                # anyway: a prepare held while the node was down reaches it when it is back.
+                # Nothing will resume or switch to that instance; drop it rather than leave a
+                # twin (or a target holding the app for the switch's 60 s).
                 self.ctx.send(msg.node, m.Unprepare(msg.app, msg.vertex, msg.rid))
             return
         if msg.error:
@@ -206,10 +209,19 @@ class Coordinator(Role):
                 rewire.version = version
                 self.ctx.send(other, rewire)
             return
-        for e in dep.app.edges:
-            if e.dst == msg.vertex:
-                edge = dep.app.edges.index(e)
-                switch = m.Switch(msg.app, edge, reloc.target, msg.rid, reloc.source, reloc.order)
+        self._switch(dep, reloc)
+        self.ctx.emit(SetTimer(Retry(reloc.pid, SWITCH_AGAIN), now + STEP_TIMEOUT_S))
+
+    def _switch(self, dep: AppState, reloc: Relocation) -> None:
+        """Tell each producer of the moving vertex to switch to the target (again, a second
+        on: a producer that went out of reach just as the target was prepared never got it,
+        and the move waited for its marker the switch's 60 s, the target holding the app;
+        restart seed 100429. A producer that switched already drops it: ``AppState.switched``)."""
+        for edge, e in enumerate(dep.app.edges):
+            if e.dst == reloc.vertex:
+                switch = m.Switch(
+                    reloc.app, edge, reloc.target, reloc.pid, reloc.source, reloc.order
+                )
                 self.ctx.send(dep.placed[e.src], switch)
 
     def _ask_again(self, dep: AppState, reloc: Relocation, now: float) -> bool:
@@ -263,9 +275,12 @@ class Coordinator(Role):
     def fail(self, reloc: Relocation, why: str, now: float) -> None:
         """A relocation or restore failed: whoever waits (a client, a remap) is told. If no
         producer had switched yet, the target drops the instance it prepared."""
-        if reloc.state is S.PREPARING and reloc.target not in self.ctx.failed:
+        unprepared = reloc.state is S.PREPARING and reloc.target not in self.ctx.failed
+        if unprepared:
             self.ctx.send(reloc.target, m.Unprepare(reloc.app, reloc.vertex, reloc.pid))
-        if reloc.restore:
+        # (a move's target seen restarting as it prepared: its new incarnation took the
+        # Prepare and waited for a switch for 60 s, holding the app; restart seed 100772)
+        if reloc.restore or (reloc.state is S.PREPARING and not unprepared):
             self._failed_restores[reloc.pid] = (reloc.app, reloc.vertex)
             while len(self._failed_restores) > MAX_FAILED_RESTORES:
                 del self._failed_restores[next(iter(self._failed_restores))]
@@ -347,6 +362,12 @@ class Coordinator(Role):
         reloc = self._reloc(rid)
         dep = self.ctx.apps.get(reloc.app) if reloc is not None else None
         if reloc is None or dep is None:
+            return
+        if key.attempt == SWITCH_AGAIN:  # a move with no handover yet: the switch again
+            if not reloc.restore and reloc.state is S.SWITCHING:
+                reloc.on(RelocationEvent.RETRY)
+                self._switch(dep, reloc)
+                self.ctx.emit(SetTimer(Retry(rid, SWITCH_AGAIN), now + STEP_TIMEOUT_S))
             return
         if not reloc.restore:  # a move's target that did not hold the app (_ask_again)
             if reloc.state is S.PREPARING and key.attempt == reloc.attempts:

@@ -19,6 +19,9 @@ class Producer(Role):
             self.ctx.refusal("switch_unknown_edge")
             return
         edge = dep.app.edges[msg.edge]
+        if dep.switched.get(msg.edge) == msg.rid:  # sent again: this edge switched already
+            self.ctx.dropped()
+            return
         if self.unwarranted(dep, src, edge.dst, msg.rid, msg.order):
             return
         old = dep.placed[edge.dst]
@@ -35,6 +38,7 @@ class Producer(Role):
             self.ctx.emit(Send(old, data))
         seq = self.dp.out(dep, msg.edge).next_seq
         dep.placed[edge.dst] = msg.to
+        dep.switched[msg.edge] = msg.rid
         dep.vanished.discard(edge.dst)  # the move's coordinator sees to it from now on (it
         # restores it at the target if the old host went); a recovery here would make a twin
         marker = m.Marker(msg.app, msg.edge, seq, msg.rid, msg.to)
