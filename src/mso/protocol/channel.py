@@ -206,6 +206,14 @@ class OutChannel:
         if bound is None:
             return None
         span = store.span(key)
+        saved = store.saved_positions(key)
+        if span is not None and saved is not None and span[0] <= saved[0] < start <= span[1]:
+            # the consumer acknowledged past the last ack whose positions were saved (that
+            # ack lost with the link or the process): kept from the saved one, a replay to a
+            # replacement of the consumer numbers what it makes as the lost one did; the
+            # consumer drops what it has (seed 106785: numbered from its own consumer's
+            # position instead, a forwarder's replacement sent 12 events twice)
+            start = saved[0]
         if span is not None:  # held: everything it had, from ``span[0]`` on
             first, top = max(start, span[0]), max(start, span[1])
         else:
@@ -218,7 +226,6 @@ class OutChannel:
         ch.stamps.append((first, now))
         ch.leased = max(top, bound)
         store.save_position(key, ch.leased)
-        saved = store.saved_positions(key)
         if saved is not None and first <= saved[0] <= top:  # its last ack, if it is kept
             at, ch.positions = saved
             ch.acked = ch.sent = ch.positions_at = at  # (what is kept before: retained)
