@@ -295,6 +295,10 @@ RESTARTS_BROKE = {
     96201: "a forwarder's replacement, to send its consumer only what was past that consumer's "
     "marks, was moved before its replay came; the marks stayed behind and its new host sent "
     "the sink 22 events it had (a handover carries them now: Handover.lacks)",
+    106785: "a source's node, cut off and restarted, recovered its held edge from where the "
+    "consumer stood, one past the last ack whose positions it had saved (the next ack lost in "
+    "the cut): positionless, the forwarder's replacement after its own node's crash numbered "
+    "the replay from the merge's position, and 12 events reached the sink twice",
 }
 
 

@@ -283,6 +283,31 @@ def test_a_held_source_edge_comes_back_acknowledged_where_its_last_ack_was(
     s.close()
 
 
+def test_a_held_edge_whose_consumer_stands_past_its_last_known_positions_keeps_them(
+    tmp_path: Path,
+) -> None:
+    """The consumer's ack past the last one whose positions were saved was lost (a
+    partition, then the daemon's restart): the restored source says where it stands from
+    that saved ack, retaining the events past it, so a replacement of the consumer numbers
+    what their replay makes as the lost instance did, and the live consumer drops what it
+    has. Started at the consumer's position with no positions, a forwarder's replacement
+    numbered the replay from its own consumer's position: 12 events twice (seed 106785)."""
+    s = SqliteSpill(tmp_path)
+    ch = OutChannel(window=64, store=s, key="app/0/2", persist=True)
+    ch.push_many([b"%d" % i for i in range(20)])
+    ch.on_ack(19)
+    ch.note_positions(19, {3: 19, 4: 37})
+    ch.make_durable()  # event 19 held: the consumer went out of reach; its ack of 20 lost
+    ch.push_many([b"%d" % i for i in range(20, 31)])
+    s.close()
+    s = SqliteSpill(tmp_path)
+    back = OutChannel.recover(s, "app/0/2", 20, 64, 0.0)  # the consumer stands at 20
+    assert back is not None and (back.acked, back.next_seq) == (19, 31)
+    assert back.positions == {3: 19, 4: 37}
+    assert back.events_from(19) == (19, [b"%d" % i for i in range(19, 31)])
+    s.close()
+
+
 def loop_steps(store: SqliteSpill) -> Callable[[], int]:
     """SQLite's virtual-machine steps on the loop's connection (hundreds), counted: how much
     work a store call does there, as a count (not a time)."""

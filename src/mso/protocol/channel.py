@@ -201,7 +201,9 @@ class OutChannel:
         it never got (the events in memory then, gone with the process; numbers never used).
         Held events its consumer had acknowledged (kept for a retention: ``retain`` names
         it again, else they are forgotten) come back acknowledged, with the output positions
-        that ack brought. None if nothing was saved under ``key``."""
+        that ack brought; so do those past it when the consumer stands beyond it (its next
+        ack lost), so that positions are known where the edge says it starts. None if
+        nothing was saved under ``key``."""
         bound = store.position(key)
         if bound is None:
             return None
