@@ -7,6 +7,7 @@ import pytest
 
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.protocol import messages as m
+from mso.protocol.events import PeerFailed
 from mso.sim.runner import Simulation
 from test_runtime_sim import data_frames
 
@@ -284,3 +285,31 @@ def test_a_move_whose_switch_was_lost_is_switched_again_and_finishes() -> None:
     after = sink_stats(sim)
     assert after["count"] > before["count"] + 400
     assert after["repeats"] == 0 and after["out_of_order"] == 0, after
+
+
+def test_a_move_failed_with_its_target_held_failed_unprepares_it_when_it_answers() -> None:
+    """The coordinator sees the move's target restart (held failed for a moment) before its
+    Prepare is taken: the move fails, with no Unprepare (the target is held failed). The
+    Prepare reaches the target's new process after all, which prepares the vertex: its
+    Prepared gets an Unprepare now. Before, it held the instance, and the app, for the
+    switch's 60 s (restart seed 100772)."""
+    sim = started()
+    (host,) = where(sim, "counter")
+    target = next(n for n in ("N2", "N3") if n != host)
+    rel = sim.cores[target].relocator
+    held: list[tuple[str, m.Prepare]] = []
+    take = rel.on_prepare
+    rel.on_prepare = lambda src, msg: held.append((src, msg))  # type: ignore[method-assign]
+    sim.request("N1", m.RelocateRequest("pipe", "counter", target=target))
+    sim.run_until(sim.now + 0.05)
+    assert held and sim.cores["N1"].procedures
+    coordinator = sim.cores["N1"]
+    coordinator.failed.add(target)  # (its restart seen: the move needs it)
+    coordinator.relocator.on_peer_failed(PeerFailed(target))
+    coordinator.failed.discard(target)  # (and taken back at once, as a rejoin does)
+    assert not coordinator.procedures
+    rel.on_prepare = take  # type: ignore[method-assign]
+    sim.apply(target, sim.cores[target].receive(*held[0], sim.now))
+    sim.run_until(sim.now + 0.5)
+    assert "counter" not in sim.cores[target].apps["pipe"].awaiting
+    assert where(sim, "counter") == {host}
