@@ -292,6 +292,9 @@ RESTARTS_BROKE = {
     100429: "a move's producer went out of reach as the target was prepared: its Switch was "
     "lost, never sent again, and the move waited for its marker for 60 s, the target and the "
     "coordinator holding the app past the quiet phase",
+    102602: "a producer restored with its output numbered on a guess fed a consumer on its own "
+    "node, restored before it past its consumers' marks: a guess is held only for a consumer "
+    "elsewhere, so nobody asked, and the consumer dropped the guess's first 12 events as had",
     96201: "a forwarder's replacement, to send its consumer only what was past that consumer's "
     "marks, was moved before its replay came; the marks stayed behind and its new host sent "
     "the sink 22 events it had (a handover carries them now: Handover.lacks)",
