@@ -20,9 +20,8 @@ codec:
 
 Nothing else: no liveness judgement (silence), no routes, no census, no byte counters per hop,
 no data plane, no monitor. Beside it, in alternated child processes: ``bench/scale.py --one``
-itself (N/20 apps, the issue's setting), the same with start-up's objects left to the cycle
-collector (``--collector-default``: as before the thirteenth stop), and the simulator with no
-app (beats, monitor ticks, nothing else). Each measures the CPU of ``--duration`` simulated
+itself (N/20 apps, the issue's setting) and the simulator with no app (beats, monitor ticks,
+nothing else). Each measures the CPU of ``--duration`` simulated
 seconds after start-up.
 
 Usage: .venv/bin/python bench/beat_floor.py [--topologies grid,geometric] [--nodes 1000]
@@ -47,7 +46,6 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 VARIANTS = (
     "simulator",
-    "simulator, start-up left to the collector",
     "simulator, no app",
     "floor",
     "floor, decoded at each",
@@ -149,14 +147,11 @@ def floor(topology: str, n: int, duration: float, codec: str) -> dict[str, Any]:
 
 
 def no_app(topology: str, n: int, duration: float) -> dict[str, Any]:
-    """The simulator with no app deployed: its beats and monitor ticks alone (start-up
-    kept out of the collector's way, as ``bench/scale.py`` does)."""
-    from mso.model.gcpause import keep_built
+    """The simulator with no app deployed: its beats and monitor ticks alone."""
     from mso.sim.runner import Simulation
 
     sim = Simulation(_scenario(topology, n).network)
     sim.run_until(1.0)
-    keep_built()
     beats0 = sim.census.by_type.get("Heartbeat", 0)
     bytes0 = sum(b[0] for b in sim.bytes.values())
     c0 = time.process_time()
@@ -174,13 +169,11 @@ def no_app(topology: str, n: int, duration: float) -> dict[str, Any]:
 def _measure(variant: str, topology: str, n: int, duration: float) -> dict[str, Any]:
     """One variant in a fresh process (its own memory), with the load when it started."""
     load = round(os.getloadavg()[0], 2)
-    if variant in VARIANTS[:2]:  # bench/scale.py itself
-        default = ["--collector-default"] if "collector" in variant else []
-        r = _scale()._child(["--one", topology, str(n), str(duration), *default], 1200.0)
+    if variant == "simulator":  # bench/scale.py itself
+        r = _scale()._child(["--one", topology, str(n), str(duration)], 1200.0)
         keep = ("cpu_ms_per_node_per_sim_s", "cpu_per_sim_s", "heartbeats_per_node_s")
-        r = {k: r[k] for k in (*keep, "bytes_per_node_s", "messages_per_node_s")} | (
-            {"error": r["error"]} if "error" in r else {}
-        )
+        if "error" not in r:
+            r = {k: r[k] for k in (*keep, "bytes_per_node_s", "messages_per_node_s")}
     else:
         which = {
             "simulator, no app": "sim",

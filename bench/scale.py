@@ -10,9 +10,7 @@ a sweep on 1 and 2 workers.
    seconds from building the simulation to the last deployment's reply, which comes at the
    virtual time given) and the peak RSS then; over the next ``--duration`` simulated seconds
    the CPU seconds per simulated second (and per node: the target is 1 ms), messages and bytes
-   per node per second, and the heartbeats' share. Once start-up is done, what it built is
-   kept out of the cycle collector's way (``gc.freeze``: the child ends with the simulation);
-   ``--collector-default`` leaves it to the collector, as before the thirteenth stop.
+   per node per second, and the heartbeats' share.
 2. **Mobility.** 200 nodes, random geometric at mean degree 6, random waypoint at 1-5 m/s with
    links recomputed every 0.5 s, 10 apps, for ``--rwp-duration`` simulated seconds (300) or
    until its wall-time limit: CPU per simulated second, nodes declared failed, failed nodes
@@ -78,11 +76,8 @@ def _replies(sim: Any) -> tuple[int, int]:
     return len(replies), sum(r.ok for r in replies)
 
 
-def one(topology: str, n: int, duration: float, keep: bool = True) -> dict[str, Any]:
-    """One size, in this process: start-up, then ``duration`` simulated seconds; with
-    ``keep``, what start-up built is kept out of the cycle collector's way after it
-    (:func:`mso.model.gcpause.keep_built`: this process ends with the simulation)."""
-    from mso.model.gcpause import keep_built
+def one(topology: str, n: int, duration: float) -> dict[str, Any]:
+    """One size, in this process: start-up, then ``duration`` simulated seconds."""
     from mso.sim.runner import Simulation
 
     t0, c0 = time.perf_counter(), time.process_time()
@@ -91,8 +86,6 @@ def one(topology: str, n: int, duration: float, keep: bool = True) -> dict[str, 
     apps = _deploy(sim, list(sc.network.nodes), max(1, n // 20))
     while _replies(sim)[0] < apps and sim.now < 30.0:  # bounded: 30 virtual seconds
         sim.run_until(sim.now + 0.1)
-    if keep:
-        keep_built()  # (its one collection counted in start-up)
     startup_cpu, startup_wall = time.process_time() - c0, time.perf_counter() - t0
     startup_rss = _rss_mb()
     msgs0 = dict(sim.census.by_type)
@@ -122,7 +115,6 @@ def one(topology: str, n: int, duration: float, keep: bool = True) -> dict[str, 
         "heartbeats_per_node_s": round(by_type.get("Heartbeat", 0) / per, 1),
         "bytes_per_node_s": round(sent / per, 1),
         "end_rss_mb": _rss_mb(),
-        "collector": "start-up kept (gc.freeze)" if keep else "default",
         "delivered": sim.delivered,
         "by_type": dict(sorted(by_type.items())),
     }
@@ -296,11 +288,6 @@ def table(result: dict[str, Any]) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--one", nargs=3, metavar=("TOPOLOGY", "N", "DURATION"), help=argparse.SUPPRESS)
-    ap.add_argument(
-        "--collector-default",
-        action="store_true",
-        help="Leave start-up's objects to the cycle collector (as before the thirteenth stop).",
-    )
     ap.add_argument("--rwp", nargs=3, metavar=("N", "DURATION", "LIMIT"), help=argparse.SUPPRESS)
     ap.add_argument("--sizes", default="25,50,100,200,400,1000")
     ap.add_argument("--topologies", default="grid,geometric")
@@ -315,8 +302,7 @@ def main() -> None:
     )
     args = ap.parse_args()
     if args.one:
-        one_args = (args.one[0], int(args.one[1]), float(args.one[2]))
-        print(json.dumps(one(*one_args, keep=not args.collector_default)))
+        print(json.dumps(one(args.one[0], int(args.one[1]), float(args.one[2]))))
         return
     if args.rwp:
         print(json.dumps(rwp(int(args.rwp[0]), float(args.rwp[1]), float(args.rwp[2]))))

@@ -23,14 +23,3 @@ def paused_gc() -> Iterator[None]:
     finally:
         if was:
             gc.enable()
-
-
-def keep_built() -> None:
-    """What the process built so far stays until it ends (a simulation's cores and tables,
-    once started): collected once, then moved out of the collector's generations
-    (``gc.freeze``), so its full passes no longer walk it -- at 1,000 simulated nodes about
-    400,000 objects, 0.2-0.3 s a pass, one pass every few simulated seconds, which was 10-15%
-    of a run's CPU. Only for a process that ends with what it built (``bench/scale.py``'s
-    child): anything built before that becomes cyclic garbage later is never collected."""
-    gc.collect()
-    gc.freeze()
