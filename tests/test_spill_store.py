@@ -421,3 +421,29 @@ def test_read_ahead_forgets_what_was_trimmed_dropped_or_rewritten_meanwhile(
     handed_back()
     assert s.ready("k", 0, 2) == [b"p", b"q"]
     s.close()
+
+
+def test_an_edge_carried_over_a_reset_whose_consumer_stands_past_its_last_ack_keeps_it() -> None:
+    """As above, for a node that reset (no restart): the source's channel is carried over
+    (``StoreAndForward.carry_over``). Moved up to where the consumer stands, its ack named a
+    point its positions were not from: a replacement of the consumer numbered the replay one
+    ack off. It starts from that ack now, its positions with it."""
+    from types import SimpleNamespace
+
+    from mso.protocol.forward import StoreAndForward
+
+    ch = OutChannel(window=64)
+    ch.push_many([b"%d" % i for i in range(30)])
+    ch.on_ack(19)
+    ch.note_positions(19, {3: 19, 4: 37})  # (the consumer's ack of 25 was lost)
+    sf = StoreAndForward(SimpleNamespace(now=5.0), None)  # type: ignore[arg-type]
+    dep = SimpleNamespace(app=SimpleNamespace(name="app"), epoch=0)
+    sf.carried[("app", 0, 2)] = ch
+    back = sf.carry_over(dep, 2, 25)  # type: ignore[arg-type]
+    assert back is ch and (ch.acked, ch.sent, ch.positions_at) == (19, 19, 19)
+    assert ch.positions == {3: 19, 4: 37}
+    assert ch.events_from(19) == (19, [b"%d" % i for i in range(19, 30)])
+    sf.carried[("app", 0, 2)] = other = OutChannel(window=64)
+    other.push_many([b"%d" % i for i in range(30)])
+    other.on_ack(19)  # an ack with no positions (the consumer's outputs unknown): moved up
+    assert sf.carry_over(dep, 2, 25) is other and (other.acked, other.sent) == (25, 25)  # type: ignore[arg-type]

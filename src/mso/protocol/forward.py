@@ -87,6 +87,12 @@ class StoreAndForward:
         ch = self.carried.pop((dep.app.name, dep.epoch, edge), None)
         if ch is None or start > ch.next_seq:
             return None
+        if ch.positions and ch.positions_at == ch.acked < start:
+            # the consumer stands past the last ack, whose positions are known (its next ack
+            # lost): kept from that ack, as a restarted daemon's edge is (OutChannel.recover),
+            # so that the Resume's start and positions name one point: a replacement of the
+            # consumer numbers the replay as the lost one did, a live one drops what it has
+            start = ch.acked
         start = max(start, ch.acked)
         ch.on_ack(start, self.ctx.now)
         ch.sent = start  # the rest goes (again), a window at a time
