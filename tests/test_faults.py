@@ -295,6 +295,9 @@ RESTARTS_BROKE = {
     102602: "a producer restored with its output numbered on a guess fed a consumer on its own "
     "node, restored before it past its consumers' marks: a guess is held only for a consumer "
     "elsewhere, so nobody asked, and the consumer dropped the guess's first 12 events as had",
+    104403: "every node holding the app restarted within 10 ms, each with its kept view: a sync "
+    "from a view kept older took the versions back, a stale word at the newer version "
+    "un-vanished what went with a restart, and nobody restored the app (it ran nowhere)",
     96201: "a forwarder's replacement, to send its consumer only what was past that consumer's "
     "marks, was moved before its replay came; the marks stayed behind and its new host sent "
     "the sink 22 events it had (a handover carries them now: Handover.lacks)",

@@ -277,9 +277,12 @@ class AppSyncing:
         # what the kept view learnt vanished since where both place it alike (a rejoin heard
         # before this sync, fault seed 451)
         gone_since: set[str] = set()
+        counted: dict[str, int] = {}  # the kept view's versions where the sync places alike
         if held is not None and held.stored and src != self.ctx.id and _idle(held):
             del self.ctx.apps[msg.app]
-            gone_since = {v for v in held.vanished if held.placed.get(v) == msg.placed.get(v)}
+            alike = {v for v, n in held.placed.items() if msg.placed.get(v) == n}
+            gone_since = held.vanished & alike
+            counted = {v: k for v, k in held.versions.items() if v in alike and k > 0}
             held = None
         if held is not None:
             for v, ns in msg.replicas.items():  # (where this node knows none)
@@ -313,6 +316,11 @@ class AppSyncing:
             return
         dep = AppState(app, layout, msg.origin, placed, epoch=msg.epoch, document=msg.document)
         dep.versions = {v: k for v, k in msg.versions.items() if v in app.vertices and k > 0}
+        # not lowered: a sync from a view kept from before ours (a daemon restarted too) took
+        # its versions back, and a stale word at ours then un-vanished what went with a
+        # restart: the app ran nowhere (restart seed 104403)
+        for v, k in counted.items():
+            dep.versions[v] = max(k, dep.versions.get(v, 0))
         dep.replica_nodes = {  # (bounded as a ReplicaSet is)
             v: [n for n in ns[:MAX_REPLICAS] if isinstance(n, str)]
             for v, ns in msg.replicas.items()
