@@ -277,6 +277,10 @@ RESTARTS_BROKE = {
     "host, which took it while running the vertex: its view placed it on a node that ran "
     "nothing, whose view placed it back; b, c and the sink ran nowhere and were never restored",
     93915: "as 92622, on a mesh of 7 after a partition, two crashes and a remap",
+    115201: "a chain's middle restored on its restarted node numbered its output from where "
+    "its consumer stood, with no positions; the consumer died with part of the replay passed "
+    "on, and its replacement numbered the replay from the sink's position: an event twice "
+    "(a consumer's answer to a rewire carries its output positions there, where exact)",
     79022: "an operator's remap at a node that learnt the app from a node behind moved a "
     "vertex to the node running it already: prepared, the move committed and waited for a "
     "handover that never came, holding the remap and the app open for 60 s",

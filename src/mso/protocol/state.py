@@ -88,6 +88,8 @@ class Restoring:
     pending: set[tuple[int, bool]]
     positions: dict[int, int] = field(default_factory=dict)  # output -> from producers' acks
     consumer_start: dict[int, int] = field(default_factory=dict)  # output -> consumer expects
+    # output -> the consumer's own output positions at that start, where it knew them exactly
+    consumer_positions: dict[int, dict[int, int]] = field(default_factory=dict)
     # output -> what its consumer has of a merge's inputs (mso.protocol.provenance)
     consumer_marks: dict[int, Marks] = field(default_factory=dict)
     fresh: set[int] = field(default_factory=set)  # inputs their producer numbers anew

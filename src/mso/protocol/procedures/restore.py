@@ -138,6 +138,7 @@ class Restorer:
             start = inc.expected if inc is not None else 0
             resume = m.Resume(msg.app, msg.edge, msg.rid, False, start)
             resume.unheld = inc is not None and inc.unheld
+            resume.positions = self._outputs_at_start(dep, edge.dst, msg.edge)
             if inc is not None and edge.src in dep.layout.stamped:
                 marks = inc.marks  # what it has of each input; a forwarder that passes on
                 sent_on = dep.marks.get(edge.dst)  # only what its consumer lacks drops the
@@ -145,6 +146,36 @@ class Restorer:
                     marks = provenance.highest(marks, _merged(sent_on.values()))  # (5000)
                 resume.marks = provenance.to_wire(marks)
             self.ctx.send(msg.to, resume)
+
+    def _outputs_at_start(self, dep: AppState, vertex: str, edge: int) -> dict[int, int]:
+        """Where this consumer's outputs stand at the input position it tells a producer's
+        replacement (everything before it processed, nothing owed): the replacement's channel
+        starts with them as an ack's positions, so that a replacement of this consumer, fed
+        the replay, numbers it as this one did (restart seed 115201: a restored producer
+        started at its consumer's position with none; the consumer died with the replay
+        passed on, its replacement numbered it from the sink's position: an event twice).
+        Empty where they are not exact: several inputs, events held or in flight, a start
+        past marks or its numbering a guess."""
+        h = dep.instances.get(vertex)
+        inc = dep.inc.get(edge)
+        ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vertex]
+        outs = dep.out_edges.get(vertex, [])
+        if (
+            h is None
+            or inc is None
+            or ins != [edge]
+            or not outs
+            or h.queued
+            or h.pending
+            or h.jobs
+            or inc.processed != inc.expected
+            or inc.unheld
+            or vertex in dep.marks
+            or h.handing_over is not None
+            or any(o not in dep.out or dep.out[o].guessed for o in outs)
+        ):
+            return {}
+        return {o: dep.out[o].next_seq for o in outs}
 
     def _restored_since(self, dep: AppState, src: str, replaced: str, msg: m.Rewire) -> bool:
         """A restore of a view older than ours: this end knows ``replaced`` runs on a live
@@ -223,6 +254,8 @@ class Restorer:
             restoring.resumed.add(msg.edge)
         else:
             restoring.consumer_start[msg.edge] = msg.start
+            if msg.positions:
+                restoring.consumer_positions[msg.edge] = dict(msg.positions)
             if msg.unheld:
                 restoring.unheld.add(msg.edge)
             marks = provenance.from_wire(msg.marks)
@@ -435,6 +468,16 @@ class Restorer:
             out = dep.out[o]
             if further or carried is None:
                 out.positions = further
+            told = restoring.consumer_positions.get(o)
+            if (
+                told
+                and carried is None
+                and snap is None
+                and marks is None
+                and o not in restoring.positions
+                and out.acked == restoring.consumer_start.get(o)
+            ):  # numbered from where its consumer stands: its outputs there, exactly
+                out.positions = further | told
             theirs = restoring.consumer_start.get(o, 0)
             guess = o in restoring.unheld and theirs > out.acked
             if out.positions and (theirs < out.acked or guess):
