@@ -30,7 +30,8 @@ class Rewire(_Msg, tag="rewire"):
 class Resume(_Msg, tag="resume"):
     """To a replacement instance: where the edge stands. From the producer: the first event it
     will replay (``start``) and the output positions of the last ack it got; from the consumer:
-    the next sequence number it expects."""
+    the next sequence number it expects and, where exact, its own output positions there
+    (``Restorer._outputs_at_start``)."""
 
     app: str
     edge: int
