@@ -294,13 +294,14 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
     # equal version here is one counted on another placement: a twin's, vanished since, its
     # version kept with the host's first-hand word of the one before; seed 101043)
     handed = dep is not None and src == dep.placed.get(v) != node and src != ctx.id
+    relayed_twin = twin and not running
     taken = (
         known
         and dep is not None
-        and not (twin and not running)
+        and not relayed_twin
         and learn(dep, v, node, version, now, running, None if handed else tie)
     )
-    if twin and not running and dep is not None:
+    if relayed_twin and dep is not None:
         # a relayed word (a node that missed ours): the twin it names may be gone with a
         # reset this node has not heard of yet, and retiring this one left the vertex running
         # nowhere (fault seed 65198). Its node is told of this one, as of the version the

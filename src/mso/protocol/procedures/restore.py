@@ -154,28 +154,39 @@ class Restorer:
         the replay, numbers it as this one did (restart seed 115201: a restored producer
         started at its consumer's position with none; the consumer died with the replay
         passed on, its replacement numbered it from the sink's position: an event twice).
-        Empty where they are not exact: several inputs, events held or in flight, a start
-        past marks or its numbering a guess."""
+        Empty where they are not exact (:meth:`_outputs_exact`), or events are held or in
+        flight, or its start is a guess."""
         h = dep.instances.get(vertex)
-        inc = dep.inc.get(edge)
-        ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vertex]
-        outs = dep.out_edges.get(vertex, [])
+        exact = self._outputs_exact(dep, vertex)
         if (
             h is None
-            or inc is None
-            or ins != [edge]
-            or not outs
+            or exact is None
+            or exact[0] != edge
             or h.queued
             or h.pending
             or h.jobs
-            or inc.processed != inc.expected
-            or inc.unheld
-            or vertex in dep.marks
             or h.handing_over is not None
-            or any(o not in dep.out or dep.out[o].guessed for o in outs)
+            or dep.inc[edge].unheld
         ):
             return {}
-        return {o: dep.out[o].next_seq for o in outs}
+        return exact[1]
+
+    @staticmethod
+    def _outputs_exact(dep: AppState, vertex: str) -> tuple[int, dict[int, int]] | None:
+        """A vertex with one input, everything on it before the channel's next event
+        processed, no marks and no guessed output: that input, and where its outputs stand,
+        exactly (what an ack at the input's start carries: :meth:`_tell_start`, and a
+        consumer's answer to a rewire: :meth:`_outputs_at_start`). None otherwise."""
+        inputs = [i for i, e in enumerate(dep.app.edges) if e.dst == vertex]
+        outs = dep.out_edges.get(vertex, [])
+        if len(inputs) != 1 or not outs or vertex in dep.marks:
+            return None
+        ch = dep.inc.get(inputs[0])
+        if ch is None or ch.processed != ch.expected:
+            return None
+        if any(o not in dep.out or dep.out[o].guessed for o in outs):
+            return None
+        return inputs[0], {o: dep.out[o].next_seq for o in outs}
 
     def _restored_since(self, dep: AppState, src: str, replaced: str, msg: m.Rewire) -> bool:
         """A restore of a view older than ours: this end knows ``replaced`` runs on a live
@@ -526,16 +537,15 @@ class Restorer:
         restarted just before (its positions gone with its process) knew none; the next one
         guessed from 0 and its consumer's marks of this numbering were set aside (59759: an
         event of each source twice at the sink)."""
-        inputs = [i for i, e in enumerate(dep.app.edges) if e.dst == vertex]
-        if len(inputs) != 1 or vertex in dep.marks or inputs[0] not in restoring.resumed:
+        exact = self._outputs_exact(dep, vertex)
+        if exact is None or exact[0] not in restoring.resumed:
             return
-        ch = dep.inc.get(inputs[0])
-        if ch is None or ch.processed != ch.expected or any(dep.out[o].guessed for o in outs):
-            return
+        i, there = exact
         at = {e: p for e, p in restoring.positions.items() if e not in outs}
-        ch.positions = at | {o: dep.out[o].next_seq for o in outs}
+        ch = dep.inc[i]
+        ch.positions = at | there
         ch.reack = True
-        self.dp.ack(dep, inputs[0])
+        self.dp.ack(dep, i)
 
     def _start_past(self, dep: AppState, vertex: str, marks: Marks, skip: set[int]) -> None:
         """A merge's or fork's replacement whose producer of an input was lost too: that
