@@ -6,12 +6,14 @@ from __future__ import annotations
 import pytest
 
 from mso.model.appfile import with_planner
+from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.protocol import messages as m
 from mso.protocol.procedures.deploy import holders
 from mso.protocol.procedures.lookup import SEARCH_BURST, SEARCH_RATE
 from mso.scenario.format import loads_scenario
 from mso.scenario.generate import Spec, dumps, generate, pipelines
 from mso.sim.runner import Simulation
+from runtime_vertices import pipe_app
 
 
 def _grid(n: int) -> Simulation:
@@ -128,3 +130,46 @@ def test_requests_at_a_node_that_holds_no_app_search_at_a_bounded_rate() -> None
     sim.run_until(sim.now + 2.0)
     (reply,) = [r for _, c, r in sim.replies if c == 99]
     assert isinstance(reply, m.RelocateReply) and "at most" not in reply.error, reply
+
+
+def test_a_holder_looks_the_placement_up_again_when_a_restart_loses_more_of_it() -> None:
+    """A holder that hosts nothing (the origin) looks the placement up before it coordinates
+    a recovery, once per set of losses: a restart fails nobody, it only vanishes what its node
+    ran, so keyed by the failed nodes alone the lookup made for one restart stood for the next
+    ones too. Here mid moves after the holder's lookup for the sink's restart; the next
+    restarts lose everything else in its view, and on that view it restored them beside the
+    coordinator that knew (fault seed 117806: two instances of a vertex, 31 events lost).
+
+    N1 - N2 - N3 - N4 and N5 on N2; ``pipe`` deployed from N5: src on N1, mid on N3, sink on
+    N4."""
+    net = Network(
+        [NodeSpec(n) for n in ("N1", "N2", "N3", "N4", "N5")],
+        [LinkSpec(a, b, delay_ms=1.0) for a, b in (("N1", "N2"), ("N2", "N3"), ("N3", "N4"))]
+        + [LinkSpec("N5", "N2", delay_ms=1.0)],
+    )
+    sim = Simulation(net)
+    sim.trace = []
+    sim.request("N5", m.DeployRequest(pipe_app(20), "app.yaml"))
+    sim.run_until(1.0)
+    holder = sim.cores["N5"].apps["pipe"]
+    assert holder.placed == {"src": "N1", "mid": "N3", "sink": "N4"}
+    assert not holder.hosts_part()
+    sim.crash("N4")  # the sink's daemon restarts: the holder looks the placement up
+    sim.run_until(1.05)
+    sim.revive("N4")
+    sim.run_until(3.0)
+    sim.request("N3", m.RelocateRequest("pipe", "mid", "", "N2"))  # the holder is not told
+    sim.run_until(4.0)
+    assert sim.hosts("pipe", "mid") == ["N2"] and holder.placed["mid"] == "N3"
+    t0 = sim.now
+    for node in ("N1", "N3", "N4"):  # every instance the holder's view names
+        sim.crash(node)
+    sim.run_until(t0 + 0.05)
+    for node in ("N1", "N3", "N4"):
+        sim.revive(node)
+    sim.run_until(t0 + 4.0)
+    coordinators = {src for at, _, src, kind in sim.trace if at > t0 and kind == "Prepare"}
+    assert coordinators == {"N2"}  # mid's host, not the holder too
+    assert holder.placed["mid"] == "N2"
+    for v in ("src", "mid", "sink"):
+        assert len(sim.hosts("pipe", v)) == 1, v

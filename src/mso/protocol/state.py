@@ -432,10 +432,10 @@ class AppState:
     # vertex -> how many moves of it this node knows of: news of an older move loses
     # (:mod:`mso.protocol.procedures.placement`)
     versions: dict[str, int] = lazy(dict)
-    # the failed nodes this node last looked the placement up for (it hosts no part of the
-    # app, so its view is not kept up to date): a recovery it would coordinate may act on the
-    # answers until the failures change, and no new lookup is started before
-    looked_up: frozenset[str] | None = None
+    # the losses this node last looked the placement up for (:meth:`losses`; it hosts no
+    # part of the app, so its view is not kept up to date): a recovery it would coordinate
+    # may act on the answers until they change, and no new lookup is started before
+    looked_up: tuple[frozenset[str], frozenset[str]] | None = None
     # the view is the one this node's last process kept in its store (mso.protocol.kept),
     # heard from no other node since: the first sync from another node may overrule it
     stored: bool = False
@@ -634,6 +634,13 @@ class AppState:
         """Vertices with no running instance: on a failed node, or gone with a node's old
         incarnation."""
         return {v for v, n in self.placed.items() if n in failed} | self.vanished
+
+    def losses(self, failed: set[str]) -> tuple[frozenset[str], frozenset[str]]:
+        """The failed nodes and the vertices this view counts lost: a view not kept up to date
+        is looked up again when either changes. A restart fails nobody, only vanishes what its
+        node ran (fault seed 117806: looked up for one node's restart, a holder coordinated the
+        next node's on the view it had, restored a vertex moved away meanwhile, and two ran)."""
+        return frozenset(failed), frozenset(self.lost(failed))
 
 
 # a lazy table's name -> what makes it (:func:`lazy`)

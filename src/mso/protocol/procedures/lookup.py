@@ -277,7 +277,7 @@ class Lookups:
             if look.client is not None:
                 self.tap(look.client, look.then, now)
         elif dep is not None and not look.quiet:
-            dep.looked_up = frozenset(self.ctx.failed)
+            dep.looked_up = dep.losses(self.ctx.failed)
             self.ctx.publish(RecoveryDue(look.app))
 
 

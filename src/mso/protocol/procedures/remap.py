@@ -519,15 +519,15 @@ class Remapper:
             # with every instance lost, the lowest live holder (else node alive) coordinates;
             # its view (not kept up to date: it hosts nothing) names a host, maybe one a vertex
             # has left since, whose view named this one: nobody recovered (fault seed 66410).
-            # It asks the nodes its view names first, once per set of failures
+            # It asks the nodes its view names first, once per set of losses
             alone = recovery_coordinator({}, set(), alive, holding) == self.ctx.id
             # so does a view this node's last process kept (asked at once, above)
             if (alone and not dep.hosts_part()) or dep.stored:
                 self._ask_where(dep, failed)
             return
-        if not dep.hosts_part() and dep.looked_up != frozenset(failed):  # this view is not
+        if not dep.hosts_part() and dep.looked_up != dep.losses(failed):  # this view is not
             self.ctx.publish(PlacementStale(dep.app.name))  # kept up to date: the app may run
-            return  # elsewhere now; asked once per set of failures
+            return  # elsewhere now; asked once per set of losses
         if not routes_settled(routes, failed):
             # wait for the routing view to route around the failure (set_routes), but not
             # for ever: a crashed daemon on a live router is never routed around
@@ -560,8 +560,8 @@ class Remapper:
         self._next_chain(pid, now)
 
     def _ask_where(self, dep: AppState, failed: set[str]) -> None:
-        """Ask the nodes this view names where the app runs, once per set of failures."""
-        if dep.looked_up != frozenset(failed):
+        """Ask the nodes this view names where the app runs, once per set of losses."""
+        if dep.looked_up != dep.losses(failed):
             self.ctx.publish(PlacementStale(dep.app.name, wide=False))
 
     def park(self, dep: AppState) -> None:
