@@ -313,6 +313,10 @@ RESTARTS_BROKE = {
     "a move it was not told of followed, then the next restart lost all else in its view: no "
     "failure had changed, so no new lookup, and it restored the moved vertex on its old node "
     "beside the coordinator that knew: two ran, 31 events lost (a lookup per set of losses)",
+    105902: "a producer's replacement numbered its output from positions its source carried "
+    "over a node reset, of a numbering the other side of a cut had made anew; the merge that "
+    "outlived the cut had started that input past its consumers' marks of the first "
+    "numbering and dropped 7 new events as had (a generation per numbering tells them apart)",
 }
 
 

@@ -22,6 +22,7 @@ from mso.node.core import NodeCore
 from mso.protocol import messages as m
 from mso.protocol import wirefuzz
 from mso.protocol.framing import TAG_BYTES, FrameCodec, FramingError, psk_from_text
+from mso.protocol.procedures.relocation.new_host import _numbering
 from mso.sim.runner import Simulation
 from runtime_vertices import pipe_app
 
@@ -298,3 +299,20 @@ def test_a_refused_message_is_counted(
     assert status["dropped_messages"] == core.dropped_messages
     if not isinstance(msg, m.Data | m.Ack):  # (the data plane counts its drops as it did)
         assert sum(status["refusals"].values()) >= 1
+
+
+def test_a_handed_over_numbering_of_the_wrong_shape_is_refused_not_taken() -> None:
+    """A handover's output entry names its generation and its positions' after the
+    positions (``Handover.outputs``); an entry of any other shape is refused whole
+    (``handover_malformed``), never half taken nor a crash. Four fields: an older node's."""
+    assert _numbering([7, {1: 1 << 50}]) == (7, {1: 1 << 50})
+    for bad in (
+        [7],
+        [7, {1: 2}, 0],
+        ["7", {}],
+        [True, {}],
+        [7, [1, 2]],
+        [7, {"1": 2}],
+        [7, {1: 2.5}],
+    ):
+        assert _numbering(bad) is None, bad

@@ -274,3 +274,60 @@ def test_an_input_started_past_the_marks_takes_a_producer_that_numbers_anew() ->
     resume.fresh = False
     sim.apply(node, core.receive(where(sim, "fork", "s"), resume, sim.now))
     assert dep.inc[0].expected == old.expected + 50
+
+
+def test_an_input_started_past_the_marks_takes_a_producer_of_another_generation() -> None:
+    """A merge's replacement starts an input whose producer was lost too past its consumers'
+    marks; the producer's replacement numbers the edge from positions its source kept, of a
+    numbering the other side of a cut made anew (another generation), and says where it
+    starts below the marks. Its events are new: the input starts there, and the marks of that
+    input are dropped, the forwarder's too. Kept past the marks, the merge dropped a restored
+    source's first 7 events as had (seed 105902). A producer of the marks' own generation
+    makes again what lies below them: the input stays where it was started."""
+    sim = started(MERGE)
+    node, fwd = where(sim, "merge", "m"), where(sim, "merge", "c")
+    core, dep = sim.cores[node], sim.cores[node].apps["merge"]
+    old = dep.inc[0]
+
+    def past_the_marks() -> None:
+        dep.inc[0] = InChannel.starting_at(old.expected + 50, True, {})
+        dep.inc[0].past_marks = dep.inc[0].expected
+        far = (10**6, 0)  # (input 1: far ahead, so that it holds through the run)
+        sim.cores[fwd].apps["merge"].marks["c"] = {3: {0: (old.expected + 49, 0), 1: far}}
+
+    past_the_marks()
+    resume = m.Resume("merge", 0, 1234, True, old.expected)  # not fresh: from positions
+    resume.gen = 77  # of a numbering made anew elsewhere
+    sim.apply(node, core.receive(where(sim, "merge", "s1"), resume, sim.now))
+    assert dep.inc[0].expected == old.expected and dep.inc[0].gen == 77
+    assert dep.renumbered["m"] == {0}
+    sim.run_until(sim.now + 0.05)  # the forwarder is told, and drops its marks of input 0
+    assert sim.cores[fwd].apps["merge"].marks["c"] == {3: {1: (10**6, 0)}}
+    # of the marks' generation (the deployment's, 0): what lies below them is had
+    past_the_marks()
+    resume.gen = 0
+    sim.apply(node, core.receive(where(sim, "merge", "s1"), resume, sim.now))
+    assert dep.inc[0].expected == old.expected + 50
+
+
+def test_marks_name_the_generation_of_the_numbering_they_are_of() -> None:
+    """A merge's frames say the generations of its inputs' numberings (``Data.gens``), its
+    forwarder's frames pass them on: each consumer knows what its marks are of, says so with
+    them (``Resume.markgens``), and a replacement started past them takes that generation,
+    so that a producer numbering from positions of it makes again what lies below them."""
+    sim = started(MERGE)
+    node = where(sim, "merge", "m")
+    dep = sim.cores[node].apps["merge"]
+    dep.inc[0].gen = 55  # (as a restore that took a numbering made anew would have it)
+    sim.run_until(sim.now + 0.5)
+    c = sim.cores[where(sim, "merge", "c")].apps["merge"]
+    sink = sim.cores[where(sim, "merge", "sink")].apps["merge"]
+    assert c.inc[2].markgens == {0: 55} and sink.inc[3].markgens == {0: 55}
+    # started past marks of generation 55, the input takes a producer of 55 as the marks'
+    old = dep.inc.pop(0)
+    mark = old.expected + 49
+    sim.cores[node].restorer._start_past(dep, "m", {0: (mark, 0)}, set(), {0: 55})
+    assert dep.inc[0].gen == 55 and dep.inc[0].expected == mark + 1
+    resume = m.Resume("merge", 0, 1234, True, old.expected, gen=55)
+    sim.apply(node, sim.cores[node].receive(where(sim, "merge", "s1"), resume, sim.now))
+    assert dep.inc[0].expected == mark + 1  # below the marks: had

@@ -447,3 +447,31 @@ def test_an_edge_carried_over_a_reset_whose_consumer_stands_past_its_last_ack_ke
     other.push_many([b"%d" % i for i in range(30)])
     other.on_ack(19)  # an ack with no positions (the consumer's outputs unknown): moved up
     assert sf.carry_over(dep, 2, 25) is other and (other.acked, other.sent) == (25, 25)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "memory"])
+def test_saved_positions_keep_the_generation_of_their_numbering(tmp_path: Path, kind: str) -> None:
+    """A held source edge's saved positions keep the generation of each numbering they are
+    of (``OutChannel.gens``; 0, the deployment's, not written), and the edge its own: a
+    source's edge numbers on in the same numbering after a restart; a consumer's replacement
+    restored after a restart says which numbering it numbers from, and a merge started past
+    marks of another takes its events as new (seed 105902: 7 events dropped as had)."""
+    s: SqliteSpill | MemorySpill = SqliteSpill(tmp_path) if kind == "sqlite" else MemorySpill()
+    ch = OutChannel(window=64, store=s, key="app/0/0", persist=True)
+    ch.number_as(9)  # its own (a source restored with a guess numbers anew)
+    ch.push_many([b"%d" % i for i in range(10)])
+    ch.on_ack(6)
+    ch.note_positions(6, {1: 6, 2: 5}, {1: 1 << 50, 2: 0, 7: 3})  # (7: no position of it)
+    ch.make_durable()
+    assert ch.gens == {1: 1 << 50}
+    if isinstance(s, SqliteSpill):
+        s.close()
+        s = SqliteSpill(tmp_path)
+    assert s.saved_positions("app/0/0") == (6, {1: 6, 2: 5})
+    back = OutChannel.recover(s, "app/0/0", 6, 64, 0.0)
+    assert back is not None and back.positions == {1: 6, 2: 5} and back.gens == {1: 1 << 50}
+    assert back.gen == 9
+    s.drop("app/0/0")
+    assert s.saved_gens("app/0/0") == {}
+    if isinstance(s, SqliteSpill):
+        s.close()

@@ -45,6 +45,7 @@ VERSION = "1"
 # the positions table also holds, under ``key + ACKED`` (and ``+ edge``), the output positions
 # the last ack of a held source edge brought (``save_positions``)
 ACKED = "@"
+GEN = "g"  # under ``key + ACKED + GEN + edge``: the generation of that edge's numbering, if not 0
 _DELETE_ACK_POSITIONS = "DELETE FROM positions WHERE substr(key, 1, ?) = ?"
 # notes (SpillStore.note): named integers under a prefix, in the positions table too
 _NOTES = "SELECT key, value FROM positions WHERE substr(key, 1, ?) = ?"
@@ -358,8 +359,11 @@ class SqliteSpill:
         row = self._db.execute("SELECT value FROM positions WHERE key = ?", (key,)).fetchone()
         return None if row is None else int(row[0])
 
-    def save_positions(self, key: str, at: int, positions: dict[int, int]) -> None:
+    def save_positions(
+        self, key: str, at: int, positions: dict[int, int], gens: dict[int, int] | None = None
+    ) -> None:
         rows = [(key + ACKED, at), *((f"{key}{ACKED}{e}", p) for e, p in positions.items())]
+        rows += [(f"{key}{ACKED}{GEN}{e}", g) for e, g in (gens or {}).items()]
         with self._db:
             self._db.execute("BEGIN")
             self._db.execute(_DELETE_ACK_POSITIONS, (len(key) + 1, key + ACKED))
@@ -396,6 +400,15 @@ class SqliteSpill:
             elif rest.isdigit():
                 positions[int(rest)] = int(value)
         return None if at is None else (at, positions)
+
+    def saved_gens(self, key: str) -> dict[int, int]:
+        prefix = key + ACKED + GEN
+        rows = self._db.execute(
+            "SELECT key, value FROM positions WHERE substr(key, 1, ?) = ?",
+            (len(prefix), prefix),
+        ).fetchall()
+        rests = ((str(name)[len(prefix) :], int(value)) for name, value in rows)
+        return {int(rest): value for rest, value in rests if rest.isdigit()}
 
     # -- what it costs ---------------------------------------------------------------------
     def held_bytes(self) -> int:

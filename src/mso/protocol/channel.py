@@ -26,6 +26,8 @@ POSITION_LEASE = 1024
 # the retention a replicated consumer's producer keeps: the events after the consumer's newest
 # replicated snapshot (mso.protocol.procedures.replication)
 REPLICA_OWNER = "replica"
+# a source's edge keeps the generation of its numbering as a note under its key and this
+GEN_NOTE = "/gen/"
 
 
 @dataclass
@@ -67,6 +69,13 @@ class OutChannel:
     asked_at: float = -1e18  # when the consumer was last asked where it stands
     # a merge's replacement: the first number it made itself, a new interleaving (-1: none)
     remade: int = -1
+    # the generation of this edge's numbering: 0 is the deployment's; a numbering made anew
+    # (from a guess, no ack's positions and no consumer's word) takes a fresh one, and the
+    # channels, acks' positions and saved positions that follow it carry it: a consumer started
+    # past marks of another numbering tells the two apart (Restorer.anchor, seed 105902)
+    gen: int = 0
+    # the generations of ``positions`` (those not 0)
+    gens: dict[int, int] = field(default_factory=dict)
 
     HISTORY = 64  # acks whose positions are kept, to look one up at an exact position
 
@@ -96,6 +105,7 @@ class OutChannel:
         # ack position -> the positions that came with it: a vertex releasing a checkpoint
         # at exactly such a position passes them on upstream (transitive, see AckGate)
         self.history: dict[int, dict[int, int]] = {}
+        self.history_gens: dict[int, dict[int, int]] = {}  # their generations (not 0)
         self.positions_at = self.acked  # the ack ``positions`` came with
         # go-back-N's backoff: times sent again since the clock last restarted otherwise
         self.retries = 0
@@ -111,25 +121,38 @@ class OutChannel:
         self._sent = value
         self.top = max(self.top, value)
 
-    def note_positions(self, upto: int, positions: dict[int, int]) -> None:
+    def number_as(self, gen: int) -> None:
+        """Take numbering ``gen`` (see ``gen``); a source's edge keeps it in the store, so
+        that after a restart of this node's daemon it numbers on in the same one."""
+        self.gen = gen
+        if self.persist and self.store is not None:
+            self.store.note(self.key + GEN_NOTE, "", gen)
+
+    def note_positions(
+        self, upto: int, positions: dict[int, int], gens: Mapping[int, int] | None = None
+    ) -> None:
         """An ack up to ``upto`` came with the consumer's ``positions``. An ack with none (a
         consumer that does not know them yet, e.g. a replacement acking again what its
         producer's replay repeated) leaves those known at that position: a later restore of
         the consumer numbers its output from them (seed 1998)."""
+        gens = {e: g for e, g in (gens or {}).items() if g and e in positions}
         if upto >= self.acked and (positions or upto > self.positions_at):
-            self.positions, self.positions_at = positions, upto
+            self.positions, self.positions_at, self.gens = positions, upto, gens
             self._save_positions()
         if positions or upto not in self.history:
             self.history[upto] = positions
+            self.history_gens[upto] = gens
         while len(self.history) > self.HISTORY:
-            del self.history[next(iter(self.history))]
+            oldest = next(iter(self.history))
+            del self.history[oldest]
+            self.history_gens.pop(oldest, None)
 
     def _save_positions(self) -> None:
         """A source's edge holding its events in the store keeps the positions of its last
         ack there too: after a restart of this node's daemon, its consumer's replacement
         numbers what the replay makes as the lost one did (seed 1088)."""
         if self.persist and self.store is not None and self.spilled:
-            self.store.save_positions(self.key, self.positions_at, self.positions)
+            self.store.save_positions(self.key, self.positions_at, self.positions, self.gens)
 
     @property
     def in_flight(self) -> int:
@@ -228,8 +251,10 @@ class OutChannel:
         ch.stamps.append((first, now))
         ch.leased = max(top, bound)
         store.save_position(key, ch.leased)
+        ch.gen = store.notes(key + GEN_NOTE).get("", 0)  # (the numbering it numbers on in)
         if saved is not None and first <= saved[0] <= top:  # its last ack, if it is kept
             at, ch.positions = saved
+            ch.gens = store.saved_gens(key)
             ch.acked = ch.sent = ch.positions_at = at  # (what is kept before: retained)
             if retain is not None:
                 ch.retentions[retain] = first
@@ -447,15 +472,29 @@ class InChannel:
     # where it was started past its consumers' marks (-1: not so): a guess, which a producer
     # that numbers anew overrides while nothing of it was taken (Restorer.anchor)
     past_marks: int = -1
+    # the generation of the numbering it follows (OutChannel.gen), and of ``positions``
+    gen: int = 0
+    gens: dict[int, int] = field(default_factory=dict)
+    # the generations of the numberings ``marks`` name (not 0), as its producer's frames say
+    markgens: dict[int, int] = field(default_factory=dict)
 
     @classmethod
     def starting_at(
-        cls, pos: int, gated: bool, marks: dict[int, tuple[int, int]] | None = None
+        cls,
+        pos: int,
+        gated: bool,
+        marks: dict[int, tuple[int, int]] | None = None,
+        gen: int = 0,
     ) -> InChannel:
-        """A channel whose next event is ``pos``, everything before it taken and
-        acknowledged (``gated``: its consumer has outputs, so acks are chained)."""
+        """A channel whose next event is ``pos`` of numbering ``gen``, everything before it
+        taken and acknowledged (``gated``: its consumer has outputs, so acks are chained)."""
         return cls(
-            expected=pos, processed=pos, _acked=pos, released=pos if gated else None, marks=marks
+            expected=pos,
+            processed=pos,
+            _acked=pos,
+            released=pos if gated else None,
+            marks=marks,
+            gen=gen,
         )
 
     def __post_init__(self) -> None:

@@ -287,7 +287,7 @@ class DataPlane:
             dst_node = dep.placed[dep.app.edges[e].dst]
             t = ts if dep.layout.edge_chain[e] == chain else self.ctx.now
             if dst_node == self.ctx.id:
-                self.deliver(dep, e, seq, payloads, t, out.acked)
+                self.deliver(dep, e, seq, payloads, t, out.acked, self.stamp_gens(dep, e))
             else:
                 key = (dep.app.name, e)
                 batch = self.outbox.get(key)
@@ -298,6 +298,7 @@ class DataPlane:
                 if len(batch[1]) * len(payloads[0]) >= MAX_BATCH_BYTES:  # frames stay small
                     del self.outbox[key]
                     data = m.Data(dep.app.name, e, dep.epoch, *batch, floor=out.acked)
+                    data.gens = self.stamp_gens(dep, e)
                     self.ctx.emit(Send(dst_node, data))
         return sum(map(len, payloads))
 
@@ -309,7 +310,11 @@ class DataPlane:
         events: list[bytes],
         ts: float = 0.0,
         floor: int = 0,
+        gens: dict[int, int] | None = None,
     ) -> None:
+        """Events ``seq``... of ``edge`` to its consumer here; ``gens``: the generations of
+        the numberings a stamped producer's headers name (:meth:`stamp_gens`; None: not
+        said, those known stand)."""
         dst = dep.app.edges[edge].dst
         if dst in dep.awaiting:  # moving here: keep until the handover
             dep.stash.setdefault(edge, []).append((seq, list(events), ts))
@@ -324,11 +329,18 @@ class DataPlane:
         self.touched.add(dep.app.name)
         whole = False  # a forwarder's input keeps its headers until fed (pump)
         if fresh and dep.app.edges[edge].src in dep.layout.stamped:
+            before = dict(ch.marks or {})
             if dst in dep.layout.forwarders:
                 provenance.note(fresh, ch.marks)
                 whole = True
             else:
                 fresh = provenance.strip(fresh, ch.marks)
+            if gens is not None and ch.marks is not None:  # what the new marks are of
+                for i, mark in ch.marks.items():
+                    if before.get(i) != mark and gens.get(i, 0):
+                        ch.markgens[i] = gens[i]
+                    elif before.get(i) != mark:
+                        ch.markgens.pop(i, None)
         if fresh:
             if self.taps.watched:
                 seen = provenance.split(fresh)[0] if whole else fresh
@@ -405,6 +417,23 @@ class DataPlane:
             h.bytes_in += sum(map(len, feed))
             self.submit(h, fx.FeedVertex(h.instance, edge, feed, ts), len(feed))
 
+    @staticmethod
+    def stamp_gens(dep: AppState, edge: int) -> dict[int, int]:
+        """What a stamped producer's frames on ``edge`` say of the numberings its events'
+        headers name (``Data.gens``): a merge's or fork's inputs' generations, a forwarder's
+        as its merge's frames said (those not 0; empty for any other producer). A vertex's
+        input is numbered anew only while nothing of it is in flight, so a frame's word holds
+        for the events it carries."""
+        vid = dep.app.edges[edge].src
+        if vid not in dep.layout.stamped:
+            return {}
+        ins = [
+            (i, ch) for i, e in enumerate(dep.app.edges) if e.dst == vid and (ch := dep.inc.get(i))
+        ]
+        if vid in dep.layout.forwarders:
+            return {i: g for _, ch in ins for i, g in ch.markgens.items() if g}
+        return {i: ch.gen for i, ch in ins if ch.gen}
+
     def on_data(self, msg: m.Data) -> None:
         dep = self.ctx.apps.get(msg.app)
         if dep is None or msg.epoch != dep.epoch:
@@ -418,7 +447,7 @@ class DataPlane:
             return
         for i, (edge, seq, floor) in enumerate(parts):
             events = msg.events if i == 0 else list(msg.events)  # each edge its own list
-            self.deliver(dep, edge, seq, events, msg.ts, floor)
+            self.deliver(dep, edge, seq, events, msg.ts, floor, msg.gens)
 
     def _processed(
         self, dep: AppState, vid: str, h: HostedInstance, res: fx.VertexProcessed, now: float
@@ -546,15 +575,22 @@ class DataPlane:
             return
         inputs, outputs = released
         further = dict(outputs)  # and, known exactly at these positions, the ones downstream
+        gens = {o: out.gen for o in outputs if (out := dep.out.get(o)) and out.gen}
         for o, pos in outputs.items():
             out = dep.out.get(o)
-            for e, p in (out.history.get(pos, {}) if out is not None else {}).items():
-                further.setdefault(e, p)
+            if out is None:
+                continue
+            below = out.history_gens.get(pos, {})
+            for e, p in out.history.get(pos, {}).items():
+                if e not in further:
+                    further[e] = p
+                    if below.get(e):
+                        gens[e] = below[e]
         for i, pos in inputs.items():
             ch = dep.inc.get(i)
             if ch is not None:
                 ch.released = max(ch.released or 0, pos)
-                ch.positions = further
+                ch.positions, ch.gens = further, gens
                 self.ack(dep, i)
 
     @staticmethod
@@ -584,13 +620,16 @@ class DataPlane:
                 self.ctx.dropped()  # move): nothing to release, never a crash
                 return
             out.on_ack(upto, self.ctx.now)
-            out.note_positions(upto, dict(ch.positions))
+            out.note_positions(upto, dict(ch.positions), ch.gens)
             self.sf.drain(dep, edge)
             self.unblock(dep, edge)
             self.release(dep, producer)
         elif src_node not in self.ctx.failed:
             self.ctx.emit(
-                Send(src_node, m.Ack(dep.app.name, edge, dep.epoch, upto, dict(ch.positions)))
+                Send(
+                    src_node,
+                    m.Ack(dep.app.name, edge, dep.epoch, upto, dict(ch.positions), dict(ch.gens)),
+                )
             )
 
     def on_ack(self, msg: m.Ack, now: float) -> None:
@@ -604,7 +643,7 @@ class DataPlane:
         except ValueError:
             self.ctx.dropped()
             return
-        out.note_positions(msg.upto, msg.positions)
+        out.note_positions(msg.upto, msg.positions, msg.gens)
         self.sf.drain(dep, msg.edge)
         self.unblock(dep, msg.edge)
         self.release(dep, dep.app.edges[msg.edge].src)
@@ -636,9 +675,10 @@ class DataPlane:
             dst = dep.placed[dep.app.edges[edge].dst]
             floor = out.acked if (out := dep.out.get(edge)) is not None else 0
             same = frames.setdefault((app, dst, ts), [])
-            data = next((d for d in same if d.events == events), None)
+            gens = self.stamp_gens(dep, edge)
+            data = next((d for d in same if d.events == events and d.gens == gens), None)
             if data is None:
-                same.append(m.Data(app, edge, dep.epoch, seq, events, ts, floor))
+                same.append(m.Data(app, edge, dep.epoch, seq, events, ts, floor, gens=gens))
             else:
                 data.also.append((edge, seq, floor))
         for (_, dst, _), datas in frames.items():

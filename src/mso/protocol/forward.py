@@ -14,7 +14,7 @@ from typing import Protocol
 
 from mso.protocol import delivery
 from mso.protocol import messages as m
-from mso.protocol.channel import REPLICA_OWNER, OutChannel
+from mso.protocol.channel import GEN_NOTE, REPLICA_OWNER, OutChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.effects import Send, SetTimer
 from mso.protocol.events import Retransmit
@@ -53,7 +53,10 @@ class Plane(Protocol):
         events: list[bytes],
         ts: float = 0.0,
         floor: int = 0,
+        gens: dict[int, int] | None = None,
     ) -> None: ...
+
+    def stamp_gens(self, dep: AppState, edge: int) -> dict[int, int]: ...
 
     def release(self, dep: AppState, vid: str) -> None: ...
 
@@ -107,6 +110,7 @@ class StoreAndForward:
         ch.persist = dep.layout.kinds[dep.app.edges[edge].src] == "source"
         if ch.persist:
             self.ctx.spill.save_position(key, start)
+            self.ctx.spill.forget_notes(key + GEN_NOTE)  # (numbered as the deployment's)
         return ch
 
     def handover_events(self, out: OutChannel) -> tuple[list[bytes], list[tuple[int, list[bytes]]]]:
@@ -142,6 +146,7 @@ class StoreAndForward:
         """The app is gone from this node: its edges' events and positions too."""
         for edge in range(len(dep.app.edges)):
             self.ctx.spill.drop(self.key(dep, edge))
+            self.ctx.spill.forget_notes(self.key(dep, edge) + GEN_NOTE)
         self.ctx.spill.forget_notes(placement_notes(dep.app.name))  # (placement.remember)
 
     def held(self, dep: AppState, edge: int) -> bool:
@@ -211,7 +216,9 @@ class StoreAndForward:
         app, dst = dep.app.name, dep.placed[dep.app.edges[edge].dst]
         batch = self.dp.outbox.pop((app, edge), None)  # what was sent before goes first
         if batch is not None:
-            self.ctx.emit(Send(dst, m.Data(app, edge, dep.epoch, *batch, floor=out.acked)))
+            data = m.Data(app, edge, dep.epoch, *batch, floor=out.acked)
+            data.gens = self.dp.stamp_gens(dep, edge)
+            self.ctx.emit(Send(dst, data))
         size = max(1, out.kept_bytes // max(1, out.kept))  # an event's, on average
         per_frame = max(1, MAX_BATCH_BYTES // size)
         room = max(1, MAX_IN_FLIGHT_BYTES // size) - (out.sent - out.acked)
@@ -249,10 +256,11 @@ class StoreAndForward:
     ) -> None:
         """Events ``first``... of ``edge`` to its consumer, now (here: delivered at once)."""
         dst = dep.placed[dep.app.edges[edge].dst]
+        gens = self.dp.stamp_gens(dep, edge)
         if dst == self.ctx.id:
-            self.dp.deliver(dep, edge, first, events, ts, floor)
+            self.dp.deliver(dep, edge, first, events, ts, floor, gens)
         else:
-            data = m.Data(dep.app.name, edge, dep.epoch, first, events, ts, floor)
+            data = m.Data(dep.app.name, edge, dep.epoch, first, events, ts, floor, gens=gens)
             self.ctx.emit(Send(dst, data))
 
     def retransmit(self, app: str, now: float) -> None:

@@ -60,12 +60,19 @@ class SpillStore(Protocol):
 
     def position(self, key: str) -> int | None: ...
 
-    def save_positions(self, key: str, at: int, positions: dict[int, int]) -> None:
+    def save_positions(
+        self, key: str, at: int, positions: dict[int, int], gens: dict[int, int] | None = None
+    ) -> None:
         """The consumer's output positions that came with the ack of ``key`` up to ``at``
-        (replacing those saved before)."""
+        (replacing those saved before), and the generations of their numberings (``gens``:
+        those not 0, :class:`mso.protocol.channel.OutChannel`)."""
 
     def saved_positions(self, key: str) -> tuple[int, dict[int, int]] | None:
         """``(at, positions)`` saved for ``key``, or None."""
+        ...
+
+    def saved_gens(self, key: str) -> dict[int, int]:
+        """The generations saved with ``key``'s positions (those not 0)."""
         ...
 
     def note(self, prefix: str, name: str, value: int) -> None:
@@ -87,6 +94,7 @@ class MemorySpill:
         self._bytes: dict[str, int] = {}
         self._positions: dict[str, int] = {}
         self._ack_positions: dict[str, tuple[int, dict[int, int]]] = {}
+        self._ack_gens: dict[str, dict[int, int]] = {}
         self._notes: dict[str, int] = {}  # prefix + name -> value
 
     def append(self, key: str, seq: int, events: list[bytes]) -> None:
@@ -118,6 +126,7 @@ class MemorySpill:
         self._bytes.pop(key, None)
         self._positions.pop(key, None)
         self._ack_positions.pop(key, None)
+        self._ack_gens.pop(key, None)
 
     def size(self, key: str) -> int:
         return self._bytes.get(key, 0)
@@ -135,12 +144,18 @@ class MemorySpill:
     def position(self, key: str) -> int | None:
         return self._positions.get(key)
 
-    def save_positions(self, key: str, at: int, positions: dict[int, int]) -> None:
+    def save_positions(
+        self, key: str, at: int, positions: dict[int, int], gens: dict[int, int] | None = None
+    ) -> None:
         self._ack_positions[key] = (at, dict(positions))
+        self._ack_gens[key] = dict(gens or {})
 
     def saved_positions(self, key: str) -> tuple[int, dict[int, int]] | None:
         saved = self._ack_positions.get(key)
         return None if saved is None else (saved[0], dict(saved[1]))
+
+    def saved_gens(self, key: str) -> dict[int, int]:
+        return dict(self._ack_gens.get(key, {}))
 
     def note(self, prefix: str, name: str, value: int) -> None:
         self.forget_notes(prefix)

@@ -87,11 +87,15 @@ class Restoring:
     coordinator: str
     pending: set[tuple[int, bool]]
     positions: dict[int, int] = field(default_factory=dict)  # output -> from producers' acks
+    gens: dict[int, int] = field(default_factory=dict)  # their numberings' generations (not 0)
     consumer_start: dict[int, int] = field(default_factory=dict)  # output -> consumer expects
+    consumer_gen: dict[int, int] = field(default_factory=dict)  # output -> of that numbering
     # output -> the consumer's own output positions at that start, where it knew them exactly
     consumer_positions: dict[int, dict[int, int]] = field(default_factory=dict)
+    consumer_gens: dict[int, dict[int, int]] = field(default_factory=dict)  # (their gens)
     # output -> what its consumer has of a merge's inputs (mso.protocol.provenance)
     consumer_marks: dict[int, Marks] = field(default_factory=dict)
+    consumer_markgens: dict[int, dict[int, int]] = field(default_factory=dict)  # (their gens)
     fresh: set[int] = field(default_factory=set)  # inputs their producer numbers anew
     # a forwarder's: the merge's inputs its restored producer (the merge) numbers anew
     renumbered: set[int] = field(default_factory=set)

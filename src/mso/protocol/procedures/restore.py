@@ -118,6 +118,7 @@ class Restorer:
                 msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions), retained
             )
             resume.fresh = out.guessed
+            resume.gen, resume.gens = out.gen, dict(out.gens)
             resume.remade = out.remade
             out.confirmed = True  # (a replacement: it numbers on from here)
             resume.renumbered = sorted(dep.renumbered.get(edge.src, ()))
@@ -127,7 +128,16 @@ class Restorer:
                 first, events = out.unsent(out.window)
                 if events:
                     self.ctx.loop_back(
-                        self.ctx.id, m.Data(msg.app, msg.edge, dep.epoch, first, events, now)
+                        self.ctx.id,
+                        m.Data(
+                            msg.app,
+                            msg.edge,
+                            dep.epoch,
+                            first,
+                            events,
+                            now,
+                            gens=self.dp.stamp_gens(dep, msg.edge),
+                        ),
                     )
             else:
                 self.dp.sf.drain(dep, msg.edge)
@@ -138,13 +148,16 @@ class Restorer:
             start = inc.expected if inc is not None else 0
             resume = m.Resume(msg.app, msg.edge, msg.rid, False, start)
             resume.unheld = inc is not None and inc.unheld
+            resume.gen = inc.gen if inc is not None else 0
             resume.positions = self._outputs_at_start(dep, edge.dst, msg.edge)
+            resume.gens = _gens(dep, resume.positions)
             if inc is not None and edge.src in dep.layout.stamped:
                 marks = inc.marks  # what it has of each input; a forwarder that passes on
                 sent_on = dep.marks.get(edge.dst)  # only what its consumer lacks drops the
                 if marks is not None and sent_on:  # rest as had: its consumer's marks count
                     marks = provenance.highest(marks, _merged(sent_on.values()))  # (5000)
                 resume.marks = provenance.to_wire(marks)
+                resume.markgens = _known(inc.markgens, marks or {})
             self.ctx.send(msg.to, resume)
 
     def _outputs_at_start(self, dep: AppState, vertex: str, edge: int) -> dict[int, int]:
@@ -237,7 +250,8 @@ class Restorer:
         if restoring is None and not msg.producer and vertex in dep.instances:
             marks = provenance.from_wire(msg.marks)
             if marks and vertex in dep.layout.merges and edge.dst in dep.layout.forwarders:
-                self._start_past(dep, vertex, marks, set())  # (its forwarder's activate)
+                gens = dict(msg.markgens)  # (its forwarder's activate)
+                self._start_past(dep, vertex, marks, set(), gens)
             else:
                 self.ctx.refusal("resume_unexpected")
             return
@@ -252,9 +266,11 @@ class Restorer:
             # a fresh instance: what it has of a stamped producer's inputs is what comes
             # from here on (its lost instance's output went on and was acknowledged)
             marks = {} if edge.src in dep.layout.stamped else None
-            dep.inc[msg.edge] = InChannel.starting_at(msg.start, gated, marks)
+            dep.inc[msg.edge] = InChannel.starting_at(msg.start, gated, marks, msg.gen)
             for o, pos in msg.positions.items():
-                restoring.positions[o] = max(restoring.positions.get(o, 0), pos)
+                if pos >= restoring.positions.get(o, 0):
+                    restoring.positions[o] = pos
+                    restoring.gens[o] = msg.gens.get(o, 0)
             if msg.retained >= 0:
                 restoring.retained[msg.edge] = msg.retained
             if msg.remade >= 0:
@@ -265,13 +281,16 @@ class Restorer:
             restoring.resumed.add(msg.edge)
         else:
             restoring.consumer_start[msg.edge] = msg.start
+            restoring.consumer_gen[msg.edge] = msg.gen
             if msg.positions:
                 restoring.consumer_positions[msg.edge] = dict(msg.positions)
+                restoring.consumer_gens[msg.edge] = dict(msg.gens)
             if msg.unheld:
                 restoring.unheld.add(msg.edge)
             marks = provenance.from_wire(msg.marks)
             if marks is not None and vertex in dep.layout.stamped:
                 restoring.consumer_marks[msg.edge] = marks
+                restoring.consumer_markgens[msg.edge] = dict(msg.markgens)
         restoring.pending.discard((msg.edge, msg.producer))
         if _ready(dep, vertex, restoring):
             self.activate(dep, vertex)
@@ -297,6 +316,7 @@ class Restorer:
         new = self.dp.channel(dep, msg.edge, msg.start)
         new.push_many(events, now)
         new.confirmed = True
+        new.number_as(msg.gen)  # (its consumer's numbering)
         if msg.edge in dep.fresh_from:
             dep.fresh_from[msg.edge] = msg.start
         dep.out[msg.edge] = new
@@ -314,7 +334,11 @@ class Restorer:
         by its other input meanwhile: counted refused)."""
         h = dep.instances[vertex]
         inc = dep.inc.get(msg.edge)
-        if inc is not None and msg.fresh and 0 <= inc.past_marks == inc.expected:
+        if msg.renumbered and vertex in dep.layout.forwarders and vertex in dep.marks:
+            for o, held in list(dep.marks[vertex].items()):  # (_numbered_anew at the merge)
+                dep.marks[vertex][o] = provenance.without(held, msg.renumbered)
+        anew = inc is not None and (msg.fresh or msg.gen != inc.gen)
+        if inc is not None and anew and 0 <= inc.past_marks == inc.expected:
             return self._numbered_anew(dep, vertex, msg)
         if h.processed or h.queued or h.pending:
             return False
@@ -325,8 +349,9 @@ class Restorer:
         outs = dep.out_edges.get(vertex, [])
         if not all(o in msg.positions and msg.positions[o] >= 0 for o in outs):
             return False
-        dep.inc[msg.edge] = InChannel.starting_at(msg.start, bool(outs))
+        dep.inc[msg.edge] = InChannel.starting_at(msg.start, bool(outs), gen=msg.gen)
         further = {e: p for e, p in msg.positions.items() if e not in outs}
+        below = {e: g for e, g in msg.gens.items() if g and e in further}
         marked = dep.marks.get(vertex, {})
         for o in outs:
             if o in marked:  # numbered from where its consumer stands, past its marks: kept
@@ -334,7 +359,8 @@ class Restorer:
             pos = msg.positions[o]
             self.dp.outbox.pop((dep.app.name, o), None)
             dep.out[o] = self.dp.channel(dep, o, pos)
-            dep.out[o].positions = further
+            dep.out[o].positions, dep.out[o].gens = further, below
+            dep.out[o].number_as(msg.gens.get(o, 0))
             if vertex in dep.layout.merges:
                 dep.out[o].remade = pos
             if o in dep.fresh_from:  # a state restarted still makes new events
@@ -343,25 +369,36 @@ class Restorer:
                 else:
                     del dep.fresh_from[o]
             consumer = dep.placed[dep.app.edges[o].dst]
-            self.ctx.send(consumer, m.Resume(dep.app.name, o, msg.rid, True, pos, further))
+            resume = m.Resume(dep.app.name, o, msg.rid, True, pos, further)
+            resume.gen, resume.gens = dep.out[o].gen, dict(below)
+            self.ctx.send(consumer, resume)
         self.dp.touch(dep.app.name)
         return True
 
     def _numbered_anew(self, dep: AppState, vertex: str, msg: m.Resume) -> bool:
         """A fork's or merge's replacement started an input past its consumers' marks (its
         producer was held lost with it), and the producer, restored by another coordinator
-        before it, numbers that edge anew (``Resume.fresh``: no position said where), so its
-        events are new ones from ``msg.start``, not past the marks: taken from there, as the
-        restore would have had the Resume come in it, and the marks of that input, which
-        name a numbering gone, are dropped (restart seed 102439: started at 39, the
-        replacement dropped a restarted source's first 39 events as had)."""
+        before it, numbers that edge in another numbering than the marks' (another
+        generation: ``Resume.gen``; or anew with no position at all, ``Resume.fresh``), so
+        its events are new ones from ``msg.start``, not past the marks: taken from there, as
+        the restore would have had the Resume come in it, and the marks of that input, which
+        name a numbering gone, are dropped, here and at its forwarder (restart seed 102439:
+        started at 39, the replacement dropped a restarted source's first 39 events as had;
+        105902: the producer numbered from positions its source carried over a reset, of a
+        numbering made anew across a cut, and the merge dropped 11 events as had)."""
         edge = dep.app.edges[msg.edge]
         gated = bool(dep.out_edges.get(vertex))
         marks: provenance.Marks | None = {} if edge.src in dep.layout.stamped else None
-        dep.inc[msg.edge] = InChannel.starting_at(msg.start, gated, marks)
+        dep.inc[msg.edge] = InChannel.starting_at(msg.start, gated, marks, msg.gen)
         dep.renumbered.setdefault(vertex, set()).add(msg.edge)
         for o, held in list(dep.marks.get(vertex, {}).items()):
             dep.marks[vertex][o] = provenance.without(held, [msg.edge])
+        for o in dep.out_edges.get(vertex, []):  # a forwarder's marks of it name it too
+            out, consumer = dep.out.get(o), dep.app.edges[o].dst
+            if out is not None and consumer in dep.layout.forwarders:
+                told = m.Resume(dep.app.name, o, msg.rid, True, out.acked, gen=out.gen)
+                told.renumbered = sorted(dep.renumbered[vertex])
+                self.ctx.send(dep.placed[consumer], told)
         self.dp.touch(dep.app.name)
         return True
 
@@ -477,8 +514,11 @@ class Restorer:
                 # came with: they say nothing of this numbering (seed 1983, forks stamped)
                 further = {}
             out = dep.out[o]
+            if carried is None:
+                out.number_as(self._numbering(restoring, o, base, out.guessed and snap is None))
             if further or carried is None:
                 out.positions = further
+                out.gens = _known(restoring.gens, further)
             told = restoring.consumer_positions.get(o)
             if (
                 told
@@ -489,6 +529,9 @@ class Restorer:
                 and out.acked == restoring.consumer_start.get(o)
             ):  # numbered from where its consumer stands: its outputs there, exactly
                 out.positions = further | told
+                out.gens = _known(restoring.gens, further) | _known(
+                    restoring.consumer_gens.get(o, {}), told
+                )
             theirs = restoring.consumer_start.get(o, 0)
             guess = o in restoring.unheld and theirs > out.acked
             if out.positions and (theirs < out.acked or guess):
@@ -497,18 +540,23 @@ class Restorer:
                 # its start is past its consumers' marks, a guess: 40794, a fork's other
                 # consumer, lost too, lacks what this one makes again below them)
                 resume = m.Resume(dep.app.name, o, restoring.rid, True, out.acked, out.positions)
+                resume.gen, resume.gens = out.gen, dict(out.gens)
                 resume.renumbered = sorted(dep.renumbered.get(vertex, ()))
                 self.ctx.send(dep.placed[dep.app.edges[o].dst], resume)
         if snap is None and outs:
             self._tell_start(dep, vertex, restoring, outs)
         if vertex in dep.marks:
             lowest = _merged(dep.marks[vertex].values())
+            gens: dict[int, int] = {}  # (of the numberings the marks name)
+            for o in dep.marks[vertex]:
+                gens.update(restoring.consumer_markgens.get(o, {}))
             if not forwarder:
-                self._start_past(dep, vertex, lowest, restoring.resumed)
+                self._start_past(dep, vertex, lowest, restoring.resumed, gens)
             else:  # its marks are of the merge's inputs, which start past them there if
                 for i in restoring.resumed:  # their producers were lost too (seed 1996)
                     resume = m.Resume(dep.app.name, i, restoring.rid, False, dep.inc[i].expected)
                     resume.marks = provenance.to_wire(lowest)
+                    resume.markgens = _known(gens, lowest)
                     self.ctx.send(dep.placed[dep.app.edges[i].src], resume)
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
             if e.dst == vertex:
@@ -544,10 +592,25 @@ class Restorer:
         at = {e: p for e, p in restoring.positions.items() if e not in outs}
         ch = dep.inc[i]
         ch.positions = at | there
+        ch.gens = _known(restoring.gens, at) | _gens(dep, there)
         ch.reack = True
         self.dp.ack(dep, i)
 
-    def _start_past(self, dep: AppState, vertex: str, marks: Marks, skip: set[int]) -> None:
+    def _numbering(self, restoring: Restoring, o: int, base: int, guessed: bool) -> int:
+        """The generation of a replacement's output ``o`` numbered from ``base``: a fresh one
+        for a guess (no ack's positions, no consumer's word: a numbering made anew), else
+        that of the positions it took (its producers' acks'), or of its consumer's."""
+        if guessed:  # (distinct across nodes, and across a node's incarnations)
+            return (self.ctx.incarnation & 0x7FFFF) << 44 | self.ctx.new_pid()
+        if o in restoring.positions and restoring.positions[o] == base:
+            return restoring.gens.get(o, 0)
+        if o in restoring.consumer_start:
+            return restoring.consumer_gen.get(o, 0)
+        return restoring.gens.get(o, 0)
+
+    def _start_past(
+        self, dep: AppState, vertex: str, marks: Marks, skip: set[int], gens: dict[int, int]
+    ) -> None:
         """A merge's or fork's replacement whose producer of an input was lost too: that
         producer's replacement numbers the edge from where this one says it stands — from 0 if
         it has no channel yet, below what its consumers have of that input (their lowest
@@ -562,7 +625,8 @@ class Restorer:
             if e.dst == vertex and i in marks and i not in skip and i not in dep.inc:
                 stamped = e.src in dep.layout.stamped
                 start = marks[i][0] + 1
-                dep.inc[i] = InChannel.starting_at(start, gated, {} if stamped else None)
+                numbering = gens.get(i, 0)  # the marks': a producer of another is taken anew
+                dep.inc[i] = InChannel.starting_at(start, gated, {} if stamped else None, numbering)
                 dep.inc[i].unheld = True
                 dep.inc[i].past_marks = start
 
@@ -686,6 +750,16 @@ def _merged(marks: Iterable[Marks]) -> Marks:
         for i, mark in mk.items():
             out[i] = min(out.get(i, mark), mark)
     return out
+
+
+def _gens(dep: AppState, positions: Iterable[int]) -> dict[int, int]:
+    """The generations of this node's output channels named in ``positions`` (those not 0)."""
+    return {o: out.gen for o in positions if (out := dep.out.get(o)) is not None and out.gen}
+
+
+def _known(gens: dict[int, int], positions: Iterable[int]) -> dict[int, int]:
+    """Of ``gens``, those of ``positions`` (and not 0)."""
+    return {e: g for e in positions if (g := gens.get(e, 0))}
 
 
 def _ready(dep: AppState, vertex: str, restoring: Restoring) -> bool:

@@ -31,6 +31,10 @@ class Data(_Msg, tag="data"):
     # that still waits for an event below it skips to it (events a parked chain dropped)
     floor: int = 0
     also: list[tuple[int, int, int]] = msgspec.field(default_factory=list)
+    # of a stamped producer (mso.protocol.provenance): the generations of the numberings its
+    # events' headers name (mso.protocol.channel; omitted for 0): what the consumer's marks
+    # are of, so that a restore tells marks of one numbering from a producer's of another
+    gens: dict[int, int] = msgspec.field(default_factory=dict)
 
 
 class Ack(_Msg, tag="ack"):
@@ -38,13 +42,16 @@ class Ack(_Msg, tag="ack"):
     has everything derived from them downstream (acks are chained, so a producer keeps each
     event until no single node failure can lose it). ``positions`` are the consumer's output
     sequence numbers at that point: a replacement instance numbers its output from them, so
-    what it regenerates by replay is recognised downstream as duplicates."""
+    what it regenerates by replay is recognised downstream as duplicates. ``gens``: the
+    generation of each of those edges' numberings (``mso.protocol.channel``: omitted for 0,
+    the deployment's), so that positions of a numbering made anew are told from the first's."""
 
     app: str
     edge: int
     epoch: int
     upto: int
     positions: dict[int, int] = msgspec.field(default_factory=dict)
+    gens: dict[int, int] = msgspec.field(default_factory=dict)
 
 
 class ChainDelay(_Msg, tag="chain_delay"):

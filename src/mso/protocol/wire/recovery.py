@@ -58,6 +58,12 @@ class Resume(_Msg, tag="resume"):
     # from a consumer: ``start`` is past its own consumers' marks, not a position it held
     # (Restorer._start_past); a producer that numbers from its acks' positions says so back
     unheld: bool = False
+    # the generation of the edge's numbering ``start`` is a number of (0: the deployment's;
+    # mso.protocol.channel), and of each of ``positions`` (omitted for 0)
+    gen: int = 0
+    gens: dict[int, int] = msgspec.field(default_factory=dict)
+    # from a consumer, with ``marks``: the generations of the numberings they name (not 0)
+    markgens: dict[int, int] = msgspec.field(default_factory=dict)
 
 
 class Replicate(_Msg, tag="replicate"):

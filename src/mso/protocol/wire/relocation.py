@@ -95,9 +95,11 @@ class Handover(_Msg, tag="handover"):
     vertex: str
     rid: int
     state: bytes  # msgpack of get_state()
-    # edge -> [next expected seq, acknowledged up to, superseded, expired, deadline missed]
+    # edge -> [next expected seq, acknowledged up to, superseded, expired, deadline missed,
+    # the generation of its numbering (mso.protocol.channel)]
     inputs: dict[int, list[int]]
-    outputs: dict[int, list[Any]]  # edge -> [next_seq, acked, [unacked events...], positions]
+    # edge -> [next_seq, acked, [unacked events...], positions, generation, positions' gens]
+    outputs: dict[int, list[Any]]
     processed: int
     emitted: int
     gate: list[Any] = msgspec.field(default_factory=list)  # pending chained-ack checkpoints
@@ -109,6 +111,8 @@ class Handover(_Msg, tag="handover"):
     # consumer only what is past them (mso.protocol.provenance): moved before it made
     # anything past them, the new host sends on what the consumer has too (seed 96201)
     lacks: dict[int, dict[int, list[int]]] = msgspec.field(default_factory=dict)
+    # input edge -> the generations of the numberings those marks name (those not 0)
+    markgens: dict[int, dict[int, int]] = msgspec.field(default_factory=dict)
 
 
 class HandoverEvents(_Msg, tag="handover_events"):

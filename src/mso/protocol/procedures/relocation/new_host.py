@@ -269,7 +269,7 @@ class NewHost(Role):
             self.ctx.refusal("handover_unexpected")
             return
         shapes = [len(v) >= 2 for v in msg.inputs.values()]
-        shapes += [len(v) == 4 for v in msg.outputs.values()]
+        shapes += [len(v) == 4 or _numbering(v[4:]) is not None for v in msg.outputs.values()]
         if not all(shapes):  # (no genuine node sends one: a frame fuzzed or forged)
             self.ctx.refusal("handover_malformed")
             return
@@ -294,7 +294,7 @@ class NewHost(Role):
         dep.handed.pop(msg.vertex, None)
         gated = bool(dep.out_edges.get(msg.vertex))
         for i, (expected, acked, *counts) in msg.inputs.items():
-            superseded, expired, missed = (*counts, 0, 0, 0)[:3]  # (absent from older nodes)
+            superseded, expired, missed, gen = (*counts, 0, 0, 0, 0)[:4]  # (absent: older nodes)
             dep.inc[i] = InChannel(
                 expected=expected,
                 processed=expected,
@@ -304,14 +304,19 @@ class NewHost(Role):
                 expired=expired,
                 deadline_missed=missed,
                 marks=provenance.from_wire(msg.marks.get(i)),
+                gen=gen,
+                markgens=dict(msg.markgens.get(i, {})),
             )
-        for i, (next_seq, acked, events, positions) in msg.outputs.items():
+        for i, (next_seq, acked, events, positions, *numbering) in msg.outputs.items():
             ch = self.dp.channel(dep, i, acked)
             for _, ahead in sorted(parts.get(i, []), key=lambda p: p[0]):
                 ch.push_many(ahead, now)
             ch.push_many(events, now)
             ch.next_seq = next_seq
             ch.positions = {int(k): int(v) for k, v in positions.items()}
+            gen, gens = _numbering(numbering) or (0, {})  # (absent from older nodes)
+            ch.number_as(gen)
+            ch.gens = {e: g for e, g in gens.items() if e in ch.positions}
             dep.out[i] = ch
         if msg.gate:
             dep.gates[msg.vertex] = AckGate.from_wire(msg.gate)
@@ -355,3 +360,16 @@ def _resumes(dep: AppState, vid: str, resumes: list[list[Any]]) -> set[tuple[int
             return None
         out.add((e, producer))
     return out
+
+
+def _numbering(extra: list[Any]) -> tuple[int, dict[int, int]] | None:
+    """A handed-over output's generation and its positions' (after its positions), or None
+    if they are not of that shape (no genuine node sends one: refused whole)."""
+    if len(extra) != 2:
+        return None
+    gen, gens = extra
+    if type(gen) is not int or not isinstance(gens, dict):
+        return None
+    if not all(type(k) is int and type(v) is int for k, v in gens.items()):
+        return None
+    return gen, gens

@@ -122,8 +122,10 @@ class OldHost(Role):
             for i in ins
             if (ch := dep.inc.get(i)) and (wire := provenance.to_wire(ch.marks)) is not None
         }
+        markgens = {i: dict(ch.markgens) for i in ins if (ch := dep.inc.get(i)) and ch.markgens}
+        said = {o: self.dp.stamp_gens(dep, o) for o in dep.out_edges.get(vid, [])}  # (inputs go)
         inputs = {
-            i: [ch.expected, ch._acked, ch.superseded, ch.expired, ch.deadline_missed]
+            i: [ch.expected, ch._acked, ch.superseded, ch.expired, ch.deadline_missed, ch.gen]
             if (ch := dep.inc.pop(i, None))
             else [0, 0]
             for i in ins
@@ -138,13 +140,15 @@ class OldHost(Role):
                     part_msg = m.HandoverEvents(dep.app.name, vid, msg.rid, i, first, part)
                     self.ctx.send(msg.to, part_msg)
                 parts += len(ahead)
-                outputs[i] = [out.next_seq, out.acked, events, out.positions]
+                outputs[i] = [out.next_seq, out.acked, events, out.positions, out.gen, out.gens]
         gate = dep.gates.pop(vid, None)
         key_batches = [k for k in self.dp.outbox if k[0] == dep.app.name and k[1] in outputs]
         for k in key_batches:  # queued output leaves from here before the handover
             batch = self.dp.outbox.pop(k)
             dst = dep.placed[dep.app.edges[k[1]].dst]
-            self.ctx.emit(Send(dst, m.Data(k[0], k[1], dep.epoch, *batch)))
+            data = m.Data(k[0], k[1], dep.epoch, *batch)
+            data.gens = said.get(k[1], {})
+            self.ctx.emit(Send(dst, data))
         h.life.on(InstanceEvent.HANDED_OVER)
         self.dp.stop(h, "moved")
         del dep.instances[vid]
@@ -170,6 +174,7 @@ class OldHost(Role):
                 for o, mk in dep.marks.pop(vid, {}).items()
                 if o in outputs and (wire := provenance.to_wire(mk))
             },
+            markgens,
         )
         dep.catch_up.pop(vid, None)
         self.dp.taps.hand_over(dep.app.name, vid, msg.to, self.ctx.now)  # (asked there first)

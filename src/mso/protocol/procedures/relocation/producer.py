@@ -35,6 +35,7 @@ class Producer(Role):
         batch = self.dp.outbox.pop(key, None)
         if batch is not None:  # what is already queued leaves before the marker
             data = m.Data(msg.app, msg.edge, dep.epoch, *batch)
+            data.gens = self.dp.stamp_gens(dep, msg.edge)
             self.ctx.emit(Send(old, data))
         seq = self.dp.out(dep, msg.edge).next_seq
         dep.placed[edge.dst] = msg.to
