@@ -317,6 +317,10 @@ RESTARTS_BROKE = {
     "over a node reset, of a numbering the other side of a cut had made anew; the merge that "
     "outlived the cut had started that input past its consumers' marks of the first "
     "numbering and dropped 7 new events as had (a generation per numbering tells them apart)",
+    125537: "a node that ran the whole app restarted; the first sync it got, from the origin "
+    "(hosting nothing), placed one vertex on a node that had let the app go, where the kept "
+    "view had it here at a later move: the sync's word was taken, the origin's recovery waited "
+    "on that node, and the app ran nowhere (a kept move here later than the sync's stands)",
 }
 
 

@@ -9,6 +9,7 @@ import pytest
 
 from mso.daemon.spill import SqliteSpill
 from mso.model.network import LinkSpec
+from mso.node.core import NodeCore
 from mso.protocol import kept
 from mso.protocol import messages as m
 from mso.protocol.spill import MemorySpill
@@ -108,3 +109,29 @@ def test_an_app_its_origin_alone_holds_outlives_the_origins_restart() -> None:
     revive(sim, ["N3", "N4"], [("N2", "N3"), ("N3", "N4")])
     sim.run_until(sim.now + 5.0)
     assert running(sim) == {"src", "mid", "sink"}
+
+
+def _sync(src_view: dict[str, str], versions: dict[str, int]) -> m.AppSync:
+    doc = pipe_app(50)
+    return m.AppSync("pipe", "N1", doc, 0, src_view, [], {}, {}, {}, {}, versions, {})
+
+
+@pytest.mark.parametrize("theirs", [1, 2, 3])
+def test_a_kept_view_keeps_a_later_move_here_over_an_older_sync(theirs: int) -> None:
+    """A restarted node's kept view places ``mid`` here at its second move; the first sync
+    from a live node places it elsewhere at its ``theirs``-th. Older (1): ours is the later
+    word, first-hand — ``mid`` ran here and went with the last process, so it is held here,
+    vanished, for a recovery to restore (seed 125537: the sync's host had let the app go and a
+    holder's recovery waited on it for ever). As new or newer (2, 3): the live node's view is
+    taken, as a node back empty takes it."""
+    core = NodeCore("N3")
+    here = {"src": "N1", "mid": "N3", "sink": "N4"}
+    core.receive("N3", _sync(here, {"mid": 2}), 5.0)  # its kept view, taken back at its start
+    assert core.apps["pipe"].stored and core.apps["pipe"].vanished == {"mid"}
+    core.receive("N1", _sync(dict(here, mid="N2"), {"mid": theirs}), 5.1)
+    dep = core.apps["pipe"]
+    if theirs < 2:
+        assert (dep.placed["mid"], dep.versions["mid"]) == ("N3", 2) and "mid" in dep.vanished
+    else:
+        assert (dep.placed["mid"], dep.versions["mid"]) == ("N2", theirs)
+        assert "mid" not in dep.vanished

@@ -278,11 +278,17 @@ class AppSyncing:
         # before this sync, fault seed 451)
         gone_since: set[str] = set()
         counted: dict[str, int] = {}  # the kept view's versions where the sync places alike
+        ran_here: dict[str, int] = {}  # moved here at a later move than the sync knows
         if held is not None and held.stored and src != self.ctx.id and _idle(held):
             del self.ctx.apps[msg.app]
             alike = {v for v, n in held.placed.items() if msg.placed.get(v) == n}
             gone_since = held.vanished & alike
             counted = {v: k for v, k in held.versions.items() if v in alike and k > 0}
+            ran_here = {
+                v: k
+                for v, k in held.versions.items()
+                if held.placed.get(v) == self.ctx.id and k > msg.versions.get(v, 0)
+            }
             held = None
         if held is not None:
             for v, ns in msg.replicas.items():  # (where this node knows none)
@@ -337,6 +343,10 @@ class AppSyncing:
             dep.stored = True
             dep.vanished |= {v for v, n in placed.items() if n == src}
         dep.vanished |= {v for v in gone_since if placed.get(v) != src or v in msg.vanished}
+        for v, k in ran_here.items():  # first-hand: it ran here at a move later than the
+            if v in dep.placed and v not in pinned:  # sync knows of, and went with that
+                dep.placed[v], dep.versions[v] = self.ctx.id, k  # process (the sync's host
+                dep.vanished.add(v)  # had let the app go: seed 125537, nobody recovered)
         placement.recall(self.ctx, dep)  # (what its last process heard, if later)
         dep.capable = {v: list(ns) for v, ns in msg.capable.items() if v in layout.resolved}
         dep.placed_chains = dep.started_chains = set(range(len(layout.chains)))
