@@ -321,6 +321,9 @@ RESTARTS_BROKE = {
     "(hosting nothing), placed one vertex on a node that had let the app go, where the kept "
     "view had it here at a later move: the sync's word was taken, the origin's recovery waited "
     "on that node, and the app ran nowhere (a kept move here later than the sync's stands)",
+    122789: "a heal's cascade reset a node; it learnt the app again from a sync whose sender "
+    "had not heard of the reset and took the merge placed on it as running there: it "
+    "coordinated a restore of the merge's consumer that waited on the merge for ever",
 }
 
 

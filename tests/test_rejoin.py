@@ -157,6 +157,23 @@ def test_a_node_told_an_app_again_rearms_its_retransmission() -> None:
     assert Retransmit("pipe") in timers
 
 
+def test_a_vertex_a_sync_places_on_a_node_that_held_no_app_is_held_vanished_there() -> None:
+    """A node reset (or restarted with nothing kept) learns the app from a sync whose sender
+    had not heard of it: the vertex the sync places on this node runs nowhere (it went with
+    the reset), so the node holds it vanished, for a recovery to restore (seed 122789: held
+    running here, the node coordinated a restore of its consumer that waited on it for ever,
+    and nobody restored it)."""
+    from mso.node.core import NodeCore
+    from mso.protocol import messages as m
+
+    core = NodeCore("N3")
+    placed = {"src": "N1", "mid": "N3", "sink": "N6"}
+    core.receive("N1", m.AppSync("pipe", "N1", PIPE, 0, placed, ["sink"]), 5.0)
+    dep = core.apps["pipe"]
+    assert dep.placed == placed and not dep.instances
+    assert dep.vanished == {"mid", "sink"}
+
+
 def test_after_a_reset_a_node_still_out_of_reach_is_failed_again_unless_a_route_appears() -> None:
     from mso.protocol.procedures.membership.liveness import Liveness
 

@@ -339,9 +339,12 @@ class AppSyncing:
                 if v in msg.placed and v not in pinned and n != self.ctx.id
             }
         dep.vanished.replace({v for v in msg.vanished if v in app.vertices} | self._outlived(msg))
-        if mine:  # what ran here went with that process
+        if mine:  # kept by its last process
             dep.stored = True
-            dep.vanished |= {v for v, n in placed.items() if n == src}
+        # what the sync places here does not run here (this node held none of the app): it
+        # went with this node's last process, or with its reset (seed 122789: the sender had
+        # not heard of the reset; held running here, nobody restored it)
+        dep.vanished |= {v for v, n in placed.items() if n == self.ctx.id}
         dep.vanished |= {v for v in gone_since if placed.get(v) != src or v in msg.vanished}
         for v, k in ran_here.items():  # first-hand: it ran here at a move later than the
             if v in dep.placed and v not in pinned:  # sync knows of, and went with that
