@@ -324,6 +324,10 @@ RESTARTS_BROKE = {
     122789: "a heal's cascade reset a node; it learnt the app again from a sync whose sender "
     "had not heard of the reset and took the merge placed on it as running there: it "
     "coordinated a restore of the merge's consumer that waited on the merge for ever",
+    110580: "a daemon restarted with the app kept looked it up; a node it asked was held "
+    "failed as its answer came (dropped) and rejoined at once, and the lookup waited 2 s for "
+    "its deadline: named a replica by its own view, the node asked its host only then and "
+    "held the app past the quiet phase (a lookup asks a node back from failed again)",
 }
 
 
@@ -735,6 +739,30 @@ def test_a_node_that_becomes_the_recovery_coordinator_later_starts_the_recovery(
     core.receive("N2", reply, 1.25)
     (remap,) = [p for p in core.procedures.values() if isinstance(p, Remap)]
     assert remap.recovery is not None and remap.recovery["lost"] == ["mid"]
+
+
+def test_a_lookup_asks_again_a_node_held_failed_while_it_waited_for_its_answer() -> None:
+    """Seed 110580: N1 looks the placement up (a remap asked of it, hosting none of the app);
+    N3 is held failed as its answer comes (dropped: a failed node is heard only to rejoin)
+    and rejoins at once. The lookup asks it again instead of waiting for its deadline (2 s,
+    which held a restarted node's app past the bound on holding one it took no part in)."""
+    from mso.protocol.procedures.lookup import Lookup
+
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N2").replace("pinned: N4", "pinned: N2")
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2)}, 0.0)
+    placed = {"src": "N2", "mid": "N3", "sink": "N2"}
+    core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, []), 1.0)
+    core.request(7, m.RemapRequest("pipe", [0]), 1.0)
+    (look,) = [p for p in core.procedures.values() if isinstance(p, Lookup)]
+    core.receive("N2", m.PlacementReply("pipe", look.pid, placed, {}, []), 1.01)
+    core.receive("N2", m.NodeDown("N3", "N2", 0, witness="N4"), 1.02)
+    core.receive("N3", m.PlacementReply("pipe", look.pid, placed, {}, []), 1.03)  # dropped
+    assert look.waiting == {"N3"}
+    effects = core.receive("N3", NodeCore("N3", incarnation=1).membership.beat(), 1.2)
+    assert fx.Send("N3", m.PlacementQuery("pipe", look.pid)) in effects
+    core.receive("N3", m.PlacementReply("pipe", look.pid, placed, {}, []), 1.21)
+    assert not [p for p in core.procedures.values() if isinstance(p, Lookup)]
 
 
 def test_a_restarted_node_learns_from_beats_which_incarnations_failed() -> None:

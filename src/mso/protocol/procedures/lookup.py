@@ -22,7 +22,7 @@ from typing import ClassVar
 
 from mso.protocol import messages as m
 from mso.protocol.context import NodeContext
-from mso.protocol.events import RecoveryDue
+from mso.protocol.events import PeerRejoined, RecoveryDue
 from mso.protocol.procedures import placement
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, Phase, Procedure, Table
 from mso.protocol.procedures.relocation import Relocator
@@ -256,6 +256,16 @@ class Lookups:
         if not look.waiting:
             look.on(LookupEvent.ALL_ANSWERED)
             self._end(look, now)
+
+    def on_peer_rejoined(self, ev: PeerRejoined) -> None:
+        """A node a lookup waits on was held failed and is back: an answer it sent meanwhile
+        was dropped (a node held failed is heard only to rejoin), so it is asked again,
+        rather than waited for until the deadline (seed 110580: a restarted node's lookup
+        of its kept view held the app 2 s past the answer, and so past the bound on holding
+        an app it took no part in)."""
+        for look in self.ctx.open():
+            if isinstance(look, Lookup) and ev.node in look.waiting:
+                self.ctx.send(ev.node, m.PlacementQuery(look.app, look.pid, look.fetch))
 
     def expire(self, look: Lookup, now: float) -> None:
         """Some node did not answer (it failed, or its answer was lost): go on with what the
