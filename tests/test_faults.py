@@ -328,6 +328,10 @@ RESTARTS_BROKE = {
     "failed as its answer came (dropped) and rejoined at once, and the lookup waited 2 s for "
     "its deadline: named a replica by its own view, the node asked its host only then and "
     "held the app past the quiet phase (a lookup asks a node back from failed again)",
+    118461: "a merge's consumer, its node reset in a cut, was restored resuming the merge's "
+    "twin on the other side; at the heal the twin's node reset, and the merge that outlived "
+    "it sent on in its own numbering, 3 below where the consumer stood: 2 events dropped as "
+    "had (a producer whose consumer went with its node asks where it stands)",
 }
 
 

@@ -13,6 +13,7 @@ from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol import provenance
 from mso.protocol.channel import InChannel
+from mso.protocol.events import PeerFailed
 from mso.runtime.worker import VertexWorker
 from mso.sim import faults, vertices
 from test_failure import started, where
@@ -331,3 +332,26 @@ def test_marks_name_the_generation_of_the_numbering_they_are_of() -> None:
     resume = m.Resume("merge", 0, 1234, True, old.expected, gen=55)
     sim.apply(node, sim.cores[node].receive(where(sim, "merge", "s1"), resume, sim.now))
     assert dep.inc[0].expected == mark + 1  # below the marks: had
+
+
+def test_a_merge_whose_consumer_went_with_its_node_asks_where_it_stands_first() -> None:
+    """The merge's consumer went with its node (as the merge's node hears it) and was restored
+    by a restore that resumed a twin of the merge across a cut: it stands in the twin's
+    numbering (here 50 past this merge's), with what it has in the inputs' terms. Sent on in
+    its own numbering, the merge's next 50 events were dropped as had (seed 118461: two of a
+    source's events). It holds them, asks the consumer, and sends what it lacks from there."""
+    vertices.RUNS.pop("provenance-moved", None)
+    sim = started(MERGE)
+    node = where(sim, "merge", "c")
+    core, dep = sim.cores["N3"], sim.cores["N3"].apps["merge"]
+    core.publish(PeerFailed(node))
+    assert dep.out[2].consumer_lost
+    consumer = sim.cores[node].apps["merge"]
+    inc = consumer.inc[2]
+    consumer.inc[2] = InChannel.starting_at(inc.expected + 50, True, dict(inc.marks or {}))
+    sim.run_until(sim.now + 2.0)
+    assert not dep.out[2].consumer_lost
+    (record,) = vertices.RUNS["provenance-moved"]
+    for s in record.streams.values():
+        assert s.duplicates == 0 and s.last - s.first + 1 == len(s.seen), s
+        assert s.last >= 70  # it went on

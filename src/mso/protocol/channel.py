@@ -66,6 +66,11 @@ class OutChannel:
     # that asked): until then its events wait here (StoreAndForward.held), since a consumer
     # that survived out of reach would take them for what it has (fault seed 40939)
     confirmed: bool = False
+    # the consumer's instance this channel fed went with its node (held failed): a restore
+    # of it rewires this channel, or one that did not (it resumed a twin of this producer,
+    # restored across a cut) left the consumer numbered in that twin's terms; until either
+    # says where it stands, the events wait here (fault seed 118461)
+    consumer_lost: bool = False
     asked_at: float = -1e18  # when the consumer was last asked where it stands
     # a merge's replacement: the first number it made itself, a new interleaving (-1: none)
     remade: int = -1
@@ -78,6 +83,12 @@ class OutChannel:
     gens: dict[int, int] = field(default_factory=dict)
 
     HISTORY = 64  # acks whose positions are kept, to look one up at an exact position
+
+    @property
+    def unsure(self) -> bool:
+        """Its numbers may not be its consumer's (a guess not confirmed, or a consumer lost
+        since): its events wait until the consumer says where it stands."""
+        return (self.guessed and not self.confirmed) or self.consumer_lost
 
     def __post_init__(self) -> None:
         self._unacked: deque[bytes] = deque()  # events from ``base`` on, in memory

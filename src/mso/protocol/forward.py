@@ -158,7 +158,7 @@ class StoreAndForward:
         consumer = dep.app.edges[edge].dst
         dst = dep.placed[consumer]
         out = dep.out.get(edge)
-        if out is not None and out.guessed and not out.confirmed:
+        if out is not None and out.unsure:
             # (a consumer here too: restored before it, past its consumers' marks, it dropped
             # the guess's first 12 events as had; restart seed 102602)
             return True
@@ -279,7 +279,7 @@ class StoreAndForward:
             if delivery.enforce(ch, e, held, now):
                 self.gave_up(dep, edge)
             if held:  # kept until the consumer is back or restored elsewhere
-                if ch.guessed and not ch.confirmed:
+                if ch.unsure:
                     self.ask_where(dep, edge, ch, now)
                 ch.out_of_reach = True
                 if ch.persist:

@@ -121,6 +121,7 @@ class Restorer:
             resume.gen, resume.gens = out.gen, dict(out.gens)
             resume.remade = out.remade
             out.confirmed = True  # (a replacement: it numbers on from here)
+            out.consumer_lost = False
             resume.renumbered = sorted(dep.renumbered.get(edge.src, ()))
             self.ctx.send(msg.to, resume)
             out.sent = out.acked  # everything unacknowledged goes again, a window at a time
@@ -243,7 +244,7 @@ class Restorer:
                 self.ctx.refusal("resume_unexpected")
             return
         out = dep.out.get(msg.edge)
-        unsure = out is not None and out.guessed and not out.confirmed
+        unsure = out is not None and out.unsure
         if restoring is None and not msg.producer and vertex in dep.instances and unsure:
             self._renumber(dep, vertex, msg, now)  # (a consumer that survived: ask_where)
             return
@@ -304,7 +305,7 @@ class Restorer:
         old = dep.out[msg.edge]
         if old.spilled:  # (read off the loop only: a backlog past memory keeps its guess)
             self.ctx.note_event(now, f"{vertex}: edge {msg.edge} keeps a guessed numbering")
-            old.confirmed = True
+            old.confirmed, old.consumer_lost = True, False
             return
         _, events = old.unacked()
         marks = provenance.from_wire(msg.marks)
@@ -721,12 +722,27 @@ class Restorer:
         again; it waited for ever, prepared and never run (fault seed 14459)."""
         node, now = ev.node, self.ctx.now
         for dep in list(self.ctx.apps.values()):
+            self._consumers_lost(dep, node)
             for vid, restoring in sorted(dep.restoring.items()):
                 if restoring.coordinator != node or vid not in dep.awaiting:
                     continue
                 self.ctx.note_event(now, f"{vid}: its restore's coordinator {node} failed")
                 lost_on = dep.placed.get(vid, node)  # (the coordinator's view, from Prepare)
                 self._restore_here(dep, vid, node if lost_on == self.ctx.id else lost_on, now)
+
+    def _consumers_lost(self, dep: AppState, node: str) -> None:
+        """A stamped vertex running here whose consumer went with ``node``: its output
+        channel is numbered in the lost instance's terms. The consumer's restore rewires it,
+        unless that restore resumed a twin of this vertex, restored across a cut (gone since
+        or not): then the consumer stands in the twin's numbering, and this one's, sent on,
+        had it drop what it lacked as had (fault seed 118461: two of a source's events). So
+        its events wait until a restore rewires it or the consumer, asked, says where it
+        stands and what it has (its marks: :meth:`_renumber`)."""
+        for edge, out in dep.out.items():
+            e = dep.app.edges[edge]
+            stamped = e.src in dep.instances and e.src in dep.layout.stamped
+            if stamped and dep.placed.get(e.dst) == node:
+                out.consumer_lost = True
 
     def on_relocation_ended(self, ev: RelocationEnded) -> None:
         """A restore in place after a crash ended: the vertex runs again, or stays crashed."""
