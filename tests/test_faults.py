@@ -332,6 +332,10 @@ RESTARTS_BROKE = {
     "twin on the other side; at the heal the twin's node reset, and the merge that outlived "
     "it sent on in its own numbering, 3 below where the consumer stood: 2 events dropped as "
     "had (a producer whose consumer went with its node asks where it stands)",
+    122799: "a replica's copy was made by a host that crashed and restarted; the vertex was "
+    "restored by a node cut off as the copy was made, which never named it a replica: it "
+    "asked the maker's node alone, whose new process does not answer for its last one's "
+    "instance, and held the app past the quiet phase (the host by its view is asked too)",
 }
 
 

@@ -11,8 +11,11 @@ import pytest
 from mso.errors import AppError
 from mso.model.appfile import loads_app
 from mso.model.network import LinkSpec, Network, NodeSpec
+from mso.node.core import NodeCore
+from mso.protocol import effects as fx
 from mso.protocol import kept
 from mso.protocol import messages as m
+from mso.protocol.events import MonitorTick
 from mso.protocol.procedures.deploy import holders
 from mso.sim.runner import Simulation
 from test_failure import emitted, mesh, recoveries, started, stats, where
@@ -202,6 +205,31 @@ def test_a_restarted_host_does_not_tell_a_copy_of_its_lost_instance_to_go() -> N
     assert "mid" in sim.cores[replica].apps["pipe"].held
     sim.run_until(sim.now + 5.0)
     assert_continuous(sim)
+
+
+def test_a_copy_whose_maker_restarted_is_settled_by_the_vertexs_host_by_this_nodes_view() -> None:
+    """N2 holds a copy of the counter made on N1, which then restarted; the counter runs on
+    N3 now, restored by a node that never named N2 its replica. N1's new process does not
+    answer for its last one's instance (seed 77821), so N2 asks N3, the host by its view,
+    too: told it is none, it lets the copy and the app go (fault seed 122799: it asked N1
+    alone, every second, and held the app past the quiet phase)."""
+    doc = counter_app().replace("pinned: N6", "pinned: N3")
+    core = NodeCore("N2")
+    core.set_routes({"N1": ("N1", 1), "N3": ("N3", 1)}, 0.0)
+    placed = {"src": "N1", "mid": "N1", "sink": "N3"}
+    core.receive("N1", m.AppSync("pipe", "N1", doc, 0, placed, replicas={"mid": ["N2"]}), 1.0)
+    core.receive("N1", m.Replicate("pipe", "mid", 1, b"\x05", {0: 10}, {1: (10, [])}), 1.0)
+    dep = core.apps["pipe"]
+    assert "mid" in dep.held
+    core.receive("N1", NodeCore("N1", incarnation=1).membership.beat(), 1.5)  # restarted
+    core.receive("N3", m.Moved("pipe", "mid", "N3", 0, 1), 1.6)  # restored there
+    effects = core.on_timer(MonitorTick(), 3.0)
+    assert fx.Send("N3", m.ReplicaAck("pipe", "mid", 1)) in effects
+    core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"]), 3.1)
+    assert "mid" not in dep.held
+    for t in (4.0, 5.0):
+        core.on_timer(MonitorTick(), t)
+    assert "pipe" not in core.apps
 
 
 def test_replication_attributes_are_validated_and_defaulted() -> None:

@@ -47,6 +47,7 @@ class Snapshot:
     # would hold the snapshot, and the app, for ever)
     got_at: float = 0.0
     asked_at: float = 0.0
+    src_incarnation: int = 0  # the incarnation of ``src`` it came from, as this node knew it
 
     @property
     def size(self) -> int:

@@ -490,6 +490,7 @@ class Replicator:
             return
         old = dep.held.get(msg.vertex)
         snap.got_at = self.ctx.now
+        snap.src_incarnation = self.ctx.incarnation_of(src, 0)
         if old is None or old.src != src or msg.k > old.k:
             dep.held[msg.vertex] = snap
             self.held.stored += 1
@@ -512,6 +513,17 @@ class Replicator:
             if src and src != me and src not in failed:
                 snap.asked_at = now
                 self.ctx.send(src, m.ReplicaAck(app, vid, snap.k))
+            # the instance that made the copy is gone (its node failed, or restarted: then
+            # it does not answer for it) and the vertex runs on elsewhere: its host by this
+            # node's view says whether this node is its replica (fault seed 122799: restored
+            # by a node cut off as the copy was made, which never named this one, the
+            # vertex's new host was not asked and the copy, and the app, held for ever)
+            host = dep.placed.get(vid, "")
+            gone = src in failed or self.ctx.incarnation_of(src, 0) > snap.src_incarnation
+            runs = host not in ("", me, src) and host not in failed and vid not in dep.vanished
+            if gone and runs:
+                snap.asked_at = now
+                self.ctx.send(host, m.ReplicaAck(app, vid, snap.k))
         # named a replica with no copy here (reset, restarted, or the app came with a sync):
         # the host by this node's view sends one, or says this node is none
         for vid, nodes in dep.replica_nodes.items():
