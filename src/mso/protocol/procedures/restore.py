@@ -169,7 +169,11 @@ class Restorer:
         started at its consumer's position with none; the consumer died with the replay
         passed on, its replacement numbered it from the sink's position: an event twice).
         Empty where they are not exact (:meth:`_outputs_exact`), or events are held or in
-        flight, or its start is a guess."""
+        flight, or its start is a guess. Where every output's last ack acknowledged all it
+        made, that ack's positions further down go with them (as an ack's would: fault seed
+        202193, a chain lost whole behind a fork whose branch to one sink had its ack and the
+        other not; the source, restarted, knew only the first vertex's position, and the
+        chain's replacement numbered the replay to that sink from where it stood: 6 twice)."""
         h = dep.instances.get(vertex)
         exact = self._outputs_exact(dep, vertex)
         if (
@@ -183,7 +187,13 @@ class Restorer:
             or dep.inc[edge].unheld
         ):
             return {}
-        return exact[1]
+        there, further = exact[1], {}
+        for o in there:
+            out = dep.out[o]
+            if out.acked != out.next_seq or out.positions_at != out.acked:
+                return there  # (not known further down at this point: its own only)
+            further |= out.positions
+        return further | there
 
     @staticmethod
     def _outputs_exact(dep: AppState, vertex: str) -> tuple[int, dict[int, int]] | None:
@@ -523,11 +533,18 @@ class Restorer:
             told = restoring.consumer_positions.get(o)
             if (
                 told
-                and carried is None
                 and snap is None
                 and marks is None
                 and o not in restoring.positions
-                and out.acked == restoring.consumer_start.get(o)
+                and (
+                    out.acked == restoring.consumer_start.get(o)
+                    if carried is None
+                    # a source's edge carried over with no positions at its start: the
+                    # consumer, standing at or below it, gets nothing before that start (the
+                    # numbers between were never used, or went with the process), so its
+                    # outputs there are where they stand now (fault seed 202193)
+                    else not out.positions and restoring.consumer_start.get(o, -1) <= out.acked
+                )
             ):  # numbered from where its consumer stands: its outputs there, exactly
                 out.positions = further | told
                 out.gens = _known(restoring.gens, further) | _known(
