@@ -187,7 +187,7 @@ class Restorer:
             or dep.inc[edge].unheld
         ):
             return {}
-        there, further = exact[1], {}
+        there, further = exact[1], dict[int, int]()
         for o in there:
             out = dep.out[o]
             if out.acked != out.next_seq or out.positions_at != out.acked:
