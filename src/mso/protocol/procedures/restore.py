@@ -150,8 +150,8 @@ class Restorer:
             resume = m.Resume(msg.app, msg.edge, msg.rid, False, start)
             resume.unheld = inc is not None and inc.unheld
             resume.gen = inc.gen if inc is not None else 0
-            resume.positions = self._outputs_at_start(dep, edge.dst, msg.edge)
-            resume.gens = _gens(dep, resume.positions)
+            resume.positions, down = self._outputs_at_start(dep, edge.dst, msg.edge)
+            resume.gens = down | _gens(dep, resume.positions)  # (theirs further down: acks')
             if inc is not None and edge.src in dep.layout.stamped:
                 marks = inc.marks  # what it has of each input; a forwarder that passes on
                 sent_on = dep.marks.get(edge.dst)  # only what its consumer lacks drops the
@@ -161,7 +161,9 @@ class Restorer:
                 resume.markgens = _known(inc.markgens, marks or {})
             self.ctx.send(msg.to, resume)
 
-    def _outputs_at_start(self, dep: AppState, vertex: str, edge: int) -> dict[int, int]:
+    def _outputs_at_start(
+        self, dep: AppState, vertex: str, edge: int
+    ) -> tuple[dict[int, int], dict[int, int]]:
         """Where this consumer's outputs stand at the input position it tells a producer's
         replacement (everything before it processed, nothing owed): the replacement's channel
         starts with them as an ack's positions, so that a replacement of this consumer, fed
@@ -173,7 +175,8 @@ class Restorer:
         made, that ack's positions further down go with them (as an ack's would: fault seed
         202193, a chain lost whole behind a fork whose branch to one sink had its ack and the
         other not; the source, restarted, knew only the first vertex's position, and the
-        chain's replacement numbered the replay to that sink from where it stood: 6 twice)."""
+        chain's replacement numbered the replay to that sink from where it stood: 6 twice).
+        With them, the generations of those further down (their acks')."""
         h = dep.instances.get(vertex)
         exact = self._outputs_exact(dep, vertex)
         if (
@@ -186,14 +189,15 @@ class Restorer:
             or h.handing_over is not None
             or dep.inc[edge].unheld
         ):
-            return {}
-        there, further = exact[1], dict[int, int]()
+            return {}, {}
+        there, further, gens = exact[1], dict[int, int](), dict[int, int]()
         for o in there:
             out = dep.out[o]
             if out.acked != out.next_seq or out.positions_at != out.acked:
-                return there  # (not known further down at this point: its own only)
+                return there, {}  # (not known further down at this point: its own only)
             further |= out.positions
-        return further | there
+            gens |= out.gens
+        return further | there, _known(gens, further)
 
     @staticmethod
     def _outputs_exact(dep: AppState, vertex: str) -> tuple[int, dict[int, int]] | None:
