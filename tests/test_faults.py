@@ -341,6 +341,10 @@ RESTARTS_BROKE = {
     "lost whole, its replacements numbered the replay to that sink from where it stood: 6 "
     "events twice (the consumer's answer carries the positions further down, and the source's "
     "edge carried over takes them)",
+    200428: "a fork's input numbered anew (its producer's state restarted); the fork's first "
+    "replacement took that numbering and its consumer's marks named it, then it was lost "
+    "before acking anything: its producer said 'fresh' again, the second replacement set the "
+    "marks aside and sent the consumer 9 events again (marks of that numbering are kept)",
 }
 
 

@@ -3,6 +3,7 @@ in another interleaving sends its consumer exactly what it lacks (mso.protocol.p
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Any
 
 import msgspec
@@ -14,6 +15,8 @@ from mso.protocol import messages as m
 from mso.protocol import provenance
 from mso.protocol.channel import InChannel
 from mso.protocol.events import PeerFailed
+from mso.protocol.procedures import restore
+from mso.protocol.state import Restoring
 from mso.runtime.worker import VertexWorker
 from mso.sim import faults, vertices
 from test_failure import started, where
@@ -355,3 +358,19 @@ def test_a_merge_whose_consumer_went_with_its_node_asks_where_it_stands_first() 
     for s in record.streams.values():
         assert s.duplicates == 0 and s.last - s.first + 1 == len(s.seen), s
         assert s.last >= 70  # it went on
+
+
+def test_a_replacement_keeps_its_consumers_marks_of_the_numbering_they_name() -> None:
+    """A producer that numbers a fork's input anew says so (``Resume.fresh``) until an ack
+    comes; a replacement of the fork lost before it acknowledged anything had taken that
+    numbering, and its consumer's marks name it (their generation): the next replacement keeps
+    them, and sends on only what is past them (fault seed 200428: set aside as of a numbering
+    gone, 9 events reached the sink again). Marks of another numbering go, as before."""
+    dep = SimpleNamespace(inc={1: InChannel.starting_at(0, True, {}, gen=7)})
+    r = Restoring(1, "N1", set(), fresh={1}, consumer_marks={4: {1: (8, 0)}})
+    r.consumer_markgens[4] = {1: 7}  # the numbering the producer says it makes
+    assert restore._anew(dep, r, 4) == set()  # type: ignore[arg-type]
+    r.consumer_markgens[4] = {1: 3}  # another numbering's
+    assert restore._anew(dep, r, 4) == {1}  # type: ignore[arg-type]
+    r.consumer_markgens[4] = {}  # the deployment's
+    assert restore._anew(dep, r, 4) == {1}  # type: ignore[arg-type]

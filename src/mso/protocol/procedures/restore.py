@@ -478,7 +478,8 @@ class Restorer:
         dep.catch_up.pop(vertex, None)
         dep.renumbered.pop(vertex, None)
         if restoring.fresh and vertex in dep.layout.stamped:
-            dep.renumbered[vertex] = set(restoring.fresh)
+            # (an input whose numbering every consumer's marks name is not new to them)
+            dep.renumbered[vertex] = set[int]().union(*(_anew(dep, restoring, o) for o in outs))
         forwarder = vertex in dep.layout.forwarders
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
@@ -494,7 +495,7 @@ class Restorer:
             elif marks is not None:  # a merge: from where its consumer stands, only what it
                 base = restoring.consumer_start[o]  # lacks (mso.protocol.provenance); not
                 # by an input numbered anew (its producer lost with the merge: seed 11242)
-                marks = provenance.without(marks, restoring.fresh)
+                marks = provenance.without(marks, _anew(dep, restoring, o))
                 dep.marks.setdefault(vertex, {})[o] = marks
             elif snap is None and dep.replicas.get(vertex) and o not in restoring.positions:
                 # no ack said where its output stood: a producer that replays what it retains
@@ -792,6 +793,16 @@ def _merged(marks: Iterable[Marks]) -> Marks:
 def _gens(dep: AppState, positions: Iterable[int]) -> dict[int, int]:
     """The generations of this node's output channels named in ``positions`` (those not 0)."""
     return {o: out.gen for o in positions if (out := dep.out.get(o)) is not None and out.gen}
+
+
+def _anew(dep: AppState, restoring: Restoring, o: int) -> set[int]:
+    """The inputs a replacement's producers number anew (``Resume.fresh``) that are new to
+    the consumer of its output ``o``: not those whose numbering (its generation) that
+    consumer's marks name -- a replacement lost before it acknowledged anything took that
+    numbering, and the consumer has what it passed on (fault seed 200428: its marks set
+    aside as of a numbering gone, the next replacement sent the consumer 9 events again)."""
+    named = restoring.consumer_markgens.get(o, {})
+    return {i for i in restoring.fresh if not (g := dep.inc[i].gen) or named.get(i) != g}
 
 
 def _known(gens: dict[int, int], positions: Iterable[int]) -> dict[int, int]:
