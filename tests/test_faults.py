@@ -324,6 +324,9 @@ RESTARTS_BROKE = {
     122789: "a heal's cascade reset a node; it learnt the app again from a sync whose sender "
     "had not heard of the reset and took the merge placed on it as running there: it "
     "coordinated a restore of the merge's consumer that waited on the merge for ever",
+    136149: "a node that learnt the app from a sync passed it on to a node heard back empty "
+    "4 s before, as it had already at that time: after letting the app go and learning it "
+    "again, it told it again, and that node held the app past the quiet phase, taking no part",
     110580: "a daemon restarted with the app kept looked it up; a node it asked was held "
     "failed as its answer came (dropped) and rejoined at once, and the lookup waited 2 s for "
     "its deadline: named a replica by its own view, the node asked its host only then and "

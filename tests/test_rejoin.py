@@ -174,6 +174,28 @@ def test_a_vertex_a_sync_places_on_a_node_that_held_no_app_is_held_vanished_ther
     assert dep.vanished == {"mid", "sink"}
 
 
+def test_an_app_learnt_again_is_not_passed_on_again_to_a_node_told_it_once() -> None:
+    """A node heard back empty lately is told an app this node learns from a sync (it may
+    have held none when it heard it: sync.PASS_ON_S) -- once: an app let go and learnt again
+    within that time went to it again, and it held the app past the quiet phase, taking no
+    part (seed 136149)."""
+    from mso.node.core import NodeCore
+    from mso.protocol import messages as m
+    from mso.protocol.effects import Send
+
+    core = NodeCore("N6")
+    core.membership._heard_empty("N5", 4.0)
+    placed = {"src": "N1", "mid": "N5", "sink": "N7"}  # (N5 takes part by this view)
+
+    def told(now: float) -> int:
+        effects = core.receive("N7", m.AppSync("pipe", "N1", PIPE, 0, placed, []), now)
+        return sum(isinstance(e, Send) and e.dst == "N5" for e in effects)
+
+    assert told(4.1) == 1
+    del core.apps["pipe"]  # let go (it took no part), then learnt again
+    assert told(7.8) == 0
+
+
 def test_after_a_reset_a_node_still_out_of_reach_is_failed_again_unless_a_route_appears() -> None:
     from mso.protocol.procedures.membership.liveness import Liveness
 

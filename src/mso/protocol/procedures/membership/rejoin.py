@@ -297,7 +297,7 @@ class Rejoining(Beating):
             if not dep.running:
                 continue
             if not disputed and self._syncs(dep, node):
-                self.ctx.send(node, self._app_sync(dep))
+                self._sync_back(node, dep)
             self._claim(dep)
             self.recovery.maybe_recover(dep, now)
 

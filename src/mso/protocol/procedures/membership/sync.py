@@ -38,6 +38,7 @@ class AppSyncing:
     incarnation: int
     _sync_pending: set[str]
     _heard_back: dict[str, float]
+    _told_back: dict[str, set[str]]
     _incarnations: dict[str, int]
 
     def admits(self, node: str, table: Mapping[str, object]) -> bool:
@@ -239,7 +240,16 @@ class AppSyncing:
         """``node`` is back with no app: note it (bounded, as the nodes admitted are)."""
         for n in [n for n, at in self._heard_back.items() if now - at > PASS_ON_S]:
             del self._heard_back[n]
+            self._told_back.pop(n, None)
         self._heard_back[node] = now
+        self._told_back[node] = set()
+
+    def _sync_back(self, node: str, dep: AppState) -> None:
+        """Sync ``node``, heard back lately, the app: once (an app this node lets go and
+        learns again is not passed on again: seed 136149, the node synced twice held it past
+        the quiet phase, taking no part)."""
+        self._told_back.setdefault(node, set()).add(dep.app.name)
+        self.ctx.send(node, self._app_sync(dep))
 
     def _pass_on(self, src: str, dep: AppState, now: float) -> None:
         """An app just learnt from ``src``'s sync: to the nodes heard back empty lately that
@@ -248,8 +258,9 @@ class AppSyncing:
             return
         for node, at in sorted(self._heard_back.items()):
             late = now - at > PASS_ON_S or node == src or node in self.failed
-            if not late and self._syncs(dep, node):
-                self.ctx.send(node, self._app_sync(dep))
+            told = dep.app.name in self._told_back.get(node, ())
+            if not late and not told and self._syncs(dep, node):
+                self._sync_back(node, dep)
 
     def _flush_syncs(self) -> None:
         """Sync the nodes that rejoined while this node's view was in dispute, once it is not."""

@@ -75,6 +75,7 @@ class PeerTables(AppSyncing):
         # nodes heard back empty (a rejoin, or a newcomer's hello) lately -> when: an app this
         # node learns from a sync after that goes on to them too (sync.PASS_ON_S)
         self._heard_back: dict[str, float] = {}
+        self._told_back: dict[str, set[str]] = {}  # the apps this node synced them since
         self._gossip = Gossip()  # accepted failure claims, piggybacked on the next beats
         self._claims = Claims()  # others' claims waiting for this node's own probe
         self._vouchers = Vouchers()  # when a member's "I hear it" keeps a suspect alive
