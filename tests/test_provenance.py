@@ -374,3 +374,21 @@ def test_a_replacement_keeps_its_consumers_marks_of_the_numbering_they_name() ->
     assert restore._anew(dep, r, 4) == {1}  # type: ignore[arg-type]
     r.consumer_markgens[4] = {}  # the deployment's
     assert restore._anew(dep, r, 4) == {1}  # type: ignore[arg-type]
+
+
+def test_a_forwarders_snapshot_keeps_the_generations_of_its_marks() -> None:
+    """A forwarder's replica holds what it had of the merge's inputs (``Replicate.marks``)
+    and the generations of those numberings (``Replicate.markgens``): restored from it, the
+    forwarder tells a later merge restore which numbering its marks are of."""
+    sim = started(
+        MERGE.replace("c: {code: mso.sim.vertices:Pass,", "c: {code: mso.sim.vertices:Count,")
+    )
+    dep = sim.cores[where(sim, "merge", "m")].apps["merge"]
+    dep.inc[0].gen = 55  # (as a restore that took a numbering made anew would have it)
+    sim.run_until(sim.now + 1.5)
+    held = [
+        snap
+        for core in sim.cores.values()
+        if (app := core.apps.get("merge")) is not None and (snap := app.held.get("c"))
+    ]
+    assert held and all(s.markgens == {0: 55} for s in held), [s.markgens for s in held]

@@ -42,6 +42,7 @@ class Snapshot:
     src: str = ""  # the host it came from
     # a forwarder's: what it had processed of the merge's inputs (mso.protocol.provenance)
     marks: Marks | None = None
+    markgens: dict[int, int] = field(default_factory=dict)  # the generations they are of
     # at a replica: when its host last sent it (or this one again), and when this node last
     # asked that host whether it is still a replica (issue 24.1: a replica replaced unheard
     # would hold the snapshot, and the app, for ever)

@@ -134,6 +134,7 @@ class Replication(StateMachine):
         self.told: set[str] = set()  # replicas sent the app by this host (issue 24.1)
         self.former: set[str] = set()  # replicas replaced while out of reach, not told so
         self.marks: Marks | None = None  # a forwarder's, at the snapshot
+        self.markgens: dict[int, int] = {}  # the generations they are of (not 0)
         self.snapshot: Snapshot | None = None  # being replicated (the newest taken)
         self.inputs: dict[int, int] = {}  # positions captured at the mark
         self.outputs: dict[int, tuple[int, list[bytes]]] = {}
@@ -278,7 +279,7 @@ class Replicator:
             rep.outputs[o] = out.unacked()
         rep.on(ReplicationEvent.ALIGNED)
         rep.counts = (h.processed, h.emitted)
-        rep.marks = None
+        rep.marks, rep.markgens = None, {}
         if ev.vertex in dep.layout.forwarders:  # (one input edge)
             (i,) = rep.inputs
             ch = dep.inc.get(i)
@@ -286,6 +287,7 @@ class Replicator:
             held = catch_up.held if catch_up is not None else []
             later = [evs for it in h.pending if isinstance(it, tuple) for evs in it[1]]
             rep.marks = provenance.processed(ch.marks if ch else {}, [*later, *held])
+            rep.markgens = dict(ch.markgens) if ch else {}
         rep.aligned_at = self.ctx.now
         rep.k += 1
         self.dp.submit(h, fx.SnapshotVertex(h.instance, -rep.k))  # (relocations' are >= 0)
@@ -302,7 +304,7 @@ class Replicator:
         rep.on(ReplicationEvent.TAKEN)
         snap = Snapshot(
             rep.k, res.state, rep.inputs, rep.outputs, *rep.counts, src=self.ctx.id,
-            marks=rep.marks,
+            marks=rep.marks, markgens=rep.markgens,
         )  # fmt: skip
         cost = dep.replication.setdefault(ev.vertex, ReplicationCost(since=self.ctx.now))
         if rep.taken_at > 0:
@@ -483,7 +485,7 @@ class Replicator:
             return
         snap = Snapshot(
             msg.k, msg.state, dict(msg.inputs), dict(msg.outputs), msg.processed, msg.emitted,
-            src=src, marks=provenance.from_wire(msg.marks),
+            src=src, marks=provenance.from_wire(msg.marks), markgens=dict(msg.markgens),
         )  # fmt: skip
         if msg.rid:  # an answer to a replacement's fetch
             self._fetched(dep, src, msg, snap)
@@ -650,7 +652,7 @@ def _replicate(app: str, vertex: str, snap: Snapshot, rid: int = 0) -> m.Replica
     """``snap`` on the wire: to a replica (``rid`` 0), or to a replacement that fetched it."""
     return m.Replicate(
         app, vertex, snap.k, snap.state, snap.inputs, snap.outputs, snap.processed,
-        snap.emitted, rid, provenance.to_wire(snap.marks),
+        snap.emitted, rid, provenance.to_wire(snap.marks), snap.markgens,
     )  # fmt: skip
 
 

@@ -457,6 +457,7 @@ class Restorer:
                     _acked=safe,
                     released=safe if outs else None,
                     marks=dict(snap.marks) if snap.marks is not None else None,
+                    markgens=dict(snap.markgens),
                 )  # its producer sends again from there (it retains them); what it sent
                 # before it gets the Replay is further on, not a reason to skip ahead
                 dep.inc[i].awaiting_replay = resumed is not None and pos < resumed.expected

@@ -83,6 +83,8 @@ class Replicate(_Msg, tag="replicate"):
     rid: int = 0
     # a forwarder's: what it had processed of the merge's inputs (mso.protocol.provenance)
     marks: dict[int, list[int]] | None = None
+    # the generations of the numberings those marks are of (mso.protocol.channel; not 0)
+    markgens: dict[int, int] = msgspec.field(default_factory=dict)
 
 
 class ReplicaAck(_Msg, tag="replica_ack"):
