@@ -348,6 +348,10 @@ RESTARTS_BROKE = {
     "replacement took that numbering and its consumer's marks named it, then it was lost "
     "before acking anything: its producer said 'fresh' again, the second replacement set the "
     "marks aside and sent the consumer 9 events again (marks of that numbering are kept)",
+    136485: "a merge restored on both sides of a cut; at the heal its host on the larger side "
+    "yielded to the twin (whose host was up longer), which went with that host's reset a few "
+    "ms later: the other members, never told of the twin, held the merge on the node that "
+    "had yielded and nobody restored it (the yielding node tells them where it runs)",
 }
 
 

@@ -58,3 +58,41 @@ def test_the_running_hosts_word_beats_a_vanished_later_placement() -> None:
     dep.placed["mid"] = "N1"  # not vanished: a live later placement, and the old word loses
     core.receive("N2", word, sim.now)
     assert dep.placed["mid"] == "N1"
+
+
+def test_a_node_that_yields_its_twin_tells_the_members_where_it_runs() -> None:
+    """N2 runs mid and hears N3's own word that it runs mid at a later move: N2's instance is
+    the twin and yields. The members whose view places mid on N2 (told so at its restore)
+    hear from N2 that it runs on N3; unheard, they held it on N2, which runs none, and when
+    N3's twin went with a reset at the heal nobody restored it (fault seed 136485)."""
+    sim = overlay()
+    core = sim.cores["N2"]
+    inc = sim.cores["N3"].incarnation
+    effects = core.receive("N3", m.Moved("pipe", "mid", "N3", incarnation=inc, version=1), sim.now)
+    assert "mid" not in core.apps["pipe"].instances
+    told = {e.dst: e.msg for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Moved)}
+    assert set(told) == {"N1"}  # (not N3, whose word it was)
+    assert (told["N1"].vertex, told["N1"].node, told["N1"].version) == ("mid", "N3", 1)
+    assert told["N1"].incarnation == inc  # the twin's host's word, passed on
+    sim.apply("N2", effects)
+    sim.run_until(sim.now + 0.05)
+    assert sim.cores["N1"].apps["pipe"].placed["mid"] == "N3"
+
+
+def test_the_yielders_word_of_a_twin_gone_with_a_reset_is_a_loss() -> None:
+    """The other order: N1 has heard N3 restart before N2's word that it yielded mid to N3's
+    twin (N3's last incarnation) comes. The word names a placement of the version N1 holds
+    and an instance gone with N3's reset; from the node N1 places mid on, it is news: mid is
+    held lost there and recovered (before, N1 kept mid on N2, which ran none)."""
+    sim = overlay()
+    sim.crash("N3")
+    sim.run_until(sim.now + 0.5)
+    sim.revive("N3")
+    sim.run_until(sim.now + 0.5)
+    n1 = sim.cores["N1"]
+    assert n1.incarnation_of("N3", 0) == 1
+    dep = n1.apps["pipe"]
+    dep.versions["mid"] = 1  # (N2's restore of mid, a twin of N3's)
+    assert dep.placed["mid"] == "N2" and "mid" not in dep.vanished
+    n1.receive("N2", m.Moved("pipe", "mid", "N3", incarnation=0, version=1), sim.now)
+    assert dep.placed["mid"] == "N3" and "mid" in dep.vanished

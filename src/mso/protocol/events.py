@@ -145,12 +145,14 @@ class PlacementStale:
 class Superseded:
     """News that ``vertex``, which runs here, runs on ``node`` as a later move (``version``):
     two coordinators restored it where each saw it lost (a partition, a reset, views that
-    disagreed), and the ends of its edges follow the later one. This instance is a twin."""
+    disagreed), and the ends of its edges follow the later one. This instance is a twin.
+    ``incarnation``: the one ``node`` said it runs the vertex in."""
 
     app: str
     vertex: str
     node: str
     version: int
+    incarnation: int = -1
 
 
 @dataclass(frozen=True)

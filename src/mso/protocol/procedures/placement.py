@@ -248,12 +248,16 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
         # went is still news, as a vertex lost with it (seed 22392: a move announced while
         # this node was cut off, heard after the target's restart; it was never restored)
         v = msg.vertex
+        # (or at the version held here, from the node this one places the vertex on: it
+        # yielded its instance to that twin, gone since; fault seed 136485)
+        handed = dep is not None and src == dep.placed.get(v) != ctx.id
+        known = dep.versions.get(v, 0) if dep is not None else 0
         news = (
             dep is not None
             and msg.node != ctx.id
             and v in dep.placed
             and not _runs_here(dep, v)
-            and msg.version > dep.versions.get(v, 0)
+            and (msg.version > known or (handed and msg.version == known))
         )
         if news and dep is not None and not _moved_refused(ctx, dep, src, msg):
             learn(dep, v, msg.node, msg.version, now, running=False)
@@ -327,7 +331,7 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
             version = dep.versions.get(msg.vertex, 0)
             ctx.send(msg.node, m.Moved(msg.app, msg.vertex, newer, inc, version))
     elif twin and running:  # this one yields, to the twin's host's own word
-        ctx.publish(Superseded(msg.app, msg.vertex, msg.node, msg.version))
+        ctx.publish(Superseded(msg.app, msg.vertex, msg.node, msg.version, msg.incarnation))
     if taken and running and msg.incarnation >= 0 and version and msg.node != ctx.id:
         remember(ctx, msg.app, v, node, msg.incarnation, version)
 

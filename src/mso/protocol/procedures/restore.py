@@ -678,6 +678,13 @@ class Restorer:
         self.ctx.note_event(
             self.ctx.now, f"retired {vid}: it runs on {ev.node} as move {ev.version}"
         )
+        # the members told it runs here (at its restore) hear where it runs now, from the
+        # node their view places it on: a twin restored across a cut may be the one that
+        # goes, its host reset at the heal; held here still, nobody restored it (fault seed
+        # 136485: the vertex ran nowhere)
+        word = m.Moved(dep.app.name, vid, ev.node, ev.incarnation, ev.version)
+        for n in sorted(placement.members(dep) - {self.ctx.id, ev.node} - self.ctx.failed):
+            self.ctx.send(n, word)
 
     # -- a crashed instance: restored in place, within its restart budget ----------------------
     def on_instance_crashed(self, ev: InstanceCrashed) -> None:
