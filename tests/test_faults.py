@@ -352,6 +352,11 @@ RESTARTS_BROKE = {
     "yielded to the twin (whose host was up longer), which went with that host's reset a few "
     "ms later: the other members, never told of the twin, held the merge on the node that "
     "had yielded and nobody restored it (the yielding node tells them where it runs)",
+    150917: "a forwarder restored behind a merge whose inputs were numbered on a guess let "
+    "the sink's marks go as of a numbering gone; the inputs anchored back to the marks' "
+    "numbering (one at the merge refused: it had processed the other's replay, and its frames "
+    "went on saying the guess) and an event of each source reached the sink twice (marks are "
+    "held by generation, and a merge's input that took nothing follows its producer's)",
 }
 
 

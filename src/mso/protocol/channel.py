@@ -483,6 +483,7 @@ class InChannel:
     # where it was started past its consumers' marks (-1: not so): a guess, which a producer
     # that numbers anew overrides while nothing of it was taken (Restorer.anchor)
     past_marks: int = -1
+    taken: bool = False  # an event of this numbering was taken (Restorer._follow)
     # the generation of the numbering it follows (OutChannel.gen), and of ``positions``
     gen: int = 0
     gens: dict[int, int] = field(default_factory=dict)
@@ -547,6 +548,7 @@ class InChannel:
         fresh = events[self.expected - seq :]
         self.duplicates += self.expected - seq
         self.expected = end
+        self.taken = True
         return fresh
 
     def mark_processed(self, n: int = 1) -> None:

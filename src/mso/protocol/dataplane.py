@@ -487,17 +487,24 @@ class DataPlane:
                     outputs = provenance.forward(outputs, heads, res.owners)
                 else:
                     outputs = provenance.stamp(outputs, edge, first, res.owners)
-                marks = dep.marks.get(vid)
-                if marks:  # a replacement: only what each consumer lacks
+                marks, aside = dep.marks.get(vid), dep.aside.get(vid)
+                if marks or aside:  # a replacement: only what each consumer lacks
                     for o in out_edges:
-                        if lacks := provenance.past(outputs, marks.get(o, {})):
+                        lacks = provenance.past(outputs, marks.get(o, {})) if marks else outputs
+                        if aside and o in aside:  # (by generation: fault seed 150917)
+                            lacks = provenance.past_held(lacks, aside[o], self.stamp_gens(dep, o))
+                            if not aside[o]:
+                                del aside[o]
+                        if lacks:
                             h.bytes_out += self.send_events(dep, [o], lacks, ts, chain)
-                            if o in marks:  # a mark held only until the first event past it
-                                provenance.outlived(lacks, marks[o])
-                                if not marks[o]:
-                                    del marks[o]
-                    if not marks:
+                        if lacks and marks and o in marks:  # held only until the first event
+                            provenance.outlived(lacks, marks[o])  # past it
+                            if not marks[o]:
+                                del marks[o]
+                    if marks is not None and not marks:
                         del dep.marks[vid]
+                    if aside is not None and not aside:
+                        del dep.aside[vid]
                     outputs = []
             if outputs:
                 sent = self.send_events(dep, out_edges, outputs, ts, chain)

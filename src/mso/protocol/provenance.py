@@ -169,6 +169,33 @@ def outlived(payloads: list[bytes], marks: Marks) -> None:
             del marks[edge]
 
 
+Held = dict[int, tuple[Mark, int]]  # input edge -> (a consumer's mark, the generation it names)
+
+
+def held(marks: Marks, gens: Mapping[int, int]) -> Held:
+    """``marks`` with the generations of the numberings they name (``gens``; 0 left out)."""
+    return {i: (mark, gens.get(i, 0)) for i, mark in marks.items()}
+
+
+def past_held(payloads: list[bytes], marks: Held, gens: Mapping[int, int]) -> list[bytes]:
+    """The stamped payloads a consumer with ``marks`` lacks, by generation: an event of an
+    input numbered in the generation its mark names (``gens``: the producer's frames' word,
+    0 left out) and not past that mark is had; one of another numbering is not. Each mark an
+    event of its own numbering went past is dropped (what follows is past it too)."""
+    if not marks:
+        return payloads
+    keep = []
+    for ev in payloads:
+        edge, seq, k = HEADER.unpack_from(ev)
+        mk = marks.get(edge)
+        if mk is None or mk[1] != gens.get(edge, 0):
+            keep.append(ev)
+        elif (seq, k) > mk[0]:
+            keep.append(ev)
+            del marks[edge]
+    return keep
+
+
 def without(marks: Marks, inputs: Iterable[int]) -> Marks:
     """``marks`` but those of ``inputs`` (numbered anew: their marks name a numbering gone)."""
     gone = set(inputs)

@@ -20,7 +20,7 @@ from mso.planning.placement import Hop, Layout
 from mso.protocol import messages as m
 from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.procedures.instance import InstanceLife
-from mso.protocol.provenance import CatchUp, Head, Marks
+from mso.protocol.provenance import CatchUp, Head, Held, Marks
 
 V = TypeVar("V")
 BUSY_AFTER_S = 1.0  # an instance working on one effect this long is reported busy ...
@@ -456,6 +456,10 @@ class AppState:
     gates: dict[str, AckGate] = lazy(dict)  # vertex -> chained acks
     # a merge's replacement: vertex -> output -> what that consumer has (sent no more)
     marks: dict[str, dict[int, Marks]] = lazy(dict)
+    # a stamped replacement: vertex -> output -> input -> (what that consumer had, the
+    # generation it names): held by generation, also where ``marks`` let one go as of a
+    # numbering gone (an input numbered anew may come back to it: fault seed 150917)
+    aside: dict[str, dict[int, Held]] = lazy(dict)
     # a forwarder's replacement: vertex -> its input up to its consumer's marks first
     catch_up: dict[str, CatchUp] = lazy(dict)
     decoders: dict[int, msgspec.msgpack.Decoder[Any]] = lazy(dict)

@@ -355,16 +355,19 @@ class Restorer:
         anew = inc is not None and (msg.fresh or msg.gen != inc.gen)
         if inc is not None and anew and 0 <= inc.past_marks == inc.expected:
             return self._numbered_anew(dep, vertex, msg)
-        if h.processed or h.queued or h.pending:
-            return False
-        if inc is not None and inc.expected > 0 and not inc.unheld:
-            return False
-        if h.from_snapshot:  # numbered from its snapshot (a restore's Rewire sent again,
-            return False  # answered after it ran: renumbered, its count repeated at the sink)
         outs = dep.out_edges.get(vertex, [])
-        if not all(o in msg.positions and msg.positions[o] >= 0 for o in outs):
-            return False
-        dep.inc[msg.edge] = InChannel.starting_at(msg.start, bool(outs), gen=msg.gen)
+        if (
+            h.processed
+            or h.queued
+            or h.pending
+            or (inc is not None and inc.expected > 0 and not inc.unheld)
+            or h.from_snapshot  # numbered from its snapshot (a restore's Rewire sent again,
+            # answered after it ran: renumbered, its count repeated at the sink)
+            or not all(o in msg.positions and msg.positions[o] >= 0 for o in outs)
+        ):
+            return anew and self._follow(dep, vertex, msg)
+        marks: Marks | None = {} if dep.app.edges[msg.edge].src in dep.layout.stamped else None
+        dep.inc[msg.edge] = InChannel.starting_at(msg.start, bool(outs), marks, msg.gen)
         further = {e: p for e, p in msg.positions.items() if e not in outs}
         below = {e: g for e, g in msg.gens.items() if g and e in further}
         marked = dep.marks.get(vertex, {})
@@ -387,6 +390,24 @@ class Restorer:
             resume = m.Resume(dep.app.name, o, msg.rid, True, pos, further)
             resume.gen, resume.gens = dep.out[o].gen, dict(below)
             self.ctx.send(consumer, resume)
+        self.dp.touch(dep.app.name)
+        return True
+
+    def _follow(self, dep: AppState, vertex: str, msg: m.Resume) -> bool:
+        """A merge that keeps its output's numbering (it has processed its other inputs'
+        events) still takes this input in the numbering its producer now says, if it has
+        taken nothing of it and its consumers' marks do not name it: its events carry their
+        input's position and generation in their headers, not the output's numbering, so the
+        frames downstream say which numbering they are of. Kept in the old one, they said
+        the producer's guess while numbered as its consumers' marks were, and the sink got
+        an event twice (fault seed 150917: ``b`` anchored to its source's carried numbering,
+        ``m`` had processed ``a``'s replay and refused the anchor)."""
+        inc = dep.inc[msg.edge]
+        marked = any(msg.edge in mk for mk in dep.marks.get(vertex, {}).values())
+        if vertex not in dep.layout.merges or inc.taken or marked:
+            return False
+        gated = bool(dep.out_edges.get(vertex))
+        dep.inc[msg.edge] = InChannel.starting_at(msg.start, gated, inc.marks, msg.gen)
         self.dp.touch(dep.app.name)
         return True
 
@@ -476,6 +497,7 @@ class Restorer:
             self.ctx.publish(Happened("state_restarted", dep.app.name, vertex, why))
         starts = [c.expected for i, c in dep.inc.items() if dep.app.edges[i].dst == vertex]
         dep.marks.pop(vertex, None)
+        dep.aside.pop(vertex, None)
         dep.catch_up.pop(vertex, None)
         dep.renumbered.pop(vertex, None)
         if restoring.fresh and vertex in dep.layout.stamped:
@@ -485,6 +507,10 @@ class Restorer:
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
             marks = restoring.consumer_marks.get(o) if snap is None or forwarder else None
+            if marks:  # held by generation too: an input numbered anew below, whose marks
+                # are let go, may come back to their numbering (an anchor: seed 150917)
+                named = restoring.consumer_markgens.get(o, {})
+                dep.aside.setdefault(vertex, {})[o] = provenance.held(marks, named)
             if marks is not None and forwarder:  # its consumer has the effects of the merge's
                 # (not of an input the merge's replacement numbers anew: seed 2528)
                 marks = provenance.without(marks, restoring.renumbered)

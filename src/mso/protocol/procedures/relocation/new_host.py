@@ -329,6 +329,7 @@ class NewHost(Role):
             dep.marks[msg.vertex] = lacks
         else:
             dep.marks.pop(msg.vertex, None)
+        dep.aside.pop(msg.vertex, None)
         for i in msg.inputs:  # what arrived early, in order, now that positions are known
             for seq, events, ts in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
                 self.dp.deliver(dep, i, seq, events, ts)

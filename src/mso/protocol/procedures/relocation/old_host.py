@@ -177,6 +177,7 @@ class OldHost(Role):
             markgens,
         )
         dep.catch_up.pop(vid, None)
+        dep.aside.pop(vid, None)  # (the marks it passes on are those still held whole)
         self.dp.taps.hand_over(dep.app.name, vid, msg.to, self.ctx.now)  # (asked there first)
         self.ctx.send(msg.to, handover)
         placement.announce(self.ctx, dep, vid, msg.to)  # to the app's members, not everyone
