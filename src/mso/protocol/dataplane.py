@@ -317,7 +317,7 @@ class DataPlane:
         said, those known stand)."""
         dst = dep.app.edges[edge].dst
         if dst in dep.awaiting:  # moving here: keep until the handover
-            dep.stash.setdefault(edge, []).append((seq, list(events), ts))
+            dep.stash.setdefault(edge, []).append((seq, list(events), ts, gens))
             return
         if dst not in dep.instances:  # placed here, not running (yet): taken, they would be
             self.ctx.dropped()  # acknowledged and lost; the producer keeps them (16310)

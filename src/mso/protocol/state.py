@@ -23,6 +23,9 @@ from mso.protocol.procedures.instance import InstanceLife
 from mso.protocol.provenance import CatchUp, Head, Held, Marks
 
 V = TypeVar("V")
+# a frame come before its consumer runs: (seq, events, when they entered their chain, the
+# generations the frame named, ``Data.gens``: None where it said none)
+Stashed = tuple[int, list[bytes], float, dict[int, int] | None]
 BUSY_AFTER_S = 1.0  # an instance working on one effect this long is reported busy ...
 HUNG_AFTER_S = 10.0  # ... and this long, hung (status only: it never takes the node down)
 
@@ -470,8 +473,9 @@ class AppState:
     # vertices still starting)
     preparing: dict[str, tuple[int, str, bool]] = lazy(dict)  # vertex -> (rid,
     # coordinator, restore) until its instance has started
-    # edge -> (seq, events, when they entered their chain): kept until the handover
-    stash: dict[int, list[tuple[int, list[bytes], float]]] = lazy(dict)
+    # edge -> (seq, events, when they entered their chain, the generations their frame
+    # named: Data.gens): kept until the handover
+    stash: dict[int, list[Stashed]] = lazy(dict)
     markers: dict[str, set[int]] = lazy(dict)  # vertex -> edges marked
     blocked_sources: set[str] = lazy(set)
     started_at: float = 0.0

@@ -610,8 +610,8 @@ class Restorer:
                     self.ctx.send(dep.placed[dep.app.edges[i].src], resume)
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
             if e.dst == vertex:
-                for seq, events, ts in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
-                    self.dp.deliver(dep, i, seq, events, ts)
+                for seq, events, ts, said in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
+                    self.dp.deliver(dep, i, seq, events, ts, gens=said)
         version = placement.bump(dep, vertex)
         inc, coordinator = self.ctx.incarnation, restoring.coordinator
         # and where it ran as far as this node heard: a twin there, restored by another

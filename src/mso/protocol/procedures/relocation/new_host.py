@@ -331,8 +331,8 @@ class NewHost(Role):
             dep.marks.pop(msg.vertex, None)
         dep.aside.pop(msg.vertex, None)
         for i in msg.inputs:  # what arrived early, in order, now that positions are known
-            for seq, events, ts in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
-                self.dp.deliver(dep, i, seq, events, ts)
+            for seq, events, ts, said in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
+                self.dp.deliver(dep, i, seq, events, ts, gens=said)
         coordinator = self._handover_to.pop(msg.rid, None)
         if coordinator is not None:
             done = m.HandoverDone(msg.app, msg.vertex, msg.rid, self.ctx.id, msg.version)
