@@ -392,3 +392,68 @@ def test_a_forwarders_snapshot_keeps_the_generations_of_its_marks() -> None:
         if (app := core.apps.get("merge")) is not None and (snap := app.held.get("c"))
     ]
     assert held and all(s.markgens == {0: 55} for s in held), [s.markgens for s in held]
+
+
+def test_marks_held_by_generation_drop_only_what_their_own_numbering_had() -> None:
+    """A consumer's marks held with the generation they name: an event of that numbering at
+    or below the mark is had; one of another numbering is new, and leaves the mark in place
+    (the input may come back to it: seed 150917); an event of its own numbering past the
+    mark lets it go."""
+    held = provenance.held({0: (12, 0), 1: (20, 0)}, {1: 9})
+    assert held == {0: ((12, 0), 0), 1: ((20, 0), 9)}
+    made = provenance.stamp([b"a11", b"a12"], 0, 11, [0, 1])
+    assert provenance.past_held(made, held, {0: 55}) == made  # another numbering: new
+    assert held[0] == ((12, 0), 0)
+    assert provenance.past_held(made, held, {}) == []  # its own: had, the mark stays
+    assert held[0] == ((12, 0), 0)
+    later = provenance.stamp([b"a12", b"a13"], 0, 12, [0, 1])
+    assert provenance.strip(provenance.past_held(later, held, {1: 9}), None) == [b"a13"]
+    assert held == {1: ((20, 0), 9)}  # went past: what follows is past it too
+
+
+def test_a_forwarder_holds_its_consumers_marks_by_the_generation_they_name() -> None:
+    """A forwarder's replacement let its consumer's marks of an input go as of a numbering
+    gone (the merge's producer numbered it on a guess); held aside with their generation,
+    they still drop what the input makes in their own numbering once it comes back to it
+    (an anchor to a producer's carried positions: fault seed 150917, an event of each source
+    twice at the sink), and let pass what another numbering makes."""
+    vertices.RUNS.pop("provenance-moved", None)
+    sim = started(MERGE)
+    fwd = sim.cores[where(sim, "merge", "c")].apps["merge"]
+    far = ((10**6, 0), 0)  # the sink had everything of both inputs, of the deployment's
+    fwd.aside["c"] = {3: {0: far, 1: far}}
+    (record,) = vertices.RUNS["provenance-moved"]
+
+    def seen() -> dict[str, int]:
+        return {key[0]: len(s.seen) for key, s in record.streams.items()}
+
+    sim.run_until(sim.now + 0.05)
+    had = seen()
+    sim.run_until(sim.now + 1.0)  # both inputs in the marks' numbering: nothing sent on
+    assert seen() == had
+    sim.cores[where(sim, "merge", "m")].apps["merge"].inc[0].gen = 55  # s1's numbered anew
+    sim.run_until(sim.now + 1.0)
+    now = seen()
+    assert now["s1"] > had["s1"] and now["s2"] == had["s2"]
+    assert fwd.aside["c"] == {3: {0: far, 1: far}}  # (held: the input may come back)
+
+
+def test_a_merge_takes_an_input_it_has_taken_nothing_of_in_its_producers_numbering() -> None:
+    """A merge that has processed one input's events keeps its output's numbering when the
+    other input's producer says where its numbering stands (an anchor: refused), but takes
+    that input, of which it has taken nothing, in the producer's numbering: its frames say
+    each input's generation, and kept in the old one they named the producer's guess while
+    the events were numbered as the sink's marks were (seed 150917: an event twice)."""
+    sim = started(MERGE)
+    node = where(sim, "merge", "m")
+    core, dep = sim.cores[node], sim.cores[node].apps["merge"]
+    assert dep.instances["m"].processed
+    start = dep.inc[1].expected
+    dep.inc[1] = InChannel.starting_at(0, True, None, gen=55)  # a guess, nothing taken
+    resume = m.Resume("merge", 1, 1234, True, start)  # (the deployment's numbering)
+    sim.apply(node, core.receive(where(sim, "merge", "s2"), resume, sim.now))
+    assert dep.inc[1].gen == 0 and dep.inc[1].expected == start
+    taken = dep.inc[1] = InChannel.starting_at(0, True, None, gen=55)
+    taken.accept(0, [b"x"])  # something of it taken: it stays in its numbering
+    sim.apply(node, core.receive(where(sim, "merge", "s2"), resume, sim.now))
+    assert dep.inc[1] is taken and taken.gen == 55
