@@ -357,6 +357,10 @@ RESTARTS_BROKE = {
     "numbering (one at the merge refused: it had processed the other's replay, and its frames "
     "went on saying the guess) and an event of each source reached the sink twice (marks are "
     "held by generation, and a merge's input that took nothing follows its producer's)",
+    137164: "a fork restored while its producer numbered its input anew (its state restarted, "
+    "its source's node reset) let its consumer's mark go; the source came back with its edge "
+    "in the mark's numbering, the producer and the fork anchored to it, and the fork sent the "
+    "event at the mark again: 1 event twice (marks are held by generation: 150917's fix)",
 }
 
 

@@ -16,6 +16,7 @@ from mso.protocol import provenance
 from mso.protocol.channel import InChannel
 from mso.protocol.events import PeerFailed
 from mso.protocol.procedures import restore
+from mso.protocol.procedures.instance import H
 from mso.protocol.state import Restoring
 from mso.runtime.worker import VertexWorker
 from mso.sim import faults, vertices
@@ -457,3 +458,41 @@ def test_a_merge_takes_an_input_it_has_taken_nothing_of_in_its_producers_numberi
     taken.accept(0, [b"x"])  # something of it taken: it stays in its numbering
     sim.apply(node, core.receive(where(sim, "merge", "s2"), resume, sim.now))
     assert dep.inc[1] is taken and taken.gen == 55
+
+
+def test_a_forks_marks_let_go_for_an_input_numbered_anew_hold_when_it_comes_back() -> None:
+    """A fork restored while its producer numbered its input anew (``Resume.fresh``: a state
+    restarted, a guess) lets its consumers' marks of that input go as of a numbering gone.
+    The producer then anchors to its own restored source, whose edge came back in the marks'
+    numbering, and says where the input starts there: held aside by generation, the marks
+    still drop what lies at or below them (fault seed 137164: the fork's output to one
+    consumer kept its numbering from where that consumer stood, and the event at its mark
+    reached the sink twice). Here the consumers had the next 4 events already."""
+    vertices.RUNS.pop("provenance-fork", None)
+    sim = started(FORK)
+    node = where(sim, "fork", "j")
+    core, dep = sim.cores[node], sim.cores[node].apps["fork"]
+    start = dep.inc[0].expected  # the source's next event
+    marks = {o: {0: (start + 3, 0)} for o in (1, 3)}  # of the deployment's numbering
+    starts = {o: dep.out[o].next_seq for o in (1, 3)}
+    h = dep.instances.pop("j")  # its replacement: the producer numbers its input anew
+    h.life.state, h.processed = H.AWAITING, 0
+    dep.awaiting["j"] = h
+    dep.inc[0] = InChannel.starting_at(0, True, None, gen=7)
+    dep.restoring["j"] = Restoring(
+        99, "N1", set(), fresh={0}, resumed={0}, consumer_start=starts, fetched=True,
+        consumer_marks=marks, consumer_markgens={1: {}, 3: {}},
+    )  # fmt: skip
+    core.restorer.activate(dep, "j")
+    assert dep.marks["j"] == {1: {}, 3: {}} and dep.renumbered["j"] == {0}  # let go
+    resume = m.Resume("fork", 0, 1234, True, start, dict(starts))  # the anchor, numbering 0
+    sim.apply(node, core.receive(where(sim, "fork", "s"), resume, sim.now))
+    assert dep.inc[0].expected == start and dep.inc[0].gen == 0
+    sim.run_until(sim.now + 1.0)
+    records = vertices.RUNS["provenance-fork"]
+    assert len(records) == 2
+    for record in records:
+        (s,) = record.streams.values()
+        assert s.duplicates == 0 and s.last > start + 4
+        assert not s.seen & set(range(start, start + 4))  # had: not sent again
+        assert set(range(start + 4, s.last + 1)) <= s.seen
