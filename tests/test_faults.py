@@ -339,6 +339,10 @@ RESTARTS_BROKE = {
     "restored by a node cut off as the copy was made, which never named it a replica: it "
     "asked the maker's node alone, whose new process does not answer for its last one's "
     "instance, and held the app past the quiet phase (the host by its view is asked too)",
+    138982: "a restore's rewire confirmed a fork's output numbered on a guess from 0; its "
+    "consumer, restored first by another coordinator and at 39 in the first numbering, "
+    "refused the producer's Resume and dropped 39 events as had, 12 of them new (a consumer "
+    "that did not take a numbering made anew says where it stands; the guess renumbers)",
     202193: "a source restarted (its edge numbered on from the saved bound, no positions kept) "
     "behind a chain whose fork's branch to one sink had its ack and the other not; the chain "
     "lost whole, its replacements numbered the replay to that sink from where it stood: 6 "

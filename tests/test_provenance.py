@@ -496,3 +496,30 @@ def test_a_forks_marks_let_go_for_an_input_numbered_anew_hold_when_it_comes_back
         assert s.duplicates == 0 and s.last > start + 4
         assert not s.seen & set(range(start, start + 4))  # had: not sent again
         assert set(range(start + 4, s.last + 1)) <= s.seen
+
+
+def test_a_consumer_that_did_not_take_a_guessed_numbering_says_where_it_stands() -> None:
+    """A fork's output was numbered on a guess from 0 (another generation), and a restore's
+    rewire confirmed the guess; its consumer, running (another coordinator had restored it
+    first), stands further on in the first numbering and refuses the producer's Resume. It
+    answers where it stands, and the fork sends what it makes from there: without the answer
+    the consumer dropped the guess's events below its position as had (restart seed 138982:
+    12 of a restored source's first events never reached the sink)."""
+    vertices.RUNS.pop("provenance-fork", None)
+    sim = started(FORK)
+    node, consumer = where(sim, "fork", "j"), where(sim, "fork", "c")
+    core, dep = sim.cores[node], sim.cores[node].apps["fork"]
+    at = sim.cores[consumer].apps["fork"].inc[3].expected
+    assert at > 10
+    guess = core.restorer.dp.channel(dep, 3, 0)  # (j -> c: numbered anew, from 0)
+    guess.guessed, guess.gen = True, 99
+    dep.out[3] = guess
+    rewire = m.Rewire("fork", 3, consumer, 1234, True)  # a restore's, as of c restored there
+    (record,) = [r for r in vertices.RUNS["provenance-fork"] if r.vertex == "k2"]
+    (s,) = record.streams.values()
+    before = s.last
+    sim.apply(node, core.receive(node, rewire, sim.now))
+    sim.run_until(sim.now + 3.0)  # (past where the consumer stood, at 20 events a second)
+    assert dep.out[3].gen == 0 and dep.out[3].next_seq > at  # (the consumer's numbering)
+    assert s.duplicates == 0 and s.last - s.first + 1 == len(s.seen), s
+    assert s.last >= before + 40  # it went on

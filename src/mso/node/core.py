@@ -282,7 +282,7 @@ class NodeCore:
             m.HandoverDone: rel.on_handover_done,
             m.Moved: lambda src, msg, now: placement.on_moved(self, src, msg, now),
             m.Rewire: res.on_rewire,
-            m.Resume: lambda src, msg, now: res.on_resume(msg, now),
+            m.Resume: res.on_resume,
             m.Replicate: lambda src, msg, now: self.replicator.on_replicate(src, msg),
             m.ReplicaAck: lambda src, msg, now: self.replicator.on_replica_ack(src, msg),
             m.Release: lambda src, msg, now: self.replicator.on_release(msg),

@@ -145,21 +145,28 @@ class Restorer:
             out.waiting_since = now
         else:  # we consume: say which event we expect next
             dep.placed[edge.src] = msg.to
-            inc = dep.inc.get(msg.edge)
-            start = inc.expected if inc is not None else 0
-            resume = m.Resume(msg.app, msg.edge, msg.rid, False, start)
-            resume.unheld = inc is not None and inc.unheld
-            resume.gen = inc.gen if inc is not None else 0
-            resume.positions, down = self._outputs_at_start(dep, edge.dst, msg.edge)
-            resume.gens = down | _gens(dep, resume.positions)  # (theirs further down: acks')
-            if inc is not None and edge.src in dep.layout.stamped:
-                marks = inc.marks  # what it has of each input; a forwarder that passes on
-                sent_on = dep.marks.get(edge.dst)  # only what its consumer lacks drops the
-                if marks is not None and sent_on:  # rest as had: its consumer's marks count
-                    marks = provenance.highest(marks, _merged(sent_on.values()))  # (5000)
-                resume.marks = provenance.to_wire(marks)
-                resume.markgens = _known(inc.markgens, marks or {})
-            self.ctx.send(msg.to, resume)
+            self.ctx.send(msg.to, self._standing(dep, msg.edge, msg.rid))
+
+    def _standing(self, dep: AppState, edge: int, rid: int) -> m.Resume:
+        """A consumer's word on where it stands on ``edge``: the next event it expects, in
+        which numbering, its outputs there where exact and, of a stamped producer, what it
+        has of each of the producer's inputs (its marks)."""
+        e = dep.app.edges[edge]
+        inc = dep.inc.get(edge)
+        start = inc.expected if inc is not None else 0
+        resume = m.Resume(dep.app.name, edge, rid, False, start)
+        resume.unheld = inc is not None and inc.unheld
+        resume.gen = inc.gen if inc is not None else 0
+        resume.positions, down = self._outputs_at_start(dep, e.dst, edge)
+        resume.gens = down | _gens(dep, resume.positions)  # (theirs further down: acks')
+        if inc is not None and e.src in dep.layout.stamped:
+            marks = inc.marks  # what it has of each input; a forwarder that passes on
+            sent_on = dep.marks.get(e.dst)  # only what its consumer lacks drops the
+            if marks is not None and sent_on:  # rest as had: its consumer's marks count
+                marks = provenance.highest(marks, _merged(sent_on.values()))  # (5000)
+            resume.marks = provenance.to_wire(marks)
+            resume.markgens = _known(inc.markgens, marks or {})
+        return resume
 
     def _outputs_at_start(
         self, dep: AppState, vertex: str, edge: int
@@ -239,7 +246,7 @@ class Restorer:
         return True
 
     # -- the replacement: runs once every surviving end has resumed it -------------------------
-    def on_resume(self, msg: m.Resume, now: float) -> None:
+    def on_resume(self, src: str, msg: m.Resume, now: float) -> None:
         dep = self.ctx.apps.get(msg.app)
         if dep is None or not 0 <= msg.edge < len(dep.app.edges):
             self.ctx.refusal("resume_unexpected")
@@ -256,9 +263,19 @@ class Restorer:
                 self.ctx.send(producer, m.Replay(msg.app, msg.edge, inc.expected, inc.positions))
             elif not self.anchor(dep, vertex, msg):  # (a running consumer: see there)
                 self.ctx.refusal("resume_unexpected")
+                if inc is not None and (msg.fresh or msg.gen != inc.gen):
+                    # a numbering made anew that this consumer did not take: the producer's
+                    # events in it are not past what this one has. Say where it stands, so
+                    # that a guessed producer renumbers from there (restart seed 138982: the
+                    # rewire of a restore whose consumer another coordinator had restored
+                    # first confirmed a guess from 0; the consumer, at 39 in the first
+                    # numbering, dropped 39 events as had, 12 of them new)
+                    self.ctx.send(src, self._standing(dep, msg.edge, msg.rid))
             return
         out = dep.out.get(msg.edge)
-        unsure = out is not None and out.unsure
+        # a guessed channel whose consumer stands in another numbering never took the guess
+        # (its answer to a refused Resume: see above), whatever the rewire confirmed
+        unsure = out is not None and (out.unsure or (out.guessed and msg.gen != out.gen))
         if restoring is None and not msg.producer and vertex in dep.instances and unsure:
             self._renumber(dep, vertex, msg, now)  # (a consumer that survived: ask_where)
             return
