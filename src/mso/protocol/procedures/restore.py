@@ -622,7 +622,8 @@ class Restorer:
             else:  # its marks are of the merge's inputs, which start past them there if
                 for i in restoring.resumed:  # their producers were lost too (seed 1996)
                     resume = m.Resume(dep.app.name, i, restoring.rid, False, dep.inc[i].expected)
-                    resume.marks = provenance.to_wire(lowest)
+                    resume.gen = dep.inc[i].gen  # (the numbering it took: not a standing in
+                    resume.marks = provenance.to_wire(lowest)  # another, :meth:`on_resume`)
                     resume.markgens = _known(gens, lowest)
                     self.ctx.send(dep.placed[dep.app.edges[i].src], resume)
         for i, e in enumerate(dep.app.edges):  # what arrived early, in order
