@@ -365,6 +365,9 @@ RESTARTS_BROKE = {
     "its source's node reset) let its consumer's mark go; the source came back with its edge "
     "in the mark's numbering, the producer and the fork anchored to it, and the fork sent the "
     "event at the mark again: 1 event twice (marks are held by generation: 150917's fix)",
+    142461: "a node's daemon reset at a heal; a sync its last process sent as it went came "
+    "after its rejoin and, first-hand, undid the vanishing of the vertex it had run: nobody "
+    "restored it (a sync's word of an incarnation known gone is no news)",
 }
 
 

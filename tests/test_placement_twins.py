@@ -96,3 +96,23 @@ def test_the_yielders_word_of_a_twin_gone_with_a_reset_is_a_loss() -> None:
     assert dep.placed["mid"] == "N2" and "mid" not in dep.vanished
     n1.receive("N2", m.Moved("pipe", "mid", "N3", incarnation=0, version=1), sim.now)
     assert dep.placed["mid"] == "N3" and "mid" in dep.vanished
+
+
+def test_a_sync_from_a_hosts_last_incarnation_does_not_undo_a_vanishing() -> None:
+    """N2's daemon restarts; N1 hears it back in its new incarnation and holds mid, which N2
+    ran, vanished. Then comes a sync N2's last process sent as it went (its own incarnation
+    in it, 0), saying it runs mid: first-hand, but of an incarnation gone. Taken, it undid
+    the vanishing, and nobody restored mid (fault seed 142461)."""
+    sim = overlay()
+    sim.crash("N2")
+    sim.run_until(sim.now + 0.5)
+    sim.revive("N2")
+    n1 = sim.cores["N1"]
+    dep = n1.apps["pipe"]
+    while n1.incarnation_of("N2", 0) != 1 or "mid" not in dep.vanished:
+        sim.run_until(sim.now + 0.001)  # (not long enough for the recovery to be done)
+    assert dep.placed["mid"] == "N2"
+    sync = m.AppSync("pipe", "N1", dep.document, dep.epoch, dict(dep.placed))
+    sync.incarnations = {"N1": n1.incarnation, "N2": 0, "N3": 0}
+    n1.receive("N2", sync, sim.now)
+    assert "mid" in dep.vanished

@@ -248,9 +248,9 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
         # went is still news, as a vertex lost with it (seed 22392: a move announced while
         # this node was cut off, heard after the target's restart; it was never restored)
         v = msg.vertex
-        # (or at the version held here, from the node this one places the vertex on: it
-        # yielded its instance to that twin, gone since; fault seed 136485)
-        handed = dep is not None and src == dep.placed.get(v) != ctx.id
+        # (or at the version held here, from the node this one places the vertex on, naming
+        # another: it yielded its instance to that twin, gone since; fault seed 136485)
+        handed = dep is not None and src == dep.placed.get(v) != ctx.id and src != msg.node
         known = dep.versions.get(v, 0) if dep is not None else 0
         news = (
             dep is not None

@@ -141,9 +141,15 @@ class AppSyncing:
             held.vanished.replace((held.vanished - newer) | (newer & gone) | here)
             return
         heard = self._corroborate(src, held, msg, ours)
+        # placed on a node in an incarnation older than one heard from it (the sender's own
+        # too: a sync sent as its daemon reset, heard after its rejoin): gone with it, no news
+        # (fault seed 142461: it undid a vanishing, and nobody restored the vertex)
+        outlived = self._outlived(msg)
 
         def better(v: str, n: str) -> bool:
             if v not in held.placed or v in ours or n == self.ctx.id or v in heard:
+                return False
+            if v in outlived:
                 return False
             mine = held.placed[v]  # first-hand; with operator keys only where a Moved from
             told = not signed or placement.may_tell(held, v, src, self.failed)  # src would be
