@@ -368,6 +368,10 @@ RESTARTS_BROKE = {
     142461: "a node's daemon reset at a heal; a sync its last process sent as it went came "
     "after its rejoin and, first-hand, undid the vanishing of the vertex it had run: nobody "
     "restored it (a sync's word of an incarnation known gone is no news)",
+    146144: "two coordinators restored a merge, each on the other's node: one twin yielded, "
+    "and the coordinator running the one that prevailed took the other's HandoverDone and "
+    "placed the merge on the node that had yielded: its output edge dangled (a coordinator's "
+    "record orders twins as a Moved does)",
 }
 
 

@@ -116,3 +116,20 @@ def test_a_sync_from_a_hosts_last_incarnation_does_not_undo_a_vanishing() -> Non
     sync.incarnations = {"N1": n1.incarnation, "N2": 0, "N3": 0}
     n1.receive("N2", sync, sim.now)
     assert "mid" in dep.vanished
+
+
+def test_a_coordinators_record_of_a_restore_orders_twins_as_a_moved_does() -> None:
+    """N1 coordinates a move of mid to N3; as it ends, N1's view holds a twin of the version
+    the target reports (two coordinators restored mid from one view, each on another node),
+    on N2, which prevails over N3 (one incarnation, the lower name). The target's
+    ``HandoverDone`` is weighed as its ``Moved`` is: N1's view keeps N2. Taken whatever the
+    twins, a coordinator that ran the twin that prevailed placed the vertex on the node that
+    had yielded it, and its output edge dangled (fault seed 146144)."""
+    sim = overlay()
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target="N3"))
+    n1 = sim.cores["N1"]
+    (rid,) = [p.pid for p in n1.open() if p.name == "relocation"]
+    dep = n1.apps["pipe"]
+    dep.versions["mid"] = 1  # the twin on N2, at the version the target counts
+    sim.apply("N1", n1.receive("N3", m.HandoverDone("pipe", "mid", rid, "N3", 1), sim.now))
+    assert dep.placed["mid"] == "N2"

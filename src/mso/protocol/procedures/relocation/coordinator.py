@@ -264,9 +264,12 @@ class Coordinator(Role):
         self.ctx.end(reloc.pid)
         dep = self.ctx.apps.get(reloc.app)
         # first-hand, from the new host: a coordinator that hosts no part of the app is not
-        # told of the move otherwise
+        # told of the move otherwise; a twin of that version (two coordinators restored the
+        # vertex, each on the other's node) is ordered as a Moved's is, so a coordinator that
+        # runs the twin that prevails keeps it in its view (fault seed 146144: it ran the
+        # vertex and placed it on the node that had yielded)
         taken = dep is not None and placement.learn(
-            dep, reloc.vertex, reloc.target, msg.version, now, running=False
+            dep, reloc.vertex, reloc.target, msg.version, now, False, placement.prevails(self.ctx)
         )
         if dep is not None and not taken:
             self.ctx.dropped()
