@@ -372,6 +372,10 @@ RESTARTS_BROKE = {
     "and the coordinator running the one that prevailed took the other's HandoverDone and "
     "placed the merge on the node that had yielded: its output edge dangled (a coordinator's "
     "record orders twins as a Moved does)",
+    142356: "a whole chain restored on a restarted source's node across a cut; at the heal "
+    "the relay there yielded to its twin on the other side, and its producer on the same node "
+    "sent on in the retired instance's numbering, below where the twin stood: 24 events "
+    "dropped as had (the producer asks the twin where it stands)",
 }
 
 

@@ -133,3 +133,45 @@ def test_a_coordinators_record_of_a_restore_orders_twins_as_a_moved_does() -> No
     dep.versions["mid"] = 1  # the twin on N2, at the version the target counts
     sim.apply("N1", n1.receive("N3", m.HandoverDone("pipe", "mid", rid, "N3", 1), sim.now))
     assert dep.placed["mid"] == "N2"
+
+
+CHAIN = """
+name: chain
+planner: paper
+vertices:
+  src: {code: runtime_vertices:CountingSource, pinned: N1, rate: 50,
+        output: runtime_vertices:Num}
+  a: {code: runtime_vertices:Double, pinned: N2, output: runtime_vertices:Num}
+  b: {code: runtime_vertices:Double, output: runtime_vertices:Num}
+  sink: {code: runtime_vertices:Recorder, pinned: N3}
+edges: [[src, a], [a, b], [b, sink]]
+"""
+
+
+def test_a_producer_whose_consumer_here_yields_to_a_twin_asks_where_it_stands() -> None:
+    """``a`` feeds ``b`` on its own node, and ``b`` yields to a twin restored across a cut on
+    N3: ``a``'s output is numbered as the retired instance took it, not as the twin stands.
+    Sent on, the twin dropped what it numbered below its own position as had (fault seed
+    142356: 24 events of a restarted source). Its events wait until the twin says where it
+    stands (as a producer whose consumer went with its node: ``OutChannel.consumer_lost``)."""
+    net = Network(
+        [NodeSpec("N1"), NodeSpec("N2"), NodeSpec("N3")],
+        [LinkSpec("N1", "N2", delay_ms=1.0), LinkSpec("N2", "N3", delay_ms=1.0)],
+    )
+    sim = Simulation(net)
+    sim.request("N1", m.DeployRequest(CHAIN, "app.yaml"))
+    sim.run_until(1.0)
+    sim.request("N1", m.RelocateRequest("chain", "b", target="N2"))
+    sim.run_until(sim.now + 0.5)
+    core = sim.cores["N2"]
+    dep = core.apps["chain"]
+    assert dep.placed["b"] == "N2" and "b" in dep.instances
+    out = dep.out[1]  # (a -> b)
+    assert not out.unsure
+    inc = sim.cores["N3"].incarnation
+    word = m.Moved("chain", "b", "N3", incarnation=inc, version=dep.versions["b"] + 1)
+    sim.apply("N2", core.receive("N3", word, sim.now))
+    assert "b" not in dep.instances and out.unsure
+    sent = out.sent
+    sim.run_until(sim.now + 0.3)
+    assert out.next_seq > sent and out.sent == sent  # held, not sent in the old numbering

@@ -715,6 +715,8 @@ class Restorer:
             if e.dst == vid:
                 dep.inc.pop(i, None)
                 dep.stash.pop(i, None)
+                if (out := dep.out.get(i)) is not None and e.src in dep.instances:
+                    out.consumer_lost = True  # (a producer here fed this one, not the twin)
         for i in dep.out_edges.get(vid, []):
             dep.out.pop(i, None)
             self.dp.outbox.pop((dep.app.name, i), None)
