@@ -703,7 +703,11 @@ class Restorer:
         """Retire this instance: the ends of its edges were rewired to the later one, whose
         producers replay to it what this one had not passed on; what this one still holds
         unacknowledged is made again there, with the same numbers, so dropping it loses
-        nothing and keeps every event once."""
+        nothing and keeps every event once. A producer here fed this one, not the twin: its
+        output is numbered as this one took it, and sent on to the twin, what lay below the
+        twin's own position was dropped as had (fault seed 142356: 24 events of a restarted
+        source). Its events wait until the twin says where it stands (``consumer_lost``, as
+        for a consumer gone with its node), and go from there."""
         dep = self.ctx.apps.get(ev.app)
         h = dep.instances.get(ev.vertex) if dep is not None else None
         if dep is None or h is None or h.handing_over is not None or ev.vertex in dep.markers:
@@ -716,7 +720,7 @@ class Restorer:
                 dep.inc.pop(i, None)
                 dep.stash.pop(i, None)
                 if (out := dep.out.get(i)) is not None and e.src in dep.instances:
-                    out.consumer_lost = True  # (a producer here fed this one, not the twin)
+                    out.consumer_lost = True
         for i in dep.out_edges.get(vid, []):
             dep.out.pop(i, None)
             self.dp.outbox.pop((dep.app.name, i), None)
