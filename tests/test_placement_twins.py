@@ -17,12 +17,18 @@ from runtime_vertices import pipe_app
 APP = pipe_app(50).replace("pinned: N4", "pinned: N3")
 
 
-def overlay() -> Simulation:
-    net = Network(
-        [NodeSpec("N1"), NodeSpec("N2"), NodeSpec("N3")],
-        [LinkSpec("N1", "N2", delay_ms=1.0), LinkSpec("N2", "N3", delay_ms=1.0)],
+def line() -> Simulation:
+    """N1 - N2 - N3, nothing deployed."""
+    return Simulation(
+        Network(
+            [NodeSpec("N1"), NodeSpec("N2"), NodeSpec("N3")],
+            [LinkSpec("N1", "N2", delay_ms=1.0), LinkSpec("N2", "N3", delay_ms=1.0)],
+        )
     )
-    sim = Simulation(net)
+
+
+def overlay() -> Simulation:
+    sim = line()
     sim.request("N1", m.DeployRequest(APP, "app.yaml"))
     sim.run_until(1.0)
     assert any(isinstance(r, m.DeployReply) and r.ok for _, _, r in sim.replies)
@@ -154,11 +160,7 @@ def test_a_producer_whose_consumer_here_yields_to_a_twin_asks_where_it_stands() 
     Sent on, the twin dropped what it numbered below its own position as had (fault seed
     142356: 24 events of a restarted source). Its events wait until the twin says where it
     stands (as a producer whose consumer went with its node: ``OutChannel.consumer_lost``)."""
-    net = Network(
-        [NodeSpec("N1"), NodeSpec("N2"), NodeSpec("N3")],
-        [LinkSpec("N1", "N2", delay_ms=1.0), LinkSpec("N2", "N3", delay_ms=1.0)],
-    )
-    sim = Simulation(net)
+    sim = line()
     sim.request("N1", m.DeployRequest(CHAIN, "app.yaml"))
     sim.run_until(1.0)
     sim.request("N1", m.RelocateRequest("chain", "b", target="N2"))
