@@ -339,6 +339,9 @@ RESTARTS_BROKE = {
     "restored by a node cut off as the copy was made, which never named it a replica: it "
     "asked the maker's node alone, whose new process does not answer for its last one's "
     "instance, and held the app past the quiet phase (the host by its view is asked too)",
+    162928: "a replica's copy was fetched by a restore on N4 after its host N1 crashed; the "
+    "replica never heard of the move, refused N4's replica set as not from the host by its "
+    "view and held the app past the quiet phase (the node that fetched a copy settles it)",
     138982: "a restore's rewire confirmed a fork's output numbered on a guess from 0; its "
     "consumer, restored first by another coordinator and at 39 in the first numbering, "
     "refused the producer's Resume and dropped 39 events as had, 12 of them new (a consumer "

@@ -232,6 +232,31 @@ def test_a_copy_whose_maker_restarted_is_settled_by_the_vertexs_host_by_this_nod
     assert "pipe" not in core.apps
 
 
+def test_a_copy_fetched_for_a_restore_is_settled_by_the_node_that_fetched_it() -> None:
+    """N2 holds a copy of the counter made on N1; N1 fails and N3 restores the counter on
+    itself from N2's copy (its ``FetchReplica``). N2 never hears of the move, so its view
+    still places the counter on N1; the new host's replica set, naming other nodes, is the
+    word of the vertex's host by that restore: N2 lets the copy and the app go. Refused as
+    not from the host by its view, N2 held the app past the quiet phase taking no part
+    (fault seed 162928). A node that did not fetch it is still refused."""
+    doc = counter_app().replace("pinned: N6", "pinned: N4")
+    core = NodeCore("N2")
+    core.set_routes({"N1": ("N1", 1), "N3": ("N3", 1), "N4": ("N4", 1)}, 0.0)
+    placed = {"src": "N1", "mid": "N1", "sink": "N4"}
+    core.receive("N1", m.AppSync("pipe", "N1", doc, 0, placed, replicas={"mid": ["N2"]}), 1.0)
+    core.receive("N1", m.Replicate("pipe", "mid", 1, b"\x05", {0: 10}, {1: (10, [])}), 1.0)
+    dep = core.apps["pipe"]
+    core.receive("N4", m.ReplicaSet("pipe", "mid", ["N5"]), 1.5)  # not its host, nor fetched
+    assert "mid" in dep.held
+    effects = core.receive("N3", m.FetchReplica("pipe", "mid", 77), 2.0)
+    assert any(isinstance(e, fx.Send) and isinstance(e.msg, m.Replicate) for e in effects)
+    core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"]), 3.0)
+    assert "mid" not in dep.held and dep.placed["mid"] == "N1"  # (its view, unchanged)
+    for t in (4.0, 5.0, 6.0):
+        core.on_timer(MonitorTick(), t)
+    assert "pipe" not in core.apps
+
+
 def test_replication_attributes_are_validated_and_defaulted() -> None:
     app = loads_app(counter_app())
     assert app.replicas("mid") == 1 and app.replicas("src") == 0 and app.replicas("sink") == 0

@@ -52,6 +52,9 @@ class Snapshot:
     got_at: float = 0.0
     asked_at: float = 0.0
     src_incarnation: int = 0  # the incarnation of ``src`` it came from, as this node knew it
+    # the node whose restore of the vertex fetched it (``m.FetchReplica``): its host by that
+    # restore, whose word on the replica set counts though this view places it elsewhere
+    fetched_by: str = ""
 
     @property
     def size(self) -> int:

@@ -553,6 +553,7 @@ class Replicator:
             reply = m.Replicate(msg.app, msg.vertex, -1, b"", {}, {}, rid=msg.rid)
         else:
             reply = _replicate(msg.app, msg.vertex, snap, msg.rid)
+            snap.fetched_by = src
         self.ctx.send(src, reply)
 
     def on_replica_set(self, src: str, msg: m.ReplicaSet) -> None:
@@ -562,11 +563,15 @@ class Replicator:
             self.ctx.refusal("replica_set_invalid")
             return
         copy = dep.held.get(msg.vertex)
-        if copy is not None and src not in (copy.src, dep.placed.get(msg.vertex), self.ctx.id):
+        hosts = (copy.src, copy.fetched_by, dep.placed.get(msg.vertex), self.ctx.id) if copy else ()
+        if copy is not None and src not in hosts:
             # a copy is dropped on the word of the instance that made it, or of the vertex's
             # host: a node that once hosted it answers for itself, "none" (seed 87093: a
             # replica asked the vertex's host before a move it heard of late, and dropped the
-            # copy the new host had just made; no node held the vertex's state)
+            # copy the new host had just made; no node held the vertex's state). The node
+            # whose restore fetched the copy is the vertex's host by that restore, whatever
+            # this view says (fault seed 162928: a replica whose view still placed the vertex
+            # on its failed host refused the new host's set, and held the app for ever)
             self.ctx.refusal("replica_set_not_from_host")
             return
         dep.replica_nodes[msg.vertex] = list(msg.nodes)
