@@ -563,8 +563,8 @@ class Replicator:
             self.ctx.refusal("replica_set_invalid")
             return
         copy = dep.held.get(msg.vertex)
-        hosts = (copy.src, copy.fetched_by, dep.placed.get(msg.vertex), self.ctx.id) if copy else ()
-        if copy is not None and src not in hosts:
+        settle = (copy.src, copy.fetched_by, dep.placed.get(msg.vertex)) if copy else ()
+        if copy is not None and src not in (*settle, self.ctx.id):
             # a copy is dropped on the word of the instance that made it, or of the vertex's
             # host: a node that once hosted it answers for itself, "none" (seed 87093: a
             # replica asked the vertex's host before a move it heard of late, and dropped the
