@@ -77,6 +77,7 @@ class Lookup(Procedure):
         self.rounds = 0
         self.fetch = False  # this node held none of the app: the holders send it too
         self.quiet = False  # only to bring the view up to date: nothing waits on it
+        self.own: dict[str, tuple[str, int]] = {}  # vertex -> (node, version): "it runs here"
 
     def refusal(self, why: str) -> m.Message | None:
         """(Its client waits for what the lookup lets go on: that request's reply.)"""
@@ -247,6 +248,14 @@ class Lookups:
         placement.merge(
             dep, src, msg.placed, msg.versions, msg.vanished, now, signed, here=self.ctx.id
         )
+        # what an answer says runs on its sender is that node's own word: it stands against a
+        # placement elsewhere whose instance vanished, whichever answer came first (seed 164451)
+        gone = set(msg.vanished)
+        for v, n in msg.placed.items():
+            if n == src and v not in gone and v in dep.app.vertices:
+                look.own[v] = (src, msg.versions.get(v, 0))
+        for v, (n, k) in look.own.items():
+            placement.runs_there(dep, v, n, k, now)
         if look.rounds < ROUNDS:  # nodes the answers name that were not asked yet
             named = set(msg.placed.values()) - look.asked
             if named:

@@ -86,6 +86,21 @@ def recall(ctx: NodeContext, dep: AppState) -> None:
             dep.vanished.discard(v)
 
 
+def runs_there(dep: AppState, vertex: str, node: str, version: int, now: float) -> bool:
+    """``node`` says it runs ``vertex`` (its own word, in a lookup's answer) where this view
+    places it on another node, vanished with that node's old incarnation: the instance said
+    to run stands, at the vanished placement's version, as its host's ``Moved`` does (fault
+    seed 92622). Without it, a twin restored across a cut and gone with its node's reset at
+    the heal, heard of at a later move than the live instance's, outweighed every answer
+    from the live instance's node, and views split for good (seed 164451). True if taken."""
+    where = dep.placed.get(vertex)
+    if vertex not in dep.vanished or where is None or where == node:
+        return False
+    if vertex in dep.instances or vertex in dep.awaiting or vertex in dep.restoring:
+        return False  # (this node's own word on it is first-hand)
+    return learn(dep, vertex, node, max(version, dep.versions.get(vertex, 0)), now)
+
+
 def members(dep: AppState) -> set[str]:
     """The nodes this node's view says host part of the app."""
     return set(dep.placed.values())
@@ -260,8 +275,15 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
             and (msg.version > known or (handed and msg.version == known))
         )
         if news and dep is not None and not _moved_refused(ctx, dep, src, msg):
+            was = None if v in dep.vanished else dep.placed[v]
             learn(dep, v, msg.node, msg.version, now, running=False)
             dep.vanished.add(v)
+            if was not in (None, ctx.id, msg.node) and was not in ctx.failed:
+                # it ran on a live node by this view: the placement gone may have been a twin
+                # restored across a cut (that node cut off, not failed), the instance there
+                # the one left. Asked, that node's own word stands (:func:`runs_there`);
+                # its view of a move it handed over does not (fault seed 164451)
+                ctx.publish(PlacementStale(msg.app, wide=False))
             ctx.publish(RecoveryDue(msg.app))
         return
     why = _moved_refused(ctx, dep, src, msg) if dep is not None else "moved_unknown_app"
@@ -402,5 +424,6 @@ __all__ = [
     "recall",
     "remember",
     "reply",
+    "runs_there",
     "versions",
 ]
