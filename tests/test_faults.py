@@ -379,6 +379,10 @@ RESTARTS_BROKE = {
     "the relay there yielded to its twin on the other side, and its producer on the same node "
     "sent on in the retired instance's numbering, below where the twin stood: 24 events "
     "dropped as had (the producer asks the twin where it stands)",
+    164451: "a merge restored across a cut by a node reset at the heal; its last process's "
+    "word of it (move 2) reached two nodes after N5's own word of move 1: held lost on the "
+    "reset node for good, as no lookup answer from N5 counted against the later move (the "
+    "running host's own word stands; the node it ran on is asked)",
 }
 
 

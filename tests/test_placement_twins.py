@@ -104,6 +104,65 @@ def test_the_yielders_word_of_a_twin_gone_with_a_reset_is_a_loss() -> None:
     assert dep.placed["mid"] == "N3" and "mid" in dep.vanished
 
 
+def restarted_n3() -> Simulation:
+    """The overlay after N3's daemon restarted (N1 has heard its new incarnation); ``mid``
+    runs on N2 at move 1, N1 placing it there."""
+    sim = overlay()
+    sim.crash("N3")
+    sim.run_until(sim.now + 0.5)
+    sim.revive("N3")
+    sim.run_until(sim.now + 0.5)
+    n1 = sim.cores["N1"]
+    assert n1.incarnation_of("N3", 0) == 1
+    for core in sim.cores.values():
+        core.apps["pipe"].versions["mid"] = 1
+    assert n1.apps["pipe"].placed["mid"] == "N2" and "mid" not in n1.apps["pipe"].vanished
+    return sim
+
+
+def test_a_twin_gone_with_a_reset_heard_late_is_checked_with_the_running_host() -> None:
+    """N3's last process restored ``mid`` on itself across a cut (move 2) while N2, cut off
+    but alive, ran it on (move 1); that word reaches N1 after N3's reset. N1 holds ``mid``
+    lost on N3 (news of an instance gone with its node) and asks the nodes its view names:
+    N2 says it runs ``mid``, and its own word stands against the later placement gone. Before,
+    N1, hosting nothing on ``mid``'s edges, held it lost for good while the others placed it
+    on N2 (fault seed 164451)."""
+    sim = restarted_n3()
+    n1 = sim.cores["N1"]
+    dep = n1.apps["pipe"]
+    effects = n1.receive("N3", m.Moved("pipe", "mid", "N3", incarnation=0, version=2), sim.now)
+    assert dep.placed["mid"] == "N3" and "mid" in dep.vanished
+    asked = {e.dst for e in effects if isinstance(e, Send) and isinstance(e.msg, m.PlacementQuery)}
+    assert "N2" in asked
+    sim.apply("N1", effects)
+    sim.run_until(sim.now + 0.05)
+    assert dep.placed["mid"] == "N2" and "mid" not in dep.vanished
+    assert dep.versions["mid"] == 2  # (not older than the placement it replaced)
+
+
+def test_a_lookup_takes_the_running_hosts_word_over_a_vanished_later_placement() -> None:
+    """A lookup's answers, in either order: N2 says ``mid`` runs on N2 (move 1), N3 passes on
+    a placement of ``mid`` on N3 at move 2 whose instance vanished. The running host's own
+    word stands, as its ``Moved`` would (seed 92622); the answer with the higher version
+    outweighed it when it came second, or came first and the own word was older (164451)."""
+    for order in (("N2", "N3"), ("N3", "N2")):
+        sim = restarted_n3()
+        n1 = sim.cores["N1"]
+        dep = n1.apps["pipe"]
+        n1.lookups.on_stale("pipe", wide=False)
+        look = next(p for p in n1.open() if p.name == "lookup")
+        look.waiting |= {"N2", "N3"}  # (its queries go out with the core's next effects)
+        placed = dict(dep.placed)
+        answers = {
+            "N2": m.PlacementReply("pipe", look.pid, placed, {"mid": 1}),
+            "N3": m.PlacementReply("pipe", look.pid, placed | {"mid": "N3"}, {"mid": 2}, ["mid"]),
+        }
+        for src in order:
+            n1.receive(src, answers[src], sim.now)
+        assert dep.placed["mid"] == "N2" and "mid" not in dep.vanished, order
+        assert dep.versions["mid"] == 2
+
+
 def test_a_sync_from_a_hosts_last_incarnation_does_not_undo_a_vanishing() -> None:
     """N2's daemon restarts; N1 hears it back in its new incarnation and holds mid, which N2
     ran, vanished. Then comes a sync N2's last process sent as it went (its own incarnation

@@ -227,7 +227,9 @@ class NodeCore:
         self._subscribe(RoutesChanged, self.remapper.on_routes_changed)
         self._subscribe(RoutesChanged, self.replicator.on_routes_changed)
         self._subscribe(RecoveryDue, self.remapper.on_recovery_due)
-        self._subscribe(PlacementStale, lambda ev: self.lookups.on_stale(ev.app, ev.wide, ev.sync))
+        self._subscribe(
+            PlacementStale, lambda ev: self.lookups.on_stale(ev.app, ev.wide, ev.sync, ev.also)
+        )
         self._subscribe(AppMissing, self.membership.on_app_missing)
         self._subscribe(NodeReset, lambda ev: self.deployer.on_reset())
         self._subscribe(NodeReset, lambda ev: self.relocator.on_reset())

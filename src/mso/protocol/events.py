@@ -134,11 +134,13 @@ class PlacementStale:
     date on (it hosts no part of the app): look the placement up first (``wide``: every node
     it reaches, not only those its view names). ``sync``: the app just came with a sync from
     a node that may not have been kept up to date either (issue 24.1: a move's coordinator
-    that holds it for the move alone): ask the nodes it names, nothing waiting on it."""
+    that holds it for the move alone): ask the nodes it names, nothing waiting on it.
+    ``also``: nodes to ask besides (one the view placed a vertex on until just now)."""
 
     app: str
     wide: bool = True
     sync: bool = False
+    also: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -182,21 +182,28 @@ class Lookups:
         if client is not None and refusal is not None:
             self.ctx.reply(client, refusal)
 
-    def on_stale(self, app: str, wide: bool = True, sync: bool = False) -> None:
+    def on_stale(
+        self, app: str, wide: bool = True, sync: bool = False, also: tuple[str, ...] = ()
+    ) -> None:
         """A recovery this node would coordinate on a view it was not kept up to date on (it
         sees every instance of the app lost): look the placement up first, widely; or one it
         would coordinate if that view is out of date (``wide`` False,
         :meth:`Remapper.maybe_recover`): ask the nodes it names. Or
         (``sync``) the app just came with a sync: ask the nodes it names where they run
         what (the sender may have been behind, and nobody tells this node of the moves made
-        since: seed 1079, a move's coordinator that had looked the app up 2 s before)."""
+        since: seed 1079, a move's coordinator that had looked the app up 2 s before).
+        ``also``: nodes asked besides those (one the view placed a vertex on until just now)."""
         open_ = [p for p in self.ctx.open() if isinstance(p, Lookup) and p.app == app]
         if not open_:
-            self._start(app, None, None, self.ctx.now, wide=wide and not sync, quiet=sync)
-        elif not sync and open_[0].quiet:  # a recovery now waits on the one under way
+            self._start(
+                app, None, None, self.ctx.now, wide=wide and not sync, quiet=sync, also=also
+            )
+            return
+        if not sync and open_[0].quiet:  # a recovery now waits on the one under way
             open_[0].quiet = False
             if wide:
                 self._ask(open_[0], set(self.ctx.known_nodes()))
+        self._ask(open_[0], set(also))
 
     # -- the lookup ------------------------------------------------------------------------------
     def _start(
@@ -207,13 +214,14 @@ class Lookups:
         now: float,
         wide: bool,
         quiet: bool = False,
+        also: tuple[str, ...] = (),
     ) -> None:
         look = Lookup(self.ctx.new_pid(), now, app, client, then)
         look.quiet = quiet
         self.ctx.begin(look)
         dep = self.ctx.apps[app]
         first = set(self.ctx.known_nodes()) if wide else placement.members(dep)
-        self._ask(look, first | set(dep.handed.values()))
+        self._ask(look, first | set(dep.handed.values()) | set(also))
         if not look.waiting:
             self._end(look, now)
 

@@ -283,7 +283,7 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
                 # restored across a cut (that node cut off, not failed), the instance there
                 # the one left. Asked, that node's own word stands (:func:`runs_there`);
                 # its view of a move it handed over does not (fault seed 164451)
-                ctx.publish(PlacementStale(msg.app, wide=False))
+                ctx.publish(PlacementStale(msg.app, wide=False, also=(was,)))
             ctx.publish(RecoveryDue(msg.app))
         return
     why = _moved_refused(ctx, dep, src, msg) if dep is not None else "moved_unknown_app"
