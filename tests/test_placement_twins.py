@@ -127,10 +127,29 @@ def test_a_twin_gone_with_a_reset_heard_late_is_checked_with_the_running_host() 
     assert dep.placed["mid"] == "N3" and "mid" in dep.vanished
     asked = {e.dst for e in effects if isinstance(e, Send) and isinstance(e.msg, m.PlacementQuery)}
     assert "N2" in asked
+    assert dep.recovering is None  # N1 coordinates: its recovery waits for the answers
     sim.apply("N1", effects)
     sim.run_until(sim.now + 0.05)
     assert dep.placed["mid"] == "N2" and "mid" not in dep.vanished
     assert dep.versions["mid"] == 2  # (not older than the placement it replaced)
+
+
+def test_a_move_handed_over_and_gone_with_a_reset_is_recovered_once_asked() -> None:
+    """The other case of that news: N2 had handed ``mid`` over to N3 (move 2) and N3's
+    instance went with its reset. Asked, N2 says ``mid`` runs on N3: N1, which coordinates,
+    recovers it once the answers are in (seed 22392), not before."""
+    sim = restarted_n3()
+    n1 = sim.cores["N1"]
+    dep = n1.apps["pipe"]
+    effects = n1.receive("N3", m.Moved("pipe", "mid", "N3", incarnation=0, version=2), sim.now)
+    assert dep.recovering is None
+    (qid,) = {e.msg.qid for e in effects if isinstance(e, Send) and e.dst == "N2"
+              and isinstance(e.msg, m.PlacementQuery)}  # fmt: skip
+    placed = dict(dep.placed) | {"mid": "N3"}
+    n1.receive("N2", m.PlacementReply("pipe", qid, placed, {"mid": 2}, ["mid"]), sim.now)
+    n1.receive("N3", m.PlacementReply("pipe", qid, placed, {"mid": 2}, ["mid"]), sim.now)
+    assert dep.placed["mid"] == "N3" and "mid" in dep.vanished
+    assert dep.recovering is not None
 
 
 def test_a_lookup_takes_the_running_hosts_word_over_a_vanished_later_placement() -> None:

@@ -489,6 +489,10 @@ class AppState:
     # vertices whose instances went with a node that has since rejoined: restored like lost ones
     vanished: Vanished = field(init=False)
     handed: dict[str, str] = lazy(dict)  # vertex -> where this node handed it
+    # vertices held lost on news of an instance gone with its node's old incarnation that
+    # displaced a placement on a live node, while a lookup asks that node (it may run them
+    # still): a recovery waits for the answers (:func:`placement.on_moved`)
+    checking: set[str] = lazy(set)
     # with operator keys, a node that learnt the app from a sync: the unpinned vertices it
     # places on its senders' word, not yet corroborated (vertex -> node -> senders saying so)
     hearsay: dict[str, dict[str, set[str]]] = lazy(dict)

@@ -295,6 +295,8 @@ class Lookups:
             look.state = Phase.FINISHED  # (nobody to ask: it ends as it starts)
         self.ctx.end(look.pid)
         dep = self.ctx.apps.get(look.app)
+        if dep is not None:  # what a recovery waited on is answered (or went unanswered)
+            dep.checking.clear()
         if isinstance(look.then, m.RelocateRequest):
             if not self.relocator.request(look.client, look.then, now) and look.client is None:
                 self.ctx.refusal("relocate_refused")

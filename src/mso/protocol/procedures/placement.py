@@ -283,6 +283,9 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
                 # restored across a cut (that node cut off, not failed), the instance there
                 # the one left. Asked, that node's own word stands (:func:`runs_there`);
                 # its view of a move it handed over does not (fault seed 164451)
+                # (a recovery waits for the answers: restored at once elsewhere, it would be
+                # that instance's twin)
+                dep.checking.add(v)
                 ctx.publish(PlacementStale(msg.app, wide=False, also=(was,)))
             ctx.publish(RecoveryDue(msg.app))
         return

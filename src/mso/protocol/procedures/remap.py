@@ -500,6 +500,8 @@ class Remapper:
             return
         failed, routes = self.ctx.failed, self.ctx.routes
         lost = dep.lost(failed)
+        if lost & dep.checking:  # its last host, alive, is asked whether it runs it still
+            return
         if not lost or lost & dep.restoring.keys():  # (one being restored here by another
             # coordinator: its end or its failure is seen at a later beat. Restoring the rest
             # beside it, a consumer started from its marks while that producer's state
