@@ -7,6 +7,7 @@ from typing import Any
 
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.protocol import messages as m
+from mso.protocol.procedures import placement
 from mso.sim.runner import Simulation
 from runtime_vertices import pipe_app
 
@@ -303,3 +304,33 @@ def test_a_probe_held_for_routes_that_never_change_skips_the_failed_hop() -> Non
     effects = core.on_timer(timer.key, timer.at)
     (sent,) = [e for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Probe)]
     assert sent.dst == "N6" and sent.msg.nodes == ["N1", "N2"]
+
+
+def test_a_consumer_drops_frames_from_an_instance_of_its_producer_a_restore_replaced() -> None:
+    """A producer restored elsewhere while its node was cut off and held failed still runs
+    there until that node resets; back in reach, its frames are numbered in its own run, and
+    taken they put another event at a number the replacement sends next, then dropped as had
+    (fault seed 162674: 1 event lost). Its consumer, told by the restore's rewire, drops them;
+    a node it neither places the producer on nor holds replaced -- a move's old host sending
+    its last frames before the switch -- is heard, and the node placed there again is too."""
+    sim = started(PIPE)
+    host, node = where(sim, "pipe", "mid"), where(sim, "pipe", "sink")
+    core, dep = sim.cores[node], sim.cores[node].apps["pipe"]
+    other = next(n for n in sorted(sim.cores) if n not in (host, node, "N1"))
+    inc, version = dep.inc[1], dep.versions.get("mid", 0)  # (mid -> sink)
+    placement.learn(dep, "mid", other, version + 1, sim.now)  # a move's word, its old host
+    at = inc.expected  # sending on
+    sim.run_until(sim.now + 0.5)
+    assert inc.expected > at  # taken
+    placement.learn(dep, "mid", host, version + 2, sim.now)
+    sim.run_until(sim.now + 0.5)
+    rewire = m.Rewire("pipe", 1, other, 1234, False)  # a restore's: mid runs there now
+    sim.apply(node, core.receive("N1", rewire, sim.now))
+    assert dep.placed["mid"] == other and dep.view.replaced("mid", host)
+    at, dropped = inc.expected, core.dropped_messages
+    sim.run_until(sim.now + 1.0)
+    assert inc.expected == at and core.dropped_messages > dropped  # the old instance's
+    placement.learn(dep, "mid", host, version + 3, sim.now)  # placed there again: heard
+    assert not dep.view.replaced("mid", host) and dep.view.gone is None
+    sim.run_until(sim.now + 3.0)  # (its window again, after a retransmission's wait)
+    assert inc.expected > at

@@ -383,6 +383,10 @@ RESTARTS_BROKE = {
     "word of it (move 2) reached two nodes after N5's own word of move 1: held lost on the "
     "reset node for good, as no lookup answer from N5 counted against the later move (the "
     "running host's own word stands; the node it ran on is asked)",
+    162674: "a merge restored while its old host was cut off and held failed; back in reach "
+    "before its reset, the old instance sent its consumer a frame numbered as the "
+    "replacement's next one, taken, and the replacement's event was dropped as had: 1 lost "
+    "(a node drops an edge's frames from an instance of its producer a restore replaced)",
 }
 
 

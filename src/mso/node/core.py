@@ -250,7 +250,7 @@ class NodeCore:
         )
         self._messages: dict[type, Handler] = {
             m.Data: lambda src, msg, now: (
-                dp.on_data(msg) if placement.from_member(self, src, msg.app) else None
+                dp.on_data(msg, src) if placement.from_member(self, src, msg.app) else None
             ),
             m.Ack: lambda src, msg, now: (
                 dp.on_ack(msg, now) if placement.from_member(self, src, msg.app) else None

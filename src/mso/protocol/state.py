@@ -11,7 +11,7 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any, Self, TypeVar
+from typing import TYPE_CHECKING, Any, Self, TypeVar, cast
 
 import msgspec
 
@@ -350,9 +350,53 @@ class Hosted(_Noting["HostedInstance"]):
 
 class Placed(_Noting[str]):
     """Where this node holds each vertex of an app to run (vertex -> node): any change may
-    place one here (changed in place only, never assigned anew)."""
+    place one here (changed in place only, never assigned anew). With it, the nodes whose
+    instance of a vertex a restore replaced (:meth:`restored`), until the view places the
+    vertex there again: such an instance may run on, cut off, until its node resets, and
+    its frames are numbered in its own run, not its replacement's (fault seed 162674)."""
 
-    __slots__ = ()
+    __slots__ = ("gone",)
+
+    def __init__(self, engaged: Engaged, items: dict[str, str] | None = None) -> None:
+        super().__init__(engaged, items)
+        self.gone: dict[str, set[str]] | None = None  # (made when needed: most hold none)
+
+    def __setitem__(self, key: str, value: str) -> None:
+        super().__setitem__(key, value)
+        if self.gone is not None and key in self.gone:
+            self._back(key, value)
+
+    def update(self, *args: Any, **kwargs: str) -> None:
+        super().update(*args, **kwargs)
+        if self.gone is not None:
+            for key in [k for k in self.gone if k in self]:
+                self._back(key, self[key])
+
+    def _back(self, vertex: str, node: str) -> None:
+        """The view places ``vertex`` on ``node``: an instance there is not one replaced."""
+        assert self.gone is not None
+        nodes = self.gone[vertex]
+        nodes.discard(node)
+        if not nodes:
+            del self.gone[vertex]
+        if not self.gone:
+            self.gone = None
+
+    def restored(self, vertex: str, node: str) -> None:
+        """A restore's word: ``vertex`` runs on ``node`` now, replacing the instance where
+        this view held it (if elsewhere)."""
+        old = self.get(vertex)
+        if old is not None and old != node:
+            if self.gone is None:
+                self.gone = {}
+            self.gone.setdefault(vertex, set()).add(old)
+        self[vertex] = node
+
+    def replaced(self, vertex: str, node: str) -> bool:
+        """Does this view hold ``node``'s instance of ``vertex`` replaced by a restore? (A
+        node it neither places the vertex on nor knows replaced -- a move's old host sending
+        its last frames before the switch -- is not.)"""
+        return self.gone is not None and node in self.gone.get(vertex, ())
 
 
 class Vanished(set[str]):
@@ -530,6 +574,12 @@ class AppState:
     switched: dict[int, int] = lazy(dict)
 
     engaged: Engaged = field(init=False, repr=False, compare=False)
+
+    @property
+    def view(self) -> Placed:
+        """``placed`` as the table it is made (given as a dict): with the nodes whose
+        instance of a vertex a restore replaced (:meth:`Placed.restored`)."""
+        return cast(Placed, self.placed)
 
     @property
     def out_edges(self) -> dict[str, list[int]]:

@@ -105,6 +105,9 @@ class Restorer:
             # of equal version restored across a cut and gone since stayed its view (restart
             # seed 52794: the consumer's node held its producer vanished on a reset node)
             self.ctx.send(msg.to, placement.moved(dep, ours, self.ctx.id, self.ctx.incarnation))
+        if msg.rid:  # a restore's: the instance where our view held it is replaced (a
+            # producer's, still running cut off, sends on in its own numbering: 162674)
+            dep.view.restored(replaced, msg.to)
         if msg.producer:  # we produce: say where we stand, then replay what is unacked
             dep.placed[edge.dst] = msg.to
             self.dp.outbox.pop((msg.app, msg.edge), None)  # those events are in the replay
