@@ -342,6 +342,9 @@ RESTARTS_BROKE = {
     162928: "a replica's copy was fetched by a restore on N4 after its host N1 crashed; the "
     "replica never heard of the move, refused N4's replica set as not from the host by its "
     "view and held the app past the quiet phase (the node that fetched a copy settles it)",
+    175875: "two moves at once from N6: a onto N1, which hosted nothing, and b off N6; b's "
+    "Moved went to the app's members as N6 knew them, N1 not yet among them, and N1 kept b on "
+    "N6 for good (the coordinator tells a new host the moves made since its Prepare)",
     138982: "a restore's rewire confirmed a fork's output numbered on a guess from 0; its "
     "consumer, restored first by another coordinator and at 39 in the first numbering, "
     "refused the producer's Resume and dropped 39 events as had, 12 of them new (a consumer "

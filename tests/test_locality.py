@@ -62,3 +62,26 @@ def test_a_node_that_hosts_no_part_of_the_app_looks_the_placement_up_first() -> 
     assert reply.node == where["s1"]  # upstream of where a runs now, not of where far thought
     assert sim.hosts(APP, "a") == [where["s1"]]
     assert sim.census.tally(t0).by_type["PlacementQuery"] >= 1
+
+
+def test_a_new_host_hears_of_a_move_made_while_it_joined() -> None:
+    """Two moves at once from one coordinator: each target hosts nothing of the app when the
+    other move is announced to the app's members, so only the coordinator's word at the end
+    of its move tells it (fault seed 175875: a target kept the other vertex on its old node
+    for good, and sent it nothing)."""
+    sim = Simulation(grid(5), manage=False, wire=False)
+    sim.request("G0_0", m.DeployRequest(measured_app(5), "locality.yaml"))
+    sim.run_until(2.0)
+    where = {v: n for n, c in sim.cores.items() for v in c.instances(APP)}
+    assert (where["a"], where["b"]) == ("G1_1", "G1_0")  # the planner's, as measured
+    coordinator, idle = where["b"], {"G0_1", "G2_0"}
+    assert not idle & set(where.values())
+    t0 = sim.now
+    sim.request(coordinator, m.RelocateRequest(APP, "a", target="G0_1"))
+    sim.request(coordinator, m.RelocateRequest(APP, "b", target="G2_0"))
+    sim.run_until(t0 + 2.0)
+    assert all(isinstance(r, m.RelocateReply) and r.ok for _, _, r in sim.replies[-2:])
+    now = {v: n for n, c in sim.cores.items() for v in c.instances(APP)}
+    assert (now["a"], now["b"]) == ("G0_1", "G2_0")
+    for n in set(now.values()):
+        assert sim.cores[n].apps[APP].placed == now, n

@@ -98,6 +98,9 @@ class Relocation(Procedure):
         self.synced_again = 0  # a restore's target answered it holds no app: sent it again
         self.retried: list[str] | None = None  # a recovery's log of steps sent again
         self.order = b""  # the operator's order it carries out, for its steps' receivers
+        # the versions of the view its last Prepare carried: moves told since are told the
+        # target at the end (it was no member of the app when they were announced)
+        self.briefed: dict[str, int] = {}
 
     def refusal(self, why: str) -> m.Message:
         return m.RelocateReply(self.app, self.vertex, False, error=why)

@@ -81,6 +81,7 @@ class Coordinator(Role):
         this node's view (a node just chosen by capability is pinned, not yet a host), or one
         asked again (it may have let the app go), is sent it first."""
         target = reloc.target
+        reloc.briefed = dict(prepare.versions)
         hosts = {dep.origin, *dep.placed.values()}
         if target != self.ctx.id and (target not in hosts or reloc.attempts > 1):
             self.ctx.publish(AppMissing(dep.app.name, target, ahead=True))
@@ -249,6 +250,7 @@ class Coordinator(Role):
         reloc.synced_again += 1
         self.ctx.publish(AppMissing(dep.app.name, reloc.target, ahead=True))
         prepare = placement.prepare(dep, reloc.vertex, reloc.pid, True, reloc.resumes, reloc.order)
+        reloc.briefed = dict(prepare.versions)
         self.ctx.send(reloc.target, prepare)
         return True
 
@@ -273,7 +275,27 @@ class Coordinator(Role):
         )
         if dep is not None and not taken:
             self.ctx.dropped()
+        if dep is not None:
+            self._brief_again(dep, reloc)
         self._ended(reloc, "")
+
+    def _brief_again(self, dep: AppState, reloc: Relocation) -> None:
+        """Tell a move's new host of the moves this node heard of since its ``Prepare``: a
+        move announced meanwhile went to the app's members as its announcer knew them, and
+        the target, no member yet, missed it (fault seed 175875: two moves at once, ``a`` onto
+        N1 and ``b`` off N6; N1 kept ``b`` on N6 for good). The new host takes each as any
+        relayed ``Moved``: newer versions win."""
+        for v, version in placement.versions(dep).items():
+            node = dep.placed.get(v)
+            if (
+                v == reloc.vertex
+                or node in (None, reloc.target)
+                or v in dep.vanished
+                or version <= reloc.briefed.get(v, 0)
+            ):
+                continue
+            inc = self.ctx.incarnation if node == self.ctx.id else -1
+            self.ctx.send(reloc.target, placement.moved(dep, v, node or "", inc))
 
     def fail(self, reloc: Relocation, why: str, now: float) -> None:
         """A relocation or restore failed: whoever waits (a client, a remap) is told. If no
