@@ -345,6 +345,10 @@ RESTARTS_BROKE = {
     175875: "two moves at once from N6: a onto N1, which hosted nothing, and b off N6; b's "
     "Moved went to the app's members as N6 knew them, N1 not yet among them, and N1 kept b on "
     "N6 for good (the coordinator tells a new host the moves made since its Prepare)",
+    179893: "a merge restored with one input resumed held no channel of the other; that "
+    "input's producer, restored after, numbered from the merge's 0 in the lost numbering, and "
+    "the forwarder's replacement dropped a restarted source's first 21 events by the sink's "
+    "marks (a merge that holds no channel of an input answers in a numbering made anew)",
     138982: "a restore's rewire confirmed a fork's output numbered on a guess from 0; its "
     "consumer, restored first by another coordinator and at 39 in the first numbering, "
     "refused the producer's Resume and dropped 39 events as had, 12 of them new (a consumer "

@@ -523,3 +523,31 @@ def test_a_consumer_that_did_not_take_a_guessed_numbering_says_where_it_stands()
     assert dep.out[3].gen == 0 and dep.out[3].next_seq > at  # (the consumer's numbering)
     assert s.duplicates == 0 and s.last - s.first + 1 == len(s.seen), s
     assert s.last >= before + 40  # it went on
+
+
+def test_a_merge_that_holds_no_channel_of_an_input_answers_in_a_numbering_made_anew() -> None:
+    """A running merge's replacement resumed only its other input (this one's producer was
+    lost too, and no marks named it then); the producer's replacement asks where it stands.
+    It stands nowhere: its answer, 0, is of a generation of its own, and the input counts as
+    numbered anew, so marks its consumers hold of the lost producer's numbering do not drop
+    the new events as had (fault seed 179893: 21 of a restarted source's events, dropped by
+    the merge's forwarder by the sink's marks of the first numbering)."""
+    sim = started(MERGE)
+    node, s1 = where(sim, "merge", "m"), where(sim, "merge", "s1")
+    core, dep = sim.cores[node], sim.cores[node].apps["merge"]
+
+    def answer() -> m.Resume:
+        effects = core.receive(node, m.Rewire("merge", 0, s1, 1234, False), sim.now)
+        sent = [e.msg for e in effects if isinstance(e, fx.Send) and e.dst == s1]
+        (said,) = [r for r in sent if isinstance(r, m.Resume)]
+        assert not said.producer
+        return said
+
+    held = dep.inc[0].expected
+    kept = answer()  # a channel it holds: where it stands, in the numbering it took
+    assert (kept.start, kept.gen) == (held, 0) and "m" not in dep.renumbered
+    del dep.inc[0]
+    anew = answer()
+    assert anew.start == 0 and anew.gen != 0
+    assert dep.inc[0].gen == anew.gen and dep.inc[0].expected == 0
+    assert dep.renumbered["m"] == {0}

@@ -148,7 +148,20 @@ class Restorer:
             out.waiting_since = now
         else:  # we consume: say which event we expect next
             dep.placed[edge.src] = msg.to
+            if msg.edge not in dep.inc and edge.dst in dep.layout.stamped:
+                self._nothing_of(dep, edge.dst, msg.edge, msg.rid)
             self.ctx.send(msg.to, self._standing(dep, msg.edge, msg.rid))
+
+    def _nothing_of(self, dep: AppState, vertex: str, edge: int, rid: int) -> None:
+        """A running merge or fork holds no channel of ``edge`` (its replacement resumed its
+        other inputs while this one's producer was lost too, and no marks named it then), and
+        that producer's replacement asks where it stands: it stands nowhere. Its answer, 0,
+        starts a numbering made anew (a generation of its own), so marks its consumers hold of
+        the lost producer's numbering do not take the new events for ones they had (fault seed
+        179893: a merge's forwarder, restored after, dropped a restarted source's first 21
+        events as had by the sink's marks of the first numbering)."""
+        anew = m.Resume(dep.app.name, edge, rid, True, 0, gen=self._new_generation())
+        self._numbered_anew(dep, vertex, anew)
 
     def _standing(self, dep: AppState, edge: int, rid: int) -> m.Resume:
         """A consumer's word on where it stands on ``edge``: the next event it expects, in
@@ -671,13 +684,18 @@ class Restorer:
         """The generation of a replacement's output ``o`` numbered from ``base``: a fresh one
         for a guess (no ack's positions, no consumer's word: a numbering made anew), else
         that of the positions it took (its producers' acks'), or of its consumer's."""
-        if guessed:  # (distinct across nodes, and across a node's incarnations)
-            return (self.ctx.incarnation & 0x7FFFF) << 44 | self.ctx.new_pid()
+        if guessed:
+            return self._new_generation()
         if o in restoring.positions and restoring.positions[o] == base:
             return restoring.gens.get(o, 0)
         if o in restoring.consumer_start:
             return restoring.consumer_gen.get(o, 0)
         return restoring.gens.get(o, 0)
+
+    def _new_generation(self) -> int:
+        """A numbering's generation no other is of (distinct across nodes, and across a
+        node's incarnations)."""
+        return (self.ctx.incarnation & 0x7FFFF) << 44 | self.ctx.new_pid()
 
     def _start_past(
         self, dep: AppState, vertex: str, marks: Marks, skip: set[int], gens: dict[int, int]
