@@ -394,6 +394,9 @@ RESTARTS_BROKE = {
     "before its reset, the old instance sent its consumer a frame numbered as the "
     "replacement's next one, taken, and the replacement's event was dropped as had: 1 lost "
     "(a node drops an edge's frames from an instance of its producer a restore replaced)",
+    250055: "a vertex restored by a node with nobody in reach kept its last instance's "
+    "replica in the host's view: 5 s later the host's sync to a new replica named it, and "
+    "the app was passed on to that node, told meanwhile it was none, 0.5 s before the end",
 }
 
 

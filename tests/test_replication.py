@@ -162,12 +162,9 @@ def test_a_restore_asked_again_after_its_replacement_ran_keeps_the_count() -> No
     assert_continuous(sim)
 
 
-def test_a_replica_replaced_by_none_is_no_longer_named_by_its_host() -> None:
-    """The counter's one replica goes out of reach and no other node is left to replace it:
-    the host tells it it is none and names none in its own view too. Before, the view (which
-    the host's syncs carry, and which says who holds the app) still named the old replica, so
-    a node synced by the host gave it the app again after it had let it go (fault seed
-    84069: it held the app past the quiet phase, taking no part in it)."""
+def alone_on_n1() -> Simulation:
+    """The counter on N1 with its one replica on N2, then the link between them cut: no node
+    left in reach to replace the replica."""
     pair = Network([NodeSpec("N1"), NodeSpec("N2")], [LinkSpec("N1", "N2", delay_ms=1.0)])
     doc = (
         counter_app()
@@ -180,9 +177,41 @@ def test_a_replica_replaced_by_none_is_no_longer_named_by_its_host() -> None:
     sim.network.remove_link("N1", "N2")
     sim.links_changed()
     sim.run_until(sim.now + 2.0)
+    return sim
+
+
+def test_a_replica_replaced_by_none_is_no_longer_named_by_its_host() -> None:
+    """The counter's one replica goes out of reach and no other node is left to replace it:
+    the host tells it it is none and names none in its own view too. Before, the view (which
+    the host's syncs carry, and which says who holds the app) still named the old replica, so
+    a node synced by the host gave it the app again after it had let it go (fault seed
+    84069: it held the app past the quiet phase, taking no part in it)."""
+    sim = alone_on_n1()
+    dep = sim.cores["N1"].apps["pipe"]
     assert replication(sim)["replicas"] == []
     assert dep.replica_nodes["mid"] == [] and "N2" not in holders(dep)
     assert "N2" not in kept.record(dep).replicas["mid"]  # (what a sync of this view says)
+
+
+def test_a_new_instance_with_no_replica_in_reach_names_none_in_its_hosts_view() -> None:
+    """A new instance of the counter (restarted in place after its process crashed) whose
+    host's view names the last instance's replica (as a restore's ``Prepare`` or a sync names
+    it), out of reach: from its first snapshot, held by none, the view names none. Before, it
+    kept naming the old replica until a new one was found, and the host's syncs gave that
+    node, told meanwhile it was none, the app again (fault seed 250055: N6 restored a vertex
+    while cut off, and 5 s later synced the node it chose as a replica with a view naming
+    N4, which was passed the app 0.5 s before the quiet end, taking no part)."""
+    sim = alone_on_n1()
+    core = sim.cores["N1"]
+    dep = core.apps["pipe"]
+    crashed = dep.instances["mid"]
+    sim.apply("N1", core.on_vertex(fx.VertexCrashed(crashed.instance, reason="killed"), sim.now))
+    while "mid" not in dep.instances or not dep.instances["mid"].started:
+        sim.run_until(sim.now + 0.001)
+    dep.replica_nodes["mid"] = ["N2"]  # (the last instance's replica, by this view)
+    sim.run_until(sim.now + 2.0)
+    assert dep.instances["mid"].instance != crashed.instance
+    assert dep.replica_nodes["mid"] == [] and "N2" not in holders(dep)
 
 
 def test_a_restarted_host_does_not_tell_a_copy_of_its_lost_instance_to_go() -> None:

@@ -410,10 +410,15 @@ class Replicator:
         told = {n for n in rep.former if n in routes and n not in rep.replicas}
         rep.former -= told | set(rep.replicas)
         to = told
-        if rep.replicas != rep.announced:  # (none too: a node told it is none is no holder
-            # by this view either, nor a copy to restore from -- its producers released what
-            # came before this snapshot; fault seed 84069: a host's syncs still named a
-            # replica it had told it was none, and gave it the app again)
+        view = dep.replica_nodes.get(rep.vertex, [])
+        if rep.replicas != rep.announced or view != rep.replicas:  # (none too: a node told
+            # it is none is no holder by this view either, nor a copy to restore from -- its
+            # producers released what came before this snapshot; fault seed 84069: a host's
+            # syncs still named a replica it had told it was none, and gave it the app again.
+            # And the view's set is this instance's from its first snapshot held, none
+            # included: a replacement restored with no node in reach kept its last
+            # instance's replica in its view, and its syncs 5 s later gave that node, told
+            # meanwhile it was none, the app again: fault seed 250055)
             before, rep.announced = rep.announced, list(rep.replicas)
             dep.replica_nodes[rep.vertex] = list(rep.announced)
             to = holders(dep) | set(before) | told  # (the app's holders, not everyone)
