@@ -349,6 +349,10 @@ RESTARTS_BROKE = {
     "input's producer, restored after, numbered from the merge's 0 in the lost numbering, and "
     "the forwarder's replacement dropped a restarted source's first 21 events by the sink's "
     "marks (a merge that holds no channel of an input answers in a numbering made anew)",
+    183066: "a twin of p1 restored on N2 with the whole chain took a restarted source's first "
+    "6 events and retired; p1 on N3, at 27, skipped to the source's ack (32) and numbered its "
+    "next outputs from 27, which p2 had from the twin: 5 dropped as had (a consumer standing "
+    "below its producer's ack skips there, its outputs to the ack's positions)",
     138982: "a restore's rewire confirmed a fork's output numbered on a guess from 0; its "
     "consumer, restored first by another coordinator and at 39 in the first numbering, "
     "refused the producer's Resume and dropped 39 events as had, 12 of them new (a consumer "

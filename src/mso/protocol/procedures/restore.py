@@ -38,7 +38,7 @@ from mso.model.app import has_state
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol import provenance
-from mso.protocol.channel import AckGate, InChannel
+from mso.protocol.channel import AckGate, InChannel, OutChannel
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import REPLICA_OWNER, DataPlane
 from mso.protocol.events import (
@@ -350,6 +350,9 @@ class Restorer:
         channel holds goes from there on, past the consumer's marks for a stamped vertex
         (not those of an input numbered anew: they name another numbering)."""
         old = dep.out[msg.edge]
+        if msg.gen == old.gen and msg.start < old.acked == old.positions_at and old.positions:
+            self._skip_ahead(dep, msg, old)
+            return
         if old.spilled:  # (read off the loop only: a backlog past memory keeps its guess)
             self.ctx.note_event(now, f"{vertex}: edge {msg.edge} keeps a guessed numbering")
             old.confirmed, old.consumer_lost = True, False
@@ -370,6 +373,42 @@ class Restorer:
         dep.out[msg.edge] = new
         self.dp.sf.drain(dep, msg.edge)
 
+    def _skip_ahead(self, dep: AppState, msg: m.Resume, out: OutChannel) -> None:
+        """A consumer says it stands below what this channel has acknowledged, in its very
+        numbering: another instance of it (a twin, retired since) took the events between,
+        and what it made of them went on, and was acknowledged, as far as the ack's positions
+        say. They are gone from here; the consumer skips them, and its outputs skip the
+        numbers that twin gave what it made of them (fault seed 183066: the twin's chain on
+        N2 took a restarted source's first 6 events; the consumer that stayed, on N3, at 27,
+        skipped to 32 by the floor and numbered its next outputs 27 on, which its consumer
+        had from the twin: 5 events dropped as had)."""
+        skip = m.Resume(dep.app.name, msg.edge, msg.rid, True, out.acked, dict(out.positions))
+        skip.gen, skip.gens = out.gen, dict(out.gens)
+        out.confirmed, out.consumer_lost = True, False
+        self.ctx.send(dep.placed[dep.app.edges[msg.edge].dst], skip)
+        self.dp.sf.drain(dep, msg.edge)
+
+    def _skipped(self, dep: AppState, vertex: str, msg: m.Resume) -> bool:
+        """A running consumer told by its producer to skip to where another instance of it
+        had taken the edge (:meth:`_skip_ahead`): its input goes there, and each output it
+        numbers on from where that instance's stood: what it holds unacknowledged below that
+        its consumer has from that instance, as the ack's positions say."""
+        inc = dep.inc[msg.edge]
+        inc.skip_to(msg.start)
+        for o in dep.out_edges.get(vertex, []):
+            out, pos = dep.out.get(o), msg.positions.get(o, -1)
+            if out is None or pos <= out.next_seq:
+                continue
+            further = {e: p for e, p in msg.positions.items() if e not in dep.out_edges[vertex]}
+            new = self.dp.channel(dep, o, pos)
+            new.number_as(out.gen)
+            new.positions, new.gens = further, _known(msg.gens, further)
+            new.confirmed = True
+            self.dp.outbox.pop((dep.app.name, o), None)
+            dep.out[o] = new
+        self.dp.touch(dep.app.name)
+        return True
+
     def anchor(self, dep: AppState, vertex: str, msg: m.Resume) -> bool:
         """A consumer restored while this edge's producer was out of reach (or before it) has
         numbered its output from where its own consumers stood, or from 0: a guess, since no
@@ -386,6 +425,9 @@ class Restorer:
             for o, held in list(dep.marks[vertex].items()):  # (_numbered_anew at the merge)
                 dep.marks[vertex][o] = provenance.without(held, msg.renumbered)
         anew = inc is not None and (msg.fresh or msg.gen != inc.gen)
+        ahead = inc is not None and not anew and msg.start > inc.expected and msg.positions
+        if ahead and not (h.queued or h.pending) and vertex not in dep.layout.stamped:
+            return self._skipped(dep, vertex, msg)
         if inc is not None and anew and 0 <= inc.past_marks == inc.expected:
             return self._numbered_anew(dep, vertex, msg)
         outs = dep.out_edges.get(vertex, [])
