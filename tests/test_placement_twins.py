@@ -248,3 +248,29 @@ def test_a_producer_whose_consumer_here_yields_to_a_twin_asks_where_it_stands() 
     sent = out.sent
     sim.run_until(sim.now + 0.3)
     assert out.next_seq > sent and out.sent == sent  # held, not sent in the old numbering
+
+
+def test_a_consumer_below_what_a_retired_twin_took_skips_there_with_its_outputs() -> None:
+    """A twin of ``mid`` took events of the source's edge and passed on what it made, all
+    acknowledged, then retired; the instance that stayed stands below them. The source, its
+    consumer's word in doubt, hears where it stands and says where the edge is acknowledged
+    to, with the positions that ack brought; the consumer skips its input there and numbers
+    its output from those positions. Numbered on from its own, its next outputs took numbers
+    its consumer had from the twin, and were dropped as had (fault seed 183066: 5 events)."""
+    sim = overlay()
+    sim.run_until(2.0)
+    n1, n2 = sim.cores["N1"], sim.cores["N2"]
+    out = n1.apps["pipe"].out[0]
+    inc, made = n2.apps["pipe"].inc[0], n2.apps["pipe"].out[1]
+    at, numbered = inc.expected, made.next_seq
+    assert out.acked >= at > 10
+    out.positions = {1: numbered + 7}
+    out.acked = out.sent = out.positions_at = at + 5  # (as the twin's chained ack left it)
+    out.consumer_lost = True
+    effects = n1.receive("N2", m.Resume("pipe", 0, 1, False, at), sim.now)
+    (said,) = [e.msg for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Resume)]
+    assert said.producer and (said.start, said.positions) == (at + 5, {1: numbered + 7})
+    assert not out.consumer_lost
+    n2.receive("N1", said, sim.now)
+    assert inc.expected == at + 5
+    assert n2.apps["pipe"].out[1].next_seq == numbered + 7
