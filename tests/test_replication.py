@@ -17,6 +17,7 @@ from mso.protocol import kept
 from mso.protocol import messages as m
 from mso.protocol.events import MonitorTick
 from mso.protocol.procedures.deploy import holders
+from mso.protocol.state import AppState
 from mso.sim.runner import Simulation
 from test_failure import emitted, mesh, recoveries, started, stats, where
 
@@ -262,21 +263,17 @@ def test_a_copy_whose_maker_restarted_is_settled_by_the_vertexs_host_by_this_nod
 
 
 def test_a_copy_fetched_for_a_restore_is_settled_by_the_node_that_fetched_it() -> None:
-    """N2 holds a copy of the counter made on N1; N1 fails and N3 restores the counter on
-    itself from N2's copy (its ``FetchReplica``). N2 never hears of the move, so its view
-    still places the counter on N1; the new host's replica set, naming other nodes, is the
-    word of the vertex's host by that restore: N2 lets the copy and the app go. Refused as
-    not from the host by its view, N2 held the app past the quiet phase taking no part
-    (fault seed 162928). A node that did not fetch it is still refused."""
-    doc = counter_app().replace("pinned: N6", "pinned: N4")
-    core = NodeCore("N2")
-    core.set_routes({"N1": ("N1", 1), "N3": ("N3", 1), "N4": ("N4", 1)}, 0.0)
-    placed = {"src": "N1", "mid": "N1", "sink": "N4"}
-    core.receive("N1", m.AppSync("pipe", "N1", doc, 0, placed, replicas={"mid": ["N2"]}), 1.0)
-    core.receive("N1", m.Replicate("pipe", "mid", 1, b"\x05", {0: 10}, {1: (10, [])}), 1.0)
-    dep = core.apps["pipe"]
+    """N2 holds a copy of the counter made on N1; N1 restarts (its counter vanished) and N3
+    restores the counter on itself from N2's copy (its ``FetchReplica``). N2 never hears of
+    the move, so its view still places the counter on N1; the new host's replica set, naming
+    other nodes, is the word of the vertex's host by that restore: N2 lets the copy and the
+    app go. Refused as not from the host by its view, N2 held the app past the quiet phase
+    taking no part (fault seed 162928). A node that did not fetch it is still refused."""
+    core, dep = _replica_of_mid_on_n1()
     core.receive("N4", m.ReplicaSet("pipe", "mid", ["N5"]), 1.5)  # not its host, nor fetched
     assert "mid" in dep.held
+    core.receive("N1", NodeCore("N1", incarnation=1).membership.beat(), 1.8)  # restarted
+    assert "mid" in dep.vanished
     effects = core.receive("N3", m.FetchReplica("pipe", "mid", 77), 2.0)
     assert any(isinstance(e, fx.Send) and isinstance(e.msg, m.Replicate) for e in effects)
     core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"]), 3.0)
@@ -284,6 +281,33 @@ def test_a_copy_fetched_for_a_restore_is_settled_by_the_node_that_fetched_it() -
     for t in (4.0, 5.0, 6.0):
         core.on_timer(MonitorTick(), t)
     assert "pipe" not in core.apps
+
+
+def test_a_member_that_fetched_a_copy_of_a_vertex_on_a_live_host_cannot_settle_it() -> None:
+    """N2 holds a copy of the counter, which runs on N1, alive and not restarted in N2's
+    view. The member N3 asks for the copy as a restore would (``FetchReplica``) and then
+    names other replicas (``ReplicaSet``): a restore needs the vertex lost (its host held
+    failed, or its instance vanished with a restart), which N2's view does not hold, so the
+    set is refused and counted and the copy kept. Before, having fetched it made N3's word
+    settle it: a captured member made a replica drop the state of a vertex it did not host."""
+    core, dep = _replica_of_mid_on_n1()
+    core.receive("N3", m.FetchReplica("pipe", "mid", 77), 2.0)
+    core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"]), 2.1)
+    assert "mid" in dep.held and dep.replica_nodes["mid"] == ["N2"]
+    assert core.refusals["replica_set_by_fetcher_of_a_vertex_not_lost"] == 1
+    core.receive("N1", m.ReplicaSet("pipe", "mid", ["N4"]), 2.2)  # its host's word counts
+    assert "mid" not in dep.held
+
+
+def _replica_of_mid_on_n1() -> tuple[NodeCore, AppState]:
+    """N2, the counter's replica, holding a copy made on N1, the counter's host."""
+    doc = counter_app().replace("pinned: N6", "pinned: N4")
+    core = NodeCore("N2")
+    core.set_routes({"N1": ("N1", 1), "N3": ("N3", 1), "N4": ("N4", 1)}, 0.0)
+    placed = {"src": "N1", "mid": "N1", "sink": "N4"}
+    core.receive("N1", m.AppSync("pipe", "N1", doc, 0, placed, replicas={"mid": ["N2"]}), 1.0)
+    core.receive("N1", m.Replicate("pipe", "mid", 1, b"\x05", {0: 10}, {1: (10, [])}), 1.0)
+    return core, core.apps["pipe"]
 
 
 def test_replication_attributes_are_validated_and_defaulted() -> None:

@@ -568,17 +568,22 @@ class Replicator:
             self.ctx.refusal("replica_set_invalid")
             return
         copy = dep.held.get(msg.vertex)
-        settle = (copy.src, copy.fetched_by, dep.placed.get(msg.vertex)) if copy else ()
-        if copy is not None and src not in (*settle, self.ctx.id):
+        if copy is not None and src not in (copy.src, dep.placed.get(msg.vertex), self.ctx.id):
             # a copy is dropped on the word of the instance that made it, or of the vertex's
             # host: a node that once hosted it answers for itself, "none" (seed 87093: a
             # replica asked the vertex's host before a move it heard of late, and dropped the
             # copy the new host had just made; no node held the vertex's state). The node
             # whose restore fetched the copy is the vertex's host by that restore, whatever
             # this view says (fault seed 162928: a replica whose view still placed the vertex
-            # on its failed host refused the new host's set, and held the app for ever)
-            self.ctx.refusal("replica_set_not_from_host")
-            return
+            # on its failed host refused the new host's set, and held the app for ever) --
+            # but only while this view has the vertex lost, as a restore needs: a member that
+            # fetched the copy of a vertex running on a live host made any replica drop it
+            if src != copy.fetched_by:
+                self.ctx.refusal("replica_set_not_from_host")
+                return
+            if msg.vertex not in dep.lost(self.ctx.failed):
+                self.ctx.refusal("replica_set_by_fetcher_of_a_vertex_not_lost")
+                return
         dep.replica_nodes[msg.vertex] = list(msg.nodes)
         if self.ctx.id not in msg.nodes and src != self.ctx.id:
             dep.held.pop(msg.vertex, None)
