@@ -339,6 +339,10 @@ RESTARTS_BROKE = {
     "restored by a node cut off as the copy was made, which never named it a replica: it "
     "asked the maker's node alone, whose new process does not answer for its last one's "
     "instance, and held the app past the quiet phase (the host by its view is asked too)",
+    171657: "a vertex restored across a cut on N8 went with N8's reset; N1 restored it on N7 "
+    "at the same move, and N6, hosting nothing on its edges, was never told: the coordinator's "
+    "view in its prepare, naming the twin, was not taken (not newer, not the host's own word) "
+    "and N6 kept the vertex on N8 (a vanished placement takes a live twin of its version)",
     162928: "a replica's copy was fetched by a restore on N4 after its host N1 crashed; the "
     "replica never heard of the move, refused N4's replica set as not from the host by its "
     "view and held the app past the quiet phase (the node that fetched a copy settles it)",

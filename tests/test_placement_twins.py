@@ -195,6 +195,32 @@ def test_a_sync_from_a_hosts_last_incarnation_does_not_undo_a_vanishing() -> Non
     assert "mid" in dep.vanished
 
 
+def test_a_view_passed_on_places_a_vanished_vertex_on_a_twin_of_its_version() -> None:
+    """N3 holds mid on N1 at move 1, vanished: restored there across a cut, its instance went
+    with N1's reset. N2 restored mid too, on a view that never had N1's (move 1 again), and
+    N3, hosting nothing on mid's edges, was not told. A coordinator's view passed on (its
+    ``Prepare``) placing mid on N2 at move 1, not vanished, is that restore: N3 takes it.
+    Before, only a later move or the host's own word was taken, and N3 kept mid on N1 for
+    ever (fault seed 171657). A view placing mid on N1 itself says nothing of that instance:
+    mid stays vanished."""
+    sim = overlay()
+    core = sim.cores["N3"]
+    dep = core.apps["pipe"]
+    dep.placed["mid"], dep.versions["mid"] = "N1", 1
+    dep.vanished.add("mid")
+    placed = {"src": "N1", "mid": "N1", "sink": "N3"}
+
+    def prepare(rid: int) -> m.Prepare:
+        return m.Prepare("pipe", "sink", rid, True, [], dict(placed), {"mid": 1}, [])
+
+    core.receive("N2", prepare(7), sim.now)  # (the restore of a sink that never went)
+    assert dep.placed["mid"] == "N1" and "mid" in dep.vanished
+    placed["mid"] = "N2"
+    core.receive("N1", prepare(8), sim.now)  # (a coordinator's view: not N2's own word)
+    assert dep.placed["mid"] == "N2" and "mid" not in dep.vanished
+    assert dep.versions["mid"] == 1
+
+
 def test_a_coordinators_record_of_a_restore_orders_twins_as_a_moved_does() -> None:
     """N1 coordinates a move of mid to N3; as it ends, N1's view holds a twin of the version
     the target reports (two coordinators restored mid from one view, each on another node),

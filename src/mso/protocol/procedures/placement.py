@@ -189,12 +189,14 @@ def merge(
     here: str,
 ) -> None:
     """Take from ``src``'s view (placement, versions, vanished instances) what is strictly newer
-    than ours, or as new and first-hand (``src`` says where it runs it itself) — except for the
-    vertices this node runs or is taking over (its own word on them is first-hand), and a
-    vertex the view places ``here`` that does not run here is taken as vanished (seed 24786: a
-    restore's Prepare held while this node was down reached its next incarnation and placed
-    a vertex of the last one here, alive; nothing restored it). Given ``failed`` (with
-    operator keys), a change only where :func:`may_tell` lets ``src``."""
+    than ours, or as new and first-hand (``src`` says where it runs it itself), or as new on
+    another node where ours vanished and that view's did not (a twin restored from the same
+    view, :func:`prevails`) — except for the vertices this node runs or is taking over (its
+    own word on them is first-hand), and a vertex the view places ``here`` that does not run
+    here is taken as vanished (seed 24786: a restore's Prepare held while this node was down
+    reached its next incarnation and placed a vertex of the last one here, alive; nothing
+    restored it). Given ``failed`` (with operator keys), a change only where :func:`may_tell`
+    lets ``src``."""
     ours = set(dep.instances) | set(dep.awaiting) | set(dep.restoring)
     gone = set(vanished)
     for v, n in placed.items():
@@ -203,7 +205,16 @@ def merge(
             continue
         if failed is not None and changes(dep, v, n, version) and not may_tell(dep, v, src, failed):
             continue
-        if version > mine or (version == mine and n == src):
+        # (a twin of our placement's version, restored on a view that never had ours, while
+        # ours went with its node's reset: fault seed 171657, N6 kept `a` on N8's gone
+        # incarnation, hosting nothing on its edges, and no node told it of N7's restore)
+        restored = (
+            version == mine
+            and v in dep.vanished
+            and v not in gone
+            and n not in (here, dep.placed.get(v))
+        )
+        if version > mine or (version == mine and n == src) or restored:
             learn(dep, v, n, version, now, running=False)
             if v in gone or n == here:
                 dep.vanished.add(v)
