@@ -862,7 +862,9 @@ class Restorer:
         """A replacement waiting here for its surviving ends whose coordinator failed: this
         node coordinates its restore from here on. The others placed the vertex here at the
         coordinator's ``Rewire``, so none of them holds it lost and no recovery would ask
-        again; it waited for ever, prepared and never run (fault seed 14459)."""
+        again; it waited for ever, prepared and never run (fault seed 14459). Likewise a move's
+        instance here awaiting a handover from ``node`` whose coordinator is gone too
+        (:meth:`~.relocation.new_host.NewHost.orphaned`)."""
         node, now = ev.node, self.ctx.now
         for dep in list(self.ctx.apps.values()):
             self._consumers_lost(dep, node)
@@ -872,6 +874,9 @@ class Restorer:
                 self.ctx.note_event(now, f"{vid}: its restore's coordinator {node} failed")
                 lost_on = dep.placed.get(vid, node)  # (the coordinator's view, from Prepare)
                 self._restore_here(dep, vid, node if lost_on == self.ctx.id else lost_on, now)
+            for vid in self.relocator.orphaned(dep, node):
+                self.ctx.note_event(now, f"{vid}: its move's coordinator and old host {node} went")
+                self._restore_here(dep, vid, node, now)
 
     def _consumers_lost(self, dep: AppState, node: str) -> None:
         """A stamped vertex running here whose consumer went with ``node``: its output

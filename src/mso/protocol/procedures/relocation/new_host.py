@@ -49,6 +49,27 @@ class NewHost(Role):
         self._early.pop(rid, None)
         self._sources.pop(rid, None)
 
+    def orphaned(self, dep: AppState, node: str) -> list[str]:
+        """The vertices of ``dep`` prepared here for a move whose old host ``node`` failed (or
+        came back in a new incarnation, which ran none of its instances) before the handover,
+        and whose coordinator is gone too (``node`` itself, or held failed): none is left to
+        make the move a restore, and the vertex's producers, switched here, place it here, so
+        no recovery would see it lost (fault seed 230857). Their move given up here, the
+        caller restores them in place."""
+        out = []
+        for (app, vid), (rid, _) in sorted(self._twins.items()):
+            coordinator = self._handover_to.get(rid)
+            if app != dep.app.name or vid not in dep.awaiting or vid in dep.restoring:
+                continue
+            if coordinator is None or coordinator == self.ctx.id:
+                continue  # (coordinated here: the coordinator makes it a restore)
+            gone = coordinator == node or coordinator in self.ctx.failed
+            if gone and node in self._sources.get(rid, ()) and dep.placed.get(vid) == self.ctx.id:
+                del self._twins[(app, vid)]
+                self.forget(rid)
+                out.append(vid)
+        return out
+
     def on_prepare(self, src: str, msg: m.Prepare) -> None:
         """At a relocation's (or restore's) target: create the new instance; it is
         Prepared once the executor has started it (or refused if its code fails)."""
