@@ -405,6 +405,10 @@ RESTARTS_BROKE = {
     250055: "a vertex restored by a node with nobody in reach kept its last instance's "
     "replica in the host's view: 5 s later the host's sync to a new replica named it, and "
     "the app was passed on to that node, told meanwhile it was none, 0.5 s before the end",
+    230857: "a's host coordinated its move to N6 and restarted after the Switch, before the "
+    "handover: N6's producer placed a on N6, nobody held it lost, and N6 awaited a handover "
+    "for the switch's 60 s while nothing ran a (a move's target whose coordinator and old "
+    "host went restores the vertex in place)",
 }
 
 

@@ -313,3 +313,30 @@ def test_a_move_failed_with_its_target_held_failed_unprepares_it_when_it_answers
     sim.run_until(sim.now + 0.5)
     assert "counter" not in sim.cores[target].apps["pipe"].awaiting
     assert where(sim, "counter") == {host}
+
+
+def test_a_moves_target_restores_the_vertex_when_its_coordinator_and_old_host_go_together() -> None:
+    """The vertex's host coordinates its move and restarts after the Switch, before the
+    handover: the producer (on the target) placed the vertex on the target, so nobody holds it
+    lost, and nobody is left to make the move a restore. The target hears the old host back in
+    a new incarnation and restores the vertex in place from the producer's replay (its state,
+    unreplicated, went with N3: the sink sees counts again). Before, it
+    held the instance prepared, awaiting a handover for the switch's 60 s, and nothing ran the
+    vertex (fault seed 230857)."""
+    sim = started()
+    assert where(sim, "counter") == {"N3"} and where(sim, "a") == {"N2"}
+    sim.drop = lambda src, dst, msg: isinstance(msg, (m.Handover, m.HandoverEvents))
+    sim.request("N3", m.RelocateRequest("pipe", "counter", target="N2"))
+    sim.run_until(sim.now + 0.05)
+    target = sim.cores["N2"].apps["pipe"]
+    assert "counter" in target.awaiting and target.placed["counter"] == "N2"  # switched
+    sim.drop = None
+    sim.crash("N3")
+    sim.run_until(sim.now + 0.05)
+    sim.revive("N3")
+    sim.run_until(sim.now + 3.0)
+    assert where(sim, "counter") == {"N2"}
+    before = sink_stats(sim)
+    sim.run_until(sim.now + 1.0)
+    after = sink_stats(sim)
+    assert after["count"] > before["count"] + 400  # (the counter's state went with N3)
