@@ -41,7 +41,8 @@ class Producer(Role):
         dep.placed[edge.dst] = msg.to
         dep.switched[msg.edge] = msg.rid
         dep.vanished.discard(edge.dst)  # the move's coordinator sees to it from now on (it
-        # restores it at the target if the old host went); a recovery here would make a twin
+        # restores it at the target if the old host went; the target does if the coordinator
+        # went too: NewHost.orphaned); a recovery here would make a twin
         marker = m.Marker(msg.app, msg.edge, seq, msg.rid, msg.to)
         if old == self.ctx.id:
             self.dp.enqueue(dep, edge.dst, marker)
