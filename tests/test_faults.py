@@ -357,6 +357,9 @@ RESTARTS_BROKE = {
     "6 events and retired; p1 on N3, at 27, skipped to the source's ack (32) and numbered its "
     "next outputs from 27, which p2 had from the twin: 5 dropped as had (a consumer standing "
     "below its producer's ack skips there, its outputs to the ack's positions)",
+    230733: "the target of a remap's move restarted before the handover; its coordinator N2, "
+    "which never held it failed (it heard its next incarnation first), waited out the move's "
+    "deadline past the quiet phase, holding the app (a restart heard first fails the move too)",
     138982: "a restore's rewire confirmed a fork's output numbered on a guess from 0; its "
     "consumer, restored first by another coordinator and at 39 in the first numbering, "
     "refused the producer's Resume and dropped 39 events as had, 12 of them new (a consumer "

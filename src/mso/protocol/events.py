@@ -106,9 +106,12 @@ class PeerFailed:
 @dataclass(frozen=True)
 class PeerRejoined:
     """Membership took ``node`` back (a restart, a healed partition): it is a member again, so
-    what waited for it (a deployment pinning a vertex there) may go on."""
+    what waited for it (a deployment pinning a vertex there) may go on. ``restarted``: heard
+    first in a later incarnation, never held failed here, so nothing here took its instances
+    for gone (its moves: :meth:`~mso.protocol.procedures.relocation.Relocator.on_peer_rejoined`)."""
 
     node: str
+    restarted: bool = False
 
 
 @dataclass(frozen=True)

@@ -260,7 +260,9 @@ class Rejoining(Beating):
     def _rejoin(self, node: str, incarnation: int, now: float, announce: bool) -> None:
         """``node`` is back with no instances: restore what it hosted, unpark what was pinned
         to it, and tell it the apps."""
-        if node in self.failed:
+        held = node in self.failed
+        restarted = not held and incarnation > self._incarnations.get(node, incarnation)
+        if held:
             self._move(node, PeerEvent.REJOINED)
         self._failed_incarnation.pop(node, None)
         self._ran.pop(node, None)
@@ -277,7 +279,7 @@ class Rejoining(Beating):
         self.ctx.publish(
             Happened("peer_rejoined", subject=node, detail=f"incarnation {incarnation}")
         )
-        self.ctx.publish(PeerRejoined(node))
+        self.ctx.publish(PeerRejoined(node, restarted))
         if announce and self._first_to_hear(node):  # to the nodes that host the apps (one of
             # them restores what it hosted) and our neighbours, as a claim goes, by the node's
             # neighbours alone (:meth:`_first_to_hear`): every node it reaches hears it back

@@ -11,7 +11,15 @@ from mso.protocol import warrant
 from mso.protocol.context import NodeContext
 from mso.protocol.dataplane import DataPlane
 from mso.protocol.effects import Reply, SetTimer
-from mso.protocol.events import AppMissing, Deadline, Happened, PeerFailed, RelocationEnded, Retry
+from mso.protocol.events import (
+    AppMissing,
+    Deadline,
+    Happened,
+    PeerFailed,
+    PeerRejoined,
+    RelocationEnded,
+    Retry,
+)
 from mso.protocol.procedures import placement
 from mso.protocol.procedures.base import STEP_TIMEOUT_S
 from mso.protocol.procedures.relocation._role import Role
@@ -364,6 +372,15 @@ class Coordinator(Role):
                 self.start_restore(dep, reloc, reloc.pid, now)
                 continue
             self.fail(reloc, f"node {node} failed during the relocation of {reloc.vertex!r}", now)
+
+    def on_peer_rejoined(self, ev: PeerRejoined) -> None:
+        """A move's end heard back in a later incarnation, never held failed here: its
+        instances went with its last process, as with a failure (fault seed 230733: the
+        target of a remap's move restarted before the handover; its coordinator, which never
+        held it failed, waited out the move's deadline, past the quiet phase, holding an app
+        it took no part in)."""
+        if ev.restarted:
+            self.on_peer_failed(PeerFailed(ev.node))
 
     def start_restore(self, dep: AppState, reloc: Relocation, rid: int, now: float) -> None:
         """Start a replacement for ``reloc.vertex`` on ``reloc.target``: its surviving
