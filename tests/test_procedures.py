@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from mso.protocol import messages as m
+from mso.protocol.events import PeerRejoined
 from mso.protocol.procedures.base import IllegalTransition, Phase, table_rows
 from mso.protocol.procedures.deploy import Deploy
 from mso.protocol.procedures.instance import H, InstanceEvent
@@ -132,3 +133,25 @@ def test_a_vertex_that_has_seen_no_event_yet_moves() -> None:
     ((_, _, reply),) = [(t, c, r) for t, c, r in sim.replies if c == 5]
     assert isinstance(reply, m.RelocateReply) and reply.ok, reply
     assert "mid" in sim.cores[target].instances("pipe")
+
+
+def test_a_move_whose_target_is_heard_back_restarted_fails_as_on_its_failure() -> None:
+    """A committed move's target restarts before the handover and its coordinator hears its
+    next incarnation before any failure detector held it failed: its prepared instance went
+    with its last process, so the move ends as on a failure, not at its deadline (fault seed
+    230733: the remap's coordinator held the app past the quiet phase). A rejoin after a
+    healed cut (no restart) leaves the move open."""
+    sim = Simulation(line(4))
+    assert deploy(sim, PIPE).ok
+    old = next(n for n, c in sim.cores.items() if "mid" in c.instances("pipe"))
+    target = "N3" if old != "N3" else "N2"
+    sim.drop = lambda node, dst, msg: isinstance(msg, m.Handover)
+    sim.request("N1", m.RelocateRequest("pipe", "mid", target=target), client=5)
+    sim.run_until(sim.now + 0.5)
+    core = sim.cores["N1"]
+    (reloc,) = [p for p in core.procedures.values() if isinstance(p, Relocation)]
+    assert reloc.state.name == "SWITCHING"
+    core.relocator.on_peer_rejoined(PeerRejoined(target))  # (a cut healed: it ran on)
+    assert reloc.state.name == "SWITCHING" and core.open_procedures(sim.now)
+    core.relocator.on_peer_rejoined(PeerRejoined(target, restarted=True))
+    assert core.open_procedures(sim.now) == []
