@@ -97,15 +97,22 @@ def test_an_instance_moves_through_its_lifecycle_at_both_hosts() -> None:
         arrived.life.on(InstanceEvent.HANDOVER)  # a second handover for a running instance
 
 
-def test_a_move_that_fails_before_any_switch_leaves_no_instance_at_its_target() -> None:
-    """The coordinator's deadline passes with the target's Prepared lost: the target drops the
-    instance it prepared (Unprepare) and the vertex runs on where it was, losing nothing."""
+def moving_mid(dropping: type[m.Message]) -> tuple[Simulation, str, str]:
+    """``pipe`` on a line of 4, ``mid`` asked to move one node on (by client 5) with every
+    message of type ``dropping`` lost: the simulation, its old host and its target."""
     sim = Simulation(line(4))
     assert deploy(sim, PIPE).ok
     old = next(n for n, c in sim.cores.items() if "mid" in c.instances("pipe"))
     target = "N3" if old != "N3" else "N2"
-    sim.drop = lambda node, dst, msg: isinstance(msg, m.Prepared)
+    sim.drop = lambda node, dst, msg: isinstance(msg, dropping)
     sim.request("N1", m.RelocateRequest("pipe", "mid", target=target), client=5)
+    return sim, old, target
+
+
+def test_a_move_that_fails_before_any_switch_leaves_no_instance_at_its_target() -> None:
+    """The coordinator's deadline passes with the target's Prepared lost: the target drops the
+    instance it prepared (Unprepare) and the vertex runs on where it was, losing nothing."""
+    sim, old, target = moving_mid(dropping=m.Prepared)
     sim.run_until(sim.now + 1.0)
     waiting = sim.cores[target].apps["pipe"].awaiting["mid"]
     assert waiting.life.state is H.AWAITING
@@ -141,12 +148,7 @@ def test_a_move_whose_target_is_heard_back_restarted_fails_as_on_its_failure() -
     with its last process, so the move ends as on a failure, not at its deadline (fault seed
     230733: the remap's coordinator held the app past the quiet phase). A rejoin after a
     healed cut (no restart) leaves the move open."""
-    sim = Simulation(line(4))
-    assert deploy(sim, PIPE).ok
-    old = next(n for n, c in sim.cores.items() if "mid" in c.instances("pipe"))
-    target = "N3" if old != "N3" else "N2"
-    sim.drop = lambda node, dst, msg: isinstance(msg, m.Handover)
-    sim.request("N1", m.RelocateRequest("pipe", "mid", target=target), client=5)
+    sim, _, target = moving_mid(dropping=m.Handover)
     sim.run_until(sim.now + 0.5)
     core = sim.cores["N1"]
     (reloc,) = [p for p in core.procedures.values() if isinstance(p, Relocation)]

@@ -393,13 +393,13 @@ class Restorer:
         had taken the edge (:meth:`_skip_ahead`): its input goes there, and each output it
         numbers on from where that instance's stood: what it holds unacknowledged below that
         its consumer has from that instance, as the ack's positions say."""
-        inc = dep.inc[msg.edge]
-        inc.skip_to(msg.start)
-        for o in dep.out_edges.get(vertex, []):
+        dep.inc[msg.edge].skip_to(msg.start)
+        outs = dep.out_edges.get(vertex, [])
+        further = {e: p for e, p in msg.positions.items() if e not in outs}
+        for o in outs:
             out, pos = dep.out.get(o), msg.positions.get(o, -1)
             if out is None or pos <= out.next_seq:
                 continue
-            further = {e: p for e, p in msg.positions.items() if e not in dep.out_edges[vertex]}
             new = self.dp.channel(dep, o, pos)
             new.number_as(out.gen)
             new.positions, new.gens = further, _known(msg.gens, further)

@@ -295,15 +295,11 @@ class Coordinator(Role):
         relayed ``Moved``: newer versions win."""
         for v, version in placement.versions(dep).items():
             node = dep.placed.get(v)
-            if (
-                v == reloc.vertex
-                or node in (None, reloc.target)
-                or v in dep.vanished
-                or version <= reloc.briefed.get(v, 0)
-            ):
+            if node is None or node == reloc.target or v == reloc.vertex or v in dep.vanished:
                 continue
-            inc = self.ctx.incarnation if node == self.ctx.id else -1
-            self.ctx.send(reloc.target, placement.moved(dep, v, node or "", inc))
+            if version > reloc.briefed.get(v, 0):
+                inc = self.ctx.incarnation if node == self.ctx.id else -1
+                self.ctx.send(reloc.target, placement.moved(dep, v, node, inc))
 
     def fail(self, reloc: Relocation, why: str, now: float) -> None:
         """A relocation or restore failed: whoever waits (a client, a remap) is told. If no
