@@ -227,6 +227,7 @@ class NodeCore:
         self._subscribe(RoutesChanged, self.deployer.on_routes_changed)
         self._subscribe(RoutesChanged, self.remapper.on_routes_changed)
         self._subscribe(RoutesChanged, self.replicator.on_routes_changed)
+        self._subscribe(RoutesChanged, self.relocator.on_routes_changed)
         self._subscribe(RecoveryDue, self.remapper.on_recovery_due)
         self._subscribe(
             PlacementStale, lambda ev: self.lookups.on_stale(ev.app, ev.wide, ev.sync, ev.also)

@@ -22,6 +22,9 @@ from mso.protocol.procedures.relocation._state import SWITCH_DEADLINE_S
 from mso.protocol.state import AppState, Restoring
 
 
+TAKEN_KEPT = 256  # handovers remembered as taken (a bound: one per recent move)
+
+
 class NewHost(Role):
     """A move's (or a restore's) target: prepares an instance, takes the handover."""
 
@@ -41,6 +44,10 @@ class NewHost(Role):
         # at a move's new host: the move each instance awaiting a handover was prepared for,
         # and when ((app, vertex) -> (rid, since)): another move's Prepare meanwhile is refused
         self._twins: dict[tuple[str, str], tuple[int, float]] = {}
+        # at a move's new host: the handovers taken lately (rid -> (app, vertex, version)), so
+        # that one sent again (its HandoverDone lost, or the first copy late) is acknowledged
+        # again rather than refused
+        self._taken: dict[int, tuple[str, str, int]] = {}
 
     def forget(self, rid: int) -> None:
         """A restore's replacement ran or was dropped: no handover will be reported for it."""
@@ -268,6 +275,8 @@ class NewHost(Role):
 
     def on_handover_events(self, src: str, msg: m.HandoverEvents, now: float) -> None:
         """Output events of a move, ahead of its handover: kept until it comes."""
+        if msg.rid in self._taken:  # (sent again with its handover, taken already)
+            return
         dep = self.ctx.apps.get(msg.app)
         ok = dep is not None and msg.vertex in dep.awaiting and 0 <= msg.edge < len(dep.app.edges)
         if not ok or dep is None or dep.app.edges[msg.edge].src != msg.vertex:
@@ -275,7 +284,9 @@ class NewHost(Role):
             return
         if self._not_its_source(src, msg.rid):
             return
-        self._parts.setdefault(msg.rid, {}).setdefault(msg.edge, []).append((msg.first, msg.events))
+        parts = self._parts.setdefault(msg.rid, {}).setdefault(msg.edge, [])
+        if all(first != msg.first for first, _ in parts):  # (a part sent again: kept once)
+            parts.append((msg.first, msg.events))
         early = self._early.get(msg.rid)
         if early is not None and self._complete(early[1]):
             del self._early[msg.rid]
@@ -286,6 +297,11 @@ class NewHost(Role):
 
     def on_handover(self, src: str, msg: m.Handover, now: float) -> None:
         dep = self.ctx.apps.get(msg.app)
+        taken = self._taken.get(msg.rid)
+        if taken is not None and taken[:2] == (msg.app, msg.vertex):
+            # sent again by its old host, which did not hear that it was taken
+            self.ctx.send(src, m.HandoverDone(msg.app, msg.vertex, msg.rid, self.ctx.id, taken[2]))
+            return
         if dep is None or msg.vertex not in dep.awaiting:
             self.ctx.refusal("handover_unexpected")
             return
@@ -355,9 +371,14 @@ class NewHost(Role):
             for seq, events, ts, said in sorted(dep.stash.pop(i, []), key=lambda b: b[0]):
                 self.dp.deliver(dep, i, seq, events, ts, gens=said)
         coordinator = self._handover_to.pop(msg.rid, None)
+        done = m.HandoverDone(msg.app, msg.vertex, msg.rid, self.ctx.id, msg.version)
         if coordinator is not None:
-            done = m.HandoverDone(msg.app, msg.vertex, msg.rid, self.ctx.id, msg.version)
             self.ctx.send(coordinator, done)
+        if src != coordinator:  # the old host keeps the handover until it hears
+            self.ctx.send(src, done)
+        self._taken[msg.rid] = (msg.app, msg.vertex, msg.version)
+        while len(self._taken) > TAKEN_KEPT:
+            del self._taken[next(iter(self._taken))]
         self.ctx.publish(Happened("hosted", msg.app, msg.vertex, f"{src} -> {self.ctx.id}"))
 
     def _not_its_source(self, src: str, rid: int) -> bool:

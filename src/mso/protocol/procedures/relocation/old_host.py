@@ -1,10 +1,19 @@
 """The node a vertex leaves: takes each producer's marker (with operator keys, only for a move it
 coordinates or was told of with a warrant, and only from the edge's producer), drains its
 instance to the markers, snapshots it and hands the state and channels over to the new host.
+
+The handover is the vertex's only copy once the old instance is freed, and a control frame that
+finds no route is given up after ``ROUTE_WAIT_S``. So the old host keeps what it sent until the
+new host says it took it (``HandoverDone``, sent to the old host too) and sends it again when
+the target is reachable again, and on a backoff (fault seed 274108: the target went out of
+reach 2 ms after the switch for 1.7 s; the handover was given up, the move never ended and the
+vertex ran nowhere). It is given up at the move's deadline or once the target is held failed:
+the vertex is then lost with the target's prepared instance, and restored from its replica.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from mso.protocol import effects as fx
@@ -17,6 +26,24 @@ from mso.protocol.events import MarkerReached, Snapshotted
 from mso.protocol.procedures import placement
 from mso.protocol.procedures.instance import InstanceEvent
 from mso.protocol.procedures.relocation._role import Role
+from mso.protocol.procedures.relocation._state import SWITCH_DEADLINE_S
+
+HANDOVER_AGAIN_S = 2.0
+"""A kept handover not acknowledged is sent again after this long, then twice as long each time
+(and at once when its target becomes reachable again)."""
+
+
+@dataclass
+class KeptHandover:
+    """A handover sent and not yet acknowledged: the frames, in their order (the output events
+    sent ahead, then the handover), and when to send them again or give them up."""
+
+    target: str
+    rid: int
+    frames: list[m.Message]
+    until: float
+    again_at: float
+    tries: int = 0
 
 
 class OldHost(Role):
@@ -25,6 +52,7 @@ class OldHost(Role):
     def __init__(self, ctx: NodeContext, dp: DataPlane) -> None:
         super().__init__(ctx, dp)
         self.leaving = warrant.Leaving()  # moves of vertices hosted here, told and warranted
+        self.kept: dict[tuple[str, str], KeptHandover] = {}  # (app, vertex): not acknowledged
 
     def on_moving(self, src: str, msg: m.Moving, now: float) -> None:
         """At a move's old host: the coordinator tells it the move, with its warrant; the
@@ -70,7 +98,8 @@ class OldHost(Role):
     def expire_held(self, now: float) -> None:
         """Markers from a node the view now places their edge's producer on are taken;
         markers whose move never got a warrant here, or that never came from their edge's
-        producer, are refused, counted."""
+        producer, are refused, counted. Kept handovers due are sent again."""
+        self.send_kept_again(now)
         for sender, msg in self.leaving.strays():
             dep = self.ctx.apps.get(msg.app)
             edges = dep.app.edges if dep is not None else []
@@ -132,6 +161,7 @@ class OldHost(Role):
         }
         outputs: dict[int, list[Any]] = {}
         parts = 0
+        frames: list[m.Message] = []
         for i in dep.out_edges.get(vid, []):
             out = dep.out.pop(i, None)
             if out is not None:
@@ -139,6 +169,7 @@ class OldHost(Role):
                 for first, part in ahead:  # (a backlog past one frame goes ahead in parts)
                     part_msg = m.HandoverEvents(dep.app.name, vid, msg.rid, i, first, part)
                     self.ctx.send(msg.to, part_msg)
+                    frames.append(part_msg)
                 parts += len(ahead)
                 outputs[i] = [out.next_seq, out.acked, events, out.positions, out.gen, out.gens]
         gate = dep.gates.pop(vid, None)
@@ -180,4 +211,29 @@ class OldHost(Role):
         dep.aside.pop(vid, None)  # (the marks it passes on are those still held whole)
         self.dp.taps.hand_over(dep.app.name, vid, msg.to, self.ctx.now)  # (asked there first)
         self.ctx.send(msg.to, handover)
+        now = self.ctx.now
+        self.kept[(dep.app.name, vid)] = KeptHandover(
+            msg.to, msg.rid, [*frames, handover], now + SWITCH_DEADLINE_S, now + HANDOVER_AGAIN_S
+        )
         placement.announce(self.ctx, dep, vid, msg.to)  # to the app's members, not everyone
+
+    def handover_taken(self, src: str, msg: m.HandoverDone) -> bool:
+        """The new host took a handover kept here: forgotten. False if none was kept."""
+        kept = self.kept.get((msg.app, msg.vertex))
+        if kept is None or kept.rid != msg.rid or src != kept.target:
+            return False
+        del self.kept[(msg.app, msg.vertex)]
+        return True
+
+    def send_kept_again(self, now: float, reachable: frozenset[str] = frozenset()) -> None:
+        """Send again each kept handover whose target is ``reachable`` again or whose backoff
+        is over; give up those past their move's deadline or whose target is held failed."""
+        for key, kept in list(self.kept.items()):
+            if now > kept.until or kept.target in self.ctx.failed:
+                del self.kept[key]
+                self.ctx.note_event(now, f"gave up the handover of {key[1]} to {kept.target}")
+            elif kept.target in reachable or now >= kept.again_at:
+                for frame in kept.frames:
+                    self.ctx.send(kept.target, frame)
+                kept.tries += 1
+                kept.again_at = now + HANDOVER_AGAIN_S * 2**kept.tries
