@@ -14,7 +14,7 @@ from mso.protocol.procedures.relocation import Relocation, RelocationEvent
 from mso.protocol.procedures.remap import Remap, RemapEvent
 from mso.protocol.procedures.status import StatusFanout
 from mso.sim.runner import Simulation
-from test_runtime_sim import PIPE, deploy, line
+from test_runtime_sim import PIPE, deploy, line, sink_stats
 
 
 def test_an_event_the_table_does_not_allow_raises() -> None:
@@ -140,6 +140,33 @@ def test_a_vertex_that_has_seen_no_event_yet_moves() -> None:
     ((_, _, reply),) = [(t, c, r) for t, c, r in sim.replies if c == 5]
     assert isinstance(reply, m.RelocateReply) and reply.ok, reply
     assert "mid" in sim.cores[target].instances("pipe")
+
+
+def test_a_handover_lost_on_the_way_is_sent_again_until_its_target_takes_it() -> None:
+    """Once the old instance is freed the handover is the vertex's only copy; a control frame
+    that finds no route is given up after a second. Lost (fault seed 274108: the target cut
+    off just after the switch), the old host sends it again, the move ends, and the sink has
+    every event once, in order; the old host forgets it once taken."""
+    sim, old, target = moving_mid(dropping=m.Handover)
+    lost: list[m.Message] = []
+
+    def lose_the_first(node: str, dst: str, msg: m.Message) -> bool:
+        if isinstance(msg, m.Handover) and not lost:
+            lost.append(msg)
+            return True
+        return False
+
+    sim.drop = lose_the_first
+    sim.run_until(sim.now + 1.0)
+    assert lost and not [r for _, c, r in sim.replies if c == 5]  # not ended yet
+    sim.run_until(sim.now + 3.0)
+    ((_, _, reply),) = [(t, c, r) for t, c, r in sim.replies if c == 5]
+    assert isinstance(reply, m.RelocateReply) and reply.ok, reply
+    assert "mid" in sim.cores[target].instances("pipe")
+    assert sim.cores[old].relocator.kept == {}
+    assert sim.cores[target].status(sim.now)["refusals"] == {}
+    stats = sink_stats(sim, "pipe", "sink")
+    assert stats["out_of_order"] == stats["repeats"] == 0 and stats["count"] == stats["next"] > 0
 
 
 def test_a_move_whose_target_is_heard_back_restarted_fails_as_on_its_failure() -> None:
