@@ -21,7 +21,6 @@ from mso.protocol.procedures.relocation._role import Role
 from mso.protocol.procedures.relocation._state import SWITCH_DEADLINE_S
 from mso.protocol.state import AppState, Restoring
 
-
 TAKEN_KEPT = 256  # handovers remembered as taken (a bound: one per recent move)
 
 
