@@ -11,9 +11,12 @@ replays exactly: ``.venv/bin/python -c "from mso.sim import faults; print(faults
 Usage: .venv/bin/python bench/faults.py [--seeds 5000] [--first 0] [--jobs N]
                                         [--faults-s 3] [--quiet-s 4] [--json FILE]
                                         [--no-restarts] [--planner paper|bytes]
+                                        [--control-loss P]
 (daemon restarts are drawn too, alone or while cut off; ``--no-restarts`` draws the schedules of
 the runs before the ninth stop, docs/benchmarks.md. ``--planner``: how the apps' chains are
-split, the paper's by default as the committed runs were, or the default bytes split.)
+split, the paper's by default as the committed runs were, or the default bytes split.
+``--control-loss P``: a study beside the committed runs, each control frame lost with
+probability P, as one that waited out its route wait is; the schedules stay the seeds'.)
 Writes bench/results/faults.json and faults.md.
 """
 
@@ -36,8 +39,8 @@ RESULTS = HERE / "results"
 CHUNK = 50
 
 
-def run_chunk(args: tuple[int, int, float, float, bool, str]) -> list[dict[str, Any]]:
-    first, count, faults_s, quiet_s, restarts, planner = args
+def run_chunk(args: tuple[int, int, float, float, bool, str, float]) -> list[dict[str, Any]]:
+    first, count, faults_s, quiet_s, restarts, planner, control_loss = args
     cfg = faults.Settings(
         start_s=1.0,
         faults_s=faults_s,
@@ -45,6 +48,7 @@ def run_chunk(args: tuple[int, int, float, float, bool, str]) -> list[dict[str, 
         rate=10.0,
         restarts=restarts,
         planner=planner,
+        control_loss=control_loss,
     )
     rows = []
     for seed in range(first, first + count):
@@ -78,7 +82,13 @@ def render(result: dict[str, Any]) -> str:
         f"### Seeded fault schedules: {s['seeds']:,} seeds from {result.get('first', 0):,} in "
         f"{result['seconds']:.0f} s ({result['jobs']} processes; faults over "
         f"{result['faults_s']:g} s, then {result['quiet_s']:g} s quiet, virtual time; daemon "
-        f"restarts {'on' if result['restarts'] else 'off'}; the {result['planner']} planner)",
+        f"restarts {'on' if result['restarts'] else 'off'}; the {result['planner']} planner"
+        + (
+            f"; control frames lost with probability {result['control_loss']:g}"
+            if result.get("control_loss")
+            else ""
+        )
+        + ")",
         "",
         "| faults injected | count |",
         "|---|---:|",
@@ -105,7 +115,9 @@ def render(result: dict[str, Any]) -> str:
         lines.append(
             "First failing seeds (replay with `faults.run(seed, Settings(start_s=1, "
             f"faults_s={result['faults_s']:g}, quiet_s={result['quiet_s']:g}, rate=10, "
-            f"restarts={result['restarts']}, planner={result['planner']!r}))`): "
+            f"restarts={result['restarts']}, planner={result['planner']!r}"
+            + (f", control_loss={result['control_loss']:g}" if result.get("control_loss") else "")
+            + "))`): "
             + ", ".join(f"{seed} ({', '.join(inv)})" for seed, inv in s["failing_seeds"][:15])
         )
     return "\n".join(lines) + "\n"
@@ -128,7 +140,15 @@ def main() -> int:
     ap.add_argument(
         "--planner", choices=["paper", "bytes"], default="paper", help="the apps' planner:"
     )
+    ap.add_argument(
+        "--control-loss",
+        type=float,
+        default=0.0,
+        help="each control frame lost with this probability (a study; default 0)",
+    )
     args = ap.parse_args()
+    if not 0 <= args.control_loss < 1:
+        ap.error("--control-loss must be in [0, 1)")
     if args.seeds < 1 or args.jobs < 1 or args.faults_s <= 0 or args.quiet_s <= 0:
         ap.error("--seeds, --jobs, --faults-s and --quiet-s must be positive")
     out: Path = args.json or RESULTS / "faults.json"
@@ -141,6 +161,7 @@ def main() -> int:
             args.quiet_s,
             args.restarts,
             args.planner,
+            args.control_loss,
         )
         for first in range(args.first, args.first + args.seeds, CHUNK)
     ]
@@ -173,6 +194,7 @@ def main() -> int:
         "first": args.first,
         "restarts": args.restarts,
         "planner": args.planner,
+        "control_loss": args.control_loss,
         "summary": {
             "seeds": len(rows),
             "faults": dict(sorted(injected.items())),

@@ -40,6 +40,24 @@ def test_a_seed_replays_to_the_identical_event_log() -> None:
     assert faults.run(seed + 1, CI).digest != a.digest
 
 
+def test_control_loss_keeps_the_seeds_schedule_and_loses_only_control_frames() -> None:
+    """``--control-loss`` (a study): the schedule is the seed's, and control frames, never
+    events, acks or beats, are lost after the start, so the run differs from the seed's."""
+    lossy = dataclasses.replace(CI, control_loss=0.3)
+    a, b = faults.generate(3, CI), faults.generate(3, lossy)
+    assert (a.app, a.changes, a.requests) == (b.app, b.changes, b.requests)
+    lost: Counter[str] = Counter()
+    sim = Simulation(a.network)
+    sim.now = 2.0  # (after the start: before it nothing is lost)
+    drop = faults._control_loss(sim, 3, lossy)
+    for msg in (m.Heartbeat("N1"), m.Ack("app", 0, 0, 5)):
+        assert not any(drop("N1", "N2", msg) for _ in range(200))
+    moved = m.Moved("app", "v", "N2", 1, 0)
+    lost.update("moved" for _ in range(1000) if drop("N1", "N2", moved))
+    assert 200 < lost["moved"] < 400
+    assert faults.run(3, CI).digest != faults.run(3, lossy).digest
+
+
 def test_schedules_are_seeded_and_cover_every_kind_of_fault() -> None:
     one, again = faults.generate(7), faults.generate(7)
     assert (one.app, one.changes, one.requests) == (again.app, again.changes, again.requests)

@@ -20,6 +20,7 @@ import math
 import random
 import traceback
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -266,6 +267,8 @@ def run(seed: int, settings: Settings | None = None) -> Result:
     scenario = Scenario(name=f"faults-{seed}", network=net, changes=list(sched.changes))
     sim = Simulation(net, seed=seed, manage=False)
     sim.trace = []
+    if sched.settings.control_loss > 0:
+        sim.drop = _control_loss(sim, seed, sched.settings)
     timeline = Timeline(scenario, network=net)
     log: list[str] = []
     violations: list[Violation] = []
@@ -318,6 +321,25 @@ def run(seed: int, settings: Settings | None = None) -> Result:
     unique = list(dict.fromkeys(violations))  # a periodic check may see one problem again
     again = repeats(records)
     return Result(seed, sched.topology, len(net.nodes), sched.faults, unique, log, again)
+
+
+UNLOSSY = (m.Data, m.Ack, m.Heartbeat, m.StatusRequest, m.StatusReply)
+
+
+def _control_loss(
+    sim: Simulation, seed: int, cfg: Settings
+) -> Callable[[str, str, m.Message], bool]:
+    """Loses each control frame with probability ``cfg.control_loss`` after ``cfg.start_s``
+    (drawn from a generator of its own: the schedule's draws stay those of the seed). Events
+    and acks have their own loss and retransmission; beats and the status check are left."""
+    rng = random.Random(f"control-loss/{seed}")
+
+    def drop(node: str, dst: str, msg: m.Message) -> bool:
+        if sim.now < cfg.start_s or isinstance(msg, UNLOSSY):
+            return False
+        return rng.random() < cfg.control_loss
+
+    return drop
 
 
 def _ask_status(sim: Simulation) -> None:

@@ -27,6 +27,10 @@ class Settings:
     # how the app's chains are split (``planner:``): the paper's split, as the committed runs
     # were; the default bytes split is run too (``bench/faults.py --planner bytes``)
     planner: str = "paper"
+    # a study, not part of the committed runs: each control frame (not events, acks, beats or
+    # status) lost on the way with this probability once the app is deployed, as a frame that
+    # waited out its route wait is (``bench/faults.py --control-loss``)
+    control_loss: float = 0.0
 
 
 @dataclass
