@@ -434,6 +434,10 @@ RESTARTS_BROKE = {
     "found no route and was given up after a second, the old instance already freed; p1 ran "
     "nowhere and nodes disagreed where (the old host keeps the handover until taken and "
     "sends it again when the target is reachable)",
+    273897: "c moved N5 to N3 and back (a remap); N5's sync, sent to the restarted N1 while "
+    "c was on its way back, said it had handed c to N3 (move 1) and came after N1 heard of "
+    "move 2: taken, N1 placed c on N3 for good (a handover older than a move heard since "
+    "is no news)",
 }
 
 
@@ -1113,6 +1117,29 @@ def test_a_sync_says_where_its_sender_handed_a_vertex_over() -> None:
     moved = placed | {"mid": "N4", "src": "N4"}  # N3 heard src moved: hearsay, not taken
     core.receive("N3", m.AppSync("pipe", "N2", doc, 0, moved, [], {"mid": "N4"}), 1.1)
     assert core.placement("pipe")["mid"] == "N4" and core.placement("pipe")["src"] == "N2"
+
+
+def test_a_sync_naming_a_handover_older_than_a_move_heard_since_is_not_taken() -> None:
+    """N3 handed mid over to N4 (move 1) and got it back (move 2): N1 heard N4's Moved of
+    move 2 and places mid on N3 at version 2. A sync N3 sent while mid was on its way back
+    (it awaited the handover: its view at move 1, its note that it handed mid to N4) came
+    after. The handover it names is older than the move N1 knows of: no news (fault seed
+    273897: taken, N1 placed mid on N4, which ran none, for good)."""
+    doc = pipe_app(50).replace("pinned: N1", "pinned: N2").replace("pinned: N4", "pinned: N1")
+    core = NodeCore("N1")
+    core.set_routes({"N2": ("N2", 1), "N3": ("N2", 2), "N4": ("N2", 2)}, 0.0)
+    placed = {"src": "N2", "mid": "N3", "sink": "N1"}
+    core.receive("N2", m.AppSync("pipe", "N2", doc, 0, placed, ["sink"]), 1.0)
+    core.receive("N4", m.Moved("pipe", "mid", "N3", -1, 2), 1.1)  # move 2, back to N3
+    assert core.placement("pipe")["mid"] == "N3"
+    stale = placed | {"mid": "N4"}
+    sync = m.AppSync("pipe", "N2", doc, 0, stale, [], {"mid": "N4"}, versions={"mid": 1})
+    core.receive("N3", sync, 1.2)
+    assert core.placement("pipe")["mid"] == "N3" and core.apps["pipe"].versions["mid"] == 2
+    # at the move N1 knows of (or a later one), the handover is news, as before
+    sync = m.AppSync("pipe", "N2", doc, 0, stale, [], {"mid": "N4"}, versions={"mid": 2})
+    core.receive("N3", sync, 1.3)
+    assert core.placement("pipe")["mid"] == "N4"
 
 
 def test_a_node_restarted_across_a_partition_and_given_instances_yields_when_it_heals() -> None:

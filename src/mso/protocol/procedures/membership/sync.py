@@ -111,7 +111,8 @@ class AppSyncing:
         ever correct it. But a sync is a snapshot and may be older than a Moved we have had
         since. So we take the sender's word where it is first-hand (a vertex it runs itself
         and does not hold vanished, or one we place on it that it says it handed over, and
-        to whom: a node held failed when the old host broadcast the move missed its Moved;
+        to whom, where we know of no later move than the sync: a node held failed when the
+        old host broadcast the move missed its Moved;
         with operator keys, a claim to run a vertex only where our view's host is the sender
         or failed, as a Moved is weighed: any member may send a sync), and its hearsay only
         where our own entry is known bad
@@ -155,11 +156,15 @@ class AppSyncing:
             told = not signed or placement.may_tell(held, v, src, self.failed)  # src would be
             if n == src and v not in gone and told:
                 return True
-            if mine == src and msg.handed.get(v) == n:  # it ran it and handed it over to n
+            older = msg.versions.get(v, 0) < held.versions.get(v, 0)
+            # it ran it and handed it over to n, unless we know of a later move than the
+            # sync's (it got the vertex back since: fault seed 273897, a sync sent while the
+            # vertex was on its way back to the sender named the move before)
+            if mine == src and msg.handed.get(v) == n and not older:
                 return True
             if n == mine and v in held.vanished:  # names the node whose old incarnation took
                 return False  # it: no news (a claim from that node would be)
-            if msg.versions.get(v, 0) < held.versions.get(v, 0):
+            if older:
                 return False  # an older view (seed 24380: a node that missed a move)
             bad = mine in self.failed or v in held.vanished or mine == self.ctx.id
             return bad and (v not in gone or v in held.vanished)
