@@ -7,7 +7,7 @@ import pytest
 
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.protocol import messages as m
-from mso.protocol.events import PeerFailed
+from mso.protocol.events import PeerFailed, PeerRejoined
 from mso.sim.runner import Simulation
 from test_runtime_sim import data_frames
 
@@ -340,3 +340,33 @@ def test_a_moves_target_restores_the_vertex_when_its_coordinator_and_old_host_go
     sim.run_until(sim.now + 1.0)
     after = sink_stats(sim)
     assert after["count"] > before["count"] + 400  # (the counter's state went with N3)
+
+
+def test_a_restores_target_takes_it_over_when_its_coordinator_is_heard_back_restarted() -> None:
+    """N3 restarts and N1 restores its ``counter`` in place; the restore's rewires are lost,
+    so the replacement waits for its producer. N1 then goes, and N3 hears of its next
+    process only from a ``NodeUp`` (no detector here ever holds N1 failed): the restore went
+    with N1's last process, and N3 coordinates it from here on, as when a restore's
+    coordinator fails. Before, it awaited the surviving ends for good, holding the app while
+    taking no part in it (fault seed 264860: N1 reset at a heal; the others ran a twin of the
+    vertex at a later move, so nobody restored it again). A rejoin after a healed cut (no
+    restart) leaves the restore to its coordinator."""
+    sim = started()
+    assert where(sim, "counter") == {"N3"}
+    sim.drop = lambda src, dst, msg: src == "N1" and isinstance(msg, m.Rewire)
+    sim.crash("N3")
+    sim.run_until(sim.now + 0.05)
+    sim.revive("N3")
+    sim.run_until(sim.now + 0.3)
+    core = sim.cores["N3"]
+    dep = core.apps["pipe"]
+    assert "counter" in dep.awaiting and dep.restoring["counter"].coordinator == "N1"
+    core.restorer.on_peer_rejoined(PeerRejoined("N1"))  # (a cut healed: it ran on)
+    assert dep.restoring["counter"].coordinator == "N1"
+    sim.drop = None
+    for c in sim.cores.values():
+        c.liveness.dead_after_s = 1e9  # nobody holds N1 failed
+    sim.crash("N1")
+    sim.apply("N3", core.receive("N2", m.NodeUp("N1", 1), sim.now))
+    sim.run_until(sim.now + 2.0)
+    assert "counter" not in dep.awaiting and where(sim, "counter") == {"N3"}

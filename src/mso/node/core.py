@@ -223,6 +223,7 @@ class NodeCore:
         self._subscribe(PeerRejoined, self.deployer.on_peer_rejoined)
         self._subscribe(PeerRejoined, self.lookups.on_peer_rejoined)
         self._subscribe(PeerRejoined, self.relocator.on_peer_rejoined)
+        self._subscribe(PeerRejoined, self.restorer.on_peer_rejoined)
         self._subscribe(RoutesChanged, self.membership.on_routes_changed)
         self._subscribe(RoutesChanged, self.deployer.on_routes_changed)
         self._subscribe(RoutesChanged, self.remapper.on_routes_changed)

@@ -45,6 +45,7 @@ from mso.protocol.events import (
     Happened,
     InstanceCrashed,
     PeerFailed,
+    PeerRejoined,
     RelocationEnded,
     ReplacementPrepared,
     Superseded,
@@ -877,6 +878,15 @@ class Restorer:
             for vid in self.relocator.orphaned(dep, node):
                 self.ctx.note_event(now, f"{vid}: its move's coordinator and old host {node} went")
                 self._restore_here(dep, vid, node, now)
+
+    def on_peer_rejoined(self, ev: PeerRejoined) -> None:
+        """A node heard back in a later incarnation, never held failed here: what it
+        coordinated went with its last process, as with a failure (fault seed 264860: a
+        restore's coordinator reset at a heal; its target, which had learnt of it from a
+        sync and never held it failed, awaited the restore's surviving ends for good,
+        holding an app it took no part in)."""
+        if ev.restarted:
+            self.on_peer_failed(PeerFailed(ev.node))
 
     def _consumers_lost(self, dep: AppState, node: str) -> None:
         """A stamped vertex running here whose consumer went with ``node``: its output
