@@ -439,8 +439,8 @@ RESTARTS_BROKE = {
     "move 2: taken, N1 placed c on N3 for good (a handover older than a move heard since "
     "is no news)",
     264860: "N1 restored j on N3 (restarted, cut off from the side running j's restore on N5 "
-    "at move 1) and reset at the heal before the rewires were taken; N3, which had learnt N1 "
-    "from a sync and never held it failed, heard its next incarnation from a NodeUp and "
+    "at move 1) and reset at the heal before the rewires were taken; N3, which knew N1 in "
+    "incarnation 0 and never held it failed, heard its next one from a NodeUp and "
     "awaited the restore's ends for good, holding the app (a restore's target takes over a "
     "restore whose coordinator is heard back restarted)",
 }
