@@ -443,6 +443,11 @@ RESTARTS_BROKE = {
     "incarnation 0 and never held it failed, heard its next one from a NodeUp and "
     "awaited the restore's ends for good, holding the app (a restore's target takes over a "
     "restore whose coordinator is heard back restarted)",
+    265408: "every node of the app crashed; N4, back, synced the origin N1 the view its last "
+    "process kept, placing a on N2 with no incarnation of N2 (not heard yet): N1, which had "
+    "heard N2 back empty, took a as running there and held N2 the recovery's coordinator, "
+    "while N2 and N4 held N1 it: nothing ran again (a kept record names its hosts' "
+    "incarnations, and a sync of a kept view names them for the nodes not heard since)",
 }
 
 

@@ -135,3 +135,43 @@ def test_a_kept_view_keeps_a_later_move_here_over_an_older_sync(theirs: int) -> 
     else:
         assert (dep.placed["mid"], dep.versions["mid"]) == ("N2", theirs)
         assert "mid" not in dep.vanished
+
+
+def test_a_kept_view_synced_before_its_hosts_are_heard_names_their_incarnations() -> None:
+    """Fault seed 265408's shape. N1 deployed the app and hosts none of it; everything runs on
+    N3 until ``mid`` moves to N2 (N1, no host, is not told). N3 keeps that view (``mid`` on
+    N2). All three crash; N1 comes back first, then N2 and N3 together. N1 hears N3 back
+    (its kept view's vertices there vanished), then N2 back empty, and then N3's sync of the
+    view N3's last process kept, placing ``mid`` on N2: sent before N3 heard N2, it named no
+    incarnation of N2, and N1 took ``mid`` as running there. Then N1 held N2 the node to
+    coordinate the recovery and N2 (and N3) held N1 it: nothing ran again. Now a kept record
+    names the incarnations its process knew of the hosts, a sync of a kept view names them for
+    the nodes not heard since, and N1 holds ``mid`` gone with N2's last process."""
+    doc = pipe_app(20).replace("pinned: N1", "pinned: N3").replace("pinned: N4", "pinned: N3")
+    sim = Simulation(line_net())
+    sim.network.add_link(LinkSpec("N1", "N3", delay_ms=1.0))
+    sim.request("N1", m.DeployRequest(doc, "app.yaml"))
+    sim.run_until(1.0)
+    assert set(sim.cores["N3"].instances("pipe")) == {"src", "mid", "sink"}
+    sim.request("N3", m.RelocateRequest("pipe", "mid", target="N2"))
+    sim.run_until(2.1)  # (a monitor period: N3 keeps its view, N2 has kept none of it yet)
+    assert sim.cores["N1"].apps["pipe"].placed["mid"] == "N3"  # (not told of the move)
+    assert "mid" in sim.cores["N2"].instances("pipe")
+    (record,) = kept.recall(sim.spills["N3"])
+    assert record.placed["mid"] == "N2" and record.incarnations == {"N2": 0}
+    for n in ("N1", "N2", "N3"):
+        sim.kill(n)
+    sim.run_until(2.5)
+    sim.revive("N1")  # (alone: no link yet)
+    sim.run_until(3.0)
+    sim.network.add_link(LinkSpec("N1", "N3", delay_ms=1.0))
+    sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.5))
+    sim.network.add_link(LinkSpec("N2", "N3", delay_ms=2.0))
+    sim.revive("N2")
+    sim.revive("N3")
+    sim.run_until(3.01)
+    assert "mid" in sim.cores["N1"].apps["pipe"].vanished  # (before: running on N2)
+    sim.run_until(8.0)
+    assert running(sim) == {"src", "mid", "sink"}
+    hosts = [n for n, c in sim.cores.items() if "pipe" in c.apps and "mid" in c.instances("pipe")]
+    assert len(hosts) == 1

@@ -507,8 +507,12 @@ class NodeCore:
             del self._kept[name]
             kept.forget(self.spill, name)
         for name, dep in self.apps.items():
-            if dep.running and self._kept.get(name) != (mark := kept.fingerprint(dep)):
-                kept.keep(self.spill, dep)
+            if not dep.running:
+                continue
+            hosts = set(dep.placed.values()) - {self.id}
+            incs = {n: i for n in sorted(hosts) if (i := self.incarnation_of(n, -1)) >= 0}
+            if self._kept.get(name) != (mark := kept.fingerprint(dep, incs)):
+                kept.keep(self.spill, dep, incs)
                 self._kept[name] = mark
 
     def takes_part(self, dep: AppState, copies: bool = True) -> bool:

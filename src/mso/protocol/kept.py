@@ -50,7 +50,7 @@ def record(
     )
 
 
-def fingerprint(dep: AppState) -> int:
+def fingerprint(dep: AppState, incarnations: dict[str, int] | None = None) -> int:
     """What a record of ``dep`` would say, as one number: kept again when it changes."""
     return hash(
         (
@@ -58,15 +58,19 @@ def fingerprint(dep: AppState) -> int:
             tuple(dep.placed.items()),
             tuple(dep.versions.items()),
             tuple((v, tuple(ns)) for v, ns in dep.replica_nodes.items()),
+            tuple(sorted((incarnations or {}).items())),
         )
     )
 
 
-def keep(spill: SpillStore, dep: AppState) -> None:
-    """This node holds ``dep`` now: keep its record (replacing an older one)."""
+def keep(spill: SpillStore, dep: AppState, incarnations: dict[str, int] | None = None) -> None:
+    """This node holds ``dep`` now: keep its record (replacing an older one), with the
+    ``incarnations`` it knows of the nodes its view places vertices on: a sync its next
+    process sends of this view before it hears them says which incarnation ran them (fault
+    seed 265408: without them, a placement on a node restarted since was taken as news)."""
     key = PREFIX + dep.app.name
     spill.drop(key)
-    spill.append(key, 0, [m.encode(record(dep))])
+    spill.append(key, 0, [m.encode(record(dep, incarnations=incarnations))])
     spill.note(key + "/", "epoch", dep.epoch)
 
 

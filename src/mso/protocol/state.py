@@ -495,6 +495,10 @@ class AppState:
     # the view is the one this node's last process kept in its store (mso.protocol.kept),
     # heard from no other node since: the first sync from another node may overrule it
     stored: bool = False
+    # while ``stored``: the incarnation its last process knew of each node the view places a
+    # vertex on (the record's): a sync of this view names it for a node this process has not
+    # heard yet, as its placement there is that incarnation's (fault seed 265408)
+    kept_incarnations: dict[str, int] = lazy(dict)
     placed_chains: set[int] = lazy(set)
     started_chains: set[int] = lazy(set)
     probes: dict[int, dict[int, list[Hop]]] = lazy(dict)

@@ -210,6 +210,12 @@ class AppSyncing:
         known = self._incarnations
         hosts = set(dep.placed.values())
         incarnations = {n: known[n] for n in hosts if n in known} | {self.ctx.id: self.incarnation}
+        if dep.stored:  # a view our last process kept: for a node not heard since, the
+            # incarnation it knew (fault seed 265408: N4, back, synced N1 its view placing `a`
+            # on N2 with no incarnation; N1, which had heard N2 back empty, took `a` as
+            # running there, and held N2 the coordinator while N2 held N1 it: nobody was)
+            stale = dep.kept_incarnations
+            incarnations = {n: stale[n] for n in hosts if n in stale} | incarnations
         return kept.record(dep, handed, incarnations)
 
     def _outlived(self, msg: m.AppSync) -> set[str]:
@@ -293,7 +299,8 @@ class AppSyncing:
         if signed and held is not None and generation(msg.document) != generation(held.document):
             self.ctx.refusal("app_sync_other_deployment")  # (an operator deployed it again since)
             return
-        self.learn_incarnations(msg.incarnations)
+        if src != self.ctx.id:  # (our last process's: of nodes maybe restarted since)
+            self.learn_incarnations(msg.incarnations)
         # kept by our last process (mso.protocol.kept), and nothing done on it yet: a live
         # node's view is taken as a node back empty takes it (fault seeds 1564, 1614), with
         # what the kept view learnt vanished since where both place it alike (a rejoin heard
@@ -363,6 +370,9 @@ class AppSyncing:
         dep.vanished.replace({v for v in msg.vanished if v in app.vertices} | self._outlived(msg))
         if mine:  # kept by its last process
             dep.stored = True
+            dep.kept_incarnations = {
+                n: k for n, k in msg.incarnations.items() if n != self.ctx.id and k >= 0
+            }
         # what the sync places here does not run here (this node held none of the app): it
         # went with this node's last process, or with its reset (seed 122789: the sender had
         # not heard of the reset; held running here, nobody restored it)
