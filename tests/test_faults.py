@@ -448,6 +448,11 @@ RESTARTS_BROKE = {
     "heard N2 back empty, took a as running there and held N2 the recovery's coordinator, "
     "while N2 and N4 held N1 it: nothing ran again (a kept record names its hosts' "
     "incarnations, and a sync of a kept view names them for the nodes not heard since)",
+    275195: "c, restored on N7 after N4's crash, held the sink's marks of b's input to m (12, "
+    "the first numbering): b's node was down, so no event went past them; b was restored "
+    "numbering anew from 0 and m after it, and c dropped the restarted source's first 13 "
+    "events as the sink's (a merge's replacement tells a forwarder that survived which "
+    "inputs it numbers anew)",
 }
 
 

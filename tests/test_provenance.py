@@ -551,3 +551,33 @@ def test_a_merge_that_holds_no_channel_of_an_input_answers_in_a_numbering_made_a
     assert anew.start == 0 and anew.gen != 0
     assert dep.inc[0].gen == anew.gen and dep.inc[0].expected == 0
     assert dep.renumbered["m"] == {0}
+
+
+def test_a_merges_replacement_tells_a_forwarder_that_survived_which_inputs_are_new() -> None:
+    """A forwarder restored earlier holds its consumer's marks of the merge's inputs until an
+    event goes past them; the producer of one input was lost meanwhile, so nothing did. The
+    merge's replacement, its producer numbering that input anew (``Resume.fresh``), lets those
+    marks go at its own end and tells the forwarder, which drops its own (held by generation
+    aside, as before): kept, they dropped the new events as had (fault seed 275195: a
+    restarted source's first 13 events never reached the sink)."""
+    sim = started(MERGE)
+    node, fwd = where(sim, "merge", "m"), where(sim, "merge", "c")
+    core, dep = sim.cores[node], sim.cores[node].apps["merge"]
+    far = (10**6, 0)  # what the sink had of each input, of the deployment's numbering
+    sim.cores[fwd].apps["merge"].marks["c"] = {3: {0: far, 1: far}}
+    h = dep.instances.pop("m")  # its replacement, resumed by its consumer and by s2
+    h.life.state, h.processed = H.AWAITING, 0
+    dep.awaiting["m"] = h
+    del dep.inc[0]
+    dep.restoring["m"] = Restoring(
+        99, "N1", {(0, True)}, resumed={1}, consumer_start={2: dep.out[2].next_seq},
+        consumer_gen={2: 0}, consumer_marks={2: {0: far, 1: far}}, consumer_markgens={2: {}},
+        fetched=True,
+    )  # fmt: skip
+    anew = m.Resume("merge", 0, 99, True, 0, gen=7)  # s1's replacement: a numbering made anew
+    anew.fresh = True
+    sim.apply(node, core.receive(where(sim, "merge", "s1"), anew, sim.now))
+    assert "m" in dep.instances and dep.renumbered["m"] == {0}
+    assert dep.marks["m"] == {2: {1: far}}
+    sim.run_until(sim.now + 0.05)  # the forwarder is told, and drops its marks of input 0
+    assert sim.cores[fwd].apps["merge"].marks["c"] == {3: {1: far}}

@@ -506,13 +506,21 @@ class Restorer:
         for o, held in list(dep.marks.get(vertex, {}).items()):
             dep.marks[vertex][o] = provenance.without(held, [msg.edge])
         for o in dep.out_edges.get(vertex, []):  # a forwarder's marks of it name it too
-            out, consumer = dep.out.get(o), dep.app.edges[o].dst
-            if out is not None and consumer in dep.layout.forwarders:
-                told = m.Resume(dep.app.name, o, msg.rid, True, out.acked, gen=out.gen)
-                told.renumbered = sorted(dep.renumbered[vertex])
-                self.ctx.send(dep.placed[consumer], told)
+            if dep.app.edges[o].dst in dep.layout.forwarders:
+                self._tell_renumbered(dep, o, msg.rid, sorted(dep.renumbered[vertex]))
         self.dp.touch(dep.app.name)
         return True
+
+    def _tell_renumbered(self, dep: AppState, o: int, rid: int, inputs: list[int]) -> None:
+        """Tell the forwarder on output ``o`` that ``inputs`` of this merge are numbered anew
+        (``Resume.renumbered``): the marks it holds of them for its own consumer name a
+        numbering gone, and kept they drop the new events as had (:meth:`anchor`)."""
+        out = dep.out.get(o)
+        if out is None:
+            return
+        told = m.Resume(dep.app.name, o, rid, True, out.acked, gen=out.gen)
+        told.renumbered = inputs
+        self.ctx.send(dep.placed[dep.app.edges[o].dst], told)
 
     def on_replacement_prepared(self, ev: ReplacementPrepared) -> None:
         """The replacement started here (or its state arrived from a replica): with no
@@ -580,6 +588,7 @@ class Restorer:
             # (an input whose numbering every consumer's marks name is not new to them)
             dep.renumbered[vertex] = set[int]().union(*(_anew(dep, restoring, o) for o in outs))
         forwarder = vertex in dep.layout.forwarders
+        renew: dict[int, list[int]] = {}  # output -> inputs its forwarder's marks name anew
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
             marks = restoring.consumer_marks.get(o) if snap is None or forwarder else None
@@ -598,7 +607,10 @@ class Restorer:
             elif marks is not None:  # a merge: from where its consumer stands, only what it
                 base = restoring.consumer_start[o]  # lacks (mso.protocol.provenance); not
                 # by an input numbered anew (its producer lost with the merge: seed 11242)
-                marks = provenance.without(marks, _anew(dep, restoring, o))
+                anew = _anew(dep, restoring, o)
+                if dep.app.edges[o].dst in dep.layout.forwarders:  # (its own marks of them)
+                    renew[o] = sorted(anew & set(marks))
+                marks = provenance.without(marks, anew)
                 dep.marks.setdefault(vertex, {})[o] = marks
             elif snap is None and dep.replicas.get(vertex) and o not in restoring.positions:
                 # no ack said where its output stood: a producer that replays what it retains
@@ -658,6 +670,8 @@ class Restorer:
                 out.gens = _known(restoring.gens, further) | _known(
                     restoring.consumer_gens.get(o, {}), told
                 )
+            if renew.get(o):  # a forwarder that survived holds its consumer's marks of
+                self._tell_renumbered(dep, o, restoring.rid, renew[o])  # them: let go
             theirs = restoring.consumer_start.get(o, 0)
             guess = o in restoring.unheld and theirs > out.acked
             if out.positions and (theirs < out.acked or guess):
