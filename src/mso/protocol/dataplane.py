@@ -501,9 +501,12 @@ class DataPlane:
                 marks, aside = dep.marks.get(vid), dep.aside.get(vid)
                 if marks or aside:  # a replacement: only what each consumer lacks
                     for o in out_edges:
+                        gens = self.stamp_gens(dep, o)
+                        if marks and o in marks and aside and o in aside:  # (seed 277659)
+                            provenance.renamed(marks[o], aside[o], gens)
                         lacks = provenance.past(outputs, marks.get(o, {})) if marks else outputs
                         if aside and o in aside:  # (by generation: fault seed 150917)
-                            lacks = provenance.past_held(lacks, aside[o], self.stamp_gens(dep, o))
+                            lacks = provenance.past_held(lacks, aside[o], gens)
                             if not aside[o]:
                                 del aside[o]
                         if lacks:

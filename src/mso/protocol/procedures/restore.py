@@ -116,8 +116,12 @@ class Restorer:
             kept = out.retained_from(REPLICA_OWNER)  # a replicated consumer: replay from
             # its newest replicated snapshot on (or from the ack, if that is earlier)
             start = min(kept, out.acked) if kept is not None else -1
-            # (events made anew since the consumer's snapshot: not the ones it counted)
-            retained = -1 if msg.edge in dep.fresh_from else start
+            # (events made anew since the consumer's snapshot: not the ones it counted; and
+            # an end not running yet, a replacement or a move's target, retains nothing of
+            # what the instance before made: its channel here is new, at 0, and said so, the
+            # consumer's replacement took a snapshot at 0 whose replay never came, its state
+            # restarted undeclared: fault seed 277659)
+            retained = -1 if msg.edge in dep.fresh_from or ours not in dep.instances else start
             resume = m.Resume(
                 msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions), retained
             )
