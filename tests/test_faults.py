@@ -453,6 +453,11 @@ RESTARTS_BROKE = {
     "numbering anew from 0 and m after it, and c dropped the restarted source's first 13 "
     "events as the sink's (a merge's replacement tells a forwarder that survived which "
     "inputs it numbers anew)",
+    277659: "a counting forwarder restored from a snapshot at 0 by its merge's replacement "
+    "not running yet, which said it retained from 0 (the count went back, undeclared); then "
+    "the merge, running, numbered an input anew, and the sink's marks of the old numbering "
+    "dropped a restarted source's first 12 events as had (an end not running retains "
+    "nothing; a forwarder's marks go for an input its frames say is numbered anew)",
 }
 
 

@@ -439,6 +439,36 @@ def test_a_forwarder_holds_its_consumers_marks_by_the_generation_they_name() -> 
     assert fwd.aside["c"] == {3: {0: far, 1: far}}  # (held: the input may come back)
 
 
+def test_a_forwarders_marks_of_an_input_numbered_anew_since_let_its_new_events_pass() -> None:
+    """A forwarder's replacement holds its consumer's marks of the deployment's numbering (as
+    it passes on only what its consumer lacks, and aside by generation). The merge, restored
+    after it with a producer that was lost too, numbers that input anew and says so only in
+    its frames (``Data.gens``): the marks of that input name a numbering gone and drop
+    nothing of the new one; the other input's still do (fault seed 277659: the sink's marks
+    dropped a restarted source's first 12 events as had)."""
+    vertices.RUNS.pop("provenance-moved", None)
+    sim = started(MERGE)
+    fwd = sim.cores[where(sim, "merge", "c")].apps["merge"]
+    far = (10**6, 0)  # the sink had everything of both inputs, of the deployment's numbering
+    fwd.marks["c"] = {3: {0: far, 1: far}}
+    fwd.aside["c"] = {3: {0: (far, 0), 1: (far, 0)}}
+    (record,) = vertices.RUNS["provenance-moved"]
+
+    def seen() -> dict[str, int]:
+        return {key[0]: len(s.seen) for key, s in record.streams.items()}
+
+    sim.run_until(sim.now + 0.05)
+    had = seen()
+    sim.run_until(sim.now + 1.0)  # both inputs in the marks' numbering: nothing sent on
+    assert seen() == had
+    sim.cores[where(sim, "merge", "m")].apps["merge"].inc[0].gen = 55  # s1's numbered anew
+    sim.run_until(sim.now + 1.0)
+    now = seen()
+    assert now["s1"] > had["s1"] and now["s2"] == had["s2"]
+    assert fwd.marks["c"] == {3: {1: far}}  # (input 1's still holds)
+    assert fwd.aside["c"] == {3: {0: (far, 0), 1: (far, 0)}}  # (the input may come back)
+
+
 def test_a_merge_takes_an_input_it_has_taken_nothing_of_in_its_producers_numbering() -> None:
     """A merge that has processed one input's events keeps its output's numbering when the
     other input's producer says where its numbering stands (an anchor: refused), but takes

@@ -17,6 +17,7 @@ from mso.protocol import kept
 from mso.protocol import messages as m
 from mso.protocol.events import MonitorTick
 from mso.protocol.procedures.deploy import holders
+from mso.protocol.procedures.instance import H
 from mso.protocol.state import AppState
 from mso.sim.runner import Simulation
 from test_failure import emitted, mesh, recoveries, started, stats, where
@@ -179,6 +180,33 @@ def alone_on_n1() -> Simulation:
     sim.links_changed()
     sim.run_until(sim.now + 2.0)
     return sim
+
+
+def test_a_producer_not_running_yet_says_it_retains_nothing_for_a_restore() -> None:
+    """A restore of the counter rewires its producer's end; that end, a replacement (or a
+    move's target) not running yet, has a new channel at 0 that retained nothing of what the
+    instance before made, and says so (``Resume.retained`` -1): the counter's replacement
+    does not take a replica's snapshot whose replay would never come, and its state restarts,
+    declared. Before, it said it retained from 0 and a snapshot at 0 was taken (fault seed
+    277659: the count went back at the sink with no state restart declared)."""
+    sim = started(counter_app())
+    sim.run_until(sim.now + 1.5)
+    node, host = where(sim, "pipe", "src"), where(sim, "pipe", "mid")
+    core, dep = sim.cores[node], sim.cores[node].apps["pipe"]
+
+    def retained() -> int:
+        rewire = m.Rewire("pipe", 0, host, 1234, True)
+        effects = core.receive(host, rewire, sim.now)
+        sent = [e.msg for e in effects if isinstance(e, fx.Send) and e.dst == host]
+        (said,) = [r for r in sent if isinstance(r, m.Resume)]
+        return said.retained
+
+    assert retained() >= 0  # running: from its newest replicated snapshot on
+    h = dep.instances.pop("src")  # its replacement, not running yet: no channel of its own
+    h.life.state = H.AWAITING
+    dep.awaiting["src"] = h
+    del dep.out[0]
+    assert retained() == -1
 
 
 def test_a_replica_replaced_by_none_is_no_longer_named_by_its_host() -> None:
