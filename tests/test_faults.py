@@ -458,6 +458,11 @@ RESTARTS_BROKE = {
     "the merge, running, numbered an input anew, and the sink's marks of the old numbering "
     "dropped a restarted source's first 12 events as had (an end not running retains "
     "nothing; a forwarder's marks go for an input its frames say is numbered anew)",
+    274022: "N2 coordinated the restore of j on itself (its coordinator N1 had reset); j ran on "
+    "N7, restored at move 1 across a cut with its producer and consumer moved, and N2, told "
+    "by a relayed word that kept j vanished, sent its rewires to their old node, which said "
+    "nothing, until past the quiet phase (a restore ends on a later move of its vertex held "
+    "lost only as it was when the restore began)",
 }
 
 

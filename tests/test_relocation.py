@@ -8,6 +8,7 @@ import pytest
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.protocol import messages as m
 from mso.protocol.events import PeerFailed, PeerRejoined
+from mso.protocol.procedures.relocation import Relocation
 from mso.sim.runner import Simulation
 from test_runtime_sim import data_frames
 
@@ -370,3 +371,40 @@ def test_a_restores_target_takes_it_over_when_its_coordinator_is_heard_back_rest
     sim.apply("N3", core.receive("N2", m.NodeUp("N1", 1), sim.now))
     sim.run_until(sim.now + 2.0)
     assert "counter" not in dep.awaiting and where(sim, "counter") == {"N3"}
+
+
+def test_a_restore_ends_on_a_later_move_of_its_vertex_held_lost_only_as_it_began() -> None:
+    """N3 restarts and N1 restores its ``counter`` there; the restore's rewires are lost, so
+    the replacement waits for its producer. A relayed word then places the counter on N2 at a
+    later move: N1's view keeps it vanished (a relayed word says where, not that it survived),
+    as it was when the restore began. The restore was asked on a view from before that move
+    (its ends may have moved with it), so at its next retry it ends, drops the replacement, and
+    the recovery rule looks at the vertex on the view it has now. Before, it asked the same
+    ends again until its last attempt, 6 s, holding the app (fault seed 274022: N2 coordinated
+    the restore of ``j`` on itself, whose coordinator had reset; ``j`` ran on N7, restored at
+    move 1 across a cut, its producer and consumer moved with it, and N2's rewires went to
+    their old node, which said nothing)."""
+    sim = started()
+    assert where(sim, "counter") == {"N3"}
+    sim.drop = lambda src, dst, msg: src == "N1" and isinstance(msg, m.Rewire)
+    sim.crash("N3")
+    sim.run_until(sim.now + 0.05)
+    sim.revive("N3")
+    sim.run_until(sim.now + 0.3)
+    core, target = sim.cores["N1"], sim.cores["N3"].apps["pipe"]
+    (reloc,) = [p for p in core.procedures.values() if isinstance(p, Relocation) and p.restore]
+    assert reloc.target == "N3" and "counter" in target.awaiting
+    dep = core.apps["pipe"]
+    assert "counter" in dep.vanished and dep.versions.get("counter", 0) == 0
+    sim.apply("N1", core.receive("N4", m.Moved("pipe", "counter", "N2", -1, 1), sim.now))
+    assert dep.placed["counter"] == "N2" and "counter" in dep.vanished
+    sim.run_until(sim.now + 1.0)
+    assert reloc.pid not in core.procedures and reloc.done
+    assert target.restoring.get("counter") is None or target.restoring["counter"].rid != reloc.pid
+    sim.drop = None
+    sim.run_until(sim.now + 3.0)
+    (host,) = where(sim, "counter")
+    before = sink_stats(sim)
+    sim.run_until(sim.now + 1.0)
+    assert sink_stats(sim)["count"] > before["count"] + 400
+    assert {c.apps["pipe"].placed["counter"] for c in sim.cores.values()} == {host}

@@ -101,6 +101,9 @@ class Relocation(Procedure):
         # the versions of the view its last Prepare carried: moves told since are told the
         # target at the end (it was no member of the app when they were announced)
         self.briefed: dict[str, int] = {}
+        # a restore: the vertex's version in this node's view when it began (a later one
+        # elsewhere is a move or restore this one did not know of: ``Relocator.on_retry``)
+        self.restored_at: int | None = None
 
     def refusal(self, why: str) -> m.Message:
         return m.RelocateReply(self.app, self.vertex, False, error=why)

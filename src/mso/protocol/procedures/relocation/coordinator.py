@@ -17,6 +17,7 @@ from mso.protocol.events import (
     Happened,
     PeerFailed,
     PeerRejoined,
+    RecoveryDue,
     RelocationEnded,
     Retry,
 )
@@ -390,6 +391,8 @@ class Coordinator(Role):
             [i, True] for i, e in enumerate(edges) if e.dst == reloc.vertex and e.src not in lost
         ] + [[i, False] for i, e in enumerate(edges) if e.src == reloc.vertex and e.dst not in lost]
         reloc.attempts += 1
+        if reloc.restored_at is None:
+            reloc.restored_at = dep.versions.get(reloc.vertex, 0)
         prepare = placement.prepare(dep, reloc.vertex, rid, True, reloc.resumes, reloc.order)
         self._send_prepare(dep, reloc, prepare)
         self.ctx.emit(SetTimer(Retry(rid, reloc.attempts), now + STEP_TIMEOUT_S))
@@ -417,7 +420,12 @@ class Coordinator(Role):
             self.fail(reloc, why, now)
             return
         where = dep.placed[reloc.vertex]
-        if where != reloc.target and reloc.vertex not in dep.lost(self.ctx.failed):
+        lost = reloc.vertex in dep.lost(self.ctx.failed)
+        # a later move than this restore began on, onto a live node, held lost only as it was
+        # when it began (a relayed word keeps a vertex vanished: it says where, not that it
+        # survived; fault seed 274022): its ends were asked on a view from before that move
+        later = dep.versions.get(reloc.vertex, 0) > (reloc.restored_at or 0)
+        if where != reloc.target and (not lost or (later and where not in self.ctx.failed)):
             # restored meanwhile by another coordinator (its target tells only the newest
             # one) and maybe moved since: asked again, the target would start a second
             # instance. Done; an instance prepared for this restore and never resumed is
@@ -428,6 +436,8 @@ class Coordinator(Role):
             self.ctx.end(reloc.pid)
             reloc.target = where
             self._ended(reloc, "")
+            if lost:  # held lost there too: the recovery rule looks at it on this view
+                self.ctx.publish(RecoveryDue(reloc.app))
             return
         reloc.on(RelocationEvent.RETRY)
         if reloc.retried is not None:  # a recovery's record of what it sent again
