@@ -17,7 +17,7 @@ from mso.protocol.channel import InChannel
 from mso.protocol.events import PeerFailed
 from mso.protocol.procedures import restore
 from mso.protocol.procedures.instance import H
-from mso.protocol.state import Restoring
+from mso.protocol.state import AppState, Restoring
 from mso.runtime.worker import VertexWorker
 from mso.sim import faults, vertices
 from test_failure import started, where
@@ -412,17 +412,20 @@ def test_marks_held_by_generation_drop_only_what_their_own_numbering_had() -> No
     assert held == {1: ((20, 0), 9)}  # went past: what follows is past it too
 
 
-def test_a_forwarder_holds_its_consumers_marks_by_the_generation_they_name() -> None:
-    """A forwarder's replacement let its consumer's marks of an input go as of a numbering
-    gone (the merge's producer numbered it on a guess); held aside with their generation,
-    they still drop what the input makes in their own numbering once it comes back to it
-    (an anchor to a producer's carried positions: fault seed 150917, an event of each source
-    twice at the sink), and let pass what another numbering makes."""
+def s1_numbered_anew_past_marks(
+    aside: dict[int, dict[int, tuple[tuple[int, int], int]]],
+    marks: dict[int, dict[int, tuple[int, int]]] | None = None,
+) -> AppState:
+    """``merge`` running, its forwarder ``c`` holding the sink's ``marks`` and ``aside`` (far
+    past everything): nothing is sent on while both inputs keep the marks' numbering; then
+    ``s1``'s input is numbered anew and its new events pass, ``s2``'s do not. The forwarder's
+    app state, to look at its marks after."""
     vertices.RUNS.pop("provenance-moved", None)
     sim = started(MERGE)
     fwd = sim.cores[where(sim, "merge", "c")].apps["merge"]
-    far = ((10**6, 0), 0)  # the sink had everything of both inputs, of the deployment's
-    fwd.aside["c"] = {3: {0: far, 1: far}}
+    if marks is not None:
+        fwd.marks["c"] = marks
+    fwd.aside["c"] = aside
     (record,) = vertices.RUNS["provenance-moved"]
 
     def seen() -> dict[str, int]:
@@ -436,6 +439,17 @@ def test_a_forwarder_holds_its_consumers_marks_by_the_generation_they_name() -> 
     sim.run_until(sim.now + 1.0)
     now = seen()
     assert now["s1"] > had["s1"] and now["s2"] == had["s2"]
+    return fwd
+
+
+def test_a_forwarder_holds_its_consumers_marks_by_the_generation_they_name() -> None:
+    """A forwarder's replacement let its consumer's marks of an input go as of a numbering
+    gone (the merge's producer numbered it on a guess); held aside with their generation,
+    they still drop what the input makes in their own numbering once it comes back to it
+    (an anchor to a producer's carried positions: fault seed 150917, an event of each source
+    twice at the sink), and let pass what another numbering makes."""
+    far = ((10**6, 0), 0)  # the sink had everything of both inputs, of the deployment's
+    fwd = s1_numbered_anew_past_marks(aside={3: {0: far, 1: far}})
     assert fwd.aside["c"] == {3: {0: far, 1: far}}  # (held: the input may come back)
 
 
@@ -446,25 +460,10 @@ def test_a_forwarders_marks_of_an_input_numbered_anew_since_let_its_new_events_p
     its frames (``Data.gens``): the marks of that input name a numbering gone and drop
     nothing of the new one; the other input's still do (fault seed 277659: the sink's marks
     dropped a restarted source's first 12 events as had)."""
-    vertices.RUNS.pop("provenance-moved", None)
-    sim = started(MERGE)
-    fwd = sim.cores[where(sim, "merge", "c")].apps["merge"]
     far = (10**6, 0)  # the sink had everything of both inputs, of the deployment's numbering
-    fwd.marks["c"] = {3: {0: far, 1: far}}
-    fwd.aside["c"] = {3: {0: (far, 0), 1: (far, 0)}}
-    (record,) = vertices.RUNS["provenance-moved"]
-
-    def seen() -> dict[str, int]:
-        return {key[0]: len(s.seen) for key, s in record.streams.items()}
-
-    sim.run_until(sim.now + 0.05)
-    had = seen()
-    sim.run_until(sim.now + 1.0)  # both inputs in the marks' numbering: nothing sent on
-    assert seen() == had
-    sim.cores[where(sim, "merge", "m")].apps["merge"].inc[0].gen = 55  # s1's numbered anew
-    sim.run_until(sim.now + 1.0)
-    now = seen()
-    assert now["s1"] > had["s1"] and now["s2"] == had["s2"]
+    fwd = s1_numbered_anew_past_marks(
+        marks={3: {0: far, 1: far}}, aside={3: {0: (far, 0), 1: (far, 0)}}
+    )
     assert fwd.marks["c"] == {3: {1: far}}  # (input 1's still holds)
     assert fwd.aside["c"] == {3: {0: (far, 0), 1: (far, 0)}}  # (the input may come back)
 

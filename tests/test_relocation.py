@@ -343,6 +343,19 @@ def test_a_moves_target_restores_the_vertex_when_its_coordinator_and_old_host_go
     assert after["count"] > before["count"] + 400  # (the counter's state went with N3)
 
 
+def restored_in_place_with_rewires_lost() -> Simulation:
+    """N3, which runs ``counter``, restarts and N1 restores it in place; N1's rewires are lost,
+    so the replacement waits for its producer."""
+    sim = started()
+    assert where(sim, "counter") == {"N3"}
+    sim.drop = lambda src, dst, msg: src == "N1" and isinstance(msg, m.Rewire)
+    sim.crash("N3")
+    sim.run_until(sim.now + 0.05)
+    sim.revive("N3")
+    sim.run_until(sim.now + 0.3)
+    return sim
+
+
 def test_a_restores_target_takes_it_over_when_its_coordinator_is_heard_back_restarted() -> None:
     """N3 restarts and N1 restores its ``counter`` in place; the restore's rewires are lost,
     so the replacement waits for its producer. N1 then goes, and N3 hears of its next
@@ -352,13 +365,7 @@ def test_a_restores_target_takes_it_over_when_its_coordinator_is_heard_back_rest
     taking no part in it (fault seed 264860: N1 reset at a heal; the others ran a twin of the
     vertex at a later move, so nobody restored it again). A rejoin after a healed cut (no
     restart) leaves the restore to its coordinator."""
-    sim = started()
-    assert where(sim, "counter") == {"N3"}
-    sim.drop = lambda src, dst, msg: src == "N1" and isinstance(msg, m.Rewire)
-    sim.crash("N3")
-    sim.run_until(sim.now + 0.05)
-    sim.revive("N3")
-    sim.run_until(sim.now + 0.3)
+    sim = restored_in_place_with_rewires_lost()
     core = sim.cores["N3"]
     dep = core.apps["pipe"]
     assert "counter" in dep.awaiting and dep.restoring["counter"].coordinator == "N1"
@@ -384,13 +391,7 @@ def test_a_restore_ends_on_a_later_move_of_its_vertex_held_lost_only_as_it_began
     the restore of ``j`` on itself, whose coordinator had reset; ``j`` ran on N7, restored at
     move 1 across a cut, its producer and consumer moved with it, and N2's rewires went to
     their old node, which said nothing)."""
-    sim = started()
-    assert where(sim, "counter") == {"N3"}
-    sim.drop = lambda src, dst, msg: src == "N1" and isinstance(msg, m.Rewire)
-    sim.crash("N3")
-    sim.run_until(sim.now + 0.05)
-    sim.revive("N3")
-    sim.run_until(sim.now + 0.3)
+    sim = restored_in_place_with_rewires_lost()
     core, target = sim.cores["N1"], sim.cores["N3"].apps["pipe"]
     (reloc,) = [p for p in core.procedures.values() if isinstance(p, Relocation) and p.restore]
     assert reloc.target == "N3" and "counter" in target.awaiting
