@@ -463,6 +463,11 @@ RESTARTS_BROKE = {
     "by a relayed word that kept j vanished, sent its rewires to their old node, which said "
     "nothing, until past the quiet phase (a restore ends on a later move of its vertex held "
     "lost only as it was when the restore began)",
+    267786: "N2, named c's replica by N1 across a cut, held the copy after N1 reset at the "
+    "heal and c was restored on N6 from the replica before; nobody told N2 of the restore "
+    "and it asked only N1, which does not answer for an instance gone: held the app past "
+    "the quiet phase (a replica whose copy's maker is gone and whose vertex its view has "
+    "lost looks up where the vertex runs, and asks that host)",
 }
 
 

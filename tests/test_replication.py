@@ -290,6 +290,40 @@ def test_a_copy_whose_maker_restarted_is_settled_by_the_vertexs_host_by_this_nod
     assert "pipe" not in core.apps
 
 
+def test_a_copy_whose_maker_restarted_and_whose_vertex_this_view_lost_looks_it_up() -> None:
+    """N2 holds a copy of the counter made on N1, which then restarted (the counter vanished
+    by N2's view); the counter was restored on N3 from another replica by a node that never
+    named N2 (its news of N2 was lost), and nobody tells N2, hosting nothing, of the restore.
+    N1's new process does not answer for its last one's instance (seed 77821), so N2 looks up
+    where the counter runs, then asks N3: told it is none, it lets the copy and the app go
+    (fault seed 267786: it asked N1 alone, every second, and held the app past the quiet
+    phase)."""
+    core, dep = _replica_of_mid_on_n1()
+    core.receive("N1", NodeCore("N1", incarnation=1).membership.beat(), 1.5)  # restarted
+    assert "mid" in dep.vanished
+    effects = core.on_timer(MonitorTick(), 2.0)
+    queries = {
+        e.dst: e.msg
+        for e in effects
+        if isinstance(e, fx.Send) and isinstance(e.msg, m.PlacementQuery)
+    }
+    assert sorted(queries) == ["N1", "N4"], effects  # the nodes its view names
+    qid = queries["N4"].qid
+    core.receive("N1", m.PlacementReply("pipe", qid, {}), 2.01)  # (holds none of it now)
+    placed = {"src": "N1", "mid": "N3", "sink": "N4"}
+    effects = core.receive("N4", m.PlacementReply("pipe", qid, placed, {"mid": 1}), 2.01)
+    assert dep.placed["mid"] == "N3" and "mid" not in dep.vanished
+    assert fx.Send("N3", m.PlacementQuery("pipe", qid)) in effects  # (named by the answer)
+    core.receive("N3", m.PlacementReply("pipe", qid, placed, {"mid": 1}), 2.02)
+    effects = core.on_timer(MonitorTick(), 3.0)
+    assert fx.Send("N3", m.ReplicaAck("pipe", "mid", 1)) in effects
+    core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"]), 3.1)
+    assert "mid" not in dep.held
+    for t in (4.0, 5.0):
+        core.on_timer(MonitorTick(), t)
+    assert "pipe" not in core.apps
+
+
 def test_a_copy_fetched_for_a_restore_is_settled_by_the_node_that_fetched_it() -> None:
     """N2 holds a copy of the counter made on N1; N1 restarts (its counter vanished) and N3
     restores the counter on itself from N2's copy (its ``FetchReplica``). N2 never hears of

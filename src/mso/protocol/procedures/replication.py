@@ -53,6 +53,7 @@ from mso.protocol.events import (
     AppMissing,
     InstanceReady,
     PeerFailed,
+    PlacementStale,
     ReplacementPrepared,
     ReplicationTick,
     RoutesChanged,
@@ -511,13 +512,21 @@ class Replicator:
         for ``every``: ask each copy's host, by acknowledging the copy again, whether this
         node is still its replica (one replaced while out of reach, or by an instance it
         was not told of, is told so and lets the copy go: issue 24.1). A host that failed
-        is not asked: its replacement may fetch the copy."""
+        is not asked: its replacement may fetch the copy. A copy whose maker is gone and
+        whose vertex this view has lost is not waited on either: this node looks up where
+        the vertex runs (once a round for all such copies), and asks that host next."""
         me, failed, app = self.ctx.id, self.ctx.failed, dep.app.name
+        looked = False
         for vid, snap in dep.held.items():
             src = snap.src
-            if now - snap.got_at < every or now - snap.asked_at < every:
+            if now - snap.asked_at < every:
                 continue
-            if src and src != me and src not in failed:
+            gone = src in failed or self.ctx.incarnation_of(src, 0) > snap.src_incarnation
+            lost = gone and vid in dep.lost(failed)
+            if now - snap.got_at < every:
+                if not lost:
+                    continue  # (refreshed lately; a copy whose maker is gone is not)
+            elif src and src != me and src not in failed:
                 snap.asked_at = now
                 self.ctx.send(src, m.ReplicaAck(app, vid, snap.k))
             # the instance that made the copy is gone (its node failed, or restarted: then
@@ -526,11 +535,21 @@ class Replicator:
             # by a node cut off as the copy was made, which never named this one, the
             # vertex's new host was not asked and the copy, and the app, held for ever)
             host = dep.placed.get(vid, "")
-            gone = src in failed or self.ctx.incarnation_of(src, 0) > snap.src_incarnation
             runs = host not in ("", me, src) and host not in failed and vid not in dep.vanished
             if gone and runs:
                 snap.asked_at = now
                 self.ctx.send(host, m.ReplicaAck(app, vid, snap.k))
+            elif lost and not looked:
+                # lost by this view, which nobody keeps up to date (this node hosts none of
+                # the app): its replacement's host tells its replicas their set, but only
+                # those the restore's coordinator knew of, and nobody tells this node of the
+                # restore. So it looks up where the vertex runs, and asks that host next
+                # (fault seed 267786: named a replica across a cut, the copy's maker reset
+                # at the heal, the vertex restored elsewhere from the replica before; it
+                # asked only the maker's node, which does not answer for an instance gone)
+                snap.asked_at = now
+                looked = True
+                self.ctx.publish(PlacementStale(app, wide=False, sync=True))
         # named a replica with no copy here (reset, restarted, or the app came with a sync):
         # the host by this node's view sends one, or says this node is none
         for vid, nodes in dep.replica_nodes.items():
