@@ -468,6 +468,10 @@ RESTARTS_BROKE = {
     "and it asked only N1, which does not answer for an instance gone: held the app past "
     "the quiet phase (a replica whose copy's maker is gone and whose vertex its view has "
     "lost looks up where the vertex runs, and asks that host)",
+    266014: "a source and the counter after it restarted with their node; the fork after "
+    "them, running, held its consumer's mark of the counter's next number (a twin of the fork "
+    "had passed that event on), and the restored counter numbered from where the fork stood: "
+    "the restarted source's first event dropped as had (new events said: marks past them go)",
 }
 
 

@@ -13,7 +13,7 @@ from mso.model.app import Vertex
 from mso.protocol import effects as fx
 from mso.protocol import messages as m
 from mso.protocol import provenance
-from mso.protocol.channel import InChannel
+from mso.protocol.channel import InChannel, OutChannel
 from mso.protocol.events import PeerFailed
 from mso.protocol.procedures import restore
 from mso.protocol.procedures.instance import H
@@ -610,3 +610,93 @@ def test_a_merges_replacement_tells_a_forwarder_that_survived_which_inputs_are_n
     assert dep.marks["m"] == {2: {1: far}}
     sim.run_until(sim.now + 0.05)  # the forwarder is told, and drops its marks of input 0
     assert sim.cores[fwd].apps["merge"].marks["c"] == {3: {1: far}}
+
+
+CHAIN = """
+name: chain
+planner: paper
+vertices:
+  s: {code: mso.sim.vertices:Source, params: {name: s}, rate: 20, pinned: N1,
+      output: mso.sim.vertices:Ev}
+  a: {code: mso.sim.vertices:Count, pinned: N1, output: mso.sim.vertices:Ev}
+  j: {code: mso.sim.vertices:Pass, pinned: N3, output: mso.sim.vertices:Ev}
+  b: {code: mso.sim.vertices:Pass, pinned: N4, output: mso.sim.vertices:Ev}
+  c: {code: mso.sim.vertices:Pass, pinned: N2, output: mso.sim.vertices:Ev}
+  k1: {code: mso.sim.vertices:Sink, params: {run: provenance-new, name: k1}, pinned: N5}
+  k2: {code: mso.sim.vertices:Sink, params: {run: provenance-new, name: k2}, pinned: N6}
+edges: [[s, a], [a, j], [j, b], [b, k1], [j, c], [c, k2]]
+"""
+
+
+def test_a_producer_restored_with_new_events_only_has_a_forks_marks_of_it_let_go() -> None:
+    """The source and the counter after it restart with their node's daemon; the fork `j`
+    downstream, running, holds its consumer's mark of the counter's next number (a twin of
+    `j` had passed on what the lost counter made there). The restored counter, fed the
+    restarted source's new events only, numbers from where `j` stands and says its events are
+    new: `j` lets that mark go. Kept, it dropped the restarted source's first event for `c`
+    as had (fault seed 266014: never delivered at `k2`)."""
+    vertices.RUNS.pop("provenance-new", None)
+    sim = started(CHAIN)
+    node = where(sim, "chain", "j")
+    dep = sim.cores[node].apps["chain"]
+    sim.crash("N1")
+    sim.run_until(sim.now + 0.05)
+    at = dep.inc[1].expected
+    dep.marks["j"] = {4: {1: (at, 0)}}  # (c had the lost counter's event `at`, from a twin)
+    sim.run_until(sim.now + 1.0)
+    sim.revive("N1")
+    sim.run_until(sim.now + 2.0)
+    for record in vertices.RUNS["provenance-new"]:
+        (_, new) = sorted(record.streams.items())  # (the first source's, the restarted one's)
+        s = new[1]
+        assert s.first == 0 and s.missing == 0 and s.duplicates == 0, (record.vertex, s)
+        assert s.last > 30
+    assert "j" not in dep.marks
+
+
+def test_a_forks_marks_go_only_past_where_a_producer_of_new_events_starts() -> None:
+    """A running fork lets its consumers' marks of an input go, here and held aside, when the
+    input's producer says it numbers from where the fork stands with new events only
+    (``Resume.new``): those from there on, not those below (a replay may bring their events
+    again); not for a producer that does not say so, nor from elsewhere, nor of another
+    numbering."""
+    sim = started(FORK)
+    node = where(sim, "fork", "j")
+    core, dep = sim.cores[node], sim.cores[node].apps["fork"]
+    src = where(sim, "fork", "s")
+    sim.crash(src)  # (nothing more comes on the input meanwhile)
+    sim.run_until(sim.now + 0.05)
+    at = dep.inc[0].expected
+    below, past = (at - 3, 0), (at + 5, 0)
+
+    def told(start: int, new: bool, gen: int = 0) -> tuple[Any, Any]:
+        dep.marks["j"] = {1: {0: below}, 3: {0: past}}
+        dep.aside["j"] = {1: {0: (below, 0)}, 3: {0: (past, 0)}}
+        resume = m.Resume("fork", 0, 1234, True, start)
+        resume.gen, resume.new = gen, new
+        sim.apply(node, core.receive(src, resume, sim.now))
+        return dep.marks.get("j"), dep.aside.get("j")
+
+    kept = ({1: {0: below}, 3: {0: past}}, {1: {0: (below, 0)}, 3: {0: (past, 0)}})
+    assert told(at, new=False) == kept
+    assert told(at + 1, new=True) == kept
+    assert told(at, new=True, gen=77) == kept
+    assert told(at, new=True) == ({1: {0: below}, 3: {}}, {1: {0: (below, 0)}, 3: {}})
+    assert dep.inc[0].expected == at and dep.inc[0].gen == 0
+
+
+def test_a_producers_resume_says_new_only_of_events_no_ack_numbered_since() -> None:
+    """``Resume.new``: every event from the ack on is new (``OutChannel.new_from``), and no
+    ack since brought positions (what its consumer made of them, in their numbering)."""
+    ch = OutChannel(64, 10, 10, 0.0)
+    assert not restore._new_past(ch)
+    ch.new_from = 10
+    assert restore._new_past(ch)
+    ch.push_many([b"x", b"y"], 0.0)
+    ch.note_positions(12, {1: 40})
+    ch.on_ack(12)
+    assert not restore._new_past(ch)  # (positions of the new events' numbering)
+    old = OutChannel(64, 8, 8, 0.0)
+    old.push_many([b"x", b"y"], 0.0)
+    old.new_from = 10  # (two events the last instance made, still unacknowledged)
+    assert not restore._new_past(old)

@@ -74,6 +74,10 @@ class OutChannel:
     asked_at: float = -1e18  # when the consumer was last asked where it stands
     # a merge's replacement: the first number it made itself, a new interleaving (-1: none)
     remade: int = -1
+    # every event from this number on is new: made since its instance's restore by a source,
+    # or of such events only (-1: not so). Positions of the edge past it that an earlier
+    # instance made name other events (Restorer.activate, fault seed 266014)
+    new_from: int = -1
     # the generation of this edge's numbering: 0 is the deployment's; a numbering made anew
     # (from a guess, no ack's positions and no consumer's word) takes a fresh one, and the
     # channels, acks' positions and saved positions that follow it carry it: a consumer started

@@ -105,6 +105,7 @@ class Restoring:
     consumer_marks: dict[int, Marks] = field(default_factory=dict)
     consumer_markgens: dict[int, dict[int, int]] = field(default_factory=dict)  # (their gens)
     fresh: set[int] = field(default_factory=set)  # inputs their producer numbers anew
+    new: set[int] = field(default_factory=set)  # inputs whose events are all new (Resume.new)
     # a forwarder's: the merge's inputs its restored producer (the merge) numbers anew
     renumbered: set[int] = field(default_factory=set)
     retained: dict[int, int] = field(default_factory=dict)  # input -> first event replayed

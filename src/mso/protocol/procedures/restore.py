@@ -126,6 +126,7 @@ class Restorer:
                 msg.app, msg.edge, msg.rid, True, out.acked, dict(out.positions), retained
             )
             resume.fresh = out.guessed
+            resume.new = _new_past(out)
             resume.gen, resume.gens = out.gen, dict(out.gens)
             resume.remade = out.remade
             out.confirmed = True  # (a replacement: it numbers on from here)
@@ -330,6 +331,8 @@ class Restorer:
                 restoring.remade[msg.edge] = msg.remade
             if msg.fresh:
                 restoring.fresh.add(msg.edge)
+            if msg.new:
+                restoring.new.add(msg.edge)
             restoring.renumbered.update(msg.renumbered)
             restoring.resumed.add(msg.edge)
         else:
@@ -429,6 +432,8 @@ class Restorer:
         if msg.renumbered and vertex in dep.layout.forwarders and vertex in dep.marks:
             for o, held in list(dep.marks[vertex].items()):  # (_numbered_anew at the merge)
                 dep.marks[vertex][o] = provenance.without(held, msg.renumbered)
+        if msg.new and inc is not None and self._new_at(dep, vertex, inc, msg):
+            return self._marks_past(dep, vertex, msg)
         anew = inc is not None and (msg.fresh or msg.gen != inc.gen)
         ahead = inc is not None and not anew and msg.start > inc.expected and msg.positions
         if ahead and not (h.queued or h.pending) and vertex not in dep.layout.stamped:
@@ -488,6 +493,30 @@ class Restorer:
             return False
         gated = bool(dep.out_edges.get(vertex))
         dep.inc[msg.edge] = InChannel.starting_at(msg.start, gated, inc.marks, msg.gen)
+        self.dp.touch(dep.app.name)
+        return True
+
+    @staticmethod
+    def _new_at(dep: AppState, vertex: str, inc: InChannel, msg: m.Resume) -> bool:
+        """A running merge or fork hears from an input's producer, restored since, that it
+        numbers that input from where this one stands, in its numbering, with new events only
+        (``Resume.new``, :meth:`activate`)."""
+        stamped = vertex in dep.layout.stamped
+        return stamped and msg.start == inc.expected and msg.gen == inc.gen
+
+    def _marks_past(self, dep: AppState, vertex: str, msg: m.Resume) -> bool:
+        """Its consumers' marks of that input from where the producer starts on name events
+        the lost producer made, which nobody makes again, at numbers its new events take: they
+        go, here and held aside (fault seed 266014: kept, the fork dropped a restarted
+        source's first event for one consumer as had). Those below name events made before,
+        which a replay may bring again: they stay."""
+        edge, start = msg.edge, msg.start
+        for held in dep.marks.get(vertex, {}).values():
+            if edge in held and held[edge][0] >= start:
+                del held[edge]
+        for aside in dep.aside.get(vertex, {}).values():
+            if edge in aside and aside[edge][0][0] >= start and aside[edge][1] == msg.gen:
+                del aside[edge]
         self.dp.touch(dep.app.name)
         return True
 
@@ -593,6 +622,10 @@ class Restorer:
             dep.renumbered[vertex] = set[int]().union(*(_anew(dep, restoring, o) for o in outs))
         forwarder = vertex in dep.layout.forwarders
         renew: dict[int, list[int]] = {}  # output -> inputs its forwarder's marks name anew
+        # what it makes is new (a source's next events, or made of such only): none of it is
+        # what its lost instance made, whose numbers may be named downstream (266014)
+        ins = {i for i, e in enumerate(dep.app.edges) if e.dst == vertex}
+        new = h.kind == "source" or (snap is None and bool(ins) and ins <= restoring.new)
         for o in outs:
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
             marks = restoring.consumer_marks.get(o) if snap is None or forwarder else None
@@ -676,6 +709,16 @@ class Restorer:
                 )
             if renew.get(o):  # a forwarder that survived holds its consumer's marks of
                 self._tell_renumbered(dep, o, restoring.rid, renew[o])  # them: let go
+            if new:
+                out.new_from = out.next_seq
+            if new and self._new_where_it_stands(dep, restoring, o, base, carried):
+                # numbered from where its consumer, a merge or fork, stands: marks it holds of
+                # that input past there name what the lost instance made at numbers the new
+                # events take (fault seed 266014: a restarted source's first event dropped
+                # as had); told, it lets them go
+                news = m.Resume(dep.app.name, o, restoring.rid, True, out.acked, out.positions)
+                news.gen, news.gens, news.new = out.gen, dict(out.gens), True
+                self.ctx.send(dep.placed[dep.app.edges[o].dst], news)
             theirs = restoring.consumer_start.get(o, 0)
             guess = o in restoring.unheld and theirs > out.acked
             if out.positions and (theirs < out.acked or guess):
@@ -718,6 +761,21 @@ class Restorer:
         self.ctx.send(coordinator, done)
         if h.kind == "source":
             self.dp.start_source(dep, vertex, self.ctx.now)
+
+    @staticmethod
+    def _new_where_it_stands(
+        dep: AppState, restoring: Restoring, o: int, base: int, carried: OutChannel | None
+    ) -> bool:
+        """A replacement whose events are all new tells the consumer of output ``o`` so: it
+        numbers from where that consumer said it stands (no ack's positions, no channel
+        carried over), and that consumer is a merge or fork, which keeps its consumers'
+        marks."""
+        return (
+            carried is None
+            and o not in restoring.positions
+            and base == restoring.consumer_start.get(o, -1)
+            and dep.app.edges[o].dst in dep.layout.stamped
+        )
 
     def _tell_start(
         self, dep: AppState, vertex: str, restoring: Restoring, outs: list[int]
@@ -957,6 +1015,14 @@ def _anew(dep: AppState, restoring: Restoring, o: int) -> set[int]:
     aside as of a numbering gone, the next replacement sent the consumer 9 events again)."""
     named = restoring.consumer_markgens.get(o, {})
     return {i for i in restoring.fresh if not (g := dep.inc[i].gen) or named.get(i) != g}
+
+
+def _new_past(out: OutChannel) -> bool:
+    """Every event of ``out`` from its ack on is new (``OutChannel.new_from``), and no ack
+    since said what its consumer made of them (its positions: those name that numbering)."""
+    if not 0 <= out.new_from <= out.acked:
+        return False
+    return not (out.positions and out.positions_at >= out.new_from)
 
 
 def _known(gens: dict[int, int], positions: Iterable[int]) -> dict[int, int]:

@@ -64,6 +64,10 @@ class Resume(_Msg, tag="resume"):
     gens: dict[int, int] = msgspec.field(default_factory=dict)
     # from a consumer, with ``marks``: the generations of the numberings they name (not 0)
     markgens: dict[int, int] = msgspec.field(default_factory=dict)
+    # from a producer: every event from ``start`` on is new (made since its restore by a
+    # source, or of such events only) and no ack since numbered what it made of them: an
+    # instance fed by it makes none of what its lost instance made (``OutChannel.new_from``)
+    new: bool = False
 
 
 class Replicate(_Msg, tag="replicate"):
