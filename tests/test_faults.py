@@ -472,6 +472,9 @@ RESTARTS_BROKE = {
     "them, running, held its consumer's mark of the counter's next number (a twin of the fork "
     "had passed that event on), and the restored counter numbered from where the fork stood: "
     "the restarted source's first event dropped as had (new events said: marks past them go)",
+    287248: "an even split healed: a node that declared nobody took the sender for cut off "
+    "(ranks.cut_off counted it alone on its side) and held it failed, so the sender, counting "
+    "two failed against one, reset too: both sides reset and the app was gone from every node",
 }
 
 

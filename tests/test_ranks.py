@@ -44,6 +44,18 @@ def test_a_node_we_hold_alive_that_holds_most_of_ours_failed_was_cut_off() -> No
     assert not cut_off(view({"N5"}), beat("N5", {"N1": 0, "N2": 0, "N3": 0}))  # two-sided
 
 
+def test_an_even_split_is_no_cut_off_the_sender_counts_on_its_side() -> None:
+    """Fault seed 287248: a ring N1-N2-N3-N4 split {N1, N4} | {N2, N3}; N1 declared N2 and
+    N3, N2 nobody. At the heal N2 hears N1 (N2 and N3 failed): two of us against N1 and N4,
+    which N1 holds alive. Taken for a cut off, N2 held N1 failed and its beat counted one
+    failed against N1's two: N1 reset as well, and with the other pair both sides did."""
+    routes = {n: (n, 1) for n in ("N1", "N3", "N4")}
+    n2 = View("N2", 0, routes, frozenset(), {n: 0 for n in routes}, 1, "N2")
+    assert not cut_off(n2, beat("N1", {"N2": 0, "N3": 0}))  # a tie: N2 yields (resets)
+    assert outranked_by(n2, beat("N1", {"N2": 0, "N3": 0}))
+    assert cut_off(n2, beat("N1", {"N2": 0, "N3": 0, "N4": 0}))  # three of us against N1
+
+
 def test_the_larger_side_stays_and_an_empty_node_yields_to_a_busy_one() -> None:
     small = beat("N5", {"N1": 0, "N2": 0, "N3": 0, "N4": 0})
     assert not outranked_by(view({"N5"}, hosting=1), small)  # we count one failed, it four

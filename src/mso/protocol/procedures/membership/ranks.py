@@ -61,13 +61,19 @@ def cut_off(view: View, msg: m.Heartbeat) -> bool:
     back into reach (others had: a confirmation takes a round trip). Resetting for it
     would make the larger side reset for the smaller one; a node that only we missed
     (it stalled, or it alone lost our routes) holds failed just us and a few, and we
-    yield to it as before. Only entries for the incarnations the nodes run count."""
+    yield to it as before. Only entries for the incarnations the nodes run count.
+
+    Our side (us and those it holds failed) must outnumber its side (it and those of ours it
+    holds alive), the sender counted: on an even split a node that declared nobody (issue
+    22.1) counts as ours a node of the other side it never learned was across, and once
+    it held the sender failed its beat counted one failed against the sender's two, so the
+    sender reset too and both sides dropped the app (fault seed 287248). A tie yields."""
     if msg.node in view.failed:
         return False
     seen = {n for n in view.routes if n not in view.failed and n != msg.node}
     held = sum(1 for n in seen if n in msg.failed and _runs(view, n, msg.failed[n]))
     held += msg.failed.get(view.id) == view.incarnation
-    return held > len(seen) + 1 - held
+    return held > len(seen) + 1 - held + 1
 
 
 def holds_more_failed(view: View, msg: m.Heartbeat) -> bool:
