@@ -1332,7 +1332,8 @@ def test_news_of_an_older_move_is_answered_with_the_later_one() -> None:
 def test_a_sinks_repeats_across_its_restore_are_counted() -> None:
     """The replay to a sink restored after its own node's reset repeats what it processed but
     had not acknowledged: allowed by the checker, counted in the run (bench/faults.py)."""
-    result = faults.run(78, RESTARTS)
+    result = faults.run(6, RESTARTS)  # (seed 78's k2 until 287248's rule: its node, which
+    # ran five instances, no longer resets for a node that took it for cut off on a tie)
     assert not result.violations, result.violations
-    assert result.repeats > 0  # k2, on the node that resets, gets its last events again
+    assert result.repeats > 0  # the sink, on N5, which resets, gets its last events again
     assert faults.run(0, RESTARTS).repeats == 0  # no sink restored: nothing twice
