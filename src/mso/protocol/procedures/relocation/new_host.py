@@ -63,6 +63,7 @@ class NewHost(Role):
         no recovery would see it lost (fault seed 230857). Their move given up here, the
         caller restores them in place."""
         out = []
+        here = (self.ctx.id, node)
         for (app, vid), (rid, _) in sorted(self._twins.items()):
             coordinator = self._handover_to.get(rid)
             if app != dep.app.name or vid not in dep.awaiting or vid in dep.restoring:
@@ -70,7 +71,7 @@ class NewHost(Role):
             if coordinator is None or coordinator == self.ctx.id:
                 continue  # (coordinated here: the coordinator makes it a restore)
             gone = coordinator == node or coordinator in self.ctx.failed
-            if gone and node in self._sources.get(rid, ()) and dep.placed.get(vid) == self.ctx.id:
+            if gone and node in self._sources.get(rid, ()) and dep.placed.get(vid) in here:
                 del self._twins[(app, vid)]
                 self.forget(rid)
                 out.append(vid)
