@@ -475,6 +475,11 @@ RESTARTS_BROKE = {
     287248: "an even split healed: a node that declared nobody took the sender for cut off "
     "(ranks.cut_off counted it alone on its side) and held it failed, so the sender, counting "
     "two failed against one, reset too: both sides reset and the app was gone from every node",
+    285674: "N4 coordinated p1's move to N1 and N1 was cut off as it switched: N2 placed p1 on "
+    "N1, N1 never heard the Moved and kept it on N4; N4 crashed and restarted while cut off, "
+    "the handover with it, and each of N1 and N2 held the other the recovery's coordinator: "
+    "p1 and the sink ran nowhere (a move's target restores the vertex in place when its "
+    "coordinator and old host went, its own view placing the vertex on that old host)",
 }
 
 

@@ -343,6 +343,38 @@ def test_a_moves_target_restores_the_vertex_when_its_coordinator_and_old_host_go
     assert after["count"] > before["count"] + 400  # (the counter's state went with N3)
 
 
+def test_a_moves_target_that_missed_the_switch_restores_the_vertex_when_its_old_host_goes() -> None:
+    """As above, but the target is no producer of the vertex and the old host's ``Moved``
+    never reached it (cut off as the move switched): its own view still places the vertex on
+    the old host, the others' on the target. When the old host, the move's coordinator,
+    comes back in a new incarnation, the target restores the vertex in place all the same.
+    Before, it awaited the handover, nobody else held the vertex lost, and nothing ran it
+    (fault seed 285674: each of two nodes held the other the recovery's coordinator)."""
+    sim = started()
+    assert where(sim, "counter") == {"N3"} and where(sim, "sink") == {"N4"}
+
+    def drop(src: str, dst: str, msg: m.Message) -> bool:
+        to_target = dst == "N4" and isinstance(msg, m.Moved) and msg.vertex == "counter"
+        return to_target or isinstance(msg, (m.Handover, m.HandoverEvents))
+
+    sim.drop = drop
+    sim.request("N3", m.RelocateRequest("pipe", "counter", target="N4"))
+    sim.run_until(sim.now + 0.05)
+    target = sim.cores["N4"].apps["pipe"]
+    assert "counter" in target.awaiting and target.placed["counter"] == "N3"  # not told
+    assert sim.cores["N2"].apps["pipe"].placed["counter"] == "N4"  # switched
+    sim.drop = None
+    sim.crash("N3")
+    sim.run_until(sim.now + 0.05)
+    sim.revive("N3")
+    sim.run_until(sim.now + 3.0)
+    assert where(sim, "counter") == {"N4"}
+    before = sink_stats(sim)
+    sim.run_until(sim.now + 1.0)
+    after = sink_stats(sim)
+    assert after["count"] > before["count"] + 400  # (the counter's state went with N3)
+
+
 def restored_in_place_with_rewires_lost() -> Simulation:
     """N3, which runs ``counter``, restarts and N1 restores it in place; N1's rewires are lost,
     so the replacement waits for its producer."""

@@ -60,8 +60,11 @@ class NewHost(Role):
         came back in a new incarnation, which ran none of its instances) before the handover,
         and whose coordinator is gone too (``node`` itself, or held failed): none is left to
         make the move a restore, and the vertex's producers, switched here, place it here, so
-        no recovery would see it lost (fault seed 230857). Their move given up here, the
-        caller restores them in place."""
+        no recovery would see it lost (fault seed 230857). Likewise where this node's own view
+        still places the vertex on ``node`` (it missed the old host's ``Moved``, cut off as the
+        move switched): the producers placed it here all the same, and each of this node and
+        a producer's held the other the recovery's coordinator (fault seed 285674). Their
+        move given up here, the caller restores them in place."""
         out = []
         here = (self.ctx.id, node)
         for (app, vid), (rid, _) in sorted(self._twins.items()):
