@@ -501,13 +501,14 @@ class DataPlane:
                 marks, aside = dep.marks.get(vid), dep.aside.get(vid)
                 if marks or aside:  # a replacement: only what each consumer lacks
                     for o in out_edges:
-                        gens = self.stamp_gens(dep, o)
-                        if marks and o in marks and aside and o in aside:  # (seed 277659)
-                            provenance.renamed(marks[o], aside[o], gens)
+                        held = aside.get(o) if aside else None  # (by generation: seed 150917)
+                        gens = self.stamp_gens(dep, o) if held is not None else {}
+                        if marks and o in marks and held is not None:  # (seed 277659)
+                            provenance.renamed(marks[o], held, gens)
                         lacks = provenance.past(outputs, marks.get(o, {})) if marks else outputs
-                        if aside and o in aside:  # (by generation: fault seed 150917)
-                            lacks = provenance.past_held(lacks, aside[o], gens)
-                            if not aside[o]:
+                        if aside and held is not None:
+                            lacks = provenance.past_held(lacks, held, gens)
+                            if not held:
                                 del aside[o]
                         if lacks:
                             h.bytes_out += self.send_events(dep, [o], lacks, ts, chain)

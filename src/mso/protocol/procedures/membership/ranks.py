@@ -71,9 +71,10 @@ def cut_off(view: View, msg: m.Heartbeat) -> bool:
     if msg.node in view.failed:
         return False
     seen = {n for n in view.routes if n not in view.failed and n != msg.node}
-    held = sum(1 for n in seen if n in msg.failed and _runs(view, n, msg.failed[n]))
-    held += msg.failed.get(view.id) == view.incarnation
-    return held > len(seen) + 1 - held + 1
+    ours = sum(1 for n in seen if n in msg.failed and _runs(view, n, msg.failed[n]))
+    ours += msg.failed.get(view.id) == view.incarnation
+    theirs = 1 + len(seen) + 1 - ours  # the sender, and those of us and ours it holds alive
+    return ours > theirs
 
 
 def holds_more_failed(view: View, msg: m.Heartbeat) -> bool:
