@@ -120,7 +120,7 @@ def test_an_operators_undeploy_is_verified_by_every_node_and_revokes_the_grant()
             m.AppSync("pipe", "N1", old, 1, {"src": "N1", "mid": "N2", "sink": "N3"}),
         ):
             effects = robot(sim, node, msg)
-            told = [e.msg for e in effects if isinstance(e, Send) and e.dst == "N9"]
+            told = [e.said for e in effects if isinstance(e, Send) and e.dst == "N9"]
             assert told == [sim.cores[node].authority.revoked["pipe"]]  # told the undeploy
         assert core.refusals["document_revoked"] == refused + 2
     sim.run_until(sim.now + 0.5)

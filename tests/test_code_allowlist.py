@@ -84,7 +84,7 @@ def test_every_node_refuses_an_announced_app_and_runs_nothing(
     for nid in ("N2", "N3"):
         core = NodeCore(nid)
         out = core.receive("N1", m.AppAnnounce(app="evil", origin="N1", document=doc), 0.0)
-        failed = [e.msg for e in out if isinstance(e, Send) and isinstance(e.msg, m.DeployFailed)]
+        failed = [e.said for e in out if isinstance(e, Send) and isinstance(e.said, m.DeployFailed)]
         assert failed and "allowlist" in failed[0].reason and failed[0].reason.startswith(nid)
         assert "evil" not in core.apps
     assert not mark.exists() and "evil_module" not in sys.modules
@@ -230,7 +230,7 @@ def test_an_announced_trick_is_refused_by_every_node(
     for nid in ("N2", "N3"):
         core = NodeCore(nid)
         out = core.receive("N1", m.AppAnnounce(app="tricks", origin="N1", document=doc), 0.0)
-        failed = [e.msg for e in out if isinstance(e, Send) and isinstance(e.msg, m.DeployFailed)]
+        failed = [e.said for e in out if isinstance(e, Send) and isinstance(e.said, m.DeployFailed)]
         assert failed, f"{nid} accepted {path}"
         assert path in failed[0].reason and why in failed[0].reason
         assert "tricks" not in core.apps

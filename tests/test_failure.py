@@ -221,9 +221,9 @@ def test_a_probe_waits_at_a_hop_whose_routes_still_go_through_the_failed_node() 
     core.receive("N1", m.NodeDown("N3", "N1", 0, "N5"), 1.1)  # N5 did not hear it either
     probe = m.Probe("app", -1, 7, "N1", "N6", ["N1"], [1.0])
     sent = [e for e in core.receive("N1", probe, 1.2) if isinstance(e, Send)]
-    assert all(e.dst != "N3" for e in sent) and not any(isinstance(e.msg, m.Probe) for e in sent)
+    assert all(e.dst != "N3" for e in sent) and not any(isinstance(e.said, m.Probe) for e in sent)
     effects = core.set_routes({"N1": ("N1", 1), "N6": ("N5", 2), "N5": ("N5", 1)}, 1.3)
-    (forwarded,) = [e for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Probe)]
+    (forwarded,) = [e for e in effects if isinstance(e, Send) and isinstance(e.said, m.Probe)]
     assert forwarded.dst == "N5" and forwarded.msg.nodes == ["N1", "N2"]
 
 
@@ -298,11 +298,11 @@ def test_a_probe_held_for_routes_that_never_change_skips_the_failed_hop() -> Non
     core.receive("N1", m.NodeDown("N3", "N1", 0, "N5"), 1.1)
     probe = m.Probe("app", -1, 7, "N1", "N6", ["N1"], [1.0])
     effects = core.receive("N1", probe, 1.2)
-    assert not any(isinstance(e, Send) and isinstance(e.msg, m.Probe) for e in effects)
+    assert not any(isinstance(e, Send) and isinstance(e.said, m.Probe) for e in effects)
     (timer,) = [e for e in effects if isinstance(e, SetTimer) and isinstance(e.key, HeldProbesDue)]
     assert timer.at == 1.2 + PROBE_HOLD_S
     effects = core.on_timer(timer.key, timer.at)
-    (sent,) = [e for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Probe)]
+    (sent,) = [e for e in effects if isinstance(e, Send) and isinstance(e.said, m.Probe)]
     assert sent.dst == "N6" and sent.msg.nodes == ["N1", "N2"]
 
 

@@ -1100,7 +1100,7 @@ def test_a_merge_vertex_fed_from_one_node_moves_with_both_markers() -> None:
         *core.receive("N3", m.Switch("merge", 0, "N2", 99, "N1"), sim.now),
         *core.receive("N3", m.Switch("merge", 1, "N2", 99, "N1"), sim.now),
     ]
-    assert not [e for e in effects if isinstance(e, fx.Send) and isinstance(e.msg, m.Marker)]
+    assert not [e for e in effects if isinstance(e, fx.Send) and isinstance(e.said, m.Marker)]
     assert [e for e in effects if isinstance(e, fx.SnapshotVertex)]  # both marked: hand over
 
 
@@ -1295,8 +1295,8 @@ def test_twins_of_equal_version_are_ordered_by_their_hosts() -> None:
     version = n3.apps["pipe"].versions["mid"]
     assert version > 0
     effects = n3.receive("N4", m.Moved("pipe", "mid", "N4", 0, version), sim.now)  # N4 > N3
-    sent = [e for e in effects if isinstance(e, fx.Send) and isinstance(e.msg, m.Moved)]
-    assert [(e.dst, e.msg.node, e.msg.version) for e in sent] == [("N4", "N3", version)]
+    sent = [e for e in effects if isinstance(e, fx.Send) and isinstance(e.said, m.Moved)]
+    assert [(e.dst, e.said.node, e.said.version) for e in sent] == [("N4", "N3", version)]
     sim.apply("N3", effects)
     assert "mid" in n3.instances("pipe") and n3.placement("pipe")["mid"] == "N3"
     sim.apply("N3", n3.receive("N2", m.Moved("pipe", "mid", "N2", 0, version), sim.now))
@@ -1318,7 +1318,7 @@ def test_the_hosts_word_that_it_handed_a_vertex_over_is_taken_at_an_equal_versio
     dep.placed["mid"] = "N2"  # the host's own word, at the twin's version
     effects = n1.receive("N2", m.Moved("pipe", "mid", "N3", -1, version), sim.now)
     assert n1.placement("pipe")["mid"] == "N3"
-    assert not [e for e in effects if isinstance(e, fx.Send) and isinstance(e.msg, m.Moved)]
+    assert not [e for e in effects if isinstance(e, fx.Send) and isinstance(e.said, m.Moved)]
 
 
 def test_news_of_an_older_move_is_answered_with_the_later_one() -> None:
@@ -1329,8 +1329,8 @@ def test_news_of_an_older_move_is_answered_with_the_later_one() -> None:
     dep = n1.apps["pipe"]
     dep.versions["mid"] = 3  # N1 heard of a later move of mid, to N3
     effects = n1.receive("N2", m.Moved("pipe", "mid", "N2", 0, 1), sim.now)
-    sent = [e for e in effects if isinstance(e, fx.Send) and isinstance(e.msg, m.Moved)]
-    assert [(e.dst, e.msg.node, e.msg.version) for e in sent] == [("N2", "N3", 3)]
+    sent = [e for e in effects if isinstance(e, fx.Send) and isinstance(e.said, m.Moved)]
+    assert [(e.dst, e.said.node, e.said.version) for e in sent] == [("N2", "N3", 3)]
     assert n1.placement("pipe")["mid"] == "N3"
 
 

@@ -212,7 +212,9 @@ def test_heartbeats_carry_the_figures_once_a_monitor_period_and_to_a_new_neighbo
         for n in core.liveness.neighbours:  # they live: slim beats of theirs say so
             core.receive(n, m.Heartbeat(n), now)
         out = core.on_timer(HeartbeatTick(), now)
-        return {e.dst: e.msg for e in out if isinstance(e, Send) and isinstance(e.msg, m.Heartbeat)}
+        return {
+            e.dst: e.said for e in out if isinstance(e, Send) and isinstance(e.said, m.Heartbeat)
+        }
 
     sent = [beats(0.1 * k) for k in range(1, 21)]
     with_figures = [k for k, b in enumerate(sent) if b["N2"].figures is not None]

@@ -101,7 +101,7 @@ def test_an_uncorroborated_claim_waits_for_our_own_probe_and_a_live_victim_refut
     core = core_with_victim()
     out = core.receive("N2", m.NodeDown("N3", "N2", 5), 1.0)  # no witness, one detector
     assert core.failed == set()
-    probes = [e for e in out if getattr(e, "dst", "") == "N3" and isinstance(e.msg, m.Suspect)]
+    probes = [e for e in out if getattr(e, "dst", "") == "N3" and isinstance(e.said, m.Suspect)]
     assert probes, out  # we ask the victim itself
     core.receive("N3", m.Hears("N3", 0, True, 0), 1.05)  # it answers: it lives
     core.on_timer(HeartbeatTick(), 1.3)

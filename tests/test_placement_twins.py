@@ -44,7 +44,7 @@ def test_a_relayed_later_placement_does_not_move_a_vertex_running_here() -> None
     effects = core.receive("N1", relayed, sim.now)
     assert dep.placed["mid"] == "N2" and "mid" in dep.instances  # still ours, still runs
     assert dep.versions["mid"] == 2  # as of the version the others hold
-    told = {e.dst: e.msg for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Moved)}
+    told = {e.dst: e.said for e in effects if isinstance(e, Send) and isinstance(e.said, m.Moved)}
     assert set(told) == {"N3"}  # the node it names, whose own word settles it
     for word in told.values():
         assert (word.vertex, word.node, word.version) == ("mid", "N2", 2)
@@ -76,7 +76,7 @@ def test_a_node_that_yields_its_twin_tells_the_members_where_it_runs() -> None:
     inc = sim.cores["N3"].incarnation
     effects = core.receive("N3", m.Moved("pipe", "mid", "N3", incarnation=inc, version=1), sim.now)
     assert "mid" not in core.apps["pipe"].instances
-    told = {e.dst: e.msg for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Moved)}
+    told = {e.dst: e.said for e in effects if isinstance(e, Send) and isinstance(e.said, m.Moved)}
     assert set(told) == {"N1"}  # (not N3, whose word it was)
     assert (told["N1"].vertex, told["N1"].node, told["N1"].version) == ("mid", "N3", 1)
     assert told["N1"].incarnation == inc  # the twin's host's word, passed on
@@ -125,7 +125,7 @@ def test_a_twin_gone_with_a_reset_heard_late_is_checked_with_the_running_host() 
     dep = n1.apps["pipe"]
     effects = n1.receive("N3", m.Moved("pipe", "mid", "N3", incarnation=0, version=2), sim.now)
     assert dep.placed["mid"] == "N3" and "mid" in dep.vanished
-    asked = {e.dst for e in effects if isinstance(e, Send) and isinstance(e.msg, m.PlacementQuery)}
+    asked = {e.dst for e in effects if isinstance(e, Send) and isinstance(e.said, m.PlacementQuery)}
     assert "N2" in asked
     assert dep.recovering is None  # N1 coordinates: its recovery waits for the answers
     sim.apply("N1", effects)
@@ -143,8 +143,8 @@ def test_a_move_handed_over_and_gone_with_a_reset_is_recovered_once_asked() -> N
     dep = n1.apps["pipe"]
     effects = n1.receive("N3", m.Moved("pipe", "mid", "N3", incarnation=0, version=2), sim.now)
     assert dep.recovering is None
-    (qid,) = {e.msg.qid for e in effects if isinstance(e, Send) and e.dst == "N2"
-              and isinstance(e.msg, m.PlacementQuery)}  # fmt: skip
+    (qid,) = {e.said.qid for e in effects if isinstance(e, Send) and e.dst == "N2"
+              and isinstance(e.said, m.PlacementQuery)}  # fmt: skip
     placed = dict(dep.placed) | {"mid": "N3"}
     n1.receive("N2", m.PlacementReply("pipe", qid, placed, {"mid": 2}, ["mid"]), sim.now)
     n1.receive("N3", m.PlacementReply("pipe", qid, placed, {"mid": 2}, ["mid"]), sim.now)
@@ -294,7 +294,7 @@ def test_a_consumer_below_what_a_retired_twin_took_skips_there_with_its_outputs(
     out.acked = out.sent = out.positions_at = at + 5  # (as the twin's chained ack left it)
     out.consumer_lost = True
     effects = n1.receive("N2", m.Resume("pipe", 0, 1, False, at), sim.now)
-    (said,) = [e.msg for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Resume)]
+    (said,) = [e.said for e in effects if isinstance(e, Send) and isinstance(e.said, m.Resume)]
     assert said.producer and (said.start, said.positions) == (at + 5, {1: numbered + 7})
     assert not out.consumer_lost
     n2.receive("N1", said, sim.now)

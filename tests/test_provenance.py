@@ -567,7 +567,7 @@ def test_a_merge_that_holds_no_channel_of_an_input_answers_in_a_numbering_made_a
 
     def answer() -> m.Resume:
         effects = core.receive(node, m.Rewire("merge", 0, s1, 1234, False), sim.now)
-        sent = [e.msg for e in effects if isinstance(e, fx.Send) and e.dst == s1]
+        sent = [e.said for e in effects if isinstance(e, fx.Send) and e.dst == s1]
         (said,) = [r for r in sent if isinstance(r, m.Resume)]
         assert not said.producer
         return said

@@ -197,7 +197,7 @@ def test_a_producer_not_running_yet_says_it_retains_nothing_for_a_restore() -> N
     def retained() -> int:
         rewire = m.Rewire("pipe", 0, host, 1234, True)
         effects = core.receive(host, rewire, sim.now)
-        sent = [e.msg for e in effects if isinstance(e, fx.Send) and e.dst == host]
+        sent = [e.said for e in effects if isinstance(e, fx.Send) and e.dst == host]
         (said,) = [r for r in sent if isinstance(r, m.Resume)]
         return said.retained
 
@@ -297,9 +297,9 @@ def test_a_copy_whose_maker_restarted_and_whose_vertex_this_view_lost_looks_it_u
     assert "mid" in dep.vanished
     effects = core.on_timer(MonitorTick(), 2.0)
     queries = {
-        e.dst: e.msg
+        e.dst: e.said
         for e in effects
-        if isinstance(e, fx.Send) and isinstance(e.msg, m.PlacementQuery)
+        if isinstance(e, fx.Send) and isinstance(e.said, m.PlacementQuery)
     }
     assert sorted(queries) == ["N1", "N4"], effects  # the nodes its view names
     qid = queries["N4"].qid
@@ -325,7 +325,7 @@ def test_a_copy_fetched_for_a_restore_is_settled_by_the_node_that_fetched_it() -
     core.receive("N1", NodeCore("N1", incarnation=1).membership.beat(), 1.8)  # restarted
     assert "mid" in dep.vanished
     effects = core.receive("N3", m.FetchReplica("pipe", "mid", 77), 2.0)
-    assert any(isinstance(e, fx.Send) and isinstance(e.msg, m.Replicate) for e in effects)
+    assert any(isinstance(e, fx.Send) and isinstance(e.said, m.Replicate) for e in effects)
     core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"]), 3.0)
     assert "mid" not in dep.held and dep.placed["mid"] == "N1"  # (its view, unchanged)
     for t in (4.0, 5.0, 6.0):

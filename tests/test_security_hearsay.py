@@ -43,9 +43,9 @@ def sent(sim: Simulation, dep: AppState, at: float) -> list[tuple[str, list[byte
 
 def data(effects: list[object]) -> list[tuple[str, list[bytes]]]:
     return [
-        (e.dst, e.msg.events)
+        (e.dst, e.said.events)
         for e in effects
-        if isinstance(e, Send) and isinstance(e.msg, m.Data) and e.msg.edge == B_TO_C
+        if isinstance(e, Send) and isinstance(e.said, m.Data) and e.said.edge == B_TO_C
     ]
 
 

@@ -144,7 +144,7 @@ def suspecting(now: float = 1.0) -> tuple[NodeCore, list[Effect]]:
 
 
 def asked(effects: list[Effect]) -> dict[str, m.Suspect]:
-    return {e.dst: e.msg for e in effects if isinstance(e, Send) and isinstance(e.msg, m.Suspect)}
+    return {e.dst: e.said for e in effects if isinstance(e, Send) and isinstance(e.said, m.Suspect)}
 
 
 def test_a_silent_node_is_asked_about_its_neighbours_not_declared() -> None:
@@ -167,7 +167,7 @@ def test_a_node_nobody_hears_is_declared_with_its_witness_and_the_news_rides_on_
     core.receive("N3", m.Hears("N4", rid, False), 1.02)
     assert core.failed == {"N4"} and core.failures[-1]["detector"] == "N1"
     assert core.procedures == {}
-    beats = [e.msg for e in core.on_timer(HeartbeatTick(), 1.1) if isinstance(e, Send)]
+    beats = [e.said for e in core.on_timer(HeartbeatTick(), 1.1) if isinstance(e, Send)]
     assert beats and all(isinstance(b, m.Heartbeat) for b in beats)
     assert beats[0].news == [m.NodeDown("N4", "N1", 0, "N3")]  # piggybacked, not a message
 
@@ -241,8 +241,8 @@ def test_a_node_says_it_hears_a_node_only_when_it_heard_it_lately() -> None:
 
     def answer(about: str, now: float) -> m.Hears:
         (e,) = [e for e in core.receive("N1", m.Suspect(about, 7), now) if isinstance(e, Send)]
-        assert isinstance(e.msg, m.Hears) and e.dst == "N1" and e.msg.rid == 7
-        return e.msg
+        assert isinstance(e.said, m.Hears) and e.dst == "N1" and e.said.rid == 7
+        return e.said
 
     assert answer("N4", 1.2) == m.Hears("N4", 7, True, 200)  # heard 0.2 s ago
     assert answer("N4", 1.4) == m.Hears("N4", 7, False, 400)  # its neighbour, not lately

@@ -586,6 +586,10 @@ class TcpTransport:
         if env.kind != m.kind_of(msg):  # it would have been queued as another class
             self.counters.frames_bad_kind += 1
             return
+        # a control stream's frame is judged by what it carries (its number is the core's)
+        frame = msg if type(msg) is m.Sequenced else None
+        if frame is not None:
+            msg = frame.body
         if why := implausible(msg, time.time_ns() // 1_000_000):
             self.counters.frames_implausible += 1
             log.info("from %s: %s: %s", env.src, type(msg).__name__, why)
@@ -606,8 +610,10 @@ class TcpTransport:
             why = self.authority.document(msg.document, msg.app)
             if why:  # an app no operator granted (or one undeployed since): never loaded here
                 log.info("from %s: %s %s: %s", env.src, type(msg).__name__, msg.app, why)
+                if frame is not None:  # a genuine node's word, refused: its stream goes on
+                    self._receiver(env.src, msgspec.structs.replace(frame, body=m.Refused(why)))
                 return
-        self._receiver(env.src, msg)
+        self._receiver(env.src, msg if frame is None else msgspec.structs.replace(frame, body=msg))
 
     def _revoke(self, msg: m.RevokeNode, via: str | None) -> str:
         """An operator's revocation (from a client, or a neighbour ``via``): once verified and

@@ -41,6 +41,7 @@ from mso.protocol import effects as fx
 from mso.protocol import kept
 from mso.protocol import messages as m
 from mso.protocol.authority import Authority
+from mso.protocol.control_stream import ACK_DELAY_S, RTO_S, UNSEQUENCED, ControlStreams
 from mso.protocol.dataplane import DataPlane
 from mso.protocol.effects import CancelTimer, Effect, Reply, Send, SetTimer
 from mso.protocol.events import (
@@ -70,6 +71,7 @@ from mso.protocol.events import (
     SnapshotAligned,
     Snapshotted,
     SourceTick,
+    StreamTick,
     Superseded,
 )
 from mso.protocol.procedures import placement
@@ -175,6 +177,9 @@ class NodeCore:
         self._now = 0.0
         self._effects: list[Effect] = []
         self._work: deque[tuple[str, m.Message]] = deque()
+        # every control message to a peer numbered, kept until acknowledged, sent again
+        self.streams = ControlStreams()
+        self._stream_at: float | None = None  # when the streams' timer is set for
         # ids of procedures this node coordinates: distinct per node, small enough for msgpack
         self._rid = self._rid_base = (zlib.crc32(node_id.encode()) & 0xFFFFFF) << 20
         # messages for an app whose announcement has not arrived yet (another path overtook
@@ -238,6 +243,10 @@ class NodeCore:
         self._subscribe(NodeReset, lambda ev: self.relocator.on_reset())
         self._subscribe(NodeReset, lambda ev: self.early.clear())
         self._subscribe(PeerFailed, self._drop_early_of)
+        self._subscribe(PeerFailed, lambda ev: self.streams.forget(ev.node))
+        self._subscribe(PeerRejoined, self._on_peer_rejoined)
+        self._subscribe(NodeReset, lambda ev: self.streams.reset())
+        self._subscribe(RoutesChanged, self._on_routes_changed)
         self.movelog = MoveLog()
         self._subscribe(
             Happened, lambda h: self._happened.append(self.movelog.happened(h, self._now))
@@ -330,6 +339,7 @@ class NodeCore:
             HeldProbesDue: lambda key, now: dep.on_held_probes_due(now),
             ReplicationTick: self.replicator.tick,
             TapTick: dp.taps.tick,
+            StreamTick: self._on_stream_tick,
         }
         # a procedure's step not answered in time: asked again (or given up)
         self._retries: dict[type, Callable[[Retry, float], None]] = {
@@ -450,6 +460,11 @@ class NodeCore:
     def receive(self, src: str, msg: m.Message, now: float) -> list[Effect]:
         """A message from another node (or relayed by one)."""
         self._now = now
+        if type(msg) is m.Sequenced:
+            return self._receive_frame(src, msg, now)
+        if type(msg) is m.Got:
+            self.streams.on_got(src, msg.inc, msg.upto, now)
+            return self._run(now)
         if src in self.membership.failed:  # a node declared failed is heard only to rejoin
             if not isinstance(msg, m.Heartbeat):
                 self.dropped_messages += 1
@@ -468,6 +483,23 @@ class NodeCore:
         else:
             self._guarded("heard", self.membership.heard, src, now)
             self._work.append((src, msg))
+        return self._run(now)
+
+    def _receive_frame(self, src: str, frame: m.Sequenced, now: float) -> list[Effect]:
+        """A frame of ``src``'s control stream: its messages, in order and once. A node held
+        failed is heard only to rejoin: its frames are taken (acknowledged) and dropped."""
+        ready = self.streams.receive(src, frame, now)
+        self._stream_wake(now + ACK_DELAY_S)
+        if src in self.membership.failed:
+            self.dropped_messages += len(ready)
+            return self._run(now)
+        if ready:
+            self._guarded("heard", self.membership.heard, src, now)
+        for msg in ready:
+            if type(msg) is m.Sequenced or type(msg) is m.Got:
+                self.dropped_messages += 1  # (nested: never sent so)
+            else:
+                self._work.append((src, msg))
         return self._run(now)
 
     def request(self, client: int, msg: m.Message, now: float) -> list[Effect]:
@@ -563,8 +595,35 @@ class NodeCore:
     def send(self, dst: str, msg: m.Message) -> None:
         if dst == self.id:
             self._work.append((self.id, msg))
-        else:
+        elif type(msg) in UNSEQUENCED:
             self._effects.append(Send(dst, msg))
+        else:
+            frame = self.streams.wrap(dst, msg, self.incarnation, self._now)
+            self._effects.append(Send(dst, frame))
+            self._stream_wake(self._now + RTO_S)
+
+    def _stream_wake(self, at: float) -> None:
+        """The streams' timer at ``at`` unless set for earlier (an early wake finds nothing
+        due and sets the timer for what is)."""
+        if self._stream_at is None or at < self._stream_at:
+            self._stream_at = at
+            self._effects.append(SetTimer(StreamTick(), at))
+
+    def _on_stream_tick(self, key: StreamTick, now: float) -> None:
+        self._stream_at = None
+        sends, then = self.streams.due(now, self.routes)
+        self._effects.extend(Send(dst, msg) for dst, msg in sends)
+        if then is not None:
+            self._stream_wake(then)
+
+    def _on_peer_rejoined(self, ev: PeerRejoined) -> None:
+        if ev.restarted:  # a new process: what its predecessor was not sent is not for it
+            self.streams.forget(ev.node)
+
+    def _on_routes_changed(self, ev: RoutesChanged) -> None:
+        for node in ev.appeared:
+            if self.streams.reachable(node, self._now):
+                self._stream_wake(self._now)
 
     def broadcast(self, msg: m.Message) -> None:
         """To every node not held failed, including those heard of but out of reach right

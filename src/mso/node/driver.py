@@ -153,14 +153,15 @@ class NodeDriver:
     # -- inbound ----------------------------------------------------------------------------
     def _receive(self, src: str, msg: m.Message) -> None:
         self._in_turn = True  # (until the read's end: ``_read_done``)
-        app = getattr(msg, "app", None)
+        said = msg.body if type(msg) is m.Sequenced else msg  # (a control stream's frame)
+        app = getattr(said, "app", None)
         if isinstance(app, str) and app in self._warming:
             self._hold_warming(app, src, msg)
             return
-        if isinstance(msg, m.AppAnnounce | m.AppSync) and msg.app not in self.core.apps:
-            if hash(msg.document) not in self._warmed:
-                self._warming[msg.app] = []
-            self._warm(msg.document, lambda: self._warmed_app(msg.app, src, msg))
+        if isinstance(said, m.AppAnnounce | m.AppSync) and said.app not in self.core.apps:
+            if hash(said.document) not in self._warmed:
+                self._warming[said.app] = []
+            self._warm(said.document, lambda: self._warmed_app(said.app, src, msg))
             return
         self._receive_now(src, msg)
 

@@ -31,6 +31,11 @@ class Send(msgspec.Struct, frozen=True, gc=False):
     dst: str
     msg: m.Message
 
+    @property
+    def said(self) -> m.Message:
+        """The message, as a control stream's frame carries it (``msg`` is the frame)."""
+        return m.carried(self.msg)
+
 
 class Reply(msgspec.Struct, frozen=True, gc=False):
     """Answer the client connection ``client``."""

@@ -82,6 +82,12 @@ class ReplicationTick:
     app: str
 
 
+@dataclass(frozen=True)
+class StreamTick:
+    """Control streams (:mod:`mso.protocol.control_stream`): frames not acknowledged in time
+    are sent again, acknowledgements held for a piggyback go out on their own."""
+
+
 TimerKey = (
     Deadline
     | Retry
@@ -92,6 +98,7 @@ TimerKey = (
     | RecoverTick
     | HeldProbesDue
     | ReplicationTick
+    | StreamTick
 )
 
 

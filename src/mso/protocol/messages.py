@@ -73,6 +73,31 @@ from mso.protocol.wire.requests import Shutdown as Shutdown
 from mso.protocol.wire.requests import StatusReply as StatusReply
 from mso.protocol.wire.requests import StatusRequest as StatusRequest
 
+
+class Sequenced(msgspec.Struct, tag_field="t", tag="seq", array_like=True):
+    """A control message on its sender's control stream to this node
+    (:mod:`mso.protocol.control_stream`): numbered per (sender incarnation, receiver), held
+    by the sender until acknowledged and sent again, delivered once and in order. ``low``:
+    the lowest number the sender still holds for this receiver (nothing below it will come:
+    given up or acknowledged). ``ack``/``ack_inc``: an acknowledgement of the receiver's own
+    stream to the sender, piggybacked (-1: none)."""
+
+    inc: int
+    seq: int
+    low: int
+    body: Message
+    ack_inc: int = -1
+    ack: int = -1
+
+
+class Got(msgspec.Struct, tag_field="t", tag="got", array_like=True):
+    """Everything of the receiver's control stream of incarnation ``inc`` up to ``upto`` has
+    arrived here (sent when no control message to it carried the acknowledgement)."""
+
+    inc: int
+    upto: int
+
+
 CONTROL, DATA, MARKER, HEARTBEAT = 0, 1, 2, 3  # Envelope.kind
 KINDS = frozenset({CONTROL, DATA, MARKER, HEARTBEAT})
 
@@ -179,11 +204,25 @@ Message = (
     | Hears
     | Tap
     | TapEvents
+    | Sequenced
+    | Got
 )
 
 _ENVELOPE_DECODER = msgspec.msgpack.Decoder(Envelope)
 _MESSAGE_DECODER: msgspec.msgpack.Decoder[Message] = msgspec.msgpack.Decoder(Message)
 _ENCODER = msgspec.msgpack.Encoder()
+
+
+def carried(msg: Message) -> Message:
+    """The message itself: what a control stream's frame carries, or ``msg``."""
+    return msg.body if type(msg) is Sequenced else msg
+
+
+def name_of(msg: Message) -> str:
+    """A message's type name, a control stream's frame named by what it carries (logs, traces)."""
+    if type(msg) is Sequenced:
+        return f"{type(msg.body).__name__}#{msg.seq}"
+    return type(msg).__name__
 
 
 def encode(msg: Message) -> bytes:

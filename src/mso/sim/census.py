@@ -78,6 +78,8 @@ class Census:
         """``msg`` sent to each (destination, route) of ``copies``: every copy counted, as
         :meth:`note` counts one (a beat to every neighbour is counted in one call). ``hops``:
         the copies' hop transmissions, when the caller knows them (a planned broadcast)."""
+        if type(msg) is m.Sequenced:  # a control stream's frame: counted as what it carries
+            msg = msg.body
         kind = _KINDS.get(type(msg))
         if kind is None:  # a message's kind is its type's: looked up once per type
             name = type(msg).__name__

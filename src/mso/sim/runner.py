@@ -138,7 +138,8 @@ class Simulation:
         # (a routing protocol that has not converged; see :meth:`lose_route`)
         self.lost_routes: set[tuple[str, str]] = set()
         # a test's view of the network: each tap sees every message put on it (from, to,
-        # message); ``drop`` loses the ones it returns True for, as a radio would
+        # message); ``drop`` loses the ones it returns True for, as a radio would (both see
+        # the message a control stream's frame carries: lost so, it is lost each time sent)
         self.taps: list[Callable[[str, str, m.Message], None]] = []
         self.drop: Callable[[str, str, m.Message], bool] | None = None
         # every message counted by type, and the control messages kept for locality tallies
@@ -333,9 +334,10 @@ class Simulation:
     def _carry(self, node: str, dst: str, msg: m.Message, path: _Path) -> tuple[float, m.Message]:
         """:meth:`_put` past the census: taps, loss, the wire and the bytes at every hop."""
         route, delay, lossy, senders, receivers = path
+        said = m.carried(msg)  # (taps and a test's loss see what a stream's frame carries)
         for tap in self.taps:
-            tap(node, dst, msg)
-        if self.drop is not None and self.drop(node, dst, msg):
+            tap(node, dst, said)
+        if self.drop is not None and self.drop(node, dst, said):
             return -1.0, msg  # lost on the way
         if lossy and m.kind_of(msg) == m.DATA:
             for end, loss in lossy:
@@ -624,7 +626,7 @@ class Simulation:
                 continue
             self.delivered += 1
             if trace is not None:
-                trace.append((at, node, src, type(msg).__name__))
+                trace.append((at, node, src, m.name_of(msg)))
             # (its byte counters the core reads itself: count_traffic)
             effects = cores[node].receive(src, msg, at)
             if effects:  # (a quiet beat's none)
@@ -650,7 +652,7 @@ class Simulation:
                     msg = self._proven(src, msg)
                 self.delivered += 1
                 if self.trace is not None:
-                    self.trace.append((at, node, src, type(msg).__name__))
+                    self.trace.append((at, node, src, m.name_of(msg)))
                 self.apply(node, core.receive(src, msg, at))
             elif kind == "vertex":
                 executor, result = payload

@@ -1,0 +1,274 @@
+"""Control streams: every control message a node sends another arrives once and in order, or
+is given up by a rule. Sans-IO.
+
+A control frame is lost when its route is missing longer than the route wait
+(:mod:`mso.net.forwarding`), when a relay holding it dies, or when a connection breaks with it
+queued. Most procedures ask and wait with a deadline, but some frames are said once — a move's
+``Moved``, a rejoin's ``AppSync``, a claim's ``NodeDown``, a handover's ``HandoverDone`` — and
+their loss left a view stale for good (the fault schedules with control frames lost,
+``bench/faults.py --control-loss``). So each node numbers what it sends each peer, as TCP
+numbers bytes, end to end across the overlay's hops:
+
+- the sender keeps each frame until the receiver acknowledges it, and sends it again after a
+  timeout (doubling, up to :data:`RTO_MAX_S`) while the receiver is reachable, and at once
+  when a route to it appears; it gives a frame up after :data:`KEEP_S` (what it said is
+  settled by then by other means: a rejoin's sync, the procedures' own deadlines), when the
+  receiver is held failed or heard back in a later incarnation (the frames were for the
+  process that died), or past :data:`MAX_UNACKED` frames (the oldest first);
+- a frame carries ``low``, the lowest number its sender still holds: the receiver never
+  waits for a frame below it;
+- the receiver delivers frames in order and once, holds up to :data:`MAX_HELD` that came
+  early, and acknowledges cumulatively: on a frame going back within :data:`ACK_DELAY_S`,
+  else in a :class:`~mso.protocol.messages.Got` of its own.
+
+A stream is one incarnation's (a reset or a restart starts new ones); a frame of an earlier
+incarnation than the receiver has seen is dropped. Data frames (events and their acks, which
+channels number and replay themselves), markers (which travel in order with data), heartbeats,
+liveness questions (worth nothing late) and the status check go as they are.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+from mso.protocol import messages as m
+
+RTO_S = 0.25
+"""A frame not acknowledged this long after it was sent is sent again (then 2x, 4x...)."""
+RTO_MAX_S = 4.0
+KEEP_S = 10.0
+"""A frame is sent again for at most this long after it was first sent, then given up."""
+ACK_DELAY_S = 0.02
+"""How long an acknowledgement waits for a frame going back to ride on."""
+MAX_UNACKED = 1024
+"""Frames kept per receiver; past it the oldest is given up (a bound on memory)."""
+MAX_HELD = 256
+"""Frames that came early (a gap before them) held per sender; more are dropped (sent again)."""
+MAX_PEERS = 4096
+"""Peers whose receiving state is kept; past it the ones with nothing held are forgotten."""
+
+UNSEQUENCED: frozenset[type] = frozenset(
+    {
+        m.Data,
+        m.Ack,
+        m.TapEvents,
+        m.ChainDelay,
+        m.Marker,
+        m.Heartbeat,
+        m.Suspect,
+        m.Hears,
+        m.Probe,
+        m.ProbeReply,
+        m.StatusRequest,
+        m.StatusReply,
+        m.PeerHello,
+        m.ClientHello,
+        m.Sequenced,
+        m.Got,
+    }
+)
+"""What goes as it is (see the module docstring). Probes measure the path they take, and
+a deployment or remap probes again on its own deadline."""
+
+
+@dataclass
+class _Sent:
+    msg: m.Message
+    first: float
+    last: float
+
+
+@dataclass
+class _Out:
+    """What this node sends one peer: the frames it has not had acknowledged."""
+
+    inc: int
+    next_seq: int = 0
+    unacked: OrderedDict[int, _Sent] = field(default_factory=OrderedDict)
+    rto: float = RTO_S
+    due: float | None = None  # when to send the unacknowledged again (None: when reachable)
+
+    @property
+    def low(self) -> int:
+        return next(iter(self.unacked)) if self.unacked else self.next_seq
+
+
+@dataclass
+class _In:
+    """What this node receives from one peer: its stream's incarnation, the next number due
+    and the frames that came before it."""
+
+    inc: int
+    next_seq: int = 0
+    held: dict[int, m.Message] = field(default_factory=dict)
+
+
+class ControlStreams:
+    """One node's control streams to and from every peer."""
+
+    def __init__(self) -> None:
+        self._out: dict[str, _Out] = {}
+        self._in: OrderedDict[str, _In] = OrderedDict()
+        self._ack_due: dict[str, float] = {}  # peer -> when its acknowledgement goes alone
+        self.resent = 0  # frames sent again
+        self.given_up = 0  # frames never acknowledged: timed out, bounded out, peer gone
+        self.duplicates = 0  # frames that came again, dropped
+        self.stale = 0  # frames of an earlier incarnation of their sender, dropped
+
+    # -- sending ---------------------------------------------------------------------------
+    def wrap(self, dst: str, msg: m.Message, inc: int, now: float) -> m.Sequenced:
+        """``msg`` as the next frame of this node's (incarnation ``inc``) stream to ``dst``."""
+        out = self._out.get(dst)
+        if out is None or out.inc != inc:  # a reset or a first frame: a new stream
+            if out is not None:
+                self.given_up += len(out.unacked)
+            out = self._out[dst] = _Out(inc)
+        seq = out.next_seq
+        out.next_seq += 1
+        out.unacked[seq] = _Sent(msg, now, now)
+        if len(out.unacked) > MAX_UNACKED:
+            out.unacked.popitem(last=False)
+            self.given_up += 1
+        if out.due is None:
+            out.due = now + out.rto
+        return self._frame(dst, out, seq, msg)
+
+    def _frame(self, dst: str, out: _Out, seq: int, msg: m.Message) -> m.Sequenced:
+        ack_inc, ack = self._take_ack(dst)
+        return m.Sequenced(out.inc, seq, out.low, msg, ack_inc, ack)
+
+    def _take_ack(self, peer: str) -> tuple[int, int]:
+        if self._ack_due.pop(peer, None) is None:
+            return -1, -1
+        got = self._in.get(peer)
+        return (got.inc, got.next_seq - 1) if got is not None else (-1, -1)
+
+    def on_got(self, src: str, inc: int, upto: int, now: float) -> None:
+        """``src`` has every frame of our stream ``inc`` up to ``upto``."""
+        out = self._out.get(src)
+        if out is None or out.inc != inc or upto < 0:
+            return
+        acked = False
+        while out.unacked:
+            seq = next(iter(out.unacked))
+            if seq > upto:
+                break
+            del out.unacked[seq]
+            acked = True
+        if acked:
+            out.rto = RTO_S
+            out.due = now + out.rto if out.unacked else None
+
+    def forget(self, peer: str) -> None:
+        """``peer`` is held failed or came back as a new process: what it was not sent is
+        for the process that died (a rejoin's sync tells the new one what it must know)."""
+        out = self._out.get(peer)
+        if out is not None and out.unacked:
+            self.given_up += len(out.unacked)
+            out.unacked.clear()
+            out.due = None
+
+    def reachable(self, peer: str, now: float) -> bool:
+        """A route to ``peer`` appeared: what it was not acknowledged goes again now (True:
+        something does)."""
+        out = self._out.get(peer)
+        if out is None or not out.unacked:
+            return False
+        out.due = now
+        return True
+
+    def reset(self) -> None:
+        """This node reset (a new incarnation): it drops what it sent, as it drops its apps."""
+        for out in self._out.values():
+            self.given_up += len(out.unacked)
+        self._out.clear()
+
+    # -- receiving -------------------------------------------------------------------------
+    def receive(self, src: str, frame: m.Sequenced, now: float) -> list[m.Message]:
+        """The messages ``frame`` makes deliverable, in order (none, it, or it and those
+        held behind it)."""
+        if frame.ack >= 0:
+            self.on_got(src, frame.ack_inc, frame.ack, now)
+        got = self._in.get(src)
+        if got is None or frame.inc > got.inc:  # a first frame, or a new process or reset
+            got = _In(frame.inc, frame.low)
+            self._in[src] = got
+            self._bound_peers()
+        elif frame.inc < got.inc:
+            self.stale += 1
+            return []
+        self._in.move_to_end(src)
+        self._ack_due.setdefault(src, now + ACK_DELAY_S)
+        if frame.low > got.next_seq:  # the sender gave up what came before: skip it
+            got.next_seq = frame.low
+            for seq in [s for s in got.held if s < frame.low]:
+                del got.held[seq]
+        if frame.seq < got.next_seq or frame.seq in got.held:
+            self.duplicates += 1
+            return []
+        if frame.seq > got.next_seq:
+            if len(got.held) < MAX_HELD:
+                got.held[frame.seq] = frame.body
+            return []
+        ready = [frame.body]
+        got.next_seq += 1
+        while (body := got.held.pop(got.next_seq, None)) is not None:
+            ready.append(body)
+            got.next_seq += 1
+        return ready
+
+    def _bound_peers(self) -> None:
+        while len(self._in) > MAX_PEERS:
+            peer, got = next(iter(self._in.items()))
+            if got.held:  # (the least recently heard with something held stays longest)
+                self._in.move_to_end(peer)
+                if all(g.held for g in self._in.values()):
+                    break
+                continue
+            del self._in[peer]
+            self._ack_due.pop(peer, None)
+
+    # -- time ------------------------------------------------------------------------------
+    def due(
+        self, now: float, reachable: dict[str, tuple[str, int]]
+    ) -> tuple[list[tuple[str, m.Message]], float | None]:
+        """What is due at ``now``: frames sent again (to reachable peers), acknowledgements
+        alone; and when to look again (None: nothing waits on time)."""
+        sends: list[tuple[str, m.Message]] = []
+        for peer, out in self._out.items():
+            if not out.unacked or out.due is None or out.due > now:
+                continue
+            while out.unacked:  # given up after KEEP_S
+                seq, sent = next(iter(out.unacked.items()))
+                if sent.first + KEEP_S > now:
+                    break
+                del out.unacked[seq]
+                self.given_up += 1
+            if not out.unacked:
+                out.due = None
+                continue
+            if peer not in reachable:
+                out.due = None  # again when a route appears (``reachable``)
+                continue
+            for seq, sent in out.unacked.items():
+                sent.last = now
+                sends.append((peer, self._frame(peer, out, seq, sent.msg)))
+                self.resent += 1
+            out.rto = min(out.rto * 2, RTO_MAX_S)
+            out.due = now + out.rto
+        for peer, at in list(self._ack_due.items()):
+            if at <= now:
+                ack_inc, ack = self._take_ack(peer)
+                if ack >= 0:
+                    sends.append((peer, m.Got(ack_inc, ack)))
+        return sends, self.next_due()
+
+    def next_due(self) -> float | None:
+        times = [o.due for o in self._out.values() if o.due is not None and o.unacked]
+        times += self._ack_due.values()
+        return min(times) if times else None
+
+    def held(self) -> int:
+        """Frames kept unacknowledged, to every peer (status)."""
+        return sum(len(o.unacked) for o in self._out.values())
