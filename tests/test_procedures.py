@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from mso.protocol import messages as m
+from mso.protocol.control_stream import KEEP_S
 from mso.protocol.events import PeerRejoined
 from mso.protocol.procedures.base import IllegalTransition, Phase, table_rows
 from mso.protocol.procedures.deploy import Deploy
@@ -143,10 +144,10 @@ def test_a_vertex_that_has_seen_no_event_yet_moves() -> None:
 
 
 def test_a_handover_lost_on_the_way_is_sent_again_until_its_target_takes_it() -> None:
-    """Once the old instance is freed the handover is the vertex's only copy; a control frame
-    that finds no route is given up after a second. Lost (fault seed 274108: the target cut
-    off just after the switch), the old host sends it again, the move ends, and the sink has
-    every event once, in order; the old host forgets it once taken."""
+    """Once the old instance is freed the handover is the vertex's only copy. Lost once (fault
+    seed 274108: the target cut off just after the switch), the old host's control stream
+    sends it again within its timeout, well before the move's own resend (2 s); the move ends,
+    and the sink has every event once, in order; the old host forgets it once taken."""
     sim, old, target = moving_mid(dropping=m.Handover)
     lost: list[m.Message] = []
 
@@ -158,10 +159,38 @@ def test_a_handover_lost_on_the_way_is_sent_again_until_its_target_takes_it() ->
 
     sim.drop = lose_the_first
     sim.run_until(sim.now + 1.0)
-    assert lost and not [r for _, c, r in sim.replies if c == 5]  # not ended yet
-    sim.run_until(sim.now + 3.0)
+    assert lost and sim.cores[old].streams.resent >= 1
+    handed_over_well(sim, old, target, within_ms=1000.0)
+
+
+def test_a_handover_its_stream_gave_up_is_sent_again_by_the_old_host() -> None:
+    """A stream gives a frame up after ``KEEP_S``; the handover is then still the vertex's only
+    copy, so the old host keeps it until the new host says it took it, and sends it again on
+    its own backoff (2, 4, 8 s...) until then."""
+    sim, old, target = moving_mid(dropping=m.Handover)
+    until = sim.now + KEEP_S + 0.5  # every copy the stream sends is lost
+    lost: list[m.Message] = []
+
+    def lose_them(node: str, dst: str, msg: m.Message) -> bool:
+        if isinstance(msg, m.Handover) and sim.now < until:
+            lost.append(msg)
+            return True
+        return False
+
+    sim.drop = lose_them
+    sim.run_until(until)
+    assert len(lost) > 3 and not [r for _, c, r in sim.replies if c == 5]  # not ended yet
+    sim.run_until(until + 6.0)
+    assert sim.cores[old].streams.given_up >= 1
+    handed_over_well(sim, old, target)
+
+
+def handed_over_well(
+    sim: Simulation, old: str, target: str, within_ms: float = float("inf")
+) -> None:
     ((_, _, reply),) = [(t, c, r) for t, c, r in sim.replies if c == 5]
     assert isinstance(reply, m.RelocateReply) and reply.ok, reply
+    assert reply.elapsed_ms < within_ms, reply
     assert "mid" in sim.cores[target].instances("pipe")
     assert sim.cores[old].relocator.kept == {}
     assert sim.cores[target].status(sim.now)["refusals"] == {}

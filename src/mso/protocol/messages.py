@@ -220,9 +220,7 @@ def carried(msg: Message) -> Message:
 
 def name_of(msg: Message) -> str:
     """A message's type name, a control stream's frame named by what it carries (logs, traces)."""
-    if type(msg) is Sequenced:
-        return f"{type(msg.body).__name__}#{msg.seq}"
-    return type(msg).__name__
+    return type(msg.body if type(msg) is Sequenced else msg).__name__
 
 
 def encode(msg: Message) -> bytes:
