@@ -20,7 +20,7 @@ from test_sim_scenario import APP, files
 def test_census_counts_what_a_tap_sees_and_tallies_a_relocation() -> None:
     sim = started()
     seen: Counter[str] = Counter()
-    sim.taps.append(lambda a, b, msg: seen.update([type(msg).__name__]))
+    sim.taps.append(lambda a, b, msg: seen.update([m.name_of(msg)]))
     before = Counter(sim.census.by_type)
     t0 = sim.now
     reply = relocate(sim, "N1", vertex="counter", direction="downstream")

@@ -190,7 +190,9 @@ def test_a_rejoin_is_announced_to_the_apps_hosts_and_neighbours_not_to_every_nod
     assert all("N10" in sim.cores[n].failed for n in ids[:-1])  # needs what it ran)
     ups: list[tuple[str, str]] = []
     sim.taps.append(
-        lambda src, dst, msg: ups.append((src, dst)) if isinstance(msg, m.NodeUp) else None
+        lambda src, dst, msg: (
+            ups.append((src, dst)) if isinstance(m.carried(msg), m.NodeUp) else None
+        )
     )
     sim.network.add_link(LinkSpec("N9", "N10"))
     sim.revive("N10")

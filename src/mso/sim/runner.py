@@ -138,8 +138,8 @@ class Simulation:
         # (a routing protocol that has not converged; see :meth:`lose_route`)
         self.lost_routes: set[tuple[str, str]] = set()
         # a test's view of the network: each tap sees every message put on it (from, to,
-        # message); ``drop`` loses the ones it returns True for, as a radio would (both see
-        # the message a control stream's frame carries: lost so, it is lost each time sent)
+        # message); ``drop`` loses the ones it returns True for, as a radio would (it sees the
+        # message a control stream's frame carries: lost so, it is lost each time sent)
         self.taps: list[Callable[[str, str, m.Message], None]] = []
         self.drop: Callable[[str, str, m.Message], bool] | None = None
         # every message counted by type, and the control messages kept for locality tallies
@@ -334,10 +334,10 @@ class Simulation:
     def _carry(self, node: str, dst: str, msg: m.Message, path: _Path) -> tuple[float, m.Message]:
         """:meth:`_put` past the census: taps, loss, the wire and the bytes at every hop."""
         route, delay, lossy, senders, receivers = path
-        said = m.carried(msg)  # (taps and a test's loss see what a stream's frame carries)
         for tap in self.taps:
-            tap(node, dst, said)
-        if self.drop is not None and self.drop(node, dst, said):
+            tap(node, dst, msg)
+        # (a test's loss sees what a control stream's frame carries)
+        if self.drop is not None and self.drop(node, dst, m.carried(msg)):
             return -1.0, msg  # lost on the way
         if lossy and m.kind_of(msg) == m.DATA:
             for end, loss in lossy:
