@@ -178,6 +178,49 @@ def test_an_announced_app_without_a_grant_is_never_loaded() -> None:
     assert st["apps"] == {} and st["authority"]["refused"] == 2
 
 
+def test_an_app_without_a_grant_in_a_control_streams_frame_is_refused_and_the_stream_goes_on() -> (
+    None
+):
+    """The same two announcements, each in a frame of N2's control stream, then a third frame:
+    the transport judges a frame by what it carries (both refused, nothing loaded), and passes
+    each refusal on as a ``Refused`` body, so N2's stream is not stuck behind them."""
+    auth = Authority.configure([OPERATOR.public_text()])
+
+    async def run() -> tuple[dict[str, Any], int]:
+        driver, port = await start(auth)
+        try:
+            reader, writer = await asyncio.open_connection(HOST, port)
+            codec = FrameCodec(KEY)
+            writer.write(codec.hello())
+            _, confirm = codec.feed(await reader.readexactly(HELLO_BYTES))
+            writer.write(confirm)
+            writer.write(codec.seal(m.wrap("N2", "N1", m.PeerHello("N2"))))
+            said: list[m.Message] = [
+                m.AppAnnounce(app="one", origin="N2", document=APP),
+                m.AppAnnounce(app="two", origin="N2", document=ROGUE.grant(APP, 1)),
+                m.Moved("one", "v", "N2", -1, 1),
+            ]
+            for seq, msg in enumerate(said):
+                frame = m.Sequenced(inc=1, seq=seq, low=0, body=msg)
+                writer.write(codec.seal(m.wrap("N2", "N1", frame)))
+            await writer.drain()
+            streams = driver.core.streams
+            for _ in range(100):  # until all three were taken
+                got = streams._in.get("N2")
+                if got is not None and got.next_seq == 3:
+                    break
+                await asyncio.sleep(0.02)
+            writer.close()
+            got = streams._in.get("N2")
+            return await status(port), (got.next_seq if got is not None else -1)
+        finally:
+            await driver.stop()
+
+    st, taken = asyncio.run(run())
+    assert st["apps"] == {} and st["authority"]["refused"] == 2
+    assert taken == 3  # the refused two did not stall the third
+
+
 def test_keygen_and_signed_cli(tmp_path: Path) -> None:
     out = tmp_path / "op.key"
     result = CliRunner().invoke(main, ["keygen", str(out)])
