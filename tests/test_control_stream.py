@@ -128,6 +128,8 @@ def test_a_core_sends_control_messages_on_its_streams_and_delivers_them_in_order
     assert again and all(type(f) is m.Sequenced and f.seq == frame.seq for f in again)
     n1.receive("N2", m.Got(frame.inc, frame.seq), 0.3)
     assert n1.streams.held() == 0
+    counted = n1.status(0.3)["control_streams"]
+    assert counted["unacknowledged"] == 0 and counted["resent"] == len(again)
 
 
 def test_control_frames_lost_at_random_leave_no_view_stale() -> None:

@@ -26,6 +26,7 @@ from mso.node.manager import ManagementStatus, Manager
 from mso.node.monitor import Monitor, MonitorStatus
 from mso.node.moves import MoveLog, MoveRecord
 from mso.protocol.authority import AuthorityStatus
+from mso.protocol.control_stream import ControlStreams
 from mso.protocol.procedures.membership.liveness import LivenessStatus
 from mso.protocol.procedures.membership.peers import Membership
 from mso.protocol.procedures.membership.status import Heard
@@ -92,6 +93,9 @@ class NodeStatus(msgspec.Struct, frozen=True, kw_only=True):
     # reader places it on its own by its age
     moves: list[MoveRecord] = msgspec.field(default_factory=list)
     clock: float = 0.0
+    # the control streams' counters (mso.protocol.control_stream): frames kept unacknowledged
+    # now, sent again, given up, taken twice, of an earlier incarnation (older nodes: none)
+    control_streams: dict[str, int] = msgspec.field(default_factory=dict)
 
 
 class StatusSource(Protocol):
@@ -104,6 +108,7 @@ class StatusSource(Protocol):
     dataplane: DataPlane
     membership: Membership
     manager: Manager
+    streams: ControlStreams
     movelog: MoveLog
     dropped_messages: int
     refusals: dict[str, int]
@@ -138,6 +143,7 @@ def node_status(core: StatusSource, now: float) -> NodeStatus:
         **msgspec.structs.asdict(core.membership.status()),
         moves=core.movelog.status(now),
         clock=round(now, 3),
+        control_streams=core.streams.status(),
     )
 
 

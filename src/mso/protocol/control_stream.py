@@ -272,3 +272,12 @@ class ControlStreams:
     def held(self) -> int:
         """Frames kept unacknowledged, to every peer (status)."""
         return sum(len(o.unacked) for o in self._out.values())
+
+    def status(self) -> dict[str, int]:
+        return {
+            "unacknowledged": self.held(),
+            "resent": self.resent,
+            "given_up": self.given_up,
+            "duplicates": self.duplicates,
+            "stale": self.stale,
+        }
