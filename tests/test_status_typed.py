@@ -39,6 +39,7 @@ NODE_KEYS = [
     "heard",
     "moves",
     "clock",
+    "control_streams",
 ]
 LINK_KEYS = ["traffic", "connections", "connected", "tasks", "timers", "authority"]
 MONITOR_KEYS = [
