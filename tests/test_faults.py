@@ -480,6 +480,10 @@ RESTARTS_BROKE = {
     "the handover with it, and each of N1 and N2 held the other the recovery's coordinator: "
     "p1 and the sink ran nowhere (a move's target restores the vertex in place when its "
     "coordinator and old host went, its own view placing the vertex on that old host)",
+    306377: "b moved off N3 just before N1, hosting nothing of the app (so not told of the "
+    "move), restored its consumer k1 on N3: N1's rewires went to N3, which refused them and "
+    "said nothing, every second; k1 and k2 ran nowhere (a node refusing a rewire for an end "
+    "it runs no more tells the asker where its view places that end)",
 }
 
 

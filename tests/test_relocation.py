@@ -438,3 +438,36 @@ def test_a_restore_ends_on_a_later_move_of_its_vertex_held_lost_only_as_it_began
     sim.run_until(sim.now + 1.0)
     assert sink_stats(sim)["count"] > before["count"] + 400
     assert {c.apps["pipe"].placed["counter"] for c in sim.cores.values()} == {host}
+
+
+def test_a_rewire_to_a_node_its_end_left_is_told_where_that_end_runs() -> None:
+    """N4 restarts and N1 restores its ``sink`` in place; before the restore rewires ``b``, N3
+    moves ``b`` to N2 and N1 is not told (as a coordinator that hosts no part of the app, not
+    a member, is not). N1's rewire for ``b`` goes to N3, which runs it no more: refused, and
+    N3 tells N1 where its view places ``b``; the restore's retry rewires N2 and the sink runs
+    on. Before, N3 said nothing and N1 asked it every second, the sink running nowhere (fault
+    seed 306377: ``b`` moved off N3 just before N1's restore of its consumer ``k1`` there)."""
+    sim = started()
+    sim.drop = lambda src, dst, msg: (
+        (dst == "N1" and isinstance(msg, m.Moved) and msg.vertex == "b")
+        or (src == "N1" and isinstance(msg, m.Prepare))  # (the restore waits for the move)
+    )
+    sim.crash("N4")
+    sim.run_until(sim.now + 0.05)
+    sim.revive("N4")
+    sim.run_until(sim.now + 0.3)
+    core = sim.cores["N1"]
+    (reloc,) = [p for p in core.procedures.values() if isinstance(p, Relocation) and p.restore]
+    assert (reloc.vertex, reloc.target) == ("sink", "N4") and where(sim, "sink") == set()
+    assert relocate(sim, "N3", vertex="b", target="N2").ok
+    dep = core.apps["pipe"]
+    assert dep.placed["b"] == "N3" and where(sim, "b") == {"N2"}  # N1 was not told
+    sim.drop = None
+    sim.run_until(sim.now + 1.0)  # (the restore's retry: its rewire refused, N1 told)
+    assert dep.placed["b"] == "N2" and where(sim, "sink") == set()
+    sim.run_until(sim.now + 1.0)  # (its next: N2 resumes the sink)
+    assert where(sim, "sink") == {"N4"}
+    assert reloc.pid not in core.procedures
+    before = sink_stats(sim)
+    sim.run_until(sim.now + 1.0)
+    assert sink_stats(sim)["count"] > before["count"] + 400

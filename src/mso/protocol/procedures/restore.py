@@ -88,8 +88,10 @@ class Restorer:
             # a view that places our end here is stale (it moved on): answering from no
             # channel said the edge starts at 0 and the replacement numbered from there,
             # below what the real end had (seed 401 with restarts: 12 events dropped); the
-            # restore asks again where its view then places this end
+            # restore asks again where its view then places this end, told by us where ours
+            # does (a coordinator hosting nothing of the app misses its moves: 306377)
             self.ctx.refusal("rewire_not_our_end")
+            self._tell_where(dep, src, ours)
             return
         if not msg.producer and ours not in dep.instances and msg.edge not in dep.inc:
             # our end is a replacement (or a move's target) not running yet: where its input
@@ -266,6 +268,20 @@ class Restorer:
         inc = self.ctx.incarnation if where == self.ctx.id else -1
         self.ctx.send(src, m.Moved(dep.app.name, replaced, where, inc, version))
         return True
+
+    def _tell_where(self, dep: AppState, src: str, ours: str) -> None:
+        """A rewire's asker placed ``ours`` here, where it runs no more: tell it where our view
+        places it (a relayed ``Moved``: newer versions win). Its retry asks that node. Said
+        nothing, a coordinator that hosts no part of the app, so was never told of the move
+        (an announce goes to the members), asked this node for good and the replacement never
+        ran (fault seed 306377: ``b`` moved off N3 just before N1's restore of its consumer
+        ``k1`` on N3; N1 sent its rewires to N3 every second until the end)."""
+        where = dep.placed.get(ours)
+        if where is None or where == self.ctx.id or where in self.ctx.failed:
+            return
+        if ours in dep.vanished:  # (gone with its node's last process: no word on where)
+            return
+        self.ctx.send(src, placement.moved(dep, ours, where))
 
     # -- the replacement: runs once every surviving end has resumed it -------------------------
     def on_resume(self, src: str, msg: m.Resume, now: float) -> None:
