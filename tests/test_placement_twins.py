@@ -152,6 +152,50 @@ def test_a_move_handed_over_and_gone_with_a_reset_is_recovered_once_asked() -> N
     assert dep.recovering is not None
 
 
+def test_a_handover_heard_late_then_told_with_its_hosts_gone_incarnation_is_a_loss() -> None:
+    """N2 handed ``mid`` over to N3 (move 2) while N1 was cut off; N3 restarted since and N1
+    has heard its new incarnation. Then, at the heal, both of N2's words come, in the order
+    sent: its ``Moved`` of the handover (no incarnation: an old host's) — kept and sent
+    again by the control stream; before, lost in the cut — then the same move told back with
+    the incarnation N3 had (:meth:`_claim_to`). The first placed ``mid`` on N3, alive by
+    N1's view; the second, at the version N1 now held, was taken as nothing new, and nobody
+    restored ``mid`` (fault seed 24365). It is a loss: ``mid`` vanished, checked with N3
+    (whose new incarnation's own word would stand), and recovered once asked."""
+    sim = restarted_n3()
+    n1 = sim.cores["N1"]
+    dep = n1.apps["pipe"]
+    n1.receive("N2", m.Moved("pipe", "mid", "N3", incarnation=-1, version=2), sim.now)
+    assert dep.placed["mid"] == "N3" and "mid" not in dep.vanished  # (where, not whose)
+    effects = n1.receive("N2", m.Moved("pipe", "mid", "N3", incarnation=0, version=2), sim.now)
+    assert dep.placed["mid"] == "N3" and "mid" in dep.vanished
+    asked = {e.dst: e.said.qid for e in effects
+             if isinstance(e, Send) and isinstance(e.said, m.PlacementQuery)}  # fmt: skip
+    assert "N3" in asked
+    assert dep.recovering is None  # (N1 coordinates: it waits for the answers)
+    placed = dict(dep.placed)
+    for src, qid in asked.items():
+        n1.receive(src, m.PlacementReply("pipe", qid, placed, {"mid": 2}, ["mid"]), sim.now)
+    assert dep.placed["mid"] == "N3" and "mid" in dep.vanished
+    assert dep.recovering is not None
+
+
+def test_a_twin_of_that_version_on_the_hosts_new_incarnation_stands_once_asked() -> None:
+    """The same late word where N3's new incarnation runs ``mid`` itself at that version (a
+    twin restored there): held lost until N3 answers, then N3's own word stands."""
+    sim = restarted_n3()
+    n1 = sim.cores["N1"]
+    dep = n1.apps["pipe"]
+    inc = sim.cores["N3"].incarnation
+    n1.receive("N3", m.Moved("pipe", "mid", "N3", incarnation=inc, version=2), sim.now)
+    assert dep.placed["mid"] == "N3" and "mid" not in dep.vanished
+    effects = n1.receive("N2", m.Moved("pipe", "mid", "N3", incarnation=0, version=2), sim.now)
+    assert "mid" in dep.vanished and dep.recovering is None
+    (qid,) = {e.said.qid for e in effects if isinstance(e, Send) and e.dst == "N3"
+              and isinstance(e.said, m.PlacementQuery)}  # fmt: skip
+    n1.receive("N3", m.PlacementReply("pipe", qid, dict(dep.placed), {"mid": 2}), sim.now)
+    assert dep.placed["mid"] == "N3" and "mid" not in dep.vanished
+
+
 def test_a_lookup_takes_the_running_hosts_word_over_a_vanished_later_placement() -> None:
     """A lookup's answers, in either order: N2 says ``mid`` runs on N2 (move 1), N3 passes on
     a placement of ``mid`` on N3 at move 2 whose instance vanished. The running host's own

@@ -278,18 +278,33 @@ def on_moved(ctx: NodeContext, src: str, msg: m.Moved, now: float) -> None:
         # another: it yielded its instance to that twin, gone since; fault seed 136485)
         handed = dep is not None and src == dep.placed.get(v) != ctx.id and src != msg.node
         known = dep.versions.get(v, 0) if dep is not None else 0
+        # (or the very placement held here, alive: news without an incarnation put it there
+        # — an old host's word of its handover, -1 — and this word says whose instance it
+        # was. Seed 24365: the old host's first word, sent into a cut, came at the heal,
+        # after the new host's restart was heard and just before this one, told back)
+        same = (
+            dep is not None
+            and dep.placed.get(v) == msg.node
+            and v not in dep.vanished
+            and msg.version == known
+        )
         news = (
             dep is not None
             and msg.node != ctx.id
             and v in dep.placed
             and not _runs_here(dep, v)
-            and (msg.version > known or (handed and msg.version == known))
+            and (msg.version > known or (handed and msg.version == known) or same)
         )
         if news and dep is not None and not _moved_refused(ctx, dep, src, msg):
             was = None if v in dep.vanished else dep.placed[v]
             learn(dep, v, msg.node, msg.version, now, running=False)
             dep.vanished.add(v)
-            if was not in (None, ctx.id, msg.node) and was not in ctx.failed:
+            if same and msg.node not in ctx.failed:
+                # (that placement may be the node's new incarnation's own word, a twin restored
+                # there at this version: asked, its word stands, as below)
+                dep.checking.add(v)
+                ctx.publish(PlacementStale(msg.app, wide=False, also=(msg.node,)))
+            elif was not in (None, ctx.id, msg.node) and was not in ctx.failed:
                 # it ran on a live node by this view: the placement gone may have been a twin
                 # restored across a cut (that node cut off, not failed), the instance there
                 # the one left. Asked, that node's own word stands (:func:`runs_there`);
