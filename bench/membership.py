@@ -107,7 +107,7 @@ def failure(side: int, convergence_s: float) -> dict[str, Any]:
             beat_bytes[1] += 1
         if isinstance(msg, NOT_CONTROL):
             return
-        counts[type(msg).__name__] += 1
+        counts[m.name_of(msg)] += 1
         per_node[a] += 1
         per_node[b] += 1
 
@@ -174,7 +174,7 @@ def restart(side: int, down_s: float = 3.0) -> dict[str, Any]:
             return
         if isinstance(msg, NOT_CONTROL):
             return
-        counts[type(msg).__name__] += 1
+        counts[m.name_of(msg)] += 1
         involved.update((a, b))
 
     sim.taps.append(tap)
@@ -236,8 +236,8 @@ def mobile(n: int, seconds: float, seed: int = 1, spread: float = 3.35) -> dict[
     counts: Counter[str] = Counter()
 
     def tap(a: str, b: str, msg: m.Message) -> None:
-        if isinstance(msg, MEMBERSHIP):
-            counts[type(msg).__name__] += 1
+        if isinstance(m.carried(msg), MEMBERSHIP):
+            counts[m.name_of(msg)] += 1
 
     sim.taps.append(tap)
     t0 = sim.now
