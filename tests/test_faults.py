@@ -484,6 +484,10 @@ RESTARTS_BROKE = {
     "move), restored its consumer k1 on N3: N1's rewires went to N3, which refused them and "
     "said nothing, every second; k1 and k2 ran nowhere (a node refusing a rewire for an end "
     "it runs no more tells the asker where its view places that end)",
+    309522: "b, restored on N3 while its consumer m was lost too, numbered its output on a "
+    "guess that m's replacement on N2 took; a cut held m's acks, N3 reset, and b's next "
+    "replacement, told nothing of where the guess started, numbered s2's replay from where m "
+    "stood: 3 events twice at the sink (a guess a consumer takes is told to the producer)",
 }
 
 

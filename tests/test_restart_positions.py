@@ -4,7 +4,9 @@ it (its ack lost). The consumer's answer to the source's restore says where its 
 (exact: it has processed everything before), and the edge keeps them at its new start: a later
 replacement of the consumer, fed the replay from there, numbers what it makes as the lost
 instance did (fault seed 202193: with none, a chain's replacement numbered the replay to a sink
-from where the sink stood, and 6 events reached it twice).
+from where the sink stood, and 6 events reached it twice). Likewise a replacement's output
+numbered on a guess, once a consumer takes it: the producer is told where it starts (seed
+309522).
 
 N1 - N2 - N3 - N4, ``pipe`` deployed: src on N1, mid on N3, sink on N4."""
 
@@ -12,6 +14,9 @@ from __future__ import annotations
 
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.protocol import messages as m
+from mso.protocol.channel import InChannel, OutChannel
+from mso.protocol.procedures.instance import H
+from mso.protocol.state import AppState, Restoring
 from mso.sim.runner import Simulation
 from runtime_vertices import pipe_app
 
@@ -38,3 +43,89 @@ def test_a_restarted_sources_edge_keeps_its_consumers_positions_at_its_new_start
     assert 1 in edge.positions, edge.positions  # where mid's output stood at the edge's start
     made = mid.inc[0].expected - edge.acked  # mid makes one event of each (Double)
     assert edge.positions[1] + made == mid.out[1].next_seq
+
+
+def replacement(sim: Simulation, node: str, vertex: str, restoring: Restoring) -> AppState:
+    """``vertex``'s instance on ``node`` turned into a replacement awaiting its restore."""
+    dep = sim.cores[node].apps["pipe"]
+    h = dep.instances.pop(vertex)
+    dep.gates.pop(vertex, None)  # (the lost instance's checkpoints went with it)
+    h.life.state, h.processed = H.AWAITING, 0
+    dep.awaiting[vertex] = h
+    dep.restoring[vertex] = restoring
+    return dep
+
+
+def guessed_mid() -> tuple[Simulation, OutChannel, AppState]:
+    """``pipe`` on a line, the sink's acks lost (nothing is acknowledged upstream: a cut
+    further down), and mid on N3 replaced with its consumer lost too: its output is a guess.
+    The source's edge, and mid's."""
+    net = Network(
+        [NodeSpec(n) for n in ("N1", "N2", "N3", "N4")],
+        [LinkSpec(a, b, delay_ms=1.0) for a, b in (("N1", "N2"), ("N2", "N3"), ("N3", "N4"))],
+    )
+    sim = Simulation(net)
+    sim.drop = lambda src, dst, msg: src == "N4" and isinstance(msg, m.Ack)
+    sim.request("N1", m.DeployRequest(pipe_app(20), "app.yaml"))
+    sim.run_until(1.0)
+    assert sim.hosts("pipe", "mid") == ["N3"]
+    edge = sim.cores["N1"].apps["pipe"].out[0]  # src -> mid
+    assert not edge.positions
+    mid = replacement(sim, "N3", "mid", Restoring(98, "N2", set(), resumed={0}, fetched=True))
+    mid.inc[0] = InChannel.starting_at(edge.acked, True)
+    sim.cores["N3"].restorer.activate(mid, "mid")
+    assert mid.out[1].guessed and mid.out[1].gen
+    assert not edge.positions  # (a guess no consumer took: not told)
+    return sim, edge, mid
+
+
+def test_a_guessed_numbering_its_consumer_takes_is_told_to_the_producer_at_its_start() -> None:
+    """A replacement whose consumer was lost too numbers its output on a guess (no ack's
+    positions, no consumer's word); the consumer's replacement takes it. The producer is told
+    where the guess starts, with an ack at the input's start: lost again before its consumer
+    acknowledged anything (the chained acks held further down), the next replacement numbers
+    the replay as the guess did, and the consumer drops what it has. Told nothing, it
+    numbered the replay from where the consumer stood, past what it had, and the consumer
+    took it all again (fault seed 309522: a restored source's first 3 events twice at the
+    sink, through a merge restored on the other side of a cut)."""
+    sim, edge, mid = guessed_mid()
+    start, guess = edge.acked, mid.out[1]
+    # the sink's replacement takes it (the restore's rewire of mid's output, answered)
+    sink = replacement(sim, "N4", "sink", Restoring(99, "N2", {(1, True)}, fetched=True))
+    del sink.inc[1]
+    rewire = m.Rewire("pipe", 1, "N4", 99, True)
+    sim.apply("N3", sim.cores["N3"].receive("N2", rewire, sim.now))
+    sim.run_until(sim.now + 0.05)
+    assert "sink" in sink.instances and sink.inc[1].gen == guess.gen
+    assert edge.acked == edge.positions_at == start  # an ack at the input's start
+    assert edge.positions == {1: guess.origin} and edge.gens == {1: guess.gen}
+    # mid lost again: its next replacement numbers the replay as the guess did, not from
+    # where the sink stands
+    at = sink.inc[1].expected
+    assert at > guess.origin
+    again = Restoring(
+        97, "N2", set(), resumed={0}, positions=dict(edge.positions), gens=dict(edge.gens),
+        consumer_start={1: at}, consumer_gen={1: guess.gen}, fetched=True,
+    )  # fmt: skip
+    mid = replacement(sim, "N3", "mid", again)
+    mid.inc[0] = InChannel.starting_at(start, True)
+    sim.cores["N3"].restorer.activate(mid, "mid")
+    assert mid.out[1].origin == guess.origin and mid.out[1].gen == guess.gen
+
+
+def test_a_told_guess_that_its_consumer_did_not_take_is_told_again_in_the_consumers_terms() -> None:
+    """A restore's rewire confirmed the guess, but the consumer runs (another coordinator
+    restored it first: restart seed 138982) and stands in its own numbering: the output takes
+    that numbering (``Restorer._renumber``), and the producer is told again where the input's
+    start stands in it. Left with the guess's position, the next replacement would number
+    the replay in a numbering the consumer never took, from below where it stands."""
+    sim, edge, mid = guessed_mid()
+    start, guess = edge.acked, mid.out[1]
+    sink = sim.cores["N4"].apps["pipe"]
+    at = sink.inc[1].expected
+    rewire = m.Rewire("pipe", 1, "N4", 99, True)  # (as of a sink restored there)
+    sim.apply("N3", sim.cores["N3"].receive("N2", rewire, sim.now))
+    sim.run_until(sim.now + 0.05)
+    assert mid.out[1] is not guess and mid.out[1].origin == at and mid.out[1].gen == 0
+    assert edge.acked == edge.positions_at == start
+    assert edge.positions == {1: at} and not edge.gens

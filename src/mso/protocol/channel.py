@@ -78,6 +78,11 @@ class OutChannel:
     # or of such events only (-1: not so). Positions of the edge past it that an earlier
     # instance made name other events (Restorer.activate, fault seed 266014)
     new_from: int = -1
+    # a guess's start in its vertex's one input (-1: none): the input position its first
+    # number (``origin``) was made from. Once a consumer takes the guess, the producer of that
+    # input is told (an ack there with this position: Restorer._tell_taken), as it is of a
+    # start that is known; a replacement of the vertex then numbers the replay as this one did
+    made_from: int = -1
     # the generation of this edge's numbering: 0 is the deployment's; a numbering made anew
     # (from a guess, no ack's positions and no consumer's word) takes a fresh one, and the
     # channels, acks' positions and saved positions that follow it carry it: a consumer started

@@ -133,6 +133,8 @@ class Restorer:
             resume.remade = out.remade
             out.confirmed = True  # (a replacement: it numbers on from here)
             out.consumer_lost = False
+            if out.guessed:  # its consumer's replacement takes the guess: said upstream
+                self._tell_taken(dep, ours, msg.edge)
             resume.renumbered = sorted(dep.renumbered.get(edge.src, ()))
             self.ctx.send(msg.to, resume)
             out.sent = out.acked  # everything unacknowledged goes again, a window at a time
@@ -395,6 +397,9 @@ class Restorer:
         if msg.edge in dep.fresh_from:
             dep.fresh_from[msg.edge] = msg.start
         dep.out[msg.edge] = new
+        if old.made_from >= 0 and old.acked == old.origin:  # (all of it renumbered: the
+            new.made_from = old.made_from  # guess's start is this numbering's)
+            self._tell_taken(dep, vertex, msg.edge)
         self.dp.sf.drain(dep, msg.edge)
 
     def _skip_ahead(self, dep: AppState, msg: m.Resume, out: OutChannel) -> None:
@@ -748,6 +753,7 @@ class Restorer:
                 self.ctx.send(dep.placed[dep.app.edges[o].dst], resume)
         if snap is None and outs:
             self._tell_start(dep, vertex, restoring, outs)
+            self._guessed_from(dep, vertex, restoring, outs)
         if vertex in dep.marks:
             lowest = _merged(dep.marks[vertex].values())
             gens: dict[int, int] = {}  # (of the numberings the marks name)
@@ -814,6 +820,45 @@ class Restorer:
         ch.gens = _known(restoring.gens, at) | _gens(dep, there)
         ch.reack = True
         self.dp.ack(dep, i)
+
+    @staticmethod
+    def _guessed_from(dep: AppState, vertex: str, restoring: Restoring, outs: list[int]) -> None:
+        """A replacement with one input and one output numbered on a guess (its consumer was
+        lost too, and no ack said where the lost instance's output stood): the guess starts
+        where the input does, which the output keeps (``OutChannel.made_from``) for when a
+        consumer takes it (:meth:`_tell_taken`). Not a stamped vertex: its output is not one
+        for one with its input's replay (it sends only what its consumers lack)."""
+        inputs = [i for i, e in enumerate(dep.app.edges) if e.dst == vertex]
+        if len(inputs) != 1 or len(outs) != 1 or vertex in dep.layout.stamped:
+            return
+        out, ch = dep.out[outs[0]], dep.inc.get(inputs[0])
+        if ch is None or not out.guessed or inputs[0] not in restoring.resumed:
+            return
+        if ch.processed == ch.expected:  # (nothing taken yet: the stash comes after)
+            out.made_from = ch.expected
+
+    def _tell_taken(self, dep: AppState, vertex: str, o: int) -> None:
+        """A consumer takes output ``o``'s guessed numbering (its replacement, answered from
+        this channel; or one that survived, whose numbering the channel took instead:
+        :meth:`_renumber`): the producer of the one input is told where that numbering
+        starts, with an ack at the input's start carrying the output's position there and
+        its generation, as :meth:`_tell_start` tells a start that is known. Without it the
+        producer kept no position there, and this vertex, lost again before its consumer
+        acknowledged anything (the chained acks held by a cut further down), had its next
+        replacement number the replay from where the consumer stood, past what it had: the
+        consumer took it all again (fault seed 309522: a restored source's first 3 events
+        twice at the sink)."""
+        out = dep.out.get(o)
+        inputs = [i for i, e in enumerate(dep.app.edges) if e.dst == vertex]
+        if out is None or out.made_from < 0 or out.acked != out.origin or len(inputs) != 1:
+            return
+        ch = dep.inc.get(inputs[0])
+        if ch is None or ch._acked != out.made_from:  # (acknowledged since: positions went)
+            return
+        ch.positions = {o: out.origin}
+        ch.gens = {o: out.gen} if out.gen else {}
+        ch.reack = True
+        self.dp.ack(dep, inputs[0])
 
     def _numbering(self, restoring: Restoring, o: int, base: int, guessed: bool) -> int:
         """The generation of a replacement's output ``o`` numbered from ``base``: a fresh one
