@@ -73,6 +73,17 @@ async def start(auth: Authority) -> tuple[NodeDriver, int]:
     return driver, driver.transport.port
 
 
+async def as_neighbour(port: int) -> tuple[asyncio.StreamWriter, FrameCodec]:
+    """A connection to the node at ``port`` past the key confirmation (a neighbour's, before
+    its hello): the writer and the codec that seals its frames."""
+    reader, writer = await asyncio.open_connection(HOST, port)
+    codec = FrameCodec(KEY)
+    writer.write(codec.hello())
+    _, confirm = codec.feed(await reader.readexactly(HELLO_BYTES))
+    writer.write(confirm)
+    return writer, codec
+
+
 async def status(port: int) -> dict[str, Any]:
     client = await Client(HOST, port, KEY).connect()
     try:
@@ -153,11 +164,7 @@ def test_an_announced_app_without_a_grant_is_never_loaded() -> None:
     async def run() -> dict[str, Any]:
         driver, port = await start(auth)
         try:
-            reader, writer = await asyncio.open_connection(HOST, port)
-            codec = FrameCodec(KEY)
-            writer.write(codec.hello())
-            _, confirm = codec.feed(await reader.readexactly(HELLO_BYTES))
-            writer.write(confirm)
+            writer, codec = await as_neighbour(port)
             for msg in [
                 m.PeerHello("N2"),
                 m.AppAnnounce(app="one", origin="N2", document=APP),
@@ -189,11 +196,7 @@ def test_an_app_without_a_grant_in_a_control_streams_frame_is_refused_and_the_st
     async def run() -> tuple[dict[str, Any], int]:
         driver, port = await start(auth)
         try:
-            reader, writer = await asyncio.open_connection(HOST, port)
-            codec = FrameCodec(KEY)
-            writer.write(codec.hello())
-            _, confirm = codec.feed(await reader.readexactly(HELLO_BYTES))
-            writer.write(confirm)
+            writer, codec = await as_neighbour(port)
             writer.write(codec.seal(m.wrap("N2", "N1", m.PeerHello("N2"))))
             said: list[m.Message] = [
                 m.AppAnnounce(app="one", origin="N2", document=APP),
