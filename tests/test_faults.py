@@ -499,6 +499,33 @@ def test_restart_seeds_that_once_broke_hold(seed: int) -> None:
     )
 
 
+# seeds of the schedules with daemon restarts and control frames lost at random
+# (``bench/faults.py --control-loss 0.05``) that broke
+CONTROL_LOSS = faults.Settings(
+    start_s=1.0,
+    faults_s=3.0,
+    quiet_s=4.0,
+    rate=10.0,
+    restarts=True,
+    planner="paper",
+    control_loss=0.05,
+)
+CONTROL_LOSS_BROKE = {
+    134: "a move's Marker was lost on its way to the old host (markers go unsequenced, with "
+    "the events); the producer dropped the coordinator's Switch sent again as switched "
+    "already, and the move waited for the marker the switch's 60 s, its target holding the "
+    "app (a Switch sent again sends the edge's marker again)",
+}
+
+
+@pytest.mark.parametrize("seed", sorted(CONTROL_LOSS_BROKE))
+def test_control_loss_seeds_that_once_broke_hold(seed: int) -> None:
+    result = faults.run(seed, CONTROL_LOSS)
+    assert not result.violations, (
+        CONTROL_LOSS_BROKE[seed] + "\n" + "\n".join(map(str, result.violations))
+    )
+
+
 @pytest.mark.parametrize("seed", range(24))
 def test_invariants_hold_with_daemon_restarts(seed: int) -> None:
     """Schedules with daemon restarts too (alone, or while cut off: the spill store and the

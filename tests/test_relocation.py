@@ -288,6 +288,39 @@ def test_a_move_whose_switch_was_lost_is_switched_again_and_finishes() -> None:
     assert after["repeats"] == 0 and after["out_of_order"] == 0, after
 
 
+def test_a_move_whose_marker_was_lost_is_marked_again_and_finishes() -> None:
+    """The producer switches and its marker is lost on the way to the old host (markers go
+    unsequenced, in order with the events: a route missing past its wait, a relay dying).
+    The coordinator sends its Switch again a second on; the producer, switched already,
+    sends the same marker again, and the move finishes. Before, the Switch sent again was
+    dropped, and the move waited for the marker the switch's 60 s, its target holding the
+    app (control loss seed 134). Nothing lost or repeated."""
+    sim = started()
+    (host,) = where(sim, "counter")
+    (producer,) = where(sim, "a")
+    assert producer != host  # (the marker goes over the network)
+    lost: list[m.Message] = []
+
+    def first_marker(node: str, dst: str, msg: m.Message) -> bool:
+        if isinstance(msg, m.Marker) and not lost:
+            lost.append(msg)
+            return True
+        return False
+
+    sim.drop = first_marker
+    target = next(n for n in ("N2", "N3") if n != host)
+    sim.request("N1", m.RelocateRequest("pipe", "counter", target=target))
+    sim.run_until(sim.now + 0.5)
+    assert lost and where(sim, "counter") == {host} and sim.cores["N1"].procedures
+    sim.run_until(sim.now + 1.5)
+    assert where(sim, "counter") == {target} and not sim.cores["N1"].procedures
+    before = sink_stats(sim)
+    sim.run_until(sim.now + 1.0)
+    after = sink_stats(sim)
+    assert after["count"] > before["count"] + 400
+    assert after["repeats"] == 0 and after["out_of_order"] == 0, after
+
+
 def test_a_move_failed_with_its_target_held_failed_unprepares_it_when_it_answers() -> None:
     """The coordinator sees the move's target restart (held failed for a moment) before its
     Prepare is taken: the move fails, with no Unprepare (the target is held failed). The

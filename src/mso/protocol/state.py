@@ -577,6 +577,10 @@ class AppState:
     # at a producer's node: edge -> the move (rid) it last switched that edge for; a Switch
     # the move's coordinator sends again (one lost to a producer out of reach) is not taken twice
     switched: dict[int, int] = lazy(dict)
+    # at a producer's node: edge -> the node its last switch's marker went to, and the marker
+    # (sent again with the move's Switch sent again: markers go unsequenced, as data does,
+    # and one lost left the move waiting for it the switch's 60 s; control loss seed 134)
+    marked_to: dict[int, tuple[str, m.Marker]] = lazy(dict)
 
     engaged: Engaged = field(init=False, repr=False, compare=False)
 

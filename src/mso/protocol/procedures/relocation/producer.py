@@ -20,7 +20,7 @@ class Producer(Role):
             return
         edge = dep.app.edges[msg.edge]
         if dep.switched.get(msg.edge) == msg.rid:  # sent again: this edge switched already
-            self.ctx.dropped()
+            self._mark_again(dep, msg)
             return
         if self.unwarranted(dep, src, edge.dst, msg.rid, msg.order):
             return
@@ -47,7 +47,23 @@ class Producer(Role):
         if old == self.ctx.id:
             self.dp.enqueue(dep, edge.dst, marker)
         else:
+            dep.marked_to[msg.edge] = (old, marker)
             self.ctx.emit(Send(old, marker))
+
+    def _mark_again(self, dep: AppState, msg: m.Switch) -> None:
+        """The move's coordinator sent its Switch again (no handover yet): this edge switched
+        already, but its marker may be what was lost on the way (a marker goes unsequenced,
+        in order with the events, and the move waited for it the switch's 60 s, the target
+        holding the app: control loss seed 134), so it goes again, the same. A second one is
+        nothing at the old host: it comes behind the first, and after the handover there is
+        no instance to meet it. Only while this node's view still places the vertex where
+        the move took it (a later move's switch here: the old host may host it again)."""
+        sent = dep.marked_to.get(msg.edge)
+        vid = dep.app.edges[msg.edge].dst
+        if sent is None or sent[1].rid != msg.rid or dep.placed.get(vid) != msg.to:
+            self.ctx.dropped()
+            return
+        self.ctx.emit(Send(*sent))
 
     def _switch_refused(
         self, dep: AppState, producer: str, consumer: str, to: str, old: str
