@@ -511,6 +511,9 @@ CONTROL_LOSS = faults.Settings(
     control_loss=0.05,
 )
 CONTROL_LOSS_BROKE = {
+    68: "b moved N1 -> N2 (N1 coordinating) and the producer s2's Marker to N1 was lost; the "
+    "Switch sent again each second was dropped as switched already: the move never ended, N1 "
+    "placed b on N1 and N2 on N2, the sink stalled (the same fix as 134's)",
     134: "a move's Marker was lost on its way to the old host (markers go unsequenced, with "
     "the events); the producer dropped the coordinator's Switch sent again as switched "
     "already, and the move waited for the marker the switch's 60 s, its target holding the "
