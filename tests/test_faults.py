@@ -518,6 +518,10 @@ CONTROL_LOSS_BROKE = {
     "the events); the producer dropped the coordinator's Switch sent again as switched "
     "already, and the move waited for the marker the switch's 60 s, its target holding the "
     "app (a Switch sent again sends the edge's marker again)",
+    283: "a vertex restored on a node alone in a cut took a replica only 5 s after the heal, "
+    "with its next snapshot due by time: its Replicate, lost as the run ended, left the node "
+    "synced the app ahead of it holding it, taking no part (a host short of a replica takes "
+    "one as soon as a node is in reach)",
 }
 
 

@@ -266,6 +266,25 @@ def test_a_new_instance_with_no_replica_in_reach_names_none_in_its_hosts_view() 
     assert dep.replica_nodes["mid"] == [] and "N2" not in holders(dep)
 
 
+def test_a_host_short_of_a_replica_takes_one_as_soon_as_a_node_is_in_reach() -> None:
+    """The counter's one replica was cut off and none was left to replace it; the link comes
+    back: N2 is its replica again at once, holding a snapshot, not at the next snapshot due by
+    time. Before, a host took another replica only with a snapshot due by time (5 s): one
+    due by events (every second here) reset that clock, so the count was kept nowhere for as
+    long as it ran (control loss seed 283: restored on a node alone in a cut, the vertex's
+    replica was chosen 5 s after the heal, as the run ended, and its lost ``Replicate`` left
+    the node synced the app holding it, taking no part)."""
+    sim = alone_on_n1()
+    dep = sim.cores["N1"].apps["pipe"]
+    assert replication(sim)["replicas"] == []
+    sim.network.add_link(LinkSpec("N1", "N2", delay_ms=1.0))
+    sim.links_changed()
+    sim.run_until(sim.now + 0.5)
+    assert replication(sim)["replicas"] == ["N2"]
+    assert dep.replica_nodes["mid"] == ["N2"]
+    assert "mid" in sim.cores["N2"].apps["pipe"].held
+
+
 def test_a_restarted_host_does_not_tell_a_copy_of_its_lost_instance_to_go() -> None:
     """The counter's host restarts; the replica's ask whether it is still one (held while
     the host was down) reaches the new process, which runs no counter. A copy whose host

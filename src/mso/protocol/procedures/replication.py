@@ -217,6 +217,8 @@ class Replicator:
                 # the replicas of the instance before (a move, a restore): told the new set
                 rep.former = set(dep.replica_nodes.get(vid, [])) - {self.ctx.id}
                 self._due(dep, h, rep)
+            elif self._top_up(dep, h, rep):
+                pass  # (too few replicas, and another node is in reach now: a snapshot)
             elif rep.state is S.IDLE and now - rep.taken_at >= v.snapshot_s - 1e-9:
                 if len(rep.replicas) < n:  # too few nodes were reachable: try again
                     rep.replicas = self._choose(dep, vid, n, rep.replicas)
@@ -244,6 +246,23 @@ class Replicator:
             if node not in out and node != me and node not in failed:
                 out.append(node)
         return out
+
+    def _top_up(self, dep: AppState, h: HostedInstance, rep: Replication) -> bool:
+        """Between snapshots, a vertex with fewer replicas than it asks for (none was in
+        reach when they were chosen: a restore on a node cut off, a replica lost with no
+        other to take its place) takes one as soon as a node is in reach, and sends it a
+        snapshot at once -- not at the next snapshot due by time or events, seconds on, the
+        vertex's state kept nowhere meanwhile (control loss seed 283: restored on a node
+        alone in a cut, its replica chosen 5 s after the heal, as the run ended)."""
+        n = dep.replicas.get(rep.vertex, 0)
+        if rep.state is not S.IDLE or len(rep.replicas) >= n:
+            return False
+        more = self._choose(dep, rep.vertex, n, rep.replicas)
+        if len(more) <= len(rep.replicas):
+            return False
+        rep.replicas = more
+        self._due(dep, h, rep)
+        return True
 
     def _due(self, dep: AppState, h: HostedInstance, rep: Replication) -> None:
         """Ask for an aligned snapshot: a mark ahead of what waits to be fed."""
@@ -466,6 +485,14 @@ class Replicator:
         if ev.changed:
             me, routes = self.ctx.id, self.ctx.routes
             self._lose_replicas({n for n in ev.changed if n != me and n not in routes})
+        if ev.appeared:  # (a replica short taken at once, not at the next tick)
+            for rep in list(self.hosting.values()):
+                dep = self.ctx.apps.get(rep.app)
+                h = dep.instances.get(rep.vertex) if dep is not None else None
+                if dep is None or h is None or h.instance != rep.instance:
+                    continue
+                if h.started and not h.crashed:
+                    self._top_up(dep, h, rep)
 
     def _lose_replicas(self, nodes: set[str]) -> None:
         if not nodes:
