@@ -488,6 +488,10 @@ RESTARTS_BROKE = {
     "guess that m's replacement on N2 took; a cut held m's acks, N3 reset, and b's next "
     "replacement, told nothing of where the guess started, numbered s2's replay from where m "
     "stood: 3 events twice at the sink (a guess a consumer takes is told to the producer)",
+    310539: "a remap moved p1 back from N6 onto N1, its producer's node, as a cut fell between "
+    "them: N1 switched and its Marker to N6 waited out its route wait and was given up; N1 "
+    "dropped the Switch sent again each second as taken, so N6 kept p1, N1 placed it on itself "
+    "and the sink stalled (134's fix: a Switch sent again sends the edge's marker again)",
 }
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from mso.model.network import LinkSpec, Network, NodeSpec
+from mso.net.forwarding import ROUTE_WAIT_S
 from mso.protocol import messages as m
 from mso.protocol.events import PeerFailed, PeerRejoined
 from mso.protocol.procedures.relocation import Relocation
@@ -314,6 +315,41 @@ def test_a_move_whose_marker_was_lost_is_marked_again_and_finishes() -> None:
     assert lost and where(sim, "counter") == {host} and sim.cores["N1"].procedures
     sim.run_until(sim.now + 1.5)
     assert where(sim, "counter") == {target} and not sim.cores["N1"].procedures
+    before = sink_stats(sim)
+    sim.run_until(sim.now + 1.0)
+    after = sink_stats(sim)
+    assert after["count"] > before["count"] + 400
+    assert after["repeats"] == 0 and after["out_of_order"] == 0, after
+
+
+def test_a_marker_given_up_in_a_cut_as_its_producer_switched_goes_again_after_it() -> None:
+    """The vertex moves onto its producer's node, and the producer loses its route to the old
+    host as it switches, for longer than the route wait: the marker is given up (a marker
+    rides no control stream). The coordinator's Switch that comes again once the route is
+    back sends it again, and the move finishes, nothing lost or repeated. Before, the
+    producer dropped that Switch as taken: the old host ran the vertex waiting for a marker,
+    the producer placed it on itself, the sink stalled (restart seed 310539)."""
+    sim = started()
+    (host,) = where(sim, "counter")
+    (producer,) = where(sim, "a")
+    assert producer != host
+    rel = sim.cores[producer].relocator
+    take = rel.on_switch
+    cut: list[float] = []
+
+    def cut_as_it_switches(src: str, msg: m.Switch) -> None:
+        if not cut:
+            cut.append(sim.now)
+            sim.lose_route(producer, host)
+        take(src, msg)
+
+    rel.on_switch = cut_as_it_switches  # type: ignore[method-assign]
+    sim.request("N1", m.RelocateRequest("pipe", "counter", target=producer))
+    sim.run_until(sim.now + ROUTE_WAIT_S + 0.5)
+    assert cut and where(sim, "counter") == {host} and sim.cores["N1"].procedures
+    sim.lose_route(producer, host, lost=False)
+    sim.run_until(sim.now + 1.5)
+    assert where(sim, "counter") == {producer} and not sim.cores["N1"].procedures
     before = sink_stats(sim)
     sim.run_until(sim.now + 1.0)
     after = sink_stats(sim)
