@@ -492,6 +492,10 @@ RESTARTS_BROKE = {
     "them: N1 switched and its Marker to N6 waited out its route wait and was given up; N1 "
     "dropped the Switch sent again each second as taken, so N6 kept p1, N1 placed it on itself "
     "and the sink stalled (134's fix: a Switch sent again sends the edge's marker again)",
+    314611: "N2 moved b from N5 onto N6, which runs its producer s2; N6 restarted after the "
+    "Switch, and N2's control stream sent the Switch again at the heal, before N2 heard of the "
+    "restart: the new process marked the edge, N5 handed b over to no instance and b and s2 "
+    "ran nowhere (a Switch to a node that holds no instance prepared for the move is refused)",
 }
 
 

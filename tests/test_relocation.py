@@ -315,6 +315,40 @@ def test_a_move_whose_marker_was_lost_is_marked_again_and_finishes() -> None:
     assert lost and where(sim, "counter") == {host} and sim.cores["N1"].procedures
     sim.run_until(sim.now + 1.5)
     assert where(sim, "counter") == {target} and not sim.cores["N1"].procedures
+
+
+def test_a_restarted_target_refuses_the_switch_its_last_process_was_sent() -> None:
+    """An upstream move of ``counter`` onto N2, which runs its producer ``a``: N2 is prepared
+    and the coordinator's Switch is held on the way while N2 restarts. Its new process,
+    which prepared nothing, is then sent the Switch (a control stream sends a frame again
+    when a route appears, before its sender hears of the restart). It refuses it: the
+    counter stays on N3, and ``a`` is restored on N2. Before, it marked the edge, N3 handed
+    the counter over to no instance, and neither ran anywhere (fault seed 314611)."""
+    sim = started()
+    assert where(sim, "counter") == {"N3"} and where(sim, "a") == {"N2"}
+    held: list[tuple[str, m.Message]] = []
+
+    def hold(src: str, dst: str, msg: m.Message) -> bool:
+        if isinstance(msg, m.Switch) and dst == "N2":
+            held.append((src, msg))
+            return True
+        return False
+
+    sim.drop = hold
+    sim.request("N1", m.RelocateRequest("pipe", "counter", target="N2"))
+    sim.run_until(sim.now + 0.05)
+    assert held and "counter" in sim.cores["N2"].apps["pipe"].awaiting
+    sim.drop = None
+    sim.crash("N2")
+    sim.run_until(sim.now + 0.05)
+    sim.revive("N2")
+    core = sim.cores["N2"]
+    while "pipe" not in core.apps:  # (the app comes back with the rejoin's sync)
+        sim.run_until(sim.now + 0.001)
+    sim.apply("N2", core.receive(*held[0], sim.now))
+    assert core.refusals.get("switch_to_no_prepared_instance") == 1
+    sim.run_until(sim.now + 3.0)
+    assert where(sim, "counter") == {"N3"} and where(sim, "a") == {"N2"}
     before = sink_stats(sim)
     sim.run_until(sim.now + 1.0)
     after = sink_stats(sim)

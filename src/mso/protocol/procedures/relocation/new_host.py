@@ -55,6 +55,13 @@ class NewHost(Role):
         self._early.pop(rid, None)
         self._sources.pop(rid, None)
 
+    def prepared_for(self, app: str, vertex: str, rid: int) -> bool:
+        """An instance of ``vertex`` awaits here the handover of move ``rid``: prepared for
+        it by this process, neither handed over nor dropped since."""
+        dep = self.ctx.apps.get(app)
+        twin = self._twins.get((app, vertex))
+        return dep is not None and vertex in dep.awaiting and twin is not None and twin[0] == rid
+
     def orphaned(self, dep: AppState, node: str) -> list[str]:
         """The vertices of ``dep`` prepared here for a move whose old host ``node`` failed (or
         came back in a new incarnation, which ran none of its instances) before the handover,

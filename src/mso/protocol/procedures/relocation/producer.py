@@ -28,6 +28,13 @@ class Producer(Role):
         if old == msg.to and msg.source:  # a merge vertex whose other input, produced here
             old = msg.source  # too, switched first: its marker goes the old way as well
         why = self._switch_refused(dep, edge.src, edge.dst, msg.to, old)
+        if not why and msg.to == self.ctx.id and not self.prepared_for(msg.app, edge.dst, msg.rid):
+            # a switch to this node, which holds no instance prepared for the move: the old
+            # host would hand the vertex over to nothing and free it. A restarted target is
+            # sent its last process's Switch (the control stream sends it again when a route
+            # appears, before its sender hears of the restart; fault seed 314611: the new
+            # process marked the edge, the vertex's host handed it over and it ran nowhere)
+            why = "switch_to_no_prepared_instance"
         if why:
             self.ctx.refusal(why)
             return
@@ -64,6 +71,11 @@ class Producer(Role):
             self.ctx.dropped()
             return
         self.ctx.emit(Send(*sent))
+
+    def prepared_for(self, app: str, vertex: str, rid: int) -> bool:
+        """An instance of ``vertex`` awaits here the handover of move ``rid`` (the new host's
+        role answers: :meth:`.new_host.NewHost.prepared_for`)."""
+        raise NotImplementedError
 
     def _switch_refused(
         self, dep: AppState, producer: str, consumer: str, to: str, old: str
