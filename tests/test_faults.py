@@ -496,6 +496,10 @@ RESTARTS_BROKE = {
     "Switch, and N2's control stream sent the Switch again at the heal, before N2 heard of the "
     "restart: the new process marked the edge, N5 handed b over to no instance and b and s2 "
     "ran nowhere (a Switch to a node that holds no instance prepared for the move is refused)",
+    314002: "N4 restarted and restored p1; its new instance's snapshot 1 reached N2, holding "
+    "snapshot 1 of N4's last process, as that copy sent again: N2 kept the old copy, asked as "
+    "one whose maker was gone, the host by its stale view (N5) said it was none, and N2 let "
+    "the app go, still N4's replica (a snapshot's number counts within an instance only)",
 }
 
 

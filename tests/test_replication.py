@@ -391,6 +391,39 @@ def test_a_member_that_fetched_a_copy_of_a_vertex_on_a_live_host_cannot_settle_i
     assert "mid" not in dep.held
 
 
+def test_a_restarted_hosts_first_snapshot_replaces_the_copy_its_last_process_made() -> None:
+    """N2 holds snapshot 1 of the counter made on N1; N1 restarts, restores the counter and
+    sends its new instance's snapshot 1. Same host, same number, but a newer instance's: N2
+    keeps it (and it is what N2 acknowledged). Before, taken as the old copy sent again, the
+    copy stayed the last process's: a restore from it started from old state, and N2, asking
+    as for a copy whose maker is gone, asked the host by its stale view, N3, which said it was
+    none: N2 let the copy and the app go, still N1's replica (fault seed 314002)."""
+    core, dep = _replica_of_mid_on_n1()
+    core.receive("N1", NodeCore("N1", incarnation=1).membership.beat(), 1.5)  # restarted
+    core.receive("N3", m.Moved("pipe", "mid", "N3", 0, 1), 1.6)  # a view gone stale since
+    effects = core.receive(
+        "N1", m.Replicate("pipe", "mid", 1, b"\x1c", {0: 28}, {1: (28, [])}), 2.0
+    )
+    assert ("N1", m.ReplicaAck("pipe", "mid", 1)) in said(effects)
+    copy = dep.held["mid"]
+    assert (copy.state, copy.inputs, copy.src_incarnation) == (b"\x1c", {0: 28}, 1)
+    effects = core.on_timer(MonitorTick(), 3.5)
+    asked = [dst for dst, msg in said(effects) if isinstance(msg, m.ReplicaAck)]
+    assert asked == ["N1"], effects  # its maker, alive: not the host by a stale view
+
+
+def test_a_lower_snapshot_number_from_the_copys_host_is_a_new_instances() -> None:
+    """The counter moved off N1 and back (N2 heard of neither move); N1's new instance
+    numbers its snapshots from 1 again. Its control stream delivers N1's frames in order, so
+    a snapshot after snapshot 3 is newer whatever its number: N2 keeps it."""
+    core, dep = _replica_of_mid_on_n1()
+    core.receive("N1", m.Replicate("pipe", "mid", 3, b"\x07", {0: 30}, {1: (30, [])}), 1.2)
+    core.receive("N1", m.Replicate("pipe", "mid", 1, b"\x02", {0: 40}, {1: (40, [])}), 2.0)
+    assert (dep.held["mid"].k, dep.held["mid"].inputs) == (1, {0: 40})
+    core.receive("N1", m.Replicate("pipe", "mid", 1, b"\x02", {0: 40}, {1: (40, [])}), 2.5)
+    assert core.replicator.held.stale == 1  # (the same one sent again: a refresh)
+
+
 def _asks_n3_and_lets_go(core: NodeCore, dep: AppState) -> None:
     """At its next round N2 asks N3, the counter's host by its view, whether it is still a
     replica; told the set without it, it lets the copy go, then the app."""

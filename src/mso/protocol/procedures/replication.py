@@ -526,12 +526,21 @@ class Replicator:
         old = dep.held.get(msg.vertex)
         snap.got_at = self.ctx.now
         snap.src_incarnation = self.ctx.incarnation_of(src, 0)
-        if old is None or old.src != src or msg.k > old.k:
-            dep.held[msg.vertex] = snap
-            self.held.stored += 1
-        else:
+        # the newest copy is the one its host sent last: its control stream delivers the
+        # host's frames in order (an earlier process's dropped once a later one's came). The
+        # number orders the snapshots of one instance only: a host numbers each instance's
+        # from 1, so a number not above the copy's is no sign of a stale snapshot; one equal
+        # to the copy in number and content is the copy sent again (fault seed 314002: a
+        # host restarted and restored the vertex, and its new instance's snapshot 1, taken
+        # for the old process's sent again, was acknowledged but not kept; the old copy was
+        # asked about as one whose maker was gone, of the host by this node's stale view,
+        # which said it was none, and this node let the app go, still its host's replica)
+        if old is not None and _sent_again(old, snap):
             old.got_at = self.ctx.now
             self.held.stale += 1
+        else:
+            dep.held[msg.vertex] = snap
+            self.held.stored += 1
         self.ctx.send(src, m.ReplicaAck(msg.app, msg.vertex, msg.k))
 
     def ask_if_replica(self, dep: AppState, now: float, every: float) -> None:
@@ -707,6 +716,14 @@ def _valid(dep: AppState, msg: m.Replicate) -> bool:
     ins = all(0 <= i < n and edges[i].dst == msg.vertex and p >= 0 for i, p in msg.inputs.items())
     outs = all(0 <= o < n and edges[o].src == msg.vertex for o in msg.outputs)
     return ins and outs
+
+
+def _sent_again(copy: Snapshot, snap: Snapshot) -> bool:
+    """``snap`` is the snapshot ``copy`` is, sent again by its host (same number, same
+    content): the number alone starts again with each instance its host runs."""
+    return (copy.src, copy.k, copy.state, copy.inputs, copy.outputs) == (
+        snap.src, snap.k, snap.state, snap.inputs, snap.outputs,
+    ) and (copy.processed, copy.emitted) == (snap.processed, snap.emitted)  # fmt: skip
 
 
 def _replicate(app: str, vertex: str, snap: Snapshot, rid: int = 0) -> m.Replicate:
