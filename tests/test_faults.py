@@ -178,8 +178,13 @@ BROKE = {
 
 @pytest.mark.parametrize("seed", sorted(BROKE))
 def test_benchmark_seeds_that_once_broke_hold(seed: int) -> None:
-    result = faults.run(seed, BENCH)
-    assert not result.violations, BROKE[seed] + "\n" + "\n".join(map(str, result.violations))
+    holds(seed, BENCH, BROKE)
+
+
+def holds(seed: int, settings: faults.Settings, broke: dict[int, str]) -> None:
+    """``seed`` under ``settings`` breaks no invariant (else: why it broke once, and now)."""
+    result = faults.run(seed, settings)
+    assert not result.violations, broke[seed] + "\n" + "\n".join(map(str, result.violations))
 
 
 RESTARTS = faults.Settings(start_s=1.0, faults_s=3.0, quiet_s=4.0, rate=10.0, restarts=True)
@@ -505,10 +510,7 @@ RESTARTS_BROKE = {
 
 @pytest.mark.parametrize("seed", sorted(RESTARTS_BROKE))
 def test_restart_seeds_that_once_broke_hold(seed: int) -> None:
-    result = faults.run(seed, RESTARTS)
-    assert not result.violations, (
-        RESTARTS_BROKE[seed] + "\n" + "\n".join(map(str, result.violations))
-    )
+    holds(seed, RESTARTS, RESTARTS_BROKE)
 
 
 # seeds of the schedules with daemon restarts and control frames lost at random
@@ -539,10 +541,7 @@ CONTROL_LOSS_BROKE = {
 
 @pytest.mark.parametrize("seed", sorted(CONTROL_LOSS_BROKE))
 def test_control_loss_seeds_that_once_broke_hold(seed: int) -> None:
-    result = faults.run(seed, CONTROL_LOSS)
-    assert not result.violations, (
-        CONTROL_LOSS_BROKE[seed] + "\n" + "\n".join(map(str, result.violations))
-    )
+    holds(seed, CONTROL_LOSS, CONTROL_LOSS_BROKE)
 
 
 @pytest.mark.parametrize("seed", range(24))
