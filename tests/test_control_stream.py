@@ -5,6 +5,8 @@ NodeDown or HandoverDone left a view stale for good)."""
 
 from __future__ import annotations
 
+import pytest
+
 from mso.node.core import NodeCore
 from mso.protocol import control_stream as cs
 from mso.protocol import effects as fx
@@ -142,3 +144,19 @@ def test_control_frames_lost_at_random_leave_no_view_stale() -> None:
     for seed in (400, 497, 734, 851):
         result = run(seed, cfg)
         assert not result.violations, (seed, result.violations)
+
+
+def test_the_peers_a_receiver_keeps_state_for_are_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Past MAX_PEERS the least recently heard sender is forgotten, one with frames held
+    early last: the bound holds whatever the senders do."""
+
+    monkeypatch.setattr(cs, "MAX_PEERS", 2)
+    b = ControlStreams()
+    early = ControlStreams()
+    early.wrap("B", moved(0), 0, 0.0)  # lost: the next waits at B
+    assert b.receive("E", early.wrap("B", moved(1), 0, 0.0), 0.0) == []
+    for peer in ("F", "G"):
+        assert b.receive(peer, ControlStreams().wrap("B", moved(2), 0, 0.0), 0.1) == [moved(2)]
+    assert list(b._in) == ["E", "G"]  # F, heard before G and holding nothing, went first
+    assert b.receive("H", ControlStreams().wrap("B", moved(3), 0, 0.0), 0.2) == [moved(3)]
+    assert len(b._in) == 2 and "H" in b._in

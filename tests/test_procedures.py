@@ -15,7 +15,7 @@ from mso.protocol.procedures.relocation import Relocation, RelocationEvent
 from mso.protocol.procedures.remap import Remap, RemapEvent
 from mso.protocol.procedures.status import StatusFanout
 from mso.sim.runner import Simulation
-from test_runtime_sim import PIPE, deploy, line, sink_stats
+from test_runtime_sim import PIPE, deploy, line, lose_first, sink_stats
 
 
 def test_an_event_the_table_does_not_allow_raises() -> None:
@@ -150,14 +150,7 @@ def test_a_handover_lost_on_the_way_is_sent_again_until_its_target_takes_it() ->
     and the sink has every event once, in order; the old host forgets it once taken."""
     sim, old, target = moving_mid(dropping=m.Handover)
     lost: list[m.Message] = []
-
-    def lose_the_first(node: str, dst: str, msg: m.Message) -> bool:
-        if isinstance(msg, m.Handover) and not lost:
-            lost.append(msg)
-            return True
-        return False
-
-    sim.drop = lose_the_first
+    sim.drop = lose_first(m.Handover, lost)
     sim.run_until(sim.now + 1.0)
     assert lost and sim.cores[old].streams.resent >= 1
     handed_over_well(sim, old, target, within_ms=1000.0)

@@ -11,7 +11,7 @@ from mso.protocol import messages as m
 from mso.protocol.events import PeerFailed, PeerRejoined
 from mso.protocol.procedures.relocation import Relocation
 from mso.sim.runner import Simulation
-from test_runtime_sim import data_frames
+from test_runtime_sim import data_frames, lose_first
 
 # planner: paper: the scenario needs its vertices spread over N2 and N3 (they are moved from
 # there); the default bytes split keeps these 64-byte edges on the sources' node
@@ -307,14 +307,7 @@ def test_a_move_whose_marker_was_lost_is_marked_again_and_finishes() -> None:
     (producer,) = where(sim, "a")
     assert producer != host  # (the marker goes over the network)
     lost: list[m.Message] = []
-
-    def first_marker(node: str, dst: str, msg: m.Message) -> bool:
-        if isinstance(msg, m.Marker) and not lost:
-            lost.append(msg)
-            return True
-        return False
-
-    sim.drop = first_marker
+    sim.drop = lose_first(m.Marker, lost)
     target = next(n for n in ("N2", "N3") if n != host)
     sim.request("N1", m.RelocateRequest("pipe", "counter", target=target))
     sim.run_until(sim.now + 0.5)

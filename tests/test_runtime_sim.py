@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -178,6 +179,18 @@ edges:
   - [src, left]
   - [src, right]
 """
+
+
+def lose_first(kind: type, lost: list[m.Message]) -> Callable[[str, str, m.Message], bool]:
+    """A ``Simulation.drop`` that loses the first message of type ``kind`` (into ``lost``)."""
+
+    def drop(node: str, dst: str, msg: m.Message) -> bool:
+        if isinstance(msg, kind) and not lost:
+            lost.append(msg)
+            return True
+        return False
+
+    return drop
 
 
 def data_frames(sim: Simulation) -> list[tuple[str, str, m.Data]]:

@@ -496,7 +496,7 @@ class NodeCore:
         if ready:
             self._guarded("heard", self.membership.heard, src, now)
         for msg in ready:
-            if type(msg) is m.Sequenced or type(msg) is m.Got:
+            if type(msg) in (m.Sequenced, m.Got):
                 self.dropped_messages += 1  # (nested: never sent so)
             else:
                 self._work.append((src, msg))

@@ -352,6 +352,14 @@ class Layout:
         return out
 
     @cached_property
+    def in_edges(self) -> dict[str, list[int]]:
+        """Vertex -> its input edges (indices in app.edges): what it is fed on."""
+        ins: dict[str, list[int]] = {}
+        for i, e in enumerate(self.app.edges):
+            ins.setdefault(e.dst, []).append(i)
+        return ins
+
+    @cached_property
     def edge_chain(self) -> list[int]:
         """The chain each edge lies in (every edge lies in exactly one, §3.2)."""
         index = {(e.src, e.dst): i for i, e in enumerate(self.app.edges)}

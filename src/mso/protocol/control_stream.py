@@ -219,13 +219,10 @@ class ControlStreams:
         return ready
 
     def _bound_peers(self) -> None:
+        """Past MAX_PEERS, the least recently heard peer is forgotten (one holding nothing
+        early first)."""
         while len(self._in) > MAX_PEERS:
-            peer, got = next(iter(self._in.items()))
-            if got.held:  # (the least recently heard with something held stays longest)
-                self._in.move_to_end(peer)
-                if all(g.held for g in self._in.values()):
-                    break
-                continue
+            peer = next((p for p, g in self._in.items() if not g.held), next(iter(self._in)))
             del self._in[peer]
             self._ack_due.pop(peer, None)
 

@@ -596,6 +596,11 @@ class AppState:
         where the layout is; it was a table per app per node)."""
         return self.layout.out_edges
 
+    @property
+    def in_edges(self) -> dict[str, list[int]]:
+        """Vertex -> its input edges' indices: the layout's, as :attr:`out_edges`."""
+        return self.layout.in_edges
+
     if not TYPE_CHECKING:  # (mypy keeps checking the attributes' names and types)
 
         def __getattr__(self, name: str) -> Any:

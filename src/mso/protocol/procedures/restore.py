@@ -238,7 +238,7 @@ class Restorer:
         processed, no marks and no guessed output: that input, and where its outputs stand,
         exactly (what an ack at the input's start carries: :meth:`_tell_start`, and a
         consumer's answer to a rewire: :meth:`_outputs_at_start`). None otherwise."""
-        inputs = [i for i, e in enumerate(dep.app.edges) if e.dst == vertex]
+        inputs = dep.in_edges.get(vertex, [])
         outs = dep.out_edges.get(vertex, [])
         if len(inputs) != 1 or not outs or vertex in dep.marks:
             return None
@@ -828,7 +828,7 @@ class Restorer:
         where the input does, which the output keeps (``OutChannel.made_from``) for when a
         consumer takes it (:meth:`_tell_taken`). Not a stamped vertex: its output is not one
         for one with its input's replay (it sends only what its consumers lack)."""
-        inputs = [i for i, e in enumerate(dep.app.edges) if e.dst == vertex]
+        inputs = dep.in_edges.get(vertex, [])
         if len(inputs) != 1 or len(outs) != 1 or vertex in dep.layout.stamped:
             return
         out, ch = dep.out[outs[0]], dep.inc.get(inputs[0])
@@ -849,7 +849,7 @@ class Restorer:
         consumer took it all again (fault seed 309522: a restored source's first 3 events
         twice at the sink)."""
         out = dep.out.get(o)
-        inputs = [i for i, e in enumerate(dep.app.edges) if e.dst == vertex]
+        inputs = dep.in_edges.get(vertex, [])
         if out is None or out.made_from < 0 or out.acked != out.origin or len(inputs) != 1:
             return
         ch = dep.inc.get(inputs[0])

@@ -127,7 +127,7 @@ class OldHost(Role):
             return
         marked = dep.markers.setdefault(vid, set())
         marked.add(msg.edge)
-        ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vid]
+        ins = dep.in_edges.get(vid, [])
         if not set(ins) <= marked:
             h.life.on(InstanceEvent.MARKER)
             return
@@ -143,7 +143,7 @@ class OldHost(Role):
         msg = h.handing_over if h is not None and h.instance == res.instance else None
         if dep is None or h is None or msg is None or res.token < 0:  # (<0: a replication's)
             return
-        ins = [i for i, e in enumerate(dep.app.edges) if e.dst == vid]
+        ins = dep.in_edges.get(vid, [])
         for i in ins:  # acknowledge what the old instance processed, then forget the inputs
             self.dp.ack(dep, i)
         marks = {  # what it has of a merge's inputs (mso.protocol.provenance)
