@@ -536,6 +536,10 @@ CONTROL_LOSS_BROKE = {
     "with its next snapshot due by time: its Replicate, lost as the run ended, left the node "
     "synced the app ahead of it holding it, taking no part (a host short of a replica takes "
     "one as soon as a node is in reach)",
+    731: "a counter moved in the quiet phase; its new host's replica set was refused by the "
+    "old replica, hosting nothing and never told of the move, on its old view: it held the "
+    "copy until it asked the old host a second later and the app past the quiet phase (a "
+    "host's set at a later move than the replica's view and copy know of counts)",
 }
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 from typing import Any
 
 import pytest
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 from mso.errors import AppError
 from mso.model.appfile import loads_app
@@ -15,6 +16,7 @@ from mso.node.core import NodeCore
 from mso.protocol import effects as fx
 from mso.protocol import kept
 from mso.protocol import messages as m
+from mso.protocol.authority import Authority
 from mso.protocol.events import MonitorTick
 from mso.protocol.procedures.deploy import holders
 from mso.protocol.procedures.instance import H
@@ -388,6 +390,51 @@ def test_a_member_that_fetched_a_copy_of_a_vertex_on_a_live_host_cannot_settle_i
     assert "mid" in dep.held and dep.replica_nodes["mid"] == ["N2"]
     assert core.refusals["replica_set_by_fetcher_of_a_vertex_not_lost"] == 1
     core.receive("N1", m.ReplicaSet("pipe", "mid", ["N4"]), 2.2)  # its host's word counts
+    assert "mid" not in dep.held
+
+
+def test_a_later_hosts_set_settles_a_copy_its_view_places_elsewhere() -> None:
+    """N2 holds a copy of the counter made on N1 (at its deployment's placement, version 0).
+    The counter moves to N3 and N2, hosting nothing of the app, is not told: its view still
+    places it on N1. N3's set without N2, at the move's version (1), is the word of the
+    vertex's host by a later move than N2's view and copy know of: N2 lets the copy and the
+    app go. Refused on the old view, N2 kept both until it asked N1 at its next round, and held
+    the app past the quiet phase (control loss seed 731). A set at no later version (a node
+    answering for itself; N3 at the copy's own move) is still refused."""
+    core, dep = _replica_of_mid_on_n1()
+    core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"]), 1.5)  # (answers for itself)
+    core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"], 0), 1.5)  # (no later move)
+    assert "mid" in dep.held and core.refusals["replica_set_not_from_host"] == 2
+    core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"], 1), 2.0)
+    assert "mid" not in dep.held and dep.placed["mid"] == "N1"  # (its view, unchanged)
+    for t in (3.0, 4.0):
+        core.on_timer(MonitorTick(), t)
+    assert "pipe" not in core.apps
+
+
+def test_a_set_from_a_move_older_than_the_copys_does_not_settle_it() -> None:
+    """N2's copy of the counter was made by N5 at its second move (N2's view, never told, still
+    places the counter on N1). A set without N2 from N3, the host by the first move, sent
+    before the second and delivered late, is older than the copy: refused, the copy kept."""
+    core, dep = _replica_of_mid_on_n1()
+    core.receive(
+        "N5", m.Replicate("pipe", "mid", 1, b"\x09", {0: 20}, {1: (20, [])}, version=2), 1.5
+    )
+    core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"], 1), 2.0)
+    assert dep.held["mid"].src == "N5" and core.refusals["replica_set_not_from_host"] == 1
+
+
+def test_with_operator_keys_a_later_hosts_set_counts_only_where_it_may_tell() -> None:
+    """With operator keys a node's claim of a later move is taken as a ``Moved`` from it would
+    be (``placement.may_tell``): a member naming any version cannot make a replica drop its
+    copy of a vertex running on a live host in its view; once the view holds that host
+    failed, the new host's set settles it."""
+    core, dep = _replica_of_mid_on_n1()
+    core.authority = Authority(operators={"op": Ed25519PrivateKey.generate().public_key()})
+    core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"], 7), 2.0)
+    assert "mid" in dep.held and core.refusals["replica_set_not_from_host"] == 1
+    core.membership.failed.add("N1")
+    core.receive("N3", m.ReplicaSet("pipe", "mid", ["N4"], 7), 2.5)
     assert "mid" not in dep.held
 
 

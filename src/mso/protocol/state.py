@@ -55,6 +55,8 @@ class Snapshot:
     # the node whose restore of the vertex fetched it (``m.FetchReplica``): its host by that
     # restore, whose word on the replica set counts though this view places it elsewhere
     fetched_by: str = ""
+    # the vertex's placement version at the host that took it (``m.Replicate.version``)
+    version: int = 0
 
     @property
     def size(self) -> int:

@@ -60,6 +60,7 @@ from mso.protocol.events import (
     SnapshotAligned,
     Snapshotted,
 )
+from mso.protocol.procedures import placement
 from mso.protocol.procedures.base import STEP_TIMEOUT_S, StateMachine, Table
 from mso.protocol.procedures.deploy import holders
 from mso.protocol.provenance import Marks
@@ -353,7 +354,7 @@ class Replicator:
             # only the nodes that take part in an app hold it (issue 24.1): a new replica,
             # or one silent (reset, restarted, or it let the app go), gets it first
             self.ctx.publish(AppMissing(rep.app, node, ahead=True))
-        self.ctx.send(node, _replicate(rep.app, rep.vertex, snap))
+        self.ctx.send(node, _replicate(rep.app, rep.vertex, snap, version=_hosted(dep, rep)))
         cost = dep.replication.get(rep.vertex)
         if cost is not None:
             cost.bytes_sent += snap.size
@@ -382,10 +383,11 @@ class Replicator:
             # was down was answered by its next process, and the replica let go a newer
             # copy, of the restored vertex, and the app with it)
             nodes = list(rep.replicas) if rep is not None else []
+            version = _hosted(dep, rep) if rep is not None and dep is not None else -1
             here = dep is not None and dep.placed.get(msg.vertex) == self.ctx.id
             gone = here and rep is None and dep is not None and msg.vertex in dep.vanished
             if len(msg.vertex) <= 256 and msg.vertex and src not in nodes and not gone:
-                self.ctx.send(src, m.ReplicaSet(msg.app, msg.vertex, nodes))
+                self.ctx.send(src, m.ReplicaSet(msg.app, msg.vertex, nodes, version))
                 if rep is not None and dep is not None and src in rep.announced:
                     # told so, it lets its copy and the app go: no longer named a replica in
                     # this node's syncs (seed 86613: a new replica's node, synced ahead of its
@@ -442,7 +444,7 @@ class Replicator:
             before, rep.announced = rep.announced, list(rep.replicas)
             dep.replica_nodes[rep.vertex] = list(rep.announced)
             to = holders(dep) | set(before) | told  # (the app's holders, not everyone)
-        msg = m.ReplicaSet(rep.app, rep.vertex, list(rep.replicas))
+        msg = m.ReplicaSet(rep.app, rep.vertex, list(rep.replicas), _hosted(dep, rep))
         for node in sorted(to - {self.ctx.id}):
             self.ctx.send(node, msg)
         h = dep.instances.get(rep.vertex)
@@ -519,6 +521,7 @@ class Replicator:
         snap = Snapshot(
             msg.k, msg.state, dict(msg.inputs), dict(msg.outputs), msg.processed, msg.emitted,
             src=src, marks=provenance.from_wire(msg.marks), markgens=dict(msg.markgens),
+            version=msg.version,
         )  # fmt: skip
         if msg.rid:  # an answer to a replacement's fetch
             self._fetched(dep, src, msg, snap)
@@ -632,16 +635,33 @@ class Replicator:
             # this view says (fault seed 162928: a replica whose view still placed the vertex
             # on its failed host refused the new host's set, and held the app for ever) --
             # but only while this view has the vertex lost, as a restore needs: a member that
-            # fetched the copy of a vertex running on a live host made any replica drop it
-            if src != copy.fetched_by:
+            # fetched the copy of a vertex running on a live host made any replica drop it.
+            # So is the host by a later move than this view's and the copy's (its set says
+            # at which): a node hosting nothing of the app is not told of moves, and the new
+            # host's set was refused on its old view (control loss seed 731: the replica of a
+            # vertex moved in the quiet phase held the copy, and the app, until it asked the
+            # old host a second later, then held the app past the quiet phase)
+            if self._later_host(dep, src, msg, copy):
+                pass
+            elif src != copy.fetched_by:
                 self.ctx.refusal("replica_set_not_from_host")
                 return
-            if msg.vertex not in dep.lost(self.ctx.failed):
+            elif msg.vertex not in dep.lost(self.ctx.failed):
                 self.ctx.refusal("replica_set_by_fetcher_of_a_vertex_not_lost")
                 return
         dep.replica_nodes[msg.vertex] = list(msg.nodes)
         if self.ctx.id not in msg.nodes and src != self.ctx.id:
             dep.held.pop(msg.vertex, None)
+
+    def _later_host(self, dep: AppState, src: str, msg: m.ReplicaSet, copy: Snapshot) -> bool:
+        """``src`` runs the vertex at a later move than this view and the copy's host knew of
+        (by its set's version): a move this node, hosting nothing of the app, was not told of.
+        With operator keys, only where ``src`` may tell this view so (``placement.may_tell``:
+        its host here failed or the vertex vanished), as a ``Moved`` from it would be taken."""
+        if msg.version <= max(dep.versions.get(msg.vertex, 0), copy.version):
+            return False
+        failed = self.ctx.failed
+        return not self.ctx.authority.signed or placement.may_tell(dep, msg.vertex, src, failed)
 
     # -- a producer: forgets what a replica no longer needs ------------------------------------
     def on_release(self, msg: m.Release) -> None:
@@ -726,12 +746,25 @@ def _sent_again(copy: Snapshot, snap: Snapshot) -> bool:
     ) and (copy.processed, copy.emitted) == (snap.processed, snap.emitted)  # fmt: skip
 
 
-def _replicate(app: str, vertex: str, snap: Snapshot, rid: int = 0) -> m.Replicate:
-    """``snap`` on the wire: to a replica (``rid`` 0), or to a replacement that fetched it."""
+def _replicate(
+    app: str, vertex: str, snap: Snapshot, rid: int = 0, version: int = -1
+) -> m.Replicate:
+    """``snap`` on the wire: to a replica (``rid`` 0), or to a replacement that fetched it;
+    ``version``: its host's placement version of the vertex (the copy's own if -1)."""
     return m.Replicate(
         app, vertex, snap.k, snap.state, snap.inputs, snap.outputs, snap.processed,
         snap.emitted, rid, provenance.to_wire(snap.marks), snap.markgens,
+        snap.version if version < 0 else version,
     )  # fmt: skip
+
+
+def _hosted(dep: AppState, rep: Replication) -> int:
+    """The placement version of ``rep``'s vertex here while this node runs ``rep``'s
+    instance (what its replica sets and snapshots say), else -1: it answers for itself."""
+    h = dep.instances.get(rep.vertex)
+    if h is None or h.instance != rep.instance or rep.vertex in dep.vanished:
+        return -1
+    return dep.versions.get(rep.vertex, 0)
 
 
 def usable(dep: AppState, vertex: str, restoring: Restoring) -> Snapshot | None:

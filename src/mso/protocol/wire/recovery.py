@@ -89,6 +89,9 @@ class Replicate(_Msg, tag="replicate"):
     marks: dict[int, list[int]] | None = None
     # the generations of the numberings those marks are of (mso.protocol.channel; not 0)
     markgens: dict[int, int] = msgspec.field(default_factory=dict)
+    # the vertex's placement version at the host that took it (its moves counted, as
+    # ``Moved``'s): a replica weighs a later host's replica set against its copy's
+    version: int = 0
 
 
 class ReplicaAck(_Msg, tag="replica_ack"):
@@ -125,6 +128,9 @@ class ReplicaSet(_Msg, tag="replica_set"):
     app: str
     vertex: str
     nodes: list[str]
+    # from the vertex's host: its placement version there (its moves counted, as ``Moved``'s);
+    # -1 from a node that runs no instance of it and answers for itself
+    version: int = -1
 
 
 class FetchReplica(_Msg, tag="fetch_replica"):
