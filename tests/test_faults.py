@@ -505,6 +505,10 @@ RESTARTS_BROKE = {
     "snapshot 1 of N4's last process, as that copy sent again: N2 kept the old copy, asked as "
     "one whose maker was gone, the host by its stale view (N5) said it was none, and N2 let "
     "the app go, still N4's replica (a snapshot's number counts within an instance only)",
+    353984: "the merge m, lost with N3, was restored on N1 while its consumer c on N6 was cut "
+    "off: numbered from a's ack's positions (19, where m stood when it had taken a so far), "
+    "its replay's first event took the number of b's event c had there, dropped as had (a "
+    "merge's output its consumer did not resume waits until that consumer says where it stands)",
 }
 
 

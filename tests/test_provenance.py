@@ -361,6 +361,35 @@ def test_a_merge_whose_consumer_went_with_its_node_asks_where_it_stands_first() 
         assert s.last >= 70  # it went on
 
 
+def test_a_merges_replacement_its_consumer_did_not_resume_asks_where_it_stands_first() -> None:
+    """The merge is restored in place resumed by its producers only (its consumer out of
+    reach of the restore, as the coordinator holds it). ``s1``'s last ack said where the
+    output stood when the lost instance had taken ``s1`` so far: 5 below where ``c`` stands
+    (``s2``'s events took the numbers between). Numbered from there, the merge's next events
+    took numbers ``c`` had and were dropped as had (fault seed 353984: a's replay's first
+    event). The output waits until ``c``, asked, says where it stands and what it has."""
+    vertices.RUNS.pop("provenance-moved", None)
+    sim = started(MERGE)
+    node = where(sim, "merge", "m")
+    dep = sim.cores[node].apps["merge"]
+    s1 = where(sim, "merge", "s1")
+    out = sim.cores[s1].apps["merge"].out[0]
+    out.positions = {o: p - 5 for o, p in out.positions.items()}
+    h = dep.instances.pop("m")  # its replacement, here: s2's input resumed, s1's to come
+    h.life.state, h.processed = H.AWAITING, 0
+    dep.awaiting["m"] = h
+    del dep.inc[0]
+    dep.restoring["m"] = Restoring(99, node, {(0, True)}, resumed={1}, fetched=True)
+    rewire = m.Rewire("merge", 0, node, 99, True)
+    sim.apply(s1, sim.cores[s1].receive(node, rewire, sim.now))
+    sim.run_until(sim.now + 2.0)
+    assert "m" in dep.instances and not dep.out[2].consumer_lost
+    (record,) = vertices.RUNS["provenance-moved"]
+    for s in record.streams.values():
+        assert s.duplicates == 0 and s.missing == 0 and s.first == 0, s
+        assert s.last >= 70  # it went on
+
+
 def test_a_replacement_keeps_its_consumers_marks_of_the_numbering_they_name() -> None:
     """A producer that numbers a fork's input anew says so (``Resume.fresh``) until an ack
     comes; a replacement of the fork lost before it acknowledged anything had taken that

@@ -691,6 +691,13 @@ class Restorer:
                 dep.out[o].guessed = carried is None and not known
             if vertex in dep.layout.merges:  # what it makes from here interleaves anew
                 dep.out[o].remade = dep.out[o].next_seq
+                # numbered without its consumer's word (that consumer out of reach of the
+                # restore, never resumed): an ack's positions say where the output stood when
+                # the lost instance had taken that input so far, not what it made of the
+                # other inputs after, which the consumer may have; the replay's first events
+                # took those numbers and were dropped as had (fault seed 353984). They wait
+                # until the consumer, asked, says where it stands and what it has
+                dep.out[o].consumer_lost = o not in restoring.consumer_start
             # a source numbers on from its edges' positions: its sequence never restarts
             h.asked = max(h.asked, dep.out[o].next_seq) if h.kind == "source" else h.asked
             if _fresh(dep, vertex, h.kind, snap is not None, restoring):
