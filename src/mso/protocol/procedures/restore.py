@@ -469,7 +469,7 @@ class Restorer:
             or (inc is not None and inc.expected > 0 and not inc.unheld)
             or h.from_snapshot  # numbered from its snapshot (a restore's Rewire sent again,
             # answered after it ran: renumbered, its count repeated at the sink)
-            or not all(o in msg.positions and msg.positions[o] >= 0 for o in outs)
+            or not all(self._placed_at(dep, vertex, inc, msg, o) for o in outs)
         ):
             return anew and self._follow(dep, vertex, msg)
         marks: Marks | None = {} if dep.app.edges[msg.edge].src in dep.layout.stamped else None
@@ -478,8 +478,8 @@ class Restorer:
         below = {e: g for e, g in msg.gens.items() if g and e in further}
         marked = dep.marks.get(vertex, {})
         for o in outs:
-            if o in marked:  # numbered from where its consumer stands, past its marks: kept
-                continue  # (a fork's other consumer lost too: 40794)
+            if o in marked or msg.positions.get(o, -1) < 0:  # numbered from where its
+                continue  # consumer stands, past its marks, or a guess: kept (40794, 340535)
             pos = msg.positions[o]
             self.dp.outbox.pop((dep.app.name, o), None)
             dep.out[o] = self.dp.channel(dep, o, pos)
@@ -498,6 +498,26 @@ class Restorer:
             self.ctx.send(consumer, resume)
         self.dp.touch(dep.app.name)
         return True
+
+    @staticmethod
+    def _placed_at(
+        dep: AppState, vertex: str, inc: InChannel | None, msg: m.Resume, o: int
+    ) -> bool:
+        """Whether the anchor says where output ``o`` stands, or need not: a consumer whose
+        input was started past its consumers' marks (``unheld``) keeps an output numbered
+        past its consumer's marks, or on a guess (no ack said where the lost instance's
+        output stood, none acknowledged since; its consumer, lost too, takes the guess or
+        says where it stands): the replay the producer makes from below the marks is
+        numbered there as new, and each consumer gets what it lacks. Asked for positions of
+        every output, a producer's replacement that knew none of them further down (its
+        source's edge restarted, knowing its own only) was refused, and the fork's consumer
+        lost too never got the events below the other's marks (fault seed 340535: 6)."""
+        if o in msg.positions and msg.positions[o] >= 0:
+            return True
+        if inc is None or not inc.unheld:
+            return False
+        out = dep.out.get(o)
+        return o in dep.marks.get(vertex, {}) or (out is not None and out.guessed)
 
     def _follow(self, dep: AppState, vertex: str, msg: m.Resume) -> bool:
         """A merge that keeps its output's numbering (it has processed its other inputs'
@@ -749,11 +769,13 @@ class Restorer:
                 self.ctx.send(dep.placed[dep.app.edges[o].dst], news)
             theirs = restoring.consumer_start.get(o, 0)
             guess = o in restoring.unheld and theirs > out.acked
-            if out.positions and (theirs < out.acked or guess):
+            if (out.positions and theirs < out.acked) or guess:
                 # its consumer has nothing of this edge: a replacement too, restored while
                 # this one was out of reach or before it; say where its numbering stood (or
                 # its start is past its consumers' marks, a guess: 40794, a fork's other
-                # consumer, lost too, lacks what this one makes again below them)
+                # consumer, lost too, lacks what this one makes again below them; said with
+                # no positions further down too, a source's restarted edge knowing its own
+                # only: 340535)
                 resume = m.Resume(dep.app.name, o, restoring.rid, True, out.acked, out.positions)
                 resume.gen, resume.gens = out.gen, dict(out.gens)
                 resume.renumbered = sorted(dep.renumbered.get(vertex, ()))
