@@ -509,6 +509,11 @@ RESTARTS_BROKE = {
     "off: numbered from a's ack's positions (19, where m stood when it had taken a so far), "
     "its replay's first event took the number of b's event c had there, dropped as had (a "
     "merge's output its consumer did not resume waits until that consumer says where it stands)",
+    340535: "a fork j restored on N5 with its producer a lost too started its input past b's "
+    "marks (31), its other consumer c restored fresh on a guess; a's replacement (src's node "
+    "reset at the heal, its edge knew its own position only) numbered from 25 with no "
+    "positions further down and never said so, and the fork wanted every output's position: "
+    "6 events never reached k2 (40794's start said anyway; the anchor keeps a guess)",
 }
 
 

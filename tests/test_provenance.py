@@ -556,6 +556,40 @@ def test_a_forks_marks_let_go_for_an_input_numbered_anew_hold_when_it_comes_back
         assert set(range(start + 4, s.last + 1)) <= s.seen
 
 
+def test_a_fork_started_past_one_consumers_marks_takes_a_start_below_with_no_positions() -> None:
+    """A fork restored while its producer was lost too starts its input past the marks of the
+    consumer that said where it stands (``unheld``); its other consumer, lost too, gets an
+    output numbered on a guess. The producer's replacement numbers from below the marks and
+    knows no positions further down: the fork takes its start all the same, keeps both
+    outputs (the marked one sends only what its consumer lacks, the guess is new to its
+    consumer), and the replay below the marks reaches the other consumer. Asked for every
+    output's position, it refused, and the events below the marks never reached that
+    consumer (fault seed 340535: 6). An output neither marked nor a guess still needs its
+    position."""
+    sim = started(FORK)
+    node = where(sim, "fork", "j")
+    core, dep = sim.cores[node], sim.cores[node].apps["fork"]
+    start = dep.inc.pop(0).expected  # the source's next event: its producer lost too
+    h = dep.instances.pop("j")  # its replacement
+    h.life.state, h.processed = H.AWAITING, 0
+    dep.awaiting["j"] = h
+    dep.restoring["j"] = Restoring(
+        99, "N1", set(), consumer_start={1: dep.out[1].next_seq}, fetched=True,
+        consumer_marks={1: {0: (start + 5, 0)}}, consumer_markgens={1: {}},
+    )  # fmt: skip
+    core.restorer.activate(dep, "j")
+    inc, marked, guess = dep.inc[0], dep.out[1], dep.out[3]
+    assert inc.unheld and inc.expected == start + 6 and guess.guessed
+    resume = m.Resume("fork", 0, 1234, True, start)  # from positions, none further down
+    guess.guessed = False  # (as if numbered from somewhere: its position is needed)
+    sim.apply(node, core.receive(where(sim, "fork", "s"), resume, sim.now))
+    assert dep.inc[0] is inc and inc.expected == start + 6
+    guess.guessed = True
+    sim.apply(node, core.receive(where(sim, "fork", "s"), resume, sim.now))
+    assert dep.inc[0].expected == start and not dep.inc[0].unheld
+    assert dep.out[1] is marked and dep.out[3] is guess
+
+
 def test_a_consumer_that_did_not_take_a_guessed_numbering_says_where_it_stands() -> None:
     """A fork's output was numbered on a guess from 0 (another generation), and a restore's
     rewire confirmed the guess; its consumer, running (another coordinator had restored it

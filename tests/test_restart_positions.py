@@ -12,6 +12,8 @@ N1 - N2 - N3 - N4, ``pipe`` deployed: src on N1, mid on N3, sink on N4."""
 
 from __future__ import annotations
 
+import pytest
+
 from mso.model.network import LinkSpec, Network, NodeSpec
 from mso.protocol import messages as m
 from mso.protocol.channel import InChannel, OutChannel
@@ -129,3 +131,38 @@ def test_a_told_guess_that_its_consumer_did_not_take_is_told_again_in_the_consum
     assert mid.out[1] is not guess and mid.out[1].origin == at and mid.out[1].gen == 0
     assert edge.acked == edge.positions_at == start
     assert edge.positions == {1: at} and not edge.gens
+
+
+def test_a_replacement_below_its_consumers_unheld_start_says_so_with_no_positions(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A fork's replacement started its input past one consumer's marks (``unheld``: its
+    producer was lost too, and its other consumer, lost too, lacks what lies below them). The
+    producer's replacement numbers its output from its acks' positions, below that start, and
+    knows no positions further down (a restarted source's edge knows its own only): it says
+    where it starts all the same, so that the fork takes the replay from there. Said only with
+    positions, the fork kept its start and its other consumer never got the events below the
+    marks (fault seed 340535: 6 of a source's events never reached one sink)."""
+    net = Network(
+        [NodeSpec(n) for n in ("N1", "N2", "N3", "N4")],
+        [LinkSpec(a, b, delay_ms=1.0) for a, b in (("N1", "N2"), ("N2", "N3"), ("N3", "N4"))],
+    )
+    sim = Simulation(net)
+    sim.request("N1", m.DeployRequest(pipe_app(20), "app.yaml"))
+    sim.run_until(1.0)
+    assert sim.hosts("pipe", "mid") == ["N3"] and sim.hosts("pipe", "sink") == ["N4"]
+    core = sim.cores["N3"]
+    edge = sim.cores["N1"].apps["pipe"].out[0]  # src -> mid
+    at = core.apps["pipe"].out[1].next_seq  # where mid's output stands: its replay's start
+    restoring = Restoring(
+        96, "N2", set(), resumed={0}, positions={1: at}, consumer_start={1: at + 6},
+        consumer_gen={1: 0}, unheld={1}, fetched=True,
+    )  # fmt: skip
+    mid = replacement(sim, "N3", "mid", restoring)
+    mid.inc[0] = InChannel.starting_at(edge.acked, True)
+    sent: list[tuple[str, m.Message]] = []
+    send = core.send
+    monkeypatch.setattr(core, "send", lambda dst, msg: (sent.append((dst, msg)), send(dst, msg)))
+    core.restorer.activate(mid, "mid")
+    said = [msg for dst, msg in sent if dst == "N4" and isinstance(msg, m.Resume)]
+    assert [(r.edge, r.producer, r.start, r.positions) for r in said] == [(1, True, at, {})]
