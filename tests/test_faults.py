@@ -514,6 +514,10 @@ RESTARTS_BROKE = {
     "reset at the heal, its edge knew its own position only) numbered from 25 with no "
     "positions further down and never said so, and the fork wanted every output's position: "
     "6 events never reached k2 (40794's start said anyway; the anchor keeps a guess)",
+    329996: "a relocation moved p1 from N3 to N1; N2, N3's replica, told of no move, asked N3 "
+    "whether it still was, held by a cut; N1's first snapshot replaced N3's copy, then "
+    "N3's late \"none\" (answering for itself) made N2 let it and the app go, still N1's "
+    "replica (the host by a view older than the copy's move does not settle it)",
 }
 
 

@@ -424,6 +424,24 @@ def test_a_set_from_a_move_older_than_the_copys_does_not_settle_it() -> None:
     assert dep.held["mid"].src == "N5" and core.refusals["replica_set_not_from_host"] == 1
 
 
+def test_the_old_hosts_none_does_not_settle_a_copy_made_at_a_later_move() -> None:
+    """N2's view, never told of the counter's move, still places it on N1; the counter's new
+    host N5 sends N2 its first snapshot (at the move's version, 1), which replaces N1's copy.
+    N1's answer to an ask sent before (held by a cut: "none", as it answers for itself) is
+    the word of the host by a view older than the copy: refused, the copy and the app kept.
+    Taken, N2 let both go while N5 named it its replica to the end (fault seed 329996). The
+    copy's maker still settles it."""
+    core, dep = _replica_of_mid_on_n1()
+    core.receive(
+        "N5", m.Replicate("pipe", "mid", 1, b"\x09", {0: 20}, {1: (20, [])}, version=1), 1.5
+    )
+    core.receive("N1", m.ReplicaSet("pipe", "mid", []), 2.0)
+    assert dep.held["mid"].src == "N5" and core.refusals["replica_set_not_from_host"] == 1
+    assert dep.placed["mid"] == "N1"  # (its view, unchanged)
+    core.receive("N5", m.ReplicaSet("pipe", "mid", ["N4"], 1), 2.5)
+    assert "mid" not in dep.held
+
+
 def test_with_operator_keys_a_later_hosts_set_counts_only_where_it_may_tell() -> None:
     """With operator keys a node's claim of a later move is taken as a ``Moved`` from it would
     be (``placement.may_tell``): a member naming any version cannot make a replica drop its

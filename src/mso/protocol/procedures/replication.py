@@ -626,7 +626,8 @@ class Replicator:
             self.ctx.refusal("replica_set_invalid")
             return
         copy = dep.held.get(msg.vertex)
-        if copy is not None and src not in (copy.src, dep.placed.get(msg.vertex), self.ctx.id):
+        host = self._host_of(dep, msg.vertex, copy) if copy is not None else ""
+        if copy is not None and src not in (copy.src, host, self.ctx.id):
             # a copy is dropped on the word of the instance that made it, or of the vertex's
             # host: a node that once hosted it answers for itself, "none" (seed 87093: a
             # replica asked the vertex's host before a move it heard of late, and dropped the
@@ -652,6 +653,18 @@ class Replicator:
         dep.replica_nodes[msg.vertex] = list(msg.nodes)
         if self.ctx.id not in msg.nodes and src != self.ctx.id:
             dep.held.pop(msg.vertex, None)
+
+    def _host_of(self, dep: AppState, vertex: str, copy: Snapshot) -> str:
+        """The vertex's host by this view, whose word settles ``copy`` -- none if the copy
+        was made at a later move than the view knows of (a node hosting nothing of the app
+        is not told of moves): that host ran an instance before the copy's, and its set
+        ("none", as it answers for itself) says nothing of the copy (fault seed 329996: a
+        replica's ask of the counter's old host, held by a cut, was answered after the heal,
+        once the new host's first snapshot had replaced the old host's copy here; the
+        replica let that copy, and the app, go, and the new host named it to the end)."""
+        if copy.version > dep.versions.get(vertex, 0):
+            return ""
+        return dep.placed.get(vertex, "")
 
     def _later_host(self, dep: AppState, src: str, msg: m.ReplicaSet, copy: Snapshot) -> bool:
         """``src`` runs the vertex at a later move than this view and the copy's host knew of
