@@ -488,7 +488,7 @@ class NodeCore:
     def _receive_frame(self, src: str, frame: m.Sequenced, now: float) -> list[Effect]:
         """A frame of ``src``'s control stream: its messages, in order and once. A node held
         failed is heard only to rejoin: its frames are taken (acknowledged) and dropped."""
-        ready = self.streams.receive(src, frame, now)
+        ready = self.streams.receive(src, frame, now, self.incarnation)
         self._stream_wake(now + ACK_DELAY_S)
         if src in self.membership.failed:
             self.dropped_messages += len(ready)
@@ -598,7 +598,8 @@ class NodeCore:
         elif type(msg) in UNSEQUENCED:
             self._effects.append(Send(dst, msg))
         else:
-            frame = self.streams.wrap(dst, msg, self.incarnation, self._now)
+            to = max(self.incarnation_of(dst, -1), self.streams.incarnation_of(dst))
+            frame = self.streams.wrap(dst, msg, self.incarnation, self._now, to)
             self._effects.append(Send(dst, frame))
             self._stream_wake(self._now + RTO_S)
 
@@ -619,6 +620,7 @@ class NodeCore:
     def _on_peer_rejoined(self, ev: PeerRejoined) -> None:
         if ev.restarted:  # a new process: what its predecessor was not sent is not for it
             self.streams.forget(ev.node)
+        self.streams.heard_of(ev.node, self.incarnation_of(ev.node, -1))  # (or reset)
 
     def _on_routes_changed(self, ev: RoutesChanged) -> None:
         for node in ev.appeared:

@@ -22,7 +22,20 @@ numbers bytes, end to end across the overlay's hops:
   else in a :class:`~mso.protocol.messages.Got` of its own.
 
 A stream is one incarnation's (a reset or a restart starts new ones); a frame of an earlier
-incarnation than the receiver has seen is dropped. Data frames (events and their acks, which
+incarnation than the receiver has seen is dropped. A frame also names its receiver's
+incarnation as its sender knows it (``to``: the latest its membership or the receiver's own
+stream told it; -1 unknown, then nothing is checked): a frame sent, or sent again, before its
+sender heard of the receiver's reset or restart reached the new process, which took it for its
+own (fault seed 314611: a ``Switch`` sent again at a heal to a restarted target). A later
+process takes such a frame in its turn and acknowledges it, as any, but does not deliver it
+(the sender stops sending it; it hears of the restart as before, from the new process's
+beats); the sender gives the frames kept for an earlier incarnation up whenever it hears of a
+later one (a frame of the receiver's stream of that incarnation, a rejoin, or a frame sent for
+it). A reset bumps the incarnation too: what was sent for the process before it was for
+procedures and apps it dropped, and a reply to what it asked since is for its new incarnation
+(the request's own frame told its sender). An undeploy, a word
+for whichever process runs there rather than a step of a procedure with one
+(:data:`FOR_ANY_INCARNATION`), goes for any. Data frames (events and their acks, which
 channels number and replay themselves), markers (which travel in order with data), heartbeats,
 liveness questions (worth nothing late) and the status check go as they are.
 """
@@ -71,12 +84,19 @@ UNSEQUENCED: frozenset[type] = frozenset(
 """What goes as it is (see the module docstring). Probes measure the path they take, and
 a deployment or remap probes again on its own deadline."""
 
+FOR_ANY_INCARNATION: frozenset[type] = frozenset({m.StopApp})
+"""Not a step of a procedure with the receiver's process but a word for whichever runs there:
+an undeploy (an operator's binds every process, and is told to every node in reach again
+precisely because it may have restarted). Sent with ``to`` -1, kept when its sender hears of
+a later process."""
+
 
 @dataclass
 class _Sent:
     msg: m.Message
     first: float
     last: float
+    anyone: bool  # for whichever process runs at the receiver (FOR_ANY_INCARNATION)
 
 
 @dataclass
@@ -84,6 +104,7 @@ class _Out:
     """What this node sends one peer: the frames it has not had acknowledged."""
 
     inc: int
+    to: int = -1  # the receiver's incarnation its frames are for (-1: unknown)
     next_seq: int = 0
     unacked: OrderedDict[int, _Sent] = field(default_factory=OrderedDict)
     rto: float = RTO_S
@@ -101,7 +122,7 @@ class _In:
 
     inc: int
     next_seq: int = 0
-    held: dict[int, m.Message] = field(default_factory=dict)
+    held: dict[int, m.Message | None] = field(default_factory=dict)  # None: misaddressed
 
 
 class ControlStreams:
@@ -115,28 +136,32 @@ class ControlStreams:
         self.given_up = 0  # frames never acknowledged: timed out, bounded out, peer gone
         self.duplicates = 0  # frames that came again, dropped
         self.stale = 0  # frames of an earlier incarnation of their sender, dropped
+        self.misaddressed = 0  # frames for an earlier incarnation of this node, dropped
 
     # -- sending ---------------------------------------------------------------------------
-    def wrap(self, dst: str, msg: m.Message, inc: int, now: float) -> m.Sequenced:
-        """``msg`` as the next frame of this node's (incarnation ``inc``) stream to ``dst``."""
+    def wrap(self, dst: str, msg: m.Message, inc: int, now: float, to: int = -1) -> m.Sequenced:
+        """``msg`` as the next frame of this node's (incarnation ``inc``) stream to ``dst``,
+        for ``dst``'s incarnation ``to`` (-1: unknown)."""
         out = self._out.get(dst)
         if out is None or out.inc != inc:  # a reset or a first frame: a new stream
             if out is not None:
                 self.given_up += len(out.unacked)
             out = self._out[dst] = _Out(inc)
+        self.heard_of(dst, to)
         seq = out.next_seq
         out.next_seq += 1
-        out.unacked[seq] = _Sent(msg, now, now)
+        sent = out.unacked[seq] = _Sent(msg, now, now, type(msg) in FOR_ANY_INCARNATION)
         if len(out.unacked) > MAX_UNACKED:
             out.unacked.popitem(last=False)
             self.given_up += 1
         if out.due is None:
             out.due = now + out.rto
-        return self._frame(dst, out, seq, msg)
+        return self._frame(dst, out, seq, sent)
 
-    def _frame(self, dst: str, out: _Out, seq: int, msg: m.Message) -> m.Sequenced:
+    def _frame(self, dst: str, out: _Out, seq: int, sent: _Sent) -> m.Sequenced:
         ack_inc, ack = self._take_ack(dst)
-        return m.Sequenced(out.inc, seq, out.low, msg, ack_inc, ack)
+        to = -1 if sent.anyone else out.to
+        return m.Sequenced(out.inc, seq, out.low, sent.msg, ack_inc, ack, to)
 
     def _take_ack(self, peer: str) -> tuple[int, int]:
         if self._ack_due.pop(peer, None) is None:
@@ -159,6 +184,28 @@ class ControlStreams:
         if acked:
             out.rto = RTO_S
             out.due = now + out.rto if out.unacked else None
+
+    def heard_of(self, peer: str, inc: int) -> None:
+        """``peer`` runs incarnation ``inc`` (or a later one): frames kept for an earlier one
+        are given up (that process died or reset: it would drop them; those for any process
+        stay), and what is sent or sent again from now on is for this one."""
+        out = self._out.get(peer)
+        if out is None or inc <= out.to:
+            return
+        if out.to >= 0:
+            for seq in [q for q, sent in out.unacked.items() if not sent.anyone]:
+                del out.unacked[seq]
+                self.given_up += 1
+            if not out.unacked:
+                out.due = None
+        out.to = inc
+
+    def incarnation_of(self, peer: str) -> int:
+        """The incarnation of ``peer`` this node's frames are for (-1: none known here): the
+        latest of those sent for and of ``peer``'s own stream here."""
+        out = self._out.get(peer)
+        got = self._in.get(peer)
+        return max(out.to if out is not None else -1, got.inc if got is not None else -1)
 
     def forget(self, peer: str) -> None:
         """``peer`` is held failed or came back as a new process: what it was not sent is
@@ -185,11 +232,15 @@ class ControlStreams:
         self._out.clear()
 
     # -- receiving -------------------------------------------------------------------------
-    def receive(self, src: str, frame: m.Sequenced, now: float) -> list[m.Message]:
-        """The messages ``frame`` makes deliverable, in order (none, it, or it and those
-        held behind it)."""
+    def receive(self, src: str, frame: m.Sequenced, now: float, inc: int) -> list[m.Message]:
+        """The messages ``frame`` makes deliverable to this node (incarnation ``inc``), in
+        order (none, it, or it and those held behind it). One for an earlier incarnation of
+        this node (:meth:`misaddressed_to`) is taken in its turn and acknowledged, as any,
+        but not delivered."""
         if frame.ack >= 0:
             self.on_got(src, frame.ack_inc, frame.ack, now)
+        body = None if self.misaddressed_to(frame, inc) else frame.body
+        self.heard_of(src, frame.inc)
         got = self._in.get(src)
         if got is None or frame.inc > got.inc:  # a first frame, or a new process or reset
             got = _In(frame.inc, frame.low)
@@ -209,14 +260,24 @@ class ControlStreams:
             return []
         if frame.seq > got.next_seq:
             if len(got.held) < MAX_HELD:
-                got.held[frame.seq] = frame.body
+                got.held[frame.seq] = body
             return []
-        ready = [frame.body]
-        got.next_seq += 1
-        while (body := got.held.pop(got.next_seq, None)) is not None:
-            ready.append(body)
+        got.held[frame.seq] = body
+        ready: list[m.Message] = []
+        while got.next_seq in got.held:
+            taken = got.held.pop(got.next_seq)
             got.next_seq += 1
+            if taken is None:
+                self.misaddressed += 1
+            else:
+                ready.append(taken)
         return ready
+
+    @staticmethod
+    def misaddressed_to(frame: m.Sequenced, inc: int) -> bool:
+        """``frame`` was sent for an earlier process of this node (incarnation ``inc``): one
+        that died or reset before its sender heard of it."""
+        return 0 <= frame.to < inc
 
     def _bound_peers(self) -> None:
         """Past MAX_PEERS, the least recently heard peer is forgotten (one holding nothing
@@ -250,7 +311,7 @@ class ControlStreams:
                 continue
             for seq, sent in out.unacked.items():
                 sent.last = now
-                sends.append((peer, self._frame(peer, out, seq, sent.msg)))
+                sends.append((peer, self._frame(peer, out, seq, sent)))
                 self.resent += 1
             out.rto = min(out.rto * 2, RTO_MAX_S)
             out.due = now + out.rto
@@ -277,4 +338,5 @@ class ControlStreams:
             "given_up": self.given_up,
             "duplicates": self.duplicates,
             "stale": self.stale,
+            "misaddressed": self.misaddressed,
         }

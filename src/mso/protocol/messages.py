@@ -80,7 +80,9 @@ class Sequenced(msgspec.Struct, tag_field="t", tag="seq", array_like=True):
     by the sender until acknowledged and sent again, delivered once and in order. ``low``:
     the lowest number the sender still holds for this receiver (nothing below it will come:
     given up or acknowledged). ``ack``/``ack_inc``: an acknowledgement of the receiver's own
-    stream to the sender, piggybacked (-1: none)."""
+    stream to the sender, piggybacked (-1: none). ``to``: the receiver's incarnation as the
+    sender knows it (-1: unknown); a later process of the receiver drops the frame, which was
+    for one that died or reset."""
 
     inc: int
     seq: int
@@ -88,6 +90,7 @@ class Sequenced(msgspec.Struct, tag_field="t", tag="seq", array_like=True):
     body: Message
     ack_inc: int = -1
     ack: int = -1
+    to: int = -1
 
 
 class Got(msgspec.Struct, tag_field="t", tag="got", array_like=True):
