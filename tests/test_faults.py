@@ -518,6 +518,11 @@ RESTARTS_BROKE = {
     "whether it still was, held by a cut; N1's first snapshot replaced N3's copy, then "
     "N3's late \"none\" (answering for itself) made N2 let it and the app go, still N1's "
     "replica (the host by a view older than the copy's move does not settle it)",
+    327842: "N3 restored s2, b, m, c on N4 while N5, running m, was cut off; b's guess (m's "
+    "replacement took it) stood at 10 in s2's positions, carried over N4's reset at the heal; "
+    "N5 restored b from them while m stood at 18 in the first numbering: the restarted "
+    "source's first 8 events were dropped as had (a survivor past the acks' positions, in "
+    "another numbering, numbers the replacement's output)",
 }
 
 

@@ -166,3 +166,29 @@ def test_a_replacement_below_its_consumers_unheld_start_says_so_with_no_position
     core.restorer.activate(mid, "mid")
     said = [msg for dst, msg in sent if dst == "N4" and isinstance(msg, m.Resume)]
     assert [(r.edge, r.producer, r.start, r.positions) for r in said] == [(1, True, at, {})]
+
+
+def test_a_survivor_past_the_acks_positions_in_another_numbering_numbers_the_output() -> None:
+    """The producer's acks say where a replacement's output stood in a numbering a twin of
+    its consumer took (restored across a cut, lost since), and the consumer that answers the
+    rewire survived the cut: it stands past those positions in its own numbering, which it
+    never left. Its word wins, and the producer is told where the input's start stands in
+    it. Numbered from the acks' positions, what the replacement made took numbers below where
+    the consumer stood, and it dropped them as had (fault seed 327842: a restarted source's
+    first 8 events)."""
+    sim, edge, mid = guessed_mid()
+    start, guess = edge.acked, mid.out[1]
+    sink = sim.cores["N4"].apps["pipe"]
+    at = sink.inc[1].expected  # the sink, running in the first numbering all along
+    assert at > 5 and sink.inc[1].gen == 0 and guess.gen
+    again = Restoring(
+        97, "N2", set(), resumed={0}, positions={1: at - 5}, gens={1: guess.gen},
+        consumer_start={1: at}, consumer_gen={1: 0}, fetched=True,
+    )  # fmt: skip
+    mid = replacement(sim, "N3", "mid", again)
+    mid.inc[0] = InChannel.starting_at(start, True)
+    sim.cores["N3"].restorer.activate(mid, "mid")
+    assert mid.out[1].origin == at and mid.out[1].gen == 0 and not mid.out[1].guessed
+    sim.run_until(sim.now + 0.05)
+    assert edge.acked == edge.positions_at == start
+    assert edge.positions == {1: at} and not edge.gens

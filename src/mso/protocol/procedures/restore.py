@@ -668,6 +668,12 @@ class Restorer:
         ins = {i for i, e in enumerate(dep.app.edges) if e.dst == vertex}
         new = h.kind == "source" or (snap is None and bool(ins) and ins <= restoring.new)
         for o in outs:
+            if snap is None and _past_in_another(restoring, o):  # its consumer's numbering
+                # wins: the acks' positions, there and further down, are of a lineage it
+                # never took (fault seed 327842)
+                restoring.positions = {e: p for e, p in restoring.positions.items() if e in outs}
+                del restoring.positions[o]
+                restoring.gens = _known(restoring.gens, restoring.positions)
             base = restoring.positions.get(o, restoring.consumer_start.get(o, 0))
             marks = restoring.consumer_marks.get(o) if snap is None or forwarder else None
             if marks:  # held by generation too: an input numbered anew below, whose marks
@@ -1105,6 +1111,24 @@ def _anew(dep: AppState, restoring: Restoring, o: int) -> set[int]:
     aside as of a numbering gone, the next replacement sent the consumer 9 events again)."""
     named = restoring.consumer_markgens.get(o, {})
     return {i for i in restoring.fresh if not (g := dep.inc[i].gen) or named.get(i) != g}
+
+
+def _past_in_another(restoring: Restoring, o: int) -> bool:
+    """The consumer of output ``o``, one that survived (running: it answered the rewire),
+    stands past the position the producers' acks gave ``o``, in another numbering (another
+    generation): those positions are of a lineage restored across a cut and lost since (a
+    twin of this consumer took that numbering), which this consumer never took.
+    Numbered from them, the replay and the new events took numbers below where it stands
+    and it dropped them as had (fault seed 327842: ``b``, restored after a heal that reset
+    its node, numbered from its source's carried positions, 10 in the lost twin's guess;
+    the merge ``m``, cut off all along, stood at 18 in the first numbering and dropped a
+    restarted source's first 8 events). Not a consumer whose start is a guess (past its
+    consumers' marks, ``unheld``): that one takes the producer's numbering (105902)."""
+    if o not in restoring.positions or o not in restoring.consumer_start:
+        return False
+    if o in restoring.unheld or restoring.consumer_start[o] <= restoring.positions[o]:
+        return False
+    return restoring.consumer_gen.get(o, 0) != restoring.gens.get(o, 0)
 
 
 def _new_past(out: OutChannel) -> bool:
