@@ -523,6 +523,11 @@ RESTARTS_BROKE = {
     "N5 restored b from them while m stood at 18 in the first numbering: the restarted "
     "source's first 8 events were dropped as had (a survivor past the acks' positions, in "
     "another numbering, numbers the replacement's output)",
+    363254: "N3 restored the merge m on N1 holding b alive on N4, which had reset: N4's "
+    "replacement of b, not running yet, answered m's rewire from a channel made for it, at 0 "
+    "in the deployment's numbering, and m kept c's marks of b's input (32): 33 of the "
+    "restarted s2's events dropped as had (a producer's replacement with no channel answers "
+    "in a numbering made anew)",
 }
 
 

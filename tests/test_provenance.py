@@ -645,6 +645,38 @@ def test_a_merge_that_holds_no_channel_of_an_input_answers_in_a_numbering_made_a
     assert dep.renumbered["m"] == {0}
 
 
+def test_a_producers_replacement_not_running_answers_a_rewire_in_a_numbering_made_anew() -> None:
+    """A producer's replacement not running yet holds no channel of its output (its node
+    reset); the restore of its consumer, by another coordinator that held the producer alive,
+    asks it where the edge stands. It stands nowhere, and what it will make is numbered anew:
+    its answer is of a generation of its own, said ``fresh``, and it makes no channel for it
+    (its activation makes its own). Said from a channel made for the answer, at 0 in the
+    deployment's numbering, the merge's replacement kept its consumer's marks of that input
+    and dropped a restarted source's first 33 events as had (fault seed 363254)."""
+    vertices.RUNS.pop("provenance-fork", None)
+    sim = started(FORK)
+    node, sink = where(sim, "fork", "c"), where(sim, "fork", "k2")
+    core, dep = sim.cores[node], sim.cores[node].apps["fork"]
+
+    def answer() -> m.Resume:
+        effects = core.receive(node, m.Rewire("fork", 4, sink, 1234, True), sim.now)
+        sent = [e.said for e in effects if isinstance(e, fx.Send) and e.dst == sink]
+        (said,) = [r for r in sent if isinstance(r, m.Resume)]
+        assert said.producer
+        return said
+
+    kept = answer()  # running, with its channel: where it stands, in its numbering
+    assert kept.start > 0 and kept.gen == 0 and not kept.fresh
+    h = dep.instances.pop("c")  # its replacement, its node reset: no channel of its output
+    h.life.state, h.processed = H.AWAITING, 0
+    dep.awaiting["c"] = h
+    dep.restoring["c"] = Restoring(98, node, {(3, True)}, fetched=True)
+    del dep.out[4]
+    anew = answer()
+    assert anew.start == 0 and anew.fresh and anew.gen != 0
+    assert 4 not in dep.out  # (made at its activation)
+
+
 def test_a_merges_replacement_tells_a_forwarder_that_survived_which_inputs_are_new() -> None:
     """A forwarder restored earlier holds its consumer's marks of the merge's inputs until an
     event goes past them; the producer of one input was lost meanwhile, so nothing did. The

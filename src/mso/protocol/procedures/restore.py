@@ -111,7 +111,12 @@ class Restorer:
         if msg.rid:  # a restore's: the instance where our view held it is replaced (a
             # producer's, still running cut off, sends on in its own numbering: 162674)
             dep.view.restored(replaced, msg.to)
-        if msg.producer:  # we produce: say where we stand, then replay what is unacked
+        if msg.producer and self._made_anew(dep, ours, msg.edge):
+            dep.placed[edge.dst] = msg.to
+            anew = m.Resume(msg.app, msg.edge, msg.rid, True, 0, gen=self._new_generation())
+            anew.fresh = True
+            self.ctx.send(msg.to, anew)
+        elif msg.producer:  # we produce: say where we stand, then replay what is unacked
             dep.placed[edge.dst] = msg.to
             self.dp.outbox.pop((msg.app, msg.edge), None)  # those events are in the replay
             out = self.dp.out(dep, msg.edge)
@@ -161,6 +166,21 @@ class Restorer:
             if msg.edge not in dep.inc and edge.dst in dep.layout.stamped:
                 self._nothing_of(dep, edge.dst, msg.edge, msg.rid)
             self.ctx.send(msg.to, self._standing(dep, msg.edge, msg.rid))
+
+    @staticmethod
+    def _made_anew(dep: AppState, ours: str, edge: int) -> bool:
+        """Our end of ``edge``, its producer, is a replacement (or a move's target) not
+        running yet with no channel of the edge (its node reset): it stands nowhere, and what
+        it will make is numbered anew (its activation makes its own channel), so its answer
+        to a rewire says so: a generation of its own, ``Resume.fresh``. Said from a channel
+        made for the answer, at 0 in the deployment's numbering, the consumer's replacement (a
+        merge, restored by a coordinator that held this producer alive) kept its consumer's
+        marks of that input, of the lost producer's numbering, and dropped a restarted
+        source's first 33 events as had (fault seed 363254). Not a source: what it numbers
+        from is its edge carried over in the node's store (as before)."""
+        return (
+            ours not in dep.instances and edge not in dep.out and dep.layout.kinds[ours] != "source"
+        )
 
     def _nothing_of(self, dep: AppState, vertex: str, edge: int, rid: int) -> None:
         """A running merge or fork holds no channel of ``edge`` (its replacement resumed its
