@@ -20,6 +20,7 @@ from mso.protocol.procedures.instance import H
 from mso.protocol.state import AppState, Restoring
 from mso.runtime.worker import VertexWorker
 from mso.sim import faults, vertices
+from mso.sim.runner import Simulation
 from test_failure import started, where
 
 
@@ -617,6 +618,15 @@ def test_a_consumer_that_did_not_take_a_guessed_numbering_says_where_it_stands()
     assert s.last >= before + 40  # it went on
 
 
+def rewire_answer(sim: Simulation, node: str, rewire: m.Rewire) -> m.Resume:
+    """The ``Resume`` ``node`` answers a restore's ``rewire`` with (sent to its other end)."""
+    effects = sim.cores[node].receive(node, rewire, sim.now)
+    sent = [e.said for e in effects if isinstance(e, fx.Send) and e.dst == rewire.to]
+    (said,) = [r for r in sent if isinstance(r, m.Resume)]
+    assert said.producer == rewire.producer
+    return said
+
+
 def test_a_merge_that_holds_no_channel_of_an_input_answers_in_a_numbering_made_anew() -> None:
     """A running merge's replacement resumed only its other input (this one's producer was
     lost too, and no marks named it then); the producer's replacement asks where it stands.
@@ -626,14 +636,10 @@ def test_a_merge_that_holds_no_channel_of_an_input_answers_in_a_numbering_made_a
     the merge's forwarder by the sink's marks of the first numbering)."""
     sim = started(MERGE)
     node, s1 = where(sim, "merge", "m"), where(sim, "merge", "s1")
-    core, dep = sim.cores[node], sim.cores[node].apps["merge"]
+    dep = sim.cores[node].apps["merge"]
 
     def answer() -> m.Resume:
-        effects = core.receive(node, m.Rewire("merge", 0, s1, 1234, False), sim.now)
-        sent = [e.said for e in effects if isinstance(e, fx.Send) and e.dst == s1]
-        (said,) = [r for r in sent if isinstance(r, m.Resume)]
-        assert not said.producer
-        return said
+        return rewire_answer(sim, node, m.Rewire("merge", 0, s1, 1234, False))
 
     held = dep.inc[0].expected
     kept = answer()  # a channel it holds: where it stands, in the numbering it took
@@ -656,14 +662,10 @@ def test_a_producers_replacement_not_running_answers_a_rewire_in_a_numbering_mad
     vertices.RUNS.pop("provenance-fork", None)
     sim = started(FORK)
     node, sink = where(sim, "fork", "c"), where(sim, "fork", "k2")
-    core, dep = sim.cores[node], sim.cores[node].apps["fork"]
+    dep = sim.cores[node].apps["fork"]
 
     def answer() -> m.Resume:
-        effects = core.receive(node, m.Rewire("fork", 4, sink, 1234, True), sim.now)
-        sent = [e.said for e in effects if isinstance(e, fx.Send) and e.dst == sink]
-        (said,) = [r for r in sent if isinstance(r, m.Resume)]
-        assert said.producer
-        return said
+        return rewire_answer(sim, node, m.Rewire("fork", 4, sink, 1234, True))
 
     kept = answer()  # running, with its channel: where it stands, in its numbering
     assert kept.start > 0 and kept.gen == 0 and not kept.fresh

@@ -23,12 +23,16 @@ from mso.sim.runner import Simulation
 from runtime_vertices import pipe_app
 
 
-def test_a_restarted_sources_edge_keeps_its_consumers_positions_at_its_new_start() -> None:
-    net = Network(
+def line_of_four() -> Network:
+    """N1 - N2 - N3 - N4, 1 ms a hop: ``pipe``'s source on N1, its sink pinned on N4."""
+    return Network(
         [NodeSpec(n) for n in ("N1", "N2", "N3", "N4")],
         [LinkSpec(a, b, delay_ms=1.0) for a, b in (("N1", "N2"), ("N2", "N3"), ("N3", "N4"))],
     )
-    sim = Simulation(net)
+
+
+def test_a_restarted_sources_edge_keeps_its_consumers_positions_at_its_new_start() -> None:
+    sim = Simulation(line_of_four())
     sim.request("N1", m.DeployRequest(pipe_app(20), "app.yaml"))
     sim.run_until(1.5)
     assert sim.hosts("pipe", "mid") == ["N3"]
@@ -62,11 +66,7 @@ def guessed_mid() -> tuple[Simulation, OutChannel, AppState]:
     """``pipe`` on a line, the sink's acks lost (nothing is acknowledged upstream: a cut
     further down), and mid on N3 replaced with its consumer lost too: its output is a guess.
     The source's edge, and mid's."""
-    net = Network(
-        [NodeSpec(n) for n in ("N1", "N2", "N3", "N4")],
-        [LinkSpec(a, b, delay_ms=1.0) for a, b in (("N1", "N2"), ("N2", "N3"), ("N3", "N4"))],
-    )
-    sim = Simulation(net)
+    sim = Simulation(line_of_four())
     sim.drop = lambda src, dst, msg: src == "N4" and isinstance(msg, m.Ack)
     sim.request("N1", m.DeployRequest(pipe_app(20), "app.yaml"))
     sim.run_until(1.0)
@@ -143,11 +143,7 @@ def test_a_replacement_below_its_consumers_unheld_start_says_so_with_no_position
     where it starts all the same, so that the fork takes the replay from there. Said only with
     positions, the fork kept its start and its other consumer never got the events below the
     marks (fault seed 340535: 6 of a source's events never reached one sink)."""
-    net = Network(
-        [NodeSpec(n) for n in ("N1", "N2", "N3", "N4")],
-        [LinkSpec(a, b, delay_ms=1.0) for a, b in (("N1", "N2"), ("N2", "N3"), ("N3", "N4"))],
-    )
-    sim = Simulation(net)
+    sim = Simulation(line_of_four())
     sim.request("N1", m.DeployRequest(pipe_app(20), "app.yaml"))
     sim.run_until(1.0)
     assert sim.hosts("pipe", "mid") == ["N3"] and sim.hosts("pipe", "sink") == ["N4"]
