@@ -538,15 +538,7 @@ def test_restart_seeds_that_once_broke_hold(seed: int) -> None:
 
 # seeds of the schedules with daemon restarts and control frames lost at random
 # (``bench/faults.py --control-loss 0.05``) that broke
-CONTROL_LOSS = faults.Settings(
-    start_s=1.0,
-    faults_s=3.0,
-    quiet_s=4.0,
-    rate=10.0,
-    restarts=True,
-    planner="paper",
-    control_loss=0.05,
-)
+CONTROL_LOSS = dataclasses.replace(RESTARTS, planner="paper", control_loss=0.05)
 CONTROL_LOSS_BROKE = {
     68: "b moved N1 -> N2 (N1 coordinating) and the producer s2's Marker to N1 was lost; the "
     "Switch sent again each second was dropped as switched already: the move never ended, N1 "
@@ -580,8 +572,8 @@ def test_invariants_hold_with_daemon_restarts(seed: int) -> None:
 
 
 # seeds of the benchmark's phases (bench/faults.py) that once broke an invariant, with what
-# broke them; each cause also has its own scenario below where one could be built small
-BENCH = faults.Settings(start_s=1.0, faults_s=3.0, quiet_s=4.0, rate=10.0, restarts=False)
+# broke them (on BENCH's settings); each cause also has its own scenario below where one
+# could be built small
 FIXED: dict[int, str] = {
     808: "a consumer waited for ever for events a parked chain had dropped",
     1020: "a node that missed the app's sync refused every restore",

@@ -626,8 +626,11 @@ class Replicator:
             self.ctx.refusal("replica_set_invalid")
             return
         copy = dep.held.get(msg.vertex)
-        host = self._host_of(dep, msg.vertex, copy) if copy is not None else ""
-        if copy is not None and src not in (copy.src, host, self.ctx.id):
+        settles = copy is None or (
+            src in (copy.src, self._host_of(dep, msg.vertex, copy), self.ctx.id)
+            or self._later_host(dep, src, msg, copy)
+        )
+        if copy is not None and not settles:
             # a copy is dropped on the word of the instance that made it, or of the vertex's
             # host: a node that once hosted it answers for itself, "none" (seed 87093: a
             # replica asked the vertex's host before a move it heard of late, and dropped the
@@ -642,12 +645,10 @@ class Replicator:
             # host's set was refused on its old view (control loss seed 731: the replica of a
             # vertex moved in the quiet phase held the copy, and the app, until it asked the
             # old host a second later, then held the app past the quiet phase)
-            if self._later_host(dep, src, msg, copy):
-                pass
-            elif src != copy.fetched_by:
+            if src != copy.fetched_by:
                 self.ctx.refusal("replica_set_not_from_host")
                 return
-            elif msg.vertex not in dep.lost(self.ctx.failed):
+            if msg.vertex not in dep.lost(self.ctx.failed):
                 self.ctx.refusal("replica_set_by_fetcher_of_a_vertex_not_lost")
                 return
         dep.replica_nodes[msg.vertex] = list(msg.nodes)

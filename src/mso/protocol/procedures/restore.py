@@ -685,7 +685,7 @@ class Restorer:
         renew: dict[int, list[int]] = {}  # output -> inputs its forwarder's marks name anew
         # what it makes is new (a source's next events, or made of such only): none of it is
         # what its lost instance made, whose numbers may be named downstream (266014)
-        ins = {i for i, e in enumerate(dep.app.edges) if e.dst == vertex}
+        ins = set(dep.in_edges.get(vertex, ()))
         new = h.kind == "source" or (snap is None and bool(ins) and ins <= restoring.new)
         for o in outs:
             if snap is None and _past_in_another(restoring, o):  # its consumer's numbering
@@ -1180,5 +1180,5 @@ def _fresh(dep: AppState, vertex: str, kind: str, from_replica: bool, r: Restori
         return True
     if not from_replica and has_state(dep.app.vertices[vertex]):
         return True
-    ins = {i for i, e in enumerate(dep.app.edges) if e.dst == vertex}
+    ins = set(dep.in_edges.get(vertex, ()))
     return not ins <= r.resumed
